@@ -1,0 +1,1 @@
+"""Device drivers behind one API (``devices.base``), each with a simulated twin (``devices.twins``)."""

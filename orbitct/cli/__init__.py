@@ -1,0 +1,1 @@
+"""The ``orbitct`` command line (sits on top of every package)."""

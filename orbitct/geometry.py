@@ -1,0 +1,403 @@
+"""Per-view cone-beam geometry: the one place that speaks ``geometry.md``.
+
+A :class:`ViewGeometry` is immutable. It holds ``(N, 12)`` vectors ``S, D, u, v``
+(ASTRA ``cone_vec`` order, object frame, millimetres) and the :class:`Detector`
+they refer to; every operation returns a new object.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from orbitct.rotations import rot_x, rot_z
+
+__all__ = ["Detector", "GeometryError", "ViewGeometry", "ideal_bench_pose"]
+
+
+class GeometryError(ValueError):
+    """Geometry input of the wrong shape or meaning."""
+
+
+@dataclass(frozen=True)
+class Detector:
+    """Flat-panel detector: frame shape and pixel pitch (mm)."""
+
+    rows: int
+    cols: int
+    pitch_col: float
+    pitch_row: float
+
+    def __post_init__(self) -> None:
+        if int(self.rows) < 1 or int(self.cols) < 1:
+            raise GeometryError(f"detector rows and cols must be >= 1, got rows={self.rows}, cols={self.cols}")
+        if not (self.pitch_col > 0 and self.pitch_row > 0):
+            raise GeometryError(
+                f"detector pitches must be > 0 mm, got pitch_col={self.pitch_col}, pitch_row={self.pitch_row}"
+            )
+        object.__setattr__(self, "rows", int(self.rows))
+        object.__setattr__(self, "cols", int(self.cols))
+        object.__setattr__(self, "pitch_col", float(self.pitch_col))
+        object.__setattr__(self, "pitch_row", float(self.pitch_row))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Frame shape ``(rows, cols)``."""
+        return (self.rows, self.cols)
+
+    @property
+    def pitch_mm(self) -> tuple[float, float]:
+        """``(column pitch, row pitch)`` as stored in scan files."""
+        return (self.pitch_col, self.pitch_row)
+
+    @property
+    def center(self) -> tuple[float, float]:
+        """Pixel coordinate ``(col, row)`` of the detector centre ``D``."""
+        return ((self.cols - 1) / 2.0, (self.rows - 1) / 2.0)
+
+    def binned(self, factor: int) -> "Detector":
+        """Detector after ``factor x factor`` binning."""
+        return Detector(self.rows // factor, self.cols // factor, self.pitch_col * factor, self.pitch_row * factor)
+
+
+def _as_views(a: ArrayLike, width: int, name: str) -> NDArray[np.float64]:
+    arr = np.asarray(a, dtype=float)
+    if arr.ndim == 1 and arr.shape[0] == width:
+        arr = arr[None]
+    if arr.ndim != 2 or arr.shape[1] != width:
+        raise GeometryError(f"{name}: expected shape (N, {width}), got {arr.shape}")
+    return arr
+
+
+def _per_view(a: ArrayLike, n: int, name: str, tail: tuple[int, ...] = ()) -> NDArray[np.float64]:
+    arr = np.asarray(a, dtype=float)
+    try:
+        return np.broadcast_to(arr, (n,) + tail).copy()
+    except ValueError:
+        raise GeometryError(f"{name}: expected a scalar or shape {(n,) + tail}, got {arr.shape}") from None
+
+
+def ideal_bench_pose(theta: ArrayLike, phi: ArrayLike) -> NDArray[np.float64]:
+    """Object rotation(s) ``R = R_x(phi) R_z(-theta)`` that realise a nominal view on the bench."""
+    return rot_x(phi) @ rot_z(-np.asarray(theta, dtype=float))
+
+
+class ViewGeometry:
+    """Immutable per-view geometry: ``(N, 12)`` vectors ``S, D, u, v`` and a detector."""
+
+    __slots__ = ("_vectors", "_detector", "_matrices")
+
+    def __init__(self, vectors: ArrayLike, detector: Detector) -> None:
+        if not isinstance(detector, Detector):
+            raise GeometryError(f"detector: expected a Detector, got {type(detector).__name__}")
+        v = _as_views(vectors, 12, "vectors").copy()
+        v.setflags(write=False)
+        self._vectors = v
+        self._detector = detector
+        self._matrices: NDArray[np.float64] | None = None
+
+    # ----------------------------------------------------------------- basics
+    @property
+    def vectors(self) -> NDArray[np.float64]:
+        """Read-only ``(N, 12)`` array ``S, D, u, v``."""
+        return self._vectors
+
+    @property
+    def detector(self) -> Detector:
+        """The detector these views refer to."""
+        return self._detector
+
+    @property
+    def n_views(self) -> int:
+        """Number of views."""
+        return self._vectors.shape[0]
+
+    def __len__(self) -> int:
+        return self.n_views
+
+    @property
+    def S(self) -> NDArray[np.float64]:
+        """Source positions ``(N, 3)``."""
+        return self._vectors[:, 0:3]
+
+    @property
+    def D(self) -> NDArray[np.float64]:
+        """Detector centres ``(N, 3)``."""
+        return self._vectors[:, 3:6]
+
+    @property
+    def u(self) -> NDArray[np.float64]:
+        """Column step vectors ``(N, 3)`` (length = column pitch)."""
+        return self._vectors[:, 6:9]
+
+    @property
+    def v(self) -> NDArray[np.float64]:
+        """Row step vectors ``(N, 3)`` (length = row pitch)."""
+        return self._vectors[:, 9:12]
+
+    @property
+    def valid(self) -> NDArray[np.bool_]:
+        """Views whose 12 numbers are all finite."""
+        return np.isfinite(self._vectors).all(axis=1)
+
+    @property
+    def normal(self) -> NDArray[np.float64]:
+        """Unit detector normals pointing from the source towards the detector ``(N, 3)``."""
+        n = np.cross(self.u, self.v)
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        sign = np.sign(np.einsum("ij,ij->i", n, self.D - self.S))
+        return n * sign[:, None]
+
+    @property
+    def sdd(self) -> NDArray[np.float64]:
+        """Source-to-detector-plane distance per view (mm)."""
+        return np.einsum("ij,ij->i", self.normal, self.D - self.S)
+
+    def sod(self, isocenter: ArrayLike = (0.0, 0.0, 0.0)) -> NDArray[np.float64]:
+        """Source-to-point distance per view (mm), by default to the object origin."""
+        return np.linalg.norm(self.S - np.asarray(isocenter, dtype=float), axis=1)
+
+    # ----------------------------------------------------------- matrices
+    @property
+    def matrices(self) -> NDArray[np.float64]:
+        """``(N, 3, 4)`` projection matrices, normalised so ``w`` is depth in mm."""
+        if self._matrices is None:
+            m = _vectors_to_matrices(self._vectors, self._detector)
+            m.setflags(write=False)
+            self._matrices = m
+        return self._matrices
+
+    @classmethod
+    def from_matrices(cls, matrices: ArrayLike, detector: Detector) -> "ViewGeometry":
+        """Views from ``(N, 3, 4)`` projection matrices (any positive or negative scale)."""
+        p = np.asarray(matrices, dtype=float)
+        if p.ndim == 2 and p.shape == (3, 4):
+            p = p[None]
+        if p.ndim != 3 or p.shape[1:] != (3, 4):
+            raise GeometryError(f"matrices: expected shape (N, 3, 4), got {p.shape}")
+        return cls(_matrices_to_vectors(p, detector), detector)
+
+    # -------------------------------------------------------- constructors
+    @classmethod
+    def from_carm(
+        cls,
+        theta: ArrayLike,
+        phi: ArrayLike,
+        sad: ArrayLike,
+        sdd: ArrayLike,
+        detector: Detector,
+        *,
+        du: ArrayLike = 0.0,
+        dv: ArrayLike = 0.0,
+        eta: ArrayLike = 0.0,
+        shift: ArrayLike = (0.0, 0.0, 0.0),
+    ) -> "ViewGeometry":
+        """Views from C-arm style parameters (radians, mm), broadcast over views."""
+        theta_a = np.atleast_1d(np.asarray(theta, dtype=float))
+        n = int(np.broadcast_shapes(theta_a.shape, np.atleast_1d(np.asarray(phi, dtype=float)).shape)[0])
+        th = _per_view(theta_a, n, "theta")
+        ph = _per_view(phi, n, "phi")
+        sad_a, sdd_a = _per_view(sad, n, "sad"), _per_view(sdd, n, "sdd")
+        du_a, dv_a, eta_a = _per_view(du, n, "du"), _per_view(dv, n, "dv"), _per_view(eta, n, "eta")
+        t = _per_view(shift, n, "shift", (3,))
+        if np.any(sdd_a <= sad_a):
+            raise GeometryError("sdd must exceed sad for every view (detector beyond the isocenter)")
+        d = np.stack([np.sin(th) * np.cos(ph), -np.cos(th) * np.cos(ph), np.sin(ph)], -1)
+        uh = np.stack([np.cos(th), np.sin(th), np.zeros(n)], -1)
+        vh = np.cross(uh, d)
+        ce, se = np.cos(eta_a)[:, None], np.sin(eta_a)[:, None]
+        uh2 = ce * uh + se * vh
+        vh2 = -se * uh + ce * vh
+        S = t + sad_a[:, None] * d
+        D = t - (sdd_a - sad_a)[:, None] * d + du_a[:, None] * uh2 + dv_a[:, None] * vh2
+        vec = np.concatenate([S, D, detector.pitch_col * uh2, detector.pitch_row * vh2], axis=1)
+        return cls(vec, detector)
+
+    @classmethod
+    def from_object_poses(cls, lab_view: "ViewGeometry", R: ArrayLike, t: ArrayLike) -> "ViewGeometry":
+        """Bench views: fixed lab source/detector (one view) seen from objects at poses ``x_lab = R x + t``."""
+        if lab_view.n_views != 1:
+            raise GeometryError(f"lab_view: expected exactly 1 view, got {lab_view.n_views}")
+        Rm = np.asarray(R, dtype=float)
+        if Rm.ndim == 2:
+            Rm = Rm[None]
+        if Rm.ndim != 3 or Rm.shape[1:] != (3, 3):
+            raise GeometryError(f"R: expected shape (N, 3, 3), got {Rm.shape}")
+        tv = _per_view(t, Rm.shape[0], "t", (3,))
+        Rt = np.swapaxes(Rm, 1, 2)
+        S, D, u, v = (lab_view.vectors[0, 3 * k : 3 * k + 3] for k in range(4))
+        out = np.concatenate(
+            [
+                np.einsum("nij,nj->ni", Rt, S - tv),
+                np.einsum("nij,nj->ni", Rt, D - tv),
+                np.einsum("nij,j->ni", Rt, u),
+                np.einsum("nij,j->ni", Rt, v),
+            ],
+            axis=1,
+        )
+        return cls(out, lab_view.detector)
+
+    @classmethod
+    def empty_like(cls, n_views: int, detector: Detector) -> "ViewGeometry":
+        """``n_views`` views that are all NaN (frames that are not projections)."""
+        return cls(np.full((n_views, 12), np.nan), detector)
+
+    # ----------------------------------------------------------- operations
+    def __getitem__(self, index: Any) -> "ViewGeometry":
+        idx = np.arange(self.n_views)[index]
+        return ViewGeometry(self._vectors[np.atleast_1d(idx)], self._detector)
+
+    def with_vectors(self, vectors: ArrayLike) -> "ViewGeometry":
+        """Same detector, new vectors."""
+        return ViewGeometry(vectors, self._detector)
+
+    def with_detector(self, detector: Detector) -> "ViewGeometry":
+        """Same views re-expressed for another detector sampling of the same panel plane."""
+        vec = self._vectors.copy()
+        vec[:, 6:9] *= detector.pitch_col / self._detector.pitch_col
+        vec[:, 9:12] *= detector.pitch_row / self._detector.pitch_row
+        return ViewGeometry(vec, detector)
+
+    def concatenate(self, *others: "ViewGeometry") -> "ViewGeometry":
+        """Views of ``self`` followed by those of ``others`` (same detector required)."""
+        for o in others:
+            if o.detector != self._detector:
+                raise GeometryError(f"cannot concatenate geometries with detectors {self._detector} and {o.detector}")
+        return ViewGeometry(np.concatenate([self._vectors] + [o.vectors for o in others]), self._detector)
+
+    def transformed(self, R: ArrayLike, t: ArrayLike = (0.0, 0.0, 0.0)) -> "ViewGeometry":
+        """Apply rigid transform(s) ``x -> R x + t`` (one, or one per view) to every view."""
+        Rm = np.asarray(R, dtype=float)
+        if Rm.shape == (3, 3):
+            Rm = np.broadcast_to(Rm, (self.n_views, 3, 3))
+        if Rm.shape != (self.n_views, 3, 3):
+            raise GeometryError(f"R: expected shape (3, 3) or ({self.n_views}, 3, 3), got {Rm.shape}")
+        tv = _per_view(t, self.n_views, "t", (3,))
+        parts = [np.einsum("nij,nj->ni", Rm, self._vectors[:, 3 * k : 3 * k + 3]) for k in range(4)]
+        parts[0] = parts[0] + tv
+        parts[1] = parts[1] + tv
+        return ViewGeometry(np.concatenate(parts, axis=1), self._detector)
+
+    def scaled(self, s: float) -> "ViewGeometry":
+        """Scale positions about the origin by ``s`` (pixel pitches unchanged)."""
+        vec = self._vectors.copy()
+        vec[:, 0:6] *= s
+        return ViewGeometry(vec, self._detector)
+
+    # ------------------------------------------------------------- project
+    def project(self, points: ArrayLike) -> NDArray[np.float64]:
+        """Pixel coordinates ``(col, row)`` of points: ``(K, 3)`` or ``(N, K, 3)`` -> ``(N, K, 2)``."""
+        uv, _ = self.project_with_depth(points)
+        return uv
+
+    def project_with_depth(self, points: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Pixel coordinates ``(N, K, 2)`` and depths ``(N, K)`` (mm along the detector normal)."""
+        p = np.asarray(points, dtype=float)
+        if p.ndim == 1 and p.shape[0] == 3:
+            p = p[None]
+        if p.shape[-1] != 3 or p.ndim not in (2, 3):
+            raise GeometryError(f"points: expected shape (K, 3) or (N, K, 3), got {p.shape}")
+        if p.ndim == 3 and p.shape[0] != self.n_views:
+            raise GeometryError(f"points: expected {self.n_views} views in (N, K, 3), got {p.shape}")
+        P = self.matrices
+        if p.ndim == 2:
+            h = np.einsum("nij,kj->nki", P[:, :, :3], p) + P[:, None, :, 3]
+        else:
+            h = np.einsum("nij,nkj->nki", P[:, :, :3], p) + P[:, None, :, 3]
+        w = h[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return h[..., :2] / w[..., None], w
+
+    def pixel_to_point(self, pixels: ArrayLike) -> NDArray[np.float64]:
+        """Object-frame points on the detector for pixel coordinates ``(N, K, 2)`` -> ``(N, K, 3)``."""
+        px = np.asarray(pixels, dtype=float)
+        if px.ndim == 2:
+            px = np.broadcast_to(px, (self.n_views,) + px.shape)
+        if px.ndim != 3 or px.shape[0] != self.n_views or px.shape[2] != 2:
+            raise GeometryError(f"pixels: expected shape (K, 2) or ({self.n_views}, K, 2), got {px.shape}")
+        c0, r0 = self._detector.center
+        dc = px[..., 0] - c0
+        dr = px[..., 1] - r0
+        return self.D[:, None, :] + dc[..., None] * self.u[:, None, :] + dr[..., None] * self.v[:, None, :]
+
+    def backproject(self, pixels: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Rays through pixels ``(N, K, 2)``: origins ``(N, 1, 3)`` (the sources) and unit directions ``(N, K, 3)``."""
+        pts = self.pixel_to_point(pixels)
+        d = pts - self.S[:, None, :]
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        return self.S[:, None, :], d
+
+    # ------------------------------------------------------------ compare
+    def allclose(self, other: "ViewGeometry", atol_mm: float = 1e-6, rtol: float = 1e-9) -> bool:
+        """Same detector and vectors equal within tolerance (NaN equals NaN)."""
+        if not isinstance(other, ViewGeometry) or other.detector != self._detector:
+            return False
+        if other.n_views != self.n_views:
+            return False
+        return bool(np.allclose(self._vectors, other.vectors, atol=atol_mm, rtol=rtol, equal_nan=True))
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, ViewGeometry) and self.allclose(other, atol_mm=1e-9, rtol=1e-9)
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def __repr__(self) -> str:
+        d = self._detector
+        ok = self.valid
+        if ok.any():
+            sod = np.nanmedian(self.sod()[ok])
+            sdd = np.nanmedian(self.sdd[ok])
+            extra = f", sod~{sod:.1f} mm, sdd~{sdd:.1f} mm"
+        else:
+            extra = ""
+        nan = f", {int((~ok).sum())} NaN" if (~ok).any() else ""
+        return (
+            f"ViewGeometry(n_views={self.n_views}{nan}, detector={d.rows}x{d.cols} px @ "
+            f"{d.pitch_col:g}x{d.pitch_row:g} mm{extra})"
+        )
+
+
+def _center_matrix(det: Detector) -> NDArray[np.float64]:
+    c0, r0 = det.center
+    return np.array([[1.0, 0.0, c0], [0.0, 1.0, r0], [0.0, 0.0, 1.0]])
+
+
+def _vectors_to_matrices(vec: NDArray[np.float64], det: Detector) -> NDArray[np.float64]:
+    n = vec.shape[0]
+    out = np.full((n, 3, 4), np.nan)
+    ok = np.isfinite(vec).all(axis=1)
+    if not ok.any():
+        return out
+    S, D, u, v = (vec[ok, 3 * k : 3 * k + 3] for k in range(4))
+    A = np.stack([u, v, D - S], axis=-1)
+    Ainv = np.linalg.inv(A)
+    P0 = np.concatenate([Ainv, -np.einsum("nij,nj->ni", Ainv, S)[..., None]], axis=-1)
+    P = _center_matrix(det) @ P0
+    P /= np.linalg.norm(P[:, 2, :3], axis=1)[:, None, None]
+    out[ok] = P
+    return out
+
+
+def _matrices_to_vectors(P: NDArray[np.float64], det: Detector) -> NDArray[np.float64]:
+    n = P.shape[0]
+    out = np.full((n, 12), np.nan)
+    ok = np.isfinite(P).all(axis=(1, 2))
+    if not ok.any():
+        return out
+    P0 = np.linalg.inv(_center_matrix(det)) @ P[ok]
+    M = P0[:, :, :3]
+    try:
+        A = np.linalg.inv(M)
+    except np.linalg.LinAlgError:
+        raise GeometryError("matrices: the left 3x3 block of a projection matrix is singular") from None
+    S = -np.einsum("nij,nj->ni", A, P0[:, :, 3])
+    u, v, dz = A[:, :, 0], A[:, :, 1], A[:, :, 2]
+    scale = np.sqrt(np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1) / (det.pitch_col * det.pitch_row))
+    sign = np.sign(np.einsum("ij,ij->i", dz, P[ok, 2, :3]))
+    s = (sign / scale)[:, None]
+    u, v, dz = u * s, v * s, dz * s
+    out[ok] = np.concatenate([S, S + dz, u, v], axis=1)
+    return out

@@ -1,0 +1,214 @@
+"""Streaming writer for scan files (``scan-file.md``, version 1).
+
+Frames are appended one at a time and the file is flushed after each, so a
+process that dies leaves a readable file holding every frame already appended.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+from numpy.typing import ArrayLike
+
+from orbitct import __version__
+from orbitct.geometry import Detector, ViewGeometry
+from orbitct.scanfile.errors import ScanFileError
+
+FORMAT = "orbitct.scan"
+VERSION = 1
+IMAGE_KEYS = {"projection": 0, "flat": 1, "dark": 2, "invalid": 3}
+STATUSES = ("acquiring", "complete", "aborted")
+_GEOM_CHUNK = 256
+
+
+def _json(obj: Any) -> str:
+    return json.dumps(obj, sort_keys=True, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+
+
+def _axis_units(names: Mapping[str, str] | None) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for name, unit in (names or {}).items():
+        if "." not in name or "/" in name:
+            raise ScanFileError(f"axis name {name!r} must look like 'device.axis' (no '/')")
+        out[name] = unit
+    return out
+
+
+class ScanWriter:
+    """Append frames to a new scan file; use as a context manager."""
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        detector: Detector,
+        *,
+        frame_dtype: str = "uint16",
+        axes: Mapping[str, str] | None = None,
+        orbit_name: str = "",
+        orbit_params: Mapping[str, Any] | None = None,
+        config: Mapping[str, Any] | None = None,
+        marker_diameter_mm: float | None = None,
+        compression: str | None = None,
+        overwrite: bool = False,
+    ) -> None:
+        self.path = Path(path)
+        if self.path.exists() and not overwrite:
+            raise ScanFileError(f"{self.path}: already exists (pass overwrite to replace it)")
+        if np.dtype(frame_dtype) not in (np.dtype("uint16"), np.dtype("float32")):
+            raise ScanFileError(f"frame dtype must be uint16 or float32, got {frame_dtype}")
+        self.detector = detector
+        self._axes = _axis_units(axes)
+        self._n = 0
+        self._closed = False
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        f = h5py.File(self.path, "w")
+        self._f = f
+        f.attrs.update({"format": FORMAT, "version": VERSION, "status": "acquiring", "status_reason": ""})
+        g = f.create_group("detector")
+        g.attrs.update({"rows": detector.rows, "cols": detector.cols, "pitch_mm": np.array(detector.pitch_mm)})
+        fr = f.create_group("frames")
+        r, c = detector.shape
+        fr.create_dataset(
+            "data", shape=(0, r, c), maxshape=(None, r, c), dtype=frame_dtype, chunks=(1, r, c),
+            compression=compression,
+        )
+        fr.create_dataset("image_key", shape=(0,), maxshape=(None,), dtype="i1", chunks=(_GEOM_CHUNK,))
+        fr.create_dataset("time_s", shape=(0,), maxshape=(None,), dtype="f8", chunks=(_GEOM_CHUNK,))
+        for grp in ("encoders", "commanded"):
+            eg = fr.create_group(grp)
+            for name, unit in self._axes.items():
+                ds = eg.create_dataset(name, shape=(0,), maxshape=(None,), dtype="f8", chunks=(_GEOM_CHUNK,))
+                ds.attrs["unit"] = unit
+        nom = f.create_group("geometry/nominal")
+        nom.create_dataset("vectors", shape=(0, 12), maxshape=(None, 12), dtype="f8", chunks=(_GEOM_CHUNK, 12))
+        nom.create_dataset(
+            "matrices", shape=(0, 3, 4), maxshape=(None, 3, 4), dtype="f8", chunks=(_GEOM_CHUNK, 3, 4)
+        )
+        mk = f.create_group("markers")
+        if marker_diameter_mm is not None:
+            mk.attrs["diameter_mm"] = float(marker_diameter_mm)
+        og = f.create_group("orbit")
+        og.attrs.update({"name": orbit_name, "params_json": _json(dict(orbit_params or {}))})
+        pg = f.create_group("provenance")
+        pg.attrs.update(
+            {
+                "software_version": __version__,
+                "config_json": _json(dict(config or {})),
+                "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            }
+        )
+        f.flush()
+
+    @property
+    def n_frames(self) -> int:
+        """Frames appended so far."""
+        return self._n
+
+    def append(
+        self,
+        frame: ArrayLike,
+        image_key: int | str,
+        time_s: float,
+        *,
+        nominal_vector: ArrayLike | None = None,
+        encoders: Mapping[str, float] | None = None,
+        commanded: Mapping[str, float] | None = None,
+        flush: bool = True,
+    ) -> int:
+        """Append one frame with its metadata and flush; returns the frame index."""
+        if self._closed:
+            raise ScanFileError(f"{self.path}: writer is closed")
+        key = IMAGE_KEYS[image_key] if isinstance(image_key, str) else int(image_key)
+        if key not in IMAGE_KEYS.values():
+            raise ScanFileError(f"image_key must be one of {sorted(IMAGE_KEYS.items())}, got {image_key!r}")
+        arr = np.asarray(frame)
+        if arr.shape != self.detector.shape:
+            raise ScanFileError(f"frame shape {arr.shape} does not match detector {self.detector.shape}")
+        vec = np.full(12, np.nan) if nominal_vector is None else np.asarray(nominal_vector, float).reshape(12)
+        if key == 0 and not np.isfinite(vec).all():
+            raise ScanFileError("a projection frame needs a finite nominal geometry vector")
+        f, i = self._f, self._n
+        data = f["frames/data"]
+        if data.dtype == np.uint16:
+            arr = np.clip(np.rint(arr), 0, 65535).astype(np.uint16) if arr.dtype != np.uint16 else arr
+        data.resize(i + 1, axis=0)
+        data[i] = arr
+        for grp, values in (("encoders", encoders), ("commanded", commanded)):
+            values = values or {}
+            unknown = set(values) - set(self._axes)
+            if unknown:
+                raise ScanFileError(f"{grp}: unknown axes {sorted(unknown)}; declared axes are {sorted(self._axes)}")
+            for name in self._axes:
+                ds = f[f"frames/{grp}/{name}"]
+                ds.resize(i + 1, axis=0)
+                ds[i] = values.get(name, np.nan)
+        vds, mds = f["geometry/nominal/vectors"], f["geometry/nominal/matrices"]
+        vds.resize(i + 1, axis=0)
+        vds[i] = vec
+        mds.resize(i + 1, axis=0)
+        mds[i] = ViewGeometry(vec, self.detector).matrices[0]
+        tds = f["frames/time_s"]
+        tds.resize(i + 1, axis=0)
+        tds[i] = float(time_s)
+        # image_key is written last: its length is the count of complete frames.
+        kds = f["frames/image_key"]
+        kds.resize(i + 1, axis=0)
+        kds[i] = key
+        self._n = i + 1
+        if flush:
+            f.flush()
+        return i
+
+    def write_truth(
+        self,
+        vectors: ArrayLike,
+        markers_xyz: ArrayLike | None = None,
+        phantom: Mapping[str, Any] | None = None,
+    ) -> None:
+        """Store the simulation truth (geometry per frame, marker centres, phantom)."""
+        g = self._f.require_group("truth")
+        vec = np.asarray(vectors, dtype=float)
+        if "geometry/vectors" in g:
+            del g["geometry/vectors"]
+        g.create_dataset("geometry/vectors", data=vec.reshape(-1, 12))
+        if markers_xyz is not None:
+            if "markers/xyz" in g:
+                del g["markers/xyz"]
+            g.create_dataset("markers/xyz", data=np.asarray(markers_xyz, dtype=float).reshape(-1, 3))
+        if phantom is not None:
+            g.attrs["phantom_json"] = _json(dict(phantom))
+        self._f.flush()
+
+    def set_attrs(self, group: str, **attrs: Any) -> None:
+        """Set extra attributes on a group (created if missing)."""
+        g = self._f.require_group(group)
+        for k, v in attrs.items():
+            g.attrs[k] = _json(v) if isinstance(v, (dict, list)) else v
+        self._f.flush()
+
+    def finish(self, status: str = "complete", reason: str = "") -> None:
+        """Set the final status and close the file."""
+        if self._closed:
+            return
+        if status not in STATUSES:
+            raise ScanFileError(f"status must be one of {STATUSES}, got {status!r}")
+        self._f.attrs["status"] = status
+        self._f.attrs["status_reason"] = reason
+        self._f.close()
+        self._closed = True
+
+    def __enter__(self) -> "ScanWriter":
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: Any) -> None:
+        if exc is None:
+            self.finish("complete")
+        else:
+            self.finish("aborted", f"{type(exc).__name__}: {exc}")
