@@ -1,0 +1,52 @@
+"""The import direction of the architecture, checked on the source: lower layers never import upper ones."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+CORE_MODULES = {"geometry", "rotations", "kinematics", "scanfile", "progress", "orbits", "errorprofiles", "phantoms", "simulator"}
+
+# package (or orbitct core) -> top-level packages it must never import
+FORBIDDEN = {
+    "calib": {"acquire", "devices", "recon", "orbitct.cli", "orbitct.service"},
+    "recon": {"acquire", "devices", "calib", "orbitct.cli", "orbitct.service"},
+    "devices": {"acquire", "calib", "recon", "orbitct.cli", "orbitct.service"},
+    "acquire": {"orbitct.cli", "orbitct.service"},
+    "orbitct-core": {"acquire", "devices", "calib", "recon", "orbitct.cli", "orbitct.service"},
+}
+
+
+def _imports(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+    return names
+
+
+def _files(layer: str) -> list[Path]:
+    if layer == "orbitct-core":
+        out: list[Path] = []
+        for name in CORE_MODULES:
+            p = ROOT / "orbitct" / name
+            out += sorted(p.rglob("*.py")) if p.is_dir() else ([p.with_suffix(".py")] if p.with_suffix(".py").exists() else [])
+        return out
+    return sorted((ROOT / layer).rglob("*.py"))
+
+
+@pytest.mark.parametrize("layer", sorted(FORBIDDEN))
+def test_layer_does_not_import_upward(layer: str) -> None:
+    bad = []
+    for f in _files(layer):
+        for name in _imports(f):
+            for forbidden in FORBIDDEN[layer]:
+                if name == forbidden or name.startswith(forbidden + "."):
+                    bad.append(f"{f.relative_to(ROOT)} imports {name}")
+    assert not bad, "imports against the architecture:\n" + "\n".join(bad)
