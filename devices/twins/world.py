@@ -29,6 +29,7 @@ class SimWorld:
     xray_ma: float = 1.0
     exposure_ms: float = 10.0
     exposing: bool = False
+    xray_frame_counter: int = 0  # completed exposures (the detector twin's hardware trigger)
     lock: threading.RLock = field(default_factory=threading.RLock, repr=False)
 
     def object_pose(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

@@ -1,0 +1,424 @@
+"""X-ray generator twin: a pymodbus TCP server with the generator's state machine and timing.
+
+It speaks the register map of :mod:`devices.xray_registers`, drives ``SimWorld.exposing``
+and the world's X-ray settings, and counts completed exposures in the world so the detector
+twin can trigger on them. Faults (latency, dropped connection, garbled reply, device error,
+missing frame) and hazards (open door, generator fault) are injected on request.
+
+Also home of :class:`TwinFaults` and :class:`TwinThread`, shared by every twin in this package.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from pymodbus.constants import ExcCodes
+from pymodbus.server import ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from devices import xray_registers as reg
+from devices.twins.world import SimWorld, get_world
+from devices.xray_registers import FaultCode, GeneratorState, Refusal
+
+HEARTBEAT_PERIOD_S = 0.1
+
+
+@dataclass
+class TwinFaults:
+    """Faults a twin injects on request; counters apply to the next N requests or frames."""
+
+    latency_s: float = 0.0  # added before every reply
+    drop_next: int = 0  # close the connection instead of answering
+    garble_next: int = 0  # answer with corrupted bytes
+    error_next: int = 0  # answer with a device error
+    missing_frame_next: int = 0  # complete the action but lose the frame / trigger
+    match: str = ""  # only requests whose description contains this text count (e.g. "fc5:1", "TRIG")
+
+    def take(self, name: str, request: str = "") -> bool:
+        """Consume one pending fault called ``name`` (e.g. ``'drop'``) for ``request``; whether one was pending."""
+        attr = f"{name}_next"
+        if self.match and self.match not in request:
+            return False
+        if getattr(self, attr) > 0:
+            setattr(self, attr, getattr(self, attr) - 1)
+            return True
+        return False
+
+
+def garble(data: bytes) -> bytes:
+    """Corrupt a reply so that a careful client notices (bit flips, not a clean frame)."""
+    if len(data) <= 2:
+        return b"\xff" + data
+    mid = len(data) // 2
+    return data[:mid] + bytes(b ^ 0x5A for b in data[mid:])
+
+
+class _Server(Protocol):
+    async def start(self, host: str, port: int) -> int: ...
+
+    async def stop(self) -> None: ...
+
+
+class TwinThread:
+    """Run a twin server in its own event loop on a daemon thread; ``port`` is where it listens."""
+
+    def __init__(self, server: _Server, host: str = "127.0.0.1", port: int = 0) -> None:
+        self.server = server
+        self.host = host
+        self.loop = asyncio.new_event_loop()
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self.port = 0
+        self._thread = threading.Thread(target=self._main, args=(port,), name=f"twin-{type(server).__name__}", daemon=True)
+        self._thread.start()
+        self._ready.wait(10.0)
+        if self._error is not None:
+            raise self._error
+        if not self.port:
+            raise RuntimeError(f"{type(server).__name__} twin did not start within 10 s")
+
+    def _main(self, port: int) -> None:
+        asyncio.set_event_loop(self.loop)
+        try:
+            self.port = self.loop.run_until_complete(self.server.start(self.host, port))
+        except BaseException as exc:  # reported to the starting thread
+            self._error = exc
+            self._ready.set()
+            return
+        self._ready.set()
+        self.loop.run_forever()
+
+    def call(self, fn: Callable[..., Any], *args: Any) -> None:
+        """Run ``fn(*args)`` in the twin's loop (thread-safe)."""
+        self.loop.call_soon_threadsafe(fn, *args)
+
+    def run(self, coro: Awaitable[Any], timeout_s: float = 10.0) -> Any:
+        """Run a coroutine in the twin's loop and wait for its result."""
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout_s)  # type: ignore[arg-type]
+
+    def stop(self) -> None:
+        """Stop the server and the thread (idempotent)."""
+        if not self._thread.is_alive():
+            return
+        try:
+            self.run(self.server.stop(), 5.0)
+        finally:
+            self.loop.call_soon_threadsafe(self.loop.stop)
+            self._thread.join(5.0)
+
+
+def _bits_to_registers(bits: list[bool]) -> list[int]:
+    bits = bits + [False] * (-len(bits) % 16)
+    return [sum(1 << i for i, b in enumerate(bits[k : k + 16]) if b) for k in range(0, len(bits), 16)]
+
+
+class XrayTwin:
+    """Simulated X-ray generator served over Modbus TCP with the documented register map."""
+
+    def __init__(
+        self,
+        world: SimWorld | None = None,
+        *,
+        prep_s: float = 0.2,
+        time_scale: float = 1.0,
+        model: str = "SimGen XR-150",
+        serial: str = "XG-0001",
+        firmware: int = 102,
+    ) -> None:
+        self.world = world if world is not None else get_world("bench")
+        self.prep_s = prep_s
+        self.time_scale = time_scale
+        self.faults = TwinFaults()
+        self.model, self.serial, self.firmware = model, serial, firmware
+        self.state = GeneratorState.IDLE
+        self.fault_code = FaultCode.NONE
+        self.refusal = Refusal.NONE
+        self.door_closed = True
+        self.prep_req = False
+        self.expose_req = False
+        self.kv_set, self.ma_set, self.exposure_ms = 90.0, 1.0, 10
+        self.watchdog_ms = reg.WATCHDOG_MS_DEFAULT
+        self.heartbeat_in = 0
+        self.heartbeat_out = 0
+        self.frame_counter = 0
+        self.last_exposure_ms = 0
+        self._last_hb = time.monotonic()
+        self._timer: asyncio.TimerHandle | None = None
+        self._exposure_t0 = 0.0
+        self._server: ModbusTcpServer | None = None
+        self._ticker: asyncio.Task[None] | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self.requests = 0
+        self.heartbeat_frozen = False  # hazard on request: the generator's own heartbeat stops
+
+    # ----------------------------------------------------------------- serving
+    async def start(self, host: str = "127.0.0.1", port: int = 0) -> int:
+        """Listen on ``host:port`` (0 = any free port); returns the port."""
+        self._loop = asyncio.get_running_loop()
+        blocks = (
+            [SimData(0, count=16, values=False, datatype=DataType.BITS)],
+            [SimData(0, count=16, values=False, datatype=DataType.BITS)],
+            [SimData(0, count=reg.N_HOLDING, values=0, datatype=DataType.REGISTERS)],
+            [SimData(0, count=reg.N_INPUT_REGS, values=0, datatype=DataType.REGISTERS)],
+        )
+        device = SimDevice(id=0, simdata=blocks, action=self._action)
+        self._server = ModbusTcpServer(device, address=(host, port), trace_packet=self._trace_packet)
+        await self._server.serve_forever(background=True)
+        sockets = self._server.transport.sockets  # type: ignore[attr-defined]
+        self._ticker = asyncio.ensure_future(self._tick())
+        return int(sockets[0].getsockname()[1])
+
+    async def stop(self) -> None:
+        """Switch X-rays off and close the server."""
+        self._hv_off()
+        if self._ticker is not None:
+            self._ticker.cancel()
+        if self._server is not None:
+            await self._server.shutdown()
+            self._server = None
+
+    def drop_connections(self) -> None:
+        """Close every client connection now (as a pulled cable would)."""
+        if self._server is None:
+            return
+        for conn in list(self._server.active_connections.values()):
+            if conn.transport is not None:
+                conn.transport.abort()  # type: ignore[attr-defined]
+
+    def _trace_packet(self, sending: bool, data: bytes) -> bytes:
+        if sending and self.faults.take("garble"):
+            return garble(data)
+        return data
+
+    # ------------------------------------------------------- hazards on request
+    def set_door(self, closed: bool) -> None:
+        """Close or open the door interlock (call from the twin's loop or via TwinThread.call)."""
+        self.door_closed = bool(closed)
+        if closed:
+            return
+        if self.state == GeneratorState.EXPOSING:
+            self._enter_fault(FaultCode.INTERLOCK_OPENED)
+        elif self.state in (GeneratorState.PREP, GeneratorState.READY, GeneratorState.DONE):
+            self._hv_off()
+            self.state = GeneratorState.IDLE
+            self.refusal = Refusal.INTERLOCK_OPEN
+
+    def raise_fault(self, code: FaultCode = FaultCode.GENERATOR) -> None:
+        """Enter FAULT with ``code`` (high voltage off, any exposure lost)."""
+        self._enter_fault(FaultCode(code))
+
+    # ---------------------------------------------------------- state machine
+    def _enter_fault(self, code: FaultCode) -> None:
+        self._hv_off()
+        self.state = GeneratorState.FAULT
+        self.fault_code = code
+
+    def _hv_off(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        with self.world.lock:
+            self.world.exposing = False
+
+    def _refuse(self, why: Refusal) -> None:
+        self.refusal = why
+
+    def _blocked(self) -> bool:
+        if self.state == GeneratorState.FAULT:
+            self._refuse(Refusal.FAULT_ACTIVE)
+            return True
+        if not self.door_closed:
+            self._refuse(Refusal.INTERLOCK_OPEN)
+            return True
+        return False
+
+    def _set_prep(self, on: bool) -> None:
+        self.prep_req = on
+        if not on:
+            if self.state in (GeneratorState.PREP, GeneratorState.READY, GeneratorState.EXPOSING, GeneratorState.DONE):
+                self._hv_off()
+                self.state = GeneratorState.IDLE
+            return
+        if self._blocked():
+            self.prep_req = False
+            return
+        if self.state == GeneratorState.IDLE:
+            self.refusal = Refusal.NONE
+            self._last_hb = time.monotonic()
+            self.state = GeneratorState.PREP
+            assert self._loop is not None
+            self._timer = self._loop.call_later(self.prep_s * self.time_scale, self._prep_done)
+
+    def _prep_done(self) -> None:
+        self._timer = None
+        if self.state == GeneratorState.PREP:
+            self.state = GeneratorState.READY
+
+    def _set_expose(self, on: bool) -> None:
+        self.expose_req = on
+        if not on:
+            if self.state == GeneratorState.DONE:
+                self.state = GeneratorState.READY if self.prep_req else GeneratorState.IDLE
+            return
+        if self._blocked():
+            self.expose_req = False
+            return
+        if self.state != GeneratorState.READY:
+            self._refuse(Refusal.NOT_READY)
+            self.expose_req = False
+            return
+        self.refusal = Refusal.NONE
+        self.state = GeneratorState.EXPOSING
+        self._exposure_t0 = time.monotonic()
+        with self.world.lock:
+            self.world.xray_kv, self.world.xray_ma = self.kv_set, self.ma_set
+            self.world.exposure_ms = float(self.exposure_ms)
+            self.world.exposing = True
+        assert self._loop is not None
+        self._timer = self._loop.call_later(self.exposure_ms / 1000.0 * self.time_scale, self._exposure_done)
+
+    def _exposure_done(self) -> None:
+        self._timer = None
+        if self.state != GeneratorState.EXPOSING:
+            return
+        self.last_exposure_ms = int(round((time.monotonic() - self._exposure_t0) * 1000 / self.time_scale))
+        lost = self.faults.take("missing_frame")
+        with self.world.lock:
+            self.world.exposing = False
+            if not lost:
+                self.world.xray_frame_counter += 1
+        if not lost:
+            self.frame_counter += 1
+        self.state = GeneratorState.DONE
+
+    def _xray_off(self) -> None:
+        self.prep_req = self.expose_req = False
+        if self.state != GeneratorState.FAULT:
+            self.state = GeneratorState.IDLE
+        self._hv_off()
+
+    def _fault_reset(self) -> None:
+        if self.state != GeneratorState.FAULT:
+            return
+        if self.fault_code == FaultCode.INTERLOCK_OPENED and not self.door_closed:
+            self._refuse(Refusal.INTERLOCK_OPEN)
+            return
+        self.state = GeneratorState.IDLE
+        self.fault_code = FaultCode.NONE
+
+    async def _tick(self) -> None:
+        while True:
+            await asyncio.sleep(HEARTBEAT_PERIOD_S)
+            if not self.heartbeat_frozen:
+                self.heartbeat_out = (self.heartbeat_out + 1) & 0xFFFF
+            hv = self.state in (GeneratorState.PREP, GeneratorState.READY, GeneratorState.EXPOSING, GeneratorState.DONE)
+            if hv and self.watchdog_ms and time.monotonic() - self._last_hb > self.watchdog_ms / 1000.0:
+                self._enter_fault(FaultCode.WATCHDOG)
+
+    # ------------------------------------------------------------ registers
+    def _coils(self) -> list[bool]:
+        return [self.prep_req, self.expose_req, False, False]
+
+    def _inputs(self) -> list[bool]:
+        s = self.state
+        hv = s in (GeneratorState.PREP, GeneratorState.READY, GeneratorState.EXPOSING)
+        return [self.door_closed, s == GeneratorState.READY, s == GeneratorState.EXPOSING, s == GeneratorState.FAULT, hv]
+
+    def _holding(self) -> list[int]:
+        return [
+            int(round(self.kv_set * reg.KV_SCALE)),
+            int(round(self.ma_set * reg.MA_SCALE)),
+            int(self.exposure_ms),
+            self.heartbeat_in,
+            int(self.watchdog_ms),
+        ]
+
+    def _input_registers(self) -> list[int]:
+        hv = self.state in (GeneratorState.PREP, GeneratorState.READY, GeneratorState.EXPOSING)
+        out = [0] * reg.N_INPUT_REGS
+        out[reg.STATE] = int(self.state)
+        out[reg.FAULT_CODE] = int(self.fault_code)
+        out[reg.FRAME_COUNTER_HI] = (self.frame_counter >> 16) & 0xFFFF
+        out[reg.FRAME_COUNTER_LO] = self.frame_counter & 0xFFFF
+        out[reg.HEARTBEAT_OUT] = self.heartbeat_out
+        out[reg.KV_ACTUAL] = int(round(self.kv_set * reg.KV_SCALE)) if hv else 0
+        out[reg.MA_ACTUAL] = int(round(self.ma_set * reg.MA_SCALE)) if self.state == GeneratorState.EXPOSING else 0
+        out[reg.LAST_EXPOSURE_MS] = self.last_exposure_ms
+        out[reg.REFUSAL] = int(self.refusal)
+        out[reg.FIRMWARE] = self.firmware
+        out[reg.MODEL : reg.MODEL + reg.TEXT_REGISTERS] = reg.text_to_registers(self.model)
+        out[reg.SERIAL : reg.SERIAL + reg.TEXT_REGISTERS] = reg.text_to_registers(self.serial)
+        return out
+
+    def _write_holding(self, address: int, values: list[int]) -> ExcCodes | None:
+        new = dict(enumerate(self._holding()))
+        for i, v in enumerate(values):
+            new[address + i] = int(v)
+        kv, ma = new[reg.KV_SET] / reg.KV_SCALE, new[reg.MA_SET] / reg.MA_SCALE
+        if not (reg.KV_RANGE[0] <= kv <= reg.KV_RANGE[1] and reg.MA_RANGE[0] <= ma <= reg.MA_RANGE[1]):
+            return ExcCodes.ILLEGAL_VALUE
+        if not reg.EXPOSURE_MS_RANGE[0] <= new[reg.EXPOSURE_MS] <= reg.EXPOSURE_MS_RANGE[1]:
+            return ExcCodes.ILLEGAL_VALUE
+        if new[reg.WATCHDOG_MS] and not 100 <= new[reg.WATCHDOG_MS] <= 60000:
+            return ExcCodes.ILLEGAL_VALUE
+        settings_changed = (kv, ma, new[reg.EXPOSURE_MS]) != (self.kv_set, self.ma_set, self.exposure_ms)
+        if settings_changed and self.state == GeneratorState.EXPOSING:
+            return ExcCodes.DEVICE_BUSY
+        self.kv_set, self.ma_set, self.exposure_ms = kv, ma, new[reg.EXPOSURE_MS]
+        self.watchdog_ms = new[reg.WATCHDOG_MS]
+        if new[reg.HEARTBEAT_IN] != self.heartbeat_in or reg.HEARTBEAT_IN in range(address, address + len(values)):
+            self._last_hb = time.monotonic()
+        self.heartbeat_in = new[reg.HEARTBEAT_IN]
+        return None
+
+    def _write_coils(self, address: int, values: list[bool]) -> None:
+        for i, v in enumerate(values):
+            coil = address + i
+            if coil == reg.PREP_REQ and bool(v) != self.prep_req:
+                self._set_prep(bool(v))
+            elif coil == reg.EXPOSE_REQ and bool(v) != self.expose_req:
+                self._set_expose(bool(v))
+            elif coil == reg.XRAY_OFF and v:
+                self._xray_off()
+            elif coil == reg.FAULT_RESET and v:
+                self._fault_reset()
+
+    async def _action(
+        self,
+        function_code: int,
+        start_address: int,
+        address: int,
+        count: int,
+        registers: list[int],
+        set_values: list[int] | list[bool] | None,
+    ) -> ExcCodes | None:
+        self.requests += 1
+        request = f"fc{function_code}:{address}"
+        if self.faults.latency_s > 0:
+            await asyncio.sleep(self.faults.latency_s)
+        if self.faults.take("drop", request):
+            self.drop_connections()
+            return None
+        if self.faults.take("error", request):
+            return ExcCodes.DEVICE_FAILURE
+        if set_values is not None and function_code in (5, 15):
+            self._write_coils(address, [bool(v) for v in set_values])
+        elif set_values is not None and function_code in (6, 16):
+            result = self._write_holding(address, [int(v) for v in set_values])
+            if result is not None:
+                return result
+        # refresh the whole block so that the reply (and stored bits) show the live state
+        if function_code in (1, 5, 15):
+            registers[: 2] = _bits_to_registers(self._coils()) + [0]
+        elif function_code == 2:
+            registers[: 2] = _bits_to_registers(self._inputs()) + [0]
+        elif function_code in (3, 6, 16):
+            registers[: reg.N_HOLDING] = self._holding()
+        elif function_code == 4:
+            registers[: reg.N_INPUT_REGS] = self._input_registers()
+        return None

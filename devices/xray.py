@@ -1,0 +1,385 @@
+"""X-ray generator driver over Modbus TCP (pymodbus 3.x), register map in :mod:`devices.xray_registers`.
+
+Safety rules: nothing is requested while the door interlock is open or a fault is active;
+an exposure request is sent once and never retried (a lost reply is an error, and X-rays are
+switched off); reads, settings and :meth:`XrayGenerator.xray_off` reconnect once when the link
+dropped. A heartbeat task keeps the generator's watchdog fed and notices a silent generator.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+from pymodbus.client import AsyncModbusTcpClient
+from pymodbus.constants import ExcCodes
+from pymodbus.exceptions import ConnectionException, ModbusException
+
+from devices import xray_registers as reg
+from devices.base import DeviceInfo, Status
+from devices.errors import (
+    ControllerError,
+    DeviceError,
+    DeviceTimeoutError,
+    FaultActiveError,
+    InterlockOpenError,
+    NotConnectedError,
+    OutOfLimitsError,
+    ProtocolError,
+    UriError,
+)
+from devices.uri import parse_uri
+from devices.xray_registers import FaultCode, GeneratorState, Refusal
+
+DEFAULT_PORT = 502
+_OPTIONS = {"timeout_s", "heartbeat_s", "watchdog_ms", "prep_timeout_s", "poll_s", "device_id", "prep_s", "time_scale"}
+_TWIN_OPTIONS = {"prep_s", "time_scale"}
+
+
+def _options(uri_params: dict[str, str], options: dict[str, Any]) -> dict[str, float]:
+    merged: dict[str, Any] = {**uri_params, **options}
+    unknown = sorted(set(merged) - _OPTIONS)
+    if unknown:
+        raise UriError(f"X-ray generator: unknown option(s) {', '.join(unknown)}; allowed: {', '.join(sorted(_OPTIONS))}")
+    try:
+        return {k: float(v) for k, v in merged.items()}
+    except (TypeError, ValueError) as exc:
+        raise UriError(f"X-ray generator: options must be numbers ({exc})") from None
+
+
+class XrayGenerator:
+    """Driver of a Modbus TCP X-ray generator (``modbus://host:port``, ``tcp://...`` or ``sim://world``)."""
+
+    def __init__(self, name: str = "xray", uri: str = "sim://bench", **options: Any) -> None:
+        self.name = name
+        self.uri = uri
+        self.endpoint = parse_uri(uri, default_port=DEFAULT_PORT)
+        if self.endpoint.scheme not in ("sim", "tcp", "modbus"):
+            raise UriError(f"X-ray generator {name!r}: URI must be sim://, modbus://host:port or tcp://host:port, got {uri!r}")
+        opts = _options(self.endpoint.params, options)
+        self.timeout_s = opts.get("timeout_s", 1.0)
+        self.heartbeat_s = opts.get("heartbeat_s", 0.25)
+        self.watchdog_ms = int(opts.get("watchdog_ms", reg.WATCHDOG_MS_DEFAULT if self.heartbeat_s > 0 else 0))
+        self.prep_timeout_s = opts.get("prep_timeout_s", 5.0)
+        self.poll_s = opts.get("poll_s", 0.005)
+        self.device_id = int(opts.get("device_id", reg.DEVICE_ID))
+        self._twin_options = {k: v for k, v in opts.items() if k in _TWIN_OPTIONS}
+        self.twin: Any = None  # the in-process XrayTwin for sim:// URIs
+        self._twin_thread: Any = None
+        self._client: AsyncModbusTcpClient | None = None
+        self._host, self._port = self.endpoint.host, self.endpoint.port
+        self._opened = False
+        self._garbled = False
+        self._heartbeat_task: asyncio.Task[None] | None = None
+        self._heartbeat_error: DeviceTimeoutError | None = None  # set while the generator's heartbeat is frozen
+        self._hb_counter = 0
+        self._action_lock = asyncio.Lock()
+
+    # ------------------------------------------------------------- connection
+    async def connect(self) -> None:
+        """Open the link (starting the in-process twin for ``sim://``), set the watchdog, start the heartbeat."""
+        if self.endpoint.scheme == "sim" and self._twin_thread is None:
+            from devices.twins.world import get_world
+            from devices.twins.xray import TwinThread, XrayTwin
+
+            self.twin = XrayTwin(get_world(self.endpoint.host or "bench"), **self._twin_options)
+            self._twin_thread = TwinThread(self.twin)
+            self._host, self._port = "127.0.0.1", self._twin_thread.port
+        await self._open_client()
+        self._opened = True
+        await self._request("set watchdog", lambda c: c.write_register(reg.WATCHDOG_MS, self.watchdog_ms, device_id=self.device_id))
+        if self.heartbeat_s > 0 and self._heartbeat_task is None:
+            self._heartbeat_task = asyncio.ensure_future(self._heartbeat())
+
+    async def _open_client(self) -> None:
+        if self._client is not None:
+            self._client.close()
+        self._garbled = False
+        self._client = AsyncModbusTcpClient(
+            self._host,
+            port=int(self._port or DEFAULT_PORT),
+            timeout=self.timeout_s,
+            retries=0,
+            reconnect_delay=0,
+            trace_packet=self._check_packet,
+        )
+        try:
+            ok = await asyncio.wait_for(self._client.connect(), self.timeout_s + 1.0)
+        except asyncio.TimeoutError:
+            ok = False
+        if not ok:
+            raise NotConnectedError(f"{self.name}: cannot connect to X-ray generator at {self._host}:{self._port}")
+
+    async def close(self) -> None:
+        """Switch X-rays off (best effort), stop the heartbeat, close the link and any in-process twin."""
+        if self._heartbeat_task is not None:
+            self._heartbeat_task.cancel()
+            with contextlib.suppress(BaseException):
+                await self._heartbeat_task
+            self._heartbeat_task = None
+        if self._opened:
+            with contextlib.suppress(DeviceError):
+                await self.xray_off()
+        self._opened = False
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+        if self._twin_thread is not None:
+            await asyncio.get_running_loop().run_in_executor(None, self._twin_thread.stop)
+            self._twin_thread = None
+
+    async def __aenter__(self) -> "XrayGenerator":
+        await self.connect()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    # --------------------------------------------------------------- transport
+    def _check_packet(self, sending: bool, data: bytes) -> bytes:
+        """Flag replies whose MBAP header cannot be ours (pymodbus silently skips them)."""
+        if not sending and len(data) >= 8:
+            length = int.from_bytes(data[4:6], "big")
+            fc = data[7]
+            bad_header = data[2:4] != b"\x00\x00" or data[6] != self.device_id or not 2 <= length <= 254
+            bad_fc = (fc & 0x7F) not in (1, 2, 3, 4, 5, 6, 15, 16)
+            bad_count = fc in (1, 2, 3, 4) and len(data) >= 9 and data[8] != length - 3
+            if bad_header or bad_fc or bad_count:
+                self._garbled = True
+        return data
+
+    async def _request(self, what: str, call: Callable[[AsyncModbusTcpClient], Awaitable[Any]], *, retry: bool = True) -> Any:
+        """Run one Modbus request; map failures to named errors; reconnect and repeat once if ``retry``."""
+        for attempt in range(2 if retry else 1):
+            last = attempt == (1 if retry else 0)
+            try:
+                return await self._request_once(what, call)
+            except (NotConnectedError, DeviceTimeoutError, ProtocolError):
+                if last or not self._opened:
+                    raise
+                await self._open_client()
+        raise AssertionError("unreachable")
+
+    async def _request_once(self, what: str, call: Callable[[AsyncModbusTcpClient], Awaitable[Any]]) -> Any:
+        client = self._client
+        if client is None or not client.connected:
+            raise NotConnectedError(f"{self.name}: not connected to the X-ray generator ({what})")
+        self._garbled = False
+        try:
+            reply = await asyncio.wait_for(call(client), self.timeout_s * 2 + 0.5)
+        except ConnectionException:
+            raise NotConnectedError(f"{self.name}: connection to the X-ray generator lost ({what})") from None
+        except (ModbusException, asyncio.TimeoutError):
+            if self._garbled:
+                client.close()  # the byte stream may be out of step: start afresh on the next request
+                raise ProtocolError(f"{self.name}: garbled reply from the X-ray generator ({what})") from None
+            if not client.connected:
+                raise NotConnectedError(f"{self.name}: X-ray generator dropped the connection ({what})") from None
+            raise DeviceTimeoutError(f"{self.name}: no reply from the X-ray generator within {self.timeout_s:g} s ({what})") from None
+        if reply.isError():
+            code = int(getattr(reply, "exception_code", 0))
+            text = ExcCodes(code).name if code in ExcCodes._value2member_map_ else "unknown exception"
+            raise ControllerError(code, f"Modbus exception {text}", what)
+        return reply
+
+    async def _read_inputs(self) -> list[bool]:
+        r = await self._request("read inputs", lambda c: c.read_discrete_inputs(0, count=reg.N_INPUTS, device_id=self.device_id))
+        return list(r.bits[: reg.N_INPUTS])
+
+    async def _read_input_registers(self) -> list[int]:
+        r = await self._request("read status", lambda c: c.read_input_registers(0, count=reg.N_INPUT_REGS, device_id=self.device_id))
+        return list(r.registers)
+
+    async def _write_coil(self, coil: int, value: bool, *, retry: bool = True) -> None:
+        await self._request(f"write coil {coil}={int(value)}", lambda c: c.write_coil(coil, value, device_id=self.device_id), retry=retry)
+
+    # -------------------------------------------------------------- heartbeat
+    async def _heartbeat(self) -> None:
+        last_value, last_change = -1, time.monotonic()
+        limit_s = max(self.watchdog_ms / 1000.0, 4 * self.heartbeat_s, 0.5)
+        while True:
+            await asyncio.sleep(self.heartbeat_s)
+            self._hb_counter = (self._hb_counter + 1) & 0xFFFF
+            try:
+                await self._request("heartbeat", lambda c: c.write_register(reg.HEARTBEAT_IN, self._hb_counter, device_id=self.device_id))
+                r = await self._request("heartbeat", lambda c: c.read_input_registers(reg.HEARTBEAT_OUT, count=1, device_id=self.device_id))
+            except DeviceError:
+                continue  # link trouble is reported by the next action; the generator's watchdog keeps it safe
+            value = int(r.registers[0])
+            if value != last_value:
+                last_value, last_change = value, time.monotonic()
+                self._heartbeat_error = None
+            elif time.monotonic() - last_change > limit_s:
+                self._heartbeat_error = DeviceTimeoutError(
+                    f"{self.name}: generator heartbeat stopped for {time.monotonic() - last_change:.1f} s"
+                )
+
+    def _check_heartbeat(self) -> None:
+        if self._heartbeat_error is not None:
+            raise self._heartbeat_error
+
+    # ------------------------------------------------------------------ API
+    async def describe(self) -> DeviceInfo:
+        """Model, serial, firmware and the setting ranges."""
+        ir = await self._read_input_registers()
+        fw = ir[reg.FIRMWARE]
+        return DeviceInfo(
+            name=self.name,
+            model=reg.registers_to_text(ir[reg.MODEL : reg.MODEL + reg.TEXT_REGISTERS]),
+            serial=reg.registers_to_text(ir[reg.SERIAL : reg.SERIAL + reg.TEXT_REGISTERS]),
+            firmware=f"{fw // 100}.{fw % 100:02d}",
+            uri=self.uri,
+            extra={"kv_range": reg.KV_RANGE, "ma_range": reg.MA_RANGE, "exposure_ms_range": reg.EXPOSURE_MS_RANGE},
+        )
+
+    async def read(self) -> dict[str, Any]:
+        """State, settings, acknowledgements, interlock, fault code and frame counter as plain values."""
+        ir = await self._read_input_registers()
+        di = await self._read_inputs()
+        hr = (await self._request("read settings", lambda c: c.read_holding_registers(0, count=reg.N_HOLDING, device_id=self.device_id))).registers
+        return {
+            "state": GeneratorState(ir[reg.STATE]).name,
+            "fault_code": int(ir[reg.FAULT_CODE]),
+            "fault": FaultCode(ir[reg.FAULT_CODE]).name if ir[reg.FAULT_CODE] in FaultCode._value2member_map_ else "UNKNOWN",
+            "refusal": Refusal(ir[reg.REFUSAL]).name if ir[reg.REFUSAL] in Refusal._value2member_map_ else "UNKNOWN",
+            "door_closed": bool(di[reg.DOOR_CLOSED]),
+            "ready": bool(di[reg.READY_ACK]),
+            "exposing": bool(di[reg.EXPOSING_ACK]),
+            "hv_on": bool(di[reg.HV_ON]),
+            "kv": hr[reg.KV_SET] / reg.KV_SCALE,
+            "ma": hr[reg.MA_SET] / reg.MA_SCALE,
+            "exposure_ms": int(hr[reg.EXPOSURE_MS]),
+            "kv_actual": ir[reg.KV_ACTUAL] / reg.KV_SCALE,
+            "ma_actual": ir[reg.MA_ACTUAL] / reg.MA_SCALE,
+            "frame_counter": (ir[reg.FRAME_COUNTER_HI] << 16) | ir[reg.FRAME_COUNTER_LO],
+            "last_exposure_ms": int(ir[reg.LAST_EXPOSURE_MS]),
+            "heartbeat": int(ir[reg.HEARTBEAT_OUT]),
+        }
+
+    async def configure(self, kv: float, ma: float, exposure_ms: float) -> None:
+        """Set tube voltage (kV), current (mA) and exposure time (ms); checked against the ranges first."""
+        checks = (("kv", kv, reg.KV_RANGE), ("ma", ma, reg.MA_RANGE), ("exposure_ms", exposure_ms, reg.EXPOSURE_MS_RANGE))
+        for what, value, (lo, hi) in checks:
+            if not lo <= float(value) <= hi:
+                raise OutOfLimitsError(f"{self.name}: {what}={value:g} outside the allowed range {lo:g}..{hi:g}; nothing changed")
+        values = [int(round(kv * reg.KV_SCALE)), int(round(ma * reg.MA_SCALE)), int(round(exposure_ms))]
+        await self._request("configure", lambda c: c.write_registers(reg.KV_SET, values, device_id=self.device_id))
+        back = (await self._request("configure", lambda c: c.read_holding_registers(reg.KV_SET, count=3, device_id=self.device_id))).registers
+        if list(back[:3]) != values:
+            raise ProtocolError(f"{self.name}: settings read back as {list(back[:3])}, wrote {values}")
+
+    async def _check_can_expose(self) -> tuple[list[int], list[bool]]:
+        self._check_heartbeat()
+        ir = await self._read_input_registers()
+        di = await self._read_inputs()
+        if ir[reg.STATE] == GeneratorState.FAULT or di[reg.FAULT_ACTIVE]:
+            code = ir[reg.FAULT_CODE]
+            name = FaultCode(code).name if code in FaultCode._value2member_map_ else str(code)
+            raise FaultActiveError(f"{self.name}: generator fault {code} ({name}) is active; call reset_fault() once it is cleared")
+        if not di[reg.DOOR_CLOSED]:
+            raise InterlockOpenError(f"{self.name}: door interlock is open; close the door before preparing or exposing")
+        return ir, di
+
+    async def _raise_for_state(self, ir: list[int], what: str) -> None:
+        state = ir[reg.STATE]
+        if state == GeneratorState.FAULT:
+            code = ir[reg.FAULT_CODE]
+            if code == FaultCode.INTERLOCK_OPENED:
+                raise InterlockOpenError(f"{self.name}: door opened during {what}; X-rays off, exposure lost")
+            name = FaultCode(code).name if code in FaultCode._value2member_map_ else str(code)
+            raise FaultActiveError(f"{self.name}: generator fault {code} ({name}) during {what}; X-rays off")
+        refusal = ir[reg.REFUSAL]
+        if refusal == Refusal.INTERLOCK_OPEN:
+            raise InterlockOpenError(f"{self.name}: generator refused {what}: door interlock open; nothing exposed")
+        if refusal == Refusal.FAULT_ACTIVE:
+            raise FaultActiveError(f"{self.name}: generator refused {what}: fault active; nothing exposed")
+        if refusal == Refusal.NOT_READY:
+            raise DeviceError(f"{self.name}: generator refused {what}: not READY; nothing exposed")
+
+    async def _wait_state(self, status: Status[Any], targets: set[int], what: str, timeout_s: float) -> list[int]:
+        t0 = time.monotonic()
+        while True:
+            ir = await self._read_input_registers()
+            state = ir[reg.STATE]
+            elapsed = time.monotonic() - t0
+            status.report(message=GeneratorState(state).name, fraction=min(1.0, elapsed / max(timeout_s, 1e-9)))
+            if state in targets:
+                return ir
+            if state in (GeneratorState.FAULT, GeneratorState.IDLE):
+                await self._raise_for_state(ir, what)
+                raise DeviceError(f"{self.name}: generator returned to {GeneratorState(state).name} during {what}")
+            if elapsed > timeout_s:
+                raise DeviceTimeoutError(f"{self.name}: {what} not finished within {timeout_s:g} s (state {GeneratorState(state).name})")
+            await asyncio.sleep(self.poll_s)
+
+    def prepare(self) -> Status[None]:
+        """Request PREP and wait for READY (refused while the door is open or a fault is active)."""
+        status: Status[None]
+        status = Status(f"{self.name}.prepare", self._guarded(lambda: self._prepare(status)))
+        return status
+
+    async def _prepare(self, status: Status[None]) -> None:
+        ir, _ = await self._check_can_expose()
+        if ir[reg.STATE] == GeneratorState.READY:
+            return
+        if ir[reg.STATE] not in (GeneratorState.IDLE, GeneratorState.PREP, GeneratorState.DONE):
+            raise DeviceError(f"{self.name}: cannot prepare in state {GeneratorState(ir[reg.STATE]).name}")
+        await self._write_coil(reg.PREP_REQ, True)
+        await self._wait_state(status, {GeneratorState.READY}, "prepare", self.prep_timeout_s)
+
+    def expose(self) -> Status[int]:
+        """One exposure with the configured settings (prepares first if needed); ends with the new frame counter."""
+        status: Status[int]
+        status = Status(f"{self.name}.expose", self._guarded(lambda: self._expose(status)))
+        return status
+
+    def trigger(self) -> Status[int]:
+        """Same as :meth:`expose` (the :class:`~devices.base.Triggerable` protocol)."""
+        return self.expose()
+
+    async def _expose(self, status: Status[int]) -> int:
+        ir, _ = await self._check_can_expose()
+        if ir[reg.STATE] != GeneratorState.READY:
+            await self._prepare(status)  # type: ignore[arg-type]
+            ir, _ = await self._check_can_expose()
+        before = (ir[reg.FRAME_COUNTER_HI] << 16) | ir[reg.FRAME_COUNTER_LO]
+        hr = await self._request("read settings", lambda c: c.read_holding_registers(0, count=reg.N_HOLDING, device_id=self.device_id))
+        exposure_s = hr.registers[reg.EXPOSURE_MS] / 1000.0
+        try:
+            # sent exactly once: a lost request or reply is an error, never a second exposure
+            await self._write_coil(reg.EXPOSE_REQ, True, retry=False)
+            ir = await self._wait_state(status, {GeneratorState.DONE}, "exposure", exposure_s * 2 + self.timeout_s + 1.0)
+        except DeviceError as exc:
+            with contextlib.suppress(DeviceError):
+                await self.xray_off()
+            if isinstance(exc, (NotConnectedError, DeviceTimeoutError, ProtocolError)):
+                raise type(exc)(f"{exc}; exposure outcome unknown, X-rays switched off, NOT retried") from None
+            raise
+        after = (ir[reg.FRAME_COUNTER_HI] << 16) | ir[reg.FRAME_COUNTER_LO]
+        await self._write_coil(reg.EXPOSE_REQ, False)
+        if after != before + 1:
+            raise DeviceError(
+                f"{self.name}: exposure reported DONE but the frame counter went {before} -> {after} (missing frame); not retried"
+            )
+        status.report(message="DONE", fraction=1.0, current={"frame_counter": float(after)})
+        return after
+
+    async def _guarded(self, fn: Callable[[], Awaitable[Any]]) -> Any:
+        if self._action_lock.locked():
+            raise DeviceError(f"{self.name}: another prepare/expose is still running")
+        async with self._action_lock:
+            return await fn()
+
+    async def xray_off(self) -> None:
+        """Drop prep and expose requests and switch high voltage off (safe in every state)."""
+        await self._request("xray off", lambda c: c.write_coils(reg.PREP_REQ, [False, False, True], device_id=self.device_id))
+
+    async def reset_fault(self) -> None:
+        """Clear a fault whose cause is gone; raises if the generator stays in FAULT."""
+        await self._write_coil(reg.FAULT_RESET, True)
+        ir = await self._read_input_registers()
+        if ir[reg.STATE] == GeneratorState.FAULT:
+            raise FaultActiveError(f"{self.name}: fault {ir[reg.FAULT_CODE]} could not be reset (cause still present)")

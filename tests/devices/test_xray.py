@@ -1,0 +1,290 @@
+"""X-ray generator driver against its Modbus twin over a loopback socket: exposures, refusals, faults."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Awaitable, Callable, Iterator
+from typing import Any
+
+import pytest
+
+from devices.errors import (
+    ControllerError,
+    DeviceError,
+    DeviceTimeoutError,
+    FaultActiveError,
+    InterlockOpenError,
+    NotConnectedError,
+    OutOfLimitsError,
+    ProtocolError,
+    UriError,
+)
+from devices.twins.world import SimWorld
+from devices.twins.xray import TwinThread, XrayTwin
+from devices.xray import XrayGenerator
+from devices.xray_registers import FaultCode
+
+pytestmark = pytest.mark.timeout(60)
+
+
+@pytest.fixture()
+def twin() -> Iterator[tuple[XrayTwin, TwinThread]]:
+    tw = XrayTwin(SimWorld(), prep_s=0.03)
+    th = TwinThread(tw)
+    yield tw, th
+    th.stop()
+
+
+def run(twin: tuple[XrayTwin, TwinThread], body: Callable[[XrayGenerator], Awaitable[Any]], **options: Any) -> Any:
+    """Connect a real driver to the twin, run ``body``, close."""
+    options.setdefault("heartbeat_s", 0)
+    options.setdefault("timeout_s", 0.5)
+
+    async def main() -> Any:
+        gen = XrayGenerator("xray", f"modbus://127.0.0.1:{twin[1].port}", **options)
+        await gen.connect()
+        try:
+            return await body(gen)
+        finally:
+            await gen.close()
+
+    return asyncio.run(main())
+
+
+def test_describe_configure_and_expose(twin: tuple[XrayTwin, TwinThread]) -> None:
+    tw, _ = twin
+
+    async def body(gen: XrayGenerator) -> None:
+        info = await gen.describe()
+        assert info.model == "SimGen XR-150" and info.serial == "XG-0001" and info.firmware == "1.02"
+        await gen.configure(kv=80.0, ma=2.5, exposure_ms=20)
+        state = await gen.read()
+        assert (state["kv"], state["ma"], state["exposure_ms"], state["state"]) == (80.0, 2.5, 20, "IDLE")
+        reports: list[str] = []
+        prep = gen.prepare()
+        prep.watch(lambda p: reports.append(p.message))
+        await prep
+        assert (await gen.read())["ready"] and "READY" in reports
+        assert await gen.expose() == 1
+        assert await gen.trigger() == 2  # stays prepared: READY again after DONE
+        state = await gen.read()
+        assert state["frame_counter"] == 2 and state["state"] == "READY" and state["last_exposure_ms"] >= 19
+        await gen.xray_off()
+        assert (await gen.read())["state"] == "IDLE"
+
+    run(twin, body)
+    assert tw.world.xray_frame_counter == 2 and tw.world.xray_kv == 80.0 and not tw.world.exposing
+
+
+def test_expose_from_idle_prepares_first(twin: tuple[XrayTwin, TwinThread]) -> None:
+    async def body(gen: XrayGenerator) -> int:
+        return await gen.expose()
+
+    assert run(twin, body) == 1
+
+
+def test_out_of_range_settings_refused_by_driver_and_twin(twin: tuple[XrayTwin, TwinThread]) -> None:
+    async def body(gen: XrayGenerator) -> None:
+        with pytest.raises(OutOfLimitsError, match="kv=200"):
+            await gen.configure(kv=200, ma=1, exposure_ms=10)
+        assert gen._client is not None
+        reply = await gen._client.write_register(0, 2000, device_id=1)  # bypass the driver check
+        assert reply.isError() and reply.exception_code == 3
+        assert (await gen.read())["kv"] == 90.0
+
+    run(twin, body)
+
+
+def test_open_interlock_refuses_and_exposes_nothing(twin: tuple[XrayTwin, TwinThread]) -> None:
+    tw, th = twin
+    th.call(tw.set_door, False)
+
+    async def body(gen: XrayGenerator) -> None:
+        with pytest.raises(InterlockOpenError, match="door"):
+            await gen.expose()
+        with pytest.raises(InterlockOpenError):
+            await gen.prepare()
+        # the twin refuses on its own too, whatever a client writes
+        assert gen._client is not None
+        await gen._client.write_coil(0, True, device_id=1)
+        await gen._client.write_coil(1, True, device_id=1)
+        await asyncio.sleep(0.1)
+        state = await gen.read()
+        assert state["frame_counter"] == 0 and state["state"] == "IDLE" and state["refusal"] == "INTERLOCK_OPEN"
+
+    run(twin, body)
+    assert tw.world.xray_frame_counter == 0
+
+
+def test_door_opening_during_exposure_aborts(twin: tuple[XrayTwin, TwinThread]) -> None:
+    tw, th = twin
+
+    async def body(gen: XrayGenerator) -> None:
+        await gen.configure(90, 1, 400)
+        await gen.prepare()
+        status = gen.expose()
+        await asyncio.sleep(0.1)
+        th.call(tw.set_door, False)
+        with pytest.raises(InterlockOpenError, match="during exposure"):
+            await status
+        state = await gen.read()
+        assert state["frame_counter"] == 0 and state["fault"] == "INTERLOCK_OPENED"
+        with pytest.raises(FaultActiveError):
+            await gen.reset_fault()  # door still open
+        th.call(tw.set_door, True)
+        await asyncio.sleep(0.05)
+        await gen.reset_fault()
+        assert await gen.expose() == 1
+
+    run(twin, body)
+
+
+def test_active_fault_refuses(twin: tuple[XrayTwin, TwinThread]) -> None:
+    tw, th = twin
+    th.call(tw.raise_fault, FaultCode.GENERATOR)
+
+    async def body(gen: XrayGenerator) -> None:
+        with pytest.raises(FaultActiveError, match="GENERATOR"):
+            await gen.expose()
+        assert (await gen.read())["frame_counter"] == 0
+        await gen.xray_off()  # always allowed
+        await gen.reset_fault()
+        assert await gen.expose() == 1
+
+    run(twin, body)
+
+
+def test_device_error_is_named(twin: tuple[XrayTwin, TwinThread]) -> None:
+    tw, _ = twin
+
+    async def body(gen: XrayGenerator) -> None:
+        tw.faults.error_next = 1
+        with pytest.raises(ControllerError) as err:
+            await gen.read()
+        assert err.value.code == 4 and "DEVICE_FAILURE" in str(err.value)
+        assert (await gen.read())["state"] == "IDLE"
+
+    run(twin, body)
+
+
+def test_latency_times_out_then_recovers(twin: tuple[XrayTwin, TwinThread]) -> None:
+    tw, _ = twin
+
+    async def body(gen: XrayGenerator) -> None:
+        tw.faults.latency_s = 1.0
+        with pytest.raises(DeviceTimeoutError, match="no reply"):
+            await gen.read()
+        tw.faults.latency_s = 0.0
+        await asyncio.sleep(1.2)
+        assert (await gen.read())["state"] == "IDLE"
+
+    run(twin, body, timeout_s=0.2)
+
+
+def test_garbled_reply_is_a_protocol_error(twin: tuple[XrayTwin, TwinThread]) -> None:
+    tw, _ = twin
+
+    async def body(gen: XrayGenerator) -> None:
+        tw.faults.garble_next = 1
+        with pytest.raises(ProtocolError, match="garbled"):
+            await gen._request_once("read", lambda c: c.read_input_registers(0, count=4, device_id=1))
+        # the normal path reconnects and reads fine
+        assert (await gen.read())["state"] == "IDLE"
+
+    run(twin, body, timeout_s=0.2)
+
+
+def test_dropped_connection_reconnects_for_reads(twin: tuple[XrayTwin, TwinThread]) -> None:
+    tw, _ = twin
+
+    async def body(gen: XrayGenerator) -> None:
+        tw.faults.drop_next = 1
+        assert (await gen.read())["state"] == "IDLE"  # one reconnect, read repeated
+        tw.faults.drop_next = 1
+        with pytest.raises(NotConnectedError):
+            await gen._request_once("read", lambda c: c.read_input_registers(0, count=4, device_id=1))
+
+    run(twin, body, timeout_s=0.3)
+
+
+def test_exposure_is_never_retried_after_a_lost_reply(twin: tuple[XrayTwin, TwinThread]) -> None:
+    tw, _ = twin
+
+    async def body(gen: XrayGenerator) -> None:
+        await gen.prepare()
+        requests_before = tw.requests
+        tw.faults.match = "fc5:1"  # the expose request (coil 1) itself
+        tw.faults.drop_next = 1
+        with pytest.raises(NotConnectedError, match="NOT retried"):
+            await gen.expose()
+        assert tw.requests - requests_before <= 6  # status reads, one expose write, the xray-off write
+        state = await gen.read()
+        assert state["state"] == "IDLE" and not state["hv_on"]
+        assert state["frame_counter"] <= 1
+
+    run(twin, body, timeout_s=0.3)
+    assert tw.world.xray_frame_counter <= 1
+
+
+def test_missing_frame_is_reported_not_retried(twin: tuple[XrayTwin, TwinThread]) -> None:
+    tw, _ = twin
+
+    async def body(gen: XrayGenerator) -> None:
+        tw.faults.missing_frame_next = 1
+        with pytest.raises(DeviceError, match="missing frame"):
+            await gen.expose()
+        assert (await gen.read())["frame_counter"] == 0
+        assert await gen.expose() == 1
+
+    run(twin, body)
+
+
+def test_heartbeat_feeds_watchdog_and_notices_silent_generator(twin: tuple[XrayTwin, TwinThread]) -> None:
+    tw, th = twin
+
+    async def body(gen: XrayGenerator) -> None:
+        await gen.prepare()
+        await asyncio.sleep(0.5)  # longer than the watchdog: the heartbeat keeps it fed
+        assert (await gen.read())["state"] == "READY"
+        tw.heartbeat_frozen = True
+        await asyncio.sleep(0.8)
+        with pytest.raises(DeviceTimeoutError, match="heartbeat stopped"):
+            await gen.expose()
+
+    run(twin, body, heartbeat_s=0.05, watchdog_ms=300)
+
+
+def test_generator_watchdog_faults_without_heartbeat(twin: tuple[XrayTwin, TwinThread]) -> None:
+    async def body(gen: XrayGenerator) -> None:
+        await gen.prepare()
+        await asyncio.sleep(0.5)
+        state = await gen.read()
+        assert state["state"] == "FAULT" and state["fault"] == "WATCHDOG" and not state["hv_on"]
+
+    run(twin, body, heartbeat_s=0, watchdog_ms=200)
+
+
+def test_sim_uri_starts_in_process_twin() -> None:
+    async def main() -> None:
+        async with XrayGenerator("xray", "sim://xraytest?prep_s=0.01") as gen:
+            assert gen.twin is not None
+            assert await gen.expose() == 1
+            assert gen.twin.world.name == "xraytest"
+
+    asyncio.run(main())
+
+
+def test_bad_uri_and_options() -> None:
+    with pytest.raises(UriError, match="allowed"):
+        XrayGenerator("xray", "sim://bench", bogus=1)
+    with pytest.raises(UriError, match="scheme"):
+        XrayGenerator("xray", "http://x")
+
+
+def test_unreachable_generator() -> None:
+    async def main() -> None:
+        gen = XrayGenerator("xray", "modbus://127.0.0.1:1", timeout_s=0.3, heartbeat_s=0)
+        with pytest.raises(NotConnectedError, match="cannot connect"):
+            await gen.connect()
+
+    asyncio.run(main())
