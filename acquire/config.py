@@ -1,0 +1,282 @@
+"""Bench and C-arm configurations: pydantic models loaded from ``config/*.yaml``.
+
+Degrees and milliseconds appear only here (``*_deg``, ``*_ms``); the rest of the
+package works in radians, millimetres and seconds.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator, model_validator
+
+from acquire.errors import ConfigError
+from devices.errors import UriError
+from devices.uri import parse_uri
+from orbitct.geometry import Detector, ViewGeometry
+
+PANEL_MM = 427.0
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+Range = tuple[float, float]
+
+
+def _check_range(name: str, r: Range) -> Range:
+    if not (math.isfinite(r[0]) and math.isfinite(r[1]) and r[0] < r[1]):
+        raise ValueError(f"{name} must be [low, high] with low < high, got {list(r)}")
+    return r
+
+
+def _check_uri(uri: str) -> str:
+    try:
+        parse_uri(uri)
+    except UriError as exc:
+        raise ValueError(str(exc)) from None
+    return uri
+
+
+class DetectorConfig(_Model):
+    """Frame shape and pixel pitch; the pitch defaults to a 427 mm panel divided by the size."""
+
+    rows: int = Field(768, ge=8, le=8192)
+    cols: int = Field(768, ge=8, le=8192)
+    pitch_mm: tuple[float, float] | None = Field(None, description="[column pitch, row pitch] in mm")
+    binning: int = Field(1, ge=1, le=8)
+
+    @field_validator("pitch_mm")
+    @classmethod
+    def _positive(cls, v: tuple[float, float] | None) -> tuple[float, float] | None:
+        if v is not None and not (v[0] > 0 and v[1] > 0):
+            raise ValueError(f"pitches must be > 0 mm, got {list(v)}")
+        return v
+
+    def detector(self) -> Detector:
+        """The :class:`Detector` this configures."""
+        pc, pr = self.pitch_mm if self.pitch_mm is not None else (PANEL_MM / self.cols, PANEL_MM / self.rows)
+        return Detector(self.rows, self.cols, pc, pr)
+
+
+class GeometryConfig(_Model):
+    """Source and detector: SAD, SDD, detector, panel offsets and in-plane rotation."""
+
+    sad_mm: float = Field(785.0, gt=0)
+    sdd_mm: float = Field(1200.0, gt=0)
+    detector: DetectorConfig = DetectorConfig()
+    du_mm: float = 0.0
+    dv_mm: float = 0.0
+    eta_deg: float = Field(0.0, ge=-10, le=10)
+
+    @model_validator(mode="after")
+    def _sdd_beyond_sad(self) -> "GeometryConfig":
+        if self.sdd_mm <= self.sad_mm:
+            raise ValueError(f"sdd_mm ({self.sdd_mm}) must exceed sad_mm ({self.sad_mm}): the detector lies beyond the isocenter")
+        return self
+
+    def lab_view(self) -> ViewGeometry:
+        """The fixed source/detector at the reference view (theta = phi = 0), lab frame."""
+        return ViewGeometry.from_carm(
+            0.0, 0.0, self.sad_mm, self.sdd_mm, self.detector.detector(),
+            du=self.du_mm, dv=self.dv_mm, eta=math.radians(self.eta_deg),
+        )
+
+    def carm_views(self, theta_rad: Any, phi_rad: Any) -> ViewGeometry:
+        """Nominal C-arm views for angles in radians."""
+        return ViewGeometry.from_carm(
+            theta_rad, phi_rad, self.sad_mm, self.sdd_mm, self.detector.detector(),
+            du=self.du_mm, dv=self.dv_mm, eta=math.radians(self.eta_deg),
+        )
+
+
+class ExposureConfig(_Model):
+    """X-ray technique and frame timing."""
+
+    kv: float = Field(90.0, ge=20, le=150)
+    ma: float = Field(1.0, gt=0, le=1000)
+    exposure_ms: float = Field(10.0, gt=0, le=10000)
+    frame_rate_hz: float = Field(30.0, gt=0, le=1000)
+
+
+class CalibrationFramesConfig(_Model):
+    """How many darks and flats to take before and after the projections."""
+
+    darks_before: int = Field(4, ge=0, le=1000)
+    flats_before: int = Field(4, ge=0, le=1000)
+    darks_after: int = Field(2, ge=0, le=1000)
+    flats_after: int = Field(2, ge=0, le=1000)
+
+
+class BenchDevices(_Model):
+    """Device URIs of the bench (``sim://bench`` for in-process twins, ``tcp://host:port``, ``serial://...``)."""
+
+    hexapod: str = "sim://bench"
+    rotation_stage: str = "sim://bench"
+    xray: str = "sim://bench"
+    detector: str = "sim://bench"
+
+    _uris = field_validator("hexapod", "rotation_stage", "xray", "detector")(classmethod(lambda cls, v: _check_uri(v)))
+
+
+class StackConfig(_Model):
+    """How the rotation stage and hexapod are stacked, and the hexapod pivot point (lab, mm)."""
+
+    order: Literal["stage_on_hexapod", "hexapod_on_stage"] = "stage_on_hexapod"
+    pivot_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+class HexapodLimits(_Model):
+    """Soft limits per hexapod axis (checked in addition to the controller's coupled workspace)."""
+
+    x_mm: Range = (-50.0, 50.0)
+    y_mm: Range = (-50.0, 50.0)
+    z_mm: Range = (-25.0, 25.0)
+    u_deg: Range = (-30.0, 30.0)
+    v_deg: Range = (-30.0, 30.0)
+    w_deg: Range = (-30.0, 30.0)
+
+    @model_validator(mode="after")
+    def _ranges(self) -> "HexapodLimits":
+        for name in type(self).model_fields:
+            _check_range(name, getattr(self, name))
+        return self
+
+
+class BenchLimits(_Model):
+    """Soft limits of every bench axis, plus speeds the plan may ask for."""
+
+    rotation_stage_deg: Range = (-370.0, 370.0)
+    hexapod: HexapodLimits = HexapodLimits()
+    stage_velocity_deg_s: float = Field(90.0, gt=0, le=720)
+    hexapod_velocity_mm_s: float = Field(20.0, gt=0, le=200)
+
+    @field_validator("rotation_stage_deg")
+    @classmethod
+    def _stage_range(cls, v: Range) -> Range:
+        return _check_range("rotation_stage_deg", v)
+
+
+class MotionConfig(_Model):
+    """Step-and-shoot timing and time-outs."""
+
+    settle_ms: float = Field(5.0, ge=0, le=10000)
+    move_timeout_s: float = Field(30.0, gt=0, le=600)
+
+
+class SimConfig(_Model):
+    """What the in-process twins image (``--sim``): phantom and BB size of experiment A."""
+
+    phantom: str = "experiment_a"
+    bb_diameter_mm: float = Field(3.17, gt=0, le=20)
+    seed: int = 0
+
+
+class BenchConfig(_Model):
+    """A test bench: fixed source/detector, object moved by a rotation stage and a hexapod."""
+
+    kind: Literal["bench"] = "bench"
+    name: str = "bench"
+    devices: BenchDevices = BenchDevices()
+    stack: StackConfig = StackConfig()
+    geometry: GeometryConfig = GeometryConfig()
+    limits: BenchLimits = BenchLimits()
+    motion: MotionConfig = MotionConfig()
+    exposure: ExposureConfig = ExposureConfig()
+    calibration_frames: CalibrationFramesConfig = CalibrationFramesConfig()
+    sim: SimConfig = SimConfig()
+
+    def with_detector_size(self, size: int | None) -> "BenchConfig":
+        """Same bench with a square detector of ``size`` pixels on the same panel (None: unchanged)."""
+        if size is None:
+            return self
+        det = self.geometry.detector.model_copy(update={"rows": size, "cols": size, "pitch_mm": None})
+        geo = self.geometry.model_copy(update={"detector": det})
+        return self.model_copy(update={"geometry": geo})
+
+
+class CArmLimits(_Model):
+    """Angle ranges and step limits of a robotic C-arm."""
+
+    primary_deg: Range = (-185.0, 185.0)
+    secondary_deg: Range = (-45.0, 45.0)
+    max_step_deg: float = Field(5.0, gt=0, le=90)
+    speed_deg_s: float = Field(30.0, gt=0, le=180)
+
+    @model_validator(mode="after")
+    def _ranges(self) -> "CArmLimits":
+        _check_range("primary_deg", self.primary_deg)
+        _check_range("secondary_deg", self.secondary_deg)
+        return self
+
+
+class CArmDevices(_Model):
+    """Device URIs of a C-arm (navigation-point controller and its frame source)."""
+
+    carm: str = "sim://carm"
+
+    _uris = field_validator("carm")(classmethod(lambda cls, v: _check_uri(v)))
+
+
+class CArmConfig(_Model):
+    """A robotic C-arm driven through navigation points."""
+
+    kind: Literal["carm"] = "carm"
+    name: str = "carm"
+    devices: CArmDevices = CArmDevices()
+    geometry: GeometryConfig = GeometryConfig(sad_mm=785.0, sdd_mm=1200.0)
+    limits: CArmLimits = CArmLimits()
+    exposure: ExposureConfig = ExposureConfig()
+    calibration_frames: CalibrationFramesConfig = CalibrationFramesConfig()
+    sim: SimConfig = SimConfig(phantom="experiment_b")
+
+    def with_detector_size(self, size: int | None) -> "CArmConfig":
+        """Same C-arm with a square detector of ``size`` pixels on the same panel (None: unchanged)."""
+        if size is None:
+            return self
+        det = self.geometry.detector.model_copy(update={"rows": size, "cols": size, "pitch_mm": None})
+        return self.model_copy(update={"geometry": self.geometry.model_copy(update={"detector": det})})
+
+
+AnyConfig = Annotated[Union[BenchConfig, CArmConfig], Field(discriminator="kind")]
+_ADAPTER: TypeAdapter[BenchConfig | CArmConfig] = TypeAdapter(AnyConfig)
+
+
+def _describe(exc: ValidationError, source: str) -> str:
+    lines = []
+    for err in exc.errors():
+        parts = [str(p) for p in err["loc"]]
+        if parts and parts[0] in ("bench", "carm"):
+            parts = parts[1:]  # the discriminator tag, not a field
+        loc = ".".join(parts) or "(top level)"
+        msg = err["msg"].removeprefix("Value error, ")
+        lines.append(f"{loc}: {msg}")
+    return f"{source}: invalid configuration: " + "; ".join(lines)
+
+
+def parse_config(data: Any, source: str = "configuration") -> BenchConfig | CArmConfig:
+    """Validate a mapping into a bench or C-arm configuration; :class:`ConfigError` names field and reason."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
+    data = dict(data)
+    data.setdefault("kind", "bench")
+    try:
+        return _ADAPTER.validate_python(data)
+    except ValidationError as exc:
+        raise ConfigError(_describe(exc, source)) from None
+
+
+def load_config(path: str | Path) -> BenchConfig | CArmConfig:
+    """Read and validate ``config/*.yaml``."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"{p}: no such configuration file")
+    try:
+        data = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{p}: not valid YAML ({exc})") from None
+    return parse_config(data, str(p))

@@ -1,0 +1,40 @@
+"""Named errors of the acquisition package."""
+
+from __future__ import annotations
+
+
+class AcquireError(Exception):
+    """Base of all acquisition errors."""
+
+
+class ConfigError(AcquireError, ValueError):
+    """A bench or C-arm configuration that cannot be used; the message names the field and the reason."""
+
+
+class PreflightError(AcquireError):
+    """The orbit (errors included) cannot be run: names the first offending frame and axis."""
+
+    def __init__(self, frame: int, axis: str, value: float | None, allowed: str, unit: str = "") -> None:
+        self.frame = int(frame)
+        self.axis = axis
+        self.value = value
+        self.allowed = allowed
+        u = f" {unit}" if unit else ""
+        what = f"axis {axis}" if value is None else f"axis {axis} = {value:.4g}{u}"
+        super().__init__(f"orbit infeasible at frame {self.frame}: {what} is outside {allowed}; nothing moved")
+
+
+class ScanAborted(AcquireError):
+    """A scan ended before its last frame; ``reason`` says why."""
+
+    def __init__(self, reason: str) -> None:
+        self.reason = reason
+        super().__init__(reason)
+
+
+class ScanStateError(AcquireError):
+    """An action that the scan's current state does not allow (e.g. resume when not paused)."""
+
+
+class RepairError(AcquireError):
+    """A scan file that cannot be repaired; the message says why."""

@@ -1,0 +1,86 @@
+"""Repair a scan file left behind by a killed acquisition: keep every complete frame, mark it aborted."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+
+from acquire.errors import RepairError
+from orbitct.scanfile import ScanFile, ScanFileError
+from orbitct.scanfile.writer import FORMAT
+
+INTERRUPTED = "interrupted"
+
+
+@dataclass(frozen=True)
+class RepairReport:
+    """What :func:`repair_scan` found and did."""
+
+    path: Path
+    status_before: str
+    n_frames: int
+    truncated_from: int | None
+    changed: bool
+
+    def summary(self) -> str:
+        """One line for people."""
+        if not self.changed:
+            return f"{self.path}: status is already {self.status_before!r} with {self.n_frames} frames; nothing to repair"
+        cut = f" (partial frame data cut from {self.truncated_from})" if self.truncated_from is not None else ""
+        return f"{self.path}: was {self.status_before!r}; kept {self.n_frames} complete frames{cut}; marked aborted ({INTERRUPTED})"
+
+
+def _per_frame_datasets(f: h5py.File) -> list[h5py.Dataset]:
+    out: list[h5py.Dataset] = []
+    for name in ("frames/data", "frames/time_s", "geometry/nominal/vectors", "geometry/nominal/matrices"):
+        if name in f:
+            out.append(f[name])
+    for grp in ("frames/encoders", "frames/commanded"):
+        if grp in f:
+            out.extend(ds for ds in f[grp].values() if isinstance(ds, h5py.Dataset))
+    return out
+
+
+def repair_scan(path: str | os.PathLike[str]) -> RepairReport:
+    """Mark a scan still ``acquiring`` as ``aborted`` with reason ``interrupted``, trimming partial frames."""
+    p = Path(path)
+    if not p.is_file():
+        raise RepairError(f"{p}: no such file")
+    try:
+        f = h5py.File(p, "r+")
+    except OSError as exc:
+        raise RepairError(f"{p}: cannot open as HDF5 for writing ({exc}); is another process still writing it?") from None
+    try:
+        if f.attrs.get("format") != FORMAT:
+            raise RepairError(f"{p}: not an orbitct scan file (format tag {f.attrs.get('format')!r})")
+        status = str(f.attrs.get("status", "complete"))
+        if "frames/image_key" not in f:
+            raise RepairError(f"{p}: has no /frames/image_key; nothing can be recovered")
+        # image_key is written last for each frame: its length counts the complete frames
+        n = int(f["frames/image_key"].shape[0])
+        if status != "acquiring":
+            return RepairReport(p, status, n, None, False)
+        longest = max([n] + [ds.shape[0] for ds in _per_frame_datasets(f)])
+        short = [ds.name for ds in _per_frame_datasets(f) if ds.shape[0] < n]
+        if short:
+            n = min(ds.shape[0] for ds in _per_frame_datasets(f))
+            f["frames/image_key"].resize(n, axis=0)
+        for ds in _per_frame_datasets(f):
+            if ds.shape[0] > n:
+                ds.resize(n, axis=0)
+        if "truth/geometry/vectors" in f and f["truth/geometry/vectors"].shape[0] != n:
+            del f["truth/geometry/vectors"]  # partial truth is not the truth of this file
+        f.attrs["status"] = "aborted"
+        f.attrs["status_reason"] = INTERRUPTED
+        f.flush()
+    finally:
+        f.close()
+    try:
+        with ScanFile(p) as sf:
+            n_ok = sf.n_frames
+    except ScanFileError as exc:
+        raise RepairError(f"{p}: repaired but still not valid: {exc}") from None
+    return RepairReport(p, status, n_ok, longest if longest != n_ok else None, True)

@@ -1,0 +1,62 @@
+"""Bench and C-arm configurations: the shipped files load, invalid ones are refused naming field and reason."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from acquire.config import BenchConfig, CArmConfig, load_config, parse_config
+from acquire.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.parametrize("name,kind", [("bench.yaml", BenchConfig), ("carm-zeego.yaml", CArmConfig)])
+def test_shipped_configs_load(name: str, kind: type) -> None:
+    cfg = load_config(ROOT / "config" / name)
+    assert isinstance(cfg, kind)
+    det = cfg.geometry.detector.detector()
+    assert det.rows == 768 and abs(det.pitch_col * det.cols - 427) < 1.0
+
+
+def test_default_bench_numbers() -> None:
+    cfg = load_config(ROOT / "config" / "bench.yaml")
+    assert cfg.geometry.sad_mm == 785 and cfg.geometry.sdd_mm == 1200
+    assert cfg.stack.order == "stage_on_hexapod"
+    small = cfg.with_detector_size(64).geometry.detector.detector()
+    assert small.rows == 64 and small.pitch_col == pytest.approx(427 / 64)
+
+
+@pytest.mark.parametrize(
+    "data,field,reason",
+    [
+        ({"geometry": {"sdd_mm": 500}}, "geometry", "must exceed sad_mm"),
+        ({"geometry": {"sad_mm": -1}}, "geometry.sad_mm", "greater than 0"),
+        ({"devices": {"hexapod": "http://x"}}, "devices.hexapod", "scheme must be one of"),
+        ({"limits": {"hexapod": {"u_deg": [10, -10]}}}, "limits.hexapod", "low < high"),
+        ({"stack": {"order": "sideways"}}, "stack.order", "stage_on_hexapod"),
+        ({"exposure": {"kv": 500}}, "exposure.kv", "less than or equal to 150"),
+        ({"motion": {"settle_ms": "soon"}}, "motion.settle_ms", "valid number"),
+        ({"colour": "red"}, "colour", "Extra inputs are not permitted"),
+        ({"kind": "submarine"}, "", "bench"),
+    ],
+)
+def test_invalid_config_names_field_and_reason(data: dict, field: str, reason: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        parse_config(data, "test.yaml")
+    msg = str(info.value)
+    assert msg.startswith("test.yaml: invalid configuration")
+    assert field in msg and reason in msg
+
+
+def test_bad_files(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="no such configuration file"):
+        load_config(tmp_path / "missing.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("geometry: [1, 2\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(bad)
+    bad.write_text("- 1\n- 2\n")
+    with pytest.raises(ConfigError, match="expected a mapping"):
+        load_config(bad)

@@ -1,0 +1,91 @@
+"""Plans are pure data; pre-flight refuses infeasible orbits naming the first offending frame and axis."""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+import pytest
+
+from acquire.config import parse_config
+from acquire.errors import PreflightError
+from acquire.plan import DARK, FLAT, PROJECTION, plan_bench_scan
+from acquire.preflight import preflight
+
+CFG = parse_config({"geometry": {"detector": {"rows": 64, "cols": 64}},
+                    "calibration_frames": {"darks_before": 2, "flats_before": 3, "darks_after": 1, "flats_after": 1}})
+
+
+def _sawtooth(n: int = 40, tilt_deg: float = 20.0) -> tuple[np.ndarray, np.ndarray]:
+    theta = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    phase = (theta / (2 * np.pi) * 2 * 2) % 2
+    phi = np.radians(tilt_deg) * np.where(phase < 1, 2 * phase - 1, 3 - 2 * phase)
+    return theta, phi
+
+
+def test_plan_layout_and_nominal_geometry() -> None:
+    theta, phi = _sawtooth()
+    plan = plan_bench_scan(CFG, theta, phi, orbit_name="sawtooth", orbit_params={"n": 40})
+    assert plan.n_frames == 40 + 7 and plan.n_projections == 40
+    assert list(plan.image_key[:5]) == [DARK, DARK, FLAT, FLAT, FLAT]
+    assert list(plan.image_key[-2:]) == [DARK, FLAT]
+    proj = plan.image_key == PROJECTION
+    assert plan.nominal[np.flatnonzero(proj)].allclose(CFG.geometry.carm_views(theta, phi))
+    assert np.isnan(plan.nominal.vectors[~proj]).all()
+    # darks/flats sit at the first / last projection pose
+    np.testing.assert_allclose(plan.hexapod[0], plan.hexapod[5])
+    np.testing.assert_allclose(plan.stage_rad[-1], plan.stage_rad[-3])
+    assert plan.frame(5).kind == "projection" and plan.frame(5).view == 0
+
+
+def test_feasible_orbit_passes() -> None:
+    theta, phi = _sawtooth()
+    asyncio.run(preflight(plan_bench_scan(CFG, theta, phi), CFG))
+
+
+def test_tilt_beyond_hexapod_limit_is_refused_at_first_frame() -> None:
+    theta, phi = _sawtooth(tilt_deg=35.0)
+    plan = plan_bench_scan(CFG, theta, phi)
+    with pytest.raises(PreflightError) as info:
+        asyncio.run(preflight(plan, CFG))
+    first = int(np.flatnonzero(np.degrees(np.abs(plan.hexapod[:, 3])) > 30)[0])
+    assert info.value.frame == first and info.value.axis == "hexapod.U"
+    assert f"frame {first}" in str(info.value) and "nothing moved" in str(info.value)
+
+
+def test_errors_push_translation_out_of_range() -> None:
+    theta, phi = _sawtooth()
+    err = np.zeros((theta.size, 6))
+    err[17, 5] = 30.0  # z shift beyond the +-25 mm range
+    with pytest.raises(PreflightError) as info:
+        asyncio.run(preflight(plan_bench_scan(CFG, theta, phi, err), CFG))
+    assert info.value.frame == 17 + 5 and info.value.axis == "hexapod.Z"
+
+
+def test_controller_limits_are_checked_too() -> None:
+    theta, phi = _sawtooth()
+    plan = plan_bench_scan(CFG, theta, phi)
+    with pytest.raises(PreflightError, match="controller range") as info:
+        asyncio.run(preflight(plan, CFG, device_limits={"rotation_stage": (-180.0, 180.0)}))
+    assert info.value.axis == "rotation_stage"
+    assert np.degrees(plan.stage_rad[info.value.frame]) < -180
+
+
+def test_workspace_check_refusal_names_the_frame() -> None:
+    theta, phi = _sawtooth()
+    plan = plan_bench_scan(CFG, theta, phi)
+
+    async def refuse_tilts_over_15(poses):  # the check the controller's VMO? answers
+        return next((i for i, p in enumerate(poses) if abs(p["U"]) > 15), None)
+
+    with pytest.raises(PreflightError, match="workspace") as info:
+        asyncio.run(preflight(plan, CFG, workspace_check=refuse_tilts_over_15))
+    assert abs(np.degrees(plan.hexapod[info.value.frame, 3])) > 15
+
+
+def test_continuous_mode_speed_limit() -> None:
+    theta, phi = _sawtooth(n=40)
+    plan = plan_bench_scan(CFG, theta, phi)
+    asyncio.run(preflight(plan, CFG, mode="continuous", frame_rate_hz=5))
+    with pytest.raises(PreflightError, match="velocity"):
+        asyncio.run(preflight(plan, CFG, mode="continuous", frame_rate_hz=1000))
