@@ -1,0 +1,145 @@
+"""FDK for any per-view geometry: cosine weights, windowed ramp filter, redundancy weights, voxel back-projection."""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+import scipy.fft
+from numpy.typing import NDArray
+
+from orbitct.geometry import ViewGeometry
+from orbitct.progress import ProgressCallback, report
+from recon.errors import ReconError
+from recon.grid import VolumeGrid, views_isocenter
+from recon.operator import backproject_padded
+
+WINDOWS = ("ram-lak", "shepp-logan", "cosine", "hann")
+
+
+class ProjectionStack(Protocol):
+    """Anything sliceable along views that yields float32 ``(k, rows, cols)`` line integrals."""
+
+    shape: tuple[int, ...]
+
+    def __getitem__(self, index: slice) -> NDArray[np.float32]: ...
+
+
+def ramp_filter(n_cols: int, window: str = "ram-lak") -> NDArray[np.float64]:
+    """Frequency response (rfft of length ``2 * n_cols`` padded) of the discrete ramp, 1-pixel spacing."""
+    if window not in WINDOWS:
+        raise ReconError(f"unknown filter window {window!r}; choose one of {WINDOWS}")
+    npad = scipy.fft.next_fast_len(2 * n_cols)
+    n = np.arange(npad)
+    n = np.where(n > npad // 2, n - npad, n)
+    h = np.zeros(npad)
+    h[0] = 0.25
+    odd = n % 2 == 1
+    h[odd] = -1.0 / (np.pi * n[odd]) ** 2
+    H = np.real(scipy.fft.rfft(h))
+    f = np.arange(H.size) / (npad / 2)  # 0 .. 1 (Nyquist)
+    if window == "shepp-logan":
+        H *= np.sinc(f / 2)
+    elif window == "cosine":
+        H *= np.cos(np.pi * f / 2)
+    elif window == "hann":
+        H *= 0.5 * (1 + np.cos(np.pi * f))
+    return H
+
+
+def fan_angles(geometry: ViewGeometry, center: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Signed in-plane (xy) fan angle of every detector column, per view ``(N, cols)``."""
+    det = geometry.detector
+    c0, _ = det.center
+    cols = np.arange(det.cols) - c0
+    central = center[None, :2] - geometry.S[:, :2]
+    ray = (geometry.D - geometry.S)[:, None, :2] + cols[None, :, None] * geometry.u[:, None, :2]
+    cross = central[:, None, 0] * ray[..., 1] - central[:, None, 1] * ray[..., 0]
+    dot = central[:, None, 0] * ray[..., 0] + central[:, None, 1] * ray[..., 1]
+    return np.arctan2(cross, dot)
+
+
+def redundancy_weights(geometry: ViewGeometry, short_scan: str = "auto") -> tuple[NDArray[np.float64], NDArray[np.float64] | None, str]:
+    """Per-view angular weights, optional Parker weights per (view, column), and the scheme used.
+
+    Views are weighted by their azimuth increment about the rotation axis so that the
+    weights sum to pi (full or multiple turns); a single arc shorter than a turn but at least
+    pi plus the fan gets Parker weights (``short_scan`` 'auto' | 'parker' | 'none').
+    """
+    if short_scan not in ("auto", "parker", "none"):
+        raise ReconError(f"short_scan must be 'auto', 'parker' or 'none', got {short_scan!r}")
+    center = views_isocenter(geometry)
+    az = np.unwrap(np.arctan2(geometry.S[:, 1] - center[1], geometry.S[:, 0] - center[0]))
+    n = az.size
+    if n == 1:
+        return np.array([np.pi]), None, "single view"
+    sign = 1.0 if az[-1] >= az[0] else -1.0
+    beta = sign * (az - az[0])
+    dbeta = np.abs(np.gradient(beta))
+    med = float(np.median(dbeta)) if np.any(dbeta > 0) else 1.0
+    dbeta = np.clip(dbeta, 0.0, 5 * med)
+    total = float(dbeta.sum())
+    gamma = sign * fan_angles(geometry, center)
+    delta = float(np.max(np.abs(gamma)))
+    coverage = float(beta.max() - beta.min())
+    monotone = bool(np.all(np.diff(beta) >= -1e-9))
+    if total <= 0:
+        raise ReconError("the views do not rotate about the z axis; FDK needs an azimuthal sweep")
+    short = monotone and coverage < 2 * np.pi - 2 * med
+    if short_scan == "none" or not short or (short_scan == "auto" and coverage < np.pi + delta):
+        return dbeta * np.pi / total, None, "azimuth increments"
+    d = max((coverage - np.pi) / 2, 1e-6)
+    b = (beta - beta.min())[:, None]
+    g = np.clip(gamma, -d + 1e-9, d - 1e-9)
+    w = np.ones_like(g)
+    r1 = b < 2 * (d - g)
+    w = np.where(r1, np.sin(np.pi / 4 * b / (d - g)) ** 2, w)
+    r3 = b > np.pi - 2 * g
+    w = np.where(r3, np.sin(np.pi / 4 * np.clip(np.pi + 2 * d - b, 0, None) / (d + g)) ** 2, w)
+    return dbeta, w, "parker"
+
+
+def filter_views(proj: NDArray[np.float32], geometry: ViewGeometry, H: NDArray[np.float64],
+                 parker: NDArray[np.float64] | None, out: NDArray[np.float32]) -> None:
+    """Cosine-weight and ramp-filter ``proj`` row by row into the interior of the padded ``out``."""
+    det = geometry.detector
+    c0, r0 = det.center
+    cc = (np.arange(det.cols) - c0)[None, None, :, None]
+    rr = (np.arange(det.rows) - r0)[None, :, None, None]
+    pts = (geometry.D - geometry.S)[:, None, None, :] + cc * geometry.u[:, None, None, :] + rr * geometry.v[:, None, None, :]
+    cosw = (geometry.sdd[:, None, None] / np.linalg.norm(pts, axis=-1)).astype(np.float32)
+    g = np.asarray(proj, dtype=np.float32) * cosw
+    if parker is not None:
+        g *= parker[:, None, :].astype(np.float32)
+    npad = 2 * (H.size - 1)
+    spec = scipy.fft.rfft(g, n=npad, axis=-1, workers=-1)
+    spec *= H
+    q = scipy.fft.irfft(spec, n=npad, axis=-1, workers=-1)[..., : det.cols]
+    tau = det.pitch_col * geometry.sod() / geometry.sdd  # column spacing on the isocenter plane
+    out[:, 1:-1, 1:-1] = q / tau[:, None, None]
+
+
+def fdk(projections: NDArray[np.float32] | ProjectionStack, grid: VolumeGrid, geometry: ViewGeometry, *,
+        window: str = "ram-lak", short_scan: str = "auto", chunk: int = 16,
+        progress: ProgressCallback | None = None) -> NDArray[np.float32]:
+    """FDK volume (1/mm) from line integrals ``(views, rows, cols)`` of ``geometry`` (exact for circles)."""
+    det = geometry.detector
+    n = geometry.n_views
+    if tuple(projections.shape) != (n, det.rows, det.cols):
+        raise ReconError(f"projections: expected shape {(n, det.rows, det.cols)}, got {tuple(projections.shape)}")
+    if not geometry.valid.all():
+        raise ReconError("FDK needs finite geometry for every view it is given")
+    H = ramp_filter(det.cols, window)
+    wv, parker, _ = redundancy_weights(geometry, short_scan)
+    weights = wv * geometry.sod() ** 2
+    vol = np.zeros(grid.shape, dtype=np.float32)
+    buf = np.zeros((min(chunk, n), det.rows + 2, det.cols + 2), dtype=np.float32)
+    for i0 in range(0, n, chunk):
+        i1 = min(n, i0 + chunk)
+        g = geometry[i0:i1]
+        part = buf[: i1 - i0]
+        filter_views(projections[i0:i1], g, H, None if parker is None else parker[i0:i1], part)
+        backproject_padded(part, grid, g, weights[i0:i1], vol)
+        report(progress, "fdk", i1, n, "views")
+    return vol
+

@@ -1,0 +1,142 @@
+"""Volume grids: voxel sampling of the object frame and field-of-view checks."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import product
+
+import numpy as np
+from numpy.typing import NDArray
+
+from orbitct.geometry import ViewGeometry
+from recon.errors import FieldOfViewError, ReconError
+
+
+@dataclass(frozen=True)
+class VolumeGrid:
+    """Regular grid: ``shape`` (nz, ny, nx), ``voxel_mm`` and ``origin_mm`` (x, y, z; centre of voxel [0,0,0])."""
+
+    shape: tuple[int, int, int]
+    voxel_mm: tuple[float, float, float]
+    origin_mm: tuple[float, float, float]
+
+    def __post_init__(self) -> None:
+        shape = tuple(int(s) for s in self.shape)
+        vox = tuple(float(v) for v in np.broadcast_to(np.asarray(self.voxel_mm, dtype=float), (3,)))
+        org = tuple(float(v) for v in np.asarray(self.origin_mm, dtype=float).ravel())
+        if len(shape) != 3 or min(shape) < 1:
+            raise ReconError(f"grid shape must be 3 positive integers (nz, ny, nx), got {self.shape}")
+        if min(vox) <= 0:
+            raise ReconError(f"voxel_mm must be > 0, got {self.voxel_mm}")
+        if len(org) != 3 or not np.all(np.isfinite(org)):
+            raise ReconError(f"origin_mm must be 3 finite numbers (x, y, z), got {self.origin_mm}")
+        object.__setattr__(self, "shape", shape)
+        object.__setattr__(self, "voxel_mm", vox)
+        object.__setattr__(self, "origin_mm", org)
+
+    @classmethod
+    def centered(cls, shape: tuple[int, int, int], voxel_mm: float | tuple[float, float, float],
+                 center_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> "VolumeGrid":
+        """Grid of ``shape`` whose centre sits at ``center_mm`` (default the isocenter)."""
+        vox = np.broadcast_to(np.asarray(voxel_mm, dtype=float), (3,))
+        n_xyz = np.array(shape[::-1], dtype=float)
+        origin = np.asarray(center_mm, dtype=float) - (n_xyz - 1) / 2 * vox
+        return cls(tuple(shape), tuple(vox), tuple(origin))
+
+    @property
+    def size(self) -> int:
+        """Number of voxels."""
+        return int(np.prod(self.shape))
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of one float32 volume."""
+        return 4 * self.size
+
+    @property
+    def extent_mm(self) -> NDArray[np.float64]:
+        """``(3, 2)`` low/high edges of the grid along x, y, z."""
+        vox = np.asarray(self.voxel_mm)
+        lo = np.asarray(self.origin_mm) - vox / 2
+        hi = lo + vox * np.array(self.shape[::-1])
+        return np.stack([lo, hi], axis=1)
+
+    def coords_mm(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """1-D voxel-centre coordinates ``(z, y, x)``."""
+        return tuple(  # type: ignore[return-value]
+            self.origin_mm[a] + self.voxel_mm[a] * np.arange(self.shape[2 - a]) for a in (2, 1, 0)
+        )
+
+    def corners_mm(self) -> NDArray[np.float64]:
+        """The 8 outer corners ``(8, 3)``."""
+        ext = self.extent_mm
+        return np.array([[ext[0, i], ext[1, j], ext[2, k]] for i, j, k in product((0, 1), repeat=3)])
+
+    def to_json(self) -> dict[str, list[float] | list[int]]:
+        """Plain description for attributes and logs."""
+        return {"shape": list(self.shape), "voxel_mm": list(self.voxel_mm), "origin_mm": list(self.origin_mm)}
+
+
+def views_isocenter(geometry: ViewGeometry) -> NDArray[np.float64]:
+    """Least-squares point closest to every view's central ray (source to detector centre)."""
+    d = geometry.D - geometry.S
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    proj = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+    return np.linalg.lstsq(proj.sum(0), np.einsum("nij,nj->i", proj, geometry.S), rcond=None)[0]
+
+
+def fov_radius_height(geometry: ViewGeometry) -> tuple[float, float, tuple[float, float, float]]:
+    """Radius and height (mm) of the cylinder about +z seen by every valid view, and its centre."""
+    g = geometry[np.flatnonzero(geometry.valid)]
+    det = g.detector
+    sod = g.sod()
+    mag = g.sdd / sod
+    half_w = (det.cols * det.pitch_col) / 2 / mag
+    half_h = (det.rows * det.pitch_row) / 2 / mag
+    # the circle seen by a full rotation: distance from the axis to the fan edge
+    radius = float(np.min(sod * np.sin(np.arctan(half_w / sod))))
+    height = float(np.min(2 * half_h * (1 - radius / sod)))
+    center = views_isocenter(g)
+    return radius, height, (float(center[0]), float(center[1]), float(center[2]))
+
+
+def grid_for_geometry(geometry: ViewGeometry, *, voxel_mm: float | None = None,
+                      shape: tuple[int, int, int] | None = None) -> VolumeGrid:
+    """A grid centred on the views' isocenter that covers their common field of view."""
+    radius, height, center = fov_radius_height(geometry)
+    if voxel_mm is None and shape is None:
+        det = geometry.detector
+        g = geometry[np.flatnonzero(geometry.valid)]
+        mag = float(np.median(g.sdd / g.sod()))
+        voxel_mm = float(min(det.pitch_col, det.pitch_row) / mag)
+    if shape is None:
+        assert voxel_mm is not None
+        nxy = int(np.ceil(2 * radius / voxel_mm))
+        nz = int(np.ceil(height / voxel_mm))
+        shape = (max(nz, 1), max(nxy, 1), max(nxy, 1))
+    if voxel_mm is None:
+        voxel_mm = float(max(2 * radius / shape[2], 2 * radius / shape[1], height / shape[0]))
+    return VolumeGrid.centered(tuple(int(s) for s in shape), float(voxel_mm), center)
+
+
+def check_fov(grid: VolumeGrid, geometry: ViewGeometry, min_fraction: float = 0.05) -> float:
+    """Fraction of voxel-centre samples that project onto the detector; raises if below ``min_fraction``."""
+    z, y, x = grid.coords_mm()
+    pick = lambda a: a[np.linspace(0, a.size - 1, min(a.size, 9)).round().astype(int)]  # noqa: E731
+    zz, yy, xx = np.meshgrid(pick(z), pick(y), pick(x), indexing="ij")
+    pts = np.stack([xx.ravel(), yy.ravel(), zz.ravel()], axis=1)
+    g = geometry[np.flatnonzero(geometry.valid)]
+    if g.n_views == 0:
+        raise FieldOfViewError("the geometry has no valid (finite) views")
+    uv, w = g.project_with_depth(pts)
+    det = g.detector
+    inside = (w > 0) & (uv[..., 0] > -0.5) & (uv[..., 0] < det.cols - 0.5) & (uv[..., 1] > -0.5) & (uv[..., 1] < det.rows - 0.5)
+    frac = float(inside.mean())
+    if frac < min_fraction:
+        ext = grid.extent_mm
+        raise FieldOfViewError(
+            f"the volume grid (x {ext[0,0]:.1f}..{ext[0,1]:.1f}, y {ext[1,0]:.1f}..{ext[1,1]:.1f}, "
+            f"z {ext[2,0]:.1f}..{ext[2,1]:.1f} mm) misses the field of view: only {100*frac:.1f}% of its "
+            f"samples project onto the detector (need >= {100*min_fraction:.0f}%); move or shrink the grid"
+        )
+    return frac
