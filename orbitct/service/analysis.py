@@ -1,0 +1,75 @@
+"""What a job worker process runs: calibration and reconstruction of a scan file, with their result files."""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from orbitct.progress import ProgressEvent
+
+
+def _finite(x: float) -> float | None:
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def run_calibration(scan_path: Path, params: dict[str, Any], out_dir: Path,
+                    progress: Callable[[ProgressEvent], None]) -> dict[str, Any]:
+    """Calibrate the scan in place; report plots and the RPE table go to ``out_dir``."""
+    import calib
+
+    options = {k: v for k, v in params.items() if k != "method" and v is not None}
+    res = calib.calibrate_scan(scan_path, method=params.get("method", "bundle"), out=None,
+                               report_dir=out_dir, progress=progress, **options)
+    rpe = np.asarray(res.rpe_mm, dtype=float)
+    with open(out_dir / "rpe_per_frame.csv", "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(["frame", "rpe_mm"])
+        for i, value in enumerate(rpe):
+            if math.isfinite(value):
+                w.writerow([i, f"{value:.6f}"])
+    iterations = [
+        {"index": it.index, "rpe_mean_mm": _finite(it.rpe_mean_mm), "rpe_median_mm": _finite(it.rpe_median_mm),
+         "rpe_std_mm": _finite(it.rpe_std_mm), "reproj_rms_px": _finite(it.reproj_rms_px)}
+        for it in res.iterations
+    ]
+    ok = rpe[np.isfinite(rpe)]
+    table = {
+        "frames": int(res.n_frames), "bbs": int(res.n_bbs), "elapsed_s": float(res.elapsed_s),
+        "rpe_mean_mm": _finite(ok.mean()) if ok.size else None,
+        "rpe_median_mm": _finite(np.median(ok)) if ok.size else None,
+        "rpe_std_mm": _finite(ok.std()) if ok.size else None,
+        "time_per_frame_s": float(res.elapsed_s) / max(int(res.n_frames), 1),
+        "time_per_frame_per_bb_s": float(res.elapsed_s) / max(int(res.n_frames) * int(res.n_bbs), 1),
+    }
+    return {
+        "method": res.method, "table": table, "iterations": iterations,
+        "reproj_rms_px": _finite(res.reproj_rms_px), "warnings": [str(w) for w in res.warnings][:200],
+        "unsolved_views": [int(v) for v in res.unsolved_views][:10_000],
+        "files": sorted(p.name for p in out_dir.iterdir() if p.is_file()),
+    }
+
+
+def run_reconstruction(scan_path: Path, params: dict[str, Any], out_dir: Path,
+                       progress: Callable[[ProgressEvent], None]) -> dict[str, Any]:
+    """Reconstruct the scan into ``/recon/<name>``; slices, NIfTI and a raw copy of the volume go to ``out_dir``."""
+    import recon
+
+    kwargs = {k: v for k, v in params.items() if v is not None}
+    if "shape" in kwargs:
+        kwargs["shape"] = tuple(kwargs["shape"])
+    res = recon.reconstruct_scan(scan_path, export=["nifti", "png"], out_dir=out_dir, progress=progress, **kwargs)
+    volume = np.asarray(res.volume, dtype=np.float32)
+    np.save(out_dir / "volume.npy", volume)
+    return {
+        "name": res.name, "shape": [int(n) for n in res.volume_shape],
+        "voxel_mm": [float(v) for v in res.voxel_mm], "origin_mm": [float(v) for v in res.origin_mm],
+        "cost": [_finite(c) for c in res.cost], "elapsed_s": float(res.elapsed_s),
+        "min": _finite(volume.min()), "max": _finite(volume.max()), "mean": _finite(volume.mean()),
+        "files": sorted(p.name for p in out_dir.iterdir() if p.is_file()),
+    }

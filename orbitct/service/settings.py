@@ -1,0 +1,82 @@
+"""Typed service settings: defaults < settings file (YAML) < environment (``ORBITCT_``) < command line."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+from pydantic import BaseModel, Field, model_validator
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
+
+Role = Literal["operator", "analyst", "viewer"]
+
+
+class TokenHash(BaseModel):
+    """A configured token: its SHA-256 hex digest, role and a name for the logs."""
+
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
+    role: Role
+    name: str = Field(default="", max_length=100)
+
+
+class ServiceSettings(BaseSettings):
+    """Everything ``orbitct serve`` needs; every field can come from the file, ``ORBITCT_<FIELD>`` or the CLI."""
+
+    model_config = SettingsConfigDict(env_prefix="ORBITCT_", extra="forbid")
+    settings_file: ClassVar[Path | None] = None
+
+    bench_config: Path = Field(default=Path("config/bench.yaml"), description="bench configuration (YAML)")
+    sim: bool = Field(default=False, description="start in-process device twins instead of real hardware")
+    host: str = Field(default="127.0.0.1", max_length=255)
+    port: int = Field(default=8000, ge=1, le=65535)
+    data_dir: Path = Field(default=Path("orbitct-data"), description="scan files, job outputs, database")
+    tokens_file: Path | None = Field(default=None, description="token hashes (JSON); default <data_dir>/tokens.json")
+    tokens: list[TokenHash] = Field(default_factory=list, description="token hashes configured inline")
+    dev_token: str | None = Field(default=None, min_length=16, max_length=200, description="--sim only: a fixed dev token")
+    max_body_bytes: int = Field(default=64 * 1024, ge=1024, le=16 * 1024 * 1024)
+    job_workers: int = Field(default=1, ge=1, le=8, description="calibration/reconstruction processes at once")
+    cancel_grace_s: float = Field(default=5.0, ge=0.1, le=120.0, description="time a cancelled job gets before it is killed")
+    max_scan_frames: int = Field(default=5000, ge=1, le=100_000)
+    status_interval_s: float = Field(default=0.25, ge=0.01, le=10.0, description="how often scan progress goes to the DB")
+
+    @model_validator(mode="after")
+    def _dev_token_only_in_sim(self) -> "ServiceSettings":
+        if self.dev_token is not None and not self.sim:
+            raise ValueError("dev_token is allowed only with sim: true (no default token on real hardware)")
+        return self
+
+    @property
+    def tokens_path(self) -> Path:
+        """Where token hashes are stored."""
+        return self.tokens_file if self.tokens_file is not None else self.data_dir / "tokens.json"
+
+    @property
+    def db_path(self) -> Path:
+        """The SQLite database of scans and jobs."""
+        return self.data_dir / "orbitct.sqlite"
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        sources: list[PydanticBaseSettingsSource] = [init_settings, env_settings]
+        if cls.settings_file is not None:
+            sources.append(YamlConfigSettingsSource(settings_cls, yaml_file=cls.settings_file))
+        return tuple(sources)
+
+
+def load_settings(settings_file: Path | None = None, **overrides: Any) -> ServiceSettings:
+    """Settings from ``settings_file`` (optional YAML), the environment and ``overrides`` (None values ignored)."""
+    given = {k: v for k, v in overrides.items() if v is not None}
+
+    class _FromFile(ServiceSettings):
+        pass
+
+    _FromFile.settings_file = settings_file
+    loaded = _FromFile(**given)
+    return ServiceSettings.model_validate(loaded.model_dump())

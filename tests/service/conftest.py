@@ -1,0 +1,84 @@
+"""Fixtures: a service on the simulated bench (twins), with one token per role."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from fastapi.testclient import TestClient
+
+from orbitct.service.app import create_app
+from orbitct.service.auth import create_token
+from orbitct.service.settings import load_settings
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parents[1]
+DETECTOR_PX = 64
+sys.path.insert(0, str(HERE))  # workloads.py must be importable by spawned job workers
+
+
+def small_bench_config(folder: Path, size: int = DETECTOR_PX) -> Path:
+    """The default bench configuration with a small detector and fast frames."""
+    cfg = yaml.safe_load((ROOT / "config" / "bench.yaml").read_text())
+    cfg["geometry"]["detector"] = {"rows": size, "cols": size}
+    cfg["calibration_frames"] = {"darks_before": 2, "flats_before": 2, "darks_after": 1, "flats_after": 1}
+    path = folder / "bench.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+class Api:
+    """A TestClient plus one bearer token per role."""
+
+    def __init__(self, client: TestClient, tokens: dict[str, str], data_dir: Path) -> None:
+        self.client, self.tokens, self.data_dir = client, tokens, data_dir
+        self.service = client.app.state.service  # type: ignore[attr-defined]
+
+    def headers(self, role: str | None) -> dict[str, str]:
+        return {"Authorization": f"Bearer {self.tokens[role]}"} if role else {}
+
+    def request(self, method: str, path: str, role: str | None = "operator", **kwargs: Any) -> Any:
+        return self.client.request(method, path, headers={**self.headers(role), **kwargs.pop("headers", {})}, **kwargs)
+
+    def get(self, path: str, role: str | None = "viewer", **kwargs: Any) -> Any:
+        return self.request("GET", path, role, **kwargs)
+
+    def post(self, path: str, role: str | None = "operator", **kwargs: Any) -> Any:
+        return self.request("POST", path, role, **kwargs)
+
+
+@pytest.fixture
+def make_api(tmp_path: Path) -> Iterator[Callable[..., Api]]:
+    """Start a service (sim) in ``tmp_path``; call again with the same data dir to simulate a restart."""
+    opened: list[TestClient] = []
+
+    def _make(data_dir: Path | None = None, **overrides: Any) -> Api:
+        data = data_dir or tmp_path / "data"
+        tokens_file = data / "tokens.json"
+        tokens = {}
+        if not tokens_file.exists():
+            for role in ("operator", "analyst", "viewer"):
+                tokens[role] = create_token(tokens_file, role, f"test-{role}")  # type: ignore[arg-type]
+            (data / "test-tokens.yaml").write_text(yaml.safe_dump(tokens))
+        tokens = yaml.safe_load((data / "test-tokens.yaml").read_text())
+        settings = load_settings(None, **{"bench_config": small_bench_config(tmp_path), "sim": True, "data_dir": data,
+                                          "dev_token": "oct_dev_token_for_tests_only", **overrides})
+        tokens["dev"] = settings.dev_token
+        client = TestClient(create_app(settings), raise_server_exceptions=False)
+        client.__enter__()
+        opened.append(client)
+        return Api(client, tokens, data)
+
+    yield _make
+    for client in reversed(opened):
+        client.__exit__(None, None, None)
+
+
+@pytest.fixture
+def api(make_api: Callable[..., Api]) -> Api:
+    """A running service with tokens for every role."""
+    return make_api()

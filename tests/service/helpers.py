@@ -1,0 +1,42 @@
+"""Helpers shared by the service tests: a small scan file and SSE parsing."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from orbitct.geometry import Detector, ViewGeometry
+from orbitct.scanfile import ScanWriter
+
+
+def write_small_scan(path: Path, n: int = 6, size: int = 16) -> Path:
+    """A complete scan file of ``n`` projections of ``size``^2 pixels (plus a dark and a flat)."""
+    det = Detector(size, size, 427.0 / size, 427.0 / size)
+    theta = np.linspace(0, np.pi, n)
+    geom = ViewGeometry.from_carm(theta, np.zeros(n), 785.0, 1200.0, det)
+    with ScanWriter(path, det, orbit_name="circular", orbit_params={"n_frames": n}) as w:
+        w.append(np.zeros((size, size), np.uint16), "dark", 0.0)
+        w.append(np.full((size, size), 1000, np.uint16), "flat", 0.0)
+        for i in range(n):
+            w.append(np.full((size, size), 100 + i, np.uint16), "projection", 0.1 * i, nominal_vector=geom.vectors[i])
+    return path
+
+
+def parse_sse(text: str) -> list[dict[str, Any]]:
+    """Events of a server-sent-event body as dicts with id, event and data."""
+    events = []
+    for block in text.split("\n\n"):
+        fields: dict[str, Any] = {}
+        for line in block.splitlines():
+            if line.startswith(":") or ":" not in line:
+                continue
+            key, value = line.split(":", 1)
+            fields[key] = value.strip()
+        if fields:
+            fields["data"] = json.loads(fields.get("data", "null"))
+            fields["id"] = int(fields["id"])
+            events.append(fields)
+    return events

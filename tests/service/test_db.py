@@ -1,0 +1,65 @@
+"""Schema migrations and the restart bookkeeping of the SQLite store."""
+
+from __future__ import annotations
+
+import sqlite3
+from pathlib import Path
+
+import pytest
+
+from orbitct.service.db import SCHEMA_VERSION, Store, StoreError
+
+
+def test_fresh_database_is_at_latest_version(tmp_path: Path) -> None:
+    store = Store(tmp_path / "a.sqlite")
+    assert store.version() == SCHEMA_VERSION
+    assert store.migrate() == SCHEMA_VERSION  # idempotent
+
+
+def test_old_database_migrates_and_keeps_its_rows(tmp_path: Path) -> None:
+    path = tmp_path / "old.sqlite"
+    # a database of schema version 1, as the first release wrote it
+    s1 = Store.__new__(Store)
+    s1.path = path
+    import threading
+
+    s1._local, s1._write_lock = threading.local(), threading.Lock()
+    assert s1.migrate(target=1) == 1
+    s1._conn().execute(
+        "INSERT INTO scans (id, name, state, orbit, request_json, file, owner, created_utc) "
+        "VALUES ('s1', 'old', 'complete', 'circular', '{}', 'scans/s1.h5', 'me', '2026-01-01')"
+    )
+    s1.close()
+    s2 = Store(path)
+    assert s2.version() == SCHEMA_VERSION
+    row = s2.get_scan("s1")
+    assert row["name"] == "old" and row["progress"] == {}
+    s2.add_events([("scan:s1", 1, "state", {"state": "complete"})])
+    assert s2.events("scan:s1") == [(1, "state", {"state": "complete"})]
+
+
+def test_newer_database_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "new.sqlite"
+    Store(path).close()
+    conn = sqlite3.connect(path)
+    conn.execute("INSERT INTO schema_version VALUES (?)", (SCHEMA_VERSION + 5,))
+    conn.commit()
+    conn.close()
+    with pytest.raises(StoreError, match="newer"):
+        Store(path)
+
+
+def test_mark_interrupted(tmp_path: Path) -> None:
+    store = Store(tmp_path / "c.sqlite")
+    store.add_scan("s1", name="", orbit="circular", request={}, file="scans/s1.h5", owner="o", frames_total=5)
+    store.update_scan("s1", state="running")
+    store.add_scan("s2", name="", orbit="circular", request={}, file="scans/s2.h5", owner="o", frames_total=5)
+    store.update_scan("s2", state="complete")
+    store.add_job("j1", kind="calibration", scan_id="s2", params={}, owner="a")
+    store.update_job("j1", state="running")
+    store.add_job("j2", kind="calibration", scan_id="s2", params={}, owner="a")
+    scans, jobs = store.mark_interrupted("service restarted")
+    assert scans == ["s1"] and jobs == ["j1"]
+    assert store.get_scan("s1")["state"] == "interrupted" and store.get_scan("s1")["reason"] == "service restarted"
+    assert store.get_scan("s2")["state"] == "complete"
+    assert store.get_job("j1")["state"] == "interrupted" and store.get_job("j2")["state"] == "queued"
