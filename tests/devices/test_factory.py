@@ -1,0 +1,98 @@
+"""open_device by kind and URI, and stop_all halting a whole bench at once."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+import pytest
+
+from devices.errors import DeviceError, UriError
+from devices.factory import REGISTRY, device_class, open_device, stop_all
+from devices.hexapod import Hexapod
+from devices.rotation_stage import RotationStage
+from devices.twins.gcs import TwinServer, stop_sim_servers
+
+pytestmark = pytest.mark.anyio
+
+
+def test_registry_names_every_kind() -> None:
+    assert REGISTRY == {
+        "hexapod": "devices.hexapod:Hexapod",
+        "rotation_stage": "devices.rotation_stage:RotationStage",
+        "xray": "devices.xray:XrayGenerator",
+        "detector": "devices.detector:Detector",
+        "carm": "devices.carm:CArm",
+    }
+    assert device_class("rotation-stage") is RotationStage
+    with pytest.raises(DeviceError, match="kinds are"):
+        device_class("laser")
+
+
+async def test_open_by_uri(hexapod_twin: TwinServer, stage_twin: TwinServer) -> None:
+    hexa = await open_device("hexapod", "hexapod", hexapod_twin.uri)
+    stage = await open_device("rotation_stage", "stage", f"tcp://127.0.0.1:{stage_twin.port}")
+    try:
+        assert isinstance(hexa, Hexapod) and (await hexa.describe()).model.startswith("C-887")
+        assert (await stage.limits())["R"] == (-370.0, 370.0)
+    finally:
+        await hexa.close()
+        await stage.close()
+    with pytest.raises(UriError):
+        await open_device("hexapod", "hexapod", "ftp://somewhere")
+    with pytest.raises(DeviceError, match="cannot connect"):
+        await open_device("hexapod", "hexapod", "tcp://127.0.0.1:1")
+
+
+async def test_sim_uri_starts_in_process_twin_on_loopback() -> None:
+    try:
+        hexa = await open_device("hexapod", "hexapod", "sim://factory-test?time_scale=50")
+        try:
+            assert hexa.twin is not None and hexa.twin.port > 0
+            assert hexa.client.endpoint.scheme == "tcp" and hexa.client.endpoint.host == "127.0.0.1"
+            await hexa.reference()
+            await hexa.move({"Z": 2.0})
+            from devices.twins.world import get_world
+
+            assert get_world("factory-test").hexapod_true[2] == pytest.approx(2.0, abs=0.2)
+        finally:
+            await hexa.close()
+    finally:
+        stop_sim_servers()
+
+
+class _XrayOffRecorder:
+    """Stands in for the X-ray generator's stop surface only (its driver is tested elsewhere)."""
+
+    def __init__(self) -> None:
+        self.off = 0
+
+    async def xray_off(self) -> None:
+        self.off += 1
+
+
+class _Broken:
+    async def stop(self) -> None:
+        raise DeviceError("broken: cannot stop")
+
+
+async def test_stop_all_halts_everything_concurrently(hexapod_twin: TwinServer, stage_twin: TwinServer) -> None:
+    hexa = await open_device("hexapod", "hexapod", hexapod_twin.uri)
+    stage = await open_device("rotation_stage", "stage", stage_twin.uri)
+    xray = _XrayOffRecorder()
+    try:
+        await asyncio.gather(hexa.reference(), stage.reference())
+        await hexa.set_velocity(0.5)
+        await stage.set_velocity(1.0)
+        moves = [hexa.move({"X": 30.0}), stage.move({"R": 300.0})]
+        await asyncio.sleep(0.1)
+        assert hexapod_twin.controller.is_moving() and stage_twin.controller.is_moving()
+        errors = await stop_all([hexa, stage, xray, _Broken()])
+        assert not hexapod_twin.controller.is_moving() and not stage_twin.controller.is_moving()
+        assert xray.off == 1
+        assert len(errors) == 1 and "broken" in str(errors[0])
+        results: list[Any] = await asyncio.gather(*moves, return_exceptions=True)
+        assert all(getattr(r, "code", None) == 10 for r in results)
+    finally:
+        await hexa.close()
+        await stage.close()
