@@ -1,0 +1,77 @@
+"""Counter-based random numbers for per-pixel noise: parallel, and reproducible from one seed."""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+_S30, _S27, _S31, _S11 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(11)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def stream(seed: np.uint64, index: int) -> np.uint64:
+    """Start state of the stream of pixel ``index``."""
+    return seed ^ (np.uint64(index) * _M2)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def uniform(state: np.uint64) -> tuple[np.uint64, float]:
+    """SplitMix64 step: new state and a uniform number in (0, 1)."""
+    state = state + _GOLDEN
+    z = state
+    z = (z ^ (z >> _S30)) * _M1
+    z = (z ^ (z >> _S27)) * _M2
+    z = z ^ (z >> _S31)
+    return state, (float(z >> _S11) + 0.5) * (1.0 / 9007199254740992.0)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def normal(state: np.uint64) -> tuple[np.uint64, float]:
+    """A standard normal number (Box-Muller)."""
+    state, u1 = uniform(state)
+    state, u2 = uniform(state)
+    return state, math.sqrt(-2.0 * math.log(u1)) * math.cos(2.0 * math.pi * u2)
+
+
+@nb.njit(cache=True, nogil=True)
+def poisson(state: np.uint64, lam: float) -> tuple[np.uint64, float]:
+    """An exact Poisson draw: multiplication method below 12, Hormann's PTRS above."""
+    if lam <= 0.0:
+        return state, 0.0
+    if lam < 12.0:
+        limit = math.exp(-lam)
+        k = 0
+        state, p = uniform(state)
+        while p > limit:
+            k += 1
+            state, u = uniform(state)
+            p *= u
+        return state, float(k)
+    slam = math.sqrt(lam)
+    loglam = math.log(lam)
+    b = 0.931 + 2.53 * slam
+    a = -0.059 + 0.02483 * b
+    invalpha = 1.1239 + 1.1328 / (b - 3.4)
+    vr = 0.9277 - 3.6224 / (b - 2.0)
+    while True:
+        state, U = uniform(state)
+        U -= 0.5
+        state, V = uniform(state)
+        us = 0.5 - abs(U)
+        k = math.floor((2.0 * a / us + b) * U + lam + 0.43)
+        if us >= 0.07 and V <= vr:
+            return state, k
+        if k < 0.0 or (us < 0.013 and V > us):
+            continue
+        if math.log(V) + math.log(invalpha) - math.log(a / (us * us) + b) <= -lam + k * loglam - math.lgamma(k + 1.0):
+            return state, k
+
+
+def seed_from(rng: np.random.Generator) -> np.uint64:
+    """A 64-bit kernel seed drawn from a numpy generator."""
+    return np.uint64(int(rng.integers(0, 2**63 - 1)))
