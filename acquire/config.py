@@ -171,9 +171,10 @@ class MotionConfig(_Model):
 class SimConfig(_Model):
     """What the in-process twins image (``--sim``): phantom and BB size of experiment A."""
 
-    phantom: str = "experiment_a"
+    phantom: str = Field("A", description="orbitct.phantoms experiment: A, B or C")
     bb_diameter_mm: float = Field(3.17, gt=0, le=20)
     seed: int = 0
+    time_scale: float = Field(1.0, ge=0.1, le=1000, description="twin motion and exposure run this many times faster")
 
 
 class BenchConfig(_Model):
@@ -232,7 +233,7 @@ class CArmConfig(_Model):
     limits: CArmLimits = CArmLimits()
     exposure: ExposureConfig = ExposureConfig()
     calibration_frames: CalibrationFramesConfig = CalibrationFramesConfig()
-    sim: SimConfig = SimConfig(phantom="experiment_b")
+    sim: SimConfig = SimConfig(phantom="C")
 
     def with_detector_size(self, size: int | None) -> "CArmConfig":
         """Same C-arm with a square detector of ``size`` pixels on the same panel (None: unchanged)."""

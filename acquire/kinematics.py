@@ -1,8 +1,8 @@
 """Bench inverse kinematics: nominal view + injected error -> rotation-stage angle + hexapod pose, and back.
 
-An injected error is a 6-vector ``(rx, ry, rz, tx, ty, tz)`` (rad, mm) applied in the
-lab frame on top of the ideal pose of ``geometry.md``: the object pose is
-``R = R_x(rx) R_y(ry) R_z(rz) R_ideal(theta, phi)``, ``t = (tx, ty, tz)``.
+An injected error is a 6-vector ``(pitch, roll, yaw, x, y, z)`` (rad, mm): the rigid lab-frame
+transform of ``orbitct.errorprofiles`` about the nominal isocenter, applied after the ideal pose
+of ``geometry.md``: ``R = R_x(pitch) R_y(roll) R_z(yaw) R_ideal(theta, phi)``, ``t = (x, y, z)``.
 The stage carries the rotation (``stage = -theta``); the hexapod carries the tilt and
 the errors, about its pivot (``orbitct.kinematics.split_pose``).
 """
@@ -13,12 +13,18 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from acquire.config import StackConfig
+from orbitct.errorprofiles import RigidErrors
 from orbitct.geometry import ViewGeometry, ideal_bench_pose
 from orbitct.kinematics import object_pose, split_pose
 from orbitct.rotations import rot_xyz
 
 HEXAPOD_AXES: tuple[str, ...] = ("X", "Y", "Z", "U", "V", "W")
 HEXAPOD_UNITS: tuple[str, ...] = ("mm", "mm", "mm", "deg", "deg", "deg")
+
+
+def errors_array(rigid: RigidErrors) -> NDArray[np.float64]:
+    """``orbitct.errorprofiles.RigidErrors`` as (N, 6) ``(pitch, roll, yaw, x, y, z)``."""
+    return np.concatenate([rigid.angles[:, [1, 0, 2]], rigid.shift_mm], axis=1)
 
 
 def _errors(errors: ArrayLike | None, n: int) -> NDArray[np.float64]:

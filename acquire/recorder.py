@@ -36,8 +36,12 @@ class ScanRecorder:
         self.writer.set_attrs(
             "acquisition", mode=start.mode, error_profile=plan.error_profile, planned_frames=plan.n_frames,
             planned_projections=plan.n_projections, started_utc=start.started_utc, simulated=bool(start.sim),
-            injected_errors_json=plan.errors.tolist(), **dict(start.extra),
+            **dict(start.extra),
         )
+        # per-frame injected errors (pitch, roll, yaw rad; x, y, z mm), NaN rows for darks and flats
+        errors = np.where((plan.image_key == 0)[:, None], plan.errors, np.nan)
+        ds = self.writer._f.create_dataset("acquisition/injected_errors", data=errors)
+        ds.attrs["columns"] = "pitch_rad roll_rad yaw_rad x_mm y_mm z_mm"
         self._truth = np.full((plan.n_frames, 12), np.nan) if start.sim else None
 
     def on_frame(self, record: FrameRecord) -> None:

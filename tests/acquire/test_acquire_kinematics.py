@@ -58,3 +58,17 @@ def test_user_units_round_trip() -> None:
     user = hexapod_to_user(q)
     assert user["U"] == pytest.approx(np.degrees(0.1)) and user["X"] == 1.0
     np.testing.assert_allclose(hexapod_from_user(user), q)
+
+
+def test_injected_errors_follow_errorprofiles_definition() -> None:
+    from acquire.kinematics import errors_array
+    from orbitct.errorprofiles import make_profile
+    from orbitct.orbits import make_orbit
+
+    cfg = parse_config({"geometry": {"detector": {"rows": 64, "cols": 64}}})
+    orbit = make_orbit("sawtooth", n_frames=30)
+    rigid = make_profile("bench", seed=3).sample(orbit)
+    stage, hexapod = bench_axes(orbit.theta, orbit.phi, errors_array(rigid))
+    views = views_from_axes(stage, hexapod, cfg.geometry.lab_view())
+    nominal = cfg.geometry.carm_views(orbit.theta, orbit.phi)
+    assert views.allclose(rigid.apply_to_geometry(nominal), atol_mm=1e-9)

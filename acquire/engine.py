@@ -1,0 +1,356 @@
+"""How a plan runs on devices: step-and-shoot or continuous, pause/resume, abort, guaranteed cleanup.
+
+The engine owns the order of actions and the safety rules; the bench (``acquire.bench``)
+owns the device calls. Every exit path (end of plan, device error, abort, Ctrl-C,
+task cancellation) halts every axis, switches X-rays off and tells the subscribers
+how the scan ended, once.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Awaitable, Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from acquire.config import BenchConfig
+from acquire.errors import AcquireError, PreflightError, ScanStateError
+from acquire.kinematics import hexapod_to_user
+from acquire.plan import PROJECTION, FramePlan, ScanPlan
+from acquire.preflight import preflight
+from acquire.records import FrameRecord, ScanEnd, ScanStart, Subscriber
+from orbitct.geometry import ViewGeometry
+from orbitct.progress import ProgressCallback, report
+
+log = logging.getLogger(__name__)
+MODES = ("step", "continuous")
+
+
+class BenchLike(Protocol):
+    """What the engine needs from a bench (``acquire.bench.Bench`` implements it on real drivers)."""
+
+    axes: Mapping[str, str]
+    sim: bool
+
+    async def prepare(self, config: BenchConfig) -> None: ...
+    async def device_limits(self) -> dict[str, tuple[float, float]]: ...
+    async def check_workspace(self, poses: Sequence[Mapping[str, float]]) -> int | None: ...
+    async def move_to(self, stage_deg: float, hexapod: Mapping[str, float], timeout_s: float) -> None: ...
+    async def start_stage_sweep(self, target_deg: float, velocity_deg_s: float) -> None: ...
+    async def start_hexapod_move(self, hexapod: Mapping[str, float]) -> None: ...
+    async def stage_position_deg(self) -> float: ...
+    async def read_positions(self) -> dict[str, float]: ...
+    async def acquire(self, image_key: int) -> tuple[NDArray[Any], int]: ...
+    async def xray_off(self) -> None: ...
+    async def stop_all(self) -> None: ...
+    async def restore_stage_velocity(self) -> None: ...
+    def true_pose(self) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None: ...
+    def last_true_vector(self) -> NDArray[np.float64] | None: ...
+    def truth_extras(self) -> dict[str, Any]: ...
+
+
+@dataclass(frozen=True)
+class ScanOutcome:
+    """How a scan ended."""
+
+    status: str
+    reason: str
+    n_frames: int
+    n_planned: int
+    elapsed_s: float
+
+
+def _reason(exc: BaseException) -> str:
+    if isinstance(exc, KeyboardInterrupt):
+        return "interrupted by the user (Ctrl-C)"
+    if isinstance(exc, asyncio.CancelledError):
+        return "cancelled"
+    text = str(exc) or type(exc).__name__
+    return text if isinstance(exc, AcquireError) else f"{type(exc).__name__}: {text}"
+
+
+class ScanEngine:
+    """Runs one :class:`ScanPlan` on a bench and feeds subscribers; use :meth:`run` once."""
+
+    def __init__(
+        self,
+        bench: BenchLike,
+        plan: ScanPlan,
+        config: BenchConfig,
+        *,
+        mode: str = "step",
+        subscribers: Iterable[Subscriber] = (),
+        progress: ProgressCallback | None = None,
+        frame_rate_hz: float | None = None,
+        skip_preflight: bool = False,
+    ) -> None:
+        if mode not in MODES:
+            raise AcquireError(f"mode must be one of {MODES}, got {mode!r}")
+        self.bench, self.plan, self.config, self.mode = bench, plan, config, mode
+        self.subscribers = list(subscribers)
+        self.progress = progress
+        self.frame_rate_hz = float(frame_rate_hz or config.exposure.frame_rate_hz)
+        self.skip_preflight = skip_preflight
+        self.state = "idle"
+        self.n_done = 0
+        self._abort_reason: str | None = None
+        self._resume = asyncio.Event()
+        self._resume.set()
+        self._task: asyncio.Task[Any] | None = None
+        self._lab_view = config.geometry.lab_view()
+        self._motion_s = 0.0
+        self._acquire_s = 0.0
+        self._run_s = 0.0
+
+    # ------------------------------------------------------------- control
+    def pause(self) -> None:
+        """Stop before the next frame (the current frame completes)."""
+        if self.state in ("complete", "aborted"):
+            raise ScanStateError(f"cannot pause a scan that is {self.state}")
+        self._resume.clear()
+
+    def resume(self) -> None:
+        """Continue a paused scan."""
+        self._resume.set()
+
+    def abort(self, reason: str = "aborted by the operator") -> None:
+        """Stop now: halt every axis, X-rays off, mark the scan aborted with ``reason``."""
+        if self.state in ("complete", "aborted"):
+            return
+        self._abort_reason = reason
+        self._resume.set()
+        if self._task is not None and not self._task.done():
+            self._task.cancel()
+
+    @property
+    def paused(self) -> bool:
+        """Whether the scan waits at a frame boundary."""
+        return self.state == "paused"
+
+    @property
+    def timing(self) -> dict[str, float]:
+        """Seconds of the frame loop: total, in detector acquisition (exposure, rendering, readout),
+        in commanded moves and settling, and the rest (executor and recorder overhead)."""
+        rest = self._run_s - self._acquire_s - self._motion_s
+        return {"run_s": self._run_s, "acquire_s": self._acquire_s, "motion_s": self._motion_s, "overhead_s": rest}
+
+    # ---------------------------------------------------------------- run
+    async def run(self) -> ScanOutcome:
+        """Pre-flight, run every frame, clean up; returns the outcome (pre-flight refusals raise)."""
+        self._task = asyncio.current_task()
+        t0 = time.monotonic()
+        started = False
+        status, reason, pending = "complete", "", None
+        try:
+            if self._abort_reason is not None:
+                raise asyncio.CancelledError()
+            self.state = "preflight"
+            if not self.skip_preflight:
+                await preflight(
+                    self.plan, self.config, device_limits=await self.bench.device_limits(),
+                    workspace_check=self.bench.check_workspace, mode=self.mode, frame_rate_hz=self.frame_rate_hz,
+                )
+            await self.bench.prepare(self.config)
+            start = ScanStart(
+                plan=self.plan, axes=dict(self.bench.axes), mode=self.mode,
+                started_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"), sim=self.bench.sim,
+                extra={"frame_rate_hz": self.frame_rate_hz, "settle_ms": self.config.motion.settle_ms},
+            )
+            self._notify("on_start", start)
+            started = True
+            self.state = "running"
+            t0 = time.monotonic()
+            if self.mode == "step":
+                await self._run_step(t0)
+            else:
+                await self._run_continuous(t0)
+        except PreflightError:
+            status = "refused"
+            raise
+        except (KeyboardInterrupt, asyncio.CancelledError) as exc:
+            status = "aborted"
+            reason = self._abort_reason or _reason(exc)
+            own_abort = isinstance(exc, asyncio.CancelledError) and self._abort_reason is not None
+            if own_abort and self._task is not None:
+                self._task.uncancel()
+            else:
+                pending = exc
+        except Exception as exc:  # noqa: BLE001 - a device or recorder error ends the scan safely
+            status, reason = "aborted", self._abort_reason or _reason(exc)
+            log.error("scan aborted: %s", reason)
+        finally:
+            await self._cleanup(status)
+            self.state = "aborted" if status == "refused" else status
+            if started:
+                end = ScanEnd(status, reason, self.n_done, time.monotonic() - t0,
+                              truth=self.bench.truth_extras() if self.bench.sim else {})
+                self._notify("on_finish", end, final=True)
+            if status != "refused":
+                report(self.progress, "scan", self.n_done, self.plan.n_frames,
+                       f"{status}{': ' + reason if reason else ''}")
+        if pending is not None:
+            raise pending  # Ctrl-C or a cancellation from outside: propagate after cleanup
+        return ScanOutcome(status, reason, self.n_done, self.plan.n_frames, time.monotonic() - t0)
+
+    async def _cleanup(self, status: str) -> None:
+        """Halt every axis (on abort) and switch X-rays off; never raises, never skipped by a second cancel."""
+        async def _do() -> None:
+            try:
+                if status == "complete":
+                    await self.bench.xray_off()
+                    await self.bench.restore_stage_velocity()
+                else:
+                    await self.bench.stop_all()
+            except Exception as exc:  # noqa: BLE001
+                log.error("cleanup after scan failed: %s; stopping everything", exc)
+                try:
+                    await self.bench.stop_all()
+                except Exception as exc2:  # noqa: BLE001
+                    log.error("stop_all failed too: %s", exc2)
+
+        task = asyncio.ensure_future(_do())
+        while not task.done():
+            try:
+                await asyncio.shield(task)
+            except asyncio.CancelledError:
+                continue
+            except Exception:  # noqa: BLE001
+                break
+
+    def _notify(self, method: str, event: Any, final: bool = False) -> None:
+        for sub in self.subscribers:
+            fn: Callable[[Any], None] | None = getattr(sub, method, None)
+            if fn is None:
+                continue
+            if final:
+                try:
+                    fn(event)
+                except Exception as exc:  # noqa: BLE001
+                    log.error("subscriber %r failed in %s: %s", sub, method, exc)
+            else:
+                fn(event)
+
+    async def _boundary(self) -> None:
+        """Frame boundary: honour pause (X-rays stay off while paused)."""
+        if not self._resume.is_set():
+            self.state = "paused"
+            report(self.progress, "scan", self.n_done, self.plan.n_frames, "paused")
+            await self._resume.wait()
+            self.state = "running"
+
+    # ----------------------------------------------------------- frames
+    def _commanded(self, f: FramePlan) -> dict[str, float]:
+        hexa = hexapod_to_user(f.hexapod)
+        cmd = {f"hexapod.{a}": v for a, v in hexa.items()}
+        cmd[self._stage_axis] = float(np.degrees(f.stage_rad))
+        return cmd
+
+    @property
+    def _stage_axis(self) -> str:
+        return next(a for a in self.bench.axes if a.startswith("rotation_stage."))
+
+    def _true_vector(self) -> NDArray[np.float64] | None:
+        imaged = self.bench.last_true_vector()
+        if imaged is not None:
+            return imaged
+        pose = self.bench.true_pose()
+        if pose is None:
+            return None
+        return ViewGeometry.from_object_poses(self._lab_view, pose[0], pose[1]).vectors[0]
+
+    async def _shoot(self, f: FramePlan, t0: float, commanded: dict[str, float]) -> None:
+        encoders = await self.bench.read_positions()
+        t_frame = time.monotonic() - t0
+        t_b = time.monotonic()
+        frame, number = await self.bench.acquire(f.image_key)
+        t_c = time.monotonic()
+        truth = self._true_vector() if f.image_key == PROJECTION else None
+        rec = FrameRecord(
+            index=f.index, image_key=f.image_key, view=f.view, time_s=t_frame, frame=frame,
+            commanded=commanded, encoders=encoders, nominal_vector=f.nominal_vector,
+            true_vector=truth, detector_frame_number=number,
+        )
+        self._notify("on_frame", rec)
+        self.n_done += 1
+        t_d = time.monotonic()
+        self._acquire_s += t_c - t_b
+        elapsed = t_d - t0
+        self._run_s = elapsed
+        rate = self.n_done / elapsed if elapsed > 0 else 0.0
+        left = (self.plan.n_frames - self.n_done) / rate if rate > 0 else float("nan")
+        report(self.progress, "scan", self.n_done, self.plan.n_frames, "", rate_fps=rate, time_left_s=left)
+
+    async def _run_step(self, t0: float) -> None:
+        last: dict[str, float] | None = None
+        settle_s = self.config.motion.settle_ms / 1000.0
+        for f in self.plan:
+            await self._boundary()
+            cmd = self._commanded(f)
+            if cmd != last:
+                t_m = time.monotonic()
+                await self.bench.move_to(cmd[self._stage_axis], hexapod_to_user(f.hexapod), self.config.motion.move_timeout_s)
+                if settle_s > 0:
+                    await asyncio.sleep(settle_s)
+                self._motion_s += time.monotonic() - t_m
+                last = cmd
+            await self._shoot(f, t0, cmd)
+
+    async def _run_continuous(self, t0: float) -> None:
+        """Darks/flats step-wise; projections while the stage turns at constant speed, triggered at angles."""
+        plan = self.plan
+        proj = np.flatnonzero(plan.image_key == PROJECTION)
+        first, last_p = int(proj[0]), int(proj[-1])
+        timeout = self.config.motion.move_timeout_s
+        for i in range(first):
+            await self._boundary()
+            f = plan.frame(i)
+            if i == 0:
+                await self.bench.move_to(float(np.degrees(f.stage_rad)), hexapod_to_user(f.hexapod), timeout)
+            await self._shoot(f, t0, self._commanded(f))
+        stage_deg = np.degrees(plan.stage_rad)
+        idx = first
+        while idx <= last_p:
+            await self._boundary()
+            # (re)start a sweep from the current frame: position there, then turn at constant speed
+            f = plan.frame(idx)
+            step = abs(float(stage_deg[min(idx + 1, last_p)] - stage_deg[idx])) or abs(float(stage_deg[idx] - stage_deg[max(idx - 1, first)]))
+            velocity = max(step * self.frame_rate_hz, 1e-3)
+            direction = np.sign(stage_deg[last_p] - stage_deg[idx]) or 1.0
+            lead = direction * max(velocity * 0.05, 0.01)  # start a little before the trigger angle
+            await self.bench.move_to(float(stage_deg[idx] - lead), hexapod_to_user(f.hexapod), timeout)
+            await self.bench.start_stage_sweep(float(stage_deg[last_p] + lead), velocity)
+            while idx <= last_p:
+                f = plan.frame(idx)
+                await self._wait_for_angle(float(stage_deg[idx]), direction, velocity, timeout)
+                await self._shoot(f, t0, self._commanded(f))
+                idx += 1
+                if idx <= last_p:
+                    await self.bench.start_hexapod_move(hexapod_to_user(plan.hexapod[idx]))
+                if not self._resume.is_set():
+                    await self.bench.stop_all()
+                    break
+        for i in range(last_p + 1, plan.n_frames):
+            await self._boundary()
+            f = plan.frame(i)
+            await self._shoot(f, t0, self._commanded(f))
+        await self.bench.restore_stage_velocity()
+
+    async def _wait_for_angle(self, target_deg: float, direction: float, velocity: float, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            pos = await self.bench.stage_position_deg()
+            remaining = (target_deg - pos) * direction
+            if remaining <= 0:
+                return
+            if time.monotonic() > deadline:
+                raise AcquireError(
+                    f"continuous mode: rotation stage did not reach the trigger angle {target_deg:.3f} deg "
+                    f"within {timeout_s:g} s (at {pos:.3f} deg)"
+                )
+            await asyncio.sleep(min(max(remaining / velocity * 0.8, 0.0002), 0.05))

@@ -1,0 +1,220 @@
+"""High-level scan API for the CLI and the REST service: request in, scan file out, with progress and control."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from acquire.bench import Bench, open_bench
+from acquire.config import BenchConfig, CArmConfig, load_config
+from acquire.engine import MODES, ScanEngine
+from acquire.errors import AcquireError, ScanStateError
+from acquire.kinematics import errors_array
+from acquire.plan import ScanPlan, plan_bench_scan
+from acquire.recorder import ScanRecorder
+from orbitct.errorprofiles import ErrorProfileError, make_profile
+from orbitct.orbits import Orbit, OrbitError, make_orbit
+from orbitct.progress import ProgressCallback, ProgressEvent
+
+@dataclass
+class ScanRequest:
+    """Everything one scan needs; see ``/work/notes/api-acquire.md``."""
+
+    config: str | Path | BenchConfig | CArmConfig
+    out: str | Path
+    orbit: str = "sawtooth"
+    frames: int | None = None
+    orbit_params: Mapping[str, Any] = field(default_factory=dict)
+    errors: str = "bench"
+    error_params: Mapping[str, Any] = field(default_factory=dict)
+    seed: int = 0
+    mode: str = "step"
+    sim: bool = False
+    detector_size: int | None = None
+    frame_rate_hz: float | None = None
+    overwrite: bool = False
+
+    def resolved_config(self) -> BenchConfig | CArmConfig:
+        """The configuration object (loaded and validated if a path was given)."""
+        cfg = self.config if isinstance(self.config, (BenchConfig, CArmConfig)) else load_config(self.config)
+        return cfg.with_detector_size(self.detector_size)
+
+
+@dataclass(frozen=True)
+class ScanResult:
+    """How a scan ended and where its file is."""
+
+    path: Path
+    status: str
+    reason: str
+    n_frames: int
+    n_planned: int
+    elapsed_s: float
+    timing: Mapping[str, float] = field(default_factory=dict)
+
+
+def make_orbit_and_errors(req: ScanRequest) -> tuple[Orbit, np.ndarray, dict[str, Any]]:
+    """The orbit and the injected errors (N, 6) of a request, with the error profile's description."""
+    params = dict(req.orbit_params)
+    if req.frames is not None:
+        params["n_frames"] = int(req.frames)
+    try:
+        orbit = make_orbit(req.orbit, **params)
+        profile = make_profile(req.errors, seed=req.seed, **dict(req.error_params))
+    except (OrbitError, ErrorProfileError) as exc:
+        raise AcquireError(str(exc)) from None
+    return orbit, errors_array(profile.sample(orbit)), profile.to_json()
+
+
+def build_plan(req: ScanRequest, cfg: BenchConfig) -> ScanPlan:
+    """The bench plan of a request."""
+    orbit, errors, profile = make_orbit_and_errors(req)
+    return plan_bench_scan(cfg, orbit.theta, orbit.phi, errors, orbit_name=orbit.name,
+                           orbit_params=orbit.params, error_profile=json.dumps(profile, sort_keys=True))
+
+
+class ScanRunner:
+    """Runs one scan in the caller's loop (:meth:`run`) or in a background thread (:meth:`start`)."""
+
+    def __init__(self, request: ScanRequest, *, progress: ProgressCallback | None = None, bench: Bench | None = None) -> None:
+        if request.mode not in MODES:
+            raise AcquireError(f"mode must be one of {MODES}, got {request.mode!r}")
+        self.request = request
+        self._user_progress = progress
+        self._bench = bench
+        self.progress_event: ProgressEvent | None = None
+        self.error: BaseException | None = None
+        self.result: ScanResult | None = None
+        self._engine: ScanEngine | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._done = threading.Event()
+        self._pending_abort: str | None = None
+        self._pending_pause = False
+        self._state = "idle"
+
+    # --------------------------------------------------------------- state
+    @property
+    def state(self) -> str:
+        """``idle``, ``preflight``, ``running``, ``paused``, ``complete``, ``aborted`` or ``failed``."""
+        if self._engine is not None and self._state not in ("complete", "aborted", "failed"):
+            return self._engine.state
+        return self._state
+
+    def _progress(self, event: ProgressEvent) -> None:
+        self.progress_event = event
+        if self._user_progress is not None:
+            self._user_progress(event)
+
+    # ----------------------------------------------------------------- run
+    async def run(self) -> ScanResult:
+        """Connect (unless a bench was given), plan, pre-flight, scan, record; returns the result."""
+        self._loop = asyncio.get_running_loop()
+        req = self.request
+        try:
+            cfg = req.resolved_config()
+            if isinstance(cfg, CArmConfig):
+                from acquire.carm_path import run_carm_scan
+
+                self.result = await run_carm_scan(req, cfg, progress=self._progress, runner=self)
+            else:
+                self.result = await self._run_bench(req, cfg)
+            self._state = self.result.status
+            return self.result
+        except BaseException as exc:
+            self.error = exc
+            self._state = "failed" if not isinstance(exc, (KeyboardInterrupt, asyncio.CancelledError)) else "aborted"
+            raise
+        finally:
+            self._done.set()
+
+    async def _run_bench(self, req: ScanRequest, cfg: BenchConfig) -> ScanResult:
+        plan = build_plan(req, cfg)
+        out = Path(req.out)
+        if out.exists() and not req.overwrite:
+            raise AcquireError(f"{out}: already exists (use overwrite to replace it)")
+        recorder = ScanRecorder(out, overwrite=req.overwrite, marker_diameter_mm=cfg.sim.bb_diameter_mm if req.sim else None)
+        if self._bench is not None:
+            return await self._run_engine(self._bench, plan, cfg, recorder)
+        async with open_bench(cfg, sim=req.sim) as bench:
+            return await self._run_engine(bench, plan, cfg, recorder)
+
+    async def _run_engine(self, bench: Bench, plan: ScanPlan, cfg: BenchConfig, recorder: ScanRecorder) -> ScanResult:
+        engine = ScanEngine(bench, plan, cfg, mode=self.request.mode, subscribers=[recorder],
+                            progress=self._progress, frame_rate_hz=self.request.frame_rate_hz)
+        self._engine = engine
+        if self._pending_pause:
+            engine.pause()
+        if self._pending_abort is not None:
+            engine.abort(self._pending_abort)
+        outcome = await engine.run()
+        return ScanResult(Path(self.request.out), outcome.status, outcome.reason, outcome.n_frames,
+                          outcome.n_planned, outcome.elapsed_s, engine.timing)
+
+    # ------------------------------------------------------- background use
+    def start(self) -> None:
+        """Run in a new thread with its own event loop; returns at once."""
+        if self._thread is not None:
+            raise ScanStateError("this runner was already started")
+
+        def _main() -> None:
+            try:
+                asyncio.run(self.run())
+            except BaseException:  # noqa: BLE001 - kept in self.error for wait()
+                pass
+
+        self._thread = threading.Thread(target=_main, name="orbitct-scan", daemon=True)
+        self._thread.start()
+
+    def wait(self, timeout: float | None = None) -> ScanResult:
+        """Block until the scan ends; re-raises what prevented it."""
+        if not self._done.wait(timeout):
+            raise TimeoutError(f"scan still {self.state} after {timeout} s")
+        if self.error is not None:
+            raise self.error
+        assert self.result is not None
+        return self.result
+
+    def _call(self, fn_name: str, *args: Any) -> None:
+        engine, loop = self._engine, self._loop
+        if engine is None or loop is None or loop.is_closed():
+            return
+        try:
+            same_loop = asyncio.get_running_loop() is loop
+        except RuntimeError:
+            same_loop = False
+        if same_loop or not loop.is_running():
+            getattr(engine, fn_name)(*args)
+        else:
+            loop.call_soon_threadsafe(getattr(engine, fn_name), *args)
+
+    def pause(self) -> None:
+        """Pause at the next frame boundary (thread-safe)."""
+        if self.state in ("complete", "aborted", "failed"):
+            raise ScanStateError(f"cannot pause a scan that is {self.state}")
+        self._pending_pause = True
+        self._call("pause")
+
+    def resume(self) -> None:
+        """Resume a paused scan (thread-safe)."""
+        if not self._pending_pause:
+            raise ScanStateError(f"cannot resume a scan that is {self.state} (not paused)")
+        self._pending_pause = False
+        self._call("resume")
+
+    def abort(self, reason: str = "aborted by the operator") -> None:
+        """Abort now: halt axes, X-rays off, file marked aborted with ``reason`` (thread-safe)."""
+        self._pending_abort = reason
+        self._call("abort", reason)
+
+
+def run_scan(request: ScanRequest, *, progress: ProgressCallback | None = None) -> ScanResult:
+    """Run one scan to its end in a fresh event loop (blocking)."""
+    return asyncio.run(ScanRunner(request, progress=progress).run())
