@@ -1,10 +1,15 @@
 """Reconstruction for arbitrary cone-beam orbits: projectors, FDK, PWLS/SPS, MAR, exports."""
 
 from recon.errors import FieldOfViewError, GeometryMissingError, MemoryBudgetError, ReconError
+from recon.fdk import fdk
 from recon.grid import VolumeGrid, check_fov, grid_for_geometry
 from recon.operator import Projector, backproject_voxels, projector
+from recon.pipeline import ReconResult, reconstruct_scan
+from recon.pwls import DEFAULT_BETA, PwlsResult, pwls_sps
+from recon.quality import reference_volume, rmse, wire_fwhm
 
 __all__ = [
-    "FieldOfViewError", "GeometryMissingError", "MemoryBudgetError", "Projector", "ReconError", "VolumeGrid",
-    "backproject_voxels", "check_fov", "grid_for_geometry", "projector",
+    "DEFAULT_BETA", "FieldOfViewError", "GeometryMissingError", "MemoryBudgetError", "Projector", "PwlsResult",
+    "ReconError", "ReconResult", "VolumeGrid", "backproject_voxels", "check_fov", "fdk", "grid_for_geometry",
+    "projector", "pwls_sps", "reconstruct_scan", "reference_volume", "rmse", "wire_fwhm",
 ]

@@ -101,9 +101,10 @@ def fov_radius_height(geometry: ViewGeometry) -> tuple[float, float, tuple[float
 
 
 def grid_for_geometry(geometry: ViewGeometry, *, voxel_mm: float | None = None,
-                      shape: tuple[int, int, int] | None = None) -> VolumeGrid:
-    """A grid centred on the views' isocenter that covers their common field of view."""
-    radius, height, center = fov_radius_height(geometry)
+                      shape: tuple[int, int, int] | None = None,
+                      center_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> VolumeGrid:
+    """A grid centred on ``center_mm`` (default the nominal isocenter) covering the views' common field of view."""
+    radius, height, _ = fov_radius_height(geometry)
     if voxel_mm is None and shape is None:
         det = geometry.detector
         g = geometry[np.flatnonzero(geometry.valid)]
@@ -116,11 +117,11 @@ def grid_for_geometry(geometry: ViewGeometry, *, voxel_mm: float | None = None,
         shape = (max(nz, 1), max(nxy, 1), max(nxy, 1))
     if voxel_mm is None:
         voxel_mm = float(max(2 * radius / shape[2], 2 * radius / shape[1], height / shape[0]))
-    return VolumeGrid.centered(tuple(int(s) for s in shape), float(voxel_mm), center)
+    return VolumeGrid.centered(tuple(int(s) for s in shape), float(voxel_mm), center_mm)
 
 
 def check_fov(grid: VolumeGrid, geometry: ViewGeometry, min_fraction: float = 0.05) -> float:
-    """Fraction of voxel-centre samples that project onto the detector; raises if below ``min_fraction``."""
+    """Fraction of voxel samples seen by >= 90 % of the views; raises :class:`FieldOfViewError` below ``min_fraction``."""
     z, y, x = grid.coords_mm()
     pick = lambda a: a[np.linspace(0, a.size - 1, min(a.size, 9)).round().astype(int)]  # noqa: E731
     zz, yy, xx = np.meshgrid(pick(z), pick(y), pick(x), indexing="ij")
@@ -131,12 +132,12 @@ def check_fov(grid: VolumeGrid, geometry: ViewGeometry, min_fraction: float = 0.
     uv, w = g.project_with_depth(pts)
     det = g.detector
     inside = (w > 0) & (uv[..., 0] > -0.5) & (uv[..., 0] < det.cols - 0.5) & (uv[..., 1] > -0.5) & (uv[..., 1] < det.rows - 0.5)
-    frac = float(inside.mean())
+    frac = float((inside.mean(axis=0) >= 0.9).mean())  # samples seen by at least 90 % of the views
     if frac < min_fraction:
         ext = grid.extent_mm
         raise FieldOfViewError(
             f"the volume grid (x {ext[0,0]:.1f}..{ext[0,1]:.1f}, y {ext[1,0]:.1f}..{ext[1,1]:.1f}, "
             f"z {ext[2,0]:.1f}..{ext[2,1]:.1f} mm) misses the field of view: only {100*frac:.1f}% of its "
-            f"samples project onto the detector (need >= {100*min_fraction:.0f}%); move or shrink the grid"
+            f"samples are seen by 90% of the views (need >= {100*min_fraction:.0f}%); move or shrink the grid"
         )
     return frac

@@ -56,3 +56,30 @@ def random_geometry() -> ViewGeometry:
         rng.uniform(0, 2 * np.pi, n), rng.uniform(-0.7, 0.7, n), rng.uniform(250, 320, n), 520.0, det,
         du=rng.normal(0, 4, n), dv=rng.normal(0, 4, n), eta=rng.normal(0, 0.3, n), shift=rng.normal(0, 3, (n, 3)),
     )
+
+
+def write_sphere_scan(path, geometry: ViewGeometry, *, truth: ViewGeometry | None = None, i0: float = 2e4,
+                      spheres=SPHERES, seed: int = 0, n_flat: int = 2, n_dark: int = 2) -> None:
+    """A small scan file of analytic spheres: darks, flats, Poisson projections, nominal (+ truth) geometry."""
+    from orbitct.scanfile import ScanWriter
+
+    rng = np.random.default_rng(seed)
+    det = geometry.detector
+    seen = truth if truth is not None else geometry
+    li = sphere_line_integrals(seen, spheres)
+    dark = 100.0
+    with ScanWriter(path, det, orbit_name="test", overwrite=True) as w:
+        t = 0.0
+        for _ in range(n_dark):
+            w.append(rng.poisson(dark, det.shape), "dark", t)
+            t += 0.1
+        for _ in range(n_flat):
+            w.append(rng.poisson(i0, det.shape) + dark, "flat", t)
+            t += 0.1
+        for k in range(geometry.n_views):
+            w.append(rng.poisson(i0 * np.exp(-li[k])) + dark, "projection", t, nominal_vector=geometry.vectors[k])
+            t += 0.1
+        if truth is not None:
+            nan = np.full((n_dark + n_flat, 12), np.nan)
+            w.write_truth(np.concatenate([nan, truth.vectors]), phantom={"spheres": [list(map(float, (*c, r, m))) for c, r, m in spheres]})
+        w.finish("complete")

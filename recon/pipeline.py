@@ -1,0 +1,195 @@
+"""Reconstruct a scan file end to end: read, check, reconstruct, store ``/recon/<name>``, export."""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import psutil
+from numpy.typing import NDArray
+
+from orbitct.geometry import ViewGeometry
+from orbitct.progress import ProgressCallback, report
+from orbitct.scanfile import ScanFile
+from recon.errors import GeometryMissingError, MemoryBudgetError, ReconError
+from recon.export import FORMATS, export_volume
+from recon.fdk import WINDOWS, fdk
+from recon.grid import VolumeGrid, check_fov, grid_for_geometry
+from recon.mar import METHODS, add_metal_back, fill_traces, metal_in_volume, traces_by_reprojection, traces_by_threshold
+from recon.operator import projector
+from recon.pwls import DEFAULT_BETA, pwls_sps, statistical_weights
+
+ALGORITHMS = ("fdk", "pwls")
+GEOMETRIES = ("calibrated", "nominal", "truth")
+
+
+@dataclass
+class ReconResult:
+    """What :func:`reconstruct_scan` produced and where it is stored."""
+
+    name: str
+    path: Path
+    algorithm: str
+    geometry: str
+    volume_shape: tuple[int, int, int]
+    voxel_mm: tuple[float, float, float]
+    origin_mm: tuple[float, float, float]
+    cost: list[float] = field(default_factory=list)
+    elapsed_s: float = 0.0
+    exported: list[Path] = field(default_factory=list)
+    params: dict[str, Any] = field(default_factory=dict)
+    volume: NDArray[np.float32] | None = field(default=None, repr=False)
+
+    @property
+    def grid(self) -> VolumeGrid:
+        """The grid the volume is sampled on."""
+        return VolumeGrid(self.volume_shape, self.voxel_mm, self.origin_mm)
+
+
+class FileLineIntegrals:
+    """Line integrals of chosen frames read from the scan file on demand (sliceable along views)."""
+
+    def __init__(self, scan: ScanFile, frames: NDArray[np.intp]) -> None:
+        self._scan = scan
+        self._frames = frames
+        self.shape = (frames.size,) + scan.detector.shape
+
+    def __getitem__(self, index: slice) -> NDArray[np.float32]:
+        return np.stack([self._scan.line_integrals(int(i)) for i in self._frames[index]])
+
+
+def estimate_bytes(algorithm: str, grid: VolumeGrid, n_views: int, rows: int, cols: int, mar: bool) -> int:
+    """Peak working memory (bytes) a reconstruction needs, before anything is allocated."""
+    vol = grid.nbytes
+    proj = 4 * n_views * rows * cols
+    chunk = 2 * 4 * min(16, n_views) * (rows + 2) * (cols + 2) * 2
+    if algorithm == "fdk":
+        total = vol + chunk + (2 * proj + 3 * vol if mar else 0)
+    else:
+        total = 3 * proj + 6 * vol + chunk + (proj + 2 * vol if mar else 0)
+    return int(total * 1.1)
+
+
+def check_memory(needed: int, what: str) -> None:
+    """Raise :class:`MemoryBudgetError` when ``needed`` bytes exceed 90 % of the available memory."""
+    avail = int(psutil.virtual_memory().available)
+    if needed > 0.9 * avail:
+        raise MemoryBudgetError(
+            f"{what} needs about {needed / 2**30:.2f} GiB but only {avail / 2**30:.2f} GiB is available; "
+            "use a larger --voxel-mm, a smaller --shape, or fewer views"
+        )
+
+
+def _views(scan: ScanFile, geometry: str) -> tuple[NDArray[np.intp], ViewGeometry, int]:
+    if geometry not in GEOMETRIES:
+        raise ReconError(f"geometry must be one of {GEOMETRIES}, got {geometry!r}")
+    if not scan.has_geometry(geometry):
+        present = [g for g in GEOMETRIES if scan.has_geometry(g)]
+        hint = " (run `orbitct calibrate` first)" if geometry == "calibrated" else ""
+        raise GeometryMissingError(f"{scan.path}: has no {geometry} geometry{hint}; present: {present}")
+    frames = scan.projection_indices
+    if frames.size == 0:
+        raise ReconError(f"{scan.path}: has no projection frames")
+    g = scan.geometry(geometry)[frames]
+    ok = g.valid
+    if not ok.any():
+        raise GeometryMissingError(f"{scan.path}: the {geometry} geometry has no finite projection views")
+    return frames[ok], g[np.flatnonzero(ok)], int((~ok).sum())
+
+
+def _load(scan: ScanFile, frames: NDArray[np.intp], with_weights: bool,
+          progress: ProgressCallback | None) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
+    det = scan.detector
+    li = np.empty((frames.size,) + det.shape, np.float32)
+    w = np.empty_like(li) if with_weights else None
+    dark, flat = scan.dark_flat()
+    for k, i in enumerate(frames):
+        li[k] = scan.line_integrals(int(i))
+        if w is not None:
+            w[k] = statistical_weights(scan.frames[int(i)], dark, flat)
+        if k % 8 == 7 or k == frames.size - 1:
+            report(progress, "load", k + 1, frames.size, "projections")
+    return li, w
+
+
+def reconstruct_scan(
+    path: str | os.PathLike[str], *, algorithm: str = "pwls", geometry: str = "calibrated",
+    voxel_mm: float | None = None, shape: tuple[int, int, int] | None = None, iterations: int = 50,
+    beta: float = DEFAULT_BETA, mar: bool | str = False, name: str | None = None,
+    export: str | list[str] | None = None, out_dir: str | os.PathLike[str] | None = None,
+    progress: ProgressCallback | None = None, window: str = "hann", subsets: int = 1, neighbourhood: int = 1,
+    metal_mu: float = 0.1, mar_threshold: float = 0.5,
+) -> ReconResult:
+    """Reconstruct ``path`` with FDK or PWLS and store it as ``/recon/<name>`` in the scan file."""
+    t0 = time.perf_counter()
+    if algorithm not in ALGORITHMS:
+        raise ReconError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
+    if window not in WINDOWS:
+        raise ReconError(f"window must be one of {WINDOWS}, got {window!r}")
+    mar_method = ("threshold" if mar is True else mar) if mar else None
+    if mar_method is not None and mar_method not in METHODS:
+        raise ReconError(f"mar must be False, True or one of {METHODS}, got {mar!r}")
+    formats = [export] if isinstance(export, str) else list(export or [])
+    if any(f not in FORMATS for f in formats):
+        raise ReconError(f"export formats must be among {FORMATS}, got {formats}")
+    if algorithm == "pwls" and iterations < 1:
+        raise ReconError(f"iterations must be >= 1 for pwls, got {iterations}")
+    if voxel_mm is not None and not voxel_mm > 0:
+        raise ReconError(f"voxel_mm must be > 0, got {voxel_mm}")
+    name = name or f"{algorithm}_{geometry}" + ("_mar" if mar_method else "")
+    with ScanFile(path, "r+") as scan:
+        frames, geom, dropped = _views(scan, geometry)
+        grid = grid_for_geometry(geom, voxel_mm=voxel_mm, shape=shape)
+        fov_fraction = check_fov(grid, geom)
+        det = geom.detector
+        check_memory(estimate_bytes(algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method)),
+                     f"{algorithm} of {frames.size} views onto {grid.shape} voxels")
+        cost: list[float] = []
+        extra: dict[str, Any] = {}
+        if algorithm == "fdk" and not mar_method:
+            vol = fdk(FileLineIntegrals(scan, frames), grid, geom, window=window, progress=progress)
+        else:
+            li, w = _load(scan, frames, algorithm == "pwls", progress)
+            metal = None
+            if mar_method:
+                first = fdk(li, grid, geom, window=window)
+                metal = metal_in_volume(first, metal_mu)
+                A = projector(grid, geom)
+                traces = (traces_by_threshold(li, mar_threshold) if mar_method == "threshold"
+                          else traces_by_reprojection(A, metal))
+                li = fill_traces(li, traces)
+                if w is not None:
+                    w = np.where(traces, np.exp(-li), w).astype(np.float32)
+                extra.update(mar_method=mar_method, metal_voxels=int(metal.sum()), trace_fraction=float(traces.mean()))
+                report(progress, "mar", 1, 1, f"{int(metal.sum())} metal voxels")
+            x0 = fdk(li, grid, geom, window=window, progress=progress)
+            if algorithm == "pwls":
+                res = pwls_sps(projector(grid, geom), li, w, beta=beta, iterations=iterations, x0=x0,
+                               neighbourhood=neighbourhood, subsets=subsets, progress=progress)
+                vol, cost = res.volume, res.cost
+                extra["beta_abs"] = res.beta_abs
+            else:
+                vol = x0
+            if metal is not None:
+                vol = add_metal_back(vol, first, metal)
+        elapsed = time.perf_counter() - t0
+        params = {
+            "window": window, "views": int(frames.size), "views_dropped_nonfinite": dropped,
+            "fov_fraction": fov_fraction, "grid": grid.to_json(), **extra,
+        }
+        if algorithm == "pwls":
+            params.update(beta=beta, neighbourhood=neighbourhood, subsets=subsets, cost=cost)
+        scan.write_recon(name, vol, voxel_mm=grid.voxel_mm, origin_mm=grid.origin_mm, algorithm=algorithm,
+                         geometry=geometry, iterations=iterations if algorithm == "pwls" else 0,
+                         elapsed_s=elapsed, params=params)
+        scan_path = scan.path
+    exported: list[Path] = []
+    if formats:
+        base = Path(out_dir) if out_dir is not None else scan_path.parent
+        exported = export_volume(vol, grid, formats, base / f"{scan_path.stem}_{name}")
+    return ReconResult(name, scan_path, algorithm, geometry, grid.shape, grid.voxel_mm, grid.origin_mm, cost,
+                       elapsed, exported, params, vol)
