@@ -29,10 +29,13 @@ class Hexapod(GcsMotionDevice):
         super().__init__(name, uri, **options)
         self._velocity: float | None = None
 
-    async def check_pose(self, targets: Mapping[str, float]) -> dict[str, float]:
-        """Check a (partial) target pose: soft limits per axis, then ``VMO?`` on the full pose."""
+    async def check_pose(self, targets: Mapping[str, float], current: Mapping[str, float] | None = None) -> dict[str, float]:
+        """Check a (partial) target pose: soft limits per axis, then ``VMO?`` on the full pose.
+
+        Axes not given keep their present targets (``current``, else read with ``MOV?``).
+        """
         checked = self.check_limits(targets)
-        full = await self.target()
+        full = dict(current) if current is not None else await self.target()
         full.update(checked)
         reachable = await self.client.query(format_command("VMO?", full), _parse_flag)
         if not reachable:

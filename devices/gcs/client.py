@@ -125,7 +125,13 @@ class GcsClient:
             raise ProtocolError(f"{self.endpoint}: unreadable ERR? reply {lines!r}") from None
 
     async def send_now(self, command: str) -> None:
-        """Write a command at once without waiting for the lock or reading anything (emergency stop)."""
+        """Write a command at once without waiting for the lock or reading anything (only for stops, which are safe to repeat)."""
         if self._transport is None:
             raise NotConnectedError(f"{self.endpoint}: not connected")
-        await self._transport.write(encode_command(command))
+        if self._stale:
+            await self._reconnect()
+        try:
+            await self._transport.write(encode_command(command))  # type: ignore[union-attr]
+        except NotConnectedError:
+            await self._reconnect()
+            await self._transport.write(encode_command(command))  # type: ignore[union-attr]

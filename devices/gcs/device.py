@@ -206,8 +206,11 @@ class GcsMotionDevice:
             out[axis] = v
         return out
 
-    async def check_pose(self, targets: Mapping[str, float]) -> dict[str, float]:
-        """Check a target against the limits (and, on coupled machines, the workspace) before moving."""
+    async def check_pose(self, targets: Mapping[str, float], current: Mapping[str, float] | None = None) -> dict[str, float]:
+        """Check a target against the limits (and, on coupled machines, the workspace) before moving.
+
+        ``current``: the present targets (``MOV?``), if the caller already has them.
+        """
         return self.check_limits(targets)
 
     async def _explain_refusal(self, exc: ControllerError) -> DeviceError:
@@ -244,16 +247,15 @@ class GcsMotionDevice:
 
     async def _move(self, targets: dict[str, float], relative: bool, box: list[Status[None]]) -> None:
         status = box[0] if box else None
+        start = await self.target()
         if relative:
-            now = await self.target()
             for k in targets:
                 if k not in self.axis_map:
                     raise DeviceError(f"{self.name}: unknown axis {k!r}; axes are {', '.join(self.axis_map)}")
-            absolute = {k: now[k] + float(v) for k, v in targets.items()}
+            absolute = {k: start[k] + float(v) for k, v in targets.items()}
         else:
             absolute = targets
-        checked = await self.check_pose(absolute)
-        start = await self.position()
+        checked = await self.check_pose(absolute, current=start)
         stop_mark = self._stopped
         command = "MVR" if relative else "MOV"
         sent = {self.axis_map[k]: float(targets[k]) for k in checked}
@@ -283,7 +285,7 @@ class GcsMotionDevice:
             if all(v != 0 for v in ont.values()):
                 await self._check_arrived(targets, stop_mark)
                 if status is not None:
-                    status.report(current=await self.position(), target=targets, fraction=1.0)
+                    status.report(current=dict(targets), target=targets, fraction=1.0, message="on target")
                 return
             polls += 1
             if status is not None and polls % 10 == 0:
@@ -330,11 +332,19 @@ class GcsMotionDevice:
             status.report(message="referenced", fraction=1.0)
 
     async def halt(self) -> None:
-        """Halt every axis now (``#24``) and clear the resulting error 10."""
+        """Halt every axis now (``#24``, sent without waiting for other traffic) and clear the resulting error 10.
+
+        Stopping is safe to repeat: if the connection turns out to be dead, ``#24`` is sent
+        again over the fresh one.
+        """
         self._stopped += 1
         client = self.client
-        await client.send_now("#24")
-        code = await client.error()
+        for _ in range(2):
+            reconnects = client.stats["reconnects"]
+            await client.send_now("#24")
+            code = await client.error()
+            if client.stats["reconnects"] == reconnects:
+                break
         if code not in (0, E.STOPPED):
             raise E.controller_error(code, "#24")
 

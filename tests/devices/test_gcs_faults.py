@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import time
 
 import numpy as np
@@ -138,3 +139,16 @@ async def test_serial_faults_and_refusals(stage_twin: TwinServer) -> None:
         assert np.isclose((await dev.target())["R"], (await dev.position())["R"], atol=1e-3)
     finally:
         await dev.close()
+
+
+async def test_stop_reaches_the_controller_after_a_silent_disconnect(ready_hexapod: Hexapod, hexapod_twin: TwinServer) -> None:
+    await ready_hexapod.set_velocity(0.5)
+    status = ready_hexapod.move({"Z": 20.0})
+    await asyncio.sleep(0.1)
+    hexapod_twin.drop_connections()  # the driver has not noticed yet
+    await asyncio.sleep(0.02)
+    await ready_hexapod.stop()
+    assert not hexapod_twin.controller.is_moving()
+    assert ready_hexapod.client.stats["reconnects"] >= 1
+    with pytest.raises(Exception):
+        await status

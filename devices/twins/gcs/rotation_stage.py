@@ -23,7 +23,7 @@ class RotationStageController(GcsController):
     idn = "(c)2026 Physik Instrumente (PI) GmbH & Co. KG, C-863.12, 0126000002, 01.200"
     reference_pose = (0.0,)
     command_names = GcsController.command_names + ("VEL", "VEL?")
-    max_velocity = 90.0  # deg/s
+    max_velocity = 360.0  # deg/s
 
     def __init__(self, world: SimWorld | None = None, *, time_scale: float = 1.0, imperfect: bool = True,
                  seed: int = 11, faults: Faults | None = None, velocity: float = 30.0,
