@@ -130,7 +130,7 @@ def reconstruct_scan(
         raise ReconError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
     if window not in WINDOWS:
         raise ReconError(f"window must be one of {WINDOWS}, got {window!r}")
-    mar_method = ("threshold" if mar is True else mar) if mar else None
+    mar_method = ("reprojection" if mar is True else mar) if mar else None
     if mar_method is not None and mar_method not in METHODS:
         raise ReconError(f"mar must be False, True or one of {METHODS}, got {mar!r}")
     formats = [export] if isinstance(export, str) else list(export or [])

@@ -34,7 +34,7 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
 @click.option("--window", type=click.Choice(["ram-lak", "shepp-logan", "cosine", "hann"]), default="hann", show_default=True,
               help="Ramp filter window for FDK (and the PWLS initial image).")
 @click.option("--mar", is_flag=True, help="Metal artifact reduction (screws, BBs).")
-@click.option("--mar-method", type=click.Choice(["threshold", "reprojection"]), default="threshold", show_default=True,
+@click.option("--mar-method", type=click.Choice(["reprojection", "threshold"]), default="reprojection", show_default=True,
               help="Segment metal by thresholding line integrals or by reprojecting a thresholded first volume.")
 @click.option("--name", default=None, help="Name under /recon (default ALGORITHM_GEOMETRY[_mar]).")
 @click.option("--export", "export", type=click.Choice(["nifti", "tiff", "png"]), multiple=True,
