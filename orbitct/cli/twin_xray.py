@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Callable
+from typing import Any
 
 import click
 
@@ -17,17 +19,23 @@ import click
 def xray(host: str, port: int, prep_ms: int, door_open: bool, fault: int, latency_ms: float) -> None:
     """Serve the simulated X-ray generator's register map over Modbus TCP."""
     from devices.twins.xray import XrayTwin
-    from devices.xray_registers import FaultCode
+    from devices.xray_registers import FaultCode, GeneratorState
+
+    twin = XrayTwin(prep_s=prep_ms / 1000.0)
+    twin.faults.latency_s = latency_ms / 1000.0
+    if door_open:
+        twin.door_closed = False
+    if fault:
+        twin.state, twin.fault_code = GeneratorState.FAULT, FaultCode(fault)
+    serve_twin(twin, host, port, lambda bound: f"X-ray generator twin listening on modbus://{host}:{bound} (device id 1)")
+
+
+def serve_twin(twin: Any, host: str, port: int, banner: Callable[[int], str]) -> None:
+    """Start ``twin`` on ``host:port``, print ``banner(bound_port)`` to stderr, serve until Ctrl-C."""
 
     async def main() -> None:
-        twin = XrayTwin(prep_s=prep_ms / 1000.0)
-        twin.faults.latency_s = latency_ms / 1000.0
         bound = await twin.start(host, port)
-        if door_open:
-            twin.set_door(False)
-        if fault:
-            twin.raise_fault(FaultCode(fault))
-        click.echo(f"X-ray generator twin listening on modbus://{host}:{bound} (device id 1); Ctrl-C stops", err=True)
+        click.echo(banner(bound) + "; Ctrl-C stops", err=True)
         try:
             await asyncio.Event().wait()
         finally:
