@@ -189,6 +189,13 @@ class Bench:
         """Switch X-rays off."""
         await self.xray.xray_off()
 
+    def mark_interrupted(self) -> None:
+        """After a cancelled exchange a reply may still be in flight: make the GCS links reconnect before the next one."""
+        for dev in (self.hexapod, self.stage):
+            client = getattr(dev, "_client", None) or getattr(dev, "client", None)
+            if client is not None and hasattr(client, "_stale"):
+                client._stale = True
+
     async def stop_all(self) -> None:
         """Halt every axis and switch X-rays off, all at once; never raises."""
         errors = await stop_devices([self.xray, self.hexapod, self.stage])

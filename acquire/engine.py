@@ -9,6 +9,7 @@ how the scan ended, once.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
 from collections.abc import Awaitable, Callable, Iterable, Mapping, Sequence
@@ -20,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from acquire.config import BenchConfig
-from acquire.errors import AcquireError, PreflightError, ScanStateError
+from acquire.errors import AcquireError, PreflightError, ScanAborted, ScanStateError
 from acquire.kinematics import hexapod_to_user
 from acquire.plan import PROJECTION, FramePlan, ScanPlan
 from acquire.preflight import preflight
@@ -48,6 +49,7 @@ class BenchLike(Protocol):
     async def read_positions(self) -> dict[str, float]: ...
     async def acquire(self, image_key: int) -> tuple[NDArray[Any], int]: ...
     async def xray_off(self) -> None: ...
+    def mark_interrupted(self) -> None: ...
     async def stop_all(self) -> None: ...
     async def restore_stage_velocity(self) -> None: ...
     def true_pose(self) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None: ...
@@ -103,6 +105,7 @@ class ScanEngine:
         self._resume = asyncio.Event()
         self._resume.set()
         self._task: asyncio.Task[Any] | None = None
+        self._stop_task: asyncio.Future[Any] | None = None
         self._lab_view = config.geometry.lab_view()
         self._motion_s = 0.0
         self._acquire_s = 0.0
@@ -120,13 +123,21 @@ class ScanEngine:
         self._resume.set()
 
     def abort(self, reason: str = "aborted by the operator") -> None:
-        """Stop now: halt every axis, X-rays off, mark the scan aborted with ``reason``."""
-        if self.state in ("complete", "aborted"):
+        """Stop now: halt every axis, X-rays off, mark the scan aborted with ``reason``.
+
+        The halt is sent at once, concurrently with whatever the scan is doing; the
+        frame loop then ends at its next step (a halted move or exposure fails at once).
+        """
+        if self.state in ("complete", "aborted") or self._abort_reason is not None:
             return
         self._abort_reason = reason
         self._resume.set()
-        if self._task is not None and not self._task.done():
-            self._task.cancel()
+        if self.state in ("running", "paused"):
+            self._stop_task = asyncio.ensure_future(self.bench.stop_all())
+
+    def _check_abort(self) -> None:
+        if self._abort_reason is not None:
+            raise ScanAborted(self._abort_reason)
 
     @property
     def paused(self) -> bool:
@@ -148,15 +159,16 @@ class ScanEngine:
         started = False
         status, reason, pending = "complete", "", None
         try:
-            if self._abort_reason is not None:
-                raise asyncio.CancelledError()
+            self._check_abort()
             self.state = "preflight"
             if not self.skip_preflight:
                 await preflight(
                     self.plan, self.config, device_limits=await self.bench.device_limits(),
                     workspace_check=self.bench.check_workspace, mode=self.mode, frame_rate_hz=self.frame_rate_hz,
                 )
+            self._check_abort()
             await self.bench.prepare(self.config)
+            self._check_abort()
             start = ScanStart(
                 plan=self.plan, axes=dict(self.bench.axes), mode=self.mode,
                 started_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"), sim=self.bench.sim,
@@ -174,13 +186,8 @@ class ScanEngine:
             status = "refused"
             raise
         except (KeyboardInterrupt, asyncio.CancelledError) as exc:
-            status = "aborted"
-            reason = self._abort_reason or _reason(exc)
-            own_abort = isinstance(exc, asyncio.CancelledError) and self._abort_reason is not None
-            if own_abort and self._task is not None:
-                self._task.uncancel()
-            else:
-                pending = exc
+            status, reason, pending = "aborted", self._abort_reason or _reason(exc), exc
+            self.bench.mark_interrupted()
         except Exception as exc:  # noqa: BLE001 - a device or recorder error ends the scan safely
             status, reason = "aborted", self._abort_reason or _reason(exc)
             log.error("scan aborted: %s", reason)
@@ -201,6 +208,9 @@ class ScanEngine:
     async def _cleanup(self, status: str) -> None:
         """Halt every axis (on abort) and switch X-rays off; never raises, never skipped by a second cancel."""
         async def _do() -> None:
+            if self._stop_task is not None:
+                with contextlib.suppress(BaseException):
+                    await self._stop_task
             try:
                 if status == "complete":
                     await self.bench.xray_off()
@@ -237,11 +247,13 @@ class ScanEngine:
                 fn(event)
 
     async def _boundary(self) -> None:
-        """Frame boundary: honour pause (X-rays stay off while paused)."""
+        """Frame boundary: honour abort and pause (X-rays stay off while paused)."""
+        self._check_abort()
         if not self._resume.is_set():
             self.state = "paused"
             report(self.progress, "scan", self.n_done, self.plan.n_frames, "paused")
             await self._resume.wait()
+            self._check_abort()
             self.state = "running"
 
     # ----------------------------------------------------------- frames
@@ -270,6 +282,7 @@ class ScanEngine:
         t_b = time.monotonic()
         frame, number = await self.bench.acquire(f.image_key)
         t_c = time.monotonic()
+        self._check_abort()  # a frame taken while the abort was halting the bench is not recorded
         truth = self._true_vector() if f.image_key == PROJECTION else None
         rec = FrameRecord(
             index=f.index, image_key=f.image_key, view=f.view, time_s=t_frame, frame=frame,
@@ -344,6 +357,7 @@ class ScanEngine:
     async def _wait_for_angle(self, target_deg: float, direction: float, velocity: float, timeout_s: float) -> None:
         deadline = time.monotonic() + timeout_s
         while True:
+            self._check_abort()
             pos = await self.bench.stage_position_deg()
             remaining = (target_deg - pos) * direction
             if remaining <= 0:
