@@ -204,8 +204,13 @@ class XrayGenerator:
             await asyncio.sleep(self.heartbeat_s)
             self._hb_counter = (self._hb_counter + 1) & 0xFFFF
             try:
-                await self._request("heartbeat", lambda c: c.write_register(reg.HEARTBEAT_IN, self._hb_counter, device_id=self.device_id))
-                r = await self._request("heartbeat", lambda c: c.read_input_registers(reg.HEARTBEAT_OUT, count=1, device_id=self.device_id))
+                # no reconnect from here: a lost link lets the generator's own watchdog switch X-rays off
+                await self._request(
+                    "heartbeat", lambda c: c.write_register(reg.HEARTBEAT_IN, self._hb_counter, device_id=self.device_id), retry=False
+                )
+                r = await self._request(
+                    "heartbeat", lambda c: c.read_input_registers(reg.HEARTBEAT_OUT, count=1, device_id=self.device_id), retry=False
+                )
             except DeviceError:
                 continue  # link trouble is reported by the next action; the generator's watchdog keeps it safe
             value = int(r.registers[0])
@@ -327,6 +332,8 @@ class XrayGenerator:
             return
         if ir[reg.STATE] not in (GeneratorState.IDLE, GeneratorState.PREP, GeneratorState.DONE):
             raise DeviceError(f"{self.name}: cannot prepare in state {GeneratorState(ir[reg.STATE]).name}")
+        if ir[reg.STATE] == GeneratorState.DONE:
+            await self._write_coil(reg.EXPOSE_REQ, False)  # a previous exposure was never released
         await self._write_coil(reg.PREP_REQ, True)
         await self._wait_state(status, {GeneratorState.READY}, "prepare", self.prep_timeout_s)
 
@@ -349,6 +356,7 @@ class XrayGenerator:
         hr = await self._request("read settings", lambda c: c.read_holding_registers(0, count=reg.N_HOLDING, device_id=self.device_id))
         exposure_s = hr.registers[reg.EXPOSURE_MS] / 1000.0
         try:
+            await self._write_coil(reg.EXPOSE_REQ, False)  # the request acts on a rising edge: start from low
             # sent exactly once: a lost request or reply is an error, never a second exposure
             await self._write_coil(reg.EXPOSE_REQ, True, retry=False)
             ir = await self._wait_state(status, {GeneratorState.DONE}, "exposure", exposure_s * 2 + self.timeout_s + 1.0)

@@ -60,7 +60,7 @@ class CArmTwin(DetectorTwin):
         self.eta = math.radians(float(eta_deg))
         self.primary_offset = math.radians(float(primary_offset_deg))
         self.noise_mm = float(noise_mm)
-        self.time_scale = float(time_scale)
+        self.time_scale = float(time_scale)  # simulated seconds per wall-clock second
         self.program: list[NavPoint] = []
         self.primary_deg = 0.0
         self.secondary_deg = 0.0
@@ -106,7 +106,7 @@ class CArmTwin(DetectorTwin):
 
     async def _travel(self, p: float, s: float, speed: float) -> None:
         p0, s0 = self.primary_deg, self.secondary_deg
-        duration = max(abs(p - p0), abs(s - s0)) / max(speed, 1e-9) * self.time_scale
+        duration = max(abs(p - p0), abs(s - s0)) / max(speed, 1e-9) / self.time_scale
         t0 = time.monotonic()
         while True:
             f = 1.0 if duration <= 0 else min(1.0, (time.monotonic() - t0) / duration)

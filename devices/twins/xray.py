@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
+from collections import deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -37,7 +38,7 @@ class TwinFaults:
     garble_next: int = 0  # answer with corrupted bytes
     error_next: int = 0  # answer with a device error
     missing_frame_next: int = 0  # complete the action but lose the frame / trigger
-    match: str = ""  # only requests whose description contains this text count (e.g. "fc5:1", "TRIG")
+    match: str = ""  # only requests whose description contains this text count (e.g. "fc5:1=[1]", "TRIG")
 
     def take(self, name: str, request: str = "") -> bool:
         """Consume one pending fault called ``name`` (e.g. ``'drop'``) for ``request``; whether one was pending."""
@@ -132,7 +133,7 @@ class XrayTwin:
     ) -> None:
         self.world = world if world is not None else get_world("bench")
         self.prep_s = prep_s
-        self.time_scale = time_scale
+        self.time_scale = time_scale  # simulated seconds per wall-clock second (10 = ten times faster)
         self.faults = TwinFaults()
         self.model, self.serial, self.firmware = model, serial, firmware
         self.state = GeneratorState.IDLE
@@ -154,6 +155,7 @@ class XrayTwin:
         self._ticker: asyncio.Task[None] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self.requests = 0
+        self.request_log: deque[str] = deque(maxlen=1000)  # "fc<code>:<address>[=<values>]" of recent requests
         self.heartbeat_frozen = False  # hazard on request: the generator's own heartbeat stops
 
     # ----------------------------------------------------------------- serving
@@ -252,7 +254,7 @@ class XrayTwin:
             self._last_hb = time.monotonic()
             self.state = GeneratorState.PREP
             assert self._loop is not None
-            self._timer = self._loop.call_later(self.prep_s * self.time_scale, self._prep_done)
+            self._timer = self._loop.call_later(self.prep_s / self.time_scale, self._prep_done)
 
     def _prep_done(self) -> None:
         self._timer = None
@@ -280,13 +282,13 @@ class XrayTwin:
             self.world.exposure_ms = float(self.exposure_ms)
             self.world.exposing = True
         assert self._loop is not None
-        self._timer = self._loop.call_later(self.exposure_ms / 1000.0 * self.time_scale, self._exposure_done)
+        self._timer = self._loop.call_later(self.exposure_ms / 1000.0 / self.time_scale, self._exposure_done)
 
     def _exposure_done(self) -> None:
         self._timer = None
         if self.state != GeneratorState.EXPOSING:
             return
-        self.last_exposure_ms = int(round((time.monotonic() - self._exposure_t0) * 1000 / self.time_scale))
+        self.last_exposure_ms = int(round((time.monotonic() - self._exposure_t0) * 1000 * self.time_scale))
         lost = self.faults.take("missing_frame")
         with self.world.lock:
             self.world.exposing = False
@@ -398,7 +400,8 @@ class XrayTwin:
         set_values: list[int] | list[bool] | None,
     ) -> ExcCodes | None:
         self.requests += 1
-        request = f"fc{function_code}:{address}"
+        request = f"fc{function_code}:{address}" + ("" if set_values is None else f"={[int(v) for v in set_values]}")
+        self.request_log.append(request)
         if self.faults.latency_s > 0:
             await asyncio.sleep(self.faults.latency_s)
         if self.faults.take("drop", request):

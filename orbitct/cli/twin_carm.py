@@ -20,7 +20,7 @@ from orbitct.cli.twin_xray import serve_twin
 @click.option("--drift-mm", type=float, default=2.0, show_default=True, help="Isocenter drift amplitude.")
 @click.option("--eta-deg", type=float, default=0.5, show_default=True, help="In-plane panel rotation.")
 @click.option("--primary-offset-deg", type=float, default=0.3, show_default=True, help="Offset of the true primary angle.")
-@click.option("--time-scale", type=click.FloatRange(min=0), default=1.0, show_default=True, help="Multiply motion times (0.1 = 10x faster).")
+@click.option("--time-scale", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True, help="Simulated seconds per real second (10 = moves ten times faster).")
 @click.option("--latency-ms", type=click.FloatRange(0), default=0.0, help="Delay added before every reply.")
 def carm(
     host: str, port: int, rows: int, phantom: str, primary_range_deg: tuple[float, float], secondary_range_deg: tuple[float, float],

@@ -86,7 +86,7 @@ def test_bad_program_files(tmp_path: Path) -> None:
 
 def run(body: Any, **options: Any) -> Any:
     options.setdefault("rows", 32)
-    options.setdefault("time_scale", 0.01)
+    options.setdefault("time_scale", 100.0)
     options.setdefault("timeout_s", 1.0)
     world = f"carmtest{next(_worlds)}"
 
@@ -170,7 +170,7 @@ def test_faults_on_the_carm_link() -> None:
 
 
 def test_standalone_carm_twin_over_tcp() -> None:
-    twin = CArmTwin(rows=16, time_scale=0.01)
+    twin = CArmTwin(rows=16, time_scale=100.0)
     thread = TwinThread(twin)
     try:
 

@@ -36,7 +36,7 @@ def twin_process(*args: str) -> Iterator[int]:
 
 
 def test_carm_twin_command() -> None:
-    with twin_process("carm", "--detector-size", "16", "--time-scale", "0.01", "--sag-deg", "2") as port:
+    with twin_process("carm", "--detector-size", "16", "--time-scale", "100", "--sag-deg", "2") as port:
 
         async def main() -> None:
             async with CArm("carm", f"tcp://127.0.0.1:{port}") as arm:

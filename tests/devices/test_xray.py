@@ -212,12 +212,12 @@ def test_exposure_is_never_retried_after_a_lost_reply(twin: tuple[XrayTwin, Twin
 
     async def body(gen: XrayGenerator) -> None:
         await gen.prepare()
-        requests_before = tw.requests
-        tw.faults.match = "fc5:1"  # the expose request (coil 1) itself
+        tw.request_log.clear()
+        tw.faults.match = "fc5:1=[1]"  # the expose request (coil 1 set) itself
         tw.faults.drop_next = 1
         with pytest.raises(NotConnectedError, match="NOT retried"):
             await gen.expose()
-        assert tw.requests - requests_before <= 6  # status reads, one expose write, the xray-off write
+        assert list(tw.request_log).count("fc5:1=[1]") == 1  # the expose request went out exactly once
         state = await gen.read()
         assert state["state"] == "IDLE" and not state["hv_on"]
         assert state["frame_counter"] <= 1
@@ -288,3 +288,19 @@ def test_unreachable_generator() -> None:
             await gen.connect()
 
     asyncio.run(main())
+
+
+def test_unreleased_exposure_is_released_before_the_next(twin: tuple[XrayTwin, TwinThread]) -> None:
+    async def body(gen: XrayGenerator) -> None:
+        assert await gen.expose() == 1
+        assert gen._client is not None
+        await gen._client.write_coil(1, True, device_id=1)  # a client that exposes and never releases
+        await asyncio.sleep(0.1)
+        assert (await gen.read())["state"] == "DONE"
+        assert await gen.expose() == 3
+        await gen._client.write_coil(1, True, device_id=1)  # exposure 4 ...
+        await asyncio.sleep(0.1)
+        await gen._client.write_coil(0, False, device_id=1)  # ... prep dropped, expose request left high
+        assert await gen.expose() == 5
+
+    run(twin, body)
