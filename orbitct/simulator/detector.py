@@ -1,4 +1,4 @@
-"""Flat-panel detector model: quantum (Poisson) noise, blur, gain pattern, dark offset, read noise, saturation."""
+"""Flat-panel detector model: gain pattern, blur, quantum (Poisson) noise, dark offset, read noise, saturation."""
 
 from __future__ import annotations
 
@@ -9,31 +9,41 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr
 
-from orbitct.simulator.noise import normal, poisson, seed_from, stream
+from orbitct.simulator.noise import poisson, seed_from, stream, uniform
 
 
 @nb.njit(parallel=True, cache=True, nogil=True)
-def _quanta(li: NDArray[np.float32], flat: NDArray[np.float32], gain: float, seed: np.uint64) -> NDArray[np.float32]:
+def _attenuate(li: NDArray[np.float32], flat: NDArray[np.float32]) -> NDArray[np.float32]:
     rows, cols = li.shape
     out = np.empty((rows, cols), dtype=np.float32)
     for i in nb.prange(rows):
         for j in range(cols):
-            lam = flat[i, j] * math.exp(-float(li[i, j])) / gain
-            _, q = poisson(stream(seed, i * cols + j), lam)
-            out[i, j] = q * gain
+            out[i, j] = flat[i, j] * math.exp(-float(li[i, j]))
     return out
 
 
 @nb.njit(parallel=True, cache=True, nogil=True)
-def _readout(signal: NDArray[np.float32], dark: NDArray[np.float32], read_noise: float, sat: float, seed: np.uint64) -> NDArray[np.uint16]:
-    rows, cols = signal.shape
+def _readout(
+    mean_adu: NDArray[np.float32], gain: float, dark: NDArray[np.float32], read_noise: float, sat: float, seed: np.uint64
+) -> NDArray[np.uint16]:
+    """Poisson quanta (mean ``mean_adu / gain``) times gain, plus dark and Gaussian read noise, clipped."""
+    rows, cols = mean_adu.shape
     out = np.empty((rows, cols), dtype=np.uint16)
     for i in nb.prange(rows):
-        for j in range(cols):
-            _, z = normal(stream(seed, i * cols + j))
-            x = signal[i, j] + dark[i, j] + read_noise * z
-            x = min(max(x, 0.0), sat)
-            out[i, j] = np.uint16(math.floor(x + 0.5))
+        for j0 in range(0, cols, 2):
+            st = stream(seed, i * cols + j0)
+            st, u1 = uniform(st)
+            st, u2 = uniform(st)
+            r = math.sqrt(-2.0 * math.log(u1))
+            z = (r * math.cos(2.0 * math.pi * u2), r * math.sin(2.0 * math.pi * u2))
+            for q in range(2):
+                j = j0 + q
+                if j >= cols:
+                    break
+                st, n = poisson(st, mean_adu[i, j] / gain)
+                x = n * gain + dark[i, j] + read_noise * z[q]
+                x = min(max(x, 0.0), sat)
+                out[i, j] = np.uint16(math.floor(x + 0.5))
     return out
 
 
@@ -109,18 +119,20 @@ class DetectorModel(BaseModel):
             self._maps[shape] = (flat, dark)
         return self._maps[shape]
 
+    def mean_signal(self, li: NDArray[np.float32]) -> NDArray[np.float32]:
+        """Noise-free mean signal above dark (ADU) for line integrals ``li``, blurred."""
+        flat, _ = self.maps(li.shape)
+        return gaussian_blur(_attenuate(np.ascontiguousarray(li, dtype=np.float32), flat), self.blur_sigma_px)
+
     def expected(self, li: NDArray[np.float32]) -> NDArray[np.float32]:
         """Noise-free mean raw value for line integrals ``li`` (before saturation)."""
-        flat, dark = self.maps(li.shape)
-        return gaussian_blur(flat * np.exp(-li.astype(np.float32)), self.blur_sigma_px) + dark
+        return self.mean_signal(li) + self.maps(li.shape)[1]
 
     def expose(self, li: NDArray[np.float32], rng: np.random.Generator) -> NDArray[np.uint16]:
-        """One raw frame (uint16) for line integrals ``li`` (rows, cols)."""
-        li32 = np.ascontiguousarray(li, dtype=np.float32)
-        flat, dark = self.maps(li32.shape)
-        signal = _quanta(li32, flat, float(self.gain_adu), seed_from(rng))
-        signal = gaussian_blur(signal, self.blur_sigma_px)
-        return _readout(signal, dark, float(self.read_noise_adu), float(self.saturation_adu), seed_from(rng))
+        """One raw frame (uint16) for line integrals ``li`` (rows, cols): blur, quantum noise, dark, read noise."""
+        _, dark = self.maps(li.shape)
+        return _readout(self.mean_signal(li), float(self.gain_adu), dark, float(self.read_noise_adu),
+                        float(self.saturation_adu), seed_from(rng))
 
     def flat(self, rng: np.random.Generator, shape: tuple[int, int]) -> NDArray[np.uint16]:
         """One open-field (flat) frame."""
@@ -129,4 +141,5 @@ class DetectorModel(BaseModel):
     def dark(self, rng: np.random.Generator, shape: tuple[int, int]) -> NDArray[np.uint16]:
         """One dark frame (X-rays off)."""
         _, dark = self.maps(tuple(shape))  # type: ignore[arg-type]
-        return _readout(np.zeros(shape, np.float32), dark, float(self.read_noise_adu), float(self.saturation_adu), seed_from(rng))
+        return _readout(np.zeros(shape, np.float32), float(self.gain_adu), dark, float(self.read_noise_adu),
+                        float(self.saturation_adu), seed_from(rng))

@@ -6,6 +6,7 @@ import math
 
 import numba as nb
 import numpy as np
+from numpy.typing import NDArray
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
@@ -53,11 +54,10 @@ def poisson(state: np.uint64, lam: float) -> tuple[np.uint64, float]:
             p *= u
         return state, float(k)
     slam = math.sqrt(lam)
-    loglam = math.log(lam)
     b = 0.931 + 2.53 * slam
     a = -0.059 + 0.02483 * b
-    invalpha = 1.1239 + 1.1328 / (b - 3.4)
     vr = 0.9277 - 3.6224 / (b - 2.0)
+    loglam = -1.0
     while True:
         state, U = uniform(state)
         U -= 0.5
@@ -68,6 +68,9 @@ def poisson(state: np.uint64, lam: float) -> tuple[np.uint64, float]:
             return state, k
         if k < 0.0 or (us < 0.013 and V > us):
             continue
+        if loglam < 0.0:
+            loglam = math.log(lam)
+        invalpha = 1.1239 + 1.1328 / (b - 3.4)
         if math.log(V) + math.log(invalpha) - math.log(a / (us * us) + b) <= -lam + k * loglam - math.lgamma(k + 1.0):
             return state, k
 
@@ -75,3 +78,12 @@ def poisson(state: np.uint64, lam: float) -> tuple[np.uint64, float]:
 def seed_from(rng: np.random.Generator) -> np.uint64:
     """A 64-bit kernel seed drawn from a numpy generator."""
     return np.uint64(int(rng.integers(0, 2**63 - 1)))
+
+
+@nb.njit(cache=True, nogil=True)
+def poisson_array(lam: NDArray[np.float64], seed: np.uint64) -> NDArray[np.float64]:
+    """Independent Poisson draws, one per entry of ``lam`` (pixel streams 0, 1, 2, ...)."""
+    out = np.empty(lam.shape[0])
+    for k in range(lam.shape[0]):
+        _, out[k] = poisson(stream(seed, k), lam[k])
+    return out

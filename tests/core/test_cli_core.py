@@ -1,0 +1,76 @@
+"""CLI: simulate, inspect, orbit list/preview on tiny inputs, and their errors."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+from click.testing import CliRunner
+
+from orbitct.cli.main import cli
+from orbitct.scanfile import ScanFile
+
+
+def test_simulate_then_inspect(tmp_path: Path) -> None:
+    out = tmp_path / "scan.h5"
+    r = CliRunner().invoke(cli, ["simulate", "--experiment", "a", "--frames", "6", "--detector-size", "48",
+                                 "--darks", "2", "--flats", "3", "--seed", "4", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "6 projections + 2 darks + 3 flats" in r.output
+    with ScanFile(out) as f:
+        assert f.count_by_kind() == {"projection": 6, "flat": 3, "dark": 2, "invalid": 0}
+        assert f.orbit[0] == "sawtooth" and f.status == "complete"
+        assert abs(f.detector.pitch_col - 427.008 / 48) < 1e-12
+        assert f.phantom["name"] == "A" and f.truth_markers_xyz().shape == (8, 3)
+        nominal, truth = f.geometry("nominal")[5:], f.geometry("truth")[5:]
+        assert not nominal.allclose(truth, atol_mm=0.5)  # bench errors were applied
+    r = CliRunner().invoke(cli, ["inspect", str(out)])
+    assert r.exit_code == 0, r.output
+    for text in ("complete", "6 projection, 3 flat, 2 dark", "sawtooth", "nominal, truth", "3.17 mm", "8 markers"):
+        assert text in r.output
+    r = CliRunner().invoke(cli, ["inspect", str(out), "--json"])
+    assert json.loads(r.output)["frames"]["projection"] == 6
+
+
+def test_simulate_orbit_params_and_no_errors(tmp_path: Path) -> None:
+    out = tmp_path / "c.h5"
+    r = CliRunner().invoke(cli, ["simulate", "-e", "C", "--orbit", "circular", "-p", "tilt_deg=10", "--frames", "4",
+                                 "--detector-size", "32", "--errors", "none", "--darks", "0", "--flats", "1",
+                                 "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    with ScanFile(out) as f:
+        assert f.orbit == ("circular", {"n_frames": 4, "range_deg": 360.0, "start_deg": 0.0, "tilt_deg": 10.0})
+        assert f.geometry("nominal")[1:].allclose(f.geometry("truth")[1:], atol_mm=1e-9)
+        assert np.allclose(f.axes("commanded")["orbit.tilt"][1:], 10.0)
+
+
+def test_simulate_bad_input(tmp_path: Path) -> None:
+    run = CliRunner().invoke
+    out = tmp_path / "x.h5"
+    r = run(cli, ["simulate", "-e", "A", "--orbit", "spiral", "--out", str(out)])
+    assert r.exit_code == 2 and "unknown orbit 'spiral'" in r.output
+    r = run(cli, ["simulate", "-e", "A", "-p", "amplitude_deg=80", "--out", str(out)])
+    assert r.exit_code == 2 and "amplitude_deg" in r.output and "less than or equal to 60" in r.output
+    r = run(cli, ["simulate", "-e", "A", "-p", "novalue", "--out", str(out)])
+    assert r.exit_code == 2 and "expected KEY=VALUE" in r.output
+    r = run(cli, ["simulate", "-e", "Z", "--out", str(out)])
+    assert r.exit_code == 2 and "'Z' is not one of" in r.output
+    r = run(cli, ["simulate", "-e", "A", "--frames", "1", "--out", str(out)])
+    assert r.exit_code == 2
+    out.write_text("x")
+    r = run(cli, ["simulate", "-e", "A", "--out", str(out)])
+    assert r.exit_code == 2 and "already exists" in r.output
+    r = run(cli, ["inspect", str(out)])
+    assert r.exit_code == 1 and "not a readable HDF5 file" in r.output
+
+
+def test_orbit_list_and_preview(tmp_path: Path) -> None:
+    r = CliRunner().invoke(cli, ["orbit", "list"])
+    assert r.exit_code == 0
+    for name in ("circular", "sawtooth", "dcarc", "multiarc", "waypoints", "amplitude_deg = 20.0"):
+        assert name in r.output
+    png = tmp_path / "o.png"
+    r = CliRunner().invoke(cli, ["orbit", "preview", "dcarc", "--frames", "60", "--out", str(png)])
+    assert r.exit_code == 0, r.output
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    r = CliRunner().invoke(cli, ["orbit", "preview", "multiarc", "-p", "preset=zeego", "--out", str(png)])
+    assert r.exit_code == 2 and "preset" in r.output
