@@ -396,7 +396,8 @@ def _matrices_to_vectors(P: NDArray[np.float64], det: Detector) -> NDArray[np.fl
     S = -np.einsum("nij,nj->ni", A, P0[:, :, 3])
     u, v, dz = A[:, :, 0], A[:, :, 1], A[:, :, 2]
     scale = np.sqrt(np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1) / (det.pitch_col * det.pitch_row))
-    sign = np.sign(np.einsum("ij,ij->i", dz, P[ok, 2, :3]))
+    # the overall sign of P is free: pick the right-handed frame det[u, v, D - S] > 0 (as every from_carm view)
+    sign = np.sign(np.linalg.det(A))
     s = (sign / scale)[:, None]
     u, v, dz = u * s, v * s, dz * s
     out[ok] = np.concatenate([S, S + dz, u, v], axis=1)

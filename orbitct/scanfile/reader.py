@@ -48,8 +48,13 @@ class ScanFile:
         if fmt != FORMAT:
             raise self._fail(f"format tag is {fmt!r}, expected {FORMAT!r}")
         ver = f.attrs.get("version")
-        if ver is None or int(ver) != VERSION:
-            raise self._fail(f"version is {ver!r}, this reader supports version {VERSION}")
+        try:
+            ok_version = ver is not None and int(ver) == VERSION
+        except (TypeError, ValueError):
+            ok_version = False
+        if not ok_version:
+            shown = ver.item() if isinstance(ver, np.generic) else ver
+            raise self._fail(f"version is {shown!r}, this reader supports version {VERSION}")
         status = f.attrs.get("status", "complete")
         if status not in STATUSES:
             raise self._fail(f"status is {status!r}, expected one of {STATUSES}")
