@@ -260,13 +260,15 @@ def export_program(orbit: Any, limits: CArmLimits = CArmLimits(), *, speed_deg_s
 class CArm(Detector):
     """Driver of a robotic C-arm speaking the frame protocol plus navigation commands (``sim://`` or ``tcp://``)."""
 
-    OPTIONS = Detector.OPTIONS | {"sag_deg", "drift_mm", "eta_deg", "primary_offset_deg", "noise_mm", "time_scale", "limits"}
+    OPTIONS = Detector.OPTIONS | {"sag_deg", "drift_mm", "eta_deg", "primary_offset_deg", "noise_mm", "time_scale", "limits", "stall_s"}
     default_port = CARM_PORT
     kind = "C-arm"
 
     def __init__(self, name: str = "carm", uri: str = "sim://carm", **options: Any) -> None:
         options.setdefault("phantom", "B")
+        stall_s = options.pop("stall_s", None)
         super().__init__(name, uri, **options)
+        self.stall_s = float(stall_s if stall_s is not None else self._twin_options.pop("stall_s", 2.0))
         self._limits: CArmLimits | None = None
 
     def _make_twin(self) -> Any:
@@ -361,10 +363,20 @@ class CArm(Detector):
         await self._wait_on_target()
 
     async def _wait_on_target(self, poll_s: float = 0.005) -> None:
-        t0 = time.monotonic()
-        while not await self.on_target():
-            if time.monotonic() - t0 > 600:
-                raise DeviceTimeoutError(f"{self.name}: move not finished within 600 s")
+        """Poll until on target; a pose that stops changing for ``stall_s`` while moving is a stuck axis."""
+        last, last_change = None, time.monotonic()
+        while True:
+            p, s, moving, _point = (await self._l().command("POS?")).split()
+            if moving == "0":
+                return
+            if (p, s) != last:
+                last, last_change = (p, s), time.monotonic()
+            elif time.monotonic() - last_change > self.stall_s:
+                await self.stop()
+                raise DeviceTimeoutError(
+                    f"{self.name}: C-arm stuck at primary {float(p):.3f} deg, secondary {float(s):.3f} deg "
+                    f"(no progress for {self.stall_s:g} s); stopped, not retried"
+                )
             await asyncio.sleep(poll_s)
 
     def expose(self) -> Status[Frame]:

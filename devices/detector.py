@@ -169,6 +169,18 @@ class FrameLink:
                 raise
 
     async def _roundtrip(self, line: str, wait_s: float, *, frame: bool) -> str | Frame:
+        try:
+            return await self._exchange(line, wait_s, frame=frame)
+        except asyncio.CancelledError:
+            self._abandon()  # a reply may still be in flight: the next command starts on a fresh connection
+            raise
+
+    def _abandon(self) -> None:
+        if self._writer is not None:
+            self._writer.transport.abort()
+        self._reader = self._writer = None
+
+    async def _exchange(self, line: str, wait_s: float, *, frame: bool) -> str | Frame:
         if self._writer is None or self._reader is None:
             if not self._opened:
                 raise NotConnectedError(f"{self.name}: not connected")

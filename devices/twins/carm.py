@@ -69,6 +69,7 @@ class CArmTwin(DetectorTwin):
         self._motion: asyncio.Task[None] | None = None
         self._run: asyncio.Task[None] | None = None
         self.armed = True
+        self.stuck = False  # hazard on request: moves report "moving" but the arm does not advance
 
     # ------------------------------------------------------------- geometry
     def true_view(self) -> ViewGeometry:
@@ -108,6 +109,8 @@ class CArmTwin(DetectorTwin):
         p0, s0 = self.primary_deg, self.secondary_deg
         duration = max(abs(p - p0), abs(s - s0)) / max(speed, 1e-9) / self.time_scale
         t0 = time.monotonic()
+        while self.stuck:
+            await asyncio.sleep(0.01)
         while True:
             f = 1.0 if duration <= 0 else min(1.0, (time.monotonic() - t0) / duration)
             self.primary_deg, self.secondary_deg = p0 + f * (p - p0), s0 + f * (s - s0)

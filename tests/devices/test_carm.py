@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from devices.carm import CArm, CArmLimits, InfeasibleOrbitError, NavPoint, NavProgram, ProgramFileError, export_program
-from devices.errors import ControllerError, NotConnectedError, OutOfLimitsError
+from devices.errors import ControllerError, DeviceTimeoutError, NotConnectedError, OutOfLimitsError
 from devices.twins.carm import CArmTwin
 from devices.twins.xray import TwinThread
 from orbitct.geometry import ViewGeometry
@@ -165,8 +165,15 @@ def test_faults_on_the_carm_link() -> None:
         arm.twin.faults.error_next = 1
         with pytest.raises(ControllerError):
             await arm.position()
+        arm.twin.stuck = True
+        with pytest.raises(DeviceTimeoutError, match="stuck at primary"):
+            await arm.move({"primary": 30.0})
+        assert sum(c.startswith("MOVE") for c in arm.twin.commands_seen) == 2 and "STOP" in arm.twin.commands_seen
+        arm.twin.stuck = False
+        await arm.move({"primary": 1.0})
+        assert (await arm.position())["primary"] == pytest.approx(1.0)
 
-    run(body)
+    run(body, stall_s=0.3)
 
 
 def test_standalone_carm_twin_over_tcp() -> None:

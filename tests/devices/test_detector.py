@@ -212,3 +212,18 @@ def test_unreachable_detector() -> None:
             await Detector("d", "tcp://127.0.0.1:1", timeout_s=0.3).connect()
 
     asyncio.run(main())
+
+
+def test_cancelled_read_leaves_the_link_usable() -> None:
+    async def body(det: Detector) -> None:
+        await det.arm()
+        det.twin.faults.latency_s = 0.3
+        task = asyncio.ensure_future(det.read())
+        await asyncio.sleep(0.05)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        det.twin.faults.latency_s = 0.0
+        assert (await det.read())["armed"] == 1  # no stale reply read as this one's
+
+    run(body)
