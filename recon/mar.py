@@ -74,3 +74,19 @@ def add_metal_back(corrected: NDArray[np.float32], first: NDArray[np.float32], m
     out = corrected.copy()
     out[metal] = np.maximum(first[metal], corrected[metal])
     return out
+
+
+def tissue_prior(first: NDArray[np.float32], metal: NDArray[np.bool_]) -> NDArray[np.float32]:
+    """Flattened prior of the first volume: air 0, soft tissue one value, bone kept, metal as soft tissue."""
+    body = first[(first > 0.005) & ~metal]
+    tissue = float(np.median(body)) if body.size else 0.02
+    prior = np.where(first < 0.5 * tissue, 0.0, np.where(first < 1.4 * tissue, tissue, first)).astype(np.float32)
+    prior[metal] = tissue
+    return prior
+
+
+def fill_traces_normalized(li: NDArray[np.float32], mask: NDArray[np.bool_], prior_li: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Interpolate in ``li / prior_li`` (normalized MAR) so structures the prior knows survive in the traces."""
+    eps = np.float32(max(float(np.percentile(prior_li, 99)) * 1e-3, 1e-6))
+    norm = li / (prior_li + eps)
+    return (fill_traces(norm, mask) * (prior_li + eps)).astype(np.float32)

@@ -19,7 +19,8 @@ from recon.errors import GeometryMissingError, MemoryBudgetError, ReconError
 from recon.export import FORMATS, export_volume
 from recon.fdk import WINDOWS, fdk
 from recon.grid import VolumeGrid, check_fov, grid_for_geometry
-from recon.mar import METHODS, add_metal_back, fill_traces, metal_in_volume, traces_by_reprojection, traces_by_threshold
+from recon.mar import (METHODS, add_metal_back, fill_traces_normalized, metal_in_volume, tissue_prior,
+                       traces_by_reprojection, traces_by_threshold)
 from recon.operator import projector
 from recon.pwls import DEFAULT_BETA, pwls_sps, statistical_weights
 
@@ -161,7 +162,7 @@ def reconstruct_scan(
                 A = projector(grid, geom)
                 traces = (traces_by_threshold(li, mar_threshold) if mar_method == "threshold"
                           else traces_by_reprojection(A, metal))
-                li = fill_traces(li, traces)
+                li = fill_traces_normalized(li, traces, A(tissue_prior(first, metal)))
                 if w is not None:
                     w = np.where(traces, np.exp(-li), w).astype(np.float32)
                 extra.update(mar_method=mar_method, metal_voxels=int(metal.sum()), trace_fraction=float(traces.mean()))

@@ -45,6 +45,7 @@ def scan_a(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_true_geometry_pwls_beats_fdk_and_nominal_is_worse(scan_a: Path, tmp_path: Path) -> None:
     grid = VolumeGrid.centered(SHAPE, VOXEL)
     truth = voxelized_spheres(grid)
