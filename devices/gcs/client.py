@@ -54,6 +54,8 @@ class GcsClient:
     async def _reconnect(self) -> None:
         await self.close()
         self.stats["reconnects"] += 1
+        if self.endpoint.scheme == "serial":  # a serial line keeps late replies: let them arrive, then flush them
+            await asyncio.sleep(min(self.timeout_s, 0.5))
         await self.connect()
 
     async def _exchange(self, command: str) -> list[str]:
@@ -65,8 +67,12 @@ class GcsClient:
         try:
             await self._transport.write(encode_command(command))
             raw = await self._transport.read_reply(self.timeout_s)
+        except BaseException:  # timeout, lost connection, or cancelled mid-exchange: a reply may be pending
+            self._stale = True
+            raise
+        try:
             return split_reply(raw)
-        except _RETRYABLE:
+        except ProtocolError:
             self._stale = True
             raise
 

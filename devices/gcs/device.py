@@ -61,6 +61,7 @@ class GcsMotionDevice:
         self._idn = ""
         self._limits: dict[str, tuple[float, float]] = {}
         self._stopped = 0  # increments on stop(): running moves end with an error
+        self._moves_sent = 0  # increments with every MOV/MVR: an earlier move still waiting is superseded
 
     # ----- connection -----
     @property
@@ -259,12 +260,14 @@ class GcsMotionDevice:
         stop_mark = self._stopped
         command = "MVR" if relative else "MOV"
         sent = {self.axis_map[k]: float(targets[k]) for k in checked}
+        self._moves_sent += 1
+        move_mark = self._moves_sent
         try:
             await self.client.command(format_command(command, sent))
         except ControllerError as exc:
             raise await self._explain_refusal(exc) from None
         try:
-            await self._wait_on_target(checked, start, stop_mark, status)
+            await self._wait_on_target(checked, start, (stop_mark, move_mark), status)
         except asyncio.CancelledError:
             await asyncio.shield(self.halt())
             raise
@@ -273,17 +276,17 @@ class GcsMotionDevice:
         """Upper bound for a move's travel time (subclasses know the velocity)."""
         return 60.0
 
-    async def _wait_on_target(self, targets: dict[str, float], start: dict[str, float], stop_mark: int,
+    async def _wait_on_target(self, targets: dict[str, float], start: dict[str, float], marks: tuple[int, int],
                               status: Status[None] | None) -> None:
         limit = self.move_timeout_s or (2.0 * self._estimate_s(start, targets) + 2.0)
         t0 = time.monotonic()
         polls = 0
         while True:
-            if self._stopped != stop_mark:
+            if self._stopped != marks[0]:
                 raise ControllerError(E.STOPPED, E.error_text(E.STOPPED), "MOV")
             ont = await self._axis_query("ONT?")
             if all(v != 0 for v in ont.values()):
-                await self._check_arrived(targets, stop_mark)
+                await self._check_arrived(targets, marks)
                 if status is not None:
                     status.report(current=dict(targets), target=targets, fraction=1.0, message="on target")
                 return
@@ -299,21 +302,28 @@ class GcsMotionDevice:
                 )
             await asyncio.sleep(self.poll_s)
 
-    async def _check_arrived(self, targets: Mapping[str, float], stop_mark: int) -> None:
-        """On target, but at *our* target? (a halt from here or another client ends a move early)."""
-        if self._stopped != stop_mark:
+    async def _check_arrived(self, targets: Mapping[str, float], marks: tuple[int, int]) -> None:
+        """On target, but at *our* target? (a halt, a later move or another client ends a move early)."""
+        if self._stopped != marks[0]:
             raise ControllerError(E.STOPPED, E.error_text(E.STOPPED), "MOV")
         now = await self.target()
         off = [k for k, v in targets.items() if abs(now[k] - v) > 1e-5]
         if off:
-            raise ControllerError(E.STOPPED, f"move ended away from its target on {', '.join(off)} (halted)", "MOV")
+            why = "superseded by a later move" if self._moves_sent != marks[1] else "halted (by another client?)"
+            raise ControllerError(E.STOPPED, f"move ended away from its target on {', '.join(off)}: {why}", "MOV")
 
     def reference(self) -> Status[None]:
         """Servo on, then reference every axis (``FRF``); the status ends when all are referenced."""
         return self._status("reference", self._reference)
 
     async def _reference(self, box: list[Status[None]]) -> None:
-        status = box[0] if box else None
+        try:
+            await self._referencing(box[0] if box else None)
+        except asyncio.CancelledError:
+            await asyncio.shield(self.halt())
+            raise
+
+    async def _referencing(self, status: Status[None] | None) -> None:
         if not all((await self.servo_on()).values()):
             await self.servo(True)
         await self.client.command(format_command("FRF", list(self.axis_map.values())))

@@ -136,6 +136,7 @@ class SerialTransport(_StreamReplies):
             self._serial = serial.Serial(self.path, baudrate=self.baud, timeout=0, write_timeout=2.0)
         except (serial.SerialException, OSError) as exc:
             raise NotConnectedError(f"{self.description}: cannot open ({exc})") from None
+        self._serial.reset_input_buffer()  # replies meant for an earlier, abandoned exchange
         loop = asyncio.get_running_loop()
         self.reader = asyncio.StreamReader()
         fd = self._serial.fileno()

@@ -152,3 +152,18 @@ async def test_stop_reaches_the_controller_after_a_silent_disconnect(ready_hexap
     assert ready_hexapod.client.stats["reconnects"] >= 1
     with pytest.raises(Exception):
         await status
+
+
+async def test_serial_resynchronises_after_late_replies(stage_twin: TwinServer) -> None:
+    path = stage_twin.open_serial()
+    dev = RotationStage("stage", f"serial://{path}?baud=115200", timeout_s=0.1)
+    await dev.connect()
+    try:
+        stage_twin.faults.latency_s = 0.15
+        with pytest.raises(DeviceTimeoutError):
+            await dev.position()
+        stage_twin.faults.latency_s = 0.0
+        assert await dev.velocity() == pytest.approx(30.0)  # not a late POS? reply
+        assert set(await dev.limits(refresh=True)) == {"R"}
+    finally:
+        await dev.close()

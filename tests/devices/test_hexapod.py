@@ -179,3 +179,27 @@ async def test_codes_93_89_while_moving_or_referencing(ready_hexapod: Hexapod) -
         await ready_hexapod.client.command("MOV X 1")
     assert info.value.code == 89
     await ready_hexapod.stop()
+
+
+async def test_later_move_supersedes_a_running_one(ready_hexapod: Hexapod) -> None:
+    await ready_hexapod.set_velocity(1.0)
+    first = ready_hexapod.move({"X": 10.0})
+    await asyncio.sleep(0.05)
+    second = ready_hexapod.move({"X": 2.0})
+    await second
+    with pytest.raises(ControllerError, match="superseded") as info:
+        await first
+    assert info.value.code == 10
+    assert (await ready_hexapod.position())["X"] == pytest.approx(2.0, abs=1e-3)
+
+
+async def test_cancelled_reference_halts(hexapod: Hexapod, hexapod_twin: TwinServer) -> None:
+    status = hexapod.reference()
+    await asyncio.sleep(0.002)
+    while not hexapod_twin.controller.referencing:
+        await asyncio.sleep(0.001)
+    status.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await status
+    await asyncio.sleep(0.05)
+    assert not hexapod_twin.controller.is_moving() and not hexapod_twin.controller.referencing
