@@ -9,55 +9,27 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr
 
-from orbitct.simulator.noise import poisson, seed_from, stream, uniform
+from orbitct.simulator.noise import normal_fast, poisson, seed_from, stream
 
 
 @nb.njit(parallel=True, cache=True, nogil=True)
-def _attenuate(li: NDArray[np.float32], flat: NDArray[np.float32]) -> NDArray[np.float32]:
+def _signal_rows(li: NDArray[np.float32], flat: NDArray[np.float32], k: NDArray[np.float32]) -> NDArray[np.float32]:
+    """``flat * exp(-li)`` blurred along rows with kernel ``k`` (edges clamped)."""
     rows, cols = li.shape
+    r = (k.shape[0] - 1) // 2
     out = np.empty((rows, cols), dtype=np.float32)
     for i in nb.prange(rows):
+        buf = np.empty(cols, dtype=np.float32)
         for j in range(cols):
-            out[i, j] = flat[i, j] * math.exp(-float(li[i, j]))
-    return out
-
-
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _readout(
-    mean_adu: NDArray[np.float32], gain: float, dark: NDArray[np.float32], read_noise: float, sat: float, seed: np.uint64
-) -> NDArray[np.uint16]:
-    """Poisson quanta (mean ``mean_adu / gain``) times gain, plus dark and Gaussian read noise, clipped."""
-    rows, cols = mean_adu.shape
-    out = np.empty((rows, cols), dtype=np.uint16)
-    for i in nb.prange(rows):
-        for j0 in range(0, cols, 2):
-            st = stream(seed, i * cols + j0)
-            st, u1 = uniform(st)
-            st, u2 = uniform(st)
-            r = math.sqrt(-2.0 * math.log(u1))
-            z = (r * math.cos(2.0 * math.pi * u2), r * math.sin(2.0 * math.pi * u2))
-            for q in range(2):
-                j = j0 + q
-                if j >= cols:
-                    break
-                st, n = poisson(st, mean_adu[i, j] / gain)
-                x = n * gain + dark[i, j] + read_noise * z[q]
-                x = min(max(x, 0.0), sat)
-                out[i, j] = np.uint16(math.floor(x + 0.5))
-    return out
-
-
-@nb.njit(parallel=True, cache=True, nogil=True)
-def _blur_rows(img: NDArray[np.float32], k: NDArray[np.float32]) -> NDArray[np.float32]:
-    rows, cols = img.shape
-    r = (k.shape[0] - 1) // 2
-    out = np.empty_like(img)
-    for i in nb.prange(rows):
+            buf[j] = flat[i, j] * math.exp(-float(li[i, j]))
         for j in range(cols):
             acc = 0.0
-            for q in range(-r, r + 1):
-                jj = min(max(j + q, 0), cols - 1)
-                acc += k[q + r] * img[i, jj]
+            if r <= j < cols - r:
+                for q in range(-r, r + 1):
+                    acc += k[q + r] * buf[j + q]
+            else:
+                for q in range(-r, r + 1):
+                    acc += k[q + r] * buf[min(max(j + q, 0), cols - 1)]
             out[i, j] = acc
     return out
 
@@ -71,21 +43,48 @@ def _blur_cols(img: NDArray[np.float32], k: NDArray[np.float32]) -> NDArray[np.f
         for j in range(cols):
             acc = 0.0
             for q in range(-r, r + 1):
-                ii = min(max(i + q, 0), rows - 1)
-                acc += k[q + r] * img[ii, j]
+                acc += k[q + r] * img[min(max(i + q, 0), rows - 1), j]
             out[i, j] = acc
     return out
 
 
-def gaussian_blur(img: NDArray[np.float32], sigma_px: float) -> NDArray[np.float32]:
-    """Separable Gaussian blur (edges clamped); returns ``img`` itself for ``sigma_px <= 0``."""
+@nb.njit(parallel=True, cache=True, nogil=True)
+def _readout(
+    rows_blurred: NDArray[np.float32], k: NDArray[np.float32], gain: float, dark: NDArray[np.float32],
+    read_noise: float, sat: float, seed: np.uint64,
+) -> NDArray[np.uint16]:
+    """Column blur, then Poisson quanta (mean signal / gain) times gain, plus dark and read noise, clipped."""
+    rows, cols = rows_blurred.shape
+    r = (k.shape[0] - 1) // 2
+    out = np.empty((rows, cols), dtype=np.uint16)
+    for i in nb.prange(rows):
+        for j in range(cols):
+            mean = 0.0
+            for q in range(-r, r + 1):
+                mean += k[q + r] * rows_blurred[min(max(i + q, 0), rows - 1), j]
+            st = stream(seed, i * cols + j)
+            st, n = poisson(st, mean / gain)
+            st, z = normal_fast(st)
+            x = n * gain + dark[i, j] + read_noise * z
+            x = min(max(x, 0.0), sat)
+            out[i, j] = np.uint16(math.floor(x + 0.5))
+    return out
+
+
+def blur_kernel(sigma_px: float) -> NDArray[np.float32]:
+    """Normalised 1-D Gaussian taps (radius 3 sigma); ``[1]`` for no blur."""
     if sigma_px <= 0:
-        return img
+        return np.ones(1, np.float32)
     r = max(1, int(math.ceil(3.0 * sigma_px)))
     x = np.arange(-r, r + 1, dtype=np.float64)
     k = np.exp(-0.5 * (x / sigma_px) ** 2)
-    k = (k / k.sum()).astype(np.float32)
-    return _blur_cols(_blur_rows(np.ascontiguousarray(img, dtype=np.float32), k), k)
+    return (k / k.sum()).astype(np.float32)
+
+
+def gaussian_blur(img: NDArray[np.float32], sigma_px: float) -> NDArray[np.float32]:
+    """Separable Gaussian blur (edges clamped) of a float32 image."""
+    k = blur_kernel(sigma_px)
+    return _blur_cols(_signal_rows(np.zeros(img.shape, np.float32), np.ascontiguousarray(img, np.float32), k), k)
 
 
 class DetectorModel(BaseModel):
@@ -122,7 +121,8 @@ class DetectorModel(BaseModel):
     def mean_signal(self, li: NDArray[np.float32]) -> NDArray[np.float32]:
         """Noise-free mean signal above dark (ADU) for line integrals ``li``, blurred."""
         flat, _ = self.maps(li.shape)
-        return gaussian_blur(_attenuate(np.ascontiguousarray(li, dtype=np.float32), flat), self.blur_sigma_px)
+        k = blur_kernel(self.blur_sigma_px)
+        return _blur_cols(_signal_rows(np.ascontiguousarray(li, dtype=np.float32), flat, k), k)
 
     def expected(self, li: NDArray[np.float32]) -> NDArray[np.float32]:
         """Noise-free mean raw value for line integrals ``li`` (before saturation)."""
@@ -130,9 +130,11 @@ class DetectorModel(BaseModel):
 
     def expose(self, li: NDArray[np.float32], rng: np.random.Generator) -> NDArray[np.uint16]:
         """One raw frame (uint16) for line integrals ``li`` (rows, cols): blur, quantum noise, dark, read noise."""
-        _, dark = self.maps(li.shape)
-        return _readout(self.mean_signal(li), float(self.gain_adu), dark, float(self.read_noise_adu),
-                        float(self.saturation_adu), seed_from(rng))
+        flat, dark = self.maps(li.shape)
+        k = blur_kernel(self.blur_sigma_px)
+        rows = _signal_rows(np.ascontiguousarray(li, dtype=np.float32), flat, k)
+        return _readout(rows, k, float(self.gain_adu), dark, float(self.read_noise_adu), float(self.saturation_adu),
+                        seed_from(rng))
 
     def flat(self, rng: np.random.Generator, shape: tuple[int, int]) -> NDArray[np.uint16]:
         """One open-field (flat) frame."""
@@ -141,5 +143,5 @@ class DetectorModel(BaseModel):
     def dark(self, rng: np.random.Generator, shape: tuple[int, int]) -> NDArray[np.uint16]:
         """One dark frame (X-rays off)."""
         _, dark = self.maps(tuple(shape))  # type: ignore[arg-type]
-        return _readout(np.zeros(shape, np.float32), float(self.gain_adu), dark, float(self.read_noise_adu),
-                        float(self.saturation_adu), seed_from(rng))
+        return _readout(np.zeros(shape, np.float32), np.ones(1, np.float32), float(self.gain_adu), dark,
+                        float(self.read_noise_adu), float(self.saturation_adu), seed_from(rng))

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import queue
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +29,43 @@ DEFAULT_ORBITS: dict[str, tuple[str, dict[str, Any]]] = {
     "C": ("multiarc", {"preset": "pheno"}),
 }
 AXES = {"orbit.rotation": "deg", "orbit.tilt": "deg"}
+_FLUSH_EVERY = 8
+
+
+class _BackgroundAppender:
+    """Appends frames to a :class:`ScanWriter` on a second thread, so HDF5 I/O overlaps rendering."""
+
+    def __init__(self, writer: ScanWriter) -> None:
+        self._w = writer
+        self._q: queue.Queue[tuple[Any, ...] | None] = queue.Queue(maxsize=6)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="scan-writer", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            item = self._q.get()
+            if item is None:
+                return
+            if self._error is not None:
+                continue
+            args, kwargs = item
+            try:
+                self._w.append(*args, **kwargs)
+            except BaseException as exc:  # re-raised on the calling thread
+                self._error = exc
+
+    def append(self, *args: Any, **kwargs: Any) -> None:
+        if self._error is not None:
+            raise self._error
+        self._q.put((args, kwargs))
+
+    def close(self, raise_error: bool = True) -> None:
+        """Wait for every queued frame; re-raise a write error (unless told not to)."""
+        self._q.put(None)
+        self._thread.join()
+        if raise_error and self._error is not None:
+            raise self._error
 
 
 @dataclass(frozen=True)
@@ -119,22 +158,29 @@ def simulate_scan(
         )
         w.set_attrs("simulation", experiment=exp_name, seed=int(seed), errors=profile.to_json(),
                     errors_peak=rigid.summary(), frame_interval_s=frame_interval_s)
+        bg = _BackgroundAppender(w)
         done = 0
-        for _ in range(n_dark):
-            w.append(bench.model.dark(rng, det.shape), "dark", done * frame_interval_s)
-            done += 1
-        for _ in range(n_flat):
-            w.append(bench.model.flat(rng, det.shape), "flat", done * frame_interval_s)
-            done += 1
-        report(progress, "simulate", done, total, "dark and flat frames")
-        th, ph = orb.theta_deg, orb.phi_deg
-        for i in range(orb.n_frames):
-            li = line_integrals(phantom, true_geom, i)
-            cmd = {"orbit.rotation": float(th[i]), "orbit.tilt": float(ph[i])}
-            w.append(bench.model.expose(li, rng), "projection", done * frame_interval_s,
-                     nominal_vector=nominal.vectors[i], commanded=cmd)
-            done += 1
-            if progress is not None and (i % 5 == 4 or i == orb.n_frames - 1):
-                el = time.perf_counter() - t0
-                report(progress, "simulate", done, total, f"projection {i + 1}/{orb.n_frames}", fps=done / el)
+        try:
+            for _ in range(n_dark):
+                bg.append(bench.model.dark(rng, det.shape), "dark", done * frame_interval_s)
+                done += 1
+            for _ in range(n_flat):
+                bg.append(bench.model.flat(rng, det.shape), "flat", done * frame_interval_s)
+                done += 1
+            report(progress, "simulate", done, total, "dark and flat frames")
+            th, ph = orb.theta_deg, orb.phi_deg
+            for i in range(orb.n_frames):
+                li = line_integrals(phantom, true_geom, i)
+                cmd = {"orbit.rotation": float(th[i]), "orbit.tilt": float(ph[i])}
+                last = i == orb.n_frames - 1
+                bg.append(bench.model.expose(li, rng), "projection", done * frame_interval_s,
+                          nominal_vector=nominal.vectors[i], commanded=cmd, flush=last or i % _FLUSH_EVERY == 0)
+                done += 1
+                if progress is not None and (i % 5 == 4 or last):
+                    el = time.perf_counter() - t0
+                    report(progress, "simulate", done, total, f"projection {i + 1}/{orb.n_frames}", fps=done / el)
+        except BaseException:
+            bg.close(raise_error=False)
+            raise
+        bg.close()
     return SimulationResult(Path(out), total, orb.n_frames, time.perf_counter() - t0, orb, phantom, rigid)

@@ -1,0 +1,93 @@
+"""Benchmark: simulate experiment A (default 500 frames of 768 x 768) and report frames per second.
+
+Target (issue 2): at least 25 frames/s on 2 cores. Smaller runs for a quick check:
+    python benchmarks/simulate.py --frames 50 --detector-size 256
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import numba
+import numpy as np
+
+from orbitct.phantoms import experiment_phantom
+from orbitct.simulator import SimulatedBench, line_integrals, simulate_scan
+
+
+def cpu_model() -> str:
+    """CPU model name from /proc/cpuinfo (or platform)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--experiment", default="A", choices=["A", "B", "C"])
+    ap.add_argument("--orbit", default=None, help="orbit kind (default: the experiment's)")
+    ap.add_argument("--frames", type=int, default=500)
+    ap.add_argument("--detector-size", type=int, default=768)
+    ap.add_argument("--errors", default="bench", choices=["bench", "none"])
+    ap.add_argument("--threads", type=int, default=None, help="numba threads (default: all cores)")
+    ap.add_argument("--keep", type=Path, default=None, help="write the scan here instead of a temporary file")
+    args = ap.parse_args()
+    if args.threads:
+        numba.set_num_threads(args.threads)
+
+    bench = SimulatedBench.with_detector(args.detector_size)
+    phantom = experiment_phantom(args.experiment)
+    # compile every kernel before timing
+    li = line_integrals(phantom, bench.lab_view, 0)
+    bench.model.expose(li, np.random.default_rng(0))
+
+    # stage timings on a few frames
+    n_stage = min(20, args.frames)
+    rng = np.random.default_rng(1)
+    t = time.perf_counter()
+    for _ in range(n_stage):
+        li = line_integrals(phantom, bench.lab_view, 0)
+    t_li = (time.perf_counter() - t) / n_stage
+    t = time.perf_counter()
+    for _ in range(n_stage):
+        bench.model.expose(li, rng)
+    t_exp = (time.perf_counter() - t) / n_stage
+
+    with tempfile.TemporaryDirectory() as tmp:
+        out = args.keep or Path(tmp) / "bench.h5"
+        res = simulate_scan(args.experiment, args.orbit, out=out, n_frames=args.frames, detector_px=args.detector_size,
+                            errors=args.errors, seed=0, n_dark=10, n_flat=10, bench=bench, overwrite=True)
+        size_mb = os.path.getsize(out) / 1e6
+
+    fps = res.n_frames / res.elapsed_s
+    rows = [
+        ("experiment / orbit", f"{args.experiment} / {res.orbit.name}"),
+        ("frames (proj + 10 dark + 10 flat)", f"{res.n_frames}"),
+        ("detector", f"{args.detector_size} x {args.detector_size} px"),
+        ("primitives", f"{len(phantom.primitives)}"),
+        ("line integrals per frame", f"{t_li * 1e3:.1f} ms"),
+        ("detector model per frame", f"{t_exp * 1e3:.1f} ms"),
+        ("whole scan (incl. HDF5 write)", f"{res.elapsed_s:.2f} s"),
+        ("frames per second", f"{fps:.1f}  (target >= 25 on 2 cores)"),
+        ("file size", f"{size_mb:.0f} MB"),
+    ]
+    w = max(len(k) for k, _ in rows)
+    print(f"orbitct simulate benchmark")
+    print(f"machine: {cpu_model()}, {os.cpu_count()} cores, numba threads {numba.get_num_threads()}, "
+          f"load avg {os.getloadavg()[0]:.1f}")
+    print("-" * (w + 40))
+    for k, v in rows:
+        print(f"{k:<{w}}  {v}")
+
+
+if __name__ == "__main__":
+    main()
