@@ -33,7 +33,7 @@ from devices.detector import (
     encode_frame,
 )
 from devices.twins.world import SimWorld, get_world
-from devices.twins.xray import TwinFaults, garble
+from devices.twins.xray import TwinFaults
 from orbitct.geometry import Detector as PanelGeometry
 from orbitct.geometry import ViewGeometry
 

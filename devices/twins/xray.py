@@ -38,7 +38,7 @@ class TwinFaults:
     garble_next: int = 0  # answer with corrupted bytes
     error_next: int = 0  # answer with a device error
     missing_frame_next: int = 0  # complete the action but lose the frame / trigger
-    match: str = ""  # only requests whose description contains this text count (e.g. "fc5:1=[1]", "TRIG")
+    match: str = ""  # drop/garble/error only hit requests containing this text (e.g. "fc5:1=[1]", "TRIG")
 
     def take(self, name: str, request: str = "") -> bool:
         """Consume one pending fault called ``name`` (e.g. ``'drop'``) for ``request``; whether one was pending."""
