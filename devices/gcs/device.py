@@ -30,6 +30,7 @@ from devices.gcs.framing import BUSY, READY, format_command, parse_axis_values
 from devices.uri import Endpoint, parse_uri
 
 DEFAULT_PORT = 50000
+SIM_OPTIONS = ("time_scale", "imperfect", "seed", "velocity")  # passed to the twin of a sim:// URI
 
 
 class ServoOffError(NotReferencedError):
@@ -51,6 +52,12 @@ class GcsMotionDevice:
         self.endpoint: Endpoint = parse_uri(uri, default_port=DEFAULT_PORT)
         if self.endpoint.scheme not in ("sim", "tcp", "serial"):
             raise DeviceError(f"{name}: GCS devices connect by sim://, tcp://host:port or serial://path, not {uri!r}")
+        unknown = sorted(set(twin_options) - set(SIM_OPTIONS))
+        if unknown:
+            raise DeviceError(
+                f"{name}: unknown option(s) {', '.join(unknown)}; driver options are timeout_s, poll_s, "
+                f"move_timeout_s, query_retries; sim:// twin options are {', '.join(SIM_OPTIONS)}"
+            )
         self.timeout_s = timeout_s
         self.poll_s = poll_s
         self.move_timeout_s = move_timeout_s
@@ -76,6 +83,9 @@ class GcsMotionDevice:
             return self.endpoint
         from devices.twins.gcs import sim_server
 
+        bad = sorted(set(self.endpoint.params) - set(SIM_OPTIONS))
+        if bad:
+            raise DeviceError(f"{self.name}: {self.uri!r}: unknown sim option(s) {', '.join(bad)}; allowed: {', '.join(SIM_OPTIONS)}")
         options = {**{k: _option(v) for k, v in self.endpoint.params.items()}, **self.twin_options}
         self.twin = sim_server(self.kind, self.endpoint.host or "bench", **options)
         return Endpoint("tcp", host=self.twin.host, port=self.twin.port)

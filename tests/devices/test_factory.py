@@ -40,6 +40,10 @@ async def test_open_by_uri(hexapod_twin: TwinServer, stage_twin: TwinServer) -> 
         await stage.close()
     with pytest.raises(UriError):
         await open_device("hexapod", "hexapod", "ftp://somewhere")
+    with pytest.raises(DeviceError, match=r"unknown option\(s\) timeout;"):
+        await open_device("hexapod", "hexapod", hexapod_twin.uri, timeout=1.0)
+    with pytest.raises(DeviceError, match="speed"):
+        await open_device("hexapod", "hexapod", "sim://factory-test?speed=9")
     with pytest.raises(DeviceError, match="cannot connect"):
         await open_device("hexapod", "hexapod", "tcp://127.0.0.1:1")
 
