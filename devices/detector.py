@@ -255,6 +255,12 @@ class Detector:
     default_port = DETECTOR_PORT
     kind = "detector"
 
+    def __new__(cls, name: str = "detector", uri: str = "sim://bench", **options: Any) -> Any:
+        """``folder://`` URIs give a :class:`FolderWatchDetector` (so configs can name any panel here)."""
+        if cls is Detector and str(uri).lower().startswith("folder:"):
+            return FolderWatchDetector(name, uri, **options)
+        return super().__new__(cls)
+
     def __init__(self, name: str = "detector", uri: str = "sim://bench", **options: Any) -> None:
         self.name, self.uri = name, uri
         self.endpoint: Endpoint = parse_uri(uri, default_port=self.default_port)
@@ -491,6 +497,24 @@ class FolderWatchDetector:
         if self._shape is None:
             raise DeviceError(f"{self.name}: frame shape unknown until the first frame (or give rows=, cols=)")
         return self._shape
+
+    @property
+    def geometry(self) -> PanelGeometry:
+        """Pixel grid (needs the ``pitch_mm`` option and a known shape)."""
+        if not self.pitch_mm:
+            raise DeviceError(f"{self.name}: pixel pitch unknown; give the pitch_mm option")
+        rows, cols = self.shape
+        return PanelGeometry(rows, cols, self.pitch_mm, self.pitch_mm)
+
+    async def set_trigger(self, mode: str) -> None:
+        """Accepted for either mode: the vendor tool decides what starts a frame."""
+        if mode.lower() not in ("software", "xray"):
+            raise DeviceError(f"{self.name}: trigger must be 'software' or 'xray', got {mode!r}")
+
+    async def set_binning(self, factor: int) -> None:
+        """Binning is set in the vendor tool; only 1 (as delivered) is accepted here."""
+        if int(factor) != 1:
+            raise DeviceError(f"{self.name}: set binning {factor} in the vendor software; files are used as written")
 
     async def arm(self) -> None:
         """Ignore every file already in the folder; deliver only files written from now on."""

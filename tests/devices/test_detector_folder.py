@@ -95,3 +95,21 @@ def test_bad_folder_and_options(tmp_path: Path) -> None:
         from devices.detector import read_frame_file
 
         read_frame_file(tmp_path / "x.raw")
+
+
+def test_detector_factory_name_gives_folder_watch(tmp_path: Path) -> None:
+    from devices.detector import Detector
+
+    det = Detector("panel", f"folder://{tmp_path}?pattern=*.tif", pitch_mm=0.278)
+    assert isinstance(det, FolderWatchDetector)
+
+    async def main() -> None:
+        await det.connect()
+        await det.set_trigger("xray")
+        with pytest.raises(Exception, match="vendor software"):
+            await det.set_binning(2)
+        tifffile.imwrite(tmp_path / "f.tif", frame(5))
+        await det.read_frame(timeout_s=2.0)
+        assert det.geometry.pitch_col == 0.278 and det.geometry.shape == (16, 24)
+
+    asyncio.run(main())
