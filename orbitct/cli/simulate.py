@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 import numpy as np
 
 from orbitct.cli.progress import ProgressBar
+
+if TYPE_CHECKING:
+    from orbitct.scanfile import ScanFile
 
 
 @click.command()
@@ -88,10 +92,12 @@ def inspect(scan: Path, as_json: bool) -> None:
     click.echo(f"  detector    {d['rows']} x {d['cols']} px @ {d['pitch_mm'][0]:.4g} x {d['pitch_mm'][1]:.4g} mm")
     click.echo("  frames      " + ", ".join(f"{v} {k}" for k, v in summary["frames"].items() if v) +
                f" ({summary['n_frames']} total, {summary['dtype']})")
+    if summary["duration_s"] is not None:
+        click.echo(f"  duration    {summary['duration_s']:.1f} s")
     click.echo(f"  orbit       {summary['orbit']['name'] or '-'} {json.dumps(summary['orbit']['params'])}")
     if "rotation_deg" in summary["orbit"]:
         o = summary["orbit"]
-        click.echo(f"              rotation {o['rotation_deg'][0]:.1f}..{o['rotation_deg'][1]:.1f} deg, "
+        click.echo(f"              nominal source rotation {o['rotation_deg'][0]:.1f}..{o['rotation_deg'][1]:.1f} deg, "
                    f"tilt {o['tilt_deg'][0]:.1f}..{o['tilt_deg'][1]:.1f} deg")
     click.echo("  geometry    " + ", ".join(f"{k}{' (' + v + ')' if v else ''}" for k, v in summary["geometry"].items())
                if summary["geometry"] else "  geometry    none")
@@ -105,11 +111,8 @@ def inspect(scan: Path, as_json: bool) -> None:
         click.echo(f"  recon       {', '.join(summary['recon'])}")
 
 
-def scan_summary(f: "object") -> dict[str, object]:
+def scan_summary(f: "ScanFile") -> dict[str, object]:
     """JSON-able summary of an open :class:`orbitct.scanfile.ScanFile`."""
-    from orbitct.scanfile import ScanFile
-
-    assert isinstance(f, ScanFile)
     det = f.detector
     geometry: dict[str, str] = {}
     for name in ("nominal", "calibrated", "truth"):
@@ -124,13 +127,14 @@ def scan_summary(f: "object") -> dict[str, object]:
     truth = f.truth_markers_xyz()
     name, params = f.orbit
     orbit: dict[str, object] = {"name": name, "params": params}
-    if f.has_geometry("nominal") and f.projection_indices.size:
-        cmd = f.axes("commanded")
-        if "orbit.rotation" in cmd:
-            idx = f.projection_indices
-            rot, tilt = cmd["orbit.rotation"][idx], cmd["orbit.tilt"][idx]
-            orbit["rotation_deg"] = [float(np.nanmin(rot)), float(np.nanmax(rot))]
-            orbit["tilt_deg"] = [float(np.nanmin(tilt)), float(np.nanmax(tilt))]
+    idx = f.projection_indices
+    if f.has_geometry("nominal") and idx.size:
+        S = f.geometry("nominal").S[idx]
+        d = S / np.linalg.norm(S, axis=1, keepdims=True)
+        rot = np.degrees(np.unwrap(np.arctan2(d[:, 0], -d[:, 1])))
+        tilt = np.degrees(np.arcsin(np.clip(d[:, 2], -1, 1)))
+        orbit["rotation_deg"] = [float(rot.min()), float(rot.max())]
+        orbit["tilt_deg"] = [float(tilt.min()), float(tilt.max())]
     ph = f.phantom
     return {
         "status": f.status,
@@ -139,6 +143,7 @@ def scan_summary(f: "object") -> dict[str, object]:
         "n_frames": f.n_frames,
         "dtype": str(f.frames.dtype),
         "frames": f.count_by_kind(),
+        "duration_s": float(np.nanmax(f.time_s)) if f.n_frames and np.isfinite(f.time_s).any() else None,
         "orbit": orbit,
         "geometry": geometry,
         "markers": {

@@ -45,6 +45,7 @@ __all__ = [
     "make_orbit",
     "orbit_from_json",
     "read_waypoints",
+    "validate_params",
 ]
 
 _BUILDERS: dict[str, Callable[[Any], shapes.Angles]] = {

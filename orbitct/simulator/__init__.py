@@ -10,7 +10,7 @@ from orbitct.simulator.bench import (
     bench_detector,
 )
 from orbitct.simulator.detector import DetectorModel, gaussian_blur
-from orbitct.simulator.projector import line_integrals
+from orbitct.simulator.projector import line_integral_stack, line_integrals
 from orbitct.simulator.scan import DEFAULT_ORBITS, SimulationResult, resolve_orbit, simulate_scan
 
 __all__ = [
@@ -25,6 +25,7 @@ __all__ = [
     "SimulationResult",
     "bench_detector",
     "gaussian_blur",
+    "line_integral_stack",
     "line_integrals",
     "resolve_orbit",
     "simulate_scan",

@@ -9,6 +9,7 @@ from numpy.typing import NDArray
 from orbitct.geometry import GeometryError, ViewGeometry
 from orbitct.phantoms.chords import chord_dt
 from orbitct.phantoms.phantom import Phantom
+from orbitct.progress import ProgressCallback, report
 
 
 @nb.njit(parallel=True, cache=True, nogil=True)
@@ -115,4 +116,21 @@ def line_integrals(
     ss = _supersampling(size_px, supersample)
     _render(out, pk.kind, np.ascontiguousarray(a), np.ascontiguousarray(b00), np.ascontiguousarray(bu),
             np.ascontiguousarray(bv), pk.mu, fp, ss, P00 - S, u.copy(), v.copy())
+    return out
+
+
+def line_integral_stack(
+    phantom: Phantom,
+    geometry: ViewGeometry,
+    indices: NDArray[np.intp] | list[int] | None = None,
+    *,
+    supersample: bool | int = True,
+    progress: ProgressCallback | None = None,
+) -> NDArray[np.float32]:
+    """Noise-free line integrals ``(n, rows, cols)`` of the given views (default: every finite view)."""
+    idx = np.flatnonzero(geometry.valid) if indices is None else np.asarray(indices, dtype=np.intp)
+    out = np.empty((len(idx),) + geometry.detector.shape, dtype=np.float32)
+    for k, i in enumerate(idx):
+        out[k] = line_integrals(phantom, geometry, int(i), supersample=supersample)
+        report(progress, "project", k + 1, len(idx))
     return out

@@ -25,7 +25,8 @@ def test_simulate_then_inspect(tmp_path: Path) -> None:
         assert not nominal.allclose(truth, atol_mm=0.5)  # bench errors were applied
     r = CliRunner().invoke(cli, ["inspect", str(out)])
     assert r.exit_code == 0, r.output
-    for text in ("complete", "6 projection, 3 flat, 2 dark", "sawtooth", "nominal, truth", "3.17 mm", "8 markers"):
+    for text in ("complete", "6 projection, 3 flat, 2 dark", "sawtooth", "nominal, truth", "3.17 mm", "8 markers",
+                 "rotation 0.0..300.0 deg"):
         assert text in r.output
     r = CliRunner().invoke(cli, ["inspect", str(out), "--json"])
     assert json.loads(r.output)["frames"]["projection"] == 6

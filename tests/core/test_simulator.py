@@ -7,7 +7,7 @@ from orbitct.geometry import Detector, GeometryError, ViewGeometry
 from orbitct.orbits import make_orbit
 from orbitct.phantoms import Phantom, cylinder, experiment_phantom, sphere
 from orbitct.rotations import rotvec_to_matrix
-from orbitct.simulator import DetectorModel, SimulatedBench, line_integrals
+from orbitct.simulator import DetectorModel, SimulatedBench, line_integral_stack, line_integrals
 from orbitct.simulator.noise import poisson_array
 
 DET = Detector(48, 64, 427 / 64, 427 / 48 * 0.75)
@@ -138,3 +138,11 @@ def test_bench_renders_object_pose() -> None:
     assert raw.dtype == np.uint16 and raw.shape == (64, 64)
     assert bench.dark(0).mean() < 400 and bench.flat(0).mean() > 10000
     assert bench.config()["sad_mm"] == 785.0
+
+
+def test_line_integral_stack_skips_non_projection_views() -> None:
+    p = experiment_phantom("B")
+    g = ViewGeometry.empty_like(2, DET).concatenate(make_orbit("circular", n_frames=3).nominal_geometry(785.0, 1200.0, DET))
+    stack = line_integral_stack(p, g)
+    assert stack.shape == (3,) + DET.shape
+    assert np.array_equal(stack[1], line_integrals(p, g, 3))
