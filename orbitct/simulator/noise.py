@@ -62,7 +62,7 @@ def normal_fast(state: np.uint64) -> tuple[np.uint64, float]:
     return state, ((s + 2.0) * (1.0 / 65536.0) - 2.0) * 1.7320508075688772
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def poisson(state: np.uint64, lam: float) -> tuple[np.uint64, float]:
     """An exact Poisson draw: multiplication method below 12, Hormann's PTRS above."""
     if lam <= 0.0:
@@ -93,8 +93,18 @@ def poisson(state: np.uint64, lam: float) -> tuple[np.uint64, float]:
         if loglam < 0.0:
             loglam = math.log(lam)
         invalpha = 1.1239 + 1.1328 / (b - 3.4)
-        if math.log(V) + math.log(invalpha) - math.log(a / (us * us) + b) <= -lam + k * loglam - math.lgamma(k + 1.0):
+        if math.log(V * invalpha / (a / (us * us) + b)) <= -lam + k * loglam - log_factorial(k):
             return state, k
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def log_factorial(k: float) -> float:
+    """``log(k!)`` for integer-valued ``k >= 0`` (table below 10, Stirling series above)."""
+    if k < 10.0:
+        return math.lgamma(k + 1.0)
+    x = k + 1.0
+    x2 = 1.0 / (x * x)
+    return (x - 0.5) * math.log(x) - x + 0.9189385332046728 + (1.0 / 12.0 - x2 * (1.0 / 360.0 - x2 / 1260.0)) / x
 
 
 def seed_from(rng: np.random.Generator) -> np.uint64:
