@@ -64,7 +64,7 @@ class Projector:
         x = _as_f32(x, self.vol_shape, "volume")
         if out is None:
             out = np.empty(self.proj_shape, dtype=np.float32)
-        joseph_forward(x, self._rays, self._vox, out)
+        joseph_forward(x, np.ascontiguousarray(x.transpose(0, 2, 1)), self._rays, self._vox, out)
         return out
 
     def back(self, y: NDArray[np.float32], out: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
@@ -72,7 +72,10 @@ class Projector:
         y = _as_f32(y, self.proj_shape, "projections")
         if out is None:
             out = np.zeros(self.vol_shape, dtype=np.float32)
-        joseph_adjoint(y, self._rays, self._vox, out, _slabs(self.vol_shape[0]))
+        nz, ny, nx = self.vol_shape
+        acc_t = np.zeros((nz, nx, ny), dtype=np.float32)
+        joseph_adjoint(y, self._rays, self._vox, out, acc_t, _slabs(nz))
+        out += acc_t.transpose(0, 2, 1)
         return out
 
     __call__ = forward

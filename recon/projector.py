@@ -3,6 +3,8 @@
 Geometry enters as per-view rays in voxel-index coordinates (x, y, z order, index units):
 source ``s``, the point of pixel (0, 0) ``p00``, and the column/row steps ``du``, ``dv``.
 Volumes are C-ordered ``(nz, ny, nx)`` float32; projections ``(views, rows, cols)`` float32.
+Rays running mostly along x use a transposed copy ``(nz, nx, ny)`` so that their bilinear
+reads and writes stay contiguous.
 """
 
 from __future__ import annotations
@@ -22,11 +24,11 @@ def _ray(rays, vox, n, r, c, nx, ny, nz):
     dz = rays[n, 5] + c * rays[n, 8] + r * rays[n, 11] - sz
     ax, ay, az = abs(dx), abs(dy), abs(dz)
     length = math.sqrt((dx * vox[0]) ** 2 + (dy * vox[1]) ** 2 + (dz * vox[2]) ** 2)
-    if ax >= ay and ax >= az:
+    if ax >= ay and ax >= az:  # x-main rays read the transposed copy (nz, nx, ny): y is contiguous
         m, dm, sm, nm = 0, dx, sx, nx
-        da, sa, na, sta = dy, sy, ny, nx
+        da, sa, na, sta = dy, sy, ny, 1
         db, sb, nb, stb = dz, sz, nz, nx * ny
-        stm = 1
+        stm = ny
     elif ay >= az:
         m, dm, sm, nm = 1, dy, sy, ny
         da, sa, na, sta = dx, sx, nx, 1
@@ -75,16 +77,18 @@ def _cell(a0, ra, b0, rb, k):
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def joseph_forward(vol, rays, vox, out):
-    """Line integrals of ``vol`` along every ray into ``out`` (views, rows, cols)."""
+def joseph_forward(vol, vol_t, rays, vox, out):
+    """Line integrals of ``vol`` (and its transpose ``vol_t``) along every ray into ``out`` (views, rows, cols)."""
     nz, ny, nx = vol.shape
     nv, rows, cols = out.shape
-    flat = vol.ravel()
+    flat_n = vol.ravel()
+    flat_t = vol_t.ravel()
     for job in prange(nv * rows):
         n = job // rows
         r = job - n * rows
         for c in range(cols):
             m, a0, ra, b0, rb, k_lo, k_hi, step, stm, sta, stb, na, nb = _ray(rays, vox, n, r, c, nx, ny, nz)
+            flat = flat_t if m == 0 else flat_n
             acc = 0.0
             for k in range(k_lo, k_hi + 1):
                 ia, ib, fa, fb = _cell(a0, ra, b0, rb, k)
@@ -103,14 +107,16 @@ def joseph_forward(vol, rays, vox, out):
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
-def joseph_adjoint(proj, rays, vox, vol, n_slabs):
-    """Add the exact transpose of :func:`joseph_forward` applied to ``proj`` into ``vol``.
+def joseph_adjoint(proj, rays, vox, vol, vol_t, n_slabs):
+    """Add the exact transpose of :func:`joseph_forward` applied to ``proj`` into ``vol`` and ``vol_t``.
 
-    Race-free: each parallel task owns a slab of z slices and writes only there.
+    The caller adds the transpose of ``vol_t`` (x-main rays) to ``vol``. Race-free: each
+    parallel task owns a slab of z slices and writes only there.
     """
     nz, ny, nx = vol.shape
     nv, rows, cols = proj.shape
-    flat = vol.ravel()
+    flat_n = vol.ravel()
+    flat_t = vol_t.ravel()
     for sl in prange(n_slabs):
         z0 = sl * nz // n_slabs
         z1 = (sl + 1) * nz // n_slabs
@@ -125,6 +131,7 @@ def joseph_adjoint(proj, rays, vox, vol, n_slabs):
                     m, a0, ra, b0, rb, k_lo, k_hi, step, stm, sta, stb, na, nb = _ray(rays, vox, n, r, c, nx, ny, nz)
                     if k_hi < k_lo:
                         continue
+                    flat = flat_t if m == 0 else flat_n
                     if m == 2:  # planes are z slices
                         k_lo = max(k_lo, z0)
                         k_hi = min(k_hi, z1 - 1)
