@@ -15,7 +15,6 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 from pymodbus.client import AsyncModbusTcpClient
-from pymodbus.constants import ExcCodes
 from pymodbus.exceptions import ConnectionException, ModbusException
 
 from devices import xray_registers as reg
@@ -181,7 +180,7 @@ class XrayGenerator:
             raise DeviceTimeoutError(f"{self.name}: no reply from the X-ray generator within {self.timeout_s:g} s ({what})") from None
         if reply.isError():
             code = int(getattr(reply, "exception_code", 0))
-            text = ExcCodes(code).name if code in ExcCodes._value2member_map_ else "unknown exception"
+            text = reg.MODBUS_EXCEPTIONS.get(code, "unknown exception")
             raise ControllerError(code, f"Modbus exception {text}", what)
         return reply
 

@@ -121,6 +121,18 @@ class Refusal(enum.IntEnum):
     INVALID_SETTINGS = 4
 
 
+MODBUS_EXCEPTIONS = {
+    1: "ILLEGAL_FUNCTION",
+    2: "ILLEGAL_ADDRESS",
+    3: "ILLEGAL_VALUE",  # a setting out of range
+    4: "DEVICE_FAILURE",
+    5: "ACKNOWLEDGE",
+    6: "DEVICE_BUSY",  # settings changed during an exposure
+    10: "GATEWAY_PATH_UNAVAILABLE",
+    11: "GATEWAY_NO_RESPONSE",
+}
+
+
 def text_to_registers(text: str) -> list[int]:
     """Pack ASCII text into :data:`TEXT_REGISTERS` registers (space padded, 2 chars each)."""
     raw = text.encode("ascii", "replace")[: 2 * TEXT_REGISTERS].ljust(2 * TEXT_REGISTERS, b" ")

@@ -18,9 +18,16 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from pymodbus.constants import ExcCodes
+try:
+    from pymodbus.constants import ExcCodes
+except ImportError:  # pymodbus < 3.11 names no exception codes: same numbers, own enum
+    import enum
+
+    class ExcCodes(enum.IntEnum):  # type: ignore[no-redef]
+        ILLEGAL_VALUE = 3
+        DEVICE_FAILURE = 4
+        DEVICE_BUSY = 6
 from pymodbus.server import ModbusTcpServer
-from pymodbus.simulator import DataType, SimData, SimDevice
 
 from devices import xray_registers as reg
 from devices.twins.world import SimWorld, get_world
@@ -162,14 +169,7 @@ class XrayTwin:
     async def start(self, host: str = "127.0.0.1", port: int = 0) -> int:
         """Listen on ``host:port`` (0 = any free port); returns the port."""
         self._loop = asyncio.get_running_loop()
-        blocks = (
-            [SimData(0, count=16, values=False, datatype=DataType.BITS)],
-            [SimData(0, count=16, values=False, datatype=DataType.BITS)],
-            [SimData(0, count=reg.N_HOLDING, values=0, datatype=DataType.REGISTERS)],
-            [SimData(0, count=reg.N_INPUT_REGS, values=0, datatype=DataType.REGISTERS)],
-        )
-        device = SimDevice(id=0, simdata=blocks, action=self._action)
-        self._server = ModbusTcpServer(device, address=(host, port), trace_packet=self._trace_packet)
+        self._server = ModbusTcpServer(self._datastore(), address=(host, port), trace_packet=self._trace_packet)
         await self._server.serve_forever(background=True)
         sockets = self._server.transport.sockets  # type: ignore[attr-defined]
         self._ticker = asyncio.ensure_future(self._tick())
@@ -390,6 +390,66 @@ class XrayTwin:
             elif coil == reg.FAULT_RESET and v:
                 self._fault_reset()
 
+    def _block(self, function_code: int) -> list[int] | list[bool]:
+        """Live values of the table a function code addresses."""
+        if function_code in (1, 5, 15):
+            return self._coils()
+        if function_code == 2:
+            return self._inputs()
+        if function_code in (3, 6, 16):
+            return self._holding()
+        return self._input_registers()
+
+    async def _request(self, function_code: int, address: int, values: list[int] | list[bool] | None) -> ExcCodes | None:
+        """Faults first, then a write's effect; an exception code refuses the request."""
+        self.requests += 1
+        request = f"fc{function_code}:{address}" + ("" if values is None else f"={[int(v) for v in values]}")
+        self.request_log.append(request)
+        if self.faults.latency_s > 0:
+            await asyncio.sleep(self.faults.latency_s)
+        if self.faults.take("drop", request):
+            self.drop_connections()
+            return None
+        if self.faults.take("error", request):
+            return ExcCodes.DEVICE_FAILURE
+        if values is not None and function_code in (5, 15):
+            self._write_coils(address, [bool(v) for v in values])
+        elif values is not None and function_code in (6, 16):
+            return self._write_holding(address, [int(v) for v in values])
+        return None
+
+    def _datastore(self) -> Any:
+        """What ModbusTcpServer serves: a SimDevice with an action (pymodbus >= 3.13) or a device context (3.10-3.12)."""
+        try:
+            from pymodbus.datastore import ModbusBaseDeviceContext, ModbusServerContext  # type: ignore[attr-defined]
+        except ImportError:
+            from pymodbus.simulator import DataType, SimData, SimDevice
+
+            bits, regs = DataType.BITS, DataType.REGISTERS
+            blocks = (
+                [SimData(0, count=16, values=False, datatype=bits)],
+                [SimData(0, count=16, values=False, datatype=bits)],
+                [SimData(0, count=reg.N_HOLDING, values=0, datatype=regs)],
+                [SimData(0, count=reg.N_INPUT_REGS, values=0, datatype=regs)],
+            )
+            return SimDevice(id=0, simdata=blocks, action=self._action)
+        twin = self
+
+        class _Device(ModbusBaseDeviceContext):  # type: ignore[misc, valid-type]
+            async def async_getValues(self, fc: int, address: int, count: int = 1) -> list[int] | list[bool]:
+                if fc in (1, 2, 3, 4) and await twin._request(fc, address, None):
+                    raise DeviceFailure(f"injected device error on function {fc}")
+                block = twin._block(fc)
+                if address < 0 or address + count > len(block):
+                    raise DeviceFailure(f"address {address}+{count} outside the table")
+                return block[address : address + count]
+
+            async def async_setValues(self, fc: int, address: int, values: list[int] | list[bool]) -> int | None:
+                result = await twin._request(fc, address, list(values))
+                return int(result) if result else None
+
+        return ModbusServerContext(devices=_Device(), single=True)
+
     async def _action(
         self,
         function_code: int,
@@ -399,29 +459,17 @@ class XrayTwin:
         registers: list[int],
         set_values: list[int] | list[bool] | None,
     ) -> ExcCodes | None:
-        self.requests += 1
-        request = f"fc{function_code}:{address}" + ("" if set_values is None else f"={[int(v) for v in set_values]}")
-        self.request_log.append(request)
-        if self.faults.latency_s > 0:
-            await asyncio.sleep(self.faults.latency_s)
-        if self.faults.take("drop", request):
-            self.drop_connections()
-            return None
-        if self.faults.take("error", request):
-            return ExcCodes.DEVICE_FAILURE
-        if set_values is not None and function_code in (5, 15):
-            self._write_coils(address, [bool(v) for v in set_values])
-        elif set_values is not None and function_code in (6, 16):
-            result = self._write_holding(address, [int(v) for v in set_values])
-            if result is not None:
-                return result
-        # refresh the whole block so that the reply (and stored bits) show the live state
-        if function_code in (1, 5, 15):
-            registers[: 2] = _bits_to_registers(self._coils()) + [0]
-        elif function_code == 2:
-            registers[: 2] = _bits_to_registers(self._inputs()) + [0]
-        elif function_code in (3, 6, 16):
-            registers[: reg.N_HOLDING] = self._holding()
-        elif function_code == 4:
-            registers[: reg.N_INPUT_REGS] = self._input_registers()
+        result = await self._request(function_code, address, set_values)
+        if result is not None:
+            return result
+        # refresh the whole table so that the reply (and stored bits) show the live state
+        live = self._block(function_code)
+        if function_code in (1, 2, 5, 15):
+            registers[:2] = _bits_to_registers(list(live)) + [0]  # type: ignore[arg-type]
+        else:
+            registers[: len(live)] = live  # type: ignore[assignment]
         return None
+
+
+class DeviceFailure(Exception):
+    """Raised inside the legacy datastore: pymodbus answers with exception code 4 (device failure)."""
