@@ -18,14 +18,17 @@ DEFAULT_SAD_MM = 785.0
 DEFAULT_SDD_MM = 1200.0
 DEFAULT_DETECTOR_PX = 768
 DEFAULT_PITCH_MM = 0.556
-PANEL_MM = DEFAULT_DETECTOR_PX * DEFAULT_PITCH_MM  # 427 mm square panel
+PANEL_MM = 427.0  # square panel side
 
 
 def bench_detector(size_px: int = DEFAULT_DETECTOR_PX, pitch_mm: float | None = None) -> Detector:
-    """Square detector of ``size_px`` pixels; by default the 427 mm panel (pitch = 427 mm / size)."""
+    """Square detector of ``size_px`` pixels on the 427 mm panel: 0.556 mm at 768 px, else 427 mm / size."""
     if int(size_px) < 8:
         raise ValueError(f"detector size must be at least 8 px, got {size_px}")
-    p = PANEL_MM / int(size_px) if pitch_mm is None else float(pitch_mm)
+    if pitch_mm is not None:
+        p = float(pitch_mm)
+    else:
+        p = DEFAULT_PITCH_MM if int(size_px) == DEFAULT_DETECTOR_PX else PANEL_MM / int(size_px)
     return Detector(int(size_px), int(size_px), p, p)
 
 
