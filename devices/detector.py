@@ -251,7 +251,7 @@ def _num(v: Any, cast: type = float) -> Any:
 class Detector:
     """Driver of the simulated flat panel (``sim://world`` or ``tcp://host:port``, frame protocol)."""
 
-    OPTIONS = {"rows", "cols", "binning", "trigger", "timeout_s", "frame_timeout_s", "sad_mm", "sdd_mm", "seed", "phantom", "panel_mm", "detector_model"}
+    OPTIONS = {"rows", "cols", "binning", "trigger", "timeout_s", "frame_timeout_s", "sad_mm", "sdd_mm", "seed", "phantom", "panel_mm", "pitch_mm", "detector_model"}
     default_port = DETECTOR_PORT
     kind = "detector"
 

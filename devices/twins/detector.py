@@ -249,6 +249,7 @@ class DetectorTwin(LineTwinServer):
         rows: int = DEFAULT_PIXELS,
         cols: int | None = None,
         panel_mm: float = PANEL_MM,
+        pitch_mm: Any = None,
         sad_mm: float = 785.0,
         sdd_mm: float = 1200.0,
         phantom: Any = "A",
@@ -259,7 +260,12 @@ class DetectorTwin(LineTwinServer):
         self.world = world if world is not None else get_world("bench")
         cols = rows if cols is None else cols
         rows, cols = int(rows), int(cols)
-        self.panel = PanelGeometry(rows, cols, float(panel_mm) / cols, float(panel_mm) / rows)
+        if pitch_mm is None:
+            pitch = (float(panel_mm) / cols, float(panel_mm) / rows)
+        else:  # one pitch, "col,row" text or a pair
+            parts = [float(v) for v in (pitch_mm.split(",") if isinstance(pitch_mm, str) else np.atleast_1d(pitch_mm))]
+            pitch = (parts[0], parts[-1])
+        self.panel = PanelGeometry(rows, cols, *pitch)
         self.sad_mm, self.sdd_mm = float(sad_mm), float(sdd_mm)
         self.binning = 1
         self.mode = "SOFTWARE"

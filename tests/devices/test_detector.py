@@ -79,6 +79,18 @@ def test_dark_flat_and_dose_scaling() -> None:
     assert bright[0].data.mean() == pytest.approx(2 * flats[0].data.mean() - darks[0].data.mean(), rel=0.05)
 
 
+def test_explicit_pitch() -> None:
+    async def body(det: Detector) -> None:
+        assert det.geometry.pitch_mm == (0.5, 0.25)
+
+    run(body, pitch_mm="0.5,0.25")
+    run(lambda det: _check_pitch(det, 0.556), pitch_mm=0.556)
+
+
+async def _check_pitch(det: Detector, pitch: float) -> None:
+    assert det.geometry.pitch_mm == (pitch, pitch)
+
+
 def test_binning_changes_shape_and_pitch() -> None:
     async def body(det: Detector) -> Frame:
         await det.set_binning(2)
