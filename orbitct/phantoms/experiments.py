@@ -7,6 +7,8 @@ to their surroundings. Everything fits the default bench field of view (~270 mm 
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from orbitct.phantoms.materials import mu_of
@@ -23,25 +25,24 @@ def _bbs(centers: np.ndarray, diameter_mm: float, mu: float | None = None) -> li
 
 def _pack_spheres(
     rng: np.random.Generator, n: int, r_range: tuple[float, float], cyl_radius: float, z_range: tuple[float, float],
-    keep_out: tuple[float, float, float], tries: int = 40000,
+    keep_out: tuple[float, float, float], batch: int = 256,
 ) -> list[tuple[np.ndarray, float]]:
-    """Up to ``n`` non-overlapping spheres inside a z-cylinder, away from the column ``keep_out = (x, y, r)``."""
+    """Up to ``n`` non-overlapping spheres (largest first) in a z-cylinder, away from the column ``keep_out = (x, y, r)``."""
+    radii = np.sort(rng.uniform(*r_range, n))[::-1]
     cs = np.zeros((0, 3))
     rs = np.zeros(0)
     kx, ky, kr = keep_out
-    for _ in range(tries):
-        if len(rs) >= n:
-            break
-        r = rng.uniform(*r_range)
-        rho = (cyl_radius - r) * np.sqrt(rng.uniform())
-        a = rng.uniform(0, 2 * np.pi)
-        c = np.array([rho * np.cos(a), rho * np.sin(a), rng.uniform(z_range[0] + r, z_range[1] - r)])
-        if np.hypot(c[0] - kx, c[1] - ky) < kr + r:
-            continue
-        if len(rs) and (np.linalg.norm(cs - c, axis=1) < rs + r + 0.5).any():
-            continue
-        cs = np.vstack([cs, c])
-        rs = np.append(rs, r)
+    for r in radii:
+        rho = (cyl_radius - r) * np.sqrt(rng.uniform(size=batch))
+        a = rng.uniform(0, 2 * np.pi, batch)
+        c = np.stack([rho * np.cos(a), rho * np.sin(a), rng.uniform(z_range[0] + r, z_range[1] - r, batch)], axis=1)
+        ok = np.hypot(c[:, 0] - kx, c[:, 1] - ky) >= kr + r
+        if len(rs):
+            ok &= (np.linalg.norm(c[:, None] - cs[None], axis=-1) >= rs + r + 0.5).all(axis=1)
+        hit = np.flatnonzero(ok)
+        if hit.size:
+            cs = np.vstack([cs, c[hit[0]]])
+            rs = np.append(rs, r)
     return list(zip(cs, rs))
 
 
@@ -69,7 +70,7 @@ def phantom_a(seed: int = 0) -> Phantom:
     ]
     spine = _cervical_spine()
     prims += spine
-    for k, (c, r) in enumerate(_pack_spheres(rng, 170, (4.0, 14.0), 72.0, (-86.0, 90.0), (0.0, 4.0, 30.0))):
+    for k, (c, r) in enumerate(_pack_spheres(rng, 320, (4.0, 14.0), 72.0, (-86.0, 90.0), (0.0, 4.0, 30.0))):
         prims.append(sphere(c, r, material="polystyrene", label=f"clutter{k}"))
     d = 3.17
     base = rng.uniform(0, 360)
@@ -79,7 +80,7 @@ def phantom_a(seed: int = 0) -> Phantom:
     bbs = np.stack([rr * np.cos(az), rr * np.sin(az), z], axis=1)
     prims += _bbs(bbs, d)
     return Phantom("A", tuple(prims), bbs, d,
-                   "bench phantom: acrylic cylinder (150 mm) of polystyrene spheres around a printed cervical spine, "
+                   "bench phantom: acrylic cylinder (150 mm) filled with polystyrene spheres around a printed cervical spine, "
                    "eight 3.17 mm steel BBs taped on the side in a rough spiral")
 
 
@@ -171,7 +172,11 @@ def phantom_c(seed: int = 0) -> Phantom:
 def experiment_phantom(name: str, seed: int = 0) -> Phantom:
     """Phantom of experiment ``'A'``, ``'B'`` or ``'C'``; marker positions and clutter vary with ``seed``."""
     key = str(name).upper()
-    builders = {"A": phantom_a, "B": phantom_b, "C": phantom_c}
-    if key not in builders:
+    if key not in EXPERIMENTS:
         raise PhantomError(f"unknown experiment {name!r}; known experiments are {list(EXPERIMENTS)}")
-    return builders[key](int(seed))
+    return _cached(key, int(seed))
+
+
+@lru_cache(maxsize=16)
+def _cached(key: str, seed: int) -> Phantom:
+    return {"A": phantom_a, "B": phantom_b, "C": phantom_c}[key](seed)
