@@ -108,6 +108,21 @@ def resolve_errors(errors: str | ErrorProfile | None, seed: int) -> ErrorProfile
     return errors if isinstance(errors, ErrorProfile) else make_profile(str(errors), seed)
 
 
+def _write_true_errors(path: Path, rigid: RigidErrors, n_cal: int) -> None:
+    """Store the per-frame errors as ``/truth/errors/{angles_rad, shift_mm}`` (NaN rows for darks and flats)."""
+    from orbitct.scanfile import ScanFile
+
+    pad = np.full((n_cal, 3), np.nan)
+    with ScanFile(path, mode="r+") as f:
+        g = f.h5.require_group("truth/errors")
+        g.attrs["convention"] = ("lab frame about the nominal isocenter, applied after the nominal pose; "
+                                 "angles = roll (y), pitch (x), yaw (z); R = R_x(pitch) R_y(roll) R_z(yaw)")
+        for name, data in (("angles_rad", rigid.angles), ("shift_mm", rigid.shift_mm)):
+            if name in g:
+                del g[name]
+            g.create_dataset(name, data=np.concatenate([pad, data]))
+
+
 def simulate_scan(
     experiment: str | Phantom,
     orbit: str | Orbit | None = None,
@@ -183,4 +198,5 @@ def simulate_scan(
             bg.close(raise_error=False)
             raise
         bg.close()
+    _write_true_errors(Path(out), rigid, n_cal)
     return SimulationResult(Path(out), total, orb.n_frames, time.perf_counter() - t0, orb, phantom, rigid)

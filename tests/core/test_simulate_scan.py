@@ -27,6 +27,8 @@ def test_every_experiment_makes_a_complete_scan(tmp_path: Path, experiment: str,
         assert np.allclose(f.truth_markers_xyz(), res.phantom.markers_xyz)
         assert f.phantom["name"] == experiment
         assert f.frames.dtype == np.uint16
+        assert np.allclose(f.h5["truth/errors/shift_mm"][3:], res.errors.shift_mm)
+        assert np.isnan(f.h5["truth/errors/angles_rad"][:3]).all()
 
 
 def test_markers_stay_on_the_detector_for_experiment_a() -> None:
