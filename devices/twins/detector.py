@@ -58,7 +58,7 @@ class LineTwinServer:
 
     def __init__(self) -> None:
         self.faults = TwinFaults()
-        self.frames: asyncio.Queue[Frame] | None = None
+        self.frames: asyncio.Queue[Frame | str] | None = None  # a str reports a frame that failed
         self.frame_number = 0
         self.commands_seen: list[str] = []
         self._server: asyncio.base_events.Server | None = None
@@ -105,12 +105,12 @@ class LineTwinServer:
         self.frame_number += 1
         return self.frame_number
 
-    def push_frame(self, number: int, data: NDArray[np.uint16], kind: str, meta: dict[str, Any]) -> None:
-        """Queue frame ``number`` (unless a missing-frame fault swallows it)."""
+    def push_frame(self, number: int, data: NDArray[np.uint16], kind: str, meta: dict[str, Any], timestamp: float | None = None) -> None:
+        """Queue frame ``number`` taken at ``timestamp`` (default now), unless a missing-frame fault swallows it."""
         if self.faults.take("missing_frame"):
             return
         assert self.frames is not None
-        self.frames.put_nowait(Frame(np.asarray(data, np.uint16), number, time.time(), kind, meta))
+        self.frames.put_nowait(Frame(np.asarray(data, np.uint16), number, time.time() if timestamp is None else timestamp, kind, meta))
 
     def clear_frames(self) -> None:
         """Discard queued frames."""
@@ -126,6 +126,8 @@ class LineTwinServer:
             frame = await asyncio.wait_for(self.frames.get(), timeout_ms / 1000.0) if timeout_ms else self.frames.get_nowait()
         except (asyncio.TimeoutError, asyncio.QueueEmpty):
             raise CommandError(ERR_NO_FRAME, f"no frame within {timeout_ms} ms") from None
+        if isinstance(frame, str):
+            raise CommandError(ERR_DEVICE, frame)
         return encode_frame(frame)
 
     async def cmd_idn_q(self, args: list[str]) -> str:
@@ -317,15 +319,24 @@ class DetectorTwin(LineTwinServer):
             view = ViewGeometry.from_carm(0.0, 0.0, self.sad_mm, self.sdd_mm, self.geometry)
         rng = np.random.default_rng(int(self.rng.integers(1 << 62)))
         args = (kind, view, kv, ma, exposure_ms, rng)
-        self._rendering = self.spawn(self._render(number, args, meta, self._rendering))
+        self._rendering = self.spawn(self._render(number, args, meta, time.time(), self._rendering))
         return number
 
-    async def _render(self, number: int, args: tuple[Any, ...], meta: dict[str, Any], previous: asyncio.Task[Any] | None) -> None:
-        render = self.renderer()
-        data = await asyncio.get_running_loop().run_in_executor(None, render, *args)
+    async def _render(
+        self, number: int, args: tuple[Any, ...], meta: dict[str, Any], taken: float, previous: asyncio.Task[Any] | None
+    ) -> None:
+        try:
+            render = self.renderer()
+            data = await asyncio.get_running_loop().run_in_executor(None, render, *args)
+        except Exception as exc:  # reported to the client at FRAME?, not lost in a background task
+            data, failure = None, f"frame {number} could not be rendered: {exc}"
         if previous is not None:
             await asyncio.wait([previous])  # frames leave in the order they were taken
-        self.push_frame(number, data, args[0], meta)
+        if data is None:
+            assert self.frames is not None
+            self.frames.put_nowait(failure)  # type: ignore[arg-type]
+            return
+        self.push_frame(number, data, args[0], meta, taken)
 
     def frame_meta(self) -> dict[str, Any]:
         """Extra metadata of a projection (subclasses add their pose)."""

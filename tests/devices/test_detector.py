@@ -239,3 +239,15 @@ def test_cancelled_read_leaves_the_link_usable() -> None:
         assert (await det.read())["armed"] == 1  # no stale reply read as this one's
 
     run(body)
+
+
+def test_render_failure_is_reported_as_device_error() -> None:
+    async def body(det: Detector) -> None:
+        await det.arm()
+        det.twin.set_phantom("Z")  # no such experiment phantom
+        with pytest.raises(ControllerError, match="frame 1 could not be rendered.*unknown experiment"):
+            await det.trigger()
+        det.twin.set_phantom("A")
+        assert (await det.trigger()).number == 2
+
+    run(body)
