@@ -47,14 +47,6 @@ def uniform_pair(state: np.uint64) -> tuple[np.uint64, float, float]:
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def normal(state: np.uint64) -> tuple[np.uint64, float]:
-    """A standard normal number (Box-Muller)."""
-    state, u1 = uniform(state)
-    state, u2 = uniform(state)
-    return state, math.sqrt(-2.0 * math.log(u1)) * math.cos(2.0 * math.pi * u2)
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
 def normal_fast(state: np.uint64) -> tuple[np.uint64, float]:
     """Near-normal number (mean 0, variance 1, tails cut at 3.46): sum of four 16-bit uniforms (read noise)."""
     state, z = _bits(state)
