@@ -37,6 +37,7 @@ __all__ = [
     "RigidErrors",
     "compose",
     "make_profile",
+    "profile_from_json",
 ]
 
 PROFILE_NAMES = ("bench", "none", "custom")
@@ -187,6 +188,9 @@ class ErrorProfile:
     def __add__(self, other: "ErrorProfile") -> "ComposedProfile":
         return compose(self, other)
 
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.to_json()})"
+
 
 class NoErrors(ErrorProfile):
     """No error at all."""
@@ -326,3 +330,14 @@ def make_profile(name: Literal["bench", "none", "custom"] | str, seed: int = 0, 
     if name == "custom":
         return CustomProfile(seed, **params)
     raise ErrorProfileError(f"unknown error profile {name!r}; known profiles are {list(PROFILE_NAMES)}")
+
+
+def profile_from_json(data: dict[str, Any]) -> ErrorProfile:
+    """Rebuild a profile from :meth:`ErrorProfile.to_json` (composed profiles included)."""
+    d = dict(data)
+    name = d.pop("name", None)
+    if name == "composed":
+        return compose(*(profile_from_json(p) for p in d.get("parts", [])))
+    if not isinstance(name, str):
+        raise ErrorProfileError(f"error profile JSON needs a 'name', got {data!r}")
+    return make_profile(name, int(d.pop("seed", 0)), **d)

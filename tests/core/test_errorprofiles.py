@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from orbitct.errorprofiles import ErrorProfileError, RigidErrors, compose, make_profile
+from orbitct.errorprofiles import ErrorProfileError, RigidErrors, compose, make_profile, profile_from_json
 from orbitct.geometry import Detector, ViewGeometry
 from orbitct.orbits import make_orbit
 from orbitct.rotations import rot_x, rot_y, rot_z
@@ -108,3 +108,13 @@ def test_profile_errors() -> None:
         make_profile("none", amplitude=1)
     with pytest.raises(ErrorProfileError, match="cannot compose"):
         RigidErrors.zeros(3).then(RigidErrors.zeros(4))
+
+
+def test_json_rebuilds_profiles() -> None:
+    o = make_orbit("sawtooth", n_frames=40)
+    prof = make_profile("bench", seed=7, shift_amplitude_mm=4) + make_profile("custom", seed=1, angle_noise_deg=(1, 0, 0))
+    again = profile_from_json(prof.to_json())
+    assert np.array_equal(again.sample(o).angles, prof.sample(o).angles)
+    assert "BenchProfile" not in repr(prof) and "composed" in repr(prof)
+    with pytest.raises(ErrorProfileError, match="needs a 'name'"):
+        profile_from_json({"seed": 1})
