@@ -104,23 +104,26 @@ def filter_views(proj: NDArray[np.float32], geometry: ViewGeometry, H: NDArray[n
     """Cosine-weight and ramp-filter ``proj`` row by row into the interior of the padded ``out``."""
     det = geometry.detector
     c0, r0 = det.center
-    cc = (np.arange(det.cols) - c0)[None, None, :, None]
-    rr = (np.arange(det.rows) - r0)[None, :, None, None]
-    pts = (geometry.D - geometry.S)[:, None, None, :] + cc * geometry.u[:, None, None, :] + rr * geometry.v[:, None, None, :]
-    cosw = (geometry.sdd[:, None, None] / np.linalg.norm(pts, axis=-1)).astype(np.float32)
-    g = np.asarray(proj, dtype=np.float32) * cosw
-    if parker is not None:
-        g *= parker[:, None, :].astype(np.float32)
+    cc = np.arange(det.cols) - c0
+    rr = np.arange(det.rows) - r0
     npad = 2 * (H.size - 1)
-    spec = scipy.fft.rfft(g, n=npad, axis=-1, workers=-1)
-    spec *= H
-    q = scipy.fft.irfft(spec, n=npad, axis=-1, workers=-1)[..., : det.cols]
+    Hf = H.astype(np.float32)
     tau = det.pitch_col * geometry.sod() / geometry.sdd  # column spacing on the isocenter plane
-    out[:, 1:-1, 1:-1] = q / tau[:, None, None]
+    for n in range(geometry.n_views):
+        # |pixel - source|^2 is a quadratic form in (col, row): no (rows, cols, 3) temporaries
+        d, u, v = geometry.D[n] - geometry.S[n], geometry.u[n], geometry.v[n]
+        dist2 = (d @ d + 2 * (d @ u) * cc[None, :] + 2 * (d @ v) * rr[:, None] + (u @ u) * cc[None, :] ** 2
+                 + (v @ v) * rr[:, None] ** 2 + 2 * (u @ v) * cc[None, :] * rr[:, None])
+        g = np.asarray(proj[n], dtype=np.float32) * (geometry.sdd[n] / np.sqrt(dist2)).astype(np.float32)
+        if parker is not None:
+            g *= parker[n][None, :].astype(np.float32)
+        spec = scipy.fft.rfft(g, n=npad, axis=-1)
+        spec *= Hf
+        out[n, 1:-1, 1:-1] = scipy.fft.irfft(spec, n=npad, axis=-1)[:, : det.cols] * np.float32(1.0 / tau[n])
 
 
 def fdk(projections: NDArray[np.float32] | ProjectionStack, grid: VolumeGrid, geometry: ViewGeometry, *,
-        window: str = "ram-lak", short_scan: str = "auto", chunk: int = 16,
+        window: str = "ram-lak", short_scan: str = "auto", chunk: int = 8,
         progress: ProgressCallback | None = None) -> NDArray[np.float32]:
     """FDK volume (1/mm) from line integrals ``(views, rows, cols)`` of ``geometry`` (exact for circles)."""
     det = geometry.detector

@@ -71,7 +71,7 @@ def estimate_bytes(algorithm: str, grid: VolumeGrid, n_views: int, rows: int, co
     if algorithm == "fdk":
         total = vol + chunk + (2 * proj + 3 * vol if mar else 0)
     else:
-        total = 3 * proj + 6 * vol + chunk + (proj + 2 * vol if mar else 0)
+        total = 3 * proj + 5 * vol + chunk + (proj + 2 * vol if mar else 0)
     return int(total * 1.1)
 
 

@@ -44,8 +44,8 @@ def neighbour_offsets(order: int) -> tuple[NDArray[np.int64], NDArray[np.float64
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def penalty_gradient(x, offs, omega, grad):
-    """Gradient of the roughness sum into ``grad``; returns the roughness value."""
+def penalty_add(x, offs, omega, scale, grad):
+    """Add ``scale`` times the roughness gradient into ``grad``; returns the roughness value."""
     nz, ny, nx = x.shape
     total = np.zeros(nz)
     for z in prange(nz):
@@ -63,26 +63,22 @@ def penalty_gradient(x, offs, omega, grad):
                     d = xj - x[zz, yy, x2]
                     g += omega[k] * d
                     acc += omega[k] * d * d
-                grad[z, y, xx] = g
+                grad[z, y, xx] += scale * g
         total[z] = 0.25 * acc
     return total.sum()
 
 
-@njit(parallel=True, cache=True)
-def penalty_curvature(shape, offs, omega, out):
-    """Separable-surrogate curvature ``2 * sum of in-volume neighbour weights`` per voxel."""
-    nz, ny, nx = shape
-    for z in prange(nz):
-        for y in range(ny):
-            for xx in range(nx):
-                c = 0.0
-                for k in range(offs.shape[0]):
-                    zz = z + offs[k, 0]
-                    yy = y + offs[k, 1]
-                    x2 = xx + offs[k, 2]
-                    if 0 <= zz < nz and 0 <= yy < ny and 0 <= x2 < nx:
-                        c += omega[k]
-                out[z, y, xx] = 2.0 * c
+@njit(cache=True, inline="always")
+def _curvature(z, y, xx, nz, ny, nx, offs, omega):
+    """Separable-surrogate curvature of the penalty: twice the in-volume neighbour weights."""
+    c = 0.0
+    for k in range(offs.shape[0]):
+        zz = z + offs[k, 0]
+        yy = y + offs[k, 1]
+        x2 = xx + offs[k, 2]
+        if 0 <= zz < nz and 0 <= yy < ny and 0 <= x2 < nx:
+            c += omega[k]
+    return 2.0 * c
 
 
 @njit(parallel=True, cache=True, fastmath=True)
@@ -105,15 +101,16 @@ def _residual(ax, y, w):
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def _sps_step(x, gdata, gpen, beta, denom_data, curv, scale, nonneg):
-    nz = x.shape[0]
+def _sps_step(x, grad, beta, denom_data, scale, nonneg, offs, omega):
+    """``x <- [x - scale * grad / (denom + beta * curvature)]_+`` (grad already holds the penalty part)."""
+    nz, ny, nx = x.shape
     for z in prange(nz):
-        for y in range(x.shape[1]):
-            for xx in range(x.shape[2]):
-                den = denom_data[z, y, xx] + beta * curv[z, y, xx]
+        for y in range(ny):
+            for xx in range(nx):
+                den = denom_data[z, y, xx] + beta * _curvature(z, y, xx, nz, ny, nx, offs, omega)
                 if den <= 0.0:
                     continue
-                v = x[z, y, xx] - (scale * gdata[z, y, xx] + beta * gpen[z, y, xx]) / den
+                v = x[z, y, xx] - scale * grad[z, y, xx] / den
                 if nonneg and v < 0.0:
                     v = 0.0
                 x[z, y, xx] = v
@@ -149,36 +146,35 @@ def pwls_sps(A: Projector, y: NDArray[np.float32], weights: NDArray[np.float32] 
     tmp = A.forward(np.ones(A.vol_shape, np.float32))
     tmp *= w
     denom = A.back(tmp)
-    curv = np.empty(A.vol_shape, np.float32)
-    penalty_curvature(A.vol_shape, offs, omega, curv)
     pos = denom[denom > 0]
     beta_abs = float(beta * (np.median(pos) if pos.size else 0.0) / (2 * omega.sum()))
-    gpen = np.empty(A.vol_shape, np.float32)
     n_views = A.proj_shape[0]
     order = [np.arange(m, n_views, subsets) for m in range(subsets)]
     ops = [A] if subsets == 1 else [A.subset(idx) for idx in order]
     cost: list[float] = []
-    gdata = np.empty(A.vol_shape, np.float32)
+    grad = np.empty(A.vol_shape, np.float32)
     for it in range(iterations + 1):
         data_term = 0.0
+        rough = 0.0
         for m, op in enumerate(ops):
-            idx = order[m]
             if subsets == 1:
-                op.forward(x, out=tmp)
-                data_term += _residual(tmp, y, w)
+                r = op.forward(x, out=tmp)
+                data_term += _residual(r, y, w)
             else:
                 r = op.forward(x)
-                data_term += _residual(r, np.ascontiguousarray(y[idx]), np.ascontiguousarray(w[idx]))
-            if m == 0:
-                rough0 = penalty_gradient(x, offs, omega, gpen)
-            elif it < iterations:
-                penalty_gradient(x, offs, omega, gpen)
+                data_term += _residual(r, np.ascontiguousarray(y[order[m]]), np.ascontiguousarray(w[order[m]]))
             if it == iterations:
+                if m == 0:
+                    rough = penalty_add(x, offs, omega, 0.0, grad)
                 continue  # final cost only
-            gdata.fill(0.0)
-            op.back(tmp if subsets == 1 else r, out=gdata)
-            _sps_step(x, gdata, gpen, np.float32(beta_abs), denom, curv, np.float32(subsets), nonneg)
-        cost.append(float(data_term + beta_abs * rough0))
+            grad.fill(0.0)
+            op.back(r, out=grad)
+            # grad = A_m^T W r + beta/M grad R, so that M * grad is the full-gradient estimate
+            rr = penalty_add(x, offs, omega, beta_abs / subsets, grad)
+            if m == 0:
+                rough = rr
+            _sps_step(x, grad, beta_abs, denom, float(subsets), nonneg, offs, omega)
+        cost.append(float(data_term + beta_abs * rough))
         if it < iterations:
             el = time.perf_counter() - t0
             report(progress, "pwls", it + 1, iterations, "iterations", cost=cost[-1],

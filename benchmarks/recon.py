@@ -1,0 +1,172 @@
+"""Reconstruction benchmark: Joseph forward/back projection, FDK and PWLS against RTK's CPU filters.
+
+Usage: .venv/bin/python benchmarks/recon.py [--large] [--pwls-iterations N] [--threads N]
+Prints the machine, a table of wall times, throughput ratios against RTK (measured in the
+same run when itk-rtk is installed, otherwise the reference numbers from issue 6) and the
+peak extra memory of each step relative to one float32 volume plus the float32 projections.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+import tracemalloc
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import psutil
+
+# this file is named like the package it measures: keep its folder off the import path
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+
+# Reference: RTK CPU filters on 2 cores, 128^3 voxels, 180 views of 128^2 (issue 6).
+RTK_REFERENCE_S = {"forward": 0.8, "back": 2.1, "fdk": 1.7}
+
+
+def cpu_name() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def measure(fn: Callable[[], object], repeat: int) -> tuple[float, float, int]:
+    """Best wall time, CPU time of that run, and peak traced bytes allocated during a run."""
+    fn()  # warm-up (numba cache load)
+    best = (float("inf"), 0.0)
+    for _ in range(repeat):
+        t, c = time.perf_counter(), time.process_time()
+        fn()
+        best = min(best, (time.perf_counter() - t, time.process_time() - c))
+    tracemalloc.start()
+    tracemalloc.reset_peak()
+    fn()
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return best[0], best[1], peak
+
+
+def rtk_times(n: int, size: int, views: int, g) -> dict[str, float] | None:
+    """Same cases with RTK's CPU filters, or None when itk-rtk is not installed."""
+    try:
+        import itk
+        from itk import RTK as rtk
+    except ImportError:
+        return None
+    from recon.export import rtk_parameters
+
+    params, layout = rtk_parameters(g)
+    geo = rtk.ThreeDCircularProjectionGeometry.New()
+    for p in params:
+        geo.AddProjection(p["SourceToIsocenterDistance"], p["SourceToDetectorDistance"], p["GantryAngle"],
+                          p["ProjectionOffsetX"], p["ProjectionOffsetY"], p["OutOfPlaneAngle"], p["InPlaneAngle"],
+                          p["SourceOffsetX"], p["SourceOffsetY"])
+    ImageType = itk.Image[itk.F, 3]
+    vox = g.detector.pitch_col * float(np.median(g.sod() / g.sdd))
+
+    def const(size3, spacing, origin):
+        src = rtk.ConstantImageSource[ImageType].New()
+        src.SetSize(size3)
+        src.SetSpacing(spacing)
+        src.SetOrigin(origin)
+        src.SetConstant(0.0)
+        src.Update()
+        return src.GetOutput()
+
+    vol = const([n] * 3, [vox] * 3, [-(n - 1) / 2 * vox] * 3)
+    proj = const([size, size, views], [g.detector.pitch_col, g.detector.pitch_row, 1.0],
+                 [layout["origin"][0], layout["origin"][1], 0.0])
+    out = {}
+    fp = rtk.JosephForwardProjectionImageFilter[ImageType, ImageType].New()
+    fp.SetInput(0, proj)
+    fp.SetInput(1, vol)
+    fp.SetGeometry(geo)
+    bp = rtk.JosephBackProjectionImageFilter[ImageType, ImageType].New()
+    bp.SetInput(0, vol)
+    bp.SetInput(1, proj)
+    bp.SetGeometry(geo)
+    fdk = rtk.FDKConeBeamReconstructionFilter[ImageType].New()
+    fdk.SetInput(0, vol)
+    fdk.SetInput(1, proj)
+    fdk.SetGeometry(geo)
+    for key, flt in (("forward", fp), ("back", bp), ("fdk", fdk)):
+        t = time.perf_counter()
+        flt.Update()
+        out[key] = time.perf_counter() - t
+    return out
+
+
+def run_case(n: int, size: int, views: int, repeat: int, pwls_iterations: int) -> None:
+    from orbitct.geometry import Detector, ViewGeometry
+    from recon import VolumeGrid, fdk, projector, pwls_sps
+
+    det = Detector(size, size, 427.0 / size, 427.0 / size)
+    g = ViewGeometry.from_carm(np.linspace(0, 2 * np.pi, views, endpoint=False), 0.0, 785.0, 1200.0, det)
+    vox = det.pitch_col * 785.0 / 1200.0
+    grid = VolumeGrid.centered((n, n, n), vox)
+    A = projector(grid, g)
+    rng = np.random.default_rng(0)
+    x = rng.random(grid.shape, dtype=np.float32)
+    y = A(x)
+    base = grid.nbytes + y.nbytes
+    rows = []
+    t, c, m = measure(lambda: A(x), repeat)
+    rows.append(("forward (Joseph)", t, c, m, "forward"))
+    t, c, m = measure(lambda: A.T(y), repeat)
+    rows.append(("back (matched Joseph)", t, c, m, "back"))
+    t, c, m = measure(lambda: fdk(y, grid, g, window="hann"), repeat)
+    rows.append(("FDK (filter + voxel BP)", t, c, m, "fdk"))
+    rtk = rtk_times(n, size, views, g) if n == 128 else None
+    print(f"\ncase: {n}^3 voxels ({grid.nbytes / 2**20:.0f} MiB), {views} views of {size}^2 "
+          f"({y.nbytes / 2**20:.0f} MiB); memory budget 1.5 x {base / 2**20:.0f} MiB")
+    print(f"{'step':26s} {'wall s':>8s} {'cpu s':>8s} {'RTK s':>8s} {'speed-up':>9s} {'peak extra MiB':>15s} {'(vol+proj)+extra':>17s}")
+    for label, t, c, m, key in rows:
+        ref = (rtk or {}).get(key, RTK_REFERENCE_S.get(key) if n == 128 else None)
+        ratio = f"{ref / t:9.2f}" if ref else f"{'-':>9s}"
+        reft = f"{ref:8.2f}" if ref else f"{'-':>8s}"
+        print(f"{label:26s} {t:8.3f} {c:8.3f} {reft} {ratio} {m / 2**20:15.1f} {(base + m) / base:16.2f}x")
+    if n == 128:
+        print("RTK column:", "measured in this run (itk-rtk)" if rtk else
+              "itk-rtk not installed; reference numbers from issue 6 (2 cores)")
+    if pwls_iterations:
+        t0 = time.perf_counter()
+        tracemalloc.start()
+        res = pwls_sps(A, y, None, iterations=pwls_iterations, x0=np.zeros(grid.shape, np.float32))
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        el = time.perf_counter() - t0
+        print(f"PWLS/SPS {pwls_iterations} iterations: {el:.1f} s ({el / pwls_iterations:.2f} s/iteration, "
+              f"{'projected 50 it: ' + format(el / pwls_iterations * 50, '.1f') + ' s' if pwls_iterations != 50 else ''}); "
+              f"cost {res.cost[0]:.4g} -> {res.cost[-1]:.4g}; peak {peak / 2**20:.0f} MiB = "
+              f"{peak / base:.2f} x (vol+proj)")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--large", action="store_true", help="also run 256^3 voxels, 500 views of 384^2")
+    ap.add_argument("--pwls-iterations", type=int, default=50, help="PWLS iterations on the 128^3 case (0 skips)")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=None, help="numba threads (default: all cores)")
+    args = ap.parse_args()
+    import numba
+
+    if args.threads:
+        numba.set_num_threads(args.threads)
+    print(f"machine: {cpu_name()}, {psutil.cpu_count(logical=False)} cores / {os.cpu_count()} threads, "
+          f"{psutil.virtual_memory().total / 2**30:.0f} GiB; numba threads {numba.get_num_threads()}; "
+          f"load average {os.getloadavg()[0]:.1f} at start (shared machines inflate wall times)")
+    run_case(128, 128, 180, args.repeat, args.pwls_iterations)
+    if args.large:
+        run_case(256, 384, 500, 1, 0)
+
+
+if __name__ == "__main__":
+    main()
