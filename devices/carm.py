@@ -320,8 +320,8 @@ class CArm(Detector):
         return out
 
     async def stop(self) -> None:
-        """Halt the C-arm now."""
-        await self._l().command("STOP")
+        """Halt the C-arm now (on a connection of its own, so it never waits behind a frame read)."""
+        await self._l().urgent("STOP")
 
     async def load(self, program: NavProgram) -> None:
         """Send a program (checked against the C-arm's limits point by point; OutOfLimitsError names the point)."""

@@ -159,6 +159,15 @@ class FrameLink:
                     await self.open()
         raise AssertionError("unreachable")
 
+    async def urgent(self, line: str) -> str:
+        """Send one command on a connection of its own, not queued behind a long wait (e.g. STOP during a frame wait)."""
+        side = FrameLink(self.name, self.host, self.port, self.timeout_s)
+        await side.open()
+        try:
+            return await side.command(line, retry=False)
+        finally:
+            await side.close()
+
     async def frame(self, timeout_s: float) -> Frame:
         """Ask for the next frame, waiting up to ``timeout_s`` on the device; never repeated."""
         async with self._lock:

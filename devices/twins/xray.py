@@ -110,14 +110,25 @@ class TwinThread:
         return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout_s)  # type: ignore[arg-type]
 
     def stop(self) -> None:
-        """Stop the server and the thread (idempotent)."""
+        """Stop the server, cancel what still runs in its loop, end the thread (idempotent)."""
         if not self._thread.is_alive():
             return
         try:
             self.run(self.server.stop(), 5.0)
+            self.run(_cancel_others(), 5.0)
         finally:
             self.loop.call_soon_threadsafe(self.loop.stop)
             self._thread.join(5.0)
+            if not self._thread.is_alive():
+                self.loop.close()
+
+
+async def _cancel_others() -> None:
+    """Cancel every other task of the running loop and wait for them to finish."""
+    tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+    for t in tasks:
+        t.cancel()
+    await asyncio.gather(*tasks, return_exceptions=True)
 
 
 def _bits_to_registers(bits: list[bool]) -> list[int]:

@@ -189,3 +189,22 @@ def test_standalone_carm_twin_over_tcp() -> None:
         asyncio.run(main())
     finally:
         thread.stop()
+
+
+def test_stop_during_a_run_is_immediate() -> None:
+    prog = export_program(orbit(np.arange(0.0, 100.0, 4.0), np.zeros(25)), speed_deg_s=10.0)
+
+    async def body(arm: CArm) -> None:
+        await arm.load(prog)
+        status = arm.run()
+        await asyncio.sleep(0.3)
+        t0 = asyncio.get_running_loop().time()
+        await arm.stop()  # while run() waits for its next frame on the main link
+        assert asyncio.get_running_loop().time() - t0 < 0.5
+        status.cancel()
+        p0 = (await arm.position())["primary"]
+        await asyncio.sleep(0.2)
+        assert (await arm.position())["primary"] == p0 and not (await arm.read())["moving"]
+        assert p0 < 96.0
+
+    run(body, time_scale=1.0)
