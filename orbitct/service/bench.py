@@ -237,8 +237,9 @@ class BenchController:
                 summary["timing"] = {k: float(v) for k, v in dict(result.timing).items()}
                 summary["elapsed_s"] = float(result.elapsed_s)
             fields = dict(state=state, reason=reason[:2000], finished_utc=utc_now(), summary=summary,
-                          frames_done=int(summary.get("frames_by_kind", {}).get("projection", active.progress.get("done", 0))),
-                          progress=active.progress)
+                          frames_done=int(summary.get("n_frames", active.progress.get("done", 0))), progress=active.progress)
+            if active.progress.get("total"):
+                fields["frames_total"] = int(active.progress["total"])
             await loop.run_in_executor(self._db, lambda: self._store.update_scan(active.scan_id, **fields))
             self._set_state(active, state, reason)
             self._bus.publish(topic, "end", {"state": state, "reason": reason})
@@ -262,7 +263,8 @@ class BenchController:
         now = time.monotonic()
         if now - active.last_db >= self._interval:
             active.last_db = now
-            self._db.submit(self._store.update_scan, active.scan_id, frames_done=data["done"], progress=data)
+            self._db.submit(self._store.update_scan, active.scan_id, frames_done=data["done"], frames_total=data["total"],
+                            progress=data)
 
     def pause(self, scan_id: str) -> None:
         """Pause the running scan at the next frame boundary."""

@@ -240,6 +240,7 @@ class JobManager:
             while r.conn.poll():
                 kind, payload = r.conn.recv()
                 if kind == "progress":
+                    payload["message"] = self._scrub(str(payload.get("message", "")))[:500]
                     progress = payload
                     self._bus.publish(f"job:{r.job_id}", "progress", payload)
                 elif kind == "log":

@@ -17,7 +17,7 @@ from orbitct.service.settings import load_settings
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
-DETECTOR_PX = 64
+DETECTOR_PX = 192
 sys.path.insert(0, str(HERE))  # workloads.py must be importable by spawned job workers
 
 
@@ -26,6 +26,7 @@ def small_bench_config(folder: Path, size: int = DETECTOR_PX) -> Path:
     cfg = yaml.safe_load((ROOT / "config" / "bench.yaml").read_text())
     cfg["geometry"]["detector"] = {"rows": size, "cols": size}
     cfg["calibration_frames"] = {"darks_before": 2, "flats_before": 2, "darks_after": 1, "flats_after": 1}
+    cfg["sim"]["time_scale"] = 50.0
     path = folder / "bench.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path

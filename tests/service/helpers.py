@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -40,3 +42,23 @@ def parse_sse(text: str) -> list[dict[str, Any]]:
             fields["id"] = int(fields["id"])
             events.append(fields)
     return events
+
+
+def wait_for(api: Any, path: str, done: Callable[[dict[str, Any]], bool], timeout_s: float = 120.0, poll_s: float = 0.05) -> dict[str, Any]:
+    """GET ``path`` until ``done(body)``; the last body."""
+    t0 = time.monotonic()
+    body: dict[str, Any] = {}
+    while time.monotonic() - t0 < timeout_s:
+        body = api.get(path).json()
+        if done(body):
+            return body
+        time.sleep(poll_s)
+    raise AssertionError(f"{path} not done after {timeout_s} s: {body}")
+
+
+def ended(body: dict[str, Any]) -> bool:
+    """Whether a scan or job has reached a final state."""
+    return body.get("state") in ("complete", "aborted", "failed", "interrupted", "succeeded", "cancelled")
+
+
+SMALL_SAWTOOTH = {"orbit": "sawtooth", "params": {"amplitude_deg": 6.0, "cycles": 2}, "errors": "none"}

@@ -59,8 +59,8 @@ class ScanOut(BaseModel):
     created_utc: str
     started_utc: str | None
     finished_utc: str | None
-    frames_done: int
-    frames_total: int
+    frames_done: int = Field(description="frames written so far (projections, darks and flats)")
+    frames_total: int = Field(description="frames planned (projections, darks and flats once the scan has started)")
     progress: dict[str, Any]
     summary: dict[str, Any]
     links: dict[str, str]
@@ -76,7 +76,9 @@ class ScanAction(BaseModel):
 def _out(service: Any, row: dict[str, Any]) -> ScanOut:
     active = service.bench.current
     if active is not None and active.scan_id == row["id"] and row["state"] not in ("complete", "aborted", "failed"):
-        row = {**row, "state": active.state, "progress": active.progress, "frames_done": active.progress.get("done", row["frames_done"])}
+        progress = active.progress
+        row = {**row, "state": active.state, "progress": progress, "frames_done": progress.get("done", row["frames_done"]),
+               "frames_total": progress.get("total", row["frames_total"])}
     links = {"self": f"/scans/{row['id']}", "events": f"/scans/{row['id']}/events", "file": f"/scans/{row['id']}/file",
              "jobs": f"/jobs?scan_id={row['id']}"}
     return ScanOut(**{k: row[k] for k in ScanOut.model_fields if k != "links"}, links=links)
@@ -120,8 +122,7 @@ def start_scan(body: ScanCreate, service: ServiceDep, who: ScanOperator, respons
     try:
         service.bench.preflight(req)
     except AcquireError as exc:
-        field = "params" if not hasattr(exc, "axis") else f"params (frame {getattr(exc, 'frame', '?')}, axis {exc.axis})"
-        raise Invalid(str(exc), details=[FieldProblem(field=field, reason=str(exc))]) from None
+        raise Invalid(str(exc), details=[FieldProblem(field="params", reason=str(exc))]) from None
     service.store.add_scan(scan_id, name=body.name, orbit=body.orbit, request=body.model_dump(mode="json") | {"params": params},
                            file=rel, owner=who.name, frames_total=int(params["n_frames"]))
     try:
