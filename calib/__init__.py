@@ -1,0 +1,17 @@
+"""Geometric calibration of arbitrary cone-beam orbits from BBs on the object (Ma et al., SPIE 2022, and beyond)."""
+
+from calib.errors import CalibrationError, NoMarkersError, NoNominalGeometryError, NoProjectionsError, OptionError
+from calib.pipeline import METHODS, CalibrationOptions, CalibrationResult, IterationStats, calibrate_scan
+
+__all__ = [
+    "METHODS",
+    "CalibrationError",
+    "CalibrationOptions",
+    "CalibrationResult",
+    "IterationStats",
+    "NoMarkersError",
+    "NoNominalGeometryError",
+    "NoProjectionsError",
+    "OptionError",
+    "calibrate_scan",
+]

@@ -1,0 +1,276 @@
+"""BB candidates in one frame: disc-kernel correlation on a binned line-integral image, then sub-pixel
+centroids refined at full resolution in a small window.
+
+The line integrals follow ``scan-file.md`` (``-log((raw - dark) / (flat - dark))`` with the scan's mean dark and
+flat); they are computed from the raw frame only where needed (binned for the search, full resolution in the
+windows), so a frame is never held as float64.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import scipy.fft
+from numpy.typing import NDArray
+
+#: columns of a candidate record
+CANDIDATE_FIELDS = ("col", "row", "score", "amplitude", "radius_px", "elongation", "background_rms", "paper_col", "paper_row")
+N_FIELDS = len(CANDIDATE_FIELDS)
+
+
+@numba.njit(cache=True, nogil=True)
+def _binned_line_integrals(raw, dark_b, den_b, b):  # type: ignore[no-untyped-def]
+    rows, cols = dark_b.shape
+    out = np.empty((rows, cols), np.float32)
+    inv = np.float32(1.0 / (b * b))
+    for i in range(rows):
+        for j in range(cols):
+            acc = np.float32(0.0)
+            for di in range(b):
+                for dj in range(b):
+                    acc += np.float32(raw[i * b + di, j * b + dj])
+            num = max(acc * inv - dark_b[i, j], np.float32(0.5))
+            out[i, j] = -np.log(num / den_b[i, j])
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _local_maxima(resp, threshold, border, max_count):  # type: ignore[no-untyped-def]
+    """The ``max_count`` strongest 3x3 local maxima above ``threshold``: rows ``(col, row, value)``."""
+    rows, cols = resp.shape
+    found = np.empty((max_count, 3), np.float64)
+    n = 0
+    weakest = 0
+    for i in range(border, rows - border):
+        for j in range(border, cols - border):
+            v = resp[i, j]
+            if v < threshold:
+                continue
+            if n == max_count and v <= found[weakest, 2]:
+                continue
+            is_max = True
+            for di in range(-1, 2):
+                for dj in range(-1, 2):
+                    if (di != 0 or dj != 0) and resp[i + di, j + dj] > v:
+                        is_max = False
+            if not is_max:
+                continue
+            slot = n if n < max_count else weakest
+            found[slot, 0] = j
+            found[slot, 1] = i
+            found[slot, 2] = v
+            if n < max_count:
+                n += 1
+            if n == max_count:
+                weakest = 0
+                for q in range(1, n):
+                    if found[q, 2] < found[weakest, 2]:
+                        weakest = q
+    return found[:n]
+
+
+@numba.njit(cache=True, nogil=True)
+def _refine(raw, dark, den, col0, row0, radius, half, passes):  # type: ignore[no-untyped-def]
+    """Background-plane-subtracted weighted centroid, peak, size, elongation, background RMS, paper centroid."""
+    rows, cols = raw.shape
+    out = np.full(8, np.nan)
+    cx, cy = col0, row0
+    size = 2 * half + 1
+    li = np.empty((size, size), np.float64)
+    r_in2 = (radius + 1.0) ** 2
+    r_w2 = (radius + 0.75) ** 2
+    coef = np.zeros(3)
+    ic = 0
+    ir = 0
+    for p in range(passes):
+        ic = int(np.floor(cx + 0.5))
+        ir = int(np.floor(cy + 0.5))
+        if ic - half < 0 or ir - half < 0 or ic + half >= cols or ir + half >= rows:
+            return out
+        for a in range(size):
+            for b in range(size):
+                r = ir - half + a
+                c = ic - half + b
+                num = max(np.float64(raw[r, c]) - dark[r, c], 0.5)
+                li[a, b] = -np.log(num / den[r, c])
+        if p == 0:  # the paper's estimator: plain intensity centroid of the square window
+            s0 = 0.0
+            sx = 0.0
+            sy = 0.0
+            for a in range(size):
+                for b in range(size):
+                    s0 += li[a, b]
+                    sx += li[a, b] * (ic - half + b)
+                    sy += li[a, b] * (ir - half + a)
+            if s0 > 0:
+                out[6] = sx / s0
+                out[7] = sy / s0
+        # background plane z = c0 + c1 x + c2 y fitted to the window outside the BB (x, y about the pixel ic, ir)
+        ata = np.zeros((3, 3))
+        atb = np.zeros(3)
+        for a in range(size):
+            for b in range(size):
+                x = b - half + ic - cx
+                y = a - half + ir - cy
+                if x * x + y * y >= r_in2:
+                    xb = np.float64(b - half)
+                    yb = np.float64(a - half)
+                    z = li[a, b]
+                    atb[0] += z
+                    atb[1] += xb * z
+                    atb[2] += yb * z
+                    ata[0, 0] += 1.0
+                    ata[0, 1] += xb
+                    ata[0, 2] += yb
+                    ata[1, 1] += xb * xb
+                    ata[1, 2] += xb * yb
+                    ata[2, 2] += yb * yb
+        if ata[0, 0] < 6:
+            return out
+        ata[1, 0] = ata[0, 1]
+        ata[2, 0] = ata[0, 2]
+        ata[2, 1] = ata[1, 2]
+        coef = np.linalg.solve(ata, atb)
+        w_sum = 0.0
+        mx = 0.0
+        my = 0.0
+        for a in range(size):
+            for b in range(size):
+                x = b - half + ic - cx
+                y = a - half + ir - cy
+                if x * x + y * y <= r_w2:
+                    w = li[a, b] - (coef[0] + coef[1] * (b - half) + coef[2] * (a - half))
+                    if w > 0:
+                        w_sum += w
+                        mx += w * x
+                        my += w * y
+        if w_sum <= 0:
+            return out
+        cx = cx + mx / w_sum
+        cy = cy + my / w_sum
+    rss = 0.0
+    n_ring = 0.0
+    peak = 0.0
+    sxx = 0.0
+    syy = 0.0
+    sxy = 0.0
+    w_sum = 0.0
+    for a in range(size):
+        for b in range(size):
+            x = b - half + ic - cx
+            y = a - half + ir - cy
+            w = li[a, b] - (coef[0] + coef[1] * (b - half) + coef[2] * (a - half))
+            if x * x + y * y >= r_in2:
+                rss += w * w
+                n_ring += 1.0
+            if x * x + y * y <= r_w2:
+                peak = max(peak, w)
+                if w > 0:
+                    w_sum += w
+                    sxx += w * x * x
+                    syy += w * y * y
+                    sxy += w * x * y
+    if w_sum <= 0 or n_ring == 0:
+        return out
+    sxx /= w_sum
+    syy /= w_sum
+    sxy /= w_sum
+    tr = sxx + syy
+    det = sxx * syy - sxy * sxy
+    disc = np.sqrt(max(tr * tr / 4 - det, 0.0))
+    l1 = tr / 2 + disc
+    l2 = max(tr / 2 - disc, 1e-12)
+    out[0] = cx
+    out[1] = cy
+    out[2] = peak
+    out[3] = np.sqrt(2.5 * tr)  # a projected ball of radius R has <r^2> = 2 R^2 / 5
+    out[4] = np.sqrt(l1 / l2)
+    out[5] = np.sqrt(rss / n_ring)
+    return out
+
+
+def _disc_kernel_spectrum(shape: tuple[int, int], radius: float) -> NDArray[np.complex64]:
+    """Spectrum of a zero-mean kernel: disc of ``radius`` minus the surrounding ring (binned pixels)."""
+    r_out = 2.0 * radius + 1.5
+    h = int(np.ceil(r_out))
+    y, x = np.mgrid[-h : h + 1, -h : h + 1]
+    rr = np.hypot(x, y)
+    disc = (rr <= radius + 0.5).astype(np.float64)
+    ring = ((rr > radius + 1.0) & (rr <= r_out)).astype(np.float64)
+    k = disc / disc.sum() - ring / max(ring.sum(), 1.0)
+    full = np.zeros(shape)
+    full[: k.shape[0], : k.shape[1]] = k[::-1, ::-1]
+    full = np.roll(full, (-h, -h), axis=(0, 1))
+    return scipy.fft.rfft2(full).astype(np.complex64)
+
+
+@dataclass
+class DetectorSettings:
+    """How BBs are searched for in one frame (pixel sizes at full resolution)."""
+
+    diameter_px: float
+    binning: int
+    k_sigma: float = 6.0
+    max_candidates: int = 128
+    refine_passes: int = 3
+
+
+def settings_for(diameter_px: float, shape: tuple[int, int]) -> DetectorSettings:
+    """Binning so the BB spans about 3-5 binned pixels."""
+    b = max(1, int(diameter_px // 3.5))
+    while b > 1 and (shape[0] % b or shape[1] % b):
+        b -= 1
+    return DetectorSettings(diameter_px=float(diameter_px), binning=b)
+
+
+class FrameDetector:
+    """Finds BB candidates in raw frames of one scan (fixed dark, flat and BB size)."""
+
+    def __init__(self, dark: NDArray[np.float32], flat: NDArray[np.float32], settings: DetectorSettings) -> None:
+        self.settings = settings
+        b = settings.binning
+        rows, cols = dark.shape
+        self.shape = (rows, cols)
+        self.dark = np.ascontiguousarray(dark, dtype=np.float32)
+        self.den = np.maximum(flat - dark, 1.0).astype(np.float32)
+        rb, cb = rows // b, cols // b
+        self.dark_b = self.dark[: rb * b, : cb * b].reshape(rb, b, cb, b).mean((1, 3)).astype(np.float32)
+        self.den_b = self.den[: rb * b, : cb * b].reshape(rb, b, cb, b).mean((1, 3)).astype(np.float32)
+        self.radius_b = max(0.5 * settings.diameter_px / b, 0.75)
+        self._kernel = _disc_kernel_spectrum((rb, cb), self.radius_b)
+        self.border = int(np.ceil(2 * self.radius_b + 2))
+        self.half = int(np.ceil(settings.diameter_px)) + 2
+        self.noise: float | None = None
+
+    def response(self, raw: NDArray[np.generic]) -> NDArray[np.float32]:
+        """Disc-kernel correlation of the binned line-integral image."""
+        li = _binned_line_integrals(raw, self.dark_b, self.den_b, self.settings.binning)
+        return scipy.fft.irfft2(scipy.fft.rfft2(li) * self._kernel, s=li.shape).astype(np.float32)
+
+    def estimate_noise(self, resp: NDArray[np.float32]) -> float:
+        """Robust standard deviation of the response (median absolute deviation)."""
+        sub = resp[self.border : -self.border : 2, self.border : -self.border : 2]
+        return float(1.4826 * np.median(np.abs(sub - np.median(sub)))) + 1e-9
+
+    def candidates(self, raw: NDArray[np.generic]) -> NDArray[np.float64]:
+        """Candidate records ``(M, N_FIELDS)`` (see ``CANDIDATE_FIELDS``), strongest first."""
+        s = self.settings
+        resp = self.response(raw)
+        if self.noise is None:
+            self.noise = self.estimate_noise(resp)
+        peaks = _local_maxima(resp, s.k_sigma * self.noise, self.border, s.max_candidates)
+        peaks = peaks[np.argsort(-peaks[:, 2])]
+        out = np.full((len(peaks), N_FIELDS), np.nan)
+        b = s.binning
+        radius = 0.5 * s.diameter_px
+        for m, (jb, ib, score) in enumerate(peaks):
+            col0, row0 = jb * b + 0.5 * (b - 1), ib * b + 0.5 * (b - 1)
+            rec = _refine(raw, self.dark, self.den, col0, row0, radius, self.half, s.refine_passes)
+            out[m, 0:2] = rec[0:2]
+            out[m, 2] = score / self.noise
+            out[m, 3:7] = rec[2:6]
+            out[m, 7:9] = rec[6:8]
+        keep = np.isfinite(out[:, 0])
+        return out[keep]

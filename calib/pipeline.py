@@ -1,0 +1,474 @@
+"""``calibrate_scan``: detect BBs in a scan file, identify them, estimate the geometry, write the results."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calib.bundle import bundle_adjust
+from calib.detect import FrameDetector, N_FIELDS, _refine, settings_for
+from calib.evaluate import fov_points
+from calib.errors import NoMarkersError, NoNominalGeometryError, NoProjectionsError, OptionError
+from calib.identify import fill_states, identify, usable_views
+from calib.model import INTRINSICS, ViewModel, ViewState
+from calib.paper import paper_calibrate
+from calib.rays import marker_rays, rpe_per_frame, triangulate_least_squares
+from calib.track import TrackingSettings
+from orbitct.geometry import ViewGeometry
+from orbitct.progress import ProgressCallback, report
+from orbitct.scanfile import ScanFile
+
+METHODS = ("bundle", "paper")
+
+
+@dataclass
+class CalibrationOptions:
+    """Tunable settings of :func:`calibrate_scan` (pass as keyword options)."""
+
+    iterations: int | None = None  # paper: alternations (default 3); bundle: max LM iterations (default 30)
+    intrinsics: str = "fixed"  # bundle only: "fixed", "sdd" or "sdd+pp"
+    loss_scale_px: float = 0.5  # Huber threshold of the bundle adjustment
+    min_bbs_per_view: int = 3
+    min_observations: int | None = None  # frames a BB must be seen in (default max(8, 5% of projections))
+    diameter_mm: float | None = None  # BB diameter; default /markers@diameter_mm, else estimated
+    k_sigma: float = 6.0  # detection threshold in noise standard deviations
+    max_candidates: int = 128
+    outlier_px: float = 1.0  # bundle: detections off by more than max(this, 6 robust sigma) become NaN
+    seeds_uv: Any = None  # optional (K, 2) BB positions (col, row) in the first projection
+    jitter_mm: float = 3.0  # frame-to-frame jitter of the orbit around the nominal (object scale) for tracking
+
+
+@dataclass
+class IterationStats:
+    """RPE summary of one iteration (index 0 = the initial geometry)."""
+
+    index: int
+    rpe_mean_mm: float
+    rpe_median_mm: float
+    rpe_std_mm: float
+    reproj_rms_px: float
+
+
+@dataclass
+class CalibrationResult:
+    """What a calibration found and where it was written."""
+
+    method: str
+    path: Path
+    geometry: ViewGeometry
+    nominal: ViewGeometry
+    uv: NDArray[np.float64]
+    xyz: NDArray[np.float64]
+    rpe_mm: NDArray[np.float64]
+    n_frames: int
+    iterations: list[IterationStats]
+    rpe_history: list[NDArray[np.float64]]
+    elapsed_s: float
+    detect_s: float
+    estimate_s: float
+    reproj_rms_px: float
+    corrections: dict[str, NDArray[np.float64]]
+    warnings: list[str] = field(default_factory=list)
+    unsolved_views: list[int] = field(default_factory=list)
+
+    @property
+    def n_bbs(self) -> int:
+        """Number of BBs found."""
+        return int(self.xyz.shape[0])
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready summary (no per-frame arrays)."""
+        last = self.iterations[-1]
+        return {
+            "method": self.method,
+            "path": str(self.path),
+            "n_frames": self.n_frames,
+            "n_bbs": self.n_bbs,
+            "elapsed_s": self.elapsed_s,
+            "detect_s": self.detect_s,
+            "estimate_s": self.estimate_s,
+            "rpe_mean_mm": last.rpe_mean_mm,
+            "rpe_median_mm": last.rpe_median_mm,
+            "rpe_std_mm": last.rpe_std_mm,
+            "reproj_rms_px": self.reproj_rms_px,
+            "iterations": [asdict(s) for s in self.iterations],
+            "warnings": list(self.warnings),
+            "unsolved_views": list(self.unsolved_views),
+        }
+
+
+def _options(method: str, options: dict[str, Any]) -> CalibrationOptions:
+    if method not in METHODS:
+        raise OptionError(f"method must be one of {METHODS}, got {method!r}")
+    known = {f.name for f in fields(CalibrationOptions)}
+    unknown = set(options) - known
+    if unknown:
+        raise OptionError(f"unknown option(s) {sorted(unknown)}; allowed are {sorted(known)}")
+    opt = CalibrationOptions(**options)
+    if opt.intrinsics not in INTRINSICS:
+        raise OptionError(f"intrinsics must be one of {sorted(INTRINSICS)}, got {opt.intrinsics!r}")
+    if method == "paper" and opt.intrinsics != "fixed":
+        raise OptionError("the paper method estimates rigid poses only; use intrinsics='fixed'")
+    if opt.min_bbs_per_view < 3:
+        raise OptionError(f"min_bbs_per_view must be >= 3 (a rigid pose needs 3 BBs), got {opt.min_bbs_per_view}")
+    if opt.diameter_mm is not None and not opt.diameter_mm > 0:
+        raise OptionError(f"diameter_mm must be > 0, got {opt.diameter_mm}")
+    return opt
+
+
+def _stats(index: int, rpe: NDArray[np.float64], resid_px: NDArray[np.float64]) -> IterationStats:
+    ok = np.isfinite(rpe)
+    r = resid_px[np.isfinite(resid_px)]
+    return IterationStats(
+        index,
+        float(np.mean(rpe[ok])) if ok.any() else float("nan"),
+        float(np.median(rpe[ok])) if ok.any() else float("nan"),
+        float(np.std(rpe[ok])) if ok.any() else float("nan"),
+        float(np.sqrt(np.mean(r**2))) if r.size else float("nan"),
+    )
+
+
+def _motion_px(nominal: ViewGeometry) -> float:
+    """95th percentile of how far points in the field of view move between neighbouring projections (px)."""
+    if nominal.n_views < 2:
+        return 0.0
+    uv = nominal.project(fov_points(nominal, 4))
+    step = np.linalg.norm(np.diff(uv, axis=0), axis=-1)
+    return float(np.nanpercentile(step, 95))
+
+
+def _residual_px(geometry: ViewGeometry, uv: NDArray[np.float64], xyz: NDArray[np.float64]) -> NDArray[np.float64]:
+    return np.linalg.norm(geometry.project(xyz) - uv, axis=-1)
+
+
+def _detect(
+    sf: ScanFile, proj: NDArray[np.intp], nominal: ViewGeometry, opt: CalibrationOptions, progress: ProgressCallback | None
+) -> tuple[list[NDArray[np.float64]], float, float]:
+    """Candidates of every projection, streamed frame by frame; also BB diameter (mm and px)."""
+    det = sf.detector
+    mag = float(np.median(nominal.sdd / nominal.sod()))
+    pitch = float(np.sqrt(det.pitch_col * det.pitch_row))
+    dark, flat = sf.dark_flat()
+    ds = sf.frames
+    buf = np.empty(det.shape, dtype=ds.dtype)
+    diameter_mm = opt.diameter_mm if opt.diameter_mm is not None else sf.marker_diameter_mm
+    if diameter_mm is None:
+        diameter_mm = _estimate_diameter_mm(sf, proj, dark, flat, mag, pitch, opt)
+    d_px = diameter_mm * mag / pitch
+    settings = settings_for(d_px, det.shape)
+    settings.k_sigma, settings.max_candidates = opt.k_sigma, opt.max_candidates
+    fd = FrameDetector(dark, flat, settings)
+    cands: list[NDArray[np.float64]] = []
+    total = len(proj)
+    step = max(1, total // 100)
+    for n, i in enumerate(proj):
+        ds.read_direct(buf, np.s_[int(i)])
+        c = fd.candidates(buf)
+        if n == 0 and opt.seeds_uv is not None:
+            c = np.concatenate([_seed_records(buf, fd, np.asarray(opt.seeds_uv, float)), c])
+        cands.append(c)
+        if n % step == 0 or n == total - 1:
+            report(progress, "detect", n + 1, total, "", candidates=float(len(c)))
+    return cands, float(diameter_mm), d_px
+
+
+def _seed_records(raw: NDArray[Any], fd: FrameDetector, seeds: NDArray[np.float64]) -> NDArray[np.float64]:
+    if seeds.ndim != 2 or seeds.shape[1] != 2:
+        raise OptionError(f"seeds_uv must have shape (K, 2) as (col, row), got {seeds.shape}")
+    out = []
+    r = 0.5 * fd.settings.diameter_px
+    for col, row in seeds:
+        rec = _refine(raw, fd.dark, fd.den, float(col), float(row), r, fd.half, fd.settings.refine_passes)
+        if np.isfinite(rec[0]):
+            full = np.full(N_FIELDS, np.nan)
+            full[0:2] = rec[0:2]
+            full[2] = np.inf
+            full[3], full[4], full[5], full[6] = rec[2], r, 1.0, 0.0
+            out.append(full)
+    return np.array(out).reshape(-1, N_FIELDS)
+
+
+def _estimate_diameter_mm(
+    sf: ScanFile, proj: NDArray[np.intp], dark: Any, flat: Any, mag: float, pitch: float, opt: CalibrationOptions
+) -> float:
+    """BB diameter from the size of the strongest round blobs in a few frames (two refinements)."""
+    guess_mm = 3.0
+    sample = proj[np.linspace(0, len(proj) - 1, min(12, len(proj))).astype(int)]
+    for _ in range(3):
+        d_px = guess_mm * mag / pitch
+        fd = FrameDetector(dark, flat, settings_for(d_px, sf.detector.shape))
+        radii = []
+        for i in sample:
+            c = fd.candidates(np.asarray(sf.frames[int(i)]))
+            c = c[(c[:, 5] < 1.3)][:8]
+            radii.extend(c[:, 4].tolist())
+        if not radii:
+            raise NoMarkersError(f"{sf.path}: no round blobs found to estimate the BB size; pass diameter_mm")
+        guess_mm = float(2.0 * np.median(radii) / 1.1 * pitch / mag)
+    return guess_mm
+
+
+def calibrate_scan(
+    path: str | os.PathLike[str],
+    *,
+    method: str = "bundle",
+    out: str | os.PathLike[str] | None = None,
+    report_dir: str | os.PathLike[str] | None = None,
+    progress: ProgressCallback | None = None,
+    **options: Any,
+) -> CalibrationResult:
+    """Calibrate a scan's geometry from the BBs in its projections and write the results (see api-calib.md)."""
+    opt = _options(method, options)
+    t0 = time.perf_counter()
+    src = Path(path)
+    target = src
+    if out is not None:
+        target = Path(out)
+        if target.resolve() != src.resolve():
+            ScanFile(src).close()  # validate before copying
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(src, target)
+    with ScanFile(target) as sf:
+        proj = sf.projection_indices
+        if proj.size == 0:
+            raise NoProjectionsError(f"{target}: no projection frames (image_key 0); counts are {sf.count_by_kind()}")
+        if not sf.has_geometry("nominal"):
+            raise NoNominalGeometryError(f"{target}: no /geometry/nominal; calibration starts from the nominal geometry")
+        nominal_all = sf.geometry("nominal")
+        n_all = sf.n_frames
+        nominal = nominal_all[proj]
+        cands, diameter_mm, d_px = _detect(sf, proj, nominal, opt, progress)
+    t_detect = time.perf_counter() - t0
+    report(progress, "track", 0, 1, "identifying BBs")
+    min_obs = opt.min_observations or max(8, int(0.05 * len(proj)))
+    tset = TrackingSettings(diameter_px=d_px, motion_px=_motion_px(nominal), jitter_px=opt.jitter_mm * d_px / diameter_mm)
+    model = ViewModel(nominal, opt.intrinsics)
+    uv, warnings = identify(cands, ViewModel(nominal, "fixed"), tset, diameter_mm, min_obs)
+    report(progress, "track", 1, 1, f"{uv.shape[1]} BBs")
+    if uv.shape[1] < 3:
+        raise NoMarkersError(
+            f"{target}: found {uv.shape[1]} BB(s) seen in at least {min_obs} frames; at least 3 are needed "
+            f"(BB diameter {diameter_mm:.2f} mm = {d_px:.1f} px; try diameter_mm= or k_sigma=)"
+        )
+    t1 = time.perf_counter()
+    geometry_p, xyz, state, uv, history, n_iter, more = _estimate(method, model, uv, opt, progress)
+    warnings += more
+    t_est = time.perf_counter() - t1
+    solved = geometry_p.valid
+    unsolved = proj[~solved]
+    if unsolved.size:
+        warnings.append(
+            f"{unsolved.size} view(s) see fewer than {opt.min_bbs_per_view} BBs and have NaN geometry: "
+            f"frames {unsolved[:10].tolist()}{' ...' if unsolved.size > 10 else ''}"
+        )
+    resid = _residual_px(geometry_p, uv, xyz)
+    ok_r = np.isfinite(resid)
+    reproj_rms = float(np.sqrt(np.mean(resid[ok_r] ** 2))) if ok_r.any() else float("nan")
+    stats = [_stats(i, rpe, r) for i, (rpe, r) in enumerate(history)]
+    full_vec = np.full((n_all, 12), np.nan)
+    full_vec[proj] = geometry_p.vectors
+    full_geom = nominal_all.with_vectors(full_vec)
+    uv_all = np.full((n_all, uv.shape[1], 2), np.nan)
+    uv_all[proj] = uv
+    rpe_all = np.full(n_all, np.nan)
+    rpe_all[proj] = history[-1][0]
+    elapsed = time.perf_counter() - t0
+    report(progress, "write", 0, 1, str(target))
+    with ScanFile(target, "r+") as sf:
+        sf.write_calibration(
+            full_geom,
+            uv=uv_all,
+            xyz=xyz,
+            rpe_mm=rpe_all,
+            method=method,
+            iterations=n_iter,
+            elapsed_s=elapsed,
+            reproj_rms_px=reproj_rms,
+            extra_attrs={
+                "n_bbs": int(xyz.shape[0]),
+                "bb_diameter_mm": float(diameter_mm),
+                "intrinsics": opt.intrinsics,
+                "gauge": "BB constellation keeps centroid, orientation and RMS size of its nominal triangulation"
+                if method == "bundle"
+                else "none (paper method)",
+                "warnings_json": list(warnings),
+            },
+        )
+    report(progress, "write", 1, 1, str(target))
+    corr_R = np.full((n_all, 3), np.nan)
+    corr_t = np.full((n_all, 3), np.nan)
+    corr_R[proj] = np.where(solved[:, None], state.rotvec, np.nan)
+    corr_t[proj] = np.where(solved[:, None], state.t, np.nan)
+    result = CalibrationResult(
+        method=method,
+        path=target,
+        geometry=full_geom,
+        nominal=nominal_all,
+        uv=uv_all,
+        xyz=xyz,
+        rpe_mm=rpe_all,
+        n_frames=int(proj.size),
+        iterations=stats,
+        rpe_history=[h[0] for h in history],
+        elapsed_s=elapsed,
+        detect_s=t_detect,
+        estimate_s=t_est,
+        reproj_rms_px=reproj_rms,
+        corrections={"rotvec_rad": corr_R, "shift_mm": corr_t, "frame": np.arange(n_all)},
+        warnings=warnings,
+        unsolved_views=unsolved.tolist(),
+    )
+    if report_dir is not None:
+        from calib.report import write_report
+
+        write_report(result, Path(report_dir))
+    return result
+
+
+def _leave_one_out_outliers(
+    model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64], tol_px: float
+) -> NDArray[np.bool_]:
+    """Per view with 4 or more BBs, the detection whose residual, with the view's pose refitted without it,
+    is largest and above ``tol_px``."""
+    n, k = uv.shape[:2]
+    seen = np.isfinite(uv).all(-1)
+    views = np.flatnonzero(seen.sum(1) >= 4)
+    out = np.zeros((n, k), bool)
+    if views.size == 0:
+        return out
+    rep_v = np.repeat(views, k)
+    rep_k = np.tile(np.arange(k), views.size)
+    keep = seen[rep_v, rep_k]
+    rep_v, rep_k = rep_v[keep], rep_k[keep]
+    sub = ViewModel(model.nominal[rep_v], model.intrinsics)
+    st = ViewState(state.R[rep_v].copy(), state.t[rep_v].copy(), state.k[rep_v].copy())
+    obs = uv[rep_v].copy()
+    obs[np.arange(len(rep_v)), rep_k] = np.nan
+    use = np.isfinite(obs).all(-1)
+    obs0 = np.where(use[..., None], obs, 0.0)
+    for _ in range(4):  # Gauss-Newton on the rigid pose only, all left-out problems at once
+        pred, Jv, _ = sub.project_jac(st, xyz)
+        r = np.where(use[..., None], pred - obs0, 0.0)
+        J = Jv[..., :6] * use[..., None, None]
+        H = np.einsum("nkai,nkaj->nij", J, Jv[..., :6]) + 1e-9 * np.eye(6)
+        g = np.einsum("nkai,nka->ni", J, r)
+        step = -np.linalg.solve(H, g[..., None])[..., 0]
+        st = st.stepped(np.concatenate([step, np.zeros((len(rep_v), model.n_intrinsics))], 1))
+    pred = sub.project(st, xyz)
+    loo = np.linalg.norm(pred[np.arange(len(rep_v)), rep_k] - uv[rep_v, rep_k], axis=-1)
+    worst = np.full((n, k), -1.0)
+    worst[rep_v, rep_k] = loo
+    kmax = worst.argmax(1)
+    flag = worst[np.arange(n), kmax] > tol_px
+    out[np.flatnonzero(flag), kmax[flag]] = True
+    return out
+
+
+def _disagree_with_neighbour(
+    model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64], tol_px: float, max_bbs: int = 4
+) -> NDArray[np.bool_]:
+    """Detections in views seeing at most ``max_bbs`` BBs that lie more than ``tol_px`` from where the previous
+    (or next) view's geometry puts them, after removing the common shift of the view."""
+    n = uv.shape[0]
+    few = np.isfinite(uv).all(-1).sum(1) <= max_bbs
+    if n < 2 or not few.any():
+        return np.zeros(uv.shape[:2], bool)
+    nb = np.where(np.arange(n) > 0, np.arange(n) - 1, 1)
+    guess = model.project(ViewState(state.R[nb], state.t[nb], state.k[nb]), xyz)
+    d = uv - guess
+    with np.errstate(invalid="ignore"):
+        shift = np.nanmedian(d, axis=1, keepdims=True)
+        off = np.linalg.norm(d - shift, axis=-1) > tol_px
+    return off & few[:, None] & np.isfinite(uv).all(-1)
+
+
+History = list[tuple[NDArray[np.float64], NDArray[np.float64]]]
+
+
+def _estimate(
+    method: str, model: ViewModel, uv: NDArray[np.float64], opt: CalibrationOptions, progress: ProgressCallback | None
+) -> tuple[ViewGeometry, NDArray[np.float64], ViewState, NDArray[np.float64], History, int, list[str]]:
+    """Geometry of the projection views (NaN where unsolved), BB centres, states, cleaned uv, history."""
+    warnings: list[str] = []
+    n = uv.shape[0]
+    ok = usable_views(uv, opt.min_bbs_per_view)
+    if ok.sum() < 2:
+        raise NoMarkersError(f"only {int(ok.sum())} view(s) see {opt.min_bbs_per_view} or more BBs; nothing to calibrate")
+    sub = ViewModel(model.nominal[np.flatnonzero(ok)], model.intrinsics)
+    uvs = uv[ok]
+    history: History = []
+
+    def record(state: ViewState, xyz: NDArray[np.float64]) -> None:
+        g = sub.geometry(state)
+        rpe = np.full(n, np.nan)
+        rpe[ok] = rpe_per_frame(g, uvs, xyz)
+        res = np.full(uv.shape[:2], np.nan)
+        res[ok] = _residual_px(g, uvs, xyz)
+        history.append((rpe, res))
+        last = history[-1][0]
+        report(progress, "estimate", len(history) - 1, iters, "", rpe_mean_mm=float(np.nanmean(last)))
+
+    if method == "paper":
+        iters = opt.iterations or 3
+        state, xyz = paper_calibrate(sub, uvs, iterations=iters, callback=lambda i, s, x: record(s, x))
+        n_iter = iters
+    else:
+        iters = opt.iterations or 30
+        xyz0 = triangulate_least_squares(*marker_rays(sub.nominal, uvs))
+        record(sub.identity(), xyz0)
+        res = bundle_adjust(
+            sub, uvs, xyz0, loss_scale_px=opt.loss_scale_px, max_iterations=iters, callback=lambda i, s, x, c: record(s, x)
+        )
+        # detections far off the solution are wrong blobs: drop them and refine once more
+        r = _residual_px(sub.geometry(res.state), uvs, res.xyz)
+        fin = np.isfinite(r)
+        sigma = 1.4826 * float(np.median(r[fin])) if fin.any() else 0.0
+        bad = fin & (r > max(opt.outlier_px, 6.0 * sigma))
+        n_bad = int(bad.sum())
+        if n_bad:
+            warnings.append(f"{n_bad} detection(s) off by more than {max(opt.outlier_px, 6 * sigma):.2f} px set to NaN")
+        # a pose absorbs much of one wrong blob: test each detection against the pose fitted without it,
+        # and views with only 3 BBs (no redundancy) against the neighbouring view
+        bad |= _leave_one_out_outliers(sub, res.state, res.xyz, np.where(bad[..., None], np.nan, uvs), 1.5 * opt.outlier_px)
+        bad |= _disagree_with_neighbour(sub, res.state, res.xyz, uvs, 3.0 * opt.outlier_px, max_bbs=3)
+        if bad.sum() > n_bad:
+            warnings.append(f"{int(bad.sum()) - n_bad} detection(s) disagree with their view fitted without them (or, with 3 BBs, with the neighbouring view); set to NaN")
+        if bad.any():
+            uvs = uvs.copy()
+            uvs[bad] = np.nan
+            uv = uv.copy()
+            uv[ok] = uvs
+            res = bundle_adjust(
+                sub, uvs, res.xyz, res.state, loss_scale_px=opt.loss_scale_px, max_iterations=iters, gauge_xyz=xyz0
+            )
+            record(res.state, res.xyz)
+        state, xyz = res.state, res.xyz
+        n_iter = len(history) - 1
+    geometry = sub.geometry(state)
+    still = usable_views(uvs, opt.min_bbs_per_view)
+    vec = np.full((n, 12), np.nan)
+    vec[np.flatnonzero(ok)[still]] = geometry.vectors[still]
+    full_state = ViewState.identity(n, model.n_intrinsics)
+    full_state.R[ok], full_state.t[ok], full_state.k[ok] = state.R, state.t, state.k
+    solved = np.isfinite(vec).all(1)
+    if (~solved).any() and solved.any():
+        # views left unsolved: keep only detections that agree with the neighbouring views' geometry
+        guess = model.project(fill_states(full_state, solved, n), xyz)
+        off = np.linalg.norm(guess - uv, axis=-1) > 3.0 * opt.outlier_px
+        off &= ~solved[:, None]
+        if off.any():
+            uv = uv.copy()
+            uv[off] = np.nan
+            warnings.append(f"{int(off.sum())} detection(s) in unsolved views disagree with their neighbours and were set to NaN")
+    full_state = ViewState(np.where(solved[:, None, None], full_state.R, np.nan), np.where(solved[:, None], full_state.t, np.nan), full_state.k)
+    return model.nominal.with_vectors(vec), xyz, full_state, uv, history, n_iter, warnings
+
+
+__all__ = ["CalibrationOptions", "CalibrationResult", "IterationStats", "METHODS", "calibrate_scan", "fill_states"]

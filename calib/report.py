@@ -1,0 +1,147 @@
+"""Calibration report: the paper's Table 1 (markdown and CSV), RPE violin plots, per-view corrections."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from calib.pipeline import CalibrationResult
+
+#: the published results (Ma et al. 2022, Table 1), for side-by-side reports
+PAPER_TABLE1: dict[str, dict[str, float]] = {
+    "A": {"frames": 500, "bbs": 8, "elapsed_s": 60, "rpe_mean_mm": 0.065, "rpe_median_mm": 0.065, "rpe_std_mm": 0.0169,
+          "s_per_frame": 0.12, "s_per_frame_per_bb": 0.015},
+    "B": {"frames": 656, "bbs": 16, "elapsed_s": 91, "rpe_mean_mm": 0.210, "rpe_median_mm": 0.201, "rpe_std_mm": 0.0377,
+          "s_per_frame": 0.14, "s_per_frame_per_bb": 0.009},
+    "C": {"frames": 857, "bbs": 10, "elapsed_s": 208, "rpe_mean_mm": 0.490, "rpe_median_mm": 0.418, "rpe_std_mm": 0.370,
+          "s_per_frame": 0.24, "s_per_frame_per_bb": 0.024},
+}
+
+TABLE_ROWS = (
+    ("Number of frames", "frames", "{:.0f}"),
+    ("Number of BBs", "bbs", "{:.0f}"),
+    ("Elapsed time (s)", "elapsed_s", "{:.3g}"),
+    ("Mean RPE (mm)", "rpe_mean_mm", "{:.4f}"),
+    ("Median RPE (mm)", "rpe_median_mm", "{:.4f}"),
+    ("Std Dev RPE (mm)", "rpe_std_mm", "{:.4f}"),
+    ("Time/frame (s)", "s_per_frame", "{:.3g}"),
+    ("Time/frame/BB (s)", "s_per_frame_per_bb", "{:.3g}"),
+)
+
+
+def table1_row(result: "CalibrationResult") -> dict[str, float]:
+    """The paper's Table 1 figures for one calibration (RPE after the last iteration)."""
+    last = result.iterations[-1]
+    frames, bbs = result.n_frames, result.n_bbs
+    return {
+        "frames": frames,
+        "bbs": bbs,
+        "elapsed_s": result.elapsed_s,
+        "rpe_mean_mm": last.rpe_mean_mm,
+        "rpe_median_mm": last.rpe_median_mm,
+        "rpe_std_mm": last.rpe_std_mm,
+        "s_per_frame": result.elapsed_s / max(frames, 1),
+        "s_per_frame_per_bb": result.elapsed_s / max(frames * bbs, 1),
+    }
+
+
+def markdown_table(columns: dict[str, dict[str, float]]) -> str:
+    """A Table-1 style markdown table with one column per entry."""
+    names = list(columns)
+    lines = ["| | " + " | ".join(names) + " |", "| :--- |" + " :--- |" * len(names)]
+    for label, key, fmt in TABLE_ROWS:
+        cells = []
+        for n in names:
+            v = columns[n].get(key, float("nan"))
+            cells.append(fmt.format(v) if np.isfinite(v) else "-")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_csv(path: Path, columns: dict[str, dict[str, float]]) -> None:
+    """Table 1 as CSV: one row per figure, one column per entry."""
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["figure", *columns])
+        for label, key, _ in TABLE_ROWS:
+            w.writerow([label, *(columns[n].get(key, float("nan")) for n in columns)])
+
+
+def violin_plot(path: Path, history: list[np.ndarray], title: str, max_iterations: int = 6) -> None:
+    """Per-frame RPE distributions for the initial geometry and after each iteration (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    idx = list(range(len(history)))
+    if len(idx) > max_iterations + 1:  # long LM runs: first few and the last
+        idx = idx[:max_iterations] + [idx[-1]]
+    data = [history[i][np.isfinite(history[i])] for i in idx]
+    labels = ["initial" if i == 0 else f"iter {i}" for i in idx]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), gridspec_kw={"width_ratios": [1, max(len(idx) - 1, 1)]})
+    for ax, sel in ((axes[0], [0]), (axes[1], list(range(1, len(idx))) or [0])):
+        d = [data[i] if data[i].size else np.array([np.nan]) for i in sel]
+        parts = ax.violinplot(d, showmeans=True, showmedians=True)
+        del parts
+        ax.set_xticks(range(1, len(sel) + 1), [labels[i] for i in sel])
+        ax.set_ylabel("RPE per frame (mm)")
+    axes[0].set_title("initial geometry")
+    axes[1].set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def corrections_plot(path: Path, corrections: dict[str, np.ndarray], title: str) -> None:
+    """Estimated per-view correction (rotation angles, isocenter shift) against frame index (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    frame = corrections["frame"]
+    rot = np.degrees(corrections["rotvec_rad"])
+    shift = corrections["shift_mm"]
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+    for j, name in enumerate("xyz"):
+        a1.plot(frame, rot[:, j], label=f"rotation about {name}")
+        a2.plot(frame, shift[:, j], label=f"shift {name}")
+    a1.set_ylabel("deg")
+    a2.set_ylabel("mm")
+    a2.set_xlabel("frame index")
+    a1.legend(loc="upper right", fontsize=8)
+    a2.legend(loc="upper right", fontsize=8)
+    a1.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def write_report(result: "CalibrationResult", out_dir: Path, extra_columns: dict[str, dict[str, Any]] | None = None) -> list[Path]:
+    """Write table1.md, table1.csv, rpe_violin.png and corrections.png into ``out_dir``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    columns = {f"this scan ({result.method})": table1_row(result), **(extra_columns or {})}
+    md = out_dir / "table1.md"
+    iters = "\n".join(
+        f"| {s.index} | {s.rpe_mean_mm:.4f} | {s.rpe_median_mm:.4f} | {s.rpe_std_mm:.4f} | {s.reproj_rms_px:.4f} |"
+        for s in result.iterations
+    )
+    md.write_text(
+        f"# Calibration of {result.path.name} ({result.method})\n\n"
+        + markdown_table(columns)
+        + "\n## RPE per iteration (0 = initial geometry)\n\n| iteration | mean (mm) | median (mm) | std (mm) | reproj. RMS (px) |\n"
+        "| ---: | ---: | ---: | ---: | ---: |\n" + iters + "\n"
+        + ("\n## Warnings\n\n" + "\n".join(f"- {w}" for w in result.warnings) + "\n" if result.warnings else "")
+    )
+    csv_path = out_dir / "table1.csv"
+    write_csv(csv_path, columns)
+    violin = out_dir / "rpe_violin.png"
+    violin_plot(violin, result.rpe_history, f"{result.method}: after each iteration")
+    corr = out_dir / "corrections.png"
+    corrections_plot(corr, result.corrections, f"{result.method}: estimated correction per view")
+    return [md, csv_path, violin, corr]
