@@ -338,9 +338,20 @@ class CArm(Detector):
             raise DeviceError(f"{self.name}: C-arm holds {n} points after loading {len(program.points)}")
         self._program = program
 
+    async def _halting_on_cancel(self, action: Any) -> Any:
+        """Run a motion coroutine; if it is cancelled (an abort), the C-arm is stopped before re-raising."""
+        try:
+            return await action
+        except asyncio.CancelledError:
+            try:
+                await asyncio.shield(self.stop())
+            except DeviceError:
+                pass
+            raise
+
     def move(self, targets: Mapping[str, float]) -> Status[None]:
-        """Move to ``{'primary': deg, 'secondary': deg}`` (missing axes stay); ends on target."""
-        return Status(f"{self.name}.move", self._move(dict(targets)))
+        """Move to ``{'primary': deg, 'secondary': deg}`` (missing axes stay); ends on target. Cancelling stops the arm."""
+        return Status(f"{self.name}.move", self._halting_on_cancel(self._move(dict(targets))))
 
     async def _move(self, targets: dict[str, float]) -> None:
         unknown = set(targets) - {"primary", "secondary"}
@@ -355,8 +366,8 @@ class CArm(Detector):
         await self._wait_on_target()
 
     def goto(self, index: int) -> Status[None]:
-        """Move to program point ``index``; ends on target."""
-        return Status(f"{self.name}.goto", self._goto(int(index)))
+        """Move to program point ``index``; ends on target. Cancelling stops the arm."""
+        return Status(f"{self.name}.goto", self._halting_on_cancel(self._goto(int(index))))
 
     async def _goto(self, index: int) -> None:
         await self._l().command(f"GOTO {index}", retry=False)
@@ -384,9 +395,9 @@ class CArm(Detector):
         return self.trigger()
 
     def run(self) -> Status[list[Frame]]:
-        """Play the loaded program; one frame per acquire point, in order. Reports progress per frame."""
+        """Play the loaded program; one frame per acquire point, in order; progress per frame. Cancelling stops the arm."""
         status: Status[list[Frame]]
-        status = Status(f"{self.name}.run", self._run(lambda **kw: status.report(**kw)))
+        status = Status(f"{self.name}.run", self._halting_on_cancel(self._run(lambda **kw: status.report(**kw))))
         return status
 
     async def _run(self, report: Any) -> list[Frame]:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import inspect
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -275,6 +276,7 @@ class DetectorTwin(LineTwinServer):
         self.rng = np.random.default_rng(int(seed))
         self.detector_model = detector_model
         self._renderer: Renderer | None = None
+        self._renderer_lock = threading.Lock()
         self._phantom_spec = phantom
         self._seen_exposures = 0
         self._rendering: asyncio.Task[Any] | None = None
@@ -286,7 +288,11 @@ class DetectorTwin(LineTwinServer):
         self._renderer = None
 
     def renderer(self) -> Renderer:
-        """The frame renderer (built from the phantom on first use)."""
+        """The frame renderer (built from the phantom on first use; thread-safe)."""
+        with self._renderer_lock:
+            return self._build_renderer()
+
+    def _build_renderer(self) -> Renderer:
         if self._renderer is None:
             phantom = self._phantom_spec
             if isinstance(phantom, str):
@@ -325,9 +331,8 @@ class DetectorTwin(LineTwinServer):
     async def _render(
         self, number: int, args: tuple[Any, ...], meta: dict[str, Any], taken: float, previous: asyncio.Task[Any] | None
     ) -> None:
-        try:
-            render = self.renderer()
-            data = await asyncio.get_running_loop().run_in_executor(None, render, *args)
+        try:  # building the renderer (phantom, compiled kernels) may take a while: not in the serving loop
+            data = await asyncio.get_running_loop().run_in_executor(None, lambda: self.renderer()(*args))
         except Exception as exc:  # reported to the client at FRAME?, not lost in a background task
             data, failure = None, f"frame {number} could not be rendered: {exc}"
         if previous is not None:
