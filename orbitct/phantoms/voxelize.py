@@ -10,6 +10,8 @@ from orbitct.phantoms.chords import inside
 from orbitct.phantoms.phantom import Phantom
 from orbitct.phantoms.primitives import PhantomError
 
+_MAX_THIN_SUPERSAMPLE = 24
+
 
 @nb.njit(parallel=True, cache=True, nogil=True)
 def _add_primitive(
@@ -55,6 +57,36 @@ def _add_primitive(
                     vol[lo[0] + a, lo[1] + b, lo[2] + e] += mu * cnt * inv
 
 
+@nb.njit(parallel=True, cache=True, nogil=True)
+def _add_segment(
+    vol: NDArray[np.float32], p0: NDArray[np.float64], p1: NDArray[np.float64], origin: NDArray[np.float64],
+    vox: NDArray[np.float64], lo: NDArray[np.int64], hi: NDArray[np.int64], density: float,
+) -> None:
+    """Add ``density * (length of segment p0-p1 inside the voxel)`` to every voxel of the box ``lo..hi``."""
+    d0, d1, d2 = p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]
+    length = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    for a in nb.prange(hi[0] - lo[0] + 1):
+        iz = lo[0] + a
+        for iy in range(lo[1], hi[1] + 1):
+            for ix in range(lo[2], hi[2] + 1):
+                t0, t1 = 0.0, 1.0
+                for ax, idx, d in ((0, ix, d0), (1, iy, d1), (2, iz, d2)):
+                    b0 = origin[ax] + (idx - 0.5) * vox[ax]
+                    b1 = b0 + vox[ax]
+                    if abs(d) < 1e-300:
+                        if p0[ax] < b0 or p0[ax] >= b1:
+                            t1 = -1.0
+                        continue
+                    s0 = (b0 - p0[ax]) / d
+                    s1 = (b1 - p0[ax]) / d
+                    if s0 > s1:
+                        s0, s1 = s1, s0
+                    t0 = max(t0, s0)
+                    t1 = min(t1, s1)
+                if t1 > t0:
+                    vol[iz, iy, ix] += density * (t1 - t0) * length
+
+
 def voxelize(
     phantom: Phantom,
     shape: tuple[int, int, int],
@@ -66,7 +98,9 @@ def voxelize(
     """Attenuation volume ``(nz, ny, nx)`` float32 (1/mm) on a grid whose voxel ``[0, 0, 0]`` is centred at ``origin_mm``.
 
     ``voxel_mm`` is one size or ``(x, y, z)`` sizes; voxels cut by a surface get the fraction of
-    ``supersample**3`` sub-points inside (exact for voxels wholly inside or outside).
+    ``supersample**3`` sub-points inside (exact for voxels wholly inside or outside). Cylinders
+    thinner than half a voxel (wires) put their mass along their axis; other primitives thinner
+    than a voxel are sampled finer (up to 24 per axis).
     """
     if len(shape) != 3 or min(shape) < 1:
         raise PhantomError(f"shape must be 3 positive sizes (nz, ny, nx), got {shape}")
@@ -86,8 +120,16 @@ def voxelize(
         hi = np.clip(hi_xyz[::-1], -1, n_zyx - 1).astype(np.int64)
         if (hi < lo).any() or (hi_xyz[::-1] < 0).any() or (lo_xyz[::-1] > n_zyx - 1).any():
             continue
+        if p.kind == "cylinder" and p.semi_axes[:2].max() < 0.5 * vox.min():
+            # a wire: its mass spread along the axis, exact once the cross-section is below a voxel
+            axis = p.rotation[:, 2] * p.semi_axes[2]
+            density = p.mu * np.pi * p.semi_axes[0] * p.semi_axes[1] / float(np.prod(vox))
+            _add_segment(vol, p.center - axis, p.center + axis, origin, vox, lo, hi, density)
+            continue
         M = (p.rotation / p.semi_axes).T  # y = diag(1/s) R^T (x - c)
         thin = bool(p.semi_axes.min() < vox.max())
-        _add_primitive(vol, p.kind_id, np.ascontiguousarray(M), p.center, origin, vox, lo, hi, p.mu,
-                       int(supersample), thin)
+        ss = int(supersample)
+        if thin:  # sub-sample spacing finer than the primitive, so thin wires are never missed
+            ss = max(ss, min(_MAX_THIN_SUPERSAMPLE, int(np.ceil(3.0 * vox.max() / p.semi_axes.min()))))
+        _add_primitive(vol, p.kind_id, np.ascontiguousarray(M), p.center, origin, vox, lo, hi, p.mu, ss, thin)
     return vol

@@ -150,8 +150,17 @@ def test_voxelize_volume_and_index_order() -> None:
 
 def test_voxelize_thin_wire_keeps_its_mass() -> None:
     w = Phantom("w", (cylinder((0, 0, 0), (0, 0, 1), 0.065, 20.0, mu=7.0),))
-    v = voxelize(w, (20, 9, 9), 1.0, (-4.0, -4.0, -9.5), supersample=9)  # wire through voxel centres
-    assert v.sum() == pytest.approx(7.0 * np.pi * 0.065**2 * 20, rel=0.15)
+    mass = 7.0 * np.pi * 0.065**2 * 20
+    for origin in ((-4.0, -4.0, -9.5), (-3.5, -3.5, -9.5), (-3.7, -3.2, -9.5)):  # wire on centres, edges, anywhere
+        v = voxelize(w, (20, 9, 9), 1.0, origin)
+        assert v.sum() == pytest.approx(mass, rel=1e-4)
+    v = voxelize(w, (40, 16, 16), 0.5, (-3.75, -3.75, -9.75))
+    assert v.sum() * 0.125 == pytest.approx(mass, rel=1e-4)
+    tilted = Phantom("t", (cylinder((1, 2, 0), (0.3, 0.5, 1), 0.065, 20.0, mu=7.0),))
+    v = voxelize(tilted, (40, 40, 40), 0.5, (-9.75, -9.75, -9.75))
+    assert v.sum() * 0.125 == pytest.approx(mass, rel=1e-4)
+    # the mass sits on the voxels the axis runs through
+    assert v[20, 24, 22] > 0 and v[20, 10, 10] == 0
 
 
 def test_voxelize_errors() -> None:
