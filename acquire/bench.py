@@ -67,6 +67,7 @@ class Bench:
         await self._set_pivot(config.stack.pivot_mm, config.motion.move_timeout_s)
         self._stage_velocity = float(await self.stage.velocity()) if self._stage_velocity is None else self._stage_velocity
         await self.stage.set_velocity(config.limits.stage_velocity_deg_s)
+        await self.hexapod.set_velocity(config.limits.hexapod_velocity_mm_s)
         ex = config.exposure
         await self.xray.configure(kv=ex.kv, ma=ex.ma, exposure_ms=ex.exposure_ms)
         await self.detector.set_trigger("xray")

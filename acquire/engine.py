@@ -84,7 +84,7 @@ class ScanEngine:
         self,
         bench: BenchLike,
         plan: ScanPlan,
-        config: BenchConfig,
+        config: Any,
         *,
         mode: str = "step",
         subscribers: Iterable[Subscriber] = (),
@@ -162,26 +162,20 @@ class ScanEngine:
             self._check_abort()
             self.state = "preflight"
             if not self.skip_preflight:
-                await preflight(
-                    self.plan, self.config, device_limits=await self.bench.device_limits(),
-                    workspace_check=self.bench.check_workspace, mode=self.mode, frame_rate_hz=self.frame_rate_hz,
-                )
+                await self._preflight()
             self._check_abort()
-            await self.bench.prepare(self.config)
+            await self._prepare()
             self._check_abort()
             start = ScanStart(
                 plan=self.plan, axes=dict(self.bench.axes), mode=self.mode,
                 started_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"), sim=self.bench.sim,
-                extra={"frame_rate_hz": self.frame_rate_hz, "settle_ms": self.config.motion.settle_ms},
+                extra=self._start_extra(),
             )
             self._notify("on_start", start)
             started = True
             self.state = "running"
             t0 = time.monotonic()
-            if self.mode == "step":
-                await self._run_step(t0)
-            else:
-                await self._run_continuous(t0)
+            await self._execute(t0)
         except PreflightError:
             status = "refused"
             raise
@@ -204,6 +198,26 @@ class ScanEngine:
         if pending is not None:
             raise pending  # Ctrl-C or a cancellation from outside: propagate after cleanup
         return ScanOutcome(status, reason, self.n_done, self.plan.n_frames, time.monotonic() - t0)
+
+    # ------------------------------------------------ steps (C-arm overrides)
+    async def _preflight(self) -> None:
+        await preflight(
+            self.plan, self.config, device_limits=await self.bench.device_limits(),
+            workspace_check=self.bench.check_workspace, mode=self.mode, frame_rate_hz=self.frame_rate_hz,
+        )
+
+    async def _prepare(self) -> None:
+        await self.bench.prepare(self.config)
+
+    def _start_extra(self) -> dict[str, Any]:
+        return {"frame_rate_hz": self.frame_rate_hz, "settle_ms": self.config.motion.settle_ms,
+                "stack_order": self.config.stack.order}
+
+    async def _execute(self, t0: float) -> None:
+        if self.mode == "step":
+            await self._run_step(t0)
+        else:
+            await self._run_continuous(t0)
 
     async def _cleanup(self, status: str) -> None:
         """Halt every axis (on abort) and switch X-rays off; never raises, never skipped by a second cancel."""
@@ -262,6 +276,9 @@ class ScanEngine:
         cmd = {f"hexapod.{a}": v for a, v in hexa.items()}
         cmd[self._stage_axis] = float(np.degrees(f.stage_rad))
         return cmd
+
+    def _record_motion(self, t_start: float) -> None:
+        self._motion_s += time.monotonic() - t_start
 
     @property
     def _stage_axis(self) -> str:

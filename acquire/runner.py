@@ -149,14 +149,18 @@ class ScanRunner:
     async def _run_engine(self, bench: Bench, plan: ScanPlan, cfg: BenchConfig, recorder: ScanRecorder) -> ScanResult:
         engine = ScanEngine(bench, plan, cfg, mode=self.request.mode, subscribers=[recorder],
                             progress=self._progress, frame_rate_hz=self.request.frame_rate_hz)
+        self._attach(engine)
+        outcome = await engine.run()
+        return ScanResult(Path(self.request.out), outcome.status, outcome.reason, outcome.n_frames,
+                          outcome.n_planned, outcome.elapsed_s, engine.timing)
+
+    def _attach(self, engine: ScanEngine) -> None:
+        """Route pause/resume/abort to ``engine`` (and apply any that came before it existed)."""
         self._engine = engine
         if self._pending_pause:
             engine.pause()
         if self._pending_abort is not None:
             engine.abort(self._pending_abort)
-        outcome = await engine.run()
-        return ScanResult(Path(self.request.out), outcome.status, outcome.reason, outcome.n_frames,
-                          outcome.n_planned, outcome.elapsed_s, engine.timing)
 
     # ------------------------------------------------------- background use
     def start(self) -> None:
