@@ -129,7 +129,8 @@ class FrameLink:
         """Connect (again)."""
         await self._drop()
         try:
-            self._reader, self._writer = await asyncio.wait_for(asyncio.open_connection(self.host, self.port), self.timeout_s)
+            async with asyncio.timeout(self.timeout_s):  # unlike wait_for, never swallows a cancellation
+                self._reader, self._writer = await asyncio.open_connection(self.host, self.port)
         except (OSError, asyncio.TimeoutError) as exc:
             raise NotConnectedError(f"{self.name}: cannot connect to {self.host}:{self.port} ({exc or 'timeout'})") from None
         self._opened = True
@@ -198,7 +199,8 @@ class FrameLink:
         try:
             self._writer.write(line.encode("latin-1") + b"\n")
             await self._writer.drain()
-            raw = await asyncio.wait_for(self._reader.readline(), self.timeout_s + wait_s)
+            async with asyncio.timeout(self.timeout_s + wait_s):
+                raw = await self._reader.readline()
         except asyncio.TimeoutError:
             raise _ReplyTimeout(f"{self.name}: no reply to {line!r} within {self.timeout_s + wait_s:g} s") from None
         except (ConnectionError, OSError):
@@ -225,7 +227,8 @@ class FrameLink:
         except ValueError:
             raise ProtocolError(f"{self.name}: garbled frame header {header[:80]!r}") from None
         try:
-            body = await asyncio.wait_for(self._reader.readexactly(meta_len + data_len), self.timeout_s + 1.0)
+            async with asyncio.timeout(self.timeout_s + 1.0):
+                body = await self._reader.readexactly(meta_len + data_len)
         except asyncio.IncompleteReadError:
             raise NotConnectedError(f"{self.name}: connection closed in the middle of frame {number}") from None
         except asyncio.TimeoutError:

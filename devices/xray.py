@@ -106,7 +106,8 @@ class XrayGenerator:
             trace_packet=self._check_packet,
         )
         try:
-            ok = await asyncio.wait_for(self._client.connect(), self.timeout_s + 1.0)
+            async with asyncio.timeout(self.timeout_s + 1.0):  # unlike wait_for, never swallows a cancellation
+                ok = await self._client.connect()
         except asyncio.TimeoutError:
             ok = False
         if not ok:
@@ -168,7 +169,8 @@ class XrayGenerator:
             raise NotConnectedError(f"{self.name}: not connected to the X-ray generator ({what})")
         self._garbled = False
         try:
-            reply = await asyncio.wait_for(call(client), self.timeout_s * 2 + 0.5)
+            async with asyncio.timeout(self.timeout_s * 2 + 0.5):
+                reply = await call(client)
         except ConnectionException:
             raise NotConnectedError(f"{self.name}: connection to the X-ray generator lost ({what})") from None
         except (ModbusException, asyncio.TimeoutError):
@@ -178,6 +180,9 @@ class XrayGenerator:
             if not client.connected:
                 raise NotConnectedError(f"{self.name}: X-ray generator dropped the connection ({what})") from None
             raise DeviceTimeoutError(f"{self.name}: no reply from the X-ray generator within {self.timeout_s:g} s ({what})") from None
+        task = asyncio.current_task()
+        if task is not None and task.cancelling():
+            raise asyncio.CancelledError  # pymodbus's inner wait_for can swallow a cancellation: honour it here
         if reply.isError():
             code = int(getattr(reply, "exception_code", 0))
             text = reg.MODBUS_EXCEPTIONS.get(code, "unknown exception")
@@ -375,10 +380,16 @@ class XrayGenerator:
         return after
 
     async def _guarded(self, fn: Callable[[], Awaitable[Any]]) -> Any:
+        """One prepare/expose at a time; a cancelled one (an abort) switches X-rays off."""
         if self._action_lock.locked():
             raise DeviceError(f"{self.name}: another prepare/expose is still running")
         async with self._action_lock:
-            return await fn()
+            try:
+                return await fn()
+            except asyncio.CancelledError:
+                with contextlib.suppress(DeviceError):
+                    await asyncio.shield(self.xray_off())
+                raise
 
     async def xray_off(self) -> None:
         """Drop prep and expose requests and switch high voltage off (safe in every state)."""

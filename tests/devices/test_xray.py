@@ -304,3 +304,24 @@ def test_unreleased_exposure_is_released_before_the_next(twin: tuple[XrayTwin, T
         assert await gen.expose() == 5
 
     run(twin, body)
+
+
+def test_cancelled_exposure_switches_xrays_off(twin: tuple[XrayTwin, TwinThread]) -> None:
+    tw, _ = twin
+
+    async def body(gen: XrayGenerator) -> None:
+        await gen.configure(90, 1, 2000)
+        status = gen.expose()
+        for _ in range(200):
+            if tw.world.exposing:
+                break
+            await asyncio.sleep(0.01)
+        assert tw.world.exposing
+        status.cancel()  # an abort
+        with pytest.raises(asyncio.CancelledError):
+            await status
+        state = await gen.read()
+        assert state["state"] == "IDLE" and not state["hv_on"] and state["frame_counter"] == 0
+        assert not tw.world.exposing
+
+    run(twin, body)
