@@ -31,7 +31,7 @@ def index_matrices(grid: VolumeGrid, geometry: ViewGeometry) -> NDArray[np.float
 
 
 def _slabs(nz: int) -> int:
-    return int(max(1, min(nz, 4 * numba.get_num_threads())))
+    return int(max(1, min(nz, 2 * numba.get_num_threads())))  # each slab repeats the ray set-up: keep few
 
 
 class Projector:

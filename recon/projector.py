@@ -76,6 +76,36 @@ def _cell(a0, ra, b0, rb, k):
     return ia, ib, a - ia, b - ib
 
 
+@njit(cache=True, inline="always")
+def _inside(a0, ra, lo, hi, k_lo, k_hi):
+    """Planes ``[s, e]`` within ``[k_lo, k_hi]`` where ``lo <= a0 + k ra < hi`` (one plane of margin each side)."""
+    if ra == 0.0:
+        if lo <= a0 < hi:
+            return k_lo, k_hi
+        return k_lo, k_lo - 1
+    t1 = (lo - a0) / ra
+    t2 = (hi - a0) / ra
+    s = int(math.ceil(min(t1, t2))) + 1
+    e = int(math.floor(max(t1, t2))) - 1
+    return max(s, k_lo), min(e, k_hi)
+
+
+@njit(cache=True, inline="always")
+def _sample_checked(flat, base, ia, ib, fa, fb, sta, stb, na, nb):
+    acc = 0.0
+    if ib >= 0:
+        if ia >= 0:
+            acc += (1.0 - fa) * (1.0 - fb) * flat[base + ia * sta + ib * stb]
+        if ia + 1 < na:
+            acc += fa * (1.0 - fb) * flat[base + (ia + 1) * sta + ib * stb]
+    if ib + 1 < nb:
+        if ia >= 0:
+            acc += (1.0 - fa) * fb * flat[base + ia * sta + (ib + 1) * stb]
+        if ia + 1 < na:
+            acc += fa * fb * flat[base + (ia + 1) * sta + (ib + 1) * stb]
+    return acc
+
+
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
 def joseph_forward(vol, vol_t, rays, vox, out):
     """Line integrals of ``vol`` (and its transpose ``vol_t``) along every ray into ``out`` (views, rows, cols)."""
@@ -89,20 +119,24 @@ def joseph_forward(vol, vol_t, rays, vox, out):
         for c in range(cols):
             m, a0, ra, b0, rb, k_lo, k_hi, step, stm, sta, stb, na, nb = _ray(rays, vox, n, r, c, nx, ny, nz)
             flat = flat_t if m == 0 else flat_n
+            # interior planes need no bounds checks; the few planes at the edges do
+            s_a, e_a = _inside(a0, ra, 0.0, na - 1.0, k_lo, k_hi)
+            s_i, e_i = _inside(b0, rb, 0.0, nb - 1.0, s_a, e_a)
+            if e_i < s_i:
+                s_i, e_i = k_hi + 1, k_hi
             acc = 0.0
-            for k in range(k_lo, k_hi + 1):
+            for k in range(k_lo, min(s_i, k_hi + 1)):
                 ia, ib, fa, fb = _cell(a0, ra, b0, rb, k)
-                base = k * stm
-                if ib >= 0:
-                    if ia >= 0:
-                        acc += (1.0 - fa) * (1.0 - fb) * flat[base + ia * sta + ib * stb]
-                    if ia + 1 < na:
-                        acc += fa * (1.0 - fb) * flat[base + (ia + 1) * sta + ib * stb]
-                if ib + 1 < nb:
-                    if ia >= 0:
-                        acc += (1.0 - fa) * fb * flat[base + ia * sta + (ib + 1) * stb]
-                    if ia + 1 < na:
-                        acc += fa * fb * flat[base + (ia + 1) * sta + (ib + 1) * stb]
+                acc += _sample_checked(flat, k * stm, ia, ib, fa, fb, sta, stb, na, nb)
+            for k in range(s_i, e_i + 1):
+                ia, ib, fa, fb = _cell(a0, ra, b0, rb, k)
+                p = k * stm + ia * sta + ib * stb
+                top = flat[p] + fa * (flat[p + sta] - flat[p])
+                bot = flat[p + stb] + fa * (flat[p + sta + stb] - flat[p + stb])
+                acc += top + fb * (bot - top)
+            for k in range(max(e_i + 1, k_lo), k_hi + 1):
+                ia, ib, fa, fb = _cell(a0, ra, b0, rb, k)
+                acc += _sample_checked(flat, k * stm, ia, ib, fa, fb, sta, stb, na, nb)
             out[n, r, c] = acc * step
 
 
@@ -144,7 +178,23 @@ def joseph_adjoint(proj, rays, vox, vol, vol_t, n_slabs):
                         elif not (z0 - 1.0 <= b0 < z1):
                             continue
                     wv = val * step
+                    # interior planes: all four corners in the volume and (b along z) in this slab
+                    b_lo = 0.0 if m == 2 else max(0.0, z0 * 1.0)
+                    b_hi = nb - 1.0 if m == 2 else min(nb - 1.0, z1 - 1.0)
+                    s_a, e_a = _inside(a0, ra, 0.0, na - 1.0, k_lo, k_hi)
+                    s_i, e_i = _inside(b0, rb, b_lo, b_hi, s_a, e_a)
+                    if e_i < s_i:
+                        s_i, e_i = k_hi + 1, k_hi
+                    for k in range(s_i, e_i + 1):
+                        ia, ib, fa, fb = _cell(a0, ra, b0, rb, k)
+                        p = k * stm + ia * sta + ib * stb
+                        flat[p] += (1.0 - fa) * (1.0 - fb) * wv
+                        flat[p + sta] += fa * (1.0 - fb) * wv
+                        flat[p + stb] += (1.0 - fa) * fb * wv
+                        flat[p + sta + stb] += fa * fb * wv
                     for k in range(k_lo, k_hi + 1):
+                        if s_i <= k <= e_i:
+                            continue
                         ia, ib, fa, fb = _cell(a0, ra, b0, rb, k)
                         base = k * stm
                         if m == 2:
