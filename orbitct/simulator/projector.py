@@ -55,6 +55,43 @@ def _render(
                     out[i, j] += mu[k] * acc / (n * n)
 
 
+@nb.njit(cache=True, nogil=True)
+def _deposit_segment(
+    out: NDArray[np.float32], p0: NDArray[np.float64], p1: NDArray[np.float64], n: int, P: NDArray[np.float64],
+    S: NDArray[np.float64], P00: NDArray[np.float64], u: NDArray[np.float64], v: NDArray[np.float64],
+    sdd: float, mass_per_mm: float, pixel_area: float, radius: float, pitch: float,
+) -> None:
+    """Pixel-averaged line integrals of a thin wire: its mass per mm spread along ``p0 -> p1`` onto the pixels."""
+    rows, cols = out.shape
+    step = np.sqrt(((p1 - p0) ** 2).sum()) / n
+    for k in range(n):
+        f = (k + 0.5) / n
+        x0 = p0[0] + f * (p1[0] - p0[0])
+        x1 = p0[1] + f * (p1[1] - p0[1])
+        x2 = p0[2] + f * (p1[2] - p0[2])
+        w = P[2, 0] * x0 + P[2, 1] * x1 + P[2, 2] * x2 + P[2, 3]
+        if w <= 0.0:
+            continue
+        col = (P[0, 0] * x0 + P[0, 1] * x1 + P[0, 2] * x2 + P[0, 3]) / w
+        row = (P[1, 0] * x0 + P[1, 1] * x1 + P[1, 2] * x2 + P[1, 3]) / w
+        # detector area per unit area across the ray: (|p - S| / |x - S|)^2 / cos(obliquity)
+        h = P00 + col * u + row * v - S
+        dist = np.sqrt((h**2).sum())
+        m = mass_per_mm * step * (sdd / w) ** 2 * dist / sdd / pixel_area
+        # spread over the wire's projected width (a box), shared by the pixels it overlaps
+        hw = max(radius * sdd / w / pitch, 1e-6)
+        for ir in range(int(np.floor(row - hw + 0.5)), int(np.floor(row + hw + 0.5)) + 1):
+            if ir < 0 or ir >= rows:
+                continue
+            fr = (min(row + hw, ir + 0.5) - max(row - hw, ir - 0.5)) / (2 * hw)
+            for ic in range(int(np.floor(col - hw + 0.5)), int(np.floor(col + hw + 0.5)) + 1):
+                if ic < 0 or ic >= cols:
+                    continue
+                fc = (min(col + hw, ic + 0.5) - max(col - hw, ic - 0.5)) / (2 * hw)
+                if fr > 0 and fc > 0:
+                    out[ir, ic] += m * fr * fc
+
+
 def _supersampling(size_px: NDArray[np.float64], supersample: bool | int) -> NDArray[np.int64]:
     if supersample is False or supersample is None:
         return np.ones(size_px.shape, np.int64)
@@ -71,8 +108,9 @@ def line_integrals(
     """Line-integral image ``(rows, cols)`` float32 of view ``index``: exact chords through every primitive.
 
     ``supersample=True`` averages 3x3 or 5x5 rays per pixel over primitives smaller than 16 or
-    4 pixels on the detector (BBs, wires); ``False`` uses the pixel-centre ray only; an integer
-    ``n`` uses ``n x n`` rays for every primitive.
+    4 pixels on the detector (BBs), and projects cylinders thinner than half a pixel (wires) by
+    their mass per unit length (pixel averages); ``False`` uses the pixel-centre ray only; an
+    integer ``n`` uses ``n x n`` rays for every primitive.
     """
     if not 0 <= index < geometry.n_views and not -geometry.n_views <= index < 0:
         raise GeometryError(f"view index {index} out of range for {geometry.n_views} views")
@@ -114,6 +152,20 @@ def line_integrals(
     mag = geometry.sdd[index] / np.maximum(cdepth, 1e-6)
     size_px = 2 * s.min(axis=1) * mag / min(det.pitch_col, det.pitch_row)
     ss = _supersampling(size_px, supersample)
+    if supersample is True:  # wires thinner than half a pixel: exact pixel averages from their mass
+        wire = (pk.kind == 1) & (2 * s[:, :2].max(axis=1) * mag / min(det.pitch_col, det.pitch_row) < 0.5)
+        for k in np.flatnonzero(wire):
+            ax = R[k][:, 2] * s[k, 2]
+            ends = np.array([c[k] - ax, c[k] + ax])
+            hp = ends @ P[:, :3].T + P[:, 3]
+            if (hp[:, 2] <= 0).any():
+                continue
+            span_px = float(np.hypot(*(hp[1, :2] / hp[1, 2] - hp[0, :2] / hp[0, 2])))
+            _deposit_segment(out, ends[0], ends[1], max(16, int(np.ceil(50 * span_px))), P, S, P00, u, v,
+                             float(geometry.sdd[index]), float(pk.mu[k] * np.pi * s[k, 0] * s[k, 1]),
+                             det.pitch_col * det.pitch_row, float(s[k, :2].mean()),
+                             float(np.sqrt(det.pitch_col * det.pitch_row)))
+        fp[wire] = (1, 0, 1, 0)  # nothing left for the chord kernel
     _render(out, pk.kind, np.ascontiguousarray(a), np.ascontiguousarray(b00), np.ascontiguousarray(bu),
             np.ascontiguousarray(bv), pk.mu, fp, ss, P00 - S, u.copy(), v.copy())
     return out
