@@ -232,6 +232,7 @@ class XrayTwin:
         self.fault_code = code
 
     def _hv_off(self) -> None:
+        self.prep_req = self.expose_req = False  # requests are dropped whenever high voltage goes off
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None

@@ -22,12 +22,17 @@ from orbitct.cli.twin_xray import serve_twin
 @click.option("--primary-offset-deg", type=float, default=0.3, show_default=True, help="Offset of the true primary angle.")
 @click.option("--time-scale", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True, help="Simulated seconds per real second (10 = moves ten times faster).")
 @click.option("--latency-ms", type=click.FloatRange(0), default=0.0, help="Delay added before every reply.")
+@click.option("--console/--no-console", default=None, help="Read hazard/fault commands from stdin (default: when stdin is a terminal).")
 def carm(
     host: str, port: int, rows: int, phantom: str, primary_range_deg: tuple[float, float], secondary_range_deg: tuple[float, float],
     max_step_deg: float, max_speed_deg_s: float, sag_deg: float, drift_mm: float, eta_deg: float, primary_offset_deg: float,
-    time_scale: float, latency_ms: float,
+    time_scale: float, latency_ms: float, console: bool | None,
 ) -> None:
-    """Serve the simulated C-arm: load navigation programs, move, play them back and stream frames."""
+    """Serve the simulated C-arm: load navigation programs, move, play them back and stream frames.
+
+    Console commands (one a line): stuck on|off, latency MS, drop [N], garble [N], error [N],
+    missing [N], match TEXT|-.
+    """
     from devices.carm import CArmLimits
     from devices.twins.carm import CArmTwin
 
@@ -39,4 +44,12 @@ def carm(
     twin = CArmTwin(limits=limits, rows=rows, phantom=phantom, sag_deg=sag_deg, drift_mm=drift_mm, eta_deg=eta_deg,
                     primary_offset_deg=primary_offset_deg, time_scale=time_scale)
     twin.faults.latency_s = latency_ms / 1000.0
-    serve_twin(twin, host, port, lambda bound: f"C-arm twin listening on tcp://{host}:{bound} ({rows}x{rows} panel, phantom {phantom})")
+
+    def hazard(words: list[str]) -> str | None:
+        if words[:1] == ["stuck"] and words[1:2] in (["on"], ["off"]):
+            twin.stuck = words[1] == "on"
+            return f"stuck {words[1]}"
+        return None
+
+    banner = f"C-arm twin listening on tcp://{host}:{{}} ({rows}x{rows} panel, phantom {phantom})"
+    serve_twin(twin, host, port, banner.format, console=console, hazard=hazard)

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from devices.carm import CArm, export_program
+from devices.errors import ControllerError, InterlockOpenError
 from devices.xray import XrayGenerator
 from orbitct.orbits import Orbit
 
@@ -20,23 +21,31 @@ pytestmark = pytest.mark.timeout(120)
 
 
 @contextmanager
-def twin_process(*args: str) -> Iterator[int]:
-    """Start ``orbitct twin ARGS --port 0``; yield the port it printed."""
-    cmd = [sys.executable, "-c", "from orbitct.cli.main import main; main()", "twin", *args, "--port", "0"]
-    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+def twin_process(*args: str) -> Iterator[tuple[int, subprocess.Popen[str]]]:
+    """Start ``orbitct twin ARGS --port 0 --console``; yield the port it printed and the process."""
+    cmd = [sys.executable, "-c", "from orbitct.cli.main import main; main()", "twin", *args, "--port", "0", "--console"]
+    proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stderr is not None
         line = proc.stderr.readline()
         match = re.search(r"127\.0\.0\.1:(\d+)", line)
         assert match, f"no port in {line!r}"
-        yield int(match.group(1))
+        yield int(match.group(1)), proc
     finally:
         proc.terminate()
         proc.wait(10)
 
 
+def console(proc: subprocess.Popen[str], line: str) -> str:
+    """Send one console line; return the twin's answer."""
+    assert proc.stdin is not None and proc.stderr is not None
+    proc.stdin.write(line + "\n")
+    proc.stdin.flush()
+    return proc.stderr.readline().strip()
+
+
 def test_carm_twin_command() -> None:
-    with twin_process("carm", "--detector-size", "16", "--time-scale", "100", "--sag-deg", "2") as port:
+    with twin_process("carm", "--detector-size", "16", "--time-scale", "100", "--sag-deg", "2") as (port, proc):
 
         async def main() -> None:
             async with CArm("carm", f"tcp://127.0.0.1:{port}") as arm:
@@ -48,11 +57,20 @@ def test_carm_twin_command() -> None:
 
 
 def test_xray_twin_command() -> None:
-    with twin_process("xray", "--prep-ms", "10") as port:
+    with twin_process("xray", "--prep-ms", "10") as (port, proc):
 
         async def main() -> None:
             async with XrayGenerator("xray", f"modbus://127.0.0.1:{port}") as gen:
                 assert await gen.expose() == 1
+                assert console(proc, "door open") == "door open"
+                with pytest.raises(InterlockOpenError):
+                    await gen.expose()
+                assert console(proc, "door closed") == "door closed"
+                assert console(proc, "error 1") == "error next 1"
+                with pytest.raises(ControllerError):
+                    await gen.read()
+                assert "not understood" in console(proc, "explode")
+                assert await gen.expose() == 2
 
         asyncio.run(main())
 
