@@ -191,6 +191,24 @@ def _refine(raw, dark, den, col0, row0, radius, half, passes):  # type: ignore[n
     return out
 
 
+@numba.njit(cache=True, nogil=True)
+def _refine_all(raw, dark, den, peaks, b, radius, half, passes, noise):  # type: ignore[no-untyped-def]
+    """Candidate records for binned peaks ``(M, 3)`` = (col, row, response)."""
+    out = np.full((peaks.shape[0], N_FIELDS), np.nan)
+    for m in range(peaks.shape[0]):
+        col0 = peaks[m, 0] * b + 0.5 * (b - 1)
+        row0 = peaks[m, 1] * b + 0.5 * (b - 1)
+        rec = _refine(raw, dark, den, col0, row0, radius, half, passes)
+        out[m, 0] = rec[0]
+        out[m, 1] = rec[1]
+        out[m, 2] = peaks[m, 2] / noise
+        for q in range(4):
+            out[m, 3 + q] = rec[2 + q]
+        out[m, 7] = rec[6]
+        out[m, 8] = rec[7]
+    return out
+
+
 def _disc_kernel_spectrum(shape: tuple[int, int], radius: float) -> NDArray[np.complex64]:
     """Spectrum of a zero-mean kernel: disc of ``radius`` minus the surrounding ring (binned pixels)."""
     r_out = 2.0 * radius + 1.5
@@ -262,15 +280,6 @@ class FrameDetector:
             self.noise = self.estimate_noise(resp)
         peaks = _local_maxima(resp, s.k_sigma * self.noise, self.border, s.max_candidates)
         peaks = peaks[np.argsort(-peaks[:, 2])]
-        out = np.full((len(peaks), N_FIELDS), np.nan)
-        b = s.binning
-        radius = 0.5 * s.diameter_px
-        for m, (jb, ib, score) in enumerate(peaks):
-            col0, row0 = jb * b + 0.5 * (b - 1), ib * b + 0.5 * (b - 1)
-            rec = _refine(raw, self.dark, self.den, col0, row0, radius, self.half, s.refine_passes)
-            out[m, 0:2] = rec[0:2]
-            out[m, 2] = score / self.noise
-            out[m, 3:7] = rec[2:6]
-            out[m, 7:9] = rec[6:8]
+        out = _refine_all(raw, self.dark, self.den, peaks, s.binning, 0.5 * s.diameter_px, self.half, s.refine_passes, self.noise)
         keep = np.isfinite(out[:, 0])
         return out[keep]

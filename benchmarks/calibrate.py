@@ -1,0 +1,209 @@
+"""Benchmark: calibrate simulated experiments A, B, C (768 x 768; 500, 656, 857 frames) with `bundle` and
+`paper`, next to the paper's Table 1.
+
+Per run (each in a fresh process, so peak RSS is its own): detection, identification and estimation time,
+ms per frame, RPE statistics, reprojection RMS, geometry error against the truth after the best similarity
+alignment (RMS px over points filling the FOV), peak memory (tracemalloc and RSS). Reference: the same
+bundle solver fed the true BB projections plus Gaussian noise of the detector's measured centroid noise.
+
+Targets for `bundle` (issue 5): whole calibration < 0.006 s/frame on 2 cores; geometry error <= 2x the
+reference; peak memory < 1 GB for 857 frames. Simulated scans are cached (default: $TMPDIR/orbitct-calib-bench).
+
+    python benchmarks/calibrate.py                       # full size, all three (simulating takes minutes)
+    python benchmarks/calibrate.py --size 256 --frames-scale 0.25 --experiments A
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import os
+import platform
+import shutil
+import tempfile
+import time
+import tracemalloc
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+PAPER_FRAMES = {"A": 500, "B": 656, "C": 857}
+
+
+def cpu_model() -> str:
+    """CPU model name from /proc/cpuinfo (or platform)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def cached_scan(cache: Path, experiment: str, size: int, frames: int, seed: int) -> Path:
+    """Simulate (once) and return the scan of one experiment."""
+    from orbitct.simulator.scan import simulate_scan
+
+    path = cache / f"{experiment}_{size}_{frames}_seed{seed}.h5"
+    if not path.exists():
+        part = path.with_suffix(".h5.part")
+        t = time.perf_counter()
+        simulate_scan(experiment, out=part, n_frames=frames, detector_px=size, seed=seed, overwrite=True)
+        os.replace(part, path)
+        print(f"  simulated {path.name} in {time.perf_counter() - t:.0f} s", flush=True)
+    return path
+
+
+def _run(scan: str, method: str, work: str, queue: Any) -> None:
+    """Child process: one calibration, its accuracy against the truth and its peak memory."""
+    import psutil
+
+    import calib
+    from calib.bundle import bundle_adjust
+    from calib.evaluate import similarity_aligned_error_px
+    from calib.model import ViewModel
+    from calib.rays import marker_rays, triangulate_least_squares
+    from orbitct.scanfile import ScanFile
+
+    out = Path(work) / f"{method}.h5"
+    shutil.copyfile(scan, out)
+    # warm numba's cache outside the timing (a first call loads the compiled kernels)
+    from calib.detect import FrameDetector, settings_for
+
+    FrameDetector(np.zeros((64, 64), np.float32), np.full((64, 64), 1e4, np.float32), settings_for(6.0, (64, 64))).candidates(
+        np.full((64, 64), 5000, np.uint16)
+    )
+    tracemalloc.start()
+    res = calib.calibrate_scan(out, method=method)
+    _, peak_traced = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    rss = psutil.Process().memory_info().rss
+    peak_rss = _ru_maxrss()
+    with ScanFile(scan) as sf:
+        proj = sf.projection_indices
+        truth = sf.geometry("truth")[proj]
+        truth_uv = truth.project(sf.truth_markers_xyz())
+    est = res.geometry[proj]
+    err_px, _ = similarity_aligned_error_px(est, truth)
+    # centroid noise of the detections (matched to the nearest true BB projection)
+    uv = res.uv[proj]
+    d = np.linalg.norm(uv[:, :, None] - truth_uv[:, None], axis=-1)
+    seen = np.isfinite(uv[..., 0])
+    j = np.nanargmin(np.where(np.isfinite(d), d, np.inf), axis=2)
+    diff = (uv - np.take_along_axis(truth_uv, j[..., None].repeat(2, -1), axis=1))[seen]
+    noise_px = float(np.sqrt(np.mean(diff**2)))  # per axis
+    # reference: bundle from the true projections of the same BBs in the same views, plus that noise
+    owner = np.array([np.bincount(j[seen[:, k], k], minlength=truth_uv.shape[1]).argmax() for k in range(uv.shape[1])])
+    ref_uv = truth_uv[:, owner] + np.random.default_rng(0).normal(0.0, noise_px, uv.shape)
+    ref_uv[~seen] = np.nan
+    nominal = ViewModel(ScanFile(scan).geometry("nominal")[proj])
+    ok = seen.sum(1) >= 3
+    sub = ViewModel(nominal.nominal[np.flatnonzero(ok)])
+    xyz0 = triangulate_least_squares(*marker_rays(sub.nominal, ref_uv[ok]))
+    ref = bundle_adjust(sub, ref_uv[ok], xyz0)
+    ref_err, _ = similarity_aligned_error_px(sub.geometry(ref.state), truth[np.flatnonzero(ok)])
+    last = res.iterations[-1]
+    queue.put(
+        {
+            "method": method,
+            "frames": res.n_frames,
+            "bbs": res.n_bbs,
+            "elapsed_s": res.elapsed_s,
+            "detect_s": res.detect_s,
+            "estimate_s": res.estimate_s,
+            "identify_s": res.elapsed_s - res.detect_s - res.estimate_s,
+            "ms_per_frame": 1000 * res.elapsed_s / res.n_frames,
+            "rpe_mean_mm": last.rpe_mean_mm,
+            "rpe_median_mm": last.rpe_median_mm,
+            "rpe_std_mm": last.rpe_std_mm,
+            "rpe_initial_mm": res.iterations[0].rpe_mean_mm,
+            "rpe_iter": [s.rpe_mean_mm for s in res.iterations],
+            "reproj_rms_px": res.reproj_rms_px,
+            "geom_err_px": err_px,
+            "ref_err_px": ref_err,
+            "noise_px": noise_px,
+            "seen_share": float(seen.mean()),
+            "unsolved": len(res.unsolved_views),
+            "peak_traced_mb": peak_traced / 2**20,
+            "peak_rss_mb": peak_rss / 2**20,
+            "rss_mb": rss / 2**20,
+        }
+    )
+
+
+def _ru_maxrss() -> float:
+    import resource
+
+    return float(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024.0
+
+
+def run_one(scan: Path, method: str) -> dict[str, Any]:
+    """One calibration in a fresh process."""
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    with tempfile.TemporaryDirectory() as work:
+        p = ctx.Process(target=_run, args=(str(scan), method, work, q))
+        p.start()
+        out = q.get()
+        p.join()
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--experiments", default="A,B,C")
+    ap.add_argument("--methods", default="bundle,paper")
+    ap.add_argument("--size", type=int, default=768, help="detector size (px)")
+    ap.add_argument("--frames-scale", type=float, default=1.0, help="fraction of the paper's frame counts")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "orbitct-calib-bench")
+    args = ap.parse_args()
+    args.cache.mkdir(parents=True, exist_ok=True)
+    from calib.report import PAPER_TABLE1
+
+    print(f"machine: {cpu_model()}, {os.cpu_count()} cores, {platform.python_version()}")
+    rows: list[tuple[str, dict[str, Any]]] = []
+    for exp in args.experiments.split(","):
+        frames = max(20, int(round(PAPER_FRAMES[exp] * args.frames_scale)))
+        scan = cached_scan(args.cache, exp, args.size, frames, args.seed)
+        for method in args.methods.split(","):
+            r = run_one(scan, method)
+            rows.append((exp, r))
+            print(
+                f"  {exp} {method:6s}: {r['bbs']} BBs, {r['elapsed_s']:.2f} s ({r['ms_per_frame']:.2f} ms/frame), "
+                f"RPE {r['rpe_mean_mm']:.4f} mm, geometry error {r['geom_err_px']:.3f} px (ref {r['ref_err_px']:.3f})",
+                flush=True,
+            )
+    print()
+    print(f"# Calibration benchmark ({args.size} x {args.size} px; frames = {args.frames_scale:g} x the paper's)\n")
+    head = "| exp | method | frames | BBs | total s | ms/frame | ms/frame/BB | detect s | identify s | estimate s | " \
+           "RPE mean / median / std (mm) | initial RPE | reproj px | geom err px | ref err px | ratio | noise px | " \
+           "seen | peak traced MB | peak RSS MB |"
+    print(head)
+    print("|" + "---|" * (head.count("|") - 1))
+    for exp, r in rows:
+        ratio = r["geom_err_px"] / r["ref_err_px"] if r["ref_err_px"] > 0 else float("nan")
+        print(
+            f"| {exp} | {r['method']} | {r['frames']} | {r['bbs']} | {r['elapsed_s']:.2f} | {r['ms_per_frame']:.2f} | "
+            f"{r['ms_per_frame'] / max(r['bbs'], 1):.3f} | {r['detect_s']:.2f} | {r['identify_s']:.2f} | {r['estimate_s']:.2f} | "
+            f"{r['rpe_mean_mm']:.4f} / {r['rpe_median_mm']:.4f} / {r['rpe_std_mm']:.4f} | {r['rpe_initial_mm']:.3f} | "
+            f"{r['reproj_rms_px']:.3f} | {r['geom_err_px']:.3f} | {r['ref_err_px']:.3f} | {ratio:.2f} | {r['noise_px']:.3f} | "
+            f"{r['seen_share']:.2f} | {r['peak_traced_mb']:.0f} | {r['peak_rss_mb']:.0f} |"
+        )
+    print("\nRPE mean per iteration (0 = nominal geometry):")
+    for exp, r in rows:
+        print(f"  {exp} {r['method']:6s}: " + ", ".join(f"{v:.4f}" for v in r["rpe_iter"][:8]) + (" ..." if len(r["rpe_iter"]) > 8 else ""))
+    print("\nPaper (Ma et al. 2022, Table 1, after 2 iterations, MATLAB on a laptop):")
+    print("| exp | frames | BBs | elapsed s | RPE mean / median / std (mm) | s/frame | s/frame/BB |")
+    print("|---|---|---|---|---|---|---|")
+    for exp in args.experiments.split(","):
+        p = PAPER_TABLE1[exp]
+        print(f"| {exp} | {p['frames']:.0f} | {p['bbs']:.0f} | {p['elapsed_s']:.0f} | {p['rpe_mean_mm']} / {p['rpe_median_mm']} / "
+              f"{p['rpe_std_mm']} | {p['s_per_frame']} | {p['s_per_frame_per_bb']} |")
+    print("\nTargets for bundle: < 6 ms/frame, geometry error <= 2x reference, peak RSS < 1024 MB (857 frames).")
+
+
+if __name__ == "__main__":
+    main()
