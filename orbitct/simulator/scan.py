@@ -87,15 +87,17 @@ class SimulationResult:
 
 
 def resolve_orbit(experiment: str, orbit: str | Orbit | None, n_frames: int | None, **params: Any) -> Orbit:
-    """The orbit to simulate: an :class:`Orbit`, a name, or the experiment's default orbit."""
+    """The orbit to simulate: an :class:`Orbit`, a name, or the experiment's default orbit.
+
+    The default orbit's parameters (e.g. C's ``preset=pheno``) apply only when no ``params`` are given.
+    """
     if isinstance(orbit, Orbit):
         if n_frames is not None and n_frames != orbit.n_frames:
             raise OrbitError(f"n_frames={n_frames} disagrees with the given orbit's {orbit.n_frames} frames")
         return orbit
     default_name, default_params = DEFAULT_ORBITS.get(str(experiment).upper(), ("sawtooth", {}))
     name = orbit or default_name
-    p = dict(default_params) if name == default_name else {}
-    p.update(params)
+    p = dict(default_params) if name == default_name and not params else dict(params)
     if n_frames is not None:
         p["n_frames"] = int(n_frames)
     return make_orbit(name, **p)

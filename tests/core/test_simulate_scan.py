@@ -64,3 +64,17 @@ def test_interrupted_simulation_is_marked_aborted(tmp_path: Path) -> None:
     with ScanFile(path) as f:
         assert f.status == "aborted" and "KeyboardInterrupt" in f.status_reason
         assert 2 <= f.n_frames < 22
+
+
+def test_resolve_orbit_defaults_and_overrides() -> None:
+    from orbitct.orbits import OrbitError
+    from orbitct.simulator import resolve_orbit
+
+    assert resolve_orbit("C", None, None).params == {"n_frames": 857, "preset": "pheno"}
+    arcs = [{"kind": "tilt", "rotation_deg": 0, "start_deg": -10, "end_deg": 10}]
+    assert resolve_orbit("C", "multiarc", 20, arcs=arcs).n_segments == 1
+    assert resolve_orbit("B", None, 30).name == "dcarc"
+    orb = make_orbit("circular", n_frames=10)
+    assert resolve_orbit("A", orb, None) is orb
+    with pytest.raises(OrbitError, match="disagrees"):
+        resolve_orbit("A", orb, 11)
