@@ -408,7 +408,20 @@ class CArm(Detector):
         await self._l().command("RUN", retry=False)
         frames: list[Frame] = []
         while len(frames) < n_frames:
-            frame = await self.read_frame(timeout_s=max(self.timeout_s, 30.0))
+            try:
+                frame = await self.read_frame(timeout_s=1.0)
+            except DeviceTimeoutError as exc:
+                if "missing" in str(exc):
+                    raise
+                running, _point, _n, rendering = (await self._l().command("RUN?")).split()
+                if running == "1" or rendering != "0":
+                    continue
+                try:  # the program ended and every frame is rendered: what it took is queued
+                    frame = await self.read_frame(timeout_s=self.timeout_s)
+                except DeviceTimeoutError:
+                    raise DeviceTimeoutError(
+                        f"{self.name}: program ended with {len(frames)} of {n_frames} frames; frame(s) missing, not re-taken"
+                    ) from None
             frames.append(frame)
             report(fraction=len(frames) / n_frames, message=f"frame {len(frames)}/{n_frames}", current={"point": float(frame.meta.get("point", -1))})
         return frames

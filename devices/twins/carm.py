@@ -12,7 +12,7 @@ angles ``theta_c, phi_c`` (rad) by:
 The true view of every frame travels with it (``meta['truth_vectors']``). Besides the detector
 commands (see :mod:`devices.twins.detector`) it serves ``LIMITS?`` (JSON), ``PROG CLEAR``,
 ``PROG ADD <csv fields>``, ``PROG?``, ``GOTO i``, ``MOVE p s``, ``POS?`` (p s moving point),
-``ONT?``, ``STOP``, ``RUN`` and ``RUN?`` (running point n_acquire).
+``ONT?``, ``STOP``, ``RUN`` and ``RUN?`` (running point n_acquire frames_rendering).
 """
 
 from __future__ import annotations
@@ -185,7 +185,7 @@ class CArmTwin(DetectorTwin):
 
     def cmd_run_q(self, args: list[str]) -> str:
         running = self._run is not None and not self._run.done()
-        return f"{int(running)} {self.point} {sum(p.acquire for p in self.program)}"
+        return f"{int(running)} {self.point} {sum(p.acquire for p in self.program)} {self.rendering}"
 
     async def _play(self) -> None:
         for i, pt in enumerate(self.program):

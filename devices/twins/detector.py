@@ -108,7 +108,7 @@ class LineTwinServer:
 
     def push_frame(self, number: int, data: NDArray[np.uint16], kind: str, meta: dict[str, Any], timestamp: float | None = None) -> None:
         """Queue frame ``number`` taken at ``timestamp`` (default now), unless a missing-frame fault swallows it."""
-        if self.faults.take("missing_frame"):
+        if self.faults.take("missing_frame", f"frame {number};"):
             return
         assert self.frames is not None
         self.frames.put_nowait(Frame(np.asarray(data, np.uint16), number, time.time() if timestamp is None else timestamp, kind, meta))
@@ -280,6 +280,7 @@ class DetectorTwin(LineTwinServer):
         self._phantom_spec = phantom
         self._seen_exposures = 0
         self._rendering: asyncio.Task[Any] | None = None
+        self.rendering = 0  # frames taken whose pixels are still being rendered
 
     # ------------------------------------------------------------- rendering
     def set_phantom(self, phantom: Any) -> None:
@@ -325,6 +326,7 @@ class DetectorTwin(LineTwinServer):
             view = ViewGeometry.from_carm(0.0, 0.0, self.sad_mm, self.sdd_mm, self.geometry)
         rng = np.random.default_rng(int(self.rng.integers(1 << 62)))
         args = (kind, view, kv, ma, exposure_ms, rng)
+        self.rendering += 1
         self._rendering = self.spawn(self._render(number, args, meta, time.time(), self._rendering))
         return number
 
@@ -337,6 +339,7 @@ class DetectorTwin(LineTwinServer):
             data, failure = None, f"frame {number} could not be rendered: {exc}"
         if previous is not None:
             await asyncio.wait([previous])  # frames leave in the order they were taken
+        self.rendering -= 1
         if data is None:
             assert self.frames is not None
             self.frames.put_nowait(failure)  # type: ignore[arg-type]
@@ -400,7 +403,10 @@ class DetectorTwin(LineTwinServer):
 
     def cmd_state_q(self, args: list[str]) -> str:
         assert self.frames is not None
-        return f"armed={int(self.armed)} mode={self.mode} frames={self.frame_number} queued={self.frames.qsize()} binning={self.binning}"
+        return (
+            f"armed={int(self.armed)} mode={self.mode} frames={self.frame_number} queued={self.frames.qsize()} "
+            f"rendering={self.rendering} binning={self.binning}"
+        )
 
     def cmd_trig(self, args: list[str]) -> str:
         if not self.armed or self.mode != "SOFTWARE":

@@ -45,7 +45,7 @@ class TwinFaults:
     garble_next: int = 0  # answer with corrupted bytes
     error_next: int = 0  # answer with a device error
     missing_frame_next: int = 0  # complete the action but lose the frame / trigger
-    match: str = ""  # drop/garble/error only hit requests containing this text (e.g. "fc5:1=[1]", "TRIG")
+    match: str = ""  # faults only hit requests containing this text (e.g. "fc5:1=[1]", "TRIG", "frame 7;")
 
     def take(self, name: str, request: str = "") -> bool:
         """Consume one pending fault called ``name`` (e.g. ``'drop'``) for ``request``; whether one was pending."""

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from devices.carm import CArm, CArmLimits, InfeasibleOrbitError, NavPoint, NavProgram, ProgramFileError, export_program
-from devices.errors import ControllerError, DeviceTimeoutError, NotConnectedError, OutOfLimitsError
+from devices.errors import ControllerError, DeviceTimeoutError, NotConnectedError, OutOfLimitsError, ProtocolError
 from devices.twins.carm import CArmTwin
 from devices.twins.xray import TwinThread
 from orbitct.geometry import ViewGeometry
@@ -165,6 +165,18 @@ def test_faults_on_the_carm_link() -> None:
         arm.twin.faults.error_next = 1
         with pytest.raises(ControllerError):
             await arm.position()
+        await arm.load(export_program(orbit([0, 2, 4], [0, 0, 0])))
+        arm.twin.faults.missing_frame_next = 1
+        with pytest.raises(DeviceTimeoutError, match="frame.* missing"):
+            await arm.run()  # the first frame never arrives: named by the gap
+        arm.twin.faults.latency_s = 0.5
+        with pytest.raises(DeviceTimeoutError, match="no reply"):
+            await arm.position()
+        arm.twin.faults.latency_s = 0.0
+        await asyncio.sleep(0.6)
+        arm.twin.faults.garble_next = 1
+        with pytest.raises(ProtocolError):
+            await arm._l().command("POS?", retry=False)
         arm.twin.stuck = True
         with pytest.raises(DeviceTimeoutError, match="stuck at primary"):
             await arm.move({"primary": 30.0})
@@ -173,7 +185,7 @@ def test_faults_on_the_carm_link() -> None:
         await arm.move({"primary": 1.0})
         assert (await arm.position())["primary"] == pytest.approx(1.0)
 
-    run(body, stall_s=0.3)
+    run(body, stall_s=0.3, timeout_s=0.3)
 
 
 def test_standalone_carm_twin_over_tcp() -> None:
@@ -219,3 +231,14 @@ def test_stop_during_a_run_is_immediate() -> None:
         assert p0 < 96.0
 
     run(body, time_scale=1.0)
+
+
+def test_last_frame_missing_is_named_when_the_program_ends() -> None:
+    async def body(arm: CArm) -> None:
+        await arm.load(export_program(orbit([0, 2], [0, 0])))
+        frames = await arm.run()
+        arm.twin.faults.match, arm.twin.faults.missing_frame_next = f"frame {frames[-1].number + 2};", 1
+        with pytest.raises(DeviceTimeoutError, match="1 of 2 frames"):
+            await arm.run()
+
+    run(body)
