@@ -212,7 +212,6 @@ def read_rtk_geometry(path: Path, detector: Detector) -> ViewGeometry:
             "SourceOffsetX", "SourceOffsetY", "ProjectionOffsetX", "ProjectionOffsetY")
     glob = {k: float(root.findtext(k)) for k in keys if root.find(k) is not None}
     rows = []
-    c0, r0 = detector.center
     for proj in root.findall("Projection"):
         p = {"OutOfPlaneAngle": 0.0, "InPlaneAngle": 0.0, "SourceOffsetX": 0.0, "SourceOffsetY": 0.0,
              "ProjectionOffsetX": 0.0, "ProjectionOffsetY": 0.0, **glob}
@@ -223,5 +222,4 @@ def read_rtk_geometry(path: Path, detector: Detector) -> ViewGeometry:
         back = RTK_FROM_OBJECT.T @ R.T
         rows.append(np.concatenate([back @ s, back @ d, back @ np.array([detector.pitch_col, 0, 0]),
                                     back @ np.array([0, -detector.pitch_row, 0])]))
-    del c0, r0
     return ViewGeometry(np.array(rows), detector)

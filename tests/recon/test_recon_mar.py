@@ -55,3 +55,13 @@ def test_mar_reduces_streak_error_and_keeps_metal(metal_scan: Path, algorithm: s
     assert fixed.name == f"{algorithm}_nominal_mar" and fixed.params["metal_voxels"] > 0
     assert rmse(fixed.volume, truth, ring) < 0.85 * rmse(plain.volume, truth, ring)
     assert fixed.volume.max() >= 0.9 * plain.volume.max()  # the metal is back in the volume
+
+
+def test_threshold_segmentation_finds_small_dense_spots_only() -> None:
+    from recon.mar import traces_by_threshold
+
+    rr, cc = np.mgrid[0:40, 0:40]
+    li = (2.0 * np.exp(-((rr - 20) ** 2 + (cc - 20) ** 2) / 300.0)).astype(np.float32)[None]  # broad body
+    li[0, 10:12, 30:32] += 1.5  # a bead
+    mask = traces_by_threshold(li, 0.5, size_px=7, dilate=0)
+    assert mask[0, 10:12, 30:32].all() and mask.sum() == 4
