@@ -41,6 +41,16 @@ def _axis_units(names: Mapping[str, str] | None) -> dict[str, str]:
     return out
 
 
+def _put_row(ds: h5py.Dataset, i: int, value: Any) -> None:
+    """Grow ``ds`` to ``i + 1`` rows and write row ``i`` (low-level h5py: ~10x less overhead per call)."""
+    tail = ds.shape[1:]
+    ds.id.set_extent((i + 1,) + tail)
+    row = np.ascontiguousarray(np.asarray(value, dtype=ds.dtype).reshape((1,) + tail))
+    space = ds.id.get_space()
+    space.select_hyperslab((i,) + (0,) * len(tail), row.shape)
+    ds.id.write(h5py.h5s.create_simple(row.shape), space, row)
+
+
 class ScanWriter:
     """Append frames to a new scan file; use as a context manager."""
 
@@ -91,6 +101,13 @@ class ScanWriter:
         nom.create_dataset(
             "matrices", shape=(0, 3, 4), maxshape=(None, 3, 4), dtype="f8", chunks=(_GEOM_CHUNK, 3, 4)
         )
+        # handles of every per-frame dataset, looked up once (append runs once per frame)
+        self._per_frame = {
+            name: f[name]
+            for name in ["frames/data", "frames/image_key", "frames/time_s", "geometry/nominal/vectors",
+                         "geometry/nominal/matrices"]
+            + [f"frames/{grp}/{axis}" for grp in ("encoders", "commanded") for axis in self._axes]
+        }
         mk = f.create_group("markers")
         if marker_diameter_mm is not None:
             mk.attrs["diameter_mm"] = float(marker_diameter_mm)
@@ -134,36 +151,26 @@ class ScanWriter:
         vec = np.full(12, np.nan) if nominal_vector is None else np.asarray(nominal_vector, float).reshape(12)
         if key == 0 and not np.isfinite(vec).all():
             raise ScanFileError("a projection frame needs a finite nominal geometry vector")
-        f, i = self._f, self._n
-        data = f["frames/data"]
-        if data.dtype == np.uint16:
-            arr = np.clip(np.rint(arr), 0, 65535).astype(np.uint16) if arr.dtype != np.uint16 else arr
-        data.resize(i + 1, axis=0)
-        data[i] = arr
-        for grp, values in (("encoders", encoders), ("commanded", commanded)):
-            values = values or {}
+        axis_values = {"encoders": encoders or {}, "commanded": commanded or {}}
+        for grp, values in axis_values.items():
             unknown = set(values) - set(self._axes)
             if unknown:
                 raise ScanFileError(f"{grp}: unknown axes {sorted(unknown)}; declared axes are {sorted(self._axes)}")
+        i, ds = self._n, self._per_frame
+        if ds["frames/data"].dtype == np.uint16:
+            arr = np.clip(np.rint(arr), 0, 65535).astype(np.uint16) if arr.dtype != np.uint16 else arr
+        _put_row(ds["frames/data"], i, arr)
+        for grp, values in axis_values.items():
             for name in self._axes:
-                ds = f[f"frames/{grp}/{name}"]
-                ds.resize(i + 1, axis=0)
-                ds[i] = values.get(name, np.nan)
-        vds, mds = f["geometry/nominal/vectors"], f["geometry/nominal/matrices"]
-        vds.resize(i + 1, axis=0)
-        vds[i] = vec
-        mds.resize(i + 1, axis=0)
-        mds[i] = ViewGeometry(vec, self.detector).matrices[0]
-        tds = f["frames/time_s"]
-        tds.resize(i + 1, axis=0)
-        tds[i] = float(time_s)
+                _put_row(ds[f"frames/{grp}/{name}"], i, values.get(name, np.nan))
+        _put_row(ds["geometry/nominal/vectors"], i, vec)
+        _put_row(ds["geometry/nominal/matrices"], i, ViewGeometry(vec, self.detector).matrices[0])
+        _put_row(ds["frames/time_s"], i, float(time_s))
         # image_key is written last: its length is the count of complete frames.
-        kds = f["frames/image_key"]
-        kds.resize(i + 1, axis=0)
-        kds[i] = key
+        _put_row(ds["frames/image_key"], i, key)
         self._n = i + 1
         if flush:
-            f.flush()
+            self._f.flush()
         return i
 
     def write_truth(
