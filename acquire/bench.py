@@ -28,6 +28,8 @@ from devices.factory import stop_all as stop_devices
 log = logging.getLogger(__name__)
 SIM_WORLD = "bench"
 STAGE_AXIS = "R"
+SIM_REPLY_TIMEOUT_S = 5.0
+SIM_FRAME_TIMEOUT_S = 20.0
 
 
 class Bench:
@@ -238,12 +240,13 @@ async def _await(st: Status[Any]) -> Any:
 def sim_options(config: BenchConfig) -> dict[str, dict[str, Any]]:
     """Twin options per device for an in-process simulated bench of ``config``."""
     det = config.geometry.detector
+    # the twins share this machine's CPU with the scan: allow for a loaded machine in reply time-outs
     return {
-        "hexapod": {"time_scale": config.sim.time_scale},
-        "rotation_stage": {"time_scale": config.sim.time_scale},
-        "xray": {},  # its twin's time_scale stretches durations (the opposite sense); keep real time
+        "hexapod": {"time_scale": config.sim.time_scale, "timeout_s": SIM_REPLY_TIMEOUT_S},
+        "rotation_stage": {"time_scale": config.sim.time_scale, "timeout_s": SIM_REPLY_TIMEOUT_S},
+        "xray": {"timeout_s": SIM_REPLY_TIMEOUT_S},  # its twin's time_scale stretches durations: keep real time
         "detector": {"rows": det.rows, "cols": det.cols, "sad_mm": config.geometry.sad_mm,
-                     "sdd_mm": config.geometry.sdd_mm, "seed": config.sim.seed},
+                     "sdd_mm": config.geometry.sdd_mm, "seed": config.sim.seed, "timeout_s": SIM_FRAME_TIMEOUT_S},
     }
 
 

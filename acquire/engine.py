@@ -109,6 +109,8 @@ class ScanEngine:
         self._lab_view = config.geometry.lab_view()
         self._motion_s = 0.0
         self._acquire_s = 0.0
+        self._readback_s = 0.0
+        self._record_s = 0.0
         self._run_s = 0.0
 
     # ------------------------------------------------------------- control
@@ -146,10 +148,12 @@ class ScanEngine:
 
     @property
     def timing(self) -> dict[str, float]:
-        """Seconds of the frame loop: total, in detector acquisition (exposure, rendering, readout),
-        in commanded moves and settling, and the rest (executor and recorder overhead)."""
+        """Seconds of the frame loop: total, in detector acquisition (exposure, rendering, readout), in
+        commanded moves and settling, and the rest (executor and recorder overhead), of which read-backs
+        and recording (subscribers' ``on_frame``)."""
         rest = self._run_s - self._acquire_s - self._motion_s
-        return {"run_s": self._run_s, "acquire_s": self._acquire_s, "motion_s": self._motion_s, "overhead_s": rest}
+        return {"run_s": self._run_s, "acquire_s": self._acquire_s, "motion_s": self._motion_s, "overhead_s": rest,
+                "readback_s": self._readback_s, "record_s": self._record_s}
 
     # ---------------------------------------------------------------- run
     async def run(self) -> ScanOutcome:
@@ -294,6 +298,7 @@ class ScanEngine:
         return ViewGeometry.from_object_poses(self._lab_view, pose[0], pose[1]).vectors[0]
 
     async def _shoot(self, f: FramePlan, t0: float, commanded: dict[str, float]) -> None:
+        t_a = time.monotonic()
         encoders = await self.bench.read_positions()
         t_frame = time.monotonic() - t0
         t_b = time.monotonic()
@@ -306,10 +311,13 @@ class ScanEngine:
             commanded=commanded, encoders=encoders, nominal_vector=f.nominal_vector,
             true_vector=truth, detector_frame_number=number,
         )
+        t_r = time.monotonic()
         self._notify("on_frame", rec)
         self.n_done += 1
         t_d = time.monotonic()
         self._acquire_s += t_c - t_b
+        self._readback_s += t_b - t_a
+        self._record_s += t_d - t_r
         elapsed = t_d - t0
         self._run_s = elapsed
         rate = self.n_done / elapsed if elapsed > 0 else 0.0
