@@ -87,7 +87,8 @@ class CArmTwin(DetectorTwin):
         return {"point": self.point, "primary_deg": self.primary_deg, "secondary_deg": self.secondary_deg}
 
     async def started(self) -> None:
-        """No generator watch: the C-arm exposes on its own triggers."""
+        """Warm the renderer; no generator watch (the C-arm exposes on its own triggers)."""
+        await asyncio.get_running_loop().run_in_executor(None, self.warm_up)
 
     # --------------------------------------------------------------- motion
     @property

@@ -355,7 +355,18 @@ class DetectorTwin(LineTwinServer):
             return float(self.world.xray_kv), float(self.world.xray_ma), float(self.world.exposure_ms)
 
     async def started(self) -> None:
+        """Build the renderer and compile its kernels before serving (the first frame is then as fast as any)."""
+        await asyncio.get_running_loop().run_in_executor(None, self.warm_up)
         self.spawn(self._watch_generator())
+
+    def warm_up(self) -> None:
+        """Render one tiny frame of every kind: loads the phantom and compiles (or loads cached) numba kernels."""
+        g = self.panel
+        tiny = PanelGeometry(8, 8, g.pitch_col * g.cols / 8, g.pitch_row * g.rows / 8)
+        view = ViewGeometry.from_carm(0.0, 0.0, self.sad_mm, self.sdd_mm, tiny)
+        rng = np.random.default_rng(0)
+        for kind in ("projection", "flat", "dark"):
+            self.renderer()(kind, view, 90.0, 1.0, 10.0, rng)
 
     async def _watch_generator(self) -> None:
         while True:

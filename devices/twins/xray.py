@@ -34,6 +34,7 @@ from devices.twins.world import SimWorld, get_world
 from devices.xray_registers import FaultCode, GeneratorState, Refusal
 
 HEARTBEAT_PERIOD_S = 0.1
+START_TIMEOUT_S = 300.0  # a twin may compile its renderer's kernels before it listens (first run, no numba cache)
 
 
 @dataclass
@@ -84,11 +85,11 @@ class TwinThread:
         self.port = 0
         self._thread = threading.Thread(target=self._main, args=(port,), name=f"twin-{type(server).__name__}", daemon=True)
         self._thread.start()
-        self._ready.wait(10.0)
+        self._ready.wait(START_TIMEOUT_S)
         if self._error is not None:
             raise self._error
         if not self.port:
-            raise RuntimeError(f"{type(server).__name__} twin did not start within 10 s")
+            raise RuntimeError(f"{type(server).__name__} twin did not start within {START_TIMEOUT_S:g} s")
 
     def _main(self, port: int) -> None:
         asyncio.set_event_loop(self.loop)
