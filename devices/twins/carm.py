@@ -84,6 +84,7 @@ class CArmTwin(DetectorTwin):
         return view
 
     def frame_meta(self) -> dict[str, Any]:
+        """Program point and read-back angles of the frame."""
         return {"point": self.point, "primary_deg": self.primary_deg, "secondary_deg": self.secondary_deg}
 
     async def started(self) -> None:
@@ -120,9 +121,11 @@ class CArmTwin(DetectorTwin):
             await asyncio.sleep(min(0.01, duration / 20))
 
     def cmd_limits_q(self, args: list[str]) -> str:
+        """``LIMITS?``: the C-arm limits as JSON."""
         return json.dumps(self.limits.to_json())
 
     def cmd_prog(self, args: list[str]) -> str:
+        """``PROG CLEAR`` or ``PROG ADD <csv fields>`` (checked against the limits)."""
         if args[:1] == ["CLEAR"]:
             self.program = []
             return ""
@@ -141,9 +144,11 @@ class CArmTwin(DetectorTwin):
         raise CommandError(ERR_BAD_ARG, "PROG takes CLEAR or ADD <fields>")
 
     def cmd_prog_q(self, args: list[str]) -> str:
+        """``PROG?``: number of points loaded."""
         return str(len(self.program))
 
     def cmd_goto(self, args: list[str]) -> str:
+        """``GOTO i``: move to program point i."""
         i = _int_arg(args, 0)
         if not 0 <= i < len(self.program):
             raise CommandError(ERR_BAD_ARG, f"GOTO: point {i} not in the program (0..{len(self.program) - 1})")
@@ -153,6 +158,7 @@ class CArmTwin(DetectorTwin):
         return ""
 
     def cmd_move(self, args: list[str]) -> str:
+        """``MOVE p s [speed]``: move to angles (deg)."""
         try:
             p, s = float(args[0]), float(args[1])
             speed = float(args[2]) if len(args) > 2 else self.limits.max_speed_deg_s
@@ -163,12 +169,15 @@ class CArmTwin(DetectorTwin):
         return ""
 
     def cmd_pos_q(self, args: list[str]) -> str:
+        """``POS?``: primary secondary moving point."""
         return f"{self.primary_deg:.6f} {self.secondary_deg:.6f} {int(self.moving)} {self.point}"
 
     def cmd_ont_q(self, args: list[str]) -> str:
+        """``ONT?``: 1 when not moving."""
         return "0" if self.moving else "1"
 
     def cmd_stop(self, args: list[str]) -> str:
+        """``STOP``: halt the arm and any program run."""
         for task in (self._run, self._motion):
             if task is not None:
                 task.cancel()
@@ -176,6 +185,7 @@ class CArmTwin(DetectorTwin):
 
     # ------------------------------------------------------------- playback
     def cmd_run(self, args: list[str]) -> str:
+        """``RUN``: play the loaded program in the background."""
         if not self.program:
             raise CommandError(ERR_NOT_ARMED, "RUN: no program loaded")
         if self._run is not None and not self._run.done():
@@ -185,6 +195,7 @@ class CArmTwin(DetectorTwin):
         return ""
 
     def cmd_run_q(self, args: list[str]) -> str:
+        """``RUN?``: running point n_acquire frames_rendering."""
         running = self._run is not None and not self._run.done()
         return f"{int(running)} {self.point} {sum(p.acquire for p in self.program)} {self.rendering}"
 

@@ -381,10 +381,12 @@ class DetectorTwin(LineTwinServer):
 
     # -------------------------------------------------------------- commands
     def cmd_shape_q(self, args: list[str]) -> str:
+        """``SHAPE?``: rows cols pitch_col pitch_row binning."""
         g = self.geometry
         return f"{g.rows} {g.cols} {g.pitch_col:.9g} {g.pitch_row:.9g} {self.binning}"
 
     def cmd_bin(self, args: list[str]) -> str:
+        """``BIN n``: bin n x n pixels (1, 2, 4)."""
         factor = _int_arg(args, 0)
         if factor not in (1, 2, 4) or self.panel.rows // factor < 1:
             raise CommandError(ERR_BAD_ARG, f"binning must be 1, 2 or 4, got {factor}")
@@ -392,6 +394,7 @@ class DetectorTwin(LineTwinServer):
         return ""
 
     def cmd_trigmode(self, args: list[str]) -> str:
+        """``TRIGMODE SOFTWARE|XRAY``."""
         mode = args[0].upper() if args else ""
         if mode not in ("SOFTWARE", "XRAY"):
             raise CommandError(ERR_BAD_ARG, f"trigger mode must be SOFTWARE or XRAY, got {mode!r}")
@@ -399,9 +402,11 @@ class DetectorTwin(LineTwinServer):
         return ""
 
     def cmd_trigmode_q(self, args: list[str]) -> str:
+        """``TRIGMODE?``."""
         return self.mode
 
     def cmd_arm(self, args: list[str]) -> str:
+        """``ARM``: discard queued frames, accept triggers."""
         self.clear_frames()
         with self.world.lock:
             self._seen_exposures = self.world.xray_frame_counter
@@ -409,10 +414,12 @@ class DetectorTwin(LineTwinServer):
         return ""
 
     def cmd_disarm(self, args: list[str]) -> str:
+        """``DISARM``: ignore triggers."""
         self.armed = False
         return ""
 
     def cmd_state_q(self, args: list[str]) -> str:
+        """``STATE?``: armed, mode, frames taken, queued, rendering, binning."""
         assert self.frames is not None
         return (
             f"armed={int(self.armed)} mode={self.mode} frames={self.frame_number} queued={self.frames.qsize()} "
@@ -420,12 +427,15 @@ class DetectorTwin(LineTwinServer):
         )
 
     def cmd_trig(self, args: list[str]) -> str:
+        """``TRIG``: software trigger; answers the frame number."""
         if not self.armed or self.mode != "SOFTWARE":
             raise CommandError(ERR_NOT_ARMED, f"software trigger needs an armed panel in SOFTWARE mode (armed={int(self.armed)}, mode={self.mode})")
         return str(self.start_frame("projection", *self._settings()))
 
     def cmd_dark(self, args: list[str]) -> str:
+        """``DARK``: take a dark frame; answers its number."""
         return str(self.start_frame("dark", 0.0, 0.0, self._settings()[2]))
 
     def cmd_flat(self, args: list[str]) -> str:
+        """``FLAT``: take an open-beam frame; answers its number."""
         return str(self.start_frame("flat", *self._settings()))
