@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import secrets
+import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -60,13 +61,7 @@ class Service:
             path = self.settings.data_dir / row["file"] if row else None
             summary: dict[str, object] = {}
             if path is not None and path.exists():
-                try:
-                    from acquire.repair import repair_scan
-
-                    repair_scan(path)
-                except Exception as exc:  # noqa: BLE001 - keep what is there, say why it could not be repaired
-                    log.error("could not repair %s: %s", path.name, exc)
-                summary = scan_summary(path)
+                summary = self._repair(path)
             self.store.update_scan(scan_id, summary=summary)
             self.bus.publish(f"scan:{scan_id}", "end", {"state": "interrupted", "reason": RESTART_REASON})
         for job_id in job_ids:
@@ -74,6 +69,23 @@ class Service:
         if scan_ids or job_ids:
             log.warning("marked interrupted after restart: scans %s, jobs %s", scan_ids, job_ids)
         return scan_ids, job_ids
+
+    @staticmethod
+    def _repair(path: Path, wait_s: float = 15.0) -> dict[str, object]:
+        """Mark a scan file left 'acquiring' as aborted (waiting while a dying bench process still holds it)."""
+        from acquire.repair import repair_scan
+
+        t0 = time.monotonic()
+        while True:
+            try:
+                repair_scan(path)
+                break
+            except Exception as exc:  # noqa: BLE001 - keep what is there, say why it could not be repaired
+                if time.monotonic() - t0 > wait_s:
+                    log.error("could not repair %s: %s", path.name, exc)
+                    break
+                time.sleep(0.2)
+        return scan_summary(path)
 
     def start(self) -> None:
         """Recover, connect the bench, start the job workers."""

@@ -1,30 +1,31 @@
-"""The bench owned by the service: one thread with its own asyncio loop runs the devices and the scan.
+"""The web server's handle on the bench process: commands, scan progress snapshots, emergency stop.
 
-Request handlers never do device I/O on the web server's loop: they submit coroutines to the
-bench loop and read scan progress from an in-memory snapshot. The emergency stop takes no lock:
-it asks the runner to abort and sends the halt to the bench loop at once.
+The devices and the acquisition loop live in their own process (``benchproc``), so no request
+can take the scan's interpreter lock or CPU time slice. Status reads come from an in-memory
+snapshot kept up to date by a reader thread; the emergency stop goes down its own pipe.
 """
 
 from __future__ import annotations
 
 import asyncio
 import concurrent.futures
-import contextlib
+import itertools
 import logging
+import multiprocessing as mp
 import threading
 import time
-from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
-from orbitct.progress import ProgressEvent
 from orbitct.service.db import Store, utc_now
-from orbitct.service.errors import Conflict, Unavailable
+from orbitct.service.errors import ApiError, Conflict, Invalid, NotFound, Unavailable
 from orbitct.service.events import EventBus
 
 log = logging.getLogger("orbitct.service.bench")
-T = TypeVar("T")
+_CTX = mp.get_context("spawn")
+ERROR_KINDS: dict[str, type[ApiError]] = {"invalid": Invalid, "conflict": Conflict, "not_found": NotFound,
+                                          "unavailable": Unavailable, "error": Unavailable}
 
 
 @dataclass
@@ -33,16 +34,14 @@ class ActiveScan:
 
     scan_id: str
     path: Path
-    runner: Any
     progress: dict[str, Any] = field(default_factory=dict)
-    state: str = "queued"
-    started: float = field(default_factory=time.monotonic)
+    state: str = "running"
     last_db: float = 0.0
     done: threading.Event = field(default_factory=threading.Event)
 
 
 def scan_summary(path: Path) -> dict[str, Any]:
-    """What a finished scan file holds: frames by kind, geometries, detector, orbit, status."""
+    """What a scan file holds: frames by kind, geometries, detector, orbit, status."""
     from orbitct.scanfile import ScanFile, ScanFileError
 
     try:
@@ -61,7 +60,7 @@ def scan_summary(path: Path) -> dict[str, Any]:
 
 
 class BenchController:
-    """Owns the bench connection and the one scan it may run at a time."""
+    """Starts the bench process and relays commands, progress and the emergency stop."""
 
     def __init__(self, config_path: Path, *, sim: bool, store: Store, bus: EventBus, data_dir: Path,
                  status_interval_s: float = 0.25) -> None:
@@ -70,107 +69,141 @@ class BenchController:
         self._store, self._bus = store, bus
         self._data_dir = Path(data_dir)
         self._interval = status_interval_s
-        self.config: Any = None
-        self.bench: Any = None
         self.connection_state = "not started"
         self.current: ActiveScan | None = None
+        self._ids = itertools.count(1)
+        self._pending: dict[int, concurrent.futures.Future[Any]] = {}
         self._start_lock = threading.Lock()
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._thread: threading.Thread | None = None
-        self._stack: contextlib.AsyncExitStack | None = None
+        self._cmd_lock = threading.Lock()
+        self._stop_lock = threading.Lock()
+        self._connected = threading.Event()
+        self._process: Any = None
+        self._cmd: Any = None
+        self._stop: Any = None
+        self._events: Any = None
+        self._reader: threading.Thread | None = None
         self._db = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="orbitct-scan-db")
 
     # ------------------------------------------------------------ lifecycle
-    def start(self, timeout_s: float = 60.0) -> None:
-        """Load the configuration, start the bench thread and connect every device (twins with sim)."""
-        ready = threading.Event()
-        self._thread = threading.Thread(target=self._main, args=(ready,), name="orbitct-bench", daemon=True)
-        self._thread.start()
-        if not ready.wait(5.0):
-            raise RuntimeError("bench thread did not start")
-        try:
-            from acquire.config import load_config
+    def start(self, timeout_s: float = 120.0) -> None:
+        """Start the bench process and wait until it has connected every device (twins with sim)."""
+        from orbitct.service.benchproc import bench_main
 
-            self.config = load_config(self.config_path)
-            self.call(self._connect(), timeout_s)
-        except Exception as exc:  # noqa: BLE001 - the service still starts, degraded, and says why
-            self.connection_state = f"failed: {exc}"
-            log.error("bench connection failed: %s", exc)
-
-    def _main(self, ready: threading.Event) -> None:
-        loop = asyncio.new_event_loop()
-        self._loop = loop
-        asyncio.set_event_loop(loop)
-        loop.call_soon(ready.set)
-        loop.run_forever()
-        loop.run_until_complete(loop.shutdown_asyncgens())
-        loop.close()
-
-    async def _connect(self) -> None:
-        from acquire.bench import open_bench
-        from acquire.config import BenchConfig
-
+        cmd_parent, cmd_child = _CTX.Pipe()
+        stop_parent, stop_child = _CTX.Pipe()
+        events_parent, events_child = _CTX.Pipe(duplex=False)
+        self._cmd, self._stop, self._events = cmd_parent, stop_parent, events_parent
         self.connection_state = "connecting"
-        if not isinstance(self.config, BenchConfig):
-            self.connection_state = "connected"  # C-arm scans connect per scan
-            return
-        self._stack = contextlib.AsyncExitStack()
-        self.bench = await self._stack.enter_async_context(open_bench(self.config, sim=self.sim))
-        self.connection_state = "connected"
+        self._process = _CTX.Process(target=bench_main, name="orbitct-bench", daemon=True,
+                                     args=(str(self.config_path), self.sim, cmd_child, stop_child, events_child))
+        self._process.start()
+        for conn in (cmd_child, stop_child, events_child):
+            conn.close()
+        self._reader = threading.Thread(target=self._read, name="orbitct-bench-events", daemon=True)
+        self._reader.start()
+        if not self._connected.wait(timeout_s):
+            self.connection_state = f"failed: the bench did not connect within {timeout_s:g} s"
+        if self.connection_state != "connected":
+            log.error("bench: %s", self.connection_state)
 
     def close(self, reason: str = "service shutting down") -> None:
-        """Abort a running scan, halt everything, disconnect and stop the bench thread."""
-        active = self.current
-        if active is not None:
-            active.runner.abort(reason)
-            active.done.wait(15.0)
-        if self._loop is not None and self._loop.is_running():
-            with contextlib.suppress(Exception):
-                self.call(self._disconnect(), 15.0)
-            self._loop.call_soon_threadsafe(self._loop.stop)
-        if self._thread is not None:
-            self._thread.join(10.0)
+        """Abort a running scan, halt everything, stop the bench process."""
+        if self._process is not None and self._process.is_alive() and self.connection_state == "connected":
+            try:
+                self.command("shutdown", timeout_s=10.0, reason=reason)
+            except ApiError:
+                pass
+            self._process.join(30.0)
+        if self._process is not None and self._process.is_alive():
+            self._process.kill()
+            self._process.join(5.0)
+        for conn in (self._cmd, self._stop):
+            if conn is not None:
+                conn.close()
+        if self._reader is not None:
+            self._reader.join(5.0)
         self._db.shutdown(wait=True)
         self.connection_state = "closed"
 
-    async def _disconnect(self) -> None:
-        if self.bench is not None:
-            with contextlib.suppress(Exception):
-                await self.bench.stop_all()
-        if self._stack is not None:
-            await self._stack.aclose()
-        self.bench = None
+    # ------------------------------------------------------------ messages from the bench process
+    def _read(self) -> None:
+        while True:
+            try:
+                message = self._events.recv()
+            except (EOFError, OSError):
+                break
+            try:
+                self._dispatch(message)
+            except Exception:  # noqa: BLE001 - the reader must survive anything
+                log.exception("bench message %r", message[:2])
+        self._bench_gone()
 
-    def device_map(self) -> dict[str, Any]:
-        """Connected devices by name (empty when not connected)."""
-        bench = self.bench
-        if bench is None:
-            return {}
-        return {d.name: d for d in bench.devices}
+    def _dispatch(self, message: tuple[Any, ...]) -> None:
+        kind = message[0]
+        if kind == "reply":
+            _, req_id, ok, payload = message
+            fut = self._pending.pop(req_id, None)
+            if fut is not None and not fut.done():
+                if ok:
+                    fut.set_result(payload)
+                else:
+                    err_kind, text = payload
+                    fut.set_exception(ERROR_KINDS.get(err_kind, Unavailable)(text))
+        elif kind == "progress":
+            self._on_progress(message[1], message[2])
+        elif kind == "scan_end":
+            self._on_scan_end(*message[1:])
+        elif kind == "connected":
+            self.connection_state = "connected"
+            self._connected.set()
+        elif kind == "connect_failed":
+            self.connection_state = f"failed: {message[1]}"
+            self._connected.set()
 
-    # ------------------------------------------------------------ bench loop access
-    def submit(self, coro: Awaitable[T]) -> concurrent.futures.Future[T]:
-        """Run ``coro`` on the bench loop; returns a thread-safe future."""
-        if self._loop is None or not self._loop.is_running():
-            if asyncio.iscoroutine(coro):
-                coro.close()
-            raise Unavailable("the bench is not running")
-        return asyncio.run_coroutine_threadsafe(coro, self._loop)  # type: ignore[arg-type]
+    def _bench_gone(self) -> None:
+        """The bench process ended: fail what waits on it and close the scan record."""
+        if self.connection_state == "connected":
+            self.connection_state = "failed: the bench process ended"
+        self._connected.set()
+        for fut in list(self._pending.values()):
+            if not fut.done():
+                fut.set_exception(Unavailable(f"the bench is not available ({self.connection_state})"))
+        self._pending.clear()
+        active = self.current
+        if active is not None:
+            self._on_scan_end(active.scan_id, "failed", "the bench process ended during the scan", {})
 
-    def call(self, coro: Awaitable[T], timeout_s: float = 30.0) -> T:
-        """Run ``coro`` on the bench loop and wait for it (from a thread that is not the bench loop)."""
-        return self.submit(coro).result(timeout_s)
-
-    async def run(self, fn: Callable[[Any], Awaitable[T]], timeout_s: float = 30.0) -> T:
-        """Await ``fn(bench)`` run on the bench loop, from the web server's loop."""
-        if self.bench is None:
+    # ------------------------------------------------------------ commands
+    def submit(self, name: str, /, **args: Any) -> concurrent.futures.Future[Any]:
+        """Send a command to the bench process; the future holds its reply."""
+        if self.connection_state != "connected" or self._cmd is None:
             raise Unavailable(f"the bench is not connected ({self.connection_state})")
-        fut = self.submit(fn(self.bench))
+        req_id = next(self._ids)
+        fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
+        self._pending[req_id] = fut
+        try:
+            with self._cmd_lock:
+                self._cmd.send((req_id, name, args))
+        except (OSError, ValueError) as exc:
+            self._pending.pop(req_id, None)
+            raise Unavailable(f"the bench is not reachable ({exc})") from None
+        return fut
+
+    def command(self, name: str, /, *, timeout_s: float = 30.0, **args: Any) -> Any:
+        """Run a command and wait for its reply (from a worker thread)."""
+        fut = self.submit(name, **args)
+        try:
+            return fut.result(timeout_s)
+        except concurrent.futures.TimeoutError:
+            raise Unavailable(f"the bench did not answer {name!r} within {timeout_s:g} s") from None
+
+    async def run(self, name: str, /, *, timeout_s: float = 30.0, **args: Any) -> Any:
+        """Run a command and await its reply (from the web server's loop)."""
+        fut = self.submit(name, **args)
         try:
             return await asyncio.wait_for(asyncio.wrap_future(fut), timeout_s)
         except asyncio.TimeoutError:
-            fut.cancel()
-            raise Unavailable(f"the bench did not answer within {timeout_s:g} s") from None
+            raise Unavailable(f"the bench did not answer {name!r} within {timeout_s:g} s") from None
 
     # ------------------------------------------------------------ scans
     @property
@@ -179,119 +212,77 @@ class BenchController:
         active = self.current
         return active.scan_id if active is not None else None
 
-    def preflight(self, request: Any) -> None:
-        """Plan and pre-flight ``request`` against every limit (raises PreflightError / AcquireError)."""
-        from acquire.config import BenchConfig
-        from acquire.preflight import preflight
-        from acquire.runner import build_plan
+    def preflight(self, spec: dict[str, Any]) -> None:
+        """Check a scan against every limit before anything moves (``Invalid`` names the frame and axis)."""
+        self.command("preflight", timeout_s=120.0, spec=spec)
 
-        cfg = request.resolved_config()
-        if not isinstance(cfg, BenchConfig) or self.bench is None:
-            return
-        plan = build_plan(request, cfg)
-        bench = self.bench
-
-        async def _check() -> None:
-            await preflight(plan, cfg, device_limits=await bench.device_limits(),
-                            workspace_check=bench.check_workspace, mode=request.mode,
-                            frame_rate_hz=request.frame_rate_hz or cfg.exposure.frame_rate_hz)
-
-        self.call(_check(), 60.0)
-
-    def start_scan(self, scan_id: str, request: Any) -> ActiveScan:
-        """Start ``request`` on the bench loop; 409 if a scan is already running."""
-        from acquire.runner import ScanRunner
-
-        if self.connection_state != "connected":
-            raise Unavailable(f"the bench is not connected ({self.connection_state})")
+    def start_scan(self, scan_id: str, spec: dict[str, Any]) -> ActiveScan:
+        """Start a scan; 409 if one is running."""
         with self._start_lock:
             if self.current is not None:
                 raise Conflict(f"the bench is busy with scan {self.current.scan_id}; one scan at a time")
-            active = ActiveScan(scan_id, Path(request.out), None)
-            active.runner = ScanRunner(request, progress=lambda ev: self._on_progress(active, ev), bench=self.bench)
+            active = ActiveScan(scan_id, Path(spec["out"]))
             self.current = active
         try:
-            self.submit(self._run_scan(active))
+            self._store.update_scan(scan_id, state="running", started_utc=utc_now())
+            self._set_state(active, "running", "")
+            self.command("start_scan", scan_id=scan_id, spec=spec)
         except Exception:
             self.current = None
             raise
         return active
 
-    async def _run_scan(self, active: ActiveScan) -> None:
-        topic = f"scan:{active.scan_id}"
-        self._set_state(active, "running", "")
-        self._db.submit(self._store.update_scan, active.scan_id, state="running", started_utc=utc_now())
-        state, reason = "failed", ""
-        result: Any = None
-        try:
-            result = await active.runner.run()
-            state, reason = result.status, result.reason
-        except asyncio.CancelledError:
-            state, reason = "aborted", "cancelled"
-        except Exception as exc:  # noqa: BLE001 - pre-flight refusals, configuration and device errors
-            state, reason = "failed", str(exc) or type(exc).__name__
-        finally:
-            loop = asyncio.get_running_loop()
-            summary = await loop.run_in_executor(self._db, scan_summary, active.path) if active.path.exists() else {}
-            if result is not None:
-                summary["timing"] = {k: float(v) for k, v in dict(result.timing).items()}
-                summary["elapsed_s"] = float(result.elapsed_s)
-            fields = dict(state=state, reason=reason[:2000], finished_utc=utc_now(), summary=summary,
-                          frames_done=int(summary.get("n_frames", active.progress.get("done", 0))), progress=active.progress)
-            if active.progress.get("total"):
-                fields["frames_total"] = int(active.progress["total"])
-            await loop.run_in_executor(self._db, lambda: self._store.update_scan(active.scan_id, **fields))
-            self._set_state(active, state, reason)
-            self._bus.publish(topic, "end", {"state": state, "reason": reason})
-            self.current = None
-            active.done.set()
-
     def _set_state(self, active: ActiveScan, state: str, reason: str) -> None:
         active.state = state
         self._bus.publish(f"scan:{active.scan_id}", "state", {"state": state, "reason": reason})
 
-    def _on_progress(self, active: ActiveScan, event: ProgressEvent) -> None:
-        """Per-frame callback on the bench loop: snapshot, event, and a throttled DB write (off-thread)."""
-        data = {"stage": event.stage, "done": int(event.done), "total": int(event.total), "message": event.message,
-                "metrics": {k: float(v) for k, v in dict(event.metrics).items()}}
+    def _on_progress(self, scan_id: str, data: dict[str, Any]) -> None:
+        active = self.current
+        if active is None or active.scan_id != scan_id:
+            return
         active.progress = data
-        if event.message == "paused" and active.state != "paused":
+        if data["message"] == "paused" and active.state != "paused":
             self._set_state(active, "paused", "")
-        elif active.state == "paused" and event.message != "paused" and event.stage == "scan" and event.done > 0:
+        elif active.state == "paused" and data["message"] != "paused" and data["stage"] == "scan":
             self._set_state(active, "running", "")
-        self._bus.publish(f"scan:{active.scan_id}", "progress", data)
+        self._bus.publish(f"scan:{scan_id}", "progress", data)
         now = time.monotonic()
         if now - active.last_db >= self._interval:
             active.last_db = now
-            self._db.submit(self._store.update_scan, active.scan_id, frames_done=data["done"], frames_total=data["total"],
+            self._db.submit(self._store.update_scan, scan_id, frames_done=data["done"], frames_total=data["total"],
                             progress=data)
+
+    def _on_scan_end(self, scan_id: str, state: str, reason: str, summary: dict[str, Any]) -> None:
+        active = self.current
+        progress = active.progress if active is not None and active.scan_id == scan_id else {}
+        fields: dict[str, Any] = dict(state=state, reason=reason[:2000], finished_utc=utc_now(), summary=summary,
+                                      progress=progress, frames_done=int(summary.get("n_frames", progress.get("done", 0))))
+        if progress.get("total"):
+            fields["frames_total"] = int(progress["total"])
+        self._db.submit(self._store.update_scan, scan_id, **fields).result(30.0)
+        if active is not None and active.scan_id == scan_id:
+            self._set_state(active, state, reason)
+        self._bus.publish(f"scan:{scan_id}", "end", {"state": state, "reason": reason})
+        if active is not None and active.scan_id == scan_id:
+            self.current = None
+            active.done.set()
 
     def pause(self, scan_id: str) -> None:
         """Pause the running scan at the next frame boundary."""
-        from acquire.errors import ScanStateError
-
-        try:
-            self._active(scan_id).runner.pause()
-        except ScanStateError as exc:
-            raise Conflict(str(exc)) from None
+        self._active(scan_id)
+        self.command("pause", scan_id=scan_id)
 
     def resume(self, scan_id: str) -> None:
         """Resume a paused scan."""
-        from acquire.errors import ScanStateError
-
         active = self._active(scan_id)
-        try:
-            active.runner.resume()
-        except ScanStateError as exc:
-            raise Conflict(str(exc)) from None
+        self.command("resume", scan_id=scan_id)
         if active.state == "paused":
             self._set_state(active, "running", "")
 
-    def abort(self, scan_id: str, reason: str) -> ActiveScan:
+    def abort(self, scan_id: str, reason: str) -> None:
         """Abort the running scan (halt, X-rays off, file marked aborted)."""
-        active = self._active(scan_id)
-        active.runner.abort(reason)
-        return active
+        self._active(scan_id)
+        self.command("abort", scan_id=scan_id, reason=reason)
 
     def _active(self, scan_id: str) -> ActiveScan:
         active = self.current
@@ -300,12 +291,19 @@ class BenchController:
         return active
 
     # ------------------------------------------------------------ emergency stop
-    def emergency_stop(self, reason: str) -> tuple[str | None, concurrent.futures.Future[None] | None]:
-        """Abort the scan (if any) and halt every axis with X-rays off; takes no lock, never queues."""
+    def emergency_stop(self, reason: str) -> tuple[str | None, concurrent.futures.Future[Any] | None]:
+        """Abort the scan and halt every axis with X-rays off, down the stop pipe; never queues behind a command."""
         active = self.current
-        if active is not None:
-            active.runner.abort(reason)
-        if self.bench is None or self._loop is None or not self._loop.is_running():
-            return (active.scan_id if active else None), None
-        bench = self.bench
-        return (active.scan_id if active else None), asyncio.run_coroutine_threadsafe(bench.stop_all(), self._loop)
+        scan_id = active.scan_id if active is not None else None
+        if self.connection_state != "connected" or self._stop is None:
+            return scan_id, None
+        req_id = next(self._ids)
+        fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
+        self._pending[req_id] = fut
+        try:
+            with self._stop_lock:
+                self._stop.send((req_id, reason))
+        except (OSError, ValueError):
+            self._pending.pop(req_id, None)
+            return scan_id, None
+        return scan_id, fut

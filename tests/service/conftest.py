@@ -52,34 +52,44 @@ class Api:
         return self.request("POST", path, role, **kwargs)
 
 
-@pytest.fixture
-def make_api(tmp_path: Path) -> Iterator[Callable[..., Api]]:
-    """Start a service (sim) in ``tmp_path``; call again with the same data dir to simulate a restart."""
-    opened: list[TestClient] = []
+def _open(folder: Path, data: Path, opened: list[TestClient], **overrides: Any) -> Api:
+    tokens_file = data / "tokens.json"
+    if not tokens_file.exists():
+        tokens = {role: create_token(tokens_file, role, f"test-{role}") for role in ("operator", "analyst", "viewer")}  # type: ignore[arg-type]
+        (data / "test-tokens.yaml").write_text(yaml.safe_dump(tokens))
+    tokens = yaml.safe_load((data / "test-tokens.yaml").read_text())
+    settings = load_settings(None, **{"bench_config": small_bench_config(folder), "sim": True, "data_dir": data,
+                                      "dev_token": "oct_dev_token_for_tests_only", **overrides})
+    tokens["dev"] = settings.dev_token
+    client = TestClient(create_app(settings), raise_server_exceptions=False)
+    client.__enter__()
+    opened.append(client)
+    return Api(client, tokens, data)
 
-    def _make(data_dir: Path | None = None, **overrides: Any) -> Api:
-        data = data_dir or tmp_path / "data"
-        tokens_file = data / "tokens.json"
-        tokens = {}
-        if not tokens_file.exists():
-            for role in ("operator", "analyst", "viewer"):
-                tokens[role] = create_token(tokens_file, role, f"test-{role}")  # type: ignore[arg-type]
-            (data / "test-tokens.yaml").write_text(yaml.safe_dump(tokens))
-        tokens = yaml.safe_load((data / "test-tokens.yaml").read_text())
-        settings = load_settings(None, **{"bench_config": small_bench_config(tmp_path), "sim": True, "data_dir": data,
-                                          "dev_token": "oct_dev_token_for_tests_only", **overrides})
-        tokens["dev"] = settings.dev_token
-        client = TestClient(create_app(settings), raise_server_exceptions=False)
-        client.__enter__()
-        opened.append(client)
-        return Api(client, tokens, data)
 
-    yield _make
+def _close_all(opened: list[TestClient]) -> None:
     for client in reversed(opened):
         client.__exit__(None, None, None)
 
 
 @pytest.fixture
+def make_api(tmp_path: Path) -> Iterator[Callable[..., Api]]:
+    """Start a service (sim) in ``tmp_path``; call again with the same data dir to simulate a restart."""
+    opened: list[TestClient] = []
+    yield lambda data_dir=None, **overrides: _open(tmp_path, data_dir or tmp_path / "data", opened, **overrides)
+    _close_all(opened)
+
+
+@pytest.fixture
 def api(make_api: Callable[..., Api]) -> Api:
-    """A running service with tokens for every role."""
+    """A fresh running service with tokens for every role."""
     return make_api()
+
+
+@pytest.fixture(scope="module")
+def shared_api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Api]:
+    """One running service for a whole test module (tests that leave no state that matters)."""
+    folder = tmp_path_factory.mktemp("shared")
+    opened: list[TestClient] = []
+    yield _open(folder, folder / "data", opened)
+    _close_all(opened)

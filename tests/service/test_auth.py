@@ -57,30 +57,30 @@ def test_no_default_token_outside_sim() -> None:
         load_settings(None, sim=False, dev_token="oct_dev_token_for_tests_only")
 
 
-def test_health_and_docs_need_no_token(api) -> None:  # type: ignore[no-untyped-def]
-    assert api.get("/health", role=None).status_code == 200
-    assert api.get("/openapi.json", role=None).status_code == 200
-    assert api.get("/docs", role=None).status_code == 200
+def test_health_and_docs_need_no_token(shared_api) -> None:  # type: ignore[no-untyped-def]
+    assert shared_api.get("/health", role=None).status_code == 200
+    assert shared_api.get("/openapi.json", role=None).status_code == 200
+    assert shared_api.get("/docs", role=None).status_code == 200
 
 
 @pytest.mark.parametrize("path", READS)
-def test_reads_need_a_token(api, path: str) -> None:  # type: ignore[no-untyped-def]
-    r = api.get(path, role=None)
+def test_reads_need_a_token(shared_api, path: str) -> None:  # type: ignore[no-untyped-def]
+    r = shared_api.get(path, role=None)
     assert r.status_code == 401 and r.json()["error"] == "unauthorized"
     assert r.headers["www-authenticate"] == "Bearer"
-    r = api.client.get(path, headers={"Authorization": "Bearer oct_not_a_token"})
+    r = shared_api.client.get(path, headers={"Authorization": "Bearer oct_not_a_token"})
     assert r.status_code == 401
-    r = api.client.get(path, headers={"Authorization": "Basic dXNlcjpwdw=="})
+    r = shared_api.client.get(path, headers={"Authorization": "Basic dXNlcjpwdw=="})
     assert r.status_code == 401
-    assert api.get(path, role="viewer").status_code in (200, 404)
+    assert shared_api.get(path, role="viewer").status_code in (200, 404)
 
 
 @pytest.mark.parametrize(("method", "path", "body", "permission"), MUTATING)
-def test_roles_on_every_mutating_endpoint(api, method: str, path: str, body: dict | None, permission: str) -> None:  # type: ignore[no-untyped-def]
-    r = api.request(method, path, role=None, json=body)
+def test_roles_on_every_mutating_endpoint(shared_api, method: str, path: str, body: dict | None, permission: str) -> None:  # type: ignore[no-untyped-def]
+    r = shared_api.request(method, path, role=None, json=body)
     assert r.status_code == 401, r.text
     for role in ("operator", "analyst", "viewer"):
-        r = api.request(method, path, role=role, json=body)
+        r = shared_api.request(method, path, role=role, json=body)
         if permission in PERMISSIONS[role]:
             assert r.status_code not in (401, 403), (role, r.text)
         else:

@@ -63,8 +63,8 @@ def requests(draw: Any, ops: list[tuple[str, str, dict[str, Any]]], schemas: dic
     return method.upper(), url, kwargs
 
 
-def test_no_5xx_for_any_request(api) -> None:  # type: ignore[no-untyped-def]
-    app = api.client.app
+def test_no_5xx_for_any_request(shared_api) -> None:  # type: ignore[no-untyped-def]
+    app = shared_api.client.app
     ops = _operations(app)
     schemas = app.openapi()["components"]["schemas"]
 
@@ -72,7 +72,7 @@ def test_no_5xx_for_any_request(api) -> None:  # type: ignore[no-untyped-def]
     @given(req=requests(ops, schemas), role=st.sampled_from(["operator", "analyst", "viewer", "dev"]))
     def check(req: tuple[str, str, dict[str, Any]], role: str) -> None:
         method, url, kwargs = req
-        r = api.request(method, url, role=role, **kwargs)
+        r = shared_api.request(method, url, role=role, **kwargs)
         assert r.status_code < 500, (method, url, kwargs, r.status_code, r.text[:500])
         if r.status_code >= 400:
             body = r.json()

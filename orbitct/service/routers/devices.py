@@ -3,15 +3,13 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Awaitable, Callable
-from dataclasses import asdict
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Path
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from orbitct.service.deps import Operator, Reader, ServiceDep
-from orbitct.service.errors import ERROR_RESPONSES, ApiError, Conflict, FieldProblem, Invalid, NotFound, Unavailable
+from orbitct.service.errors import ERROR_RESPONSES, Conflict, FieldProblem, Invalid
 
 router = APIRouter(prefix="/devices", tags=["devices"], responses=ERROR_RESPONSES)
 DeviceName = Annotated[str, Path(max_length=40, pattern=r"^[A-Za-z0-9_-]+$")]
@@ -66,47 +64,8 @@ class MoveRequest(BaseModel):
         return v
 
 
-def _out(info: Any) -> DeviceOut:
-    d = asdict(info)
-    return DeviceOut(name=d["name"], model=d["model"], serial=d["serial"], firmware=d.get("firmware", ""),
-                     uri=str(d.get("uri", "")), axes=[AxisOut(**a) for a in d.get("axes", ())])
-
-
-def _plain(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, (str, int, float, bool)) or value is None:
-        return value
-    return str(value)
-
-
-async def _on_device(service: Any, name: str, action: Callable[[Any], Awaitable[Any]], timeout_s: float = 30.0) -> Any:
-    """Run ``action(device)`` on the bench loop; device errors become clear 4xx/503 answers."""
-    from devices.errors import (DeviceError, DeviceTimeoutError, FaultActiveError, InterlockOpenError,
-                                NotConnectedError, NotReferencedError, OutOfLimitsError)
-
-    def pick(bench: Any) -> Any:
-        devices = service.bench.device_map()
-        if name not in devices:
-            raise NotFound(f"no device {name!r}; known: {', '.join(devices) or 'none'}")
-        return action(devices[name])
-
-    try:
-        return await service.bench.run(pick, timeout_s)
-    except ApiError:
-        raise
-    except OutOfLimitsError as exc:
-        raise Invalid(str(exc), details=[FieldProblem(field="targets", reason=str(exc))]) from None
-    except (NotReferencedError, InterlockOpenError, FaultActiveError) as exc:
-        raise Conflict(str(exc)) from None
-    except (DeviceTimeoutError, NotConnectedError) as exc:
-        raise Unavailable(f"{name}: {exc}") from None
-    except DeviceError as exc:
-        raise Conflict(f"{name} refused: {exc}") from None
+def _state(result: dict[str, Any]) -> DeviceState:
+    return DeviceState(device=DeviceOut(**result["device"]), state=result["state"])
 
 
 def _idle(service: Any) -> None:
@@ -117,20 +76,13 @@ def _idle(service: Any) -> None:
 @router.get("", response_model=list[DeviceOut], summary="List devices")
 async def list_devices(service: ServiceDep, _: Reader) -> list[DeviceOut]:
     """Every connected device with its axes, units and soft limits."""
-    async def describe_all(bench: Any) -> list[Any]:
-        return [await d.describe() for d in service.bench.device_map().values()]
-
-    return [_out(i) for i in await service.bench.run(describe_all)]
+    return [DeviceOut(**d) for d in await service.bench.run("describe")]
 
 
 @router.get("/{name}", response_model=DeviceState, summary="State of a device")
 async def get_device(name: DeviceName, service: ServiceDep, _: Reader) -> DeviceState:
     """Description and current read-back."""
-    async def both(dev: Any) -> tuple[Any, Any]:
-        return await dev.describe(), await dev.read()
-
-    info, state = await _on_device(service, name, both)
-    return DeviceState(device=_out(info), state=_plain(state))
+    return _state(await service.bench.run("device_state", name=name))
 
 
 @router.post("/{name}/reference", response_model=DeviceState, summary="Reference a motion device",
@@ -138,15 +90,7 @@ async def get_device(name: DeviceName, service: ServiceDep, _: Reader) -> Device
 async def reference(name: DeviceName, service: ServiceDep, _: Operator) -> DeviceState:
     """Servo on and reference every axis; returns when done."""
     _idle(service)
-
-    async def do(dev: Any) -> tuple[Any, Any]:
-        if not hasattr(dev, "reference"):
-            raise Invalid(f"device {name} has no axes to reference")
-        await dev.reference()
-        return await dev.describe(), await dev.read()
-
-    info, state = await _on_device(service, name, do, MOVE_TIMEOUT_S)
-    return DeviceState(device=_out(info), state=_plain(state))
+    return _state(await service.bench.run("reference", timeout_s=MOVE_TIMEOUT_S, name=name))
 
 
 @router.post("/{name}/move", response_model=DeviceState, summary="Maintenance move",
@@ -154,30 +98,13 @@ async def reference(name: DeviceName, service: ServiceDep, _: Operator) -> Devic
 async def move(name: DeviceName, body: MoveRequest, service: ServiceDep, _: Operator) -> DeviceState:
     """Absolute move of some axes; limits (and the hexapod workspace) are checked before anything moves."""
     _idle(service)
-
-    async def do(dev: Any) -> tuple[Any, Any]:
-        if not hasattr(dev, "move"):
-            raise Invalid(f"device {name} has no axes to move")
-        known = {a.name for a in (await dev.describe()).axes}
-        unknown = sorted(set(body.targets) - known)
-        if unknown:
-            raise Invalid(f"unknown axes {unknown}", details=[FieldProblem(field=f"targets.{a}", reason=f"{name} has axes {sorted(known)}") for a in unknown])
-        await dev.move(body.targets)
-        return await dev.describe(), await dev.read()
-
-    info, state = await _on_device(service, name, do, MOVE_TIMEOUT_S)
-    return DeviceState(device=_out(info), state=_plain(state))
+    try:
+        return _state(await service.bench.run("move", timeout_s=MOVE_TIMEOUT_S, name=name, targets=body.targets))
+    except Invalid as exc:
+        raise Invalid(exc.message, details=[FieldProblem(field="targets", reason=exc.message)]) from None
 
 
 @router.post("/{name}/stop", response_model=DeviceState, summary="Stop one device")
 async def stop_device(name: DeviceName, service: ServiceDep, _: Operator) -> DeviceState:
     """Halt the device's axes (X-ray generator: X-rays off). For everything at once use ``POST /stop``."""
-    async def do(dev: Any) -> tuple[Any, Any]:
-        if hasattr(dev, "xray_off"):
-            await dev.xray_off()
-        elif hasattr(dev, "stop"):
-            await dev.stop()
-        return await dev.describe(), await dev.read()
-
-    info, state = await _on_device(service, name, do)
-    return DeviceState(device=_out(info), state=_plain(state))
+    return _state(await service.bench.run("stop_device", name=name))

@@ -108,25 +108,21 @@ def _check_params(service: Any, body: ScanCreate) -> dict[str, Any]:
                         202: {"headers": {"Location": {"description": "URL of the new scan", "schema": {"type": "string"}}}}})
 def start_scan(body: ScanCreate, service: ServiceDep, who: ScanOperator, response: Response) -> ScanOut:
     """Check the orbit against every limit, then start it; returns at once (progress on ``/scans/{id}/events``)."""
-    from acquire.errors import AcquireError
-    from acquire.runner import ScanRequest
-
     params = _check_params(service, body)
     if service.bench.busy is not None:
         raise Conflict(f"the bench is busy with scan {service.bench.busy}; one scan at a time")
     scan_id = uuid.uuid4().hex[:16]
     rel = f"scans/{scan_id}.h5"
-    req = ScanRequest(config=service.bench.config, out=service.settings.data_dir / rel, orbit=body.orbit,
-                      orbit_params=params, errors=body.errors, seed=body.seed, mode=body.mode,
-                      sim=service.settings.sim)
+    spec = {"out": str(service.settings.data_dir / rel), "orbit": body.orbit, "params": params, "errors": body.errors,
+            "seed": body.seed, "mode": body.mode}
     try:
-        service.bench.preflight(req)
-    except AcquireError as exc:
-        raise Invalid(str(exc), details=[FieldProblem(field="params", reason=str(exc))]) from None
+        service.bench.preflight(spec)
+    except Invalid as exc:
+        raise Invalid(exc.message, details=[FieldProblem(field="params", reason=exc.message)]) from None
     service.store.add_scan(scan_id, name=body.name, orbit=body.orbit, request=body.model_dump(mode="json") | {"params": params},
                            file=rel, owner=who.name, frames_total=int(params["n_frames"]))
     try:
-        service.bench.start_scan(scan_id, req)
+        service.bench.start_scan(scan_id, spec)
     except Exception:
         service.store.delete_scan(scan_id)
         raise
@@ -142,7 +138,7 @@ def list_scans(service: ServiceDep, _: Reader, state: ScanState | None = None,
 
 
 @router.get("/{scan_id}", response_model=ScanOut, summary="Status and summary of a scan")
-def get_scan(scan_id: str, service: ServiceDep, _: Reader) -> ScanOut:
+async def get_scan(scan_id: str, service: ServiceDep, _: Reader) -> ScanOut:
     """State, live progress (frame n of N, rate, time left) and, once ended, the file summary."""
     return _out(service, scan_or_404(service, scan_id))
 
