@@ -77,6 +77,20 @@ def _reason(exc: BaseException) -> str:
     return text if isinstance(exc, AcquireError) else f"{type(exc).__name__}: {text}"
 
 
+def sweep_end(stage_deg: NDArray[np.float64], start: int, last: int, tol_deg: float = 1e-9) -> int:
+    """Last frame of the run from ``start`` in which the stage keeps turning one way (``start`` if it stays)."""
+    if start >= last or abs(stage_deg[start + 1] - stage_deg[start]) <= tol_deg:
+        return start
+    sign = np.sign(stage_deg[start + 1] - stage_deg[start])
+    end = start + 1
+    while end < last:
+        step = stage_deg[end + 1] - stage_deg[end]
+        if abs(step) <= tol_deg or np.sign(step) != sign:
+            break
+        end += 1
+    return end
+
+
 class ScanEngine:
     """Runs one :class:`ScanPlan` on a bench and feeds subscribers; use :meth:`run` once."""
 
@@ -355,22 +369,32 @@ class ScanEngine:
         idx = first
         while idx <= last_p:
             await self._boundary()
-            # (re)start a sweep from the current frame: position there, then turn at constant speed
             f = plan.frame(idx)
-            step = abs(float(stage_deg[min(idx + 1, last_p)] - stage_deg[idx])) or abs(float(stage_deg[idx] - stage_deg[max(idx - 1, first)]))
-            velocity = max(step * self.frame_rate_hz, 1e-3)
-            direction = np.sign(stage_deg[last_p] - stage_deg[idx]) or 1.0
-            lead = direction * max(velocity * 0.05, 0.01)  # start a little before the trigger angle
-            await self.bench.move_to(float(stage_deg[idx] - lead), hexapod_to_user(f.hexapod), timeout)
-            await self.bench.start_stage_sweep(float(stage_deg[last_p] + lead), velocity)
-            while idx <= last_p:
-                f = plan.frame(idx)
-                await self._wait_for_angle(float(stage_deg[idx]), direction, velocity, timeout)
+            end = sweep_end(stage_deg, idx, last_p)
+            t_m = time.monotonic()
+            if end == idx:  # the stage stays here (a tilt-only arc): step and shoot
+                await self.bench.move_to(float(stage_deg[idx]), hexapod_to_user(f.hexapod), timeout)
+                self._record_motion(t_m)
                 await self._shoot(f, t0, self._commanded(f))
                 idx += 1
-                if idx <= last_p:
+                continue
+            # a sweep: position just before the first trigger angle, then turn at constant speed
+            velocity = abs(float(stage_deg[end] - stage_deg[idx])) / (end - idx) * self.frame_rate_hz
+            direction = float(np.sign(stage_deg[end] - stage_deg[idx]))
+            lead = direction * max(velocity * 0.05, 0.01)
+            await self.bench.move_to(float(stage_deg[idx] - lead), hexapod_to_user(f.hexapod), timeout)
+            await self.bench.start_stage_sweep(float(stage_deg[end] + lead), velocity)
+            self._record_motion(t_m)
+            while idx <= end:
+                f = plan.frame(idx)
+                t_m = time.monotonic()
+                await self._wait_for_angle(float(stage_deg[idx]), direction, velocity, timeout)
+                self._record_motion(t_m)
+                await self._shoot(f, t0, self._commanded(f))
+                idx += 1
+                if idx <= end:
                     await self.bench.start_hexapod_move(hexapod_to_user(plan.hexapod[idx]))
-                if not self._resume.is_set():
+                if not self._resume.is_set():  # pause: stop the sweep, restart from here on resume
                     await self.bench.stop_all()
                     break
         for i in range(last_p + 1, plan.n_frames):

@@ -89,3 +89,13 @@ def test_continuous_mode_speed_limit() -> None:
     asyncio.run(preflight(plan, CFG, mode="continuous", frame_rate_hz=5))
     with pytest.raises(PreflightError, match="velocity"):
         asyncio.run(preflight(plan, CFG, mode="continuous", frame_rate_hz=1000))
+
+
+def test_sweeps_split_where_the_stage_stops_or_reverses() -> None:
+    from acquire.engine import sweep_end
+
+    stage = np.array([0.0, -1, -2, -3, -3, -3, -2, -1, 0])
+    assert sweep_end(stage, 0, 8) == 3  # turns one way until frame 3
+    assert sweep_end(stage, 3, 8) == 3 and sweep_end(stage, 4, 8) == 4  # stays: step and shoot
+    assert sweep_end(stage, 5, 8) == 8  # reverses and turns to the end
+    assert sweep_end(stage, 8, 8) == 8
