@@ -46,9 +46,11 @@ class Status(Generic[T]):
     async def _run(self, coro: Awaitable[T], timeout_s: float | None) -> T:
         if timeout_s is None:
             return await coro
+        # asyncio.timeout, not wait_for: wait_for can swallow a cancellation on Python 3.11.
         try:
-            return await asyncio.wait_for(coro, timeout_s)
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(timeout_s):
+                return await coro
+        except TimeoutError:
             raise DeviceTimeoutError(f"{self.name}: not done within {timeout_s:g} s") from None
 
     def watch(self, watcher: Watcher) -> None:

@@ -54,8 +54,9 @@ class _StreamReplies:
                 self._pending = b""
                 raise DeviceTimeoutError(f"{self.description}: no complete reply within {timeout_s:g} s (got {buf!r})")
             try:
-                chunk = await asyncio.wait_for(self.reader.read(4096), left)
-            except asyncio.TimeoutError:
+                async with asyncio.timeout(left):  # not wait_for: it can swallow a cancellation on 3.11
+                    chunk = await self.reader.read(4096)
+            except TimeoutError:
                 continue
             except (ConnectionError, OSError) as exc:
                 raise NotConnectedError(f"{self.description}: connection lost ({exc})") from None
@@ -89,10 +90,9 @@ class TcpTransport(_StreamReplies):
 
     async def open(self) -> None:
         try:
-            self.reader, self._writer = await asyncio.wait_for(
-                asyncio.open_connection(self.host, self.port), self.connect_timeout_s
-            )
-        except (OSError, asyncio.TimeoutError) as exc:
+            async with asyncio.timeout(self.connect_timeout_s):
+                self.reader, self._writer = await asyncio.open_connection(self.host, self.port)
+        except (OSError, TimeoutError) as exc:
             raise NotConnectedError(f"{self.description}: cannot connect ({exc or 'timeout'})") from None
         sock = self._writer.get_extra_info("socket")
         if sock is not None:
