@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import signal
 import threading
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -22,6 +23,9 @@ from acquire.recorder import ScanRecorder
 from orbitct.errorprofiles import ErrorProfileError, make_profile
 from orbitct.orbits import Orbit, OrbitError, make_orbit
 from orbitct.progress import ProgressCallback, ProgressEvent
+
+CTRL_C_REASON = "interrupted by the user (Ctrl-C)"
+
 
 @dataclass
 class ScanRequest:
@@ -220,5 +224,31 @@ class ScanRunner:
 
 
 def run_scan(request: ScanRequest, *, progress: ProgressCallback | None = None) -> ScanResult:
-    """Run one scan to its end in a fresh event loop (blocking)."""
-    return asyncio.run(ScanRunner(request, progress=progress).run())
+    """Run one scan to its end in a fresh event loop (blocking).
+
+    In the main thread the first Ctrl-C aborts the scan cleanly (axes halted, X-rays off,
+    file marked aborted "interrupted by the user (Ctrl-C)"); a second one interrupts at once.
+    """
+    runner = ScanRunner(request, progress=progress)
+
+    async def main() -> ScanResult:
+        loop = asyncio.get_running_loop()
+        installed = False
+
+        def first_ctrl_c() -> None:
+            runner.abort(CTRL_C_REASON)
+            loop.remove_signal_handler(signal.SIGINT)  # the next Ctrl-C raises KeyboardInterrupt
+
+        if threading.current_thread() is threading.main_thread():
+            try:
+                loop.add_signal_handler(signal.SIGINT, first_ctrl_c)
+                installed = True
+            except (NotImplementedError, RuntimeError, ValueError):
+                pass
+        try:
+            return await runner.run()
+        finally:
+            if installed:
+                loop.remove_signal_handler(signal.SIGINT)
+
+    return asyncio.run(main())

@@ -41,7 +41,7 @@ def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int |
     if config_path is None or out is None:
         _fail("orbitct scan needs --config FILE and --out FILE (see orbitct scan --help)")
     from acquire.errors import AcquireError
-    from acquire.runner import ScanRequest, run_scan
+    from acquire.runner import CTRL_C_REASON, ScanRequest, run_scan
 
     req = ScanRequest(config=config_path, out=out, orbit=orbit, frames=frames, errors=errors, seed=seed, mode=mode,
                       sim=sim, detector_size=detector_size, frame_rate_hz=frame_rate_hz, overwrite=overwrite)
@@ -57,7 +57,7 @@ def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int |
     click.echo(f"{res.status}: {res.n_frames}/{res.n_planned} frames in {res.elapsed_s:.1f} s ({rate:.1f} frames/s) -> {res.path}")
     if res.status != "complete":
         click.echo(f"reason: {res.reason}", err=True)
-        sys.exit(1)
+        sys.exit(130 if res.reason == CTRL_C_REASON else 1)
 
 
 @scan.command("repair")

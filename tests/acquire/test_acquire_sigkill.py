@@ -53,3 +53,29 @@ def test_sigkill_mid_scan_then_repair(tmp_path: Path) -> None:
         proj = sf.projection_indices
         assert sf.geometry("nominal")[proj].valid.all()
         assert sf.frames[sf.n_frames - 1].max() > 0
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+def test_ctrl_c_aborts_cleanly(tmp_path: Path) -> None:
+    out = tmp_path / "ctrlc.h5"
+    script = textwrap.dedent(f"""
+        import sys
+        sys.path.insert(0, {str(HERE)!r})
+        from acquire.runner import run_scan
+        from acquire_helpers import small_request
+        def progress(event):
+            if event.stage == "scan" and not event.message:
+                print(event.done, flush=True)
+        res = run_scan(small_request({str(out)!r}, frames=200), progress=progress)
+        print("END", res.status, res.reason, flush=True)
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=HERE.parents[1])
+    assert proc.stdout is not None
+    while int(proc.stdout.readline()) < 8:
+        pass
+    os.kill(proc.pid, signal.SIGINT)
+    rest = proc.communicate(timeout=60)[0]
+    assert proc.returncode == 0 and "END aborted interrupted by the user (Ctrl-C)" in rest
+    with ScanFile(out) as sf:
+        assert sf.status == "aborted" and sf.status_reason == "interrupted by the user (Ctrl-C)"
