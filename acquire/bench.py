@@ -21,7 +21,7 @@ from acquire.errors import AcquireError
 from acquire.kinematics import HEXAPOD_AXES, HEXAPOD_UNITS
 from acquire.plan import DARK, FLAT
 from devices.base import DeviceInfo, Status
-from devices.errors import DeviceError, OutOfLimitsError
+from devices.errors import NotReferencedError, OutOfLimitsError
 from devices.factory import open_device
 from devices.factory import stop_all as stop_devices
 
@@ -62,6 +62,12 @@ class Bench:
         for dev in (self.hexapod, self.stage):
             ref = await dev.referenced()
             if not all(ref.values()):
+                if not self.sim:  # referencing moves the axes to their switches: an operator's decision
+                    missing = ", ".join(a for a, ok in ref.items() if not ok)
+                    raise NotReferencedError(
+                        f"{dev.name}: axes {missing} are not referenced; reference them first "
+                        f"(REST: POST /devices/{dev.name}/reference); a scan never references real axes on its own"
+                    )
                 await dev.reference()
             servo = await dev.servo_on()
             if not all(servo.values()):
