@@ -42,7 +42,6 @@ class Bench:
         self.axes: dict[str, str] = {f"rotation_stage.{STAGE_AXIS}": "deg"}
         self.axes.update({f"hexapod.{a}": u for a, u in zip(HEXAPOD_AXES, HEXAPOD_UNITS)})
         self.phantom: Any = None
-        self._stage_velocity: float | None = None
         self._background: dict[str, Status[Any]] = {}
         self._superseded: list[Status[Any]] = []
         self._last_truth: NDArray[np.float64] | None = None
@@ -73,7 +72,6 @@ class Bench:
             if not all(servo.values()):
                 await dev.servo(True)
         await self._set_pivot(config.stack.pivot_mm, config.motion.move_timeout_s)
-        self._stage_velocity = float(await self.stage.velocity()) if self._stage_velocity is None else self._stage_velocity
         await self.stage.set_velocity(config.limits.stage_velocity_deg_s)
         await self.hexapod.set_velocity(config.limits.hexapod_velocity_mm_s)
         ex = config.exposure

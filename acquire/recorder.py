@@ -40,8 +40,7 @@ class ScanRecorder:
         )
         # per-frame injected errors (pitch, roll, yaw rad; x, y, z mm), NaN rows for darks and flats
         errors = np.where((plan.image_key == 0)[:, None], plan.errors, np.nan)
-        ds = self.writer._f.create_dataset("acquisition/injected_errors", data=errors)
-        ds.attrs["columns"] = "pitch_rad roll_rad yaw_rad x_mm y_mm z_mm"
+        self.writer.write_dataset("acquisition/injected_errors", errors, columns="pitch_rad roll_rad yaw_rad x_mm y_mm z_mm")
         self._truth = np.full((plan.n_frames, 12), np.nan) if start.sim else None
 
     def on_frame(self, record: FrameRecord) -> None:

@@ -193,6 +193,15 @@ class ScanWriter:
             g.attrs["phantom_json"] = _json(dict(phantom))
         self._f.flush()
 
+    def write_dataset(self, path: str, data: ArrayLike, **attrs: Any) -> None:
+        """Store an extra dataset at ``path`` (replacing one there) with attributes, and flush."""
+        if path in self._f:
+            del self._f[path]
+        ds = self._f.create_dataset(path, data=np.asarray(data))
+        for k, v in attrs.items():
+            ds.attrs[k] = _json(v) if isinstance(v, (dict, list)) else v
+        self._f.flush()
+
     def set_attrs(self, group: str, **attrs: Any) -> None:
         """Set extra attributes on a group (created if missing)."""
         g = self._f.require_group(group)
