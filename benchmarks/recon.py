@@ -1,9 +1,10 @@
 """Reconstruction benchmark: Joseph forward/back projection, FDK and PWLS against RTK's CPU filters.
 
 Usage: .venv/bin/python benchmarks/recon.py [--large] [--pwls-iterations N] [--threads N]
-Prints the machine, a table of wall times, throughput ratios against RTK (measured in the
-same run when itk-rtk is installed, otherwise the reference numbers from issue 6) and the
-peak extra memory of each step relative to one float32 volume plus the float32 projections.
+Prints the machine, a table of wall and CPU times, throughput ratios against RTK (measured in
+the same run when itk-rtk is installed, otherwise the reference numbers from issue 6) and the
+peak memory of each step (its input plus everything it allocates) relative to one float32
+volume plus the float32 projections.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ def cpu_name() -> str:
 
 
 def measure(fn: Callable[[], object], repeat: int) -> tuple[float, float, int]:
-    """Best wall time, CPU time of that run, and peak traced bytes allocated during a run."""
+    """Best wall time, CPU time of that run, and peak bytes allocated during a run (tracemalloc)."""
     fn()  # warm-up (numba cache load)
     best = (float("inf"), 0.0)
     for _ in range(repeat):
@@ -119,32 +120,39 @@ def run_case(n: int, size: int, views: int, repeat: int, pwls_iterations: int) -
     base = grid.nbytes + y.nbytes
     rows = []
     t, c, m = measure(lambda: A(x), repeat)
-    rows.append(("forward (Joseph)", t, c, m, "forward"))
+    rows.append(("forward (Joseph)", t, c, x.nbytes + m, "forward"))
     t, c, m = measure(lambda: A.T(y), repeat)
-    rows.append(("back (matched Joseph)", t, c, m, "back"))
+    rows.append(("back (matched Joseph)", t, c, y.nbytes + m, "back"))
     t, c, m = measure(lambda: fdk(y, grid, g, window="hann"), repeat)
-    rows.append(("FDK (filter + voxel BP)", t, c, m, "fdk"))
+    rows.append(("FDK (filter + voxel BP)", t, c, y.nbytes + m, "fdk"))
     rtk = rtk_times(n, size, views, g) if n == 128 else None
     print(f"\ncase: {n}^3 voxels ({grid.nbytes / 2**20:.0f} MiB), {views} views of {size}^2 "
           f"({y.nbytes / 2**20:.0f} MiB); memory budget 1.5 x {base / 2**20:.0f} MiB")
-    print(f"{'step':26s} {'wall s':>8s} {'cpu s':>8s} {'RTK s':>8s} {'speed-up':>9s} {'peak extra MiB':>15s} {'(vol+proj)+extra':>17s}")
+    import numba
+
+    threads = numba.get_num_threads()
+    print(f"{'step':26s} {'wall s':>8s} {'cpu s':>8s} {'RTK s':>8s} {'speed-up':>9s} {'cpu-based':>10s} {'peak MiB':>9s} {'/ (vol+proj)':>13s}")
     for label, t, c, m, key in rows:
         ref = (rtk or {}).get(key, RTK_REFERENCE_S.get(key) if n == 128 else None)
         ratio = f"{ref / t:9.2f}" if ref else f"{'-':>9s}"
+        ideal = f"{ref / (c / threads):10.2f}" if ref else f"{'-':>10s}"
         reft = f"{ref:8.2f}" if ref else f"{'-':>8s}"
-        print(f"{label:26s} {t:8.3f} {c:8.3f} {reft} {ratio} {m / 2**20:15.1f} {(base + m) / base:16.2f}x")
+        print(f"{label:26s} {t:8.3f} {c:8.3f} {reft} {ratio} {ideal} {m / 2**20:9.1f} {m / base:12.2f}x")
+    print("speed-up = RTK s / wall s; cpu-based = RTK s / (cpu s / threads), the wall time on idle cores")
     if n == 128:
         print("RTK column:", "measured in this run (itk-rtk)" if rtk else
               "itk-rtk not installed; reference numbers from issue 6 (2 cores)")
     if pwls_iterations:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         tracemalloc.start()
         res = pwls_sps(A, y, None, iterations=pwls_iterations, x0=np.zeros(grid.shape, np.float32))
-        peak = tracemalloc.get_traced_memory()[1]
+        peak = y.nbytes + tracemalloc.get_traced_memory()[1]  # input projections + everything allocated
         tracemalloc.stop()
-        el = time.perf_counter() - t0
-        print(f"PWLS/SPS {pwls_iterations} iterations: {el:.1f} s ({el / pwls_iterations:.2f} s/iteration, "
-              f"{'projected 50 it: ' + format(el / pwls_iterations * 50, '.1f') + ' s' if pwls_iterations != 50 else ''}); "
+        el, cpu = time.perf_counter() - t0, time.process_time() - c0
+        per_it, per_it_idle = el / pwls_iterations, cpu / numba.get_num_threads() / pwls_iterations
+        print(f"PWLS/SPS {pwls_iterations} iterations: wall {el:.1f} s ({per_it:.2f} s/iteration), cpu {cpu:.1f} s "
+              f"(idle-core estimate {per_it_idle:.2f} s/iteration); 50 iterations: wall {50 * per_it:.0f} s, "
+              f"idle-core estimate {50 * per_it_idle:.0f} s (target < 60 s); "
               f"cost {res.cost[0]:.4g} -> {res.cost[-1]:.4g}; peak {peak / 2**20:.0f} MiB = "
               f"{peak / base:.2f} x (vol+proj)")
 

@@ -142,7 +142,7 @@ def reconstruct_scan(
     if voxel_mm is not None and not voxel_mm > 0:
         raise ReconError(f"voxel_mm must be > 0, got {voxel_mm}")
     name = name or f"{algorithm}_{geometry}" + ("_mar" if mar_method else "")
-    with ScanFile(path, "r+") as scan:
+    with ScanFile(path, "r") as scan:  # read-only while computing: other readers may hold the file
         frames, geom, dropped = _views(scan, geometry)
         grid = grid_for_geometry(geom, voxel_mm=voxel_mm, shape=shape)
         fov_fraction = check_fov(grid, geom)
@@ -184,10 +184,11 @@ def reconstruct_scan(
         }
         if algorithm == "pwls":
             params.update(beta=beta, neighbourhood=neighbourhood, subsets=subsets, cost=cost)
-        scan.write_recon(name, vol, voxel_mm=grid.voxel_mm, origin_mm=grid.origin_mm, algorithm=algorithm,
-                         geometry=geometry, iterations=iterations if algorithm == "pwls" else 0,
-                         elapsed_s=elapsed, params=params)
         scan_path = scan.path
+    with ScanFile(scan_path, "r+") as out:
+        out.write_recon(name, vol, voxel_mm=grid.voxel_mm, origin_mm=grid.origin_mm, algorithm=algorithm,
+                        geometry=geometry, iterations=iterations if algorithm == "pwls" else 0,
+                        elapsed_s=elapsed, params=params)
     exported: list[Path] = []
     if formats:
         base = Path(out_dir) if out_dir is not None else scan_path.parent

@@ -12,22 +12,13 @@ from recon.errors import ReconError
 from recon.grid import VolumeGrid
 
 
-def reference_volume(phantom: Any, grid: VolumeGrid, supersample: int = 2) -> NDArray[np.float32]:
-    """Phantom attenuation averaged over each voxel (``supersample``^3 points per voxel)."""
-    z, y, x = grid.coords_mm()
-    vx, vy, vz = grid.voxel_mm
-    off = (np.arange(supersample) + 0.5) / supersample - 0.5
-    out = np.zeros(grid.shape, dtype=np.float64)
-    for k, zc in enumerate(z):
-        acc = np.zeros(grid.shape[1:])
-        for oz in off:
-            for oy in off:
-                for ox in off:
-                    yy, xx = np.meshgrid(y + oy * vy, x + ox * vx, indexing="ij")
-                    pts = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, zc + oz * vz)], axis=1)
-                    acc += np.asarray(phantom.attenuation_at(pts), dtype=float).reshape(acc.shape)
-        out[k] = acc / supersample**3
-    return out.astype(np.float32)
+def reference_volume(phantom: Any, grid: VolumeGrid, supersample: int = 3) -> NDArray[np.float32]:
+    """The phantom voxelized on ``grid`` (``orbitct.phantoms.voxelize``, partial-volume averaged)."""
+    from orbitct.phantoms import Phantom, voxelize
+
+    if isinstance(phantom, dict):
+        phantom = Phantom.from_json(phantom)
+    return voxelize(phantom, shape=grid.shape, voxel_mm=grid.voxel_mm, origin_mm=grid.origin_mm, supersample=supersample)
 
 
 def rmse(volume: NDArray, reference: NDArray, mask: NDArray[np.bool_] | None = None) -> float:

@@ -53,6 +53,7 @@ def sawtooth_data():
     return g, y, (counts / 2e4).astype(np.float32)
 
 
+@pytest.mark.slow
 def test_pwls_cost_decreases_monotonically_and_beats_fdk(sawtooth_data, truth: np.ndarray) -> None:
     g, y, w = sawtooth_data
     x0 = fdk(y, GRID, g, window="hann")

@@ -44,7 +44,7 @@ def _streak_region(grid: VolumeGrid) -> np.ndarray:
     return near & ~core
 
 
-@pytest.mark.parametrize("algorithm", ["fdk", "pwls"])
+@pytest.mark.parametrize("algorithm", ["fdk", pytest.param("pwls", marks=pytest.mark.slow)])
 def test_mar_reduces_streak_error_and_keeps_metal(metal_scan: Path, algorithm: str) -> None:
     grid = VolumeGrid.centered(SHAPE, VOXEL)
     truth = voxelized_spheres(grid, SPHERES + METAL)
