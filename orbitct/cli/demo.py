@@ -27,6 +27,23 @@ def _optional(module: str, attr: str) -> Any | None:
         return None
 
 
+def _truth_error(scan_path: Path) -> None:
+    """Print how far the nominal and calibrated geometries are from the twins' truth (after similarity alignment)."""
+    error_px = _optional("calib.evaluate", "similarity_aligned_error_px")
+    if error_px is None:
+        return
+    from orbitct.scanfile import ScanFile
+
+    with ScanFile(scan_path) as sf:
+        if not (sf.has_geometry("truth") and sf.has_geometry("calibrated")):
+            return
+        proj = sf.projection_indices
+        truth = sf.geometry("truth")[proj]
+        nominal = error_px(sf.geometry("nominal")[proj], truth)[0]
+        calibrated = error_px(sf.geometry("calibrated")[proj], truth)[0]
+    click.echo(f"   geometry error against the twins' truth: nominal {nominal:.2f} px -> calibrated {calibrated:.3f} px RMS")
+
+
 def _reconstruct(reconstruct_scan: Any, scan_path: Path, out_dir: Path, algorithm: str, geometry: str,
                  iterations: int, voxels: int) -> bool:
     """One reconstruction with PNG slices; False when the package turns out to be incomplete."""
@@ -124,6 +141,7 @@ def demo(out_dir: Path, config_path: Path | None, frames: int, size: int, voxels
                        f"(reprojection RMS {cal.reproj_rms_px:.3f} px)")
         for w in cal.warnings[:5]:
             click.echo(f"   warning: {w}")
+        _truth_error(scan_path)
         click.echo(f"   report (table, violin plots): {out_dir / 'calibration'}")
         geometry = "calibrated"
 
