@@ -65,6 +65,7 @@ def bundle_adjust(
     tol: float = 1e-6,
     intrinsics_prior_mm: float = 5.0,
     gauge_xyz: NDArray[np.float64] | None = None,
+    pose_prior: tuple[float, float] | None = None,
     callback: Callable[[int, ViewState, NDArray[np.float64], float], None] | None = None,
 ) -> BundleResult:
     """Minimise the Huber reprojection cost over view corrections and BB centres (``uv`` NaN = not seen).
@@ -80,12 +81,18 @@ def bundle_adjust(
     G = gauge_matrix(ref)
     prior_w = np.zeros(p)
     prior_w[6:] = 1.0 / intrinsics_prior_mm**2
+    if pose_prior is not None:  # (rad, mm): weak pull of every view towards its nominal pose
+        prior_w[0:3] = 1.0 / pose_prior[0] ** 2
+        prior_w[3:6] = 1.0 / pose_prior[1] ** 2
+
+    def prior_params(st: ViewState) -> NDArray[np.float64]:
+        return np.concatenate([st.rotvec, st.t, st.k], 1)
 
     def cost_of(st: ViewState, X: NDArray[np.float64]) -> float:
         r = model.project(st, X) - obs
         nr = np.where(seen, np.linalg.norm(r, axis=-1), 0.0)
         g = G @ (X - ref).ravel()
-        return _huber_cost(nr, loss_scale_px) + 0.5 * float((prior_w[6:] * st.k**2).sum()) + 0.5 * gauge_w * float(g @ g)
+        return _huber_cost(nr, loss_scale_px) + 0.5 * float((prior_w * prior_params(st) ** 2).sum()) + 0.5 * gauge_w * float(g @ g)
 
     uv_p, Jv, Jp = model.project_jac(state, xyz)
     jpp = np.einsum("nkai,nkaj->kij", Jp * seen[..., None, None], Jp)
@@ -97,13 +104,15 @@ def bundle_adjust(
         r = np.where(seen[..., None], uv_p - obs, 0.0)
         w = _huber_weights(np.linalg.norm(r, axis=-1), loss_scale_px) * seen
         Jv_w = Jv * w[..., None, None]
-        Hvv = np.einsum("nkai,nkaj->nij", Jv_w, Jv)
-        Hvp = np.einsum("nkai,nkaj->nkij", Jv_w, Jp)  # (N,K,p,3)
-        Hpp = np.einsum("nkai,nkaj->kij", Jp * w[..., None, None], Jp)
-        gv = np.einsum("nkai,nka->ni", Jv_w, r)
-        gp = np.einsum("nkai,nka->ki", Jp * w[..., None, None], r).ravel()
+        Jv_wf = Jv_w.reshape(n, 2 * k, p)
+        Hvv = np.swapaxes(Jv_wf, 1, 2) @ Jv.reshape(n, 2 * k, p)
+        Hvp = np.swapaxes(Jv_w, 2, 3) @ Jp  # (N,K,p,3)
+        Jp_w = Jp * w[..., None, None]
+        Hpp = np.swapaxes(Jp_w, 0, 1).reshape(k, 2 * n, 3).transpose(0, 2, 1) @ np.swapaxes(Jp, 0, 1).reshape(k, 2 * n, 3)
+        gv = (np.swapaxes(Jv_wf, 1, 2) @ r.reshape(n, 2 * k, 1))[..., 0]
+        gp = (np.swapaxes(Jp_w, 0, 1).reshape(k, 2 * n, 3).transpose(0, 2, 1) @ np.swapaxes(r, 0, 1).reshape(k, 2 * n, 1)).ravel()
         Hvv += np.diag(prior_w)[None]
-        gv += prior_w[None] * np.concatenate([np.zeros((n, 6)), state.k], 1)
+        gv += prior_w[None] * prior_params(state)
         gvec = G @ (xyz - ref).ravel()
         Hg = gauge_w * G.T @ G
         gg = gauge_w * G.T @ gvec

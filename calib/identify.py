@@ -27,14 +27,20 @@ def fill_states(state: ViewState, solved: NDArray[np.bool_], n: int) -> ViewStat
 
 
 def rough_solve(
-    model: ViewModel, uv: NDArray[np.float64], min_bbs: int = 3, iterations: int = 15
+    model: ViewModel, uv: NDArray[np.float64], min_bbs: int = 3, iterations: int = 8
 ) -> tuple[ViewState, NDArray[np.float64], NDArray[np.bool_]]:
     """Quick robust bundle adjustment on the views that see enough markers; states for every view."""
     ok_views = usable_views(uv, min_bbs)
     sub = ViewModel(model.nominal[np.flatnonzero(ok_views)], "fixed")
     uvs = uv[ok_views]
     xyz0 = triangulate_least_squares(*marker_rays(sub.nominal, uvs))
-    res = bundle_adjust(sub, uvs, xyz0, loss_scale_px=2.0, max_iterations=iterations)
+    bad = ~np.isfinite(xyz0).all(1) | (np.linalg.norm(np.nan_to_num(xyz0, nan=1e9), axis=1) > 5000.0)
+    if bad.any():  # tracks seen along nearly one ray: no point to solve for
+        uvs = uvs.copy()
+        uvs[:, bad] = np.nan
+        xyz0[bad] = 0.0
+    # the weak pull towards the nominal poses holds parts of the orbit that share no BB track together
+    res = bundle_adjust(sub, uvs, xyz0, loss_scale_px=2.0, max_iterations=iterations, pose_prior=(0.05, 20.0))
     full = ViewState.identity(model.nominal.n_views, 0)
     full.R[ok_views], full.t[ok_views] = res.state.R, res.state.t
     return fill_states(full, ok_views, model.nominal.n_views), res.xyz, ok_views
@@ -55,29 +61,86 @@ def merge_fragments(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Join fragments that never share a frame, lie within ``near_mm`` of each other (rough centres ``xyz``)
     and fit one 3-D point together within ``tol_px`` RMS (greedy, best pair first).
-    Returns the merged tracks and their RMS reprojection error through ``geometry``."""
-    tracks = [frags[:, f] for f in range(frags.shape[1])]
-    centres = [c for c in xyz]
+    Returns the merged tracks and their RMS reprojection error through ``geometry``.
+
+    The fit of a union is computed from additive sums over its rays (normal equations of the
+    least-squares ray intersection), with the ray distance converted to pixels at the mean magnification."""
+    n, f = frags.shape[:2]
+    origin, direction = marker_rays(geometry, frags)
+    seen = np.isfinite(direction).all(-1)
+    d = np.where(seen[..., None], direction, 0.0)
+    o = np.where(seen[..., None], origin, 0.0)
+    cnt = seen.sum(0).astype(float)
+    dt = np.ascontiguousarray(d.transpose(1, 2, 0))  # (F,3,N)
+    A = cnt[:, None, None] * np.eye(3) - dt @ np.ascontiguousarray(d.transpose(1, 0, 2))  # sum of I - d d^T
+    od = (o * d).sum(-1)  # (N,F)
+    b = o.sum(0) - (d * od[..., None]).sum(0)
+    c = (o * o).sum((0, 2)) - (od**2).sum(0)
+    det = geometry.detector
+    ok_v = geometry.valid
+    mm_per_px = float(np.sqrt(det.pitch_col * det.pitch_row) / np.median(geometry.sdd[ok_v] / geometry.sod()[ok_v]))
+    tol_mm = tol_px * mm_per_px
+    groups = [[j] for j in range(f)]
+    alive = np.ones(f, bool)
+    centres = xyz.copy()
+    vis = seen.T.astype(np.float32)
+    share_all = (vis @ vis.T) > 0  # (F,F): fragments seen together in some frame
     while True:
-        stack = np.stack(tracks, 1)
-        seen = np.isfinite(stack[..., 0]).T  # (F, N)
-        C = np.array(centres)
-        shared = seen.astype(np.int32) @ seen.T.astype(np.int32)
+        idx = np.flatnonzero(alive)
+        C = centres[idx]
         near = np.linalg.norm(C[:, None] - C[None], axis=-1) < near_mm
-        ia, ib = np.nonzero(np.triu((shared == 0) & near, 1))
+        shared = share_all[np.ix_(idx, idx)]
+        ia, ib = np.nonzero(np.triu(near & ~shared, 1))
         if ia.size == 0:
             break
-        union = np.where(seen[ia].T[..., None], stack[:, ia], stack[:, ib])  # (N, pairs, 2)
-        xyz_u, rms_u = _fit_rms(geometry, union)
-        ok = np.isfinite(rms_u) & (rms_u < tol_px)
-        if not ok.any():
+        a, bb = idx[ia], idx[ib]
+        Au, bu, cu, nu = A[a] + A[bb], b[a] + b[bb], c[a] + c[bb], cnt[a] + cnt[bb]
+        x = np.linalg.solve(Au + 1e-9 * np.eye(3), bu[..., None])[..., 0]
+        ss = np.einsum("pi,pij,pj->p", x, Au, x) - 2 * np.einsum("pi,pi->p", bu, x) + cu
+        rms = np.sqrt(np.maximum(ss, 0.0) / np.maximum(nu, 1.0))
+        good = rms < tol_mm
+        if not good.any():
             break
-        best = int(np.flatnonzero(ok)[np.argmin(rms_u[ok])])
-        a, b = int(ia[best]), int(ib[best])
-        tracks[a], centres[a] = union[:, best], xyz_u[best]
-        del tracks[b], centres[b]
+        best = int(np.flatnonzero(good)[np.argmin(rms[good])])
+        p, q = int(a[best]), int(bb[best])
+        A[p], b[p], c[p], cnt[p], centres[p] = Au[best], bu[best], cu[best], nu[best], x[best]
+        share_all[p] |= share_all[q]
+        share_all[:, p] = share_all[p]
+        groups[p] += groups[q]
+        alive[q] = False
+    tracks = []
+    for j in np.flatnonzero(alive):
+        t = np.full((n, 2), np.nan)
+        for m in groups[j]:
+            t = np.where(np.isfinite(t), t, frags[:, m])
+        tracks.append(t)
     stack = np.stack(tracks, 1)
     return stack, _fit_rms(geometry, stack)[1]
+
+
+def _join_across(frags: NDArray[np.float64], geometry: ViewGeometry, near_mm: float) -> NDArray[np.float64]:
+    """Join tracks that never share a frame and are each other's nearest neighbour in 3-D within ``near_mm``
+    (parts of an orbit linked only through the nominal geometry)."""
+    while frags.shape[1] > 1:
+        xyz = triangulate_least_squares(*marker_rays(geometry, frags))
+        seen = np.isfinite(frags[..., 0]).T.astype(np.int32)
+        d = np.linalg.norm(xyz[:, None] - xyz[None], axis=-1)
+        d[~np.isfinite(d)] = np.inf
+        np.fill_diagonal(d, np.inf)
+        share = (seen @ seen.T) > 0
+        nearest = d.argmin(1)
+        cand = [
+            (d[a, b], a, b)
+            for a, b in enumerate(nearest)
+            if a < b and nearest[b] == a and d[a, b] < near_mm and not share[a, b]
+        ]
+        if not cand:
+            return frags
+        _, a, b = min(cand)
+        frags = frags.copy()
+        frags[:, a] = np.where(np.isfinite(frags[:, a]), frags[:, a], frags[:, b])
+        frags = np.delete(frags, b, axis=1)
+    return frags
 
 
 def _merge_close(xyz: NDArray[np.float64], uv: NDArray[np.float64], diameter_mm: float) -> NDArray[np.float64]:
@@ -118,7 +181,10 @@ def identify(
     rough = geo.geometry(ViewState(state.R, state.t, no_k))
     fxyz = triangulate_least_squares(*marker_rays(rough, frags))
     frags, rms = merge_fragments(frags, rough, fxyz, max(1.5, 0.35 * settings.diameter_px), 15.0)
-    uv = frags[:, np.isfinite(rms) & (rms < max(2.0, 0.5 * settings.diameter_px))]
+    good = np.isfinite(rms) & (rms < max(2.0, 0.5 * settings.diameter_px))
+    frags = _join_across(frags[:, good], rough, 15.0)
+    # short leftovers are clutter (or BB pieces the final assignment recovers); they only weaken the solve
+    uv = frags[:, np.isfinite(frags[..., 0]).sum(0) >= max(settings.min_fragment, min_observations // 2)]
     det = nominal_model.nominal.detector
     margin = 0.5 * settings.diameter_px + 1.0
     for _ in range(4):

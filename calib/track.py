@@ -37,6 +37,8 @@ class TrackingSettings:
     min_fragment: int = 5
     overlap_factor: float = 1.25
     max_background_ratio: float = 0.25
+    max_radius_ratio_large: float = 1.35  # BBs of 4 px and more: measured radius / expected radius
+    max_background_ratio_large: float = 0.15  # background roughness / BB amplitude (metal edges are rough)
     min_amplitude_ratio: float = 0.3
 
     @property
@@ -53,12 +55,12 @@ class TrackingSettings:
 def ball_like(c: NDArray[np.float64], s: TrackingSettings) -> NDArray[np.bool_]:
     """Candidates whose size and roundness fit a projected BB."""
     r = 0.5 * s.diameter_px
-    small = s.diameter_px < 4.0  # a few pixels: size and shape are dominated by sampling
+    small = s.diameter_px < 4.0  # a few pixels: size and shape are dominated by sampling and blur
     return (
         (c[:, RADIUS] >= (0.3 if small else s.min_radius_ratio) * r)
-        & (c[:, RADIUS] <= s.max_radius_ratio * r + 0.5)
+        & (c[:, RADIUS] <= (s.max_radius_ratio * r + 0.5 if small else s.max_radius_ratio_large * r))
         & (c[:, ELONG] <= (s.max_elongation + 1.5 if small else s.max_elongation))
-        & (c[:, BG_RMS] <= s.max_background_ratio * c[:, AMP])
+        & (c[:, BG_RMS] <= (s.max_background_ratio if small else s.max_background_ratio_large) * c[:, AMP])
     )
 
 
@@ -154,7 +156,9 @@ def _predict(nominal: ViewGeometry, tracks: list[dict[int, NDArray[np.float64]]]
     o1, d1 = o[np.arange(t_n), last], d[np.arange(t_n), last]
     x1 = o1 - np.einsum("ij,ij->i", o1, d1)[:, None] * d1
     x = np.where(single[:, None], x1, x)
-    return nominal[to].project(x)[0]
+    P = nominal.matrices[to]  # cached on the nominal geometry
+    h = x @ P[:, :3].T + P[:, 3]
+    return h[:, :2] / h[:, 2:3]
 
 
 def link_fragments(cands: list[NDArray[np.float64]], s: TrackingSettings, nominal: ViewGeometry) -> NDArray[np.float64]:
@@ -168,26 +172,14 @@ def link_fragments(cands: list[NDArray[np.float64]], s: TrackingSettings, nomina
         last_f = np.array([max(tracks[t]) for t in active], dtype=int)
         pred_a = _predict(nominal, tracks, active, p)
         gates = gate * (1.0 + 0.5 * np.clip(p - last_f - 1, 0, None))
-        # tracks whose predictions nearly coincide are ambiguous: let them coast
-        close = np.zeros(len(active), bool)
-        if len(active) > 1:
-            dd = np.linalg.norm(pred_a[:, None] - pred_a[None], axis=-1) + np.eye(len(active)) * 1e9
-            close = dd.min(1) < s.overlap_factor * s.diameter_px
         matched_c = np.zeros(len(c), bool)
         matched_t = np.zeros(len(active), bool)
         if len(active) and len(c):
-            p_in = pred_a.copy()
-            p_in[close] = np.nan
-            idx, aligned = match_frame(p_in, c[:, :2], s.search_px, gates)
-            pred_a[~close] = aligned[~close]
+            idx, _ = match_frame(pred_a, c[:, :2], s.search_px, gates)
             for a in np.flatnonzero(idx >= 0):
                 tracks[active[a]][p] = c[idx[a], :2].copy()
                 matched_c[idx[a]] = True
                 matched_t[a] = True
-        # candidates close to an ambiguous prediction must not start new tracks
-        if close.any() and len(c):
-            near = np.linalg.norm(pred_a[close][:, None] - c[None, :, :2], axis=-1).min(0) < gate + s.diameter_px
-            matched_c |= near
         still = []
         for a, t in enumerate(active):
             if matched_t[a]:
