@@ -18,7 +18,7 @@ from orbitct.progress import ProgressCallback, report
 from recon.errors import ReconError
 from recon.operator import Projector
 
-DEFAULT_BETA = 0.05
+DEFAULT_BETA = 0.01
 
 
 @dataclass

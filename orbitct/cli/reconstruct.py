@@ -29,7 +29,7 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
 @click.option("--voxel-mm", type=float, default=None, help="Isotropic voxel size in mm (default: detector pitch at the isocenter).")
 @click.option("--shape", callback=_shape, default=None, help="Volume shape NZ,NY,NX (default: fits the field of view).")
 @click.option("--iterations", type=click.IntRange(min=1), default=50, show_default=True, help="PWLS iterations.")
-@click.option("--beta", type=click.FloatRange(min=0), default=None, help="Relative penalty strength (default 0.05).")
+@click.option("--beta", type=click.FloatRange(min=0), default=None, help="Relative penalty strength (default 0.01; larger = smoother).")
 @click.option("--subsets", type=click.IntRange(min=1), default=1, show_default=True, help="Ordered subsets for PWLS.")
 @click.option("--window", type=click.Choice(["ram-lak", "shepp-logan", "cosine", "hann"]), default="hann", show_default=True,
               help="Ramp filter window for FDK (and the PWLS initial image).")
