@@ -49,7 +49,8 @@ class Service:
         self.store = Store(settings.db_path)
         self.bus = EventBus(self.store)
         self.bench = BenchController(settings.bench_config, sim=settings.sim, store=self.store, bus=self.bus,
-                                     data_dir=settings.data_dir, status_interval_s=settings.status_interval_s)
+                                     data_dir=settings.data_dir, status_interval_s=settings.status_interval_s,
+                                     nice=settings.bench_nice)
         self.jobs = JobManager(self.store, self.bus, settings.data_dir, workers=settings.job_workers,
                                cancel_grace_s=settings.cancel_grace_s, scan_busy=lambda s: self.bench.busy == s)
 

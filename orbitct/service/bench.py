@@ -63,9 +63,9 @@ class BenchController:
     """Starts the bench process and relays commands, progress and the emergency stop."""
 
     def __init__(self, config_path: Path, *, sim: bool, store: Store, bus: EventBus, data_dir: Path,
-                 status_interval_s: float = 0.25) -> None:
+                 status_interval_s: float = 0.25, nice: int = 0) -> None:
         self.config_path = Path(config_path)
-        self.sim = sim
+        self.sim, self.nice = sim, nice
         self._store, self._bus = store, bus
         self._data_dir = Path(data_dir)
         self._interval = status_interval_s
@@ -95,7 +95,7 @@ class BenchController:
         self._cmd, self._stop, self._events = cmd_parent, stop_parent, events_parent
         self.connection_state = "connecting"
         self._process = _CTX.Process(target=bench_main, name="orbitct-bench", daemon=True,
-                                     args=(str(self.config_path), self.sim, cmd_child, stop_child, events_child))
+                                     args=(str(self.config_path), self.sim, cmd_child, stop_child, events_child, self.nice))
         self._process.start()
         for conn in (cmd_child, stop_child, events_child):
             conn.close()
@@ -253,6 +253,7 @@ class BenchController:
                             progress=data)
 
     def _on_scan_end(self, scan_id: str, state: str, reason: str, summary: dict[str, Any]) -> None:
+        reason = reason.replace(str(self._data_dir.resolve()) + "/", "").replace(str(self._data_dir) + "/", "")
         active = self.current
         progress = active.progress if active is not None and active.scan_id == scan_id else {}
         fields: dict[str, Any] = dict(state=state, reason=reason[:2000], finished_utc=utc_now(), summary=summary,

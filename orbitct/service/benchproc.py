@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import threading
 from dataclasses import asdict
 from multiprocessing.connection import Connection
@@ -301,9 +302,15 @@ class BenchServer:
             self.send("reply", req_id, False, classify(exc))
 
 
-def bench_main(config_path: str, sim: bool, commands: Connection, stops: Connection, events: Connection) -> None:
-    """Entry point of the bench process."""
+def bench_main(config_path: str, sim: bool, commands: Connection, stops: Connection, events: Connection,
+               nice: int = 0) -> None:
+    """Entry point of the bench process (asks for priority ``nice`` over the web server where allowed)."""
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s bench: %(message)s")
+    if nice < 0:
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, nice)
+        except OSError:
+            log.info("bench process priority stays normal (raising it needs root or CAP_SYS_NICE)")
     server = BenchServer(Path(config_path), sim, events)
     try:
         asyncio.run(server.serve(commands, stops))

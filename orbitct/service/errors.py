@@ -69,6 +69,7 @@ class Unavailable(ApiError):
 ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorBody, "description": "missing or unknown bearer token"},
     403: {"model": ErrorBody, "description": "the token's role may not do this"},
+    404: {"model": ErrorBody, "description": "unknown id or file"},
     422: {"model": ErrorBody, "description": "invalid parameters: field and reason in `details`"},
 }
 

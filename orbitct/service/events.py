@@ -35,9 +35,14 @@ class EventBus:
         self._writer = threading.Thread(target=self._persist, name="orbitct-events", daemon=True)
         self._writer.start()
 
+    MAX_TOPICS = 256  # ended topics beyond this many are dropped from memory (the store keeps them)
+
     def _topic(self, name: str) -> _Topic:
         topic = self._topics.get(name)
         if topic is None:
+            if len(self._topics) >= self.MAX_TOPICS:
+                for old in [k for k, t in self._topics.items() if t.ended and not t.waiters]:
+                    del self._topics[old]
             seq = self._store.last_event_seq(name)
             topic = _Topic(seq=seq)
             topic.ended = any(k in FINAL_KINDS for _, k, _ in self._store.events(name, after=seq - 1)) if seq else False

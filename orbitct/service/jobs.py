@@ -107,6 +107,7 @@ class JobManager:
         self._scan_busy = scan_busy or (lambda scan_id: False)
         self._running: dict[str, _Running] = {}
         self._lock = threading.Lock()
+        self._queue_lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="orbitct-jobs", daemon=True)
@@ -136,17 +137,18 @@ class JobManager:
 
     def cancel(self, job_id: str, reason: str = "cancelled on request") -> str:
         """Cancel a queued or running job; returns the state it is now in."""
-        with self._lock:
-            running = self._running.get(job_id)
-            if running is not None:
-                running.cancel.set()
-                running.cancel_at = running.cancel_at or time.monotonic()
-                self._wake.set()
-                return "cancelling"
-        job = self._store.get_job(job_id)
-        if job is not None and job["state"] == "queued":
-            self._finish(job_id, "cancelled", reason, {})
-            return "cancelled"
+        with self._queue_lock:  # the dispatcher cannot start it meanwhile
+            with self._lock:
+                running = self._running.get(job_id)
+                if running is not None:
+                    running.cancel.set()
+                    running.cancel_at = running.cancel_at or time.monotonic()
+                    self._wake.set()
+                    return "cancelling"
+            job = self._store.get_job(job_id)
+            if job is not None and job["state"] == "queued":
+                self._finish(job_id, "cancelled", reason, {})
+                return "cancelled"
         return job["state"] if job is not None else "unknown"
 
     def shutdown(self, reason: str = "service stopped while the job was running") -> None:
@@ -178,6 +180,10 @@ class JobManager:
             self._wake.clear()
 
     def _start_queued(self) -> None:
+        with self._queue_lock:
+            self._start_queued_locked()
+
+    def _start_queued_locked(self) -> None:
         with self._lock:
             free = self._workers - len(self._running)
             busy = {r.scan_id for r in self._running.values()}

@@ -20,7 +20,7 @@ class Health(BaseModel):
 
 
 @router.get("/health", response_model=Health, summary="Liveness and bench connection")
-def health(service: ServiceDep) -> Health:
+async def health(service: ServiceDep) -> Health:
     """``ok`` when the bench is connected, ``degraded`` otherwise."""
     bench = service.bench.connection_state
     return Health(status="ok" if bench == "connected" else "degraded", version=__version__, bench=bench)

@@ -25,8 +25,8 @@ class ScanCreate(BaseModel):
     """A scan to run on the bench: orbit, its parameters, injected errors (simulation), mode."""
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
-        {"name": "experiment A", "orbit": "sawtooth", "params": {"amplitude_deg": 20, "cycles": 2}, "frames": 500,
-         "errors": "bench", "seed": 0, "mode": "step"},
+        {"name": "experiment A", "orbit": "sawtooth", "params": {"amplitude_deg": 6, "cycles": 2}, "frames": 500,
+         "errors": "none", "seed": 0, "mode": "step"},
     ]})
 
     name: str = Field("", max_length=100, pattern=r"^[\w .,:()+-]*$", description="free label")
