@@ -23,6 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from acquire.config import BenchConfig, load_config  # noqa: E402
+from acquire.errors import AcquireError  # noqa: E402
 from acquire.runner import ScanRequest, run_scan  # noqa: E402
 from orbitct.scanfile import ScanFile  # noqa: E402
 
@@ -66,7 +67,10 @@ def main() -> None:
                       orbit_params={"amplitude_deg": args.tilt_deg}, errors="bench", seed=0, mode=args.mode,
                       sim=True, frame_rate_hz=args.frame_rate, overwrite=True)
     t0 = time.perf_counter()
-    res = run_scan(req)
+    try:
+        res = run_scan(req)
+    except AcquireError as exc:
+        sys.exit(f"scan refused: {exc}")
     wall = time.perf_counter() - t0
     if res.status != "complete":
         sys.exit(f"scan {res.status}: {res.reason}")
