@@ -236,8 +236,8 @@ class DetectorSettings:
 
 
 def settings_for(diameter_px: float, shape: tuple[int, int]) -> DetectorSettings:
-    """Binning so the BB spans about 3-5 binned pixels."""
-    b = max(1, int(diameter_px // 3.5))
+    """Binning so the BB spans about 2.5-5 binned pixels."""
+    b = max(1, int(diameter_px // 2.5))
     while b > 1 and (shape[0] % b or shape[1] % b):
         b -= 1
     return DetectorSettings(diameter_px=float(diameter_px), binning=b)

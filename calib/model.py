@@ -124,7 +124,3 @@ class ViewModel:
             Jv[..., 6 + j] = (uv2 - uv) / _FD_STEP_MM
         return uv, Jv, Jp
 
-
-def corrections(state: ViewState) -> dict[str, NDArray[np.float64]]:
-    """Per-view correction for reports: rotation angles about x, y, z (rad) and isocenter shift (mm)."""
-    return {"rotvec": state.rotvec, "shift": state.t, "intrinsics": state.k}

@@ -201,27 +201,6 @@ def link_fragments(cands: list[NDArray[np.float64]], s: TrackingSettings, nomina
     return out
 
 
-def cluster_points(xyz: NDArray[np.float64], radius_mm: float) -> NDArray[np.intp]:
-    """Labels joining points closer than ``radius_mm`` (single linkage); NaN points get label -1."""
-    k = len(xyz)
-    labels = np.full(k, -1)
-    ok = np.isfinite(xyz).all(1)
-    nxt = 0
-    for i in range(k):
-        if not ok[i] or labels[i] >= 0:
-            continue
-        labels[i] = nxt
-        stack = [i]
-        while stack:
-            j = stack.pop()
-            d = np.linalg.norm(xyz - xyz[j], axis=1)
-            for m in np.flatnonzero(ok & (labels < 0) & (d < radius_mm)):
-                labels[m] = nxt
-                stack.append(m)
-        nxt += 1
-    return labels
-
-
 def assign_to_predictions(
     cands: list[NDArray[np.float64]], predicted: NDArray[np.float64], s: TrackingSettings, gate_px: float
 ) -> NDArray[np.float64]:
