@@ -10,7 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import AsyncIterator, Mapping, Sequence
+from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -178,8 +178,11 @@ class Bench:
                 st.exception()  # retrieved: no "exception never retrieved" warnings
 
     # --------------------------------------------------------- exposures
-    async def acquire(self, image_key: int) -> tuple[NDArray[Any], int]:
-        """One frame: dark (no X-rays), flat (open beam) or projection (X-ray exposure -> detector)."""
+    async def acquire(self, image_key: int, after_exposure: Callable[[], None] | None = None) -> tuple[NDArray[Any], int]:
+        """One frame: dark (no X-rays), flat (open beam) or projection (X-ray exposure -> detector).
+
+        ``after_exposure`` is called once the X-ray exposure is over, before the frame is read out.
+        """
         self._last_truth = None
         if image_key == DARK:
             frame = (await self.detector.acquire_dark(1))[0]
@@ -187,6 +190,8 @@ class Bench:
             frame = (await self.detector.acquire_flat(1))[0]
         else:
             await self.xray.expose()
+            if after_exposure is not None:
+                after_exposure()
             frame = await self.detector.read_frame()
             tv = frame.meta.get("truth_vectors") if self.sim else None
             self._last_truth = np.asarray(tv, dtype=float) if tv is not None else None

@@ -166,6 +166,8 @@ class MotionConfig(_Model):
 
     settle_ms: float = Field(5.0, ge=0, le=10000)
     move_timeout_s: float = Field(30.0, gt=0, le=600)
+    overlap_readout: bool = Field(False, description="step mode: start the next move once the exposure is over, "
+                                  "while the panel reads out (a panel integrates only during the exposure)")
 
 
 class SimConfig(_Model):

@@ -47,7 +47,7 @@ class BenchLike(Protocol):
     async def start_hexapod_move(self, hexapod: Mapping[str, float]) -> None: ...
     async def stage_position_deg(self) -> float: ...
     async def read_positions(self) -> dict[str, float]: ...
-    async def acquire(self, image_key: int) -> tuple[NDArray[Any], int]: ...
+    async def acquire(self, image_key: int, after_exposure: Callable[[], None] | None = None) -> tuple[NDArray[Any], int]: ...
     async def xray_off(self) -> None: ...
     def mark_interrupted(self) -> None: ...
     async def stop_all(self) -> None: ...
@@ -311,12 +311,16 @@ class ScanEngine:
             return None
         return ViewGeometry.from_object_poses(self._lab_view, pose[0], pose[1]).vectors[0]
 
-    async def _shoot(self, f: FramePlan, t0: float, commanded: dict[str, float]) -> None:
+    async def _shoot(self, f: FramePlan, t0: float, commanded: dict[str, float],
+                     after_exposure: Callable[[], None] | None = None) -> None:
         t_a = time.monotonic()
         encoders = await self.bench.read_positions()
         t_frame = time.monotonic() - t0
         t_b = time.monotonic()
-        frame, number = await self.bench.acquire(f.image_key)
+        if after_exposure is None:
+            frame, number = await self.bench.acquire(f.image_key)
+        else:
+            frame, number = await self.bench.acquire(f.image_key, after_exposure=after_exposure)
         t_c = time.monotonic()
         self._check_abort()  # a frame taken while the abort was halting the bench is not recorded
         truth = self._true_vector() if f.image_key == PROJECTION else None
@@ -339,19 +343,48 @@ class ScanEngine:
         report(self.progress, "scan", self.n_done, self.plan.n_frames, "", rate_fps=rate, time_left_s=left)
 
     async def _run_step(self, t0: float) -> None:
-        last: dict[str, float] | None = None
+        """Move, wait on target, settle, expose, read. With ``motion.overlap_readout`` the move to the
+        next frame starts once the exposure is over, while the panel is read out and the frame recorded."""
+        frames = list(self.plan)
         settle_s = self.config.motion.settle_ms / 1000.0
-        for f in self.plan:
-            await self._boundary()
-            cmd = self._commanded(f)
-            if cmd != last:
-                t_m = time.monotonic()
-                await self.bench.move_to(cmd[self._stage_axis], hexapod_to_user(f.hexapod), self.config.motion.move_timeout_s)
-                if settle_s > 0:
-                    await asyncio.sleep(settle_s)
-                self._motion_s += time.monotonic() - t_m
-                last = cmd
-            await self._shoot(f, t0, cmd)
+        timeout = self.config.motion.move_timeout_s
+        last: dict[str, float] | None = None
+        ahead: tuple[dict[str, float], asyncio.Future[None]] | None = None  # move started during readout
+        try:
+            for k, f in enumerate(frames):
+                await self._boundary()
+                cmd = self._commanded(f)
+                if cmd != last:
+                    t_m = time.monotonic()
+                    arrived = False
+                    if ahead is not None:
+                        cmd_ahead, move = ahead
+                        ahead = None
+                        await move
+                        arrived = cmd_ahead == cmd
+                    if not arrived:
+                        await self.bench.move_to(cmd[self._stage_axis], hexapod_to_user(f.hexapod), timeout)
+                    if settle_s > 0:
+                        await asyncio.sleep(settle_s)
+                    self._record_motion(t_m)
+                    last = cmd
+                nxt = frames[k + 1] if k + 1 < len(frames) else None
+                start_next: Callable[[], None] | None = None
+                if self.config.motion.overlap_readout and nxt is not None and f.image_key == PROJECTION:
+                    nxt_cmd = self._commanded(nxt)
+                    if nxt_cmd != cmd:
+                        def start_next(nxt: FramePlan = nxt, nxt_cmd: dict[str, float] = nxt_cmd) -> None:
+                            nonlocal ahead
+                            move = asyncio.ensure_future(
+                                self.bench.move_to(nxt_cmd[self._stage_axis], hexapod_to_user(nxt.hexapod), timeout))
+                            ahead = (nxt_cmd, move)
+                await self._shoot(f, t0, cmd, after_exposure=start_next)
+        finally:
+            if ahead is not None:  # scan ending early: let the started move end (cleanup halts it anyway)
+                done, _ = await asyncio.wait({ahead[1]}, timeout=timeout)
+                for move in done:
+                    if not move.cancelled():
+                        move.exception()
 
     async def _run_continuous(self, t0: float) -> None:
         """Darks/flats step-wise; projections while the stage turns at constant speed, triggered at angles."""

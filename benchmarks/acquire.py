@@ -54,13 +54,16 @@ def main() -> None:
                     help="twins move this many times faster than a real bench (default 50: mechanics out of the way)")
     ap.add_argument("--tilt-deg", type=float, default=8.0, help="sawtooth tilt amplitude (the hexapod twin allows ~8 with errors)")
     ap.add_argument("--frame-rate", type=float, default=None, help="continuous mode: frames per second")
+    ap.add_argument("--overlap-readout", action="store_true",
+                    help="step mode: move to the next frame while the panel reads out (config motion.overlap_readout)")
     ap.add_argument("--out", type=Path, default=None, help="keep the scan file here (default: a temporary folder)")
     args = ap.parse_args()
 
     cfg = load_config(ROOT / "config" / "bench.yaml")
     assert isinstance(cfg, BenchConfig)
     cfg = cfg.with_detector_size(args.size)
-    cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"time_scale": args.time_scale})})
+    cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"time_scale": args.time_scale}),
+                                 "motion": cfg.motion.model_copy(update={"overlap_readout": args.overlap_readout})})
     tmp = tempfile.TemporaryDirectory()
     out = args.out or Path(tmp.name) / "bench.h5"
     req = ScanRequest(config=cfg, out=out, orbit="sawtooth", frames=args.frames,
@@ -82,7 +85,8 @@ def main() -> None:
     rows = [
         ("frames (projections + darks/flats)", f"{n}", ""),
         ("detector", f"{args.size} x {args.size} uint16", ""),
-        ("mode / twin time scale", f"{args.mode} / {args.time_scale:g}x", ""),
+        ("mode / twin time scale", f"{args.mode}{' + overlapped readout' if args.overlap_readout else ''} / "
+                                   f"{args.time_scale:g}x", ""),
         ("whole run incl. connect + pre-flight (s)", f"{wall:.1f}", f"< {TARGET_TOTAL_S:g}"),
         ("frame loop (s)", f"{t['run_s']:.1f}", ""),
         ("acquisition: exposure + render + transfer (ms/frame)", f"{per['acquire_s']:.1f}", ""),

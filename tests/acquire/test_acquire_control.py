@@ -10,6 +10,7 @@ import pytest
 
 from acquire.bench import Bench, open_bench
 from acquire.runner import ScanRequest, ScanRunner
+from acquire_helpers import small_config
 from orbitct.progress import ProgressEvent
 from orbitct.scanfile import ScanFile
 
@@ -44,8 +45,11 @@ def _run_with_bench(req: ScanRequest, scenario: Any) -> Any:
     return asyncio.run(main())
 
 
-def test_abort_mid_scan_halts_and_leaves_valid_aborted_file(request_factory) -> None:
-    req = request_factory(frames=30)
+@pytest.mark.parametrize("overlap", [False, True], ids=["strict", "overlapped-readout"])
+def test_abort_mid_scan_halts_and_leaves_valid_aborted_file(request_factory, overlap: bool) -> None:
+    cfg = small_config()
+    cfg = cfg.model_copy(update={"motion": cfg.motion.model_copy(update={"overlap_readout": overlap})})
+    req = request_factory(frames=30, config=cfg)
 
     async def scenario(runner: ScanRunner, task: asyncio.Task, bench: Bench, events: list) -> None:
         await _until(lambda: runner._engine is not None and runner._engine.n_done >= 8)

@@ -17,8 +17,11 @@ from acquire_helpers import SMALL_ERRORS, small_config
 pytestmark = pytest.mark.timeout(120)
 
 
-def test_step_scan_writes_a_complete_valid_file(request_factory) -> None:
-    req = request_factory(frames=16)
+@pytest.mark.parametrize("overlap", [False, True], ids=["strict", "overlapped-readout"])
+def test_step_scan_writes_a_complete_valid_file(request_factory, overlap: bool) -> None:
+    cfg = small_config()
+    cfg = cfg.model_copy(update={"motion": cfg.motion.model_copy(update={"overlap_readout": overlap})})
+    req = request_factory(frames=16, config=cfg)
     res = run_scan(req)
     assert res.status == "complete", res.reason
     cfg = small_config()
