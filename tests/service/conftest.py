@@ -14,22 +14,10 @@ from fastapi.testclient import TestClient
 from orbitct.service.app import create_app
 from orbitct.service.auth import create_token
 from orbitct.service.settings import load_settings
+from service_helpers import small_bench_config
 
 HERE = Path(__file__).resolve().parent
-ROOT = HERE.parents[1]
-DETECTOR_PX = 192
-sys.path.insert(0, str(HERE))  # workloads.py must be importable by spawned job workers
-
-
-def small_bench_config(folder: Path, size: int = DETECTOR_PX) -> Path:
-    """The default bench configuration with a small detector and fast frames."""
-    cfg = yaml.safe_load((ROOT / "config" / "bench.yaml").read_text())
-    cfg["geometry"]["detector"] = {"rows": size, "cols": size}
-    cfg["calibration_frames"] = {"darks_before": 2, "flats_before": 2, "darks_after": 1, "flats_after": 1}
-    cfg["sim"]["time_scale"] = 50.0
-    path = folder / "bench.yaml"
-    path.write_text(yaml.safe_dump(cfg))
-    return path
+sys.path.insert(0, str(HERE))  # service_workloads.py must be importable by spawned job workers
 
 
 class Api:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 
-from helpers import SMALL_SAWTOOTH, ended, wait_for
+from service_helpers import SMALL_SAWTOOTH, ended, wait_for
 from orbitct.scanfile import ScanFile
 
 def _start(api, frames: int = 300) -> str:  # type: ignore[no-untyped-def]

@@ -15,8 +15,7 @@ import httpx
 import psutil
 import pytest
 
-from conftest import small_bench_config
-from helpers import SMALL_SAWTOOTH, parse_sse
+from service_helpers import SMALL_SAWTOOTH, parse_sse, small_bench_config
 from orbitct.scanfile import ScanFile
 
 DEV = "oct_dev_token_for_restart_test"

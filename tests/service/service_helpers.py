@@ -9,9 +9,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from orbitct.geometry import Detector, ViewGeometry
 from orbitct.scanfile import ScanWriter
+
+ROOT = Path(__file__).resolve().parents[2]
+DETECTOR_PX = 192  # the twins keep the detector size of their first start in a process
 
 
 def write_small_scan(path: Path, n: int = 6, size: int = 16) -> Path:
@@ -62,3 +66,14 @@ def ended(body: dict[str, Any]) -> bool:
 
 
 SMALL_SAWTOOTH = {"orbit": "sawtooth", "params": {"amplitude_deg": 6.0, "cycles": 2}, "errors": "none"}
+
+
+def small_bench_config(folder: Path, size: int = DETECTOR_PX) -> Path:
+    """The default bench configuration with a small detector and fast frames."""
+    cfg = yaml.safe_load((ROOT / "config" / "bench.yaml").read_text())
+    cfg["geometry"]["detector"] = {"rows": size, "cols": size}
+    cfg["calibration_frames"] = {"darks_before": 2, "flats_before": 2, "darks_after": 1, "flats_after": 1}
+    cfg["sim"]["time_scale"] = 50.0
+    path = folder / "bench.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from helpers import parse_sse, write_small_scan
+from service_helpers import parse_sse, write_small_scan
 from orbitct.service import jobs as jobs_module
 
 
@@ -35,7 +35,7 @@ def _wait(api: Any, job_id: str, states: tuple[str, ...] = ("succeeded", "failed
 @pytest.fixture
 def workload(monkeypatch: pytest.MonkeyPatch) -> None:
     """Calibration jobs run the small frame-means workload instead of the BB calibration."""
-    monkeypatch.setitem(jobs_module.JOB_TARGETS, "calibration", "workloads:frame_means")
+    monkeypatch.setitem(jobs_module.JOB_TARGETS, "calibration", "service_workloads:frame_means")
 
 
 def test_job_runs_in_a_worker_with_ordered_progress(api, workload) -> None:  # type: ignore[no-untyped-def]

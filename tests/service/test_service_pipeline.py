@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import SMALL_SAWTOOTH, ended, parse_sse, wait_for
+from service_helpers import SMALL_SAWTOOTH, ended, parse_sse, wait_for
 from orbitct.scanfile import ScanFile
 
 
