@@ -215,6 +215,18 @@ def joseph_adjoint(proj, rays, vox, vol, vol_t, n_slabs):
                                 flat[base + (ia + 1) * sta + (ib + 1) * stb] += fa * fb * wv
 
 
+@njit(cache=True, inline="always")
+def _half(a, b, lo, hi):
+    """Restrict the open interval ``(lo, hi)`` to where ``a x + b > 0``."""
+    if a > 0.0:
+        lo = max(lo, -b / a)
+    elif a < 0.0:
+        hi = min(hi, -b / a)
+    elif b <= 0.0:
+        hi = lo
+    return lo, hi
+
+
 @njit(parallel=True, cache=True, fastmath=True, nogil=True)
 def voxel_backproject(proj_padded, mats, weights, vol):
     """Add ``sum_n weights[n] / w^2 * proj_n(P_n x)`` (bilinear, zero outside) into ``vol``.
@@ -242,15 +254,19 @@ def voxel_backproject(proj_padded, mats, weights, vol):
             pu = p[0, 0]
             pv = p[1, 0]
             pw = p[2, 0]
-            for x in range(nx):
-                hw = cw + pw * x
-                if hw <= 0.0:
-                    continue
-                inv = 1.0 / hw
-                col = (cu + pu * x) * inv + 1.0
-                row = (cv + pv * x) * inv + 1.0
-                if col <= 0.0 or row <= 0.0 or col >= cols + 1.0 or row >= rows + 1.0:
-                    continue
+            # voxels of this row that land on the detector: five linear conditions on x
+            lo, hi = -1.0, nx * 1.0
+            lo, hi = _half(pw, cw, lo, hi)
+            lo, hi = _half(pu + pw, cu + cw, lo, hi)
+            lo, hi = _half(cols * pw - pu, cols * cw - cu, lo, hi)
+            lo, hi = _half(pv + pw, cv + cw, lo, hi)
+            lo, hi = _half(rows * pw - pv, rows * cw - cv, lo, hi)
+            x0 = max(int(math.floor(lo)) + 1, 0)
+            x1 = min(int(math.ceil(hi)) - 1, nx - 1)
+            for x in range(x0, x1 + 1):
+                inv = 1.0 / (cw + pw * x)
+                col = min(max((cu + pu * x) * inv + 1.0, 0.0), cols + 0.999)
+                row = min(max((cv + pv * x) * inv + 1.0, 0.0), rows + 0.999)
                 ic = int(col)
                 ir = int(row)
                 fc = col - ic
