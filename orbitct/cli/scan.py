@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import click
+import yaml
 
 from orbitct.cli.progress import ProgressBar
 
@@ -15,11 +16,23 @@ def _fail(message: str) -> None:
     sys.exit(2)
 
 
+def _parse_params(items: tuple[str, ...]) -> dict[str, object]:
+    out: dict[str, object] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            _fail(f"--param {item!r}: expected KEY=VALUE, e.g. amplitude_deg=8")
+        out[key.strip()] = yaml.safe_load(value)
+    return out
+
+
 @click.group(invoke_without_command=True)
 @click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Bench or C-arm configuration (config/bench.yaml).")
 @click.option("--orbit", default="sawtooth", show_default=True, help="Orbit name (sawtooth, dcarc, circular, ...).")
 @click.option("--frames", type=click.IntRange(1, 100000), default=None, help="Projections (default: the orbit's).")
+@click.option("--param", "-p", "params", multiple=True, metavar="KEY=VALUE",
+              help="Orbit parameter, repeatable (e.g. -p amplitude_deg=8 -p start_deg=-180); see orbitct orbit.")
 @click.option("--errors", default="bench", show_default=True, help="Injected error profile: bench or none.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the error profile's noise.")
 @click.option("--mode", type=click.Choice(["step", "continuous"]), default="step", show_default=True,
@@ -32,7 +45,8 @@ def _fail(message: str) -> None:
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Scan file to write (.h5).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
 @click.pass_context
-def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int | None, errors: str, seed: int,
+def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int | None, params: tuple[str, ...],
+         errors: str, seed: int,
          mode: str, sim: bool, detector_size: int | None, frame_rate_hz: float | None, out: Path | None,
          overwrite: bool) -> None:
     """Acquire a scan: orbitct scan --config config/bench.yaml --orbit sawtooth --sim --out scan.h5"""
@@ -43,7 +57,8 @@ def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int |
     from acquire.errors import AcquireError
     from acquire.runner import CTRL_C_REASON, ScanRequest, run_scan
 
-    req = ScanRequest(config=config_path, out=out, orbit=orbit, frames=frames, errors=errors, seed=seed, mode=mode,
+    req = ScanRequest(config=config_path, out=out, orbit=orbit, frames=frames, orbit_params=_parse_params(params),
+                      errors=errors, seed=seed, mode=mode,
                       sim=sim, detector_size=detector_size, frame_rate_hz=frame_rate_hz, overwrite=overwrite)
     try:
         with ProgressBar() as bar:

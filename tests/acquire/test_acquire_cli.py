@@ -15,9 +15,12 @@ from orbitct.scanfile import ScanFile
 pytestmark = pytest.mark.timeout(120)
 
 
-def _config_file(tmp_path: Path) -> Path:
+def _config_file(tmp_path: Path, *, tilt_limit_deg: float | None = None) -> Path:
     p = tmp_path / "bench.yaml"
-    p.write_text(yaml.safe_dump(small_config().model_dump(mode="json")))
+    data = small_config().model_dump(mode="json")
+    if tilt_limit_deg is not None:  # a bench whose hexapod tilts less than the orbit needs
+        data["limits"]["hexapod"]["u_deg"] = [-tilt_limit_deg, tilt_limit_deg]
+    p.write_text(yaml.safe_dump(data))
     return p
 
 
@@ -36,9 +39,10 @@ def test_scan_command_writes_a_file(tmp_path: Path) -> None:
 
 def test_infeasible_orbit_is_refused_before_anything_moves(tmp_path: Path) -> None:
     out = tmp_path / "never.h5"
-    result = CliRunner().invoke(cli, ["scan", "--config", str(_config_file(tmp_path)), "--orbit", "sawtooth",
+    config = _config_file(tmp_path, tilt_limit_deg=15.0)
+    result = CliRunner().invoke(cli, ["scan", "--config", str(config), "--orbit", "sawtooth",
                                       "--frames", "40", "--errors", "none", "--sim", "--out", str(out)])
-    # the twin hexapod tilts +-15 deg at most; the paper's sawtooth needs +-20 deg
+    # this bench's hexapod tilts +-15 deg at most; the paper's sawtooth needs +-20 deg
     assert result.exit_code == 2
     assert "orbit infeasible at frame" in result.output and "hexapod.U" in result.output
     assert "nothing moved" in result.output and not out.exists()
@@ -59,3 +63,16 @@ def test_invalid_config_file_is_refused(tmp_path: Path) -> None:
     bad.write_text("geometry:\n  sad_mm: 1300\n")
     result = CliRunner().invoke(cli, ["scan", "--config", str(bad), "--sim", "--out", str(tmp_path / "x.h5")])
     assert result.exit_code == 2 and "geometry: sdd_mm (1200.0) must exceed sad_mm (1300.0)" in result.output
+
+
+def test_orbit_parameters_from_the_command_line(tmp_path: Path) -> None:
+    out = tmp_path / "p.h5"
+    result = CliRunner().invoke(cli, ["scan", "--config", str(_config_file(tmp_path)), "--orbit", "sawtooth",
+                                      "--frames", "12", "-p", "amplitude_deg=5", "-p", "cycles=1", "--errors", "none",
+                                      "--sim", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    with ScanFile(out) as sf:
+        assert sf.orbit[1]["amplitude_deg"] == 5 and sf.orbit[1]["cycles"] == 1
+    bad = CliRunner().invoke(cli, ["scan", "--config", str(_config_file(tmp_path)), "-p", "amplitude_deg",
+                                   "--sim", "--out", str(tmp_path / "q.h5")])
+    assert bad.exit_code == 2 and "expected KEY=VALUE" in bad.output
