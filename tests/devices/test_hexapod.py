@@ -26,7 +26,7 @@ async def test_describe_and_read(hexapod: Hexapod) -> None:
     state = await hexapod.read()
     assert set(state) == {"position", "target", "on_target", "referenced", "servo", "moving"}
     assert not any(state["referenced"].values()) and not any(state["servo"].values())
-    assert await hexapod.limits() == {"X": (-50, 50), "Y": (-50, 50), "Z": (-25, 25), "U": (-15, 15), "V": (-15, 15), "W": (-30, 30)}
+    assert await hexapod.limits() == {"X": (-50, 50), "Y": (-50, 50), "Z": (-25, 25), "U": (-30, 30), "V": (-30, 30), "W": (-30, 30)}
 
 
 async def test_refuses_to_move_with_servo_off_then_unreferenced(hexapod: Hexapod, hexapod_twin: TwinServer) -> None:
@@ -88,7 +88,7 @@ async def test_soft_limit_refused_before_anything_moves(ready_hexapod: Hexapod, 
 
 
 async def test_coupled_workspace_refused_with_vmo(ready_hexapod: Hexapod, hexapod_twin: TwinServer) -> None:
-    corner = {"X": 50.0, "Y": 50.0, "U": 15.0}
+    corner = {"X": 50.0, "Y": 50.0, "U": 30.0}
     with pytest.raises(OutOfLimitsError, match="workspace"):
         await ready_hexapod.check_pose(corner)
     with pytest.raises(OutOfLimitsError, match="VMO"):
@@ -97,7 +97,7 @@ async def test_coupled_workspace_refused_with_vmo(ready_hexapod: Hexapod, hexapo
     assert await ready_hexapod.check_pose({"X": 50.0}) == {"X": 50.0}
     # the controller itself refuses the unreachable pose with error 7 if asked directly
     with pytest.raises(GcsOutOfLimitsError) as info:
-        await ready_hexapod.client.command("MOV X 50 Y 50 U 15")
+        await ready_hexapod.client.command("MOV X 50 Y 50 U 30")
     assert info.value.code == 7
 
 

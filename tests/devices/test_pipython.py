@@ -56,7 +56,7 @@ def test_reference_move_read_back(pidevice: GCSDevice, hexapod_twin: TwinServer)
     pos = pidevice.qPOS()
     assert pos["X"] == pytest.approx(1.5, abs=1e-3) and pos["V"] == pytest.approx(2.0, abs=1e-3)
     assert pidevice.qMOV("Z")["Z"] == pytest.approx(-0.5)
-    assert pidevice.qVMO(["X", "Y", "U"], [50.0, 50.0, 15.0]) is False
+    assert pidevice.qVMO(["X", "Y", "U"], [50.0, 50.0, 30.0]) is False
     assert pidevice.qVMO("X", 3.0) is True
 
 
@@ -68,7 +68,7 @@ def test_out_of_limit_move_refused_with_error_7(pidevice: GCSDevice, hexapod_twi
         pidevice.MOV("X", 60.0)
     assert info.value.val == 7
     with pytest.raises(GCSError) as info:
-        pidevice.MOV({"X": 50.0, "Y": 50.0, "U": 15.0})  # each axis fine, the pose is not
+        pidevice.MOV({"X": 50.0, "Y": 50.0, "U": 30.0})  # each axis fine, the pose is not
     assert info.value.val == 7
     assert not hexapod_twin.controller.is_moving()
 

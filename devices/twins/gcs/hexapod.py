@@ -25,8 +25,8 @@ from orbitct.kinematics import hexapod_transform
 
 AXES = ("X", "Y", "Z", "U", "V", "W")
 UNITS = ("mm", "mm", "mm", "deg", "deg", "deg")
-LOW = (-50.0, -50.0, -25.0, -15.0, -15.0, -30.0)
-HIGH = (50.0, 50.0, 25.0, 15.0, 15.0, 30.0)
+LOW = (-50.0, -50.0, -25.0, -30.0, -30.0, -30.0)
+HIGH = (50.0, 50.0, 25.0, 30.0, 30.0, 30.0)
 
 
 def _ring(radius: float, centres_deg: tuple[float, ...], half_deg: float, z: float) -> NDArray[np.float64]:
@@ -51,7 +51,9 @@ def leg_lengths(pose_deg: NDArray[np.float64], pivot_mm: NDArray[np.float64]) ->
 
 
 HOME_LEG_MM = float(leg_lengths(np.zeros(6), np.zeros(3))[0])
-LEG_RANGE_MM = (HOME_LEG_MM - 25.0, HOME_LEG_MM + 27.5)
+# +-60 mm of stroke: the paper's +-20 deg sawtooth with its bench errors (~23 deg, 10 mm) stays reachable,
+# while corners such as X = Y = 50 mm with U = 30 deg do not.
+LEG_RANGE_MM = (HOME_LEG_MM - 60.0, HOME_LEG_MM + 60.0)
 
 
 class HexapodController(GcsController):
