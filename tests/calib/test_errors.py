@@ -91,3 +91,18 @@ def test_view_with_too_few_bbs_gets_nan_and_a_warning(fov_scan: Path, tmp_path: 
     assert res.unsolved_views == bad
     assert not res.geometry.valid[bad].any() and res.geometry.valid[60]
     assert any("fewer than 3 BBs" in w for w in res.warnings)
+
+
+@pytest.mark.slow
+def test_manual_seeds_for_the_first_frame_are_accepted(fov_scan: Path, tmp_path: Path) -> None:
+    with h5py.File(fov_scan) as f:
+        from orbitct.geometry import Detector, ViewGeometry
+
+        tv = np.asarray(f["truth/geometry/vectors"])
+        det = Detector(256, 256, 427 / 256, 427 / 256)
+        first = int(np.flatnonzero(np.isfinite(tv).all(1))[0])
+        seeds = ViewGeometry(tv[first], det).project(np.asarray(f["truth/markers/xyz"]))[0] + 0.6
+    res = calib.calibrate_scan(fov_scan, out=tmp_path / "s.h5", seeds_uv=seeds[np.isfinite(seeds).all(1)])
+    assert res.n_bbs == 8
+    with pytest.raises(calib.OptionError, match="seeds_uv"):
+        calib.calibrate_scan(fov_scan, out=tmp_path / "s2.h5", seeds_uv=[1.0, 2.0, 3.0])
