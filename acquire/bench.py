@@ -107,13 +107,16 @@ class Bench:
     async def move_to(self, stage_deg: float, hexapod: Mapping[str, float], timeout_s: float) -> None:
         """Move stage and hexapod at once and wait until both are on target."""
         moves = [self.stage.move({STAGE_AXIS: stage_deg}), self.hexapod.move(dict(hexapod))]
-        try:
-            done = await asyncio.wait_for(asyncio.gather(*moves, return_exceptions=True), timeout_s)
-        except asyncio.TimeoutError:
-            raise AcquireError(f"move to stage {stage_deg:.3f} deg / hexapod {dict(hexapod)} not done within {timeout_s:g} s") from None
-        errors = [r for r in done if isinstance(r, BaseException)]
-        if errors:
-            raise errors[0]
+        waits = [asyncio.ensure_future(_await(m)) for m in moves]
+        for w in waits:
+            w.add_done_callback(_retrieve)  # outcomes are read even if this call is cancelled
+        _, pending = await asyncio.wait(waits, timeout=timeout_s)
+        if pending:
+            raise AcquireError(f"move to stage {stage_deg:.3f} deg / hexapod {dict(hexapod)} not done within {timeout_s:g} s")
+        for w in waits:
+            exc = w.exception()
+            if exc is not None:
+                raise exc
 
     @property
     def motion_time_scale(self) -> float:
@@ -244,6 +247,11 @@ class Bench:
 
 async def _await(st: Status[Any]) -> Any:
     return await st
+
+
+def _retrieve(fut: asyncio.Future[Any]) -> None:
+    if not fut.cancelled():
+        fut.exception()
 
 
 def sim_options(config: BenchConfig) -> dict[str, dict[str, Any]]:
