@@ -147,7 +147,7 @@ class Store:
         sql, args = "SELECT * FROM scans", []
         if state is not None:
             sql, args = sql + " WHERE state = ?", [state]
-        rows = self._conn().execute(sql + " ORDER BY created_utc DESC, id LIMIT ? OFFSET ?", (*args, limit, offset))
+        rows = self._conn().execute(sql + " ORDER BY rowid DESC LIMIT ? OFFSET ?", (*args, limit, offset))
         return [r for r in map(_row, rows.fetchall()) if r is not None]
 
     # ----------------------------------------------------------------- jobs
@@ -175,12 +175,12 @@ class Store:
                 where.append(f"{column} = ?")
                 args.append(value)
         sql = "SELECT * FROM jobs" + (" WHERE " + " AND ".join(where) if where else "")
-        rows = self._conn().execute(sql + " ORDER BY created_utc DESC, id LIMIT ? OFFSET ?", (*args, limit, offset))
+        rows = self._conn().execute(sql + " ORDER BY rowid DESC LIMIT ? OFFSET ?", (*args, limit, offset))
         return [r for r in map(_row, rows.fetchall()) if r is not None]
 
     def queued_jobs(self) -> list[dict[str, Any]]:
         """Jobs waiting for a worker, oldest first."""
-        rows = self._conn().execute("SELECT * FROM jobs WHERE state = 'queued' ORDER BY created_utc, id").fetchall()
+        rows = self._conn().execute("SELECT * FROM jobs WHERE state = 'queued' ORDER BY rowid").fetchall()
         return [r for r in map(_row, rows) if r is not None]
 
     def add_log(self, job_id: str, lines: Iterable[str]) -> None:

@@ -30,6 +30,7 @@ JOB_TARGETS: dict[str, str] = {
     "reconstruction": "orbitct.service.analysis:run_reconstruction",
 }
 _CTX = mp.get_context("spawn")
+JOB_NICE = 5
 
 
 class JobCancelled(Exception):
@@ -51,6 +52,10 @@ class _PipeLogHandler(logging.Handler):
 
 def _worker_main(target: str, scan_path: str, params: dict[str, Any], out_dir: str, conn: Connection, cancel: Any) -> None:
     """Entry point of a job process: run ``target`` and send progress, log lines and the outcome over ``conn``."""
+    try:
+        os.nice(JOB_NICE)  # batch work: never take CPU from a running acquisition
+    except OSError:
+        pass
     logging.basicConfig(level=logging.WARNING)
     logging.getLogger().addHandler(_PipeLogHandler(conn))
     logging.getLogger().setLevel(logging.INFO)
