@@ -171,7 +171,16 @@ class BenchController:
         self._pending.clear()
         active = self.current
         if active is not None:
-            self._on_scan_end(active.scan_id, "failed", "the bench process ended during the scan", {})
+            summary: dict[str, Any] = {}
+            if active.path.exists():
+                try:
+                    from acquire.repair import repair_scan
+
+                    repair_scan(active.path)  # keep every written frame, mark the file aborted
+                except Exception as exc:  # noqa: BLE001
+                    log.error("could not repair %s: %s", active.path.name, exc)
+                summary = scan_summary(active.path)
+            self._on_scan_end(active.scan_id, "failed", "the bench process ended during the scan", summary)
 
     # ------------------------------------------------------------ commands
     def submit(self, name: str, /, **args: Any) -> concurrent.futures.Future[Any]:

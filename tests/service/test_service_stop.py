@@ -63,3 +63,16 @@ def test_one_scan_at_a_time_and_abort(api) -> None:  # type: ignore[no-untyped-d
     assert api.post(f"/scans/{scan_id}/abort").status_code == 409
     r = api.post("/calibrations", role="analyst", json={"scan_id": scan_id})
     assert r.status_code == 409 and "aborted" in r.json()["message"]
+
+
+def test_bench_process_crash_fails_the_scan_and_keeps_its_frames(api) -> None:  # type: ignore[no-untyped-def]
+    scan_id = _start(api)
+    api.service.bench._process.kill()
+    scan = wait_for(api, f"/scans/{scan_id}", ended, 30)
+    assert scan["state"] == "failed" and "bench process ended" in scan["reason"]
+    assert scan["summary"]["status"] == "aborted" and scan["summary"]["n_frames"] >= 8
+    assert api.get("/health", role=None).json() == {"status": "degraded", "version": api.get("/health").json()["version"],
+                                                     "bench": "failed"}
+    assert api.post("/scans", json={**SMALL_SAWTOOTH, "frames": 4}).status_code == 503
+    r = api.post("/stop")
+    assert r.status_code == 202 and r.json()["halted"] is False
