@@ -110,7 +110,13 @@ class Bench:
         waits = [asyncio.ensure_future(_await(m)) for m in moves]
         for w in waits:
             w.add_done_callback(_retrieve)  # outcomes are read even if this call is cancelled
-        _, pending = await asyncio.wait(waits, timeout=timeout_s)
+        try:
+            _, pending = await asyncio.wait(waits, timeout=timeout_s)
+        except asyncio.CancelledError:  # cancelled from outside (Ctrl-C): the moves end with us (drivers halt)
+            for m in moves:
+                m.cancel()
+            await asyncio.wait(waits, timeout=2.0)
+            raise
         if pending:
             raise AcquireError(f"move to stage {stage_deg:.3f} deg / hexapod {dict(hexapod)} not done within {timeout_s:g} s")
         for w in waits:
