@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import numba
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
@@ -64,17 +65,111 @@ def ball_like(c: NDArray[np.float64], s: TrackingSettings) -> NDArray[np.bool_]:
     )
 
 
-def _hungarian(pred: NDArray[np.float64], cand: NDArray[np.float64], gate: NDArray[np.float64] | float) -> NDArray[np.intp]:
-    """Index of the candidate assigned to each prediction (-1: none within its gate)."""
+@numba.njit(cache=True)
+def _gated_cost(pred, cand, gate):  # type: ignore[no-untyped-def]
+    """Distances ``(T, M)`` with 1e6 where a pair is farther than the row's gate (or not finite), and that mask."""
+    t_n, m_n = pred.shape[0], cand.shape[0]
+    cost = np.empty((t_n, m_n))
+    big = np.empty((t_n, m_n), np.bool_)
+    for t in range(t_n):
+        for m in range(m_n):
+            dx = pred[t, 0] - cand[m, 0]
+            dy = pred[t, 1] - cand[m, 1]
+            d = np.sqrt(dx * dx + dy * dy)
+            if not np.isfinite(d):
+                d = 1e6
+            far = d > gate[t]
+            big[t, m] = far
+            cost[t, m] = 1e6 if far else d
+    return cost, big
+
+
+def _hungarian(pred: NDArray[np.float64], cand: NDArray[np.float64], gate: NDArray[np.float64]) -> NDArray[np.intp]:
+    """Index of the candidate assigned to each prediction (-1: none within its gate ``(T,)``)."""
     out = np.full(len(pred), -1)
     if not len(pred) or not len(cand):
         return out
-    cost = np.linalg.norm(pred[:, None] - cand[None], axis=-1)
-    cost[~np.isfinite(cost)] = 1e6
-    big = cost > np.broadcast_to(np.asarray(gate, float).reshape(-1, 1), cost.shape)
-    rows, cols = linear_sum_assignment(np.where(big, 1e6, cost))
+    cost, big = _gated_cost(pred, cand, gate)
+    rows, cols = linear_sum_assignment(cost)
     good = ~big[rows, cols]
     out[rows[good]] = cols[good]
+    return out
+
+
+@numba.njit(cache=True)
+def _near_and_shift(pred, vis, cand, search_px, reach_px):  # type: ignore[no-untyped-def]
+    """Candidates within ``reach_px`` of some visible prediction, and the frame's common shift: the median
+    displacement from each visible prediction to its nearest candidate, over those nearer than ``search_px``
+    (NaN if none)."""
+    m_n = cand.shape[0]
+    best = np.full(m_n, np.inf)
+    sx = np.empty(pred.shape[0])
+    sy = np.empty(pred.shape[0])
+    n_s = 0
+    for t in range(pred.shape[0]):
+        if not vis[t]:
+            continue
+        dmin = np.inf
+        jmin = -1
+        for m in range(m_n):
+            dx = cand[m, 0] - pred[t, 0]
+            dy = cand[m, 1] - pred[t, 1]
+            d = np.sqrt(dx * dx + dy * dy)
+            if d < best[m]:
+                best[m] = d
+            if d < dmin:
+                dmin = d
+                jmin = m
+        if jmin >= 0 and dmin < search_px:
+            sx[n_s] = cand[jmin, 0] - pred[t, 0]
+            sy[n_s] = cand[jmin, 1] - pred[t, 1]
+            n_s += 1
+    kept = np.flatnonzero(best < reach_px)
+    shift = np.full(2, np.nan)
+    if n_s:
+        shift[0] = np.median(sx[:n_s])
+        shift[1] = np.median(sy[:n_s])
+    return kept, shift
+
+
+@numba.njit(cache=True)
+def _realign(pred, vis, cand, idx):  # type: ignore[no-untyped-def]
+    """Predictions moved by the affine map (6 or more matches, if it brings the matches closer) or the median
+    shift (fewer) that takes matched predictions to their candidates."""
+    rows = np.flatnonzero(idx >= 0)
+    n_m = rows.size
+    out = pred.copy()
+    if n_m >= 6:
+        A = np.ones((n_m, 3))
+        B = np.empty((n_m, 2))
+        for q in range(n_m):
+            A[q, 0] = pred[rows[q], 0]
+            A[q, 1] = pred[rows[q], 1]
+            B[q, 0] = cand[idx[rows[q]], 0]
+            B[q, 1] = cand[idx[rows[q]], 1]
+        coef = np.linalg.lstsq(A, B)[0]
+        fit = A @ coef
+        before = np.empty(n_m)
+        after = np.empty(n_m)
+        for q in range(n_m):
+            before[q] = np.sqrt((A[q, 0] - B[q, 0]) ** 2 + (A[q, 1] - B[q, 1]) ** 2)
+            after[q] = np.sqrt((fit[q, 0] - B[q, 0]) ** 2 + (fit[q, 1] - B[q, 1]) ** 2)
+        if np.median(after) < np.median(before):
+            for t in range(pred.shape[0]):
+                if vis[t]:
+                    out[t, 0] = pred[t, 0] * coef[0, 0] + pred[t, 1] * coef[1, 0] + coef[2, 0]
+                    out[t, 1] = pred[t, 0] * coef[0, 1] + pred[t, 1] * coef[1, 1] + coef[2, 1]
+    elif n_m > 0:
+        dx = np.empty(n_m)
+        dy = np.empty(n_m)
+        for q in range(n_m):
+            dx[q] = cand[idx[rows[q]], 0] - pred[rows[q], 0]
+            dy[q] = cand[idx[rows[q]], 1] - pred[rows[q], 1]
+        mx, my = np.median(dx), np.median(dy)
+        for t in range(pred.shape[0]):
+            if vis[t]:
+                out[t, 0] += mx
+                out[t, 1] += my
     return out
 
 
@@ -82,122 +177,157 @@ def match_frame(
     pred: NDArray[np.float64], cand: NDArray[np.float64], search_px: float, gate_px: NDArray[np.float64] | float
 ) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
     """Assign candidates ``(M,2)`` to predictions ``(T,2)`` (NaN = not expected) after removing the frame's
-    common shift (median nearest-neighbour displacement) and, with 3 or more matches, an affine distortion.
+    common shift (median nearest-neighbour displacement) and, with 6 or more matches, an affine distortion.
     Returns the assignment (-1 = none) and the aligned predictions."""
-    pred = pred.copy()
+    pred = np.array(pred, dtype=np.float64)
     vis = np.isfinite(pred).all(1)
+    none = np.full(len(pred), -1)
     if not vis.any() or not len(cand):
-        return np.full(len(pred), -1), pred
-    diff = cand[None] - pred[vis][:, None]
-    dist = np.linalg.norm(diff, axis=-1)
-    near_any = dist.min(0) < search_px + 2.0 * float(np.max(gate_px))
-    if not near_any.any():
-        return np.full(len(pred), -1), pred
-    kept = np.flatnonzero(near_any)
-    cand, diff, dist = cand[kept], diff[:, kept], dist[:, kept]
-    idx, pred = _match_near(pred, vis, cand, diff, dist, search_px, gate_px)
+        return none, pred
+    gate = np.ascontiguousarray(np.broadcast_to(np.asarray(gate_px, dtype=np.float64), (len(pred),)))
+    cand = np.ascontiguousarray(cand, dtype=np.float64)
+    kept, shift = _near_and_shift(pred, vis, cand, float(search_px), float(search_px + 2.0 * float(np.max(gate))))
+    if not kept.size:
+        return none, pred
+    cand = cand[kept]
+    if np.isfinite(shift[0]):
+        pred[vis] += shift
+    idx = _hungarian(pred, cand, gate * 1.5)
+    pred = _realign(pred, vis, cand, idx)
+    idx = _hungarian(pred, cand, gate)
     return np.where(idx >= 0, kept[np.maximum(idx, 0)], -1), pred
 
 
-def _match_near(
-    pred: NDArray[np.float64],
-    vis: NDArray[np.bool_],
-    cand: NDArray[np.float64],
-    diff: NDArray[np.float64],
-    dist: NDArray[np.float64],
-    search_px: float,
-    gate_px: NDArray[np.float64] | float,
-) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
-    nearest = dist.argmin(1)
-    near = dist[np.arange(len(nearest)), nearest] < search_px
-    if near.any():
-        pred[vis] += np.median(diff[np.arange(len(nearest)), nearest][near], axis=0)
-    idx = _hungarian(pred, cand, np.asarray(gate_px) * 1.5)
-    m = idx >= 0
-    if m.sum() >= 6:  # enough matches to also take out an affine distortion, if it helps
-        A = np.column_stack([pred[m], np.ones(m.sum())])
-        coef, *_ = np.linalg.lstsq(A, cand[idx[m]], rcond=None)
-        before = np.median(np.linalg.norm(pred[m] - cand[idx[m]], axis=1))
-        after = np.median(np.linalg.norm(A @ coef - cand[idx[m]], axis=1))
-        if after < before:
-            pred[vis] = np.column_stack([pred[vis], np.ones(vis.sum())]) @ coef
-    elif m.any():
-        pred[vis] += np.median(cand[idx[m]] - pred[m], axis=0)
-    return _hungarian(pred, cand, gate_px), pred
+@numba.njit(cache=True)
+def _predict_from_rays(ray_o, ray_d, count, active, P):  # type: ignore[no-untyped-def]
+    """Pixels ``(T, 2)`` in the view of ``P (3,4)`` of active tracks: the least-squares intersection of their
+    last rays (ring buffers ``(cap, W, 3)``; one ray: its point nearest the isocenter)."""
+    window = ray_o.shape[1]
+    out = np.empty((active.shape[0], 2))
+    A = np.empty((3, 3))
+    b = np.empty(3)
+    x = np.empty(3)
+    for a in range(active.shape[0]):
+        t = active[a]
+        n = min(count[t], window)
+        if n < 2:
+            slot = (count[t] - 1) % window
+            s = 0.0
+            for i in range(3):
+                s += ray_o[t, slot, i] * ray_d[t, slot, i]
+            for i in range(3):
+                x[i] = ray_o[t, slot, i] - s * ray_d[t, slot, i]
+        else:
+            A[:] = 0.0
+            b[:] = 0.0
+            for w in range(n):
+                for i in range(3):
+                    for j in range(3):
+                        p = (1.0 if i == j else 0.0) - ray_d[t, w, i] * ray_d[t, w, j]
+                        A[i, j] += p
+                        b[i] += p * ray_o[t, w, j]
+            x[:] = np.linalg.solve(A, b)
+        h0 = P[0, 0] * x[0] + P[0, 1] * x[1] + P[0, 2] * x[2] + P[0, 3]
+        h1 = P[1, 0] * x[0] + P[1, 1] * x[1] + P[1, 2] * x[2] + P[1, 3]
+        h2 = P[2, 0] * x[0] + P[2, 1] * x[1] + P[2, 2] * x[2] + P[2, 3]
+        out[a, 0] = h0 / h2
+        out[a, 1] = h1 / h2
+    return out
 
 
-def _predict(nominal: ViewGeometry, tracks: list[dict[int, NDArray[np.float64]]], active: list[int], to: int, window: int = 8) -> NDArray[np.float64]:
-    """Predicted positions in frame ``to`` of active tracks: their last few detections triangulated through
-    the nominal geometry (one detection: the point of its ray nearest the isocenter), projected into ``to``."""
-    t_n = len(active)
-    if t_n == 0:
-        return np.zeros((0, 2))
-    frames = np.full((t_n, window), -1)
-    uv = np.full((t_n, window, 2), np.nan)
-    for a, t in enumerate(active):
-        fs = sorted(tracks[t])[-window:]
-        frames[a, : len(fs)] = fs
-        uv[a, : len(fs)] = [tracks[t][f] for f in fs]
-    ok = frames >= 0
-    vec = np.where(ok[..., None], nominal.vectors[np.maximum(frames, 0)], np.nan)
-    g = ViewGeometry(vec.reshape(-1, 12), nominal.detector)
-    o, d = g.backproject(np.where(ok[..., None], uv, 0.0).reshape(-1, 1, 2))
-    o = o.reshape(t_n, window, 3)
-    d = np.where(ok[..., None], d.reshape(t_n, window, 3), 0.0)
-    o = np.where(ok[..., None], o, 0.0)
-    proj = (np.eye(3) - d[..., :, None] * d[..., None, :]) * ok[..., None, None]
-    A = proj.sum(1)
-    b = np.einsum("twij,twj->ti", proj, o)
-    single = ok.sum(1) < 2
-    # one ray: its point nearest the isocenter
-    A[single] += np.eye(3) * 1e-6
-    x = np.linalg.solve(A, b[..., None])[..., 0]
-    last = ok.sum(1) - 1
-    o1, d1 = o[np.arange(t_n), last], d[np.arange(t_n), last]
-    x1 = o1 - np.einsum("ij,ij->i", o1, d1)[:, None] * d1
-    x = np.where(single[:, None], x1, x)
-    P = nominal.matrices[to]  # cached on the nominal geometry
-    h = x @ P[:, :3].T + P[:, 3]
-    return h[:, :2] / h[:, 2:3]
+class _TrackStore:
+    """Growing arrays of 2-D tracks: every detection, and the rays of each track's last ``window`` ones."""
+
+    def __init__(self, window: int = 8, capacity: int = 256) -> None:
+        self.window = window
+        self.ray_o = np.zeros((capacity, window, 3))
+        self.ray_d = np.zeros((capacity, window, 3))
+        self.count = np.zeros(capacity, np.int64)
+        self.last = np.zeros(capacity, np.int64)
+        self.misses = np.zeros(capacity, np.int64)
+        self.n = 0
+        self.obs: list[tuple[int, NDArray[np.intp], NDArray[np.float64]]] = []  # (frame, track ids, uv)
+
+    def _grow(self, need: int) -> None:
+        cap = len(self.count)
+        if need <= cap:
+            return
+        new = max(need, 2 * cap)
+        for name in ("ray_o", "ray_d", "count", "last", "misses"):
+            old = getattr(self, name)
+            arr = np.zeros((new,) + old.shape[1:], old.dtype)
+            arr[:cap] = old
+            setattr(self, name, arr)
+
+    def new_tracks(self, m: int) -> NDArray[np.intp]:
+        """Ids of ``m`` new, empty tracks."""
+        self._grow(self.n + m)
+        ids = np.arange(self.n, self.n + m)
+        self.n += m
+        return ids
+
+    def add(self, frame: int, ids: NDArray[np.intp], uv: NDArray[np.float64], origin: NDArray[np.float64], direction: NDArray[np.float64]) -> None:
+        """Detections ``uv (m,2)`` with their rays for tracks ``ids`` in ``frame``."""
+        if not len(ids):
+            return
+        slot = self.count[ids] % self.window
+        self.ray_o[ids, slot] = origin
+        self.ray_d[ids, slot] = direction
+        self.count[ids] += 1
+        self.last[ids] = frame
+        self.misses[ids] = 0
+        self.obs.append((frame, ids, uv))
+
+
+def _rays(nominal: ViewGeometry, p: int, uv: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Source and unit directions ``(m, 3)`` of the rays through pixels ``uv (m, 2)`` of nominal view ``p``."""
+    c0, r0 = nominal.detector.center
+    pts = nominal.D[p] + (uv[:, 0:1] - c0) * nominal.u[p] + (uv[:, 1:2] - r0) * nominal.v[p]
+    d = pts - nominal.S[p]
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    return nominal.S[p], d
 
 
 def link_fragments(cands: list[NDArray[np.float64]], s: TrackingSettings, nominal: ViewGeometry) -> NDArray[np.float64]:
-    """2-D tracks ``(P, F, 2)`` over projections (NaN where a fragment has no detection)."""
-    tracks: list[dict[int, NDArray[np.float64]]] = []
-    active: list[int] = []
-    misses: dict[int, int] = {}
+    """2-D tracks ``(P, F, 2)`` over projections (NaN where a fragment has no detection).
+
+    Each active track's next position is predicted by triangulating its last detections through the nominal
+    geometry (one detection: the point of its ray nearest the isocenter) and projecting into the next view."""
+    store = _TrackStore()
+    active = np.zeros(0, np.int64)
     gate = s.gate_px
+    matrices = nominal.matrices
     for p, c in enumerate(cands):
         c = c[ball_like(c, s)] if len(c) else c
-        last_f = np.array([max(tracks[t]) for t in active], dtype=int)
-        pred_a = _predict(nominal, tracks, active, p)
-        gates = gate * (1.0 + 0.5 * np.clip(p - last_f - 1, 0, None))
+        uv_c = np.ascontiguousarray(c[:, :2])
         matched_c = np.zeros(len(c), bool)
         matched_t = np.zeros(len(active), bool)
         if len(active) and len(c):
-            idx, _ = match_frame(pred_a, c[:, :2], s.search_px, gates)
-            for a in np.flatnonzero(idx >= 0):
-                tracks[active[a]][p] = c[idx[a], :2].copy()
-                matched_c[idx[a]] = True
-                matched_t[a] = True
-        still = []
-        for a, t in enumerate(active):
-            if matched_t[a]:
-                misses[t] = 0
-                still.append(t)
-            else:
-                misses[t] = misses.get(t, 0) + 1
-                if misses[t] <= s.max_gap:
-                    still.append(t)
-        for b in np.flatnonzero(~matched_c):
-            tracks.append({p: c[b, :2].copy()})
-            still.append(len(tracks) - 1)
-        active = still
-    keep = [t for t in tracks if len(t) >= s.min_fragment]
+            pred_a = _predict_from_rays(store.ray_o, store.ray_d, store.count, active, matrices[p])
+            gates = gate * (1.0 + 0.5 * np.clip(p - store.last[active] - 1, 0, None))
+            idx, _ = match_frame(pred_a, uv_c, s.search_px, gates)
+            matched_t = idx >= 0
+            matched_c[idx[matched_t]] = True
+            origin, direction = _rays(nominal, p, uv_c[idx[matched_t]])
+            store.add(p, active[matched_t], uv_c[idx[matched_t]], origin, direction)
+        missed = active[~matched_t]
+        store.misses[missed] += 1
+        still = active[matched_t | (store.misses[active] <= s.max_gap)]
+        fresh = np.flatnonzero(~matched_c)
+        ids = store.new_tracks(len(fresh))
+        if len(fresh):
+            origin, direction = _rays(nominal, p, uv_c[fresh])
+            store.add(p, ids, uv_c[fresh], origin, direction)
+        active = np.concatenate([still, ids])
+    count = store.count[: store.n]
+    keep = np.flatnonzero(count >= s.min_fragment)
+    column = np.full(store.n, -1)
+    column[keep] = np.arange(len(keep))
     out = np.full((len(cands), len(keep), 2), np.nan)
-    for f, t in enumerate(keep):
-        for p, xy in t.items():
-            out[p, f] = xy
+    for p, ids, uv in store.obs:
+        col = column[ids]
+        ok = col >= 0
+        out[p, col[ok]] = uv[ok]
     return out
 
 
