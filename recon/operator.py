@@ -9,7 +9,7 @@ from numpy.typing import NDArray
 from orbitct.geometry import ViewGeometry
 from recon.errors import ReconError
 from recon.grid import VolumeGrid
-from recon.projector import joseph_adjoint, joseph_forward, voxel_backproject
+from recon.projector import add_interiors, joseph_adjoint, joseph_forward, voxel_backproject
 
 
 def index_rays(grid: VolumeGrid, geometry: ViewGeometry) -> NDArray[np.float64]:
@@ -30,8 +30,19 @@ def index_matrices(grid: VolumeGrid, geometry: ViewGeometry) -> NDArray[np.float
     return np.ascontiguousarray(geometry.matrices @ T)
 
 
-def _slabs(nz: int) -> int:
-    return int(max(1, min(nz, 2 * numba.get_num_threads())))  # each slab repeats the ray set-up: keep few
+def pad_volume(x: NDArray[np.float32], out: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
+    """``x`` with a one-voxel zero border (written into ``out`` when given)."""
+    nz, ny, nx = x.shape
+    if out is None:
+        out = np.empty((nz + 2, ny + 2, nx + 2), dtype=np.float32)
+    out[0] = 0.0
+    out[-1] = 0.0
+    out[:, 0] = 0.0
+    out[:, -1] = 0.0
+    out[:, :, 0] = 0.0
+    out[:, :, -1] = 0.0
+    out[1:-1, 1:-1, 1:-1] = x
+    return out
 
 
 class Projector:
@@ -64,7 +75,7 @@ class Projector:
         x = _as_f32(x, self.vol_shape, "volume")
         if out is None:
             out = np.empty(self.proj_shape, dtype=np.float32)
-        joseph_forward(x, np.ascontiguousarray(x.transpose(0, 2, 1)), self._rays, self._vox, out)
+        joseph_forward(pad_volume(x), self._rays, self._vox, out)
         return out
 
     def back(self, y: NDArray[np.float32], out: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
@@ -73,9 +84,9 @@ class Projector:
         if out is None:
             out = np.zeros(self.vol_shape, dtype=np.float32)
         nz, ny, nx = self.vol_shape
-        acc_t = np.zeros((nz, nx, ny), dtype=np.float32)
-        joseph_adjoint(y, self._rays, self._vox, out, acc_t, _slabs(nz))
-        out += acc_t.transpose(0, 2, 1)
+        acc = np.zeros((numba.get_num_threads(), nz + 2, ny + 2, nx + 2), dtype=np.float32)
+        joseph_adjoint(y, self._rays, self._vox, acc)
+        add_interiors(acc, out)
         return out
 
     __call__ = forward
