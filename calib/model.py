@@ -94,12 +94,12 @@ class ViewModel:
 
     @staticmethod
     def _project(P: NDArray[np.float64], Y: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        h = np.einsum("nij,nkj->nki", P[:, :, :3], Y) + P[:, None, :, 3]
+        h = Y @ np.swapaxes(P[:, :, :3], 1, 2) + P[:, None, :, 3]
         return h[..., :2] / h[..., 2:3], h
 
     def project(self, state: ViewState, xyz: NDArray[np.float64]) -> NDArray[np.float64]:
         """Pixels ``(N, K, 2)`` of points ``(K, 3)``."""
-        Y = np.einsum("nji,nkj->nki", state.R, xyz[None] - state.t[:, None])
+        Y = (xyz[None] - state.t[:, None]) @ state.R
         return self._project(self.base(state.k).matrices, Y)[0]
 
     def project_jac(
@@ -108,7 +108,7 @@ class ViewModel:
         """Pixels ``(N,K,2)``, Jacobians w.r.t. the view step ``(N,K,2,6+m)`` and the points ``(N,K,2,3)``."""
         P = self.base(state.k).matrices
         Rt = np.swapaxes(state.R, 1, 2)
-        Y = np.einsum("nij,nkj->nki", Rt, xyz[None] - state.t[:, None])
+        Y = (xyz[None] - state.t[:, None]) @ state.R
         uv, h = self._project(P, Y)
         w = h[..., 2]
         M = P[:, :, :3]

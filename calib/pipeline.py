@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from threadpoolctl import threadpool_limits
 
 from calib.bundle import bundle_adjust
 from calib.detect import FrameDetector, N_FIELDS, _refine, settings_for
@@ -240,6 +241,19 @@ def calibrate_scan(
     **options: Any,
 ) -> CalibrationResult:
     """Calibrate a scan's geometry from the BBs in its projections and write the results (see api-calib.md)."""
+    # the linear algebra here is small; BLAS threads would only spin against the detection threads
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _calibrate_scan(path, method, out, report_dir, progress, options)
+
+
+def _calibrate_scan(
+    path: str | os.PathLike[str],
+    method: str,
+    out: str | os.PathLike[str] | None,
+    report_dir: str | os.PathLike[str] | None,
+    progress: ProgressCallback | None,
+    options: dict[str, Any],
+) -> CalibrationResult:
     opt = _options(method, options)
     src = Path(path)
     target = src

@@ -35,10 +35,11 @@ def triangulate_least_squares(origin: NDArray[np.float64], direction: NDArray[np
     ok = np.isfinite(direction).all(-1) & np.isfinite(origin).all(-1)
     d = np.where(ok[..., None], direction, 0.0)
     o = np.where(ok[..., None], origin, 0.0)
-    proj = np.eye(3) - d[..., :, None] * d[..., None, :]
-    proj *= ok[..., None, None]
-    A = proj.sum(0)
-    b = np.einsum("nkij,nkj->ki", proj, o)
+    # sums over views of (I - d d^T) and (I - d d^T) o, without the (N, K, 3, 3) stack
+    dk = np.ascontiguousarray(d.transpose(1, 2, 0))  # (K, 3, N)
+    A = ok.sum(0)[:, None, None] * np.eye(3) - dk @ np.ascontiguousarray(d.transpose(1, 0, 2))
+    od = (o * d).sum(-1)  # (N, K)
+    b = o.sum(0) - (dk @ od.T[..., None])[..., 0]
     out = np.full((A.shape[0], 3), np.nan)
     good = ok.sum(0) >= 2
     if good.any():
