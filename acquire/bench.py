@@ -267,7 +267,7 @@ def sim_options(config: BenchConfig) -> dict[str, dict[str, Any]]:
     return {
         "hexapod": {"time_scale": config.sim.time_scale, "timeout_s": SIM_REPLY_TIMEOUT_S},
         "rotation_stage": {"time_scale": config.sim.time_scale, "timeout_s": SIM_REPLY_TIMEOUT_S},
-        "xray": {"timeout_s": SIM_REPLY_TIMEOUT_S},  # its twin's time_scale stretches durations: keep real time
+        "xray": {"time_scale": config.sim.time_scale, "timeout_s": SIM_REPLY_TIMEOUT_S},
         "detector": {"rows": det.rows, "cols": det.cols, "sad_mm": config.geometry.sad_mm,
                      "sdd_mm": config.geometry.sdd_mm, "seed": config.sim.seed, "timeout_s": SIM_FRAME_TIMEOUT_S},
     }

@@ -74,8 +74,8 @@ def _reconstruct(reconstruct_scan: Any, scan_path: Path, out_dir: Path, algorith
 @click.option("--size", type=click.IntRange(32, 1024), default=256, show_default=True, help="Detector pixels (square).")
 @click.option("--voxels", type=click.IntRange(16, 512), default=96, show_default=True, help="Reconstruction grid (cube).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the bench error profile.")
-@click.option("--tilt-deg", type=click.FloatRange(1, 45), default=8.0, show_default=True,
-              help="Sawtooth tilt amplitude (the paper used 20; the simulated hexapod's workspace allows ~8 with the errors).")
+@click.option("--tilt-deg", type=click.FloatRange(1, 25), default=20.0, show_default=True,
+              help="Sawtooth tilt amplitude (the paper's experiment A: 20).")
 @click.option("--pwls-iterations", type=click.IntRange(0, 200), default=0, show_default=True,
               help="Also run PWLS with this many iterations (0: FDK only, faster).")
 @click.option("--time-scale", type=click.FloatRange(1, 1000), default=25.0, show_default=True,
