@@ -91,6 +91,18 @@ def _solve3(a, y):  # type: ignore[no-untyped-def]
 
 
 @numba.njit(cache=True, nogil=True)
+def _disc_box(fx, fy, r, half):  # type: ignore[no-untyped-def]
+    """Window index ranges ``(b0, b1, a0, a1)`` (columns, rows; end exclusive) holding the disc of radius ``r``
+    centred ``(fx, fy)`` from the window centre."""
+    size = 2 * half + 1
+    b0 = max(0, int(np.floor(fx - r)) + half)
+    b1 = min(size, int(np.ceil(fx + r)) + half + 1)
+    a0 = max(0, int(np.floor(fy - r)) + half)
+    a1 = min(size, int(np.ceil(fy + r)) + half + 1)
+    return b0, b1, a0, a1
+
+
+@numba.njit(cache=True, nogil=True)
 def _refine(raw, dark, den, col0, row0, radius, half, passes):  # type: ignore[no-untyped-def]
     """Background-plane-subtracted weighted centroid, peak, size, elongation, background RMS, paper centroid."""
     size = 2 * half + 1
@@ -109,6 +121,17 @@ def _refine_in(raw, dark, den, col0, row0, radius, half, passes, li):  # type: i
     coef = np.zeros(3)
     ic = 0
     ir = 0
+    # sums over the whole window (they change only when the window moves); the background fit uses the window
+    # minus the BB's disc, so only a box around the disc is visited per pass
+    hk = np.float64(half * (half + 1) * (2 * half + 1) // 3)  # sum of k^2 for k = -half..half
+    n_all = np.float64(size * size)
+    s_z = 0.0
+    s_xz = 0.0
+    s_yz = 0.0
+    s_zz = 0.0
+    r_in = radius + 1.0  # the disc excluded from the background fit; the weighting disc lies inside it
+    ata = np.zeros((3, 3))
+    atb = np.zeros(3)
     for p in range(passes):
         ic_new = int(np.floor(cx + 0.5))
         ir_new = int(np.floor(cy + 0.5))
@@ -116,55 +139,75 @@ def _refine_in(raw, dark, den, col0, row0, radius, half, passes, li):  # type: i
             return out
         if p == 0 or ic_new != ic or ir_new != ir:  # the window's line integrals only change when it moves
             ic, ir = ic_new, ir_new
+            s_z = 0.0
+            s_xz = 0.0
+            s_yz = 0.0
+            s_zz = 0.0
             for a in range(size):
                 r = ir - half + a
+                row_z = 0.0
+                row_xz = 0.0
                 for b in range(size):
                     c = ic - half + b
                     num = max(np.float32(raw[r, c]) - dark[r, c], np.float32(0.5))
-                    li[a, b] = -np.log(num / den[r, c])  # float32 log: twice as fast, 1e-7 relative
-        if p == 0:  # the paper's estimator: plain intensity centroid of the square window
-            s0 = 0.0
-            sx = 0.0
-            sy = 0.0
-            for a in range(size):
-                for b in range(size):
-                    s0 += li[a, b]
-                    sx += li[a, b] * (ic - half + b)
-                    sy += li[a, b] * (ir - half + a)
-            if s0 > 0:
-                out[6] = sx / s0
-                out[7] = sy / s0
-        # background plane z = c0 + c1 x + c2 y fitted to the window outside the BB (x, y about the pixel ic, ir)
-        ata = np.zeros((3, 3))
-        atb = np.zeros(3)
-        for a in range(size):
-            for b in range(size):
+                    z = np.float64(-np.log(num / den[r, c]))  # float32 log: twice as fast, 1e-7 relative
+                    li[a, b] = z
+                    row_z += z
+                    row_xz += (b - half) * z
+                    s_zz += z * z
+                s_z += row_z
+                s_xz += row_xz
+                s_yz += (a - half) * row_z
+        if p == 0 and s_z > 0:  # the paper's estimator: plain intensity centroid of the square window
+            out[6] = ic + s_xz / s_z
+            out[7] = ir + s_yz / s_z
+        # background plane z = c0 + c1 x + c2 y fitted to the window outside the BB (x, y about the pixel ic, ir):
+        # the whole window's sums minus those inside the disc
+        n_in = 0.0
+        i_x = 0.0
+        i_y = 0.0
+        i_xx = 0.0
+        i_xy = 0.0
+        i_yy = 0.0
+        i_z = 0.0
+        i_xz = 0.0
+        i_yz = 0.0
+        b0, b1, a0, a1 = _disc_box(cx - ic, cy - ir, r_in, half)
+        for a in range(a0, a1):
+            for b in range(b0, b1):
                 x = b - half + ic - cx
                 y = a - half + ir - cy
-                if x * x + y * y >= r_in2:
+                if x * x + y * y < r_in2:
                     xb = np.float64(b - half)
                     yb = np.float64(a - half)
                     z = li[a, b]
-                    atb[0] += z
-                    atb[1] += xb * z
-                    atb[2] += yb * z
-                    ata[0, 0] += 1.0
-                    ata[0, 1] += xb
-                    ata[0, 2] += yb
-                    ata[1, 1] += xb * xb
-                    ata[1, 2] += xb * yb
-                    ata[2, 2] += yb * yb
+                    n_in += 1.0
+                    i_x += xb
+                    i_y += yb
+                    i_xx += xb * xb
+                    i_xy += xb * yb
+                    i_yy += yb * yb
+                    i_z += z
+                    i_xz += xb * z
+                    i_yz += yb * z
+        ata[0, 0] = n_all - n_in
         if ata[0, 0] < 6:
             return out
-        ata[1, 0] = ata[0, 1]
-        ata[2, 0] = ata[0, 2]
-        ata[2, 1] = ata[1, 2]
+        ata[0, 1] = ata[1, 0] = -i_x
+        ata[0, 2] = ata[2, 0] = -i_y
+        ata[1, 1] = size * hk - i_xx
+        ata[1, 2] = ata[2, 1] = -i_xy
+        ata[2, 2] = size * hk - i_yy
+        atb[0] = s_z - i_z
+        atb[1] = s_xz - i_xz
+        atb[2] = s_yz - i_yz
         coef = _solve3(ata, atb)
         w_sum = 0.0
         mx = 0.0
         my = 0.0
-        for a in range(size):
-            for b in range(size):
+        b0, b1, a0, a1 = _disc_box(cx - ic, cy - ir, r_in, half)
+        for a in range(a0, a1):
+            for b in range(b0, b1):
                 x = b - half + ic - cx
                 y = a - half + ir - cy
                 if x * x + y * y <= r_w2:
@@ -177,21 +220,23 @@ def _refine_in(raw, dark, den, col0, row0, radius, half, passes, li):  # type: i
             return out
         cx = cx + mx / w_sum
         cy = cy + my / w_sum
-    rss = 0.0
-    n_ring = 0.0
+    # residual of the plane outside the disc: sum of w^2 over the window minus inside, w = z - f.coef
     peak = 0.0
     sxx = 0.0
     syy = 0.0
     sxy = 0.0
     w_sum = 0.0
-    for a in range(size):
-        for b in range(size):
+    n_in = 0.0
+    in_ww = 0.0
+    b0, b1, a0, a1 = _disc_box(cx - ic, cy - ir, r_in, half)
+    for a in range(a0, a1):
+        for b in range(b0, b1):
             x = b - half + ic - cx
             y = a - half + ir - cy
             w = li[a, b] - (coef[0] + coef[1] * (b - half) + coef[2] * (a - half))
-            if x * x + y * y >= r_in2:
-                rss += w * w
-                n_ring += 1.0
+            if x * x + y * y < r_in2:
+                n_in += 1.0
+                in_ww += w * w
             if x * x + y * y <= r_w2:
                 peak = max(peak, w)
                 if w > 0:
@@ -199,6 +244,11 @@ def _refine_in(raw, dark, den, col0, row0, radius, half, passes, li):  # type: i
                     sxx += w * x * x
                     syy += w * y * y
                     sxy += w * x * y
+    c0, c1, c2 = coef[0], coef[1], coef[2]
+    # sum over the window of (z - c0 - c1 x - c2 y)^2 from its moments (sum x = sum y = sum xy = 0)
+    all_ww = s_zz - 2.0 * (c0 * s_z + c1 * s_xz + c2 * s_yz) + c0 * c0 * n_all + (c1 * c1 + c2 * c2) * size * hk
+    rss = max(all_ww - in_ww, 0.0)
+    n_ring = n_all - n_in
     if w_sum <= 0 or n_ring == 0:
         return out
     sxx /= w_sum
