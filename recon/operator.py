@@ -46,7 +46,10 @@ def pad_volume(x: NDArray[np.float32], out: NDArray[np.float32] | None = None) -
 
 
 class Projector:
-    """``A = Projector(grid, geometry)``: ``A(x)`` forward-projects, ``A.T(y)`` is its exact adjoint."""
+    """``A = Projector(grid, geometry)``: ``A(x)`` forward-projects, ``A.T(y)`` is its exact adjoint.
+
+    Keeps padded scratch buffers between calls: use one instance from one thread at a time.
+    """
 
     def __init__(self, grid: VolumeGrid, geometry: ViewGeometry) -> None:
         if geometry.n_views == 0:
@@ -58,6 +61,7 @@ class Projector:
         self.geometry = geometry
         self._rays = index_rays(grid, geometry)
         self._vox = np.asarray(grid.voxel_mm, dtype=np.float64)
+        self._buf: NDArray[np.float32] | None = None
 
     @property
     def vol_shape(self) -> tuple[int, int, int]:
@@ -75,7 +79,8 @@ class Projector:
         x = _as_f32(x, self.vol_shape, "volume")
         if out is None:
             out = np.empty(self.proj_shape, dtype=np.float32)
-        joseph_forward(pad_volume(x), self._rays, self._vox, out)
+        # the padded copy lives in the first adjoint accumulator: the two are never needed at once
+        joseph_forward(pad_volume(x, self._scratch()[0]), self._rays, self._vox, out)
         return out
 
     def back(self, y: NDArray[np.float32], out: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
@@ -83,11 +88,24 @@ class Projector:
         y = _as_f32(y, self.proj_shape, "projections")
         if out is None:
             out = np.zeros(self.vol_shape, dtype=np.float32)
-        nz, ny, nx = self.vol_shape
-        acc = np.zeros((numba.get_num_threads(), nz + 2, ny + 2, nx + 2), dtype=np.float32)
+        acc = self._scratch()
+        acc.fill(0.0)
         joseph_adjoint(y, self._rays, self._vox, acc)
         add_interiors(acc, out)
         return out
+
+    def _scratch(self) -> NDArray[np.float32]:
+        """Padded per-task buffers ``(threads, nz + 2, ny + 2, nx + 2)``, kept between calls."""
+        nz, ny, nx = self.vol_shape
+        shape = (numba.get_num_threads(), nz + 2, ny + 2, nx + 2)
+        if self._buf is None or self._buf.shape != shape:
+            self._buf = None
+            self._buf = np.empty(shape, dtype=np.float32)
+        return self._buf
+
+    def release(self) -> None:
+        """Free the scratch buffers kept between calls."""
+        self._buf = None
 
     __call__ = forward
 

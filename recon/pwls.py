@@ -81,33 +81,47 @@ def _curvature(z, y, xx, nz, ny, nx, offs, omega):
     return 2.0 * c
 
 
-@njit(parallel=True, cache=True, fastmath=True)
-def _residual(ax, y, w):
-    """``ax <- w * (ax - y)`` in place; returns ``0.5 * sum w (ax - y)^2``."""
+@njit(parallel=True, cache=True, fastmath=True, boundscheck=False)
+def _residual(ax, y, w, weighted):
+    """``ax <- w * (ax - y)`` in place (``w`` = 1 unless ``weighted``); returns ``0.5 * sum w (ax - y)^2``."""
     n = ax.shape[0]
     part = np.zeros(n)
     for i in prange(n):
         s = 0.0
         a = ax[i]
         yy = y[i]
-        ww = w[i]
         for r in range(a.shape[0]):
             for c in range(a.shape[1]):
                 d = a[r, c] - yy[r, c]
-                s += ww[r, c] * d * d
-                a[r, c] = ww[r, c] * d
+                if weighted:
+                    ww = w[i, r, c]
+                    s += ww * d * d
+                    a[r, c] = ww * d
+                else:
+                    s += d * d
+                    a[r, c] = d
         part[i] = 0.5 * s
     return part.sum()
 
 
-@njit(parallel=True, cache=True, fastmath=True)
-def _sps_step(x, grad, beta, denom_data, scale, nonneg, offs, omega):
-    """``x <- [x - scale * grad / (denom + beta * curvature)]_+`` (grad already holds the penalty part)."""
+@njit(parallel=True, cache=True, fastmath=True, boundscheck=False)
+def _add_penalty_curvature(denom, beta, offs, omega):
+    """``denom += beta * curvature`` of the penalty surrogate, voxel by voxel (once per run)."""
+    nz, ny, nx = denom.shape
+    for z in prange(nz):
+        for y in range(ny):
+            for xx in range(nx):
+                denom[z, y, xx] += beta * _curvature(z, y, xx, nz, ny, nx, offs, omega)
+
+
+@njit(parallel=True, cache=True, fastmath=True, boundscheck=False)
+def _sps_step(x, grad, denom, scale, nonneg):
+    """``x <- [x - scale * grad / denom]_+`` (grad already holds the penalty part; denom its curvature)."""
     nz, ny, nx = x.shape
     for z in prange(nz):
         for y in range(ny):
             for xx in range(nx):
-                den = denom_data[z, y, xx] + beta * _curvature(z, y, xx, nz, ny, nx, offs, omega)
+                den = denom[z, y, xx]
                 if den <= 0.0:
                     continue
                 v = x[z, y, xx] - scale * grad[z, y, xx] / den
@@ -135,19 +149,25 @@ def pwls_sps(A: Projector, y: NDArray[np.float32], weights: NDArray[np.float32] 
     y = np.ascontiguousarray(y, dtype=np.float32)
     if y.shape != A.proj_shape:
         raise ReconError(f"projections: expected shape {A.proj_shape}, got {y.shape}")
-    w = np.ones_like(y) if weights is None else np.ascontiguousarray(weights, dtype=np.float32)
-    if w.shape != y.shape:
+    weighted = weights is not None
+    w = np.ones((1, 1, 1), np.float32) if weights is None else np.ascontiguousarray(weights, dtype=np.float32)
+    if weighted and w.shape != y.shape:
         raise ReconError(f"weights: expected shape {y.shape}, got {w.shape}")
     x = np.zeros(A.vol_shape, np.float32) if x0 is None else np.array(x0, dtype=np.float32, copy=True)
     if nonneg:
         np.maximum(x, 0, out=x)
     offs, omega = neighbour_offsets(neighbourhood)
     # data curvature d = A^T (w * A 1), computed once
-    tmp = A.forward(np.ones(A.vol_shape, np.float32))
-    tmp *= w
-    denom = A.back(tmp)
+    denom = np.ones(A.vol_shape, np.float32)
+    tmp = A.forward(denom)
+    if weighted:
+        tmp *= w
+    denom.fill(0.0)
+    A.back(tmp, out=denom)
     pos = denom[denom > 0]
     beta_abs = float(beta * (np.median(pos) if pos.size else 0.0) / (2 * omega.sum()))
+    del pos
+    _add_penalty_curvature(denom, beta_abs, offs, omega)
     n_views = A.proj_shape[0]
     order = [np.arange(m, n_views, subsets) for m in range(subsets)]
     ops = [A] if subsets == 1 else [A.subset(idx) for idx in order]
@@ -159,10 +179,11 @@ def pwls_sps(A: Projector, y: NDArray[np.float32], weights: NDArray[np.float32] 
         for m, op in enumerate(ops):
             if subsets == 1:
                 r = op.forward(x, out=tmp)
-                data_term += _residual(r, y, w)
+                data_term += _residual(r, y, w, weighted)
             else:
                 r = op.forward(x)
-                data_term += _residual(r, np.ascontiguousarray(y[order[m]]), np.ascontiguousarray(w[order[m]]))
+                data_term += _residual(r, np.ascontiguousarray(y[order[m]]),
+                                       np.ascontiguousarray(w[order[m]]) if weighted else w, weighted)
             if it == iterations:
                 if m == 0:
                     rough = penalty_add(x, offs, omega, 0.0, grad)
@@ -173,7 +194,7 @@ def pwls_sps(A: Projector, y: NDArray[np.float32], weights: NDArray[np.float32] 
             rr = penalty_add(x, offs, omega, beta_abs / subsets, grad)
             if m == 0:
                 rough = rr
-            _sps_step(x, grad, beta_abs, denom, float(subsets), nonneg, offs, omega)
+            _sps_step(x, grad, denom, float(subsets), nonneg)
         cost.append(float(data_term + beta_abs * rough))
         if it < iterations:
             el = time.perf_counter() - t0
