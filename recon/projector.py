@@ -83,11 +83,12 @@ def _taps(a0, ra, b0, rb, k_lo, n_planes, stm, sta, stb, idx, fa, fb):
         k = k_lo + j
         a = a0 + k * ra
         b = b0 + k * rb
-        ia = int(a)
-        ib = int(b)
+        ia = np.floor(a)
+        ib = np.floor(b)
         fa[j] = np.float32(a - ia)
         fb[j] = np.float32(b - ib)
-        idx[j] = (k + 1) * stm + ia * sta + ib * stb
+        # integer-valued float64 arithmetic is exact here and vectorises better than int64 products
+        idx[j] = int((k + 1.0) * stm + ia * sta + ib * stb)
 
 
 # no 'reassoc': the sum along a ray stays a scalar loop (scalar loads beat vector gathers here)
