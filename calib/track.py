@@ -16,7 +16,6 @@ from dataclasses import dataclass
 import numpy as np
 import numba
 from numpy.typing import NDArray
-from scipy.optimize import linear_sum_assignment
 
 from calib.detect import CANDIDATE_FIELDS
 from orbitct.geometry import ViewGeometry
@@ -84,15 +83,75 @@ def _gated_cost(pred, cand, gate):  # type: ignore[no-untyped-def]
     return cost, big
 
 
-def _hungarian(pred: NDArray[np.float64], cand: NDArray[np.float64], gate: NDArray[np.float64]) -> NDArray[np.intp]:
+@numba.njit(cache=True)
+def _min_cost_assignment(cost):  # type: ignore[no-untyped-def]
+    """Column of each row ``(T,)`` in a minimum-cost assignment of a ``(T, M)`` matrix (-1: row left over when
+    T > M); shortest augmenting paths with potentials (Hungarian method), for the small matrices of one frame."""
+    t_n, m_n = cost.shape
+    flip = t_n > m_n
+    c = cost.T.copy() if flip else cost
+    n, m = c.shape
+    u = np.zeros(n + 1)
+    v = np.zeros(m + 1)
+    owner = np.zeros(m + 1, np.int64)  # row (1-based) assigned to column j (1-based); 0 = free
+    way = np.zeros(m + 1, np.int64)
+    minv = np.empty(m + 1)
+    used = np.empty(m + 1, np.bool_)
+    for i in range(1, n + 1):
+        owner[0] = i
+        j0 = 0
+        minv[:] = np.inf
+        used[:] = False
+        while True:
+            used[j0] = True
+            i0 = owner[j0]
+            delta = np.inf
+            j1 = 0
+            for j in range(1, m + 1):
+                if not used[j]:
+                    cur = c[i0 - 1, j - 1] - u[i0] - v[j]
+                    if cur < minv[j]:
+                        minv[j] = cur
+                        way[j] = j0
+                    if minv[j] < delta:
+                        delta = minv[j]
+                        j1 = j
+            for j in range(m + 1):
+                if used[j]:
+                    u[owner[j]] += delta
+                    v[j] -= delta
+                else:
+                    minv[j] -= delta
+            j0 = j1
+            if owner[j0] == 0:
+                break
+        while True:
+            j1 = way[j0]
+            owner[j0] = owner[j1]
+            j0 = j1
+            if j0 == 0:
+                break
+    out = np.full(t_n, -1, np.int64)
+    for j in range(1, m + 1):
+        if owner[j] != 0:
+            if flip:
+                out[j - 1] = owner[j] - 1
+            else:
+                out[owner[j] - 1] = j - 1
+    return out
+
+
+@numba.njit(cache=True)
+def _hungarian(pred, cand, gate):  # type: ignore[no-untyped-def]
     """Index of the candidate assigned to each prediction (-1: none within its gate ``(T,)``)."""
-    out = np.full(len(pred), -1)
-    if not len(pred) or not len(cand):
+    out = np.full(pred.shape[0], -1, np.int64)
+    if pred.shape[0] == 0 or cand.shape[0] == 0:
         return out
     cost, big = _gated_cost(pred, cand, gate)
-    rows, cols = linear_sum_assignment(cost)
-    good = ~big[rows, cols]
-    out[rows[good]] = cols[good]
+    col = _min_cost_assignment(cost)
+    for t in range(pred.shape[0]):
+        if col[t] >= 0 and not big[t, col[t]]:
+            out[t] = col[t]
     return out
 
 
@@ -173,29 +232,44 @@ def _realign(pred, vis, cand, idx):  # type: ignore[no-untyped-def]
     return out
 
 
+@numba.njit(cache=True)
+def _match(pred, cand, search_px, gate):  # type: ignore[no-untyped-def]
+    """:func:`match_frame` for predictions ``(T,2)``, candidates ``(M,2)`` and gates ``(T,)``."""
+    t_n = pred.shape[0]
+    pred = pred.copy()
+    none = np.full(t_n, -1, np.int64)
+    vis = np.empty(t_n, np.bool_)
+    for t in range(t_n):
+        vis[t] = np.isfinite(pred[t, 0]) and np.isfinite(pred[t, 1])
+    if not vis.any() or cand.shape[0] == 0:
+        return none, pred
+    kept, shift = _near_and_shift(pred, vis, cand, search_px, search_px + 2.0 * gate.max())
+    if kept.size == 0:
+        return none, pred
+    near = cand[kept]
+    if np.isfinite(shift[0]):
+        for t in range(t_n):
+            if vis[t]:
+                pred[t, 0] += shift[0]
+                pred[t, 1] += shift[1]
+    idx = _hungarian(pred, near, gate * 1.5)
+    pred = _realign(pred, vis, near, idx)
+    idx = _hungarian(pred, near, gate)
+    for t in range(t_n):
+        if idx[t] >= 0:
+            idx[t] = kept[idx[t]]
+    return idx, pred
+
+
 def match_frame(
     pred: NDArray[np.float64], cand: NDArray[np.float64], search_px: float, gate_px: NDArray[np.float64] | float
 ) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
     """Assign candidates ``(M,2)`` to predictions ``(T,2)`` (NaN = not expected) after removing the frame's
     common shift (median nearest-neighbour displacement) and, with 6 or more matches, an affine distortion.
     Returns the assignment (-1 = none) and the aligned predictions."""
-    pred = np.array(pred, dtype=np.float64)
-    vis = np.isfinite(pred).all(1)
-    none = np.full(len(pred), -1)
-    if not vis.any() or not len(cand):
-        return none, pred
+    pred = np.ascontiguousarray(pred, dtype=np.float64)
     gate = np.ascontiguousarray(np.broadcast_to(np.asarray(gate_px, dtype=np.float64), (len(pred),)))
-    cand = np.ascontiguousarray(cand, dtype=np.float64)
-    kept, shift = _near_and_shift(pred, vis, cand, float(search_px), float(search_px + 2.0 * float(np.max(gate))))
-    if not kept.size:
-        return none, pred
-    cand = cand[kept]
-    if np.isfinite(shift[0]):
-        pred[vis] += shift
-    idx = _hungarian(pred, cand, gate * 1.5)
-    pred = _realign(pred, vis, cand, idx)
-    idx = _hungarian(pred, cand, gate)
-    return np.where(idx >= 0, kept[np.maximum(idx, 0)], -1), pred
+    return _match(pred, np.ascontiguousarray(cand, dtype=np.float64), float(search_px), gate)
 
 
 @numba.njit(cache=True)
