@@ -173,14 +173,27 @@ class BenchController:
         if active is not None:
             summary: dict[str, Any] = {}
             if active.path.exists():
-                try:
-                    from acquire.repair import repair_scan
-
-                    repair_scan(active.path)  # keep every written frame, mark the file aborted
-                except Exception as exc:  # noqa: BLE001
-                    log.error("could not repair %s: %s", active.path.name, exc)
+                self._repair_after_exit(active.path)
                 summary = scan_summary(active.path)
             self._on_scan_end(active.scan_id, "failed", "the bench process ended during the scan", summary)
+
+    def _repair_after_exit(self, path: Path) -> None:
+        """Mark the scan file of a dead bench aborted, once the process has let go of it."""
+        from acquire.repair import repair_scan
+
+        # The pipe can report EOF before the dying process has closed the HDF5 file (and its lock).
+        if self._process is not None:
+            self._process.join(10.0)
+        deadline = time.monotonic() + 10.0
+        while True:
+            try:
+                repair_scan(path)  # keep every written frame, mark the file aborted
+                return
+            except Exception as exc:  # noqa: BLE001
+                if time.monotonic() > deadline:
+                    log.error("could not repair %s: %s", path.name, exc)
+                    return
+                time.sleep(0.2)
 
     # ------------------------------------------------------------ commands
     def submit(self, name: str, /, **args: Any) -> concurrent.futures.Future[Any]:

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 from click.testing import CliRunner
 
-from conftest import bench_detector, write_sphere_scan
+from recon_helpers import bench_detector, write_sphere_scan
 from orbitct.cli.main import cli
 from orbitct.geometry import ViewGeometry
 from orbitct.scanfile import ScanFile

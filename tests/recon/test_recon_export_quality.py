@@ -30,7 +30,7 @@ def test_rtk_file_reproduces_projection_matrices(random_geometry: ViewGeometry, 
 
 
 def test_reference_view_is_rtk_gantry_zero() -> None:
-    from conftest import bench_detector
+    from recon_helpers import bench_detector
 
     g = ViewGeometry.from_carm([0.0], 0.0, 785.0, 1200.0, bench_detector(64))
     p = rtk_parameters(g)[0][0]

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import SPHERES, bench_detector, voxelized_spheres, write_sphere_scan
+from recon_helpers import SPHERES, bench_detector, voxelized_spheres, write_sphere_scan
 from orbitct.geometry import ViewGeometry
 from recon import VolumeGrid, reconstruct_scan, rmse
 from recon.mar import fill_traces

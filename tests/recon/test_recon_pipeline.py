@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from conftest import bench_detector, voxelized_spheres, write_sphere_scan
+from recon_helpers import bench_detector, voxelized_spheres, write_sphere_scan
 from orbitct.geometry import ViewGeometry
 from orbitct.scanfile import ScanFile
 from recon import (FieldOfViewError, GeometryMissingError, MemoryBudgetError, ReconError, VolumeGrid,

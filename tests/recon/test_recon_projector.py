@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import SPHERES, bench_detector, sphere_line_integrals, voxelized_spheres
+from recon_helpers import SPHERES, bench_detector, sphere_line_integrals, voxelized_spheres
 from orbitct.geometry import ViewGeometry
 from recon import FieldOfViewError, ReconError, VolumeGrid, check_fov, projector
 
