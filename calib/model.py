@@ -115,7 +115,11 @@ class ViewModel:
         JY = (M[:, None, 0:2, :] - uv[..., :, None] * M[:, None, 2:3, :]) / w[..., None, None]  # (N,K,2,3)
         Jp = JY @ Rt[:, None]
         Jv = np.empty(uv.shape + (self.n_params,))
-        Jv[..., 0:3] = JY @ skew(Y)
+        # JY [Y]_x, row by row: r [Y]_x = r x Y
+        Yb = Y[..., None, :]
+        Jv[..., 0] = JY[..., 1] * Yb[..., 2] - JY[..., 2] * Yb[..., 1]
+        Jv[..., 1] = JY[..., 2] * Yb[..., 0] - JY[..., 0] * Yb[..., 2]
+        Jv[..., 2] = JY[..., 0] * Yb[..., 1] - JY[..., 1] * Yb[..., 0]
         Jv[..., 3:6] = -Jp
         for j in range(self.n_intrinsics):
             k2 = state.k.copy()

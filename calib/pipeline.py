@@ -385,9 +385,11 @@ def _leave_one_out_outliers(
     for _ in range(4):  # Gauss-Newton on the rigid pose only, all left-out problems at once
         pred, Jv, _ = sub.project_jac(st, xyz)
         r = np.where(use[..., None], pred - obs0, 0.0)
-        J = Jv[..., :6] * use[..., None, None]
-        H = np.einsum("nkai,nkaj->nij", J, Jv[..., :6]) + 1e-9 * np.eye(6)
-        g = np.einsum("nkai,nka->ni", J, r)
+        m = len(rep_v)
+        J = (Jv[..., :6] * use[..., None, None]).reshape(m, 2 * k, 6)
+        Jt = np.swapaxes(J, 1, 2)
+        H = Jt @ J + 1e-9 * np.eye(6)  # the unused rows of J are zero
+        g = (Jt @ r.reshape(m, 2 * k, 1))[..., 0]
         step = -np.linalg.solve(H, g[..., None])[..., 0]
         st = st.stepped(np.concatenate([step, np.zeros((len(rep_v), model.n_intrinsics))], 1))
     pred = sub.project(st, xyz)
