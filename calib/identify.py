@@ -120,27 +120,56 @@ def merge_fragments(
 
 def _join_across(frags: NDArray[np.float64], geometry: ViewGeometry, near_mm: float) -> NDArray[np.float64]:
     """Join tracks that never share a frame and are each other's nearest neighbour in 3-D within ``near_mm``
-    (parts of an orbit linked only through the nominal geometry)."""
-    while frags.shape[1] > 1:
-        xyz = triangulate_least_squares(*marker_rays(geometry, frags))
-        seen = np.isfinite(frags[..., 0]).T.astype(np.int32)
-        d = np.linalg.norm(xyz[:, None] - xyz[None], axis=-1)
-        d[~np.isfinite(d)] = np.inf
-        np.fill_diagonal(d, np.inf)
-        share = (seen @ seen.T) > 0
-        nearest = d.argmin(1)
+    (parts of an orbit linked only through the nominal geometry).
+
+    Joined tracks have disjoint frames, so the normal equations of their least-squares ray intersection add."""
+    f = frags.shape[1]
+    if f < 2:
+        return frags
+    origin, direction = marker_rays(geometry, frags)
+    ok = np.isfinite(direction).all(-1) & np.isfinite(origin).all(-1)
+    d = np.where(ok[..., None], direction, 0.0)
+    o = np.where(ok[..., None], origin, 0.0)
+    cnt = ok.sum(0)
+    dk = np.ascontiguousarray(d.transpose(1, 2, 0))  # (F, 3, N)
+    A = cnt[:, None, None] * np.eye(3) - dk @ np.ascontiguousarray(d.transpose(1, 0, 2))
+    b = o.sum(0) - (dk @ (o * d).sum(-1).T[..., None])[..., 0]
+    vis = np.isfinite(frags[..., 0]).T.astype(np.int32)
+    share_all = (vis @ vis.T) > 0
+    members = [[j] for j in range(f)]
+    alive = list(range(f))
+    while len(alive) > 1:
+        idx = np.array(alive)
+        xyz = np.full((idx.size, 3), np.nan)
+        good = cnt[idx] >= 2
+        if good.any():
+            xyz[good] = np.linalg.solve(A[idx[good]], b[idx[good]][..., None])[..., 0]
+        dist = np.linalg.norm(xyz[:, None] - xyz[None], axis=-1)
+        dist[~np.isfinite(dist)] = np.inf
+        np.fill_diagonal(dist, np.inf)
+        share = share_all[np.ix_(idx, idx)]
+        nearest = dist.argmin(1)
         cand = [
-            (d[a, b], a, b)
-            for a, b in enumerate(nearest)
-            if a < b and nearest[b] == a and d[a, b] < near_mm and not share[a, b]
+            (dist[i, j], i, j)
+            for i, j in enumerate(nearest)
+            if i < j and nearest[j] == i and dist[i, j] < near_mm and not share[i, j]
         ]
         if not cand:
-            return frags
-        _, a, b = min(cand)
-        frags = frags.copy()
-        frags[:, a] = np.where(np.isfinite(frags[:, a]), frags[:, a], frags[:, b])
-        frags = np.delete(frags, b, axis=1)
-    return frags
+            break
+        _, i, j = min(cand)
+        p, q = int(idx[i]), int(idx[j])
+        A[p] += A[q]
+        b[p] += b[q]
+        cnt[p] += cnt[q]
+        share_all[p] |= share_all[q]
+        share_all[:, p] = share_all[p]
+        members[p] += members[q]
+        alive.remove(q)
+    out = np.full((frags.shape[0], len(alive), 2), np.nan)
+    for col, j in enumerate(alive):
+        for m in members[j]:
+            out[:, col] = np.where(np.isfinite(out[:, col]), out[:, col], frags[:, m])
+    return out
 
 
 def _merge_close(xyz: NDArray[np.float64], uv: NDArray[np.float64], diameter_mm: float) -> NDArray[np.float64]:
