@@ -165,7 +165,7 @@ def pwls_sps(A: Projector, y: NDArray[np.float32], weights: NDArray[np.float32] 
     denom.fill(0.0)
     A.back(tmp, out=denom)
     pos = denom[denom > 0]
-    beta_abs = float(beta * (np.median(pos) if pos.size else 0.0) / (2 * omega.sum()))
+    beta_abs = float(beta * (np.median(pos, overwrite_input=True) if pos.size else 0.0) / (2 * omega.sum()))
     del pos
     _add_penalty_curvature(denom, beta_abs, offs, omega)
     n_views = A.proj_shape[0]
