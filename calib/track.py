@@ -411,27 +411,26 @@ def assign_to_predictions(
     """Per frame, candidates assigned globally to predicted BB positions ``(P, K, 2)``; NaN where none fits,
     where two BBs overlap, or where the blob is distorted or much fainter than the BB usually is."""
     n, k = predicted.shape[:2]
-    uv = np.full((n, k, 2), np.nan)
-    amp = np.full((n, k), np.nan)
-    shaped = np.zeros((n, k), bool)
+    vis_all = np.isfinite(predicted).all(-1)
+    pred_all = np.where(vis_all[..., None], predicted, np.nan)
+    records = np.full((n, k, len(CANDIDATE_FIELDS)), np.nan)
+    gate = np.full(k, float(gate_px))
     for p in range(n):
         c = cands[p]
-        pr = predicted[p]
-        vis = np.isfinite(pr).all(1)
-        if not len(c) or not vis.any():
+        if not len(c) or not vis_all[p].any():
             continue
-        idx, _ = match_frame(np.where(vis[:, None], pr, np.nan), c[:, :2], s.search_px, gate_px)
+        idx, _ = _match(np.ascontiguousarray(pred_all[p]), np.ascontiguousarray(c[:, :2]), float(s.search_px), gate)
         rows = np.flatnonzero(idx >= 0)
-        cols = idx[rows]
-        uv[p, rows] = c[cols, :2]
-        amp[p, rows] = c[cols, AMP]
-        shaped[p, rows] = ball_like(c[cols], s)
-        # overlap: two visible predictions closer than the BB size
-        if vis.sum() > 1:
-            dd = np.linalg.norm(pr[:, None] - pr[None], axis=-1) + np.eye(k) * 1e9
-            dd[~vis] = 1e9
-            dd[:, ~vis] = 1e9
-            uv[p, dd.min(1) < s.overlap_factor * s.diameter_px] = np.nan
+        records[p, rows] = c[idx[rows]]
+    uv = records[..., :2].copy()
+    amp = records[..., AMP]
+    shaped = ball_like(records.reshape(n * k, -1), s).reshape(n, k)  # NaN records (no match) are not shaped
+    # overlap: two visible predictions closer than the BB size
+    with np.errstate(invalid="ignore"):
+        dd = np.linalg.norm(pred_all[:, :, None] - pred_all[:, None], axis=-1)
+    dd[~np.isfinite(dd)] = np.inf
+    dd[:, np.arange(k), np.arange(k)] = np.inf
+    uv[dd.min(2, initial=np.inf) < s.overlap_factor * s.diameter_px] = np.nan
     typical = np.nanmedian(np.where(shaped, amp, np.nan), axis=0)
     faint = amp < s.min_amplitude_ratio * typical[None]
     uv[~shaped | faint] = np.nan
