@@ -26,23 +26,10 @@ from acquire.config import BenchConfig, load_config  # noqa: E402
 from acquire.errors import AcquireError  # noqa: E402
 from acquire.runner import ScanRequest, run_scan  # noqa: E402
 from orbitct.scanfile import ScanFile  # noqa: E402
+from machine_info import describe_machine as machine  # noqa: E402
 
 TARGET_OVERHEAD_MS = 10.0
 TARGET_TOTAL_S = 60.0
-
-
-def machine() -> str:
-    """CPU model and the cores this process may use."""
-    model = platform.processor() or ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return f"{model or 'unknown CPU'}, {cores} cores available, Python {platform.python_version()}"
 
 
 def main() -> None:

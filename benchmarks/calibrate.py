@@ -29,19 +29,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from machine_info import cpu_model  # noqa: E402
 
 PAPER_FRAMES = {"A": 500, "B": 656, "C": 857}
-
-
-def cpu_model() -> str:
-    """CPU model name from /proc/cpuinfo (or platform)."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def cached_scan(cache: Path, experiment: str, size: int, frames: int, seed: int) -> Path:

@@ -19,24 +19,11 @@ from typing import Any
 
 # this script is called devices.py: keep its folder off the path so `devices` is the package
 _HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent)]
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
 
 from devices.hexapod import Hexapod  # noqa: E402
 from devices.twins.gcs import start_twin  # noqa: E402
-
-
-def machine() -> str:
-    """CPU model, core count, OS and Python version."""
-    model = platform.processor() or "unknown cpu"
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    model = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return f"{model}, {os.cpu_count()} logical cores, {platform.system()} {platform.release()}, Python {platform.python_version()}"
+from machine_info import describe_machine as machine  # noqa: E402
 
 
 async def _timed(n: int, fn: Callable[[], Awaitable[Any]]) -> list[float]:

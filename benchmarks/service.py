@@ -26,23 +26,13 @@ from typing import Any
 import httpx
 import numpy as np
 import yaml
+from machine_info import cpu_model as cpu_name  # noqa: E402
 
 # this file is named like nothing it imports, but keep its folder off the import path anyway
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 ROOT = Path(__file__).resolve().parents[1]
 TOKEN = "oct_benchmark_dev_token_0123456789"
 ORBIT = {"orbit": "sawtooth", "params": {"amplitude_deg": 6.0, "cycles": 2}, "errors": "none"}
-
-
-def cpu_name() -> str:
-    """CPU model from /proc/cpuinfo."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def free_port() -> int:

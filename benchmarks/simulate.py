@@ -18,17 +18,7 @@ import numpy as np
 
 from orbitct.phantoms import experiment_phantom
 from orbitct.simulator import SimulatedBench, line_integrals, simulate_scan
-
-
-def cpu_model() -> str:
-    """CPU model name from /proc/cpuinfo (or platform)."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
+from machine_info import cpu_model  # noqa: E402
 
 
 def main() -> None:
