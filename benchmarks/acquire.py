@@ -12,8 +12,6 @@ and the recorder add (read-backs, bookkeeping, HDF5 write and flush, progress).
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import sys
 import tempfile
 import time

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import sys
 import time
 import tracemalloc
@@ -22,21 +21,13 @@ import numpy as np
 import psutil
 
 # this file is named like the package it measures: keep its folder off the import path
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE)]
+
+from machine_info import cpu_model as cpu_name  # noqa: E402
 
 # Reference: RTK CPU filters on 2 cores, 128^3 voxels, 180 views of 128^2 (issue 6).
 RTK_REFERENCE_S = {"forward": 0.8, "back": 2.1, "fdk": 1.7}
-
-
-def cpu_name() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def measure(fn: Callable[[], object], repeat: int, warm_up: bool = True) -> tuple[float, float, int]:
