@@ -18,6 +18,7 @@ acquisition) and with numba's compiled kernels loaded; the time is the calibrati
 from __future__ import annotations
 
 import argparse
+import sys
 import multiprocessing as mp
 import os
 import platform
@@ -27,6 +28,10 @@ import time
 import tracemalloc
 from pathlib import Path
 from typing import Any
+
+# scripts here share names with the packages they measure: the project root goes before this folder
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
 
 import numpy as np
 from machine_info import cpu_model  # noqa: E402

@@ -22,7 +22,7 @@ import psutil
 
 # this file is named like the package it measures: keep its folder off the import path
 _HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE)]
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
 
 from machine_info import cpu_model as cpu_name  # noqa: E402
 
