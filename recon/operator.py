@@ -9,7 +9,7 @@ from numpy.typing import NDArray
 from orbitct.geometry import ViewGeometry
 from recon.errors import ReconError
 from recon.grid import VolumeGrid
-from recon.projector import add_interiors, joseph_adjoint, joseph_forward, voxel_backproject
+from recon.projector import joseph_adjoint, joseph_forward, ray_slab_range, slab_bounds, voxel_backproject
 
 
 def index_rays(grid: VolumeGrid, geometry: ViewGeometry) -> NDArray[np.float64]:
@@ -48,7 +48,9 @@ def pad_volume(x: NDArray[np.float32], out: NDArray[np.float32] | None = None) -
 class Projector:
     """``A = Projector(grid, geometry)``: ``A(x)`` forward-projects, ``A.T(y)`` is its exact adjoint.
 
-    Keeps padded scratch buffers between calls: use one instance from one thread at a time.
+    Keeps one padded scratch volume between calls: use one instance from one thread at a time.
+    :meth:`forward_padded` and :meth:`back_padded` work on padded volumes and on any range of
+    views, for callers that stream projections in chunks and keep their own padded buffers.
     """
 
     def __init__(self, grid: VolumeGrid, geometry: ViewGeometry) -> None:
@@ -69,6 +71,12 @@ class Projector:
         return self.grid.shape
 
     @property
+    def padded_shape(self) -> tuple[int, int, int]:
+        """Shape of the zero-bordered volumes of :meth:`forward_padded` and :meth:`back_padded`."""
+        nz, ny, nx = self.vol_shape
+        return (nz + 2, ny + 2, nx + 2)
+
+    @property
     def proj_shape(self) -> tuple[int, int, int]:
         """Projection stack shape (views, rows, cols)."""
         d = self.geometry.detector
@@ -79,9 +87,7 @@ class Projector:
         x = _as_f32(x, self.vol_shape, "volume")
         if out is None:
             out = np.empty(self.proj_shape, dtype=np.float32)
-        # the padded copy lives in the first adjoint accumulator: the two are never needed at once
-        joseph_forward(pad_volume(x, self._scratch()[0]), self._rays, self._vox, out)
-        return out
+        return self.forward_padded(pad_volume(x, self._scratch()), out)
 
     def back(self, y: NDArray[np.float32], out: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
         """Matched back-projection ``A^T y`` (added to ``out`` when given)."""
@@ -90,21 +96,47 @@ class Projector:
             out = np.zeros(self.vol_shape, dtype=np.float32)
         acc = self._scratch()
         acc.fill(0.0)
-        joseph_adjoint(y, self._rays, self._vox, acc)
-        add_interiors(acc, out)
+        self.back_padded(y, acc)
+        out += acc[1:-1, 1:-1, 1:-1]
         return out
 
-    def _scratch(self) -> NDArray[np.float32]:
-        """Padded per-task buffers ``(threads, nz + 2, ny + 2, nx + 2)``, kept between calls."""
+    def forward_padded(self, x_padded: NDArray[np.float32], out: NDArray[np.float32], start: int = 0) -> NDArray[np.float32]:
+        """Views ``start .. start + len(out)`` of the forward projection of a zero-bordered volume, into ``out``."""
+        rays = self._view_rays(start, out, "out")
+        joseph_forward(_as_padded(x_padded, self.padded_shape), rays, self._vox, out)
+        return out
+
+    def back_padded(self, y: NDArray[np.float32], acc_padded: NDArray[np.float32], start: int = 0) -> NDArray[np.float32]:
+        """Add the adjoint of views ``start .. start + len(y)`` into a padded accumulator (its border is scratch)."""
+        y = np.ascontiguousarray(y, dtype=np.float32)
+        rays = self._view_rays(start, y, "projections")
+        acc = _as_padded(acc_padded, self.padded_shape)
         nz, ny, nx = self.vol_shape
-        shape = (numba.get_num_threads(), nz + 2, ny + 2, nx + 2)
-        if self._buf is None or self._buf.shape != shape:
-            self._buf = None
-            self._buf = np.empty(shape, dtype=np.float32)
+        lines = y.shape[0] * y.shape[1]
+        lo = np.empty(lines, np.int64)
+        hi = np.empty(lines, np.int64)
+        ray_slab_range(y, rays, self._vox, nz, ny, nx, lo, hi)
+        # four slabs per thread and parity keep the threads busy while ends of the volume see fewer rays
+        joseph_adjoint(y, rays, self._vox, acc, slab_bounds(nz, 8 * numba.get_num_threads()), lo, hi)
+        return acc
+
+    def _view_rays(self, start: int, arr: NDArray[np.float32], what: str) -> NDArray[np.float64]:
+        _, rows, cols = self.proj_shape
+        stop = start + arr.shape[0]
+        if arr.ndim != 3 or arr.shape[1:] != (rows, cols) or arr.dtype != np.float32 or not arr.flags.c_contiguous:
+            raise ReconError(f"{what}: expected C-contiguous float32 (k, {rows}, {cols}), got {arr.dtype} {arr.shape}")
+        if not 0 <= start <= stop <= self.proj_shape[0]:
+            raise ReconError(f"{what}: views {start}..{stop} outside 0..{self.proj_shape[0]}")
+        return self._rays[start:stop]
+
+    def _scratch(self) -> NDArray[np.float32]:
+        """One padded volume, kept between calls (the padded input of forward, the accumulator of back)."""
+        if self._buf is None:
+            self._buf = np.empty(self.padded_shape, dtype=np.float32)
         return self._buf
 
     def release(self) -> None:
-        """Free the scratch buffers kept between calls."""
+        """Free the scratch volume kept between calls."""
         self._buf = None
 
     __call__ = forward
@@ -155,6 +187,12 @@ def backproject_padded(padded: NDArray[np.float32], grid: VolumeGrid, geometry: 
         out = np.zeros(grid.shape, dtype=np.float32)
     voxel_backproject(padded, index_matrices(grid, geometry), np.ascontiguousarray(weights, dtype=np.float64), out)
     return out
+
+
+def _as_padded(a: NDArray[np.float32], shape: tuple[int, int, int]) -> NDArray[np.float32]:
+    if a.shape != shape or a.dtype != np.float32 or not a.flags.c_contiguous:
+        raise ReconError(f"padded volume: expected C-contiguous float32 {shape}, got {a.dtype} {a.shape}")
+    return a
 
 
 def _as_f32(a: NDArray, shape: tuple[int, ...], what: str) -> NDArray[np.float32]:

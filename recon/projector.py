@@ -4,7 +4,10 @@ Geometry enters as per-view rays in voxel-index coordinates (x, y, z order, inde
 source ``s``, the point of pixel (0, 0) ``p00``, and the column/row steps ``du``, ``dv``.
 Volumes are C-ordered ``(nz, ny, nx)`` float32; projections ``(views, rows, cols)`` float32.
 The Joseph pair works on a one-voxel zero-padded volume so that its inner loops need no
-bounds checks; the adjoint scatters into one padded accumulator per parallel task.
+bounds checks. The adjoint scatters straight into one padded accumulator: the volume is cut
+into z slabs and each slab takes, from every ray, only the planes whose lower z tap lies in
+it; even slabs run in parallel, then odd ones, so no two threads ever write the same voxel.
+Flat indices are unsigned in the inner loops (signed ones cost a negative-index fix-up per load).
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ import math
 
 import numpy as np
 from numba import njit, prange
+from numpy.typing import NDArray
 
 
 _MARGIN = 1e-6  # planes whose a or b lies within this of the padding edge are skipped (weight <= 1e-6)
@@ -117,71 +121,143 @@ def joseph_forward(vol_padded, rays, vox, out):
             a0, ra, b0, rb, k_lo, k_hi, step, stm, sta, stb = _ray(rays, vox, n, r, c, nx, ny, nz)
             n_planes = k_hi - k_lo + 1
             _taps(a0, ra, b0, rb, k_lo, n_planes, stm, sta, stb, idx, fa, fb)
+            ua = np.uint64(sta)
+            ub = np.uint64(stb)
+            uab = np.uint64(sta + stb)
             acc = np.float32(0.0)
             for j in range(n_planes):
-                p = idx[j]
+                p = np.uint64(idx[j])
                 v00 = flat[p]
-                v01 = flat[p + sta]
-                v10 = flat[p + stb]
-                v11 = flat[p + sta + stb]
+                v01 = flat[p + ua]
+                v10 = flat[p + ub]
+                v11 = flat[p + uab]
                 top = v00 + fa[j] * (v01 - v00)
                 bot = v10 + fa[j] * (v11 - v10)
                 acc += top + fb[j] * (bot - top)
             out[n, r, c] = acc * np.float32(step)
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True, boundscheck=False, error_model="numpy")
-def joseph_adjoint(proj, rays, vox, acc):
-    """Scatter the exact transpose of :func:`joseph_forward` of ``proj`` into ``acc`` (tasks, nz + 2, ny + 2, nx + 2).
+@njit(cache=True, inline="always")
+def _owner(b, z_main, k):
+    """Slab coordinate of plane ``k``: its padded z index (z-main rays) or its lower z tap."""
+    return k + 1 if z_main else int(np.floor(b))
 
-    Task ``t`` takes a contiguous share of the (view, row) lines and writes only ``acc[t]``;
-    the caller sums the tasks' interiors. Per ray, the taps are computed first (a loop the
-    compiler vectorises), then scattered.
-    """
-    n_tasks = acc.shape[0]
-    nz = acc.shape[1] - 2
-    ny = acc.shape[2] - 2
-    nx = acc.shape[3] - 2
+
+@njit(cache=True, inline="always")
+def _window(a0, ra, b0, rb, k_lo, k_hi, z_main, z_lo, z_hi):
+    """Planes ``k_lo..k_hi`` of one ray that may own slab ``[z_lo, z_hi)``, widened by a margin."""
+    if z_main:
+        return max(k_lo, z_lo - 2), min(k_hi, z_hi - 1)
+    if rb == 0.0:
+        ib = np.floor(b0)
+        return (k_lo, k_hi) if z_lo <= ib < z_hi else (0, -1)
+    t1 = (z_lo - b0) / rb
+    t2 = (z_hi - b0) / rb
+    lo = max(min(t1, t2) - 2.0, k_lo - 1.0)
+    hi = min(max(t1, t2) + 2.0, k_hi + 1.0)
+    return max(k_lo, int(lo)), min(k_hi, int(hi))
+
+
+# no 'reassoc' and no 'contract': a plane's taps must come out bit-identical whichever slab computes them
+_ADJOINT_MATH = {"nnan", "ninf", "nsz", "arcp", "afn"}
+
+
+@njit(parallel=True, cache=True, fastmath=_ADJOINT_MATH, nogil=True, boundscheck=False, error_model="numpy")
+def ray_slab_range(proj, rays, vox, nz, ny, nx, lo, hi):
+    """Per (view, row) line: the smallest and largest slab coordinate of its non-zero rays into ``lo``/``hi``."""
     nv, rows, cols = proj.shape
-    n_jobs = nv * rows
+    sz = (nx + 2) * (ny + 2)
+    for job in prange(nv * rows):
+        n = job // rows
+        r = job - n * rows
+        zmin = 1 << 30
+        zmax = -1
+        for c in range(cols):
+            if proj[n, r, c] == 0.0:
+                continue
+            a0, ra, b0, rb, k_lo, k_hi, step, stm, sta, stb = _ray(rays, vox, n, r, c, nx, ny, nz)
+            if k_hi < k_lo:
+                continue
+            z_main = stm == sz
+            z1 = _owner(b0 + k_lo * rb, z_main, k_lo)
+            z2 = _owner(b0 + k_hi * rb, z_main, k_hi)
+            zmin = min(zmin, z1, z2)
+            zmax = max(zmax, z1, z2)
+        lo[job] = zmin
+        hi[job] = zmax
+
+
+@njit(parallel=True, cache=True, fastmath=_ADJOINT_MATH, nogil=True, boundscheck=False, error_model="numpy")
+def joseph_adjoint(proj, rays, vox, acc, bounds, line_lo, line_hi):
+    """Add the exact transpose of :func:`joseph_forward` of ``proj`` into the padded ``acc`` (nz + 2, ny + 2, nx + 2).
+
+    ``bounds`` (slabs + 1) cuts the slab coordinate range ``[0, nz + 1)``; ``line_lo``/``line_hi``
+    come from :func:`ray_slab_range`. Every slab is at least one plane thick, so slabs two
+    apart never write the same z plane and each parity runs in parallel.
+    """
+    nz = acc.shape[0] - 2
+    ny = acc.shape[1] - 2
+    nx = acc.shape[2] - 2
+    sz = (nx + 2) * (ny + 2)
+    nv, rows, cols = proj.shape
+    flat = acc.ravel()
     k_max = max(nx, ny, nz)
-    for t in prange(n_tasks):
-        flat = acc[t].ravel()
-        idx = np.empty(k_max, np.int64)
-        fa = np.empty(k_max, np.float32)
-        fb = np.empty(k_max, np.float32)
-        for job in range(t * n_jobs // n_tasks, (t + 1) * n_jobs // n_tasks):
-            n = job // rows
-            r = job - n * rows
-            for c in range(cols):
-                val = proj[n, r, c]
-                if val == 0.0:
+    n_slabs = bounds.shape[0] - 1
+    for parity in range(2):
+        for si in prange((n_slabs - parity + 1) // 2):
+            s = 2 * si + parity
+            z_lo = bounds[s]
+            z_hi = bounds[s + 1]
+            idx = np.empty(k_max, np.int64)
+            fa = np.empty(k_max, np.float32)
+            fb = np.empty(k_max, np.float32)
+            for job in range(nv * rows):
+                if line_hi[job] < z_lo or line_lo[job] >= z_hi:
                     continue
-                a0, ra, b0, rb, k_lo, k_hi, step, stm, sta, stb = _ray(rays, vox, n, r, c, nx, ny, nz)
-                n_planes = k_hi - k_lo + 1
-                _taps(a0, ra, b0, rb, k_lo, n_planes, stm, sta, stb, idx, fa, fb)
-                wv = np.float32(val * step)
-                for j in range(n_planes):
-                    p = idx[j]
-                    w1 = fb[j] * wv
-                    w0 = wv - w1
-                    w01 = fa[j] * w0
-                    w11 = fa[j] * w1
-                    flat[p] += w0 - w01
-                    flat[p + sta] += w01
-                    flat[p + stb] += w1 - w11
-                    flat[p + sta + stb] += w11
+                n = job // rows
+                r = job - n * rows
+                for c in range(cols):
+                    val = proj[n, r, c]
+                    if val == 0.0:
+                        continue
+                    a0, ra, b0, rb, k_lo, k_hi, step, stm, sta, stb = _ray(rays, vox, n, r, c, nx, ny, nz)
+                    if k_hi < k_lo:
+                        continue
+                    z_main = stm == sz
+                    z1 = _owner(b0 + k_lo * rb, z_main, k_lo)
+                    z2 = _owner(b0 + k_hi * rb, z_main, k_hi)
+                    if max(z1, z2) < z_lo or min(z1, z2) >= z_hi:
+                        continue
+                    k0, k1 = _window(a0, ra, b0, rb, k_lo, k_hi, z_main, z_lo, z_hi)
+                    # trim the window to the planes this slab owns (the owner is monotone along the ray)
+                    while k0 <= k1 and not (z_lo <= _owner(b0 + k0 * rb, z_main, k0) < z_hi):
+                        k0 += 1
+                    while k1 >= k0 and not (z_lo <= _owner(b0 + k1 * rb, z_main, k1) < z_hi):
+                        k1 -= 1
+                    n_planes = k1 - k0 + 1
+                    if n_planes <= 0:
+                        continue
+                    _taps(a0, ra, b0, rb, k0, n_planes, stm, sta, stb, idx, fa, fb)
+                    ua = np.uint64(sta)
+                    ub = np.uint64(stb)
+                    uab = np.uint64(sta + stb)
+                    wv = np.float32(val * step)
+                    for j in range(n_planes):
+                        p = np.uint64(idx[j])
+                        w1 = fb[j] * wv
+                        w0 = wv - w1
+                        w01 = fa[j] * w0
+                        w11 = fa[j] * w1
+                        flat[p] += w0 - w01
+                        flat[p + ua] += w01
+                        flat[p + ub] += w1 - w11
+                        flat[p + uab] += w11
 
 
-@njit(parallel=True, cache=True, fastmath=True, nogil=True, boundscheck=False)
-def add_interiors(acc, out):
-    """``out += sum_t acc[t, 1:-1, 1:-1, 1:-1]``."""
-    nz, ny, nx = out.shape
-    for z in prange(nz):
-        for t in range(acc.shape[0]):
-            for y in range(ny):
-                for x in range(nx):
-                    out[z, y, x] += acc[t, z + 1, y + 1, x + 1]
+def slab_bounds(nz: int, n_slabs: int) -> NDArray[np.int64]:
+    """Cut the slab coordinate range ``[0, nz + 1)`` into at most ``n_slabs`` slabs of at least one plane."""
+    n = max(1, min(n_slabs, nz + 1))
+    return np.linspace(0, nz + 1, n + 1).round().astype(np.int64)
 
 
 @njit(cache=True, inline="always")
@@ -203,7 +279,8 @@ def voxel_backproject(proj_padded, mats, weights, vol):
     ``proj_padded`` (views, rows + 2, cols + 2) carries a one-pixel zero border; ``mats``
     (views, 3, 4) map voxel indices (x, y, z, 1) to homogeneous pixels (col w, row w, w).
     Per voxel row the set-up is float64; the row itself runs in float32 after scaling the
-    homogeneous coordinates so that ``w`` is about one.
+    homogeneous coordinates so that ``w`` is about one, in two passes per view: positions
+    and weights first (a loop the compiler vectorises), then the bilinear gathers.
     """
     nz, ny, nx = vol.shape
     nv, rows2, cols2 = proj_padded.shape
@@ -213,10 +290,16 @@ def voxel_backproject(proj_padded, mats, weights, vol):
     rowmax = np.float32(rows + 0.999)
     one = np.float32(1.0)
     zero = np.float32(0.0)
+    u1 = np.uint64(1)
+    ucols2 = np.uint64(cols2)
     for zy in prange(nz * ny):
         z = zy // ny
         y = zy - z * ny
         line = np.zeros(nx, dtype=np.float32)
+        qs = np.empty(nx, dtype=np.int32)
+        fcs = np.empty(nx, dtype=np.float32)
+        frs = np.empty(nx, dtype=np.float32)
+        ws = np.empty(nx, dtype=np.float32)
         for n in range(nv):
             wn = weights[n]
             if wn == 0.0:
@@ -248,22 +331,29 @@ def voxel_backproject(proj_padded, mats, weights, vol):
             pv32 = np.float32(pv * s)
             pw32 = np.float32(pw * s)
             wn32 = np.float32(wn * s * s)
-            for x in range(x0, x1 + 1):
-                xf = np.float32(x)
+            # pass 1 (vectorises): detector position, bilinear fractions and weight of every voxel
+            m = x1 - x0 + 1
+            for j in range(m):
+                xf = np.float32(x0 + j)
                 inv = one / (cw32 + pw32 * xf)
                 col = min(max((cu32 + pu32 * xf) * inv + one, zero), colmax)
                 row = min(max((cv32 + pv32 * xf) * inv + one, zero), rowmax)
                 ic = np.int32(col)
                 ir = np.int32(row)
-                fc = col - np.float32(ic)
-                fr = row - np.float32(ir)
-                q = ir * cols2 + ic
+                fcs[j] = col - np.float32(ic)
+                frs[j] = row - np.float32(ir)
+                qs[j] = ir * cols2 + ic
+                ws[j] = wn32 * inv * inv
+            # pass 2: gather and interpolate
+            for j in range(m):
+                q = np.uint64(qs[j])
+                fc = fcs[j]
                 v00 = img[q]
-                v01 = img[q + 1]
-                v10 = img[q + cols2]
-                v11 = img[q + cols2 + 1]
+                v01 = img[q + u1]
+                v10 = img[q + ucols2]
+                v11 = img[q + ucols2 + u1]
                 top = v00 + fc * (v01 - v00)
                 bot = v10 + fc * (v11 - v10)
-                line[x] += wn32 * inv * inv * (top + fr * (bot - top))
+                line[x0 + j] += ws[j] * (top + frs[j] * (bot - top))
         for x in range(nx):
             vol[z, y, x] += line[x]
