@@ -144,6 +144,16 @@ def _owner(b, z_main, k):
 
 
 @njit(cache=True, inline="always")
+def _end_owners(b0, rb, k_lo, k_hi, z_main):
+    """Slab coordinates of the first and last plane of a ray, smallest first (empty rays: ``(1, 0)``)."""
+    if k_hi < k_lo:
+        return 1, 0
+    z1 = _owner(b0 + k_lo * rb, z_main, k_lo)
+    z2 = _owner(b0 + k_hi * rb, z_main, k_hi)
+    return min(z1, z2), max(z1, z2)
+
+
+@njit(cache=True, inline="always")
 def _window(a0, ra, b0, rb, k_lo, k_hi, z_main, z_lo, z_hi):
     """Planes ``k_lo..k_hi`` of one ray that may own slab ``[z_lo, z_hi)``, widened by a margin."""
     if z_main:
@@ -176,13 +186,10 @@ def ray_slab_range(proj, rays, vox, nz, ny, nx, lo, hi):
             if proj[n, r, c] == 0.0:
                 continue
             a0, ra, b0, rb, k_lo, k_hi, step, stm, sta, stb = _ray(rays, vox, n, r, c, nx, ny, nz)
-            if k_hi < k_lo:
-                continue
-            z_main = stm == sz
-            z1 = _owner(b0 + k_lo * rb, z_main, k_lo)
-            z2 = _owner(b0 + k_hi * rb, z_main, k_hi)
-            zmin = min(zmin, z1, z2)
-            zmax = max(zmax, z1, z2)
+            z1, z2 = _end_owners(b0, rb, k_lo, k_hi, stm == sz)
+            if z1 <= z2:
+                zmin = min(zmin, z1)
+                zmax = max(zmax, z2)
         lo[job] = zmin
         hi[job] = zmax
 
@@ -221,12 +228,9 @@ def joseph_adjoint(proj, rays, vox, acc, bounds, line_lo, line_hi):
                     if val == 0.0:
                         continue
                     a0, ra, b0, rb, k_lo, k_hi, step, stm, sta, stb = _ray(rays, vox, n, r, c, nx, ny, nz)
-                    if k_hi < k_lo:
-                        continue
                     z_main = stm == sz
-                    z1 = _owner(b0 + k_lo * rb, z_main, k_lo)
-                    z2 = _owner(b0 + k_hi * rb, z_main, k_hi)
-                    if max(z1, z2) < z_lo or min(z1, z2) >= z_hi:
+                    z1, z2 = _end_owners(b0, rb, k_lo, k_hi, z_main)
+                    if z1 > z2 or z2 < z_lo or z1 >= z_hi:
                         continue
                     k0, k1 = _window(a0, ra, b0, rb, k_lo, k_hi, z_main, z_lo, z_hi)
                     # trim the window to the planes this slab owns (the owner is monotone along the ray)
