@@ -124,8 +124,12 @@ def filter_views(proj: NDArray[np.float32], geometry: ViewGeometry, H: NDArray[n
 
 def fdk(projections: NDArray[np.float32] | ProjectionStack, grid: VolumeGrid, geometry: ViewGeometry, *,
         window: str = "ram-lak", short_scan: str = "auto", chunk: int = 8,
-        progress: ProgressCallback | None = None) -> NDArray[np.float32]:
-    """FDK volume (1/mm) from line integrals ``(views, rows, cols)`` of ``geometry`` (exact for circles)."""
+        out: NDArray[np.float32] | None = None, progress: ProgressCallback | None = None) -> NDArray[np.float32]:
+    """FDK volume (1/mm) from line integrals ``(views, rows, cols)`` of ``geometry`` (exact for circles).
+
+    ``out`` (float32, the grid's shape, may be a view such as a padded volume's interior)
+    receives the volume instead of a new array.
+    """
     det = geometry.detector
     n = geometry.n_views
     if tuple(projections.shape) != (n, det.rows, det.cols):
@@ -135,7 +139,13 @@ def fdk(projections: NDArray[np.float32] | ProjectionStack, grid: VolumeGrid, ge
     H = ramp_filter(det.cols, window)
     wv, parker, _ = redundancy_weights(geometry, short_scan)
     weights = wv * geometry.sod() ** 2
-    vol = np.zeros(grid.shape, dtype=np.float32)
+    if out is None:
+        vol = np.zeros(grid.shape, dtype=np.float32)
+    elif out.shape != grid.shape or out.dtype != np.float32:
+        raise ReconError(f"out: expected float32 {grid.shape}, got {out.dtype} {out.shape}")
+    else:
+        vol = out
+        vol[...] = 0.0
     buf = np.zeros((min(chunk, n), det.rows + 2, det.cols + 2), dtype=np.float32)
     for i0 in range(0, n, chunk):
         i1 = min(n, i0 + chunk)

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from orbitct.progress import ProgressCallback, report
 from recon.errors import ReconError
+from recon.fdk import ProjectionStack
 from recon.operator import Projector
 
 DEFAULT_BETA = 0.01
@@ -43,28 +44,33 @@ def neighbour_offsets(order: int) -> tuple[NDArray[np.int64], NDArray[np.float64
     return arr, 1.0 / np.sqrt((arr**2).sum(1))
 
 
-@njit(parallel=True, cache=True, fastmath=True)
-def penalty_add(x, offs, omega, scale, grad):
-    """Add ``scale`` times the roughness gradient into ``grad``; returns the roughness value."""
-    nz, ny, nx = x.shape
+@njit(parallel=True, cache=True, fastmath=True, boundscheck=False)
+def penalty_add(xp, offs, omega, scale, gp):
+    """Add ``scale`` times the roughness gradient into the padded ``gp``; returns the roughness of padded ``xp``.
+
+    Both volumes carry a one-voxel border that is not part of the image: neighbours there are absent.
+    """
+    nz = xp.shape[0] - 2
+    ny = xp.shape[1] - 2
+    nx = xp.shape[2] - 2
     total = np.zeros(nz)
-    for z in prange(nz):
+    for z in prange(1, nz + 1):
         acc = 0.0
-        for y in range(ny):
-            for xx in range(nx):
-                xj = x[z, y, xx]
+        for y in range(1, ny + 1):
+            for xx in range(1, nx + 1):
+                xj = xp[z, y, xx]
                 g = 0.0
                 for k in range(offs.shape[0]):
                     zz = z + offs[k, 0]
                     yy = y + offs[k, 1]
                     x2 = xx + offs[k, 2]
-                    if zz < 0 or zz >= nz or yy < 0 or yy >= ny or x2 < 0 or x2 >= nx:
+                    if zz < 1 or zz > nz or yy < 1 or yy > ny or x2 < 1 or x2 > nx:
                         continue
-                    d = xj - x[zz, yy, x2]
+                    d = xj - xp[zz, yy, x2]
                     g += omega[k] * d
                     acc += omega[k] * d * d
-                grad[z, y, xx] += scale * g
-        total[z] = 0.25 * acc
+                gp[z, y, xx] += scale * g
+        total[z - 1] = 0.25 * acc
     return total.sum()
 
 
@@ -115,19 +121,19 @@ def _add_penalty_curvature(denom, beta, offs, omega):
 
 
 @njit(parallel=True, cache=True, fastmath=True, boundscheck=False)
-def _sps_step(x, grad, denom, scale, nonneg):
-    """``x <- [x - scale * grad / denom]_+`` (grad already holds the penalty part; denom its curvature)."""
-    nz, ny, nx = x.shape
+def _sps_step(xp, gp, denom, scale, nonneg):
+    """``x <- [x - scale * grad / denom]_+`` on the interior of padded ``xp`` (``gp`` padded, ``denom`` not)."""
+    nz, ny, nx = denom.shape
     for z in prange(nz):
         for y in range(ny):
             for xx in range(nx):
                 den = denom[z, y, xx]
                 if den <= 0.0:
                     continue
-                v = x[z, y, xx] - scale * grad[z, y, xx] / den
+                v = xp[z + 1, y + 1, xx + 1] - scale * gp[z + 1, y + 1, xx + 1] / den
                 if nonneg and v < 0.0:
                     v = 0.0
-                x[z, y, xx] = v
+                xp[z + 1, y + 1, xx + 1] = v
 
 
 def statistical_weights(raw: NDArray, dark: NDArray, flat: NDArray) -> NDArray[np.float32]:
@@ -138,68 +144,112 @@ def statistical_weights(raw: NDArray, dark: NDArray, flat: NDArray) -> NDArray[n
     return (np.maximum(np.asarray(raw, dtype=np.float32) - dark, 0.0) / open_beam).astype(np.float32)
 
 
-def pwls_sps(A: Projector, y: NDArray[np.float32], weights: NDArray[np.float32] | None = None, *,
+def _zero_border(vp: NDArray[np.float32]) -> None:
+    vp[[0, -1]] = 0.0
+    vp[:, [0, -1]] = 0.0
+    vp[:, :, [0, -1]] = 0.0
+
+
+class _Pass:
+    """One subset's views, walked in chunks: operator, view numbers, and chunk bounds in the operator."""
+
+    def __init__(self, A: Projector, views: NDArray[np.intp], chunk: int) -> None:
+        self.op = A if views.size == A.proj_shape[0] else A.subset(views)
+        self.views = views
+        self.chunks = [(j, min(j + chunk, views.size)) for j in range(0, views.size, chunk)]
+
+    def read(self, stack: NDArray[np.float32] | ProjectionStack, j0: int, j1: int) -> NDArray[np.float32]:
+        """Rows of ``stack`` for chunk ``j0..j1`` as float32 (a view when ``stack`` is an array and views are contiguous)."""
+        v = self.views[j0:j1]
+        index = slice(int(v[0]), int(v[-1]) + 1) if v[-1] - v[0] == v.size - 1 else v
+        return np.ascontiguousarray(stack[index], dtype=np.float32)
+
+
+def pwls_sps(A: Projector, y: NDArray[np.float32] | ProjectionStack,
+             weights: NDArray[np.float32] | ProjectionStack | None = None, *,
              beta: float = DEFAULT_BETA, iterations: int = 50, x0: NDArray[np.float32] | None = None,
-             neighbourhood: int = 1, subsets: int = 1, nonneg: bool = True,
+             neighbourhood: int = 1, subsets: int = 1, nonneg: bool = True, chunk_views: int = 8,
              progress: ProgressCallback | None = None) -> PwlsResult:
-    """Minimise the PWLS cost by (ordered-subset) SPS; the cost is monotone without subsets."""
+    """Minimise the PWLS cost by (ordered-subset) SPS; the cost is monotone without subsets.
+
+    ``y`` and ``weights`` may be arrays or anything sliceable along views (an HDF5 dataset):
+    they are read ``chunk_views`` views at a time, so only the volume-sized state (iterate,
+    gradient, surrogate denominators) and one chunk of projections are held in memory.
+    An ``x0`` of shape ``A.padded_shape`` (the start in its interior) becomes the iterate
+    itself, saving a volume: the result is then a view of its interior.
+    """
     t0 = time.perf_counter()
-    if iterations < 0 or subsets < 1 or beta < 0:
-        raise ReconError(f"need iterations >= 0, subsets >= 1, beta >= 0; got {iterations}, {subsets}, {beta}")
-    y = np.ascontiguousarray(y, dtype=np.float32)
-    if y.shape != A.proj_shape:
-        raise ReconError(f"projections: expected shape {A.proj_shape}, got {y.shape}")
+    if iterations < 0 or subsets < 1 or beta < 0 or chunk_views < 1:
+        raise ReconError(f"need iterations >= 0, subsets >= 1, beta >= 0, chunk_views >= 1; "
+                         f"got {iterations}, {subsets}, {beta}, {chunk_views}")
+    if tuple(y.shape) != A.proj_shape:
+        raise ReconError(f"projections: expected shape {A.proj_shape}, got {tuple(y.shape)}")
     weighted = weights is not None
-    w = np.ones((1, 1, 1), np.float32) if weights is None else np.ascontiguousarray(weights, dtype=np.float32)
-    if weighted and w.shape != y.shape:
-        raise ReconError(f"weights: expected shape {y.shape}, got {w.shape}")
-    x = np.zeros(A.vol_shape, np.float32) if x0 is None else np.array(x0, dtype=np.float32, copy=True)
-    if nonneg:
-        np.maximum(x, 0, out=x)
+    if weighted and tuple(weights.shape) != A.proj_shape:
+        raise ReconError(f"weights: expected shape {A.proj_shape}, got {tuple(weights.shape)}")
+    in_place = x0 is not None and np.shape(x0) == A.padded_shape
+    if in_place and not (x0.dtype == np.float32 and x0.flags.c_contiguous and x0.flags.writeable):
+        raise ReconError("a padded x0 is updated in place: it must be a writeable C-contiguous float32 array")
+    if x0 is not None and not in_place and np.shape(x0) != A.vol_shape:
+        raise ReconError(f"x0: expected shape {A.vol_shape} (or padded {A.padded_shape}), got {np.shape(x0)}")
     offs, omega = neighbour_offsets(neighbourhood)
-    # data curvature d = A^T (w * A 1), computed once
-    denom = np.ones(A.vol_shape, np.float32)
-    tmp = A.forward(denom)
-    if weighted:
-        tmp *= w
-    denom.fill(0.0)
-    A.back(tmp, out=denom)
-    pos = denom[denom > 0]
-    beta_abs = float(beta * (np.median(pos, overwrite_input=True) if pos.size else 0.0) / (2 * omega.sum()))
-    del pos
-    _add_penalty_curvature(denom, beta_abs, offs, omega)
     n_views = A.proj_shape[0]
-    order = [np.arange(m, n_views, subsets) for m in range(subsets)]
-    ops = [A] if subsets == 1 else [A.subset(idx) for idx in order]
+    passes = [_Pass(A, np.arange(m, n_views, subsets), chunk_views) for m in range(subsets)]
+    whole = _Pass(A, np.arange(n_views), chunk_views)
+    buf = np.empty((min(chunk_views, n_views),) + A.proj_shape[1:], np.float32)
+    no_w = np.ones((1, 1, 1), np.float32)
+    gp = np.zeros(A.padded_shape, np.float32)  # gradient accumulator (its border is scratch)
+    # data curvature d = A^T (w * A 1), computed once into a volume of its own
+    denom_p = np.zeros(A.padded_shape, np.float32)
+    gp[1:-1, 1:-1, 1:-1] = 1.0
+    for j0, j1 in whole.chunks:
+        r = A.forward_padded(gp, buf[: j1 - j0], j0)
+        if weighted:
+            r *= whole.read(weights, j0, j1)
+        A.back_padded(r, denom_p, j0)
+    denom = denom_p[1:-1, 1:-1, 1:-1]
+    del denom_p
+    sample = denom[::2, ::2, ::2]  # the median of a sub-lattice sets the scale; no volume-sized copy
+    pos = sample[sample > 0]
+    beta_abs = float(beta * (np.median(pos) if pos.size else 0.0) / (2 * omega.sum()))
+    del sample, pos
+    _add_penalty_curvature(denom, beta_abs, offs, omega)
+    if in_place:
+        xp = x0  # the iterate, zero-bordered for the projector
+        _zero_border(xp)
+    else:
+        xp = np.zeros(A.padded_shape, np.float32)
+        if x0 is not None:
+            xp[1:-1, 1:-1, 1:-1] = x0
+    if nonneg:
+        np.maximum(xp, 0, out=xp)
     cost: list[float] = []
-    grad = np.empty(A.vol_shape, np.float32)
     for it in range(iterations + 1):
+        final = it == iterations
         data_term = 0.0
         rough = 0.0
-        for m, op in enumerate(ops):
-            if subsets == 1:
-                r = op.forward(x, out=tmp)
-                data_term += _residual(r, y, w, weighted)
-            else:
-                r = op.forward(x)
-                data_term += _residual(r, np.ascontiguousarray(y[order[m]]),
-                                       np.ascontiguousarray(w[order[m]]) if weighted else w, weighted)
-            if it == iterations:
+        for m, ps in enumerate(passes):
+            if not final:
+                gp.fill(0.0)
+            for j0, j1 in ps.chunks:
+                r = ps.op.forward_padded(xp, buf[: j1 - j0], j0)
+                data_term += _residual(r, ps.read(y, j0, j1), ps.read(weights, j0, j1) if weighted else no_w, weighted)
+                if not final:
+                    ps.op.back_padded(r, gp, j0)
+            if final:
                 if m == 0:
-                    rough = penalty_add(x, offs, omega, 0.0, grad)
+                    rough = penalty_add(xp, offs, omega, 0.0, gp)
                 continue  # final cost only
-            grad.fill(0.0)
-            op.back(r, out=grad)
-            # grad = A_m^T W r + beta/M grad R, so that M * grad is the full-gradient estimate
-            rr = penalty_add(x, offs, omega, beta_abs / subsets, grad)
+            # gp = A_m^T W r + beta/M grad R, so that M * gp is the full-gradient estimate
+            rr = penalty_add(xp, offs, omega, beta_abs / subsets, gp)
             if m == 0:
                 rough = rr
-            _sps_step(x, grad, denom, float(subsets), nonneg)
+            _sps_step(xp, gp, denom, float(subsets), nonneg)
         cost.append(float(data_term + beta_abs * rough))
         if it < iterations:
             el = time.perf_counter() - t0
             report(progress, "pwls", it + 1, iterations, "iterations", cost=cost[-1],
                    time_left_s=el / (it + 1) * (iterations - it - 1))
+    del gp, denom, buf, r
+    x = xp[1:-1, 1:-1, 1:-1] if in_place else np.ascontiguousarray(xp[1:-1, 1:-1, 1:-1])
     return PwlsResult(x, cost, iterations, time.perf_counter() - t0, beta_abs)
-
-

@@ -73,3 +73,47 @@ def test_pwls_second_order_and_ordered_subsets(sawtooth_data) -> None:
     assert len(res.cost) == 4 and res.cost[-1] < res.cost[0]
     with pytest.raises(ReconError, match="neighbourhood"):
         pwls_sps(A, y, w, iterations=1, neighbourhood=3)
+
+
+def test_pwls_streams_projections_from_an_hdf5_file(sawtooth_data, tmp_path) -> None:
+    """Projections and weights read chunk by chunk from datasets give the in-memory result, for any chunk size."""
+    import h5py
+
+    g, y, w = sawtooth_data
+    A = projector(GRID, g)
+    x0 = fdk(y, GRID, g, window="hann")
+    ref = pwls_sps(A, y, w, iterations=3, x0=x0)
+    with h5py.File(tmp_path / "data.h5", "w") as f:
+        f["y"], f["w"] = y, w
+    with h5py.File(tmp_path / "data.h5", "r") as f:
+        for chunk in (1, 7, 1000):
+            res = pwls_sps(A, f["y"], f["w"], iterations=3, x0=x0, chunk_views=chunk)
+            np.testing.assert_allclose(res.cost, ref.cost, rtol=1e-4)
+            np.testing.assert_allclose(res.volume, ref.volume, rtol=1e-4, atol=1e-5 * float(ref.volume.max()))
+        sub = pwls_sps(A, f["y"], f["w"], iterations=2, x0=x0, subsets=4, chunk_views=3)
+        np.testing.assert_allclose(sub.volume, pwls_sps(A, y, w, iterations=2, x0=x0, subsets=4).volume,
+                                   rtol=1e-4, atol=1e-5 * float(ref.volume.max()))
+    with pytest.raises(ReconError, match="chunk_views"):
+        pwls_sps(A, y, w, iterations=1, chunk_views=0)
+    with pytest.raises(ReconError, match="x0"):
+        pwls_sps(A, y, w, iterations=1, x0=x0[:-1])
+
+
+def test_pwls_updates_a_padded_start_in_place(sawtooth_data) -> None:
+    """FDK written into a padded volume's interior starts PWLS without a second volume; same result."""
+    g, y, w = sawtooth_data
+    A = projector(GRID, g)
+    x0 = fdk(y, GRID, g, window="hann")
+    ref = pwls_sps(A, y, w, iterations=2, x0=x0)
+    xp = np.full(A.padded_shape, 7.0, np.float32)  # the border is cleared by the solver
+    fdk(y, GRID, g, window="hann", out=xp[1:-1, 1:-1, 1:-1])
+    np.testing.assert_allclose(xp[1:-1, 1:-1, 1:-1], x0, rtol=1e-6, atol=1e-7)
+    res = pwls_sps(A, y, w, iterations=2, x0=xp)
+    assert np.shares_memory(res.volume, xp)
+    np.testing.assert_allclose(res.volume, ref.volume, rtol=1e-5, atol=1e-6 * float(ref.volume.max()))
+    with pytest.raises(ReconError, match="x0"):
+        pwls_sps(A, y, w, iterations=1, x0=np.zeros((3, 3, 3), np.float32))
+    with pytest.raises(ReconError, match="in place"):
+        pwls_sps(A, y, w, iterations=1, x0=np.zeros(A.padded_shape, np.float64))
+    with pytest.raises(ReconError, match="out"):
+        fdk(y, GRID, g, out=np.zeros((2, 2, 2), np.float32))
