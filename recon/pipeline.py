@@ -26,6 +26,7 @@ from recon.pwls import DEFAULT_BETA, pwls_sps, statistical_weights
 
 ALGORITHMS = ("fdk", "pwls")
 GEOMETRIES = ("calibrated", "nominal", "truth")
+STREAM_MODES = ("auto", "memory", "file")
 
 
 @dataclass
@@ -59,20 +60,61 @@ class FileLineIntegrals:
         self._frames = frames
         self.shape = (frames.size,) + scan.detector.shape
 
-    def __getitem__(self, index: slice) -> NDArray[np.float32]:
-        return np.stack([self._scan.line_integrals(int(i)) for i in self._frames[index]])
+    def __getitem__(self, index: slice | NDArray[np.intp]) -> NDArray[np.float32]:
+        return np.stack([self._frame(int(i)) for i in self._frames[index]])
+
+    def _frame(self, i: int) -> NDArray[np.float32]:
+        return self._scan.line_integrals(i)
 
 
-def estimate_bytes(algorithm: str, grid: VolumeGrid, n_views: int, rows: int, cols: int, mar: bool) -> int:
-    """Peak working memory (bytes) a reconstruction needs, before anything is allocated."""
+class FileWeights(FileLineIntegrals):
+    """PWLS statistical weights of chosen frames computed from the scan file's raw counts on demand."""
+
+    def _frame(self, i: int) -> NDArray[np.float32]:
+        dark, flat = self._scan.dark_flat()
+        return statistical_weights(self._scan.frames[i], dark, flat)
+
+
+def estimate_bytes(algorithm: str, grid: VolumeGrid, n_views: int, rows: int, cols: int, mar: bool,
+                   stream: str = "memory") -> int:
+    """Peak working memory (bytes) a reconstruction needs, before anything is allocated.
+
+    ``stream`` 'file' is PWLS reading projections and weights from the scan file each iteration;
+    'memory' holds both in memory (FDK always streams unless MAR needs the projections at hand).
+    """
+    nz, ny, nx = grid.shape
     vol = grid.nbytes
+    padded = 4 * (nz + 2) * (ny + 2) * (nx + 2)
     proj = 4 * n_views * rows * cols
-    chunk = 2 * 4 * min(16, n_views) * (rows + 2) * (cols + 2) * 2
+    fdk_chunk = 4 * 4 * min(8, n_views) * (rows + 2) * (cols + 2)  # padded buffer and FFT temporaries
+    pwls_chunk = 3 * 4 * min(8, n_views) * rows * cols  # residual, projections, weights
+    mar_extra = 2 * proj + proj // 4 + 3 * vol if mar else 0
     if algorithm == "fdk":
-        total = vol + chunk + (2 * proj + 3 * vol if mar else 0)
+        total = vol + fdk_chunk + (proj + mar_extra if mar else 0)
+    elif stream == "file":
+        # FDK into the padded iterate, then iterate + gradient + surrogate denominators
+        total = max(padded + fdk_chunk, 3 * padded + pwls_chunk)
     else:
-        total = 3 * proj + 5 * vol + chunk + (proj + 2 * vol if mar else 0)
+        total = 2 * proj + max(padded + fdk_chunk, 3 * padded + pwls_chunk) + mar_extra
     return int(total * 1.1)
+
+
+def choose_stream(stream: str, algorithm: str, grid: VolumeGrid, n_views: int, rows: int, cols: int,
+                  mar: bool) -> str:
+    """'memory' or 'file' for a PWLS run: 'auto' keeps the projections in memory while they fit in half the free memory."""
+    if stream not in STREAM_MODES:
+        raise ReconError(f"stream must be one of {STREAM_MODES}, got {stream!r}")
+    if algorithm != "pwls":
+        return "memory"
+    if mar:
+        if stream == "file":
+            raise ReconError("metal artifact reduction needs the corrected projections in memory; "
+                             "use stream 'auto' or 'memory' with mar")
+        return "memory"
+    if stream != "auto":
+        return stream
+    needed = estimate_bytes(algorithm, grid, n_views, rows, cols, False, "memory")
+    return "memory" if needed <= 0.5 * psutil.virtual_memory().available else "file"
 
 
 def check_memory(needed: int, what: str) -> None:
@@ -117,15 +159,31 @@ def _load(scan: ScanFile, frames: NDArray[np.intp], with_weights: bool,
     return li, w
 
 
+def _pwls(li: Any, w: Any, grid: VolumeGrid, geom: ViewGeometry, window: str, beta: float, iterations: int,
+          neighbourhood: int, subsets: int, progress: ProgressCallback | None) -> tuple[NDArray[np.float32], list[float], float]:
+    """FDK into the interior of a padded volume, then PWLS updating that volume in place."""
+    A = projector(grid, geom)
+    xp = np.zeros(A.padded_shape, np.float32)
+    fdk(li, grid, geom, window=window, out=xp[1:-1, 1:-1, 1:-1], progress=progress)
+    res = pwls_sps(A, li, w, beta=beta, iterations=iterations, x0=xp, neighbourhood=neighbourhood,
+                   subsets=subsets, progress=progress)
+    return res.volume, res.cost, res.beta_abs
+
+
 def reconstruct_scan(
     path: str | os.PathLike[str], *, algorithm: str = "pwls", geometry: str = "calibrated",
     voxel_mm: float | None = None, shape: tuple[int, int, int] | None = None, iterations: int = 50,
     beta: float = DEFAULT_BETA, mar: bool | str = False, name: str | None = None,
     export: str | list[str] | None = None, out_dir: str | os.PathLike[str] | None = None,
     progress: ProgressCallback | None = None, window: str = "hann", subsets: int = 1, neighbourhood: int = 1,
-    metal_mu: float = 0.1, mar_threshold: float = 0.5,
+    metal_mu: float = 0.1, mar_threshold: float = 0.5, stream: str = "auto",
 ) -> ReconResult:
-    """Reconstruct ``path`` with FDK or PWLS and store it as ``/recon/<name>`` in the scan file."""
+    """Reconstruct ``path`` with FDK or PWLS and store it as ``/recon/<name>`` in the scan file.
+
+    ``stream`` (PWLS): 'memory' loads projections and weights once, 'file' recomputes them from
+    the scan file chunk by chunk every iteration (three volumes of memory, slower), 'auto'
+    picks 'memory' while it fits in half the free memory.
+    """
     t0 = time.perf_counter()
     if algorithm not in ALGORITHMS:
         raise ReconError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
@@ -141,18 +199,25 @@ def reconstruct_scan(
         raise ReconError(f"iterations must be >= 1 for pwls, got {iterations}")
     if voxel_mm is not None and not voxel_mm > 0:
         raise ReconError(f"voxel_mm must be > 0, got {voxel_mm}")
+    if stream not in STREAM_MODES:
+        raise ReconError(f"stream must be one of {STREAM_MODES}, got {stream!r}")
     name = name or f"{algorithm}_{geometry}" + ("_mar" if mar_method else "")
     with ScanFile(path, "r") as scan:  # read-only while computing: other readers may hold the file
         frames, geom, dropped = _views(scan, geometry)
         grid = grid_for_geometry(geom, voxel_mm=voxel_mm, shape=shape)
         fov_fraction = check_fov(grid, geom)
         det = geom.detector
-        check_memory(estimate_bytes(algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method)),
+        mode = choose_stream(stream, algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method))
+        check_memory(estimate_bytes(algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method), mode),
                      f"{algorithm} of {frames.size} views onto {grid.shape} voxels")
         cost: list[float] = []
         extra: dict[str, Any] = {}
         if algorithm == "fdk" and not mar_method:
             vol = fdk(FileLineIntegrals(scan, frames), grid, geom, window=window, progress=progress)
+        elif mode == "file":
+            vol, cost, beta_abs = _pwls(FileLineIntegrals(scan, frames), FileWeights(scan, frames), grid, geom,
+                                        window, beta, iterations, neighbourhood, subsets, progress)
+            extra.update(beta_abs=beta_abs, stream="file")
         else:
             li, w = _load(scan, frames, algorithm == "pwls", progress)
             metal = None
@@ -167,14 +232,12 @@ def reconstruct_scan(
                     w = np.where(traces, np.exp(-li), w).astype(np.float32)
                 extra.update(mar_method=mar_method, metal_voxels=int(metal.sum()), trace_fraction=float(traces.mean()))
                 report(progress, "mar", 1, 1, f"{int(metal.sum())} metal voxels")
-            x0 = fdk(li, grid, geom, window=window, progress=progress)
             if algorithm == "pwls":
-                res = pwls_sps(projector(grid, geom), li, w, beta=beta, iterations=iterations, x0=x0,
-                               neighbourhood=neighbourhood, subsets=subsets, progress=progress)
-                vol, cost = res.volume, res.cost
-                extra["beta_abs"] = res.beta_abs
+                vol, cost, beta_abs = _pwls(li, w, grid, geom, window, beta, iterations, neighbourhood, subsets,
+                                            progress)
+                extra.update(beta_abs=beta_abs, stream="memory")
             else:
-                vol = x0
+                vol = fdk(li, grid, geom, window=window, progress=progress)
             if metal is not None:
                 vol = add_metal_back(vol, first, metal)
         elapsed = time.perf_counter() - t0

@@ -36,6 +36,9 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
 @click.option("--mar", is_flag=True, help="Metal artifact reduction (screws, BBs).")
 @click.option("--mar-method", type=click.Choice(["reprojection", "threshold"]), default="reprojection", show_default=True,
               help="Segment metal by thresholding line integrals or by reprojecting a thresholded first volume.")
+@click.option("--stream", type=click.Choice(["auto", "memory", "file"]), default="auto", show_default=True,
+              help="PWLS data: hold projections and weights in memory, or re-read them from the scan file every "
+                   "iteration (three volumes of memory, slower); auto keeps them in memory while they fit.")
 @click.option("--name", default=None, help="Name under /recon (default ALGORITHM_GEOMETRY[_mar]).")
 @click.option("--export", "export", type=click.Choice(["nifti", "tiff", "png"]), multiple=True,
               help="Also write the volume as NIfTI, TIFF stack or PNG slices (repeatable).")
@@ -43,7 +46,7 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
               help="Folder for exports (default: next to the scan file).")
 def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | None, shape: tuple[int, int, int] | None,
                 iterations: int, beta: float | None, subsets: int, window: str, mar: bool, mar_method: str,
-                name: str | None, export: tuple[str, ...], out_dir: Path | None) -> None:
+                stream: str, name: str | None, export: tuple[str, ...], out_dir: Path | None) -> None:
     """Reconstruct SCAN (an orbitct scan file) and store the volume in it."""
     from orbitct.scanfile import ScanFileError
     from recon import DEFAULT_BETA, ReconError, reconstruct_scan
@@ -53,7 +56,7 @@ def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | Non
             res = reconstruct_scan(
                 scan, algorithm=algorithm, geometry=geometry, voxel_mm=voxel_mm, shape=shape, iterations=iterations,
                 beta=DEFAULT_BETA if beta is None else beta, mar=mar_method if mar else False, name=name,
-                export=list(export), out_dir=out_dir, progress=bar, window=window, subsets=subsets,
+                export=list(export), out_dir=out_dir, progress=bar, window=window, subsets=subsets, stream=stream,
             )
     except (ReconError, ScanFileError) as exc:
         raise click.ClickException(str(exc)) from None

@@ -92,3 +92,34 @@ def test_clear_errors(scan_a: Path) -> None:
     write_sphere_scan(path, far)
     with pytest.raises(FieldOfViewError, match="misses the field of view"):
         reconstruct_scan(path, algorithm="fdk", geometry="nominal", voxel_mm=VOXEL, shape=SHAPE)
+
+
+def test_pwls_streaming_from_the_scan_file_matches_in_memory(scan_a: Path) -> None:
+    """stream='file' re-reads projections and weights chunk by chunk; the volume equals the in-memory run."""
+    kw = dict(algorithm="pwls", geometry="truth", voxel_mm=3.0, shape=(24, 40, 40), iterations=3)
+    mem = reconstruct_scan(scan_a, stream="memory", name="mem", **kw)
+    fil = reconstruct_scan(scan_a, stream="file", name="file", **kw)
+    assert mem.params["stream"] == "memory" and fil.params["stream"] == "file"
+    np.testing.assert_allclose(fil.volume, mem.volume, rtol=1e-4, atol=1e-5 * float(mem.volume.max()))
+    np.testing.assert_allclose(fil.cost, mem.cost, rtol=1e-4)
+    with ScanFile(scan_a) as sf:
+        stored, attrs = sf.read_recon("file")
+        np.testing.assert_array_equal(stored, fil.volume)
+    with pytest.raises(ReconError, match="stream must be one of"):
+        reconstruct_scan(scan_a, stream="disk", **kw)
+    with pytest.raises(ReconError, match="metal artifact reduction needs"):
+        reconstruct_scan(scan_a, stream="file", mar=True, **kw)
+
+
+def test_memory_estimate_of_streamed_pwls_is_three_volumes() -> None:
+    from recon.pipeline import choose_stream, estimate_bytes
+
+    grid = VolumeGrid.centered((128, 128, 128), 1.0)
+    vol, proj = grid.nbytes, 4 * 180 * 128 * 128
+    streamed = estimate_bytes("pwls", grid, 180, 128, 128, False, "file")
+    in_memory = estimate_bytes("pwls", grid, 180, 128, 128, False, "memory")
+    assert 3 * vol < streamed < 1.1 * 1.5 * (vol + proj)  # the estimate carries a 10 % margin
+    assert in_memory > streamed + 2 * proj
+    assert choose_stream("auto", "pwls", grid, 180, 128, 128, False) == "memory"  # 20 MiB fits anywhere
+    assert choose_stream("auto", "pwls", grid, 10**7, 2048, 2048, False) == "file"
+    assert choose_stream("file", "fdk", grid, 180, 128, 128, False) == "memory"

@@ -27,6 +27,8 @@ def test_invalid_parameters_name_field_and_reason(shared_api) -> None:  # type: 
     assert body["details"][0]["field"] == "iterations"
     body = _is_error(shared_api.post("/reconstructions", role="analyst", json={"scan_id": "x", "shape": [1024, 1024, 1024]}), 422)
     assert "voxels" in body["message"]
+    body = _is_error(shared_api.post("/reconstructions", role="analyst", json={"scan_id": "x", "stream": "disk"}), 422)
+    assert body["details"][0]["field"] == "stream" and "file" in body["details"][0]["reason"]
     body = _is_error(shared_api.post("/scans", json={"orbit": "circular", "frames": 10**6}), 422)
     assert body["details"][0]["field"] == "frames"
     body = _is_error(shared_api.post("/scans", json={"orbit": "waypoints", "params": {"path": "/etc/passwd"}}), 422)

@@ -38,6 +38,8 @@ class ReconstructionRequest(BaseModel):
     iterations: int = Field(50, ge=1, le=500, description="PWLS iterations (ignored by FDK)")
     beta: float | None = Field(None, ge=0.0, le=1e6, description="relative penalty strength")
     mar: bool = Field(False, description="metal artifact reduction")
+    stream: Literal["auto", "memory", "file"] = Field(
+        "auto", description="PWLS data held in memory or re-read from the scan file each iteration (auto: memory while it fits)")
     name: str | None = Field(None, pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$", description="name under /recon in the scan file")
 
     @model_validator(mode="after")
