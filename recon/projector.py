@@ -232,12 +232,15 @@ def joseph_adjoint(proj, rays, vox, acc, bounds, line_lo, line_hi):
                     z1, z2 = _end_owners(b0, rb, k_lo, k_hi, z_main)
                     if z1 > z2 or z2 < z_lo or z1 >= z_hi:
                         continue
-                    k0, k1 = _window(a0, ra, b0, rb, k_lo, k_hi, z_main, z_lo, z_hi)
-                    # trim the window to the planes this slab owns (the owner is monotone along the ray)
-                    while k0 <= k1 and not (z_lo <= _owner(b0 + k0 * rb, z_main, k0) < z_hi):
-                        k0 += 1
-                    while k1 >= k0 and not (z_lo <= _owner(b0 + k1 * rb, z_main, k1) < z_hi):
-                        k1 -= 1
+                    if z_lo <= z1 and z2 < z_hi:  # the whole ray lies in this slab
+                        k0, k1 = k_lo, k_hi
+                    else:
+                        k0, k1 = _window(a0, ra, b0, rb, k_lo, k_hi, z_main, z_lo, z_hi)
+                        # trim the window to the planes this slab owns (the owner is monotone along the ray)
+                        while k0 <= k1 and not (z_lo <= _owner(b0 + k0 * rb, z_main, k0) < z_hi):
+                            k0 += 1
+                        while k1 >= k0 and not (z_lo <= _owner(b0 + k1 * rb, z_main, k1) < z_hi):
+                            k1 -= 1
                     n_planes = k1 - k0 + 1
                     if n_planes <= 0:
                         continue
