@@ -172,7 +172,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--large", action="store_true", help="also run 256^3 voxels, 500 views of 384^2")
     ap.add_argument("--pwls-iterations", type=int, default=50, help="PWLS iterations on the 128^3 case (0 skips)")
-    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--repeat", type=int, default=5, help="timed runs per step; the best is reported")
     ap.add_argument("--threads", type=int, default=None, help="numba threads (default: all cores)")
     args = ap.parse_args()
     import numba
