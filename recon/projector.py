@@ -173,9 +173,9 @@ _ADJOINT_MATH = {"nnan", "ninf", "nsz", "arcp", "afn"}
 
 
 @njit(parallel=True, cache=True, fastmath=_ADJOINT_MATH, nogil=True, boundscheck=False, error_model="numpy")
-def ray_slab_range(proj, rays, vox, nz, ny, nx, lo, hi):
-    """Per (view, row) line: the smallest and largest slab coordinate of its non-zero rays into ``lo``/``hi``."""
-    nv, rows, cols = proj.shape
+def ray_slab_range(rays, vox, nz, ny, nx, rows, cols, lo, hi):
+    """Per (view, row) line: the smallest and largest slab coordinate of its rays into ``lo``/``hi``."""
+    nv = rays.shape[0]
     sz = (nx + 2) * (ny + 2)
     for job in prange(nv * rows):
         n = job // rows
@@ -183,8 +183,6 @@ def ray_slab_range(proj, rays, vox, nz, ny, nx, lo, hi):
         zmin = 1 << 30
         zmax = -1
         for c in range(cols):
-            if proj[n, r, c] == 0.0:
-                continue
             a0, ra, b0, rb, k_lo, k_hi, step, stm, sta, stb = _ray(rays, vox, n, r, c, nx, ny, nz)
             z1, z2 = _end_owners(b0, rb, k_lo, k_hi, stm == sz)
             if z1 <= z2:

@@ -195,7 +195,7 @@ def pwls_sps(A: Projector, y: NDArray[np.float32] | ProjectionStack,
     offs, omega = neighbour_offsets(neighbourhood)
     n_views = A.proj_shape[0]
     passes = [_Pass(A, np.arange(m, n_views, subsets), chunk_views) for m in range(subsets)]
-    whole = _Pass(A, np.arange(n_views), chunk_views)
+    whole = passes[0] if subsets == 1 else _Pass(A, np.arange(n_views), chunk_views)
     buf = np.empty((min(chunk_views, n_views),) + A.proj_shape[1:], np.float32)
     no_w = np.ones((1, 1, 1), np.float32)
     gp = np.zeros(A.padded_shape, np.float32)  # gradient accumulator (its border is scratch)
