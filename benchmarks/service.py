@@ -51,7 +51,7 @@ def start_service(folder: Path, detector: int, time_scale: float) -> tuple[subpr
     port = free_port()
     env = {**os.environ, "ORBITCT_DEV_TOKEN": TOKEN, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "orbitct.cli.main", "serve", "--config", str(folder / "bench.yaml"), "--sim",
+        [sys.executable, "-m", "orbitct_app.cli.main", "serve", "--config", str(folder / "bench.yaml"), "--sim",
          "--port", str(port), "--data-dir", str(folder / "data"), "--log-level", "warning"],
         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )

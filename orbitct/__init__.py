@@ -1,9 +1,8 @@
 """orbitct: non-circular cone-beam CT orbits on real hardware.
 
-This package holds the shared core (geometry, rotations, scan files, orbits,
-error profiles, phantoms and the projection simulator) and, on top of all
-packages, the command line (``orbitct.cli``) and the REST service
-(``orbitct.service``).
+This package is the ground every other package stands on: geometry, rotations,
+kinematics, error profiles, progress events, scan files, orbits, phantoms and
+the projection simulator. It imports none of the other packages.
 """
 
 from importlib.metadata import PackageNotFoundError, version

@@ -13,11 +13,11 @@ CORE_MODULES = {"geometry", "rotations", "kinematics", "scanfile", "progress", "
 
 # package (or orbitct core) -> top-level packages it must never import
 FORBIDDEN = {
-    "calib": {"acquire", "devices", "recon", "orbitct.cli", "orbitct.service"},
-    "recon": {"acquire", "devices", "calib", "orbitct.cli", "orbitct.service"},
-    "devices": {"acquire", "calib", "recon", "orbitct.cli", "orbitct.service"},
-    "acquire": {"orbitct.cli", "orbitct.service"},
-    "orbitct-core": {"acquire", "devices", "calib", "recon", "orbitct.cli", "orbitct.service"},
+    "calib": {"acquire", "devices", "recon", "orbitct_app.cli", "orbitct_app.service"},
+    "recon": {"acquire", "devices", "calib", "orbitct_app.cli", "orbitct_app.service"},
+    "devices": {"acquire", "calib", "recon", "orbitct_app.cli", "orbitct_app.service"},
+    "acquire": {"orbitct_app.cli", "orbitct_app.service"},
+    "orbitct-core": {"acquire", "devices", "calib", "recon", "orbitct_app.cli", "orbitct_app.service"},
 }
 
 

@@ -9,7 +9,7 @@ import yaml
 from click.testing import CliRunner
 
 from acquire_helpers import small_config
-from orbitct.cli.main import cli
+from orbitct_app.cli.main import cli
 from orbitct.scanfile import ScanFile
 
 pytestmark = pytest.mark.timeout(120)

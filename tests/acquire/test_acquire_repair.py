@@ -16,7 +16,7 @@ from click.testing import CliRunner
 
 from acquire.errors import RepairError
 from acquire.repair import repair_scan
-from orbitct.cli.main import cli
+from orbitct_app.cli.main import cli
 from orbitct.geometry import Detector, ViewGeometry
 from orbitct.scanfile import ScanFile, ScanWriter
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from orbitct.cli.main import cli
+from orbitct_app.cli.main import cli
 from orbitct.scanfile import ScanFile
 
 HERE = Path(__file__).resolve().parent

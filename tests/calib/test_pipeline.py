@@ -105,7 +105,7 @@ def test_results_written_as_scan_file_says(simulated_scan: Callable[..., Path], 
 
 
 def test_cli_calibrates_in_place_and_reports(simulated_scan: Callable[..., Path], tmp_path: Path) -> None:
-    from orbitct.cli.main import cli
+    from orbitct_app.cli.main import cli
 
     scan = tmp_path / "a.h5"
     shutil.copyfile(simulated_scan("A"), scan)

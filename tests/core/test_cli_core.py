@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 from click.testing import CliRunner
 
-from orbitct.cli.main import cli
+from orbitct_app.cli.main import cli
 from orbitct.scanfile import ScanFile
 
 

@@ -23,7 +23,7 @@ pytestmark = pytest.mark.timeout(120)
 @contextmanager
 def twin_process(*args: str) -> Iterator[tuple[int, subprocess.Popen[str]]]:
     """Start ``orbitct twin ARGS --port 0 --console``; yield the port it printed and the process."""
-    cmd = [sys.executable, "-c", "from orbitct.cli.main import main; main()", "twin", *args, "--port", "0", "--console"]
+    cmd = [sys.executable, "-c", "from orbitct_app.cli.main import main; main()", "twin", *args, "--port", "0", "--console"]
     proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stderr is not None
@@ -77,7 +77,7 @@ def test_xray_twin_command() -> None:
 
 def test_carm_twin_rejects_bad_range() -> None:
     out = subprocess.run(
-        [sys.executable, "-c", "from orbitct.cli.main import main; main()", "twin", "carm", "--primary-range-deg", "5", "1"],
+        [sys.executable, "-c", "from orbitct_app.cli.main import main; main()", "twin", "carm", "--primary-range-deg", "5", "1"],
         capture_output=True, text=True, timeout=60,
     )
     assert out.returncode == 2 and "low (5) must be below high (1)" in out.stderr

@@ -16,7 +16,7 @@ pytestmark = pytest.mark.anyio
 
 
 def _start(*args: str) -> tuple[subprocess.Popen[str], str]:
-    cmd = [sys.executable, "-m", "orbitct.cli.main", "twin", *args, "--host", "127.0.0.1", "--port", "0"]
+    cmd = [sys.executable, "-m", "orbitct_app.cli.main", "twin", *args, "--host", "127.0.0.1", "--port", "0"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
     assert proc.stdout is not None
@@ -65,6 +65,6 @@ async def test_cli_rotation_stage_twin() -> None:
 
 
 def test_cli_rejects_bad_fault_spec() -> None:
-    cmd = [sys.executable, "-m", "orbitct.cli.main", "twin", "hexapod", "--port", "0", "--error", "MOV"]
+    cmd = [sys.executable, "-m", "orbitct_app.cli.main", "twin", "hexapod", "--port", "0", "--error", "MOV"]
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
     assert out.returncode != 0 and "CODE:COMMAND" in out.stderr

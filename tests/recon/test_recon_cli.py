@@ -8,7 +8,7 @@ import numpy as np
 from click.testing import CliRunner
 
 from recon_helpers import bench_detector, write_sphere_scan
-from orbitct.cli.main import cli
+from orbitct_app.cli.main import cli
 from orbitct.geometry import ViewGeometry
 from orbitct.scanfile import ScanFile
 

@@ -11,9 +11,9 @@ import pytest
 import yaml
 from fastapi.testclient import TestClient
 
-from orbitct.service.app import create_app
-from orbitct.service.auth import create_token
-from orbitct.service.settings import load_settings
+from orbitct_app.service.app import create_app
+from orbitct_app.service.auth import create_token
+from orbitct_app.service.settings import load_settings
 from service_helpers import small_bench_config
 
 HERE = Path(__file__).resolve().parent

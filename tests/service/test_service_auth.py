@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from orbitct.cli.serve import token
-from orbitct.service.auth import PERMISSIONS, TokenRegistry, create_token, hash_token, read_token_file
-from orbitct.service.settings import load_settings
+from orbitct_app.cli.serve import token
+from orbitct_app.service.auth import PERMISSIONS, TokenRegistry, create_token, hash_token, read_token_file
+from orbitct_app.service.settings import load_settings
 
 # method, path, body, permission needed (None: any valid token)
 MUTATING = [

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from service_helpers import parse_sse, write_small_scan
-from orbitct.service import jobs as jobs_module
+from orbitct_app.service import jobs as jobs_module
 
 
 def _complete_scan(api: Any, scan_id: str = "s0000000000000001", n: int = 6) -> str:

@@ -35,7 +35,7 @@ def test_sigkill_during_scan_then_restart(make_api, tmp_path: Path) -> None:  # 
     port = _free_port()
     env = {**os.environ, "ORBITCT_DEV_TOKEN": DEV, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "orbitct.cli.main", "serve", "--config", str(small_bench_config(tmp_path)), "--sim",
+        [sys.executable, "-m", "orbitct_app.cli.main", "serve", "--config", str(small_bench_config(tmp_path)), "--sim",
          "--port", str(port), "--data-dir", str(data), "--log-level", "warning"],
         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
     )

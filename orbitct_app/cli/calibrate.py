@@ -1,0 +1,56 @@
+"""``orbitct calibrate``: geometric calibration of a scan file from the BBs in its projections."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from orbitct_app.cli.progress import ProgressBar
+
+
+@click.command()
+@click.argument("scan", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--method", type=click.Choice(["bundle", "paper"]), default="bundle", show_default=True,
+              help="bundle: joint robust least squares; paper: the published alternation (Ma et al. 2022).")
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Write the results into a copy of SCAN at this path instead of into SCAN.")
+@click.option("--report", "report_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Directory for table1.md/.csv, rpe_violin.png and corrections.png.")
+@click.option("--iterations", type=click.IntRange(1, 200), default=None,
+              help="paper: alternations (default 3); bundle: maximum LM iterations (default 30).")
+@click.option("--intrinsics", type=click.Choice(["fixed", "sdd", "sdd+pp"]), default="fixed", show_default=True,
+              help="bundle: also estimate per view the source-detector distance and the piercing point.")
+@click.option("--diameter-mm", type=float, default=None, help="BB diameter (default: /markers@diameter_mm, else estimated).")
+def calibrate(
+    scan: Path, method: str, out: Path | None, report_dir: Path | None, iterations: int | None, intrinsics: str,
+    diameter_mm: float | None,
+) -> None:
+    """Calibrate SCAN's geometry from the BBs on the object; writes /geometry/calibrated and /markers."""
+    import calib
+    from orbitct.scanfile import ScanFileError
+
+    options: dict[str, object] = {"intrinsics": intrinsics}
+    if iterations is not None:
+        options["iterations"] = iterations
+    if diameter_mm is not None:
+        options["diameter_mm"] = diameter_mm
+    try:
+        with ProgressBar() as bar:
+            res = calib.calibrate_scan(scan, method=method, out=out, report_dir=report_dir, progress=bar, **options)
+    except (calib.CalibrationError, ScanFileError) as exc:
+        raise click.ClickException(str(exc)) from None
+    last = res.iterations[-1]
+    click.echo(
+        f"{res.path}: {method}, {res.n_bbs} BBs in {res.n_frames} projections, {res.elapsed_s:.2f} s "
+        f"({1000 * res.elapsed_s / max(res.n_frames, 1):.2f} ms/frame; detection {res.detect_s:.2f} s, "
+        f"estimation {res.estimate_s:.2f} s)"
+    )
+    click.echo(
+        f"RPE mean {last.rpe_mean_mm:.4f} mm, median {last.rpe_median_mm:.4f} mm, std {last.rpe_std_mm:.4f} mm; "
+        f"reprojection RMS {res.reproj_rms_px:.3f} px (initial RPE mean {res.iterations[0].rpe_mean_mm:.3f} mm)"
+    )
+    for w in res.warnings:
+        click.echo(f"warning: {w}", err=True)
+    if report_dir is not None:
+        click.echo(f"report written to {report_dir}")

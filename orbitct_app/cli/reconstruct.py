@@ -1,0 +1,69 @@
+"""``orbitct reconstruct``: FDK or PWLS reconstruction of a scan file into ``/recon/<name>``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from orbitct_app.cli.progress import ProgressBar
+
+
+def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tuple[int, int, int] | None:
+    if value is None:
+        return None
+    try:
+        parts = tuple(int(p) for p in value.replace("x", ",").split(","))
+    except ValueError:
+        parts = ()
+    if len(parts) != 3 or min(parts) < 1:
+        raise click.BadParameter(f"expected three positive integers NZ,NY,NX (e.g. 128,256,256), got {value!r}")
+    return parts  # type: ignore[return-value]
+
+
+@click.command()
+@click.argument("scan", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--algorithm", type=click.Choice(["fdk", "pwls"]), default="pwls", show_default=True)
+@click.option("--geometry", type=click.Choice(["calibrated", "nominal", "truth"]), default="calibrated", show_default=True,
+              help="Which per-view geometry of the scan to use (truth exists only in simulated scans).")
+@click.option("--voxel-mm", type=float, default=None, help="Isotropic voxel size in mm (default: detector pitch at the isocenter).")
+@click.option("--shape", callback=_shape, default=None, help="Volume shape NZ,NY,NX (default: fits the field of view).")
+@click.option("--iterations", type=click.IntRange(min=1), default=50, show_default=True, help="PWLS iterations.")
+@click.option("--beta", type=click.FloatRange(min=0), default=None, help="Relative penalty strength (default 0.01; larger = smoother).")
+@click.option("--subsets", type=click.IntRange(min=1), default=1, show_default=True, help="Ordered subsets for PWLS.")
+@click.option("--window", type=click.Choice(["ram-lak", "shepp-logan", "cosine", "hann"]), default="hann", show_default=True,
+              help="Ramp filter window for FDK (and the PWLS initial image).")
+@click.option("--mar", is_flag=True, help="Metal artifact reduction (screws, BBs).")
+@click.option("--mar-method", type=click.Choice(["reprojection", "threshold"]), default="reprojection", show_default=True,
+              help="Segment metal by thresholding line integrals or by reprojecting a thresholded first volume.")
+@click.option("--stream", type=click.Choice(["auto", "memory", "file"]), default="auto", show_default=True,
+              help="PWLS data: hold projections and weights in memory, or re-read them from the scan file every "
+                   "iteration (three volumes of memory, slower); auto keeps them in memory while they fit.")
+@click.option("--name", default=None, help="Name under /recon (default ALGORITHM_GEOMETRY[_mar]).")
+@click.option("--export", "export", type=click.Choice(["nifti", "tiff", "png"]), multiple=True,
+              help="Also write the volume as NIfTI, TIFF stack or PNG slices (repeatable).")
+@click.option("--out-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Folder for exports (default: next to the scan file).")
+def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | None, shape: tuple[int, int, int] | None,
+                iterations: int, beta: float | None, subsets: int, window: str, mar: bool, mar_method: str,
+                stream: str, name: str | None, export: tuple[str, ...], out_dir: Path | None) -> None:
+    """Reconstruct SCAN (an orbitct scan file) and store the volume in it."""
+    from orbitct.scanfile import ScanFileError
+    from recon import DEFAULT_BETA, ReconError, reconstruct_scan
+
+    try:
+        with ProgressBar() as bar:
+            res = reconstruct_scan(
+                scan, algorithm=algorithm, geometry=geometry, voxel_mm=voxel_mm, shape=shape, iterations=iterations,
+                beta=DEFAULT_BETA if beta is None else beta, mar=mar_method if mar else False, name=name,
+                export=list(export), out_dir=out_dir, progress=bar, window=window, subsets=subsets, stream=stream,
+            )
+    except (ReconError, ScanFileError) as exc:
+        raise click.ClickException(str(exc)) from None
+    nz, ny, nx = res.volume_shape
+    click.echo(f"{res.path}: /recon/{res.name}  {algorithm} with {geometry} geometry, {nz}x{ny}x{nx} voxels of "
+               f"{res.voxel_mm[0]:g} mm, {res.elapsed_s:.1f} s")
+    if res.cost:
+        click.echo(f"  cost {res.cost[0]:.6g} -> {res.cost[-1]:.6g} over {len(res.cost) - 1} iterations")
+    for p in res.exported:
+        click.echo(f"  wrote {p}")

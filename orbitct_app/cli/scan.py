@@ -1,0 +1,89 @@
+"""``orbitct scan``: run an orbit on the bench (or its twins) into a scan file; ``orbitct scan repair FILE``."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+import yaml
+
+from orbitct_app.cli.progress import ProgressBar
+
+
+def _fail(message: str) -> None:
+    click.echo(f"error: {message}", err=True)
+    sys.exit(2)
+
+
+def _parse_params(items: tuple[str, ...]) -> dict[str, object]:
+    out: dict[str, object] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            _fail(f"--param {item!r}: expected KEY=VALUE, e.g. amplitude_deg=8")
+        out[key.strip()] = yaml.safe_load(value)
+    return out
+
+
+@click.group(invoke_without_command=True)
+@click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Bench or C-arm configuration (config/bench.yaml).")
+@click.option("--orbit", default="sawtooth", show_default=True, help="Orbit name (sawtooth, dcarc, circular, ...).")
+@click.option("--frames", type=click.IntRange(1, 100000), default=None, help="Projections (default: the orbit's).")
+@click.option("--param", "-p", "params", multiple=True, metavar="KEY=VALUE",
+              help="Orbit parameter, repeatable (e.g. -p amplitude_deg=8 -p start_deg=-180); see orbitct orbit.")
+@click.option("--errors", default="bench", show_default=True, help="Injected error profile: bench or none.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the error profile's noise.")
+@click.option("--mode", type=click.Choice(["step", "continuous"]), default="step", show_default=True,
+              help="step: move, settle, expose; continuous: constant rotation, exposures triggered at angles.")
+@click.option("--sim", is_flag=True, help="Start the device twins in-process (nothing else needs to run).")
+@click.option("--detector-size", type=click.IntRange(16, 4096), default=None,
+              help="Square detector of this many pixels on the same panel (default: the config's).")
+@click.option("--frame-rate", "frame_rate_hz", type=click.FloatRange(0.01, 1000), default=None,
+              help="Frames per second in continuous mode (default: the config's).")
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Scan file to write (.h5).")
+@click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
+@click.pass_context
+def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int | None, params: tuple[str, ...],
+         errors: str, seed: int,
+         mode: str, sim: bool, detector_size: int | None, frame_rate_hz: float | None, out: Path | None,
+         overwrite: bool) -> None:
+    """Acquire a scan: orbitct scan --config config/bench.yaml --orbit sawtooth --sim --out scan.h5"""
+    if ctx.invoked_subcommand is not None:
+        return
+    if config_path is None or out is None:
+        _fail("orbitct scan needs --config FILE and --out FILE (see orbitct scan --help)")
+    from acquire.errors import AcquireError
+    from acquire.runner import CTRL_C_REASON, ScanRequest, run_scan
+
+    req = ScanRequest(config=config_path, out=out, orbit=orbit, frames=frames, orbit_params=_parse_params(params),
+                      errors=errors, seed=seed, mode=mode,
+                      sim=sim, detector_size=detector_size, frame_rate_hz=frame_rate_hz, overwrite=overwrite)
+    try:
+        with ProgressBar() as bar:
+            res = run_scan(req, progress=bar)
+    except AcquireError as exc:
+        _fail(str(exc))
+    except KeyboardInterrupt:
+        click.echo(f"scan interrupted (Ctrl-C): axes halted, X-rays off; partial file {out} marked aborted", err=True)
+        sys.exit(130)
+    rate = res.n_frames / res.elapsed_s if res.elapsed_s > 0 else 0.0
+    click.echo(f"{res.status}: {res.n_frames}/{res.n_planned} frames in {res.elapsed_s:.1f} s ({rate:.1f} frames/s) -> {res.path}")
+    if res.status != "complete":
+        click.echo(f"reason: {res.reason}", err=True)
+        sys.exit(130 if res.reason == CTRL_C_REASON else 1)
+
+
+@scan.command("repair")
+@click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
+def repair(file: Path) -> None:
+    """Mark a scan file left by a killed acquisition as aborted ("interrupted"), keeping every complete frame."""
+    from acquire.errors import RepairError
+    from acquire.repair import repair_scan
+
+    try:
+        rep = repair_scan(file)
+    except RepairError as exc:
+        _fail(str(exc))
+    click.echo(rep.summary())

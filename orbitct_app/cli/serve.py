@@ -1,0 +1,77 @@
+"""``orbitct serve`` (the REST service) and ``orbitct token create`` (bearer tokens stored as hashes)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import click
+from pydantic import ValidationError
+
+
+def _settings(**kwargs: object):  # type: ignore[no-untyped-def]
+    from orbitct_app.service.settings import load_settings
+
+    settings_file = kwargs.pop("settings_file", None)
+    try:
+        return load_settings(settings_file, **kwargs)  # type: ignore[arg-type]
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'settings'}: {e['msg']}" for e in exc.errors())
+        raise click.UsageError(f"invalid service settings: {problems}") from None
+
+
+@click.command()
+@click.option("--config", "bench_config", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="bench configuration (YAML), e.g. config/bench.yaml")
+@click.option("--sim", is_flag=True, default=None, help="start in-process device twins; prints a development token")
+@click.option("--host", default=None, help="address to listen on (default 127.0.0.1)")
+@click.option("--port", type=int, default=None, help="port (default 8000)")
+@click.option("--data-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="scan files, job outputs, database and tokens (default ./orbitct-data)")
+@click.option("--settings", "settings_file", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
+              help="service settings (YAML); environment ORBITCT_* and these options override it")
+@click.option("--log-level", type=click.Choice(["debug", "info", "warning", "error"]), default="info")
+def serve(bench_config: Path | None, sim: bool | None, host: str | None, port: int | None, data_dir: Path | None,
+          settings_file: Path | None, log_level: str) -> None:
+    """Run the REST service (scans, calibration, reconstruction, emergency stop) with uvicorn."""
+    import uvicorn
+
+    from orbitct_app.service.app import create_app
+
+    settings = _settings(settings_file=settings_file, bench_config=bench_config, sim=sim, host=host, port=port,
+                         data_dir=data_dir)
+    if not settings.bench_config.is_file():
+        raise click.UsageError(f"bench configuration {settings.bench_config} does not exist")
+    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    app = create_app(settings)
+    service = app.state.service
+    if service.dev_token is not None:
+        click.echo(f"--sim development token (all roles, valid until the service stops):\n  {service.dev_token}")
+    click.echo(f"orbitct service on http://{settings.host}:{settings.port}  (API docs: /docs)")
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level=log_level, access_log=False)
+
+
+@click.group()
+def token() -> None:
+    """Manage bearer tokens (only their SHA-256 hashes are stored)."""
+
+
+@token.command("create")
+@click.option("--role", type=click.Choice(["operator", "analyst", "viewer"]), required=True,
+              help="operator: motion, X-rays, scans; analyst: calibration, reconstruction; viewer: read only")
+@click.option("--name", default="", help="a name for logs (default <role>-<n>)")
+@click.option("--data-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="service data directory holding tokens.json (default ./orbitct-data)")
+@click.option("--tokens-file", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="tokens file (default <data-dir>/tokens.json)")
+def create(role: str, name: str, data_dir: Path | None, tokens_file: Path | None) -> None:
+    """Create a token for ROLE, store its hash, print the token once."""
+    from orbitct_app.service.auth import TokenFileError, create_token
+
+    settings = _settings(data_dir=data_dir, tokens_file=tokens_file)
+    try:
+        value = create_token(settings.tokens_path, role, name)  # type: ignore[arg-type]
+    except TokenFileError as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(value)
+    click.echo(f"(role {role}; hash stored in {settings.tokens_path}; this token is not shown again)", err=True)

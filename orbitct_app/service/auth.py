@@ -1,0 +1,125 @@
+"""Bearer tokens stored only as SHA-256 hashes, with roles operator, analyst and viewer."""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+import os
+import secrets
+import threading
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Literal
+
+from orbitct_app.service.settings import Role, TokenHash
+
+Permission = Literal["read", "motion", "scan", "analysis", "stop"]
+
+ROLES: tuple[str, ...] = ("operator", "analyst", "viewer")
+# Everyone who may see the bench may press the emergency stop; the rest is split by role.
+PERMISSIONS: dict[str, frozenset[str]] = {
+    "operator": frozenset({"read", "motion", "scan", "stop"}),
+    "analyst": frozenset({"read", "analysis", "stop"}),
+    "viewer": frozenset({"read", "stop"}),
+}
+# The generated token of a --sim service may do everything (it never exists on real hardware).
+SIM_DEV_ROLE = "sim-dev"
+PERMISSIONS[SIM_DEV_ROLE] = PERMISSIONS["operator"] | PERMISSIONS["analyst"]
+TOKEN_PREFIX = "oct_"
+
+
+class TokenFileError(ValueError):
+    """The tokens file cannot be read or written."""
+
+
+@dataclass(frozen=True)
+class Principal:
+    """Who is calling: the token's name and role."""
+
+    name: str
+    role: str
+
+    def may(self, permission: str) -> bool:
+        """Whether the role grants ``permission``."""
+        return permission in PERMISSIONS.get(self.role, frozenset())
+
+
+def hash_token(token: str) -> str:
+    """SHA-256 hex digest of a token (tokens are 256-bit random, so no slow KDF is needed)."""
+    return hashlib.sha256(token.encode("utf-8")).hexdigest()
+
+
+def new_token() -> str:
+    """A fresh random token."""
+    return TOKEN_PREFIX + secrets.token_urlsafe(32)
+
+
+def read_token_file(path: Path) -> list[TokenHash]:
+    """Token hashes stored in ``path`` (none if the file does not exist)."""
+    if not path.exists():
+        return []
+    try:
+        raw = json.loads(path.read_text(encoding="utf-8"))
+        return [TokenHash.model_validate(t) for t in raw.get("tokens", [])]
+    except (OSError, ValueError, AttributeError) as exc:
+        raise TokenFileError(f"{path}: not a valid tokens file ({exc})") from None
+
+
+def create_token(path: Path, role: Role, name: str = "") -> str:
+    """Make a token for ``role``, append its hash to ``path`` and return the token (shown once)."""
+    if role not in ROLES:
+        raise TokenFileError(f"role must be one of {', '.join(ROLES)}, got {role!r}")
+    token = new_token()
+    entries = read_token_file(path)
+    entries.append(TokenHash(sha256=hash_token(token), role=role, name=name or f"{role}-{len(entries) + 1}"))
+    body = {
+        "tokens": [e.model_dump() for e in entries],
+        "updated_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w", encoding="utf-8") as fh:
+        json.dump(body, fh, indent=2)
+    os.replace(tmp, path)
+    return token
+
+
+class TokenRegistry:
+    """Known token hashes: the configured ones plus the tokens file (re-read when it changes)."""
+
+    def __init__(self, configured: list[TokenHash], path: Path | None, dev_token: str | None = None) -> None:
+        self._configured = list(configured)
+        self._dev_hash = hash_token(dev_token) if dev_token is not None else None
+        self._path = path
+        self._mtime: float | None = None
+        self._file: list[TokenHash] = []
+        self._lock = threading.Lock()
+
+    def _entries(self) -> list[TokenHash]:
+        if self._path is not None:
+            try:
+                mtime = self._path.stat().st_mtime
+            except OSError:
+                mtime = None
+            with self._lock:
+                if mtime != self._mtime:
+                    self._file = read_token_file(self._path) if mtime is not None else []
+                    self._mtime = mtime
+        return self._configured + self._file
+
+    def __len__(self) -> int:
+        return len(self._entries()) + (self._dev_hash is not None)
+
+    def authenticate(self, token: str) -> Principal | None:
+        """The principal of ``token``, or None if it is unknown."""
+        digest = hash_token(token)
+        found: Principal | None = None
+        if self._dev_hash is not None and hmac.compare_digest(self._dev_hash, digest):
+            found = Principal(name="sim-dev", role=SIM_DEV_ROLE)
+        for entry in self._entries():
+            if hmac.compare_digest(entry.sha256, digest):
+                found = Principal(name=entry.name, role=entry.role)
+        return found

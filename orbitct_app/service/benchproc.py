@@ -1,0 +1,318 @@
+"""The bench process: devices (twins with sim), the scan runner and the emergency stop, away from the web server.
+
+The web server talks to it over three pipes: commands (request id, name, arguments), a stop pipe
+read by its own thread (so a stop never queues behind a command), and events back (replies,
+scan progress, scan end). Errors cross as ``(kind, message)``; kinds map to HTTP statuses.
+If the web server dies, the command pipe closes and this process aborts the scan and exits.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import threading
+from dataclasses import asdict
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+from orbitct.progress import ProgressEvent
+
+log = logging.getLogger("orbitct_app.service.benchproc")
+
+
+class CommandError(Exception):
+    """A command refused with a kind (``invalid``, ``conflict``, ``not_found``, ``unavailable``) and a message."""
+
+    def __init__(self, kind: str, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
+def _plain(value: Any) -> Any:
+    """JSON-ready copy of a device reading."""
+    import math
+
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, (str, int, float, bool)) or value is None:
+        return value
+    if hasattr(value, "item"):
+        return _plain(value.item())
+    return str(value)
+
+
+def classify(exc: BaseException) -> tuple[str, str]:
+    """``(kind, message)`` of an error raised by a command."""
+    from acquire.errors import AcquireError, ScanStateError
+    from devices.errors import (DeviceError, DeviceTimeoutError, FaultActiveError, InterlockOpenError,
+                                NotConnectedError, NotReferencedError, OutOfLimitsError)
+
+    text = str(exc) or type(exc).__name__
+    if isinstance(exc, CommandError):
+        return exc.kind, text
+    if isinstance(exc, ScanStateError):
+        return "conflict", text
+    if isinstance(exc, AcquireError):
+        return "invalid", text
+    if isinstance(exc, OutOfLimitsError):
+        return "invalid", text
+    if isinstance(exc, (NotReferencedError, InterlockOpenError, FaultActiveError)):
+        return "conflict", text
+    if isinstance(exc, (DeviceTimeoutError, NotConnectedError)):
+        return "unavailable", text
+    if isinstance(exc, DeviceError):
+        return "conflict", text
+    if isinstance(exc, (ValueError, TypeError, KeyError)):
+        return "invalid", f"{type(exc).__name__}: {text}"
+    return "error", f"{type(exc).__name__}: {text}"
+
+
+class BenchServer:
+    """Runs in the bench process: executes commands on the bench loop, reports scan progress."""
+
+    def __init__(self, config_path: Path, sim: bool, events: Connection) -> None:
+        self.config_path, self.sim, self._events = Path(config_path), sim, events
+        self.config: Any = None
+        self.bench: Any = None
+        self.runner: Any = None
+        self.scan_id: str | None = None
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self._send_lock = threading.Lock()
+        self._closing = asyncio.Event()
+        self._close_reason = "service shutting down"
+
+    def send(self, *message: Any) -> None:
+        """One message to the web server (ignored once it is gone)."""
+        with self._send_lock:
+            with contextlib.suppress(OSError, EOFError, BrokenPipeError):
+                self._events.send(message)
+
+    # ---------------------------------------------------------------- lifecycle
+    async def serve(self, commands: Connection, stops: Connection) -> None:
+        """Connect, then run commands until ``shutdown`` or the web server disappears."""
+        from acquire.bench import open_bench
+        from acquire.config import BenchConfig, load_config
+
+        self.loop = asyncio.get_running_loop()
+        async with contextlib.AsyncExitStack() as stack:
+            try:
+                self.config = load_config(self.config_path)
+                if isinstance(self.config, BenchConfig):
+                    self.bench = await stack.enter_async_context(open_bench(self.config, sim=self.sim))
+                self.send("connected", self._describe_config())
+            except Exception as exc:  # noqa: BLE001 - reported to the web server, which stays up degraded
+                self.send("connect_failed", classify(exc)[1])
+                return
+            threading.Thread(target=self._read, args=(commands, self._on_command), name="bench-commands", daemon=True).start()
+            threading.Thread(target=self._read, args=(stops, self._on_stop), name="bench-stop", daemon=True).start()
+            await self._closing.wait()
+            if self.runner is not None and self.scan_id is not None:
+                self.runner.abort(self._close_reason)
+                while self.scan_id is not None:
+                    await asyncio.sleep(0.05)
+
+    def _describe_config(self) -> dict[str, Any]:
+        return {"kind": type(self.config).__name__, "sim": self.sim}
+
+    def _read(self, conn: Connection, handler: Any) -> None:
+        """Reader thread: hand each message to the loop; a closed pipe means the web server is gone."""
+        assert self.loop is not None
+        while True:
+            try:
+                message = conn.recv()
+            except (EOFError, OSError):
+                self.loop.call_soon_threadsafe(self._shutdown, "the web service stopped (its process ended)")
+                return
+            self.loop.call_soon_threadsafe(handler, message)
+
+    def _shutdown(self, reason: str) -> None:
+        self._close_reason = reason
+        self._closing.set()
+
+    # ---------------------------------------------------------------- commands
+    def _on_command(self, message: tuple[int, str, dict[str, Any]]) -> None:
+        req_id, name, args = message
+        if name == "shutdown":
+            self._shutdown(str(args.get("reason", "service shutting down")))
+            self.send("reply", req_id, True, None)
+            return
+        asyncio.ensure_future(self._run_command(req_id, name, args))
+
+    async def _run_command(self, req_id: int, name: str, args: dict[str, Any]) -> None:
+        try:
+            handler = getattr(self, f"cmd_{name}", None)
+            if handler is None:
+                raise CommandError("invalid", f"unknown bench command {name!r}")
+            result = await handler(**args)
+            self.send("reply", req_id, True, result)
+        except Exception as exc:  # noqa: BLE001 - every failure goes back as (kind, message)
+            self.send("reply", req_id, False, classify(exc))
+
+    def _device(self, name: str) -> Any:
+        if self.bench is None:
+            raise CommandError("unavailable", "no bench devices are connected (C-arm configuration)")
+        devices = {d.name: d for d in self.bench.devices}
+        if name not in devices:
+            raise CommandError("not_found", f"no device {name!r}; known: {', '.join(devices)}")
+        return devices[name]
+
+    def _idle(self) -> None:
+        if self.scan_id is not None:
+            raise CommandError("conflict", f"the bench is running scan {self.scan_id}; maintenance waits until it ends")
+
+    async def _state(self, dev: Any) -> dict[str, Any]:
+        return {"device": _plain(asdict(await dev.describe())), "state": _plain(await dev.read())}
+
+    async def cmd_describe(self) -> list[dict[str, Any]]:
+        """Every device's description."""
+        if self.bench is None:
+            return []
+        return [_plain(asdict(info)) for info in await self.bench.describe()]
+
+    async def cmd_device_state(self, name: str) -> dict[str, Any]:
+        """Description and reading of one device."""
+        return await self._state(self._device(name))
+
+    async def cmd_reference(self, name: str) -> dict[str, Any]:
+        """Reference a motion device."""
+        self._idle()
+        dev = self._device(name)
+        if not hasattr(dev, "reference"):
+            raise CommandError("invalid", f"device {name} has no axes to reference")
+        await dev.reference()
+        return await self._state(dev)
+
+    async def cmd_move(self, name: str, targets: dict[str, float]) -> dict[str, Any]:
+        """Maintenance move of some axes (limits checked by the driver before anything moves)."""
+        self._idle()
+        dev = self._device(name)
+        if not hasattr(dev, "move"):
+            raise CommandError("invalid", f"device {name} has no axes to move")
+        known = {a.name for a in (await dev.describe()).axes}
+        unknown = sorted(set(targets) - known)
+        if unknown:
+            raise CommandError("invalid", f"device {name} has no axes {unknown}; its axes are {sorted(known)}")
+        await dev.move(targets)
+        return await self._state(dev)
+
+    async def cmd_stop_device(self, name: str) -> dict[str, Any]:
+        """Halt one device (X-ray generator: X-rays off)."""
+        dev = self._device(name)
+        if hasattr(dev, "xray_off"):
+            await dev.xray_off()
+        elif hasattr(dev, "stop"):
+            await dev.stop()
+        return await self._state(dev)
+
+    def _request(self, spec: dict[str, Any]) -> Any:
+        from acquire.runner import ScanRequest
+
+        return ScanRequest(config=self.config, out=Path(spec["out"]), orbit=spec["orbit"], orbit_params=spec["params"],
+                           errors=spec["errors"], seed=spec["seed"], mode=spec["mode"], sim=self.sim)
+
+    async def cmd_preflight(self, spec: dict[str, Any]) -> None:
+        """Plan the scan and check it against every limit; nothing moves."""
+        from acquire.config import BenchConfig
+        from acquire.preflight import preflight
+        from acquire.runner import build_plan
+
+        req = self._request(spec)
+        cfg = req.resolved_config()
+        if not isinstance(cfg, BenchConfig) or self.bench is None:
+            return
+        plan = build_plan(req, cfg)
+        await preflight(plan, cfg, device_limits=await self.bench.device_limits(), workspace_check=self.bench.check_workspace,
+                        mode=req.mode, frame_rate_hz=req.frame_rate_hz or cfg.exposure.frame_rate_hz)
+
+    async def cmd_start_scan(self, scan_id: str, spec: dict[str, Any]) -> None:
+        """Start a scan in the background; refused while another runs."""
+        from acquire.runner import ScanRunner
+
+        if self.scan_id is not None:
+            raise CommandError("conflict", f"the bench is busy with scan {self.scan_id}; one scan at a time")
+        req = self._request(spec)
+        self.scan_id = scan_id
+        self.runner = ScanRunner(req, progress=lambda ev: self._progress(scan_id, ev), bench=self.bench)
+        asyncio.ensure_future(self._scan(scan_id, self.runner, Path(spec["out"])))
+
+    async def _scan(self, scan_id: str, runner: Any, path: Path) -> None:
+        from orbitct_app.service.bench import scan_summary
+
+        state, reason, timing, elapsed = "failed", "", {}, None
+        try:
+            result = await runner.run()
+            state, reason = result.status, result.reason
+            timing, elapsed = {k: float(v) for k, v in dict(result.timing).items()}, float(result.elapsed_s)
+        except asyncio.CancelledError:
+            state, reason = "aborted", "cancelled"
+        except Exception as exc:  # noqa: BLE001 - pre-flight refusals, configuration and device errors
+            state, reason = "failed", classify(exc)[1]
+        finally:
+            summary = await asyncio.get_running_loop().run_in_executor(None, scan_summary, path) if path.exists() else {}
+            if timing:
+                summary["timing"], summary["elapsed_s"] = timing, elapsed
+            self.scan_id, self.runner = None, None
+            self.send("scan_end", scan_id, state, reason, summary)
+
+    def _progress(self, scan_id: str, event: ProgressEvent) -> None:
+        self.send("progress", scan_id, {"stage": event.stage, "done": int(event.done), "total": int(event.total),
+                                        "message": event.message,
+                                        "metrics": {k: float(v) for k, v in dict(event.metrics).items()}})
+
+    async def cmd_pause(self, scan_id: str) -> None:
+        """Pause at the next frame boundary."""
+        self._running(scan_id).pause()
+
+    async def cmd_resume(self, scan_id: str) -> None:
+        """Resume a paused scan."""
+        self._running(scan_id).resume()
+
+    async def cmd_abort(self, scan_id: str, reason: str) -> None:
+        """Abort: halt, X-rays off, file marked aborted."""
+        self._running(scan_id).abort(reason)
+
+    def _running(self, scan_id: str) -> Any:
+        if self.scan_id != scan_id or self.runner is None:
+            raise CommandError("conflict", f"scan {scan_id} is not running on the bench")
+        return self.runner
+
+    # ---------------------------------------------------------------- emergency stop
+    def _on_stop(self, message: tuple[int, str]) -> None:
+        req_id, reason = message
+        scan_id = self.scan_id
+        if self.runner is not None:
+            self.runner.abort(reason)
+        asyncio.ensure_future(self._halt(req_id, scan_id))
+
+    async def _halt(self, req_id: int, scan_id: str | None) -> None:
+        if self.bench is None:
+            self.send("reply", req_id, False, ("unavailable", "no bench devices are connected"))
+            return
+        try:
+            await self.bench.stop_all()
+            self.send("reply", req_id, True, {"scan_aborted": scan_id})
+        except Exception as exc:  # noqa: BLE001
+            self.send("reply", req_id, False, classify(exc))
+
+
+def bench_main(config_path: str, sim: bool, commands: Connection, stops: Connection, events: Connection,
+               nice: int = 0) -> None:
+    """Entry point of the bench process (asks for priority ``nice`` over the web server where allowed)."""
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s bench: %(message)s")
+    if nice < 0:
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, nice)
+        except OSError:
+            log.info("bench process priority stays normal (raising it needs root or CAP_SYS_NICE)")
+    server = BenchServer(Path(config_path), sim, events)
+    try:
+        asyncio.run(server.serve(commands, stops))
+    finally:
+        server.send("exited")

@@ -1,0 +1,56 @@
+"""FastAPI dependencies as ``Annotated`` aliases: the service's parts and the caller's permissions."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Annotated
+
+from fastapi import Depends, HTTPException, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from orbitct_app.service.auth import Principal
+
+if TYPE_CHECKING:
+    from orbitct_app.service.app import Service
+
+_bearer = HTTPBearer(auto_error=False, description="token from `orbitct token create --role R`")
+
+
+async def get_service(request: Request) -> "Service":
+    """The running service (settings, store, bench, jobs, events)."""
+    return request.app.state.service  # type: ignore[no-any-return]
+
+
+ServiceDep = Annotated["Service", Depends(get_service)]
+
+
+async def get_principal(request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> Principal:
+    """Who calls, from the bearer token; 401 if missing or unknown."""
+    challenge = {"WWW-Authenticate": "Bearer"}
+    if credentials is None or credentials.scheme.lower() != "bearer" or not credentials.credentials:
+        raise HTTPException(401, "a bearer token is required (Authorization: Bearer <token>)", headers=challenge)
+    if len(credentials.credentials) > 512:
+        raise HTTPException(401, "unknown token", headers=challenge)
+    principal = request.app.state.service.tokens.authenticate(credentials.credentials)
+    if principal is None:
+        raise HTTPException(401, "unknown token", headers=challenge)
+    return principal
+
+
+def require(permission: str) -> Callable[..., Principal]:
+    """A dependency that lets through only roles granting ``permission`` (403 otherwise)."""
+
+    async def _check(principal: Annotated[Principal, Depends(get_principal)]) -> Principal:
+        if not principal.may(permission):
+            raise HTTPException(403, f"role {principal.role!r} may not do this (needs the {permission!r} permission)")
+        return principal
+
+    _check.__name__ = f"require_{permission}"
+    return _check
+
+
+Reader = Annotated[Principal, Depends(require("read"))]
+Operator = Annotated[Principal, Depends(require("motion"))]
+ScanOperator = Annotated[Principal, Depends(require("scan"))]
+Analyst = Annotated[Principal, Depends(require("analysis"))]
+Stopper = Annotated[Principal, Depends(require("stop"))]

@@ -1,0 +1,181 @@
+"""JSON errors for the API: a stable ``error`` code, a clear ``message``, never internals."""
+
+from __future__ import annotations
+
+import logging
+import uuid
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, ValidationError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+log = logging.getLogger("orbitct_app.service")
+
+
+class FieldProblem(BaseModel):
+    """One invalid field: where it is and why it was refused."""
+
+    field: str
+    reason: str
+
+
+class ErrorBody(BaseModel):
+    """Every error response of the API."""
+
+    error: str
+    message: str
+    details: list[FieldProblem] = []
+
+
+class ApiError(Exception):
+    """An error the API reports as is: HTTP status, code and message."""
+
+    status = 400
+    code = "bad_request"
+
+    def __init__(self, message: str, *, details: list[FieldProblem] | None = None) -> None:
+        super().__init__(message)
+        self.message = message
+        self.details = details or []
+
+
+class NotFound(ApiError):
+    """An unknown id or resource."""
+
+    status, code = 404, "not_found"
+
+
+class Conflict(ApiError):
+    """The request clashes with the current state (busy bench, aborted scan, ...)."""
+
+    status, code = 409, "conflict"
+
+
+class Invalid(ApiError):
+    """Parameters that are well-formed but not acceptable."""
+
+    status, code = 422, "invalid_parameters"
+
+
+class Unavailable(ApiError):
+    """A part of the service that is not ready (devices not connected)."""
+
+    status, code = 503, "unavailable"
+
+
+ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
+    401: {"model": ErrorBody, "description": "missing or unknown bearer token"},
+    403: {"model": ErrorBody, "description": "the token's role may not do this"},
+    404: {"model": ErrorBody, "description": "unknown id or file"},
+    422: {"model": ErrorBody, "description": "invalid parameters: field and reason in `details`"},
+}
+
+
+def _field_name(loc: tuple[Any, ...] | list[Any]) -> str:
+    parts = [str(p) for p in loc if p not in ("body",)]
+    return ".".join(parts) or "body"
+
+
+def validation_details(errors: list[dict[str, Any]]) -> list[FieldProblem]:
+    """Field and reason for each pydantic error (no input echo beyond the message)."""
+    return [FieldProblem(field=_field_name(e.get("loc", ())), reason=str(e.get("msg", "invalid"))[:300]) for e in errors]
+
+
+def _json(status: int, code: str, message: str, details: list[FieldProblem] | None = None, headers: dict[str, str] | None = None) -> JSONResponse:
+    body = ErrorBody(error=code, message=message, details=details or [])
+    return JSONResponse(body.model_dump(), status_code=status, headers=headers)
+
+
+_HTTP_CODES = {
+    400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found", 405: "method_not_allowed",
+    406: "not_acceptable", 409: "conflict", 413: "request_too_large", 415: "unsupported_media_type",
+    422: "invalid_parameters", 429: "too_many_requests", 503: "unavailable",
+}
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Register handlers that turn every failure into an :class:`ErrorBody`."""
+
+    @app.exception_handler(ApiError)
+    async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
+        return _json(exc.status, exc.code, exc.message, exc.details)
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
+        details = validation_details(list(exc.errors()))
+        msg = "; ".join(f"{d.field}: {d.reason}" for d in details[:5]) or "invalid request"
+        return _json(422, "invalid_parameters", msg, details)
+
+    @app.exception_handler(ValidationError)
+    async def _model_validation(request: Request, exc: ValidationError) -> JSONResponse:
+        details = validation_details(list(exc.errors()))
+        msg = "; ".join(f"{d.field}: {d.reason}" for d in details[:5]) or "invalid parameters"
+        return _json(422, "invalid_parameters", msg, details)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        code = _HTTP_CODES.get(exc.status_code, "error")
+        message = exc.detail if isinstance(exc.detail, str) else code.replace("_", " ")
+        return _json(exc.status_code, code, message, headers=getattr(exc, "headers", None))
+
+    @app.exception_handler(Exception)
+    async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+        incident = uuid.uuid4().hex[:12]
+        log.exception("internal error %s on %s %s", incident, request.method, request.url.path)
+        return _json(500, "internal_error", f"internal error (incident {incident}); the details are in the service log")
+
+
+class ContentLengthLimit:
+    """ASGI middleware: a JSON 413 for any request body over ``max_bytes`` (declared or streamed)."""
+
+    def __init__(self, app: Any, max_bytes: int) -> None:
+        self.app, self.max_bytes = app, max_bytes
+
+    async def _refuse(self, scope: Any, receive: Any, send: Any) -> None:
+        response = _json(413, "request_too_large", f"request body larger than {self.max_bytes} bytes")
+        await response(scope, receive, send)
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        length = dict(scope.get("headers", ())).get(b"content-length")
+        if length is not None:
+            try:
+                too_big = int(length) > self.max_bytes
+            except ValueError:
+                too_big = True
+            if too_big:
+                await self._refuse(scope, receive, send)
+                return
+            await self.app(scope, receive, send)
+            return
+        if scope.get("method") in ("GET", "HEAD", "OPTIONS", "DELETE"):
+            await self.app(scope, receive, send)
+            return
+        # no declared length (chunked): read the body up to the limit first, then replay it
+        chunks, size = [], 0
+        while True:
+            message = await receive()
+            if message["type"] != "http.request":
+                break
+            chunks.append(message.get("body", b""))
+            size += len(chunks[-1])
+            if size > self.max_bytes:
+                await self._refuse(scope, receive, send)
+                return
+            if not message.get("more_body", False):
+                break
+        body, sent = b"".join(chunks), False
+
+        async def replay() -> Any:
+            nonlocal sent
+            if not sent:
+                sent = True
+                return {"type": "http.request", "body": body, "more_body": False}
+            return await receive()
+
+        await self.app(scope, replay, send)

@@ -1,0 +1,115 @@
+"""``/calibrations``: geometric calibration jobs on a scan and their results (RPE table, plots)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Query, Response
+from fastapi.responses import FileResponse
+from pydantic import BaseModel, ConfigDict, Field
+
+from orbitct_app.service.deps import Analyst, Reader, ServiceDep
+from orbitct_app.service.errors import ERROR_RESPONSES, Conflict, NotFound
+from orbitct_app.service.files import confined
+from orbitct_app.service.schemas import JobOut, job_or_404, job_out, scan_or_404
+
+router = APIRouter(prefix="/calibrations", tags=["calibrations"], responses=ERROR_RESPONSES)
+ScanId = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")]
+
+
+class CalibrationRequest(BaseModel):
+    """Calibrate a complete scan from the BBs on the object."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"scan_id": "a1b2c3d4e5f60718", "method": "bundle"}]})
+
+    scan_id: ScanId
+    method: Literal["bundle", "paper"] = Field("bundle", description="joint bundle adjustment, or the paper's alternation")
+    iterations: int | None = Field(None, ge=1, le=100, description="estimation iterations (default: the method's)")
+    intrinsics: Literal["fixed", "sdd", "sdd+pp"] | None = Field(None, description="per-view parameters besides the pose")
+    loss: Literal["linear", "huber", "soft_l1", "cauchy"] | None = Field(None, description="robust loss of the bundle method")
+    min_bbs_per_view: int | None = Field(None, ge=2, le=100)
+    diameter_mm: float | None = Field(None, gt=0.1, le=50.0, description="BB diameter when the file does not say")
+
+
+def check_scan_ready(service: Any, scan_id: str) -> dict[str, Any]:
+    """The scan, if jobs may run on it: 404 when unknown, 409 unless it is complete."""
+    scan = scan_or_404(service, scan_id)
+    if scan["state"] in ("queued", "running", "paused"):
+        raise Conflict(f"scan {scan_id} is still {scan['state']}; jobs need a complete scan")
+    if scan["state"] != "complete":
+        reason = f" ({scan['reason']})" if scan["reason"] else ""
+        raise Conflict(f"scan {scan_id} is {scan['state']}{reason}; jobs need a complete scan")
+    return scan
+
+
+def submit(service: Any, kind: str, request: BaseModel, owner: str, response: Response) -> JobOut:
+    """Queue a job on a ready scan; 202 with its Location."""
+    params = request.model_dump(exclude={"scan_id"}, exclude_none=True)
+    job_id = service.jobs.submit(kind, request.scan_id, params, owner)  # type: ignore[attr-defined]
+    out = job_out(service.store.get_job(job_id))
+    response.headers["Location"] = out.links["self"]
+    return out
+
+
+@router.post("", response_model=JobOut, status_code=202, summary="Start a calibration job",
+             responses={409: {"description": "the scan is not complete (running, aborted, interrupted)"}})
+def start_calibration(body: CalibrationRequest, service: ServiceDep, who: Analyst, response: Response) -> JobOut:
+    """Queue a calibration of the scan; progress on ``/jobs/{id}/events``."""
+    check_scan_ready(service, body.scan_id)
+    return submit(service, "calibration", body, who.name, response)
+
+
+@router.get("", response_model=list[JobOut], summary="List calibration jobs")
+def list_calibrations(service: ServiceDep, _: Reader, scan_id: Annotated[str | None, Query(max_length=64)] = None,
+                      limit: Annotated[int, Query(ge=1, le=500)] = 100) -> list[JobOut]:
+    """Calibration jobs, newest first."""
+    return [job_out(j) for j in service.store.list_jobs(kind="calibration", scan_id=scan_id, limit=limit)]
+
+
+@router.get("/{job_id}", response_model=JobOut, summary="A calibration job and its result summary")
+def get_calibration(job_id: str, service: ServiceDep, _: Reader) -> JobOut:
+    """State, progress and, once done, the Table-1 figures and RPE per iteration."""
+    return job_out(job_or_404(service, job_id, "calibration"))
+
+
+class RpeTable(BaseModel):
+    """RPE like the paper's Table 1, per iteration, and per frame."""
+
+    table: dict[str, Any]
+    iterations: list[dict[str, Any]]
+    per_frame_mm: dict[str, float]
+
+
+@router.get("/{job_id}/rpe", response_model=RpeTable, summary="RPE table of a finished calibration")
+def get_rpe(job_id: str, service: ServiceDep, _: Reader) -> RpeTable:
+    """Table-1 figures, RPE statistics per iteration, and the RPE of every projection frame (mm)."""
+    job = _finished(service, job_id)
+    per_frame: dict[str, float] = {}
+    path = confined(service.jobs.job_dir(job_id), "rpe_per_frame.csv")
+    for line in path.read_text(encoding="utf-8").splitlines()[1:]:
+        frame, value = line.split(",")
+        per_frame[frame] = float(value)
+    return RpeTable(table=job["result"].get("table", {}), iterations=job["result"].get("iterations", []), per_frame_mm=per_frame)
+
+
+@router.get("/{job_id}/files", response_model=list[str], summary="Report files (plots, tables)")
+def list_files(job_id: str, service: ServiceDep, _: Reader) -> list[str]:
+    """Names of the report files: violin plots, per-view corrections, Table 1 (Markdown, CSV)."""
+    return list(_finished(service, job_id)["result"].get("files", []))
+
+
+@router.get("/{job_id}/files/{name}", response_class=FileResponse, summary="One report file",
+            responses={200: {"content": {"image/png": {}, "text/csv": {}, "text/markdown": {}}}})
+def get_file(job_id: str, name: str, service: ServiceDep, _: Reader) -> FileResponse:
+    """A plot (PNG) or table of the report; names come from ``/files``."""
+    _finished(service, job_id)
+    return FileResponse(confined(service.jobs.job_dir(job_id), name))
+
+
+def _finished(service: Any, job_id: str) -> dict[str, Any]:
+    job = job_or_404(service, job_id, "calibration")
+    if job["state"] != "succeeded":
+        raise Conflict(f"calibration {job_id} is {job['state']}; results exist once it has succeeded")
+    if not isinstance(job["result"], dict):
+        raise NotFound(f"calibration {job_id} has no result")
+    return job

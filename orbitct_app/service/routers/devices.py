@@ -1,0 +1,110 @@
+"""``/devices``: list, state, referencing, maintenance moves and per-device stop (all through the bench loop)."""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Path
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from orbitct_app.service.deps import Operator, Reader, ServiceDep
+from orbitct_app.service.errors import ERROR_RESPONSES, Conflict, FieldProblem, Invalid
+
+router = APIRouter(prefix="/devices", tags=["devices"], responses=ERROR_RESPONSES)
+DeviceName = Annotated[str, Path(max_length=40, pattern=r"^[A-Za-z0-9_-]+$")]
+MOVE_TIMEOUT_S = 120.0
+
+
+class AxisOut(BaseModel):
+    """One axis with unit and soft limits."""
+
+    name: str
+    unit: str
+    low: float
+    high: float
+
+
+class DeviceOut(BaseModel):
+    """A connected device."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "name": "hexapod", "model": "C-887 (twin)", "serial": "SIM-0001", "firmware": "1.0", "uri": "sim://bench",
+        "axes": [{"name": "X", "unit": "mm", "low": -50, "high": 50}]}]})
+
+    name: str
+    model: str
+    serial: str
+    firmware: str = ""
+    uri: str = ""
+    axes: list[AxisOut] = []
+
+
+class DeviceState(BaseModel):
+    """A device and what it reads now (positions, on target, referenced; X-ray state)."""
+
+    device: DeviceOut
+    state: dict[str, Any]
+
+
+class MoveRequest(BaseModel):
+    """Absolute targets per axis, in the axis unit (mm or deg); checked against the limits before moving."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"targets": {"X": 1.0, "U": 0.5}}]})
+
+    targets: dict[Annotated[str, Field(pattern=r"^[A-Za-z0-9]{1,8}$")], Annotated[float, Field(ge=-1e5, le=1e5)]] = Field(
+        min_length=1, max_length=6)
+
+    @field_validator("targets")
+    @classmethod
+    def _finite(cls, v: dict[str, float]) -> dict[str, float]:
+        for axis, value in v.items():
+            if not math.isfinite(value):
+                raise ValueError(f"target of axis {axis} must be a finite number")
+        return v
+
+
+def _state(result: dict[str, Any]) -> DeviceState:
+    return DeviceState(device=DeviceOut(**result["device"]), state=result["state"])
+
+
+def _idle(service: Any) -> None:
+    if service.bench.busy is not None:
+        raise Conflict(f"the bench is running scan {service.bench.busy}; maintenance moves wait until it ends")
+
+
+@router.get("", response_model=list[DeviceOut], summary="List devices")
+async def list_devices(service: ServiceDep, _: Reader) -> list[DeviceOut]:
+    """Every connected device with its axes, units and soft limits."""
+    return [DeviceOut(**d) for d in await service.bench.run("describe")]
+
+
+@router.get("/{name}", response_model=DeviceState, summary="State of a device")
+async def get_device(name: DeviceName, service: ServiceDep, _: Reader) -> DeviceState:
+    """Description and current read-back."""
+    return _state(await service.bench.run("device_state", name=name))
+
+
+@router.post("/{name}/reference", response_model=DeviceState, summary="Reference a motion device",
+             responses={409: {"description": "a scan is running"}})
+async def reference(name: DeviceName, service: ServiceDep, _: Operator) -> DeviceState:
+    """Servo on and reference every axis; returns when done."""
+    _idle(service)
+    return _state(await service.bench.run("reference", timeout_s=MOVE_TIMEOUT_S, name=name))
+
+
+@router.post("/{name}/move", response_model=DeviceState, summary="Maintenance move",
+             responses={409: {"description": "a scan is running, or the device is not referenced"}})
+async def move(name: DeviceName, body: MoveRequest, service: ServiceDep, _: Operator) -> DeviceState:
+    """Absolute move of some axes; limits (and the hexapod workspace) are checked before anything moves."""
+    _idle(service)
+    try:
+        return _state(await service.bench.run("move", timeout_s=MOVE_TIMEOUT_S, name=name, targets=body.targets))
+    except Invalid as exc:
+        raise Invalid(exc.message, details=[FieldProblem(field="targets", reason=exc.message)]) from None
+
+
+@router.post("/{name}/stop", response_model=DeviceState, summary="Stop one device")
+async def stop_device(name: DeviceName, service: ServiceDep, _: Operator) -> DeviceState:
+    """Halt the device's axes (X-ray generator: X-rays off). For everything at once use ``POST /stop``."""
+    return _state(await service.bench.run("stop_device", name=name))

@@ -1,0 +1,136 @@
+"""``/reconstructions``: FDK or PWLS jobs on a scan; results as slices (PNG) and volumes (NIfTI, NumPy)."""
+
+from __future__ import annotations
+
+import io
+import math
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from fastapi import APIRouter, Query, Response
+from fastapi.responses import FileResponse
+from PIL import Image
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from orbitct_app.service.deps import Analyst, Reader, ServiceDep
+from orbitct_app.service.errors import ERROR_RESPONSES, Conflict, Invalid
+from orbitct_app.service.files import confined
+from orbitct_app.service.routers.calibrations import ScanId, check_scan_ready, submit
+from orbitct_app.service.schemas import JobOut, job_or_404, job_out
+
+router = APIRouter(prefix="/reconstructions", tags=["reconstructions"], responses=ERROR_RESPONSES)
+MAX_VOXELS = 512**3
+
+
+class ReconstructionRequest(BaseModel):
+    """Reconstruct a complete scan."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"scan_id": "a1b2c3d4e5f60718", "algorithm": "pwls", "geometry": "calibrated", "shape": [64, 64, 64], "iterations": 20}
+    ]})
+
+    scan_id: ScanId
+    algorithm: Literal["fdk", "pwls"] = "fdk"
+    geometry: Literal["calibrated", "nominal", "truth"] = Field("calibrated", description="which geometry of the scan file")
+    voxel_mm: float | None = Field(None, gt=0.005, le=20.0, description="isotropic voxel size; default fits the field of view")
+    shape: tuple[Annotated[int, Field(ge=4, le=1024)], Annotated[int, Field(ge=4, le=1024)], Annotated[int, Field(ge=4, le=1024)]] | None = Field(
+        None, description="(nz, ny, nx); default fits the field of view")
+    iterations: int = Field(50, ge=1, le=500, description="PWLS iterations (ignored by FDK)")
+    beta: float | None = Field(None, ge=0.0, le=1e6, description="relative penalty strength")
+    mar: bool = Field(False, description="metal artifact reduction")
+    stream: Literal["auto", "memory", "file"] = Field(
+        "auto", description="PWLS data held in memory or re-read from the scan file each iteration (auto: memory while it fits)")
+    name: str | None = Field(None, pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$", description="name under /recon in the scan file")
+
+    @model_validator(mode="after")
+    def _size(self) -> "ReconstructionRequest":
+        if self.shape is not None and math.prod(self.shape) > MAX_VOXELS:
+            raise ValueError(f"shape {list(self.shape)} has more than {MAX_VOXELS} voxels")
+        return self
+
+
+def _has_geometry(service: Any, scan: dict[str, Any], name: str) -> bool:
+    if name in scan["summary"].get("geometries", []):
+        return True
+    if name == "calibrated":
+        jobs = service.store.list_jobs(kind="calibration", scan_id=scan["id"], limit=500)
+        return any(j["state"] in ("queued", "running", "succeeded") for j in jobs)
+    return False
+
+
+@router.post("", response_model=JobOut, status_code=202, summary="Start a reconstruction job",
+             responses={409: {"description": "the scan is not complete, or lacks the requested geometry"}})
+def start_reconstruction(body: ReconstructionRequest, service: ServiceDep, who: Analyst, response: Response) -> JobOut:
+    """Queue a reconstruction; progress (iteration, cost) on ``/jobs/{id}/events``."""
+    scan = check_scan_ready(service, body.scan_id)
+    if not _has_geometry(service, scan, body.geometry):
+        hint = " (run a calibration first)" if body.geometry == "calibrated" else ""
+        raise Conflict(f"scan {body.scan_id} has no {body.geometry} geometry{hint}")
+    return submit(service, "reconstruction", body, who.name, response)
+
+
+@router.get("", response_model=list[JobOut], summary="List reconstruction jobs")
+def list_reconstructions(service: ServiceDep, _: Reader, scan_id: Annotated[str | None, Query(max_length=64)] = None,
+                         limit: Annotated[int, Query(ge=1, le=500)] = 100) -> list[JobOut]:
+    """Reconstruction jobs, newest first."""
+    return [job_out(j) for j in service.store.list_jobs(kind="reconstruction", scan_id=scan_id, limit=limit)]
+
+
+@router.get("/{job_id}", response_model=JobOut, summary="A reconstruction job and its result summary")
+def get_reconstruction(job_id: str, service: ServiceDep, _: Reader) -> JobOut:
+    """State, progress (iteration, cost) and, once done, shape, voxel size and cost history."""
+    return job_out(job_or_404(service, job_id, "reconstruction"))
+
+
+def _volume(service: Any, job_id: str) -> np.ndarray:
+    job = job_or_404(service, job_id, "reconstruction")
+    if job["state"] != "succeeded":
+        raise Conflict(f"reconstruction {job_id} is {job['state']}; results exist once it has succeeded")
+    return np.load(confined(service.jobs.job_dir(job_id), "volume.npy"), mmap_mode="r")
+
+
+@router.get("/{job_id}/slices/{axis}", summary="One slice as PNG", response_class=Response,
+            responses={200: {"content": {"image/png": {}}}})
+def get_slice(job_id: str, axis: Literal["axial", "coronal", "sagittal"], service: ServiceDep, _: Reader,
+              index: Annotated[int | None, Query(ge=0, le=4096, description="slice index (default: the middle)")] = None) -> Response:
+    """Axial (z), coronal (y) or sagittal (x) slice, grey levels from the volume's 0.5 and 99.5 percentiles."""
+    vol = _volume(service, job_id)
+    dim = {"axial": 0, "coronal": 1, "sagittal": 2}[axis]
+    n = vol.shape[dim]
+    i = n // 2 if index is None else index
+    if i >= n:
+        raise Invalid(f"index {i} is outside 0..{n - 1} for {axis} slices")
+    img = np.asarray(np.take(vol, i, axis=dim), dtype=np.float32)
+    lo, hi = np.percentile(vol[:: max(1, vol.shape[0] // 32)], [0.5, 99.5])
+    scaled = np.clip((img - lo) / max(float(hi - lo), 1e-12), 0, 1)
+    buf = io.BytesIO()
+    Image.fromarray((scaled[::-1] * 255).astype(np.uint8)).save(buf, format="PNG")
+    return Response(buf.getvalue(), media_type="image/png")
+
+
+@router.get("/{job_id}/volume", response_class=FileResponse, summary="Download the volume",
+            responses={200: {"content": {"application/octet-stream": {}}}})
+def get_volume(job_id: str, service: ServiceDep, _: Reader, format: Literal["nifti", "npy"] = "nifti") -> FileResponse:
+    """The volume as NIfTI (``.nii.gz``, millimetres) or a NumPy float32 array (z, y, x)."""
+    _volume(service, job_id)
+    folder = service.jobs.job_dir(job_id)
+    if format == "npy":
+        return FileResponse(confined(folder, "volume.npy"), filename=f"{job_id}.npy")
+    names = [p.name for p in folder.iterdir() if p.name.endswith((".nii", ".nii.gz"))]
+    if not names:
+        raise Conflict("this reconstruction has no NIfTI export")
+    return FileResponse(confined(folder, sorted(names)[0]), filename=sorted(names)[0])
+
+
+@router.get("/{job_id}/files", response_model=list[str], summary="Result files")
+def list_files(job_id: str, service: ServiceDep, _: Reader) -> list[str]:
+    """Names of the exported files (slices, NIfTI)."""
+    _volume(service, job_id)
+    return sorted(p.name for p in service.jobs.job_dir(job_id).iterdir() if p.is_file())
+
+
+@router.get("/{job_id}/files/{name}", response_class=FileResponse, summary="One result file")
+def get_file(job_id: str, name: str, service: ServiceDep, _: Reader) -> FileResponse:
+    """An exported file by name (from ``/files``)."""
+    _volume(service, job_id)
+    return FileResponse(confined(service.jobs.job_dir(job_id), name))

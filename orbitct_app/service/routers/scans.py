@@ -1,0 +1,192 @@
+"""``/scans``: start (one at a time per bench), list, status with summary, live events, pause, abort, download."""
+
+from __future__ import annotations
+
+import uuid
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Header, Query, Response
+from fastapi.responses import FileResponse
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from orbitct.orbits import ORBIT_KINDS
+from orbitct_app.service.deps import Reader, ScanOperator, ServiceDep
+from orbitct_app.service.errors import ERROR_RESPONSES, Conflict, FieldProblem, Invalid, validation_details
+from orbitct_app.service.events import sse_response
+from orbitct_app.service.files import confined
+from orbitct_app.service.schemas import scan_or_404
+
+router = APIRouter(prefix="/scans", tags=["scans"], responses=ERROR_RESPONSES)
+OrbitKind = Literal[tuple(ORBIT_KINDS)]  # type: ignore[valid-type]
+ScanState = Literal["queued", "running", "paused", "complete", "aborted", "failed", "interrupted"]
+
+
+class ScanCreate(BaseModel):
+    """A scan to run on the bench: orbit, its parameters, injected errors (simulation), mode."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"name": "experiment A", "orbit": "sawtooth", "params": {"amplitude_deg": 6, "cycles": 2}, "frames": 500,
+         "errors": "none", "seed": 0, "mode": "step"},
+    ]})
+
+    name: str = Field("", max_length=100, pattern=r"^[\w .,:()+-]*$", description="free label")
+    orbit: OrbitKind = Field(description="orbit kind; parameters in GET /orbits")
+    params: dict[str, Any] = Field(default_factory=dict, description="orbit parameters (degrees), see GET /orbits/{kind}")
+    frames: int | None = Field(None, ge=2, le=100_000, description="projection frames (default: the orbit's n_frames)")
+    errors: Literal["bench", "none"] = Field("none", description="error profile injected into the commanded poses")
+    seed: int = Field(0, ge=0, le=2**31 - 1)
+    mode: Literal["step", "continuous"] = "step"
+
+
+class ScanOut(BaseModel):
+    """A scan: state, progress (live while it runs), summary of the file (once ended)."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "id": "a1b2c3d4e5f60718", "name": "experiment A", "state": "running", "reason": "", "orbit": "sawtooth",
+        "request": {"orbit": "sawtooth", "frames": 500}, "owner": "operator-1", "created_utc": "2026-11-23T15:00:00.000+00:00",
+        "started_utc": "2026-11-23T15:00:00.100+00:00", "finished_utc": None, "frames_done": 120, "frames_total": 500,
+        "progress": {"stage": "scan", "done": 120, "total": 500, "message": "", "metrics": {"rate_fps": 28.5, "time_left_s": 13.3}},
+        "summary": {}, "links": {"self": "/scans/a1b2c3d4e5f60718", "events": "/scans/a1b2c3d4e5f60718/events"},
+    }]})
+
+    id: str
+    name: str
+    state: str = Field(description="queued, running, paused, complete, aborted, failed or interrupted")
+    reason: str
+    orbit: str
+    request: dict[str, Any]
+    owner: str
+    created_utc: str
+    started_utc: str | None
+    finished_utc: str | None
+    frames_done: int = Field(description="frames written so far (projections, darks and flats)")
+    frames_total: int = Field(description="frames planned (projections, darks and flats once the scan has started)")
+    progress: dict[str, Any]
+    summary: dict[str, Any]
+    links: dict[str, str]
+
+
+class ScanAction(BaseModel):
+    """Why (optional) for abort."""
+
+    model_config = ConfigDict(extra="forbid")
+    reason: str = Field("aborted by the operator", max_length=200)
+
+
+def _out(service: Any, row: dict[str, Any]) -> ScanOut:
+    active = service.bench.current
+    if active is not None and active.scan_id == row["id"] and row["state"] not in ("complete", "aborted", "failed"):
+        progress = active.progress
+        row = {**row, "state": active.state, "progress": progress, "frames_done": progress.get("done", row["frames_done"]),
+               "frames_total": progress.get("total", row["frames_total"])}
+    links = {"self": f"/scans/{row['id']}", "events": f"/scans/{row['id']}/events", "file": f"/scans/{row['id']}/file",
+             "jobs": f"/jobs?scan_id={row['id']}"}
+    return ScanOut(**{k: row[k] for k in ScanOut.model_fields if k != "links"}, links=links)
+
+
+def _check_params(service: Any, body: ScanCreate) -> dict[str, Any]:
+    params = dict(body.params)
+    if body.frames is not None:
+        params["n_frames"] = body.frames
+    if body.orbit == "waypoints" and params.get("path") is not None:
+        raise Invalid("orbit parameters", details=[FieldProblem(field="params.path", reason="server file paths are not accepted over the API; give 'points'")])
+    try:
+        model = ORBIT_KINDS[body.orbit].model_validate(params)
+    except ValidationError as exc:
+        details = [FieldProblem(field="params." + d.field, reason=d.reason) for d in validation_details(list(exc.errors()))]
+        raise Invalid("; ".join(f"{d.field}: {d.reason}" for d in details[:5]), details=details) from None
+    n = int(getattr(model, "n_frames"))
+    limit = service.settings.max_scan_frames
+    if n > limit:
+        raise Invalid(f"{n} frames is more than this service allows ({limit})",
+                      details=[FieldProblem(field="frames", reason=f"at most {limit}")])
+    return model.model_dump(mode="json", exclude_none=True)
+
+
+@router.post("", response_model=ScanOut, status_code=202, summary="Start a scan",
+             responses={409: {"description": "the bench is busy with another scan"},
+                        202: {"headers": {"Location": {"description": "URL of the new scan", "schema": {"type": "string"}}}}})
+def start_scan(body: ScanCreate, service: ServiceDep, who: ScanOperator, response: Response) -> ScanOut:
+    """Check the orbit against every limit, then start it; returns at once (progress on ``/scans/{id}/events``)."""
+    params = _check_params(service, body)
+    if service.bench.busy is not None:
+        raise Conflict(f"the bench is busy with scan {service.bench.busy}; one scan at a time")
+    scan_id = uuid.uuid4().hex[:16]
+    rel = f"scans/{scan_id}.h5"
+    spec = {"out": str(service.settings.data_dir / rel), "orbit": body.orbit, "params": params, "errors": body.errors,
+            "seed": body.seed, "mode": body.mode}
+    try:
+        service.bench.preflight(spec)
+    except Invalid as exc:
+        raise Invalid(exc.message, details=[FieldProblem(field="params", reason=exc.message)]) from None
+    service.store.add_scan(scan_id, name=body.name, orbit=body.orbit, request=body.model_dump(mode="json") | {"params": params},
+                           file=rel, owner=who.name, frames_total=int(params["n_frames"]))
+    try:
+        service.bench.start_scan(scan_id, spec)
+    except Exception:
+        service.store.delete_scan(scan_id)
+        raise
+    response.headers["Location"] = f"/scans/{scan_id}"
+    return _out(service, service.store.get_scan(scan_id))
+
+
+@router.get("", response_model=list[ScanOut], summary="List scans")
+def list_scans(service: ServiceDep, _: Reader, state: ScanState | None = None,
+               limit: Annotated[int, Query(ge=1, le=500)] = 100, offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0) -> list[ScanOut]:
+    """Scans, newest first."""
+    return [_out(service, r) for r in service.store.list_scans(state=state, limit=limit, offset=offset)]
+
+
+@router.get("/{scan_id}", response_model=ScanOut, summary="Status and summary of a scan")
+async def get_scan(scan_id: str, service: ServiceDep, _: Reader) -> ScanOut:
+    """State, live progress (frame n of N, rate, time left) and, once ended, the file summary."""
+    return _out(service, scan_or_404(service, scan_id))
+
+
+@router.get("/{scan_id}/events", summary="Live progress (server-sent events)",
+            responses={200: {"content": {"text/event-stream": {"example": 'id: 7\nevent: progress\ndata: {"stage":"scan","done":5,"total":500,"metrics":{"rate_fps":29.8,"time_left_s":16.6}}\n\n'}}}})
+def scan_events(scan_id: str, service: ServiceDep, _: Reader,
+                last_event_id: Annotated[str | None, Header(max_length=20)] = None):  # type: ignore[no-untyped-def]
+    """Events ``state``, ``progress`` (one per frame) and a final ``end``, in order; resumes after ``Last-Event-ID``."""
+    scan_or_404(service, scan_id)
+    return sse_response(service.bus, f"scan:{scan_id}", last_event_id)
+
+
+@router.post("/{scan_id}/abort", response_model=ScanOut, status_code=202, summary="Abort a running scan")
+def abort_scan(scan_id: str, service: ServiceDep, _: ScanOperator, body: ScanAction | None = None) -> ScanOut:
+    """Halt every axis, X-rays off, file marked aborted with the reason."""
+    row = scan_or_404(service, scan_id)
+    if service.bench.busy != scan_id:
+        raise Conflict(f"scan {scan_id} is {row['state']}, not running")
+    service.bench.abort(scan_id, (body or ScanAction()).reason)
+    return _out(service, service.store.get_scan(scan_id))
+
+
+@router.post("/{scan_id}/pause", response_model=ScanOut, status_code=202, summary="Pause at the next frame")
+def pause_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
+    """The current frame completes; X-rays stay off while paused."""
+    scan_or_404(service, scan_id)
+    service.bench.pause(scan_id)
+    return _out(service, service.store.get_scan(scan_id))
+
+
+@router.post("/{scan_id}/resume", response_model=ScanOut, status_code=202, summary="Resume a paused scan")
+def resume_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
+    """Continue from the next frame."""
+    scan_or_404(service, scan_id)
+    service.bench.resume(scan_id)
+    return _out(service, service.store.get_scan(scan_id))
+
+
+@router.get("/{scan_id}/file", response_class=FileResponse, summary="Download the scan file (HDF5)",
+            responses={200: {"content": {"application/x-hdf5": {}}}, 409: {"description": "still acquiring or being written by a job"}})
+def download_scan(scan_id: str, service: ServiceDep, _: Reader) -> FileResponse:
+    """The scan file (``scan-file.md``), once the scan has ended and no job writes to it."""
+    row = scan_or_404(service, scan_id)
+    if row["state"] in ("queued", "running", "paused") or service.bench.busy == scan_id:
+        raise Conflict(f"scan {scan_id} is still {row['state']}; download it when it has ended")
+    if scan_id in service.jobs.busy_scans():
+        raise Conflict(f"a job is writing to scan {scan_id}; download it when the job has ended")
+    folder, name = row["file"].split("/")
+    path = confined(service.settings.data_dir / folder, name)
+    return FileResponse(path, media_type="application/x-hdf5", filename=f"{scan_id}.h5")
