@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from calib_synthetic import SAD, SDD, perturbed, sawtooth, spiral_markers, write_scan
+from tests.helpers.calib_scans import SAD, SDD, perturbed, sawtooth, spiral_markers, write_scan
 
 from calib.detect import FrameDetector, settings_for
 from calib.pipeline import CalibrationOptions, _estimate_diameter_mm

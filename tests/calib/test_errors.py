@@ -8,7 +8,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from calib_synthetic import detector, perturbed, sawtooth, spiral_markers, write_scan
+from tests.helpers.calib_scans import detector, perturbed, sawtooth, spiral_markers, write_scan
 
 import calib
 from orbitct.scanfile import ScanWriter

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from calib_synthetic import perturbed, sawtooth, spiral_markers
+from tests.helpers.calib_scans import perturbed, sawtooth, spiral_markers
 
 from calib.bundle import bundle_adjust, gauge_matrix
 from calib.evaluate import similarity_aligned_error_px

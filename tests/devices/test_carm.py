@@ -18,7 +18,7 @@ from devices.twins.xray import TwinThread
 from orbitct.geometry import ViewGeometry
 from orbitct.orbits import Orbit
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.system]
 _worlds = itertools.count()
 
 

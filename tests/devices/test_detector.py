@@ -19,7 +19,7 @@ from devices.xray import XrayGenerator
 from orbitct.geometry import ViewGeometry
 from orbitct.kinematics import object_pose
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.system]
 _worlds = itertools.count()
 
 

@@ -17,7 +17,7 @@ from devices.twins.world import reset_world
 from devices.xray import XrayGenerator
 from orbitct.geometry import ViewGeometry
 
-pytestmark = [pytest.mark.timeout(120)]
+pytestmark = [pytest.mark.timeout(120), pytest.mark.system]
 
 
 def test_exposure_frames_follow_the_true_stage_angle() -> None:

@@ -13,7 +13,7 @@ from devices.hexapod import Hexapod
 from devices.rotation_stage import RotationStage
 from devices.twins.gcs import TwinServer, stop_sim_servers
 
-pytestmark = pytest.mark.anyio
+pytestmark = [pytest.mark.anyio, pytest.mark.system]
 
 
 def test_registry_names_every_kind() -> None:

@@ -13,7 +13,7 @@ from devices.hexapod import Hexapod
 from devices.rotation_stage import RotationStage
 from devices.twins.gcs import TwinServer
 
-pytestmark = pytest.mark.anyio
+pytestmark = [pytest.mark.anyio, pytest.mark.system]
 
 
 async def test_latency_within_timeout_is_tolerated(hexapod: Hexapod, hexapod_twin: TwinServer) -> None:

@@ -14,7 +14,7 @@ from devices.hexapod import Hexapod
 from devices.twins.gcs import TwinServer
 from devices.twins.world import SimWorld
 
-pytestmark = pytest.mark.anyio
+pytestmark = [pytest.mark.anyio, pytest.mark.system]
 
 
 async def test_describe_and_read(hexapod: Hexapod) -> None:

@@ -8,7 +8,7 @@ from devices.errors import NotConnectedError, OutOfLimitsError
 from devices.hexapod import Hexapod
 from devices.twins.gcs import TwinServer
 
-pytestmark = pytest.mark.anyio
+pytestmark = [pytest.mark.anyio, pytest.mark.system]
 
 
 async def test_hexapod_over_serial(hexapod_twin: TwinServer) -> None:

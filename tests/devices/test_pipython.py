@@ -13,6 +13,8 @@ from pipython.pidevice.interfaces.pisocket import PISocket  # noqa: E402
 
 from devices.twins.gcs import TwinServer  # noqa: E402
 
+pytestmark = pytest.mark.system
+
 
 class _Gateway(PISocket):
     """PIPython's socket gateway, with a close that may be called twice (PIPython closes again on delete)."""

@@ -12,7 +12,7 @@ from devices.rotation_stage import RotationStage
 from devices.twins.gcs import TwinServer
 from devices.twins.world import SimWorld
 
-pytestmark = pytest.mark.anyio
+pytestmark = [pytest.mark.anyio, pytest.mark.system]
 
 
 async def test_describe_exposes_axis_r(stage: RotationStage) -> None:

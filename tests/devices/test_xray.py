@@ -24,7 +24,7 @@ from devices.twins.xray import TwinThread, XrayTwin
 from devices.xray import XrayGenerator
 from devices.xray_registers import FaultCode
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.system]
 
 
 @pytest.fixture()

@@ -1,4 +1,4 @@
-"""Shared fixtures for reconstruction tests (helpers live in ``recon_helpers``)."""
+"""Shared fixtures for reconstruction tests (helpers live in ``tests.helpers.recon``)."""
 
 from __future__ import annotations
 

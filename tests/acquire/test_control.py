@@ -1,0 +1,151 @@
+"""Pause/resume, abort, cancellation and device faults: every exit path halts axes, X-rays off, valid file."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from acquire.bench import Bench, open_bench
+from acquire.runner import ScanRequest, ScanRunner
+from tests.helpers.bench import small_config
+from orbitct.progress import ProgressEvent
+from orbitct.scanfile import ScanFile
+
+pytestmark = [pytest.mark.timeout(120), pytest.mark.system]
+
+
+async def _until(pred: Any, timeout_s: float = 30.0) -> None:
+    t_end = asyncio.get_running_loop().time() + timeout_s
+    while not pred():
+        if asyncio.get_running_loop().time() > t_end:
+            raise TimeoutError("condition not reached")
+        await asyncio.sleep(0.005)
+
+
+async def _assert_safe(bench: Bench) -> None:
+    """No axis moving and no X-rays."""
+    assert not await bench.hexapod.moving()
+    assert not await bench.stage.moving()
+    state = await bench.xray.read()
+    assert not state["hv_on"] and not state["exposing"] and state["state"] != "EXPOSING"
+
+
+def _run_with_bench(req: ScanRequest, scenario: Any) -> Any:
+    async def main() -> Any:
+        cfg = req.resolved_config()
+        async with open_bench(cfg, sim=True) as bench:
+            events: list[ProgressEvent] = []
+            runner = ScanRunner(req, bench=bench, progress=events.append)
+            task = asyncio.ensure_future(runner.run())
+            out = await scenario(runner, task, bench, events)
+            return out
+    return asyncio.run(main())
+
+
+@pytest.mark.parametrize("overlap", [False, True], ids=["strict", "overlapped-readout"])
+def test_abort_mid_scan_halts_and_leaves_valid_aborted_file(request_factory, overlap: bool) -> None:
+    cfg = small_config()
+    cfg = cfg.model_copy(update={"motion": cfg.motion.model_copy(update={"overlap_readout": overlap})})
+    req = request_factory(frames=30, config=cfg)
+
+    async def scenario(runner: ScanRunner, task: asyncio.Task, bench: Bench, events: list) -> None:
+        await _until(lambda: runner._engine is not None and runner._engine.n_done >= 8)
+        runner.abort("operator pressed stop")
+        res = await task
+        assert res.status == "aborted" and res.reason == "operator pressed stop"
+        assert 8 <= res.n_frames < res.n_planned
+        await _assert_safe(bench)
+        assert events[-1].message == "aborted: operator pressed stop"
+
+    _run_with_bench(req, scenario)
+    with ScanFile(req.out) as sf:
+        assert sf.status == "aborted" and sf.status_reason == "operator pressed stop"
+        assert sf.n_frames >= 8 and sf.geometry("nominal").n_views == sf.n_frames
+
+
+def test_pause_holds_at_a_frame_boundary_and_resume_completes(request_factory) -> None:
+    req = request_factory(frames=12)
+
+    async def scenario(runner: ScanRunner, task: asyncio.Task, bench: Bench, events: list) -> None:
+        await _until(lambda: runner._engine is not None and runner._engine.n_done >= 7)
+        runner.pause()
+        await _until(lambda: runner.state == "paused")
+        held = runner._engine.n_done
+        await asyncio.sleep(0.3)
+        assert runner._engine.n_done == held and runner.state == "paused"
+        assert not (await bench.xray.read())["exposing"]
+        runner.resume()
+        res = await task
+        assert res.status == "complete" and res.n_frames == res.n_planned
+        assert any(e.message == "paused" for e in events)
+
+    _run_with_bench(req, scenario)
+
+
+def test_cancellation_from_outside_cleans_up_and_propagates(request_factory) -> None:
+    req = request_factory(frames=30)
+
+    async def scenario(runner: ScanRunner, task: asyncio.Task, bench: Bench, events: list) -> None:
+        await _until(lambda: runner._engine is not None and runner._engine.n_done >= 8)
+        task.cancel()  # what asyncio.run does on Ctrl-C
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        await _assert_safe(bench)
+
+    _run_with_bench(req, scenario)
+    with ScanFile(req.out) as sf:
+        assert sf.status == "aborted" and sf.status_reason == "cancelled"
+
+
+def test_abort_from_another_thread(request_factory) -> None:
+    req = request_factory(frames=40)
+    runner = ScanRunner(req)
+    runner.start()
+    t_end = asyncio.get_event_loop_policy().new_event_loop().time() + 60
+    import time
+    while (runner._engine is None or runner._engine.n_done < 8) and time.monotonic() < t_end:
+        time.sleep(0.01)
+    runner.abort("emergency stop")
+    res = runner.wait(timeout=30)
+    assert res.status == "aborted" and res.reason == "emergency stop"
+    with ScanFile(req.out) as sf:
+        assert sf.status == "aborted"
+
+
+@pytest.mark.parametrize("fault", [pytest.param("stuck_axis", marks=pytest.mark.slow), "controller_error", "interlock",
+                                   "dropped_detector"])
+def test_device_fault_ends_scan_safely_with_clear_reason(request_factory, fault: str) -> None:
+    req = request_factory(f"{fault}.h5", frames=30)
+    expected = {"stuck_axis": "X", "controller_error": "controller error", "interlock": "interlock",
+                "dropped_detector": "detector"}[fault]
+
+    async def scenario(runner: ScanRunner, task: asyncio.Task, bench: Bench, events: list) -> None:
+        await _until(lambda: runner._engine is not None and runner._engine.n_done >= 8)
+        if fault == "stuck_axis":
+            bench.hexapod.twin.controller.stick("X")
+        elif fault == "controller_error":
+            bench.stage.twin.faults.add_error(2, "MOV")
+        elif fault == "interlock":
+            bench.xray.twin.set_door(False)
+        else:
+            bench.detector.twin.drop_connections()
+        try:
+            res = await asyncio.wait_for(task, 60)
+        finally:
+            if fault == "stuck_axis":
+                bench.hexapod.twin.controller.stick("X", False)
+                bench.hexapod.twin.faults.clear()
+            elif fault == "controller_error":
+                bench.stage.twin.faults.clear()
+            elif fault == "interlock":
+                bench.xray.twin.set_door(True)
+        assert res.status == "aborted" and expected.lower() in res.reason.lower(), res.reason
+        assert res.n_frames < res.n_planned
+        await _assert_safe(bench)
+
+    _run_with_bench(req, scenario)
+    with ScanFile(req.out) as sf:
+        assert sf.status == "aborted" and expected.lower() in sf.status_reason.lower()

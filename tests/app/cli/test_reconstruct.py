@@ -1,0 +1,33 @@
+"""The ``orbitct reconstruct`` command."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from click.testing import CliRunner
+
+from tests.helpers.recon import bench_detector, write_sphere_scan
+from orbitct_app.cli.main import cli
+from orbitct.geometry import ViewGeometry
+from orbitct.scanfile import ScanFile
+
+
+def test_cli_reconstructs_and_reports_errors(tmp_path: Path) -> None:
+    g = ViewGeometry.from_carm(np.linspace(0, 2 * np.pi, 40, endpoint=False), 0.0, 785.0, 1200.0, bench_detector(48))
+    path = tmp_path / "s.h5"
+    write_sphere_scan(path, g)
+    runner = CliRunner()
+    res = runner.invoke(cli, ["reconstruct", str(path), "--algorithm", "pwls", "--geometry", "nominal", "--shape",
+                              "24,40,40", "--voxel-mm", "3", "--iterations", "3", "--export", "png", "--name", "cli",
+                              "--stream", "file"])
+    assert res.exit_code == 0, res.output
+    assert "/recon/cli" in res.output and "cost" in res.output and "s_cli_axial.png" in res.output
+    with ScanFile(path) as sf:
+        assert sf.read_recon("cli")[0].shape == (24, 40, 40)
+    bad = runner.invoke(cli, ["reconstruct", str(path), "--geometry", "calibrated"])
+    assert bad.exit_code != 0 and "no calibrated geometry" in bad.output
+    bad = runner.invoke(cli, ["reconstruct", str(path), "--geometry", "nominal", "--stream", "disk"])
+    assert bad.exit_code != 0 and "auto" in bad.output and "file" in bad.output
+    bad = runner.invoke(cli, ["reconstruct", str(path), "--geometry", "nominal", "--shape", "10,10"])
+    assert bad.exit_code != 0 and "NZ,NY,NX" in bad.output

@@ -1,0 +1,83 @@
+"""``orbitct twin carm`` and ``orbitct twin xray`` as separate processes, driven over TCP."""
+
+from __future__ import annotations
+
+import asyncio
+import re
+import subprocess
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import numpy as np
+import pytest
+
+from devices.carm import CArm, export_program
+from devices.errors import ControllerError, InterlockOpenError
+from devices.xray import XrayGenerator
+from orbitct.orbits import Orbit
+
+pytestmark = [pytest.mark.timeout(120), pytest.mark.system]
+
+
+@contextmanager
+def twin_process(*args: str) -> Iterator[tuple[int, subprocess.Popen[str]]]:
+    """Start ``orbitct twin ARGS --port 0 --console``; yield the port it printed and the process."""
+    cmd = [sys.executable, "-c", "from orbitct_app.cli.main import main; main()", "twin", *args, "--port", "0", "--console"]
+    proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()
+        match = re.search(r"127\.0\.0\.1:(\d+)", line)
+        assert match, f"no port in {line!r}"
+        yield int(match.group(1)), proc
+    finally:
+        proc.terminate()
+        proc.wait(10)
+
+
+def console(proc: subprocess.Popen[str], line: str) -> str:
+    """Send one console line; return the twin's answer."""
+    assert proc.stdin is not None and proc.stderr is not None
+    proc.stdin.write(line + "\n")
+    proc.stdin.flush()
+    return proc.stderr.readline().strip()
+
+
+def test_carm_twin_command() -> None:
+    with twin_process("carm", "--detector-size", "16", "--time-scale", "100", "--sag-deg", "2") as (port, proc):
+
+        async def main() -> None:
+            async with CArm("carm", f"tcp://127.0.0.1:{port}") as arm:
+                await arm.load(export_program(Orbit("t", {}, np.radians([0.0, 3.0, 6.0]), np.zeros(3))))
+                frames = await arm.run()
+                assert [f.shape for f in frames] == [(16, 16)] * 3
+
+        asyncio.run(main())
+
+
+def test_xray_twin_command() -> None:
+    with twin_process("xray", "--prep-ms", "10") as (port, proc):
+
+        async def main() -> None:
+            async with XrayGenerator("xray", f"modbus://127.0.0.1:{port}") as gen:
+                assert await gen.expose() == 1
+                assert console(proc, "door open") == "door open"
+                with pytest.raises(InterlockOpenError):
+                    await gen.expose()
+                assert console(proc, "door closed") == "door closed"
+                assert console(proc, "error 1") == "error next 1"
+                with pytest.raises(ControllerError):
+                    await gen.read()
+                assert "not understood" in console(proc, "explode")
+                assert await gen.expose() == 2
+
+        asyncio.run(main())
+
+
+def test_carm_twin_rejects_bad_range() -> None:
+    out = subprocess.run(
+        [sys.executable, "-c", "from orbitct_app.cli.main import main; main()", "twin", "carm", "--primary-range-deg", "5", "1"],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert out.returncode == 2 and "low (5) must be below high (1)" in out.stderr

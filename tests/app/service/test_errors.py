@@ -1,0 +1,63 @@
+"""Errors are JSON with a clear message: 404 unknown ids, 422 field and reason, 413 big bodies, no traversal."""
+
+from __future__ import annotations
+
+import pytest
+
+pytestmark = pytest.mark.system
+
+
+def _is_error(r, status: int) -> dict:  # type: ignore[no-untyped-def]
+    assert r.status_code == status, r.text
+    body = r.json()
+    assert set(body) == {"error", "message", "details"} and body["message"]
+    return body
+
+
+@pytest.mark.parametrize("path", ["/scans/0123456789abcdef", "/jobs/0123456789abcdef", "/calibrations/x",
+                                  "/reconstructions/x", "/scans/x/file", "/jobs/x/log", "/nowhere", "/orbits/spiral"])
+def test_unknown_ids_are_404(shared_api, path: str) -> None:  # type: ignore[no-untyped-def]
+    assert _is_error(shared_api.get(path), 404)["error"] == "not_found"
+
+
+def test_invalid_parameters_name_field_and_reason(shared_api) -> None:  # type: ignore[no-untyped-def]
+    body = _is_error(shared_api.post("/scans", json={"orbit": "sawtooth", "params": {"amplitude_deg": 500}}), 422)
+    assert body["details"][0]["field"] == "params.amplitude_deg" and "60" in body["details"][0]["reason"]
+    body = _is_error(shared_api.post("/scans", json={"orbit": "spiral"}), 422)
+    assert body["details"][0]["field"] == "orbit"
+    body = _is_error(shared_api.post("/reconstructions", role="analyst", json={"scan_id": "x", "iterations": 0}), 422)
+    assert body["details"][0]["field"] == "iterations"
+    body = _is_error(shared_api.post("/reconstructions", role="analyst", json={"scan_id": "x", "shape": [1024, 1024, 1024]}), 422)
+    assert "voxels" in body["message"]
+    body = _is_error(shared_api.post("/reconstructions", role="analyst", json={"scan_id": "x", "stream": "disk"}), 422)
+    assert body["details"][0]["field"] == "stream" and "file" in body["details"][0]["reason"]
+    body = _is_error(shared_api.post("/scans", json={"orbit": "circular", "frames": 10**6}), 422)
+    assert body["details"][0]["field"] == "frames"
+    body = _is_error(shared_api.post("/scans", json={"orbit": "waypoints", "params": {"path": "/etc/passwd"}}), 422)
+    assert body["details"][0]["field"] == "params.path"
+    _is_error(shared_api.post("/calibrations", role="analyst", content=b"{not json", headers={"Content-Type": "application/json"}), 422)
+    _is_error(shared_api.get("/jobs", params={"limit": -1}), 422)
+
+
+def test_request_size_is_bounded(shared_api) -> None:  # type: ignore[no-untyped-def]
+    big = {"orbit": "circular", "params": {"x": "a" * 200_000}}
+    assert _is_error(shared_api.post("/scans", json=big), 413)["error"] == "request_too_large"
+
+
+def test_downloads_stay_in_the_data_dir(shared_api) -> None:  # type: ignore[no-untyped-def]
+    (shared_api.data_dir / "jobs" / "j1").mkdir(parents=True)
+    for name in ("..%2F..%2Ftokens.json", "%2E%2E", "..", ".hidden", "a%00b"):
+        r = shared_api.get(f"/calibrations/j1/files/{name}")
+        assert r.status_code == 404, (name, r.status_code)
+    from orbitct_app.service.errors import NotFound
+    from orbitct_app.service.files import confined
+
+    (shared_api.data_dir / "jobs" / "j1" / "link").symlink_to(shared_api.data_dir / "tokens.json")
+    with pytest.raises(NotFound):
+        confined(shared_api.data_dir / "jobs" / "j1", "link")
+    with pytest.raises(NotFound):
+        confined(shared_api.data_dir / "jobs", "..", "tokens.json")
+
+
+def test_wrong_method_is_json(shared_api) -> None:  # type: ignore[no-untyped-def]
+    assert _is_error(shared_api.request("DELETE", "/scans"), 405)["error"] == "method_not_allowed"

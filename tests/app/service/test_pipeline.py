@@ -1,0 +1,81 @@
+"""Through the API on the twins: a scan, its calibration and its reconstruction, with results and events."""
+
+from __future__ import annotations
+
+import io
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.helpers.service import SMALL_SAWTOOTH, ended, parse_sse, wait_for
+from orbitct.scanfile import ScanFile
+
+pytestmark = pytest.mark.system
+
+
+@pytest.mark.slow
+def test_scan_calibrate_reconstruct(api, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    r = api.post("/scans", json={**SMALL_SAWTOOTH, "frames": 40, "name": "pipeline"})
+    assert r.status_code == 202, r.text
+    scan_id = r.json()["id"]
+    assert r.headers["location"] == f"/scans/{scan_id}"
+    live: dict[str, str] = {}
+    reader = threading.Thread(target=lambda: live.update(text=api.get(f"/scans/{scan_id}/events").text))
+    reader.start()
+    scan = wait_for(api, f"/scans/{scan_id}", ended)
+    reader.join(30)
+    assert scan["state"] == "complete", scan
+    assert scan["summary"]["frames_by_kind"]["projection"] == 40
+    assert set(scan["summary"]["geometries"]) >= {"nominal", "truth"}
+
+    events = parse_sse(live["text"])
+    assert [e["id"] for e in events] == list(range(1, len(events) + 1))
+    done = [e["data"]["done"] for e in events if e["event"] == "progress" and e["data"]["message"] != "complete"]
+    assert done == sorted(done) and done[-1] == scan["frames_total"]
+    assert any("rate_fps" in e["data"]["metrics"] for e in events if e["event"] == "progress")
+    assert events[-1]["event"] == "end" and events[-1]["data"]["state"] == "complete"
+
+    r = api.get(f"/scans/{scan_id}/file")
+    assert r.status_code == 200
+    (tmp_path / "copy.h5").write_bytes(r.content)
+    with ScanFile(tmp_path / "copy.h5") as sf:
+        assert sf.status == "complete" and sf.count_by_kind()["projection"] == 40
+
+    # recon on calibrated geometry before any calibration: 409
+    assert api.post("/reconstructions", role="analyst", json={"scan_id": scan_id}).status_code == 409
+
+    r = api.post("/calibrations", role="analyst", json={"scan_id": scan_id, "method": "bundle"})
+    assert r.status_code == 202, r.text
+    cal_id = r.json()["id"]
+    r = api.post("/reconstructions", role="analyst",
+                 json={"scan_id": scan_id, "algorithm": "fdk", "geometry": "calibrated", "shape": [24, 32, 32]})
+    assert r.status_code == 202, r.text  # queued behind the calibration of the same scan
+    rec_id = r.json()["id"]
+
+    cal = wait_for(api, f"/jobs/{cal_id}", ended, 300)
+    assert cal["state"] == "succeeded", cal
+    rpe = api.get(f"/calibrations/{cal_id}/rpe").json()
+    assert rpe["table"]["frames"] == 40 and rpe["table"]["bbs"] >= 3
+    assert rpe["table"]["rpe_mean_mm"] < 1.0 and len(rpe["per_frame_mm"]) == 40
+    assert rpe["iterations"][0]["index"] == 0
+    files = api.get(f"/calibrations/{cal_id}/files").json()
+    png = next(f for f in files if f.endswith(".png"))
+    r = api.get(f"/calibrations/{cal_id}/files/{png}")
+    assert r.status_code == 200 and r.content[:4] == b"\x89PNG"
+    cal_events = parse_sse(api.get(f"/jobs/{cal_id}/events").text)
+    stages = [e["data"]["stage"] for e in cal_events if e["event"] == "progress"]
+    assert stages and stages[-1] == "write"
+
+    rec = wait_for(api, f"/jobs/{rec_id}", ended, 300)
+    assert rec["state"] == "succeeded", rec
+    assert rec["result"]["shape"] == [24, 32, 32]
+    r = api.get(f"/reconstructions/{rec_id}/slices/axial")
+    assert r.status_code == 200 and r.content[:4] == b"\x89PNG"
+    assert api.get(f"/reconstructions/{rec_id}/slices/axial", params={"index": 99}).status_code == 422
+    r = api.get(f"/reconstructions/{rec_id}/volume", params={"format": "npy"})
+    assert np.load(io.BytesIO(r.content)).shape == (24, 32, 32)
+    r = api.get(f"/reconstructions/{rec_id}/volume")
+    assert r.status_code == 200 and r.content[:2] == b"\x1f\x8b"  # gzip-compressed NIfTI
+    assert [j["id"] for j in api.get("/jobs", params={"scan_id": scan_id}).json()] == [rec_id, cal_id]

@@ -1,0 +1,21 @@
+"""Fixtures every test module shares."""
+
+from __future__ import annotations
+
+import gc
+from collections.abc import Iterator
+
+import pytest
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _stop_sim_twins() -> Iterator[None]:
+    """After each module: stop the in-process twins and collect garbage now. CPython 3.11.7's
+    ast.parse fails with 'AST constructor recursion depth mismatch' when a finalizer runs Python code in
+    the middle of it (gh-106905, fixed in 3.11.8); left-over asyncio objects would otherwise be finalised
+    during a later test such as the layering check."""
+    yield
+    from devices.twins.gcs import stop_sim_servers
+
+    stop_sim_servers()
+    gc.collect()
