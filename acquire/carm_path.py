@@ -60,7 +60,7 @@ def plan_carm_scan(cfg: CArmConfig, orbit: Orbit) -> ScanPlan:
     n = keys.size
     return ScanPlan(
         image_key=keys, view=view, theta_rad=orbit.theta[pose], phi_rad=orbit.phi[pose], errors=np.zeros((n, 6)),
-        stage_rad=np.zeros(n), hexapod=np.zeros((n, 6)), nominal=ViewGeometry(nominal, cfg.geometry.detector.detector()),
+        stage_rad=np.zeros(n), hexapod=np.zeros((n, 6)), nominal=ViewGeometry(nominal, cfg.geometry.detector.panel()),
         orbit_name=orbit.name, orbit_params=dict(orbit.params), error_profile=json.dumps({"name": "carm-systematic"}),
         config=cfg.model_dump(mode="json"),
     )

@@ -16,9 +16,8 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError,
 from acquire.errors import ConfigError
 from devices.errors import UriError
 from devices.uri import parse_uri
-from orbitct.geometry import Detector, ViewGeometry
-
-PANEL_MM = 427.0
+from orbitct.geometry import Panel, ViewGeometry
+from orbitct.reference_bench import SAD_MM, SDD_MM, reference_panel
 
 
 class _Model(BaseModel):
@@ -43,7 +42,7 @@ def _check_uri(uri: str) -> str:
 
 
 class DetectorConfig(_Model):
-    """Frame shape and pixel pitch; the pitch defaults to a 427 mm panel divided by the size."""
+    """Frame shape and pixel pitch; the pitch defaults to the reference panel read out at that size."""
 
     rows: int = Field(768, ge=8, le=8192)
     cols: int = Field(768, ge=8, le=8192)
@@ -57,17 +56,18 @@ class DetectorConfig(_Model):
             raise ValueError(f"pitches must be > 0 mm, got {list(v)}")
         return v
 
-    def detector(self) -> Detector:
-        """The :class:`Detector` this configures."""
-        pc, pr = self.pitch_mm if self.pitch_mm is not None else (PANEL_MM / self.cols, PANEL_MM / self.rows)
-        return Detector(self.rows, self.cols, pc, pr)
+    def panel(self) -> Panel:
+        """The pixel grid this configures."""
+        if self.pitch_mm is not None:
+            return Panel(self.rows, self.cols, *self.pitch_mm)
+        return Panel(self.rows, self.cols, reference_panel(self.cols).pitch_col, reference_panel(self.rows).pitch_row)
 
 
 class GeometryConfig(_Model):
     """Source and detector: SAD, SDD, detector, panel offsets and in-plane rotation."""
 
-    sad_mm: float = Field(785.0, gt=0)
-    sdd_mm: float = Field(1200.0, gt=0)
+    sad_mm: float = Field(SAD_MM, gt=0)
+    sdd_mm: float = Field(SDD_MM, gt=0)
     detector: DetectorConfig = DetectorConfig()
     du_mm: float = 0.0
     dv_mm: float = 0.0
@@ -82,14 +82,14 @@ class GeometryConfig(_Model):
     def lab_view(self) -> ViewGeometry:
         """The fixed source/detector at the reference view (theta = phi = 0), lab frame."""
         return ViewGeometry.from_carm(
-            0.0, 0.0, self.sad_mm, self.sdd_mm, self.detector.detector(),
+            0.0, 0.0, self.sad_mm, self.sdd_mm, self.detector.panel(),
             du=self.du_mm, dv=self.dv_mm, eta=math.radians(self.eta_deg),
         )
 
     def carm_views(self, theta_rad: Any, phi_rad: Any) -> ViewGeometry:
         """Nominal C-arm views for angles in radians."""
         return ViewGeometry.from_carm(
-            theta_rad, phi_rad, self.sad_mm, self.sdd_mm, self.detector.detector(),
+            theta_rad, phi_rad, self.sad_mm, self.sdd_mm, self.detector.panel(),
             du=self.du_mm, dv=self.dv_mm, eta=math.radians(self.eta_deg),
         )
 
@@ -231,7 +231,7 @@ class CArmConfig(_Model):
     kind: Literal["carm"] = "carm"
     name: str = "carm"
     devices: CArmDevices = CArmDevices()
-    geometry: GeometryConfig = GeometryConfig(sad_mm=785.0, sdd_mm=1200.0)
+    geometry: GeometryConfig = GeometryConfig()
     limits: CArmLimits = CArmLimits()
     exposure: ExposureConfig = ExposureConfig()
     calibration_frames: CalibrationFramesConfig = CalibrationFramesConfig()

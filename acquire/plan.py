@@ -16,7 +16,7 @@ from numpy.typing import ArrayLike, NDArray
 from acquire.config import BenchConfig
 from acquire.errors import AcquireError
 from acquire.kinematics import bench_axes
-from orbitct.geometry import Detector, ViewGeometry
+from orbitct.geometry import Panel, ViewGeometry
 
 PROJECTION, FLAT, DARK = 0, 1, 2
 KIND_NAMES = {PROJECTION: "projection", FLAT: "flat", DARK: "dark"}
@@ -70,9 +70,9 @@ class ScanPlan:
         return int((self.image_key == PROJECTION).sum())
 
     @property
-    def detector(self) -> Detector:
+    def detector(self) -> Panel:
         """The detector frames are recorded with."""
-        return self.nominal.detector
+        return self.nominal.panel
 
     def frame(self, i: int) -> FramePlan:
         """Frame ``i`` as a record."""
@@ -128,7 +128,7 @@ def plan_bench_scan(
         image_key=keys, view=view,
         theta_rad=th[pose], phi_rad=ph[pose], errors=err[pose],
         stage_rad=stage[pose], hexapod=hexapod[pose],
-        nominal=ViewGeometry(nominal, config.geometry.detector.detector()),
+        nominal=ViewGeometry(nominal, config.geometry.detector.panel()),
         orbit_name=orbit_name, orbit_params=dict(orbit_params or {}), error_profile=error_profile,
         config=config.model_dump(mode="json"),
     )

@@ -29,7 +29,7 @@ class ScanRecorder:
         """Create the file with detector, axes, orbit and configuration provenance."""
         plan = start.plan
         self.writer = ScanWriter(
-            self.path, plan.detector, frame_dtype=self.frame_dtype, axes=dict(start.axes),
+            self.path, plan.panel, frame_dtype=self.frame_dtype, axes=dict(start.axes),
             orbit_name=plan.orbit_name, orbit_params=dict(plan.orbit_params), config=dict(plan.config),
             marker_diameter_mm=self.marker_diameter_mm, overwrite=self.overwrite,
         )

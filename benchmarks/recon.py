@@ -62,7 +62,7 @@ def rtk_times(n: int, size: int, views: int, g, repeat: int) -> dict[str, float]
                           p["ProjectionOffsetX"], p["ProjectionOffsetY"], p["OutOfPlaneAngle"], p["InPlaneAngle"],
                           p["SourceOffsetX"], p["SourceOffsetY"])
     ImageType = itk.Image[itk.F, 3]
-    vox = g.detector.pitch_col * float(np.median(g.sod() / g.sdd))
+    vox = g.panel.pitch_col * float(np.median(g.sod() / g.sdd))
 
     sources = []  # the pipeline objects must outlive their output images (ITK frees them otherwise)
 
@@ -77,7 +77,7 @@ def rtk_times(n: int, size: int, views: int, g, repeat: int) -> dict[str, float]
         return src.GetOutput()
 
     vol = const([n] * 3, [vox] * 3, [-(n - 1) / 2 * vox] * 3)
-    proj = const([size, size, views], [g.detector.pitch_col, g.detector.pitch_row, 1.0],
+    proj = const([size, size, views], [g.panel.pitch_col, g.panel.pitch_row, 1.0],
                  [layout["origin"][0], layout["origin"][1], 0.0])
     out = {}
     fp = rtk.JosephForwardProjectionImageFilter[ImageType, ImageType].New()
@@ -104,10 +104,10 @@ def rtk_times(n: int, size: int, views: int, g, repeat: int) -> dict[str, float]
 
 
 def run_case(n: int, size: int, views: int, repeat: int, pwls_iterations: int) -> None:
-    from orbitct.geometry import Detector, ViewGeometry
+    from orbitct.geometry import Panel, ViewGeometry
     from recon import VolumeGrid, fdk, projector, pwls_sps
 
-    det = Detector(size, size, 427.0 / size, 427.0 / size)
+    det = Panel(size, size, 427.0 / size, 427.0 / size)
     g = ViewGeometry.from_carm(np.linspace(0, 2 * np.pi, views, endpoint=False), 0.0, 785.0, 1200.0, det)
     vox = det.pitch_col * 785.0 / 1200.0
     grid = VolumeGrid.centered((n, n, n), vox)

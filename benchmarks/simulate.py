@@ -38,7 +38,7 @@ def main() -> None:
     if args.threads:
         numba.set_num_threads(args.threads)
 
-    bench = SimulatedBench.with_detector(args.detector_size)
+    bench = SimulatedBench.with_panel(args.detector_size)
     phantom = experiment_phantom(args.experiment)
     # compile every kernel before timing
     li = line_integrals(phantom, bench.lab_view, 0)

@@ -12,7 +12,7 @@ from orbitct.rotations import rotvec_to_matrix, similarity_fit
 
 def fov_points(geometry: ViewGeometry, n_per_axis: int = 5, fill: float = 0.8) -> NDArray[np.float64]:
     """A grid of object points filling the field of view seen by every view (cylinder about z)."""
-    det = geometry.detector
+    det = geometry.panel
     ok = geometry.valid
     mag = np.median(geometry.sdd[ok] / geometry.sod()[ok])
     radius = fill * 0.5 * det.cols * det.pitch_col / mag

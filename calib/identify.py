@@ -76,7 +76,7 @@ def merge_fragments(
     od = (o * d).sum(-1)  # (N,F)
     b = o.sum(0) - (d * od[..., None]).sum(0)
     c = (o * o).sum((0, 2)) - (od**2).sum(0)
-    det = geometry.detector
+    det = geometry.panel
     ok_v = geometry.valid
     mm_per_px = float(np.sqrt(det.pitch_col * det.pitch_row) / np.median(geometry.sdd[ok_v] / geometry.sod()[ok_v]))
     tol_mm = tol_px * mm_per_px
@@ -214,7 +214,7 @@ def identify(
     frags = _join_across(frags[:, good], rough, 15.0)
     # short leftovers are clutter (or BB pieces the final assignment recovers); they only weaken the solve
     uv = frags[:, np.isfinite(frags[..., 0]).sum(0) >= max(settings.min_fragment, min_observations // 2)]
-    det = nominal_model.nominal.detector
+    det = nominal_model.nominal.panel
     margin = 0.5 * settings.diameter_px + 1.0
     for _ in range(4):
         if uv.shape[1] < 3:

@@ -156,7 +156,7 @@ def _detect(
     sf: ScanFile, proj: NDArray[np.intp], nominal: ViewGeometry, opt: CalibrationOptions, progress: ProgressCallback | None
 ) -> tuple[list[NDArray[np.float64]], float, float]:
     """Candidates of every projection, streamed frame by frame; also BB diameter (mm and px)."""
-    det = sf.detector
+    det = sf.panel
     mag = float(np.median(nominal.sdd / nominal.sod()))
     pitch = float(np.sqrt(det.pitch_col * det.pitch_row))
     dark, flat = sf.dark_flat()
@@ -219,7 +219,7 @@ def _estimate_diameter_mm(
     sample = proj[np.linspace(0, len(proj) - 1, min(12, len(proj))).astype(int)]
     for _ in range(3):
         d_px = guess_mm * mag / pitch
-        fd = FrameDetector(dark, flat, settings_for(d_px, sf.detector.shape))
+        fd = FrameDetector(dark, flat, settings_for(d_px, sf.panel.shape))
         radii = []
         for i in sample:
             c = fd.candidates(np.asarray(sf.frames[int(i)]))

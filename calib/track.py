@@ -355,7 +355,7 @@ class _TrackStore:
 
 def _rays(nominal: ViewGeometry, p: int, uv: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Source and unit directions ``(m, 3)`` of the rays through pixels ``uv (m, 2)`` of nominal view ``p``."""
-    c0, r0 = nominal.detector.center
+    c0, r0 = nominal.panel.center
     pts = nominal.D[p] + (uv[:, 0:1] - c0) * nominal.u[p] + (uv[:, 1:2] - r0) * nominal.v[p]
     d = pts - nominal.S[p]
     d /= np.linalg.norm(d, axis=-1, keepdims=True)

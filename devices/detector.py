@@ -36,7 +36,7 @@ from devices.errors import (
     UriError,
 )
 from devices.uri import Endpoint, parse_uri
-from orbitct.geometry import Detector as PanelGeometry
+from orbitct.geometry import Panel
 
 PANEL_MM = 427.0
 DEFAULT_PIXELS = 768
@@ -289,7 +289,7 @@ class Detector:
         self.twin: Any = None
         self._twin_thread: Any = None
         self._link: FrameLink | None = None
-        self._geometry: PanelGeometry | None = None
+        self._geometry: Panel | None = None
         self._last_number: int | None = None
 
     # ------------------------------------------------------------- connection
@@ -342,7 +342,7 @@ class Detector:
         return self.geometry.shape
 
     @property
-    def geometry(self) -> PanelGeometry:
+    def geometry(self) -> Panel:
         """Pixel grid after binning (pitch scaled)."""
         if self._geometry is None:
             raise NotConnectedError(f"{self.name}: frame shape unknown until connected")
@@ -371,7 +371,7 @@ class Detector:
         await self._l().command(f"BIN {int(factor)}")
         rows, cols, pc, pr, b = (await self._l().command("SHAPE?")).split()
         self.binning = int(b)
-        self._geometry = PanelGeometry(int(rows), int(cols), float(pc), float(pr))
+        self._geometry = Panel(int(rows), int(cols), float(pc), float(pr))
 
     async def set_trigger(self, mode: str) -> None:
         """``'software'`` (``trigger()``) or ``'xray'`` (a frame per generator exposure)."""
@@ -511,12 +511,12 @@ class FolderWatchDetector:
         return self._shape
 
     @property
-    def geometry(self) -> PanelGeometry:
+    def geometry(self) -> Panel:
         """Pixel grid (needs the ``pitch_mm`` option and a known shape)."""
         if not self.pitch_mm:
             raise DeviceError(f"{self.name}: pixel pitch unknown; give the pitch_mm option")
         rows, cols = self.shape
-        return PanelGeometry(rows, cols, self.pitch_mm, self.pitch_mm)
+        return Panel(rows, cols, self.pitch_mm, self.pitch_mm)
 
     async def set_trigger(self, mode: str) -> None:
         """Accepted for either mode: the vendor tool decides what starts a frame."""

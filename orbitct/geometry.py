@@ -1,7 +1,7 @@
 """Per-view cone-beam geometry: the one place that speaks ``geometry.md``.
 
 A :class:`ViewGeometry` is immutable. It holds ``(N, 12)`` vectors ``S, D, u, v``
-(ASTRA ``cone_vec`` order, object frame, millimetres) and the :class:`Detector`
+(ASTRA ``cone_vec`` order, object frame, millimetres) and the :class:`Panel`
 they refer to; every operation returns a new object.
 """
 
@@ -15,7 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from orbitct.rotations import rot_x, rot_z
 
-__all__ = ["Detector", "GeometryError", "ViewGeometry", "ideal_bench_pose"]
+__all__ = ["Panel", "GeometryError", "ViewGeometry", "ideal_bench_pose"]
 
 
 class GeometryError(ValueError):
@@ -23,8 +23,8 @@ class GeometryError(ValueError):
 
 
 @dataclass(frozen=True)
-class Detector:
-    """Flat-panel detector: frame shape and pixel pitch (mm)."""
+class Panel:
+    """The pixel grid of a flat panel: frame shape and pixel pitch (mm)."""
 
     rows: int
     cols: int
@@ -33,10 +33,10 @@ class Detector:
 
     def __post_init__(self) -> None:
         if int(self.rows) < 1 or int(self.cols) < 1:
-            raise GeometryError(f"detector rows and cols must be >= 1, got rows={self.rows}, cols={self.cols}")
+            raise GeometryError(f"panel rows and cols must be >= 1, got rows={self.rows}, cols={self.cols}")
         if not (self.pitch_col > 0 and self.pitch_row > 0):
             raise GeometryError(
-                f"detector pitches must be > 0 mm, got pitch_col={self.pitch_col}, pitch_row={self.pitch_row}"
+                f"panel pitches must be > 0 mm, got pitch_col={self.pitch_col}, pitch_row={self.pitch_row}"
             )
         object.__setattr__(self, "rows", int(self.rows))
         object.__setattr__(self, "cols", int(self.cols))
@@ -58,9 +58,9 @@ class Detector:
         """Pixel coordinate ``(col, row)`` of the detector centre ``D``."""
         return ((self.cols - 1) / 2.0, (self.rows - 1) / 2.0)
 
-    def binned(self, factor: int) -> "Detector":
-        """Detector after ``factor x factor`` binning."""
-        return Detector(self.rows // factor, self.cols // factor, self.pitch_col * factor, self.pitch_row * factor)
+    def binned(self, factor: int) -> "Panel":
+        """Panel after ``factor x factor`` binning."""
+        return Panel(self.rows // factor, self.cols // factor, self.pitch_col * factor, self.pitch_row * factor)
 
 
 def _as_views(a: ArrayLike, width: int, name: str) -> NDArray[np.float64]:
@@ -86,17 +86,17 @@ def ideal_bench_pose(theta: ArrayLike, phi: ArrayLike) -> NDArray[np.float64]:
 
 
 class ViewGeometry:
-    """Immutable per-view geometry: ``(N, 12)`` vectors ``S, D, u, v`` and a detector."""
+    """Immutable per-view geometry: ``(N, 12)`` vectors ``S, D, u, v`` and a panel."""
 
-    __slots__ = ("_vectors", "_detector", "_matrices")
+    __slots__ = ("_vectors", "_panel", "_matrices")
 
-    def __init__(self, vectors: ArrayLike, detector: Detector) -> None:
-        if not isinstance(detector, Detector):
-            raise GeometryError(f"detector: expected a Detector, got {type(detector).__name__}")
+    def __init__(self, vectors: ArrayLike, panel: Panel) -> None:
+        if not isinstance(panel, Panel):
+            raise GeometryError(f"panel: expected a Panel, got {type(panel).__name__}")
         v = _as_views(vectors, 12, "vectors").copy()
         v.setflags(write=False)
         self._vectors = v
-        self._detector = detector
+        self._panel = panel
         self._matrices: NDArray[np.float64] | None = None
 
     # ----------------------------------------------------------------- basics
@@ -106,9 +106,9 @@ class ViewGeometry:
         return self._vectors
 
     @property
-    def detector(self) -> Detector:
-        """The detector these views refer to."""
-        return self._detector
+    def panel(self) -> Panel:
+        """The panel (pixel grid) these views refer to."""
+        return self._panel
 
     @property
     def n_views(self) -> int:
@@ -165,20 +165,20 @@ class ViewGeometry:
     def matrices(self) -> NDArray[np.float64]:
         """``(N, 3, 4)`` projection matrices, normalised so ``w`` is depth in mm."""
         if self._matrices is None:
-            m = _vectors_to_matrices(self._vectors, self._detector)
+            m = _vectors_to_matrices(self._vectors, self._panel)
             m.setflags(write=False)
             self._matrices = m
         return self._matrices
 
     @classmethod
-    def from_matrices(cls, matrices: ArrayLike, detector: Detector) -> "ViewGeometry":
+    def from_matrices(cls, matrices: ArrayLike, panel: Panel) -> "ViewGeometry":
         """Views from ``(N, 3, 4)`` projection matrices (any positive or negative scale)."""
         p = np.asarray(matrices, dtype=float)
         if p.ndim == 2 and p.shape == (3, 4):
             p = p[None]
         if p.ndim != 3 or p.shape[1:] != (3, 4):
             raise GeometryError(f"matrices: expected shape (N, 3, 4), got {p.shape}")
-        return cls(_matrices_to_vectors(p, detector), detector)
+        return cls(_matrices_to_vectors(p, panel), panel)
 
     # -------------------------------------------------------- constructors
     @classmethod
@@ -188,7 +188,7 @@ class ViewGeometry:
         phi: ArrayLike,
         sad: ArrayLike,
         sdd: ArrayLike,
-        detector: Detector,
+        panel: Panel,
         *,
         du: ArrayLike = 0.0,
         dv: ArrayLike = 0.0,
@@ -213,8 +213,8 @@ class ViewGeometry:
         vh2 = -se * uh + ce * vh
         S = t + sad_a[:, None] * d
         D = t - (sdd_a - sad_a)[:, None] * d + du_a[:, None] * uh2 + dv_a[:, None] * vh2
-        vec = np.concatenate([S, D, detector.pitch_col * uh2, detector.pitch_row * vh2], axis=1)
-        return cls(vec, detector)
+        vec = np.concatenate([S, D, panel.pitch_col * uh2, panel.pitch_row * vh2], axis=1)
+        return cls(vec, panel)
 
     @classmethod
     def from_object_poses(cls, lab_view: "ViewGeometry", R: ArrayLike, t: ArrayLike) -> "ViewGeometry":
@@ -238,35 +238,35 @@ class ViewGeometry:
             ],
             axis=1,
         )
-        return cls(out, lab_view.detector)
+        return cls(out, lab_view.panel)
 
     @classmethod
-    def empty_like(cls, n_views: int, detector: Detector) -> "ViewGeometry":
+    def empty_like(cls, n_views: int, panel: Panel) -> "ViewGeometry":
         """``n_views`` views that are all NaN (frames that are not projections)."""
-        return cls(np.full((n_views, 12), np.nan), detector)
+        return cls(np.full((n_views, 12), np.nan), panel)
 
     # ----------------------------------------------------------- operations
     def __getitem__(self, index: Any) -> "ViewGeometry":
         idx = np.arange(self.n_views)[index]
-        return ViewGeometry(self._vectors[np.atleast_1d(idx)], self._detector)
+        return ViewGeometry(self._vectors[np.atleast_1d(idx)], self._panel)
 
     def with_vectors(self, vectors: ArrayLike) -> "ViewGeometry":
-        """Same detector, new vectors."""
-        return ViewGeometry(vectors, self._detector)
+        """Same panel, new vectors."""
+        return ViewGeometry(vectors, self._panel)
 
-    def with_detector(self, detector: Detector) -> "ViewGeometry":
-        """Same views re-expressed for another detector sampling of the same panel plane."""
+    def with_panel(self, panel: Panel) -> "ViewGeometry":
+        """Same views re-expressed for another sampling of the same panel plane."""
         vec = self._vectors.copy()
-        vec[:, 6:9] *= detector.pitch_col / self._detector.pitch_col
-        vec[:, 9:12] *= detector.pitch_row / self._detector.pitch_row
-        return ViewGeometry(vec, detector)
+        vec[:, 6:9] *= panel.pitch_col / self._panel.pitch_col
+        vec[:, 9:12] *= panel.pitch_row / self._panel.pitch_row
+        return ViewGeometry(vec, panel)
 
     def concatenate(self, *others: "ViewGeometry") -> "ViewGeometry":
-        """Views of ``self`` followed by those of ``others`` (same detector required)."""
+        """Views of ``self`` followed by those of ``others`` (same panel required)."""
         for o in others:
-            if o.detector != self._detector:
-                raise GeometryError(f"cannot concatenate geometries with detectors {self._detector} and {o.detector}")
-        return ViewGeometry(np.concatenate([self._vectors] + [o.vectors for o in others]), self._detector)
+            if o.panel != self._panel:
+                raise GeometryError(f"cannot concatenate geometries with panels {self._panel} and {o.panel}")
+        return ViewGeometry(np.concatenate([self._vectors] + [o.vectors for o in others]), self._panel)
 
     def transformed(self, R: ArrayLike, t: ArrayLike = (0.0, 0.0, 0.0)) -> "ViewGeometry":
         """Apply rigid transform(s) ``x -> R x + t`` (one, or one per view) to every view."""
@@ -279,13 +279,13 @@ class ViewGeometry:
         parts = [np.einsum("nij,nj->ni", Rm, self._vectors[:, 3 * k : 3 * k + 3]) for k in range(4)]
         parts[0] = parts[0] + tv
         parts[1] = parts[1] + tv
-        return ViewGeometry(np.concatenate(parts, axis=1), self._detector)
+        return ViewGeometry(np.concatenate(parts, axis=1), self._panel)
 
     def scaled(self, s: float) -> "ViewGeometry":
         """Scale positions about the origin by ``s`` (pixel pitches unchanged)."""
         vec = self._vectors.copy()
         vec[:, 0:6] *= s
-        return ViewGeometry(vec, self._detector)
+        return ViewGeometry(vec, self._panel)
 
     # ------------------------------------------------------------- project
     def project(self, points: ArrayLike) -> NDArray[np.float64]:
@@ -318,7 +318,7 @@ class ViewGeometry:
             px = np.broadcast_to(px, (self.n_views,) + px.shape)
         if px.ndim != 3 or px.shape[0] != self.n_views or px.shape[2] != 2:
             raise GeometryError(f"pixels: expected shape (K, 2) or ({self.n_views}, K, 2), got {px.shape}")
-        c0, r0 = self._detector.center
+        c0, r0 = self._panel.center
         dc = px[..., 0] - c0
         dr = px[..., 1] - r0
         return self.D[:, None, :] + dc[..., None] * self.u[:, None, :] + dr[..., None] * self.v[:, None, :]
@@ -332,8 +332,8 @@ class ViewGeometry:
 
     # ------------------------------------------------------------ compare
     def allclose(self, other: "ViewGeometry", atol_mm: float = 1e-6, rtol: float = 1e-9) -> bool:
-        """Same detector and vectors equal within tolerance (NaN equals NaN)."""
-        if not isinstance(other, ViewGeometry) or other.detector != self._detector:
+        """Same panel and vectors equal within tolerance (NaN equals NaN)."""
+        if not isinstance(other, ViewGeometry) or other.panel != self._panel:
             return False
         if other.n_views != self.n_views:
             return False
@@ -345,7 +345,7 @@ class ViewGeometry:
     __hash__ = None  # type: ignore[assignment]
 
     def __repr__(self) -> str:
-        d = self._detector
+        d = self._panel
         ok = self.valid
         if ok.any():
             sod = np.nanmedian(self.sod()[ok])
@@ -355,17 +355,17 @@ class ViewGeometry:
             extra = ""
         nan = f", {int((~ok).sum())} NaN" if (~ok).any() else ""
         return (
-            f"ViewGeometry(n_views={self.n_views}{nan}, detector={d.rows}x{d.cols} px @ "
+            f"ViewGeometry(n_views={self.n_views}{nan}, panel={d.rows}x{d.cols} px @ "
             f"{d.pitch_col:g}x{d.pitch_row:g} mm{extra})"
         )
 
 
-def _center_matrix(det: Detector) -> NDArray[np.float64]:
+def _center_matrix(det: Panel) -> NDArray[np.float64]:
     c0, r0 = det.center
     return np.array([[1.0, 0.0, c0], [0.0, 1.0, r0], [0.0, 0.0, 1.0]])
 
 
-def _vectors_to_matrices(vec: NDArray[np.float64], det: Detector) -> NDArray[np.float64]:
+def _vectors_to_matrices(vec: NDArray[np.float64], det: Panel) -> NDArray[np.float64]:
     n = vec.shape[0]
     out = np.full((n, 3, 4), np.nan)
     ok = np.isfinite(vec).all(axis=1)
@@ -381,7 +381,7 @@ def _vectors_to_matrices(vec: NDArray[np.float64], det: Detector) -> NDArray[np.
     return out
 
 
-def _matrices_to_vectors(P: NDArray[np.float64], det: Detector) -> NDArray[np.float64]:
+def _matrices_to_vectors(P: NDArray[np.float64], det: Panel) -> NDArray[np.float64]:
     n = P.shape[0]
     out = np.full((n, 12), np.nan)
     ok = np.isfinite(P).all(axis=(1, 2))

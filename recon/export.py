@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from orbitct.geometry import Detector, ViewGeometry
+from orbitct.geometry import Panel, ViewGeometry
 from recon.errors import ReconError
 from recon.grid import VolumeGrid
 
@@ -117,7 +117,7 @@ def astra_geometries(grid: VolumeGrid, geometry: ViewGeometry) -> dict[str, Any]
     ext = grid.extent_mm
     nz, ny, nx = grid.shape
     return {
-        "proj_geom": ("cone_vec", geometry.detector.rows, geometry.detector.cols, np.array(geometry.vectors)),
+        "proj_geom": ("cone_vec", geometry.panel.rows, geometry.panel.cols, np.array(geometry.vectors)),
         "vol_geom": (ny, nx, nz, ext[0, 0], ext[0, 1], ext[1, 0], ext[1, 1], ext[2, 0], ext[2, 1]),
     }
 
@@ -159,7 +159,7 @@ def rtk_parameters(geometry: ViewGeometry) -> tuple[list[dict[str, float]], dict
     The layout: rows are flipped (RTK row ``j`` = our row ``rows-1-j``), spacing = pitches,
     origin = minus the centre offset; volumes live in RTK coordinates ``RTK_FROM_OBJECT @ x``.
     """
-    det = geometry.detector
+    det = geometry.panel
     if not geometry.valid.all():
         raise ReconError("RTK export needs finite geometry for every view")
     Q = RTK_FROM_OBJECT
@@ -205,7 +205,7 @@ def write_rtk_geometry(geometry: ViewGeometry, path: Path) -> dict[str, Any]:
     return layout
 
 
-def read_rtk_geometry(path: Path, detector: Detector) -> ViewGeometry:
+def read_rtk_geometry(path: Path, detector: Panel) -> ViewGeometry:
     """Our views from an RTK XML file written by :func:`write_rtk_geometry` (same detector layout)."""
     root = ET.parse(str(path)).getroot()
     keys = ("GantryAngle", "OutOfPlaneAngle", "InPlaneAngle", "SourceToIsocenterDistance", "SourceToDetectorDistance",

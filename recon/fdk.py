@@ -49,7 +49,7 @@ def ramp_filter(n_cols: int, window: str = "ram-lak") -> NDArray[np.float64]:
 
 def fan_angles(geometry: ViewGeometry, center: NDArray[np.float64]) -> NDArray[np.float64]:
     """Signed in-plane (xy) fan angle of every detector column, per view ``(N, cols)``."""
-    det = geometry.detector
+    det = geometry.panel
     c0, _ = det.center
     cols = np.arange(det.cols) - c0
     central = center[None, :2] - geometry.S[:, :2]
@@ -102,7 +102,7 @@ def redundancy_weights(geometry: ViewGeometry, short_scan: str = "auto") -> tupl
 def filter_views(proj: NDArray[np.float32], geometry: ViewGeometry, H: NDArray[np.float64],
                  parker: NDArray[np.float64] | None, out: NDArray[np.float32]) -> None:
     """Cosine-weight and ramp-filter ``proj`` row by row into the interior of the padded ``out``."""
-    det = geometry.detector
+    det = geometry.panel
     c0, r0 = det.center
     cc = np.arange(det.cols) - c0
     rr = np.arange(det.rows) - r0
@@ -130,7 +130,7 @@ def fdk(projections: NDArray[np.float32] | ProjectionStack, grid: VolumeGrid, ge
     ``out`` (float32, the grid's shape, may be a view such as a padded volume's interior)
     receives the volume instead of a new array.
     """
-    det = geometry.detector
+    det = geometry.panel
     n = geometry.n_views
     if tuple(projections.shape) != (n, det.rows, det.cols):
         raise ReconError(f"projections: expected shape {(n, det.rows, det.cols)}, got {tuple(projections.shape)}")

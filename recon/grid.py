@@ -88,7 +88,7 @@ def views_isocenter(geometry: ViewGeometry) -> NDArray[np.float64]:
 def fov_radius_height(geometry: ViewGeometry) -> tuple[float, float, tuple[float, float, float]]:
     """Radius and height (mm) of the cylinder about +z seen by every valid view, and its centre."""
     g = geometry[np.flatnonzero(geometry.valid)]
-    det = g.detector
+    det = g.panel
     sod = g.sod()
     mag = g.sdd / sod
     half_w = (det.cols * det.pitch_col) / 2 / mag
@@ -106,7 +106,7 @@ def grid_for_geometry(geometry: ViewGeometry, *, voxel_mm: float | None = None,
     """A grid centred on ``center_mm`` (default the nominal isocenter) covering the views' common field of view."""
     radius, height, _ = fov_radius_height(geometry)
     if voxel_mm is None and shape is None:
-        det = geometry.detector
+        det = geometry.panel
         g = geometry[np.flatnonzero(geometry.valid)]
         mag = float(np.median(g.sdd / g.sod()))
         voxel_mm = float(min(det.pitch_col, det.pitch_row) / mag)
@@ -130,7 +130,7 @@ def check_fov(grid: VolumeGrid, geometry: ViewGeometry, min_fraction: float = 0.
     if g.n_views == 0:
         raise FieldOfViewError("the geometry has no valid (finite) views")
     uv, w = g.project_with_depth(pts)
-    det = g.detector
+    det = g.panel
     inside = (w > 0) & (uv[..., 0] > -0.5) & (uv[..., 0] < det.cols - 0.5) & (uv[..., 1] > -0.5) & (uv[..., 1] < det.rows - 0.5)
     frac = float((inside.mean(axis=0) >= 0.9).mean())  # samples seen by at least 90 % of the views
     if frac < min_fraction:

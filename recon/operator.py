@@ -16,7 +16,7 @@ def index_rays(grid: VolumeGrid, geometry: ViewGeometry) -> NDArray[np.float64]:
     """Per-view ``(N, 12)`` rays in voxel-index units: source, pixel (0,0), column step, row step."""
     vox = np.asarray(grid.voxel_mm)
     org = np.asarray(grid.origin_mm)
-    c0, r0 = geometry.detector.center
+    c0, r0 = geometry.panel.center
     p00 = geometry.D - c0 * geometry.u - r0 * geometry.v
     return np.ascontiguousarray(
         np.concatenate([(geometry.S - org) / vox, (p00 - org) / vox, geometry.u / vox, geometry.v / vox], axis=1)
@@ -80,7 +80,7 @@ class Projector:
     @property
     def proj_shape(self) -> tuple[int, int, int]:
         """Projection stack shape (views, rows, cols)."""
-        d = self.geometry.detector
+        d = self.geometry.panel
         return (self.geometry.n_views, d.rows, d.cols)
 
     def forward(self, x: NDArray[np.float32], out: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
@@ -183,7 +183,7 @@ def projector(grid: VolumeGrid, geometry: ViewGeometry) -> Projector:
 def backproject_voxels(proj: NDArray[np.float32], grid: VolumeGrid, geometry: ViewGeometry,
                        weights: NDArray[np.float64], out: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
     """Voxel-driven back-projection with per-view ``weights`` divided by depth squared (FDK)."""
-    d = geometry.detector
+    d = geometry.panel
     proj = _as_f32(proj, (geometry.n_views, d.rows, d.cols), "projections")
     if out is None:
         out = np.zeros(grid.shape, dtype=np.float32)

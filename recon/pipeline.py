@@ -58,7 +58,7 @@ class FileLineIntegrals:
     def __init__(self, scan: ScanFile, frames: NDArray[np.intp]) -> None:
         self._scan = scan
         self._frames = frames
-        self.shape = (frames.size,) + scan.detector.shape
+        self.shape = (frames.size,) + scan.panel.shape
 
     def __getitem__(self, index: slice | NDArray[np.intp]) -> NDArray[np.float32]:
         return np.stack([self._frame(int(i)) for i in self._frames[index]])
@@ -146,7 +146,7 @@ def _views(scan: ScanFile, geometry: str) -> tuple[NDArray[np.intp], ViewGeometr
 
 def _load(scan: ScanFile, frames: NDArray[np.intp], with_weights: bool,
           progress: ProgressCallback | None) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
-    det = scan.detector
+    det = scan.panel
     li = np.empty((frames.size,) + det.shape, np.float32)
     w = np.empty_like(li) if with_weights else None
     dark, flat = scan.dark_flat()
@@ -206,7 +206,7 @@ def reconstruct_scan(
         frames, geom, dropped = _views(scan, geometry)
         grid = grid_for_geometry(geom, voxel_mm=voxel_mm, shape=shape)
         fov_fraction = check_fov(grid, geom)
-        det = geom.detector
+        det = geom.panel
         mode = choose_stream(stream, algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method))
         check_memory(estimate_bytes(algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method), mode),
                      f"{algorithm} of {frames.size} views onto {grid.shape} voxels")

@@ -35,7 +35,7 @@ from devices.detector import (
 )
 from devices.twins.world import SimWorld, get_world
 from devices.twins.xray import TwinFaults
-from orbitct.geometry import Detector as PanelGeometry
+from orbitct.geometry import Panel
 from orbitct.geometry import ViewGeometry
 
 XRAY_POLL_S = 0.002
@@ -227,7 +227,7 @@ def simulator_renderer(phantom: Any, model: Any = None) -> Renderer:
         return models[key]
 
     def render(kind: str, view: ViewGeometry, kv: float, ma: float, exposure_ms: float, rng: np.random.Generator) -> NDArray[np.uint16]:
-        shape = view.detector.shape
+        shape = view.panel.shape
         if kind == "dark":
             return base.dark(rng, shape)
         m = scaled(kv, ma, exposure_ms)
@@ -268,7 +268,7 @@ class DetectorTwin(LineTwinServer):
         else:  # one pitch, "col,row" text or a pair
             parts = [float(v) for v in (pitch_mm.split(",") if isinstance(pitch_mm, str) else np.atleast_1d(pitch_mm))]
             pitch = (parts[0], parts[-1])
-        self.panel = PanelGeometry(rows, cols, *pitch)
+        self.panel = Panel(rows, cols, *pitch)
         self.sad_mm, self.sdd_mm = float(sad_mm), float(sdd_mm)
         self.binning = 1
         self.mode = "SOFTWARE"
@@ -304,7 +304,7 @@ class DetectorTwin(LineTwinServer):
         return self._renderer
 
     @property
-    def geometry(self) -> PanelGeometry:
+    def geometry(self) -> Panel:
         """Pixel grid after binning."""
         return self.panel.binned(self.binning)
 
@@ -362,7 +362,7 @@ class DetectorTwin(LineTwinServer):
     def warm_up(self) -> None:
         """Render one tiny frame of every kind: loads the phantom and compiles (or loads cached) numba kernels."""
         g = self.panel
-        tiny = PanelGeometry(8, 8, g.pitch_col * g.cols / 8, g.pitch_row * g.rows / 8)
+        tiny = Panel(8, 8, g.pitch_col * g.cols / 8, g.pitch_row * g.rows / 8)
         view = ViewGeometry.from_carm(0.0, 0.0, self.sad_mm, self.sdd_mm, tiny)
         rng = np.random.default_rng(0)
         for kind in ("projection", "flat", "dark"):

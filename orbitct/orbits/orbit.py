@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from orbitct.geometry import Detector, ViewGeometry, ideal_bench_pose
+from orbitct.geometry import Panel, ViewGeometry, ideal_bench_pose
 
 
 def _frozen(a: Any) -> NDArray[np.float64]:
@@ -75,7 +75,7 @@ class Orbit:
         """Ideal bench object poses ``(R (N,3,3), t (N,3))`` that realise the nominal views."""
         return ideal_bench_pose(self.theta, self.phi), np.zeros((self.n_frames, 3))
 
-    def nominal_geometry(self, sad_mm: float, sdd_mm: float, detector: Detector) -> ViewGeometry:
+    def nominal_geometry(self, sad_mm: float, sdd_mm: float, detector: Panel) -> ViewGeometry:
         """Nominal views of this orbit for a source/detector at the given distances."""
         return ViewGeometry.from_carm(self.theta, self.phi, sad_mm, sdd_mm, detector)
 

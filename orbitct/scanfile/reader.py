@@ -12,7 +12,7 @@ import h5py
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from orbitct.geometry import Detector, GeometryError, ViewGeometry
+from orbitct.geometry import Panel, GeometryError, ViewGeometry
 from orbitct.scanfile.errors import ScanFileError
 from orbitct.scanfile.writer import FORMAT, STATUSES, VERSION, _json
 
@@ -68,16 +68,16 @@ class ScanFile:
         if pitch.shape != (2,):
             raise self._fail(f"/detector@pitch_mm must hold 2 numbers [col, row], got {pitch.tolist()}")
         try:
-            self.detector = Detector(int(da["rows"]), int(da["cols"]), float(pitch[0]), float(pitch[1]))
+            self.panel = Panel(int(da["rows"]), int(da["cols"]), float(pitch[0]), float(pitch[1]))
         except GeometryError as exc:
             raise self._fail(f"/detector attributes: {exc}") from None
         for ds in ("frames/data", "frames/image_key"):
             if ds not in f:
                 raise self._fail(f"missing dataset /{ds}")
         data, key = f["frames/data"], f["frames/image_key"]
-        if data.ndim != 3 or data.shape[1:] != self.detector.shape:
+        if data.ndim != 3 or data.shape[1:] != self.panel.shape:
             raise self._fail(
-                f"/frames/data has shape {data.shape}, expected (N, {self.detector.rows}, {self.detector.cols})"
+                f"/frames/data has shape {data.shape}, expected (N, {self.panel.rows}, {self.panel.cols})"
             )
         if data.dtype not in (np.uint16, np.float32):
             raise self._fail(f"/frames/data has dtype {data.dtype}, expected uint16 or float32")
@@ -200,14 +200,14 @@ class ScanFile:
         group = self._geometry_group(name)
         if group not in self._f:
             raise self._fail(f"has no /{group} (geometries present: {[g for g in GEOMETRY_NAMES if self.has_geometry(g)]})")
-        return ViewGeometry(self._f[group]["vectors"][: self.n_frames], self.detector)
+        return ViewGeometry(self._f[group]["vectors"][: self.n_frames], self.panel)
 
     # ---------------------------------------------------------------- pixels
     def _mean_of(self, key: int) -> NDArray[np.float32] | None:
         idx = np.flatnonzero(self.image_key == key)
         if idx.size == 0:
             return None
-        acc = np.zeros(self.detector.shape, dtype=np.float64)
+        acc = np.zeros(self.panel.shape, dtype=np.float64)
         for i in idx:
             acc += self.frames[int(i)]
         return (acc / idx.size).astype(np.float32)
@@ -218,12 +218,12 @@ class ScanFile:
             dark = self._mean_of(2)
             flat = self._mean_of(1)
             if dark is None:
-                dark = np.zeros(self.detector.shape, dtype=np.float32)
+                dark = np.zeros(self.panel.shape, dtype=np.float32)
             if flat is None:
                 proj = self.projection_indices
                 if proj.size == 0:
                     raise self._fail("has no flat frames and no projections to estimate a flat from")
-                flat = np.full(self.detector.shape, float(np.max(self.frames[int(proj[0])])), dtype=np.float32)
+                flat = np.full(self.panel.shape, float(np.max(self.frames[int(proj[0])])), dtype=np.float32)
             self._dark_flat = (dark, flat)
         return self._dark_flat
 

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from orbitct import __version__
-from orbitct.geometry import Detector, ViewGeometry
+from orbitct.geometry import Panel, ViewGeometry
 from orbitct.scanfile.errors import ScanFileError
 
 FORMAT = "orbitct.scan"
@@ -57,7 +57,7 @@ class ScanWriter:
     def __init__(
         self,
         path: str | os.PathLike[str],
-        detector: Detector,
+        detector: Panel,
         *,
         frame_dtype: str = "uint16",
         axes: Mapping[str, str] | None = None,
@@ -73,7 +73,7 @@ class ScanWriter:
             raise ScanFileError(f"{self.path}: already exists (pass overwrite to replace it)")
         if np.dtype(frame_dtype) not in (np.dtype("uint16"), np.dtype("float32")):
             raise ScanFileError(f"frame dtype must be uint16 or float32, got {frame_dtype}")
-        self.detector = detector
+        self.panel = detector
         self._axes = _axis_units(axes)
         self._n = 0
         self._closed = False
@@ -146,8 +146,8 @@ class ScanWriter:
         if key not in IMAGE_KEYS.values():
             raise ScanFileError(f"image_key must be one of {sorted(IMAGE_KEYS.items())}, got {image_key!r}")
         arr = np.asarray(frame)
-        if arr.shape != self.detector.shape:
-            raise ScanFileError(f"frame shape {arr.shape} does not match detector {self.detector.shape}")
+        if arr.shape != self.panel.shape:
+            raise ScanFileError(f"frame shape {arr.shape} does not match detector {self.panel.shape}")
         vec = np.full(12, np.nan) if nominal_vector is None else np.asarray(nominal_vector, float).reshape(12)
         if key == 0 and not np.isfinite(vec).all():
             raise ScanFileError("a projection frame needs a finite nominal geometry vector")
@@ -164,7 +164,7 @@ class ScanWriter:
             for name in self._axes:
                 _put_row(ds[f"frames/{grp}/{name}"], i, values.get(name, np.nan))
         _put_row(ds["geometry/nominal/vectors"], i, vec)
-        _put_row(ds["geometry/nominal/matrices"], i, ViewGeometry(vec, self.detector).matrices[0])
+        _put_row(ds["geometry/nominal/matrices"], i, ViewGeometry(vec, self.panel).matrices[0])
         _put_row(ds["frames/time_s"], i, float(time_s))
         # image_key is written last: its length is the count of complete frames.
         _put_row(ds["frames/image_key"], i, key)

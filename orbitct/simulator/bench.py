@@ -8,48 +8,32 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from orbitct.geometry import Detector, ViewGeometry
+from orbitct.geometry import Panel, ViewGeometry
 from orbitct.orbits import Orbit
 from orbitct.phantoms.phantom import Phantom
+from orbitct.reference_bench import PANEL_PX, SAD_MM, SDD_MM, reference_panel
 from orbitct.simulator.detector import DetectorModel
 from orbitct.simulator.projector import line_integrals
-
-DEFAULT_SAD_MM = 785.0
-DEFAULT_SDD_MM = 1200.0
-DEFAULT_DETECTOR_PX = 768
-DEFAULT_PITCH_MM = 0.556
-PANEL_MM = 427.0  # square panel side
-
-
-def bench_detector(size_px: int = DEFAULT_DETECTOR_PX, pitch_mm: float | None = None) -> Detector:
-    """Square detector of ``size_px`` pixels on the 427 mm panel: 0.556 mm at 768 px, else 427 mm / size."""
-    if int(size_px) < 8:
-        raise ValueError(f"detector size must be at least 8 px, got {size_px}")
-    if pitch_mm is not None:
-        p = float(pitch_mm)
-    else:
-        p = DEFAULT_PITCH_MM if int(size_px) == DEFAULT_DETECTOR_PX else PANEL_MM / int(size_px)
-    return Detector(int(size_px), int(size_px), p, p)
 
 
 @dataclass(frozen=True)
 class SimulatedBench:
     """Fixed source and flat panel (lab reference view ``theta = phi = 0``) plus the detector's noise model."""
 
-    sad_mm: float = DEFAULT_SAD_MM
-    sdd_mm: float = DEFAULT_SDD_MM
-    detector: Detector = field(default_factory=bench_detector)
+    sad_mm: float = SAD_MM
+    sdd_mm: float = SDD_MM
+    panel: Panel = field(default_factory=reference_panel)
     model: DetectorModel = field(default_factory=DetectorModel)
 
     @classmethod
-    def with_detector(cls, size_px: int = DEFAULT_DETECTOR_PX, pitch_mm: float | None = None, **kw: Any) -> "SimulatedBench":
-        """Bench with a square detector of ``size_px`` (see :func:`bench_detector`)."""
-        return cls(detector=bench_detector(size_px, pitch_mm), **kw)
+    def with_panel(cls, size_px: int = PANEL_PX, pitch_mm: float | None = None, **kw: Any) -> "SimulatedBench":
+        """Bench with the reference panel read out at ``size_px`` (see :func:`~orbitct.reference_bench.reference_panel`)."""
+        return cls(panel=reference_panel(size_px, pitch_mm), **kw)
 
     @property
     def lab_view(self) -> ViewGeometry:
         """The one lab-frame view (source on -y, detector on +y)."""
-        return ViewGeometry.from_carm(0.0, 0.0, self.sad_mm, self.sdd_mm, self.detector)
+        return ViewGeometry.from_carm(0.0, 0.0, self.sad_mm, self.sdd_mm, self.panel)
 
     @property
     def magnification(self) -> float:
@@ -59,7 +43,7 @@ class SimulatedBench:
     @property
     def fov_mm(self) -> float:
         """Width of the panel projected to the isocenter."""
-        return self.detector.cols * self.detector.pitch_col / self.magnification
+        return self.panel.cols * self.panel.pitch_col / self.magnification
 
     def view(self, R: ArrayLike, t: ArrayLike = (0.0, 0.0, 0.0)) -> ViewGeometry:
         """Object-frame view(s) for object pose(s) ``x_lab = R x + t``."""
@@ -67,7 +51,7 @@ class SimulatedBench:
 
     def nominal_geometry(self, orbit: Orbit) -> ViewGeometry:
         """Nominal views of an orbit on this bench."""
-        return orbit.nominal_geometry(self.sad_mm, self.sdd_mm, self.detector)
+        return orbit.nominal_geometry(self.sad_mm, self.sdd_mm, self.panel)
 
     def line_integrals(
         self, phantom: Phantom, R: ArrayLike, t: ArrayLike = (0.0, 0.0, 0.0), *, supersample: bool | int = True
@@ -83,15 +67,15 @@ class SimulatedBench:
 
     def dark(self, rng: np.random.Generator | int | None = None) -> NDArray[np.uint16]:
         """A raw dark frame."""
-        return self.model.dark(np.random.default_rng(rng), self.detector.shape)
+        return self.model.dark(np.random.default_rng(rng), self.panel.shape)
 
     def flat(self, rng: np.random.Generator | int | None = None) -> NDArray[np.uint16]:
         """A raw flat (open-field) frame."""
-        return self.model.flat(np.random.default_rng(rng), self.detector.shape)
+        return self.model.flat(np.random.default_rng(rng), self.panel.shape)
 
     def config(self) -> dict[str, Any]:
         """JSON-able description (stored as provenance)."""
-        d = self.detector
+        d = self.panel
         return {
             "kind": "simulated_bench",
             "sad_mm": self.sad_mm,

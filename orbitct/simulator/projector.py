@@ -114,7 +114,7 @@ def line_integrals(
     """
     if not 0 <= index < geometry.n_views and not -geometry.n_views <= index < 0:
         raise GeometryError(f"view index {index} out of range for {geometry.n_views} views")
-    det = geometry.detector
+    det = geometry.panel
     vec = geometry.vectors[index]
     if not np.isfinite(vec).all():
         raise GeometryError(f"view {index} has non-finite geometry (not a projection frame?)")
@@ -181,7 +181,7 @@ def line_integral_stack(
 ) -> NDArray[np.float32]:
     """Noise-free line integrals ``(n, rows, cols)`` of the given views (default: every finite view)."""
     idx = np.flatnonzero(geometry.valid) if indices is None else np.asarray(indices, dtype=np.intp)
-    out = np.empty((len(idx),) + geometry.detector.shape, dtype=np.float32)
+    out = np.empty((len(idx),) + geometry.panel.shape, dtype=np.float32)
     for k, i in enumerate(idx):
         out[k] = line_integrals(phantom, geometry, int(i), supersample=supersample)
         report(progress, "project", k + 1, len(idx))

@@ -19,7 +19,8 @@ from orbitct.phantoms.experiments import experiment_phantom
 from orbitct.phantoms.phantom import Phantom
 from orbitct.progress import ProgressCallback, report
 from orbitct.scanfile import ScanWriter
-from orbitct.simulator.bench import SimulatedBench, bench_detector
+from orbitct.reference_bench import reference_panel
+from orbitct.simulator.bench import SimulatedBench
 from orbitct.simulator.projector import line_integrals
 
 # Orbit each experiment was acquired with in the paper.
@@ -156,8 +157,8 @@ def simulate_scan(
     exp_name = phantom.name if isinstance(experiment, Phantom) else str(experiment).upper()
     orb = resolve_orbit(exp_name, orbit, n_frames)
     profile = resolve_errors(errors, seed)
-    bench = bench or SimulatedBench(detector=bench_detector(detector_px, pitch_mm))
-    det = bench.detector
+    bench = bench or SimulatedBench(panel=reference_panel(detector_px, pitch_mm))
+    det = bench.panel
     rigid = profile.sample(orb)
     R_true, t_true = rigid.true_poses(*orb.poses())
     true_geom = ViewGeometry.from_object_poses(bench.lab_view, R_true, t_true)

@@ -113,7 +113,7 @@ def inspect(scan: Path, as_json: bool) -> None:
 
 def scan_summary(f: "ScanFile") -> dict[str, object]:
     """JSON-able summary of an open :class:`orbitct.scanfile.ScanFile`."""
-    det = f.detector
+    det = f.panel
     geometry: dict[str, str] = {}
     for name in ("nominal", "calibrated", "truth"):
         if f.has_geometry(name):

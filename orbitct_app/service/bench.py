@@ -50,8 +50,8 @@ def scan_summary(path: Path) -> dict[str, Any]:
             geometries = [g for g in ("nominal", "calibrated", "truth") if sf.has_geometry(g)]
             return {
                 "status": sf.status, "status_reason": sf.status_reason, "n_frames": sf.n_frames,
-                "frames_by_kind": sf.count_by_kind(), "detector": {"rows": sf.detector.rows, "cols": sf.detector.cols,
-                                                                   "pitch_mm": list(sf.detector.pitch_mm)},
+                "frames_by_kind": sf.count_by_kind(), "detector": {"rows": sf.panel.rows, "cols": sf.panel.cols,
+                                                                   "pitch_mm": list(sf.panel.pitch_mm)},
                 "geometries": geometries, "orbit": {"name": name, "params": params},
                 "recon": sf.recon_names(), "file_bytes": path.stat().st_size,
             }

@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def test_shipped_configs_load(name: str, kind: type) -> None:
     cfg = load_config(ROOT / "config" / name)
     assert isinstance(cfg, kind)
-    det = cfg.geometry.detector.detector()
+    det = cfg.geometry.detector.panel()
     assert det.rows == 768 and abs(det.pitch_col * det.cols - 427) < 1.0
 
 
@@ -24,7 +24,7 @@ def test_default_bench_numbers() -> None:
     cfg = load_config(ROOT / "config" / "bench.yaml")
     assert cfg.geometry.sad_mm == 785 and cfg.geometry.sdd_mm == 1200
     assert cfg.stack.order == "stage_on_hexapod"
-    small = cfg.with_detector_size(64).geometry.detector.detector()
+    small = cfg.with_detector_size(64).geometry.detector.panel()
     assert small.rows == 64 and small.pitch_col == pytest.approx(427 / 64)
 
 

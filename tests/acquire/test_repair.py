@@ -17,12 +17,12 @@ from click.testing import CliRunner
 from acquire.errors import RepairError
 from acquire.repair import repair_scan
 from orbitct_app.cli.main import cli
-from orbitct.geometry import Detector, ViewGeometry
+from orbitct.geometry import Panel, ViewGeometry
 from orbitct.scanfile import ScanFile, ScanWriter
 
 pytestmark = pytest.mark.system
 
-DET = Detector(16, 16, 1.0, 1.0)
+DET = Panel(16, 16, 1.0, 1.0)
 VEC = ViewGeometry.from_carm(0.0, 0.0, 785.0, 1200.0, DET).vectors[0]
 
 
@@ -73,9 +73,9 @@ def test_writer_killed_with_sigkill_leaves_repairable_file(tmp_path: Path) -> No
     p = tmp_path / "killed.h5"
     script = textwrap.dedent(f"""
         import sys, time, numpy as np
-        from orbitct.geometry import Detector, ViewGeometry
+        from orbitct.geometry import Panel, ViewGeometry
         from orbitct.scanfile import ScanWriter
-        det = Detector(16, 16, 1.0, 1.0)
+        det = Panel(16, 16, 1.0, 1.0)
         vec = ViewGeometry.from_carm(0.0, 0.0, 785.0, 1200.0, det).vectors[0]
         w = ScanWriter({str(p)!r}, det)
         i = 0

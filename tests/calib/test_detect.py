@@ -22,8 +22,8 @@ def small_scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def _errors(path: Path) -> tuple[np.ndarray, np.ndarray, int]:
     with ScanFile(path) as sf:
         dark, flat = sf.dark_flat()
-        d_px = 3.17 * SDD / SAD / sf.detector.pitch_col
-        det = FrameDetector(dark, flat, settings_for(d_px, sf.detector.shape))
+        d_px = 3.17 * SDD / SAD / sf.panel.pitch_col
+        det = FrameDetector(dark, flat, settings_for(d_px, sf.panel.shape))
         truth = sf.geometry("truth").project(sf.truth_markers_xyz())
         ours, paper, missed = [], [], 0
         for i in sf.projection_indices:
@@ -52,5 +52,5 @@ def test_bb_diameter_estimated_when_the_file_does_not_say(small_scan: Path) -> N
         dark, flat = sf.dark_flat()
         nominal = sf.geometry("nominal")[sf.projection_indices]
         mag = float(np.median(nominal.sdd / nominal.sod()))
-        d = _estimate_diameter_mm(sf, sf.projection_indices, dark, flat, mag, sf.detector.pitch_col, CalibrationOptions())
+        d = _estimate_diameter_mm(sf, sf.projection_indices, dark, flat, mag, sf.panel.pitch_col, CalibrationOptions())
     assert d == pytest.approx(3.17, rel=0.25)

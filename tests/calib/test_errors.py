@@ -31,7 +31,7 @@ def test_bbs_leaving_the_field_of_view(fov_scan: Path, tmp_path: Path) -> None:
     from orbitct.geometry import ViewGeometry
 
     proj = np.flatnonzero(np.isfinite(tv).all(1))
-    tuv = ViewGeometry(tv[proj], res.geometry.detector).project(txyz)
+    tuv = ViewGeometry(tv[proj], res.geometry.panel).project(txyz)
     assert res.n_bbs == 8
     k = int(np.argmin(np.abs(res.xyz[:, 2] - res.xyz[:, 2].max())))  # the high BB
     inside = (tuv[:, 7, 1] > 3) & (tuv[:, 7, 1] < 252)
@@ -96,10 +96,10 @@ def test_view_with_too_few_bbs_gets_nan_and_a_warning(fov_scan: Path, tmp_path: 
 @pytest.mark.slow
 def test_manual_seeds_for_the_first_frame_are_accepted(fov_scan: Path, tmp_path: Path) -> None:
     with h5py.File(fov_scan) as f:
-        from orbitct.geometry import Detector, ViewGeometry
+        from orbitct.geometry import Panel, ViewGeometry
 
         tv = np.asarray(f["truth/geometry/vectors"])
-        det = Detector(256, 256, 427 / 256, 427 / 256)
+        det = Panel(256, 256, 427 / 256, 427 / 256)
         first = int(np.flatnonzero(np.isfinite(tv).all(1))[0])
         seeds = ViewGeometry(tv[first], det).project(np.asarray(f["truth/markers/xyz"]))[0] + 0.6
     res = calib.calibrate_scan(fov_scan, out=tmp_path / "s.h5", seeds_uv=seeds[np.isfinite(seeds).all(1)])

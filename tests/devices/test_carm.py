@@ -121,7 +121,7 @@ def test_play_program_frames_carry_true_geometry_with_errors() -> None:
     th, ph = np.radians(np.linspace(-10, 10, 5)), np.radians(np.linspace(0, 8, 5))
     shift = 3.0 * np.stack([np.sin(th), 0.5 * np.sin(2 * th), 0.5 * (1 - np.cos(th))], 1)
     expected = ViewGeometry.from_carm(th + np.radians(0.4), ph - np.radians(1.0) * np.cos(th) * np.cos(ph), 785.0, 1200.0,
-                                      nominal.detector, eta=np.radians(0.7), shift=shift)
+                                      nominal.panel, eta=np.radians(0.7), shift=shift)
     np.testing.assert_allclose(truth, expected.vectors, atol=1e-9)
     assert np.abs(truth - nominal.vectors).max() > 1.0  # the errors are real
     # the source really moves between frames (object fixed)

@@ -7,16 +7,16 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from orbitct.geometry import Detector, ViewGeometry
+from orbitct.geometry import Panel, ViewGeometry
 from orbitct.rotations import rot_xyz
 from orbitct.scanfile import ScanWriter
 
 SAD, SDD, PANEL_MM = 785.0, 1200.0, 427.0
 
 
-def detector(size: int) -> Detector:
+def detector(size: int) -> Panel:
     """Square detector with the default 427 mm panel."""
-    return Detector(size, size, PANEL_MM / size, PANEL_MM / size)
+    return Panel(size, size, PANEL_MM / size, PANEL_MM / size)
 
 
 def sawtooth(n: int, size: int) -> ViewGeometry:
@@ -48,7 +48,7 @@ def sphere_line_integrals(
     geometry: ViewGeometry, centres: NDArray[np.float64], radius_mm: float, mu_per_mm: float, oversample: int = 3
 ) -> NDArray[np.float32]:
     """Cone-beam line integrals of uniform spheres averaged over each pixel, ``(N, rows, cols)`` float32."""
-    det = geometry.detector
+    det = geometry.panel
     sub = (np.arange(oversample) + 0.5) / oversample - 0.5
     jj, ii = np.meshgrid(np.arange(det.cols * oversample), np.arange(det.rows * oversample))
     pix = np.stack([jj.ravel(), ii.ravel()], 1).astype(float) / oversample + sub[0]
@@ -81,7 +81,7 @@ def write_scan(
 ) -> Path:
     """A scan file with BBs (steel), a water cylinder, optional clutter spheres and metal balls; Poisson noise."""
     rng = np.random.default_rng(seed)
-    det = nominal.detector
+    det = nominal.panel
     with ScanWriter(path, det, marker_diameter_mm=bb_diameter_mm if diameter_attr else None, overwrite=True) as w:
         w.append(np.zeros(det.shape), "dark", 0.0)
         w.append(np.full(det.shape, i0), "flat", 0.0)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from orbitct.geometry import Detector, ViewGeometry
+from orbitct.geometry import Panel, ViewGeometry
 from recon import VolumeGrid
 
 SPHERES = [((0.0, 0.0, 0.0), 60.0, 0.02), ((20.0, 10.0, 5.0), 15.0, 0.01), ((-25.0, -5.0, -10.0), 10.0, 0.03)]
@@ -16,7 +16,7 @@ SPHERES = [((0.0, 0.0, 0.0), 60.0, 0.02), ((20.0, 10.0, 5.0), 15.0, 0.01), ((-25
 
 def sphere_line_integrals(g: ViewGeometry, spheres=SPHERES) -> np.ndarray:
     """Exact line integrals of a sum of uniform spheres through every pixel centre."""
-    det = g.detector
+    det = g.panel
     cols, rows = np.meshgrid(np.arange(det.cols), np.arange(det.rows))
     px = np.stack([cols.ravel(), rows.ravel()], 1).astype(float)
     o, d = g.backproject(px)
@@ -44,9 +44,9 @@ def voxelized_spheres(grid: VolumeGrid, spheres=SPHERES, supersample: int = 3) -
     return (vol / supersample**3).astype(np.float32)
 
 
-def bench_detector(size: int) -> Detector:
+def bench_detector(size: int) -> Panel:
     """The default 427 mm panel sampled with ``size`` x ``size`` pixels."""
-    return Detector(size, size, 427.0 / size, 427.0 / size)
+    return Panel(size, size, 427.0 / size, 427.0 / size)
 
 
 def write_sphere_scan(path, geometry: ViewGeometry, *, truth: ViewGeometry | None = None, i0: float = 2e4,
@@ -55,7 +55,7 @@ def write_sphere_scan(path, geometry: ViewGeometry, *, truth: ViewGeometry | Non
     from orbitct.scanfile import ScanWriter
 
     rng = np.random.default_rng(seed)
-    det = geometry.detector
+    det = geometry.panel
     seen = truth if truth is not None else geometry
     li = sphere_line_integrals(seen, spheres)
     dark = 100.0

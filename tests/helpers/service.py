@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from orbitct.geometry import Detector, ViewGeometry
+from orbitct.geometry import Panel, ViewGeometry
 from orbitct.scanfile import ScanWriter
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -20,7 +20,7 @@ DETECTOR_PX = 192  # the twins keep the detector size of their first start in a 
 
 def write_small_scan(path: Path, n: int = 6, size: int = 16) -> Path:
     """A complete scan file of ``n`` projections of ``size``^2 pixels (plus a dark and a flat)."""
-    det = Detector(size, size, 427.0 / size, 427.0 / size)
+    det = Panel(size, size, 427.0 / size, 427.0 / size)
     theta = np.linspace(0, np.pi, n)
     geom = ViewGeometry.from_carm(theta, np.zeros(n), 785.0, 1200.0, det)
     with ScanWriter(path, det, orbit_name="circular", orbit_params={"n_frames": n}) as w:

@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 
 from orbitct.errorprofiles import ErrorProfileError, RigidErrors, compose, make_profile, profile_from_json
-from orbitct.geometry import Detector, ViewGeometry
+from orbitct.geometry import Panel, ViewGeometry
 from orbitct.orbits import make_orbit
 from orbitct.rotations import rot_x, rot_y, rot_z
 
-DET = Detector(32, 32, 427 / 32, 427 / 32)
+DET = Panel(32, 32, 427 / 32, 427 / 32)
 
 
 def _sine_fit(phase_of: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray]:

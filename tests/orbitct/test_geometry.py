@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from orbitct.geometry import Detector, GeometryError, ViewGeometry, ideal_bench_pose
+from orbitct.geometry import Panel, GeometryError, ViewGeometry, ideal_bench_pose
 from orbitct.rotations import rotvec_to_matrix
 
-DET = Detector(96, 128, 0.8, 0.7)
+DET = Panel(96, 128, 0.8, 0.7)
 
 
 def random_views(n: int = 25, seed: int = 0) -> ViewGeometry:
@@ -101,7 +101,7 @@ def test_slicing_and_nan_views() -> None:
         (lambda: ViewGeometry(np.zeros((3, 11)), DET), "expected shape (N, 12), got (3, 11)"),
         (lambda: ViewGeometry.from_matrices(np.zeros((2, 3, 3)), DET), "expected shape (N, 3, 4), got (2, 3, 3)"),
         (lambda: random_views(3).project(np.zeros((4, 2))), "expected shape (K, 3) or (N, K, 3), got (4, 2)"),
-        (lambda: Detector(0, 5, 1, 1), "rows and cols must be >= 1"),
+        (lambda: Panel(0, 5, 1, 1), "rows and cols must be >= 1"),
         (lambda: ViewGeometry.from_carm(0, 0, 900, 800, DET), "sdd must exceed sad"),
     ],
 )

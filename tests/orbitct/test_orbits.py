@@ -5,10 +5,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from orbitct.geometry import Detector, ViewGeometry
+from orbitct.geometry import Panel, ViewGeometry
 from orbitct.orbits import ORBIT_KINDS, OrbitError, make_orbit, orbit_from_json
 
-DET = Detector(32, 32, 427 / 32, 427 / 32)
+DET = Panel(32, 32, 427 / 32, 427 / 32)
 
 
 def test_circular_covers_full_turn_without_duplicate() -> None:

@@ -7,10 +7,10 @@ import h5py
 import numpy as np
 import pytest
 
-from orbitct.geometry import Detector, ViewGeometry
+from orbitct.geometry import Panel, ViewGeometry
 from orbitct.scanfile import ScanFile, ScanFileError, ScanWriter
 
-DET = Detector(8, 10, 1.5, 1.25)
+DET = Panel(8, 10, 1.5, 1.25)
 
 
 def _write(path: Path, n_proj: int = 5, finish: bool = True) -> ViewGeometry:
@@ -34,7 +34,7 @@ def test_round_trip(tmp_path: Path) -> None:
     path = tmp_path / "s.h5"
     geom = _write(path)
     with ScanFile(path) as f:
-        assert f.detector == DET and f.n_frames == 7 and f.status == "complete"
+        assert f.panel == DET and f.n_frames == 7 and f.status == "complete"
         assert f.count_by_kind() == {"projection": 5, "flat": 1, "dark": 1, "invalid": 0}
         assert f.projection_indices.tolist() == [2, 3, 4, 5, 6]
         g = f.geometry("nominal")

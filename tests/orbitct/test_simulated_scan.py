@@ -35,12 +35,12 @@ def test_markers_stay_on_the_detector_for_experiment_a() -> None:
     """Over the whole sawtooth orbit with bench errors every BB of phantom A projects onto the panel."""
     from orbitct.phantoms import experiment_phantom
 
-    bench = SimulatedBench.with_detector(128)
+    bench = SimulatedBench.with_panel(128)
     o = make_orbit("sawtooth", n_frames=200)
     e = make_profile("bench", seed=0).sample(o)
     g = bench.view(*e.true_poses(*o.poses()))
     uv = g.project(experiment_phantom("A", 0).markers_xyz)
-    margin = 3.17 / 2 * bench.magnification / bench.detector.pitch_col
+    margin = 3.17 / 2 * bench.magnification / bench.panel.pitch_col
     assert (uv > margin).all() and (uv < 127 - margin).all()
 
 

@@ -3,18 +3,18 @@
 import numpy as np
 import pytest
 
-from orbitct.geometry import Detector, GeometryError, ViewGeometry
+from orbitct.geometry import Panel, GeometryError, ViewGeometry
 from orbitct.orbits import make_orbit
 from orbitct.phantoms import Phantom, cylinder, experiment_phantom, sphere
 from orbitct.rotations import rotvec_to_matrix
 from orbitct.simulator import DetectorModel, SimulatedBench, line_integral_stack, line_integrals
 from orbitct.simulator.noise import poisson_array
 
-DET = Detector(48, 64, 427 / 64, 427 / 48 * 0.75)
+DET = Panel(48, 64, 427 / 64, 427 / 48 * 0.75)
 
 
 def _pixel_rays(g: ViewGeometry, i: int) -> tuple[np.ndarray, np.ndarray]:
-    rr, cc = np.meshgrid(np.arange(g.detector.rows), np.arange(g.detector.cols), indexing="ij")
+    rr, cc = np.meshgrid(np.arange(g.panel.rows), np.arange(g.panel.cols), indexing="ij")
     px = np.stack([cc.ravel(), rr.ravel()], -1).astype(float)
     pts = g[i].pixel_to_point(px[None])[0]
     return np.broadcast_to(g.S[i], pts.shape), pts - g.S[i]
@@ -58,7 +58,7 @@ def test_supersampling_preserves_bb_mass() -> None:
     b = line_integrals(p, view, 0, supersample=8)
     # integral over the detector = mu * volume * magnification^2 / pixel area (cone beam, small object)
     m = bench.magnification
-    expect = 0.8 * 4 / 3 * np.pi * (3.17 / 2) ** 3 * m**2 / bench.detector.pitch_col**2
+    expect = 0.8 * 4 / 3 * np.pi * (3.17 / 2) ** 3 * m**2 / bench.panel.pitch_col**2
     assert a.sum() == pytest.approx(expect, rel=0.01) and b.sum() == pytest.approx(expect, rel=0.005)
 
 
@@ -68,7 +68,7 @@ def test_bb_clearly_visible_over_clutter_in_raw_frames() -> None:
     p = experiment_phantom("A", seed=0)
     R, t = np.eye(3), np.zeros(3)
     raw = bench.render(p, R, t, rng=1)
-    flat, dark = bench.model.maps(bench.detector.shape)
+    flat, dark = bench.model.maps(bench.panel.shape)
     li = -np.log(np.maximum(raw - dark, 0.5) / flat)
     uv = bench.view(R, t).project(p.markers_xyz)[0]
     seen = 0
@@ -126,8 +126,8 @@ def test_poisson_kernel(lam: float) -> None:
 
 
 def test_bench_renders_object_pose() -> None:
-    bench = SimulatedBench.with_detector(64)
-    assert bench.detector.pitch_col == pytest.approx(427.0 / 64)
+    bench = SimulatedBench.with_panel(64)
+    assert bench.panel.pitch_col == pytest.approx(427.0 / 64)
     p = experiment_phantom("B")
     R = rotvec_to_matrix([0.1, 0.0, 0.4])
     t = np.array([2.0, 1.0, -3.0])
@@ -153,7 +153,7 @@ def test_thin_wire_projects_its_mass(axis: tuple, x0: float) -> None:
     """A 0.13 mm wire (thinner than a pixel) projects by its mass: pixel averages, no sampling gaps."""
     bench = SimulatedBench()
     wire = Phantom("w", (cylinder((x0, 0, 0), axis, 0.065, 100.0, material="tungsten"),))
-    g = ViewGeometry.from_carm(0.7, 0.4, 785.0, 1200.0, bench.detector)
+    g = ViewGeometry.from_carm(0.7, 0.4, 785.0, 1200.0, bench.panel)
     img = line_integrals(wire, g, 0)
     fine = line_integrals(wire, g, 0, supersample=24)
     assert np.abs(img - fine).sum() < 0.06 * fine.sum()

@@ -16,9 +16,9 @@ def test_rtk_file_reproduces_projection_matrices(random_geometry: ViewGeometry, 
     path = tmp_path / "geometry.xml"
     layout = write_rtk_geometry(random_geometry, path)
     assert path.read_text().count("<Projection>") == random_geometry.n_views
-    back = read_rtk_geometry(path, random_geometry.detector)
+    back = read_rtk_geometry(path, random_geometry.panel)
     assert back.allclose(random_geometry, atol_mm=1e-9)
-    det = random_geometry.detector
+    det = random_geometry.panel
     pts = np.random.default_rng(0).normal(0, 20, (15, 3))
     uv = random_geometry.project(pts)
     params, _ = rtk_parameters(random_geometry)
@@ -114,7 +114,7 @@ def test_astra_vectors_are_ours(random_geometry: ViewGeometry) -> None:
     grid = VolumeGrid.centered((10, 12, 14), 1.5)
     a = astra_geometries(grid, random_geometry)
     kind, rows, cols, vec = a["proj_geom"]
-    assert kind == "cone_vec" and (rows, cols) == random_geometry.detector.shape
+    assert kind == "cone_vec" and (rows, cols) == random_geometry.panel.shape
     assert np.array_equal(vec, random_geometry.vectors)
     assert a["vol_geom"][:3] == (12, 14, 10) and a["vol_geom"][3] == pytest.approx(-14 * 1.5 / 2)
 

@@ -46,7 +46,7 @@ def test_operator_checks_shapes_and_geometry(random_geometry: ViewGeometry) -> N
     A = projector(grid, random_geometry)
     with pytest.raises(ReconError, match="expected shape"):
         A(np.zeros((8, 8, 9), np.float32))
-    nan_views = ViewGeometry.empty_like(2, random_geometry.detector)
+    nan_views = ViewGeometry.empty_like(2, random_geometry.panel)
     with pytest.raises(ReconError, match="non-finite"):
         projector(grid, random_geometry.concatenate(nan_views))
 
@@ -95,7 +95,7 @@ def test_operator_results_do_not_depend_on_threads_or_reused_buffers(random_geom
 def _steep_and_random_views(random_geometry: ViewGeometry) -> ViewGeometry:
     """The random views plus views looking nearly along z (rays whose main axis is z)."""
     steep = ViewGeometry.from_carm(np.array([0.3, 2.0, 4.1]), np.array([1.45, -1.5, 1.2]), 280.0, 520.0,
-                                   random_geometry.detector, shift=np.array([[0.0, 0.0, 2.0]] * 3))
+                                   random_geometry.panel, shift=np.array([[0.0, 0.0, 2.0]] * 3))
     return random_geometry.concatenate(steep)
 
 

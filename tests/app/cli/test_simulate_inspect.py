@@ -19,7 +19,7 @@ def test_simulate_then_inspect(tmp_path: Path) -> None:
     with ScanFile(out) as f:
         assert f.count_by_kind() == {"projection": 6, "flat": 3, "dark": 2, "invalid": 0}
         assert f.orbit[0] == "sawtooth" and f.status == "complete"
-        assert abs(f.detector.pitch_col - 427.0 / 48) < 1e-12
+        assert abs(f.panel.pitch_col - 427.0 / 48) < 1e-12
         assert f.phantom["name"] == "A" and f.truth_markers_xyz().shape == (8, 3)
         nominal, truth = f.geometry("nominal")[5:], f.geometry("truth")[5:]
         assert not nominal.allclose(truth, atol_mm=0.5)  # bench errors were applied
