@@ -19,11 +19,11 @@ from numpy.typing import NDArray
 from acquire.config import BenchConfig
 from acquire.errors import AcquireError
 from acquire.kinematics import HEXAPOD_AXES, HEXAPOD_UNITS
-from acquire.plan import DARK, FLAT
 from devices.base import DeviceInfo, Status
 from devices.errors import NotReferencedError, OutOfLimitsError
 from devices.factory import open_device
 from devices.factory import stop_all as stop_devices
+from orbitct.scanfile.keys import ImageKey
 
 log = logging.getLogger(__name__)
 SIM_WORLD = "bench"
@@ -193,9 +193,9 @@ class Bench:
         ``after_exposure`` is called once the X-ray exposure is over, before the frame is read out.
         """
         self._last_truth = None
-        if image_key == DARK:
+        if image_key == ImageKey.DARK:
             frame = (await self.detector.acquire_dark(1))[0]
-        elif image_key == FLAT:
+        elif image_key == ImageKey.FLAT:
             frame = (await self.detector.acquire_flat(1))[0]
         else:
             await self.xray.expose()

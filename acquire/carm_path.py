@@ -11,7 +11,7 @@ import dataclasses
 import json
 import logging
 import time
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -21,13 +21,20 @@ from numpy.typing import NDArray
 from acquire.config import CArmConfig
 from acquire.engine import ScanEngine
 from acquire.errors import AcquireError, PreflightError
-from acquire.plan import DARK, FLAT, PROJECTION, ScanPlan, _layout
+from acquire.plan import ScanPlan, _layout
 from acquire.recorder import ScanRecorder
-from devices.carm import CArm, CArmLimits, InfeasibleOrbitError, NavProgram, export_program
+from devices.carm import (
+    CArm,
+    CArmLimits,
+    InfeasibleOrbitError,
+    NavProgram,
+    export_program,
+)
 from devices.factory import stop_all as stop_devices
 from orbitct.geometry import ViewGeometry
 from orbitct.orbits import Orbit
 from orbitct.progress import ProgressCallback
+from orbitct.scanfile.keys import ImageKey
 
 if TYPE_CHECKING:
     from acquire.runner import ScanRequest, ScanResult, ScanRunner
@@ -56,7 +63,7 @@ def plan_carm_scan(cfg: CArmConfig, orbit: Orbit) -> ScanPlan:
     cf = cfg.calibration_frames
     keys, view, pose = _layout(orbit.n_frames, cf.darks_before, cf.flats_before, cf.darks_after, cf.flats_after)
     nominal = np.full((keys.size, 12), np.nan)
-    nominal[keys == PROJECTION] = cfg.geometry.carm_views(orbit.theta, orbit.phi).vectors
+    nominal[keys == ImageKey.PROJECTION] = cfg.geometry.carm_views(orbit.theta, orbit.phi).vectors
     n = keys.size
     return ScanPlan(
         image_key=keys, view=view, theta_rad=orbit.theta[pose], phi_rad=orbit.phi[pose], errors=np.zeros((n, 6)),
@@ -88,9 +95,9 @@ class CArmBench:
     async def acquire(self, image_key: int) -> tuple[NDArray[Any], int]:
         """A dark, flat or projection frame."""
         self._last_truth = None
-        if image_key == DARK:
+        if image_key == ImageKey.DARK:
             frame = (await self.carm.acquire_dark(1))[0]
-        elif image_key == FLAT:
+        elif image_key == ImageKey.FLAT:
             frame = (await self.carm.acquire_flat(1))[0]
         else:
             frame = await self.carm.expose()

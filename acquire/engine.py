@@ -12,7 +12,7 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import Awaitable, Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from typing import Any, Protocol
@@ -23,11 +23,12 @@ from numpy.typing import NDArray
 from acquire.config import BenchConfig
 from acquire.errors import AcquireError, PreflightError, ScanAborted, ScanStateError
 from acquire.kinematics import hexapod_to_user
-from acquire.plan import PROJECTION, FramePlan, ScanPlan
+from acquire.plan import FramePlan, ScanPlan
 from acquire.preflight import preflight
 from acquire.records import FrameRecord, ScanEnd, ScanStart, Subscriber
 from orbitct.geometry import ViewGeometry
 from orbitct.progress import ProgressCallback, report
+from orbitct.scanfile.keys import ImageKey
 
 log = logging.getLogger(__name__)
 MODES = ("step", "continuous")
@@ -323,7 +324,7 @@ class ScanEngine:
             frame, number = await self.bench.acquire(f.image_key, after_exposure=after_exposure)
         t_c = time.monotonic()
         self._check_abort()  # a frame taken while the abort was halting the bench is not recorded
-        truth = self._true_vector() if f.image_key == PROJECTION else None
+        truth = self._true_vector() if f.image_key == ImageKey.PROJECTION else None
         rec = FrameRecord(
             index=f.index, image_key=f.image_key, view=f.view, time_s=t_frame, frame=frame,
             commanded=commanded, encoders=encoders, nominal_vector=f.nominal_vector,
@@ -370,7 +371,7 @@ class ScanEngine:
                     last = cmd
                 nxt = frames[k + 1] if k + 1 < len(frames) else None
                 start_next: Callable[[], None] | None = None
-                if self.config.motion.overlap_readout and nxt is not None and f.image_key == PROJECTION:
+                if self.config.motion.overlap_readout and nxt is not None and f.image_key == ImageKey.PROJECTION:
                     nxt_cmd = self._commanded(nxt)
                     if nxt_cmd != cmd:
                         def start_next(nxt: FramePlan = nxt, nxt_cmd: dict[str, float] = nxt_cmd) -> None:
@@ -389,7 +390,7 @@ class ScanEngine:
     async def _run_continuous(self, t0: float) -> None:
         """Darks/flats step-wise; projections while the stage turns at constant speed, triggered at angles."""
         plan = self.plan
-        proj = np.flatnonzero(plan.image_key == PROJECTION)
+        proj = np.flatnonzero(plan.image_key == ImageKey.PROJECTION)
         first, last_p = int(proj[0]), int(proj[-1])
         timeout = self.config.motion.move_timeout_s
         for i in range(first):

@@ -13,18 +13,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from acquire.config import StackConfig
-from orbitct.errorprofiles import RigidErrors
 from orbitct.geometry import ViewGeometry, ideal_bench_pose
 from orbitct.kinematics import object_pose, split_pose
 from orbitct.rotations import rot_xyz
 
 HEXAPOD_AXES: tuple[str, ...] = ("X", "Y", "Z", "U", "V", "W")
 HEXAPOD_UNITS: tuple[str, ...] = ("mm", "mm", "mm", "deg", "deg", "deg")
-
-
-def errors_array(rigid: RigidErrors) -> NDArray[np.float64]:
-    """``orbitct.errorprofiles.RigidErrors`` as (N, 6) ``(pitch, roll, yaw, x, y, z)``."""
-    return np.concatenate([rigid.angles[:, [1, 0, 2]], rigid.shift_mm], axis=1)
 
 
 def _errors(errors: ArrayLike | None, n: int) -> NDArray[np.float64]:

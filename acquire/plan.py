@@ -17,9 +17,7 @@ from acquire.config import BenchConfig
 from acquire.errors import AcquireError
 from acquire.kinematics import bench_axes
 from orbitct.geometry import Panel, ViewGeometry
-
-PROJECTION, FLAT, DARK = 0, 1, 2
-KIND_NAMES = {PROJECTION: "projection", FLAT: "flat", DARK: "dark"}
+from orbitct.scanfile.keys import ImageKey
 
 
 @dataclass(frozen=True)
@@ -39,7 +37,7 @@ class FramePlan:
     @property
     def kind(self) -> str:
         """``projection``, ``flat`` or ``dark``."""
-        return KIND_NAMES[self.image_key]
+        return ImageKey(self.image_key).label
 
 
 @dataclass(frozen=True)
@@ -67,11 +65,11 @@ class ScanPlan:
     @property
     def n_projections(self) -> int:
         """Projection frames in the plan."""
-        return int((self.image_key == PROJECTION).sum())
+        return int((self.image_key == ImageKey.PROJECTION).sum())
 
     @property
-    def detector(self) -> Panel:
-        """The detector frames are recorded with."""
+    def panel(self) -> Panel:
+        """The pixel grid frames are recorded with."""
         return self.nominal.panel
 
     def frame(self, i: int) -> FramePlan:
@@ -92,7 +90,7 @@ class ScanPlan:
 def _layout(n_views: int, darks_before: int, flats_before: int, darks_after: int, flats_after: int
             ) -> tuple[NDArray[np.int8], NDArray[np.int64], NDArray[np.int64]]:
     """Image keys, orbit view per frame (-1 for darks/flats) and the view whose pose each frame uses."""
-    keys = [DARK] * darks_before + [FLAT] * flats_before + [PROJECTION] * n_views + [DARK] * darks_after + [FLAT] * flats_after
+    keys = [ImageKey.DARK] * darks_before + [ImageKey.FLAT] * flats_before + [ImageKey.PROJECTION] * n_views + [ImageKey.DARK] * darks_after + [ImageKey.FLAT] * flats_after
     view = [-1] * (darks_before + flats_before) + list(range(n_views)) + [-1] * (darks_after + flats_after)
     pose = [0] * (darks_before + flats_before) + list(range(n_views)) + [n_views - 1] * (darks_after + flats_after)
     return np.array(keys, np.int8), np.array(view, np.int64), np.array(pose, np.int64)
@@ -121,7 +119,7 @@ def plan_bench_scan(
     cf = config.calibration_frames
     keys, view, pose = _layout(th.size, cf.darks_before, cf.flats_before, cf.darks_after, cf.flats_after)
     stage, hexapod = bench_axes(th, ph, err, config.stack)
-    proj = keys == PROJECTION
+    proj = keys == ImageKey.PROJECTION
     nominal = np.full((keys.size, 12), np.nan)
     nominal[proj] = config.geometry.carm_views(th, ph).vectors
     return ScanPlan(

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from acquire.records import FrameRecord, ScanEnd, ScanStart
-from orbitct.scanfile import ScanWriter
+from orbitct.scanfile import ImageKey, ScanWriter
 
 
 class ScanRecorder:
@@ -39,19 +39,19 @@ class ScanRecorder:
             **dict(start.extra),
         )
         # per-frame injected errors (pitch, roll, yaw rad; x, y, z mm), NaN rows for darks and flats
-        errors = np.where((plan.image_key == 0)[:, None], plan.errors, np.nan)
+        errors = np.where((plan.image_key == ImageKey.PROJECTION)[:, None], plan.errors, np.nan)
         self.writer.write_dataset("acquisition/injected_errors", errors, columns="pitch_rad roll_rad yaw_rad x_mm y_mm z_mm")
         self._truth = np.full((plan.n_frames, 12), np.nan) if start.sim else None
 
     def on_frame(self, record: FrameRecord) -> None:
         """Append one frame and flush it to disk."""
         assert self.writer is not None, "on_start was not called"
-        vec = record.nominal_vector if record.image_key == 0 else None
+        vec = record.nominal_vector if record.image_key == ImageKey.PROJECTION else None
         self.writer.append(
             record.frame, record.image_key, record.time_s, nominal_vector=vec,
             encoders=dict(record.encoders), commanded=dict(record.commanded),
         )
-        if self._truth is not None and record.true_vector is not None and record.image_key == 0:
+        if self._truth is not None and record.true_vector is not None and record.image_key == ImageKey.PROJECTION:
             self._truth[record.index] = record.true_vector
         self.n_written = self.writer.n_frames
 

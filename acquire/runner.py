@@ -17,7 +17,6 @@ from acquire.bench import Bench, open_bench
 from acquire.config import BenchConfig, CArmConfig, load_config
 from acquire.engine import MODES, ScanEngine
 from acquire.errors import AcquireError, ScanStateError
-from acquire.kinematics import errors_array
 from acquire.plan import ScanPlan, plan_bench_scan
 from acquire.recorder import ScanRecorder
 from orbitct.errorprofiles import ErrorProfileError, make_profile
@@ -29,7 +28,7 @@ CTRL_C_REASON = "interrupted by the user (Ctrl-C)"
 
 @dataclass
 class ScanRequest:
-    """Everything one scan needs; see ``/work/notes/api-acquire.md``."""
+    """Everything one scan needs: configuration, output file, orbit and its parameters, errors, mode."""
 
     config: str | Path | BenchConfig | CArmConfig
     out: str | Path
@@ -74,7 +73,7 @@ def make_orbit_and_errors(req: ScanRequest) -> tuple[Orbit, np.ndarray, dict[str
         profile = make_profile(req.errors, seed=req.seed, **dict(req.error_params))
     except (OrbitError, ErrorProfileError) as exc:
         raise AcquireError(str(exc)) from None
-    return orbit, errors_array(profile.sample(orbit)), profile.to_json()
+    return orbit, profile.sample(orbit).as_array(), profile.to_json()
 
 
 def build_plan(req: ScanRequest, cfg: BenchConfig) -> ScanPlan:

@@ -27,6 +27,7 @@ from calib.track import TrackingSettings
 from orbitct.geometry import ViewGeometry
 from orbitct.progress import ProgressCallback, report
 from orbitct.scanfile import ScanFile
+from orbitct.statistics import rpe_statistics
 
 METHODS = ("bundle", "paper")
 
@@ -128,15 +129,9 @@ def _options(method: str, options: dict[str, Any]) -> CalibrationOptions:
 
 
 def _stats(index: int, rpe: NDArray[np.float64], resid_px: NDArray[np.float64]) -> IterationStats:
-    ok = np.isfinite(rpe)
+    st = rpe_statistics(rpe)
     r = resid_px[np.isfinite(resid_px)]
-    return IterationStats(
-        index,
-        float(np.mean(rpe[ok])) if ok.any() else float("nan"),
-        float(np.median(rpe[ok])) if ok.any() else float("nan"),
-        float(np.std(rpe[ok])) if ok.any() else float("nan"),
-        float(np.sqrt(np.mean(r**2))) if r.size else float("nan"),
-    )
+    return IterationStats(index, st.mean_mm, st.median_mm, st.std_mm, float(np.sqrt(np.mean(r**2))) if r.size else float("nan"))
 
 
 def _motion_px(nominal: ViewGeometry) -> float:
@@ -240,7 +235,7 @@ def calibrate_scan(
     progress: ProgressCallback | None = None,
     **options: Any,
 ) -> CalibrationResult:
-    """Calibrate a scan's geometry from the BBs in its projections and write the results (see api-calib.md)."""
+    """Calibrate a scan's geometry from the BBs in its projections and write the results."""
     # the linear algebra here is small; BLAS threads would only spin against the detection threads
     with threadpool_limits(limits=1, user_api="blas"):
         return _calibrate_scan(path, method, out, report_dir, progress, options)

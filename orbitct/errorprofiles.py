@@ -58,7 +58,11 @@ def _frozen(a: ArrayLike, shape_tail: tuple[int, ...], name: str) -> NDArray[np.
 
 @dataclass(frozen=True, eq=False)
 class RigidErrors:
-    """Per-frame errors: ``angles`` (N, 3) = roll, pitch, yaw (rad) and ``shift_mm`` (N, 3) = x, y, z."""
+    """Per-frame errors: ``angles`` (N, 3) = pitch, roll, yaw (rad) and ``shift_mm`` (N, 3) = x, y, z.
+
+    One axis order everywhere (``as_array``, ``/acquisition/injected_errors``, ``/truth/errors``):
+    pitch, roll, yaw, x, y, z.
+    """
 
     angles: NDArray[np.float64]
     shift_mm: NDArray[np.float64]
@@ -77,8 +81,19 @@ class RigidErrors:
     @classmethod
     def from_transforms(cls, R: ArrayLike, t: ArrayLike) -> "RigidErrors":
         """Errors from rotations ``(N, 3, 3)`` and shifts ``(N, 3)``."""
-        pitch_roll_yaw = xyz_angles(R)
-        return cls(pitch_roll_yaw[:, [1, 0, 2]], np.asarray(t, dtype=float))
+        return cls(xyz_angles(R), np.asarray(t, dtype=float))
+
+    @classmethod
+    def from_array(cls, errors: ArrayLike) -> "RigidErrors":
+        """Errors from an ``(N, 6)`` array: pitch, roll, yaw (rad), x, y, z (mm)."""
+        e = np.asarray(errors, dtype=float)
+        if e.ndim != 2 or e.shape[1] != 6:
+            raise ErrorProfileError(f"errors: expected shape (N, 6) = pitch, roll, yaw, x, y, z; got {e.shape}")
+        return cls(e[:, :3], e[:, 3:])
+
+    def as_array(self) -> NDArray[np.float64]:
+        """``(N, 6)``: pitch, roll, yaw (rad), x, y, z (mm)."""
+        return np.concatenate([self.angles, self.shift_mm], axis=1)
 
     @property
     def n_frames(self) -> int:
@@ -86,13 +101,13 @@ class RigidErrors:
         return int(self.angles.shape[0])
 
     @property
-    def roll(self) -> NDArray[np.float64]:
-        """Rotation about lab y (beam axis), rad."""
+    def pitch(self) -> NDArray[np.float64]:
+        """Rotation about lab x (tilt axis), rad."""
         return self.angles[:, 0]
 
     @property
-    def pitch(self) -> NDArray[np.float64]:
-        """Rotation about lab x (tilt axis), rad."""
+    def roll(self) -> NDArray[np.float64]:
+        """Rotation about lab y (beam axis), rad."""
         return self.angles[:, 1]
 
     @property
@@ -150,7 +165,7 @@ class RigidErrors:
         a = np.degrees(np.abs(self.angles)).max(axis=0) if self.n_frames else np.zeros(3)
         s = np.abs(self.shift_mm).max(axis=0) if self.n_frames else np.zeros(3)
         return {
-            "roll_deg": float(a[0]), "pitch_deg": float(a[1]), "yaw_deg": float(a[2]),
+            "pitch_deg": float(a[0]), "roll_deg": float(a[1]), "yaw_deg": float(a[2]),
             "x_mm": float(s[0]), "y_mm": float(s[1]), "z_mm": float(s[2]),
         }
 
@@ -161,6 +176,9 @@ def _view_basis(u: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.fl
     return np.stack([uh, vh, np.cross(uh, vh)], axis=-1)
 
 
+_DRAW_ORDER = [1, 0, 2]  # random draws run roll, pitch, yaw (their historical order): same seed, same errors
+
+
 def _waves(
     rng: np.random.Generator, phase_of: NDArray[np.float64], amplitude: ArrayLike, noise: ArrayLike
 ) -> NDArray[np.float64]:
@@ -169,6 +187,14 @@ def _waves(
     phases = rng.uniform(0.0, 2 * np.pi, 3)
     w = rng.uniform(-1.0, 1.0, (n, 3))
     return np.asarray(amplitude, float) * np.sin(phase_of[:, None] + phases) + np.asarray(noise, float) * w
+
+
+def _angle_waves(
+    rng: np.random.Generator, phase_of: NDArray[np.float64], amplitude: ArrayLike, noise: ArrayLike
+) -> NDArray[np.float64]:
+    """:func:`_waves` for pitch, roll, yaw amplitudes, drawn in :data:`_DRAW_ORDER`."""
+    a, w = np.asarray(amplitude, float)[_DRAW_ORDER], np.asarray(noise, float)[_DRAW_ORDER]
+    return _waves(rng, phase_of, a, w)[:, _DRAW_ORDER]
 
 
 class ErrorProfile:
@@ -208,9 +234,9 @@ class CustomParams(BaseModel):
     """Per axis: ``amplitude * sin(2 pi cycles * n / N + random phase) + U(-noise, noise)``."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
-    angle_amplitude_deg: Triple = Field((0.0, 0.0, 0.0), description="roll, pitch, yaw sine amplitudes")
+    angle_amplitude_deg: Triple = Field((0.0, 0.0, 0.0), description="pitch, roll, yaw sine amplitudes")
     angle_cycles: float = Field(1.0, ge=0, le=1000, description="sine periods over the scan")
-    angle_noise_deg: Triple = Field((0.0, 0.0, 0.0), description="roll, pitch, yaw uniform noise half-widths")
+    angle_noise_deg: Triple = Field((0.0, 0.0, 0.0), description="pitch, roll, yaw uniform noise half-widths")
     shift_amplitude_mm: Triple = Field((0.0, 0.0, 0.0), description="x, y, z sine amplitudes")
     shift_cycles: float = Field(1.0, ge=0, le=1000, description="sine periods over the scan")
     shift_noise_mm: Triple = Field((0.0, 0.0, 0.0), description="x, y, z uniform noise half-widths")
@@ -229,7 +255,7 @@ class CustomProfile(ErrorProfile):
         p = self.params
         rng = np.random.default_rng([self.seed, 2])
         s = 2 * np.pi * np.arange(orbit.n_frames) / max(orbit.n_frames, 1)
-        ang = _waves(rng, p.angle_cycles * s, np.radians(p.angle_amplitude_deg), np.radians(p.angle_noise_deg))
+        ang = _angle_waves(rng, p.angle_cycles * s, np.radians(p.angle_amplitude_deg), np.radians(p.angle_noise_deg))
         sh = _waves(rng, p.shift_cycles * s, p.shift_amplitude_mm, p.shift_noise_mm)
         return RigidErrors(ang, sh)
 
@@ -251,7 +277,7 @@ class BenchParams(BaseModel):
 class BenchProfile(ErrorProfile):
     """The paper's bench profile: step-sized angular errors with a sag sine, 8 mm sine + +-2 mm shifts.
 
-    Angular amplitude ``A`` per axis: yaw = mean rotation step per frame, pitch = mean tilt
+    Angular amplitude ``A`` per axis: pitch = mean tilt step per frame, yaw = mean rotation
     step (an axis that does not move borrows the other's step), roll = the larger of the two.
     Angle error = ``A (f sin(theta_n + phase) + (1 - f) U(-1, 1))``, ``f = sag_fraction``, so
     ``|error| <= A`` and the sag follows the gantry rotation angle ``theta_n`` (gravity).
@@ -265,17 +291,17 @@ class BenchProfile(ErrorProfile):
         self.params = _validated(BenchParams, "bench", params)
 
     def amplitudes(self, orbit: Orbit) -> NDArray[np.float64]:
-        """Roll, pitch, yaw amplitudes (rad) for ``orbit``."""
+        """Pitch, roll, yaw amplitudes (rad) for ``orbit``."""
         rot, tilt = orbit.step_sizes()
         yaw = rot if rot > 0 else tilt
         pitch = tilt if tilt > 0 else rot
-        return self.params.angle_scale * np.array([max(rot, tilt), pitch, yaw])
+        return self.params.angle_scale * np.array([pitch, max(rot, tilt), yaw])
 
     def sample(self, orbit: Orbit) -> RigidErrors:
         p = self.params
         rng = np.random.default_rng([self.seed, 1])
         A = self.amplitudes(orbit)
-        ang = _waves(rng, orbit.theta, A * p.sag_fraction, A * (1.0 - p.sag_fraction))
+        ang = _angle_waves(rng, orbit.theta, A * p.sag_fraction, A * (1.0 - p.sag_fraction))
         s = 2 * np.pi * p.shift_cycles * np.arange(orbit.n_frames) / max(orbit.n_frames, 1)
         sh = _waves(rng, s, np.full(3, p.shift_amplitude_mm), np.full(3, p.shift_noise_mm))
         return RigidErrors(ang, sh)

@@ -1,7 +1,10 @@
-"""Scan files (HDF5, ``scan-file.md`` version 1): streaming writer and validating reader."""
+"""Scan files (HDF5, ``docs/scan-file.md`` version 1): image keys, streaming writer, validating reader,
+results (calibration, reconstructions, status) and the one scan summary."""
 
 from orbitct.scanfile.errors import ScanFileError
+from orbitct.scanfile.keys import ImageKey
 from orbitct.scanfile.reader import ScanFile
-from orbitct.scanfile.writer import FORMAT, IMAGE_KEYS, VERSION, ScanWriter
+from orbitct.scanfile.summary import scan_summary
+from orbitct.scanfile.writer import FORMAT, VERSION, ScanWriter
 
-__all__ = ["FORMAT", "IMAGE_KEYS", "VERSION", "ScanFile", "ScanFileError", "ScanWriter"]
+__all__ = ["FORMAT", "VERSION", "ImageKey", "ScanFile", "ScanFileError", "ScanWriter", "scan_summary"]

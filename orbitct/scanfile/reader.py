@@ -1,4 +1,4 @@
-"""Validating reader for scan files; also adds calibration and reconstruction results."""
+"""Validating reader for scan files (``docs/scan-file.md``)."""
 
 from __future__ import annotations
 
@@ -10,16 +10,18 @@ from typing import Any
 
 import h5py
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
-from orbitct.geometry import Panel, GeometryError, ViewGeometry
+from orbitct.geometry import GeometryError, Panel, ViewGeometry
 from orbitct.scanfile.errors import ScanFileError
-from orbitct.scanfile.writer import FORMAT, STATUSES, VERSION, _json
+from orbitct.scanfile.keys import ImageKey
+from orbitct.scanfile.results import ScanResults
+from orbitct.scanfile.writer import FORMAT, STATUSES, VERSION
 
 GEOMETRY_NAMES = ("nominal", "calibrated", "truth")
 
 
-class ScanFile:
+class ScanFile(ScanResults):
     """An open scan file, checked against ``scan-file.md`` on open. Use as a context manager."""
 
     def __init__(self, path: str | os.PathLike[str], mode: str = "r") -> None:
@@ -39,9 +41,6 @@ class ScanFile:
             raise
 
     # ------------------------------------------------------------ validation
-    def _fail(self, problem: str) -> ScanFileError:
-        return ScanFileError(f"{self.path}: {problem}")
-
     def _validate(self) -> None:
         f = self._f
         fmt = f.attrs.get("format")
@@ -92,9 +91,10 @@ class ScanFile:
             n = data.shape[0]
         self.n_frames = int(n)
         keys = key[: self.n_frames]
-        bad = set(np.unique(keys).tolist()) - {0, 1, 2, 3}
+        bad = set(np.unique(keys).tolist()) - {int(k) for k in ImageKey}
         if bad:
-            raise self._fail(f"/frames/image_key holds {sorted(bad)}, allowed are 0, 1, 2, 3")
+            raise self._fail(f"/frames/image_key holds {sorted(bad)}, allowed are {', '.join(str(k.value) for k in ImageKey)} "
+                             f"({', '.join(k.label for k in ImageKey)})")
         self.image_key: NDArray[np.int8] = np.asarray(keys, dtype=np.int8)
         for name in ("nominal", "calibrated"):
             if f"geometry/{name}" in f:
@@ -114,7 +114,7 @@ class ScanFile:
         if group == "geometry/calibrated":
             return  # calibration may leave NaN for views it could not solve
         v = np.asarray(vec[: self.n_frames])
-        bad = np.flatnonzero((self.image_key == 0) & ~np.isfinite(v).all(axis=1))
+        bad = np.flatnonzero((self.image_key == ImageKey.PROJECTION) & ~np.isfinite(v).all(axis=1))
         if bad.size:
             raise self._fail(
                 f"/{group}/vectors is not finite on projection frames {bad[:5].tolist()}"
@@ -140,12 +140,11 @@ class ScanFile:
     @property
     def projection_indices(self) -> NDArray[np.intp]:
         """Indices of projection frames (image key 0)."""
-        return np.flatnonzero(self.image_key == 0)
+        return np.flatnonzero(self.image_key == ImageKey.PROJECTION)
 
     def count_by_kind(self) -> dict[str, int]:
         """Frame counts per image key name."""
-        names = {0: "projection", 1: "flat", 2: "dark", 3: "invalid"}
-        return {names[k]: int((self.image_key == k).sum()) for k in names}
+        return {k.label: int((self.image_key == k).sum()) for k in ImageKey}
 
     @property
     def time_s(self) -> NDArray[np.float64]:
@@ -203,7 +202,7 @@ class ScanFile:
         return ViewGeometry(self._f[group]["vectors"][: self.n_frames], self.panel)
 
     # ---------------------------------------------------------------- pixels
-    def _mean_of(self, key: int) -> NDArray[np.float32] | None:
+    def _mean_of(self, key: ImageKey) -> NDArray[np.float32] | None:
         idx = np.flatnonzero(self.image_key == key)
         if idx.size == 0:
             return None
@@ -215,8 +214,8 @@ class ScanFile:
     def dark_flat(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         """Mean dark and mean flat frames (dark 0 and flat = max of the projections when absent)."""
         if not hasattr(self, "_dark_flat"):
-            dark = self._mean_of(2)
-            flat = self._mean_of(1)
+            dark = self._mean_of(ImageKey.DARK)
+            flat = self._mean_of(ImageKey.FLAT)
             if dark is None:
                 dark = np.zeros(self.panel.shape, dtype=np.float32)
             if flat is None:
@@ -258,117 +257,6 @@ class ScanFile:
     def phantom(self) -> dict[str, Any]:
         """Phantom description of a simulated scan (``{}`` for real scans)."""
         return self.attrs_json("truth", "phantom_json")
-
-    # -------------------------------------------------------------- results
-    def _writable(self) -> None:
-        if self._f.mode != "r+":
-            raise self._fail("opened read-only; open with mode='r+' to add results")
-
-    def _replace(self, path: str, data: ArrayLike) -> h5py.Dataset:
-        if path in self._f:
-            del self._f[path]
-        return self._f.create_dataset(path, data=data)
-
-    def write_calibration(
-        self,
-        geometry: ViewGeometry,
-        *,
-        uv: ArrayLike,
-        xyz: ArrayLike,
-        rpe_mm: ArrayLike,
-        method: str,
-        iterations: int,
-        elapsed_s: float,
-        reproj_rms_px: float,
-        extra_attrs: dict[str, Any] | None = None,
-    ) -> None:
-        """Store ``/geometry/calibrated`` and ``/markers/{uv,xyz,rpe_mm}``."""
-        self._writable()
-        if geometry.n_views != self.n_frames:
-            raise self._fail(f"calibrated geometry has {geometry.n_views} views, the scan has {self.n_frames} frames")
-        rpe = np.asarray(rpe_mm, dtype=float)
-        self._replace("geometry/calibrated/vectors", geometry.vectors)
-        self._replace("geometry/calibrated/matrices", geometry.matrices)
-        g = self._f["geometry/calibrated"]
-        ok = np.isfinite(rpe)
-        g.attrs.update(
-            {
-                "method": method,
-                "iterations": int(iterations),
-                "elapsed_s": float(elapsed_s),
-                "rpe_mean_mm": float(np.mean(rpe[ok])) if ok.any() else np.nan,
-                "rpe_median_mm": float(np.median(rpe[ok])) if ok.any() else np.nan,
-                "rpe_std_mm": float(np.std(rpe[ok])) if ok.any() else np.nan,
-                "reproj_rms_px": float(reproj_rms_px),
-            }
-        )
-        for k, v in (extra_attrs or {}).items():
-            g.attrs[k] = _json(v) if isinstance(v, (dict, list)) else v
-        self._f.require_group("markers")
-        self._replace("markers/uv", np.asarray(uv, dtype=float))
-        self._replace("markers/xyz", np.asarray(xyz, dtype=float))
-        self._replace("markers/rpe_mm", rpe)
-        self._f.flush()
-
-    def write_recon(
-        self,
-        name: str,
-        volume: ArrayLike,
-        *,
-        voxel_mm: Sequence[float],
-        origin_mm: Sequence[float],
-        algorithm: str,
-        geometry: str,
-        iterations: int,
-        elapsed_s: float,
-        params: dict[str, Any],
-    ) -> None:
-        """Store a reconstruction as ``/recon/<name>``."""
-        self._writable()
-        if not name or "/" in name:
-            raise self._fail(f"reconstruction name {name!r} must be non-empty and contain no '/'")
-        vol = np.asarray(volume, dtype=np.float32)
-        if vol.ndim != 3:
-            raise self._fail(f"volume must be 3-D (nz, ny, nx), got shape {vol.shape}")
-        path = f"recon/{name}"
-        if path in self._f:
-            del self._f[path]
-        g = self._f.create_group(path)
-        g.create_dataset("volume", data=vol, chunks=(1,) + vol.shape[1:])
-        g.attrs.update(
-            {
-                "voxel_mm": np.asarray(voxel_mm, dtype=float),
-                "origin_mm": np.asarray(origin_mm, dtype=float),
-                "algorithm": algorithm,
-                "geometry": geometry,
-                "iterations": int(iterations),
-                "elapsed_s": float(elapsed_s),
-                "params_json": _json(params),
-            }
-        )
-        self._f.flush()
-
-    def recon_names(self) -> list[str]:
-        """Names of stored reconstructions."""
-        return sorted(self._f["recon"].keys()) if "recon" in self._f else []
-
-    def read_recon(self, name: str) -> tuple[NDArray[np.float32], dict[str, Any]]:
-        """Volume and attributes of ``/recon/<name>``."""
-        path = f"recon/{name}"
-        if path not in self._f:
-            raise self._fail(f"has no reconstruction {name!r} (present: {self.recon_names()})")
-        g = self._f[path]
-        attrs = {k: (v.tolist() if hasattr(v, "tolist") else v) for k, v in g.attrs.items()}
-        return np.asarray(g["volume"], dtype=np.float32), attrs
-
-    def set_status(self, status: str, reason: str = "") -> None:
-        """Change ``/@status`` and ``/@status_reason``."""
-        self._writable()
-        if status not in STATUSES:
-            raise self._fail(f"status must be one of {STATUSES}, got {status!r}")
-        self._f.attrs["status"] = status
-        self._f.attrs["status_reason"] = reason
-        self._f.flush()
 
     @property
     def h5(self) -> h5py.File:

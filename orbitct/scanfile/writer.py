@@ -20,15 +20,16 @@ from numpy.typing import ArrayLike
 from orbitct import __version__
 from orbitct.geometry import Panel, ViewGeometry
 from orbitct.scanfile.errors import ScanFileError
+from orbitct.scanfile.keys import ImageKey
 
 FORMAT = "orbitct.scan"
 VERSION = 1
-IMAGE_KEYS = {"projection": 0, "flat": 1, "dark": 2, "invalid": 3}
 STATUSES = ("acquiring", "complete", "aborted")
 _GEOM_CHUNK = 256
 
 
-def _json(obj: Any) -> str:
+def to_json(obj: Any) -> str:
+    """JSON text of an attribute value (sorted keys; arrays as lists)."""
     return json.dumps(obj, sort_keys=True, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
 
 
@@ -112,12 +113,12 @@ class ScanWriter:
         if marker_diameter_mm is not None:
             mk.attrs["diameter_mm"] = float(marker_diameter_mm)
         og = f.create_group("orbit")
-        og.attrs.update({"name": orbit_name, "params_json": _json(dict(orbit_params or {}))})
+        og.attrs.update({"name": orbit_name, "params_json": to_json(dict(orbit_params or {}))})
         pg = f.create_group("provenance")
         pg.attrs.update(
             {
                 "software_version": __version__,
-                "config_json": _json(dict(config or {})),
+                "config_json": to_json(dict(config or {})),
                 "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             }
         )
@@ -131,7 +132,7 @@ class ScanWriter:
     def append(
         self,
         frame: ArrayLike,
-        image_key: int | str,
+        image_key: ImageKey | int | str,
         time_s: float,
         *,
         nominal_vector: ArrayLike | None = None,
@@ -142,14 +143,15 @@ class ScanWriter:
         """Append one frame with its metadata and flush; returns the frame index."""
         if self._closed:
             raise ScanFileError(f"{self.path}: writer is closed")
-        key = IMAGE_KEYS[image_key] if isinstance(image_key, str) else int(image_key)
-        if key not in IMAGE_KEYS.values():
-            raise ScanFileError(f"image_key must be one of {sorted(IMAGE_KEYS.items())}, got {image_key!r}")
+        try:
+            key = ImageKey.parse(image_key)
+        except ValueError as exc:
+            raise ScanFileError(str(exc)) from None
         arr = np.asarray(frame)
         if arr.shape != self.panel.shape:
             raise ScanFileError(f"frame shape {arr.shape} does not match detector {self.panel.shape}")
         vec = np.full(12, np.nan) if nominal_vector is None else np.asarray(nominal_vector, float).reshape(12)
-        if key == 0 and not np.isfinite(vec).all():
+        if key == ImageKey.PROJECTION and not np.isfinite(vec).all():
             raise ScanFileError("a projection frame needs a finite nominal geometry vector")
         axis_values = {"encoders": encoders or {}, "commanded": commanded or {}}
         for grp, values in axis_values.items():
@@ -167,7 +169,7 @@ class ScanWriter:
         _put_row(ds["geometry/nominal/matrices"], i, ViewGeometry(vec, self.panel).matrices[0])
         _put_row(ds["frames/time_s"], i, float(time_s))
         # image_key is written last: its length is the count of complete frames.
-        _put_row(ds["frames/image_key"], i, key)
+        _put_row(ds["frames/image_key"], i, int(key))
         self._n = i + 1
         if flush:
             self._f.flush()
@@ -190,7 +192,7 @@ class ScanWriter:
                 del g["markers/xyz"]
             g.create_dataset("markers/xyz", data=np.asarray(markers_xyz, dtype=float).reshape(-1, 3))
         if phantom is not None:
-            g.attrs["phantom_json"] = _json(dict(phantom))
+            g.attrs["phantom_json"] = to_json(dict(phantom))
         self._f.flush()
 
     def write_dataset(self, path: str, data: ArrayLike, **attrs: Any) -> None:
@@ -199,14 +201,14 @@ class ScanWriter:
             del self._f[path]
         ds = self._f.create_dataset(path, data=np.asarray(data))
         for k, v in attrs.items():
-            ds.attrs[k] = _json(v) if isinstance(v, (dict, list)) else v
+            ds.attrs[k] = to_json(v) if isinstance(v, (dict, list)) else v
         self._f.flush()
 
     def set_attrs(self, group: str, **attrs: Any) -> None:
         """Set extra attributes on a group (created if missing)."""
         g = self._f.require_group(group)
         for k, v in attrs.items():
-            g.attrs[k] = _json(v) if isinstance(v, (dict, list)) else v
+            g.attrs[k] = to_json(v) if isinstance(v, (dict, list)) else v
         self._f.flush()
 
     def finish(self, status: str = "complete", reason: str = "") -> None:

@@ -119,7 +119,7 @@ def _write_true_errors(path: Path, rigid: RigidErrors, n_cal: int) -> None:
     with ScanFile(path, mode="r+") as f:
         g = f.h5.require_group("truth/errors")
         g.attrs["convention"] = ("lab frame about the nominal isocenter, applied after the nominal pose; "
-                                 "angles = roll (y), pitch (x), yaw (z); R = R_x(pitch) R_y(roll) R_z(yaw)")
+                                 "angles = pitch (x), roll (y), yaw (z); R = R_x(pitch) R_y(roll) R_z(yaw)")
         for name, data in (("angles_rad", rigid.angles), ("shift_mm", rigid.shift_mm)):
             if name in g:
                 del g[name]

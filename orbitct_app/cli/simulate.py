@@ -4,16 +4,10 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import click
-import numpy as np
 
 from orbitct_app.cli.progress import ProgressBar
-
-if TYPE_CHECKING:
-    from orbitct.scanfile import ScanFile
-
 
 @click.command()
 @click.option("--experiment", "-e", type=click.Choice(["A", "B", "C"], case_sensitive=False), required=True,
@@ -76,7 +70,7 @@ def parse_params(items: tuple[str, ...] | list[str]) -> dict[str, object]:
 @click.option("--json", "as_json", is_flag=True, help="print the summary as JSON")
 def inspect(scan: Path, as_json: bool) -> None:
     """Summarise a scan file: frames by kind, geometry, markers, status, orbit."""
-    from orbitct.scanfile import ScanFile, ScanFileError
+    from orbitct.scanfile import ScanFile, ScanFileError, scan_summary
 
     try:
         with ScanFile(scan) as f:
@@ -90,7 +84,7 @@ def inspect(scan: Path, as_json: bool) -> None:
     click.echo(f"  status      {summary['status']}" + (f" ({summary['status_reason']})" if summary["status_reason"] else ""))
     d = summary["detector"]
     click.echo(f"  detector    {d['rows']} x {d['cols']} px @ {d['pitch_mm'][0]:.4g} x {d['pitch_mm'][1]:.4g} mm")
-    click.echo("  frames      " + ", ".join(f"{v} {k}" for k, v in summary["frames"].items() if v) +
+    click.echo("  frames      " + ", ".join(f"{v} {k}" for k, v in summary["frames_by_kind"].items() if v) +
                f" ({summary['n_frames']} total, {summary['dtype']})")
     if summary["duration_s"] is not None:
         click.echo(f"  duration    {summary['duration_s']:.1f} s")
@@ -99,59 +93,20 @@ def inspect(scan: Path, as_json: bool) -> None:
         o = summary["orbit"]
         click.echo(f"              nominal source rotation {o['rotation_deg'][0]:.1f}..{o['rotation_deg'][1]:.1f} deg, "
                    f"tilt {o['tilt_deg'][0]:.1f}..{o['tilt_deg'][1]:.1f} deg")
-    click.echo("  geometry    " + ", ".join(f"{k}{' (' + v + ')' if v else ''}" for k, v in summary["geometry"].items())
-               if summary["geometry"] else "  geometry    none")
+    cal = summary["calibration"]
+    notes = {"calibrated": f"RPE mean {cal['rpe_mean_mm']:.3f} mm, median {cal['rpe_median_mm']:.3f} mm"
+             if cal.get("rpe_mean_mm") is not None and cal.get("rpe_median_mm") is not None else ""}
+    click.echo("  geometry    " + ", ".join(g + (f" ({notes[g]})" if notes.get(g) else "") for g in summary["geometries"])
+               if summary["geometries"] else "  geometry    none")
     m = summary["markers"]
     dia = f"{m['diameter_mm']} mm" if m["diameter_mm"] is not None else "diameter unknown"
-    click.echo(f"  markers     {dia}; detected uv: {m['uv'] or 'no'}; estimated xyz: {m['xyz'] or 'no'}; "
-               f"truth: {m['truth'] or 'no'}")
+
+    def count(n: int) -> str:
+        return f"{n} markers" if n else "no"
+
+    click.echo(f"  markers     {dia}; detected uv: {count(m['detected'])}; estimated xyz: {count(m['estimated'])}; "
+               f"truth: {count(m['truth'])}")
     if summary["phantom"]:
         click.echo(f"  phantom     {summary['phantom']}")
     if summary["recon"]:
         click.echo(f"  recon       {', '.join(summary['recon'])}")
-
-
-def scan_summary(f: "ScanFile") -> dict[str, object]:
-    """JSON-able summary of an open :class:`orbitct.scanfile.ScanFile`."""
-    det = f.panel
-    geometry: dict[str, str] = {}
-    for name in ("nominal", "calibrated", "truth"):
-        if f.has_geometry(name):
-            extra = ""
-            if name == "calibrated":
-                a = f.h5["geometry/calibrated"].attrs
-                if "rpe_mean_mm" in a:
-                    extra = f"RPE mean {float(a['rpe_mean_mm']):.3f} mm, median {float(a['rpe_median_mm']):.3f} mm"
-            geometry[name] = extra
-    mk = f.markers()
-    truth = f.truth_markers_xyz()
-    name, params = f.orbit
-    orbit: dict[str, object] = {"name": name, "params": params}
-    idx = f.projection_indices
-    if f.has_geometry("nominal") and idx.size:
-        S = f.geometry("nominal").S[idx]
-        d = S / np.linalg.norm(S, axis=1, keepdims=True)
-        rot = np.degrees(np.unwrap(np.arctan2(d[:, 0], -d[:, 1])))
-        tilt = np.degrees(np.arcsin(np.clip(d[:, 2], -1, 1)))
-        orbit["rotation_deg"] = [float(rot.min()), float(rot.max())]
-        orbit["tilt_deg"] = [float(tilt.min()), float(tilt.max())]
-    ph = f.phantom
-    return {
-        "status": f.status,
-        "status_reason": f.status_reason,
-        "detector": {"rows": det.rows, "cols": det.cols, "pitch_mm": list(det.pitch_mm)},
-        "n_frames": f.n_frames,
-        "dtype": str(f.frames.dtype),
-        "frames": f.count_by_kind(),
-        "duration_s": float(np.nanmax(f.time_s)) if f.n_frames and np.isfinite(f.time_s).any() else None,
-        "orbit": orbit,
-        "geometry": geometry,
-        "markers": {
-            "diameter_mm": f.marker_diameter_mm,
-            "uv": f"{mk['uv'].shape[1]} markers" if "uv" in mk else "",
-            "xyz": f"{mk['xyz'].shape[0]} markers" if "xyz" in mk else "",
-            "truth": f"{truth.shape[0]} markers" if truth is not None else "",
-        },
-        "phantom": (f"{ph.get('name', '')}: {len(ph.get('primitives', []))} primitives" if ph else ""),
-        "recon": f.recon_names(),
-    }

@@ -38,12 +38,11 @@ def run_calibration(scan_path: Path, params: dict[str, Any], out_dir: Path,
          "rpe_std_mm": _finite(it.rpe_std_mm), "reproj_rms_px": _finite(it.reproj_rms_px)}
         for it in res.iterations
     ]
-    ok = rpe[np.isfinite(rpe)]
+    final = res.iterations[-1]
     table = {
         "frames": int(res.n_frames), "bbs": int(res.n_bbs), "elapsed_s": float(res.elapsed_s),
-        "rpe_mean_mm": _finite(ok.mean()) if ok.size else None,
-        "rpe_median_mm": _finite(np.median(ok)) if ok.size else None,
-        "rpe_std_mm": _finite(ok.std()) if ok.size else None,
+        "rpe_mean_mm": _finite(final.rpe_mean_mm), "rpe_median_mm": _finite(final.rpe_median_mm),
+        "rpe_std_mm": _finite(final.rpe_std_mm),
         "time_per_frame_s": float(res.elapsed_s) / max(int(res.n_frames), 1),
         "time_per_frame_per_bb_s": float(res.elapsed_s) / max(int(res.n_frames) * int(res.n_bbs), 1),
     }

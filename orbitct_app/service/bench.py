@@ -41,20 +41,13 @@ class ActiveScan:
 
 
 def scan_summary(path: Path) -> dict[str, Any]:
-    """What a scan file holds: frames by kind, geometries, detector, orbit, status."""
+    """:func:`orbitct.scanfile.scan_summary` of the file at ``path``, or ``{"error": ...}`` when it cannot be read."""
     from orbitct.scanfile import ScanFile, ScanFileError
+    from orbitct.scanfile import scan_summary as summarize
 
     try:
         with ScanFile(path) as sf:
-            name, params = sf.orbit
-            geometries = [g for g in ("nominal", "calibrated", "truth") if sf.has_geometry(g)]
-            return {
-                "status": sf.status, "status_reason": sf.status_reason, "n_frames": sf.n_frames,
-                "frames_by_kind": sf.count_by_kind(), "detector": {"rows": sf.panel.rows, "cols": sf.panel.cols,
-                                                                   "pitch_mm": list(sf.panel.pitch_mm)},
-                "geometries": geometries, "orbit": {"name": name, "params": params},
-                "recon": sf.recon_names(), "file_bytes": path.stat().st_size,
-            }
+            return summarize(sf)
     except (ScanFileError, OSError, KeyError, ValueError) as exc:
         return {"error": f"scan file unreadable: {exc}".replace(str(path), path.name)}
 

@@ -3,16 +3,15 @@
 from __future__ import annotations
 
 import asyncio
-from pathlib import Path
 from typing import Any
 
 import pytest
 
 from acquire.bench import Bench, open_bench
 from acquire.runner import ScanRequest, ScanRunner
-from tests.helpers.bench import small_config
 from orbitct.progress import ProgressEvent
 from orbitct.scanfile import ScanFile
+from tests.helpers.bench import small_config
 
 pytestmark = [pytest.mark.timeout(120), pytest.mark.system]
 

@@ -7,7 +7,12 @@ import pytest
 
 from acquire.config import StackConfig, parse_config
 from acquire.kinematics import (
-    bench_axes, errors_from_axes, hexapod_from_user, hexapod_to_user, target_object_pose, views_from_axes,
+    bench_axes,
+    errors_from_axes,
+    hexapod_from_user,
+    hexapod_to_user,
+    target_object_pose,
+    views_from_axes,
 )
 from orbitct.geometry import ViewGeometry
 
@@ -61,14 +66,13 @@ def test_user_units_round_trip() -> None:
 
 
 def test_injected_errors_follow_errorprofiles_definition() -> None:
-    from acquire.kinematics import errors_array
     from orbitct.errorprofiles import make_profile
     from orbitct.orbits import make_orbit
 
     cfg = parse_config({"geometry": {"detector": {"rows": 64, "cols": 64}}})
     orbit = make_orbit("sawtooth", n_frames=30)
     rigid = make_profile("bench", seed=3).sample(orbit)
-    stage, hexapod = bench_axes(orbit.theta, orbit.phi, errors_array(rigid))
+    stage, hexapod = bench_axes(orbit.theta, orbit.phi, rigid.as_array())
     views = views_from_axes(stage, hexapod, cfg.geometry.lab_view())
     nominal = cfg.geometry.carm_views(orbit.theta, orbit.phi)
     assert views.allclose(rigid.apply_to_geometry(nominal), atol_mm=1e-9)

@@ -9,8 +9,9 @@ import pytest
 
 from acquire.config import parse_config
 from acquire.errors import PreflightError
-from acquire.plan import DARK, FLAT, PROJECTION, plan_bench_scan
+from acquire.plan import plan_bench_scan
 from acquire.preflight import preflight
+from orbitct.scanfile.keys import ImageKey
 
 CFG = parse_config({"geometry": {"detector": {"rows": 64, "cols": 64}},
                     "calibration_frames": {"darks_before": 2, "flats_before": 3, "darks_after": 1, "flats_after": 1}})
@@ -27,9 +28,9 @@ def test_plan_layout_and_nominal_geometry() -> None:
     theta, phi = _sawtooth()
     plan = plan_bench_scan(CFG, theta, phi, orbit_name="sawtooth", orbit_params={"n": 40})
     assert plan.n_frames == 40 + 7 and plan.n_projections == 40
-    assert list(plan.image_key[:5]) == [DARK, DARK, FLAT, FLAT, FLAT]
-    assert list(plan.image_key[-2:]) == [DARK, FLAT]
-    proj = plan.image_key == PROJECTION
+    assert list(plan.image_key[:5]) == [ImageKey.DARK, ImageKey.DARK, ImageKey.FLAT, ImageKey.FLAT, ImageKey.FLAT]
+    assert list(plan.image_key[-2:]) == [ImageKey.DARK, ImageKey.FLAT]
+    proj = plan.image_key == ImageKey.PROJECTION
     assert plan.nominal[np.flatnonzero(proj)].allclose(CFG.geometry.carm_views(theta, phi))
     assert np.isnan(plan.nominal.vectors[~proj]).all()
     # darks/flats sit at the first / last projection pose

@@ -16,9 +16,9 @@ from click.testing import CliRunner
 
 from acquire.errors import RepairError
 from acquire.repair import repair_scan
-from orbitct_app.cli.main import cli
 from orbitct.geometry import Panel, ViewGeometry
 from orbitct.scanfile import ScanFile, ScanWriter
+from orbitct_app.cli.main import cli
 
 pytestmark = pytest.mark.system
 

@@ -7,7 +7,6 @@ import json
 import numpy as np
 import pytest
 
-from acquire.kinematics import errors_array
 from acquire.runner import run_scan
 from orbitct.errorprofiles import make_profile
 from orbitct.orbits import make_orbit
@@ -49,7 +48,7 @@ def test_step_scan_writes_a_complete_valid_file(request_factory, overlap: bool) 
         assert flat.mean() > dark.mean() + 100
         # truth from the twins: the injected errors plus the twins' small hidden imperfections
         rigid = make_profile("custom", seed=1, **SMALL_ERRORS).sample(orbit)
-        np.testing.assert_allclose(sf.h5["acquisition/injected_errors"][proj], errors_array(rigid))
+        np.testing.assert_allclose(sf.h5["acquisition/injected_errors"][proj], rigid.as_array())
         truth, nominal = sf.geometry("truth")[proj], sf.geometry("nominal")[proj]
         expected = rigid.apply_to_geometry(nominal)
         err_injected = np.abs(truth.S - expected.S).max()

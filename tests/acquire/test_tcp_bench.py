@@ -11,12 +11,12 @@ import pytest
 from acquire.bench import open_bench
 from acquire.config import BenchConfig
 from acquire.runner import ScanRequest, ScanRunner
-from tests.helpers.bench import SMALL_ERRORS, small_config
 from devices.twins.detector import DetectorTwin
 from devices.twins.gcs import start_twin
 from devices.twins.world import get_world
 from devices.twins.xray import TwinThread, XrayTwin
 from orbitct.scanfile import ScanFile
+from tests.helpers.bench import SMALL_ERRORS, small_config
 
 WORLD = "tcp-bench"
 pytestmark = [pytest.mark.timeout(120), pytest.mark.system]

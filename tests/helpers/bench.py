@@ -9,7 +9,7 @@ from acquire.config import BenchConfig, parse_config
 from acquire.runner import ScanRequest
 
 # small errors that the hexapod twin's workspace can always realise
-SMALL_ERRORS = {"angle_amplitude_deg": (0.3, 0.4, 0.5), "angle_noise_deg": (0.05, 0.05, 0.05),
+SMALL_ERRORS = {"angle_amplitude_deg": (0.4, 0.3, 0.5), "angle_noise_deg": (0.05, 0.05, 0.05),
                 "shift_amplitude_mm": (2.0, 1.5, 1.0), "shift_noise_mm": (0.3, 0.3, 0.3)}
 
 

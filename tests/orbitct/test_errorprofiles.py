@@ -24,7 +24,7 @@ def test_bench_profile_statistics() -> None:
     e = prof.sample(o)
     rot, tilt = o.step_sizes()
     A = prof.amplitudes(o)
-    assert np.allclose(A, [max(rot, tilt), tilt, rot])  # roll, pitch, yaw
+    assert np.allclose(A, [tilt, max(rot, tilt), rot])  # pitch, roll, yaw
     for k in range(3):
         ang = e.angles[:, k]
         assert np.abs(ang).max() <= A[k] + 1e-15
@@ -56,7 +56,7 @@ def test_none_and_custom() -> None:
     o = make_orbit("circular", n_frames=2000)
     z = make_profile("none").sample(o)
     assert not z.angles.any() and not z.shift_mm.any()
-    c = make_profile("custom", seed=3, angle_amplitude_deg=(0, 0.5, 0), angle_cycles=3,
+    c = make_profile("custom", seed=3, angle_amplitude_deg=(0.5, 0, 0), angle_cycles=3,
                      shift_noise_mm=(0, 0, 1.5)).sample(o)
     s = 2 * np.pi * 3 * np.arange(2000) / 2000
     amp, res = _sine_fit(s, c.pitch)
@@ -66,7 +66,7 @@ def test_none_and_custom() -> None:
 
 
 def test_transform_convention() -> None:
-    e = RigidErrors([[0.1, 0.2, 0.3]], [[1.0, 2.0, 3.0]])
+    e = RigidErrors([[0.2, 0.1, 0.3]], [[1.0, 2.0, 3.0]])
     R, t = e.transforms()
     assert np.allclose(R[0], rot_x(0.2) @ rot_y(0.1) @ rot_z(0.3))  # R_x(pitch) R_y(roll) R_z(yaw)
     assert np.allclose(t, [[1, 2, 3]])

@@ -29,7 +29,7 @@ def test_simulate_then_inspect(tmp_path: Path) -> None:
                  "rotation 0.0..300.0 deg"):
         assert text in r.output
     r = CliRunner().invoke(cli, ["inspect", str(out), "--json"])
-    assert json.loads(r.output)["frames"]["projection"] == 6
+    assert json.loads(r.output)["frames_by_kind"]["projection"] == 6
 
 
 def test_simulate_orbit_params_and_no_errors(tmp_path: Path) -> None:

@@ -1,0 +1,60 @@
+"""The one summary of a scan file: what ``orbitct inspect`` prints and the REST service reports."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from orbitct.scanfile.reader import ScanFile
+
+
+def _finite(value: Any) -> float | None:
+    v = float(value)
+    return v if np.isfinite(v) else None
+
+
+def scan_summary(f: "ScanFile") -> dict[str, Any]:
+    """JSON-ready summary of an open scan file: status, frames by kind, panel, orbit, geometries, markers, results."""
+    panel = f.panel
+    name, params = f.orbit
+    orbit: dict[str, Any] = {"name": name, "params": params}
+    idx = f.projection_indices
+    if f.has_geometry("nominal") and idx.size:
+        S = f.geometry("nominal").S[idx]
+        d = S / np.linalg.norm(S, axis=1, keepdims=True)
+        rot = np.degrees(np.unwrap(np.arctan2(d[:, 0], -d[:, 1])))
+        tilt = np.degrees(np.arcsin(np.clip(d[:, 2], -1, 1)))
+        orbit["rotation_deg"] = [float(rot.min()), float(rot.max())]
+        orbit["tilt_deg"] = [float(tilt.min()), float(tilt.max())]
+    calibration: dict[str, Any] = {}
+    if f.has_geometry("calibrated"):
+        a = f.h5["geometry/calibrated"].attrs
+        calibration = {k: (_finite(a[k]) if k != "method" else str(a[k]))
+                       for k in ("method", "rpe_mean_mm", "rpe_median_mm", "rpe_std_mm", "reproj_rms_px") if k in a}
+    markers = f.markers()
+    truth = f.truth_markers_xyz()
+    ph = f.phantom
+    times = f.time_s
+    return {
+        "status": f.status,
+        "status_reason": f.status_reason,
+        "n_frames": f.n_frames,
+        "frames_by_kind": f.count_by_kind(),
+        "dtype": str(f.frames.dtype),
+        "detector": {"rows": panel.rows, "cols": panel.cols, "pitch_mm": list(panel.pitch_mm)},
+        "duration_s": float(np.nanmax(times)) if f.n_frames and np.isfinite(times).any() else None,
+        "orbit": orbit,
+        "geometries": [g for g in ("nominal", "calibrated", "truth") if f.has_geometry(g)],
+        "calibration": calibration,
+        "markers": {
+            "diameter_mm": f.marker_diameter_mm,
+            "detected": int(markers["uv"].shape[1]) if "uv" in markers else 0,
+            "estimated": int(markers["xyz"].shape[0]) if "xyz" in markers else 0,
+            "truth": int(truth.shape[0]) if truth is not None else 0,
+        },
+        "phantom": (f"{ph.get('name', '')}: {len(ph.get('primitives', []))} primitives" if ph else ""),
+        "recon": f.recon_names(),
+        "file_bytes": f.path.stat().st_size,
+    }
