@@ -127,11 +127,7 @@ class Bench:
     @property
     def motion_time_scale(self) -> float:
         """How many times faster than real the stage twin moves (1 for real hardware)."""
-        twin = getattr(self.stage, "twin", None) if self.sim else None
-        try:
-            return float(twin.controller.motion.time_scale)  # type: ignore[union-attr]
-        except AttributeError:
-            return 1.0
+        return float(self.config.sim.time_scale) if self.sim else 1.0
 
     async def start_stage_sweep(self, target_deg: float, velocity_deg_s: float) -> None:
         """Set the stage velocity (wall-clock deg/s) and start a move to ``target_deg`` without waiting."""
@@ -226,12 +222,8 @@ class Bench:
 
     # ------------------------------------------------------------- truth
     def true_pose(self) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
-        """The twins' true object pose now (simulated benches only)."""
-        if not self.sim:
-            return None
-        from devices.twins.world import get_world
-
-        return get_world(SIM_WORLD).object_pose()
+        """Not used: the simulated panel reports the true view with each frame."""
+        return None
 
     def last_true_vector(self) -> NDArray[np.float64] | None:
         """The true view the simulated detector imaged for the last projection."""
@@ -265,11 +257,13 @@ def sim_options(config: BenchConfig) -> dict[str, dict[str, Any]]:
     det = config.geometry.detector
     # the twins share this machine's CPU with the scan: allow for a loaded machine in reply time-outs
     return {
-        "hexapod": {"time_scale": config.sim.time_scale, "timeout_s": SIM_REPLY_TIMEOUT_S},
+        "hexapod": {"time_scale": config.sim.time_scale, "timeout_s": SIM_REPLY_TIMEOUT_S,
+                    "stack_order": config.stack.order},
         "rotation_stage": {"time_scale": config.sim.time_scale, "timeout_s": SIM_REPLY_TIMEOUT_S},
         "xray": {"time_scale": config.sim.time_scale, "timeout_s": SIM_REPLY_TIMEOUT_S},
         "detector": {"rows": det.rows, "cols": det.cols, "sad_mm": config.geometry.sad_mm,
-                     "sdd_mm": config.geometry.sdd_mm, "seed": config.sim.seed, "timeout_s": SIM_FRAME_TIMEOUT_S},
+                     "sdd_mm": config.geometry.sdd_mm, "phantom": config.sim.phantom, "seed": config.sim.seed,
+                     "timeout_s": SIM_FRAME_TIMEOUT_S},
     }
 
 
@@ -281,11 +275,6 @@ async def open_bench(config: BenchConfig, *, sim: bool = False) -> AsyncIterator
     if sim:
         uris = {k: f"sim://{SIM_WORLD}" for k in uris}
         opts = sim_options(config)
-        from devices.twins.world import get_world
-
-        world = get_world(SIM_WORLD)
-        with world.lock:
-            world.stack_order = config.stack.order
     opened: dict[str, Any] = {}
     try:
         for kind in ("hexapod", "rotation_stage", "xray", "detector"):
@@ -295,7 +284,6 @@ async def open_bench(config: BenchConfig, *, sim: bool = False) -> AsyncIterator
             from orbitct.phantoms.experiments import experiment_phantom
 
             bench.phantom = experiment_phantom(config.sim.phantom, seed=config.sim.seed)
-            opened["detector"].twin.set_phantom(bench.phantom)
     except BaseException:
         for dev in opened.values():
             with contextlib.suppress(Exception):

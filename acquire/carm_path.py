@@ -23,13 +23,9 @@ from acquire.engine import ScanEngine
 from acquire.errors import AcquireError, PreflightError
 from acquire.plan import ScanPlan, _layout
 from acquire.recorder import ScanRecorder
-from devices.carm import (
-    CArm,
-    CArmLimits,
-    InfeasibleOrbitError,
-    NavProgram,
-    export_program,
-)
+from devices.carm import CArm
+from devices.carm_program import CArmLimits, InfeasibleOrbitError, NavProgram, export_program
+from devices.factory import open_device
 from devices.factory import stop_all as stop_devices
 from orbitct.geometry import ViewGeometry
 from orbitct.orbits import Orbit
@@ -186,12 +182,11 @@ async def open_carm(cfg: CArmConfig, *, sim: bool) -> AsyncIterator[CArmBench]:
         from orbitct.phantoms.experiments import experiment_phantom
 
         phantom = experiment_phantom(cfg.sim.phantom, seed=cfg.sim.seed)
-        opts.update(time_scale=cfg.sim.time_scale, seed=cfg.sim.seed)
-    carm = CArm("carm", uri, **opts)
-    await carm.connect()
+        opts.update(time_scale=cfg.sim.time_scale, seed=cfg.sim.seed, phantom=cfg.sim.phantom)
+    else:
+        opts = {}
+    carm = await open_device("carm", "carm", uri, **opts)
     try:
-        if sim:
-            carm.twin.set_phantom(phantom)
         yield CArmBench(carm, sim=sim, phantom=phantom)
     finally:
         with contextlib.suppress(Exception):

@@ -65,7 +65,7 @@ async def run(n: int, moves: int) -> list[str]:
             await dev.move({"X": 0.001 * (step["i"] % 100), "U": 0.001 * (step["i"] % 7)})
 
         rows.append(_row("move(): limits+VMO?+MOV+wait on target", await _timed(moves, full_move), "complete moves, travel ~0"))
-        path = server.open_serial()
+        path = server.run_sync(server.twin.open_serial)
         sdev = Hexapod("hexapod", f"serial://{path}?baud=115200")
         await sdev.connect()
         rows.append(_row("POS? (6 axes) over pty serial", await _timed(n // 2, sdev.position), "pseudo-terminal, no baud delay"))

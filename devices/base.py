@@ -1,4 +1,4 @@
-"""The device API every driver implements: describe, read, and capabilities as small protocols.
+"""The device API: the :class:`Driver` base, awaitable :class:`Status`, and capabilities as small protocols.
 
 Actions (moves, exposures, frame reads) return a :class:`Status`: an awaitable
 that reports progress to watchers and ends in success or a named
@@ -8,12 +8,16 @@ that reports progress to watchers and ends in success or a named
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Generic, Protocol, TypeVar, runtime_checkable
 
-from devices.errors import DeviceError, DeviceTimeoutError
+from devices.errors import DeviceTimeoutError
+from devices.frame_protocol import Frame
+
+log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
@@ -117,9 +121,37 @@ class DeviceInfo:
     extra: Mapping[str, Any] = field(default_factory=dict)
 
 
+class Driver:
+    """What every driver shares: a name, the endpoint URI it connects to, and what to release with it.
+
+    Drivers only ever see real endpoints (``tcp://``, ``serial://``, ``modbus://``, ``folder://``);
+    whoever opened something for a driver (``devices.sim`` starts a twin for a ``sim://`` URI)
+    attaches its release here, and the driver's ``close()`` runs it.
+    """
+
+    def __init__(self, name: str, uri: str) -> None:
+        self.name = name
+        self.uri = uri
+        self._on_close: list[Callable[[], Any]] = []
+
+    def on_close(self, release: Callable[[], Any]) -> None:
+        """Call ``release()`` (a function or coroutine function) once, when this driver closes."""
+        self._on_close.append(release)
+
+    async def _release(self) -> None:
+        releases, self._on_close = self._on_close, []
+        for release in reversed(releases):
+            try:
+                result = release()
+                if asyncio.iscoroutine(result):
+                    await result
+            except Exception as exc:  # noqa: BLE001 - one failing release must not keep the others
+                log.error("%s: releasing %r failed: %s", self.name, release, exc)
+
+
 @runtime_checkable
-class Device(Protocol):
-    """Anything orbitct can connect to."""
+class Readable(Protocol):
+    """Anything orbitct connects to: it describes itself and reports its state."""
 
     name: str
 
@@ -137,7 +169,7 @@ class Device(Protocol):
 
 
 @runtime_checkable
-class Movable(Protocol):
+class Movable(Readable, Protocol):
     """Axes that move to targets."""
 
     def move(self, targets: Mapping[str, float]) -> Status[None]:
@@ -149,23 +181,67 @@ class Movable(Protocol):
     async def limits(self) -> dict[str, tuple[float, float]]:
         """Soft limits per axis (user units)."""
 
-    async def on_target(self) -> bool:
-        """Whether every axis has reached its target."""
-
     async def position(self) -> dict[str, float]:
         """Read-back positions per axis (user units)."""
 
 
 @runtime_checkable
-class Triggerable(Protocol):
+class Referencing(Movable, Protocol):
+    """Servo-controlled axes that must be referenced before they move."""
+
+    async def referenced(self) -> dict[str, bool]:
+        """Per axis: referenced."""
+
+    async def servo_on(self) -> dict[str, bool]:
+        """Per axis: servo on."""
+
+    async def servo(self, on: bool = True) -> None:
+        """Switch every axis's servo on or off."""
+
+    def reference(self) -> Status[None]:
+        """Reference every axis (moves them to their switches)."""
+
+    async def set_velocity(self, velocity: float) -> None:
+        """Speed of the next moves (mm/s or deg/s)."""
+
+
+@runtime_checkable
+class Triggerable(Readable, Protocol):
     """Something that acts once per frame (exposure, frame grab)."""
 
     def trigger(self) -> Status[Any]:
         """Start one action; the status ends when it is complete."""
 
 
-def raise_if_failed(status: Status[Any]) -> None:
-    """Raise the status's error if it failed (for synchronous checks)."""
-    exc = status.exception()
-    if exc is not None:
-        raise exc if isinstance(exc, DeviceError) else DeviceError(f"{status.name}: {exc}")
+@runtime_checkable
+class XraySource(Triggerable, Protocol):
+    """An X-ray generator: technique, one exposure per trigger, high voltage off on request."""
+
+    async def configure(self, kv: float, ma: float, exposure_ms: float) -> None:
+        """Set tube voltage, current and exposure time."""
+
+    def expose(self) -> Status[int]:
+        """One exposure; ends with the generator's frame counter."""
+
+    async def xray_off(self) -> None:
+        """High voltage off now (safe in every state)."""
+
+
+@runtime_checkable
+class FrameSource(Readable, Protocol):
+    """A detector: frames on a trigger, darks and flats on request."""
+
+    async def set_trigger(self, mode: str) -> None:
+        """``software`` or ``xray`` (a frame for every generator exposure)."""
+
+    async def arm(self) -> None:
+        """Get ready to deliver the next frames."""
+
+    async def read_frame(self, timeout_s: float | None = None) -> Frame:
+        """The next frame."""
+
+    async def acquire_dark(self, n: int) -> list[Frame]:
+        """``n`` frames without X-rays."""
+
+    async def acquire_flat(self, n: int) -> list[Frame]:
+        """``n`` open-beam frames."""

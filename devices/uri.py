@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 from urllib.parse import parse_qsl, urlsplit
 
 from devices.errors import UriError
@@ -55,3 +56,34 @@ def parse_uri(uri: str, *, default_port: int | None = None) -> Endpoint:
     if scheme == "serial" and "baud" in params and not params["baud"].isdigit():
         raise UriError(f"device URI {uri!r}: baud must be an integer, got {params['baud']!r}")
     return Endpoint(scheme, path=path, params=params)
+
+
+def checked_options(params: dict[str, Any], allowed: set[str], what: str) -> dict[str, Any]:
+    """``params`` (URI query and keyword options) if every name is allowed; UriError naming the allowed ones."""
+    unknown = sorted(set(params) - allowed)
+    if unknown:
+        raise UriError(f"{what}: unknown option(s) {', '.join(unknown)}; allowed: {', '.join(sorted(allowed))}")
+    return params
+
+
+def option_number(value: Any, cast: type = float) -> Any:
+    """An option value as a number (URI query values arrive as text); UriError when it is not one."""
+    try:
+        return cast(value)
+    except (TypeError, ValueError):
+        raise UriError(f"option value {value!r} is not a number") from None
+
+
+def option_value(value: str) -> Any:
+    """A URI query value as a bool, int or float where it looks like one, else the text."""
+    low = value.lower()
+    if low in ("true", "yes", "on"):
+        return True
+    if low in ("false", "no", "off"):
+        return False
+    for cast in (int, float):
+        try:
+            return cast(value)
+        except ValueError:
+            pass
+    return value

@@ -18,7 +18,7 @@ from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException
 
 from devices import xray_registers as reg
-from devices.base import DeviceInfo, Status
+from devices.base import DeviceInfo, Driver, Status
 from devices.errors import (
     ControllerError,
     DeviceError,
@@ -34,8 +34,7 @@ from devices.uri import parse_uri
 from devices.xray_registers import FaultCode, GeneratorState, Refusal
 
 DEFAULT_PORT = 502
-_OPTIONS = {"timeout_s", "heartbeat_s", "watchdog_ms", "prep_timeout_s", "poll_s", "device_id", "prep_s", "time_scale"}
-_TWIN_OPTIONS = {"prep_s", "time_scale"}
+_OPTIONS = {"timeout_s", "heartbeat_s", "watchdog_ms", "prep_timeout_s", "poll_s", "device_id"}
 
 
 def _options(uri_params: dict[str, str], options: dict[str, Any]) -> dict[str, float]:
@@ -49,15 +48,14 @@ def _options(uri_params: dict[str, str], options: dict[str, Any]) -> dict[str, f
         raise UriError(f"X-ray generator: options must be numbers ({exc})") from None
 
 
-class XrayGenerator:
-    """Driver of a Modbus TCP X-ray generator (``modbus://host:port``, ``tcp://...`` or ``sim://world``)."""
+class XrayGenerator(Driver):
+    """Driver of a Modbus TCP X-ray generator (``modbus://host:port`` or ``tcp://host:port``)."""
 
-    def __init__(self, name: str = "xray", uri: str = "sim://bench", **options: Any) -> None:
-        self.name = name
-        self.uri = uri
+    def __init__(self, name: str = "xray", uri: str = "modbus://127.0.0.1:502", **options: Any) -> None:
+        super().__init__(name, uri)
         self.endpoint = parse_uri(uri, default_port=DEFAULT_PORT)
-        if self.endpoint.scheme not in ("sim", "tcp", "modbus"):
-            raise UriError(f"X-ray generator {name!r}: URI must be sim://, modbus://host:port or tcp://host:port, got {uri!r}")
+        if self.endpoint.scheme not in ("tcp", "modbus"):
+            raise UriError(f"X-ray generator {name!r}: URI must be modbus://host:port or tcp://host:port, got {uri!r}")
         opts = _options(self.endpoint.params, options)
         self.timeout_s = opts.get("timeout_s", 1.0)
         self.heartbeat_s = opts.get("heartbeat_s", 0.25)
@@ -65,9 +63,6 @@ class XrayGenerator:
         self.prep_timeout_s = opts.get("prep_timeout_s", 5.0)
         self.poll_s = opts.get("poll_s", 0.005)
         self.device_id = int(opts.get("device_id", reg.DEVICE_ID))
-        self._twin_options = {k: v for k, v in opts.items() if k in _TWIN_OPTIONS}
-        self.twin: Any = None  # the in-process XrayTwin for sim:// URIs
-        self._twin_thread: Any = None
         self._client: AsyncModbusTcpClient | None = None
         self._host, self._port = self.endpoint.host, self.endpoint.port
         self._opened = False
@@ -79,14 +74,7 @@ class XrayGenerator:
 
     # ------------------------------------------------------------- connection
     async def connect(self) -> None:
-        """Open the link (starting the in-process twin for ``sim://``), set the watchdog, start the heartbeat."""
-        if self.endpoint.scheme == "sim" and self._twin_thread is None:
-            from devices.twins.world import get_world
-            from devices.twins.xray import TwinThread, XrayTwin
-
-            self.twin = XrayTwin(get_world(self.endpoint.host or "bench"), **self._twin_options)
-            self._twin_thread = TwinThread(self.twin)
-            self._host, self._port = "127.0.0.1", self._twin_thread.port
+        """Open the link, set the watchdog, start the heartbeat."""
         await self._open_client()
         self._opened = True
         await self._request("set watchdog", lambda c: c.write_register(reg.WATCHDOG_MS, self.watchdog_ms, device_id=self.device_id))
@@ -114,7 +102,7 @@ class XrayGenerator:
             raise NotConnectedError(f"{self.name}: cannot connect to X-ray generator at {self._host}:{self._port}")
 
     async def close(self) -> None:
-        """Switch X-rays off (best effort), stop the heartbeat, close the link and any in-process twin."""
+        """Switch X-rays off (best effort), stop the heartbeat, close the link, release what was attached."""
         if self._heartbeat_task is not None:
             self._heartbeat_task.cancel()
             with contextlib.suppress(BaseException):
@@ -127,9 +115,7 @@ class XrayGenerator:
         if self._client is not None:
             self._client.close()
             self._client = None
-        if self._twin_thread is not None:
-            await asyncio.get_running_loop().run_in_executor(None, self._twin_thread.stop)
-            self._twin_thread = None
+        await self._release()
 
     async def __aenter__(self) -> "XrayGenerator":
         await self.connect()

@@ -2,12 +2,15 @@
 
 A :class:`ViewGeometry` is immutable. It holds ``(N, 12)`` vectors ``S, D, u, v``
 (ASTRA ``cone_vec`` order, object frame, millimetres) and the :class:`Panel`
-they refer to; every operation returns a new object.
+they refer to; every operation returns a new object. Beside it, a
+:class:`VolumeGrid` samples the object frame with voxels (as tomosipo pairs a
+volume geometry with the projection geometry).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import product
 from typing import Any
 
 import numpy as np
@@ -15,7 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from orbitct.rotations import rot_x, rot_z
 
-__all__ = ["Panel", "GeometryError", "ViewGeometry", "ideal_bench_pose"]
+__all__ = ["GeometryError", "Panel", "ViewGeometry", "VolumeGrid", "ideal_bench_pose"]
 
 
 class GeometryError(ValueError):
@@ -402,3 +405,68 @@ def _matrices_to_vectors(P: NDArray[np.float64], det: Panel) -> NDArray[np.float
     u, v, dz = u * s, v * s, dz * s
     out[ok] = np.concatenate([S, S + dz, u, v], axis=1)
     return out
+
+
+@dataclass(frozen=True)
+class VolumeGrid:
+    """Regular grid: ``shape`` (nz, ny, nx), ``voxel_mm`` and ``origin_mm`` (x, y, z; centre of voxel [0,0,0])."""
+
+    shape: tuple[int, int, int]
+    voxel_mm: tuple[float, float, float]
+    origin_mm: tuple[float, float, float]
+
+    def __post_init__(self) -> None:
+        shape = tuple(int(s) for s in self.shape)
+        vox = tuple(float(v) for v in np.broadcast_to(np.asarray(self.voxel_mm, dtype=float), (3,)))
+        org = tuple(float(v) for v in np.asarray(self.origin_mm, dtype=float).ravel())
+        if len(shape) != 3 or min(shape) < 1:
+            raise GeometryError(f"grid shape must be 3 positive integers (nz, ny, nx), got {self.shape}")
+        if min(vox) <= 0:
+            raise GeometryError(f"voxel_mm must be > 0, got {self.voxel_mm}")
+        if len(org) != 3 or not np.all(np.isfinite(org)):
+            raise GeometryError(f"origin_mm must be 3 finite numbers (x, y, z), got {self.origin_mm}")
+        object.__setattr__(self, "shape", shape)
+        object.__setattr__(self, "voxel_mm", vox)
+        object.__setattr__(self, "origin_mm", org)
+
+    @classmethod
+    def centered(cls, shape: tuple[int, int, int], voxel_mm: float | tuple[float, float, float],
+                 center_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> "VolumeGrid":
+        """Grid of ``shape`` whose centre sits at ``center_mm`` (default the isocenter)."""
+        vox = np.broadcast_to(np.asarray(voxel_mm, dtype=float), (3,))
+        n_xyz = np.array(shape[::-1], dtype=float)
+        origin = np.asarray(center_mm, dtype=float) - (n_xyz - 1) / 2 * vox
+        return cls(tuple(shape), tuple(vox), tuple(origin))
+
+    @property
+    def size(self) -> int:
+        """Number of voxels."""
+        return int(np.prod(self.shape))
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of one float32 volume."""
+        return 4 * self.size
+
+    @property
+    def extent_mm(self) -> NDArray[np.float64]:
+        """``(3, 2)`` low/high edges of the grid along x, y, z."""
+        vox = np.asarray(self.voxel_mm)
+        lo = np.asarray(self.origin_mm) - vox / 2
+        hi = lo + vox * np.array(self.shape[::-1])
+        return np.stack([lo, hi], axis=1)
+
+    def coords_mm(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """1-D voxel-centre coordinates ``(z, y, x)``."""
+        return tuple(  # type: ignore[return-value]
+            self.origin_mm[a] + self.voxel_mm[a] * np.arange(self.shape[2 - a]) for a in (2, 1, 0)
+        )
+
+    def corners_mm(self) -> NDArray[np.float64]:
+        """The 8 outer corners ``(8, 3)``."""
+        ext = self.extent_mm
+        return np.array([[ext[0, i], ext[1, j], ext[2, k]] for i, j, k in product((0, 1), repeat=3)])
+
+    def to_json(self) -> dict[str, list[float] | list[int]]:
+        """Plain description for attributes and logs."""
+        return {"shape": list(self.shape), "voxel_mm": list(self.voxel_mm), "origin_mm": list(self.origin_mm)}

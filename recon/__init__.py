@@ -1,8 +1,14 @@
 """Reconstruction for arbitrary cone-beam orbits: projectors, FDK, PWLS/SPS, MAR, exports."""
 
-from recon.errors import FieldOfViewError, GeometryMissingError, MemoryBudgetError, ReconError
+from orbitct.geometry import VolumeGrid
+from recon.errors import (
+    FieldOfViewError,
+    GeometryMissingError,
+    MemoryBudgetError,
+    ReconError,
+)
 from recon.fdk import fdk
-from recon.grid import VolumeGrid, check_fov, grid_for_geometry
+from recon.grid import check_fov, grid_for_geometry
 from recon.operator import Projector, backproject_voxels, projector
 from recon.pipeline import ReconResult, reconstruct_scan
 from recon.pwls import DEFAULT_BETA, PwlsResult, pwls_sps

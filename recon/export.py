@@ -10,9 +10,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from orbitct.geometry import Panel, ViewGeometry
+from orbitct.geometry import Panel, ViewGeometry, VolumeGrid
 from recon.errors import ReconError
-from recon.grid import VolumeGrid
 
 FORMATS = ("nifti", "tiff", "png")
 

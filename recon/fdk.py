@@ -8,10 +8,10 @@ import numpy as np
 import scipy.fft
 from numpy.typing import NDArray
 
-from orbitct.geometry import ViewGeometry
+from orbitct.geometry import ViewGeometry, VolumeGrid
 from orbitct.progress import ProgressCallback, report
 from recon.errors import ReconError
-from recon.grid import VolumeGrid, views_isocenter
+from recon.grid import views_isocenter
 from recon.operator import backproject_padded
 
 WINDOWS = ("ram-lak", "shepp-logan", "cosine", "hann")

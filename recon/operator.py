@@ -6,10 +6,15 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from orbitct.geometry import ViewGeometry
+from orbitct.geometry import ViewGeometry, VolumeGrid
 from recon.errors import ReconError
-from recon.grid import VolumeGrid
-from recon.projector import joseph_adjoint, joseph_forward, ray_slab_range, slab_bounds, voxel_backproject
+from recon.projector import (
+    joseph_adjoint,
+    joseph_forward,
+    ray_slab_range,
+    slab_bounds,
+    voxel_backproject,
+)
 
 
 def index_rays(grid: VolumeGrid, geometry: ViewGeometry) -> NDArray[np.float64]:

@@ -12,15 +12,22 @@ import numpy as np
 import psutil
 from numpy.typing import NDArray
 
-from orbitct.geometry import ViewGeometry
+from orbitct.geometry import ViewGeometry, VolumeGrid
 from orbitct.progress import ProgressCallback, report
 from orbitct.scanfile import ScanFile
 from recon.errors import GeometryMissingError, MemoryBudgetError, ReconError
 from recon.export import FORMATS, export_volume
 from recon.fdk import WINDOWS, fdk
-from recon.grid import VolumeGrid, check_fov, grid_for_geometry
-from recon.mar import (METHODS, add_metal_back, fill_traces_normalized, metal_in_volume, tissue_prior,
-                       traces_by_reprojection, traces_by_threshold)
+from recon.grid import check_fov, grid_for_geometry
+from recon.mar import (
+    METHODS,
+    add_metal_back,
+    fill_traces_normalized,
+    metal_in_volume,
+    tissue_prior,
+    traces_by_reprojection,
+    traces_by_threshold,
+)
 from recon.operator import projector
 from recon.pwls import DEFAULT_BETA, pwls_sps, statistical_weights
 

@@ -18,7 +18,6 @@ import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
 
-
 _MARGIN = 1e-6  # planes whose a or b lies within this of the padding edge are skipped (weight <= 1e-6)
 
 

@@ -8,8 +8,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from orbitct.geometry import VolumeGrid
 from recon.errors import ReconError
-from recon.grid import VolumeGrid
 
 
 def reference_volume(phantom: Any, grid: VolumeGrid, supersample: int = 3) -> NDArray[np.float32]:

@@ -15,7 +15,7 @@ def _stop_sim_twins() -> Iterator[None]:
     the middle of it (gh-106905, fixed in 3.11.8); left-over asyncio objects would otherwise be finalised
     during a later test such as the layering check."""
     yield
-    from devices.twins.gcs import stop_sim_servers
+    from devices.sim import stop_twins
 
-    stop_sim_servers()
+    stop_twins()
     gc.collect()

@@ -1,9 +1,10 @@
 """Shared driver for PI GCS 2.0 motion controllers: connect by URI, query state, check limits, move, stop.
 
 :class:`GcsMotionDevice` is written once; the transport is chosen at connect time
-from the URI (``sim://bench`` starts the in-process twin on a loopback port,
-``tcp://host:port``, ``serial:///dev/ttyUSB0?baud=115200``). Subclasses name the
-axes and add kind-specific commands (hexapod workspace and pivot, stage velocity).
+from the URI (``tcp://host:port`` or ``serial:///dev/ttyUSB0?baud=115200``; a ``sim://``
+URI is resolved to a twin's loopback endpoint by :mod:`devices.sim` before a driver
+sees it). Subclasses name the axes and add kind-specific commands (hexapod workspace
+and pivot, stage velocity).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import time
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
-from devices.base import AxisInfo, DeviceInfo, Status
+from devices.base import AxisInfo, DeviceInfo, Driver, Status
 from devices.errors import (
     ControllerError,
     DeviceError,
@@ -30,14 +31,13 @@ from devices.gcs.framing import BUSY, READY, format_command, parse_axis_values
 from devices.uri import Endpoint, parse_uri
 
 DEFAULT_PORT = 50000
-SIM_OPTIONS = ("time_scale", "imperfect", "seed", "velocity")  # passed to the twin of a sim:// URI
 
 
 class ServoOffError(NotReferencedError):
     """A move was refused because the servo of an axis is off (switch it on with ``servo(True)``)."""
 
 
-class GcsMotionDevice:
+class GcsMotionDevice(Driver):
     """Base driver: axes exposed under user names, mapped to the controller's axis identifiers."""
 
     kind: ClassVar[str] = "gcs"
@@ -46,24 +46,18 @@ class GcsMotionDevice:
     reference_timeout_s: ClassVar[float] = 120.0
 
     def __init__(self, name: str, uri: str, *, timeout_s: float = 2.0, poll_s: float = 0.005,
-                 move_timeout_s: float | None = None, query_retries: int = 1, **twin_options: Any) -> None:
-        self.name = name
-        self.uri = uri
-        self.endpoint: Endpoint = parse_uri(uri, default_port=DEFAULT_PORT)
-        if self.endpoint.scheme not in ("sim", "tcp", "serial"):
-            raise DeviceError(f"{name}: GCS devices connect by sim://, tcp://host:port or serial://path, not {uri!r}")
-        unknown = sorted(set(twin_options) - set(SIM_OPTIONS))
+                 move_timeout_s: float | None = None, query_retries: int = 1, **unknown: Any) -> None:
+        super().__init__(name, uri)
         if unknown:
-            raise DeviceError(
-                f"{name}: unknown option(s) {', '.join(unknown)}; driver options are timeout_s, poll_s, "
-                f"move_timeout_s, query_retries; sim:// twin options are {', '.join(SIM_OPTIONS)}"
-            )
+            raise DeviceError(f"{name}: unknown option(s) {', '.join(sorted(unknown))}; driver options are timeout_s, "
+                              "poll_s, move_timeout_s, query_retries")
+        self.endpoint: Endpoint = parse_uri(uri, default_port=DEFAULT_PORT)
+        if self.endpoint.scheme not in ("tcp", "serial"):
+            raise DeviceError(f"{name}: GCS devices connect by tcp://host:port or serial://path, not {uri!r}")
         self.timeout_s = timeout_s
         self.poll_s = poll_s
         self.move_timeout_s = move_timeout_s
         self.query_retries = query_retries
-        self.twin_options = twin_options
-        self.twin: Any = None  # the in-process twin server for sim:// (fault injection, inspection)
         self._client: GcsClient | None = None
         self._idn = ""
         self._limits: dict[str, tuple[float, float]] = {}
@@ -78,21 +72,9 @@ class GcsMotionDevice:
             raise NotConnectedError(f"{self.name}: not connected (await connect() first)")
         return self._client
 
-    def _controller_endpoint(self) -> Endpoint:
-        if self.endpoint.scheme != "sim":
-            return self.endpoint
-        from devices.twins.gcs import sim_server
-
-        bad = sorted(set(self.endpoint.params) - set(SIM_OPTIONS))
-        if bad:
-            raise DeviceError(f"{self.name}: {self.uri!r}: unknown sim option(s) {', '.join(bad)}; allowed: {', '.join(SIM_OPTIONS)}")
-        options = {**{k: _option(v) for k, v in self.endpoint.params.items()}, **self.twin_options}
-        self.twin = sim_server(self.kind, self.endpoint.host or "bench", **options)
-        return Endpoint("tcp", host=self.twin.host, port=self.twin.port)
-
     async def connect(self) -> None:
         """Open the transport, identify the controller and read its axes and soft limits."""
-        client = GcsClient(self._controller_endpoint(), timeout_s=self.timeout_s, query_retries=self.query_retries)
+        client = GcsClient(self.endpoint, timeout_s=self.timeout_s, query_retries=self.query_retries)
         await client.connect()
         self._client = client
         try:
@@ -107,10 +89,11 @@ class GcsMotionDevice:
             raise
 
     async def close(self) -> None:
-        """Close the transport (idempotent; a sim:// twin keeps running for other drivers)."""
+        """Close the transport and release what was attached to this driver (idempotent)."""
         client, self._client = self._client, None
         if client is not None:
             await client.close()
+        await self._release()
 
     async def __aenter__(self) -> GcsMotionDevice:
         await self.connect()
@@ -371,22 +354,6 @@ class GcsMotionDevice:
     async def stop(self) -> None:
         """Halt every axis now (one round trip); running move statuses end with error 10."""
         await self.halt()
-
-
-def _option(value: str) -> Any:
-    """Turn a URI query value into a number or bool where it looks like one."""
-    low = value.lower()
-    if low in ("true", "yes", "on"):
-        return True
-    if low in ("false", "no", "off"):
-        return False
-    try:
-        return int(value)
-    except ValueError:
-        try:
-            return float(value)
-        except ValueError:
-            return value
 
 
 def _fraction(start: Mapping[str, float], now: Mapping[str, float], target: Mapping[str, float]) -> float:

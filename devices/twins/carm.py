@@ -25,9 +25,10 @@ from typing import Any
 
 import numpy as np
 
-from devices.carm import CArmLimits, NavPoint
-from devices.detector import ERR_BAD_ARG, ERR_LIMITS, ERR_NOT_ARMED
-from devices.twins.detector import CommandError, DetectorTwin, _int_arg
+from devices.carm_program import CArmLimits, NavPoint
+from devices.frame_protocol import ERR_BAD_ARG, ERR_LIMITS, ERR_NOT_ARMED
+from devices.twins.detector import DetectorTwin
+from devices.twins.line_server import CommandError, int_arg
 from devices.twins.world import SimWorld, get_world
 from orbitct.geometry import ViewGeometry
 
@@ -149,7 +150,7 @@ class CArmTwin(DetectorTwin):
 
     def cmd_goto(self, args: list[str]) -> str:
         """``GOTO i``: move to program point i."""
-        i = _int_arg(args, 0)
+        i = int_arg(args, 0)
         if not 0 <= i < len(self.program):
             raise CommandError(ERR_BAD_ARG, f"GOTO: point {i} not in the program (0..{len(self.program) - 1})")
         pt = self.program[i]

@@ -1,19 +1,16 @@
 """Flat-panel detector twin: renders frames with the analytic simulator at the world's true object pose.
 
-Served over TCP with the frame protocol documented in :mod:`devices.detector`. Commands:
+Served over TCP with the frame protocol of :mod:`devices.frame_protocol`. Commands:
 ``IDN?``, ``SHAPE?`` (rows cols pitch_col pitch_row binning), ``BIN n`` (1, 2, 4),
 ``TRIGMODE SOFTWARE|XRAY``, ``TRIGMODE?``, ``ARM``, ``DISARM``, ``TRIG`` (software trigger, a
 projection under the world's kV/mA/exposure), ``DARK``, ``FLAT``, ``STATE?``, ``FRAME? ms``.
 In XRAY mode an armed panel takes a projection for every completed generator exposure
-(``SimWorld.xray_frame_counter``). :class:`LineTwinServer` is the protocol server the C-arm
-twin reuses.
+(``SimWorld.xray_frame_counter``).
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import inspect
 import threading
 import time
 from collections.abc import Callable
@@ -22,186 +19,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from devices.detector import (
-    DEFAULT_PIXELS,
-    ERR_BAD_ARG,
-    ERR_DEVICE,
-    ERR_NO_FRAME,
-    ERR_NOT_ARMED,
-    ERR_UNKNOWN,
-    PANEL_MM,
-    Frame,
-    encode_frame,
-)
+from devices.frame_protocol import ERR_BAD_ARG, ERR_NOT_ARMED
+from devices.twins.line_server import CommandError, LineTwinServer, int_arg
 from devices.twins.world import SimWorld, get_world
-from devices.twins.xray import TwinFaults
-from orbitct.geometry import Panel
-from orbitct.geometry import ViewGeometry
+from orbitct.geometry import Panel, ViewGeometry
+from orbitct.reference_bench import PANEL_PX, SAD_MM, SDD_MM, reference_panel
 
 XRAY_POLL_S = 0.002
 Renderer = Callable[[str, ViewGeometry, float, float, float, np.random.Generator], NDArray[np.uint16]]
-
-
-class CommandError(Exception):
-    """A command the twin refuses: becomes ``ERR <code> <text>``."""
-
-    def __init__(self, code: int, text: str) -> None:
-        super().__init__(text)
-        self.code, self.text = code, text
-
-
-class LineTwinServer:
-    """TCP server of the frame protocol: command lines in, ``OK``/``ERR`` lines and frames out, faults on request."""
-
-    model = "orbitct twin"
-    serial = "0000"
-    firmware = "1.0"
-
-    def __init__(self) -> None:
-        self.faults = TwinFaults()
-        self.frames: asyncio.Queue[Frame | str] | None = None  # a str reports a frame that failed
-        self.frame_number = 0
-        self.commands_seen: list[str] = []
-        self._server: asyncio.base_events.Server | None = None
-        self._writers: set[asyncio.StreamWriter] = set()
-        self._tasks: set[asyncio.Task[Any]] = set()
-
-    async def start(self, host: str = "127.0.0.1", port: int = 0) -> int:
-        """Listen on ``host:port`` (0 = any free port); returns the port."""
-        self.frames = asyncio.Queue()
-        self._server = await asyncio.start_server(self._serve, host, port)
-        await self.started()
-        return int(self._server.sockets[0].getsockname()[1])
-
-    async def started(self) -> None:
-        """Hook for subclasses (background tasks)."""
-
-    async def stop(self) -> None:
-        """Close every connection and the listener."""
-        for task in list(self._tasks):
-            task.cancel()
-        for w in list(self._writers):
-            w.close()
-        if self._server is not None:
-            self._server.close()
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(self._server.wait_closed(), 2.0)
-            self._server = None
-
-    def spawn(self, coro: Any) -> asyncio.Task[Any]:
-        """Run a background task that :meth:`stop` cancels."""
-        task = asyncio.ensure_future(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
-        return task
-
-    def drop_connections(self) -> None:
-        """Close every client connection now."""
-        for w in list(self._writers):
-            w.transport.abort()
-
-    # ---------------------------------------------------------------- frames
-    def next_number(self) -> int:
-        """Number for a frame being taken now."""
-        self.frame_number += 1
-        return self.frame_number
-
-    def push_frame(self, number: int, data: NDArray[np.uint16], kind: str, meta: dict[str, Any], timestamp: float | None = None) -> None:
-        """Queue frame ``number`` taken at ``timestamp`` (default now), unless a missing-frame fault swallows it."""
-        if self.faults.take("missing_frame", f"frame {number};"):
-            return
-        assert self.frames is not None
-        self.frames.put_nowait(Frame(np.asarray(data, np.uint16), number, time.time() if timestamp is None else timestamp, kind, meta))
-
-    def clear_frames(self) -> None:
-        """Discard queued frames."""
-        assert self.frames is not None
-        while not self.frames.empty():
-            self.frames.get_nowait()
-
-    async def cmd_frame_q(self, args: list[str]) -> bytes:
-        """``FRAME? ms``: the next queued frame, waiting up to ``ms``."""
-        timeout_ms = _int_arg(args, 0, default=0)
-        assert self.frames is not None
-        try:
-            frame = await asyncio.wait_for(self.frames.get(), timeout_ms / 1000.0) if timeout_ms else self.frames.get_nowait()
-        except (asyncio.TimeoutError, asyncio.QueueEmpty):
-            raise CommandError(ERR_NO_FRAME, f"no frame within {timeout_ms} ms") from None
-        if isinstance(frame, str):
-            raise CommandError(ERR_DEVICE, frame)
-        return encode_frame(frame)
-
-    async def cmd_idn_q(self, args: list[str]) -> str:
-        """``IDN?``: model, serial, firmware."""
-        return f"{self.model},{self.serial},{self.firmware}"
-
-    # ---------------------------------------------------------------- serving
-    def _handler(self, verb: str) -> Callable[[list[str]], Any] | None:
-        name = "cmd_" + verb.lower().replace("?", "_q")
-        fn = getattr(self, name, None)
-        return fn if callable(fn) and name.startswith("cmd_") else None
-
-    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        self._writers.add(writer)
-        try:
-            while True:
-                raw = await reader.readline()
-                if not raw:
-                    break
-                line = raw.decode("latin-1").strip()
-                if not line:
-                    continue
-                self.commands_seen.append(line)
-                if self.faults.latency_s > 0:
-                    await asyncio.sleep(self.faults.latency_s)
-                if self.faults.take("drop", line):
-                    writer.transport.abort()
-                    break
-                reply = await self._dispatch(line)
-                if self.faults.take("garble", line):
-                    reply = garble_line(reply)
-                writer.write(reply)
-                await writer.drain()
-        except (ConnectionError, OSError):
-            pass
-        finally:
-            self._writers.discard(writer)
-            writer.close()
-
-    async def _dispatch(self, line: str) -> bytes:
-        verb, *args = line.split()
-        if self.faults.take("error", line):
-            return f"ERR {ERR_DEVICE} injected device error on {verb}\n".encode()
-        fn = self._handler(verb)
-        if fn is None:
-            return f"ERR {ERR_UNKNOWN} unknown command {verb!r}\n".encode()
-        try:
-            result = fn(args)
-            if inspect.isawaitable(result):
-                result = await result
-        except CommandError as exc:
-            return f"ERR {exc.code} {exc.text}\n".encode()
-        if isinstance(result, bytes):
-            return result
-        return (f"OK {result}" if result else "OK").encode() + b"\n"
-
-
-def garble_line(reply: bytes) -> bytes:
-    """Corrupt the first line of a reply but keep its LF, so the client reads garbage, not silence."""
-    head, sep, rest = reply.partition(b"\n")
-    bad = bytes(b ^ 0x5A for b in head).replace(b"\n", b"?")
-    return bad + sep + rest
-
-
-def _int_arg(args: list[str], i: int, *, default: int | None = None) -> int:
-    try:
-        return int(args[i])
-    except IndexError:
-        if default is not None:
-            return default
-        raise CommandError(ERR_BAD_ARG, "missing integer argument") from None
-    except ValueError:
-        raise CommandError(ERR_BAD_ARG, f"not an integer: {args[i]!r}") from None
 
 
 REFERENCE_KV, REFERENCE_MAS = 90.0, 0.01  # settings at which the panel's open field reads DetectorModel.flat_counts
@@ -249,12 +74,11 @@ class DetectorTwin(LineTwinServer):
         self,
         world: SimWorld | None = None,
         *,
-        rows: int = DEFAULT_PIXELS,
+        rows: int = PANEL_PX,
         cols: int | None = None,
-        panel_mm: float = PANEL_MM,
         pitch_mm: Any = None,
-        sad_mm: float = 785.0,
-        sdd_mm: float = 1200.0,
+        sad_mm: float = SAD_MM,
+        sdd_mm: float = SDD_MM,
         phantom: Any = "A",
         seed: int = 0,
         detector_model: Any = None,
@@ -263,8 +87,8 @@ class DetectorTwin(LineTwinServer):
         self.world = world if world is not None else get_world("bench")
         cols = rows if cols is None else cols
         rows, cols = int(rows), int(cols)
-        if pitch_mm is None:
-            pitch = (float(panel_mm) / cols, float(panel_mm) / rows)
+        if pitch_mm is None:  # the reference panel read out at this size
+            pitch = (reference_panel(cols).pitch_col, reference_panel(rows).pitch_row)
         else:  # one pitch, "col,row" text or a pair
             parts = [float(v) for v in (pitch_mm.split(",") if isinstance(pitch_mm, str) else np.atleast_1d(pitch_mm))]
             pitch = (parts[0], parts[-1])
@@ -273,7 +97,8 @@ class DetectorTwin(LineTwinServer):
         self.binning = 1
         self.mode = "SOFTWARE"
         self.armed = False
-        self.rng = np.random.default_rng(int(seed))
+        self.seed = int(seed)  # frame noise and, for a phantom given by name, its random layout
+        self.rng = np.random.default_rng(self.seed)
         self.detector_model = detector_model
         self._renderer: Renderer | None = None
         self._renderer_lock = threading.Lock()
@@ -299,7 +124,7 @@ class DetectorTwin(LineTwinServer):
             if isinstance(phantom, str):
                 from orbitct.phantoms import experiment_phantom
 
-                phantom = experiment_phantom(phantom)
+                phantom = experiment_phantom(phantom, seed=self.seed)
             self._renderer = simulator_renderer(phantom, self.detector_model)
         return self._renderer
 
@@ -387,7 +212,7 @@ class DetectorTwin(LineTwinServer):
 
     def cmd_bin(self, args: list[str]) -> str:
         """``BIN n``: bin n x n pixels (1, 2, 4)."""
-        factor = _int_arg(args, 0)
+        factor = int_arg(args, 0)
         if factor not in (1, 2, 4) or self.panel.rows // factor < 1:
             raise CommandError(ERR_BAD_ARG, f"binning must be 1, 2 or 4, got {factor}")
         self.binning = factor

@@ -11,12 +11,9 @@ Also home of :class:`TwinFaults` and :class:`TwinThread`, shared by every twin i
 from __future__ import annotations
 
 import asyncio
-import threading
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, ClassVar
 
 try:
     from pymodbus.constants import ExcCodes
@@ -30,106 +27,11 @@ except ImportError:  # pymodbus < 3.11 names no exception codes: same numbers, o
 from pymodbus.server import ModbusTcpServer
 
 from devices import xray_registers as reg
+from devices.twins.runtime import TwinFaults, garble
 from devices.twins.world import SimWorld, get_world
 from devices.xray_registers import FaultCode, GeneratorState, Refusal
 
 HEARTBEAT_PERIOD_S = 0.1
-START_TIMEOUT_S = 300.0  # a twin may compile its renderer's kernels before it listens (first run, no numba cache)
-
-
-@dataclass
-class TwinFaults:
-    """Faults a twin injects on request; counters apply to the next N requests or frames."""
-
-    latency_s: float = 0.0  # added before every reply
-    drop_next: int = 0  # close the connection instead of answering
-    garble_next: int = 0  # answer with corrupted bytes
-    error_next: int = 0  # answer with a device error
-    missing_frame_next: int = 0  # complete the action but lose the frame / trigger
-    match: str = ""  # faults only hit requests containing this text (e.g. "fc5:1=[1]", "TRIG", "frame 7;")
-
-    def take(self, name: str, request: str = "") -> bool:
-        """Consume one pending fault called ``name`` (e.g. ``'drop'``) for ``request``; whether one was pending."""
-        attr = f"{name}_next"
-        if self.match and self.match not in request:
-            return False
-        if getattr(self, attr) > 0:
-            setattr(self, attr, getattr(self, attr) - 1)
-            return True
-        return False
-
-
-def garble(data: bytes) -> bytes:
-    """Corrupt a reply so that a careful client notices (bit flips, not a clean frame)."""
-    if len(data) <= 2:
-        return b"\xff" + data
-    mid = len(data) // 2
-    return data[:mid] + bytes(b ^ 0x5A for b in data[mid:])
-
-
-class _Server(Protocol):
-    async def start(self, host: str, port: int) -> int: ...
-
-    async def stop(self) -> None: ...
-
-
-class TwinThread:
-    """Run a twin server in its own event loop on a daemon thread; ``port`` is where it listens."""
-
-    def __init__(self, server: _Server, host: str = "127.0.0.1", port: int = 0) -> None:
-        self.server = server
-        self.host = host
-        self.loop = asyncio.new_event_loop()
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
-        self.port = 0
-        self._thread = threading.Thread(target=self._main, args=(port,), name=f"twin-{type(server).__name__}", daemon=True)
-        self._thread.start()
-        self._ready.wait(START_TIMEOUT_S)
-        if self._error is not None:
-            raise self._error
-        if not self.port:
-            raise RuntimeError(f"{type(server).__name__} twin did not start within {START_TIMEOUT_S:g} s")
-
-    def _main(self, port: int) -> None:
-        asyncio.set_event_loop(self.loop)
-        try:
-            self.port = self.loop.run_until_complete(self.server.start(self.host, port))
-        except BaseException as exc:  # reported to the starting thread
-            self._error = exc
-            self._ready.set()
-            return
-        self._ready.set()
-        self.loop.run_forever()
-
-    def call(self, fn: Callable[..., Any], *args: Any) -> None:
-        """Run ``fn(*args)`` in the twin's loop (thread-safe)."""
-        self.loop.call_soon_threadsafe(fn, *args)
-
-    def run(self, coro: Awaitable[Any], timeout_s: float = 10.0) -> Any:
-        """Run a coroutine in the twin's loop and wait for its result."""
-        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout_s)  # type: ignore[arg-type]
-
-    def stop(self) -> None:
-        """Stop the server, cancel what still runs in its loop, end the thread (idempotent)."""
-        if not self._thread.is_alive():
-            return
-        try:
-            self.run(self.server.stop(), 5.0)
-            self.run(_cancel_others(), 5.0)
-        finally:
-            self.loop.call_soon_threadsafe(self.loop.stop)
-            self._thread.join(5.0)
-            if not self._thread.is_alive():
-                self.loop.close()
-
-
-async def _cancel_others() -> None:
-    """Cancel every other task of the running loop and wait for them to finish."""
-    tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
-    for t in tasks:
-        t.cancel()
-    await asyncio.gather(*tasks, return_exceptions=True)
 
 
 def _bits_to_registers(bits: list[bool]) -> list[int]:
@@ -139,6 +41,8 @@ def _bits_to_registers(bits: list[bool]) -> list[int]:
 
 class XrayTwin:
     """Simulated X-ray generator served over Modbus TCP with the documented register map."""
+
+    scheme: ClassVar[str] = "modbus"
 
     def __init__(
         self,
@@ -206,7 +110,7 @@ class XrayTwin:
 
     def _trace_packet(self, sending: bool, data: bytes) -> bytes:
         if sending and self.faults.take("garble"):
-            return garble(data)
+            return garble(data, len(data) // 2)  # the second half: the header still names the transaction
         return data
 
     # ------------------------------------------------------- hazards on request

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from orbitct_app.cli.twin_xray import serve_twin
+from orbitct_app.cli.twin_console import serve_twin
 
 
 @click.command("carm")
@@ -33,7 +33,7 @@ def carm(
     Console commands (one a line): stuck on|off, latency MS, drop [N], garble [N], error [N],
     missing [N], match TEXT|-.
     """
-    from devices.carm import CArmLimits
+    from devices.carm_program import CArmLimits
     from devices.twins.carm import CArmTwin
 
     for name, (lo, hi) in (("--primary-range-deg", primary_range_deg), ("--secondary-range-deg", secondary_range_deg)):

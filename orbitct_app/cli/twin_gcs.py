@@ -1,12 +1,16 @@
-"""``orbitct twin hexapod`` and ``orbitct twin rotation-stage``: a GCS 2.0 controller twin on a real socket."""
+"""``orbitct twin hexapod`` and ``orbitct twin rotation-stage``: a GCS 2.0 controller twin on a real socket.
+
+Console commands (one a line): ``stuck AXIS on|off`` and the fault commands every twin console takes.
+"""
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from typing import Any
 
 import click
+
+from orbitct_app.cli.twin_console import serve_twin
 
 
 def _options(fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -35,31 +39,31 @@ def _options(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 def _run(kind: str, host: str, port: int, serial_pty: bool, time_scale: float, perfect: bool, seed: int | None,
          latency_ms: float, drop_next: int, garble_next: int, errors: tuple[str, ...], stuck: tuple[str, ...]) -> None:
-    from devices.twins.gcs import start_twin
+    from devices.twins.gcs import GcsTwin, make_controller
 
     options: dict[str, Any] = {"time_scale": time_scale, "imperfect": not perfect}
     if seed is not None:
         options["seed"] = seed
-    try:
-        server = start_twin(kind, host, port, **options)
-    except OSError as exc:
-        raise click.ClickException(f"cannot listen on {host}:{port}: {exc}") from None
-    try:
-        _apply_faults(server, latency_ms, drop_next, garble_next, errors, stuck)
-        click.echo(f"{kind} twin listening on {server.uri} (axes {' '.join(server.controller.axes)}); Ctrl-C stops it")
-        if serial_pty:
-            click.echo(f"serial: serial://{server.open_serial()}?baud=115200")
-        while True:
-            time.sleep(0.5)
-    except KeyboardInterrupt:
-        click.echo("stopping")
-    finally:
-        server.stop()
+    controller = make_controller(kind, **options)
+    twin = GcsTwin(controller)
+    _apply_faults(twin, latency_ms, drop_next, garble_next, errors, stuck)
+
+    def hazard(words: list[str]) -> str | None:
+        if words[:1] == ["stuck"] and len(words) == 3 and words[1] in controller.axes and words[2] in ("on", "off"):
+            controller.stick(words[1], words[2] == "on")
+            return f"axis {words[1]} stuck {words[2]}"
+        return None
+
+    def serial() -> str | None:
+        return f"serial: serial://{twin.open_serial()}?baud=115200" if serial_pty else None
+
+    banner = f"{kind} twin listening on tcp://{host}:{{}} (axes {' '.join(controller.axes)})"
+    serve_twin(twin, host, port, banner.format, hazard=hazard, after_start=serial)
 
 
-def _apply_faults(server: Any, latency_ms: float, drop_next: int, garble_next: int,
+def _apply_faults(twin: Any, latency_ms: float, drop_next: int, garble_next: int,
                   errors: tuple[str, ...], stuck: tuple[str, ...]) -> None:
-    faults = server.faults
+    faults = twin.faults
     faults.latency_s, faults.drop_next, faults.garble_next = latency_ms / 1000.0, drop_next, garble_next
     for spec in errors:
         code, sep, command = spec.partition(":")
@@ -67,9 +71,9 @@ def _apply_faults(server: Any, latency_ms: float, drop_next: int, garble_next: i
             raise click.BadParameter(f"{spec!r}: expected CODE:COMMAND, e.g. 7:MOV", param_hint="--error")
         faults.add_error(int(code), command.strip())
     for axis in stuck:
-        if axis not in server.controller.axes:
-            raise click.BadParameter(f"{axis!r}: axes are {', '.join(server.controller.axes)}", param_hint="--stuck-axis")
-        server.controller.stick(axis)
+        if axis not in twin.controller.axes:
+            raise click.BadParameter(f"{axis!r}: axes are {', '.join(twin.controller.axes)}", param_hint="--stuck-axis")
+        twin.controller.stick(axis)
 
 
 @click.command("hexapod")

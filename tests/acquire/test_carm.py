@@ -10,7 +10,7 @@ import pytest
 from acquire.config import CArmConfig, parse_config
 from acquire.errors import PreflightError
 from acquire.runner import ScanRequest, run_scan
-from devices.carm import NavProgram
+from devices.carm_program import NavProgram
 from orbitct.orbits import make_orbit
 from orbitct.scanfile import ScanFile
 

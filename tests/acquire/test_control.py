@@ -9,6 +9,7 @@ import pytest
 
 from acquire.bench import Bench, open_bench
 from acquire.runner import ScanRequest, ScanRunner
+from devices.sim import twin_of
 from orbitct.progress import ProgressEvent
 from orbitct.scanfile import ScanFile
 from tests.helpers.bench import small_config
@@ -124,23 +125,23 @@ def test_device_fault_ends_scan_safely_with_clear_reason(request_factory, fault:
     async def scenario(runner: ScanRunner, task: asyncio.Task, bench: Bench, events: list) -> None:
         await _until(lambda: runner._engine is not None and runner._engine.n_done >= 8)
         if fault == "stuck_axis":
-            bench.hexapod.twin.controller.stick("X")
+            twin_of(bench.hexapod).controller.stick("X")
         elif fault == "controller_error":
-            bench.stage.twin.faults.add_error(2, "MOV")
+            twin_of(bench.stage).faults.add_error(2, "MOV")
         elif fault == "interlock":
-            bench.xray.twin.set_door(False)
+            twin_of(bench.xray).set_door(False)
         else:
-            bench.detector.twin.drop_connections()
+            twin_of(bench.detector).drop_connections()
         try:
             res = await asyncio.wait_for(task, 60)
         finally:
             if fault == "stuck_axis":
-                bench.hexapod.twin.controller.stick("X", False)
-                bench.hexapod.twin.faults.clear()
+                twin_of(bench.hexapod).controller.stick("X", False)
+                twin_of(bench.hexapod).faults.clear()
             elif fault == "controller_error":
-                bench.stage.twin.faults.clear()
+                twin_of(bench.stage).faults.clear()
             elif fault == "interlock":
-                bench.xray.twin.set_door(True)
+                twin_of(bench.xray).set_door(True)
         assert res.status == "aborted" and expected.lower() in res.reason.lower(), res.reason
         assert res.n_frames < res.n_planned
         await _assert_safe(bench)

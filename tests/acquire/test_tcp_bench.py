@@ -13,8 +13,9 @@ from acquire.config import BenchConfig
 from acquire.runner import ScanRequest, ScanRunner
 from devices.twins.detector import DetectorTwin
 from devices.twins.gcs import start_twin
+from devices.twins.runtime import TwinThread
 from devices.twins.world import get_world
-from devices.twins.xray import TwinThread, XrayTwin
+from devices.twins.xray import XrayTwin
 from orbitct.scanfile import ScanFile
 from tests.helpers.bench import SMALL_ERRORS, small_config
 

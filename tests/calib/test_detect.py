@@ -6,11 +6,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from tests.helpers.calib_scans import SAD, SDD, perturbed, sawtooth, spiral_markers, write_scan
 
 from calib.detect import FrameDetector, settings_for
 from calib.pipeline import CalibrationOptions, _estimate_diameter_mm
 from orbitct.scanfile import ScanFile
+from tests.helpers.calib_scans import (
+    SAD,
+    SDD,
+    perturbed,
+    sawtooth,
+    spiral_markers,
+    write_scan,
+)
 
 
 @pytest.fixture(scope="module")

@@ -8,10 +8,16 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from tests.helpers.calib_scans import detector, perturbed, sawtooth, spiral_markers, write_scan
 
 import calib
 from orbitct.scanfile import ScanWriter
+from tests.helpers.calib_scans import (
+    detector,
+    perturbed,
+    sawtooth,
+    spiral_markers,
+    write_scan,
+)
 
 
 @pytest.fixture(scope="module")

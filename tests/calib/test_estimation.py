@@ -4,13 +4,19 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from tests.helpers.calib_scans import perturbed, sawtooth, spiral_markers
 
 from calib.bundle import bundle_adjust, gauge_matrix
 from calib.evaluate import similarity_aligned_error_px
 from calib.model import ViewModel
 from calib.paper import paper_calibrate
-from calib.rays import marker_rays, pairwise_midpoint_mean, point_ray_distance, rpe_per_frame, triangulate_least_squares
+from calib.rays import (
+    marker_rays,
+    pairwise_midpoint_mean,
+    point_ray_distance,
+    rpe_per_frame,
+    triangulate_least_squares,
+)
+from tests.helpers.calib_scans import perturbed, sawtooth, spiral_markers
 
 
 def _problem(n: int = 200, size: int = 768, noise_px: float = 0.05, k: int = 8, seed: int = 1):

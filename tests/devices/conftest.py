@@ -9,7 +9,8 @@ import pytest
 
 from devices.hexapod import Hexapod
 from devices.rotation_stage import RotationStage
-from devices.twins.gcs import TwinServer, start_twin
+from devices.twins.gcs import start_twin
+from devices.twins.runtime import TwinThread
 from devices.twins.world import SimWorld, get_world
 
 
@@ -30,21 +31,21 @@ def world(world_name: str) -> SimWorld:
 
 
 @pytest.fixture
-def hexapod_twin(world_name: str) -> Iterator[TwinServer]:
+def hexapod_twin(world_name: str) -> Iterator[TwinThread]:
     server = start_twin("hexapod", world=world_name, time_scale=100.0)
     yield server
     server.stop()
 
 
 @pytest.fixture
-def stage_twin(world_name: str) -> Iterator[TwinServer]:
+def stage_twin(world_name: str) -> Iterator[TwinThread]:
     server = start_twin("rotation_stage", world=world_name, time_scale=100.0)
     yield server
     server.stop()
 
 
 @pytest.fixture
-async def hexapod(hexapod_twin: TwinServer) -> AsyncIterator[Hexapod]:
+async def hexapod(hexapod_twin: TwinThread) -> AsyncIterator[Hexapod]:
     dev = Hexapod("hexapod", hexapod_twin.uri, timeout_s=1.0, move_timeout_s=5.0)
     await dev.connect()
     yield dev
@@ -58,7 +59,7 @@ async def ready_hexapod(hexapod: Hexapod) -> Hexapod:
 
 
 @pytest.fixture
-async def stage(stage_twin: TwinServer) -> AsyncIterator[RotationStage]:
+async def stage(stage_twin: TwinThread) -> AsyncIterator[RotationStage]:
     dev = RotationStage("stage", stage_twin.uri, timeout_s=1.0, move_timeout_s=5.0)
     await dev.connect()
     yield dev

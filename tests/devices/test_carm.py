@@ -11,10 +11,26 @@ from typing import Any
 import numpy as np
 import pytest
 
-from devices.carm import CArm, CArmLimits, InfeasibleOrbitError, NavPoint, NavProgram, ProgramFileError, export_program
-from devices.errors import ControllerError, DeviceTimeoutError, NotConnectedError, OutOfLimitsError, ProtocolError
+from devices.carm import CArm
+from devices.carm_program import (
+    CArmLimits,
+    InfeasibleOrbitError,
+    NavPoint,
+    NavProgram,
+    ProgramFileError,
+    export_program,
+)
+from devices.errors import (
+    ControllerError,
+    DeviceTimeoutError,
+    NotConnectedError,
+    OutOfLimitsError,
+    ProtocolError,
+)
+from devices.factory import opened
+from devices.sim import twin_of
 from devices.twins.carm import CArmTwin
-from devices.twins.xray import TwinThread
+from devices.twins.runtime import TwinThread
 from orbitct.geometry import ViewGeometry
 from orbitct.orbits import Orbit
 
@@ -91,7 +107,7 @@ def run(body: Any, **options: Any) -> Any:
     world = f"carmtest{next(_worlds)}"
 
     async def main() -> Any:
-        async with CArm("carm", f"sim://{world}", **options) as arm:
+        async with opened("carm", "carm", f"sim://{world}", **options) as arm:
             return await body(arm)
 
     return asyncio.run(main())
@@ -155,33 +171,33 @@ def test_move_goto_expose_and_refusals() -> None:
 
 def test_faults_on_the_carm_link() -> None:
     async def body(arm: CArm) -> None:
-        arm.twin.faults.drop_next = 1
+        twin_of(arm).faults.drop_next = 1
         assert "primary" in await arm.position()  # safe query reconnects
-        arm.twin.faults.match, arm.twin.faults.drop_next = "MOVE", 1
+        twin_of(arm).faults.match, twin_of(arm).faults.drop_next = "MOVE", 1
         with pytest.raises(NotConnectedError):
             await arm.move({"primary": 5.0})  # a move is never repeated blindly
-        assert sum(c.startswith("MOVE") for c in arm.twin.commands_seen) == 1
-        arm.twin.faults.match = ""
-        arm.twin.faults.error_next = 1
+        assert sum(c.startswith("MOVE") for c in twin_of(arm).commands_seen) == 1
+        twin_of(arm).faults.match = ""
+        twin_of(arm).faults.error_next = 1
         with pytest.raises(ControllerError):
             await arm.position()
         await arm.load(export_program(orbit([0, 2, 4], [0, 0, 0])))
-        arm.twin.faults.missing_frame_next = 1
+        twin_of(arm).faults.missing_frame_next = 1
         with pytest.raises(DeviceTimeoutError, match="frame.* missing"):
             await arm.run()  # the first frame never arrives: named by the gap
-        arm.twin.faults.latency_s = 0.5
+        twin_of(arm).faults.latency_s = 0.5
         with pytest.raises(DeviceTimeoutError, match="no reply"):
             await arm.position()
-        arm.twin.faults.latency_s = 0.0
+        twin_of(arm).faults.latency_s = 0.0
         await asyncio.sleep(0.6)
-        arm.twin.faults.garble_next = 1
+        twin_of(arm).faults.garble_next = 1
         with pytest.raises(ProtocolError):
             await arm._l().command("POS?", retry=False)
-        arm.twin.stuck = True
+        twin_of(arm).stuck = True
         with pytest.raises(DeviceTimeoutError, match="stuck at primary"):
             await arm.move({"primary": 30.0})
-        assert sum(c.startswith("MOVE") for c in arm.twin.commands_seen) == 2 and "STOP" in arm.twin.commands_seen
-        arm.twin.stuck = False
+        assert sum(c.startswith("MOVE") for c in twin_of(arm).commands_seen) == 2 and "STOP" in twin_of(arm).commands_seen
+        twin_of(arm).stuck = False
         await arm.move({"primary": 1.0})
         assert (await arm.position())["primary"] == pytest.approx(1.0)
 
@@ -224,7 +240,7 @@ def test_stop_during_a_run_is_immediate() -> None:
         with pytest.raises(asyncio.CancelledError):
             await move
         await asyncio.sleep(0.05)
-        assert arm.twin.commands_seen.count("STOP") == 3  # explicit stop, cancelled run, cancelled move
+        assert twin_of(arm).commands_seen.count("STOP") == 3  # explicit stop, cancelled run, cancelled move
         p0 = (await arm.position())["primary"]
         await asyncio.sleep(0.2)
         assert (await arm.position())["primary"] == p0 and not (await arm.read())["moving"]
@@ -237,7 +253,7 @@ def test_last_frame_missing_is_named_when_the_program_ends() -> None:
     async def body(arm: CArm) -> None:
         await arm.load(export_program(orbit([0, 2], [0, 0])))
         frames = await arm.run()
-        arm.twin.faults.match, arm.twin.faults.missing_frame_next = f"frame {frames[-1].number + 2};", 1
+        twin_of(arm).faults.match, twin_of(arm).faults.missing_frame_next = f"frame {frames[-1].number + 2};", 1
         with pytest.raises(DeviceTimeoutError, match="1 of 2 frames"):
             await arm.run()
 

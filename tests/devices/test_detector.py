@@ -11,11 +11,18 @@ import numpy as np
 import pytest
 
 from devices.detector import Detector, Frame
-from devices.errors import ControllerError, DeviceTimeoutError, NotConnectedError, ProtocolError, UriError
+from devices.errors import (
+    ControllerError,
+    DeviceTimeoutError,
+    NotConnectedError,
+    ProtocolError,
+    UriError,
+)
+from devices.factory import open_device, opened
+from devices.sim import twin_of
 from devices.twins.detector import DetectorTwin
+from devices.twins.runtime import TwinThread
 from devices.twins.world import get_world, reset_world
-from devices.twins.xray import TwinThread
-from devices.xray import XrayGenerator
 from orbitct.geometry import ViewGeometry
 from orbitct.kinematics import object_pose
 
@@ -31,7 +38,7 @@ def run(body: Callable[[Detector], Awaitable[Any]], **options: Any) -> Any:
     options.setdefault("timeout_s", 1.0)
 
     async def main() -> Any:
-        async with Detector("detector", f"sim://{world}", **options) as det:
+        async with opened("detector", "detector", f"sim://{world}", **options) as det:
             return await body(det)
 
     return asyncio.run(main())
@@ -42,10 +49,10 @@ def test_software_trigger_frame_at_true_pose() -> None:
         assert det.shape == (64, 64) and det.geometry.pitch_col == pytest.approx(427 / 64)
         await det.arm()
         first = await det.trigger()
-        with det.twin.world.lock:
-            det.twin.world.stage_true_rad = np.radians(30.0)
+        with twin_of(det).world.lock:
+            twin_of(det).world.stage_true_rad = np.radians(30.0)
         second = await det.trigger()
-        return first, second, det.twin.world.name
+        return first, second, twin_of(det).world.name
 
     first, second, world = run(body)
     assert first.data.dtype == np.uint16 and first.shape == (64, 64) and first.kind == "projection"
@@ -66,8 +73,8 @@ def test_dark_flat_and_dose_scaling() -> None:
     async def body(det: Detector) -> tuple[list[Frame], list[Frame], list[Frame]]:
         darks = await det.acquire_dark(2)
         flats = await det.acquire_flat(2)
-        with det.twin.world.lock:
-            det.twin.world.xray_ma = 2.0
+        with twin_of(det).world.lock:
+            twin_of(det).world.xray_ma = 2.0
         bright = await det.acquire_flat(1)
         return darks, flats, bright
 
@@ -108,8 +115,7 @@ def test_generator_exposure_triggers_frame() -> None:
     reset_world(world)
 
     async def main() -> None:
-        async with Detector("det", f"sim://{world}", rows=64, trigger="xray") as det, XrayGenerator(
-            "xray", f"sim://{world}", prep_s=0.01, heartbeat_s=0
+        async with opened("detector", "det", f"sim://{world}", rows=64, trigger="xray") as det, opened("xray", "xray", f"sim://{world}", prep_s=0.01, heartbeat_s=0
         ) as gen:
             await det.arm()
             with pytest.raises(ControllerError) as err:  # no software trigger in XRAY mode
@@ -122,7 +128,7 @@ def test_generator_exposure_triggers_frame() -> None:
                 assert frame.kind == "projection" and frame.meta["kv"] == 80.0 and frame.meta["ma"] == 2.0
             with pytest.raises(DeviceTimeoutError, match="no frame"):  # no exposure, no frame
                 await det.read_frame(timeout_s=0.1)
-            det.twin.faults.missing_frame_next = 1
+            twin_of(det).faults.missing_frame_next = 1
             assert await gen.expose() == 3
             with pytest.raises(DeviceTimeoutError, match="no frame"):
                 await det.read_frame(timeout_s=0.5)
@@ -144,7 +150,7 @@ def test_not_armed_refuses_software_trigger() -> None:
 
 def test_faults_latency_drop_garble_error_missing() -> None:
     async def body(det: Detector) -> None:
-        faults = det.twin.faults
+        faults = twin_of(det).faults
         await det.arm()
         faults.latency_s = 0.5
         with pytest.raises(DeviceTimeoutError, match="no reply"):
@@ -159,7 +165,7 @@ def test_faults_latency_drop_garble_error_missing() -> None:
         faults.match, faults.drop_next = "TRIG", 1
         with pytest.raises(NotConnectedError):
             await det.trigger()  # a trigger is never repeated
-        assert "TRIG" in det.twin.commands_seen and det.twin.commands_seen.count("TRIG") == 1
+        assert "TRIG" in twin_of(det).commands_seen and twin_of(det).commands_seen.count("TRIG") == 1
         faults.match = ""
 
         faults.garble_next = 1
@@ -175,7 +181,7 @@ def test_faults_latency_drop_garble_error_missing() -> None:
         faults.missing_frame_next = 1
         with pytest.raises(DeviceTimeoutError, match=f"frame {frame.number + 1} missing.*not re-triggered"):
             await det.trigger()  # its frame never arrives
-        assert det.twin.commands_seen.count("TRIG") == 3
+        assert twin_of(det).commands_seen.count("TRIG") == 3
         assert (await det.trigger()).number == frame.number + 2  # reported once, not again as a gap
 
     run(body, timeout_s=0.3, frame_timeout_s=1.0)
@@ -184,7 +190,7 @@ def test_faults_latency_drop_garble_error_missing() -> None:
 def test_garbled_frame_header_is_a_protocol_error() -> None:
     async def body(det: Detector) -> None:
         await det.arm()
-        det.twin.faults.match, det.twin.faults.garble_next = "FRAME?", 1
+        twin_of(det).faults.match, twin_of(det).faults.garble_next = "FRAME?", 1
         with pytest.raises(ProtocolError):
             await det.trigger()
 
@@ -210,12 +216,17 @@ def test_standalone_twin_over_tcp() -> None:
 
 
 def test_bad_options() -> None:
-    with pytest.raises(UriError, match="allowed"):
-        Detector("d", "sim://bench", colour=1)
-    with pytest.raises(UriError, match="trigger"):
-        Detector("d", "sim://bench", trigger="foot")
-    with pytest.raises(UriError, match="sim://"):
+    async def main() -> None:
+        with pytest.raises(UriError, match="allowed"):
+            await open_device("detector", "d", "sim://bench", colour=1)
+        with pytest.raises(UriError, match="trigger"):
+            await open_device("detector", "d", "sim://bench", trigger="foot")
+
+    asyncio.run(main())
+    with pytest.raises(UriError, match="tcp://"):
         Detector("d", "serial:///dev/ttyUSB0")
+    with pytest.raises(UriError, match="tcp://"):  # the driver never sees sim://: devices.sim resolves it
+        Detector("d", "sim://bench")
 
 
 def test_unreachable_detector() -> None:
@@ -229,13 +240,13 @@ def test_unreachable_detector() -> None:
 def test_cancelled_read_leaves_the_link_usable() -> None:
     async def body(det: Detector) -> None:
         await det.arm()
-        det.twin.faults.latency_s = 0.3
+        twin_of(det).faults.latency_s = 0.3
         task = asyncio.ensure_future(det.read())
         await asyncio.sleep(0.05)
         task.cancel()
         with pytest.raises(asyncio.CancelledError):
             await task
-        det.twin.faults.latency_s = 0.0
+        twin_of(det).faults.latency_s = 0.0
         assert (await det.read())["armed"] == 1  # no stale reply read as this one's
 
     run(body)
@@ -244,10 +255,10 @@ def test_cancelled_read_leaves_the_link_usable() -> None:
 def test_render_failure_is_reported_as_device_error() -> None:
     async def body(det: Detector) -> None:
         await det.arm()
-        det.twin.set_phantom("Z")  # no such experiment phantom
+        twin_of(det).set_phantom("Z")  # no such experiment phantom
         with pytest.raises(ControllerError, match="frame 1 could not be rendered.*unknown experiment"):
             await det.trigger()
-        det.twin.set_phantom("A")
+        twin_of(det).set_phantom("A")
         assert (await det.trigger()).number == 2
 
     run(body)

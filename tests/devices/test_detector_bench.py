@@ -11,10 +11,8 @@ import asyncio
 import numpy as np
 import pytest
 
-from devices.detector import Detector
-from devices.factory import open_device
+from devices.factory import open_device, opened
 from devices.twins.world import reset_world
-from devices.xray import XrayGenerator
 from orbitct.geometry import ViewGeometry
 
 pytestmark = [pytest.mark.timeout(120), pytest.mark.system]
@@ -26,8 +24,7 @@ def test_exposure_frames_follow_the_true_stage_angle() -> None:
     async def main() -> None:
         stage = await open_device("rotation_stage", "stage", "sim://detbench", time_scale=100)
         try:
-            async with Detector("det", "sim://detbench", rows=32, trigger="xray") as det, XrayGenerator(
-                "xray", "sim://detbench", prep_s=0.01, heartbeat_s=0
+            async with opened("detector", "det", "sim://detbench", rows=32, trigger="xray") as det, opened("xray", "xray", "sim://detbench", prep_s=0.01, heartbeat_s=0
             ) as gen:
                 await stage.reference()
                 await det.arm()

@@ -7,29 +7,33 @@ from typing import Any
 
 import pytest
 
+from devices.carm import CArm
+from devices.detector import Detector
 from devices.errors import DeviceError, UriError
-from devices.factory import REGISTRY, device_class, open_device, stop_all
+from devices.factory import DRIVERS, device_class, open_device, stop_all
+from devices.folder_detector import FolderWatchDetector
 from devices.hexapod import Hexapod
 from devices.rotation_stage import RotationStage
-from devices.twins.gcs import TwinServer, stop_sim_servers
+from devices.sim import stop_twins, twin_of
+from devices.twins.runtime import TwinThread
+from devices.xray import XrayGenerator
 
 pytestmark = [pytest.mark.anyio, pytest.mark.system]
 
 
-def test_registry_names_every_kind() -> None:
-    assert REGISTRY == {
-        "hexapod": "devices.hexapod:Hexapod",
-        "rotation_stage": "devices.rotation_stage:RotationStage",
-        "xray": "devices.xray:XrayGenerator",
-        "detector": "devices.detector:Detector",
-        "carm": "devices.carm:CArm",
-    }
+def test_driver_follows_kind_and_scheme() -> None:
+    assert set(DRIVERS) == {"hexapod", "rotation_stage", "xray", "detector", "carm"}
     assert device_class("rotation-stage") is RotationStage
+    assert device_class("hexapod", "serial") is Hexapod
+    assert device_class("detector", "tcp") is Detector and device_class("detector", "folder") is FolderWatchDetector
+    assert device_class("xray", "modbus") is XrayGenerator and device_class("carm") is CArm
     with pytest.raises(DeviceError, match="kinds are"):
         device_class("laser")
+    with pytest.raises(UriError, match="connects by"):
+        device_class("hexapod", "folder")
 
 
-async def test_open_by_uri(hexapod_twin: TwinServer, stage_twin: TwinServer) -> None:
+async def test_open_by_uri(hexapod_twin: TwinThread, stage_twin: TwinThread) -> None:
     hexa = await open_device("hexapod", "hexapod", hexapod_twin.uri)
     stage = await open_device("rotation_stage", "stage", f"tcp://127.0.0.1:{stage_twin.port}")
     try:
@@ -52,7 +56,7 @@ async def test_sim_uri_starts_in_process_twin_on_loopback() -> None:
     try:
         hexa = await open_device("hexapod", "hexapod", "sim://factory-test?time_scale=50")
         try:
-            assert hexa.twin is not None and hexa.twin.port > 0
+            assert twin_of(hexa).connections >= 1 and hexa.uri.startswith("tcp://127.0.0.1:")  # the driver saw loopback
             assert hexa.client.endpoint.scheme == "tcp" and hexa.client.endpoint.host == "127.0.0.1"
             await hexa.reference()
             await hexa.move({"Z": 2.0})
@@ -62,7 +66,7 @@ async def test_sim_uri_starts_in_process_twin_on_loopback() -> None:
         finally:
             await hexa.close()
     finally:
-        stop_sim_servers()
+        stop_twins()
 
 
 class _XrayOffRecorder:
@@ -80,7 +84,7 @@ class _Broken:
         raise DeviceError("broken: cannot stop")
 
 
-async def test_stop_all_halts_everything_concurrently(hexapod_twin: TwinServer, stage_twin: TwinServer) -> None:
+async def test_stop_all_halts_everything_concurrently(hexapod_twin: TwinThread, stage_twin: TwinThread) -> None:
     hexa = await open_device("hexapod", "hexapod", hexapod_twin.uri)
     stage = await open_device("rotation_stage", "stage", stage_twin.uri)
     xray = _XrayOffRecorder()
@@ -90,9 +94,9 @@ async def test_stop_all_halts_everything_concurrently(hexapod_twin: TwinServer, 
         await stage.set_velocity(1.0)
         moves = [hexa.move({"X": 30.0}), stage.move({"R": 300.0})]
         await asyncio.sleep(0.1)
-        assert hexapod_twin.controller.is_moving() and stage_twin.controller.is_moving()
+        assert hexapod_twin.twin.controller.is_moving() and stage_twin.twin.controller.is_moving()
         errors = await stop_all([hexa, stage, xray, _Broken()])
-        assert not hexapod_twin.controller.is_moving() and not stage_twin.controller.is_moving()
+        assert not hexapod_twin.twin.controller.is_moving() and not stage_twin.twin.controller.is_moving()
         assert xray.off == 1
         assert len(errors) == 1 and "broken" in str(errors[0])
         results: list[Any] = await asyncio.gather(*moves, return_exceptions=True)

@@ -9,8 +9,13 @@ import numpy as np
 import pytest
 import tifffile
 
-from devices.detector import FolderWatchDetector, write_raw_frame
-from devices.errors import DeviceTimeoutError, NotConnectedError, ProtocolError, UriError
+from devices.errors import (
+    DeviceTimeoutError,
+    NotConnectedError,
+    ProtocolError,
+    UriError,
+)
+from devices.folder_detector import FolderWatchDetector, write_raw_frame
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -92,24 +97,23 @@ def test_bad_folder_and_options(tmp_path: Path) -> None:
         FolderWatchDetector("panel", "tcp://127.0.0.1:5")
     (tmp_path / "x.raw").write_bytes(b"1234")
     with pytest.raises(ProtocolError, match="rows="):
-        from devices.detector import read_frame_file
+        from devices.folder_detector import read_frame_file
 
         read_frame_file(tmp_path / "x.raw")
 
 
 def test_detector_factory_name_gives_folder_watch(tmp_path: Path) -> None:
-    from devices.detector import Detector
-
-    det = Detector("panel", f"folder://{tmp_path}?pattern=*.tif", pitch_mm=0.278)
-    assert isinstance(det, FolderWatchDetector)
+    from devices.factory import open_device
 
     async def main() -> None:
-        await det.connect()
+        det = await open_device("detector", "panel", f"folder://{tmp_path}?pattern=*.tif", pitch_mm=0.278)
+        assert isinstance(det, FolderWatchDetector)
         await det.set_trigger("xray")
         with pytest.raises(Exception, match="vendor software"):
             await det.set_binning(2)
         tifffile.imwrite(tmp_path / "f.tif", frame(5))
         await det.read_frame(timeout_s=2.0)
         assert det.geometry.pitch_col == 0.278 and det.geometry.shape == (16, 24)
+        await det.close()
 
     asyncio.run(main())

@@ -8,15 +8,21 @@ import time
 import numpy as np
 import pytest
 
-from devices.errors import ControllerError, DeviceTimeoutError, NotConnectedError, OutOfLimitsError, ProtocolError
+from devices.errors import (
+    ControllerError,
+    DeviceTimeoutError,
+    NotConnectedError,
+    OutOfLimitsError,
+    ProtocolError,
+)
 from devices.hexapod import Hexapod
 from devices.rotation_stage import RotationStage
-from devices.twins.gcs import TwinServer
+from devices.twins.runtime import TwinThread
 
 pytestmark = [pytest.mark.anyio, pytest.mark.system]
 
 
-async def test_latency_within_timeout_is_tolerated(hexapod: Hexapod, hexapod_twin: TwinServer) -> None:
+async def test_latency_within_timeout_is_tolerated(hexapod: Hexapod, hexapod_twin: TwinThread) -> None:
     hexapod_twin.faults.latency_s = 0.03
     t0 = time.monotonic()
     await hexapod.position()
@@ -24,7 +30,7 @@ async def test_latency_within_timeout_is_tolerated(hexapod: Hexapod, hexapod_twi
     assert hexapod.client.stats["retries"] == 0
 
 
-async def test_latency_beyond_timeout_raises_after_one_retry(hexapod_twin: TwinServer) -> None:
+async def test_latency_beyond_timeout_raises_after_one_retry(hexapod_twin: TwinThread) -> None:
     dev = Hexapod("slow", hexapod_twin.uri, timeout_s=0.05)
     await dev.connect()
     try:
@@ -38,32 +44,32 @@ async def test_latency_beyond_timeout_raises_after_one_retry(hexapod_twin: TwinS
         await dev.close()
 
 
-async def test_dropped_connection_during_query_reconnects(hexapod: Hexapod, hexapod_twin: TwinServer) -> None:
+async def test_dropped_connection_during_query_reconnects(hexapod: Hexapod, hexapod_twin: TwinThread) -> None:
     hexapod_twin.faults.drop_next = 1
     pos = await hexapod.position()
     assert set(pos) == set("XYZUVW")
     assert hexapod.client.stats["reconnects"] == 1
-    hexapod_twin.drop_connections()  # cable pulled between two commands
+    hexapod_twin.call(hexapod_twin.twin.drop_connections)  # cable pulled between two commands
     assert await hexapod.on_target() in (True, False)
     assert hexapod.client.stats["reconnects"] == 2
 
 
-async def test_dropped_connection_during_move_is_not_retried(ready_hexapod: Hexapod, hexapod_twin: TwinServer) -> None:
-    hexapod_twin.faults.drop_command = "MOV"
+async def test_dropped_connection_during_move_is_not_retried(ready_hexapod: Hexapod, hexapod_twin: TwinThread) -> None:
+    hexapod_twin.faults.match = "MOV "  # the move command, not the MOV? query before it
     hexapod_twin.faults.drop_next, hexapod_twin.faults.drop_executes = 1, False
     with pytest.raises(NotConnectedError, match="may or may not have run"):
         await ready_hexapod.move({"X": 3.0})
-    assert hexapod_twin.controller.motion.target[0] == 0.0  # lost before the controller ran it: nothing moved
+    assert hexapod_twin.twin.controller.motion.target[0] == 0.0  # lost before the controller ran it: nothing moved
     hexapod_twin.faults.drop_next, hexapod_twin.faults.drop_executes = 1, True
     with pytest.raises(NotConnectedError, match="not repeated"):
         await ready_hexapod.move({"X": 3.0})
-    assert hexapod_twin.controller.motion.target[0] == 3.0  # it ran exactly once; the driver did not resend
+    assert hexapod_twin.twin.controller.motion.target[0] == 3.0  # it ran exactly once; the driver did not resend
     commands = ready_hexapod.client.stats["commands"]
     await ready_hexapod.move({"X": 4.0})  # the next move reconnects and works
     assert ready_hexapod.client.stats["commands"] == commands + 1
 
 
-async def test_garbled_reply_is_retried_then_reported(hexapod: Hexapod, hexapod_twin: TwinServer) -> None:
+async def test_garbled_reply_is_retried_then_reported(hexapod: Hexapod, hexapod_twin: TwinThread) -> None:
     hexapod_twin.faults.garble_next = 1
     assert set(await hexapod.position()) == set("XYZUVW")
     assert hexapod.client.stats["retries"] == 1
@@ -72,17 +78,17 @@ async def test_garbled_reply_is_retried_then_reported(hexapod: Hexapod, hexapod_
         await hexapod.position()
 
 
-async def test_garbled_err_reply_after_move_is_not_retried(ready_hexapod: Hexapod, hexapod_twin: TwinServer) -> None:
+async def test_garbled_err_reply_after_move_is_not_retried(ready_hexapod: Hexapod, hexapod_twin: TwinThread) -> None:
     target = ready_hexapod.client
     ready_hexapod.check_limits({"Y": 2.0})
     await ready_hexapod.check_pose({"Y": 2.0})
     hexapod_twin.faults.garble_next = 1
     with pytest.raises(ProtocolError, match="may or may not have run"):
         await target.command("MOV Y 2")
-    assert hexapod_twin.controller.motion.target[1] == 2.0
+    assert hexapod_twin.twin.controller.motion.target[1] == 2.0
 
 
-async def test_injected_controller_errors(ready_hexapod: Hexapod, hexapod_twin: TwinServer) -> None:
+async def test_injected_controller_errors(ready_hexapod: Hexapod, hexapod_twin: TwinThread) -> None:
     hexapod_twin.faults.add_error(17, "MOV")
     with pytest.raises(ControllerError) as info:
         await ready_hexapod.move({"Z": 1.0})
@@ -90,26 +96,26 @@ async def test_injected_controller_errors(ready_hexapod: Hexapod, hexapod_twin: 
     hexapod_twin.faults.add_error(7, "MOV")
     with pytest.raises(OutOfLimitsError):
         await ready_hexapod.move({"Z": 1.0})
-    assert hexapod_twin.controller.motion.target[2] == 0.0
+    assert hexapod_twin.twin.controller.motion.target[2] == 0.0
     await ready_hexapod.move({"Z": 1.0})
 
 
-async def test_stuck_axis_times_out_and_halts(hexapod_twin: TwinServer) -> None:
+async def test_stuck_axis_times_out_and_halts(hexapod_twin: TwinThread) -> None:
     dev = Hexapod("hexapod", hexapod_twin.uri, move_timeout_s=0.3)
     await dev.connect()
     try:
         await dev.reference()
-        hexapod_twin.controller.stick("Y")
+        hexapod_twin.twin.controller.stick("Y")
         with pytest.raises(DeviceTimeoutError, match="Y not on target"):
             await dev.move({"X": 1.0, "Y": 1.0})
-        assert not hexapod_twin.controller.is_moving()
+        assert not hexapod_twin.twin.controller.is_moving()
         assert not await dev.moving()
     finally:
         await dev.close()
 
 
-async def test_serial_faults_and_refusals(stage_twin: TwinServer) -> None:
-    path = stage_twin.open_serial()
+async def test_serial_faults_and_refusals(stage_twin: TwinThread) -> None:
+    path = stage_twin.run_sync(stage_twin.twin.open_serial)
     dev = RotationStage("stage", f"serial://{path}?baud=115200", timeout_s=0.3, move_timeout_s=5.0)
     await dev.connect()
     try:
@@ -132,7 +138,7 @@ async def test_serial_faults_and_refusals(stage_twin: TwinServer) -> None:
         assert info.value.code == 5
         with pytest.raises(OutOfLimitsError, match=r"\[-370, 370\]"):
             await dev.move({"R": 400.0})
-        stage_twin.controller.stick("1")
+        stage_twin.twin.controller.stick("1")
         dev.move_timeout_s = 0.3
         with pytest.raises(DeviceTimeoutError, match="R not on target"):
             await dev.move({"R": 50.0})
@@ -141,21 +147,21 @@ async def test_serial_faults_and_refusals(stage_twin: TwinServer) -> None:
         await dev.close()
 
 
-async def test_stop_reaches_the_controller_after_a_silent_disconnect(ready_hexapod: Hexapod, hexapod_twin: TwinServer) -> None:
+async def test_stop_reaches_the_controller_after_a_silent_disconnect(ready_hexapod: Hexapod, hexapod_twin: TwinThread) -> None:
     await ready_hexapod.set_velocity(0.5)
     status = ready_hexapod.move({"Z": 20.0})
     await asyncio.sleep(0.1)
-    hexapod_twin.drop_connections()  # the driver has not noticed yet
+    hexapod_twin.call(hexapod_twin.twin.drop_connections)  # the driver has not noticed yet
     await asyncio.sleep(0.02)
     await ready_hexapod.stop()
-    assert not hexapod_twin.controller.is_moving()
+    assert not hexapod_twin.twin.controller.is_moving()
     assert ready_hexapod.client.stats["reconnects"] >= 1
     with pytest.raises(Exception):
         await status
 
 
-async def test_serial_resynchronises_after_late_replies(stage_twin: TwinServer) -> None:
-    path = stage_twin.open_serial()
+async def test_serial_resynchronises_after_late_replies(stage_twin: TwinThread) -> None:
+    path = stage_twin.run_sync(stage_twin.twin.open_serial)
     dev = RotationStage("stage", f"serial://{path}?baud=115200", timeout_s=0.1)
     await dev.connect()
     try:

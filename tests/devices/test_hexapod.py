@@ -7,11 +7,16 @@ import asyncio
 import numpy as np
 import pytest
 
-from devices.errors import ControllerError, DeviceError, NotReferencedError, OutOfLimitsError
+from devices.errors import (
+    ControllerError,
+    DeviceError,
+    NotReferencedError,
+    OutOfLimitsError,
+)
 from devices.gcs.device import ServoOffError
 from devices.gcs.errors import GcsOutOfLimitsError
 from devices.hexapod import Hexapod
-from devices.twins.gcs import TwinServer
+from devices.twins.runtime import TwinThread
 from devices.twins.world import SimWorld
 
 pytestmark = [pytest.mark.anyio, pytest.mark.system]
@@ -29,7 +34,7 @@ async def test_describe_and_read(hexapod: Hexapod) -> None:
     assert await hexapod.limits() == {"X": (-50, 50), "Y": (-50, 50), "Z": (-25, 25), "U": (-30, 30), "V": (-30, 30), "W": (-30, 30)}
 
 
-async def test_refuses_to_move_with_servo_off_then_unreferenced(hexapod: Hexapod, hexapod_twin: TwinServer) -> None:
+async def test_refuses_to_move_with_servo_off_then_unreferenced(hexapod: Hexapod, hexapod_twin: TwinThread) -> None:
     before = await hexapod.position()
     with pytest.raises(ServoOffError, match="servo off"):
         await hexapod.move({"X": 1.0})
@@ -37,7 +42,7 @@ async def test_refuses_to_move_with_servo_off_then_unreferenced(hexapod: Hexapod
     with pytest.raises(NotReferencedError, match="not referenced"):
         await hexapod.move({"X": 1.0})
     assert await hexapod.position() == pytest.approx(before, abs=1e-9)
-    assert not hexapod_twin.controller.is_moving()
+    assert not hexapod_twin.twin.controller.is_moving()
 
 
 async def test_reference_move_and_read_back(ready_hexapod: Hexapod, world: SimWorld) -> None:
@@ -76,24 +81,24 @@ async def test_backlash_depends_on_direction(ready_hexapod: Hexapod, world: SimW
     assert from_above - from_below == pytest.approx(0.004, abs=1e-6)
 
 
-async def test_soft_limit_refused_before_anything_moves(ready_hexapod: Hexapod, hexapod_twin: TwinServer) -> None:
-    sent = hexapod_twin.controller.motion.target.copy()
+async def test_soft_limit_refused_before_anything_moves(ready_hexapod: Hexapod, hexapod_twin: TwinThread) -> None:
+    sent = hexapod_twin.twin.controller.motion.target.copy()
     with pytest.raises(OutOfLimitsError, match=r"X=60 mm is outside the soft limits \[-50, 50\]"):
         await ready_hexapod.move({"X": 60.0, "Y": 1.0})
     with pytest.raises(OutOfLimitsError, match="finite"):
         await ready_hexapod.move({"Z": float("nan")})
     with pytest.raises(DeviceError, match="unknown axis 'Q'"):
         await ready_hexapod.move({"Q": 1.0})
-    assert np.array_equal(hexapod_twin.controller.motion.target, sent)
+    assert np.array_equal(hexapod_twin.twin.controller.motion.target, sent)
 
 
-async def test_coupled_workspace_refused_with_vmo(ready_hexapod: Hexapod, hexapod_twin: TwinServer) -> None:
+async def test_coupled_workspace_refused_with_vmo(ready_hexapod: Hexapod, hexapod_twin: TwinThread) -> None:
     corner = {"X": 50.0, "Y": 50.0, "U": 30.0}
     with pytest.raises(OutOfLimitsError, match="workspace"):
         await ready_hexapod.check_pose(corner)
     with pytest.raises(OutOfLimitsError, match="VMO"):
         await ready_hexapod.move(corner)
-    assert not hexapod_twin.controller.is_moving()
+    assert not hexapod_twin.twin.controller.is_moving()
     assert await ready_hexapod.check_pose({"X": 50.0}) == {"X": 50.0}
     # the controller itself refuses the unreachable pose with error 7 if asked directly
     with pytest.raises(GcsOutOfLimitsError) as info:
@@ -109,14 +114,14 @@ async def test_relative_move(ready_hexapod: Hexapod) -> None:
         await ready_hexapod.move_relative({"Z": 25.0})
 
 
-async def test_stop_halts_running_move(ready_hexapod: Hexapod, hexapod_twin: TwinServer) -> None:
+async def test_stop_halts_running_move(ready_hexapod: Hexapod, hexapod_twin: TwinThread) -> None:
     await ready_hexapod.set_velocity(0.5)
     assert await ready_hexapod.velocity() == pytest.approx(0.5)
     status = ready_hexapod.move({"X": 40.0})
     await asyncio.sleep(0.1)
     assert await ready_hexapod.moving()
     await ready_hexapod.stop()
-    assert not hexapod_twin.controller.is_moving()
+    assert not hexapod_twin.twin.controller.is_moving()
     with pytest.raises(ControllerError) as info:
         await status
     assert info.value.code == 10
@@ -124,7 +129,7 @@ async def test_stop_halts_running_move(ready_hexapod: Hexapod, hexapod_twin: Twi
     assert 0.0 < x < 40.0
 
 
-async def test_cancelling_a_move_halts_the_controller(ready_hexapod: Hexapod, hexapod_twin: TwinServer) -> None:
+async def test_cancelling_a_move_halts_the_controller(ready_hexapod: Hexapod, hexapod_twin: TwinThread) -> None:
     await ready_hexapod.set_velocity(0.5)
     status = ready_hexapod.move({"Y": -40.0})
     await asyncio.sleep(0.1)
@@ -132,7 +137,7 @@ async def test_cancelling_a_move_halts_the_controller(ready_hexapod: Hexapod, he
     with pytest.raises(asyncio.CancelledError):
         await status
     await asyncio.sleep(0.05)
-    assert not hexapod_twin.controller.is_moving()
+    assert not hexapod_twin.twin.controller.is_moving()
 
 
 async def test_pivot_point(ready_hexapod: Hexapod, world: SimWorld) -> None:
@@ -193,13 +198,13 @@ async def test_later_move_supersedes_a_running_one(ready_hexapod: Hexapod) -> No
     assert (await ready_hexapod.position())["X"] == pytest.approx(2.0, abs=1e-3)
 
 
-async def test_cancelled_reference_halts(hexapod: Hexapod, hexapod_twin: TwinServer) -> None:
+async def test_cancelled_reference_halts(hexapod: Hexapod, hexapod_twin: TwinThread) -> None:
     status = hexapod.reference()
     await asyncio.sleep(0.002)
-    while not hexapod_twin.controller.referencing:
+    while not hexapod_twin.twin.controller.referencing:
         await asyncio.sleep(0.001)
     status.cancel()
     with pytest.raises(asyncio.CancelledError):
         await status
     await asyncio.sleep(0.05)
-    assert not hexapod_twin.controller.is_moving() and not hexapod_twin.controller.referencing
+    assert not hexapod_twin.twin.controller.is_moving() and not hexapod_twin.twin.controller.referencing

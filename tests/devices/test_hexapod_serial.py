@@ -6,13 +6,13 @@ import pytest
 
 from devices.errors import NotConnectedError, OutOfLimitsError
 from devices.hexapod import Hexapod
-from devices.twins.gcs import TwinServer
+from devices.twins.runtime import TwinThread
 
 pytestmark = [pytest.mark.anyio, pytest.mark.system]
 
 
-async def test_hexapod_over_serial(hexapod_twin: TwinServer) -> None:
-    path = hexapod_twin.open_serial()
+async def test_hexapod_over_serial(hexapod_twin: TwinThread) -> None:
+    path = hexapod_twin.run_sync(hexapod_twin.twin.open_serial)
     dev = Hexapod("hexapod", f"serial://{path}?baud=115200", timeout_s=1.0)
     await dev.connect()
     try:

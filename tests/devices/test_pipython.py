@@ -11,7 +11,7 @@ pipython = pytest.importorskip("pipython")
 from pipython import GCSDevice, GCSError  # noqa: E402
 from pipython.pidevice.interfaces.pisocket import PISocket  # noqa: E402
 
-from devices.twins.gcs import TwinServer  # noqa: E402
+from devices.twins.runtime import TwinThread  # noqa: E402
 
 pytestmark = pytest.mark.system
 
@@ -25,7 +25,7 @@ class _Gateway(PISocket):
 
 
 @pytest.fixture
-def pidevice(hexapod_twin: TwinServer) -> Iterator[GCSDevice]:
+def pidevice(hexapod_twin: TwinThread) -> Iterator[GCSDevice]:
     gateway = _Gateway(autoconnect=False)
     gateway.ConnectTCPIP(ipaddress=hexapod_twin.host, ipport=hexapod_twin.port)
     with GCSDevice(gateway=gateway) as dev:  # leaving unregisters PIPython's (class-wide) connection callback
@@ -46,7 +46,7 @@ def test_identify(pidevice: GCSDevice) -> None:
     assert pidevice.qTMX("X")["X"] == 50.0 and pidevice.qTMN("W")["W"] == -30.0
 
 
-def test_reference_move_read_back(pidevice: GCSDevice, hexapod_twin: TwinServer) -> None:
+def test_reference_move_read_back(pidevice: GCSDevice, hexapod_twin: TwinThread) -> None:
     pidevice.SVO(pidevice.axes, [True] * 6)
     pidevice.FRF()
     _wait(pidevice.IsControllerReady)
@@ -62,7 +62,7 @@ def test_reference_move_read_back(pidevice: GCSDevice, hexapod_twin: TwinServer)
     assert pidevice.qVMO("X", 3.0) is True
 
 
-def test_out_of_limit_move_refused_with_error_7(pidevice: GCSDevice, hexapod_twin: TwinServer) -> None:
+def test_out_of_limit_move_refused_with_error_7(pidevice: GCSDevice, hexapod_twin: TwinThread) -> None:
     pidevice.SVO(pidevice.axes, [True] * 6)
     pidevice.FRF()
     _wait(pidevice.IsControllerReady)
@@ -72,7 +72,7 @@ def test_out_of_limit_move_refused_with_error_7(pidevice: GCSDevice, hexapod_twi
     with pytest.raises(GCSError) as info:
         pidevice.MOV({"X": 50.0, "Y": 50.0, "U": 30.0})  # each axis fine, the pose is not
     assert info.value.val == 7
-    assert not hexapod_twin.controller.is_moving()
+    assert not hexapod_twin.twin.controller.is_moving()
 
 
 def test_unreferenced_move_refused_with_error_5(pidevice: GCSDevice) -> None:
@@ -82,7 +82,7 @@ def test_unreferenced_move_refused_with_error_5(pidevice: GCSDevice) -> None:
     assert info.value.val == 5
 
 
-def test_halt(pidevice: GCSDevice, hexapod_twin: TwinServer) -> None:
+def test_halt(pidevice: GCSDevice, hexapod_twin: TwinThread) -> None:
     pidevice.SVO(pidevice.axes, [True] * 6)
     pidevice.FRF()
     _wait(pidevice.IsControllerReady)
@@ -95,5 +95,5 @@ def test_halt(pidevice: GCSDevice, hexapod_twin: TwinServer) -> None:
     with pytest.raises(GCSError) as info:
         pidevice.StopAll()
     assert info.value.val == 10
-    assert not hexapod_twin.controller.is_moving()
+    assert not hexapod_twin.twin.controller.is_moving()
     assert pidevice.qPOS("Y")["Y"] < 30.0

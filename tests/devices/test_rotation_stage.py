@@ -9,7 +9,7 @@ import pytest
 from devices.errors import OutOfLimitsError
 from devices.gcs.device import ServoOffError
 from devices.rotation_stage import RotationStage
-from devices.twins.gcs import TwinServer
+from devices.twins.runtime import TwinThread
 from devices.twins.world import SimWorld
 
 pytestmark = [pytest.mark.anyio, pytest.mark.system]
@@ -52,8 +52,8 @@ async def test_backlash_and_eccentricity_are_hidden(stage: RotationStage, world:
     assert abs((await stage.position())["R"] - 5.0) < 1e-3
 
 
-async def test_drive_over_serial_pty(stage_twin: TwinServer) -> None:
-    path = stage_twin.open_serial()
+async def test_drive_over_serial_pty(stage_twin: TwinThread) -> None:
+    path = stage_twin.run_sync(stage_twin.twin.open_serial)
     dev = RotationStage("stage", f"serial://{path}?baud=115200", timeout_s=1.0)
     await dev.connect()
     try:
@@ -66,7 +66,7 @@ async def test_drive_over_serial_pty(stage_twin: TwinServer) -> None:
         await dev.close()
 
 
-async def test_other_axis_identifier(stage_twin: TwinServer) -> None:
+async def test_other_axis_identifier(stage_twin: TwinThread) -> None:
     dev = RotationStage("stage", stage_twin.uri, axis="2")
     with pytest.raises(Exception, match="lacks"):
         await dev.connect()

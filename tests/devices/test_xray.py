@@ -19,8 +19,11 @@ from devices.errors import (
     ProtocolError,
     UriError,
 )
+from devices.factory import open_device, opened
+from devices.sim import twin_of
+from devices.twins.runtime import TwinThread
 from devices.twins.world import SimWorld
-from devices.twins.xray import TwinThread, XrayTwin
+from devices.twins.xray import XrayTwin
 from devices.xray import XrayGenerator
 from devices.xray_registers import FaultCode
 
@@ -266,19 +269,24 @@ def test_generator_watchdog_faults_without_heartbeat(twin: tuple[XrayTwin, TwinT
 
 def test_sim_uri_starts_in_process_twin() -> None:
     async def main() -> None:
-        async with XrayGenerator("xray", "sim://xraytest?prep_s=0.01") as gen:
-            assert gen.twin is not None
+        async with opened("xray", "xray", "sim://xraytest?prep_s=0.01") as gen:
+            assert twin_of(gen) is not None
             assert await gen.expose() == 1
-            assert gen.twin.world.name == "xraytest"
+            assert twin_of(gen).world.name == "xraytest"
 
     asyncio.run(main())
 
 
 def test_bad_uri_and_options() -> None:
-    with pytest.raises(UriError, match="allowed"):
-        XrayGenerator("xray", "sim://bench", bogus=1)
+    async def main() -> None:
+        with pytest.raises(UriError, match="allowed"):
+            await open_device("xray", "xray", "sim://bench", bogus=1)
+
+    asyncio.run(main())
     with pytest.raises(UriError, match="scheme"):
         XrayGenerator("xray", "http://x")
+    with pytest.raises(UriError, match="modbus://"):  # the driver never sees sim://: devices.sim resolves it
+        XrayGenerator("xray", "sim://bench")
 
 
 def test_unreachable_generator() -> None:

@@ -3,7 +3,13 @@
 import numpy as np
 import pytest
 
-from orbitct.errorprofiles import ErrorProfileError, RigidErrors, compose, make_profile, profile_from_json
+from orbitct.errorprofiles import (
+    ErrorProfileError,
+    RigidErrors,
+    compose,
+    make_profile,
+    profile_from_json,
+)
 from orbitct.geometry import Panel, ViewGeometry
 from orbitct.orbits import make_orbit
 from orbitct.rotations import rot_x, rot_y, rot_z

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from orbitct.geometry import Panel, GeometryError, ViewGeometry, ideal_bench_pose
+from orbitct.geometry import GeometryError, Panel, ViewGeometry, ideal_bench_pose
 from orbitct.rotations import rotvec_to_matrix
 
 DET = Panel(96, 128, 0.8, 0.7)

@@ -3,7 +3,13 @@
 import numpy as np
 import pytest
 
-from orbitct.kinematics import STACK_ORDERS, hexapod_pose_from_transform, hexapod_transform, object_pose, split_pose
+from orbitct.kinematics import (
+    STACK_ORDERS,
+    hexapod_pose_from_transform,
+    hexapod_transform,
+    object_pose,
+    split_pose,
+)
 from orbitct.rotations import (
     matrix_to_rotvec,
     rot_x,

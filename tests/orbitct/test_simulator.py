@@ -3,11 +3,16 @@
 import numpy as np
 import pytest
 
-from orbitct.geometry import Panel, GeometryError, ViewGeometry
+from orbitct.geometry import GeometryError, Panel, ViewGeometry
 from orbitct.orbits import make_orbit
 from orbitct.phantoms import Phantom, cylinder, experiment_phantom, sphere
 from orbitct.rotations import rotvec_to_matrix
-from orbitct.simulator import DetectorModel, SimulatedBench, line_integral_stack, line_integrals
+from orbitct.simulator import (
+    DetectorModel,
+    SimulatedBench,
+    line_integral_stack,
+    line_integrals,
+)
 from orbitct.simulator.noise import poisson_array
 
 DET = Panel(48, 64, 427 / 64, 427 / 48 * 0.75)

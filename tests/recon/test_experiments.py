@@ -9,8 +9,8 @@ import pytest
 from scipy import ndimage
 
 from orbitct.phantoms import experiment_phantom, voxelize
-from orbitct.simulator import simulate_scan
 from orbitct.scanfile import ScanFile
+from orbitct.simulator import simulate_scan
 from recon import VolumeGrid, reconstruct_scan, reference_volume, rmse, wire_fwhm
 from recon.quality import fov_mask
 

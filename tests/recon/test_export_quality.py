@@ -9,7 +9,14 @@ import pytest
 
 from orbitct.geometry import ViewGeometry
 from recon import VolumeGrid, wire_fwhm
-from recon.export import RTK_FROM_OBJECT, astra_geometries, read_rtk_geometry, rtk_matrix, rtk_parameters, write_rtk_geometry
+from recon.export import (
+    RTK_FROM_OBJECT,
+    astra_geometries,
+    read_rtk_geometry,
+    rtk_matrix,
+    rtk_parameters,
+    write_rtk_geometry,
+)
 
 
 def test_rtk_file_reproduces_projection_matrices(random_geometry: ViewGeometry, tmp_path: Path) -> None:
@@ -68,8 +75,12 @@ def test_itk_rtk_reads_the_same_matrices(random_geometry: ViewGeometry, tmp_path
 @pytest.mark.rtk
 def test_itk_rtk_fdk_of_the_same_data_agrees_with_ours(tmp_path: Path) -> None:
     """RTK's CPU FDK, fed our exported geometry and projection layout, reconstructs what our FDK does."""
-    from tests.helpers.recon import bench_detector, sphere_line_integrals, voxelized_spheres
     from recon.fdk import fdk
+    from tests.helpers.recon import (
+        bench_detector,
+        sphere_line_integrals,
+        voxelized_spheres,
+    )
 
     itk, rtk = _itk_rtk()
     g = ViewGeometry.from_carm(np.linspace(0, 2 * np.pi, 120, endpoint=False), 0.0, 785.0, 1200.0, bench_detector(64))

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.helpers.recon import bench_detector, sphere_line_integrals, voxelized_spheres
 from orbitct.geometry import ViewGeometry
 from recon import ReconError, VolumeGrid, projector
 from recon.fdk import WINDOWS, fdk, ramp_filter, redundancy_weights
 from recon.pwls import pwls_sps
+from tests.helpers.recon import bench_detector, sphere_line_integrals, voxelized_spheres
 
 GRID = VolumeGrid.centered((40, 64, 64), 2.0)
 

@@ -7,10 +7,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.helpers.recon import SPHERES, bench_detector, voxelized_spheres, write_sphere_scan
 from orbitct.geometry import ViewGeometry
 from recon import VolumeGrid, reconstruct_scan, rmse
 from recon.mar import fill_traces
+from tests.helpers.recon import (
+    SPHERES,
+    bench_detector,
+    voxelized_spheres,
+    write_sphere_scan,
+)
 
 METAL = [((15.0, -20.0, 0.0), 3.0, 0.78), ((-20.0, 15.0, 2.0), 2.5, 0.78)]  # steel beads
 SHAPE, VOXEL = (24, 64, 64), 2.0

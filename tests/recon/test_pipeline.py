@@ -9,12 +9,19 @@ import numpy as np
 import pytest
 import tifffile
 
-from tests.helpers.recon import bench_detector, voxelized_spheres, write_sphere_scan
 from orbitct.geometry import ViewGeometry
 from orbitct.scanfile import ScanFile
-from recon import (FieldOfViewError, GeometryMissingError, MemoryBudgetError, ReconError, VolumeGrid,
-                   reconstruct_scan, rmse)
+from recon import (
+    FieldOfViewError,
+    GeometryMissingError,
+    MemoryBudgetError,
+    ReconError,
+    VolumeGrid,
+    reconstruct_scan,
+    rmse,
+)
 from recon.quality import fov_mask
+from tests.helpers.recon import bench_detector, voxelized_spheres, write_sphere_scan
 
 SHAPE = (40, 64, 64)
 VOXEL = 2.0

@@ -5,9 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.helpers.recon import SPHERES, bench_detector, sphere_line_integrals, voxelized_spheres
 from orbitct.geometry import ViewGeometry
 from recon import FieldOfViewError, ReconError, VolumeGrid, check_fov, projector
+from tests.helpers.recon import (
+    SPHERES,
+    bench_detector,
+    sphere_line_integrals,
+    voxelized_spheres,
+)
 
 
 def _assert_adjoint(A, x: np.ndarray, y: np.ndarray) -> None:  # type: ignore[no-untyped-def]

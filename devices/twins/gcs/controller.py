@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from devices.gcs import errors as E
 from devices.gcs.framing import BUSY, READY, axis_lines, format_value
-from devices.twins.gcs.faults import Faults
+from devices.twins.runtime import TwinFaults
 from devices.twins.gcs.motion import LinearMotion
 
 
@@ -56,7 +56,7 @@ class GcsController:
     )
 
     def __init__(self, axes: Sequence[str], units: Sequence[str], low: Sequence[float], high: Sequence[float],
-                 start: Sequence[float], *, time_scale: float = 1.0, faults: Faults | None = None) -> None:
+                 start: Sequence[float], *, time_scale: float = 1.0, faults: TwinFaults | None = None) -> None:
         self.axes = tuple(axes)
         self.units = tuple(units)
         self.low = np.asarray(low, dtype=float)
@@ -65,7 +65,7 @@ class GcsController:
         self.servo = np.zeros(len(self.axes), dtype=bool)
         self.referenced = np.zeros(len(self.axes), dtype=bool)
         self.referencing = False
-        self.faults = faults or Faults()
+        self.faults = faults or TwinFaults()
         self.lock = threading.RLock()
         self._handlers: dict[str, Handler] = {}
         for name in self.command_names:

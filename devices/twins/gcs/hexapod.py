@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from devices.gcs import errors as E
 from devices.twins.gcs.controller import GcsController, GcsError, Reply, Session
-from devices.twins.gcs.faults import Faults
+from devices.twins.runtime import TwinFaults
 from devices.twins.world import SimWorld
 from orbitct.kinematics import hexapod_transform
 
@@ -65,7 +65,7 @@ class HexapodController(GcsController):
     max_velocity = 20.0  # mm/s (and deg/s for U, V, W)
 
     def __init__(self, world: SimWorld | None = None, *, time_scale: float = 1.0, imperfect: bool = True,
-                 seed: int = 7, faults: Faults | None = None, velocity: float = 10.0) -> None:
+                 seed: int = 7, faults: TwinFaults | None = None, velocity: float = 10.0) -> None:
         start = (0.31, -0.22, -1.05, 0.04, -0.03, 0.12)  # where the platform happens to be at power-on
         super().__init__(AXES, UNITS, LOW, HIGH, start, time_scale=time_scale, faults=faults)
         self.world = world

@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from devices.gcs import errors as E
 from devices.twins.gcs.controller import GcsController, GcsError, Reply, Session
-from devices.twins.gcs.faults import Faults
+from devices.twins.runtime import TwinFaults
 from devices.twins.world import SimWorld
 
 
@@ -26,7 +26,7 @@ class RotationStageController(GcsController):
     max_velocity = 360.0  # deg/s
 
     def __init__(self, world: SimWorld | None = None, *, time_scale: float = 1.0, imperfect: bool = True,
-                 seed: int = 11, faults: Faults | None = None, velocity: float = 30.0,
+                 seed: int = 11, faults: TwinFaults | None = None, velocity: float = 30.0,
                  low_deg: float = -370.0, high_deg: float = 370.0) -> None:
         super().__init__(("1",), ("deg",), (low_deg,), (high_deg,), (17.3,), time_scale=time_scale, faults=faults)
         self.world = world

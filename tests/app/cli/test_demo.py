@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from orbitct_app.cli.main import cli
 from orbitct.scanfile import ScanFile
+from orbitct_app.cli.main import cli
 
 pytestmark = pytest.mark.system
 

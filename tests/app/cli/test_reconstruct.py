@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 from click.testing import CliRunner
 
-from tests.helpers.recon import bench_detector, write_sphere_scan
-from orbitct_app.cli.main import cli
 from orbitct.geometry import ViewGeometry
 from orbitct.scanfile import ScanFile
+from orbitct_app.cli.main import cli
+from tests.helpers.recon import bench_detector, write_sphere_scan
 
 
 def test_cli_reconstructs_and_reports_errors(tmp_path: Path) -> None:

@@ -8,9 +8,9 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from tests.helpers.bench import small_config
-from orbitct_app.cli.main import cli
 from orbitct.scanfile import ScanFile
+from orbitct_app.cli.main import cli
+from tests.helpers.bench import small_config
 
 pytestmark = [pytest.mark.timeout(120), pytest.mark.system]
 

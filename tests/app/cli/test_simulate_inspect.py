@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 from click.testing import CliRunner
 
-from orbitct_app.cli.main import cli
 from orbitct.scanfile import ScanFile
+from orbitct_app.cli.main import cli
 
 
 def test_simulate_then_inspect(tmp_path: Path) -> None:

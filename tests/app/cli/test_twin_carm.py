@@ -12,7 +12,8 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 
-from devices.carm import CArm, export_program
+from devices.carm import CArm
+from devices.carm_program import export_program
 from devices.errors import ControllerError, InterlockOpenError
 from devices.xray import XrayGenerator
 from orbitct.orbits import Orbit

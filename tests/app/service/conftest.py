@@ -16,7 +16,6 @@ from orbitct_app.service.settings import load_settings
 from tests.helpers.service import small_bench_config
 
 
-
 class Api:
     """A TestClient plus one bearer token per role."""
 

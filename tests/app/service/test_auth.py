@@ -9,7 +9,13 @@ import pytest
 from click.testing import CliRunner
 
 from orbitct_app.cli.serve import token
-from orbitct_app.service.auth import PERMISSIONS, TokenRegistry, create_token, hash_token, read_token_file
+from orbitct_app.service.auth import (
+    PERMISSIONS,
+    TokenRegistry,
+    create_token,
+    hash_token,
+    read_token_file,
+)
 from orbitct_app.service.settings import load_settings
 
 pytestmark = pytest.mark.system

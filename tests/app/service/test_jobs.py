@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from tests.helpers.service import parse_sse, write_small_scan
 from orbitct_app.service import jobs as jobs_module
+from tests.helpers.service import parse_sse, write_small_scan
 
 pytestmark = pytest.mark.system
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.helpers.service import SMALL_SAWTOOTH, ended, parse_sse, wait_for
 from orbitct.scanfile import ScanFile
+from tests.helpers.service import SMALL_SAWTOOTH, ended, parse_sse, wait_for
 
 pytestmark = pytest.mark.system
 

@@ -15,8 +15,8 @@ import httpx
 import psutil
 import pytest
 
-from tests.helpers.service import SMALL_SAWTOOTH, parse_sse, small_bench_config
 from orbitct.scanfile import ScanFile
+from tests.helpers.service import SMALL_SAWTOOTH, parse_sse, small_bench_config
 
 pytestmark = pytest.mark.system
 

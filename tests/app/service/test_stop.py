@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import pytest
-
 import time
 
-from tests.helpers.service import SMALL_SAWTOOTH, ended, wait_for
+import pytest
+
 from orbitct.scanfile import ScanFile
+from tests.helpers.service import SMALL_SAWTOOTH, ended, wait_for
 
 pytestmark = pytest.mark.system
 
