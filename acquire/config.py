@@ -201,6 +201,14 @@ class BenchConfig(_Model):
     calibration_frames: CalibrationFramesConfig = CalibrationFramesConfig()
     sim: SimConfig = SimConfig()
 
+    def axis_limits(self) -> dict[str, Range]:
+        """The configured soft limits keyed like ``/frames/commanded`` (deg, mm)."""
+        hl = self.limits.hexapod
+        out = {"rotation_stage.R": self.limits.rotation_stage_deg}
+        out.update({f"hexapod.{a}": getattr(hl, f"{a.lower()}_{u}") for a, u in
+                    (("X", "mm"), ("Y", "mm"), ("Z", "mm"), ("U", "deg"), ("V", "deg"), ("W", "deg"))})
+        return out
+
     def with_detector_size(self, size: int | None) -> "BenchConfig":
         """Same bench with a square detector of ``size`` pixels on the same panel (None: unchanged)."""
         if size is None:
@@ -241,6 +249,7 @@ class CArmConfig(_Model):
     devices: CArmDevices = CArmDevices()
     geometry: GeometryConfig = GeometryConfig()
     limits: CArmLimits = CArmLimits()
+    motion: MotionConfig = MotionConfig(settle_ms=0.0, move_timeout_s=120.0)
     exposure: ExposureConfig = ExposureConfig()
     calibration_frames: CalibrationFramesConfig = CalibrationFramesConfig()
     sim: SimConfig = SimConfig(phantom="C")

@@ -1,9 +1,9 @@
-"""How a plan runs on devices: step-and-shoot or continuous, pause/resume, abort, guaranteed cleanup.
+"""How a plan runs on a rig: step-and-shoot or continuous, pause/resume, abort, guaranteed cleanup.
 
-The engine owns the order of actions and the safety rules; the bench (``acquire.bench``)
-owns the device calls. Every exit path (end of plan, device error, abort, Ctrl-C,
-task cancellation) halts every axis, switches X-rays off and tells the subscribers
-how the scan ended, once.
+One engine serves every rig. The engine owns the order of actions and the safety rules; a
+:class:`Rig` (the bench, the C-arm: ``acquire.rigs``) owns the device calls. Every exit path
+(end of plan, device error, abort, Ctrl-C, task cancellation) halts every axis, switches
+X-rays off and tells the subscribers how the scan ended, once.
 """
 
 from __future__ import annotations
@@ -12,21 +12,19 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from datetime import datetime, timezone
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
 
-from acquire.config import BenchConfig
+from acquire.config import MotionConfig
 from acquire.errors import AcquireError, PreflightError, ScanAborted, ScanStateError
-from acquire.kinematics import hexapod_to_user
 from acquire.plan import FramePlan, ScanPlan
-from acquire.preflight import preflight
 from acquire.records import FrameRecord, ScanEnd, ScanStart, Subscriber
-from orbitct.geometry import ViewGeometry
+from devices.frame_protocol import Frame
 from orbitct.progress import ProgressCallback, report
 from orbitct.scanfile.keys import ImageKey
 
@@ -34,28 +32,59 @@ log = logging.getLogger(__name__)
 MODES = ("step", "continuous")
 
 
-class BenchLike(Protocol):
-    """What the engine needs from a bench (``acquire.bench.Bench`` implements it on real drivers)."""
+@runtime_checkable
+class Rig(Protocol):
+    """What the engine needs from the machine that carries source, object and detector.
+
+    ``axes`` maps every recorded axis (``device.axis``, as in ``/frames/commanded``) to its unit.
+    """
 
     axes: Mapping[str, str]
     sim: bool
 
-    async def prepare(self, config: BenchConfig) -> None: ...
-    async def device_limits(self) -> dict[str, tuple[float, float]]: ...
-    async def check_workspace(self, poses: Sequence[Mapping[str, float]]) -> int | None: ...
-    async def move_to(self, stage_deg: float, hexapod: Mapping[str, float], timeout_s: float) -> None: ...
-    async def start_stage_sweep(self, target_deg: float, velocity_deg_s: float) -> None: ...
-    async def start_hexapod_move(self, hexapod: Mapping[str, float]) -> None: ...
-    async def stage_position_deg(self) -> float: ...
-    async def read_positions(self) -> dict[str, float]: ...
-    async def acquire(self, image_key: int, after_exposure: Callable[[], None] | None = None) -> tuple[NDArray[Any], int]: ...
-    async def xray_off(self) -> None: ...
-    def mark_interrupted(self) -> None: ...
-    async def stop_all(self) -> None: ...
-    async def restore_stage_velocity(self) -> None: ...
-    def true_pose(self) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None: ...
-    def last_true_vector(self) -> NDArray[np.float64] | None: ...
-    def truth_extras(self) -> dict[str, Any]: ...
+    async def preflight(self, plan: ScanPlan, mode: str, frame_rate_hz: float) -> None:
+        """Check the whole plan against every limit before anything moves (raise :class:`PreflightError`)."""
+
+    async def prepare(self, plan: ScanPlan) -> None:
+        """Get ready: servo and references, velocities, X-ray technique, panel armed, program loaded."""
+
+    async def move_to(self, targets: Mapping[str, float], timeout_s: float) -> None:
+        """Move every axis to a frame's targets and wait until all are there."""
+
+    async def acquire(self, image_key: int, after_exposure: Callable[[], None] | None = None) -> Frame:
+        """One frame: dark, flat or projection; ``after_exposure`` runs once X-rays are off again."""
+
+    async def read_positions(self) -> dict[str, float]:
+        """Read-back of every recorded axis."""
+
+    async def stop_all(self, *, interrupted: bool = False) -> None:
+        """Halt every axis and switch X-rays off, all at once; never raises.
+
+        ``interrupted``: the scan was cancelled in the middle of an exchange, so links may hold a
+        late reply and must resynchronise first.
+        """
+
+    async def restore(self) -> None:
+        """After a complete scan: X-rays off, speeds back to their configured values."""
+
+    async def close(self) -> None:
+        """Stop everything, then disconnect every device."""
+
+
+@runtime_checkable
+class SweepRig(Rig, Protocol):
+    """A rig that can also run continuously: one axis (``sweep_axis``) turns at constant speed."""
+
+    sweep_axis: str
+
+    async def start_sweep(self, target: float, velocity: float) -> None:
+        """Send ``sweep_axis`` to ``target`` at ``velocity`` (wall-clock units per second); do not wait."""
+
+    async def start_move(self, targets: Mapping[str, float]) -> None:
+        """Send the other axes to ``targets`` without waiting (a running move may be retargeted)."""
+
+    async def sweep_position(self) -> float:
+        """Read-back of ``sweep_axis``."""
 
 
 @dataclass(frozen=True)
@@ -79,7 +108,7 @@ def _reason(exc: BaseException) -> str:
 
 
 def sweep_end(stage_deg: NDArray[np.float64], start: int, last: int, tol_deg: float = 1e-9) -> int:
-    """Last frame of the run from ``start`` in which the stage keeps turning one way (``start`` if it stays)."""
+    """Last frame of the run from ``start`` in which the sweep axis keeps turning one way (``start`` if it stays)."""
     if start >= last or abs(stage_deg[start + 1] - stage_deg[start]) <= tol_deg:
         return start
     sign = np.sign(stage_deg[start + 1] - stage_deg[start])
@@ -93,26 +122,30 @@ def sweep_end(stage_deg: NDArray[np.float64], start: int, last: int, tol_deg: fl
 
 
 class ScanEngine:
-    """Runs one :class:`ScanPlan` on a bench and feeds subscribers; use :meth:`run` once."""
+    """Runs one :class:`ScanPlan` on a :class:`Rig` and feeds subscribers; use :meth:`run` once."""
 
     def __init__(
         self,
-        bench: BenchLike,
+        rig: Rig,
         plan: ScanPlan,
-        config: Any,
         *,
+        motion: MotionConfig,
+        frame_rate_hz: float,
         mode: str = "step",
         subscribers: Iterable[Subscriber] = (),
         progress: ProgressCallback | None = None,
-        frame_rate_hz: float | None = None,
+        start_extra: Mapping[str, Any] | None = None,
         skip_preflight: bool = False,
     ) -> None:
         if mode not in MODES:
             raise AcquireError(f"mode must be one of {MODES}, got {mode!r}")
-        self.bench, self.plan, self.config, self.mode = bench, plan, config, mode
+        if mode == "continuous" and not isinstance(rig, SweepRig):
+            raise AcquireError(f"{type(rig).__name__} runs step by step only; use mode 'step'")
+        self.rig, self.plan, self.motion, self.mode = rig, plan, motion, mode
         self.subscribers = list(subscribers)
         self.progress = progress
-        self.frame_rate_hz = float(frame_rate_hz or config.exposure.frame_rate_hz)
+        self.frame_rate_hz = float(frame_rate_hz)
+        self.start_extra = dict(start_extra or {})
         self.skip_preflight = skip_preflight
         self.state = "idle"
         self.n_done = 0
@@ -121,7 +154,6 @@ class ScanEngine:
         self._resume.set()
         self._task: asyncio.Task[Any] | None = None
         self._stop_task: asyncio.Future[Any] | None = None
-        self._lab_view = config.geometry.lab_view()
         self._motion_s = 0.0
         self._acquire_s = 0.0
         self._readback_s = 0.0
@@ -150,7 +182,7 @@ class ScanEngine:
         self._abort_reason = reason
         self._resume.set()
         if self.state in ("running", "paused"):
-            self._stop_task = asyncio.ensure_future(self.bench.stop_all())
+            self._stop_task = asyncio.ensure_future(self.rig.stop_all())
 
     def _check_abort(self) -> None:
         if self._abort_reason is not None:
@@ -176,40 +208,41 @@ class ScanEngine:
         self._task = asyncio.current_task()
         t0 = time.monotonic()
         started = False
-        status, reason, pending = "complete", "", None
+        status, reason, pending, interrupted = "complete", "", None, False
         try:
             self._check_abort()
             self.state = "preflight"
             if not self.skip_preflight:
-                await self._preflight()
+                await self.rig.preflight(self.plan, self.mode, self.frame_rate_hz)
             self._check_abort()
-            await self._prepare()
+            await self.rig.prepare(self.plan)
             self._check_abort()
             start = ScanStart(
-                plan=self.plan, axes=dict(self.bench.axes), mode=self.mode,
-                started_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"), sim=self.bench.sim,
-                extra=self._start_extra(),
+                plan=self.plan, axes=dict(self.rig.axes), mode=self.mode,
+                started_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"), sim=self.rig.sim,
+                extra=self.start_extra,
             )
             self._notify("on_start", start)
             started = True
             self.state = "running"
             t0 = time.monotonic()
-            await self._execute(t0)
+            if self.mode == "step":
+                await self._run_step(t0)
+            else:
+                await self._run_continuous(t0)
         except PreflightError:
             status = "refused"
             raise
         except (KeyboardInterrupt, asyncio.CancelledError) as exc:
-            status, reason, pending = "aborted", self._abort_reason or _reason(exc), exc
-            self.bench.mark_interrupted()
+            status, reason, pending, interrupted = "aborted", self._abort_reason or _reason(exc), exc, True
         except Exception as exc:  # noqa: BLE001 - a device or recorder error ends the scan safely
             status, reason = "aborted", self._abort_reason or _reason(exc)
             log.error("scan aborted: %s", reason)
         finally:
-            await self._cleanup(status)
+            await self._cleanup(status, interrupted)
             self.state = "aborted" if status == "refused" else status
             if started:
-                end = ScanEnd(status, reason, self.n_done, time.monotonic() - t0,
-                              truth=self.bench.truth_extras() if self.bench.sim else {})
+                end = ScanEnd(status, reason, self.n_done, time.monotonic() - t0)
                 self._notify("on_finish", end, final=True)
             if status != "refused":
                 report(self.progress, "scan", self.n_done, self.plan.n_frames,
@@ -218,27 +251,7 @@ class ScanEngine:
             raise pending  # Ctrl-C or a cancellation from outside: propagate after cleanup
         return ScanOutcome(status, reason, self.n_done, self.plan.n_frames, time.monotonic() - t0)
 
-    # ------------------------------------------------ steps (C-arm overrides)
-    async def _preflight(self) -> None:
-        await preflight(
-            self.plan, self.config, device_limits=await self.bench.device_limits(),
-            workspace_check=self.bench.check_workspace, mode=self.mode, frame_rate_hz=self.frame_rate_hz,
-        )
-
-    async def _prepare(self) -> None:
-        await self.bench.prepare(self.config)
-
-    def _start_extra(self) -> dict[str, Any]:
-        return {"frame_rate_hz": self.frame_rate_hz, "settle_ms": self.config.motion.settle_ms,
-                "stack_order": self.config.stack.order}
-
-    async def _execute(self, t0: float) -> None:
-        if self.mode == "step":
-            await self._run_step(t0)
-        else:
-            await self._run_continuous(t0)
-
-    async def _cleanup(self, status: str) -> None:
+    async def _cleanup(self, status: str, interrupted: bool) -> None:
         """Halt every axis (on abort) and switch X-rays off; never raises, never skipped by a second cancel."""
         async def _do() -> None:
             if self._stop_task is not None:
@@ -246,14 +259,13 @@ class ScanEngine:
                     await self._stop_task
             try:
                 if status == "complete":
-                    await self.bench.xray_off()
-                    await self.bench.restore_stage_velocity()
+                    await self.rig.restore()
                 else:
-                    await self.bench.stop_all()
+                    await self.rig.stop_all(interrupted=interrupted)
             except Exception as exc:  # noqa: BLE001
                 log.error("cleanup after scan failed: %s; stopping everything", exc)
                 try:
-                    await self.bench.stop_all()
+                    await self.rig.stop_all()
                 except Exception as exc2:  # noqa: BLE001
                     log.error("stop_all failed too: %s", exc2)
 
@@ -290,45 +302,29 @@ class ScanEngine:
             self.state = "running"
 
     # ----------------------------------------------------------- frames
-    def _commanded(self, f: FramePlan) -> dict[str, float]:
-        hexa = hexapod_to_user(f.hexapod)
-        cmd = {f"hexapod.{a}": v for a, v in hexa.items()}
-        cmd[self._stage_axis] = float(np.degrees(f.stage_rad))
-        return cmd
-
     def _record_motion(self, t_start: float) -> None:
         self._motion_s += time.monotonic() - t_start
 
-    @property
-    def _stage_axis(self) -> str:
-        return next(a for a in self.bench.axes if a.startswith("rotation_stage."))
+    def _true_vector(self, frame: Frame) -> NDArray[np.float64] | None:
+        """The view a simulated panel rendered the frame at (simulation truth travels in frame metadata)."""
+        tv = frame.meta.get("truth_vectors") if self.rig.sim else None
+        return None if tv is None else np.asarray(tv, dtype=float)
 
-    def _true_vector(self) -> NDArray[np.float64] | None:
-        imaged = self.bench.last_true_vector()
-        if imaged is not None:
-            return imaged
-        pose = self.bench.true_pose()
-        if pose is None:
-            return None
-        return ViewGeometry.from_object_poses(self._lab_view, pose[0], pose[1]).vectors[0]
-
-    async def _shoot(self, f: FramePlan, t0: float, commanded: dict[str, float],
-                     after_exposure: Callable[[], None] | None = None) -> None:
+    async def _shoot(self, f: FramePlan, t0: float, after_exposure: Callable[[], None] | None = None) -> None:
         t_a = time.monotonic()
-        encoders = await self.bench.read_positions()
+        encoders = await self.rig.read_positions()
         t_frame = time.monotonic() - t0
         t_b = time.monotonic()
         if after_exposure is None:
-            frame, number = await self.bench.acquire(f.image_key)
+            frame = await self.rig.acquire(f.image_key)
         else:
-            frame, number = await self.bench.acquire(f.image_key, after_exposure=after_exposure)
+            frame = await self.rig.acquire(f.image_key, after_exposure=after_exposure)
         t_c = time.monotonic()
-        self._check_abort()  # a frame taken while the abort was halting the bench is not recorded
-        truth = self._true_vector() if f.image_key == ImageKey.PROJECTION else None
+        self._check_abort()  # a frame taken while the abort was halting the rig is not recorded
+        truth = self._true_vector(frame) if f.image_key == ImageKey.PROJECTION else None
         rec = FrameRecord(
-            index=f.index, image_key=f.image_key, view=f.view, time_s=t_frame, frame=frame,
-            commanded=commanded, encoders=encoders, nominal_vector=f.nominal_vector,
-            true_vector=truth, detector_frame_number=number,
+            index=f.index, image_key=f.image_key, view=f.view, time_s=t_frame, frame=frame.data,
+            commanded=f.targets, encoders=encoders, nominal_vector=f.nominal_vector, true_vector=truth,
         )
         t_r = time.monotonic()
         self._notify("on_frame", rec)
@@ -347,14 +343,14 @@ class ScanEngine:
         """Move, wait on target, settle, expose, read. With ``motion.overlap_readout`` the move to the
         next frame starts once the exposure is over, while the panel is read out and the frame recorded."""
         frames = list(self.plan)
-        settle_s = self.config.motion.settle_ms / 1000.0
-        timeout = self.config.motion.move_timeout_s
+        settle_s = self.motion.settle_ms / 1000.0
+        timeout = self.motion.move_timeout_s
         last: dict[str, float] | None = None
         ahead: tuple[dict[str, float], asyncio.Future[None]] | None = None  # move started during readout
         try:
             for k, f in enumerate(frames):
                 await self._boundary()
-                cmd = self._commanded(f)
+                cmd = f.targets
                 if cmd != last:
                     t_m = time.monotonic()
                     arrived = False
@@ -364,22 +360,19 @@ class ScanEngine:
                         await move
                         arrived = cmd_ahead == cmd
                     if not arrived:
-                        await self.bench.move_to(cmd[self._stage_axis], hexapod_to_user(f.hexapod), timeout)
+                        await self.rig.move_to(cmd, timeout)
                     if settle_s > 0:
                         await asyncio.sleep(settle_s)
                     self._record_motion(t_m)
                     last = cmd
                 nxt = frames[k + 1] if k + 1 < len(frames) else None
                 start_next: Callable[[], None] | None = None
-                if self.config.motion.overlap_readout and nxt is not None and f.image_key == ImageKey.PROJECTION:
-                    nxt_cmd = self._commanded(nxt)
-                    if nxt_cmd != cmd:
-                        def start_next(nxt: FramePlan = nxt, nxt_cmd: dict[str, float] = nxt_cmd) -> None:
+                if self.motion.overlap_readout and nxt is not None and f.image_key == ImageKey.PROJECTION:
+                    if nxt.targets != cmd:
+                        def start_next(nxt_cmd: dict[str, float] = nxt.targets) -> None:
                             nonlocal ahead
-                            move = asyncio.ensure_future(
-                                self.bench.move_to(nxt_cmd[self._stage_axis], hexapod_to_user(nxt.hexapod), timeout))
-                            ahead = (nxt_cmd, move)
-                await self._shoot(f, t0, cmd, after_exposure=start_next)
+                            ahead = (nxt_cmd, asyncio.ensure_future(self.rig.move_to(nxt_cmd, timeout)))
+                await self._shoot(f, t0, after_exposure=start_next)
         finally:
             if ahead is not None:  # scan ending early: let the started move end (cleanup halts it anyway)
                 done, _ = await asyncio.wait({ahead[1]}, timeout=timeout)
@@ -388,66 +381,67 @@ class ScanEngine:
                         move.exception()
 
     async def _run_continuous(self, t0: float) -> None:
-        """Darks/flats step-wise; projections while the stage turns at constant speed, triggered at angles."""
+        """Darks/flats step-wise; projections while the sweep axis turns at constant speed, triggered at angles."""
+        rig: SweepRig = self.rig  # type: ignore[assignment]
         plan = self.plan
         proj = np.flatnonzero(plan.image_key == ImageKey.PROJECTION)
         first, last_p = int(proj[0]), int(proj[-1])
-        timeout = self.config.motion.move_timeout_s
+        timeout = self.motion.move_timeout_s
         for i in range(first):
             await self._boundary()
             f = plan.frame(i)
             if i == 0:
-                await self.bench.move_to(float(np.degrees(f.stage_rad)), hexapod_to_user(f.hexapod), timeout)
-            await self._shoot(f, t0, self._commanded(f))
-        stage_deg = np.degrees(plan.stage_rad)
+                await rig.move_to(f.targets, timeout)
+            await self._shoot(f, t0)
+        sweep = plan.targets[rig.sweep_axis]
         idx = first
         while idx <= last_p:
             await self._boundary()
             f = plan.frame(idx)
-            end = sweep_end(stage_deg, idx, last_p)
+            end = sweep_end(sweep, idx, last_p)
             t_m = time.monotonic()
-            if end == idx:  # the stage stays here (a tilt-only arc): step and shoot
-                await self.bench.move_to(float(stage_deg[idx]), hexapod_to_user(f.hexapod), timeout)
+            if end == idx:  # the sweep axis stays here (a tilt-only arc): step and shoot
+                await rig.move_to(f.targets, timeout)
                 self._record_motion(t_m)
-                await self._shoot(f, t0, self._commanded(f))
+                await self._shoot(f, t0)
                 idx += 1
                 continue
             # a sweep: position just before the first trigger angle, then turn at constant speed
-            velocity = abs(float(stage_deg[end] - stage_deg[idx])) / (end - idx) * self.frame_rate_hz
-            direction = float(np.sign(stage_deg[end] - stage_deg[idx]))
+            velocity = abs(float(sweep[end] - sweep[idx])) / (end - idx) * self.frame_rate_hz
+            direction = float(np.sign(sweep[end] - sweep[idx]))
             lead = direction * max(velocity * 0.05, 0.01)
-            await self.bench.move_to(float(stage_deg[idx] - lead), hexapod_to_user(f.hexapod), timeout)
-            await self.bench.start_stage_sweep(float(stage_deg[end] + lead), velocity)
+            await rig.move_to({**f.targets, rig.sweep_axis: float(sweep[idx] - lead)}, timeout)
+            await rig.start_sweep(float(sweep[end] + lead), velocity)
             self._record_motion(t_m)
             while idx <= end:
                 f = plan.frame(idx)
                 t_m = time.monotonic()
-                await self._wait_for_angle(float(stage_deg[idx]), direction, velocity, timeout)
+                await self._wait_for_angle(rig, float(sweep[idx]), direction, velocity, timeout)
                 self._record_motion(t_m)
-                await self._shoot(f, t0, self._commanded(f))
+                await self._shoot(f, t0)
                 idx += 1
                 if idx <= end:
-                    await self.bench.start_hexapod_move(hexapod_to_user(plan.hexapod[idx]))
+                    nxt = plan.frame(idx).targets
+                    await rig.start_move({a: v for a, v in nxt.items() if a != rig.sweep_axis})
                 if not self._resume.is_set():  # pause: stop the sweep, restart from here on resume
-                    await self.bench.stop_all()
+                    await rig.stop_all()
                     break
         for i in range(last_p + 1, plan.n_frames):
             await self._boundary()
-            f = plan.frame(i)
-            await self._shoot(f, t0, self._commanded(f))
-        await self.bench.restore_stage_velocity()
+            await self._shoot(plan.frame(i), t0)
 
-    async def _wait_for_angle(self, target_deg: float, direction: float, velocity: float, timeout_s: float) -> None:
+    async def _wait_for_angle(self, rig: SweepRig, target: float, direction: float, velocity: float,
+                              timeout_s: float) -> None:
         deadline = time.monotonic() + timeout_s
         while True:
             self._check_abort()
-            pos = await self.bench.stage_position_deg()
-            remaining = (target_deg - pos) * direction
+            pos = await rig.sweep_position()
+            remaining = (target - pos) * direction
             if remaining <= 0:
                 return
             if time.monotonic() > deadline:
                 raise AcquireError(
-                    f"continuous mode: rotation stage did not reach the trigger angle {target_deg:.3f} deg "
+                    f"continuous mode: {rig.sweep_axis} did not reach the trigger angle {target:.3f} deg "
                     f"within {timeout_s:g} s (at {pos:.3f} deg)"
                 )
             await asyncio.sleep(min(max(remaining / velocity * 0.8, 0.0002), 0.05))

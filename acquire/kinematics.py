@@ -19,6 +19,7 @@ from orbitct.rotations import rot_xyz
 
 HEXAPOD_AXES: tuple[str, ...] = ("X", "Y", "Z", "U", "V", "W")
 HEXAPOD_UNITS: tuple[str, ...] = ("mm", "mm", "mm", "deg", "deg", "deg")
+STAGE_AXIS = "rotation_stage.R"  # the rotation stage's one axis, as recorded in /frames/commanded
 
 
 def _errors(errors: ArrayLike | None, n: int) -> NDArray[np.float64]:

@@ -1,11 +1,14 @@
 """What a scan does, frame by frame, as pure data: kind, nominal view, injected error, axis targets.
 
-A plan knows nothing about devices; the engine (``acquire.engine``) runs it.
-Darks and flats are taken at the pose of the first (before) or last (after) projection.
+A plan knows nothing about devices; the engine (``acquire.engine``) runs it on a rig. Axis
+targets are keyed as in the scan file's ``/frames/commanded`` (``rotation_stage.R``,
+``hexapod.X``, ``carm.primary``) and given in the axis unit (mm or deg). Darks and flats are
+taken at the pose of the first (before) or last (after) projection.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -13,16 +16,19 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from acquire.config import BenchConfig
+from acquire.config import BenchConfig, CalibrationFramesConfig, CArmConfig
 from acquire.errors import AcquireError
-from acquire.kinematics import bench_axes
+from acquire.kinematics import HEXAPOD_AXES, HEXAPOD_UNITS, STAGE_AXIS, bench_axes
 from orbitct.geometry import Panel, ViewGeometry
+from orbitct.orbits import Orbit
 from orbitct.scanfile.keys import ImageKey
+
+CARM_AXES = {"carm.primary": "deg", "carm.secondary": "deg"}
 
 
 @dataclass(frozen=True)
 class FramePlan:
-    """One frame: its index, image key, orbit view (-1 for darks/flats) and axis targets."""
+    """One frame: its index, image key, orbit view (-1 for darks/flats), injected error and axis targets."""
 
     index: int
     image_key: int
@@ -30,8 +36,7 @@ class FramePlan:
     theta_rad: float
     phi_rad: float
     error: NDArray[np.float64]
-    stage_rad: float
-    hexapod: NDArray[np.float64]
+    targets: dict[str, float]
     nominal_vector: NDArray[np.float64]
 
     @property
@@ -42,15 +47,15 @@ class FramePlan:
 
 @dataclass(frozen=True)
 class ScanPlan:
-    """Every frame of a bench scan (arrays of length N) plus what it came from."""
+    """Every frame of a scan (arrays of length N) plus what it came from."""
 
     image_key: NDArray[np.int8]
     view: NDArray[np.int64]
     theta_rad: NDArray[np.float64]
     phi_rad: NDArray[np.float64]
     errors: NDArray[np.float64]
-    stage_rad: NDArray[np.float64]
-    hexapod: NDArray[np.float64]
+    targets: Mapping[str, NDArray[np.float64]]
+    units: Mapping[str, str]
     nominal: ViewGeometry
     orbit_name: str = ""
     orbit_params: Mapping[str, Any] = field(default_factory=dict)
@@ -77,7 +82,8 @@ class ScanPlan:
         return FramePlan(
             index=i, image_key=int(self.image_key[i]), view=int(self.view[i]),
             theta_rad=float(self.theta_rad[i]), phi_rad=float(self.phi_rad[i]), error=self.errors[i],
-            stage_rad=float(self.stage_rad[i]), hexapod=self.hexapod[i], nominal_vector=self.nominal.vectors[i],
+            targets={axis: float(values[i]) for axis, values in self.targets.items()},
+            nominal_vector=self.nominal.vectors[i],
         )
 
     def __iter__(self) -> Iterator[FramePlan]:
@@ -87,13 +93,20 @@ class ScanPlan:
         return self.n_frames
 
 
-def _layout(n_views: int, darks_before: int, flats_before: int, darks_after: int, flats_after: int
-            ) -> tuple[NDArray[np.int8], NDArray[np.int64], NDArray[np.int64]]:
+def frame_layout(n_views: int, frames: CalibrationFramesConfig) -> tuple[NDArray[np.int8], NDArray[np.int64], NDArray[np.int64]]:
     """Image keys, orbit view per frame (-1 for darks/flats) and the view whose pose each frame uses."""
-    keys = [ImageKey.DARK] * darks_before + [ImageKey.FLAT] * flats_before + [ImageKey.PROJECTION] * n_views + [ImageKey.DARK] * darks_after + [ImageKey.FLAT] * flats_after
-    view = [-1] * (darks_before + flats_before) + list(range(n_views)) + [-1] * (darks_after + flats_after)
-    pose = [0] * (darks_before + flats_before) + list(range(n_views)) + [n_views - 1] * (darks_after + flats_after)
+    before, after = frames.darks_before + frames.flats_before, frames.darks_after + frames.flats_after
+    keys = ([ImageKey.DARK] * frames.darks_before + [ImageKey.FLAT] * frames.flats_before + [ImageKey.PROJECTION] * n_views
+            + [ImageKey.DARK] * frames.darks_after + [ImageKey.FLAT] * frames.flats_after)
+    view = [-1] * before + list(range(n_views)) + [-1] * after
+    pose = [0] * before + list(range(n_views)) + [n_views - 1] * after
     return np.array(keys, np.int8), np.array(view, np.int64), np.array(pose, np.int64)
+
+
+def _nominal(keys: NDArray[np.int8], views: ViewGeometry) -> ViewGeometry:
+    vectors = np.full((keys.size, 12), np.nan)
+    vectors[keys == ImageKey.PROJECTION] = views.vectors
+    return views.with_vectors(vectors)
 
 
 def plan_bench_scan(
@@ -116,17 +129,28 @@ def plan_bench_scan(
     err = np.zeros((th.size, 6)) if errors is None else np.asarray(errors, dtype=float)
     if err.shape != (th.size, 6):
         raise AcquireError(f"errors must have shape ({th.size}, 6), got {err.shape}")
-    cf = config.calibration_frames
-    keys, view, pose = _layout(th.size, cf.darks_before, cf.flats_before, cf.darks_after, cf.flats_after)
+    keys, view, pose = frame_layout(th.size, config.calibration_frames)
     stage, hexapod = bench_axes(th, ph, err, config.stack)
-    proj = keys == ImageKey.PROJECTION
-    nominal = np.full((keys.size, 12), np.nan)
-    nominal[proj] = config.geometry.carm_views(th, ph).vectors
+    targets = {STAGE_AXIS: np.degrees(stage[pose])}
+    for i, axis in enumerate(HEXAPOD_AXES):
+        targets[f"hexapod.{axis}"] = hexapod[pose, i] if i < 3 else np.degrees(hexapod[pose, i])
+    units = {STAGE_AXIS: "deg"} | {f"hexapod.{a}": u for a, u in zip(HEXAPOD_AXES, HEXAPOD_UNITS)}
     return ScanPlan(
-        image_key=keys, view=view,
-        theta_rad=th[pose], phi_rad=ph[pose], errors=err[pose],
-        stage_rad=stage[pose], hexapod=hexapod[pose],
-        nominal=ViewGeometry(nominal, config.geometry.detector.panel()),
+        image_key=keys, view=view, theta_rad=th[pose], phi_rad=ph[pose], errors=err[pose],
+        targets=targets, units=units, nominal=_nominal(keys, config.geometry.carm_views(th, ph)),
         orbit_name=orbit_name, orbit_params=dict(orbit_params or {}), error_profile=error_profile,
+        config=config.model_dump(mode="json"),
+    )
+
+
+def plan_carm_scan(config: CArmConfig, orbit: Orbit) -> ScanPlan:
+    """Frames of a C-arm scan: darks/flats around the projections, nominal C-arm views, angle targets."""
+    keys, view, pose = frame_layout(orbit.n_frames, config.calibration_frames)
+    n = keys.size
+    targets = {"carm.primary": orbit.theta_deg[pose], "carm.secondary": orbit.phi_deg[pose]}
+    return ScanPlan(
+        image_key=keys, view=view, theta_rad=orbit.theta[pose], phi_rad=orbit.phi[pose], errors=np.zeros((n, 6)),
+        targets=targets, units=dict(CARM_AXES), nominal=_nominal(keys, config.geometry.carm_views(orbit.theta, orbit.phi)),
+        orbit_name=orbit.name, orbit_params=dict(orbit.params), error_profile=json.dumps({"name": "carm-systematic"}),
         config=config.model_dump(mode="json"),
     )

@@ -26,7 +26,11 @@ class ScanStart:
 
 @dataclass(frozen=True)
 class FrameRecord:
-    """One acquired frame with everything known about it when it was taken."""
+    """One acquired frame with everything known about it when it was taken.
+
+    ``true_vector`` is the view a simulated panel rendered the frame at (from the frame's
+    metadata); real hardware leaves it None.
+    """
 
     index: int
     image_key: int
@@ -37,7 +41,6 @@ class FrameRecord:
     encoders: Mapping[str, float]
     nominal_vector: NDArray[np.float64]
     true_vector: NDArray[np.float64] | None = None
-    detector_frame_number: int = -1
 
 
 @dataclass(frozen=True)
@@ -48,7 +51,6 @@ class ScanEnd:
     reason: str
     n_frames: int
     elapsed_s: float
-    truth: Mapping[str, Any] = field(default_factory=dict)
 
 
 class Subscriber(Protocol):

@@ -35,7 +35,8 @@ class RepairReport:
 
 def _per_frame_datasets(f: h5py.File) -> list[h5py.Dataset]:
     out: list[h5py.Dataset] = []
-    for name in ("frames/data", "frames/time_s", "geometry/nominal/vectors", "geometry/nominal/matrices"):
+    for name in ("frames/data", "frames/time_s", "geometry/nominal/vectors", "geometry/nominal/matrices",
+                 "truth/geometry/vectors"):
         if name in f:
             out.append(f[name])
     for grp in ("frames/encoders", "frames/commanded"):

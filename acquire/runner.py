@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import signal
 import threading
@@ -13,12 +14,13 @@ from typing import Any
 
 import numpy as np
 
-from acquire.bench import Bench, open_bench
 from acquire.config import BenchConfig, CArmConfig, load_config
-from acquire.engine import MODES, ScanEngine
+from acquire.engine import MODES, Rig, ScanEngine
 from acquire.errors import AcquireError, ScanStateError
-from acquire.plan import ScanPlan, plan_bench_scan
-from acquire.recorder import ScanRecorder
+from acquire.plan import ScanPlan, plan_bench_scan, plan_carm_scan
+from acquire.recorder import ScanRecorder, SimulationTruth
+from acquire.rigs import open_rig
+from acquire.rigs.carm import export_orbit
 from orbitct.errorprofiles import ErrorProfileError, make_profile
 from orbitct.orbits import Orbit, OrbitError, make_orbit
 from orbitct.progress import ProgressCallback, ProgressEvent
@@ -64,7 +66,7 @@ class ScanResult:
 
 
 def make_orbit_and_errors(req: ScanRequest) -> tuple[Orbit, np.ndarray, dict[str, Any]]:
-    """The orbit and the injected errors (N, 6) of a request, with the error profile's description."""
+    """The orbit and the injected errors (N, 6: pitch, roll, yaw, x, y, z) of a request, with the profile's description."""
     params = dict(req.orbit_params)
     if req.frames is not None:
         params["n_frames"] = int(req.frames)
@@ -76,23 +78,44 @@ def make_orbit_and_errors(req: ScanRequest) -> tuple[Orbit, np.ndarray, dict[str
     return orbit, profile.sample(orbit).as_array(), profile.to_json()
 
 
-def build_plan(req: ScanRequest, cfg: BenchConfig) -> ScanPlan:
-    """The bench plan of a request."""
+def build_plan(req: ScanRequest, cfg: BenchConfig | CArmConfig) -> ScanPlan:
+    """The plan of a request on the rig ``cfg`` describes (a C-arm injects no errors: its own are what is measured)."""
+    if isinstance(cfg, CArmConfig):
+        if req.mode != "step":
+            raise AcquireError("the C-arm runs navigation points step by step; use mode 'step'")
+        orbit, _, _ = make_orbit_and_errors(dataclasses.replace(req, errors="none", error_params={}))
+        export_orbit(orbit, cfg)  # refuses an orbit outside the arm's ranges, naming the first bad frame
+        return plan_carm_scan(cfg, orbit)
     orbit, errors, profile = make_orbit_and_errors(req)
     return plan_bench_scan(cfg, orbit.theta, orbit.phi, errors, orbit_name=orbit.name,
                            orbit_params=orbit.params, error_profile=json.dumps(profile, sort_keys=True))
 
 
+def simulation_truth(cfg: BenchConfig | CArmConfig) -> SimulationTruth:
+    """Marker centres and phantom that the twins of ``cfg`` image."""
+    from orbitct.phantoms.experiments import experiment_phantom
+
+    phantom = experiment_phantom(cfg.sim.phantom, seed=cfg.sim.seed)
+    return SimulationTruth(np.asarray(phantom.markers_xyz, dtype=float), phantom.to_json())
+
+
+def start_extra(cfg: BenchConfig | CArmConfig, plan: ScanPlan, frame_rate_hz: float) -> dict[str, Any]:
+    """What a scan records about its rig in ``/acquisition`` besides mode and errors."""
+    if isinstance(cfg, CArmConfig):
+        program = export_orbit(make_orbit(plan.orbit_name, **dict(plan.orbit_params)), cfg)
+        return {"navigation_points": len(program.points), "speed_deg_s": cfg.limits.speed_deg_s}
+    return {"frame_rate_hz": frame_rate_hz, "settle_ms": cfg.motion.settle_ms, "stack_order": cfg.stack.order}
+
+
 class ScanRunner:
     """Runs one scan in the caller's loop (:meth:`run`) or in a background thread (:meth:`start`)."""
 
-    def __init__(self, request: ScanRequest, *, progress: ProgressCallback | None = None, bench: Bench | None = None) -> None:
+    def __init__(self, request: ScanRequest, *, progress: ProgressCallback | None = None, rig: Rig | None = None) -> None:
         if request.mode not in MODES:
             raise AcquireError(f"mode must be one of {MODES}, got {request.mode!r}")
         self.request = request
         self._user_progress = progress
-        self._bench = bench
-        self.progress_event: ProgressEvent | None = None
+        self._rig = rig
         self.error: BaseException | None = None
         self.result: ScanResult | None = None
         self._engine: ScanEngine | None = None
@@ -112,23 +135,33 @@ class ScanRunner:
         return self._state
 
     def _progress(self, event: ProgressEvent) -> None:
-        self.progress_event = event
         if self._user_progress is not None:
             self._user_progress(event)
 
     # ----------------------------------------------------------------- run
     async def run(self) -> ScanResult:
-        """Connect (unless a bench was given), plan, pre-flight, scan, record; returns the result."""
+        """Connect (unless a rig was given), plan, pre-flight, scan, record; returns the result."""
         self._loop = asyncio.get_running_loop()
         req = self.request
         try:
             cfg = req.resolved_config()
-            if isinstance(cfg, CArmConfig):
-                from acquire.carm_path import run_carm_scan
-
-                self.result = await run_carm_scan(req, cfg, progress=self._progress, runner=self)
+            plan = build_plan(req, cfg)
+            out = Path(req.out)
+            if out.exists() and not req.overwrite:
+                raise AcquireError(f"{out}: already exists (use overwrite to replace it)")
+            if isinstance(cfg, CArmConfig):  # the navigation program, as the C-arm plays it
+                program = export_orbit(make_orbit(plan.orbit_name, **dict(plan.orbit_params)), cfg)
+                out.parent.mkdir(parents=True, exist_ok=True)
+                program.write(out.with_suffix(".nav.json"))
+                program.write(out.with_suffix(".nav.csv"))
+            recorder = ScanRecorder(out, overwrite=req.overwrite,
+                                    marker_diameter_mm=cfg.sim.bb_diameter_mm if req.sim else None,
+                                    truth=simulation_truth(cfg) if req.sim else None)
+            if self._rig is not None:
+                self.result = await self._run_engine(self._rig, plan, cfg, recorder)
             else:
-                self.result = await self._run_bench(req, cfg)
+                async with open_rig(cfg, sim=req.sim) as rig:
+                    self.result = await self._run_engine(rig, plan, cfg, recorder)
             self._state = self.result.status
             return self.result
         except BaseException as exc:
@@ -138,20 +171,11 @@ class ScanRunner:
         finally:
             self._done.set()
 
-    async def _run_bench(self, req: ScanRequest, cfg: BenchConfig) -> ScanResult:
-        plan = build_plan(req, cfg)
-        out = Path(req.out)
-        if out.exists() and not req.overwrite:
-            raise AcquireError(f"{out}: already exists (use overwrite to replace it)")
-        recorder = ScanRecorder(out, overwrite=req.overwrite, marker_diameter_mm=cfg.sim.bb_diameter_mm if req.sim else None)
-        if self._bench is not None:
-            return await self._run_engine(self._bench, plan, cfg, recorder)
-        async with open_bench(cfg, sim=req.sim) as bench:
-            return await self._run_engine(bench, plan, cfg, recorder)
-
-    async def _run_engine(self, bench: Bench, plan: ScanPlan, cfg: BenchConfig, recorder: ScanRecorder) -> ScanResult:
-        engine = ScanEngine(bench, plan, cfg, mode=self.request.mode, subscribers=[recorder],
-                            progress=self._progress, frame_rate_hz=self.request.frame_rate_hz)
+    async def _run_engine(self, rig: Rig, plan: ScanPlan, cfg: BenchConfig | CArmConfig,
+                          recorder: ScanRecorder) -> ScanResult:
+        rate = float(self.request.frame_rate_hz or cfg.exposure.frame_rate_hz)
+        engine = ScanEngine(rig, plan, motion=cfg.motion, frame_rate_hz=rate, mode=self.request.mode,
+                            subscribers=[recorder], progress=self._progress, start_extra=start_extra(cfg, plan, rate))
         self._attach(engine)
         outcome = await engine.run()
         return ScanResult(Path(self.request.out), outcome.status, outcome.reason, outcome.n_frames,

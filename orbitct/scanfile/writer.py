@@ -58,7 +58,7 @@ class ScanWriter:
     def __init__(
         self,
         path: str | os.PathLike[str],
-        detector: Panel,
+        panel: Panel,
         *,
         frame_dtype: str = "uint16",
         axes: Mapping[str, str] | None = None,
@@ -67,6 +67,7 @@ class ScanWriter:
         config: Mapping[str, Any] | None = None,
         marker_diameter_mm: float | None = None,
         compression: str | None = None,
+        true_geometry: bool = False,
         overwrite: bool = False,
     ) -> None:
         self.path = Path(path)
@@ -74,7 +75,7 @@ class ScanWriter:
             raise ScanFileError(f"{self.path}: already exists (pass overwrite to replace it)")
         if np.dtype(frame_dtype) not in (np.dtype("uint16"), np.dtype("float32")):
             raise ScanFileError(f"frame dtype must be uint16 or float32, got {frame_dtype}")
-        self.panel = detector
+        self.panel = panel
         self._axes = _axis_units(axes)
         self._n = 0
         self._closed = False
@@ -83,9 +84,9 @@ class ScanWriter:
         self._f = f
         f.attrs.update({"format": FORMAT, "version": VERSION, "status": "acquiring", "status_reason": ""})
         g = f.create_group("detector")
-        g.attrs.update({"rows": detector.rows, "cols": detector.cols, "pitch_mm": np.array(detector.pitch_mm)})
+        g.attrs.update({"rows": panel.rows, "cols": panel.cols, "pitch_mm": np.array(panel.pitch_mm)})
         fr = f.create_group("frames")
-        r, c = detector.shape
+        r, c = panel.shape
         fr.create_dataset(
             "data", shape=(0, r, c), maxshape=(None, r, c), dtype=frame_dtype, chunks=(1, r, c),
             compression=compression,
@@ -102,11 +103,14 @@ class ScanWriter:
         nom.create_dataset(
             "matrices", shape=(0, 3, 4), maxshape=(None, 3, 4), dtype="f8", chunks=(_GEOM_CHUNK, 3, 4)
         )
+        if true_geometry:  # simulated acquisitions: the view each frame was rendered at, written with the frame
+            f.create_dataset("truth/geometry/vectors", shape=(0, 12), maxshape=(None, 12), dtype="f8",
+                             chunks=(_GEOM_CHUNK, 12))
         # handles of every per-frame dataset, looked up once (append runs once per frame)
         self._per_frame = {
             name: f[name]
             for name in ["frames/data", "frames/image_key", "frames/time_s", "geometry/nominal/vectors",
-                         "geometry/nominal/matrices"]
+                         "geometry/nominal/matrices"] + (["truth/geometry/vectors"] if true_geometry else [])
             + [f"frames/{grp}/{axis}" for grp in ("encoders", "commanded") for axis in self._axes]
         }
         mk = f.create_group("markers")
@@ -138,6 +142,7 @@ class ScanWriter:
         nominal_vector: ArrayLike | None = None,
         encoders: Mapping[str, float] | None = None,
         commanded: Mapping[str, float] | None = None,
+        true_vector: ArrayLike | None = None,
         flush: bool = True,
     ) -> int:
         """Append one frame with its metadata and flush; returns the frame index."""
@@ -167,6 +172,9 @@ class ScanWriter:
                 _put_row(ds[f"frames/{grp}/{name}"], i, values.get(name, np.nan))
         _put_row(ds["geometry/nominal/vectors"], i, vec)
         _put_row(ds["geometry/nominal/matrices"], i, ViewGeometry(vec, self.panel).matrices[0])
+        if "truth/geometry/vectors" in ds:
+            truth = np.full(12, np.nan) if true_vector is None else np.asarray(true_vector, float).reshape(12)
+            _put_row(ds["truth/geometry/vectors"], i, truth)
         _put_row(ds["frames/time_s"], i, float(time_s))
         # image_key is written last: its length is the count of complete frames.
         _put_row(ds["frames/image_key"], i, int(key))
@@ -177,16 +185,16 @@ class ScanWriter:
 
     def write_truth(
         self,
-        vectors: ArrayLike,
+        vectors: ArrayLike | None = None,
         markers_xyz: ArrayLike | None = None,
         phantom: Mapping[str, Any] | None = None,
     ) -> None:
-        """Store the simulation truth (geometry per frame, marker centres, phantom)."""
+        """Store the simulation truth: geometry of every frame (unless written frame by frame), marker centres, phantom."""
         g = self._f.require_group("truth")
-        vec = np.asarray(vectors, dtype=float)
-        if "geometry/vectors" in g:
-            del g["geometry/vectors"]
-        g.create_dataset("geometry/vectors", data=vec.reshape(-1, 12))
+        if vectors is not None:
+            if "geometry/vectors" in g:
+                del g["geometry/vectors"]
+            g.create_dataset("geometry/vectors", data=np.asarray(vectors, dtype=float).reshape(-1, 12))
         if markers_xyz is not None:
             if "markers/xyz" in g:
                 del g["markers/xyz"]

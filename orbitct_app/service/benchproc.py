@@ -80,7 +80,7 @@ class BenchServer:
     def __init__(self, config_path: Path, sim: bool, events: Connection) -> None:
         self.config_path, self.sim, self._events = Path(config_path), sim, events
         self.config: Any = None
-        self.bench: Any = None
+        self.rig: Any = None
         self.runner: Any = None
         self.scan_id: str | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
@@ -97,15 +97,14 @@ class BenchServer:
     # ---------------------------------------------------------------- lifecycle
     async def serve(self, commands: Connection, stops: Connection) -> None:
         """Connect, then run commands until ``shutdown`` or the web server disappears."""
-        from acquire.bench import open_bench
-        from acquire.config import BenchConfig, load_config
+        from acquire.config import load_config
+        from acquire.rigs import open_rig
 
         self.loop = asyncio.get_running_loop()
         async with contextlib.AsyncExitStack() as stack:
             try:
                 self.config = load_config(self.config_path)
-                if isinstance(self.config, BenchConfig):
-                    self.bench = await stack.enter_async_context(open_bench(self.config, sim=self.sim))
+                self.rig = await stack.enter_async_context(open_rig(self.config, sim=self.sim))
                 self.send("connected", self._describe_config())
             except Exception as exc:  # noqa: BLE001 - reported to the web server, which stays up degraded
                 self.send("connect_failed", classify(exc)[1])
@@ -156,9 +155,9 @@ class BenchServer:
             self.send("reply", req_id, False, classify(exc))
 
     def _device(self, name: str) -> Any:
-        if self.bench is None:
-            raise CommandError("unavailable", "no bench devices are connected (C-arm configuration)")
-        devices = {d.name: d for d in self.bench.devices}
+        if self.rig is None:
+            raise CommandError("unavailable", "no devices are connected")
+        devices = {d.name: d for d in self.rig.devices}
         if name not in devices:
             raise CommandError("not_found", f"no device {name!r}; known: {', '.join(devices)}")
         return devices[name]
@@ -172,9 +171,9 @@ class BenchServer:
 
     async def cmd_describe(self) -> list[dict[str, Any]]:
         """Every device's description."""
-        if self.bench is None:
+        if self.rig is None:
             return []
-        return [_plain(asdict(info)) for info in await self.bench.describe()]
+        return [_plain(asdict(info)) for info in await self.rig.describe()]
 
     async def cmd_device_state(self, name: str) -> dict[str, Any]:
         """Description and reading of one device."""
@@ -219,17 +218,14 @@ class BenchServer:
 
     async def cmd_preflight(self, spec: dict[str, Any]) -> None:
         """Plan the scan and check it against every limit; nothing moves."""
-        from acquire.config import BenchConfig
-        from acquire.preflight import preflight
         from acquire.runner import build_plan
 
         req = self._request(spec)
         cfg = req.resolved_config()
-        if not isinstance(cfg, BenchConfig) or self.bench is None:
-            return
+        if self.rig is None:
+            raise CommandError("unavailable", "no devices are connected")
         plan = build_plan(req, cfg)
-        await preflight(plan, cfg, device_limits=await self.bench.device_limits(), workspace_check=self.bench.check_workspace,
-                        mode=req.mode, frame_rate_hz=req.frame_rate_hz or cfg.exposure.frame_rate_hz)
+        await self.rig.preflight(plan, req.mode, req.frame_rate_hz or cfg.exposure.frame_rate_hz)
 
     async def cmd_start_scan(self, scan_id: str, spec: dict[str, Any]) -> None:
         """Start a scan in the background; refused while another runs."""
@@ -239,7 +235,7 @@ class BenchServer:
             raise CommandError("conflict", f"the bench is busy with scan {self.scan_id}; one scan at a time")
         req = self._request(spec)
         self.scan_id = scan_id
-        self.runner = ScanRunner(req, progress=lambda ev: self._progress(scan_id, ev), bench=self.bench)
+        self.runner = ScanRunner(req, progress=lambda ev: self._progress(scan_id, ev), rig=self.rig)
         asyncio.ensure_future(self._scan(scan_id, self.runner, Path(spec["out"])))
 
     async def _scan(self, scan_id: str, runner: Any, path: Path) -> None:
@@ -292,11 +288,11 @@ class BenchServer:
         asyncio.ensure_future(self._halt(req_id, scan_id))
 
     async def _halt(self, req_id: int, scan_id: str | None) -> None:
-        if self.bench is None:
+        if self.rig is None:
             self.send("reply", req_id, False, ("unavailable", "no bench devices are connected"))
             return
         try:
-            await self.bench.stop_all()
+            await self.rig.stop_all()
             self.send("reply", req_id, True, {"scan_aborted": scan_id})
         except Exception as exc:  # noqa: BLE001
             self.send("reply", req_id, False, classify(exc))

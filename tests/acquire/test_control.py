@@ -7,7 +7,7 @@ from typing import Any
 
 import pytest
 
-from acquire.bench import Bench, open_bench
+from acquire.rigs.bench import BenchRig, open_bench
 from acquire.runner import ScanRequest, ScanRunner
 from devices.sim import twin_of
 from orbitct.progress import ProgressEvent
@@ -25,7 +25,7 @@ async def _until(pred: Any, timeout_s: float = 30.0) -> None:
         await asyncio.sleep(0.005)
 
 
-async def _assert_safe(bench: Bench) -> None:
+async def _assert_safe(bench: BenchRig) -> None:
     """No axis moving and no X-rays."""
     assert not await bench.hexapod.moving()
     assert not await bench.stage.moving()
@@ -38,7 +38,7 @@ def _run_with_bench(req: ScanRequest, scenario: Any) -> Any:
         cfg = req.resolved_config()
         async with open_bench(cfg, sim=True) as bench:
             events: list[ProgressEvent] = []
-            runner = ScanRunner(req, bench=bench, progress=events.append)
+            runner = ScanRunner(req, rig=bench, progress=events.append)
             task = asyncio.ensure_future(runner.run())
             out = await scenario(runner, task, bench, events)
             return out
@@ -51,7 +51,7 @@ def test_abort_mid_scan_halts_and_leaves_valid_aborted_file(request_factory, ove
     cfg = cfg.model_copy(update={"motion": cfg.motion.model_copy(update={"overlap_readout": overlap})})
     req = request_factory(frames=30, config=cfg)
 
-    async def scenario(runner: ScanRunner, task: asyncio.Task, bench: Bench, events: list) -> None:
+    async def scenario(runner: ScanRunner, task: asyncio.Task, bench: BenchRig, events: list) -> None:
         await _until(lambda: runner._engine is not None and runner._engine.n_done >= 8)
         runner.abort("operator pressed stop")
         res = await task
@@ -69,7 +69,7 @@ def test_abort_mid_scan_halts_and_leaves_valid_aborted_file(request_factory, ove
 def test_pause_holds_at_a_frame_boundary_and_resume_completes(request_factory) -> None:
     req = request_factory(frames=12)
 
-    async def scenario(runner: ScanRunner, task: asyncio.Task, bench: Bench, events: list) -> None:
+    async def scenario(runner: ScanRunner, task: asyncio.Task, bench: BenchRig, events: list) -> None:
         await _until(lambda: runner._engine is not None and runner._engine.n_done >= 7)
         runner.pause()
         await _until(lambda: runner.state == "paused")
@@ -88,7 +88,7 @@ def test_pause_holds_at_a_frame_boundary_and_resume_completes(request_factory) -
 def test_cancellation_from_outside_cleans_up_and_propagates(request_factory) -> None:
     req = request_factory(frames=30)
 
-    async def scenario(runner: ScanRunner, task: asyncio.Task, bench: Bench, events: list) -> None:
+    async def scenario(runner: ScanRunner, task: asyncio.Task, bench: BenchRig, events: list) -> None:
         await _until(lambda: runner._engine is not None and runner._engine.n_done >= 8)
         task.cancel()  # what asyncio.run does on Ctrl-C
         with pytest.raises(asyncio.CancelledError):
@@ -122,7 +122,7 @@ def test_device_fault_ends_scan_safely_with_clear_reason(request_factory, fault:
     expected = {"stuck_axis": "X", "controller_error": "controller error", "interlock": "interlock",
                 "dropped_detector": "detector"}[fault]
 
-    async def scenario(runner: ScanRunner, task: asyncio.Task, bench: Bench, events: list) -> None:
+    async def scenario(runner: ScanRunner, task: asyncio.Task, bench: BenchRig, events: list) -> None:
         await _until(lambda: runner._engine is not None and runner._engine.n_done >= 8)
         if fault == "stuck_axis":
             twin_of(bench.hexapod).controller.stick("X")

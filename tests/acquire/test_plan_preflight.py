@@ -10,7 +10,7 @@ import pytest
 from acquire.config import parse_config
 from acquire.errors import PreflightError
 from acquire.plan import plan_bench_scan
-from acquire.preflight import preflight
+from acquire.preflight import bench_preflight
 from orbitct.scanfile.keys import ImageKey
 
 CFG = parse_config({"geometry": {"detector": {"rows": 64, "cols": 64}},
@@ -34,22 +34,22 @@ def test_plan_layout_and_nominal_geometry() -> None:
     assert plan.nominal[np.flatnonzero(proj)].allclose(CFG.geometry.carm_views(theta, phi))
     assert np.isnan(plan.nominal.vectors[~proj]).all()
     # darks/flats sit at the first / last projection pose
-    np.testing.assert_allclose(plan.hexapod[0], plan.hexapod[5])
-    np.testing.assert_allclose(plan.stage_rad[-1], plan.stage_rad[-3])
+    for axis, values in plan.targets.items():
+        assert values[0] == values[5] and values[-1] == values[-3], axis
     assert plan.frame(5).kind == "projection" and plan.frame(5).view == 0
 
 
 def test_feasible_orbit_passes() -> None:
     theta, phi = _sawtooth()
-    asyncio.run(preflight(plan_bench_scan(CFG, theta, phi), CFG))
+    asyncio.run(bench_preflight(plan_bench_scan(CFG, theta, phi), CFG))
 
 
 def test_tilt_beyond_hexapod_limit_is_refused_at_first_frame() -> None:
     theta, phi = _sawtooth(tilt_deg=35.0)
     plan = plan_bench_scan(CFG, theta, phi)
     with pytest.raises(PreflightError) as info:
-        asyncio.run(preflight(plan, CFG))
-    first = int(np.flatnonzero(np.degrees(np.abs(plan.hexapod[:, 3])) > 30)[0])
+        asyncio.run(bench_preflight(plan, CFG))
+    first = int(np.flatnonzero(np.abs(plan.targets["hexapod.U"]) > 30)[0])
     assert info.value.frame == first and info.value.axis == "hexapod.U"
     assert f"frame {first}" in str(info.value) and "nothing moved" in str(info.value)
 
@@ -59,7 +59,7 @@ def test_errors_push_translation_out_of_range() -> None:
     err = np.zeros((theta.size, 6))
     err[17, 5] = 30.0  # z shift beyond the +-25 mm range
     with pytest.raises(PreflightError) as info:
-        asyncio.run(preflight(plan_bench_scan(CFG, theta, phi, err), CFG))
+        asyncio.run(bench_preflight(plan_bench_scan(CFG, theta, phi, err), CFG))
     assert info.value.frame == 17 + 5 and info.value.axis == "hexapod.Z"
 
 
@@ -67,9 +67,9 @@ def test_controller_limits_are_checked_too() -> None:
     theta, phi = _sawtooth()
     plan = plan_bench_scan(CFG, theta, phi)
     with pytest.raises(PreflightError, match="controller range") as info:
-        asyncio.run(preflight(plan, CFG, device_limits={"rotation_stage": (-180.0, 180.0)}))
-    assert info.value.axis == "rotation_stage"
-    assert np.degrees(plan.stage_rad[info.value.frame]) < -180
+        asyncio.run(bench_preflight(plan, CFG, device_limits={"rotation_stage.R": (-180.0, 180.0)}))
+    assert info.value.axis == "rotation_stage.R"
+    assert plan.targets["rotation_stage.R"][info.value.frame] < -180
 
 
 def test_workspace_check_refusal_names_the_frame() -> None:
@@ -80,16 +80,16 @@ def test_workspace_check_refusal_names_the_frame() -> None:
         return next((i for i, p in enumerate(poses) if abs(p["U"]) > 15), None)
 
     with pytest.raises(PreflightError, match="workspace") as info:
-        asyncio.run(preflight(plan, CFG, workspace_check=refuse_tilts_over_15))
-    assert abs(np.degrees(plan.hexapod[info.value.frame, 3])) > 15
+        asyncio.run(bench_preflight(plan, CFG, workspace_check=refuse_tilts_over_15))
+    assert abs(plan.targets["hexapod.U"][info.value.frame]) > 15
 
 
 def test_continuous_mode_speed_limit() -> None:
     theta, phi = _sawtooth(n=40)
     plan = plan_bench_scan(CFG, theta, phi)
-    asyncio.run(preflight(plan, CFG, mode="continuous", frame_rate_hz=5))
+    asyncio.run(bench_preflight(plan, CFG, mode="continuous", frame_rate_hz=5))
     with pytest.raises(PreflightError, match="velocity"):
-        asyncio.run(preflight(plan, CFG, mode="continuous", frame_rate_hz=1000))
+        asyncio.run(bench_preflight(plan, CFG, mode="continuous", frame_rate_hz=1000))
 
 
 def test_sweeps_split_where_the_stage_stops_or_reverses() -> None:

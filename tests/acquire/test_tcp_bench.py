@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from acquire.bench import open_bench
+from acquire.rigs.bench import open_bench
 from acquire.config import BenchConfig
 from acquire.runner import ScanRequest, ScanRunner
 from devices.twins.detector import DetectorTwin
@@ -50,7 +50,7 @@ def test_unreferenced_real_axes_are_not_referenced_by_a_scan(tcp_config: BenchCo
 
     async def main() -> None:
         async with open_bench(tcp_config, sim=False) as bench:
-            res = await ScanRunner(_request(tcp_config, out), bench=bench).run()
+            res = await ScanRunner(_request(tcp_config, out), rig=bench).run()
             assert res.status == "aborted" and "not referenced" in res.reason and "reference them first" in res.reason
             assert not await bench.hexapod.moving()
 
@@ -64,7 +64,7 @@ def test_scan_over_configured_uris(tcp_config: BenchConfig, tmp_path: Path) -> N
     async def main() -> None:
         async with open_bench(tcp_config, sim=False) as bench:
             await asyncio.gather(bench.hexapod.reference(), bench.stage.reference())  # the operator's step
-            res = await ScanRunner(_request(tcp_config, out), bench=bench).run()
+            res = await ScanRunner(_request(tcp_config, out), rig=bench).run()
             assert res.status == "complete", res.reason
 
     asyncio.run(main())

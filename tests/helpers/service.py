@@ -77,3 +77,17 @@ def small_bench_config(folder: Path, size: int = DETECTOR_PX) -> Path:
     path = folder / "bench.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path
+
+
+SMALL_CARM_SAWTOOTH = {"orbit": "sawtooth", "params": {"start_deg": -180.0, "amplitude_deg": 10.0}, "errors": "none"}
+
+
+def small_carm_config(folder: Path, size: int = 64, time_scale: float = 2.0) -> Path:
+    """The C-arm configuration with a small panel; its twin moves ``time_scale`` times faster than real."""
+    cfg = yaml.safe_load((ROOT / "config" / "carm-zeego.yaml").read_text())
+    cfg["geometry"]["detector"] = {"rows": size, "cols": size}
+    cfg["calibration_frames"] = {"darks_before": 1, "flats_before": 1, "darks_after": 1, "flats_after": 1}
+    cfg["sim"]["time_scale"] = time_scale
+    path = folder / "carm.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path

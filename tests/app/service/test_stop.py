@@ -7,7 +7,7 @@ import time
 import pytest
 
 from orbitct.scanfile import ScanFile
-from tests.helpers.service import SMALL_SAWTOOTH, ended, wait_for
+from tests.helpers.service import SMALL_CARM_SAWTOOTH, SMALL_SAWTOOTH, ended, small_carm_config, wait_for
 
 pytestmark = pytest.mark.system
 
@@ -80,3 +80,24 @@ def test_bench_process_crash_fails_the_scan_and_keeps_its_frames(api) -> None:  
     assert api.post("/scans", json={**SMALL_SAWTOOTH, "frames": 4}).status_code == 503
     r = api.post("/stop")
     assert r.status_code == 202 and r.json()["halted"] is False
+
+
+def test_emergency_stop_halts_a_carm_scan(make_api, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    api = make_api(bench_config=small_carm_config(tmp_path))
+    devices = [d["name"] for d in api.get("/devices").json()]
+    assert devices == ["carm"]
+    r = api.post("/scans", json={**SMALL_CARM_SAWTOOTH, "frames": 200})
+    assert r.status_code == 202, r.text
+    scan_id = r.json()["id"]
+    running = wait_for(api, f"/scans/{scan_id}", lambda b: b["progress"].get("done", 0) >= 6 or ended(b))
+    assert running["state"] == "running", running
+    r = api.post("/stop", role="viewer")
+    assert r.status_code == 202 and r.json()["halted"] is True and r.json()["scan_aborted"] == scan_id
+    scan = wait_for(api, f"/scans/{scan_id}", ended, 30)
+    assert scan["state"] == "aborted" and "emergency stop" in scan["reason"]
+    state = api.get("/devices/carm").json()["state"]
+    assert state["moving"] is False
+    time.sleep(0.3)  # the arm stays where the stop left it
+    assert api.get("/devices/carm").json()["state"]["primary_deg"] == state["primary_deg"]
+    with ScanFile(api.data_dir / "scans" / f"{scan_id}.h5") as sf:
+        assert sf.status == "aborted" and 6 <= sf.n_frames < 204

@@ -1,8 +1,8 @@
-"""A connected bench: hexapod, rotation stage, X-ray generator and detector of one configuration.
+"""The bench rig: a rotation stage on a hexapod moves the object between a fixed source and panel.
 
-``open_bench(config, sim=True)`` starts the twins in-process (``sim://bench``) so that
-nothing else needs to run; otherwise it connects the configured URIs. The engine talks
-to devices only through :class:`Bench`.
+``open_bench(config, sim=True)`` starts the twins in-process (``sim://bench``) so that nothing else
+needs to run; otherwise it connects the configured URIs. The engine talks to the devices only
+through :class:`BenchRig` (a :class:`~acquire.engine.SweepRig`).
 """
 
 from __future__ import annotations
@@ -11,53 +11,96 @@ import asyncio
 import contextlib
 import logging
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
-from typing import Any
-
-import numpy as np
-from numpy.typing import NDArray
+from typing import Any, Protocol
 
 from acquire.config import BenchConfig
 from acquire.errors import AcquireError
-from acquire.kinematics import HEXAPOD_AXES, HEXAPOD_UNITS
-from devices.base import DeviceInfo, Status
+from acquire.kinematics import HEXAPOD_AXES, STAGE_AXIS
+from acquire.plan import ScanPlan
+from acquire.preflight import bench_preflight
+from devices.base import DeviceInfo, FrameSource, Referencing, Status, XraySource
 from devices.errors import NotReferencedError, OutOfLimitsError
 from devices.factory import open_device
 from devices.factory import stop_all as stop_devices
+from devices.frame_protocol import Frame
 from orbitct.scanfile.keys import ImageKey
 
 log = logging.getLogger(__name__)
 SIM_WORLD = "bench"
-STAGE_AXIS = "R"
+STAGE = STAGE_AXIS.split(".")[1]  # the stage driver's axis name
 SIM_REPLY_TIMEOUT_S = 5.0
 SIM_FRAME_TIMEOUT_S = 20.0
 
 
-class Bench:
+class Hexapod(Referencing, Protocol):
+    """What the bench needs of its hexapod beyond referenced axes: the pivot and the coupled workspace."""
+
+    async def pivot(self) -> dict[str, float]:
+        """Pivot point R, S, T (mm)."""
+
+    async def set_pivot(self, r_mm: float, s_mm: float, t_mm: float) -> None:
+        """Set the pivot point (only while U, V, W are 0)."""
+
+    async def check_pose(self, targets: Mapping[str, float], current: Mapping[str, float] | None = None) -> dict[str, float]:
+        """Refuse a pose outside the soft limits or the coupled workspace (``OutOfLimitsError``)."""
+
+
+def _device_axes(targets: Mapping[str, float], device: str) -> dict[str, float]:
+    """``{'hexapod.X': 1.0, ...}`` -> ``{'X': 1.0, ...}`` for one device."""
+    prefix = device + "."
+    return {k[len(prefix):]: float(v) for k, v in targets.items() if k.startswith(prefix)}
+
+
+class BenchRig:
     """The four devices of a bench behind the calls the engine needs (units: deg and mm at this edge)."""
 
-    def __init__(self, config: BenchConfig, hexapod: Any, stage: Any, xray: Any, detector: Any, *, sim: bool) -> None:
+    sweep_axis = STAGE_AXIS
+
+    def __init__(self, config: BenchConfig, hexapod: Hexapod, stage: Referencing, xray: XraySource, detector: FrameSource,
+                 *, sim: bool) -> None:
         self.config = config
         self.hexapod, self.stage, self.xray, self.detector = hexapod, stage, xray, detector
         self.sim = sim
-        self.axes: dict[str, str] = {f"rotation_stage.{STAGE_AXIS}": "deg"}
-        self.axes.update({f"hexapod.{a}": u for a, u in zip(HEXAPOD_AXES, HEXAPOD_UNITS)})
-        self.phantom: Any = None
+        self.axes: dict[str, str] = {STAGE_AXIS: "deg"}
+        self.axes.update({f"hexapod.{a}": u for a, u in zip(HEXAPOD_AXES, ("mm", "mm", "mm", "deg", "deg", "deg"))})
         self._background: dict[str, Status[Any]] = {}
         self._superseded: list[Status[Any]] = []
-        self._last_truth: NDArray[np.float64] | None = None
 
     @property
     def devices(self) -> list[Any]:
         """Every device of the bench."""
-        return [d for d in (self.hexapod, self.stage, self.xray, self.detector) if d is not None]
+        return [self.hexapod, self.stage, self.xray, self.detector]
 
     async def describe(self) -> list[DeviceInfo]:
         """Model, serial, axes and limits of every device."""
         return list(await asyncio.gather(*(d.describe() for d in self.devices)))
 
+    # ------------------------------------------------------------ checks
+    async def device_limits(self) -> dict[str, tuple[float, float]]:
+        """Controller soft limits keyed like the plan's axes (``rotation_stage.R``, ``hexapod.X``, ...)."""
+        stage, hexa = await asyncio.gather(self.stage.limits(), self.hexapod.limits())
+        out = {STAGE_AXIS: tuple(stage[STAGE])}
+        out.update({f"hexapod.{a}": tuple(v) for a, v in hexa.items() if a in HEXAPOD_AXES})
+        return out  # type: ignore[return-value]
+
+    async def check_workspace(self, poses: Sequence[Mapping[str, float]]) -> int | None:
+        """Index of the first pose the hexapod controller refuses (VMO?), or None."""
+        for i, pose in enumerate(poses):
+            try:
+                await self.hexapod.check_pose(dict(pose))
+            except OutOfLimitsError:
+                return i
+        return None
+
+    async def preflight(self, plan: ScanPlan, mode: str, frame_rate_hz: float) -> None:
+        """Every frame against the configured and the controllers' limits and the hexapod's workspace."""
+        await bench_preflight(plan, self.config, device_limits=await self.device_limits(),
+                              workspace_check=self.check_workspace, mode=mode, frame_rate_hz=frame_rate_hz)
+
     # ------------------------------------------------------------ set-up
-    async def prepare(self, config: BenchConfig) -> None:
+    async def prepare(self, plan: ScanPlan) -> None:
         """Reference and servo the axes if needed, set the pivot, velocities and X-ray technique; arm the detector."""
+        config = self.config
         for dev in (self.hexapod, self.stage):
             ref = await dev.referenced()
             if not all(ref.values()):
@@ -87,26 +130,10 @@ class Bench:
         await asyncio.wait_for(self.hexapod.move({"U": 0.0, "V": 0.0, "W": 0.0}), timeout_s)
         await self.hexapod.set_pivot(want["R"], want["S"], want["T"])
 
-    async def device_limits(self) -> dict[str, tuple[float, float]]:
-        """Controller soft limits keyed like the pre-flight axes (``rotation_stage``, ``hexapod.X``, ...)."""
-        stage, hexa = await asyncio.gather(self.stage.limits(), self.hexapod.limits())
-        out = {"rotation_stage": tuple(stage[STAGE_AXIS])}
-        out.update({f"hexapod.{a}": tuple(v) for a, v in hexa.items() if a in HEXAPOD_AXES})
-        return out  # type: ignore[return-value]
-
-    async def check_workspace(self, poses: Sequence[Mapping[str, float]]) -> int | None:
-        """Index of the first pose the hexapod controller refuses (VMO?), or None."""
-        for i, pose in enumerate(poses):
-            try:
-                await self.hexapod.check_pose(dict(pose))
-            except OutOfLimitsError:
-                return i
-        return None
-
     # ------------------------------------------------------------ motion
-    async def move_to(self, stage_deg: float, hexapod: Mapping[str, float], timeout_s: float) -> None:
+    async def move_to(self, targets: Mapping[str, float], timeout_s: float) -> None:
         """Move stage and hexapod at once and wait until both are on target."""
-        moves = [self.stage.move({STAGE_AXIS: stage_deg}), self.hexapod.move(dict(hexapod))]
+        moves = [self.stage.move(_device_axes(targets, "rotation_stage")), self.hexapod.move(_device_axes(targets, "hexapod"))]
         waits = [asyncio.ensure_future(_await(m)) for m in moves]
         for w in waits:
             w.add_done_callback(_retrieve)  # outcomes are read even if this call is cancelled
@@ -118,7 +145,8 @@ class Bench:
             await asyncio.wait(waits, timeout=2.0)
             raise
         if pending:
-            raise AcquireError(f"move to stage {stage_deg:.3f} deg / hexapod {dict(hexapod)} not done within {timeout_s:g} s")
+            where = ", ".join(f"{k} {v:.3f}" for k, v in targets.items())
+            raise AcquireError(f"move to {where} not done within {timeout_s:g} s")
         for w in waits:
             exc = w.exception()
             if exc is not None:
@@ -129,18 +157,18 @@ class Bench:
         """How many times faster than real the stage twin moves (1 for real hardware)."""
         return float(self.config.sim.time_scale) if self.sim else 1.0
 
-    async def start_stage_sweep(self, target_deg: float, velocity_deg_s: float) -> None:
-        """Set the stage velocity (wall-clock deg/s) and start a move to ``target_deg`` without waiting."""
+    async def start_sweep(self, target: float, velocity: float) -> None:
+        """Set the stage velocity (wall-clock deg/s) and start a move to ``target`` without waiting."""
         self._raise_background()
-        await self.stage.set_velocity(velocity_deg_s / self.motion_time_scale)
+        await self.stage.set_velocity(velocity / self.motion_time_scale)
         self._supersede("stage")
-        self._background["stage"] = self.stage.move({STAGE_AXIS: target_deg})
+        self._background["stage"] = self.stage.move({STAGE: target})
 
-    async def start_hexapod_move(self, hexapod: Mapping[str, float]) -> None:
+    async def start_move(self, targets: Mapping[str, float]) -> None:
         """Start a hexapod move without waiting (it may retarget one still running); failures surface at the next check."""
         self._raise_background()
         self._supersede("hexapod")
-        self._background["hexapod"] = self.hexapod.move(dict(hexapod))
+        self._background["hexapod"] = self.hexapod.move(_device_axes(targets, "hexapod"))
 
     def _supersede(self, kind: str) -> None:
         old = self._background.pop(kind, None)
@@ -155,20 +183,21 @@ class Bench:
                 if exc is not None:
                     raise exc
 
-    async def stage_position_deg(self) -> float:
+    async def sweep_position(self) -> float:
         """Stage read-back (deg)."""
         self._raise_background()
-        return float((await self.stage.position())[STAGE_AXIS])
+        return float((await self.stage.position())[STAGE])
 
     async def read_positions(self) -> dict[str, float]:
         """Read-back of every axis as ``{'device.axis': value}``."""
         stage, hexa = await asyncio.gather(self.stage.position(), self.hexapod.position())
-        out = {f"rotation_stage.{STAGE_AXIS}": float(stage[STAGE_AXIS])}
+        out = {STAGE_AXIS: float(stage[STAGE])}
         out.update({f"hexapod.{a}": float(hexa[a]) for a in HEXAPOD_AXES})
         return out
 
-    async def restore_stage_velocity(self) -> None:
-        """Back to the configured stage velocity after a continuous sweep."""
+    async def restore(self) -> None:
+        """X-rays off; background moves settled; the configured stage velocity back (after a continuous sweep)."""
+        await self.xray.xray_off()
         await self._settle_background()
         await self.stage.set_velocity(self.config.limits.stage_velocity_deg_s)
 
@@ -183,57 +212,35 @@ class Bench:
                 st.exception()  # retrieved: no "exception never retrieved" warnings
 
     # --------------------------------------------------------- exposures
-    async def acquire(self, image_key: int, after_exposure: Callable[[], None] | None = None) -> tuple[NDArray[Any], int]:
+    async def acquire(self, image_key: int, after_exposure: Callable[[], None] | None = None) -> Frame:
         """One frame: dark (no X-rays), flat (open beam) or projection (X-ray exposure -> detector).
 
         ``after_exposure`` is called once the X-ray exposure is over, before the frame is read out.
         """
-        self._last_truth = None
         if image_key == ImageKey.DARK:
-            frame = (await self.detector.acquire_dark(1))[0]
-        elif image_key == ImageKey.FLAT:
-            frame = (await self.detector.acquire_flat(1))[0]
-        else:
-            await self.xray.expose()
-            if after_exposure is not None:
-                after_exposure()
-            frame = await self.detector.read_frame()
-            tv = frame.meta.get("truth_vectors") if self.sim else None
-            self._last_truth = np.asarray(tv, dtype=float) if tv is not None else None
-        return frame.data, int(frame.number)
+            return (await self.detector.acquire_dark(1))[0]
+        if image_key == ImageKey.FLAT:
+            return (await self.detector.acquire_flat(1))[0]
+        await self.xray.expose()
+        if after_exposure is not None:
+            after_exposure()
+        return await self.detector.read_frame()
 
-    async def xray_off(self) -> None:
-        """Switch X-rays off."""
-        await self.xray.xray_off()
-
-    def mark_interrupted(self) -> None:
-        """After a cancelled exchange a reply may still be in flight: make the GCS links reconnect before the next one."""
+    def _resynchronise(self) -> None:
+        """After a cancelled exchange a reply may still be in flight: the GCS links reconnect before the next one."""
         for dev in (self.hexapod, self.stage):
-            client = getattr(dev, "_client", None) or getattr(dev, "client", None)
+            client = getattr(dev, "_client", None)
             if client is not None and hasattr(client, "_stale"):
                 client._stale = True
 
-    async def stop_all(self) -> None:
+    async def stop_all(self, *, interrupted: bool = False) -> None:
         """Halt every axis and switch X-rays off, all at once; never raises."""
+        if interrupted:
+            self._resynchronise()
         errors = await stop_devices([self.xray, self.hexapod, self.stage])
         for exc in errors:
             log.error("stop_all: %s", exc)
         await self._settle_background()
-
-    # ------------------------------------------------------------- truth
-    def true_pose(self) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
-        """Not used: the simulated panel reports the true view with each frame."""
-        return None
-
-    def last_true_vector(self) -> NDArray[np.float64] | None:
-        """The true view the simulated detector imaged for the last projection."""
-        return self._last_truth
-
-    def truth_extras(self) -> dict[str, Any]:
-        """True marker centres and the phantom description (simulated benches only)."""
-        if not self.sim or self.phantom is None:
-            return {}
-        return {"markers_xyz": np.asarray(self.phantom.markers_xyz), "phantom": self.phantom.to_json()}
 
     async def close(self) -> None:
         """Stop everything, then disconnect every device."""
@@ -253,7 +260,7 @@ def _retrieve(fut: asyncio.Future[Any]) -> None:
 
 
 def sim_options(config: BenchConfig) -> dict[str, dict[str, Any]]:
-    """Twin options per device for an in-process simulated bench of ``config``."""
+    """Twin and driver options per device for an in-process simulated bench of ``config``."""
     det = config.geometry.detector
     # the twins share this machine's CPU with the scan: allow for a loaded machine in reply time-outs
     return {
@@ -268,7 +275,7 @@ def sim_options(config: BenchConfig) -> dict[str, dict[str, Any]]:
 
 
 @contextlib.asynccontextmanager
-async def open_bench(config: BenchConfig, *, sim: bool = False) -> AsyncIterator[Bench]:
+async def open_bench(config: BenchConfig, *, sim: bool = False) -> AsyncIterator[BenchRig]:
     """Connect every device of ``config`` (in-process twins when ``sim``); stops and closes them on exit."""
     uris = config.devices.model_dump()
     opts: dict[str, dict[str, Any]] = {k: {} for k in uris}
@@ -279,17 +286,13 @@ async def open_bench(config: BenchConfig, *, sim: bool = False) -> AsyncIterator
     try:
         for kind in ("hexapod", "rotation_stage", "xray", "detector"):
             opened[kind] = await open_device(kind, kind, uris[kind], **opts[kind])
-        bench = Bench(config, opened["hexapod"], opened["rotation_stage"], opened["xray"], opened["detector"], sim=sim)
-        if sim:
-            from orbitct.phantoms.experiments import experiment_phantom
-
-            bench.phantom = experiment_phantom(config.sim.phantom, seed=config.sim.seed)
     except BaseException:
         for dev in opened.values():
             with contextlib.suppress(Exception):
                 await dev.close()
         raise
+    rig = BenchRig(config, opened["hexapod"], opened["rotation_stage"], opened["xray"], opened["detector"], sim=sim)
     try:
-        yield bench
+        yield rig
     finally:
-        await bench.close()
+        await rig.close()
