@@ -10,7 +10,7 @@ from pydantic import ValidationError
 
 
 def _settings(**kwargs: object):  # type: ignore[no-untyped-def]
-    from orbitct_app.service.settings import load_settings
+    from orbitct_app.service.core.settings import load_settings
 
     settings_file = kwargs.pop("settings_file", None)
     try:
@@ -66,7 +66,7 @@ def token() -> None:
               help="tokens file (default <data-dir>/tokens.json)")
 def create(role: str, name: str, data_dir: Path | None, tokens_file: Path | None) -> None:
     """Create a token for ROLE, store its hash, print the token once."""
-    from orbitct_app.service.auth import TokenFileError, create_token
+    from orbitct_app.service.core.auth import TokenFileError, create_token
 
     settings = _settings(data_dir=data_dir, tokens_file=tokens_file)
     try:

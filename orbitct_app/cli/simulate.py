@@ -9,6 +9,7 @@ import click
 
 from orbitct_app.cli.progress import ProgressBar
 
+
 @click.command()
 @click.option("--experiment", "-e", type=click.Choice(["A", "B", "C"], case_sensitive=False), required=True,
               help="phantom of the paper's experiment A (bench), B (Cho cylinder + wire) or C (torso + screws)")

@@ -8,10 +8,10 @@ from typing import TYPE_CHECKING, Annotated
 from fastapi import Depends, HTTPException, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from orbitct_app.service.auth import Principal
+from orbitct_app.service.core.auth import Principal
 
 if TYPE_CHECKING:
-    from orbitct_app.service.app import Service
+    from orbitct_app.service.state import Service
 
 _bearer = HTTPBearer(auto_error=False, description="token from `orbitct token create --role R`")
 

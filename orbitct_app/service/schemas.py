@@ -6,7 +6,7 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
-from orbitct_app.service.errors import NotFound
+from orbitct_app.service.core.errors import NotFound
 
 
 class Progress(BaseModel):

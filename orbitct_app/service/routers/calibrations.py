@@ -8,9 +8,9 @@ from fastapi import APIRouter, Query, Response
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, ConfigDict, Field
 
+from orbitct_app.service.core.errors import ERROR_RESPONSES, Conflict, NotFound
+from orbitct_app.service.core.files import confined
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
-from orbitct_app.service.errors import ERROR_RESPONSES, Conflict, NotFound
-from orbitct_app.service.files import confined
 from orbitct_app.service.schemas import JobOut, job_or_404, job_out, scan_or_404
 
 router = APIRouter(prefix="/calibrations", tags=["calibrations"], responses=ERROR_RESPONSES)

@@ -8,8 +8,13 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Path
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from orbitct_app.service.core.errors import (
+    ERROR_RESPONSES,
+    Conflict,
+    FieldProblem,
+    Invalid,
+)
 from orbitct_app.service.deps import Operator, Reader, ServiceDep
-from orbitct_app.service.errors import ERROR_RESPONSES, Conflict, FieldProblem, Invalid
 
 router = APIRouter(prefix="/devices", tags=["devices"], responses=ERROR_RESPONSES)
 DeviceName = Annotated[str, Path(max_length=40, pattern=r"^[A-Za-z0-9_-]+$")]
@@ -69,20 +74,20 @@ def _state(result: dict[str, Any]) -> DeviceState:
 
 
 def _idle(service: Any) -> None:
-    if service.bench.busy is not None:
-        raise Conflict(f"the bench is running scan {service.bench.busy}; maintenance moves wait until it ends")
+    if service.rig.busy is not None:
+        raise Conflict(f"the bench is running scan {service.rig.busy}; maintenance moves wait until it ends")
 
 
 @router.get("", response_model=list[DeviceOut], summary="List devices")
 async def list_devices(service: ServiceDep, _: Reader) -> list[DeviceOut]:
     """Every connected device with its axes, units and soft limits."""
-    return [DeviceOut(**d) for d in await service.bench.run("describe")]
+    return [DeviceOut(**d) for d in await service.rig.run("describe")]
 
 
 @router.get("/{name}", response_model=DeviceState, summary="State of a device")
 async def get_device(name: DeviceName, service: ServiceDep, _: Reader) -> DeviceState:
     """Description and current read-back."""
-    return _state(await service.bench.run("device_state", name=name))
+    return _state(await service.rig.run("device_state", name=name))
 
 
 @router.post("/{name}/reference", response_model=DeviceState, summary="Reference a motion device",
@@ -90,7 +95,7 @@ async def get_device(name: DeviceName, service: ServiceDep, _: Reader) -> Device
 async def reference(name: DeviceName, service: ServiceDep, _: Operator) -> DeviceState:
     """Servo on and reference every axis; returns when done."""
     _idle(service)
-    return _state(await service.bench.run("reference", timeout_s=MOVE_TIMEOUT_S, name=name))
+    return _state(await service.rig.run("reference", timeout_s=MOVE_TIMEOUT_S, name=name))
 
 
 @router.post("/{name}/move", response_model=DeviceState, summary="Maintenance move",
@@ -99,7 +104,7 @@ async def move(name: DeviceName, body: MoveRequest, service: ServiceDep, _: Oper
     """Absolute move of some axes; limits (and the hexapod workspace) are checked before anything moves."""
     _idle(service)
     try:
-        return _state(await service.bench.run("move", timeout_s=MOVE_TIMEOUT_S, name=name, targets=body.targets))
+        return _state(await service.rig.run("move", timeout_s=MOVE_TIMEOUT_S, name=name, targets=body.targets))
     except Invalid as exc:
         raise Invalid(exc.message, details=[FieldProblem(field="targets", reason=exc.message)]) from None
 
@@ -107,4 +112,4 @@ async def move(name: DeviceName, body: MoveRequest, service: ServiceDep, _: Oper
 @router.post("/{name}/stop", response_model=DeviceState, summary="Stop one device")
 async def stop_device(name: DeviceName, service: ServiceDep, _: Operator) -> DeviceState:
     """Halt the device's axes (X-ray generator: X-rays off). For everything at once use ``POST /stop``."""
-    return _state(await service.bench.run("stop_device", name=name))
+    return _state(await service.rig.run("stop_device", name=name))

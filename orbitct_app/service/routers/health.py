@@ -22,5 +22,5 @@ class Health(BaseModel):
 @router.get("/health", response_model=Health, summary="Liveness and bench connection")
 async def health(service: ServiceDep) -> Health:
     """``ok`` when the bench is connected, ``degraded`` otherwise."""
-    bench = service.bench.connection_state.split(":")[0]  # the reason stays behind authentication
+    bench = service.rig.connection_state.split(":")[0]  # the reason stays behind authentication
     return Health(status="ok" if bench == "connected" else "degraded", version=__version__, bench=bench)

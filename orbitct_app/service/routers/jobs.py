@@ -7,9 +7,9 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Header, Query
 from pydantic import BaseModel
 
+from orbitct_app.service.core.errors import ERROR_RESPONSES, Conflict
+from orbitct_app.service.core.events import sse_response
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
-from orbitct_app.service.errors import ERROR_RESPONSES, Conflict
-from orbitct_app.service.events import sse_response
 from orbitct_app.service.schemas import JobOut, job_or_404, job_out
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], responses=ERROR_RESPONSES)

@@ -10,8 +10,14 @@ from fastapi import APIRouter, Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from orbitct.orbits import ORBIT_KINDS, OrbitError, make_orbit
+from orbitct_app.service.core.errors import (
+    ERROR_RESPONSES,
+    FieldProblem,
+    Invalid,
+    NotFound,
+    validation_details,
+)
 from orbitct_app.service.deps import Reader
-from orbitct_app.service.errors import ERROR_RESPONSES, FieldProblem, Invalid, NotFound, validation_details
 
 router = APIRouter(prefix="/orbits", tags=["orbits"], responses=ERROR_RESPONSES)
 OrbitKind = Literal[tuple(ORBIT_KINDS)]  # type: ignore[valid-type]

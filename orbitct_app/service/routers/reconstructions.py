@@ -12,9 +12,9 @@ from fastapi.responses import FileResponse
 from PIL import Image
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from orbitct_app.service.core.errors import ERROR_RESPONSES, Conflict, Invalid
+from orbitct_app.service.core.files import confined
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
-from orbitct_app.service.errors import ERROR_RESPONSES, Conflict, Invalid
-from orbitct_app.service.files import confined
 from orbitct_app.service.routers.calibrations import ScanId, check_scan_ready, submit
 from orbitct_app.service.schemas import JobOut, job_or_404, job_out
 

@@ -10,10 +10,16 @@ from fastapi.responses import FileResponse
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from orbitct.orbits import ORBIT_KINDS
+from orbitct_app.service.core.errors import (
+    ERROR_RESPONSES,
+    Conflict,
+    FieldProblem,
+    Invalid,
+    validation_details,
+)
+from orbitct_app.service.core.events import sse_response
+from orbitct_app.service.core.files import confined
 from orbitct_app.service.deps import Reader, ScanOperator, ServiceDep
-from orbitct_app.service.errors import ERROR_RESPONSES, Conflict, FieldProblem, Invalid, validation_details
-from orbitct_app.service.events import sse_response
-from orbitct_app.service.files import confined
 from orbitct_app.service.schemas import scan_or_404
 
 router = APIRouter(prefix="/scans", tags=["scans"], responses=ERROR_RESPONSES)
@@ -74,7 +80,7 @@ class ScanAction(BaseModel):
 
 
 def _out(service: Any, row: dict[str, Any]) -> ScanOut:
-    active = service.bench.current
+    active = service.rig.current
     if active is not None and active.scan_id == row["id"] and row["state"] not in ("complete", "aborted", "failed"):
         progress = active.progress
         row = {**row, "state": active.state, "progress": progress, "frames_done": progress.get("done", row["frames_done"]),
@@ -109,20 +115,20 @@ def _check_params(service: Any, body: ScanCreate) -> dict[str, Any]:
 def start_scan(body: ScanCreate, service: ServiceDep, who: ScanOperator, response: Response) -> ScanOut:
     """Check the orbit against every limit, then start it; returns at once (progress on ``/scans/{id}/events``)."""
     params = _check_params(service, body)
-    if service.bench.busy is not None:
-        raise Conflict(f"the bench is busy with scan {service.bench.busy}; one scan at a time")
+    if service.rig.busy is not None:
+        raise Conflict(f"the bench is busy with scan {service.rig.busy}; one scan at a time")
     scan_id = uuid.uuid4().hex[:16]
     rel = f"scans/{scan_id}.h5"
     spec = {"out": str(service.settings.data_dir / rel), "orbit": body.orbit, "params": params, "errors": body.errors,
             "seed": body.seed, "mode": body.mode}
     try:
-        service.bench.preflight(spec)
+        service.rig.preflight(spec)
     except Invalid as exc:
         raise Invalid(exc.message, details=[FieldProblem(field="params", reason=exc.message)]) from None
     service.store.add_scan(scan_id, name=body.name, orbit=body.orbit, request=body.model_dump(mode="json") | {"params": params},
                            file=rel, owner=who.name, frames_total=int(params["n_frames"]))
     try:
-        service.bench.start_scan(scan_id, spec)
+        service.rig.start_scan(scan_id, spec)
     except Exception:
         service.store.delete_scan(scan_id)
         raise
@@ -156,9 +162,9 @@ def scan_events(scan_id: str, service: ServiceDep, _: Reader,
 def abort_scan(scan_id: str, service: ServiceDep, _: ScanOperator, body: ScanAction | None = None) -> ScanOut:
     """Halt every axis, X-rays off, file marked aborted with the reason."""
     row = scan_or_404(service, scan_id)
-    if service.bench.busy != scan_id:
+    if service.rig.busy != scan_id:
         raise Conflict(f"scan {scan_id} is {row['state']}, not running")
-    service.bench.abort(scan_id, (body or ScanAction()).reason)
+    service.rig.abort(scan_id, (body or ScanAction()).reason)
     return _out(service, service.store.get_scan(scan_id))
 
 
@@ -166,7 +172,7 @@ def abort_scan(scan_id: str, service: ServiceDep, _: ScanOperator, body: ScanAct
 def pause_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
     """The current frame completes; X-rays stay off while paused."""
     scan_or_404(service, scan_id)
-    service.bench.pause(scan_id)
+    service.rig.pause(scan_id)
     return _out(service, service.store.get_scan(scan_id))
 
 
@@ -174,7 +180,7 @@ def pause_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
 def resume_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
     """Continue from the next frame."""
     scan_or_404(service, scan_id)
-    service.bench.resume(scan_id)
+    service.rig.resume(scan_id)
     return _out(service, service.store.get_scan(scan_id))
 
 
@@ -183,7 +189,7 @@ def resume_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
 def download_scan(scan_id: str, service: ServiceDep, _: Reader) -> FileResponse:
     """The scan file (``scan-file.md``), once the scan has ended and no job writes to it."""
     row = scan_or_404(service, scan_id)
-    if row["state"] in ("queued", "running", "paused") or service.bench.busy == scan_id:
+    if row["state"] in ("queued", "running", "paused") or service.rig.busy == scan_id:
         raise Conflict(f"scan {scan_id} is still {row['state']}; download it when it has ended")
     if scan_id in service.jobs.busy_scans():
         raise Conflict(f"a job is writing to scan {scan_id}; download it when the job has ended")

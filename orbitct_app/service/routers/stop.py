@@ -8,11 +8,11 @@ import logging
 from fastapi import APIRouter
 from pydantic import BaseModel, Field
 
+from orbitct_app.service.core.errors import ERROR_RESPONSES
 from orbitct_app.service.deps import ServiceDep, Stopper
-from orbitct_app.service.errors import ERROR_RESPONSES
 
 router = APIRouter(tags=["stop"], responses=ERROR_RESPONSES)
-log = logging.getLogger("orbitct_app.service.stop")
+log = logging.getLogger("orbitct.service.stop")
 CONFIRM_TIMEOUT_S = 5.0
 
 
@@ -36,9 +36,9 @@ async def emergency_stop(service: ServiceDep, who: Stopper) -> StopOut:
     Runs on the web server's loop (never in the worker thread pool) and takes no lock a scan holds.
     """
     log.warning("emergency stop by %s (%s)", who.name, who.role)
-    scan_id, future = service.bench.emergency_stop(f"emergency stop by {who.name}")
+    scan_id, future = service.rig.emergency_stop(f"emergency stop by {who.name}")
     if future is None:
-        return StopOut(halted=False, scan_aborted=scan_id, message=f"bench not connected ({service.bench.connection_state}); abort requested")
+        return StopOut(halted=False, scan_aborted=scan_id, message=f"bench not connected ({service.rig.connection_state}); abort requested")
     try:
         await asyncio.wait_for(asyncio.wrap_future(future), CONFIRM_TIMEOUT_S)
     except asyncio.TimeoutError:

@@ -11,8 +11,8 @@ import yaml
 from fastapi.testclient import TestClient
 
 from orbitct_app.service.app import create_app
-from orbitct_app.service.auth import create_token
-from orbitct_app.service.settings import load_settings
+from orbitct_app.service.core.auth import create_token
+from orbitct_app.service.core.settings import load_settings
 from tests.helpers.service import small_bench_config
 
 

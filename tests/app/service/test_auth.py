@@ -9,14 +9,14 @@ import pytest
 from click.testing import CliRunner
 
 from orbitct_app.cli.serve import token
-from orbitct_app.service.auth import (
+from orbitct_app.service.core.auth import (
     PERMISSIONS,
     TokenRegistry,
     create_token,
     hash_token,
     read_token_file,
 )
-from orbitct_app.service.settings import load_settings
+from orbitct_app.service.core.settings import load_settings
 
 pytestmark = pytest.mark.system
 

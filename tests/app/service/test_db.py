@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from orbitct_app.service.db import SCHEMA_VERSION, Store, StoreError
+from orbitct_app.service.core.db import SCHEMA_VERSION, Store, StoreError
 
 
 def test_fresh_database_is_at_latest_version(tmp_path: Path) -> None:

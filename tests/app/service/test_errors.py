@@ -49,8 +49,8 @@ def test_downloads_stay_in_the_data_dir(shared_api) -> None:  # type: ignore[no-
     for name in ("..%2F..%2Ftokens.json", "%2E%2E", "..", ".hidden", "a%00b"):
         r = shared_api.get(f"/calibrations/j1/files/{name}")
         assert r.status_code == 404, (name, r.status_code)
-    from orbitct_app.service.errors import NotFound
-    from orbitct_app.service.files import confined
+    from orbitct_app.service.core.errors import NotFound
+    from orbitct_app.service.core.files import confined
 
     (shared_api.data_dir / "jobs" / "j1" / "link").symlink_to(shared_api.data_dir / "tokens.json")
     with pytest.raises(NotFound):

@@ -6,8 +6,8 @@ import asyncio
 import threading
 from pathlib import Path
 
-from orbitct_app.service.db import Store
-from orbitct_app.service.events import EventBus
+from orbitct_app.service.core.db import Store
+from orbitct_app.service.core.events import EventBus
 
 
 def test_events_from_many_threads_keep_one_order(tmp_path: Path) -> None:

@@ -8,8 +8,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from orbitct_app.service import jobs as jobs_module
+from orbitct_app.service.jobs import manager as jobs_module
 from tests.helpers.service import parse_sse, write_small_scan
+from tests.helpers.workloads import frame_means
 
 pytestmark = pytest.mark.system
 
@@ -36,7 +37,7 @@ def _wait(api: Any, job_id: str, states: tuple[str, ...] = ("succeeded", "failed
 @pytest.fixture
 def workload(monkeypatch: pytest.MonkeyPatch) -> None:
     """Calibration jobs run the small frame-means workload instead of the BB calibration."""
-    monkeypatch.setitem(jobs_module.JOB_TARGETS, "calibration", "tests.helpers.workloads:frame_means")
+    monkeypatch.setitem(jobs_module.JOB_TARGETS, "calibration", frame_means)
 
 
 def test_job_runs_in_a_worker_with_ordered_progress(api, workload) -> None:  # type: ignore[no-untyped-def]

@@ -7,7 +7,13 @@ import time
 import pytest
 
 from orbitct.scanfile import ScanFile
-from tests.helpers.service import SMALL_CARM_SAWTOOTH, SMALL_SAWTOOTH, ended, small_carm_config, wait_for
+from tests.helpers.service import (
+    SMALL_CARM_SAWTOOTH,
+    SMALL_SAWTOOTH,
+    ended,
+    small_carm_config,
+    wait_for,
+)
 
 pytestmark = pytest.mark.system
 
@@ -71,7 +77,7 @@ def test_one_scan_at_a_time_and_abort(api) -> None:  # type: ignore[no-untyped-d
 
 def test_bench_process_crash_fails_the_scan_and_keeps_its_frames(api) -> None:  # type: ignore[no-untyped-def]
     scan_id = _start(api)
-    api.service.bench._process.kill()
+    api.service.rig._process.kill()
     scan = wait_for(api, f"/scans/{scan_id}", ended, 30)
     assert scan["state"] == "failed" and "bench process ended" in scan["reason"]
     assert scan["summary"]["status"] == "aborted" and scan["summary"]["n_frames"] >= 8

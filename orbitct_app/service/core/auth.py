@@ -13,7 +13,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Literal
 
-from orbitct_app.service.settings import Role, TokenHash
+from orbitct_app.service.core.settings import Role, TokenHash
 
 Permission = Literal["read", "motion", "scan", "analysis", "stop"]
 

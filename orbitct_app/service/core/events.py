@@ -11,7 +11,7 @@ from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from typing import Any
 
-from orbitct_app.service.db import Store
+from orbitct_app.service.core.db import Store
 
 FINAL_KINDS = ("end",)  # an ``end`` event closes a topic's stream
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib
 import json
 import logging
 import multiprocessing as mp
@@ -19,15 +18,16 @@ from pathlib import Path
 from typing import Any
 
 from orbitct.progress import ProgressEvent
-from orbitct_app.service.db import Store, utc_now
-from orbitct_app.service.events import EventBus
+from orbitct_app.service.core.db import Store, utc_now
+from orbitct_app.service.core.events import EventBus
+from orbitct_app.service.jobs.tasks import run_calibration, run_reconstruction
 
-log = logging.getLogger("orbitct_app.service.jobs")
+log = logging.getLogger("orbitct.service.jobs")
 
-# kind -> "module:function" run in the worker: f(scan_path, params, out_dir, progress) -> result dict
-JOB_TARGETS: dict[str, str] = {
-    "calibration": "orbitct_app.service.analysis:run_calibration",
-    "reconstruction": "orbitct_app.service.analysis:run_reconstruction",
+# kind -> what a worker runs: f(scan_path, params, out_dir, progress) -> result dict (picklable by reference)
+JOB_TARGETS: dict[str, Callable[..., dict[str, Any]]] = {
+    "calibration": run_calibration,
+    "reconstruction": run_reconstruction,
 }
 _CTX = mp.get_context("spawn")
 JOB_NICE = 5
@@ -50,7 +50,8 @@ class _PipeLogHandler(logging.Handler):
             pass
 
 
-def _worker_main(target: str, scan_path: str, params: dict[str, Any], out_dir: str, conn: Connection, cancel: Any) -> None:
+def _worker_main(func: Callable[..., dict[str, Any]], scan_path: str, params: dict[str, Any], out_dir: str,
+                 conn: Connection, cancel: Any) -> None:
     """Entry point of a job process: run ``target`` and send progress, log lines and the outcome over ``conn``."""
     try:
         os.nice(JOB_NICE)  # batch work: never take CPU from a running acquisition
@@ -75,8 +76,6 @@ def _worker_main(target: str, scan_path: str, params: dict[str, Any], out_dir: s
             conn.send(("log", f"stage {event.stage}: {event.message}".rstrip(": ")))
 
     try:
-        module, name = target.split(":")
-        func: Callable[..., dict[str, Any]] = getattr(importlib.import_module(module), name)
         Path(out_dir).mkdir(parents=True, exist_ok=True)
         result = func(Path(scan_path), params, Path(out_dir), progress)
         conn.send(("result", result))

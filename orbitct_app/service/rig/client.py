@@ -18,11 +18,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from orbitct_app.service.db import Store, utc_now
-from orbitct_app.service.errors import ApiError, Conflict, Invalid, NotFound, Unavailable
-from orbitct_app.service.events import EventBus
+from orbitct_app.service.core.db import Store, utc_now
+from orbitct_app.service.core.errors import (
+    ApiError,
+    Conflict,
+    Invalid,
+    NotFound,
+    Unavailable,
+)
+from orbitct_app.service.core.events import EventBus
 
-log = logging.getLogger("orbitct_app.service.bench")
+log = logging.getLogger("orbitct.service.rig")
 _CTX = mp.get_context("spawn")
 ERROR_KINDS: dict[str, type[ApiError]] = {"invalid": Invalid, "conflict": Conflict, "not_found": NotFound,
                                           "unavailable": Unavailable, "error": Unavailable}
@@ -52,8 +58,8 @@ def scan_summary(path: Path) -> dict[str, Any]:
         return {"error": f"scan file unreadable: {exc}".replace(str(path), path.name)}
 
 
-class BenchController:
-    """Starts the bench process and relays commands, progress and the emergency stop."""
+class RigClient:
+    """Starts the rig process and relays commands, progress and the emergency stop."""
 
     def __init__(self, config_path: Path, *, sim: bool, store: Store, bus: EventBus, data_dir: Path,
                  status_interval_s: float = 0.25, nice: int = 0) -> None:
@@ -80,19 +86,19 @@ class BenchController:
     # ------------------------------------------------------------ lifecycle
     def start(self, timeout_s: float = 120.0) -> None:
         """Start the bench process and wait until it has connected every device (twins with sim)."""
-        from orbitct_app.service.benchproc import bench_main
+        from orbitct_app.service.rig.process import rig_main
 
         cmd_parent, cmd_child = _CTX.Pipe()
         stop_parent, stop_child = _CTX.Pipe()
         events_parent, events_child = _CTX.Pipe(duplex=False)
         self._cmd, self._stop, self._events = cmd_parent, stop_parent, events_parent
         self.connection_state = "connecting"
-        self._process = _CTX.Process(target=bench_main, name="orbitct-bench", daemon=True,
+        self._process = _CTX.Process(target=rig_main, name="orbitct-rig", daemon=True,
                                      args=(str(self.config_path), self.sim, cmd_child, stop_child, events_child, self.nice))
         self._process.start()
         for conn in (cmd_child, stop_child, events_child):
             conn.close()
-        self._reader = threading.Thread(target=self._read, name="orbitct-bench-events", daemon=True)
+        self._reader = threading.Thread(target=self._read, name="orbitct-rig-events", daemon=True)
         self._reader.start()
         if not self._connected.wait(timeout_s):
             self.connection_state = f"failed: the bench did not connect within {timeout_s:g} s"

@@ -12,7 +12,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-log = logging.getLogger("orbitct_app.service")
+log = logging.getLogger("orbitct.service")
 
 
 class FieldProblem(BaseModel):

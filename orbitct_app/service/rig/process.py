@@ -20,7 +20,7 @@ from typing import Any
 
 from orbitct.progress import ProgressEvent
 
-log = logging.getLogger("orbitct_app.service.benchproc")
+log = logging.getLogger("orbitct.service.rig.process")
 
 
 class CommandError(Exception):
@@ -51,8 +51,15 @@ def _plain(value: Any) -> Any:
 def classify(exc: BaseException) -> tuple[str, str]:
     """``(kind, message)`` of an error raised by a command."""
     from acquire.errors import AcquireError, ScanStateError
-    from devices.errors import (DeviceError, DeviceTimeoutError, FaultActiveError, InterlockOpenError,
-                                NotConnectedError, NotReferencedError, OutOfLimitsError)
+    from devices.errors import (
+        DeviceError,
+        DeviceTimeoutError,
+        FaultActiveError,
+        InterlockOpenError,
+        NotConnectedError,
+        NotReferencedError,
+        OutOfLimitsError,
+    )
 
     text = str(exc) or type(exc).__name__
     if isinstance(exc, CommandError):
@@ -74,7 +81,7 @@ def classify(exc: BaseException) -> tuple[str, str]:
     return "error", f"{type(exc).__name__}: {text}"
 
 
-class BenchServer:
+class RigServer:
     """Runs in the bench process: executes commands on the bench loop, reports scan progress."""
 
     def __init__(self, config_path: Path, sim: bool, events: Connection) -> None:
@@ -239,7 +246,7 @@ class BenchServer:
         asyncio.ensure_future(self._scan(scan_id, self.runner, Path(spec["out"])))
 
     async def _scan(self, scan_id: str, runner: Any, path: Path) -> None:
-        from orbitct_app.service.bench import scan_summary
+        from orbitct_app.service.rig.client import scan_summary
 
         state, reason, timing, elapsed = "failed", "", {}, None
         try:
@@ -298,7 +305,7 @@ class BenchServer:
             self.send("reply", req_id, False, classify(exc))
 
 
-def bench_main(config_path: str, sim: bool, commands: Connection, stops: Connection, events: Connection,
+def rig_main(config_path: str, sim: bool, commands: Connection, stops: Connection, events: Connection,
                nice: int = 0) -> None:
     """Entry point of the bench process (asks for priority ``nice`` over the web server where allowed)."""
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s bench: %(message)s")
@@ -307,7 +314,7 @@ def bench_main(config_path: str, sim: bool, commands: Connection, stops: Connect
             os.setpriority(os.PRIO_PROCESS, 0, nice)
         except OSError:
             log.info("bench process priority stays normal (raising it needs root or CAP_SYS_NICE)")
-    server = BenchServer(Path(config_path), sim, events)
+    server = RigServer(Path(config_path), sim, events)
     try:
         asyncio.run(server.serve(commands, stops))
     finally:

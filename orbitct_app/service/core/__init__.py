@@ -1,0 +1,1 @@
+"""Infrastructure of the service, apart from the routes: settings, database, tokens, errors, events, files."""

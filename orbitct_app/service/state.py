@@ -1,0 +1,89 @@
+"""Everything one running service owns: settings, store, event bus, tokens, the rig process, the job queue."""
+
+from __future__ import annotations
+
+import logging
+import secrets
+import time
+from pathlib import Path
+
+from orbitct_app.service.core.auth import TOKEN_PREFIX, TokenRegistry
+from orbitct_app.service.core.db import Store
+from orbitct_app.service.core.events import EventBus
+from orbitct_app.service.core.settings import ServiceSettings
+from orbitct_app.service.jobs.manager import JobManager
+from orbitct_app.service.rig.client import RigClient, scan_summary
+
+log = logging.getLogger("orbitct.service")
+RESTART_REASON = "interrupted: the service stopped while it was running"
+
+
+class Service:
+    """Everything one running service owns."""
+
+    def __init__(self, settings: ServiceSettings) -> None:
+        self.settings = settings
+        settings.data_dir.mkdir(parents=True, exist_ok=True)
+        self.dev_token: str | None = None
+        if settings.sim:
+            self.dev_token = settings.dev_token or TOKEN_PREFIX + "dev_" + secrets.token_urlsafe(24)
+        self.tokens = TokenRegistry(settings.tokens, settings.tokens_path, self.dev_token)
+        self.store = Store(settings.db_path)
+        self.bus = EventBus(self.store)
+        self.rig = RigClient(settings.bench_config, sim=settings.sim, store=self.store, bus=self.bus,
+                                     data_dir=settings.data_dir, status_interval_s=settings.status_interval_s,
+                                     nice=settings.bench_nice)
+        self.jobs = JobManager(self.store, self.bus, settings.data_dir, workers=settings.job_workers,
+                               cancel_grace_s=settings.cancel_grace_s, scan_busy=lambda s: self.rig.busy == s)
+
+    def recover(self) -> tuple[list[str], list[str]]:
+        """Mark scans and jobs a previous process left running as interrupted; repair their scan files."""
+        scan_ids, job_ids = self.store.mark_interrupted(RESTART_REASON)
+        for scan_id in scan_ids:
+            row = self.store.get_scan(scan_id)
+            path = self.settings.data_dir / row["file"] if row else None
+            summary: dict[str, object] = {}
+            if path is not None and path.exists():
+                summary = self._repair(path)
+            self.store.update_scan(scan_id, summary=summary)
+            self.bus.publish(f"scan:{scan_id}", "end", {"state": "interrupted", "reason": RESTART_REASON})
+        for job_id in job_ids:
+            self.bus.publish(f"job:{job_id}", "end", {"state": "interrupted", "reason": RESTART_REASON})
+        if scan_ids or job_ids:
+            log.warning("marked interrupted after restart: scans %s, jobs %s", scan_ids, job_ids)
+        return scan_ids, job_ids
+
+    @staticmethod
+    def _repair(path: Path, wait_s: float = 15.0) -> dict[str, object]:
+        """Mark a scan file left 'acquiring' as aborted (waiting while a dying bench process still holds it)."""
+        from acquire.repair import repair_scan
+
+        t0 = time.monotonic()
+        while True:
+            try:
+                repair_scan(path)
+                break
+            except Exception as exc:  # noqa: BLE001 - keep what is there, say why it could not be repaired
+                if time.monotonic() - t0 > wait_s:
+                    log.error("could not repair %s: %s", path.name, exc)
+                    break
+                time.sleep(0.2)
+        return scan_summary(path)
+
+    def start(self) -> None:
+        """Recover, connect the bench, start the job workers."""
+        self.recover()
+        if not self.settings.sim and len(self.tokens) == 0:
+            log.warning("no tokens configured: every request will get 401; create one with "
+                        "`orbitct token create --role operator --data-dir %s`", self.settings.data_dir)
+        self.rig.start()
+        self.jobs.start()
+        if self.dev_token is not None:
+            log.warning("--sim development token (all roles): %s", self.dev_token)
+
+    def close(self) -> None:
+        """Stop jobs and the bench, flush events, close the store."""
+        self.jobs.shutdown()
+        self.rig.close()
+        self.bus.close()
+        self.store.close()
