@@ -10,9 +10,10 @@ from pathlib import Path
 from orbitct_app.service.core.auth import TOKEN_PREFIX, TokenRegistry
 from orbitct_app.service.core.db import Store
 from orbitct_app.service.core.events import EventBus
+from orbitct_app.service.core.files import summarize_scan
 from orbitct_app.service.core.settings import ServiceSettings
 from orbitct_app.service.jobs.manager import JobManager
-from orbitct_app.service.rig.client import RigClient, scan_summary
+from orbitct_app.service.rig.client import RigClient
 
 log = logging.getLogger("orbitct.service")
 RESTART_REASON = "interrupted: the service stopped while it was running"
@@ -68,7 +69,7 @@ class Service:
                     log.error("could not repair %s: %s", path.name, exc)
                     break
                 time.sleep(0.2)
-        return scan_summary(path)
+        return summarize_scan(path)
 
     def start(self) -> None:
         """Recover, connect the bench, start the job workers."""

@@ -1,9 +1,10 @@
-"""File access confined to the service's data directory (no path traversal, no links out)."""
+"""Files of the data directory: access confined to it (no path traversal, no links out), and scan summaries."""
 
 from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Any
 
 from orbitct_app.service.core.errors import NotFound
 
@@ -22,3 +23,15 @@ def confined(base: Path, *parts: str) -> Path:
     if not path.is_file():
         raise NotFound(f"no file named {'/'.join(parts)[:120]!r}")
     return path
+
+
+def summarize_scan(path: Path) -> dict[str, Any]:
+    """:func:`orbitct.scanfile.scan_summary` of the file at ``path``, or ``{"error": ...}`` when it cannot be read."""
+    from orbitct.scanfile import ScanFile, ScanFileError
+    from orbitct.scanfile import scan_summary as summarize
+
+    try:
+        with ScanFile(path) as sf:
+            return summarize(sf)
+    except (ScanFileError, OSError, KeyError, ValueError) as exc:
+        return {"error": f"scan file unreadable: {exc}".replace(str(path), path.name)}

@@ -27,6 +27,7 @@ from orbitct_app.service.core.errors import (
     Unavailable,
 )
 from orbitct_app.service.core.events import EventBus
+from orbitct_app.service.core.files import summarize_scan
 
 log = logging.getLogger("orbitct.service.rig")
 _CTX = mp.get_context("spawn")
@@ -44,18 +45,6 @@ class ActiveScan:
     state: str = "running"
     last_db: float = 0.0
     done: threading.Event = field(default_factory=threading.Event)
-
-
-def scan_summary(path: Path) -> dict[str, Any]:
-    """:func:`orbitct.scanfile.scan_summary` of the file at ``path``, or ``{"error": ...}`` when it cannot be read."""
-    from orbitct.scanfile import ScanFile, ScanFileError
-    from orbitct.scanfile import scan_summary as summarize
-
-    try:
-        with ScanFile(path) as sf:
-            return summarize(sf)
-    except (ScanFileError, OSError, KeyError, ValueError) as exc:
-        return {"error": f"scan file unreadable: {exc}".replace(str(path), path.name)}
 
 
 class RigClient:
@@ -173,7 +162,7 @@ class RigClient:
             summary: dict[str, Any] = {}
             if active.path.exists():
                 self._repair_after_exit(active.path)
-                summary = scan_summary(active.path)
+                summary = summarize_scan(active.path)
             self._on_scan_end(active.scan_id, "failed", "the bench process ended during the scan", summary)
 
     def _repair_after_exit(self, path: Path) -> None:

@@ -246,7 +246,7 @@ class RigServer:
         asyncio.ensure_future(self._scan(scan_id, self.runner, Path(spec["out"])))
 
     async def _scan(self, scan_id: str, runner: Any, path: Path) -> None:
-        from orbitct_app.service.rig.client import scan_summary
+        from orbitct_app.service.core.files import summarize_scan
 
         state, reason, timing, elapsed = "failed", "", {}, None
         try:
@@ -258,7 +258,7 @@ class RigServer:
         except Exception as exc:  # noqa: BLE001 - pre-flight refusals, configuration and device errors
             state, reason = "failed", classify(exc)[1]
         finally:
-            summary = await asyncio.get_running_loop().run_in_executor(None, scan_summary, path) if path.exists() else {}
+            summary = await asyncio.get_running_loop().run_in_executor(None, summarize_scan, path) if path.exists() else {}
             if timing:
                 summary["timing"], summary["elapsed_s"] = timing, elapsed
             self.scan_id, self.runner = None, None
