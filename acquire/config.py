@@ -25,7 +25,7 @@ from acquire.errors import ConfigError
 from devices.errors import UriError
 from devices.uri import parse_uri
 from orbitct.geometry import Panel, ViewGeometry
-from orbitct.reference_bench import SAD_MM, SDD_MM, reference_panel
+from orbitct.reference_bench import BB_DIAMETER_MM, SAD_MM, SDD_MM, reference_panel
 
 
 class _Model(BaseModel):
@@ -182,7 +182,7 @@ class SimConfig(_Model):
     """What the in-process twins image (``--sim``): phantom and BB size of experiment A."""
 
     phantom: str = Field("A", description="orbitct.phantoms experiment: A, B or C")
-    bb_diameter_mm: float = Field(3.17, gt=0, le=20)
+    bb_diameter_mm: float = Field(BB_DIAMETER_MM, gt=0, le=20)
     seed: int = 0
     time_scale: float = Field(1.0, ge=0.1, le=1000, description="twin motion and exposure run this many times faster")
 

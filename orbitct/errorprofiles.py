@@ -83,14 +83,6 @@ class RigidErrors:
         """Errors from rotations ``(N, 3, 3)`` and shifts ``(N, 3)``."""
         return cls(xyz_angles(R), np.asarray(t, dtype=float))
 
-    @classmethod
-    def from_array(cls, errors: ArrayLike) -> "RigidErrors":
-        """Errors from an ``(N, 6)`` array: pitch, roll, yaw (rad), x, y, z (mm)."""
-        e = np.asarray(errors, dtype=float)
-        if e.ndim != 2 or e.shape[1] != 6:
-            raise ErrorProfileError(f"errors: expected shape (N, 6) = pitch, roll, yaw, x, y, z; got {e.shape}")
-        return cls(e[:, :3], e[:, 3:])
-
     def as_array(self) -> NDArray[np.float64]:
         """``(N, 6)``: pitch, roll, yaw (rad), x, y, z (mm)."""
         return np.concatenate([self.angles, self.shift_mm], axis=1)

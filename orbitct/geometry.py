@@ -10,7 +10,6 @@ volume geometry with the projection geometry).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from itertools import product
 from typing import Any
 
 import numpy as np
@@ -461,11 +460,6 @@ class VolumeGrid:
         return tuple(  # type: ignore[return-value]
             self.origin_mm[a] + self.voxel_mm[a] * np.arange(self.shape[2 - a]) for a in (2, 1, 0)
         )
-
-    def corners_mm(self) -> NDArray[np.float64]:
-        """The 8 outer corners ``(8, 3)``."""
-        ext = self.extent_mm
-        return np.array([[ext[0, i], ext[1, j], ext[2, k]] for i, j, k in product((0, 1), repeat=3)])
 
     def to_json(self) -> dict[str, list[float] | list[int]]:
         """Plain description for attributes and logs."""

@@ -13,14 +13,11 @@ An object pose is ``x_lab = R x_obj + t``.
 
 from __future__ import annotations
 
-from typing import Literal
-
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from orbitct.rotations import rot_xyz, rot_z, xyz_angles
 
-StackOrder = Literal["stage_on_hexapod", "hexapod_on_stage"]
 STACK_ORDERS: tuple[str, ...] = ("stage_on_hexapod", "hexapod_on_stage")
 
 

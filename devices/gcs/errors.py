@@ -26,12 +26,10 @@ GCS_ERRORS: dict[int, str] = {
     93: "This command is not allowed while the affected axis or its master is in motion",
 }
 
-NO_ERROR = 0
 PARAM_SYNTAX = 1
 UNKNOWN_COMMAND = 2
 MOVE_WITHOUT_REF_OR_NO_SERVO = 5
 POS_OUT_OF_LIMITS = 7
-VEL_OUT_OF_LIMITS = 8
 PIVOT_NOT_POSSIBLE = 9
 STOPPED = 10
 INVALID_AXIS = 15

@@ -79,10 +79,6 @@ class Phantom:
         """The phantom with every metal primitive removed (reference for metal-artifact studies)."""
         return self.subset([not p.is_metal for p in self.primitives], f"{self.name}-nometal")
 
-    def metal_only(self) -> "Phantom":
-        """Only the metal primitives."""
-        return self.subset([p.is_metal for p in self.primitives], f"{self.name}-metal")
-
     def bounding_box(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Lower and upper corners (mm) of a box holding every primitive."""
         c = self.packed.corners.reshape(-1, 3)

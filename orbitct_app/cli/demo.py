@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib
 import sys
 import time
 from pathlib import Path
@@ -19,19 +18,9 @@ def _step(title: str) -> None:
     click.echo(click.style(f"\n== {title}", bold=True))
 
 
-def _optional(module: str, attr: str) -> Any | None:
-    try:
-        return getattr(importlib.import_module(module), attr)
-    except (ImportError, AttributeError) as exc:
-        click.echo(f"   skipped: {module}.{attr} is not available in this installation ({exc})")
-        return None
-
-
 def _truth_error(scan_path: Path) -> None:
     """Print how far the nominal and calibrated geometries are from the twins' truth (after similarity alignment)."""
-    error_px = _optional("calib.evaluate", "similarity_aligned_error_px")
-    if error_px is None:
-        return
+    from calib.evaluate import similarity_aligned_error_px as error_px
     from orbitct.scanfile import ScanFile
 
     with ScanFile(scan_path) as sf:
@@ -44,9 +33,10 @@ def _truth_error(scan_path: Path) -> None:
     click.echo(f"   geometry error against the twins' truth: nominal {nominal:.2f} px -> calibrated {calibrated:.3f} px RMS")
 
 
-def _reconstruct(reconstruct_scan: Any, scan_path: Path, out_dir: Path, algorithm: str, geometry: str,
-                 iterations: int, voxels: int) -> bool:
-    """One reconstruction with PNG slices; False when the package turns out to be incomplete."""
+def _reconstruct(scan_path: Path, out_dir: Path, algorithm: str, geometry: str, iterations: int, voxels: int) -> None:
+    """One reconstruction with PNG slices (a failure is reported and the demo goes on)."""
+    from recon import ReconError, reconstruct_scan
+
     kwargs: dict[str, Any] = dict(algorithm=algorithm, geometry=geometry, shape=(voxels, voxels, voxels),
                                   export="png", out_dir=out_dir / "recon")
     if iterations:
@@ -54,15 +44,11 @@ def _reconstruct(reconstruct_scan: Any, scan_path: Path, out_dir: Path, algorith
     try:
         with ProgressBar() as bar:
             rr = reconstruct_scan(scan_path, progress=bar, **kwargs)
-    except ImportError as exc:
-        click.echo(f"   skipped: the reconstruction package is incomplete in this installation ({exc})")
-        return False
-    except ValueError as exc:
+    except ReconError as exc:
         click.echo(f"   {algorithm} / {geometry} failed: {exc}")
-        return True
+        return
     click.echo(f"   {algorithm} / {geometry}: {rr.volume_shape} in {rr.elapsed_s:.1f} s -> /recon/{rr.name}; "
                f"slices: {', '.join(str(p) for p in rr.exported[:3])}")
-    return True
 
 
 @click.command()
@@ -122,17 +108,15 @@ def demo(out_dir: Path, config_path: Path | None, frames: int, size: int, voxels
         return
 
     _step("2/3 calibration from the BBs on the object (bundle adjustment)")
-    calibrate_scan = _optional("calib", "calibrate_scan")
+    from calib import CalibrationError, calibrate_scan
+
     geometry = "nominal"
     cal = None
-    if calibrate_scan is not None:
-        try:
-            with ProgressBar() as bar:
-                cal = calibrate_scan(scan_path, method="bundle", report_dir=out_dir / "calibration", progress=bar)
-        except ImportError as exc:
-            click.echo(f"   skipped: the calibration package is incomplete in this installation ({exc})")
-        except ValueError as exc:
-            click.echo(f"   calibration failed: {exc}; reconstructing with the nominal geometry")
+    try:
+        with ProgressBar() as bar:
+            cal = calibrate_scan(scan_path, method="bundle", report_dir=out_dir / "calibration", progress=bar)
+    except CalibrationError as exc:
+        click.echo(f"   calibration failed: {exc}; reconstructing with the nominal geometry")
     if cal is not None:
         last = cal.iterations[-1] if cal.iterations else None
         click.echo(f"   {cal.n_bbs} BBs in {cal.n_frames} frames, {cal.elapsed_s:.1f} s")
@@ -146,14 +130,11 @@ def demo(out_dir: Path, config_path: Path | None, frames: int, size: int, voxels
         geometry = "calibrated"
 
     _step(f"3/3 reconstruction ({voxels}^3 voxels) with the {geometry} and the nominal geometry")
-    reconstruct_scan = _optional("recon", "reconstruct_scan")
-    if reconstruct_scan is not None:
-        runs = [("fdk", geometry, 0), ("fdk", "nominal", 0)] if geometry != "nominal" else [("fdk", "nominal", 0)]
-        if pwls_iterations > 0:
-            runs.insert(1, ("pwls", geometry, pwls_iterations))
-        for algorithm, geo, iters in runs:
-            if not _reconstruct(reconstruct_scan, scan_path, out_dir, algorithm, geo, iters, voxels):
-                break
+    runs = [("fdk", geometry, 0), ("fdk", "nominal", 0)] if geometry != "nominal" else [("fdk", "nominal", 0)]
+    if pwls_iterations > 0:
+        runs.insert(1, ("pwls", geometry, pwls_iterations))
+    for algorithm, geo, iters in runs:
+        _reconstruct(scan_path, out_dir, algorithm, geo, iters, voxels)
 
     click.echo(f"\ndone in {time.monotonic() - t_start:.0f} s. Scan file (frames, geometry, calibration, volumes): {scan_path}")
     click.echo(f"inspect it with: orbitct inspect {scan_path}")

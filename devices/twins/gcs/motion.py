@@ -111,7 +111,3 @@ class LinearMotion:
         pos = self.position()
         self._start, self.target, self._duration = pos.copy(), pos.copy(), 0.0
 
-    def set_position(self, pos: Sequence[float]) -> None:
-        """Redefine the current position (after referencing)."""
-        p = np.asarray(pos, dtype=float)
-        self._start, self.target, self._duration = p.copy(), p.copy(), 0.0

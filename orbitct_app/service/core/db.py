@@ -44,9 +44,6 @@ MIGRATIONS: tuple[str, ...] = (
 )
 SCHEMA_VERSION = len(MIGRATIONS)
 RUNNING_SCAN_STATES = ("queued", "running", "paused")
-FINAL_SCAN_STATES = ("complete", "aborted", "failed", "interrupted")
-RUNNING_JOB_STATES = ("running",)
-FINAL_JOB_STATES = ("succeeded", "failed", "cancelled", "interrupted")
 
 
 class StoreError(RuntimeError):
