@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal, Self, Union
 
 import yaml
 from pydantic import (
@@ -187,7 +187,20 @@ class SimConfig(_Model):
     time_scale: float = Field(1.0, ge=0.1, le=1000, description="twin motion and exposure run this many times faster")
 
 
-class BenchConfig(_Model):
+class _RigConfig(_Model):
+    """What every rig's configuration has: the source/detector geometry."""
+
+    geometry: GeometryConfig = GeometryConfig()
+
+    def with_detector_size(self, size: int | None) -> Self:
+        """The same rig with a square detector of ``size`` pixels on the same panel (None: unchanged)."""
+        if size is None:
+            return self
+        det = self.geometry.detector.model_copy(update={"rows": size, "cols": size, "pitch_mm": None})
+        return self.model_copy(update={"geometry": self.geometry.model_copy(update={"detector": det})})
+
+
+class BenchConfig(_RigConfig):
     """A test bench: fixed source/detector, object moved by a rotation stage and a hexapod."""
 
     kind: Literal["bench"] = "bench"
@@ -209,13 +222,6 @@ class BenchConfig(_Model):
                     (("X", "mm"), ("Y", "mm"), ("Z", "mm"), ("U", "deg"), ("V", "deg"), ("W", "deg"))})
         return out
 
-    def with_detector_size(self, size: int | None) -> "BenchConfig":
-        """Same bench with a square detector of ``size`` pixels on the same panel (None: unchanged)."""
-        if size is None:
-            return self
-        det = self.geometry.detector.model_copy(update={"rows": size, "cols": size, "pitch_mm": None})
-        geo = self.geometry.model_copy(update={"detector": det})
-        return self.model_copy(update={"geometry": geo})
 
 
 class CArmLimits(_Model):
@@ -241,7 +247,7 @@ class CArmDevices(_Model):
     _uris = field_validator("carm")(classmethod(lambda cls, v: _check_uri(v)))
 
 
-class CArmConfig(_Model):
+class CArmConfig(_RigConfig):
     """A robotic C-arm driven through navigation points."""
 
     kind: Literal["carm"] = "carm"
@@ -254,12 +260,6 @@ class CArmConfig(_Model):
     calibration_frames: CalibrationFramesConfig = CalibrationFramesConfig()
     sim: SimConfig = SimConfig(phantom="C")
 
-    def with_detector_size(self, size: int | None) -> "CArmConfig":
-        """Same C-arm with a square detector of ``size`` pixels on the same panel (None: unchanged)."""
-        if size is None:
-            return self
-        det = self.geometry.detector.model_copy(update={"rows": size, "cols": size, "pitch_mm": None})
-        return self.model_copy(update={"geometry": self.geometry.model_copy(update={"detector": det})})
 
 
 AnyConfig = Annotated[Union[BenchConfig, CArmConfig], Field(discriminator="kind")]

@@ -31,6 +31,8 @@ def _options(fn: Callable[..., Any]) -> Callable[..., Any]:
                      help="Fault: the next COMMAND fails with GCS error CODE (e.g. 7:MOV); repeatable."),
         click.option("--stuck-axis", "stuck", multiple=True, metavar="AXIS",
                      help="Fault: AXIS never moves (never on target); repeatable."),
+        click.option("--console/--no-console", default=None,
+                     help="Read hazard/fault commands from stdin (default: when stdin is a terminal)."),
     ]
     for deco in reversed(decorators):
         fn = deco(fn)
@@ -38,7 +40,8 @@ def _options(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def _run(kind: str, host: str, port: int, serial_pty: bool, time_scale: float, perfect: bool, seed: int | None,
-         latency_ms: float, drop_next: int, garble_next: int, errors: tuple[str, ...], stuck: tuple[str, ...]) -> None:
+         latency_ms: float, drop_next: int, garble_next: int, errors: tuple[str, ...], stuck: tuple[str, ...],
+         console: bool | None) -> None:
     from devices.twins.gcs import GcsTwin, make_controller
 
     options: dict[str, Any] = {"time_scale": time_scale, "imperfect": not perfect}
@@ -58,7 +61,7 @@ def _run(kind: str, host: str, port: int, serial_pty: bool, time_scale: float, p
         return f"serial: serial://{twin.open_serial()}?baud=115200" if serial_pty else None
 
     banner = f"{kind} twin listening on tcp://{host}:{{}} (axes {' '.join(controller.axes)})"
-    serve_twin(twin, host, port, banner.format, hazard=hazard, after_start=serial)
+    serve_twin(twin, host, port, banner.format, console=console, hazard=hazard, after_start=serial)
 
 
 def _apply_faults(twin: Any, latency_ms: float, drop_next: int, garble_next: int,
