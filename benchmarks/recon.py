@@ -104,12 +104,13 @@ def rtk_times(n: int, size: int, views: int, g, repeat: int) -> dict[str, float]
 
 
 def run_case(n: int, size: int, views: int, repeat: int, pwls_iterations: int) -> None:
-    from orbitct.geometry import Panel, ViewGeometry
-    from recon import VolumeGrid, fdk, projector, pwls_sps
+    from orbitct.geometry import ViewGeometry
+    from orbitct.reference_bench import PANEL_MM, SAD_MM, SDD_MM, reference_panel
+    from recon import VolumeGrid, fdk, projector
 
-    det = Panel(size, size, 427.0 / size, 427.0 / size)
-    g = ViewGeometry.from_carm(np.linspace(0, 2 * np.pi, views, endpoint=False), 0.0, 785.0, 1200.0, det)
-    vox = det.pitch_col * 785.0 / 1200.0
+    det = reference_panel(size, PANEL_MM / size)
+    g = ViewGeometry.from_carm(np.linspace(0, 2 * np.pi, views, endpoint=False), 0.0, SAD_MM, SDD_MM, det)
+    vox = det.pitch_col * SAD_MM / SDD_MM
     grid = VolumeGrid.centered((n, n, n), vox)
     A = projector(grid, g)
     rng = np.random.default_rng(0)

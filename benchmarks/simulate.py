@@ -81,7 +81,7 @@ def main() -> None:
         ("file size", f"{size_mb:.0f} MB"),
     ]
     w = max(len(k) for k, _ in rows)
-    print(f"orbitct simulate benchmark")
+    print("orbitct simulate benchmark")
     print(f"machine: {cpu_model()}, {os.cpu_count()} cores, numba threads {numba.get_num_threads()}, "
           f"load avg {os.getloadavg()[0]:.1f}")
     print("-" * (w + 40))

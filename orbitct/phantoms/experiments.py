@@ -14,6 +14,7 @@ import numpy as np
 from orbitct.phantoms.materials import mu_of
 from orbitct.phantoms.phantom import Phantom
 from orbitct.phantoms.primitives import Primitive, PhantomError, cylinder, ellipsoid, sphere
+from orbitct.reference_bench import BB_DIAMETER_MM
 
 EXPERIMENTS = ("A", "B", "C")
 Z = np.array([0.0, 0.0, 1.0])
@@ -72,7 +73,7 @@ def phantom_a(seed: int = 0) -> Phantom:
     prims += spine
     for k, (c, r) in enumerate(_pack_spheres(rng, 320, (4.0, 14.0), 72.0, (-86.0, 90.0), (0.0, 4.0, 30.0))):
         prims.append(sphere(c, r, material="polystyrene", label=f"clutter{k}"))
-    d = 3.17
+    d = BB_DIAMETER_MM
     base = rng.uniform(0, 360)
     az = np.radians(base + 45.0 * np.arange(8) + rng.uniform(-10, 10, 8))
     z = -63.0 + 18.0 * np.arange(8) + rng.uniform(-4, 4, 8)
@@ -92,7 +93,7 @@ def phantom_b(seed: int = 0) -> Phantom:
         cylinder((0, 0, 0), Z, 60.0, 130.0, material="acrylic", label="body"),
         cylinder((0, 0, 0), Z, 45.0, 130.0 + 1e-3, material="air", mu=-acr, label="bore"),
     ]
-    d = 3.17
+    d = BB_DIAMETER_MM
     centers = []
     for ring, z in enumerate((-45.0, 45.0)):
         az = np.radians(45.0 * np.arange(8) + 22.5 * ring)
