@@ -37,7 +37,7 @@ class ScanRequest:
     orbit: str = "sawtooth"
     frames: int | None = None
     orbit_params: Mapping[str, Any] = field(default_factory=dict)
-    errors: str = "bench"
+    errors: str = "none"  # injected motion errors: only when asked for
     error_params: Mapping[str, Any] = field(default_factory=dict)
     seed: int = 0
     mode: str = "step"

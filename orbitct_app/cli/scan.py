@@ -33,7 +33,9 @@ def _parse_params(items: tuple[str, ...]) -> dict[str, object]:
 @click.option("--frames", type=click.IntRange(1, 100000), default=None, help="Projections (default: the orbit's).")
 @click.option("--param", "-p", "params", multiple=True, metavar="KEY=VALUE",
               help="Orbit parameter, repeatable (e.g. -p amplitude_deg=8 -p start_deg=-180); see orbitct orbit.")
-@click.option("--errors", default="bench", show_default=True, help="Injected error profile: bench or none.")
+@click.option("--errors", default="none", show_default=True,
+              help="Motion errors injected on top of the orbit: none, or bench (the paper's profile; for studies "
+                   "on the twins, never on by default).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the error profile's noise.")
 @click.option("--mode", type=click.Choice(["step", "continuous"]), default="step", show_default=True,
               help="step: move, settle, expose; continuous: constant rotation, exposures triggered at angles.")

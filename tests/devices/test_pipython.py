@@ -7,11 +7,10 @@ from collections.abc import Iterator
 
 import pytest
 
-pipython = pytest.importorskip("pipython")
-from pipython import GCSDevice, GCSError  # noqa: E402
-from pipython.pidevice.interfaces.pisocket import PISocket  # noqa: E402
+from pipython import GCSDevice, GCSError
+from pipython.pidevice.interfaces.pisocket import PISocket
 
-from devices.twins.runtime import TwinThread  # noqa: E402
+from devices.twins.runtime import TwinThread
 
 pytestmark = pytest.mark.system
 
@@ -97,3 +96,34 @@ def test_halt(pidevice: GCSDevice, hexapod_twin: TwinThread) -> None:
     assert info.value.val == 10
     assert not hexapod_twin.twin.controller.is_moving()
     assert pidevice.qPOS("Y")["Y"] < 30.0
+
+
+def test_pi_startup_routine_references_the_hexapod(pidevice: GCSDevice, hexapod_twin: TwinThread) -> None:
+    """PI's own start-up (servo on and FRF axis by axis, as on a C-887) brings the twin up; then moves,
+    on-target waits and every stop command behave as documented, with the error code after each."""
+    from pipython import pitools
+
+    pitools.startup(pidevice, refmodes="FRF")
+    assert all(pidevice.qFRF().values()) and all(pidevice.qSVO().values())
+    assert pidevice.qERR() == 0
+    pidevice.SVO("U", False)  # the hexapod's servo is one switch for all six axes (C-887)
+    assert not any(pidevice.qSVO().values())
+    pidevice.SVO("U", True)
+    assert all(pidevice.qSVO().values())
+    pidevice.VLS(20.0)
+    pidevice.MOV({"Y": 2.0, "W": 1.0})
+    pitools.waitontarget(pidevice, axes=["Y", "W"], timeout=10)
+    assert all(pidevice.qONT().values()) and pidevice.qERR() == 0
+    assert pidevice.qPOS("Y")["Y"] == pytest.approx(2.0, abs=1e-3)
+    for stop in ("STP", "HLT", "StopAll"):
+        pidevice.VLS(0.5)
+        pidevice.MOV("Z", 10.0)
+        assert any(pidevice.IsMoving().values())
+        with pytest.raises(GCSError) as info:  # PIPython reads ERR? after the command (StopAll is #24)
+            getattr(pidevice, stop)()
+        assert info.value.val == 10, stop  # "controller was stopped by command"
+        assert not any(pidevice.IsMoving().values()) and not hexapod_twin.twin.controller.is_moving()
+        assert pidevice.qERR() == 0  # reading the error cleared it
+        pidevice.VLS(20.0)
+        pidevice.MOV("Z", 0.0)
+        pitools.waitontarget(pidevice, axes="Z", timeout=10)

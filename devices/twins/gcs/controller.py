@@ -162,7 +162,8 @@ class GcsController:
         return self.speeds()
 
     def movable_mask(self, idx: list[int]) -> NDArray[np.bool_]:
-        """Axes whose servo and reference state a move of ``idx`` needs (all axes on coupled machines)."""
+        """Axes that act together with ``idx``: a move needs their servo and reference, and SVO and FRF switch
+        and reference them at once (all six on a hexapod, as on PI's C-887)."""
         mask = np.zeros(len(self.axes), dtype=bool)
         mask[idx] = True
         return mask
@@ -212,7 +213,7 @@ class GcsController:
         if self.motion.moving().any() or self.referencing:
             raise GcsError(E.NOT_ALLOWED_WHILE_MOVING)
         for i, v in pairs:
-            self.servo[i] = bool(v)
+            self.servo[self.movable_mask([i])] = bool(v)  # coupled axes (a hexapod) switch together
         return None
 
     def _svo_q(self, s: Session, a: list[str]) -> Reply:
