@@ -100,3 +100,25 @@ def test_sweeps_split_where_the_stage_stops_or_reverses() -> None:
     assert sweep_end(stage, 3, 8) == 3 and sweep_end(stage, 4, 8) == 4  # stays: step and shoot
     assert sweep_end(stage, 5, 8) == 8  # reverses and turns to the end
     assert sweep_end(stage, 8, 8) == 8
+
+
+@pytest.mark.system
+@pytest.mark.parametrize("orbit, params", [("sawtooth", {}), ("dcarc", {}), ("multiarc", {"preset": "pheno"})])
+@pytest.mark.parametrize("errors", ["none", "bench"])
+def test_the_default_bench_runs_every_published_orbit(orbit: str, params: dict, errors: str) -> None:
+    """The three orbits of the published study pass pre-flight on config/bench.yaml (its twins' controllers)."""
+    from pathlib import Path
+
+    from acquire.config import load_config
+    from acquire.rigs.bench import open_bench
+    from acquire.runner import ScanRequest, build_plan
+
+    cfg = load_config(Path(__file__).resolve().parents[2] / "config" / "bench.yaml").with_detector_size(32)
+    cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"time_scale": 50.0})})
+    plan = build_plan(ScanRequest(config=cfg, out="unused.h5", orbit=orbit, orbit_params=params, errors=errors), cfg)
+
+    async def main() -> None:
+        async with open_bench(cfg, sim=True) as rig:
+            await rig.preflight(plan, "step", cfg.exposure.frame_rate_hz)
+
+    asyncio.run(main())
