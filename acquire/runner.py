@@ -26,6 +26,12 @@ from orbitct.orbits import Orbit, OrbitError, make_orbit
 from orbitct.progress import ProgressCallback, ProgressEvent
 
 CTRL_C_REASON = "interrupted by the user (Ctrl-C)"
+# why a scan stopped when its process got a signal; a command line exits with 128 + the signal number
+SIGNAL_REASONS: dict[int, str] = {
+    signal.SIGINT: CTRL_C_REASON,
+    signal.SIGTERM: "terminated by SIGTERM (kill, systemctl stop, timeout)",
+    signal.SIGHUP: "hung up by SIGHUP (the terminal closed)",
+}
 
 
 @dataclass
@@ -249,29 +255,34 @@ class ScanRunner:
 def run_scan(request: ScanRequest, *, progress: ProgressCallback | None = None) -> ScanResult:
     """Run one scan to its end in a fresh event loop (blocking).
 
-    In the main thread the first Ctrl-C aborts the scan cleanly (axes halted, X-rays off,
-    file marked aborted "interrupted by the user (Ctrl-C)"); a second one interrupts at once.
+    In the main thread the first SIGINT (Ctrl-C), SIGTERM (``kill``, ``systemctl stop``, ``timeout``)
+    or SIGHUP (the terminal closed) aborts the scan cleanly: axes halted, X-rays off, file marked
+    aborted with :data:`SIGNAL_REASONS` of that signal. A second signal acts at once (Ctrl-C raises
+    KeyboardInterrupt, which still halts everything on its way out).
     """
     runner = ScanRunner(request, progress=progress)
 
     async def main() -> ScanResult:
         loop = asyncio.get_running_loop()
-        installed = False
+        installed: list[int] = []
 
-        def first_ctrl_c() -> None:
-            runner.abort(CTRL_C_REASON)
-            loop.remove_signal_handler(signal.SIGINT)  # the next Ctrl-C raises KeyboardInterrupt
+        def first_signal(signum: int) -> None:
+            runner.abort(SIGNAL_REASONS[signum])
+            for sig in installed:  # the next signal takes its default action
+                loop.remove_signal_handler(sig)
+            installed.clear()
 
         if threading.current_thread() is threading.main_thread():
-            try:
-                loop.add_signal_handler(signal.SIGINT, first_ctrl_c)
-                installed = True
-            except (NotImplementedError, RuntimeError, ValueError):
-                pass
+            for sig in SIGNAL_REASONS:
+                try:
+                    loop.add_signal_handler(sig, first_signal, sig)
+                    installed.append(sig)
+                except (NotImplementedError, RuntimeError, ValueError):
+                    pass
         try:
             return await runner.run()
         finally:
-            if installed:
-                loop.remove_signal_handler(signal.SIGINT)
+            for sig in installed:
+                loop.remove_signal_handler(sig)
 
     return asyncio.run(main())

@@ -20,6 +20,12 @@ class ProgressBar:
     def __call__(self, event: ProgressEvent) -> None:
         if not self.enabled:
             return
+        try:
+            self._show(event)
+        except OSError:  # the terminal went away (SIGHUP): the work goes on without a bar
+            self.enabled = False
+
+    def _show(self, event: ProgressEvent) -> None:
         bar = self._bars.get(event.stage)
         if bar is None:
             bar = tqdm(total=event.total, desc=event.stage, unit="step", delay=1.0, leave=True, file=sys.stderr)

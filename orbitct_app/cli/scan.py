@@ -57,7 +57,7 @@ def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int |
     if config_path is None or out is None:
         _fail("orbitct scan needs --config FILE and --out FILE (see orbitct scan --help)")
     from acquire.errors import AcquireError
-    from acquire.runner import CTRL_C_REASON, ScanRequest, run_scan
+    from acquire.runner import SIGNAL_REASONS, ScanRequest, run_scan
 
     req = ScanRequest(config=config_path, out=out, orbit=orbit, frames=frames, orbit_params=_parse_params(params),
                       errors=errors, seed=seed, mode=mode,
@@ -71,10 +71,15 @@ def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int |
         click.echo(f"scan interrupted (Ctrl-C): axes halted, X-rays off; partial file {out} marked aborted", err=True)
         sys.exit(130)
     rate = res.n_frames / res.elapsed_s if res.elapsed_s > 0 else 0.0
-    click.echo(f"{res.status}: {res.n_frames}/{res.n_planned} frames in {res.elapsed_s:.1f} s ({rate:.1f} frames/s) -> {res.path}")
+    signals = {reason: 128 + int(sig) for sig, reason in SIGNAL_REASONS.items()}
+    try:  # after SIGHUP the terminal may be gone: the file already says how the scan ended
+        click.echo(f"{res.status}: {res.n_frames}/{res.n_planned} frames in {res.elapsed_s:.1f} s ({rate:.1f} frames/s) -> {res.path}")
+        if res.status != "complete":
+            click.echo(f"reason: {res.reason}", err=True)
+    except OSError:
+        pass
     if res.status != "complete":
-        click.echo(f"reason: {res.reason}", err=True)
-        sys.exit(130 if res.reason == CTRL_C_REASON else 1)
+        sys.exit(signals.get(res.reason, 1))
 
 
 @scan.command("repair")

@@ -2,11 +2,42 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import signal
+import threading
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import click
+import uvicorn
 from pydantic import ValidationError
+
+
+class SignalAwareServer(uvicorn.Server):
+    """uvicorn's server that also shuts down gracefully on SIGHUP and tells the service which signal stopped it."""
+
+    def __init__(self, config: uvicorn.Config, service: Any) -> None:
+        super().__init__(config)
+        self.service = service
+
+    @contextlib.contextmanager
+    def capture_signals(self) -> Iterator[None]:
+        if threading.current_thread() is not threading.main_thread():
+            with super().capture_signals():
+                yield
+            return
+        previous = signal.signal(signal.SIGHUP, self.handle_exit)  # a closed terminal stops cleanly too
+        try:
+            with super().capture_signals():
+                yield
+        finally:
+            signal.signal(signal.SIGHUP, previous)
+
+    def handle_exit(self, sig: int, frame: Any) -> None:
+        self.service.stop_reason = f"the service stopped ({signal.Signals(sig).name})"
+        super().handle_exit(sig, frame)
 
 
 def _settings(**kwargs: object):  # type: ignore[no-untyped-def]
@@ -34,8 +65,6 @@ def _settings(**kwargs: object):  # type: ignore[no-untyped-def]
 def serve(bench_config: Path | None, sim: bool | None, host: str | None, port: int | None, data_dir: Path | None,
           settings_file: Path | None, log_level: str) -> None:
     """Run the REST service (scans, calibration, reconstruction, emergency stop) with uvicorn."""
-    import uvicorn
-
     from orbitct_app.service.app import create_app
 
     settings = _settings(settings_file=settings_file, bench_config=bench_config, sim=sim, host=host, port=port,
@@ -48,7 +77,10 @@ def serve(bench_config: Path | None, sim: bool | None, host: str | None, port: i
     if service.dev_token is not None:
         click.echo(f"--sim development token (all roles, valid until the service stops):\n  {service.dev_token}")
     click.echo(f"orbitct service on http://{settings.host}:{settings.port}  (API docs: /docs)")
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level=log_level, access_log=False)
+    config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=log_level, access_log=False)
+    SignalAwareServer(config, service).run()
+
+
 
 
 @click.group()

@@ -26,6 +26,7 @@ class Service:
         self.settings = settings
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         self.dev_token: str | None = None
+        self.stop_reason = "service shutting down"  # why a running scan is aborted when the service stops
         if settings.sim:
             self.dev_token = settings.dev_token or TOKEN_PREFIX + "dev_" + secrets.token_urlsafe(24)
         self.tokens = TokenRegistry(settings.tokens, settings.tokens_path, self.dev_token)
@@ -83,8 +84,8 @@ class Service:
             log.warning("--sim development token (all roles): %s", self.dev_token)
 
     def close(self) -> None:
-        """Stop jobs and the bench, flush events, close the store."""
+        """Stop jobs and the rig (a running scan is aborted with :attr:`stop_reason`), flush events, close the store."""
         self.jobs.shutdown()
-        self.rig.close()
+        self.rig.close(self.stop_reason)
         self.bus.close()
         self.store.close()

@@ -11,13 +11,9 @@ import pytest
 from acquire.rigs.bench import open_bench
 from acquire.config import BenchConfig
 from acquire.runner import ScanRequest, ScanRunner
-from devices.twins.detector import DetectorTwin
-from devices.twins.gcs import start_twin
-from devices.twins.runtime import TwinThread
-from devices.twins.world import get_world
-from devices.twins.xray import XrayTwin
 from orbitct.scanfile import ScanFile
-from tests.helpers.bench import SMALL_ERRORS, small_config
+from tests.helpers.bench import SMALL_ERRORS
+from tests.helpers.twin_bench import twin_bench
 
 WORLD = "tcp-bench"
 pytestmark = [pytest.mark.timeout(120), pytest.mark.system]
@@ -25,19 +21,8 @@ pytestmark = [pytest.mark.timeout(120), pytest.mark.system]
 
 @pytest.fixture(scope="module")
 def tcp_config() -> Iterator[BenchConfig]:
-    world = get_world(WORLD)
-    hexa = start_twin("hexapod", world=WORLD, time_scale=25.0)
-    stage = start_twin("rotation_stage", world=WORLD, time_scale=25.0)
-    xray = TwinThread(XrayTwin(world))
-    det = TwinThread(DetectorTwin(world, rows=64, cols=64))
-    uris = {"hexapod": hexa.uri, "rotation_stage": stage.uri, "xray": f"modbus://127.0.0.1:{xray.port}",
-            "detector": f"tcp://127.0.0.1:{det.port}"}
-    cfg = small_config()
-    yield cfg.model_copy(update={"devices": cfg.devices.model_copy(update=uris)})
-    for t in (det, xray):
-        t.stop()
-    for s in (hexa, stage):
-        s.stop()
+    with twin_bench(WORLD) as bench:
+        yield bench.config
 
 
 def _request(cfg: BenchConfig, out: Path) -> ScanRequest:

@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import logging
 import os
+import signal
 import threading
 from dataclasses import asdict
 from multiprocessing.connection import Connection
@@ -108,6 +109,8 @@ class RigServer:
         from acquire.rigs import open_rig
 
         self.loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # systemctl stop, a closed terminal, Ctrl-C
+            self.loop.add_signal_handler(sig, self._shutdown, f"the service stopped ({signal.Signals(sig).name})")
         async with contextlib.AsyncExitStack() as stack:
             try:
                 self.config = load_config(self.config_path)

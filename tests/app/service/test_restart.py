@@ -29,11 +29,8 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-@pytest.mark.slow
-def test_sigkill_during_scan_then_restart(make_api, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
-    data = tmp_path / "data"
-    api = make_api(data)  # creates the tokens; closed again below so the subprocess owns the data dir alone
-    api.client.__exit__(None, None, None)
+def _serve(tmp_path: Path, data: Path) -> tuple[subprocess.Popen[bytes], str, dict[str, str]]:
+    """``orbitct serve --sim`` in a subprocess, once its rig is connected: the process, base URL and auth header."""
     port = _free_port()
     env = {**os.environ, "ORBITCT_DEV_TOKEN": DEV, "PYTHONPATH": str(Path(__file__).resolve().parents[3])}
     proc = subprocess.Popen(
@@ -41,23 +38,58 @@ def test_sigkill_during_scan_then_restart(make_api, tmp_path: Path) -> None:  # 
          "--port", str(port), "--data-dir", str(data), "--log-level", "warning"],
         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
     )
-    base, headers = f"http://127.0.0.1:{port}", {"Authorization": f"Bearer {DEV}"}
+    base = f"http://127.0.0.1:{port}"
+    t0 = time.monotonic()
+    while True:
+        try:
+            if httpx.get(f"{base}/health", timeout=1).json()["bench"] == "connected":
+                return proc, base, {"Authorization": f"Bearer {DEV}"}
+        except (httpx.HTTPError, ValueError, KeyError):
+            pass
+        if proc.poll() is not None or time.monotonic() - t0 > 60:
+            proc.kill()
+            raise AssertionError("service did not start: " + proc.stderr.read().decode()[-2000:])  # type: ignore[union-attr]
+        time.sleep(0.2)
+
+
+def _scan_running(base: str, headers: dict[str, str], frames_done: int = 10) -> str:
+    r = httpx.post(f"{base}/scans", json={**SMALL_SAWTOOTH, "frames": 300}, headers=headers, timeout=30)
+    assert r.status_code == 202, r.text
+    scan_id = r.json()["id"]
+    while httpx.get(f"{base}/scans/{scan_id}", headers=headers, timeout=5).json()["progress"].get("done", 0) < frames_done:
+        time.sleep(0.05)
+    return str(scan_id)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
+def test_signal_stops_the_service_and_aborts_its_scan(make_api, tmp_path: Path, sig: signal.Signals) -> None:  # type: ignore[no-untyped-def]
+    data = tmp_path / "data"
+    make_api(data).client.__exit__(None, None, None)  # tokens made; the subprocess owns the data dir alone
+    proc, base, headers = _serve(tmp_path, data)
     try:
-        t0 = time.monotonic()
-        while True:
-            try:
-                if httpx.get(f"{base}/health", timeout=1).json()["bench"] == "connected":
-                    break
-            except (httpx.HTTPError, ValueError, KeyError):
-                pass
-            assert proc.poll() is None, proc.stderr.read().decode()[-2000:]  # type: ignore[union-attr]
-            assert time.monotonic() - t0 < 60, "service did not start"
-            time.sleep(0.2)
-        r = httpx.post(f"{base}/scans", json={**SMALL_SAWTOOTH, "frames": 300}, headers=headers, timeout=30)
-        assert r.status_code == 202, r.text
-        scan_id = r.json()["id"]
-        while httpx.get(f"{base}/scans/{scan_id}", headers=headers, timeout=5).json()["progress"].get("done", 0) < 10:
-            time.sleep(0.05)
+        scan_id = _scan_running(base, headers)
+        rig = psutil.Process(proc.pid).children()
+        proc.send_signal(sig)
+        proc.wait(60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    gone, alive = psutil.wait_procs(rig, timeout=30)
+    assert not alive
+    with ScanFile(data / "scans" / f"{scan_id}.h5") as sf:
+        assert sf.status == "aborted" and sig.name in sf.status_reason, sf.status_reason
+        assert sf.n_frames >= 10
+
+
+@pytest.mark.slow
+def test_sigkill_during_scan_then_restart(make_api, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    data = tmp_path / "data"
+    api = make_api(data)  # creates the tokens; closed again below so the subprocess owns the data dir alone
+    api.client.__exit__(None, None, None)
+    proc, base, headers = _serve(tmp_path, data)
+    try:
+        scan_id = _scan_running(base, headers)
         bench = psutil.Process(proc.pid).children()
     finally:
         proc.send_signal(signal.SIGKILL)
