@@ -109,6 +109,8 @@ class ExposureConfig(_Model):
     ma: float = Field(1.0, gt=0, le=1000)
     exposure_ms: float = Field(10.0, gt=0, le=10000)
     frame_rate_hz: float = Field(30.0, gt=0, le=1000)
+    prep_ms: float = Field(200.0, ge=0, le=60000, description="the generator's preparation time (PREP to READY); "
+                           "between exposures high voltage stays on only while the next one is due within it")
 
 
 class CalibrationFramesConfig(_Model):

@@ -65,7 +65,7 @@ class Rig(Protocol):
         """
 
     async def restore(self) -> None:
-        """After a complete scan: X-rays off, speeds back to their configured values."""
+        """At rest (a complete scan, a pause): X-rays off, speeds back to their configured values."""
 
     async def close(self) -> None:
         """Stop everything, then disconnect every device."""
@@ -296,6 +296,7 @@ class ScanEngine:
         self._check_abort()
         if not self._resume.is_set():
             self.state = "paused"
+            await self.rig.restore()  # X-rays off while paused
             report(self.progress, "scan", self.n_done, self.plan.n_frames, "paused")
             await self._resume.wait()
             self._check_abort()

@@ -1,9 +1,14 @@
-"""Acquisition benchmark: a sawtooth scan on the in-process twins, timed per part.
+"""Acquisition benchmark: a sawtooth scan on the in-process twins, timed per part, and its X-ray dose time.
 
 Reports the whole scan time and, per frame, the time spent in detector acquisition
 (X-ray exposure, rendering on the twin, frame transfer), in commanded motion and
 settling (twin mechanics, scaled by --time-scale), and the rest: what the executor
 and the recorder add (read-backs, bookkeeping, HDF5 write and flush, progress).
+
+Then the high-voltage policy: a shorter step scan twice, once as orbitct runs it (high voltage
+off whenever the next exposure is further away than the generator's preparation time) and
+once with high voltage held on between exposures (as before); reports, in bench seconds, the
+time with high voltage on while nothing exposes and the scan time each costs.
 
     .venv/bin/python benchmarks/acquire.py                       # 500 frames at 768 x 768 (targets)
     .venv/bin/python benchmarks/acquire.py --frames 100 --size 256   # quicker
@@ -12,6 +17,7 @@ and the recorder add (read-backs, bookkeeping, HDF5 write and flush, progress).
 from __future__ import annotations
 
 import argparse
+import asyncio
 import sys
 import tempfile
 import time
@@ -22,7 +28,9 @@ sys.path.insert(0, str(ROOT))
 
 from acquire.config import BenchConfig, load_config  # noqa: E402
 from acquire.errors import AcquireError  # noqa: E402
-from acquire.runner import ScanRequest, run_scan  # noqa: E402
+from acquire.rigs.bench import open_bench  # noqa: E402
+from acquire.runner import ScanRequest, ScanRunner, run_scan  # noqa: E402
+from devices.sim import twin_of  # noqa: E402
 from orbitct.scanfile import ScanFile  # noqa: E402
 from machine_info import describe_machine as machine  # noqa: E402
 
@@ -42,6 +50,8 @@ def main() -> None:
     ap.add_argument("--overlap-readout", action="store_true",
                     help="step mode: move to the next frame while the panel reads out (config motion.overlap_readout)")
     ap.add_argument("--out", type=Path, default=None, help="keep the scan file here (default: a temporary folder)")
+    ap.add_argument("--dose-frames", type=int, default=100, help="projections of each high-voltage policy scan (0: skip)")
+    ap.add_argument("--dose-time-scale", type=float, default=10.0, help="twin speed-up of the high-voltage policy scans")
     args = ap.parse_args()
 
     cfg = load_config(ROOT / "config" / "bench.yaml")
@@ -88,6 +98,36 @@ def main() -> None:
         print(f"  {name:<{w}}  {value:>22}  {target}")
     ok = per["overhead_s"] < TARGET_OVERHEAD_MS and wall < TARGET_TOTAL_S
     print("targets met" if ok else "targets NOT met")
+    if args.dose_frames:
+        dose_policy(cfg, args.dose_frames, args.dose_time_scale, args.tilt_deg, Path(tmp.name))
+
+
+def dose_policy(cfg: BenchConfig, frames: int, time_scale: float, tilt_deg: float, folder: Path) -> None:
+    """The same step scan with high voltage off between exposures (orbitct) and held on (before); bench seconds."""
+    cfg = cfg.with_detector_size(64).model_copy(update={"sim": cfg.sim.model_copy(update={"time_scale": time_scale})})
+
+    async def scan(hold_on: bool) -> tuple[float, float, float, int]:
+        req = ScanRequest(config=cfg, out=folder / f"dose-{hold_on}.h5", orbit="sawtooth", frames=frames,
+                          orbit_params={"amplitude_deg": tilt_deg}, sim=True, overwrite=True)
+        async with open_bench(cfg, sim=True) as rig:
+            if hold_on:  # the old behaviour: prepared once, held on until the scan ends
+                rig.xray.hold_s, rig.prep_s = None, float("inf")
+            twin = twin_of(rig.xray)
+            hv0, ex0 = twin.dose_seconds()
+            res = await ScanRunner(req, rig=rig).run()
+            hv, ex = twin.dose_seconds()
+        return res.timing["run_s"] * time_scale, (hv - hv0) * time_scale, (ex - ex0) * time_scale, res.n_frames
+
+    rows = {name: asyncio.run(scan(hold)) for name, hold in (("off between exposures (orbitct)", False),
+                                                             ("held on between exposures", True))}
+    print(f"high voltage policy: {frames} projections at 64 x 64, twins at {time_scale:g}x, "
+          f"preparation time {cfg.exposure.prep_ms:g} ms (bench seconds)")
+    print(f"  {'policy':<34} {'scan s':>8} {'HV on s':>8} {'exposing s':>11} {'HV on, not exposing s':>22}")
+    for name, (run_s, hv, ex, n) in rows.items():
+        print(f"  {name:<34} {run_s:8.1f} {hv:8.2f} {ex:11.2f} {hv - ex:22.2f}")
+    (a_run, a_hv, a_ex, _), (b_run, b_hv, b_ex, _) = rows.values()
+    print(f"  dose-free time: {(b_hv - b_ex) - (a_hv - a_ex):.1f} s less high voltage without exposure, "
+          f"for {a_run - b_run:+.1f} s of scan time ({100 * (a_run - b_run) / b_run:+.0f} %)")
 
 
 if __name__ == "__main__":

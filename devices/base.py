@@ -220,8 +220,8 @@ class XraySource(Triggerable, Protocol):
     async def configure(self, kv: float, ma: float, exposure_ms: float) -> None:
         """Set tube voltage, current and exposure time."""
 
-    def expose(self) -> Status[int]:
-        """One exposure; ends with the generator's frame counter."""
+    def expose(self, *, release: bool = False) -> Status[int]:
+        """One exposure; ends with the generator's frame counter (``release``: high voltage off right after it)."""
 
     async def xray_off(self) -> None:
         """High voltage off now (safe in every state)."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import time
 from collections.abc import Awaitable, Callable
 from typing import Any
@@ -34,7 +35,8 @@ from devices.uri import parse_uri
 from devices.xray_registers import FaultCode, GeneratorState, Refusal
 
 DEFAULT_PORT = 502
-_OPTIONS = {"timeout_s", "heartbeat_s", "watchdog_ms", "prep_timeout_s", "poll_s", "device_id"}
+log = logging.getLogger(__name__)
+_OPTIONS = {"timeout_s", "heartbeat_s", "watchdog_ms", "prep_timeout_s", "poll_s", "device_id", "hold_s"}
 
 
 def _options(uri_params: dict[str, str], options: dict[str, Any]) -> dict[str, float]:
@@ -63,6 +65,8 @@ class XrayGenerator(Driver):
         self.prep_timeout_s = opts.get("prep_timeout_s", 5.0)
         self.poll_s = opts.get("poll_s", 0.005)
         self.device_id = int(opts.get("device_id", reg.DEVICE_ID))
+        # high voltage stays on after an exposure (or a prepare) only this long without the next one; None: until xray_off()
+        self.hold_s: float | None = opts.get("hold_s")
         self._client: AsyncModbusTcpClient | None = None
         self._host, self._port = self.endpoint.host, self.endpoint.port
         self._opened = False
@@ -71,6 +75,7 @@ class XrayGenerator(Driver):
         self._heartbeat_error: DeviceTimeoutError | None = None  # set while the generator's heartbeat is frozen
         self._hb_counter = 0
         self._action_lock = asyncio.Lock()
+        self._hold_task: asyncio.Task[None] | None = None
 
     # ------------------------------------------------------------- connection
     async def connect(self) -> None:
@@ -103,6 +108,7 @@ class XrayGenerator(Driver):
 
     async def close(self) -> None:
         """Switch X-rays off (best effort), stop the heartbeat, close the link, release what was attached."""
+        await self._cancel_hold()
         if self._heartbeat_task is not None:
             self._heartbeat_task.cancel()
             with contextlib.suppress(BaseException):
@@ -313,7 +319,7 @@ class XrayGenerator(Driver):
     def prepare(self) -> Status[None]:
         """Request PREP and wait for READY (refused while the door is open or a fault is active)."""
         status: Status[None]
-        status = Status(f"{self.name}.prepare", self._guarded(lambda: self._prepare(status)))
+        status = Status(f"{self.name}.prepare", self._guarded(lambda: self._prepare(status), self.hold_s))
         return status
 
     async def _prepare(self, status: Status[None]) -> None:
@@ -327,10 +333,14 @@ class XrayGenerator(Driver):
         await self._write_coil(reg.PREP_REQ, True)
         await self._wait_state(status, {GeneratorState.READY}, "prepare", self.prep_timeout_s)
 
-    def expose(self) -> Status[int]:
-        """One exposure with the configured settings (prepares first if needed); ends with the new frame counter."""
+    def expose(self, *, release: bool = False) -> Status[int]:
+        """One exposure with the configured settings (prepares first if needed); ends with the new frame counter.
+
+        ``release``: high voltage off as soon as the exposure is over (the next one is further away than a
+        preparation takes); otherwise it stays on for at most :attr:`hold_s`.
+        """
         status: Status[int]
-        status = Status(f"{self.name}.expose", self._guarded(lambda: self._expose(status)))
+        status = Status(f"{self.name}.expose", self._guarded(lambda: self._expose(status), 0.0 if release else self.hold_s))
         return status
 
     def trigger(self) -> Status[int]:
@@ -365,21 +375,49 @@ class XrayGenerator(Driver):
         status.report(message="DONE", fraction=1.0, current={"frame_counter": float(after)})
         return after
 
-    async def _guarded(self, fn: Callable[[], Awaitable[Any]]) -> Any:
-        """One prepare/expose at a time; a cancelled one (an abort) switches X-rays off."""
+    async def _guarded(self, fn: Callable[[], Awaitable[Any]], hold_s: float | None = None) -> Any:
+        """One prepare/expose at a time; a cancelled one (an abort) switches X-rays off.
+
+        Afterwards high voltage stays on for at most ``hold_s`` (None: until :meth:`xray_off`), unless the next
+        prepare or exposure comes first: X-rays are off whenever nothing is exposing for longer than that.
+        """
         if self._action_lock.locked():
             raise DeviceError(f"{self.name}: another prepare/expose is still running")
         async with self._action_lock:
+            await self._cancel_hold()
             try:
-                return await fn()
+                result = await fn()
             except asyncio.CancelledError:
                 with contextlib.suppress(DeviceError):
                     await asyncio.shield(self.xray_off())
                 raise
+            if hold_s is not None:
+                self._hold_task = asyncio.ensure_future(self._off_after(hold_s))
+            return result
+
+    async def _off_after(self, hold_s: float) -> None:
+        await asyncio.sleep(hold_s)
+        try:
+            await self._request("xray off (nothing exposing)", self._xray_off_call)
+        except DeviceError as exc:  # the generator's own watchdog still switches it off once the heartbeat stops
+            log.error("%s: could not switch high voltage off after %.3g s without an exposure: %s", self.name, hold_s, exc)
+
+    async def _cancel_hold(self) -> None:
+        task, self._hold_task = self._hold_task, None
+        if task is not None and not task.done():
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+    def _xray_off_call(self, c: AsyncModbusTcpClient) -> Awaitable[Any]:
+        return c.write_coils(reg.PREP_REQ, [False, False, True], device_id=self.device_id)
 
     async def xray_off(self) -> None:
         """Drop prep and expose requests and switch high voltage off (safe in every state)."""
-        await self._request("xray off", lambda c: c.write_coils(reg.PREP_REQ, [False, False, True], device_id=self.device_id))
+        task, self._hold_task = self._hold_task, None
+        if task is not None and task is not asyncio.current_task():
+            task.cancel()
+        await self._request("xray off", self._xray_off_call)
 
     async def reset_fault(self) -> None:
         """Clear a fault whose cause is gone; raises if the generator stays in FAULT."""

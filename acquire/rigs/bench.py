@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from typing import Any, Protocol
 
@@ -65,6 +66,10 @@ class BenchRig:
         self.axes.update({f"hexapod.{a}": u for a, u in zip(HEXAPOD_AXES, ("mm", "mm", "mm", "deg", "deg", "deg"))})
         self._background: dict[str, Status[Any]] = {}
         self._superseded: list[Status[Any]] = []
+        # high voltage: the generator's preparation time (wall clock) and the last gap between two exposures
+        self.prep_s = config.exposure.prep_ms / 1000.0 / self.motion_time_scale
+        self._gap_s: float | None = None
+        self._last_exposure: float | None = None
 
     @property
     def devices(self) -> list[Any]:
@@ -221,7 +226,13 @@ class BenchRig:
             return (await self.detector.acquire_dark(1))[0]
         if image_key == ImageKey.FLAT:
             return (await self.detector.acquire_flat(1))[0]
-        await self.xray.expose()
+        t0 = time.monotonic()
+        if self._last_exposure is not None:
+            self._gap_s = t0 - self._last_exposure
+        # the next exposure is as far away as this one was from the last: further than a preparation takes,
+        # high voltage goes off at once (and the next exposure prepares again); nearer, it stays on
+        await self.xray.expose(release=self._gap_s is not None and self._gap_s > self.prep_s)
+        self._last_exposure = time.monotonic()
         if after_exposure is not None:
             after_exposure()
         return await self.detector.read_frame()
@@ -259,15 +270,22 @@ def _retrieve(fut: asyncio.Future[Any]) -> None:
         fut.exception()
 
 
+def device_options(config: BenchConfig) -> dict[str, dict[str, Any]]:
+    """Driver options per device of a real bench: high voltage off once the next exposure is further away than
+    the generator's preparation time."""
+    return {"hexapod": {}, "rotation_stage": {}, "xray": {"hold_s": config.exposure.prep_ms / 1000.0}, "detector": {}}
+
+
 def sim_options(config: BenchConfig) -> dict[str, dict[str, Any]]:
     """Twin and driver options per device for an in-process simulated bench of ``config``."""
     det = config.geometry.detector
+    scale = config.sim.time_scale
+    prep_s = config.exposure.prep_ms / 1000.0
     # the twins share this machine's CPU with the scan: allow for a loaded machine in reply time-outs
     return {
-        "hexapod": {"time_scale": config.sim.time_scale, "timeout_s": SIM_REPLY_TIMEOUT_S,
-                    "stack_order": config.stack.order},
-        "rotation_stage": {"time_scale": config.sim.time_scale, "timeout_s": SIM_REPLY_TIMEOUT_S},
-        "xray": {"time_scale": config.sim.time_scale, "timeout_s": SIM_REPLY_TIMEOUT_S},
+        "hexapod": {"time_scale": scale, "timeout_s": SIM_REPLY_TIMEOUT_S, "stack_order": config.stack.order},
+        "rotation_stage": {"time_scale": scale, "timeout_s": SIM_REPLY_TIMEOUT_S},
+        "xray": {"time_scale": scale, "prep_s": prep_s, "hold_s": prep_s / scale, "timeout_s": SIM_REPLY_TIMEOUT_S},
         "detector": {"rows": det.rows, "cols": det.cols, "sad_mm": config.geometry.sad_mm,
                      "sdd_mm": config.geometry.sdd_mm, "phantom": config.sim.phantom, "seed": config.sim.seed,
                      "timeout_s": SIM_FRAME_TIMEOUT_S},
@@ -278,7 +296,7 @@ def sim_options(config: BenchConfig) -> dict[str, dict[str, Any]]:
 async def open_bench(config: BenchConfig, *, sim: bool = False) -> AsyncIterator[BenchRig]:
     """Connect every device of ``config`` (in-process twins when ``sim``); stops and closes them on exit."""
     uris = config.devices.model_dump()
-    opts: dict[str, dict[str, Any]] = {k: {} for k in uris}
+    opts = device_options(config)
     if sim:
         uris = {k: f"sim://{SIM_WORLD}" for k in uris}
         opts = sim_options(config)

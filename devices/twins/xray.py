@@ -32,6 +32,7 @@ from devices.twins.world import SimWorld, get_world
 from devices.xray_registers import FaultCode, GeneratorState, Refusal
 
 HEARTBEAT_PERIOD_S = 0.1
+HV_STATES = (GeneratorState.PREP, GeneratorState.READY, GeneratorState.EXPOSING, GeneratorState.DONE)
 
 
 def _bits_to_registers(bits: list[bool]) -> list[int]:
@@ -59,7 +60,10 @@ class XrayTwin:
         self.time_scale = time_scale  # simulated seconds per wall-clock second (10 = ten times faster)
         self.faults = TwinFaults()
         self.model, self.serial, self.firmware = model, serial, firmware
-        self.state = GeneratorState.IDLE
+        self._state = GeneratorState.IDLE
+        self._state_since = time.monotonic()
+        self.hv_on_s = 0.0  # wall-clock seconds with high voltage on (PREP, READY, EXPOSING, DONE), completed intervals
+        self.exposing_s = 0.0  # of which exposing
         self.fault_code = FaultCode.NONE
         self.refusal = Refusal.NONE
         self.door_closed = True
@@ -80,6 +84,27 @@ class XrayTwin:
         self.requests = 0
         self.request_log: deque[str] = deque(maxlen=1000)  # "fc<code>:<address>[=<values>]" of recent requests
         self.heartbeat_frozen = False  # hazard on request: the generator's own heartbeat stops
+
+    # ------------------------------------------------------------ dose bookkeeping
+    @property
+    def state(self) -> GeneratorState:
+        """The generator's state (``STATE`` input register)."""
+        return self._state
+
+    @state.setter
+    def state(self, new: GeneratorState) -> None:
+        now = time.monotonic()
+        if self._state in HV_STATES:
+            self.hv_on_s += now - self._state_since
+        if self._state == GeneratorState.EXPOSING:
+            self.exposing_s += now - self._state_since
+        self._state, self._state_since = GeneratorState(new), now
+
+    def dose_seconds(self) -> tuple[float, float]:
+        """Wall-clock seconds so far with high voltage on, and of those exposing (the current interval included)."""
+        open_s = time.monotonic() - self._state_since
+        hv = self.hv_on_s + (open_s if self._state in HV_STATES else 0.0)
+        return hv, self.exposing_s + (open_s if self._state == GeneratorState.EXPOSING else 0.0)
 
     # ----------------------------------------------------------------- serving
     async def start(self, host: str = "127.0.0.1", port: int = 0) -> int:
@@ -235,8 +260,7 @@ class XrayTwin:
             await asyncio.sleep(HEARTBEAT_PERIOD_S)
             if not self.heartbeat_frozen:
                 self.heartbeat_out = (self.heartbeat_out + 1) & 0xFFFF
-            hv = self.state in (GeneratorState.PREP, GeneratorState.READY, GeneratorState.EXPOSING, GeneratorState.DONE)
-            if hv and self.watchdog_ms and time.monotonic() - self._last_hb > self.watchdog_ms / 1000.0:
+            if self.state in HV_STATES and self.watchdog_ms and time.monotonic() - self._last_hb > self.watchdog_ms / 1000.0:
                 self._enter_fault(FaultCode.WATCHDOG)
 
     # ------------------------------------------------------------ registers

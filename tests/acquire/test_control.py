@@ -76,7 +76,9 @@ def test_pause_holds_at_a_frame_boundary_and_resume_completes(request_factory) -
         held = runner._engine.n_done
         await asyncio.sleep(0.3)
         assert runner._engine.n_done == held and runner.state == "paused"
-        assert not (await bench.xray.read())["exposing"]
+        xray = await bench.xray.read()
+        assert not xray["exposing"] and not xray["hv_on"]  # high voltage off while paused
+        assert twin_of(bench.xray).state.name == "IDLE"  # what the generator itself says
         runner.resume()
         res = await task
         assert res.status == "complete" and res.n_frames == res.n_planned

@@ -333,3 +333,30 @@ def test_cancelled_exposure_switches_xrays_off(twin: tuple[XrayTwin, TwinThread]
         assert not tw.world.exposing
 
     run(twin, body)
+
+
+def test_high_voltage_goes_off_when_nothing_exposes(twin: tuple[XrayTwin, TwinThread]) -> None:
+    """After an exposure (or a prepare) high voltage stays on only ``hold_s``; an exposure inside it needs no new
+    preparation, one after it prepares again."""
+    tw, _ = twin
+
+    async def body(gen: XrayGenerator) -> None:
+        assert await gen.expose() == 1
+        assert tw.state.name == "READY"  # held for the next exposure
+        await asyncio.sleep(0.05)
+        assert await gen.expose() == 2  # within the hold: no preparation in between
+        prepared = tw.dose_seconds()[0]
+        await asyncio.sleep(0.4)
+        assert tw.state.name == "IDLE" and not tw.prep_req  # nothing exposed for longer than the hold: HV off
+        assert tw.dose_seconds()[0] == pytest.approx(prepared, abs=0.2)
+        await gen.prepare()
+        await asyncio.sleep(0.4)
+        assert tw.state.name == "IDLE"  # a preparation with no exposure after it ends the same way
+        assert await gen.expose() == 3  # prepares again
+        hv, exposing = tw.dose_seconds()
+        assert 0 < exposing < hv
+        assert await gen.expose(release=True) == 4  # the next exposure is far away: off at once, no hold
+        await asyncio.sleep(0.05)
+        assert tw.state.name == "IDLE"
+
+    run(twin, body, hold_s=0.15)

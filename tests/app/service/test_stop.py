@@ -63,7 +63,8 @@ def test_one_scan_at_a_time_and_abort(api) -> None:  # type: ignore[no-untyped-d
     n = paused["progress"]["done"]
     time.sleep(0.3)
     assert api.get(f"/scans/{scan_id}").json()["progress"]["done"] == n
-    assert api.get("/devices/xray").json()["state"]["exposing"] is False
+    xray = api.get("/devices/xray").json()["state"]
+    assert xray["exposing"] is False and xray["hv_on"] is False and xray["state"] == "IDLE"  # X-rays off while paused
     assert api.post(f"/scans/{scan_id}/resume").status_code == 202
     wait_for(api, f"/scans/{scan_id}", lambda b: b["progress"].get("done", 0) > n, 30)
     r = api.post(f"/scans/{scan_id}/abort", json={"reason": "sample slipped"})
