@@ -70,12 +70,13 @@ class XrayGenerator(Driver):
         self._client: AsyncModbusTcpClient | None = None
         self._host, self._port = self.endpoint.host, self.endpoint.port
         self._opened = False
-        self._garbled = False
+        self._garbled = asyncio.Event()  # set when a reply that cannot be ours arrives (one per connection)
         self._heartbeat_task: asyncio.Task[None] | None = None
         self._heartbeat_error: DeviceTimeoutError | None = None  # set while the generator's heartbeat is frozen
         self._hb_counter = 0
         self._action_lock = asyncio.Lock()
         self._hold_task: asyncio.Task[None] | None = None
+        self._link_fault: tuple[float, str, str] | None = None  # last link trouble: when, clock time, what
 
     # ------------------------------------------------------------- connection
     async def connect(self) -> None:
@@ -89,7 +90,7 @@ class XrayGenerator(Driver):
     async def _open_client(self) -> None:
         if self._client is not None:
             self._client.close()
-        self._garbled = False
+        self._garbled = asyncio.Event()
         self._client = AsyncModbusTcpClient(
             self._host,
             port=int(self._port or DEFAULT_PORT),
@@ -140,7 +141,7 @@ class XrayGenerator(Driver):
             bad_fc = (fc & 0x7F) not in (1, 2, 3, 4, 5, 6, 15, 16)
             bad_count = fc in (1, 2, 3, 4) and len(data) >= 9 and data[8] != length - 3
             if bad_header or bad_fc or bad_count:
-                self._garbled = True
+                self._garbled.set()  # every request in flight fails now, not at its time-out
         return data
 
     async def _request(self, what: str, call: Callable[[AsyncModbusTcpClient], Awaitable[Any]], *, retry: bool = True) -> Any:
@@ -159,15 +160,15 @@ class XrayGenerator(Driver):
         client = self._client
         if client is None or not client.connected:
             raise NotConnectedError(f"{self.name}: not connected to the X-ray generator ({what})")
-        self._garbled = False
+        garbled = self._garbled
         try:
             async with asyncio.timeout(self.timeout_s * 2 + 0.5):
-                reply = await call(client)
+                reply = await self._unless_garbled(call(client), garbled)
         except ConnectionException:
             raise NotConnectedError(f"{self.name}: connection to the X-ray generator lost ({what})") from None
         except (ModbusException, asyncio.TimeoutError):
-            if self._garbled:
-                client.close()  # the byte stream may be out of step: start afresh on the next request
+            if garbled.is_set():
+                client.close()  # the byte stream is out of step: start afresh on the next request
                 raise ProtocolError(f"{self.name}: garbled reply from the X-ray generator ({what})") from None
             if not client.connected:
                 raise NotConnectedError(f"{self.name}: X-ray generator dropped the connection ({what})") from None
@@ -180,6 +181,23 @@ class XrayGenerator(Driver):
             text = reg.MODBUS_EXCEPTIONS.get(code, "unknown exception")
             raise ControllerError(code, f"Modbus exception {text}", what)
         return reply
+
+    @staticmethod
+    async def _unless_garbled(request: Awaitable[Any], garbled: asyncio.Event) -> Any:
+        """The request's reply, or ModbusException as soon as a garbled packet arrives on the link."""
+        call = asyncio.ensure_future(request)
+        watch = asyncio.ensure_future(garbled.wait())
+        try:
+            await asyncio.wait({call, watch}, return_when=asyncio.FIRST_COMPLETED)
+            if call.done():
+                return call.result()
+            raise ModbusException("garbled packet on the link")
+        finally:
+            for task in (call, watch):
+                if not task.done():
+                    task.cancel()
+                    with contextlib.suppress(BaseException):
+                        await task
 
     async def _read_inputs(self) -> list[bool]:
         r = await self._request("read inputs", lambda c: c.read_discrete_inputs(0, count=reg.N_INPUTS, device_id=self.device_id))
@@ -200,14 +218,22 @@ class XrayGenerator(Driver):
             await asyncio.sleep(self.heartbeat_s)
             self._hb_counter = (self._hb_counter + 1) & 0xFFFF
             try:
-                # no reconnect from here: a lost link lets the generator's own watchdog switch X-rays off
                 await self._request(
                     "heartbeat", lambda c: c.write_register(reg.HEARTBEAT_IN, self._hb_counter, device_id=self.device_id), retry=False
                 )
                 r = await self._request(
                     "heartbeat", lambda c: c.read_input_registers(reg.HEARTBEAT_OUT, count=1, device_id=self.device_id), retry=False
                 )
-            except DeviceError:
+            except ProtocolError as exc:
+                # a garbled reply leaves the stream out of step, not the link down: start afresh at once, so the
+                # generator's watchdog does not fire for want of a heartbeat (and remember why, should it fire)
+                self._note_link_fault(exc)
+                with contextlib.suppress(DeviceError):
+                    await self._open_client()
+                continue
+            except DeviceError as exc:
+                # no reconnect from here: a lost link lets the generator's own watchdog switch X-rays off
+                self._note_link_fault(exc)
                 continue  # link trouble is reported by the next action; the generator's watchdog keeps it safe
             value = int(r.registers[0])
             if value != last_value:
@@ -217,6 +243,19 @@ class XrayGenerator(Driver):
                 self._heartbeat_error = DeviceTimeoutError(
                     f"{self.name}: generator heartbeat stopped for {time.monotonic() - last_change:.1f} s"
                 )
+
+    def _note_link_fault(self, exc: DeviceError) -> None:
+        self._link_fault = (time.monotonic(), time.strftime("%H:%M:%S"), str(exc).removeprefix(f"{self.name}: "))
+
+    def _fault_text(self, code: int) -> str:
+        """``fault N (NAME)``, with the link fault that starved the watchdog when one came shortly before it."""
+        name = FaultCode(code).name if code in FaultCode._value2member_map_ else str(code)
+        text = f"generator fault {code} ({name})"
+        if code == FaultCode.WATCHDOG and self._link_fault is not None:
+            t, clock, what = self._link_fault
+            if time.monotonic() - t < max(self.watchdog_ms / 1000.0, 1.0) + 10.0:
+                text += f": the watchdog expired after a link fault at {clock} ({what})"
+        return text
 
     def _check_heartbeat(self) -> None:
         if self._heartbeat_error is not None:
@@ -277,9 +316,8 @@ class XrayGenerator(Driver):
         ir = await self._read_input_registers()
         di = await self._read_inputs()
         if ir[reg.STATE] == GeneratorState.FAULT or di[reg.FAULT_ACTIVE]:
-            code = ir[reg.FAULT_CODE]
-            name = FaultCode(code).name if code in FaultCode._value2member_map_ else str(code)
-            raise FaultActiveError(f"{self.name}: generator fault {code} ({name}) is active; call reset_fault() once it is cleared")
+            raise FaultActiveError(f"{self.name}: {self._fault_text(ir[reg.FAULT_CODE])} is active; X-rays are off; "
+                                   "reset the fault once its cause is gone")
         if not di[reg.DOOR_CLOSED]:
             raise InterlockOpenError(f"{self.name}: door interlock is open; close the door before preparing or exposing")
         return ir, di
@@ -420,8 +458,11 @@ class XrayGenerator(Driver):
         await self._request("xray off", self._xray_off_call)
 
     async def reset_fault(self) -> None:
-        """Clear a fault whose cause is gone; raises if the generator stays in FAULT."""
+        """Clear a fault whose cause is gone; raises naming the cause while the generator stays in FAULT."""
         await self._write_coil(reg.FAULT_RESET, True)
         ir = await self._read_input_registers()
         if ir[reg.STATE] == GeneratorState.FAULT:
-            raise FaultActiveError(f"{self.name}: fault {ir[reg.FAULT_CODE]} could not be reset (cause still present)")
+            di = await self._read_inputs()
+            cause = "the door interlock is still open" if not di[reg.DOOR_CLOSED] else "its cause is still present"
+            raise FaultActiveError(f"{self.name}: {self._fault_text(ir[reg.FAULT_CODE])} was not reset: {cause}")
+        self._link_fault = None

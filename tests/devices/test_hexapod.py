@@ -93,7 +93,7 @@ async def test_soft_limit_refused_before_anything_moves(ready_hexapod: Hexapod, 
 
 
 async def test_coupled_workspace_refused_with_vmo(ready_hexapod: Hexapod, hexapod_twin: TwinThread) -> None:
-    corner = {"X": 50.0, "Y": 50.0, "U": 30.0}
+    corner = {"X": 50.0, "Y": 50.0, "U": 30.0, "V": 30.0}
     with pytest.raises(OutOfLimitsError, match="workspace"):
         await ready_hexapod.check_pose(corner)
     with pytest.raises(OutOfLimitsError, match="VMO"):
@@ -102,7 +102,7 @@ async def test_coupled_workspace_refused_with_vmo(ready_hexapod: Hexapod, hexapo
     assert await ready_hexapod.check_pose({"X": 50.0}) == {"X": 50.0}
     # the controller itself refuses the unreachable pose with error 7 if asked directly
     with pytest.raises(GcsOutOfLimitsError) as info:
-        await ready_hexapod.client.command("MOV X 50 Y 50 U 30")
+        await ready_hexapod.client.command("MOV X 50 Y 50 U 30 V 30")
     assert info.value.code == 7
 
 

@@ -21,7 +21,7 @@ async def test_hexapod_over_serial(hexapod_twin: TwinThread) -> None:
         pos = await dev.position()
         assert pos["X"] == pytest.approx(1.0, abs=1e-3) and pos["W"] == pytest.approx(5.0, abs=1e-3)
         with pytest.raises(OutOfLimitsError, match="workspace"):
-            await dev.move({"X": 50.0, "Y": 50.0, "U": 30.0})
+            await dev.move({"X": 50.0, "Y": 50.0, "U": 30.0, "V": 30.0})
         hexapod_twin.faults.garble_next = 1
         assert await dev.on_target()
     finally:

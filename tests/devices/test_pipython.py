@@ -69,7 +69,7 @@ def test_out_of_limit_move_refused_with_error_7(pidevice: GCSDevice, hexapod_twi
         pidevice.MOV("X", 60.0)
     assert info.value.val == 7
     with pytest.raises(GCSError) as info:
-        pidevice.MOV({"X": 50.0, "Y": 50.0, "U": 30.0})  # each axis fine, the pose is not
+        pidevice.MOV({"X": 50.0, "Y": 50.0, "U": 30.0, "V": 30.0})  # each axis fine, the pose is not
     assert info.value.val == 7
     assert not hexapod_twin.twin.controller.is_moving()
 

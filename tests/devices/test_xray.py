@@ -197,6 +197,38 @@ def test_garbled_reply_is_a_protocol_error(twin: tuple[XrayTwin, TwinThread]) ->
     run(twin, body, timeout_s=0.2)
 
 
+def test_garbled_heartbeat_reply_resyncs_before_the_watchdog_fires(twin: tuple[XrayTwin, TwinThread]) -> None:
+    tw, _ = twin
+
+    async def body(gen: XrayGenerator) -> None:
+        await gen.prepare()
+        tw.faults.garble_next = 1  # the next reply is a heartbeat's
+        await asyncio.sleep(1.0)  # twice the watchdog
+        assert gen._link_fault is not None and "garbled" in gen._link_fault[2]
+        state = await gen.read()
+        assert state["state"] == "READY" and state["fault"] == "NONE"  # the link came back in time
+        assert await gen.expose() == 1
+
+    run(twin, body, heartbeat_s=0.05, watchdog_ms=500)
+
+
+def test_watchdog_fault_names_the_link_fault_that_starved_it(twin: tuple[XrayTwin, TwinThread]) -> None:
+    tw, _ = twin
+
+    async def body(gen: XrayGenerator) -> None:
+        await gen.prepare()
+        tw.faults.latency_s = 0.6  # heartbeats time out, the generator's watchdog fires
+        await asyncio.sleep(1.5)
+        tw.faults.latency_s = 0.0
+        await asyncio.sleep(0.7)
+        with pytest.raises(FaultActiveError, match=r"WATCHDOG.*link fault at .*no reply"):
+            await gen.expose()
+        await gen.reset_fault()
+        assert await gen.expose() == 1
+
+    run(twin, body, heartbeat_s=0.05, watchdog_ms=300, timeout_s=0.2)
+
+
 def test_dropped_connection_reconnects_for_reads(twin: tuple[XrayTwin, TwinThread]) -> None:
     tw, _ = twin
 

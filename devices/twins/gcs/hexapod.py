@@ -53,7 +53,7 @@ def leg_lengths(pose_deg: NDArray[np.float64], pivot_mm: NDArray[np.float64]) ->
 HOME_LEG_MM = float(leg_lengths(np.zeros(6), np.zeros(3))[0])
 # +-80 mm of stroke (an H-850-class hexapod): the published orbits (tilts up to 30 deg) and the +-20 deg sawtooth with
 # its bench errors (~23 deg, 10 mm) stay reachable,
-# while corners such as X = Y = 50 mm with U = 30 deg do not.
+# while corners such as X = Y = 50 mm with U = V = 30 deg do not.
 LEG_RANGE_MM = (HOME_LEG_MM - 80.0, HOME_LEG_MM + 80.0)
 
 
