@@ -180,6 +180,18 @@ class MotionConfig(_Model):
                                   "while the panel reads out (a panel integrates only during the exposure)")
 
 
+class StallConfig(_Model):
+    """Progress bounds per device, above the drivers' per-command time-outs: past one the scan stops, naming the device.
+
+    The motion bound is ``motion.move_timeout_s`` (a move to the next frame on target).
+    """
+
+    frame_s: float = Field(5.0, gt=0, le=600, description="detector: a frame must arrive within this long after its "
+                           "exposure (darks and flats: after the trigger, plus the exposure time)")
+    exposure_s: float = Field(2.0, gt=0, le=600, description="generator: an exposure must be over within this long "
+                              "beyond its exposure time and the preparation time")
+
+
 class SimConfig(_Model):
     """What the in-process twins image (``--sim``): phantom and BB size of experiment A."""
 
@@ -193,6 +205,7 @@ class _RigConfig(_Model):
     """What every rig's configuration has: the source/detector geometry."""
 
     geometry: GeometryConfig = GeometryConfig()
+    stall: StallConfig = StallConfig()
 
     def with_detector_size(self, size: int | None) -> Self:
         """The same rig with a square detector of ``size`` pixels on the same panel (None: unchanged)."""

@@ -38,3 +38,12 @@ class ScanStateError(AcquireError):
 
 class RepairError(AcquireError):
     """A scan file that cannot be repaired; the message says why."""
+
+
+class StallError(AcquireError):
+    """A device made no progress within its bound (``stall.*`` in the rig configuration); names the device."""
+
+    def __init__(self, device: str, what: str, bound_s: float, setting: str) -> None:
+        self.device = device
+        self.bound_s = float(bound_s)
+        super().__init__(f"stall: {device} {what} within {bound_s:g} s ({setting}); the scan stops safely")

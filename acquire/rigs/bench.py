@@ -15,10 +15,11 @@ from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from typing import Any, Protocol
 
 from acquire.config import BenchConfig
-from acquire.errors import AcquireError
+from acquire.errors import StallError
 from acquire.kinematics import HEXAPOD_AXES, STAGE_AXIS
 from acquire.plan import ScanPlan
 from acquire.preflight import bench_preflight
+from acquire.stall import within
 from devices.base import DeviceInfo, FrameSource, Referencing, Status, XraySource
 from devices.errors import NotReferencedError, OutOfLimitsError
 from devices.factory import open_device
@@ -150,8 +151,9 @@ class BenchRig:
             await asyncio.wait(waits, timeout=2.0)
             raise
         if pending:
+            late = " and ".join(dev.name for dev, w in zip((self.stage, self.hexapod), waits) if w in pending)
             where = ", ".join(f"{k} {v:.3f}" for k, v in targets.items())
-            raise AcquireError(f"move to {where} not done within {timeout_s:g} s")
+            raise StallError(late, f"did not reach {where}", timeout_s, "motion.move_timeout_s")
         for w in waits:
             exc = w.exception()
             if exc is not None:
@@ -222,20 +224,26 @@ class BenchRig:
 
         ``after_exposure`` is called once the X-ray exposure is over, before the frame is read out.
         """
-        if image_key == ImageKey.DARK:
-            return (await self.detector.acquire_dark(1))[0]
-        if image_key == ImageKey.FLAT:
-            return (await self.detector.acquire_flat(1))[0]
+        stall, ex = self.config.stall, self.config.exposure
+        det = self.detector.name
+        if image_key in (ImageKey.DARK, ImageKey.FLAT):
+            take = self.detector.acquire_dark if image_key == ImageKey.DARK else self.detector.acquire_flat
+            bound = stall.frame_s + ex.exposure_ms / 1000.0
+            what = f"delivered no {'dark' if image_key == ImageKey.DARK else 'flat'} frame"
+            return (await within(bound, det, what, "stall.frame_s", take(1)))[0]
         t0 = time.monotonic()
         if self._last_exposure is not None:
             self._gap_s = t0 - self._last_exposure
         # the next exposure is as far away as this one was from the last: further than a preparation takes,
         # high voltage goes off at once (and the next exposure prepares again); nearer, it stays on
-        await self.xray.expose(release=self._gap_s is not None and self._gap_s > self.prep_s)
+        release = self._gap_s is not None and self._gap_s > self.prep_s
+        bound = stall.exposure_s + (ex.exposure_ms + ex.prep_ms) / 1000.0
+        await within(bound, self.xray.name, "did not finish the exposure", "stall.exposure_s", self.xray.expose(release=release))
         self._last_exposure = time.monotonic()
         if after_exposure is not None:
             after_exposure()
-        return await self.detector.read_frame()
+        return await within(stall.frame_s, det, "delivered no frame after the exposure", "stall.frame_s",
+                            self.detector.read_frame())
 
     def _resynchronise(self) -> None:
         """After a cancelled exchange a reply may still be in flight: the GCS links reconnect before the next one."""

@@ -17,6 +17,7 @@ from typing import Any
 from acquire.config import CArmConfig
 from acquire.errors import AcquireError, PreflightError
 from acquire.plan import CARM_AXES, ScanPlan
+from acquire.stall import within
 from devices.carm import CArm
 from devices.carm_program import CArmLimits, InfeasibleOrbitError, NavProgram, export_program
 from devices.factory import open_device
@@ -103,16 +104,20 @@ class CArmRig:
         for p in range(self._point + 1, target + 1):  # bridge points (no frame), then the frame's point
             if self._stops != mark:
                 raise AcquireError(f"the C-arm was stopped on its way to program point {target}; it stays where it is")
-            await self.carm.goto(p)
+            await within(timeout_s, self.carm.name, f"did not reach program point {p}", "motion.move_timeout_s",
+                         self.carm.goto(p))
             self._point = p
 
     async def acquire(self, image_key: int, after_exposure: Callable[[], None] | None = None) -> Frame:
         """A dark, flat or projection frame (the C-arm exposes and reads out in one action)."""
-        if image_key == ImageKey.DARK:
-            return (await self.carm.acquire_dark(1))[0]
-        if image_key == ImageKey.FLAT:
-            return (await self.carm.acquire_flat(1))[0]
-        frame = await self.carm.expose()
+        stall, ex = self.config.stall, self.config.exposure
+        bound = stall.frame_s + stall.exposure_s + (ex.exposure_ms + ex.prep_ms) / 1000.0
+        if image_key in (ImageKey.DARK, ImageKey.FLAT):
+            take = self.carm.acquire_dark if image_key == ImageKey.DARK else self.carm.acquire_flat
+            what = f"delivered no {'dark' if image_key == ImageKey.DARK else 'flat'} frame"
+            return (await within(bound, self.carm.name, what, "stall.frame_s", take(1)))[0]
+        frame = await within(bound, self.carm.name, "delivered no frame for its exposure", "stall.frame_s + stall.exposure_s",
+                             self.carm.expose())
         if after_exposure is not None:
             after_exposure()
         return frame

@@ -82,6 +82,7 @@ class DetectorTwin(LineTwinServer):
         phantom: Any = "A",
         seed: int = 0,
         detector_model: Any = None,
+        readout_s: float = 0.0,
     ) -> None:
         super().__init__()
         self.world = world if world is not None else get_world("bench")
@@ -106,6 +107,7 @@ class DetectorTwin(LineTwinServer):
         self._seen_exposures = 0
         self._rendering: asyncio.Task[Any] | None = None
         self.rendering = 0  # frames taken whose pixels are still being rendered
+        self.readout_s = float(readout_s)  # hazard on request: a slow panel delivers each frame this long after taking it
 
     # ------------------------------------------------------------- rendering
     def set_phantom(self, phantom: Any) -> None:
@@ -164,6 +166,9 @@ class DetectorTwin(LineTwinServer):
             data, failure = None, f"frame {number} could not be rendered: {exc}"
         if previous is not None:
             await asyncio.wait([previous])  # frames leave in the order they were taken
+        late = taken + self.readout_s - time.time()
+        if late > 0:
+            await asyncio.sleep(late)
         self.rendering -= 1
         if data is None:
             assert self.frames is not None

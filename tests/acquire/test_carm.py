@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import asyncio
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from acquire.config import CArmConfig, parse_config
+from acquire.config import CArmConfig, StallConfig, parse_config
 from acquire.errors import PreflightError
-from acquire.runner import ScanRequest, run_scan
+from acquire.rigs.carm import open_carm
+from acquire.runner import ScanRequest, ScanResult, ScanRunner, run_scan
+from devices.sim import twin_of
 from devices.carm_program import NavProgram
 from orbitct.orbits import make_orbit
 from orbitct.scanfile import ScanFile
@@ -50,3 +53,23 @@ def test_carm_orbit_outside_the_arm_range_is_refused(tmp_path: Path) -> None:
         run_scan(ScanRequest(config=_config(), out=out, orbit="sawtooth", frames=80, sim=True))
     assert info.value.frame == 42 and "primary angle" in str(info.value)  # 0..360 deg leaves +-185 at 189 deg
     assert not out.exists()
+
+
+def test_carm_that_stops_delivering_frames_ends_the_scan_as_a_stall(tmp_path: Path) -> None:
+    cfg = _config().model_copy(update={"stall": StallConfig(frame_s=1.0, exposure_s=0.5)})
+    out = tmp_path / "stall.h5"
+    req = ScanRequest(config=cfg, out=out, orbit="sawtooth", frames=80,
+                      orbit_params={"start_deg": -180.0, "amplitude_deg": 10.0}, sim=True)
+
+    async def main() -> ScanResult:
+        async with open_carm(cfg, sim=True) as rig:
+            twin_of(rig.carm).readout_s = 25.0
+            result = await ScanRunner(req, rig=rig).run()
+            assert await rig.carm.on_target()  # halted, not on its way anywhere
+            return result
+
+    res = asyncio.run(main())
+    assert res.status == "aborted" and res.reason.startswith("stall: carm delivered no")
+    assert "stall.frame_s" in res.reason
+    with ScanFile(out) as sf:
+        assert sf.status == "aborted" and sf.status_reason.startswith("stall: carm")

@@ -118,11 +118,11 @@ def test_abort_from_another_thread(request_factory) -> None:
 
 
 @pytest.mark.parametrize("fault", [pytest.param("stuck_axis", marks=pytest.mark.slow), "controller_error", "interlock",
-                                   "dropped_detector"])
+                                   "dropped_detector", "slow_detector"])
 def test_device_fault_ends_scan_safely_with_clear_reason(request_factory, fault: str) -> None:
     req = request_factory(f"{fault}.h5", frames=30)
     expected = {"stuck_axis": "X", "controller_error": "controller error", "interlock": "interlock",
-                "dropped_detector": "detector"}[fault]
+                "dropped_detector": "detector", "slow_detector": "stall: detector delivered no frame"}[fault]
 
     async def scenario(runner: ScanRunner, task: asyncio.Task, bench: BenchRig, events: list) -> None:
         await _until(lambda: runner._engine is not None and runner._engine.n_done >= 8)
@@ -132,6 +132,8 @@ def test_device_fault_ends_scan_safely_with_clear_reason(request_factory, fault:
             twin_of(bench.stage).faults.add_error(2, "MOV")
         elif fault == "interlock":
             twin_of(bench.xray).set_door(False)
+        elif fault == "slow_detector":
+            twin_of(bench.detector).readout_s = 25.0  # answers every poll, a frame every 25 s: past stall.frame_s
         else:
             twin_of(bench.detector).drop_connections()
         try:
