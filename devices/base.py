@@ -217,6 +217,9 @@ class Triggerable(Readable, Protocol):
 class XraySource(Triggerable, Protocol):
     """An X-ray generator: technique, one exposure per trigger, high voltage off on request."""
 
+    async def check_ready(self) -> None:
+        """Raise unless the generator could expose now (no fault latched, interlock closed); switches nothing on."""
+
     async def configure(self, kv: float, ma: float, exposure_ms: float) -> None:
         """Set tube voltage, current and exposure time."""
 

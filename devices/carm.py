@@ -37,7 +37,8 @@ class CArm(Detector):
         """Connect, read the limits, arm the panel for software triggers."""
         await super().connect()
         self._limits = CArmLimits.from_json(json.loads(await self._l().command("LIMITS?")))
-        await self.arm()
+        if not self.monitor:
+            await self.arm()
 
     async def describe(self) -> DeviceInfo:
         """Model, serial, panel and the two angle axes with their ranges."""

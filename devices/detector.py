@@ -170,7 +170,7 @@ class _ReplyTimeout(DeviceTimeoutError):
 class Detector(Driver):
     """Driver of a flat panel speaking the frame protocol (``tcp://host:port``)."""
 
-    OPTIONS = {"binning", "trigger", "timeout_s", "frame_timeout_s"}
+    OPTIONS = {"binning", "trigger", "timeout_s", "frame_timeout_s", "monitor"}
     default_port = DETECTOR_PORT
     kind = "detector"
 
@@ -186,6 +186,8 @@ class Detector(Driver):
         self.trigger_mode = str(opts.pop("trigger", "software")).lower()
         if self.trigger_mode not in ("software", "xray"):
             raise UriError(f"detector {name!r}: trigger must be 'software' or 'xray', got {self.trigger_mode!r}")
+        # a second connection that only reads and stops (a safety monitor): it leaves binning, trigger and arming alone
+        self.monitor = bool(option_number(opts.pop("monitor", 0), int))
         self._extra = opts  # options of subclasses
         self._link: FrameLink | None = None
         self._geometry: Panel | None = None
@@ -196,6 +198,9 @@ class Detector(Driver):
         """Connect, and apply binning and trigger mode."""
         self._link = FrameLink(self.name, self.endpoint.host, int(self.endpoint.port or self.default_port), self.timeout_s)
         await self._link.open()
+        if self.monitor:
+            await self._read_shape()
+            return
         await self.set_binning(self.binning)
         await self.set_trigger(self.trigger_mode)
 
@@ -252,6 +257,9 @@ class Detector(Driver):
     async def set_binning(self, factor: int) -> None:
         """Bin ``factor x factor`` pixels (1, 2 or 4)."""
         await self._l().command(f"BIN {int(factor)}")
+        await self._read_shape()
+
+    async def _read_shape(self) -> None:
         rows, cols, pc, pr, b = (await self._l().command("SHAPE?")).split()
         self.binning = int(b)
         self._geometry = Panel(int(rows), int(cols), float(pc), float(pr))

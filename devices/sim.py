@@ -26,12 +26,12 @@ from devices.uri import option_value, parse_uri
 
 _PANEL = {"rows", "cols", "pitch_mm", "sad_mm", "sdd_mm", "phantom", "seed", "detector_model", "readout_s"}
 _MOTION = {"time_scale", "imperfect", "seed", "velocity", "stack_order"}
-TWIN_OPTIONS: dict[str, set[str]] = {
-    "hexapod": _MOTION,
-    "rotation_stage": _MOTION,
-    "xray": {"prep_s", "time_scale"},
-    "detector": _PANEL,
-    "carm": _PANEL | {"sag_deg", "drift_mm", "eta_deg", "primary_offset_deg", "noise_mm", "time_scale", "limits"},
+TWIN_OPTIONS: dict[str, set[str]] = {  # every twin also takes ``port`` (where it listens; 0 = a free port)
+    "hexapod": _MOTION | {"port"},
+    "rotation_stage": _MOTION | {"port"},
+    "xray": {"prep_s", "time_scale", "port"},
+    "detector": _PANEL | {"port"},
+    "carm": _PANEL | {"sag_deg", "drift_mm", "eta_deg", "primary_offset_deg", "noise_mm", "time_scale", "limits", "port"},
 }
 SHARED_KINDS = ("hexapod", "rotation_stage")
 DEFAULT_WORLDS = {"carm": "carm"}
@@ -67,21 +67,23 @@ _OF_DEVICE: "weakref.WeakKeyDictionary[Any, SimTwin]" = weakref.WeakKeyDictionar
 
 
 def _make(kind: str, world: str, options: dict[str, Any]) -> TwinThread:
+    options = dict(options)
+    port = int(options.pop("port", 0))
     if kind in SHARED_KINDS:
         from devices.twins.gcs import start_twin
 
-        return start_twin(kind, world=world, **options)
+        return start_twin(kind, port=port, world=world, **options)
     if kind == "xray":
         from devices.twins.xray import XrayTwin
 
-        return TwinThread(XrayTwin(get_world(world), **options))
+        return TwinThread(XrayTwin(get_world(world), **options), port=port)
     if kind == "detector":
         from devices.twins.detector import DetectorTwin
 
-        return TwinThread(DetectorTwin(get_world(world), **options))
+        return TwinThread(DetectorTwin(get_world(world), **options), port=port)
     from devices.twins.carm import CArmTwin
 
-    return TwinThread(CArmTwin(get_world(world), **options))
+    return TwinThread(CArmTwin(get_world(world), **options), port=port)
 
 
 def start_twin(kind: str, uri: str = "sim://bench", options: dict[str, Any] | None = None) -> tuple[SimTwin, dict[str, Any]]:

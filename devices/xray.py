@@ -36,7 +36,7 @@ from devices.xray_registers import FaultCode, GeneratorState, Refusal
 
 DEFAULT_PORT = 502
 log = logging.getLogger(__name__)
-_OPTIONS = {"timeout_s", "heartbeat_s", "watchdog_ms", "prep_timeout_s", "poll_s", "device_id", "hold_s"}
+_OPTIONS = {"timeout_s", "heartbeat_s", "watchdog_ms", "prep_timeout_s", "poll_s", "device_id", "hold_s", "monitor"}
 
 
 def _options(uri_params: dict[str, str], options: dict[str, Any]) -> dict[str, float]:
@@ -67,6 +67,11 @@ class XrayGenerator(Driver):
         self.device_id = int(opts.get("device_id", reg.DEVICE_ID))
         # high voltage stays on after an exposure (or a prepare) only this long without the next one; None: until xray_off()
         self.hold_s: float | None = opts.get("hold_s")
+        # a second connection that only reads and switches X-rays off (a safety monitor beside the scan's own):
+        # it sets no watchdog, sends no heartbeat and leaves the generator as it is when it closes
+        self.monitor = bool(opts.get("monitor", 0.0))
+        if self.monitor:
+            self.heartbeat_s, self.watchdog_ms = 0.0, 0
         self._client: AsyncModbusTcpClient | None = None
         self._host, self._port = self.endpoint.host, self.endpoint.port
         self._opened = False
@@ -83,6 +88,8 @@ class XrayGenerator(Driver):
         """Open the link, set the watchdog, start the heartbeat."""
         await self._open_client()
         self._opened = True
+        if self.monitor:
+            return
         await self._request("set watchdog", lambda c: c.write_register(reg.WATCHDOG_MS, self.watchdog_ms, device_id=self.device_id))
         if self.heartbeat_s > 0 and self._heartbeat_task is None:
             self._heartbeat_task = asyncio.ensure_future(self._heartbeat())
@@ -115,7 +122,7 @@ class XrayGenerator(Driver):
             with contextlib.suppress(BaseException):
                 await self._heartbeat_task
             self._heartbeat_task = None
-        if self._opened:
+        if self._opened and not self.monitor:
             with contextlib.suppress(DeviceError):
                 await self.xray_off()
         self._opened = False
@@ -311,6 +318,10 @@ class XrayGenerator(Driver):
         if list(back[:3]) != values:
             raise ProtocolError(f"{self.name}: settings read back as {list(back[:3])}, wrote {values}")
 
+    async def check_ready(self) -> None:
+        """Raise unless the generator could expose now: no fault latched, door closed (switches nothing on)."""
+        await self._check_can_expose()
+
     async def _check_can_expose(self) -> tuple[list[int], list[bool]]:
         self._check_heartbeat()
         ir = await self._read_input_registers()
@@ -463,6 +474,7 @@ class XrayGenerator(Driver):
         ir = await self._read_input_registers()
         if ir[reg.STATE] == GeneratorState.FAULT:
             di = await self._read_inputs()
-            cause = "the door interlock is still open" if not di[reg.DOOR_CLOSED] else "its cause is still present"
+            cause = ("the door interlock is still open" if not di[reg.DOOR_CLOSED]
+                     else "its cause is still present (the generator's fault input is asserted)")
             raise FaultActiveError(f"{self.name}: {self._fault_text(ir[reg.FAULT_CODE])} was not reset: {cause}")
         self._link_fault = None

@@ -3,20 +3,63 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator, Mapping
+from dataclasses import dataclass, field
+from typing import Any
 
 from acquire.config import BenchConfig, CArmConfig
 from acquire.engine import Rig
-from acquire.rigs.bench import BenchRig, open_bench
-from acquire.rigs.carm import CArmRig, open_carm
+from acquire.rigs.bench import BenchRig, bench_links, open_bench
+from acquire.rigs.carm import CArmRig, carm_links, open_carm
+from acquire.rigs.links import DeviceLink
+
+
+def rig_links(config: BenchConfig | CArmConfig, *, sim: bool) -> dict[str, DeviceLink]:
+    """Where each device of the rig is reached (``sim``: ``sim://`` URIs carrying twin and driver options)."""
+    return carm_links(config, sim=sim) if isinstance(config, CArmConfig) else bench_links(config, sim=sim)
 
 
 @contextlib.asynccontextmanager
-async def open_rig(config: BenchConfig | CArmConfig, *, sim: bool = False) -> AsyncIterator[Rig]:
-    """Connect the rig a configuration names (its twins in-process when ``sim``); stopped and closed on exit."""
-    opener = open_carm if isinstance(config, CArmConfig) else open_bench
-    async with opener(config, sim=sim) as rig:  # type: ignore[arg-type]
-        yield rig
+async def open_rig(config: BenchConfig | CArmConfig, *, sim: bool = False,
+                   links: Mapping[str, DeviceLink] | None = None) -> AsyncIterator[Rig]:
+    """Connect the rig a configuration names (its twins in-process when ``sim``, or at ``links``); closed on exit."""
+    if isinstance(config, CArmConfig):
+        async with open_carm(config, sim=sim, links=links) as carm:
+            yield carm
+    else:
+        async with open_bench(config, sim=sim, links=links) as bench:
+            yield bench
 
 
-__all__ = ["BenchRig", "CArmRig", "open_bench", "open_carm", "open_rig"]
+@dataclass
+class RunningTwins:
+    """The twins of a rig running in this process: the links drivers elsewhere use, and the twins themselves."""
+
+    links: dict[str, DeviceLink] = field(default_factory=dict)
+    twins: dict[str, Any] = field(default_factory=dict)
+
+
+@contextlib.contextmanager
+def sim_twins(config: BenchConfig | CArmConfig, ports: Mapping[str, int] | None = None) -> Iterator[RunningTwins]:
+    """Run the twins of a rig in this process (on ``ports`` where given, else free ports) until the block ends.
+
+    The links are what a driver in another process uses to reach them: loopback endpoints and the
+    driver's own options (the twins' options stay here).
+    """
+    from devices.sim import start_twin
+
+    running = RunningTwins()
+    try:
+        for kind, link in rig_links(config, sim=True).items():
+            options = {**link.options, "port": int((ports or {}).get(kind, 0))}
+            twin, driver_options = start_twin(kind, link.uri, options)
+            running.twins[kind] = twin
+            running.links[kind] = DeviceLink(twin.endpoint, driver_options)
+        yield running
+    finally:
+        for twin in reversed(list(running.twins.values())):
+            twin.stop()
+
+
+__all__ = ["BenchRig", "CArmRig", "DeviceLink", "RunningTwins", "open_bench", "open_carm", "open_rig", "rig_links",
+           "sim_twins"]

@@ -19,6 +19,7 @@ from acquire.errors import StallError
 from acquire.kinematics import HEXAPOD_AXES, STAGE_AXIS
 from acquire.plan import ScanPlan
 from acquire.preflight import bench_preflight
+from acquire.rigs.links import DeviceLink
 from acquire.stall import within
 from devices.base import DeviceInfo, FrameSource, Referencing, Status, XraySource
 from devices.errors import NotReferencedError, OutOfLimitsError
@@ -32,6 +33,9 @@ SIM_WORLD = "bench"
 STAGE = STAGE_AXIS.split(".")[1]  # the stage driver's axis name
 SIM_REPLY_TIMEOUT_S = 5.0
 SIM_FRAME_TIMEOUT_S = 20.0
+
+
+BENCH_KINDS = ("hexapod", "rotation_stage", "xray", "detector")
 
 
 class Hexapod(Referencing, Protocol):
@@ -99,7 +103,9 @@ class BenchRig:
         return None
 
     async def preflight(self, plan: ScanPlan, mode: str, frame_rate_hz: float) -> None:
-        """Every frame against the configured and the controllers' limits and the hexapod's workspace."""
+        """The generator able to expose (no fault, door closed); every frame against the configured and the
+        controllers' limits and the hexapod's workspace."""
+        await self.xray.check_ready()
         await bench_preflight(plan, self.config, device_limits=await self.device_limits(),
                               workspace_check=self.check_workspace, mode=mode, frame_rate_hz=frame_rate_hz)
 
@@ -301,17 +307,18 @@ def sim_options(config: BenchConfig) -> dict[str, dict[str, Any]]:
 
 
 @contextlib.asynccontextmanager
-async def open_bench(config: BenchConfig, *, sim: bool = False) -> AsyncIterator[BenchRig]:
-    """Connect every device of ``config`` (in-process twins when ``sim``); stops and closes them on exit."""
-    uris = config.devices.model_dump()
-    opts = device_options(config)
-    if sim:
-        uris = {k: f"sim://{SIM_WORLD}" for k in uris}
-        opts = sim_options(config)
+async def open_bench(config: BenchConfig, *, sim: bool = False,
+                     links: Mapping[str, DeviceLink] | None = None) -> AsyncIterator[BenchRig]:
+    """Connect every device of ``config`` (in-process twins when ``sim``); stops and closes them on exit.
+
+    ``links`` overrides where each device is reached (twins already running elsewhere, with ``sim``).
+    """
+    if links is None:
+        links = bench_links(config, sim=sim)
     opened: dict[str, Any] = {}
     try:
-        for kind in ("hexapod", "rotation_stage", "xray", "detector"):
-            opened[kind] = await open_device(kind, kind, uris[kind], **opts[kind])
+        for kind in BENCH_KINDS:
+            opened[kind] = await open_device(kind, kind, links[kind].uri, **links[kind].options)
     except BaseException:
         for dev in opened.values():
             with contextlib.suppress(Exception):
@@ -322,3 +329,11 @@ async def open_bench(config: BenchConfig, *, sim: bool = False) -> AsyncIterator
         yield rig
     finally:
         await rig.close()
+
+
+def bench_links(config: BenchConfig, *, sim: bool) -> dict[str, DeviceLink]:
+    """Where each bench device is reached: its configured URI, or ``sim://bench`` with twin and driver options."""
+    if sim:
+        return {kind: DeviceLink(f"sim://{SIM_WORLD}", opts) for kind, opts in sim_options(config).items()}
+    uris = config.devices.model_dump()
+    return {kind: DeviceLink(uris[kind], opts) for kind, opts in device_options(config).items()}

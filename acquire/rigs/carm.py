@@ -17,6 +17,7 @@ from typing import Any
 from acquire.config import CArmConfig
 from acquire.errors import AcquireError, PreflightError
 from acquire.plan import CARM_AXES, ScanPlan
+from acquire.rigs.links import DeviceLink
 from acquire.stall import within
 from devices.carm import CArm
 from devices.carm_program import CArmLimits, InfeasibleOrbitError, NavProgram, export_program
@@ -144,18 +145,21 @@ class CArmRig:
 
 
 @contextlib.asynccontextmanager
-async def open_carm(cfg: CArmConfig, *, sim: bool) -> AsyncIterator[CArmRig]:
-    """Connect the C-arm of ``cfg`` (its twin in-process when ``sim``)."""
-    if sim:
-        det = cfg.geometry.detector
-        uri = f"sim://{SIM_WORLD}"
-        opts: dict[str, Any] = {"rows": det.rows, "cols": det.cols, "sad_mm": cfg.geometry.sad_mm,
-                                "sdd_mm": cfg.geometry.sdd_mm, "time_scale": cfg.sim.time_scale, "seed": cfg.sim.seed,
-                                "phantom": cfg.sim.phantom}
-    else:
-        uri, opts = cfg.devices.carm, {}
-    rig = CArmRig(cfg, await open_device("carm", "carm", uri, **opts), sim=sim)
+async def open_carm(cfg: CArmConfig, *, sim: bool, links: Mapping[str, DeviceLink] | None = None) -> AsyncIterator[CArmRig]:
+    """Connect the C-arm of ``cfg`` (its twin in-process when ``sim``; ``links`` overrides where it is reached)."""
+    link = (links or carm_links(cfg, sim=sim))["carm"]
+    rig = CArmRig(cfg, await open_device("carm", "carm", link.uri, **link.options), sim=sim)
     try:
         yield rig
     finally:
         await rig.close()
+
+
+def carm_links(cfg: CArmConfig, *, sim: bool) -> dict[str, DeviceLink]:
+    """Where the C-arm is reached: its configured URI, or ``sim://carm`` with the twin's options."""
+    if not sim:
+        return {"carm": DeviceLink(cfg.devices.carm, {})}
+    det = cfg.geometry.detector
+    return {"carm": DeviceLink(f"sim://{SIM_WORLD}", {
+        "rows": det.rows, "cols": det.cols, "sad_mm": cfg.geometry.sad_mm, "sdd_mm": cfg.geometry.sdd_mm,
+        "time_scale": cfg.sim.time_scale, "seed": cfg.sim.seed, "phantom": cfg.sim.phantom})}

@@ -84,6 +84,7 @@ class XrayTwin:
         self.requests = 0
         self.request_log: deque[str] = deque(maxlen=1000)  # "fc<code>:<address>[=<values>]" of recent requests
         self.heartbeat_frozen = False  # hazard on request: the generator's own heartbeat stops
+        self.fault_input = False  # hazard on request: the fault input stays asserted (overtemperature): no reset clears it
 
     # ------------------------------------------------------------ dose bookkeeping
     @property
@@ -154,6 +155,12 @@ class XrayTwin:
     def raise_fault(self, code: FaultCode = FaultCode.GENERATOR) -> None:
         """Enter FAULT with ``code`` (high voltage off, any exposure lost)."""
         self._enter_fault(FaultCode(code))
+
+    def set_fault_input(self, active: bool) -> None:
+        """Assert (a GENERATOR fault that no reset clears) or release the generator's fault input."""
+        self.fault_input = bool(active)
+        if active:
+            self._enter_fault(FaultCode.GENERATOR)
 
     # ---------------------------------------------------------- state machine
     def _enter_fault(self, code: FaultCode) -> None:
@@ -251,6 +258,9 @@ class XrayTwin:
             return
         if self.fault_code == FaultCode.INTERLOCK_OPENED and not self.door_closed:
             self._refuse(Refusal.INTERLOCK_OPEN)
+            return
+        if self.fault_input:
+            self._refuse(Refusal.FAULT_ACTIVE)
             return
         self.state = GeneratorState.IDLE
         self.fault_code = FaultCode.NONE

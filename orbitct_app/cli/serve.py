@@ -57,18 +57,20 @@ def _settings(**kwargs: object):  # type: ignore[no-untyped-def]
 @click.option("--sim", is_flag=True, default=None, help="start in-process device twins; prints a development token")
 @click.option("--host", default=None, help="address to listen on (default 127.0.0.1)")
 @click.option("--port", type=int, default=None, help="port (default 8000)")
+@click.option("--stop-port", type=int, default=None,
+              help="port of the emergency-stop listener, a process of its own (default: port + 1; 0: any free port)")
 @click.option("--data-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="scan files, job outputs, database and tokens (default ./orbitct-data)")
 @click.option("--settings", "settings_file", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
               help="service settings (YAML); environment ORBITCT_* and these options override it")
 @click.option("--log-level", type=click.Choice(["debug", "info", "warning", "error"]), default="info")
-def serve(bench_config: Path | None, sim: bool | None, host: str | None, port: int | None, data_dir: Path | None,
-          settings_file: Path | None, log_level: str) -> None:
+def serve(bench_config: Path | None, sim: bool | None, host: str | None, port: int | None, stop_port: int | None,
+          data_dir: Path | None, settings_file: Path | None, log_level: str) -> None:
     """Run the REST service (scans, calibration, reconstruction, emergency stop) with uvicorn."""
     from orbitct_app.service.app import create_app
 
     settings = _settings(settings_file=settings_file, bench_config=bench_config, sim=sim, host=host, port=port,
-                         data_dir=data_dir)
+                         stop_port=stop_port, data_dir=data_dir)
     if not settings.bench_config.is_file():
         raise click.UsageError(f"bench configuration {settings.bench_config} does not exist")
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -79,8 +81,6 @@ def serve(bench_config: Path | None, sim: bool | None, host: str | None, port: i
     click.echo(f"orbitct service on http://{settings.host}:{settings.port}  (API docs: /docs)")
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=log_level, access_log=False)
     SignalAwareServer(config, service).run()
-
-
 
 
 @click.group()

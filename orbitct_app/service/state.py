@@ -1,11 +1,14 @@
-"""Everything one running service owns: settings, store, event bus, tokens, the rig process, the job queue."""
+"""Everything one running service owns: settings, store, event bus, tokens, the emergency stop (latch and guard
+process), the rig process (and the simulated bench's twins with ``sim``), the job queue."""
 
 from __future__ import annotations
 
 import logging
+import multiprocessing as mp
 import secrets
 import time
 from pathlib import Path
+from typing import Any
 
 from orbitct_app.service.core.auth import TOKEN_PREFIX, TokenRegistry
 from orbitct_app.service.core.db import Store
@@ -14,6 +17,10 @@ from orbitct_app.service.core.files import summarize_scan
 from orbitct_app.service.core.settings import ServiceSettings
 from orbitct_app.service.jobs.manager import JobManager
 from orbitct_app.service.rig.client import RigClient
+from orbitct_app.service.rig.twins import SimBench
+from orbitct_app.service.safety.client import GuardClient
+from orbitct_app.service.safety.estop import EmergencyStop
+from orbitct_app.service.safety.latch import SharedFlag, StopLatch
 
 log = logging.getLogger("orbitct.service")
 RESTART_REASON = "interrupted: the service stopped while it was running"
@@ -32,9 +39,13 @@ class Service:
         self.tokens = TokenRegistry(settings.tokens, settings.tokens_path, self.dev_token)
         self.store = Store(settings.db_path)
         self.bus = EventBus(self.store)
+        self.latch = StopLatch(settings.data_dir, SharedFlag(mp.get_context("spawn")))
+        self.sim_bench = SimBench(settings.bench_config) if settings.sim else None
         self.rig = RigClient(settings.bench_config, sim=settings.sim, store=self.store, bus=self.bus,
-                                     data_dir=settings.data_dir, status_interval_s=settings.status_interval_s,
-                                     nice=settings.bench_nice)
+                             data_dir=settings.data_dir, status_interval_s=settings.status_interval_s,
+                             nice=settings.bench_nice, latch_flag=self.latch.flag)
+        self.guard = GuardClient(settings, self.latch.flag, self.dev_token, on_stop=lambda reply: self.estop.published(reply))
+        self.estop = EmergencyStop(self.latch, self.guard, self.rig, self.bus)
         self.jobs = JobManager(self.store, self.bus, settings.data_dir, workers=settings.job_workers,
                                cancel_grace_s=settings.cancel_grace_s, scan_busy=lambda s: self.rig.busy == s)
 
@@ -72,13 +83,42 @@ class Service:
                 time.sleep(0.2)
         return summarize_scan(path)
 
+    def _device_links(self) -> dict[str, Any] | None:
+        """Where the devices are: the simulated bench's twins (started now), or the configuration's URIs."""
+        from acquire.config import load_config
+        from acquire.errors import ConfigError
+        from acquire.rigs import rig_links
+
+        if self.sim_bench is not None:
+            links = self.sim_bench.start()
+            if not links:
+                log.error("simulated bench: %s", self.sim_bench.state)
+            return links
+        try:
+            return rig_links(load_config(self.settings.bench_config), sim=False)
+        except ConfigError as exc:  # the rig process reports it too; the service stays up, degraded
+            log.error("%s", exc)
+            return None
+
     def start(self) -> None:
-        """Recover, connect the bench, start the job workers."""
+        """Recover, start the simulated bench (sim), the guard and the rig process, then the job workers."""
         self.recover()
         if not self.settings.sim and len(self.tokens) == 0:
             log.warning("no tokens configured: every request will get 401; create one with "
                         "`orbitct token create --role operator --data-dir %s`", self.settings.data_dir)
-        self.rig.start()
+        if self.latch.latched:
+            log.warning("%s", self.latch.refusal("scans, moves and referencing"))
+        links = self._device_links()
+        if links:
+            self.guard.start(links)
+            if self.guard.url is not None:
+                log.warning("emergency stop listener (a process of its own): POST %s/stop", self.guard.url)
+        else:
+            self.guard.state = "failed: no device links (see the rig's connection state)"
+        if self.sim_bench is not None and not links:
+            self.rig.connection_state = f"failed: simulated bench: {self.sim_bench.state}"
+        else:
+            self.rig.start(links)
         self.jobs.start()
         if self.dev_token is not None:
             log.warning("--sim development token (all roles): %s", self.dev_token)
@@ -87,5 +127,8 @@ class Service:
         """Stop jobs and the rig (a running scan is aborted with :attr:`stop_reason`), flush events, close the store."""
         self.jobs.shutdown()
         self.rig.close(self.stop_reason)
+        self.guard.close()
+        if self.sim_bench is not None:
+            self.sim_bench.close()
         self.bus.close()
         self.store.close()

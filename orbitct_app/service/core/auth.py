@@ -15,12 +15,12 @@ from typing import Literal
 
 from orbitct_app.service.core.settings import Role, TokenHash
 
-Permission = Literal["read", "motion", "scan", "analysis", "stop"]
+Permission = Literal["read", "motion", "scan", "analysis", "stop", "reset"]
 
 ROLES: tuple[str, ...] = ("operator", "analyst", "viewer")
-# Everyone who may see the bench may press the emergency stop; the rest is split by role.
+# Everyone who may see the bench may press the emergency stop; only an operator may reset it; the rest is split by role.
 PERMISSIONS: dict[str, frozenset[str]] = {
-    "operator": frozenset({"read", "motion", "scan", "stop"}),
+    "operator": frozenset({"read", "motion", "scan", "stop", "reset"}),
     "analyst": frozenset({"read", "analysis", "stop"}),
     "viewer": frozenset({"read", "stop"}),
 }

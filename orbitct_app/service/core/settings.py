@@ -34,6 +34,8 @@ class ServiceSettings(BaseSettings):
     sim: bool = Field(default=False, description="start in-process device twins instead of real hardware")
     host: str = Field(default="127.0.0.1", max_length=255)
     port: int = Field(default=8000, ge=1, le=65535)
+    stop_port: int | None = Field(default=None, ge=0, le=65535,
+                                  description="the guard's own stop listener (default: port + 1; 0: any free port)")
     data_dir: Path = Field(default=Path("orbitct-data"), description="scan files, job outputs, database")
     tokens_file: Path | None = Field(default=None, description="token hashes (JSON); default <data_dir>/tokens.json")
     tokens: list[TokenHash] = Field(default_factory=list, description="token hashes configured inline")

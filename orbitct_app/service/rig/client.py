@@ -14,10 +14,12 @@ import logging
 import multiprocessing as mp
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from acquire.rigs.links import DeviceLink
 from orbitct_app.service.core.db import Store, utc_now
 from orbitct_app.service.core.errors import (
     ApiError,
@@ -28,6 +30,7 @@ from orbitct_app.service.core.errors import (
 )
 from orbitct_app.service.core.events import EventBus
 from orbitct_app.service.core.files import summarize_scan
+from orbitct_app.service.core.children import Backoff
 
 log = logging.getLogger("orbitct.service.rig")
 _CTX = mp.get_context("spawn")
@@ -51,9 +54,11 @@ class RigClient:
     """Starts the rig process and relays commands, progress and the emergency stop."""
 
     def __init__(self, config_path: Path, *, sim: bool, store: Store, bus: EventBus, data_dir: Path,
-                 status_interval_s: float = 0.25, nice: int = 0) -> None:
+                 status_interval_s: float = 0.25, nice: int = 0, latch_flag: Any = None) -> None:
         self.config_path = Path(config_path)
         self.sim, self.nice = sim, nice
+        self.latch_flag = latch_flag
+        self.links: dict[str, Any] | None = None
         self._store, self._bus = store, bus
         self._data_dir = Path(data_dir)
         self._interval = status_interval_s
@@ -71,20 +76,31 @@ class RigClient:
         self._events: Any = None
         self._reader: threading.Thread | None = None
         self._db = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="orbitct-scan-db")
+        self._closing = False
+        self._backoff = Backoff()
+        self._started_at = 0.0
 
     # ------------------------------------------------------------ lifecycle
-    def start(self, timeout_s: float = 120.0) -> None:
-        """Start the bench process and wait until it has connected every device (twins with sim)."""
+    def start(self, links: Mapping[str, DeviceLink] | None = None, timeout_s: float = 120.0) -> None:
+        """Start the rig process and wait until it has connected every device (at ``links``, else as configured)."""
+        if links is not None:
+            self.links = {k: (v.uri, dict(v.options)) for k, v in links.items()}
+        self._spawn(timeout_s)
+
+    def _spawn(self, timeout_s: float = 120.0) -> None:
         from orbitct_app.service.rig.process import rig_main
 
+        self._connected.clear()
         cmd_parent, cmd_child = _CTX.Pipe()
         stop_parent, stop_child = _CTX.Pipe()
         events_parent, events_child = _CTX.Pipe(duplex=False)
         self._cmd, self._stop, self._events = cmd_parent, stop_parent, events_parent
         self.connection_state = "connecting"
         self._process = _CTX.Process(target=rig_main, name="orbitct-rig", daemon=True,
-                                     args=(str(self.config_path), self.sim, cmd_child, stop_child, events_child, self.nice))
+                                     args=(str(self.config_path), self.sim, cmd_child, stop_child, events_child, self.nice,
+                                           self.links, str(self._data_dir), self.latch_flag))
         self._process.start()
+        self._started_at = time.monotonic()
         for conn in (cmd_child, stop_child, events_child):
             conn.close()
         self._reader = threading.Thread(target=self._read, name="orbitct-rig-events", daemon=True)
@@ -96,6 +112,7 @@ class RigClient:
 
     def close(self, reason: str = "service shutting down") -> None:
         """Abort a running scan, halt everything, stop the bench process."""
+        self._closing = True
         if self._process is not None and self._process.is_alive() and self.connection_state == "connected":
             try:
                 self.command("shutdown", timeout_s=10.0, reason=reason)
@@ -149,8 +166,8 @@ class RigClient:
             self._connected.set()
 
     def _bench_gone(self) -> None:
-        """The bench process ended: fail what waits on it and close the scan record."""
-        if self.connection_state == "connected":
+        """The rig process ended: fail what waits on it, close the scan record, start it again (unless closing)."""
+        if self.connection_state in ("connected", "connecting") or not self.connection_state.startswith("failed"):
             self.connection_state = "failed: the bench process ended"
         self._connected.set()
         for fut in list(self._pending.values()):
@@ -164,6 +181,25 @@ class RigClient:
                 self._repair_after_exit(active.path)
                 summary = summarize_scan(active.path)
             self._on_scan_end(active.scan_id, "failed", "the bench process ended during the scan", summary)
+        if not self._closing:
+            threading.Thread(target=self._restart, name="orbitct-rig-restart", daemon=True).start()
+
+    def _restart(self) -> None:
+        """Start the rig process again after a crash, backing off while it keeps failing; never gives up."""
+        if self._process is not None:
+            self._process.join(10.0)
+        delay = self._backoff.delay(time.monotonic() - self._started_at)
+        why = self.connection_state.split("; restart")[0]
+        self.connection_state = f"{why}; restarting the rig process (restart {self._backoff.restarts} in {delay:g} s)"
+        log.error("bench: %s", self.connection_state)
+        time.sleep(delay)
+        if self._closing:
+            return
+        self.connection_state = "connecting"
+        for conn in (self._cmd, self._stop):
+            if conn is not None:
+                conn.close()
+        self._spawn()
 
     def _repair_after_exit(self, path: Path) -> None:
         """Mark the scan file of a dead bench aborted, once the process has let go of it."""

@@ -1,8 +1,10 @@
 """The bench process: devices (twins with sim), the scan runner and the emergency stop, away from the web server.
 
 The web server talks to it over three pipes: commands (request id, name, arguments), a stop pipe
-read by its own thread (so a stop never queues behind a command), and events back (replies,
-scan progress, scan end). Errors cross as ``(kind, message)``; kinds map to HTTP statuses.
+read by its own thread (the fallback stop when the guard is down: it never queues behind a
+command), and events back (replies, scan progress, scan end). Errors cross as ``(kind, message)``;
+kinds map to HTTP statuses. A thread watches the emergency-stop latch: once a stop latches, the
+running scan is aborted and scans, moves and referencing are refused until an operator resets it.
 If the web server dies, the command pipe closes and this process aborts the scan and exits.
 """
 
@@ -14,6 +16,7 @@ import logging
 import os
 import signal
 import threading
+import time
 from dataclasses import asdict
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -85,8 +88,11 @@ def classify(exc: BaseException) -> tuple[str, str]:
 class RigServer:
     """Runs in the bench process: executes commands on the bench loop, reports scan progress."""
 
-    def __init__(self, config_path: Path, sim: bool, events: Connection) -> None:
+    def __init__(self, config_path: Path, sim: bool, events: Connection, *, links: dict[str, Any] | None = None,
+                 latch: Any = None) -> None:
         self.config_path, self.sim, self._events = Path(config_path), sim, events
+        self.links = links  # where the devices are (twins of the simulated bench included); None: from the config
+        self.latch = latch
         self.config: Any = None
         self.rig: Any = None
         self.runner: Any = None
@@ -106,7 +112,7 @@ class RigServer:
     async def serve(self, commands: Connection, stops: Connection) -> None:
         """Connect, then run commands until ``shutdown`` or the web server disappears."""
         from acquire.config import load_config
-        from acquire.rigs import open_rig
+        from acquire.rigs import DeviceLink, open_rig
 
         self.loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # systemctl stop, a closed terminal, Ctrl-C
@@ -114,13 +120,16 @@ class RigServer:
         async with contextlib.AsyncExitStack() as stack:
             try:
                 self.config = load_config(self.config_path)
-                self.rig = await stack.enter_async_context(open_rig(self.config, sim=self.sim))
+                links = None if self.links is None else {k: DeviceLink(*v) for k, v in self.links.items()}
+                self.rig = await stack.enter_async_context(open_rig(self.config, sim=self.sim, links=links))
                 self.send("connected", self._describe_config())
             except Exception as exc:  # noqa: BLE001 - reported to the web server, which stays up degraded
                 self.send("connect_failed", classify(exc)[1])
                 return
             threading.Thread(target=self._read, args=(commands, self._on_command), name="bench-commands", daemon=True).start()
             threading.Thread(target=self._read, args=(stops, self._on_stop), name="bench-stop", daemon=True).start()
+            if self.latch is not None:
+                threading.Thread(target=self._watch_latch, name="bench-latch", daemon=True).start()
             await self._closing.wait()
             if self.runner is not None and self.scan_id is not None:
                 self.runner.abort(self._close_reason)
@@ -172,9 +181,15 @@ class RigServer:
             raise CommandError("not_found", f"no device {name!r}; known: {', '.join(devices)}")
         return devices[name]
 
-    def _idle(self) -> None:
+    def _idle(self, action: str) -> None:
+        self._unlatched(action)
         if self.scan_id is not None:
             raise CommandError("conflict", f"the bench is running scan {self.scan_id}; maintenance waits until it ends")
+
+    def _unlatched(self, action: str) -> None:
+        why = self.latch.refusal(action) if self.latch is not None else None
+        if why:
+            raise CommandError("conflict", why)
 
     async def _state(self, dev: Any) -> dict[str, Any]:
         return {"device": _plain(asdict(await dev.describe())), "state": _plain(await dev.read())}
@@ -191,7 +206,7 @@ class RigServer:
 
     async def cmd_reference(self, name: str) -> dict[str, Any]:
         """Reference a motion device."""
-        self._idle()
+        self._idle("referencing")
         dev = self._device(name)
         if not hasattr(dev, "reference"):
             raise CommandError("invalid", f"device {name} has no axes to reference")
@@ -200,7 +215,7 @@ class RigServer:
 
     async def cmd_move(self, name: str, targets: dict[str, float]) -> dict[str, Any]:
         """Maintenance move of some axes (limits checked by the driver before anything moves)."""
-        self._idle()
+        self._idle("moves")
         dev = self._device(name)
         if not hasattr(dev, "move"):
             raise CommandError("invalid", f"device {name} has no axes to move")
@@ -209,6 +224,17 @@ class RigServer:
         if unknown:
             raise CommandError("invalid", f"device {name} has no axes {unknown}; its axes are {sorted(known)}")
         await dev.move(targets)
+        return await self._state(dev)
+
+    async def cmd_reset_fault(self, name: str) -> dict[str, Any]:
+        """Clear a generator fault whose cause is gone (refused, naming the cause, while it persists); it switches
+        nothing on, so it is allowed while an emergency stop is latched."""
+        if self.scan_id is not None:
+            raise CommandError("conflict", f"the bench is running scan {self.scan_id}; a fault reset waits until it ends")
+        dev = self._device(name)
+        if not hasattr(dev, "reset_fault"):
+            raise CommandError("invalid", f"device {name} has no fault to reset (only an X-ray generator has)")
+        await dev.reset_fault()
         return await self._state(dev)
 
     async def cmd_stop_device(self, name: str) -> dict[str, Any]:
@@ -241,6 +267,7 @@ class RigServer:
         """Start a scan in the background; refused while another runs."""
         from acquire.runner import ScanRunner
 
+        self._unlatched("scans")
         if self.scan_id is not None:
             raise CommandError("conflict", f"the bench is busy with scan {self.scan_id}; one scan at a time")
         req = self._request(spec)
@@ -290,6 +317,24 @@ class RigServer:
         return self.runner
 
     # ---------------------------------------------------------------- emergency stop
+    def _watch_latch(self) -> None:
+        """Thread: once a stop latches (the guard, or the web server), abort the running scan."""
+        assert self.loop is not None
+        while not self._closing.is_set():
+            if not self.latch.flag.wait(1.0, poll_s=0.01):
+                continue
+            if self.scan_id is not None:
+                state = self.latch.state()
+                reason = state.get("reason") or "emergency stop"
+                if not reason.startswith("emergency stop"):
+                    reason = f"emergency stop by {state.get('by')}: {reason}"
+                self.loop.call_soon_threadsafe(self._abort_running, reason)
+            time.sleep(0.02)
+
+    def _abort_running(self, reason: str) -> None:
+        if self.runner is not None:
+            self.runner.abort(reason)
+
     def _on_stop(self, message: tuple[int, str]) -> None:
         req_id, reason = message
         scan_id = self.scan_id
@@ -298,26 +343,34 @@ class RigServer:
         asyncio.ensure_future(self._halt(req_id, scan_id))
 
     async def _halt(self, req_id: int, scan_id: str | None) -> None:
+        """The fallback stop (no guard): halt every device over the rig's own links and read each back."""
+        from devices.halt import halt_and_verify, summary
+
         if self.rig is None:
             self.send("reply", req_id, False, ("unavailable", "no bench devices are connected"))
             return
-        try:
-            await self.rig.stop_all()
-            self.send("reply", req_id, True, {"scan_aborted": scan_id})
-        except Exception as exc:  # noqa: BLE001
-            self.send("reply", req_id, False, classify(exc))
+        checks = await halt_and_verify(self.rig.devices, timeout_s=1.0)
+        halted, message = summary(checks)
+        self.send("reply", req_id, True, {"halted": halted, "message": message, "scan_aborted": scan_id,
+                                          "devices": [c.to_json() for c in checks]})
 
 
 def rig_main(config_path: str, sim: bool, commands: Connection, stops: Connection, events: Connection,
-               nice: int = 0) -> None:
+             nice: int = 0, links: dict[str, Any] | None = None, data_dir: str | None = None, flag: Any = None) -> None:
     """Entry point of the bench process (asks for priority ``nice`` over the web server where allowed)."""
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s bench: %(message)s")
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # the driver names a garbled reply itself
     if nice < 0:
         try:
             os.setpriority(os.PRIO_PROCESS, 0, nice)
         except OSError:
             log.info("bench process priority stays normal (raising it needs root or CAP_SYS_NICE)")
-    server = RigServer(Path(config_path), sim, events)
+    latch = None
+    if data_dir is not None and flag is not None:
+        from orbitct_app.service.safety.latch import StopLatch
+
+        latch = StopLatch(Path(data_dir), flag)
+    server = RigServer(Path(config_path), sim, events, links=links, latch=latch)
     try:
         asyncio.run(server.serve(commands, stops))
     finally:

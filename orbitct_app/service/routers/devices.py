@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 from typing import Annotated, Any
 
@@ -16,6 +17,7 @@ from orbitct_app.service.core.errors import (
 )
 from orbitct_app.service.deps import Operator, Reader, ServiceDep
 
+log = logging.getLogger("orbitct.service.devices")
 router = APIRouter(prefix="/devices", tags=["devices"], responses=ERROR_RESPONSES)
 DeviceName = Annotated[str, Path(max_length=40, pattern=r"^[A-Za-z0-9_-]+$")]
 MOVE_TIMEOUT_S = 120.0
@@ -46,10 +48,11 @@ class DeviceOut(BaseModel):
 
 
 class DeviceState(BaseModel):
-    """A device and what it reads now (positions, on target, referenced; X-ray state)."""
+    """A device and what it reads now (positions, on target, referenced; X-ray state), and the emergency-stop latch."""
 
     device: DeviceOut
     state: dict[str, Any]
+    estop_latched: bool = Field(False, description="an emergency stop is latched: no motion or X-rays until reset")
 
 
 class MoveRequest(BaseModel):
@@ -69,11 +72,14 @@ class MoveRequest(BaseModel):
         return v
 
 
-def _state(result: dict[str, Any]) -> DeviceState:
-    return DeviceState(device=DeviceOut(**result["device"]), state=result["state"])
+def _state(service: Any, result: dict[str, Any]) -> DeviceState:
+    return DeviceState(device=DeviceOut(**result["device"]), state=result["state"], estop_latched=service.latch.latched)
 
 
-def _idle(service: Any) -> None:
+def _idle(service: Any, action: str) -> None:
+    refused = service.estop.refusal(action)
+    if refused:
+        raise Conflict(refused)
     if service.rig.busy is not None:
         raise Conflict(f"the bench is running scan {service.rig.busy}; maintenance moves wait until it ends")
 
@@ -87,24 +93,25 @@ async def list_devices(service: ServiceDep, _: Reader) -> list[DeviceOut]:
 @router.get("/{name}", response_model=DeviceState, summary="State of a device")
 async def get_device(name: DeviceName, service: ServiceDep, _: Reader) -> DeviceState:
     """Description and current read-back."""
-    return _state(await service.rig.run("device_state", name=name))
+    return _state(service, await service.rig.run("device_state", name=name))
 
 
 @router.post("/{name}/reference", response_model=DeviceState, summary="Reference a motion device",
-             responses={409: {"description": "a scan is running"}})
+             responses={409: {"description": "a scan is running, or an emergency stop is latched"}})
 async def reference(name: DeviceName, service: ServiceDep, _: Operator) -> DeviceState:
     """Servo on and reference every axis; returns when done."""
-    _idle(service)
-    return _state(await service.rig.run("reference", timeout_s=MOVE_TIMEOUT_S, name=name))
+    _idle(service, "referencing")
+    return _state(service, await service.rig.run("reference", timeout_s=MOVE_TIMEOUT_S, name=name))
 
 
 @router.post("/{name}/move", response_model=DeviceState, summary="Maintenance move",
-             responses={409: {"description": "a scan is running, or the device is not referenced"}})
+             responses={409: {"description": "a scan is running, the device is not referenced, or an emergency stop is "
+                                             "latched"}})
 async def move(name: DeviceName, body: MoveRequest, service: ServiceDep, _: Operator) -> DeviceState:
     """Absolute move of some axes; limits (and the hexapod workspace) are checked before anything moves."""
-    _idle(service)
+    _idle(service, "moves")
     try:
-        return _state(await service.rig.run("move", timeout_s=MOVE_TIMEOUT_S, name=name, targets=body.targets))
+        return _state(service, await service.rig.run("move", timeout_s=MOVE_TIMEOUT_S, name=name, targets=body.targets))
     except Invalid as exc:
         raise Invalid(exc.message, details=[FieldProblem(field="targets", reason=exc.message)]) from None
 
@@ -112,4 +119,18 @@ async def move(name: DeviceName, body: MoveRequest, service: ServiceDep, _: Oper
 @router.post("/{name}/stop", response_model=DeviceState, summary="Stop one device")
 async def stop_device(name: DeviceName, service: ServiceDep, _: Operator) -> DeviceState:
     """Halt the device's axes (X-ray generator: X-rays off). For everything at once use ``POST /stop``."""
-    return _state(await service.rig.run("stop_device", name=name))
+    return _state(service, await service.rig.run("stop_device", name=name))
+
+
+@router.post("/{name}/reset-fault", response_model=DeviceState, summary="Reset a generator fault",
+             responses={409: {"description": "the fault's cause persists (door open, fault input), or a scan is running"}})
+async def reset_fault(name: DeviceName, service: ServiceDep, who: Operator) -> DeviceState:
+    """Clear the X-ray generator's latched fault once its cause is gone; refused, naming the cause, while it persists.
+
+    Allowed while an emergency stop is latched: it switches nothing on.
+    """
+    if service.rig.busy is not None:
+        raise Conflict(f"the bench is running scan {service.rig.busy}; a fault reset waits until it ends")
+    result = _state(service, await service.rig.run("reset_fault", name=name))
+    log.warning("generator fault on %s reset by %s (%s)", name, who.name, who.role)
+    return result

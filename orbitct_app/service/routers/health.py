@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from fastapi import APIRouter
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 from orbitct import __version__
 from orbitct_app.service.deps import ServiceDep
@@ -12,15 +12,21 @@ router = APIRouter(tags=["health"])
 
 
 class Health(BaseModel):
-    """Whether the service is up and the bench is connected."""
+    """Whether the service is up, the bench connected, the guard listening and an emergency stop latched."""
 
     status: str
     version: str
     bench: str
+    guard: str = Field(description="the stop listener: listening, starting, restarting or failed")
+    estop: str = Field(description="latched (no motion or X-rays until an operator resets it) or clear")
 
 
-@router.get("/health", response_model=Health, summary="Liveness and bench connection")
+@router.get("/health", response_model=Health, summary="Liveness, bench connection and emergency-stop latch")
 async def health(service: ServiceDep) -> Health:
-    """``ok`` when the bench is connected, ``degraded`` otherwise."""
-    bench = service.rig.connection_state.split(":")[0]  # the reason stays behind authentication
-    return Health(status="ok" if bench == "connected" else "degraded", version=__version__, bench=bench)
+    """``ok`` when the bench is connected, the guard listens and no stop is latched; ``degraded`` otherwise."""
+    bench = service.rig.connection_state.split(":")[0]  # the reasons stay behind authentication
+    guard = service.guard.state.split(":")[0]
+    latched = service.latch.latched
+    ok = bench == "connected" and guard == "listening" and not latched
+    return Health(status="ok" if ok else "degraded", version=__version__, bench=bench, guard=guard,
+                  estop="latched" if latched else "clear")

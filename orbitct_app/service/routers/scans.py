@@ -110,11 +110,14 @@ def _check_params(service: Any, body: ScanCreate) -> dict[str, Any]:
 
 
 @router.post("", response_model=ScanOut, status_code=202, summary="Start a scan",
-             responses={409: {"description": "the bench is busy with another scan"},
+             responses={409: {"description": "the bench is busy with another scan, or an emergency stop is latched"},
                         202: {"headers": {"Location": {"description": "URL of the new scan", "schema": {"type": "string"}}}}})
 def start_scan(body: ScanCreate, service: ServiceDep, who: ScanOperator, response: Response) -> ScanOut:
     """Check the orbit against every limit, then start it; returns at once (progress on ``/scans/{id}/events``)."""
     params = _check_params(service, body)
+    refused = service.estop.refusal("scans")
+    if refused:
+        raise Conflict(refused)
     if service.rig.busy is not None:
         raise Conflict(f"the bench is busy with scan {service.rig.busy}; one scan at a time")
     scan_id = uuid.uuid4().hex[:16]

@@ -1,48 +1,112 @@
-"""``POST /stop``: emergency stop, halting every axis and switching X-rays off; always accepted, never queued."""
+"""``/stop``: the emergency stop (any token), its latch (``GET``), its reset (operator) and its events.
+
+The fastest stop is the guard's own listener (``stop_url`` in ``GET /stop``; ``orbitct stop``):
+it never shares a server with status polling. ``POST /stop`` here forwards to it.
+"""
 
 from __future__ import annotations
 
-import asyncio
-import logging
+from typing import Annotated, Any
 
-from fastapi import APIRouter
-from pydantic import BaseModel, Field
+from fastapi import APIRouter, Header, Request
+from pydantic import BaseModel, ConfigDict, Field
 
-from orbitct_app.service.core.errors import ERROR_RESPONSES
-from orbitct_app.service.deps import ServiceDep, Stopper
+from orbitct_app.service.core.errors import ERROR_RESPONSES, Conflict
+from orbitct_app.service.core.events import sse_response
+from orbitct_app.service.deps import Reader, Resetter, ServiceDep, Stopper
+from orbitct_app.service.safety.estop import TOPIC
+from orbitct_app.service.safety.latch import NotLatchedError
 
-router = APIRouter(tags=["stop"], responses=ERROR_RESPONSES)
-log = logging.getLogger("orbitct.service.stop")
-CONFIRM_TIMEOUT_S = 5.0
+router = APIRouter(prefix="/stop", tags=["stop"], responses=ERROR_RESPONSES)
+
+
+class StopRequest(BaseModel):
+    """Why the bench is stopped (optional)."""
+
+    model_config = ConfigDict(extra="forbid")
+    reason: str = Field("", max_length=500)
+
+
+class HaltCheckOut(BaseModel):
+    """One device after the stop: proven halted or not, what was read back, what went wrong."""
+
+    device: str
+    halted: bool
+    verified: str = ""
+    problem: str = ""
 
 
 class StopOut(BaseModel):
-    """What the emergency stop did."""
+    """What the emergency stop did and what it proved."""
 
-    model_config = {"json_schema_extra": {"examples": [
-        {"accepted": True, "halted": True, "scan_aborted": "a1b2c3d4e5f60718", "message": "every axis halted, X-rays off"}
-    ]}}
+    model_config = {"json_schema_extra": {"examples": [{
+        "accepted": True, "halted": True, "latched": True, "via": "guard", "scan_aborted": "a1b2c3d4e5f60718",
+        "by": "alice (viewer)", "reason": "emergency stop by alice",
+        "message": "halted and verified: hexapod axes not moving; rotation_stage axes not moving; xray high voltage off, "
+                   "not exposing (state IDLE)",
+        "devices": [{"device": "xray", "halted": True, "verified": "high voltage off, not exposing (state IDLE)",
+                     "problem": ""}]}]}}
 
     accepted: bool = True
-    halted: bool = Field(description="the bench confirmed: every axis halted and X-rays off")
-    scan_aborted: str | None = Field(None, description="id of the scan that was aborted, if one ran")
+    halted: bool = Field(description="every device was read back halted: axes not moving, high voltage off")
+    latched: bool = Field(description="the stop is latched: no scan, move or referencing until an operator resets it")
+    via: str = Field(description="guard (its own connections), rig (the rig process's links) or none")
+    scan_aborted: str | None = Field(None, description="id of the scan that was running, now aborted")
+    by: str = ""
+    reason: str = ""
     message: str
+    devices: list[HaltCheckOut] = []
 
 
-@router.post("/stop", response_model=StopOut, status_code=202, summary="Emergency stop")
-async def emergency_stop(service: ServiceDep, who: Stopper) -> StopOut:
-    """Abort any scan, halt every axis and switch X-rays off. Any valid token may stop the bench.
+class LatchOut(BaseModel):
+    """The emergency-stop latch and where the stop listener is."""
 
-    Runs on the web server's loop (never in the worker thread pool) and takes no lock a scan holds.
+    latched: bool
+    since_utc: str | None = None
+    by: str | None = None
+    reason: str | None = None
+    last_reset: dict[str, Any] | None = None
+    stop_url: str | None = Field(None, description="the guard's own stop listener (POST, any token)")
+    guard: str = ""
+
+
+class ResetRequest(BaseModel):
+    """A note for the log (what was checked before resetting)."""
+
+    model_config = ConfigDict(extra="forbid")
+    note: str = Field("", max_length=500)
+
+
+@router.post("", response_model=StopOut, status_code=202, summary="Emergency stop")
+async def emergency_stop(request: Request, service: ServiceDep, who: Stopper, body: StopRequest | None = None) -> StopOut:
+    """Latch the stop, abort any scan, halt every axis and switch X-rays off, then read every device back.
+
+    ``halted`` is true only when each device's stop was acknowledged and its read-back confirms it;
+    otherwise ``message`` and ``devices`` say what could not be verified. Any valid token may stop.
     """
-    log.warning("emergency stop by %s (%s)", who.name, who.role)
-    scan_id, future = service.rig.emergency_stop(f"emergency stop by {who.name}")
-    if future is None:
-        return StopOut(halted=False, scan_aborted=scan_id, message=f"bench not connected ({service.rig.connection_state}); abort requested")
+    reply = await service.estop.stop(who, (body or StopRequest()).reason, request.headers["authorization"])
+    return StopOut(**reply)
+
+
+@router.get("", response_model=LatchOut, summary="Emergency-stop latch")
+async def latch_state(service: ServiceDep, _: Reader) -> LatchOut:
+    """Whether a stop is latched, since when, by whom and why; the last reset; the stop listener's URL."""
+    return LatchOut(**service.estop.state())
+
+
+@router.post("/reset", response_model=LatchOut, summary="Reset the emergency stop (operator)",
+             responses={409: {"description": "no stop is latched"}})
+async def reset(service: ServiceDep, who: Resetter, body: ResetRequest | None = None) -> LatchOut:
+    """Clear the latch after checking the bench; logged with who and when. Nothing moves and X-rays stay off."""
     try:
-        await asyncio.wait_for(asyncio.wrap_future(future), CONFIRM_TIMEOUT_S)
-    except asyncio.TimeoutError:
-        return StopOut(halted=False, scan_aborted=scan_id, message=f"halt sent; not confirmed within {CONFIRM_TIMEOUT_S:g} s")
-    except Exception as exc:  # noqa: BLE001 - the stop is still accepted; say what the bench answered
-        return StopOut(halted=False, scan_aborted=scan_id, message=f"halt sent; the bench reported: {exc}")
-    return StopOut(halted=True, scan_aborted=scan_id, message="every axis halted, X-rays off")
+        return LatchOut(**service.estop.reset(who, (body or ResetRequest()).note))
+    except NotLatchedError as exc:
+        raise Conflict(str(exc)) from None
+
+
+@router.get("/events", summary="Stops and resets (server-sent events)",
+            responses={200: {"content": {"text/event-stream": {"example": 'id: 3\nevent: stop\ndata: {"halted":true,"latched":true}\n\n'}}}})
+def stop_events(service: ServiceDep, _: Reader,
+                last_event_id: Annotated[str | None, Header(max_length=20)] = None):  # type: ignore[no-untyped-def]
+    """Events ``stop`` (with what was verified) and ``reset`` (who, when), in order; resumes after ``Last-Event-ID``."""
+    return sse_response(service.bus, TOPIC, last_event_id)

@@ -35,7 +35,7 @@ def _serve(tmp_path: Path, data: Path) -> tuple[subprocess.Popen[bytes], str, di
     env = {**os.environ, "ORBITCT_DEV_TOKEN": DEV, "PYTHONPATH": str(Path(__file__).resolve().parents[3])}
     proc = subprocess.Popen(
         [sys.executable, "-m", "orbitct_app.cli.main", "serve", "--config", str(small_bench_config(tmp_path)), "--sim",
-         "--port", str(port), "--data-dir", str(data), "--log-level", "warning"],
+         "--port", str(port), "--stop-port", "0", "--data-dir", str(data), "--log-level", "warning"],
         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
     )
     base = f"http://127.0.0.1:{port}"

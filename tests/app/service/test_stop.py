@@ -1,11 +1,16 @@
-"""Emergency stop during a scan: every axis halted, X-rays off, scan aborted; busy bench answers 409."""
+"""The emergency stop through the service: it latches, proves what it halted, survives a dead rig process, and only
+an operator resets it; generator faults are reset the same deliberate way."""
 
 from __future__ import annotations
 
+import os
+import signal
 import time
 
+import httpx
 import pytest
 
+from devices.xray_registers import FaultCode
 from orbitct.scanfile import ScanFile
 from tests.helpers.service import (
     SMALL_CARM_SAWTOOTH,
@@ -17,6 +22,7 @@ from tests.helpers.service import (
 
 pytestmark = pytest.mark.system
 
+
 def _start(api, frames: int = 300) -> str:  # type: ignore[no-untyped-def]
     r = api.post("/scans", json={**SMALL_SAWTOOTH, "frames": frames})
     assert r.status_code == 202, r.text
@@ -24,33 +30,126 @@ def _start(api, frames: int = 300) -> str:  # type: ignore[no-untyped-def]
     wait_for(api, f"/scans/{scan_id}", lambda b: b["progress"].get("done", 0) >= 8)
     return scan_id
 
-def test_emergency_stop_halts_axes_xrays_and_aborts_the_scan(api) -> None:  # type: ignore[no-untyped-def]
+
+def _safety_events(api) -> list[tuple[str, dict]]:  # type: ignore[no-untyped-def]
+    events, _ = api.service.bus.since("safety", 0)
+    return [(kind, data) for _, kind, data in events]
+
+
+def test_emergency_stop_halts_proves_and_latches_until_an_operator_resets(api) -> None:  # type: ignore[no-untyped-def]
     scan_id = _start(api)
-    t0 = time.monotonic()
-    r = api.post("/stop", role="viewer")  # anyone who can see the bench may stop it
-    elapsed = time.monotonic() - t0
+    r = api.post("/stop", role="viewer", json={"reason": "smoke near the tube"})  # anyone who sees the bench may stop
     assert r.status_code == 202, r.text
     body = r.json()
-    assert body["halted"] is True and body["scan_aborted"] == scan_id
-    assert elapsed < 2.0
+    assert body["halted"] is True and body["latched"] is True and body["via"] == "guard", body
+    assert body["scan_aborted"] == scan_id and body["by"] == "test-viewer (viewer)"
+    verified = {d["device"]: d["verified"] for d in body["devices"]}
+    assert set(verified) == {"hexapod", "rotation_stage", "xray"}
+    assert verified["xray"].startswith("high voltage off") and verified["hexapod"] == "axes not moving"
     scan = wait_for(api, f"/scans/{scan_id}", ended, 30)
-    assert scan["state"] == "aborted" and "emergency stop" in scan["reason"]
-    xray = api.get("/devices/xray").json()["state"]
-    assert xray["hv_on"] is False and xray["exposing"] is False
-    for name in ("hexapod", "rotation_stage"):
-        state = api.get(f"/devices/{name}").json()["state"]
-        assert state["moving"] is False, (name, state)
+    assert scan["state"] == "aborted" and "emergency stop" in scan["reason"] and "smoke near the tube" in scan["reason"]
     with ScanFile(api.data_dir / "scans" / f"{scan_id}.h5") as sf:
-        assert sf.status == "aborted" and "emergency stop" in sf.status_reason
-        assert sf.n_frames >= 8
-    # the bench is usable again
+        assert sf.status == "aborted" and "emergency stop" in sf.status_reason and sf.n_frames >= 8
+
+    # latched: nothing moves, nothing exposes, until an operator resets it
+    for attempt in (lambda: api.post("/scans", json={**SMALL_SAWTOOTH, "frames": 4}),
+                    lambda: api.post("/devices/rotation_stage/move", json={"targets": {"R": 1.0}}),
+                    lambda: api.post("/devices/hexapod/reference")):
+        refused = attempt()
+        assert refused.status_code == 409 and "emergency stop latched by test-viewer" in refused.json()["message"]
+    state = api.get("/stop").json()
+    assert state["latched"] and state["by"] == "test-viewer (viewer)" and state["reason"] == "smoke near the tube"
+    assert state["stop_url"].startswith("http://127.0.0.1:")
+    assert api.get("/health", role=None).json()["estop"] == "latched"
+    xray = api.get("/devices/xray").json()
+    assert xray["estop_latched"] is True and xray["state"]["hv_on"] is False
+    for name in ("hexapod", "rotation_stage"):
+        assert api.get(f"/devices/{name}").json()["state"]["moving"] is False
+
+    assert api.post("/stop/reset", role="viewer").status_code == 403
+    assert api.post("/stop/reset", role="analyst").status_code == 403
+    r = api.post("/stop/reset", json={"note": "tube checked"})
+    assert r.status_code == 200 and r.json()["latched"] is False
+    assert r.json()["last_reset"]["by"] == "test-operator (operator)" and r.json()["last_reset"]["note"] == "tube checked"
+    assert api.post("/stop/reset").status_code == 409  # nothing latched any more
+    assert api.get("/health", role=None).json()["estop"] == "clear"
     assert api.post("/devices/rotation_stage/move", json={"targets": {"R": 1.0}}).status_code == 200
+    kinds = [k for k, _ in _safety_events(api)]
+    assert kinds == ["stop", "reset"]
 
-def test_stop_when_idle_is_accepted(api) -> None:  # type: ignore[no-untyped-def]
-    r = api.post("/stop", role="analyst")
-    assert r.status_code == 202 and r.json()["halted"] is True and r.json()["scan_aborted"] is None
 
-def test_one_scan_at_a_time_and_abort(api) -> None:  # type: ignore[no-untyped-def]
+def test_stop_listener_of_its_own(api) -> None:  # type: ignore[no-untyped-def]
+    url = api.get("/stop").json()["stop_url"]
+    assert httpx.post(url).status_code == 401
+    assert httpx.post(url, headers={"Authorization": "Bearer oct_not_a_token"}).status_code == 401
+    r = httpx.post(url, headers=api.headers("analyst"), json={"reason": "drill"})
+    assert r.status_code == 202 and r.json()["halted"] is True and r.json()["latched"] is True
+    assert r.headers["access-control-allow-origin"] == "*"
+    assert httpx.get(url, headers=api.headers("viewer")).json()["latched"] is True
+    assert httpx.get(url.removesuffix("/stop") + "/health").json() == {"status": "ok", "latched": True}
+    assert api.post("/scans", json={**SMALL_SAWTOOTH, "frames": 4}).status_code == 409
+    wait_for(api, "/stop", lambda b: True)
+    assert [k for k, _ in _safety_events(api)] == ["stop"]  # the guard told the web server
+    assert api.post("/stop/reset").status_code == 200
+
+
+def test_stop_latch_survives_a_restart(make_api) -> None:  # type: ignore[no-untyped-def]
+    api = make_api()
+    assert api.post("/stop").json()["latched"] is True
+    api.client.__exit__(None, None, None)
+    api2 = make_api(api.data_dir)
+    assert api2.get("/stop").json()["latched"] is True
+    assert api2.post("/scans", json={**SMALL_SAWTOOTH, "frames": 4}).status_code == 409
+    assert api2.post("/stop/reset").status_code == 200
+
+
+def test_garbled_or_missing_stop_confirmation_is_not_halted(api) -> None:  # type: ignore[no-untyped-def]
+    api.service.sim_bench.hazard("xray", "faults.garble_next", 3)  # the stop's reply and its repeat garbled
+    body = api.post("/stop").json()
+    assert body["halted"] is False and body["latched"] is True
+    xray = next(d for d in body["devices"] if d["device"] == "xray")
+    assert not xray["halted"] and "garbled" in xray["problem"] and "xray" in body["message"]
+    assert body["message"].startswith("NOT verified")
+
+    api.service.sim_bench.hazard("hexapod", "faults.latency_s", 3.0)  # no confirmation within the stop's bound
+    try:
+        body = api.post("/stop").json()
+    finally:
+        api.service.sim_bench.hazard("hexapod", "faults.latency_s", 0.0)
+    hexapod = next(d for d in body["devices"] if d["device"] == "hexapod")
+    assert body["halted"] is False and not hexapod["halted"] and "no reply" in hexapod["problem"], body
+
+
+def test_rig_process_killed_is_restarted_and_the_stop_still_reaches_the_devices(api) -> None:  # type: ignore[no-untyped-def]
+    scan_id = _start(api)
+    os.kill(api.service.rig._process.pid, signal.SIGKILL)
+    scan = wait_for(api, f"/scans/{scan_id}", ended, 30)
+    assert scan["state"] == "failed" and "bench process ended" in scan["reason"]
+    assert scan["summary"]["status"] == "aborted" and scan["summary"]["n_frames"] >= 8
+    # meanwhile the guard still reaches every device over its own connections
+    r = api.post("/stop")
+    assert r.status_code == 202 and r.json()["halted"] is True and r.json()["via"] == "guard", r.json()
+    health = wait_for(api, "/health", lambda b: b["bench"] == "connected", 60)
+    assert health["guard"] == "listening" and health["estop"] == "latched"
+    assert api.post("/stop/reset").status_code == 200
+    r = api.post("/scans", json={**SMALL_SAWTOOTH, "frames": 20})
+    assert r.status_code == 202, r.text
+    assert wait_for(api, f"/scans/{r.json()['id']}", ended, 60)["state"] == "complete"
+
+
+def test_guard_killed_falls_back_to_the_rig_process_and_comes_back(api) -> None:  # type: ignore[no-untyped-def]
+    os.kill(api.service.guard._process.pid, signal.SIGKILL)
+    wait_for(api, "/health", lambda b: b["guard"] != "listening", 10, poll_s=0.01)
+    body = api.post("/stop", role="viewer").json()
+    assert body["halted"] is True and body["via"] == "rig" and body["latched"] is True, body
+    assert "the guard is not listening" in body["message"]
+    assert api.post("/scans", json={**SMALL_SAWTOOTH, "frames": 4}).status_code == 409
+    wait_for(api, "/health", lambda b: b["guard"] == "listening", 60)
+    assert api.post("/stop").json()["via"] == "guard"
+    assert api.post("/stop/reset").status_code == 200
+
+
+def test_one_scan_at_a_time_pause_and_abort(api) -> None:  # type: ignore[no-untyped-def]
     scan_id = _start(api)
     r = api.post("/scans", json={**SMALL_SAWTOOTH, "frames": 10})
     assert r.status_code == 409 and scan_id in r.json()["message"]
@@ -74,19 +173,30 @@ def test_one_scan_at_a_time_and_abort(api) -> None:  # type: ignore[no-untyped-d
     assert api.post(f"/scans/{scan_id}/abort").status_code == 409
     r = api.post("/calibrations", role="analyst", json={"scan_id": scan_id})
     assert r.status_code == 409 and "aborted" in r.json()["message"]
+    assert api.get("/stop").json()["latched"] is False  # an abort is not an emergency stop
 
 
-def test_bench_process_crash_fails_the_scan_and_keeps_its_frames(api) -> None:  # type: ignore[no-untyped-def]
-    scan_id = _start(api)
-    api.service.rig._process.kill()
-    scan = wait_for(api, f"/scans/{scan_id}", ended, 30)
-    assert scan["state"] == "failed" and "bench process ended" in scan["reason"]
-    assert scan["summary"]["status"] == "aborted" and scan["summary"]["n_frames"] >= 8
-    assert api.get("/health", role=None).json() == {"status": "degraded", "version": api.get("/health").json()["version"],
-                                                     "bench": "failed"}
-    assert api.post("/scans", json={**SMALL_SAWTOOTH, "frames": 4}).status_code == 503
-    r = api.post("/stop")
-    assert r.status_code == 202 and r.json()["halted"] is False
+def test_generator_fault_reset_by_an_operator_refused_while_its_cause_persists(api) -> None:  # type: ignore[no-untyped-def]
+    bench = api.service.sim_bench
+    bench.hazard("xray", "door", False)
+    bench.hazard("xray", "fault", int(FaultCode.INTERLOCK_OPENED))
+    state = wait_for(api, "/devices/xray", lambda b: b["state"]["state"] == "FAULT")["state"]
+    assert state["fault"] == "INTERLOCK_OPENED" and state["hv_on"] is False
+    assert api.post("/devices/xray/reset-fault", role="viewer").status_code == 403
+    r = api.post("/devices/xray/reset-fault")
+    assert r.status_code == 409 and "door interlock is still open" in r.json()["message"], r.text
+    r = api.post("/scans", json={**SMALL_SAWTOOTH, "frames": 4})  # pre-flight refuses before anything moves
+    assert r.status_code == 409 and "INTERLOCK_OPENED" in r.json()["message"], r.text
+    bench.hazard("xray", "door", True)
+    r = api.post("/devices/xray/reset-fault")
+    assert r.status_code == 200 and r.json()["state"]["state"] == "IDLE", r.text
+
+    bench.hazard("xray", "fault_input", True)  # an overtemperature input that stays asserted
+    r = api.post("/devices/xray/reset-fault")
+    assert r.status_code == 409 and "fault input is asserted" in r.json()["message"], r.text
+    bench.hazard("xray", "fault_input", False)
+    assert api.post("/devices/xray/reset-fault").json()["state"]["fault"] == "NONE"
+    assert api.post("/devices/hexapod/reset-fault").status_code == 422
 
 
 def test_emergency_stop_halts_a_carm_scan(make_api, tmp_path) -> None:  # type: ignore[no-untyped-def]
@@ -99,7 +209,9 @@ def test_emergency_stop_halts_a_carm_scan(make_api, tmp_path) -> None:  # type: 
     running = wait_for(api, f"/scans/{scan_id}", lambda b: b["progress"].get("done", 0) >= 6 or ended(b))
     assert running["state"] == "running", running
     r = api.post("/stop", role="viewer")
-    assert r.status_code == 202 and r.json()["halted"] is True and r.json()["scan_aborted"] == scan_id
+    body = r.json()
+    assert r.status_code == 202 and body["halted"] is True and body["scan_aborted"] == scan_id, body
+    assert [d["device"] for d in body["devices"]] == ["carm"] and body["devices"][0]["verified"] == "not moving"
     scan = wait_for(api, f"/scans/{scan_id}", ended, 30)
     assert scan["state"] == "aborted" and "emergency stop" in scan["reason"]
     state = api.get("/devices/carm").json()["state"]
@@ -108,3 +220,4 @@ def test_emergency_stop_halts_a_carm_scan(make_api, tmp_path) -> None:  # type: 
     assert api.get("/devices/carm").json()["state"]["primary_deg"] == state["primary_deg"]
     with ScanFile(api.data_dir / "scans" / f"{scan_id}.h5") as sf:
         assert sf.status == "aborted" and 6 <= sf.n_frames < 204
+    assert api.post("/scans", json={**SMALL_CARM_SAWTOOTH, "frames": 20}).status_code == 409

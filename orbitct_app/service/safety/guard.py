@@ -1,0 +1,279 @@
+"""The guard process: a stop listener of its own and connections of its own to every device that moves or exposes.
+
+Nothing else runs here, so a stop never queues behind status polling, a scan or a job. On
+``POST /stop`` (any valid token) the guard latches the stop, then halts every device at once
+over its own connections and reads each back (:func:`devices.halt.halt_and_verify`); the rig
+process sees the latch and aborts its scan. The guard lives on when the rig process dies, so a
+stop still reaches the devices while the rig is being restarted.
+
+Endpoints (JSON): ``POST /stop`` (``{"reason": "..."}`` optional), ``GET /stop`` (the latch),
+``GET /health`` (no token). Every reply carries ``Access-Control-Allow-Origin: *`` so a web page
+served by the main port can reach the stop port.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import signal
+import threading
+from collections.abc import Mapping
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+from acquire.rigs.links import DeviceLink
+from devices.halt import HaltCheck, halt_and_verify, summary
+from orbitct_app.service.core.auth import Principal, TokenRegistry
+from orbitct_app.service.core.settings import TokenHash
+from orbitct_app.service.safety.latch import StopLatch
+
+log = logging.getLogger("orbitct.service.guard")
+# what the guard connects to, with its own driver options: short time-outs, and watch-only connections where a
+# second connection must not reconfigure the device (no watchdog or heartbeat on the generator, no re-arming a panel)
+GUARD_OPTIONS: dict[str, dict[str, Any]] = {
+    "hexapod": {"timeout_s": 1.0},
+    "rotation_stage": {"timeout_s": 1.0},
+    "xray": {"timeout_s": 0.5, "monitor": 1},
+    "carm": {"timeout_s": 1.0, "monitor": 1},
+}
+HALT_TIMEOUT_S = 1.0  # per device: the stop's acknowledgement, then the read-back
+RECONNECT_S = 2.0
+MAX_BODY_BYTES = 4096
+
+
+class DeviceGuard:
+    """Connections of its own to the devices that move or expose, kept open in a thread; halts and verifies them."""
+
+    def __init__(self, links: Mapping[str, DeviceLink]) -> None:
+        self.links = {k: v for k, v in links.items() if k in GUARD_OPTIONS}
+        self.devices: dict[str, Any] = {}
+        self.problems: dict[str, str] = {k: "not connected yet" for k in self.links}
+        self.loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._main, name="guard-devices", daemon=True)
+        self._connect_lock: asyncio.Lock | None = None
+
+    def start(self) -> None:
+        """Start the device thread; connections are made (and remade) in the background."""
+        self._thread.start()
+
+    def _main(self) -> None:
+        asyncio.set_event_loop(self.loop)
+        self._connect_lock = asyncio.Lock()
+        self._keeper = self.loop.create_task(self._keep_connected())
+        self.loop.run_forever()
+
+    async def _connect(self, kind: str) -> None:
+        from devices.factory import open_device
+
+        assert self._connect_lock is not None
+        async with self._connect_lock:
+            if kind in self.devices:
+                return
+            link = self.links[kind]
+            try:
+                async with asyncio.timeout(HALT_TIMEOUT_S * 3):
+                    self.devices[kind] = await open_device(kind, kind, link.uri, **GUARD_OPTIONS[kind])
+                self.problems.pop(kind, None)
+            except Exception as exc:  # noqa: BLE001 - reported in the next stop's reply, retried
+                self.problems[kind] = f"not connected ({exc or type(exc).__name__})"
+
+    async def _keep_connected(self) -> None:
+        while True:
+            for kind in self.links:
+                if kind not in self.devices:
+                    await self._connect(kind)
+            await asyncio.sleep(RECONNECT_S)
+
+    async def _halt(self) -> list[HaltCheck]:
+        missing = [k for k in self.links if k not in self.devices]
+        if missing:  # one more try, within the stop's bound
+            await asyncio.gather(*(self._connect(k) for k in missing))
+        checks = await halt_and_verify([self.devices[k] for k in self.links if k in self.devices], HALT_TIMEOUT_S)
+        checks += [HaltCheck(k, False, problem=self.problems.get(k, "not connected")) for k in self.links
+                   if k not in self.devices]
+        return checks
+
+    def halt(self) -> list[HaltCheck]:
+        """Halt every device now and read each back (from any thread)."""
+        return asyncio.run_coroutine_threadsafe(self._halt(), self.loop).result(HALT_TIMEOUT_S * 6 + 2)
+
+    def close(self) -> None:
+        """Close the connections (the devices stay as they are) and end the thread."""
+        async def _close() -> None:
+            self._keeper.cancel()
+            for dev in self.devices.values():
+                with contextlib.suppress(Exception):
+                    await dev.close()
+
+        if self._thread.is_alive():
+            with contextlib.suppress(Exception):
+                asyncio.run_coroutine_threadsafe(_close(), self.loop).result(5.0)
+            self.loop.call_soon_threadsafe(self.loop.stop)
+            self._thread.join(5.0)
+
+
+class Guard:
+    """The stop itself: latch first, then halt and verify; tells the web server what happened."""
+
+    def __init__(self, devices: DeviceGuard, latch: StopLatch, tokens: TokenRegistry, events: Connection | None) -> None:
+        self.devices, self.latch, self.tokens, self._events = devices, latch, tokens, events
+        self._send_lock = threading.Lock()
+
+    def stop(self, who: Principal, reason: str) -> dict[str, Any]:
+        """Latch, halt every device, verify; the reply says what was proven."""
+        by = f"{who.name} ({who.role})"
+        why = reason or f"emergency stop by {who.name}"
+        self.latch.engage(by, why, via="stop listener")
+        log.warning("emergency stop by %s: %s", by, why)
+        checks = self.devices.halt()
+        halted, message = summary(checks)
+        reply = {"accepted": True, "halted": halted, "latched": True, "message": message,
+                 "devices": [c.to_json() for c in checks], "by": by, "reason": why}
+        if not halted:
+            log.error("emergency stop: %s", message)
+        self._tell("stopped", reply)
+        return reply
+
+    def _tell(self, *message: Any) -> None:
+        if self._events is None:
+            return
+        with self._send_lock, contextlib.suppress(OSError, EOFError, BrokenPipeError):
+            self._events.send(message)
+
+
+class StopHandler(BaseHTTPRequestHandler):
+    """``POST /stop``, ``GET /stop``, ``GET /health`` (HTTP/1.1, keep-alive, JSON)."""
+
+    protocol_version = "HTTP/1.1"
+    server_version = "orbitct-guard"
+    disable_nagle_algorithm = True  # headers and body leave at once, not 40 ms apart (Nagle vs. delayed ACK)
+    guard: Guard  # set on the subclass the server uses
+
+    def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - the base class's name
+        log.debug("%s " + format, self.address_string(), *args)
+
+    def _reply(self, status: int, body: dict[str, Any]) -> None:
+        data = json.dumps(body).encode()
+        self.send_response(status)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(data)))
+        self.send_header("Access-Control-Allow-Origin", "*")
+        self.end_headers()
+        self.wfile.write(data)
+
+    def _error(self, status: int, error: str, message: str) -> None:
+        self._reply(status, {"error": error, "message": message, "details": []})
+
+    def _principal(self, permission: str) -> Principal | None:
+        header = self.headers.get("Authorization", "")
+        scheme, _, token = header.partition(" ")
+        if scheme.lower() != "bearer" or not token or len(token) > 512:
+            self._error(401, "unauthorized", "a bearer token is required (Authorization: Bearer <token>)")
+            return None
+        who = self.guard.tokens.authenticate(token.strip())
+        if who is None:
+            self._error(401, "unauthorized", "unknown token")
+            return None
+        if not who.may(permission):
+            self._error(403, "forbidden", f"role {who.role!r} may not do this (needs the {permission!r} permission)")
+            return None
+        return who
+
+    def _body(self) -> dict[str, Any] | None:
+        length = int(self.headers.get("Content-Length") or 0)
+        if length > MAX_BODY_BYTES:
+            self._error(413, "too_large", f"request body over {MAX_BODY_BYTES} bytes")
+            return None
+        raw = self.rfile.read(length) if length else b""
+        if not raw.strip():
+            return {}
+        try:
+            body = json.loads(raw)
+        except ValueError:
+            self._error(422, "invalid", "the body must be JSON: {\"reason\": \"...\"} or nothing")
+            return None
+        if not isinstance(body, dict) or not isinstance(body.get("reason", ""), str) or len(body.get("reason", "")) > 500:
+            self._error(422, "invalid", "reason must be text of at most 500 characters")
+            return None
+        return body
+
+    def do_POST(self) -> None:  # noqa: N802 - http.server's naming
+        if self.path.split("?")[0] != "/stop":
+            self._error(404, "not_found", "the stop listener serves POST /stop, GET /stop and GET /health")
+            return
+        body = self._body()  # read first: a keep-alive connection must not be left with unread bytes
+        if body is None:
+            return
+        who = self._principal("stop")
+        if who is None:
+            return
+        self._reply(202, self.guard.stop(who, body.get("reason", "")))
+
+    def do_GET(self) -> None:  # noqa: N802
+        path = self.path.split("?")[0]
+        if path == "/health":
+            self._reply(200, {"status": "ok", "latched": self.guard.latch.latched})
+        elif path == "/stop":
+            if self._principal("read") is not None:
+                self._reply(200, self.guard.latch.state())
+        else:
+            self._error(404, "not_found", "the stop listener serves POST /stop, GET /stop and GET /health")
+
+    def do_OPTIONS(self) -> None:  # noqa: N802 - CORS pre-flight of a browser's stop button
+        self.send_response(204)
+        self.send_header("Access-Control-Allow-Origin", "*")
+        self.send_header("Access-Control-Allow-Methods", "GET, POST, OPTIONS")
+        self.send_header("Access-Control-Allow-Headers", "Authorization, Content-Type")
+        self.send_header("Access-Control-Max-Age", "600")
+        self.send_header("Content-Length", "0")
+        self.end_headers()
+
+
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True
+    request_queue_size = 128
+
+
+def guard_main(links: dict[str, tuple[str, dict[str, Any]]], data_dir: str, flag: Any, host: str, port: int,
+               tokens: list[dict[str, Any]], tokens_path: str | None, dev_token: str | None, conn: Connection,
+               nice: int = 0) -> None:
+    """Entry point of the guard process: listen on ``host:port`` (0: any free port), report the port, serve."""
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s guard: %(message)s")
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # the driver names a garbled reply itself
+    if nice < 0:
+        with contextlib.suppress(OSError):
+            os.setpriority(os.PRIO_PROCESS, 0, nice)
+    registry = TokenRegistry([TokenHash.model_validate(t) for t in tokens], Path(tokens_path) if tokens_path else None,
+                             dev_token)
+    devices = DeviceGuard({k: DeviceLink(*v) for k, v in links.items()})
+    guard = Guard(devices, StopLatch(Path(data_dir), flag), registry, conn)
+    handler = type("BoundStopHandler", (StopHandler,), {"guard": guard})
+    try:
+        server = _Server((host, port), handler)
+    except OSError as exc:
+        guard._tell("failed", f"cannot listen on {host}:{port} ({exc.strerror or exc})")
+        return
+    devices.start()
+    guard._tell("ready", server.server_address[1])
+
+    def _watch_parent() -> None:  # the web server's end of the pipe closes when it exits: so does the guard
+        with contextlib.suppress(EOFError, OSError):
+            while conn.recv() != "shutdown":
+                pass
+        server.shutdown()
+
+    threading.Thread(target=_watch_parent, name="guard-parent", daemon=True).start()
+    for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
+        # Ctrl-C and systemctl signal every process of the service at once: the guard keeps taking stops
+        # while the service shuts down, and ends when the web server has (its pipe closes)
+        signal.signal(sig, signal.SIG_IGN)
+    try:
+        server.serve_forever(poll_interval=0.1)
+    finally:
+        server.server_close()
+        devices.close()
