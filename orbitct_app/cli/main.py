@@ -19,6 +19,9 @@ COMMANDS: dict[str, str] = {
     "reconstruct": "orbitct_app.cli.reconstruct:reconstruct",
     "serve": "orbitct_app.cli.serve:serve",
     "token": "orbitct_app.cli.serve:token",
+    "stop": "orbitct_app.cli.remote:stop",
+    "reset": "orbitct_app.cli.remote:reset",
+    "reset-fault": "orbitct_app.cli.remote:reset_fault",
 }
 
 

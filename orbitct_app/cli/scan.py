@@ -46,11 +46,13 @@ def _parse_params(items: tuple[str, ...]) -> dict[str, object]:
               help="Frames per second in continuous mode (default: the config's).")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Scan file to write (.h5).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
+@click.option("--data-dir", type=click.Path(file_okay=False, path_type=Path), envvar="ORBITCT_DATA_DIR", default=None,
+              help="The service's data directory (or ORBITCT_DATA_DIR): refuse to scan while its emergency stop is latched.")
 @click.pass_context
 def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int | None, params: tuple[str, ...],
          errors: str, seed: int,
          mode: str, sim: bool, detector_size: int | None, frame_rate_hz: float | None, out: Path | None,
-         overwrite: bool) -> None:
+         overwrite: bool, data_dir: Path | None) -> None:
     """Acquire a scan: orbitct scan --config config/bench.yaml --orbit sawtooth --sim --out scan.h5"""
     if ctx.invoked_subcommand is not None:
         return
@@ -58,6 +60,13 @@ def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int |
         _fail("orbitct scan needs --config FILE and --out FILE (see orbitct scan --help)")
     from acquire.errors import AcquireError
     from acquire.runner import SIGNAL_REASONS, ScanRequest, run_scan
+
+    if data_dir is not None:
+        from orbitct_app.service.safety.latch import StopLatch
+
+        refused = StopLatch(data_dir).refusal("scans")
+        if refused:
+            _fail(refused)
 
     req = ScanRequest(config=config_path, out=out, orbit=orbit, frames=frames, orbit_params=_parse_params(params),
                       errors=errors, seed=seed, mode=mode,

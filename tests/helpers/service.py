@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import json
+import os
+import socket
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import httpx
 import numpy as np
 import yaml
 
@@ -91,3 +96,33 @@ def small_carm_config(folder: Path, size: int = 64, time_scale: float = 2.0) -> 
     path = folder / "carm.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path
+
+
+def free_port() -> int:
+    """A TCP port free on loopback now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def serve_subprocess(config: Path, data: Path, dev_token: str, timeout_s: float = 90.0) -> tuple[subprocess.Popen[bytes], str, dict[str, str]]:
+    """``orbitct serve --sim`` in a subprocess, once its rig is connected: the process, base URL and auth header."""
+    port = free_port()
+    env = {**os.environ, "ORBITCT_DEV_TOKEN": dev_token, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "orbitct_app.cli.main", "serve", "--config", str(config), "--sim",
+         "--port", str(port), "--stop-port", "0", "--data-dir", str(data), "--log-level", "warning"],
+        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+    )
+    base = f"http://127.0.0.1:{port}"
+    t0 = time.monotonic()
+    while True:
+        try:
+            if httpx.get(f"{base}/health", timeout=1).json()["bench"] == "connected":
+                return proc, base, {"Authorization": f"Bearer {dev_token}"}
+        except (httpx.HTTPError, ValueError, KeyError):
+            pass
+        if proc.poll() is not None or time.monotonic() - t0 > timeout_s:
+            proc.kill()
+            raise AssertionError("service did not start: " + proc.stderr.read().decode()[-2000:])  # type: ignore[union-attr]
+        time.sleep(0.2)

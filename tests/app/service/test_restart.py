@@ -3,11 +3,7 @@ the orphaned bench process stops the hardware and exits."""
 
 from __future__ import annotations
 
-import os
 import signal
-import socket
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -16,40 +12,16 @@ import psutil
 import pytest
 
 from orbitct.scanfile import ScanFile
-from tests.helpers.service import SMALL_SAWTOOTH, parse_sse, small_bench_config
+from tests.helpers.service import (
+    SMALL_SAWTOOTH,
+    parse_sse,
+    serve_subprocess,
+    small_bench_config,
+)
 
 pytestmark = pytest.mark.system
 
 DEV = "oct_dev_token_for_restart_test"
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _serve(tmp_path: Path, data: Path) -> tuple[subprocess.Popen[bytes], str, dict[str, str]]:
-    """``orbitct serve --sim`` in a subprocess, once its rig is connected: the process, base URL and auth header."""
-    port = _free_port()
-    env = {**os.environ, "ORBITCT_DEV_TOKEN": DEV, "PYTHONPATH": str(Path(__file__).resolve().parents[3])}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "orbitct_app.cli.main", "serve", "--config", str(small_bench_config(tmp_path)), "--sim",
-         "--port", str(port), "--stop-port", "0", "--data-dir", str(data), "--log-level", "warning"],
-        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-    )
-    base = f"http://127.0.0.1:{port}"
-    t0 = time.monotonic()
-    while True:
-        try:
-            if httpx.get(f"{base}/health", timeout=1).json()["bench"] == "connected":
-                return proc, base, {"Authorization": f"Bearer {DEV}"}
-        except (httpx.HTTPError, ValueError, KeyError):
-            pass
-        if proc.poll() is not None or time.monotonic() - t0 > 60:
-            proc.kill()
-            raise AssertionError("service did not start: " + proc.stderr.read().decode()[-2000:])  # type: ignore[union-attr]
-        time.sleep(0.2)
 
 
 def _scan_running(base: str, headers: dict[str, str], frames_done: int = 10) -> str:
@@ -66,7 +38,7 @@ def _scan_running(base: str, headers: dict[str, str], frames_done: int = 10) -> 
 def test_signal_stops_the_service_and_aborts_its_scan(make_api, tmp_path: Path, sig: signal.Signals) -> None:  # type: ignore[no-untyped-def]
     data = tmp_path / "data"
     make_api(data).client.__exit__(None, None, None)  # tokens made; the subprocess owns the data dir alone
-    proc, base, headers = _serve(tmp_path, data)
+    proc, base, headers = serve_subprocess(small_bench_config(tmp_path), data, DEV)
     try:
         scan_id = _scan_running(base, headers)
         rig = psutil.Process(proc.pid).children()
@@ -87,7 +59,7 @@ def test_sigkill_during_scan_then_restart(make_api, tmp_path: Path) -> None:  # 
     data = tmp_path / "data"
     api = make_api(data)  # creates the tokens; closed again below so the subprocess owns the data dir alone
     api.client.__exit__(None, None, None)
-    proc, base, headers = _serve(tmp_path, data)
+    proc, base, headers = serve_subprocess(small_bench_config(tmp_path), data, DEV)
     try:
         scan_id = _scan_running(base, headers)
         bench = psutil.Process(proc.pid).children()
