@@ -1,35 +1,44 @@
-"""REST service under load: many clients poll a running scan; does the scan slow down, how fast are answers?
+"""REST service under load: many clients poll a running scan; does the scan slow down, how fast are answers,
+how fast is the emergency stop?
 
-Usage: .venv/bin/python benchmarks/service.py [--frames 500] [--clients 50] [--detector 768]
-       [--poll-interval-s 0.1] [--streams 5] [--time-scale 1.0] [--repeats 2] [--max-s 600]
-Starts ``orbitct serve --sim`` in its own process on loopback, runs the same scan alone and with
-the clients polling ``GET /scans/{id}`` and following ``/scans/{id}/events`` (pairs interleaved), and
-prints the frame rates, the drop, status latency percentiles and the emergency-stop latency
-under load. Targets (issue 7): frame rate drop < 10 %, p99 status latency < 50 ms.
+Usage: .venv/bin/python benchmarks/service.py [--frames 300] [--clients 50,100] [--detector 768]
+       [--poll-interval-s 0.1] [--streams 5] [--stops 30] [--time-scale 1.0] [--max-s 600]
+Starts ``orbitct serve --sim`` in its own process on loopback. For each number of pollers: the
+same scan alone and with the pollers on ``GET /scans/{id}`` (plus event-stream followers), then,
+with the pollers still at it, a second scan stopped through the guard's own listener and
+repeated stops through it and through ``POST /stop`` on the main port. The pollers run in a process
+of their own and the stop client in this one, so neither waits on the other's event loop.
+Prints frame rates, status latency percentiles and stop latency percentiles (each stop: halt
+every device and read each back).
+Targets: frame rate drop < 10 %, p99 status latency < 50 ms (issue 7), p99 stop latency through the
+guard < 100 ms with 100 pollers (issue 12).
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import multiprocessing as mp
 import os
-import platform
 import signal
 import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
 import httpx
 import numpy as np
 import yaml
-from machine_info import cpu_model as cpu_name  # noqa: E402
 
-# this file is named like nothing it imports, but keep its folder off the import path anyway
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+# this folder last on the import path (its scripts are named like modules of the project), the project first
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
+from machine_info import describe_machine  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 TOKEN = "oct_benchmark_dev_token_0123456789"
 ORBIT = {"orbit": "sawtooth", "params": {"amplitude_deg": 6.0, "cycles": 2}, "errors": "none"}
@@ -52,7 +61,7 @@ def start_service(folder: Path, detector: int, time_scale: float) -> tuple[subpr
     env = {**os.environ, "ORBITCT_DEV_TOKEN": TOKEN, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(
         [sys.executable, "-m", "orbitct_app.cli.main", "serve", "--config", str(folder / "bench.yaml"), "--sim",
-         "--port", str(port), "--data-dir", str(folder / "data"), "--log-level", "warning"],
+         "--port", str(port), "--stop-port", "0", "--data-dir", str(folder / "data"), "--log-level", "warning"],
         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )
     base = f"http://127.0.0.1:{port}"
@@ -68,22 +77,6 @@ def start_service(folder: Path, detector: int, time_scale: float) -> tuple[subpr
         time.sleep(0.2)
     proc.kill()
     raise SystemExit("the service did not start within 120 s")
-
-
-async def run_scan(client: httpx.AsyncClient, frames: int, max_s: float) -> tuple[str, dict[str, Any]]:
-    """Start a scan and wait for its end; returns its id and final record."""
-    r = await client.post("/scans", json={**ORBIT, "frames": frames})
-    if r.status_code != 202:
-        raise SystemExit(f"scan refused: {r.status_code} {r.text}")
-    scan_id = r.json()["id"]
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < max_s:
-        body = (await client.get(f"/scans/{scan_id}")).json()
-        if body["state"] not in ("queued", "running", "paused"):
-            return scan_id, body
-        await asyncio.sleep(0.25)
-    await client.post(f"/scans/{scan_id}/abort")
-    raise SystemExit(f"scan did not end within {max_s} s")
 
 
 def frame_rate(scan: dict[str, Any]) -> float:
@@ -120,14 +113,14 @@ class KeepAliveClient:
             await self.writer.wait_closed()
 
 
-async def poller(base: str, scan_id: str, stop: asyncio.Event, interval_s: float,
+async def poller(base: str, path: str, stop: asyncio.Event, interval_s: float,
                  latencies: list[float], errors: list[int]) -> None:
-    """Poll the scan's status until ``stop``; latency of every answer."""
+    """GET ``path`` until ``stop``; latency of every answer."""
     client = KeepAliveClient(base)
     try:
         while not stop.is_set():
             t = time.perf_counter()
-            status, _ = await client.get(f"/scans/{scan_id}")
+            status, _ = await client.get(path)
             latencies.append(time.perf_counter() - t)
             if status != 200:
                 errors.append(status)
@@ -136,132 +129,191 @@ async def poller(base: str, scan_id: str, stop: asyncio.Event, interval_s: float
         await client.close()
 
 
-async def follower(client: httpx.AsyncClient, scan_id: str, seen: list[int]) -> None:
+async def follower(base: str, scan_id: str, seen: list[int]) -> None:
     """Follow the scan's event stream to its end, checking that ids arrive in order."""
     last = 0
-    async with client.stream("GET", f"/scans/{scan_id}/events", timeout=None) as r:
-        async for line in r.aiter_lines():
-            if line.startswith("id:"):
-                n = int(line[3:])
-                if n != last + 1:
-                    raise AssertionError(f"event {n} after {last}")
-                last = n
+    async with httpx.AsyncClient(base_url=base, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=None) as client:
+        async with client.stream("GET", f"/scans/{scan_id}/events") as r:
+            async for line in r.aiter_lines():
+                if line.startswith("id:"):
+                    n = int(line[3:])
+                    if n != last + 1:
+                        raise AssertionError(f"event {n} after {last}")
+                    last = n
     seen.append(last)
 
 
-async def loaded_scan(base: str, args: argparse.Namespace) -> dict[str, Any]:
-    """The scan with ``clients`` pollers and ``streams`` event followers; then an emergency stop under load."""
-    headers = {"Authorization": f"Bearer {TOKEN}"}
-    limits = httpx.Limits(max_connections=args.streams + 4)
-    async with httpx.AsyncClient(base_url=base, headers=headers, limits=limits, timeout=30) as client:
-        r = await client.post("/scans", json={**ORBIT, "frames": args.frames})
-        if r.status_code != 202:
-            raise SystemExit(f"scan refused: {r.status_code} {r.text}")
-        scan_id = r.json()["id"]
+def load_process(base: str, scan_id: str, clients: int, streams: int, interval_s: float, conn: Connection) -> None:
+    """The pollers and followers, in a process of their own, until ``"stop"`` arrives; sends back what they saw."""
+    async def run() -> dict[str, Any]:
         stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        threading.Thread(target=lambda: (conn.recv(), loop.call_soon_threadsafe(stop.set)), daemon=True).start()
         latencies: list[float] = []
         errors: list[int] = []
         seen: list[int] = []
-        tasks = [asyncio.create_task(poller(base, scan_id, stop, args.poll_interval_s, latencies, errors))
-                 for _ in range(args.clients)]
-        streams = [asyncio.create_task(follower(client, scan_id, seen)) for _ in range(args.streams)]
         t0 = time.monotonic()
-        while time.monotonic() - t0 < args.max_s:
-            body = (await client.get(f"/scans/{scan_id}")).json()
-            if body["state"] not in ("queued", "running", "paused"):
-                break
-            await asyncio.sleep(0.25)
-        stop.set()
+        tasks = [asyncio.create_task(poller(base, f"/scans/{scan_id}", stop, interval_s, latencies, errors))
+                 for _ in range(clients)]
+        followers = [asyncio.create_task(follower(base, scan_id, seen)) for _ in range(streams)]
+        conn.send("started")
+        await stop.wait()
         await asyncio.gather(*tasks)
-        await asyncio.wait_for(asyncio.gather(*streams), 30)
+        for f in followers:
+            f.cancel()
+        await asyncio.gather(*followers, return_exceptions=True)
+        return {"latencies": latencies, "errors": errors, "streams": len(seen), "poll_s": time.monotonic() - t0}
 
-        # emergency stop while the pollers hammer a second scan
-        r = await client.post("/scans", json={**ORBIT, "frames": args.frames})
-        second = r.json()["id"]
-        while (await client.get(f"/scans/{second}")).json()["progress"].get("done", 0) < 10:
-            await asyncio.sleep(0.05)
-        stop2 = asyncio.Event()
-        load = [asyncio.create_task(poller(base, second, stop2, args.poll_interval_s, [], []))
-                for _ in range(args.clients)]
-        await asyncio.sleep(1.0)
+    conn.send(asyncio.run(run()))
+
+
+class Load:
+    """Pollers (and event followers) on a scan from another process, as a context manager."""
+
+    def __init__(self, base: str, scan_id: str, clients: int, streams: int, interval_s: float) -> None:
+        self._conn, child = mp.get_context("spawn").Pipe()
+        self._proc = mp.get_context("spawn").Process(target=load_process, daemon=True,
+                                                     args=(base, scan_id, clients, streams, interval_s, child))
+        self.result: dict[str, Any] = {}
+
+    def __enter__(self) -> Load:
+        self._proc.start()
+        if self._conn.recv() != "started":
+            raise SystemExit("the load process did not start")
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._conn.send("stop")
+        self.result = self._conn.recv()
+        self._proc.join(30)
+
+
+def scan_started(client: httpx.Client, frames: int) -> str:
+    """Start a scan and return once it has taken 10 frames."""
+    r = client.post("/scans", json={**ORBIT, "frames": frames})
+    if r.status_code != 202:
+        raise SystemExit(f"scan refused: {r.status_code} {r.text}")
+    scan_id = r.json()["id"]
+    while client.get(f"/scans/{scan_id}").json()["progress"].get("done", 0) < 10:
+        time.sleep(0.05)
+    return str(scan_id)
+
+
+def scan_ended(client: httpx.Client, scan_id: str, max_s: float) -> dict[str, Any]:
+    """Wait for a scan's end; its record."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < max_s:
+        body = client.get(f"/scans/{scan_id}").json()
+        if body["state"] not in ("queued", "running", "paused"):
+            return dict(body)
+        time.sleep(0.25)
+    client.post(f"/scans/{scan_id}/abort")
+    raise SystemExit(f"scan did not end within {max_s} s")
+
+
+def timed_stops(client: httpx.Client, url: str, n: int, pause_s: float = 0.2) -> tuple[list[float], bool]:
+    """``n`` stops at ``url`` on one keep-alive connection: their latencies (s) and whether every one proved halted."""
+    times, halted = [], True
+    for _ in range(n):
         t = time.perf_counter()
-        r = await client.post("/stop")
-        stop_s = time.perf_counter() - t
-        stop2.set()
-        await asyncio.gather(*load)
-        halted = r.json().get("halted")
-        final = (await client.get(f"/scans/{scan_id}")).json()
-        return {"scan": final, "latencies": np.asarray(latencies), "errors": errors, "streams": seen,
-                "stop_s": stop_s, "halted": halted, "requests": len(latencies), "poll_s": time.monotonic() - t0}
+        r = client.post(url, json={"reason": "benchmark"})
+        times.append(time.perf_counter() - t)
+        halted = halted and r.status_code == 202 and bool(r.json().get("halted"))
+        time.sleep(pause_s)
+    return times, halted
 
 
-async def baseline(base: str, args: argparse.Namespace) -> dict[str, Any]:
-    """The same scan with nobody polling (one status request every 0.25 s)."""
-    async with httpx.AsyncClient(base_url=base, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=30) as client:
-        await run_scan(client, 10, args.max_s)  # warm-up: numba caches, twin start
-        _, body = await run_scan(client, args.frames, args.max_s)
-        return body
+def under_load(base: str, clients: int, args: argparse.Namespace) -> dict[str, Any]:
+    """One number of pollers: a scan alone, the same scan loaded, then stops under the same load."""
+    headers = {"Authorization": f"Bearer {TOKEN}"}
+    with httpx.Client(base_url=base, headers=headers, timeout=60) as client:
+        alone = scan_ended(client, scan_started(client, args.frames), args.max_s)
+        scan_id = scan_started(client, args.frames)
+        with Load(base, scan_id, clients, args.streams, args.poll_interval_s) as load:
+            loaded = scan_ended(client, scan_id, args.max_s)
+        second = scan_started(client, args.frames)
+        stop_url = client.get("/stop").json()["stop_url"]
+        with Load(base, second, clients, 0, args.poll_interval_s) as stop_load:
+            time.sleep(1.0)
+            with httpx.Client(headers=headers, timeout=30) as guard:  # the stop client, as `orbitct stop` would be
+                first, first_halted = timed_stops(guard, stop_url, 1)  # during the scan
+                guard_s, guard_halted = timed_stops(guard, stop_url, args.stops - 1)  # latched, repeated
+            rest_s, rest_halted = timed_stops(client, "/stop", args.stops)
+        stopped = scan_ended(client, second, 60)
+        client.post("/stop/reset", json={"note": "benchmark"})
+    return {"alone": alone, "loaded": loaded, "load": load.result, "stop_load": stop_load.result,
+            "guard_s": first + guard_s, "first_stop_s": first[0], "rest_s": rest_s,
+            "halted": first_halted and guard_halted and rest_halted, "stopped": stopped["state"]}
+
+
+def pct(values: Any, q: float) -> float:
+    """Percentile ``q`` of ``values`` in milliseconds."""
+    return float(np.percentile(np.asarray(values) * 1000.0, q))
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--frames", type=int, default=500, help="projections per scan (default 500)")
-    ap.add_argument("--clients", type=int, default=50, help="concurrent status pollers (default 50)")
+    ap.add_argument("--frames", type=int, default=300, help="projections per scan (default 300)")
+    ap.add_argument("--clients", default="50,100", help="numbers of concurrent status pollers (default 50,100)")
     ap.add_argument("--streams", type=int, default=5, help="clients following the event stream (default 5)")
+    ap.add_argument("--stops", type=int, default=30, help="stops timed per path and load (default 30)")
     ap.add_argument("--detector", type=int, default=768, help="simulated panel rows = cols (default 768)")
     ap.add_argument("--poll-interval-s", type=float, default=0.1, help="pause between one client's polls (default 0.1)")
     ap.add_argument("--time-scale", type=float, default=1.0, help="twin speed-up (default 1 = real time)")
-    ap.add_argument("--repeats", type=int, default=2, help="alone/loaded scan pairs, interleaved (default 2)")
     ap.add_argument("--max-s", type=float, default=600.0, help="give up a scan after this long (default 600)")
     args = ap.parse_args()
-    if not (1 <= args.clients <= 500 and 2 <= args.frames <= 5000 and 0 <= args.streams <= 50 and 1 <= args.repeats <= 10):
-        raise SystemExit("bounds: 1..500 clients, 2..5000 frames, 0..50 streams, 1..10 repeats")
+    clients = [int(c) for c in args.clients.split(",")]
+    if not (all(1 <= c <= 500 for c in clients) and 20 <= args.frames <= 5000 and 0 <= args.streams <= 50
+            and 2 <= args.stops <= 1000):
+        raise SystemExit("bounds: 1..500 clients, 20..5000 frames, 0..50 streams, 2..1000 stops")
 
-    print(f"machine: {cpu_name()}, {os.cpu_count()} cores, Python {platform.python_version()}")
+    print(f"machine: {describe_machine()}")
     print(f"scan: sawtooth, {args.frames} projections, {args.detector}^2 px, twins x{args.time_scale:g}; "
-          f"{args.clients} pollers every {args.poll_interval_s:g} s + {args.streams} event streams")
+          f"pollers every {args.poll_interval_s:g} s each + {args.streams} event streams; {args.stops} stops per path")
     with tempfile.TemporaryDirectory(prefix="orbitct-bench-") as tmp:
         proc, base = start_service(Path(tmp), args.detector, args.time_scale)
         try:
-            alone, loaded = [], []
-            for _ in range(args.repeats):  # interleaved, so that drifts of the machine's load hit both alike
-                alone.append(asyncio.run(baseline(base, args)))
-                loaded.append(asyncio.run(loaded_scan(base, args)))
+            with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=60) as client:
+                scan_ended(client, scan_started(client, 20), args.max_s)  # warm-up: numba caches, twin start
+            results = {n: under_load(base, n, args) for n in clients}
         finally:
             proc.send_signal(signal.SIGINT)
             try:
                 proc.wait(30)
             except subprocess.TimeoutExpired:
                 proc.kill()
-    fps0_runs = [frame_rate(a) for a in alone]
-    fps1_runs = [frame_rate(r["scan"]) for r in loaded]
-    fps0, fps1 = float(np.mean(fps0_runs)), float(np.mean(fps1_runs))
-    drop = 100.0 * (fps0 - fps1) / fps0
-    lat = np.concatenate([r["latencies"] for r in loaded]) * 1000.0
-    p50, p95, p99, pmax = (float(np.percentile(lat, q)) for q in (50, 95, 99, 100))
-    requests = sum(r["requests"] for r in loaded)
-    rate = requests / sum(r["poll_s"] for r in loaded)
-    errors = sum(len(r["errors"]) for r in loaded)
-    streams = sum(len(r["streams"]) for r in loaded)
-    stops = [r["stop_s"] * 1000 for r in loaded]
-    runs = lambda v: " / ".join(f"{x:.2f}" for x in v)  # noqa: E731
-    rows = [
-        ("frame rate alone (fps)", f"{fps0:.2f} (runs {runs(fps0_runs)})", ""),
-        ("frame rate under load (fps)", f"{fps1:.2f} (runs {runs(fps1_runs)})", ""),
-        ("frame rate drop", f"{drop:.1f} %", "< 10 %"),
-        ("status requests answered", f"{requests} ({rate:.0f}/s), errors {errors}", ""),
-        ("status latency p50 / p95", f"{p50:.1f} / {p95:.1f} ms", ""),
-        ("status latency p99", f"{p99:.1f} ms", "< 50 ms"),
-        ("status latency max", f"{pmax:.1f} ms", ""),
-        ("event streams in order, complete", f"{streams}/{args.streams * args.repeats}", ""),
-        ("emergency stop under load", f"{max(stops):.0f} ms (worst), halted={all(r['halted'] for r in loaded)}", ""),
-    ]
-    width = max(len(r[0]) for r in rows)
-    print(f"\n{'measure':<{width}}  {'value':<40} target")
+    rows = []
+    ok = True
+    for n, r in results.items():
+        fps0, fps1 = frame_rate(r["alone"]), frame_rate(r["loaded"])
+        drop = 100.0 * (fps0 - fps1) / fps0
+        lat = r["load"]["latencies"]
+        status_p99 = pct(lat, 99)
+        guard_p99 = pct(r["guard_s"], 99)
+        rate = len(lat) / r["load"]["poll_s"]
+        states = f"{r['alone']['state']} / {r['loaded']['state']}"
+        rows += [
+            (f"{n} pollers: scans alone / loaded", states + "".join(f" ({s['reason']})" for s in (r["alone"], r["loaded"])
+                                                                   if s["state"] != "complete"), "complete / complete"),
+            (f"{n} pollers: frame rate alone / loaded", f"{fps0:.2f} / {fps1:.2f} fps (drop {drop:.1f} %)", "drop < 10 %"),
+            (f"{n} pollers: status requests", f"{len(lat)} ({rate:.0f}/s), errors {len(r['load']['errors'])}, "
+                                              f"streams {r['load']['streams']}/{args.streams}", ""),
+            (f"{n} pollers: status p50 / p95 / p99 / max",
+             f"{pct(lat, 50):.1f} / {pct(lat, 95):.1f} / {status_p99:.1f} / {pct(lat, 100):.1f} ms", "p99 < 50 ms"),
+            (f"{n} pollers: stop via guard p50 / p99 / max",
+             f"{pct(r['guard_s'], 50):.1f} / {guard_p99:.1f} / {pct(r['guard_s'], 100):.1f} ms "
+             f"(first, mid-scan: {r['first_stop_s'] * 1000:.1f} ms)", "p99 < 100 ms"),
+            (f"{n} pollers: stop via POST /stop p50 / p99 / max",
+             f"{pct(r['rest_s'], 50):.1f} / {pct(r['rest_s'], 99):.1f} / {pct(r['rest_s'], 100):.1f} ms", ""),
+            (f"{n} pollers: every stop proven halted", f"{r['halted']} (scan {r['stopped']})", "True"),
+        ]
+        ok = ok and drop < 10.0 and status_p99 < 50.0 and guard_p99 < 100.0 and r["halted"] \
+            and states == "complete / complete"
+    width = max(len(row[0]) for row in rows)
+    print(f"\n{'measure':<{width}}  {'value':<58} target")
     for name, value, target in rows:
-        print(f"{name:<{width}}  {value:<40} {target}")
-    ok = drop < 10.0 and p99 < 50.0
-    print(f"\ntargets {'met' if ok else 'NOT met'}")
+        print(f"{name:<{width}}  {value:<58} {target}")
+    print(f"\ntargets {'met' if ok else 'NOT met'}; machine after the run: {describe_machine()}")
 
 
 if __name__ == "__main__":

@@ -50,6 +50,11 @@ def _options(uri_params: dict[str, str], options: dict[str, Any]) -> dict[str, f
         raise UriError(f"X-ray generator: options must be numbers ({exc})") from None
 
 
+def _retrieve(task: asyncio.Future[Any]) -> None:
+    if not task.cancelled():
+        task.exception()
+
+
 class XrayGenerator(Driver):
     """Driver of a Modbus TCP X-ray generator (``modbus://host:port`` or ``tcp://host:port``)."""
 
@@ -81,6 +86,7 @@ class XrayGenerator(Driver):
         self._hb_counter = 0
         self._action_lock = asyncio.Lock()
         self._hold_task: asyncio.Task[None] | None = None
+        self._hold_sending = False
         self._link_fault: tuple[float, str, str] | None = None  # last link trouble: when, clock time, what
 
     # ------------------------------------------------------------- connection
@@ -202,9 +208,10 @@ class XrayGenerator(Driver):
         finally:
             for task in (call, watch):
                 if not task.done():
+                    # not awaited: a Modbus request cut short may never end on its own (its late reply is
+                    # skipped by transaction id); waiting for it here would hang the caller
                     task.cancel()
-                    with contextlib.suppress(BaseException):
-                        await task
+                    task.add_done_callback(_retrieve)
 
     async def _read_inputs(self) -> list[bool]:
         r = await self._request("read inputs", lambda c: c.read_discrete_inputs(0, count=reg.N_INPUTS, device_id=self.device_id))
@@ -446,26 +453,33 @@ class XrayGenerator(Driver):
 
     async def _off_after(self, hold_s: float) -> None:
         await asyncio.sleep(hold_s)
+        self._hold_sending = True  # from here on the request runs to its reply: it is never cut short
         try:
             await self._request("xray off (nothing exposing)", self._xray_off_call)
         except DeviceError as exc:  # the generator's own watchdog still switches it off once the heartbeat stops
             log.error("%s: could not switch high voltage off after %.3g s without an exposure: %s", self.name, hold_s, exc)
+        finally:
+            self._hold_sending = False
 
     async def _cancel_hold(self) -> None:
+        """End the hold: cancelled while it still waits; once its X-rays-off request is on the wire, let it finish."""
         task, self._hold_task = self._hold_task, None
-        if task is not None and not task.done():
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+        if task is None or task.done() or task is asyncio.current_task():
+            return
+        if self._hold_sending:
+            with contextlib.suppress(Exception):
+                await asyncio.shield(task)
+            return
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
 
     def _xray_off_call(self, c: AsyncModbusTcpClient) -> Awaitable[Any]:
         return c.write_coils(reg.PREP_REQ, [False, False, True], device_id=self.device_id)
 
     async def xray_off(self) -> None:
         """Drop prep and expose requests and switch high voltage off (safe in every state)."""
-        task, self._hold_task = self._hold_task, None
-        if task is not None and task is not asyncio.current_task():
-            task.cancel()
+        await self._cancel_hold()
         await self._request("xray off", self._xray_off_call)
 
     async def reset_fault(self) -> None:

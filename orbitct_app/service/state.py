@@ -40,7 +40,7 @@ class Service:
         self.store = Store(settings.db_path)
         self.bus = EventBus(self.store)
         self.latch = StopLatch(settings.data_dir, SharedFlag(mp.get_context("spawn")))
-        self.sim_bench = SimBench(settings.bench_config) if settings.sim else None
+        self.sim_bench = SimBench(settings.bench_config, nice=settings.bench_nice) if settings.sim else None
         self.rig = RigClient(settings.bench_config, sim=settings.sim, store=self.store, bus=self.bus,
                              data_dir=settings.data_dir, status_interval_s=settings.status_interval_s,
                              nice=settings.bench_nice, latch_flag=self.latch.flag)

@@ -392,3 +392,23 @@ def test_high_voltage_goes_off_when_nothing_exposes(twin: tuple[XrayTwin, TwinTh
         assert tw.state.name == "IDLE"
 
     run(twin, body, hold_s=0.15)
+
+
+def test_an_exposure_right_after_the_hold_fired_waits_for_its_request_not_its_time_out(
+        twin: tuple[XrayTwin, TwinThread]) -> None:
+    """The hold's X-rays-off request, once on the wire, runs to its reply: cutting it short used to leave the next
+    exposure waiting for a reply that never came (found under load by the exposure's stall bound)."""
+    tw, _ = twin
+
+    async def body(gen: XrayGenerator) -> None:
+        assert await gen.expose() == 1
+        tw.faults.latency_s = 0.3  # the hold (0.05 s) fires and its request waits 0.3 s for the reply
+        await asyncio.sleep(0.1)
+        assert gen._hold_sending
+        tw.faults.latency_s = 0.0
+        t0 = asyncio.get_running_loop().time()
+        assert await asyncio.wait_for(gen.expose(), 3.0) == 2
+        assert asyncio.get_running_loop().time() - t0 < 1.5
+        await asyncio.wait_for(gen.xray_off(), 1.0)
+
+    run(twin, body, hold_s=0.05, timeout_s=2.0)

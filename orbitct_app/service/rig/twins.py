@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import multiprocessing as mp
+import os
 import signal
 import threading
 import time
@@ -27,12 +28,19 @@ _CTX = mp.get_context("spawn")
 START_TIMEOUT_S = 120.0
 
 
-def twins_main(config_path: str, ports: dict[str, int], conn: Connection) -> None:
-    """Entry point of the twins process: start the rig's twins, report their links, serve until the pipe closes."""
+def twins_main(config_path: str, ports: dict[str, int], conn: Connection, nice: int = 0) -> None:
+    """Entry point of the twins process: start the rig's twins, report their links, serve until the pipe closes.
+
+    It asks for the rig process's priority (``nice``): the simulated hardware must not starve behind the web
+    server any more than real hardware would.
+    """
     from acquire.config import load_config
     from acquire.rigs import sim_twins
 
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s twins: %(message)s")
+    if nice < 0:
+        with contextlib.suppress(OSError):
+            os.setpriority(os.PRIO_PROCESS, 0, nice)
     for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
         signal.signal(sig, signal.SIG_IGN)  # the hardware outlives the software's shutdown; the pipe ends it
     try:
@@ -79,8 +87,9 @@ def _hazard(twins: dict[str, Any], kind: str, name: str, value: Any) -> str:
 class SimBench:
     """Starts the twins process, hands out the links to its twins, and restarts it on the same ports if it dies."""
 
-    def __init__(self, config_path: Path) -> None:
+    def __init__(self, config_path: Path, nice: int = 0) -> None:
         self.config_path = Path(config_path)
+        self.nice = nice
         self.state = "not started"
         self.links: dict[str, DeviceLink] = {}
         self._ports: dict[str, int] = {}
@@ -100,7 +109,7 @@ class SimBench:
         self._ready.clear()
         self.state = "starting"
         self._process = _CTX.Process(target=twins_main, name="orbitct-twins", daemon=True,
-                                     args=(str(self.config_path), self._ports, child))
+                                     args=(str(self.config_path), self._ports, child, self.nice))
         self._process.start()
         child.close()
         self._conn = parent

@@ -23,6 +23,8 @@ pytestmark = pytest.mark.system
 # method, path, body, permission needed (None: any valid token)
 MUTATING = [
     ("POST", "/stop", None, "stop"),
+    ("POST", "/stop/reset", None, "reset"),
+    ("POST", "/devices/xray/reset-fault", None, "motion"),
     ("POST", "/devices/hexapod/reference", None, "motion"),
     ("POST", "/devices/hexapod/move", {"targets": {"X": 0.0}}, "motion"),
     ("POST", "/devices/hexapod/stop", None, "motion"),
@@ -34,7 +36,7 @@ MUTATING = [
     ("POST", "/reconstructions", {"scan_id": "nope"}, "analysis"),
     ("POST", "/jobs/nope/cancel", None, "analysis"),
 ]
-READS = ["/devices", "/orbits", "/scans", "/jobs", "/calibrations", "/reconstructions", "/scans/nope", "/jobs/nope"]
+READS = ["/stop", "/devices", "/orbits", "/scans", "/jobs", "/calibrations", "/reconstructions", "/scans/nope", "/jobs/nope"]
 
 
 def test_token_file_holds_only_hashes(tmp_path: Path) -> None:
