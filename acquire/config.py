@@ -192,6 +192,14 @@ class StallConfig(_Model):
                               "beyond its exposure time and the preparation time")
 
 
+class StorageConfig(_Model):
+    """Disk space around a scan file: what must stay free on its filesystem."""
+
+    reserve_mb: float = Field(200.0, ge=0, le=1e6, description="a scan that would leave less than this free is "
+                              "refused before anything moves; a running scan stops cleanly when less than half of it "
+                              "(plus two frames) is left")
+
+
 class SimConfig(_Model):
     """What the in-process twins image (``--sim``): phantom and BB size of experiment A."""
 
@@ -206,6 +214,7 @@ class _RigConfig(_Model):
 
     geometry: GeometryConfig = GeometryConfig()
     stall: StallConfig = StallConfig()
+    storage: StorageConfig = StorageConfig()
 
     def with_detector_size(self, size: int | None) -> Self:
         """The same rig with a square detector of ``size`` pixels on the same panel (None: unchanged)."""

@@ -47,3 +47,7 @@ class StallError(AcquireError):
         self.device = device
         self.bound_s = float(bound_s)
         super().__init__(f"stall: {device} {what} within {bound_s:g} s ({setting}); the scan stops safely")
+
+
+class DiskSpaceError(AcquireError):
+    """Too little free space for a scan (before it starts) or for its next frames (while it runs); gives the numbers."""

@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from acquire.records import FrameRecord, ScanEnd, ScanStart
+from acquire.storage import MB, SpaceWatch, frame_bytes
 from orbitct.scanfile import ImageKey, ScanWriter
 
 
@@ -28,11 +29,15 @@ class ScanRecorder:
 
     A simulated scan (``truth`` given) also gets its truth: marker centres and phantom at the start,
     the true view of every projection with its frame, so a scan cut anywhere is complete up to there.
+    With ``reserve_mb`` it watches the free space and stops the scan (raising) while the file can still be closed.
     """
 
     def __init__(self, path: str | os.PathLike[str], *, overwrite: bool = False, frame_dtype: str = "uint16",
-                 marker_diameter_mm: float | None = None, truth: SimulationTruth | None = None) -> None:
+                 marker_diameter_mm: float | None = None, truth: SimulationTruth | None = None,
+                 reserve_mb: float | None = None) -> None:
         self.path = Path(path)
+        self.reserve_mb = reserve_mb
+        self.watch: SpaceWatch | None = None
         self.overwrite = overwrite
         self.frame_dtype = frame_dtype
         self.marker_diameter_mm = marker_diameter_mm
@@ -42,6 +47,10 @@ class ScanRecorder:
     def on_start(self, start: ScanStart) -> None:
         """Create the file with panel, axes, orbit, configuration provenance and (simulated) truth."""
         plan = start.plan
+        if self.reserve_mb is not None:
+            self.watch = SpaceWatch(self.path.resolve().parent, frame_bytes(plan.panel, self.frame_dtype),
+                                    int(self.reserve_mb * MB))
+            self.watch.check(0)
         self.writer = ScanWriter(
             self.path, plan.panel, frame_dtype=self.frame_dtype, axes=dict(start.axes),
             orbit_name=plan.orbit_name, orbit_params=dict(plan.orbit_params), config=dict(plan.config),
@@ -61,6 +70,8 @@ class ScanRecorder:
     def on_frame(self, record: FrameRecord) -> None:
         """Append one frame (and its true view, when simulated) and flush it to disk."""
         assert self.writer is not None, "on_start was not called"
+        if self.watch is not None:
+            self.watch.check(self.writer.n_frames)
         projection = record.image_key == ImageKey.PROJECTION
         self.writer.append(
             record.frame, record.image_key, record.time_s, nominal_vector=record.nominal_vector if projection else None,

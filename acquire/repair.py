@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import socket
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,11 +47,47 @@ def _per_frame_datasets(f: h5py.File) -> list[h5py.Dataset]:
     return out
 
 
-def repair_scan(path: str | os.PathLike[str]) -> RepairReport:
-    """Mark a scan still ``acquiring`` as ``aborted`` with reason ``interrupted``, trimming partial frames."""
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # someone else's process
+    return True
+
+
+def live_writer(f: h5py.File, mtime: float, quiet_s: float) -> str | None:
+    """Why an ``acquiring`` file may still be written by its acquisition, or None when its writer is gone.
+
+    On this machine the writer's process id decides; a file written elsewhere (a network file system) or
+    without one counts as live while it changed in the last ``quiet_s`` seconds (``mtime``: taken before
+    opening, which itself touches the file).
+    """
+    prov = f["provenance"].attrs if "provenance" in f else {}
+    pid, host = prov.get("writer_pid"), prov.get("writer_host")
+    if pid is not None and host == socket.gethostname():
+        if int(pid) != os.getpid() and _pid_alive(int(pid)):
+            return f"process {int(pid)} on this machine is still writing it (a running acquisition)"
+        return None
+    age = time.time() - mtime
+    if age < quiet_s:
+        where = f" (written on {host})" if host else ""
+        return f"it changed {age:.0f} s ago{where}: an acquisition may still be writing it"
+    return None
+
+
+def repair_scan(path: str | os.PathLike[str], *, force: bool = False, quiet_s: float = 30.0) -> RepairReport:
+    """Mark a scan still ``acquiring`` as ``aborted`` with reason ``interrupted``, trimming partial frames.
+
+    A file whose acquisition may still be running (:func:`live_writer`) is refused unless ``force``:
+    trimming it would cut frames out from under the writer (HDF5 file locking is often off on network file
+    systems, so the lock alone does not protect it).
+    """
     p = Path(path)
     if not p.is_file():
         raise RepairError(f"{p}: no such file")
+    mtime = p.stat().st_mtime
     try:
         f = h5py.File(p, "r+")
     except OSError as exc:
@@ -64,6 +102,9 @@ def repair_scan(path: str | os.PathLike[str]) -> RepairReport:
         n = int(f["frames/image_key"].shape[0])
         if status != "acquiring":
             return RepairReport(p, status, n, None, False)
+        busy = None if force else live_writer(f, mtime, quiet_s)
+        if busy is not None:
+            raise RepairError(f"{p}: not repaired: {busy}; stop that acquisition first (or repair anyway with --force)")
         longest = max([n] + [ds.shape[0] for ds in _per_frame_datasets(f)])
         short = [ds.name for ds in _per_frame_datasets(f) if ds.shape[0] < n]
         if short:

@@ -21,6 +21,7 @@ from acquire.plan import ScanPlan, plan_bench_scan, plan_carm_scan
 from acquire.recorder import ScanRecorder, SimulationTruth
 from acquire.rigs import open_rig
 from acquire.rigs.carm import export_orbit
+from acquire.storage import check_room
 from orbitct.errorprofiles import ErrorProfileError, make_profile
 from orbitct.orbits import Orbit, OrbitError, make_orbit
 from orbitct.progress import ProgressCallback, ProgressEvent
@@ -154,7 +155,8 @@ class ScanRunner:
             plan = build_plan(req, cfg)
             out = Path(req.out)
             if out.exists() and not req.overwrite:
-                raise AcquireError(f"{out}: already exists (use overwrite to replace it)")
+                raise AcquireError(f"{out}: already exists (orbitct scan --overwrite replaces it)")
+            check_room(out, plan.panel, plan.n_frames, cfg.storage.reserve_mb)
             if isinstance(cfg, CArmConfig):  # the navigation program, as the C-arm plays it
                 program = export_orbit(make_orbit(plan.orbit_name, **dict(plan.orbit_params)), cfg)
                 out.parent.mkdir(parents=True, exist_ok=True)
@@ -162,7 +164,8 @@ class ScanRunner:
                 program.write(out.with_suffix(".nav.csv"))
             recorder = ScanRecorder(out, overwrite=req.overwrite,
                                     marker_diameter_mm=cfg.sim.bb_diameter_mm if req.sim else None,
-                                    truth=simulation_truth(cfg) if req.sim else None)
+                                    truth=simulation_truth(cfg) if req.sim else None,
+                                    reserve_mb=cfg.storage.reserve_mb)
             if self._rig is not None:
                 self.result = await self._run_engine(self._rig, plan, cfg, recorder)
             else:

@@ -260,6 +260,7 @@ def _calibrate_scan(
             shutil.copyfile(src, target)
     t0 = time.perf_counter()  # the copy above is not part of the calibration time
     with ScanFile(target) as sf:
+        sf.refuse_if_acquiring()  # before any work: the result could not be stored
         proj = sf.projection_indices
         if proj.size == 0:
             raise NoProjectionsError(f"{target}: no projection frames (image_key 0); counts are {sf.count_by_kind()}")

@@ -2,10 +2,12 @@
 
 from orbitct.geometry import VolumeGrid
 from recon.errors import (
+    BadFramesError,
     FieldOfViewError,
     GeometryMissingError,
     MemoryBudgetError,
     ReconError,
+    ReconExistsError,
 )
 from recon.fdk import fdk
 from recon.grid import check_fov, grid_for_geometry
@@ -15,7 +17,7 @@ from recon.pwls import DEFAULT_BETA, PwlsResult, pwls_sps
 from recon.quality import reference_volume, rmse, wire_fwhm
 
 __all__ = [
-    "DEFAULT_BETA", "FieldOfViewError", "GeometryMissingError", "MemoryBudgetError", "Projector", "PwlsResult",
-    "ReconError", "ReconResult", "VolumeGrid", "backproject_voxels", "check_fov", "fdk", "grid_for_geometry",
+    "BadFramesError", "DEFAULT_BETA", "FieldOfViewError", "GeometryMissingError", "MemoryBudgetError", "Projector", "PwlsResult",
+    "ReconError", "ReconExistsError", "ReconResult", "VolumeGrid", "backproject_voxels", "check_fov", "fdk", "grid_for_geometry",
     "projector", "pwls_sps", "reconstruct_scan", "reference_volume", "rmse", "wire_fwhm",
 ]

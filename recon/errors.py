@@ -15,3 +15,22 @@ class FieldOfViewError(ReconError):
 
 class MemoryBudgetError(ReconError):
     """The reconstruction would need more memory than the machine has available."""
+
+
+class ReconExistsError(ReconError):
+    """The scan file already holds a reconstruction of that name (replacing it must be asked for)."""
+
+    def __init__(self, path: object, name: str) -> None:
+        self.path, self.name = path, name
+        super().__init__(f"{path}: already has a reconstruction named {name!r}")
+
+
+class BadFramesError(ReconError):
+    """Frames the reconstruction would need hold NaN, infinite, all-zero or saturated data; names them."""
+
+    def __init__(self, path: object, problems: dict[int, str], n_used: int) -> None:
+        self.problems = dict(problems)
+        shown = ", ".join(f"frame {i} ({why})" for i, why in list(problems.items())[:5])
+        more = f" and {len(problems) - 5} more" if len(problems) > 5 else ""
+        super().__init__(f"{path}: {len(problems)} of the {n_used} frames needed are unusable: {shown}{more}; "
+                         "a volume made from them would be wrong, so none is stored")

@@ -14,8 +14,14 @@ from numpy.typing import NDArray
 
 from orbitct.geometry import ViewGeometry, VolumeGrid
 from orbitct.progress import ProgressCallback, report
-from orbitct.scanfile import ScanFile
-from recon.errors import GeometryMissingError, MemoryBudgetError, ReconError
+from orbitct.scanfile import ImageKey, ScanFile
+from recon.errors import (
+    BadFramesError,
+    GeometryMissingError,
+    MemoryBudgetError,
+    ReconError,
+    ReconExistsError,
+)
 from recon.export import FORMATS, export_volume
 from recon.fdk import WINDOWS, fdk
 from recon.grid import check_fov, grid_for_geometry
@@ -183,13 +189,14 @@ def reconstruct_scan(
     beta: float = DEFAULT_BETA, mar: bool | str = False, name: str | None = None,
     export: str | list[str] | None = None, out_dir: str | os.PathLike[str] | None = None,
     progress: ProgressCallback | None = None, window: str = "hann", subsets: int = 1, neighbourhood: int = 1,
-    metal_mu: float = 0.1, mar_threshold: float = 0.5, stream: str = "auto",
+    metal_mu: float = 0.1, mar_threshold: float = 0.5, stream: str = "auto", overwrite: bool = False,
 ) -> ReconResult:
     """Reconstruct ``path`` with FDK or PWLS and store it as ``/recon/<name>`` in the scan file.
 
     ``stream`` (PWLS): 'memory' loads projections and weights once, 'file' recomputes them from
     the scan file chunk by chunk every iteration (three volumes of memory, slower), 'auto'
-    picks 'memory' while it fits in half the free memory.
+    picks 'memory' while it fits in half the free memory. A reconstruction of the same name is replaced only with
+    ``overwrite`` (:class:`ReconExistsError` otherwise, before any work).
     """
     t0 = time.perf_counter()
     if algorithm not in ALGORITHMS:
@@ -210,7 +217,14 @@ def reconstruct_scan(
         raise ReconError(f"stream must be one of {STREAM_MODES}, got {stream!r}")
     name = name or f"{algorithm}_{geometry}" + ("_mar" if mar_method else "")
     with ScanFile(path, "r") as scan:  # read-only while computing: other readers may hold the file
+        scan.refuse_if_acquiring()  # before any work: the result could not be stored
+        if name in scan.recon_names() and not overwrite:
+            raise ReconExistsError(scan.path, name)
         frames, geom, dropped = _views(scan, geometry)
+        needed = np.union1d(frames, np.flatnonzero(np.isin(scan.image_key, (ImageKey.DARK, ImageKey.FLAT))))
+        problems = scan.frame_problems(needed)
+        if problems:
+            raise BadFramesError(scan.path, problems, needed.size)
         grid = grid_for_geometry(geom, voxel_mm=voxel_mm, shape=shape)
         fov_fraction = check_fov(grid, geom)
         det = geom.panel
@@ -258,7 +272,7 @@ def reconstruct_scan(
     with ScanFile(scan_path, "r+") as out:
         out.write_recon(name, vol, voxel_mm=grid.voxel_mm, origin_mm=grid.origin_mm, algorithm=algorithm,
                         geometry=geometry, iterations=iterations if algorithm == "pwls" else 0,
-                        elapsed_s=elapsed, params=params)
+                        elapsed_s=elapsed, params=params, overwrite=overwrite)
     exported: list[Path] = []
     if formats:
         base = Path(out_dir) if out_dir is not None else scan_path.parent

@@ -240,6 +240,29 @@ class ScanFile(ScanResults):
         for i in idx:
             yield int(i), self.line_integrals(int(i))
 
+    def frame_problems(self, indices: Sequence[int] | None = None) -> dict[int, str]:
+        """Frames that must not be used, with why: NaN or infinite pixels (any frame), and projections that are all
+        zero (no signal) or saturated (more than half the pixels at the uint16 maximum). Reads each frame once."""
+        idx = range(self.n_frames) if indices is None else [int(i) for i in indices]
+        top = np.iinfo(np.uint16).max if self.frames.dtype == np.uint16 else None
+        out: dict[int, str] = {}
+        for i in idx:
+            a = np.asarray(self.frames[i])
+            if a.dtype.kind == "f":
+                bad = int(a.size - np.count_nonzero(np.isfinite(a)))
+                if bad:
+                    out[i] = f"{bad} pixels NaN or infinite"
+                    continue
+            if self.image_key[i] != ImageKey.PROJECTION:
+                continue
+            if not a.any():
+                out[i] = "all zero (no signal)"
+            elif top is not None:
+                frac = np.count_nonzero(a == top) / a.size
+                if frac > 0.5:
+                    out[i] = f"saturated ({frac:.0%} of pixels at {top})"
+        return out
+
     # --------------------------------------------------------------- markers
     def markers(self) -> dict[str, NDArray[np.float64]]:
         """Whatever of ``uv``, ``xyz``, ``rpe_mm`` the file holds."""

@@ -31,6 +31,17 @@ class ScanResults:
         if self._f.mode != "r+":
             raise self._fail("opened read-only; open with mode='r+' to add results")
 
+    def _accepts_results(self) -> None:
+        self._writable()
+        self.refuse_if_acquiring()
+
+    def refuse_if_acquiring(self) -> None:
+        """Results go only into a finished scan: one still ``acquiring`` is being written, or was cut off."""
+        if str(self._f.attrs.get("status", "complete")) == "acquiring":
+            raise self._fail("is still marked 'acquiring': its acquisition is running or was killed; results are "
+                             "added once it has ended (a file left by a killed acquisition: `orbitct scan repair` "
+                             "marks it aborted, keeping every frame)")
+
     def _replace(self, path: str, data: ArrayLike) -> h5py.Dataset:
         if path in self._f:
             del self._f[path]
@@ -50,7 +61,7 @@ class ScanResults:
         extra_attrs: dict[str, Any] | None = None,
     ) -> None:
         """Store ``/geometry/calibrated`` and ``/markers/{uv,xyz,rpe_mm}``."""
-        self._writable()
+        self._accepts_results()
         if geometry.n_views != self.n_frames:
             raise self._fail(f"calibrated geometry has {geometry.n_views} views, the scan has {self.n_frames} frames")
         rpe = np.asarray(rpe_mm, dtype=float)
@@ -86,9 +97,10 @@ class ScanResults:
         iterations: int,
         elapsed_s: float,
         params: dict[str, Any],
+        overwrite: bool = False,
     ) -> None:
-        """Store a reconstruction as ``/recon/<name>``."""
-        self._writable()
+        """Store a reconstruction as ``/recon/<name>`` (replacing one of that name only with ``overwrite``)."""
+        self._accepts_results()
         if not name or "/" in name:
             raise self._fail(f"reconstruction name {name!r} must be non-empty and contain no '/'")
         vol = np.asarray(volume, dtype=np.float32)
@@ -96,6 +108,8 @@ class ScanResults:
             raise self._fail(f"volume must be 3-D (nz, ny, nx), got shape {vol.shape}")
         path = f"recon/{name}"
         if path in self._f:
+            if not overwrite:
+                raise self._fail(f"already has a reconstruction named {name!r}")
             del self._f[path]
         g = self._f.create_group(path)
         g.create_dataset("volume", data=vol, chunks=(1,) + vol.shape[1:])

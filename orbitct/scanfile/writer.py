@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 from collections.abc import Mapping
 from datetime import datetime, timezone
 from pathlib import Path
@@ -124,6 +125,9 @@ class ScanWriter:
                 "software_version": __version__,
                 "config_json": to_json(dict(config or {})),
                 "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                # who is writing: lets a repair tell a live acquisition from one that was killed
+                "writer_pid": os.getpid(),
+                "writer_host": socket.gethostname(),
             }
         )
         f.flush()

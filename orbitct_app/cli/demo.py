@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -137,4 +138,20 @@ def demo(out_dir: Path, config_path: Path | None, frames: int, size: int, voxels
         _reconstruct(scan_path, out_dir, algorithm, geo, iters, voxels)
 
     click.echo(f"\ndone in {time.monotonic() - t_start:.0f} s. Scan file (frames, geometry, calibration, volumes): {scan_path}")
-    click.echo(f"inspect it with: orbitct inspect {scan_path}")
+    cmd = _orbitct_command()
+    click.echo(f"inspect it with: {cmd} inspect {scan_path}")
+    if cmd != "orbitct":
+        click.echo(f"(orbitct is not on your PATH: run `source {Path(cmd).parent}/activate` once per terminal "
+                   f"to type plain `orbitct`, or call {cmd})")
+
+
+def _orbitct_command() -> str:
+    """How the user can call this very ``orbitct``: plain when it is on the PATH, else its path (e.g. ``.venv/bin/orbitct``)."""
+    here = Path(sys.executable).parent / "orbitct"
+    found = shutil.which("orbitct")
+    if found is not None and Path(found).resolve() == here.resolve():
+        return "orbitct"
+    try:
+        return str(here.relative_to(Path.cwd()))
+    except ValueError:
+        return str(here)

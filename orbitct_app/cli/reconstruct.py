@@ -40,16 +40,17 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
               help="PWLS data: hold projections and weights in memory, or re-read them from the scan file every "
                    "iteration (three volumes of memory, slower); auto keeps them in memory while they fit.")
 @click.option("--name", default=None, help="Name under /recon (default ALGORITHM_GEOMETRY[_mar]).")
+@click.option("--overwrite", is_flag=True, help="Replace a reconstruction of the same name already in the file.")
 @click.option("--export", "export", type=click.Choice(["nifti", "tiff", "png"]), multiple=True,
               help="Also write the volume as NIfTI, TIFF stack or PNG slices (repeatable).")
 @click.option("--out-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Folder for exports (default: next to the scan file).")
 def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | None, shape: tuple[int, int, int] | None,
                 iterations: int, beta: float | None, subsets: int, window: str, mar: bool, mar_method: str,
-                stream: str, name: str | None, export: tuple[str, ...], out_dir: Path | None) -> None:
+                stream: str, name: str | None, overwrite: bool, export: tuple[str, ...], out_dir: Path | None) -> None:
     """Reconstruct SCAN (an orbitct scan file) and store the volume in it."""
     from orbitct.scanfile import ScanFileError
-    from recon import DEFAULT_BETA, ReconError, reconstruct_scan
+    from recon import DEFAULT_BETA, ReconError, ReconExistsError, reconstruct_scan
 
     try:
         with ProgressBar() as bar:
@@ -57,7 +58,10 @@ def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | Non
                 scan, algorithm=algorithm, geometry=geometry, voxel_mm=voxel_mm, shape=shape, iterations=iterations,
                 beta=DEFAULT_BETA if beta is None else beta, mar=mar_method if mar else False, name=name,
                 export=list(export), out_dir=out_dir, progress=bar, window=window, subsets=subsets, stream=stream,
+                overwrite=overwrite,
             )
+    except ReconExistsError as exc:
+        raise click.ClickException(f"{exc}; --overwrite replaces it, --name NAME keeps both") from None
     except (ReconError, ScanFileError) as exc:
         raise click.ClickException(str(exc)) from None
     nz, ny, nx = res.volume_shape

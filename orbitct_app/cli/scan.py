@@ -93,13 +93,15 @@ def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int |
 
 @scan.command("repair")
 @click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
-def repair(file: Path) -> None:
+@click.option("--force", is_flag=True, help="Repair even if an acquisition seems to be writing the file still "
+              "(its process alive on this machine, or the file changed in the last 30 s).")
+def repair(file: Path, force: bool) -> None:
     """Mark a scan file left by a killed acquisition as aborted ("interrupted"), keeping every complete frame."""
     from acquire.errors import RepairError
     from acquire.repair import repair_scan
 
     try:
-        rep = repair_scan(file)
+        rep = repair_scan(file, force=force)
     except RepairError as exc:
         _fail(str(exc))
     click.echo(rep.summary())

@@ -1,4 +1,4 @@
-"""``orbitct serve`` (the REST service) and ``orbitct token create`` (bearer tokens stored as hashes)."""
+"""``orbitct serve`` (the REST service) and ``orbitct token create|list|revoke`` (bearer tokens stored as hashes)."""
 
 from __future__ import annotations
 
@@ -51,6 +51,19 @@ def _settings(**kwargs: object):  # type: ignore[no-untyped-def]
         raise click.UsageError(f"invalid service settings: {problems}") from None
 
 
+def _check_port(host: str, port: int, option: str) -> None:
+    """Refuse, before announcing anything, a port that another program listens on."""
+    import socket
+
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            raise click.ClickException(f"cannot listen on {host}:{port} ({exc.strerror}); another program (another "
+                                       f"orbitct serve?) uses it: choose another {option}") from None
+
+
 @click.command()
 @click.option("--config", "bench_config", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="bench configuration (YAML), e.g. config/bench.yaml")
@@ -74,7 +87,26 @@ def serve(bench_config: Path | None, sim: bool | None, host: str | None, port: i
     if not settings.bench_config.is_file():
         raise click.UsageError(f"bench configuration {settings.bench_config} does not exist")
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    app = create_app(settings)
+    _check_port(settings.host, settings.port, "--port")
+    stop_port = settings.port + 1 if settings.stop_port is None else settings.stop_port
+    if stop_port:
+        _check_port(settings.host, stop_port, "--stop-port")
+    from orbitct_app.service.core.datadir import DataDirBusy
+
+    try:
+        app = create_app(settings)
+    except DataDirBusy as exc:
+        raise click.ClickException(str(exc)) from None
+    except Exception as exc:
+        from orbitct_app.service.core.errors import disk_full
+
+        if not disk_full(exc):
+            raise
+        from acquire.storage import format_bytes, free_bytes
+
+        raise click.ClickException(f"cannot start: the disk of the data directory {settings.data_dir} is full "
+                                   f"({format_bytes(free_bytes(settings.data_dir))} free) and the service cannot create "
+                                   "its database there; free some space or choose another --data-dir") from None
     service = app.state.service
     if service.dev_token is not None:
         click.echo(f"--sim development token (all roles, valid until the service stops):\n  {service.dev_token}")
@@ -88,14 +120,18 @@ def token() -> None:
     """Manage bearer tokens (only their SHA-256 hashes are stored)."""
 
 
+def _token_file_options(fn):  # type: ignore[no-untyped-def]
+    fn = click.option("--tokens-file", type=click.Path(dir_okay=False, path_type=Path), default=None,
+                      help="tokens file (default <data-dir>/tokens.json)")(fn)
+    return click.option("--data-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+                        help="service data directory holding tokens.json (default ./orbitct-data)")(fn)
+
+
 @token.command("create")
 @click.option("--role", type=click.Choice(["operator", "analyst", "viewer"]), required=True,
               help="operator: motion, X-rays, scans; analyst: calibration, reconstruction; viewer: read only")
-@click.option("--name", default="", help="a name for logs (default <role>-<n>)")
-@click.option("--data-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
-              help="service data directory holding tokens.json (default ./orbitct-data)")
-@click.option("--tokens-file", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="tokens file (default <data-dir>/tokens.json)")
+@click.option("--name", default="", help="a unique name, shown in logs and by `token list` (default <role>-<n>)")
+@_token_file_options
 def create(role: str, name: str, data_dir: Path | None, tokens_file: Path | None) -> None:
     """Create a token for ROLE, store its hash, print the token once."""
     from orbitct_app.service.core.auth import TokenFileError, create_token
@@ -107,3 +143,40 @@ def create(role: str, name: str, data_dir: Path | None, tokens_file: Path | None
         raise click.ClickException(str(exc)) from None
     click.echo(value)
     click.echo(f"(role {role}; hash stored in {settings.tokens_path}; this token is not shown again)", err=True)
+
+
+@token.command("list")
+@_token_file_options
+def list_tokens(data_dir: Path | None, tokens_file: Path | None) -> None:
+    """List the stored tokens: name, role and the start of the hash (tokens themselves are never stored)."""
+    from orbitct_app.service.core.auth import TokenFileError, read_token_file
+
+    settings = _settings(data_dir=data_dir, tokens_file=tokens_file)
+    try:
+        entries = read_token_file(settings.tokens_path)
+    except TokenFileError as exc:
+        raise click.ClickException(str(exc)) from None
+    if not entries:
+        click.echo(f"no tokens in {settings.tokens_path}; make one with `orbitct token create --role operator`")
+        return
+    width = max(len(e.name) for e in entries)
+    click.echo(f"{'name':<{width}}  {'role':<8}  hash")
+    for e in entries:
+        click.echo(f"{e.name:<{width}}  {e.role:<8}  {e.sha256[:12]}")
+    click.echo(f"({len(entries)} in {settings.tokens_path}; tokens in the service settings file are not listed)", err=True)
+
+
+@token.command("revoke")
+@click.argument("name_or_hash")
+@_token_file_options
+def revoke(name_or_hash: str, data_dir: Path | None, tokens_file: Path | None) -> None:
+    """Revoke a token by its NAME (or the start of its hash, as `token list` shows it); a running service stops
+    accepting it at the next request."""
+    from orbitct_app.service.core.auth import TokenFileError, revoke_token
+
+    settings = _settings(data_dir=data_dir, tokens_file=tokens_file)
+    try:
+        gone = revoke_token(settings.tokens_path, name_or_hash)
+    except TokenFileError as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(f"revoked {gone.name} ({gone.role}, hash {gone.sha256[:12]})")

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from orbitct_app.service.core.auth import TOKEN_PREFIX, TokenRegistry
+from orbitct_app.service.core.datadir import DataDirLock
 from orbitct_app.service.core.db import Store
 from orbitct_app.service.core.events import EventBus
 from orbitct_app.service.core.files import summarize_scan
@@ -27,11 +28,13 @@ RESTART_REASON = "interrupted: the service stopped while it was running"
 
 
 class Service:
-    """Everything one running service owns."""
+    """Everything one running service owns; it holds its data directory (:class:`DataDirBusy` if another does)."""
 
     def __init__(self, settings: ServiceSettings) -> None:
         self.settings = settings
         settings.data_dir.mkdir(parents=True, exist_ok=True)
+        self.data_lock = DataDirLock(settings.data_dir)
+        self.data_lock.acquire(port=settings.port)  # before the database: a second service touches nothing
         self.dev_token: str | None = None
         self.stop_reason = "service shutting down"  # why a running scan is aborted when the service stops
         if settings.sim:
@@ -48,6 +51,27 @@ class Service:
         self.estop = EmergencyStop(self.latch, self.guard, self.rig, self.bus)
         self.jobs = JobManager(self.store, self.bus, settings.data_dir, workers=settings.job_workers,
                                cancel_grace_s=settings.cancel_grace_s, scan_busy=lambda s: self.rig.busy == s)
+
+    @property
+    def reserve_mb(self) -> float:
+        """Free space the bench configuration keeps on the data's disk (``storage.reserve_mb``)."""
+        if not hasattr(self, "_reserve_mb"):
+            from acquire.config import StorageConfig, load_config
+
+            try:
+                self._reserve_mb = float(load_config(self.settings.bench_config).storage.reserve_mb)
+            except Exception:  # noqa: BLE001 - the rig process reports a bad configuration
+                self._reserve_mb = float(StorageConfig().reserve_mb)
+        return self._reserve_mb
+
+    def disk(self) -> tuple[str, int]:
+        """``(state, free bytes)`` of the data directory's disk: ``ok``, ``low`` (below the reserve) or ``full``."""
+        from acquire.storage import MB, free_bytes
+
+        free = free_bytes(self.settings.data_dir)
+        if free < 4 * MB:
+            return "full", free
+        return ("low" if free < self.reserve_mb * MB else "ok"), free
 
     def recover(self) -> tuple[list[str], list[str]]:
         """Mark scans and jobs a previous process left running as interrupted; repair their scan files."""
@@ -108,6 +132,13 @@ class Service:
                         "`orbitct token create --role operator --data-dir %s`", self.settings.data_dir)
         if self.latch.latched:
             log.warning("%s", self.latch.refusal("scans, moves and referencing"))
+        disk, free = self.disk()
+        if disk != "ok":
+            from acquire.storage import format_bytes
+
+            log.warning("the data directory's disk is %s: %s free in %s, the bench keeps %s free "
+                        "(storage.reserve_mb); scans are refused until there is room", disk, format_bytes(free),
+                        self.settings.data_dir, format_bytes(self.reserve_mb * 2**20))
         links = self._device_links()
         if links:
             self.guard.start(links)
@@ -132,3 +163,4 @@ class Service:
             self.sim_bench.close()
         self.bus.close()
         self.store.close()
+        self.data_lock.release()

@@ -69,15 +69,22 @@ def test_repair_refuses_what_it_cannot_fix(tmp_path: Path) -> None:
         repair_scan(other)
 
 
-def test_writer_killed_with_sigkill_leaves_repairable_file(tmp_path: Path) -> None:
-    p = tmp_path / "killed.h5"
+def _writer_process(path: Path, body: str) -> subprocess.Popen[str]:
+    """Another process that creates the scan file ``path`` (writer ``w``, panel ``det``, view ``vec``), then runs ``body``."""
     script = textwrap.dedent(f"""
         import sys, time, numpy as np
         from orbitct.geometry import Panel, ViewGeometry
         from orbitct.scanfile import ScanWriter
         det = Panel(16, 16, 1.0, 1.0)
         vec = ViewGeometry.from_carm(0.0, 0.0, 785.0, 1200.0, det).vectors[0]
-        w = ScanWriter({str(p)!r}, det)
+        w = ScanWriter({str(path)!r}, det)
+    """) + textwrap.dedent(body)
+    return subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+
+
+def test_writer_killed_with_sigkill_leaves_repairable_file(tmp_path: Path) -> None:
+    p = tmp_path / "killed.h5"
+    proc = _writer_process(p, """
         i = 0
         while True:
             w.append(np.full(det.shape, i), 0, float(i), nominal_vector=vec)
@@ -85,7 +92,6 @@ def test_writer_killed_with_sigkill_leaves_repairable_file(tmp_path: Path) -> No
             i += 1
             time.sleep(0.01)
     """)
-    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
     reported = -1
     assert proc.stdout is not None
     while reported < 5:
@@ -101,3 +107,36 @@ def test_writer_killed_with_sigkill_leaves_repairable_file(tmp_path: Path) -> No
         assert sf.status == "aborted" and sf.status_reason == "interrupted"
         assert sf.n_frames >= reported + 1
         assert [int(sf.frames[i][0, 0]) for i in range(reported + 1)] == list(range(reported + 1))
+
+
+def test_repair_refuses_a_file_its_acquisition_still_writes(tmp_path: Path) -> None:
+    p = tmp_path / "live.h5"
+    proc = _writer_process(p, """
+        w.append(np.zeros(det.shape), 0, 0.0, nominal_vector=vec)
+        w._f.close()  # as on a file system without HDF5 locks: nothing stops a second opener
+        print("written", flush=True)
+        time.sleep(60)
+    """)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "written"
+        result = CliRunner().invoke(cli, ["scan", "repair", str(p)])
+        assert result.exit_code == 2 and f"process {proc.pid} on this machine is still writing it" in result.output
+        assert "--force" in result.output
+        with ScanFile(p) as sf:
+            assert sf.status == "acquiring"
+        forced = CliRunner().invoke(cli, ["scan", "repair", "--force", str(p)])
+        assert forced.exit_code == 0 and "marked aborted" in forced.output
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_a_file_from_another_machine_counts_as_live_while_it_changes(tmp_path: Path) -> None:
+    p = tmp_path / "remote.h5"
+    _partial_file(p, 2)
+    with h5py.File(p, "r+") as f:
+        f["provenance"].attrs["writer_host"] = "bench-pc-elsewhere"
+    with pytest.raises(RepairError, match="changed 0 s ago .written on bench-pc-elsewhere."):
+        repair_scan(p)
+    os.utime(p, (0, 0))  # quiet for long
+    assert repair_scan(p).changed

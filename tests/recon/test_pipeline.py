@@ -10,12 +10,14 @@ import pytest
 import tifffile
 
 from orbitct.geometry import ViewGeometry
-from orbitct.scanfile import ScanFile
+from orbitct.scanfile import ScanFile, ScanFileError
 from recon import (
+    BadFramesError,
     FieldOfViewError,
     GeometryMissingError,
     MemoryBudgetError,
     ReconError,
+    ReconExistsError,
     VolumeGrid,
     reconstruct_scan,
     rmse,
@@ -91,7 +93,7 @@ def test_clear_errors(scan_a: Path) -> None:
     with pytest.raises(ReconError, match="algorithm must be one of"):
         reconstruct_scan(scan_a, algorithm="art", geometry="nominal")
     with pytest.raises(MemoryBudgetError, match="GiB"):
-        reconstruct_scan(scan_a, geometry="nominal", voxel_mm=0.05, shape=(3000, 3000, 3000))
+        reconstruct_scan(scan_a, geometry="nominal", voxel_mm=0.05, shape=(3000, 3000, 3000), name="too_big")
     with ScanFile(scan_a, "r+") as sf:
         g = sf.geometry("nominal")[sf.projection_indices]
     far = g.transformed(np.eye(3), (600.0, 0.0, 0.0))
@@ -130,3 +132,48 @@ def test_memory_estimate_of_streamed_pwls_is_three_volumes() -> None:
     assert choose_stream("auto", "pwls", grid, 180, 128, 128, False) == "memory"  # 20 MiB fits anywhere
     assert choose_stream("auto", "pwls", grid, 10**7, 2048, 2048, False) == "file"
     assert choose_stream("file", "fdk", grid, 180, 128, 128, False) == "memory"
+
+
+def test_an_existing_reconstruction_is_replaced_only_when_asked(scan_a: Path, tmp_path: Path) -> None:
+    path = tmp_path / "copy.h5"
+    path.write_bytes(scan_a.read_bytes())
+    kw = dict(algorithm="fdk", geometry="nominal", voxel_mm=VOXEL, shape=SHAPE, name="mine")
+    first = reconstruct_scan(path, **kw)
+    with pytest.raises(ReconExistsError, match="already has a reconstruction named 'mine'"):
+        reconstruct_scan(path, **{**kw, "shape": (8, 8, 8)})
+    with ScanFile(path) as sf:
+        assert sf.read_recon("mine")[0].shape == first.volume_shape  # untouched
+    assert reconstruct_scan(path, **{**kw, "shape": (8, 8, 8)}, overwrite=True).volume_shape == (8, 8, 8)
+
+
+@pytest.mark.parametrize("damage,why", [
+    (lambda a: np.full_like(a, np.nan), "pixels NaN or infinite"),
+    (lambda a: np.where(np.arange(a.size).reshape(a.shape) % 7 == 0, np.inf, a), "pixels NaN or infinite"),
+    (lambda a: np.zeros_like(a), "all zero"),
+    (lambda a: np.full_like(a, 65535), "saturated"),
+])
+def test_unusable_frames_are_named_and_no_volume_is_stored(tmp_path: Path, damage, why: str) -> None:  # type: ignore[no-untyped-def]
+    import h5py
+
+    path = tmp_path / "bad.h5"
+    write_sphere_scan(path, _sawtooth(24, 32))
+    with h5py.File(path, "r+") as f:
+        data = f["frames/data"][:].astype(np.float32)
+        del f["frames/data"]
+        data[9] = damage(data[9])
+        f.create_dataset("frames/data", data=data if "NaN" in why else np.clip(data, 0, 65535).astype(np.uint16))
+    with pytest.raises(BadFramesError, match=rf"1 of the 28 frames needed are unusable: frame 9 \(.*{why}"):
+        reconstruct_scan(path, algorithm="fdk", geometry="nominal", voxel_mm=4.0, shape=(8, 16, 16))
+    with ScanFile(path) as sf:
+        assert sf.recon_names() == []
+
+
+def test_no_results_go_into_a_file_still_acquiring(scan_a: Path, tmp_path: Path) -> None:
+    import h5py
+
+    path = tmp_path / "live.h5"
+    path.write_bytes(scan_a.read_bytes())
+    with h5py.File(path, "r+") as f:
+        f.attrs["status"] = "acquiring"
+    with pytest.raises(ScanFileError, match="still marked 'acquiring'.*orbitct scan repair"):
+        reconstruct_scan(path, algorithm="fdk", geometry="nominal", voxel_mm=VOXEL, shape=(8, 8, 8))

@@ -67,13 +67,8 @@ def read_token_file(path: Path) -> list[TokenHash]:
         raise TokenFileError(f"{path}: not a valid tokens file ({exc})") from None
 
 
-def create_token(path: Path, role: Role, name: str = "") -> str:
-    """Make a token for ``role``, append its hash to ``path`` and return the token (shown once)."""
-    if role not in ROLES:
-        raise TokenFileError(f"role must be one of {', '.join(ROLES)}, got {role!r}")
-    token = new_token()
-    entries = read_token_file(path)
-    entries.append(TokenHash(sha256=hash_token(token), role=role, name=name or f"{role}-{len(entries) + 1}"))
+def _write_token_file(path: Path, entries: list[TokenHash]) -> None:
+    """Replace ``path`` atomically with ``entries`` (readable by its owner only)."""
     body = {
         "tokens": [e.model_dump() for e in entries],
         "updated_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -84,7 +79,36 @@ def create_token(path: Path, role: Role, name: str = "") -> str:
     with os.fdopen(fd, "w", encoding="utf-8") as fh:
         json.dump(body, fh, indent=2)
     os.replace(tmp, path)
+
+
+def create_token(path: Path, role: Role, name: str = "") -> str:
+    """Make a token for ``role``, append its hash to ``path`` and return the token (shown once)."""
+    if role not in ROLES:
+        raise TokenFileError(f"role must be one of {', '.join(ROLES)}, got {role!r}")
+    token = new_token()
+    entries = read_token_file(path)
+    name = name or f"{role}-{len(entries) + 1}"
+    if any(e.name == name for e in entries):
+        raise TokenFileError(f"a token named {name!r} exists already in {path}; choose another name")
+    entries.append(TokenHash(sha256=hash_token(token), role=role, name=name))
+    _write_token_file(path, entries)
     return token
+
+
+def revoke_token(path: Path, key: str) -> TokenHash:
+    """Remove the token whose name is ``key`` (or whose hash starts with it, 8+ hex digits); returns it."""
+    entries = read_token_file(path)
+    hits = [e for e in entries if e.name == key]
+    if not hits and len(key) >= 8:
+        hits = [e for e in entries if e.sha256.startswith(key.lower())]
+    if not hits:
+        known = ", ".join(e.name for e in entries) or "none"
+        raise TokenFileError(f"no token named {key!r} (or with a hash starting so) in {path}; tokens: {known}")
+    if len(hits) > 1:
+        raise TokenFileError(f"{key!r} matches {len(hits)} tokens ({', '.join(e.sha256[:12] for e in hits)}); "
+                             "give more of the hash")
+    _write_token_file(path, [e for e in entries if e is not hits[0]])
+    return hits[0]
 
 
 class TokenRegistry:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import errno
 import logging
+import sqlite3
 import uuid
 from typing import Any
 
@@ -60,6 +62,12 @@ class Invalid(ApiError):
     status, code = 422, "invalid_parameters"
 
 
+class InsufficientStorage(ApiError):
+    """The data directory's disk has too little free space for what was asked."""
+
+    status, code = 507, "insufficient_storage"
+
+
 class Unavailable(ApiError):
     """A part of the service that is not ready (devices not connected)."""
 
@@ -92,8 +100,15 @@ def _json(status: int, code: str, message: str, details: list[FieldProblem] | No
 _HTTP_CODES = {
     400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found", 405: "method_not_allowed",
     406: "not_acceptable", 409: "conflict", 413: "request_too_large", 415: "unsupported_media_type",
-    422: "invalid_parameters", 429: "too_many_requests", 503: "unavailable",
+    422: "invalid_parameters", 429: "too_many_requests", 503: "unavailable", 507: "insufficient_storage",
 }
+
+
+def disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` says the disk is full (``ENOSPC``, SQLite's "database or disk is full")."""
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    return isinstance(exc, sqlite3.OperationalError) and "disk is full" in str(exc)
 
 
 def install_error_handlers(app: FastAPI) -> None:
@@ -123,6 +138,10 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+        if disk_full(exc):
+            log.error("disk full on %s %s: %s", request.method, request.url.path, exc)
+            return _json(507, "insufficient_storage", "the data directory's disk is full; free some space and try "
+                         "again (GET /health shows the disk state)")
         incident = uuid.uuid4().hex[:12]
         log.exception("internal error %s on %s %s", incident, request.method, request.url.path)
         return _json(500, "internal_error", f"internal error (incident {incident}); the details are in the service log")

@@ -153,11 +153,21 @@ def sse_format(seq: int, kind: str, data: dict[str, Any]) -> str:
     return f"id: {seq}\nevent: {kind}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n"
 
 
+def event_id_after(last_event_id: str | None) -> int:
+    """The sequence number a ``Last-Event-ID`` header names; 0 (replay all) for anything but ASCII digits.
+
+    ``str.isdigit`` alone would accept superscripts such as ``²`` that ``int`` refuses.
+    """
+    if last_event_id is None or not last_event_id.isascii() or not last_event_id.isdigit():
+        return 0
+    return int(last_event_id)
+
+
 def sse_response(bus: EventBus, topic: str, last_event_id: str | None) -> Any:
     """A ``text/event-stream`` response replaying ``topic`` after ``Last-Event-ID`` and following it live."""
     from fastapi.responses import StreamingResponse
 
-    after = int(last_event_id) if last_event_id is not None and last_event_id.isdigit() else 0
+    after = event_id_after(last_event_id)
 
     async def _body() -> AsyncIterator[str]:
         async for item in bus.stream(topic, after):

@@ -33,5 +33,7 @@ def summarize_scan(path: Path) -> dict[str, Any]:
     try:
         with ScanFile(path) as sf:
             return summarize(sf)
-    except (ScanFileError, OSError, KeyError, ValueError) as exc:
+    except ScanFileError as exc:
         return {"error": f"scan file unreadable: {exc}".replace(str(path), path.name)}
+    except Exception as exc:  # noqa: BLE001 - a damaged file must not cost the scan's record
+        return {"error": f"scan file unreadable: {type(exc).__name__}: {exc}".replace(str(path), path.name)}

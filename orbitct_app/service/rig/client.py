@@ -20,22 +20,24 @@ from pathlib import Path
 from typing import Any
 
 from acquire.rigs.links import DeviceLink
+from orbitct_app.service.core.children import Backoff
 from orbitct_app.service.core.db import Store, utc_now
 from orbitct_app.service.core.errors import (
     ApiError,
     Conflict,
+    InsufficientStorage,
     Invalid,
     NotFound,
     Unavailable,
 )
 from orbitct_app.service.core.events import EventBus
 from orbitct_app.service.core.files import summarize_scan
-from orbitct_app.service.core.children import Backoff
 
 log = logging.getLogger("orbitct.service.rig")
 _CTX = mp.get_context("spawn")
 ERROR_KINDS: dict[str, type[ApiError]] = {"invalid": Invalid, "conflict": Conflict, "not_found": NotFound,
-                                          "unavailable": Unavailable, "error": Unavailable}
+                                          "unavailable": Unavailable, "error": Unavailable,
+                                          "insufficient_storage": InsufficientStorage}
 
 
 @dataclass

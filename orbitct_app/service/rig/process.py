@@ -54,7 +54,7 @@ def _plain(value: Any) -> Any:
 
 def classify(exc: BaseException) -> tuple[str, str]:
     """``(kind, message)`` of an error raised by a command."""
-    from acquire.errors import AcquireError, ScanStateError
+    from acquire.errors import AcquireError, DiskSpaceError, ScanStateError
     from devices.errors import (
         DeviceError,
         DeviceTimeoutError,
@@ -70,6 +70,8 @@ def classify(exc: BaseException) -> tuple[str, str]:
         return exc.kind, text
     if isinstance(exc, ScanStateError):
         return "conflict", text
+    if isinstance(exc, DiskSpaceError):
+        return "insufficient_storage", text
     if isinstance(exc, AcquireError):
         return "invalid", text
     if isinstance(exc, OutOfLimitsError):
@@ -255,12 +257,14 @@ class RigServer:
     async def cmd_preflight(self, spec: dict[str, Any]) -> None:
         """Plan the scan and check it against every limit; nothing moves."""
         from acquire.runner import build_plan
+        from acquire.storage import check_room
 
         req = self._request(spec)
         cfg = req.resolved_config()
         if self.rig is None:
             raise CommandError("unavailable", "no devices are connected")
         plan = build_plan(req, cfg)
+        check_room(req.out, plan.panel, plan.n_frames, cfg.storage.reserve_mb)
         await self.rig.preflight(plan, req.mode, req.frame_rate_hz or cfg.exposure.frame_rate_hz)
 
     async def cmd_start_scan(self, scan_id: str, spec: dict[str, Any]) -> None:
@@ -287,8 +291,13 @@ class RigServer:
             state, reason = "aborted", "cancelled"
         except Exception as exc:  # noqa: BLE001 - pre-flight refusals, configuration and device errors
             state, reason = "failed", classify(exc)[1]
-        finally:
-            summary = await asyncio.get_running_loop().run_in_executor(None, summarize_scan, path) if path.exists() else {}
+        finally:  # the service hears how every scan ended, whatever its file looks like
+            summary: dict[str, Any] = {}
+            try:
+                if path.exists():
+                    summary = await asyncio.get_running_loop().run_in_executor(None, summarize_scan, path)
+            except Exception as exc:  # noqa: BLE001
+                summary = {"error": f"scan file unreadable: {type(exc).__name__}: {exc}".replace(str(path), path.name)}
             if timing:
                 summary["timing"], summary["elapsed_s"] = timing, elapsed
             self.scan_id, self.runner = None, None

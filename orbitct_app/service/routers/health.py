@@ -19,14 +19,18 @@ class Health(BaseModel):
     bench: str
     guard: str = Field(description="the stop listener: listening, starting, restarting or failed")
     estop: str = Field(description="latched (no motion or X-rays until an operator resets it) or clear")
+    disk: str = Field(description="the data directory's disk: ok, low (less free than the bench's storage.reserve_mb: "
+                      "scans are refused) or full (under 4 MB: nothing can be recorded)")
 
 
 @router.get("/health", response_model=Health, summary="Liveness, bench connection and emergency-stop latch")
 async def health(service: ServiceDep) -> Health:
-    """``ok`` when the bench is connected, the guard listens and no stop is latched; ``degraded`` otherwise."""
+    """``ok`` when the bench is connected, the guard listens, no stop is latched and the disk has room; ``degraded``
+    otherwise."""
     bench = service.rig.connection_state.split(":")[0]  # the reasons stay behind authentication
     guard = service.guard.state.split(":")[0]
     latched = service.latch.latched
-    ok = bench == "connected" and guard == "listening" and not latched
+    disk, _ = service.disk()
+    ok = bench == "connected" and guard == "listening" and not latched and disk == "ok"
     return Health(status="ok" if ok else "degraded", version=__version__, bench=bench, guard=guard,
-                  estop="latched" if latched else "clear")
+                  estop="latched" if latched else "clear", disk=disk)

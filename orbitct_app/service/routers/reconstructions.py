@@ -12,7 +12,12 @@ from fastapi.responses import FileResponse
 from PIL import Image
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from orbitct_app.service.core.errors import ERROR_RESPONSES, Conflict, Invalid
+from orbitct_app.service.core.errors import (
+    ERROR_RESPONSES,
+    Conflict,
+    ErrorBody,
+    Invalid,
+)
 from orbitct_app.service.core.files import confined
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
 from orbitct_app.service.routers.calibrations import ScanId, check_scan_ready, submit
@@ -40,7 +45,9 @@ class ReconstructionRequest(BaseModel):
     mar: bool = Field(False, description="metal artifact reduction")
     stream: Literal["auto", "memory", "file"] = Field(
         "auto", description="PWLS data held in memory or re-read from the scan file each iteration (auto: memory while it fits)")
-    name: str | None = Field(None, pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$", description="name under /recon in the scan file")
+    name: str | None = Field(None, pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$",
+                             description="name under /recon in the scan file (default ALGORITHM_GEOMETRY[_mar])")
+    overwrite: bool = Field(False, description="replace a reconstruction of that name already in the scan file")
 
     @model_validator(mode="after")
     def _size(self) -> "ReconstructionRequest":
@@ -49,23 +56,41 @@ class ReconstructionRequest(BaseModel):
         return self
 
 
-def _has_geometry(service: Any, scan: dict[str, Any], name: str) -> bool:
-    if name in scan["summary"].get("geometries", []):
+def _file_facts(service: Any, scan: dict[str, Any]) -> tuple[list[str], list[str]]:
+    """Geometries and reconstruction names the scan file holds now (the file is the truth; the record is a
+    summary that a kill may have left behind)."""
+    from orbitct.scanfile import ScanFile
+
+    try:
+        with ScanFile(service.settings.data_dir / scan["file"]) as sf:
+            return [g for g in ("nominal", "calibrated", "truth") if sf.has_geometry(g)], sf.recon_names()
+    except Exception:  # noqa: BLE001 - a job writing it right now: its record is the best there is
+        return list(scan["summary"].get("geometries", [])), list(scan["summary"].get("recon", []))
+
+
+def _has_geometry(service: Any, scan: dict[str, Any], name: str, in_file: list[str]) -> bool:
+    if name in in_file:
         return True
-    if name == "calibrated":
+    if name == "calibrated":  # a calibration queued or running ahead of this job will write it
         jobs = service.store.list_jobs(kind="calibration", scan_id=scan["id"], limit=500)
-        return any(j["state"] in ("queued", "running", "succeeded") for j in jobs)
+        return any(j["state"] in ("queued", "running") for j in jobs)
     return False
 
 
 @router.post("", response_model=JobOut, status_code=202, summary="Start a reconstruction job",
-             responses={409: {"description": "the scan is not complete, or lacks the requested geometry"}})
+             responses={409: {"model": ErrorBody, "description": "the scan is not complete, lacks the requested "
+                              "geometry, or already has a reconstruction of that name (without overwrite)"}})
 def start_reconstruction(body: ReconstructionRequest, service: ServiceDep, who: Analyst, response: Response) -> JobOut:
     """Queue a reconstruction; progress (iteration, cost) on ``/jobs/{id}/events``."""
     scan = check_scan_ready(service, body.scan_id)
-    if not _has_geometry(service, scan, body.geometry):
+    geometries, recons = _file_facts(service, scan)
+    if not _has_geometry(service, scan, body.geometry, geometries):
         hint = " (run a calibration first)" if body.geometry == "calibrated" else ""
         raise Conflict(f"scan {body.scan_id} has no {body.geometry} geometry{hint}")
+    name = body.name or f"{body.algorithm}_{body.geometry}" + ("_mar" if body.mar else "")
+    if name in recons and not body.overwrite:
+        raise Conflict(f"scan {body.scan_id} already has a reconstruction named {name!r}; send \"overwrite\": true "
+                       "to replace it, or another \"name\"")
     return submit(service, "reconstruction", body, who.name, response)
 
 

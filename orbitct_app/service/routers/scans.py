@@ -13,6 +13,7 @@ from orbitct.orbits import ORBIT_KINDS
 from orbitct_app.service.core.errors import (
     ERROR_RESPONSES,
     Conflict,
+    ErrorBody,
     FieldProblem,
     Invalid,
     validation_details,
@@ -110,7 +111,9 @@ def _check_params(service: Any, body: ScanCreate) -> dict[str, Any]:
 
 
 @router.post("", response_model=ScanOut, status_code=202, summary="Start a scan",
-             responses={409: {"description": "the bench is busy with another scan, or an emergency stop is latched"},
+             responses={409: {"model": ErrorBody, "description": "the bench is busy with another scan, or an emergency stop is latched"},
+                        507: {"model": ErrorBody, "description": "the scan would not fit on the data directory's disk with the reserve "
+                                             "(storage.reserve_mb) left: the message gives the numbers"},
                         202: {"headers": {"Location": {"description": "URL of the new scan", "schema": {"type": "string"}}}}})
 def start_scan(body: ScanCreate, service: ServiceDep, who: ScanOperator, response: Response) -> ScanOut:
     """Check the orbit against every limit, then start it; returns at once (progress on ``/scans/{id}/events``)."""

@@ -1,4 +1,4 @@
-"""Tokens stored as hashes, the ``token create`` command, 401 and 403 on every mutating endpoint."""
+"""Tokens stored as hashes, the ``token create|list|revoke`` commands, 401 and 403 on every mutating endpoint."""
 
 from __future__ import annotations
 
@@ -60,6 +60,26 @@ def test_cli_token_create_prints_once_and_stores_hash(tmp_path: Path) -> None:
     assert stored == [{"sha256": hash_token(printed), "role": "viewer", "name": "bob"}]
     bad = CliRunner().invoke(token, ["create", "--role", "admin", "--data-dir", str(tmp_path)])
     assert bad.exit_code != 0
+
+
+def test_cli_token_list_and_revoke(tmp_path: Path, shared_api) -> None:  # type: ignore[no-untyped-def]
+    def cli(*args: str):  # type: ignore[no-untyped-def]
+        return CliRunner().invoke(token, [*args, "--tokens-file", str(tokens_file)])
+
+    tokens_file = shared_api.data_dir / "tokens.json"
+    assert cli("create", "--role", "viewer", "--name", "carol").exit_code == 0
+    tok = create_token(tokens_file, "viewer", "dave")
+    assert shared_api.get("/scans", role=None, headers={"Authorization": f"Bearer {tok}"}).status_code == 200
+    listed = cli("list")
+    assert listed.exit_code == 0 and "carol" in listed.stdout and hash_token(tok)[:12] in listed.stdout
+    assert tok not in listed.output
+    assert "exists already" in cli("create", "--role", "viewer", "--name", "carol").output
+    gone = cli("revoke", hash_token(tok)[:10])
+    assert gone.exit_code == 0 and "revoked dave" in gone.stdout
+    assert shared_api.get("/scans", role=None, headers={"Authorization": f"Bearer {tok}"}).status_code == 401
+    missing = cli("revoke", "nobody")
+    assert missing.exit_code == 1 and "no token named 'nobody'" in missing.output and "carol" in missing.output
+    assert cli("revoke", "carol").exit_code == 0 and "carol" not in cli("list").stdout
 
 
 def test_no_default_token_outside_sim() -> None:

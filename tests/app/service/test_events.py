@@ -7,7 +7,17 @@ import threading
 from pathlib import Path
 
 from orbitct_app.service.core.db import Store
-from orbitct_app.service.core.events import EventBus
+from hypothesis import given
+from hypothesis import strategies as st
+
+from orbitct_app.service.core.events import EventBus, event_id_after
+
+
+@given(st.text(max_size=30))
+def test_any_last_event_id_header_parses_to_a_sequence_number(header: str) -> None:
+    after = event_id_after(header)
+    assert isinstance(after, int) and after >= 0
+    assert after == (int(header) if header.isascii() and header.isdigit() else 0)
 
 
 def test_events_from_many_threads_keep_one_order(tmp_path: Path) -> None:

@@ -61,6 +61,9 @@ def test_job_runs_in_a_worker_with_ordered_progress(api, workload) -> None:  # t
     # resume after an id
     later = parse_sse(api.get(f"/jobs/{job_id}/events", headers={"Last-Event-ID": str(events[-3]["id"])}).text)
     assert [e["id"] for e in later] == [e["id"] for e in events[-2:]]
+    for odd in (b"\xb2", b"-1", b"1e3", b" 7", b"x" * 20):  # not an id (b"\xb2" is "²"): the whole stream again
+        again = api.get(f"/jobs/{job_id}/events", headers={"Last-Event-ID": odd})
+        assert again.status_code == 200 and len(parse_sse(again.text)) == len(events), odd
     log = [line["line"] for line in api.get(f"/jobs/{job_id}/log").json()]
     assert log[0].startswith("started calibration") and log[-1] == "succeeded"
 

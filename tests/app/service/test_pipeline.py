@@ -79,3 +79,12 @@ def test_scan_calibrate_reconstruct(api, tmp_path: Path) -> None:  # type: ignor
     r = api.get(f"/reconstructions/{rec_id}/volume")
     assert r.status_code == 200 and r.content[:2] == b"\x1f\x8b"  # gzip-compressed NIfTI
     assert [j["id"] for j in api.get("/jobs", params={"scan_id": scan_id}).json()] == [rec_id, cal_id]
+
+    # the same reconstruction again: the name is taken in the scan file; replaced only when asked
+    again = {"scan_id": scan_id, "algorithm": "fdk", "geometry": "calibrated", "shape": [8, 8, 8]}
+    r = api.post("/reconstructions", role="analyst", json=again)
+    assert r.status_code == 409 and "already has a reconstruction named 'fdk_calibrated'" in r.json()["message"]
+    assert '"overwrite": true' in r.json()["message"]
+    r = api.post("/reconstructions", role="analyst", json={**again, "overwrite": True})
+    assert r.status_code == 202, r.text
+    assert wait_for(api, f"/jobs/{r.json()['id']}", ended, 300)["state"] == "succeeded"

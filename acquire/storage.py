@@ -1,0 +1,92 @@
+"""Disk space for a scan file: estimated before the scan starts, watched while it runs.
+
+A scan is refused before anything moves when its estimated size plus the reserve
+(``storage.reserve_mb``) does not fit; while it runs, the recorder stops it cleanly when
+less than half the reserve plus two frames is left, so the file is always closed with
+room to spare and never cut by a full disk.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from acquire.errors import DiskSpaceError
+from orbitct.geometry import Panel
+
+MB = 1024 * 1024
+# per frame besides the pixels: nominal vector and matrix, true vector, time, image key, encoders and
+# commanded positions of up to 8 axes, injected errors; plus the HDF5 chunk index (rounded up)
+_META_PER_FRAME_BYTES = 12 * 8 * 3 + 8 + 1 + 2 * 8 * 8 + 6 * 8 + 64
+_FIXED_BYTES = 2 * MB  # groups, attributes, configuration, truth markers, the file's own structures
+
+
+def format_bytes(n: float) -> str:
+    """Human-readable size: ``512 kB``, ``37.1 MB``, ``2.40 GB``."""
+    if n < MB:
+        return f"{n / 1024:.0f} kB"
+    if n < 1024 * MB:
+        return f"{n / MB:.1f} MB"
+    return f"{n / (1024 * MB):.2f} GB"
+
+
+def frame_bytes(panel: Panel, frame_dtype: str = "uint16") -> int:
+    """Bytes one frame takes in the file, its metadata included."""
+    return panel.rows * panel.cols * np.dtype(frame_dtype).itemsize + _META_PER_FRAME_BYTES
+
+
+def scan_bytes(panel: Panel, n_frames: int, frame_dtype: str = "uint16") -> int:
+    """Estimated size of a scan file of ``n_frames`` frames (uncompressed)."""
+    return int(n_frames) * frame_bytes(panel, frame_dtype) + _FIXED_BYTES
+
+
+def free_bytes(path: str | os.PathLike[str]) -> int:
+    """Free bytes, for this user, on the filesystem that holds ``path`` (its nearest existing folder)."""
+    folder = Path(path).resolve()
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    return shutil.disk_usage(folder).free
+
+
+def check_room(out: str | os.PathLike[str], panel: Panel, n_frames: int, reserve_mb: float,
+               frame_dtype: str = "uint16") -> int:
+    """Refuse a scan whose file would not fit with ``reserve_mb`` left; returns the estimated size in bytes."""
+    need = scan_bytes(panel, n_frames, frame_dtype)
+    reserve = int(reserve_mb * MB)
+    free = free_bytes(Path(out).parent)
+    if free < need + reserve:
+        raise DiskSpaceError(
+            f"not enough disk space for {Path(out).name}: the scan needs about {format_bytes(need)} "
+            f"({n_frames} frames of {panel.rows}x{panel.cols} {frame_dtype}) and {format_bytes(reserve)} must stay free "
+            f"(storage.reserve_mb), but only {format_bytes(free)} is free in {Path(out).parent}; "
+            "free some space or write the scan elsewhere; nothing moved"
+        )
+    return need
+
+
+@dataclass
+class SpaceWatch:
+    """Checked before every frame is written: stops the scan while there is still room to close its file."""
+
+    folder: Path
+    frame_bytes: int
+    reserve_bytes: int
+
+    @property
+    def floor_bytes(self) -> int:
+        """Free space below which the next frame is not written."""
+        return 2 * self.frame_bytes + self.reserve_bytes // 2
+
+    def check(self, frames_written: int) -> None:
+        """Raise :class:`DiskSpaceError` when the next frame would leave less than :attr:`floor_bytes` free."""
+        free = free_bytes(self.folder)
+        if free < self.floor_bytes:
+            raise DiskSpaceError(
+                f"disk nearly full: {format_bytes(free)} free in {self.folder}, less than two frames plus half "
+                f"the reserve ({format_bytes(self.floor_bytes)}, storage.reserve_mb); the scan stopped with its "
+                f"{frames_written} frames kept"
+            )

@@ -1,0 +1,75 @@
+"""``orbitct scan`` onto a small filesystem that really fills up: refused up front with the numbers, or stopped
+cleanly before the disk is full, every written frame readable by ``orbitct inspect`` and the file repairable."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from orbitct.scanfile import ScanFile
+from orbitct_app.cli.main import cli
+from tests.helpers.bench import small_config
+from tests.helpers.smallfs import fill, small_filesystem
+
+pytestmark = [pytest.mark.system, pytest.mark.timeout(180)]
+ROOT = Path(__file__).resolve().parents[3]
+MB = 1 << 20
+
+
+def _config(tmp_path: Path, reserve_mb: float) -> Path:
+    data = small_config().model_dump(mode="json")
+    data["geometry"]["detector"] = {"rows": 256, "cols": 256}  # 128 kB per frame
+    data["storage"] = {"reserve_mb": reserve_mb}
+    p = tmp_path / "bench.yaml"
+    p.write_text(yaml.safe_dump(data))
+    return p
+
+
+def test_a_scan_that_cannot_fit_is_refused_before_anything_moves(tmp_path: Path) -> None:
+    with small_filesystem(tmp_path / "disk", 8) as disk:
+        out = disk / "scan.h5"
+        result = CliRunner().invoke(cli, ["scan", "--config", str(_config(tmp_path, 1.0)), "--orbit", "circular",
+                                          "--frames", "120", "--sim", "--out", str(out)])
+        assert result.exit_code == 2, result.output
+        assert "not enough disk space" in result.output and "126 frames of 256x256" in result.output
+        assert "storage.reserve_mb" in result.output and "nothing moved" in result.output
+        assert not out.exists() and "Traceback" not in result.output
+
+
+def test_a_disk_filling_up_mid_scan_stops_it_cleanly_with_every_frame_kept(tmp_path: Path) -> None:
+    with small_filesystem(tmp_path / "disk", 24) as disk:
+        out = disk / "scan.h5"
+        cmd = [sys.executable, "-m", "orbitct_app.cli.main", "scan", "--config", str(_config(tmp_path, 2.0)),
+               "--orbit", "circular", "--frames", "120", "--sim", "--out", str(out)]
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                env={**os.environ, "PYTHONPATH": str(ROOT)})
+        t0 = time.monotonic()
+        while not out.exists() or out.stat().st_size < 4 * MB:  # the file exists and holds some frames
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() - t0 < 90, "the scan did not start"
+            time.sleep(0.01)
+        filler = fill(disk, leave_bytes=int(1.5 * MB))  # another program takes the space
+        _, err = proc.communicate(timeout=90)
+        assert proc.returncode == 1, err
+        assert "disk nearly full" in err and "frames kept" in err and "Traceback" not in err
+        with ScanFile(out) as sf:
+            assert sf.status == "aborted" and "disk nearly full" in sf.status_reason
+            n = sf.n_frames
+            assert 10 <= n < 126
+            assert sf.frames[n - 1].max() > 0  # the last frame is there, not a hole
+            assert sf.truth_markers_xyz() is not None  # the truth is written at the start
+        shown = CliRunner().invoke(cli, ["inspect", str(out)])
+        assert shown.exit_code == 0 and "aborted" in shown.output, shown.output
+        repaired = CliRunner().invoke(cli, ["scan", "repair", str(out)])
+        assert repaired.exit_code == 0, repaired.output
+        filler.unlink()
+        again = CliRunner().invoke(cli, ["scan", "--config", str(_config(tmp_path, 2.0)), "--orbit", "circular",
+                                         "--frames", "20", "--sim", "--out", str(disk / "after.h5")])
+        assert again.exit_code == 0, again.output
