@@ -13,7 +13,7 @@ import contextlib
 import logging
 import time
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import Any, Protocol, runtime_checkable
 
@@ -85,6 +85,27 @@ class SweepRig(Rig, Protocol):
 
     async def sweep_position(self) -> float:
         """Read-back of ``sweep_axis``."""
+
+
+@runtime_checkable
+class PreparingRig(Rig, Protocol):
+    """A rig whose X-ray source can get ready while the axes move to the next projection.
+
+    ``prep_s``: how long the source takes to get ready (wall clock).
+    """
+
+    prep_s: float
+
+    async def prepare_exposure(self) -> None:
+        """Bring the source up for the next exposure (it drops again by itself if no exposure follows)."""
+
+
+@dataclass
+class _Preparation:
+    """A preparation of the source scheduled during a move: its task, and whether it has begun talking to it."""
+
+    task: asyncio.Future[None] = field(default=None)  # type: ignore[assignment]
+    started: bool = False
 
 
 @dataclass(frozen=True)
@@ -159,6 +180,7 @@ class ScanEngine:
         self._readback_s = 0.0
         self._record_s = 0.0
         self._run_s = 0.0
+        self._move_s: float | None = None  # estimated move + settle to the next projection
 
     # ------------------------------------------------------------- control
     def pause(self) -> None:
@@ -342,7 +364,8 @@ class ScanEngine:
 
     async def _run_step(self, t0: float) -> None:
         """Move, wait on target, settle, expose, read. With ``motion.overlap_readout`` the move to the
-        next frame starts once the exposure is over, while the panel is read out and the frame recorded."""
+        next frame starts once the exposure is over, while the panel is read out and the frame recorded.
+        A :class:`PreparingRig` prepares its source during the move to a projection."""
         frames = list(self.plan)
         settle_s = self.motion.settle_ms / 1000.0
         timeout = self.motion.move_timeout_s
@@ -354,17 +377,28 @@ class ScanEngine:
                 cmd = f.targets
                 if cmd != last:
                     t_m = time.monotonic()
-                    arrived = False
-                    if ahead is not None:
-                        cmd_ahead, move = ahead
-                        ahead = None
-                        await move
-                        arrived = cmd_ahead == cmd
-                    if not arrived:
-                        await self.rig.move_to(cmd, timeout)
-                    if settle_s > 0:
-                        await asyncio.sleep(settle_s)
-                    self._record_motion(t_m)
+                    prep = self._prepare_during_move() if f.image_key == ImageKey.PROJECTION else None
+                    try:
+                        arrived = False
+                        if ahead is not None:
+                            cmd_ahead, move = ahead
+                            ahead = None
+                            await move
+                            arrived = cmd_ahead == cmd
+                        if not arrived:
+                            await self.rig.move_to(cmd, timeout)
+                        if settle_s > 0:
+                            await asyncio.sleep(settle_s)
+                        self._record_motion(t_m)
+                        if prep is not None:
+                            self._learn_move(time.monotonic() - t_m)
+                            if prep.started:  # under way: let it finish; not yet: the exposure prepares itself
+                                await prep.task
+                    finally:  # done, failed or aborted: no preparation outlives the move (cancelled: X-rays off)
+                        if prep is not None and not prep.task.done():
+                            prep.task.cancel()
+                            with contextlib.suppress(BaseException):
+                                await prep.task
                     last = cmd
                 nxt = frames[k + 1] if k + 1 < len(frames) else None
                 start_next: Callable[[], None] | None = None
@@ -380,6 +414,31 @@ class ScanEngine:
                 for move in done:
                     if not move.cancelled():
                         move.exception()
+
+    def _prepare_during_move(self) -> _Preparation | None:
+        """Start the source's preparation so that it is ready about when the move to the next projection ends.
+
+        It starts ``prep_s`` before the end the recent moves predict (at once while nothing is known): the
+        preparation no longer adds to the frame time, and high voltage is not on long before the exposure.
+        """
+        if not isinstance(self.rig, PreparingRig):
+            return None
+        rig: PreparingRig = self.rig
+        delay = 0.0 if self._move_s is None else max(0.0, self._move_s - 1.2 * rig.prep_s)
+        prep = _Preparation()
+
+        async def _run() -> None:
+            if delay > 0:
+                await asyncio.sleep(delay)
+            prep.started = True
+            await rig.prepare_exposure()
+
+        prep.task = asyncio.ensure_future(_run())
+        return prep
+
+    def _learn_move(self, seconds: float) -> None:
+        """Running estimate of a move to the next projection, settling included (the recent moves weigh most)."""
+        self._move_s = seconds if self._move_s is None else 0.7 * self._move_s + 0.3 * seconds
 
     async def _run_continuous(self, t0: float) -> None:
         """Darks/flats step-wise; projections while the sweep axis turns at constant speed, triggered at angles."""

@@ -1,10 +1,20 @@
 """Geometric calibration of arbitrary cone-beam orbits from BBs on the object (Ma et al., SPIE 2022, and beyond)."""
 
-from calib.errors import CalibrationError, NoMarkersError, NoNominalGeometryError, NoProjectionsError, OptionError
+from calib.errors import (
+    BadFramesError,
+    CalibrationError,
+    FrameTooLargeError,
+    NoMarkersError,
+    NoNominalGeometryError,
+    NoProjectionsError,
+    OptionError,
+)
 from calib.pipeline import METHODS, CalibrationOptions, CalibrationResult, IterationStats, calibrate_scan
 
 __all__ = [
     "METHODS",
+    "BadFramesError",
+    "FrameTooLargeError",
     "CalibrationError",
     "CalibrationOptions",
     "CalibrationResult",

@@ -21,3 +21,11 @@ class NoMarkersError(CalibrationError):
 
 class OptionError(CalibrationError):
     """An unknown method or option value."""
+
+
+class BadFramesError(CalibrationError):
+    """Frames the calibration needs hold NaN, infinite, all-zero or saturated data; names them."""
+
+
+class FrameTooLargeError(CalibrationError):
+    """One frame would need more memory to process than the machine has available."""

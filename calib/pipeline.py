@@ -18,7 +18,14 @@ from threadpoolctl import threadpool_limits
 from calib.bundle import bundle_adjust
 from calib.detect import FrameDetector, N_FIELDS, _refine, settings_for
 from calib.evaluate import fov_points
-from calib.errors import NoMarkersError, NoNominalGeometryError, NoProjectionsError, OptionError
+from calib.errors import (
+    BadFramesError,
+    FrameTooLargeError,
+    NoMarkersError,
+    NoNominalGeometryError,
+    NoProjectionsError,
+    OptionError,
+)
 from calib.identify import fill_states, identify, usable_views
 from calib.model import INTRINSICS, ViewModel, ViewState
 from calib.paper import paper_calibrate
@@ -26,7 +33,7 @@ from calib.rays import marker_rays, rpe_per_frame, triangulate_least_squares
 from calib.track import TrackingSettings
 from orbitct.geometry import ViewGeometry
 from orbitct.progress import ProgressCallback, report
-from orbitct.scanfile import ScanFile
+from orbitct.scanfile import ImageKey, ScanFile, frame_problem
 from orbitct.statistics import rpe_statistics
 
 METHODS = ("bundle", "paper")
@@ -166,26 +173,43 @@ def _detect(
     total = len(proj)
     step = max(1, total // 100)
     cands: list[NDArray[np.float64]] = [np.zeros((0, N_FIELDS))] * total
+    problems: dict[int, str] = {}
+
+    def checked(buf: NDArray[Any]) -> NDArray[np.float64]:  # a frame that cannot be used yields no candidates
+        why = frame_problem(buf, projection=True)
+        return fd.candidates(buf) if why is None else np.array([why], dtype=object)
+
+    def take(m: int, c: NDArray[Any]) -> None:
+        if c.dtype == object:
+            problems[int(proj[m])] = str(c[0])
+            c = np.zeros((0, N_FIELDS))
+        cands[m] = c
+
     # the main thread reads frames (h5py holds the GIL); workers run the GIL-free kernels
     with ThreadPoolExecutor(max_workers=max(1, opt.workers)) as pool:
-        pending: deque[tuple[int, Future[NDArray[np.float64]]]] = deque()
+        pending: deque[tuple[int, Future[NDArray[Any]]]] = deque()
         for n, i in enumerate(proj):
             buf = np.empty(det.shape, dtype=ds.dtype)
             ds.read_direct(buf, np.s_[int(i)])
             if n == 0:
-                c = fd.candidates(buf)  # also fixes the noise level used for every frame
-                if opt.seeds_uv is not None:
+                c = checked(buf)  # also fixes the noise level used for every frame
+                if opt.seeds_uv is not None and c.dtype != object:
                     c = np.concatenate([_seed_records(buf, fd, np.asarray(opt.seeds_uv, float)), c])
-                cands[0] = c
+                take(0, c)
                 continue
-            pending.append((n, pool.submit(fd.candidates, buf)))
+            pending.append((n, pool.submit(checked, buf)))
             while len(pending) > 2 * max(1, opt.workers) or (pending and pending[0][1].done()):
                 m, fut = pending.popleft()
-                cands[m] = fut.result()
+                take(m, fut.result())
                 if m % step == 0:
                     report(progress, "detect", m + 1, total, "", candidates=float(len(cands[m])))
         for m, fut in pending:
-            cands[m] = fut.result()
+            take(m, fut.result())
+    if problems:
+        shown = ", ".join(f"frame {i} ({why})" for i, why in sorted(problems.items())[:5])
+        more = f" and {len(problems) - 5} more" if len(problems) > 5 else ""
+        raise BadFramesError(f"{sf.path}: {len(problems)} of {total} projections are unusable: {shown}{more}; "
+                             "a geometry fitted to them would be wrong, so none is stored")
     report(progress, "detect", total, total, "")
     return cands, float(diameter_mm), d_px
 
@@ -226,6 +250,18 @@ def _estimate_diameter_mm(
     return guess_mm
 
 
+def _check_frame_memory(sf: ScanFile, copies: int = 12) -> None:
+    """Refuse frames too large to process here: detection holds about ``copies`` float64 images per worker."""
+    import psutil
+
+    need = sf.panel.rows * sf.panel.cols * 8 * copies
+    available = psutil.virtual_memory().available
+    if need > available // 2:
+        raise FrameTooLargeError(
+            f"{sf.path}: a frame of {sf.panel.rows} x {sf.panel.cols} pixels needs about {need / 2**30:.1f} GiB to "
+            f"process and {available / 2**30:.1f} GiB is available; refusing before allocating it")
+
+
 def calibrate_scan(
     path: str | os.PathLike[str],
     *,
@@ -261,6 +297,12 @@ def _calibrate_scan(
     t0 = time.perf_counter()  # the copy above is not part of the calibration time
     with ScanFile(target) as sf:
         sf.refuse_if_acquiring()  # before any work: the result could not be stored
+        _check_frame_memory(sf)
+        bad = sf.frame_problems(np.flatnonzero(np.isin(sf.image_key, (ImageKey.DARK, ImageKey.FLAT))))
+        if bad:
+            shown = ", ".join(f"frame {i} ({why})" for i, why in sorted(bad.items())[:5])
+            raise BadFramesError(f"{target}: dark or flat frames are unusable: {shown}; every projection is "
+                                 "normalised with them")
         proj = sf.projection_indices
         if proj.size == 0:
             raise NoProjectionsError(f"{target}: no projection frames (image_key 0); counts are {sf.count_by_kind()}")
@@ -280,7 +322,8 @@ def _calibrate_scan(
     if uv.shape[1] < 3:
         raise NoMarkersError(
             f"{target}: found {uv.shape[1]} BB(s) seen in at least {min_obs} frames; at least 3 are needed "
-            f"(BB diameter {diameter_mm:.2f} mm = {d_px:.1f} px; try diameter_mm= or k_sigma=)"
+            f"(BB diameter {diameter_mm:.2f} mm = {d_px:.1f} px; if the BBs are another size, give it: "
+            "orbitct calibrate --diameter-mm, or \"diameter_mm\" in POST /calibrations)"
         )
     t1 = time.perf_counter()
     geometry_p, xyz, state, uv, history, n_iter, more = _estimate(method, model, uv, opt, progress)

@@ -221,16 +221,17 @@ def reconstruct_scan(
         if name in scan.recon_names() and not overwrite:
             raise ReconExistsError(scan.path, name)
         frames, geom, dropped = _views(scan, geometry)
-        needed = np.union1d(frames, np.flatnonzero(np.isin(scan.image_key, (ImageKey.DARK, ImageKey.FLAT))))
-        problems = scan.frame_problems(needed)
-        if problems:
-            raise BadFramesError(scan.path, problems, needed.size)
         grid = grid_for_geometry(geom, voxel_mm=voxel_mm, shape=shape)
         fov_fraction = check_fov(grid, geom)
         det = geom.panel
         mode = choose_stream(stream, algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method))
         check_memory(estimate_bytes(algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method), mode),
-                     f"{algorithm} of {frames.size} views onto {grid.shape} voxels")
+                     f"{scan.path}: {algorithm} of {frames.size} views of {det.rows} x {det.cols} pixels onto "
+                     f"{grid.shape} voxels")
+        needed = np.union1d(frames, np.flatnonzero(np.isin(scan.image_key, (ImageKey.DARK, ImageKey.FLAT))))
+        problems = scan.frame_problems(needed)  # after the memory check: it reads every frame it needs
+        if problems:
+            raise BadFramesError(scan.path, problems, needed.size)
         cost: list[float] = []
         extra: dict[str, Any] = {}
         if algorithm == "fdk" and not mar_method:

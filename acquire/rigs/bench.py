@@ -251,6 +251,14 @@ class BenchRig:
         return await within(stall.frame_s, det, "delivered no frame after the exposure", "stall.frame_s",
                             self.detector.read_frame())
 
+    async def prepare_exposure(self) -> None:
+        """High voltage up while the axes move to the next projection, so the preparation overlaps the move;
+        if the exposure comes later than the preparation time after READY, the generator's hold drops it again."""
+        stall, ex = self.config.stall, self.config.exposure
+        bound = stall.exposure_s + ex.prep_ms / 1000.0
+        await within(bound, self.xray.name, "did not get ready for the exposure", "stall.exposure_s",
+                     self.xray.prepare())
+
     def _resynchronise(self) -> None:
         """After a cancelled exchange a reply may still be in flight: the GCS links reconnect before the next one."""
         for dev in (self.hexapod, self.stage):

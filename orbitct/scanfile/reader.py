@@ -21,11 +21,74 @@ from orbitct.scanfile.writer import FORMAT, STATUSES, VERSION
 GEOMETRY_NAMES = ("nominal", "calibrated", "truth")
 
 
-class ScanFile(ScanResults):
-    """An open scan file, checked against ``scan-file.md`` on open. Use as a context manager."""
+def frame_problem(frame: NDArray[Any], projection: bool) -> str | None:
+    """Why a frame must not be used, or None: NaN or infinite pixels (any frame); a projection with no pixel above
+    zero (no signal) or saturated (more than half its pixels at the uint16 maximum)."""
+    if frame.dtype.kind == "f":
+        bad = int(frame.size - np.count_nonzero(np.isfinite(frame)))
+        if bad:
+            return f"{bad} pixels NaN or infinite"
+    if not projection:
+        return None
+    if not (frame > 0).any():
+        return "all zero (no signal)" if not frame.any() else "no pixel above zero (no signal)"
+    if frame.dtype == np.uint16:
+        frac = np.count_nonzero(frame == 65535) / frame.size
+        if frac > 0.5:
+            return f"saturated ({frac:.0%} of pixels at 65535)"
+    return None
 
-    def __init__(self, path: str | os.PathLike[str], mode: str = "r") -> None:
+
+def _shown(value: Any) -> str:
+    """An attribute value as a person reads it (no numpy reprs)."""
+    if isinstance(value, np.ndarray):
+        return str(value.tolist())
+    if isinstance(value, np.generic):
+        return repr(value.item())
+    return repr(value)
+
+
+def _integer(value: Any) -> int:
+    """An integer attribute (a float that is whole is accepted; text, arrays and fractions are not)."""
+    if isinstance(value, (bytes, str)) or np.ndim(value) != 0:
+        raise ValueError(value)
+    number = float(value)
+    if not number.is_integer():
+        raise ValueError(value)
+    return int(number)
+
+
+def _degenerate_views(v: NDArray[np.float64], proj: NDArray[np.bool_]) -> dict[str, NDArray[np.intp]]:
+    """Projection views no camera can have: zero or parallel detector axes, a source in the detector plane."""
+    S, D, u, v_ = v[:, 0:3], v[:, 3:6], v[:, 6:9], v[:, 9:12]
+    nu, nv = np.linalg.norm(u, axis=1), np.linalg.norm(v_, axis=1)
+    n = np.cross(u, v_)
+    nn = np.linalg.norm(n, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        height = np.abs(np.einsum("ij,ij->i", S - D, n)) / nn
+    out: dict[str, NDArray[np.intp]] = {}
+    checks = {
+        "a detector axis has zero length": (nu == 0) | (nv == 0),
+        "the detector axes u and v are parallel": (nu > 0) & (nv > 0) & (nn <= 1e-9 * nu * nv),
+        "the source lies in the detector plane": (nn > 1e-9 * nu * nv) & ~(height > 1e-6),
+    }
+    for why, hit in checks.items():
+        frames = np.flatnonzero(proj & hit)
+        if frames.size:
+            out[why] = frames
+    return out
+
+
+class ScanFile(ScanResults):
+    """An open scan file, checked against ``scan-file.md`` on open. Use as a context manager.
+
+    Data stored outside the file (external links, raw external storage, virtual datasets) is refused unless
+    ``allow_external``: the file alone must be the record of the scan.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], mode: str = "r", *, allow_external: bool = False) -> None:
         self.path = Path(path)
+        self.allow_external = allow_external
         if mode not in ("r", "r+"):
             raise ScanFileError(f"{self.path}: mode must be 'r' or 'r+', got {mode!r}")
         if not self.path.is_file():
@@ -44,35 +107,41 @@ class ScanFile(ScanResults):
     def _validate(self) -> None:
         f = self._f
         fmt = f.attrs.get("format")
+        if fmt is None:
+            raise self._fail(f"not an orbitct scan file (an HDF5 file without the /@format attribute {FORMAT!r})")
         if fmt != FORMAT:
-            raise self._fail(f"format tag is {fmt!r}, expected {FORMAT!r}")
+            raise self._fail(f"not an orbitct scan file (format tag is {_shown(fmt)}, expected {FORMAT!r})")
         ver = f.attrs.get("version")
         try:
             ok_version = ver is not None and int(ver) == VERSION
         except (TypeError, ValueError):
             ok_version = False
         if not ok_version:
-            shown = ver.item() if isinstance(ver, np.generic) else ver
-            raise self._fail(f"version is {shown!r}, this reader supports version {VERSION}")
+            got = "has no /@version attribute" if ver is None else f"is version {_shown(ver)}"
+            raise self._fail(f"{got}; this reader supports version {VERSION}")
         status = f.attrs.get("status", "complete")
         if status not in STATUSES:
-            raise self._fail(f"status is {status!r}, expected one of {STATUSES}")
+            raise self._fail(f"status is {_shown(status)}, expected one of {', '.join(STATUSES)}")
         if "detector" not in f:
             raise self._fail("missing group /detector")
         da = f["detector"].attrs
         for key in ("rows", "cols", "pitch_mm"):
             if key not in da:
                 raise self._fail(f"missing attribute /detector@{key}")
-        pitch = np.asarray(da["pitch_mm"], dtype=float).ravel()
+        try:
+            pitch = np.asarray(da["pitch_mm"], dtype=float).ravel()
+            rows, cols = _integer(da["rows"]), _integer(da["cols"])
+        except (TypeError, ValueError):
+            raise self._fail(f"/detector@rows, cols and pitch_mm must be numbers, got {_shown(da['rows'])}, "
+                             f"{_shown(da['cols'])}, {_shown(da['pitch_mm'])}") from None
         if pitch.shape != (2,):
             raise self._fail(f"/detector@pitch_mm must hold 2 numbers [col, row], got {pitch.tolist()}")
         try:
-            self.panel = Panel(int(da["rows"]), int(da["cols"]), float(pitch[0]), float(pitch[1]))
+            self.panel = Panel(rows, cols, float(pitch[0]), float(pitch[1]))
         except GeometryError as exc:
             raise self._fail(f"/detector attributes: {exc}") from None
         for ds in ("frames/data", "frames/image_key"):
-            if ds not in f:
-                raise self._fail(f"missing dataset /{ds}")
+            self._dataset(ds)
         data, key = f["frames/data"], f["frames/image_key"]
         if data.ndim != 3 or data.shape[1:] != self.panel.shape:
             raise self._fail(
@@ -80,9 +149,14 @@ class ScanFile(ScanResults):
             )
         if data.dtype not in (np.uint16, np.float32):
             raise self._fail(f"/frames/data has dtype {data.dtype}, expected uint16 or float32")
+        if key.ndim != 1 or key.dtype.kind not in "iu":
+            raise self._fail(f"/frames/image_key must be 1-D integers, got shape {key.shape} of {key.dtype}")
         lengths = {"/frames/data": data.shape[0], "/frames/image_key": key.shape[0]}
         if "frames/time_s" in f:
-            lengths["/frames/time_s"] = f["frames/time_s"].shape[0]
+            t = self._dataset("frames/time_s")
+            if t.ndim != 1 or t.dtype.kind not in "fiu":
+                raise self._fail(f"/frames/time_s must be 1-D numbers, got shape {t.shape} of {t.dtype}")
+            lengths["/frames/time_s"] = t.shape[0]
         if status == "acquiring":
             n = min(lengths.values())  # a scan still being written, or one that crashed
         else:
@@ -101,25 +175,60 @@ class ScanFile(ScanResults):
                 self._check_geometry(f"geometry/{name}")
         if "truth/geometry" in f:
             self._check_geometry("truth/geometry")
+        for group, key in (("orbit", "params_json"), ("provenance", "config_json"), ("truth", "phantom_json")):
+            self.attrs_json(group, key)
+        if "markers" in f and "diameter_mm" in f["markers"].attrs:
+            d = f["markers"].attrs["diameter_mm"]
+            try:
+                ok = np.ndim(d) == 0 and np.isfinite(float(d)) and float(d) > 0
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise self._fail(f"/markers@diameter_mm must be a positive number of millimetres, got {_shown(d)}")
+
+    def _dataset(self, path: str) -> h5py.Dataset:
+        """The dataset at ``path``: present, a dataset, and stored in this file (unless :attr:`allow_external`)."""
+        parts = path.split("/")
+        for depth in range(1, len(parts) + 1):
+            sub = "/".join(parts[:depth])
+            link = self._f.get(sub, getlink=True)
+            if link is None:
+                raise self._fail(f"missing dataset /{path}")
+            if isinstance(link, h5py.ExternalLink) and not self.allow_external:
+                raise self._fail(f"/{sub} is a link into another file ({link.filename}); a scan file must hold its "
+                                 "own data (Python: ScanFile(..., allow_external=True) if that is intended)")
+        ds = self._f[path]
+        if not isinstance(ds, h5py.Dataset):
+            raise self._fail(f"/{path} must be a dataset, found a {type(ds).__name__.lower()}")
+        if not self.allow_external and (ds.external or ds.is_virtual):
+            where = "raw external files" if ds.external else "other files (a virtual dataset)"
+            raise self._fail(f"/{path} is stored in {where}; a scan file must hold its own data "
+                             "(Python: ScanFile(..., allow_external=True) if that is intended)")
+        return ds
 
     def _check_geometry(self, group: str) -> None:
         g = self._f[group]
-        if "vectors" not in g:
-            raise self._fail(f"missing dataset /{group}/vectors")
-        vec = g["vectors"]
-        if vec.ndim != 2 or vec.shape[1] != 12 or vec.shape[0] < self.n_frames:
-            raise self._fail(f"/{group}/vectors has shape {vec.shape}, expected ({self.n_frames}, 12)")
+        if not isinstance(g, h5py.Group):
+            raise self._fail(f"/{group} must be a group")
+        vec = self._dataset(f"{group}/vectors")
+        if vec.ndim != 2 or vec.shape[1] != 12 or vec.shape[0] < self.n_frames or vec.dtype.kind not in "fiu":
+            raise self._fail(f"/{group}/vectors has shape {vec.shape} of {vec.dtype}, expected ({self.n_frames}, 12) "
+                             "numbers")
         if "matrices" in g and (g["matrices"].shape[1:] != (3, 4) or g["matrices"].shape[0] < self.n_frames):
             raise self._fail(f"/{group}/matrices has shape {g['matrices'].shape}, expected ({self.n_frames}, 3, 4)")
         if group == "geometry/calibrated":
             return  # calibration may leave NaN for views it could not solve
         v = np.asarray(vec[: self.n_frames])
-        bad = np.flatnonzero((self.image_key == ImageKey.PROJECTION) & ~np.isfinite(v).all(axis=1))
+        proj = self.image_key == ImageKey.PROJECTION
+        bad = np.flatnonzero(proj & ~np.isfinite(v).all(axis=1))
         if bad.size:
             raise self._fail(
                 f"/{group}/vectors is not finite on projection frames {bad[:5].tolist()}"
                 + (" ..." if bad.size > 5 else "")
             )
+        for why, frames in _degenerate_views(v, proj).items():
+            raise self._fail(f"/{group}/vectors: {why} on projection frames {frames[:5].tolist()}"
+                             + (" ..." if frames.size > 5 else ""))
 
     # ------------------------------------------------------------- metadata
     @property
@@ -163,11 +272,17 @@ class ScanFile(ScanResults):
         return {name: np.asarray(ds[: self.n_frames], dtype=float) for name, ds in g.items()}
 
     def attrs_json(self, group: str, key: str) -> Any:
-        """Decode a JSON attribute (``{}`` when missing)."""
+        """Decode a JSON object attribute (``{}`` when missing)."""
         g = self._f.get(group)
         if g is None or key not in g.attrs:
             return {}
-        return json.loads(g.attrs[key])
+        try:
+            value = json.loads(g.attrs[key])
+        except (TypeError, ValueError) as exc:
+            raise self._fail(f"/{group}@{key} is not valid JSON ({exc})") from None
+        if not isinstance(value, dict):
+            raise self._fail(f"/{group}@{key} must be a JSON object, got {type(value).__name__}")
+        return value
 
     @property
     def orbit(self) -> tuple[str, dict[str, Any]]:
@@ -241,26 +356,13 @@ class ScanFile(ScanResults):
             yield int(i), self.line_integrals(int(i))
 
     def frame_problems(self, indices: Sequence[int] | None = None) -> dict[int, str]:
-        """Frames that must not be used, with why: NaN or infinite pixels (any frame), and projections that are all
-        zero (no signal) or saturated (more than half the pixels at the uint16 maximum). Reads each frame once."""
+        """Frames that must not be used, with why (:func:`frame_problem`); reads each frame once."""
         idx = range(self.n_frames) if indices is None else [int(i) for i in indices]
-        top = np.iinfo(np.uint16).max if self.frames.dtype == np.uint16 else None
         out: dict[int, str] = {}
         for i in idx:
-            a = np.asarray(self.frames[i])
-            if a.dtype.kind == "f":
-                bad = int(a.size - np.count_nonzero(np.isfinite(a)))
-                if bad:
-                    out[i] = f"{bad} pixels NaN or infinite"
-                    continue
-            if self.image_key[i] != ImageKey.PROJECTION:
-                continue
-            if not a.any():
-                out[i] = "all zero (no signal)"
-            elif top is not None:
-                frac = np.count_nonzero(a == top) / a.size
-                if frac > 0.5:
-                    out[i] = f"saturated ({frac:.0%} of pixels at {top})"
+            why = frame_problem(np.asarray(self.frames[i]), self.image_key[i] == ImageKey.PROJECTION)
+            if why is not None:
+                out[i] = why
         return out
 
     # --------------------------------------------------------------- markers

@@ -82,7 +82,10 @@ class Service:
             summary: dict[str, object] = {}
             if path is not None and path.exists():
                 summary = self._repair(path)
-            self.store.update_scan(scan_id, summary=summary)
+            fields: dict[str, object] = {"summary": summary}
+            if isinstance(summary.get("n_frames"), int):
+                fields["frames_done"] = summary["n_frames"]  # the record follows the file
+            self.store.update_scan(scan_id, **fields)
             self.bus.publish(f"scan:{scan_id}", "end", {"state": "interrupted", "reason": RESTART_REASON})
         for job_id in job_ids:
             self.bus.publish(f"job:{job_id}", "end", {"state": "interrupted", "reason": RESTART_REASON})

@@ -153,3 +153,25 @@ def test_device_fault_ends_scan_safely_with_clear_reason(request_factory, fault:
     _run_with_bench(req, scenario)
     with ScanFile(req.out) as sf:
         assert sf.status == "aborted" and expected.lower() in sf.status_reason.lower()
+
+
+def test_the_source_prepares_during_the_move_not_after_it(request_factory) -> None:
+    """Step mode with high voltage off between exposures: the preparation runs while the axes move, so the
+    exposure finds the generator ready (a rig that cannot prepare ahead pays the preparation per frame)."""
+    cfg = small_config(time_scale=2.0, exposure={"exposure_ms": 2.0, "frame_rate_hz": 8.0, "prep_ms": 600.0})
+    prep_s = 0.6 / 2.0  # wall clock; the moves between projections take longer
+
+    def acquire_s_per_projection(prepare_ahead: bool) -> tuple[str, float]:
+        async def main() -> tuple[str, float]:
+            async with open_bench(cfg, sim=True) as bench:
+                if not prepare_ahead:
+                    bench.prepare_exposure = None  # type: ignore[assignment]  # a rig that cannot
+                res = await ScanRunner(request_factory(config=cfg, frames=12), rig=bench).run()
+                return res.status, res.timing["acquire_s"] / 12
+        return asyncio.run(main())
+
+    status, ahead = acquire_s_per_projection(True)
+    assert status == "complete"
+    status, after = acquire_s_per_projection(False)
+    assert status == "complete"
+    assert after - ahead > 0.6 * prep_s, (ahead, after)  # without: each exposure prepares first

@@ -3,7 +3,25 @@
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import os
+import signal
+import sys
 from typing import Any
+
+_PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """In a child process: be killed (SIGKILL) when the parent dies, however it dies (Linux; elsewhere nothing).
+
+    A worker must not outlive the service: it would write into scan files whose records say it never did.
+    """
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    if os.getppid() != parent_pid:  # the parent died before the request took effect
+        os._exit(1)
 
 
 class Backoff:

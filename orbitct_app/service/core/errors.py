@@ -87,9 +87,18 @@ def _field_name(loc: tuple[Any, ...] | list[Any]) -> str:
     return ".".join(parts) or "body"
 
 
+def _problem(e: dict[str, Any]) -> FieldProblem:
+    if e.get("type") == "json_invalid":  # the location is a character position, not a field
+        loc = list(e.get("loc", ()))
+        at = f" at character {loc[-1]}" if loc and isinstance(loc[-1], int) else ""
+        why = (e.get("ctx") or {}).get("error", "")
+        return FieldProblem(field="body", reason=f"not valid JSON{at}" + (f" ({why})" if why else ""))
+    return FieldProblem(field=_field_name(e.get("loc", ())), reason=str(e.get("msg", "invalid"))[:300])
+
+
 def validation_details(errors: list[dict[str, Any]]) -> list[FieldProblem]:
     """Field and reason for each pydantic error (no input echo beyond the message)."""
-    return [FieldProblem(field=_field_name(e.get("loc", ())), reason=str(e.get("msg", "invalid"))[:300]) for e in errors]
+    return [_problem(e) for e in errors]
 
 
 def _json(status: int, code: str, message: str, details: list[FieldProblem] | None = None, headers: dict[str, str] | None = None) -> JSONResponse:
@@ -109,6 +118,18 @@ def disk_full(exc: BaseException) -> bool:
     if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
         return True
     return isinstance(exc, sqlite3.OperationalError) and "disk is full" in str(exc)
+
+
+def _allowed_methods(app: FastAPI, request: Request) -> list[str]:
+    """Every method some route of the app answers on this request's path."""
+    from starlette.routing import Match
+
+    allowed = []
+    for method in ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE"):
+        scope = {**request.scope, "method": method}
+        if any(route.matches(scope)[0] == Match.FULL for route in app.router.routes):
+            allowed.append(method)
+    return allowed
 
 
 def install_error_handlers(app: FastAPI) -> None:
@@ -134,7 +155,12 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         code = _HTTP_CODES.get(exc.status_code, "error")
         message = exc.detail if isinstance(exc.detail, str) else code.replace("_", " ")
-        return _json(exc.status_code, code, message, headers=getattr(exc, "headers", None))
+        headers = dict(getattr(exc, "headers", None) or {})
+        if exc.status_code == 405:  # every method of the path, not only those of the first route that matched it
+            allowed = _allowed_methods(app, request)
+            headers["Allow"] = ", ".join(allowed)
+            message = f"{request.method} is not allowed on {request.url.path}; allowed: {', '.join(allowed)}"
+        return _json(exc.status_code, code, message, headers=headers or None)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from orbitct.progress import ProgressEvent
+from orbitct_app.service.core.children import die_with_parent
 from orbitct_app.service.core.db import Store, utc_now
 from orbitct_app.service.core.events import EventBus
 from orbitct_app.service.jobs.tasks import run_calibration, run_reconstruction
@@ -51,8 +52,10 @@ class _PipeLogHandler(logging.Handler):
 
 
 def _worker_main(func: Callable[..., dict[str, Any]], scan_path: str, params: dict[str, Any], out_dir: str,
-                 conn: Connection, cancel: Any) -> None:
-    """Entry point of a job process: run ``target`` and send progress, log lines and the outcome over ``conn``."""
+                 conn: Connection, cancel: Any, parent_pid: int) -> None:
+    """Entry point of a job process: run ``target`` and send progress, log lines and the outcome over ``conn``;
+    killed with the service."""
+    die_with_parent(parent_pid)
     try:
         os.nice(JOB_NICE)  # batch work: never take CPU from a running acquisition
     except OSError:
@@ -113,7 +116,8 @@ class JobManager:
         self._lock = threading.Lock()
         self._queue_lock = threading.Lock()
         self._wake = threading.Event()
-        self._stop = threading.Event()
+        self._stop = threading.Event()  # no new launches
+        self._exit = threading.Event()  # the dispatcher ends
         self._thread = threading.Thread(target=self._loop, name="orbitct-jobs", daemon=True)
 
     def start(self) -> None:
@@ -156,12 +160,13 @@ class JobManager:
         return job["state"] if job is not None else "unknown"
 
     def shutdown(self, reason: str = "service stopped while the job was running") -> None:
-        """Stop the dispatcher; running jobs are terminated and marked interrupted."""
-        self._stop.set()
-        self._wake.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout=10.0)
-        with self._lock:
+        """Stop the dispatcher; running jobs are terminated and marked interrupted.
+
+        The workers are ended before the dispatcher thread: they were started from it and die with it
+        (parent-death signal), so it outlives their grace period.
+        """
+        self._stop.set()  # nothing new is launched
+        with self._queue_lock, self._lock:
             running = list(self._running.values())
             self._running.clear()
         for r in running:
@@ -171,10 +176,14 @@ class JobManager:
                 r.process.kill()
                 r.process.join(timeout=5.0)
             self._finish(r.job_id, "interrupted", reason, {})
+        self._exit.set()
+        self._wake.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=10.0)
 
     # ------------------------------------------------------------ internals
     def _loop(self) -> None:
-        while not self._stop.is_set():
+        while not self._exit.is_set():
             try:
                 self._start_queued()
                 self._poll_running()
@@ -188,6 +197,8 @@ class JobManager:
             self._start_queued_locked()
 
     def _start_queued_locked(self) -> None:
+        if self._stop.is_set():
+            return
         with self._lock:
             free = self._workers - len(self._running)
             busy = {r.scan_id for r in self._running.values()}
@@ -213,7 +224,7 @@ class JobManager:
         out_dir = self.job_dir(job["id"])
         proc = _CTX.Process(
             target=_worker_main, name=f"orbitct-job-{job['id']}", daemon=True,
-            args=(JOB_TARGETS[job["kind"]], str(scan_path), job["params"], str(out_dir), child, cancel),
+            args=(JOB_TARGETS[job["kind"]], str(scan_path), job["params"], str(out_dir), child, cancel, os.getpid()),
         )
         self._store.update_job(job["id"], state="running", started_utc=utc_now())
         self._bus.publish(f"job:{job['id']}", "state", {"state": "running", "reason": ""})

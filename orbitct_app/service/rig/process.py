@@ -225,7 +225,14 @@ class RigServer:
         unknown = sorted(set(targets) - known)
         if unknown:
             raise CommandError("invalid", f"device {name} has no axes {unknown}; its axes are {sorted(known)}")
-        await dev.move(targets)
+        from devices.gcs.device import ServoOffError
+
+        try:
+            await dev.move(targets)
+        except ServoOffError as exc:  # the driver speaks Python; the fix over REST is the reference route
+            off = str(exc).split("servo off on ", 1)[-1].split(";", 1)[0]
+            raise CommandError("conflict", f"{name}: servo is off on {off}; POST /devices/{name}/reference switches "
+                                           "it on and references the axes; nothing moved") from None
         return await self._state(dev)
 
     async def cmd_reset_fault(self, name: str) -> dict[str, Any]:

@@ -35,7 +35,9 @@ def test_invalid_parameters_name_field_and_reason(shared_api) -> None:  # type: 
     assert body["details"][0]["field"] == "frames"
     body = _is_error(shared_api.post("/scans", json={"orbit": "waypoints", "params": {"path": "/etc/passwd"}}), 422)
     assert body["details"][0]["field"] == "params.path"
-    _is_error(shared_api.post("/calibrations", role="analyst", content=b"{not json", headers={"Content-Type": "application/json"}), 422)
+    body = _is_error(shared_api.post("/calibrations", role="analyst", content=b'{"scan_id": "x",, }',
+                                     headers={"Content-Type": "application/json"}), 422)
+    assert body["details"][0]["field"] == "body" and "not valid JSON at character" in body["details"][0]["reason"]
     _is_error(shared_api.get("/jobs", params={"limit": -1}), 422)
 
 
@@ -60,4 +62,18 @@ def test_downloads_stay_in_the_data_dir(shared_api) -> None:  # type: ignore[no-
 
 
 def test_wrong_method_is_json(shared_api) -> None:  # type: ignore[no-untyped-def]
-    assert _is_error(shared_api.request("DELETE", "/scans"), 405)["error"] == "method_not_allowed"
+    r = shared_api.request("DELETE", "/scans")
+    assert _is_error(r, 405)["error"] == "method_not_allowed"
+    assert r.headers["allow"] == "GET, POST" and "allowed: GET, POST" in r.json()["message"]
+
+
+def test_the_openapi_document_is_valid_openapi_3_1(shared_api) -> None:  # type: ignore[no-untyped-def]
+    from openapi_spec_validator import validate
+
+    spec = shared_api.client.app.openapi()
+    assert spec["openapi"].startswith("3.1")
+    validate(spec)
+    start = spec["paths"]["/scans"]["post"]["responses"]
+    assert {"202", "401", "403", "409", "422", "507"} <= set(start)  # every status the route answers with
+    recon = spec["paths"]["/reconstructions"]["post"]["responses"]
+    assert {"202", "409", "422"} <= set(recon)

@@ -76,6 +76,7 @@ def test_sigkill_during_scan_then_restart(make_api, tmp_path: Path) -> None:  # 
     assert scan["summary"]["status"] == "aborted", scan["summary"]
     assert scan["summary"]["status_reason"] in ("interrupted", "the web service stopped (its process ended)")
     assert scan["summary"]["n_frames"] >= 10
+    assert scan["frames_done"] == scan["summary"]["n_frames"]  # the record follows the file
     with ScanFile(data / "scans" / f"{scan_id}.h5") as sf:
         assert sf.status == "aborted" and sf.n_frames >= 10
     events = parse_sse(api2.get(f"/scans/{scan_id}/events").text)
@@ -85,3 +86,38 @@ def test_sigkill_during_scan_then_restart(make_api, tmp_path: Path) -> None:  # 
     # the bench is free for a new scan after the restart
     r = api2.post("/scans", json={**SMALL_SAWTOOTH, "frames": 4})
     assert r.status_code == 202, r.text
+
+
+@pytest.mark.slow
+def test_a_killed_service_leaves_no_worker_and_records_that_agree_with_the_file(make_api, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    data = tmp_path / "data"
+    make_api(data).client.__exit__(None, None, None)
+    proc, base, headers = serve_subprocess(small_bench_config(tmp_path), data, DEV)
+    try:
+        r = httpx.post(f"{base}/scans", json={**SMALL_SAWTOOTH, "frames": 20}, headers=headers, timeout=30)
+        scan_id = r.json()["id"]
+        while httpx.get(f"{base}/scans/{scan_id}", headers=headers, timeout=5).json()["state"] != "complete":
+            time.sleep(0.1)
+        r = httpx.post(f"{base}/reconstructions", headers=headers, timeout=30,
+                       json={"scan_id": scan_id, "algorithm": "pwls", "geometry": "nominal", "shape": [48, 64, 64],
+                             "iterations": 500})
+        assert r.status_code == 202, r.text
+        job_id = r.json()["id"]
+        pid = None
+        while pid is None:
+            for line in httpx.get(f"{base}/jobs/{job_id}/log", headers=headers, timeout=5).json():
+                if "(pid " in line["line"]:
+                    pid = int(line["line"].rsplit("(pid ", 1)[1].rstrip(")"))
+            time.sleep(0.1)
+        worker = psutil.Process(pid)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+    gone, alive = psutil.wait_procs([worker], timeout=10)
+    assert not alive, "the job worker outlived the service"
+
+    api2 = make_api(data)
+    job = api2.get(f"/jobs/{job_id}").json()
+    assert job["state"] == "interrupted"
+    with ScanFile(data / "scans" / f"{scan_id}.h5") as sf:
+        assert sf.recon_names() == []  # the record says interrupted and the file holds no result
