@@ -77,9 +77,13 @@ def violin_plot(path: Path, history: list[np.ndarray], title: str, max_iteration
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
     idx = list(range(len(history)))
-    if len(idx) > max_iterations + 1:  # long LM runs: first few and the last
+    skipped = ""
+    if len(idx) > max_iterations + 1:  # long LM runs: first few and the last, and the figure says so
+        skipped = f" (iterations {max_iterations}-{idx[-1] - 1} not shown)" if idx[-1] - 1 > max_iterations else \
+            f" (iteration {max_iterations} not shown)"
         idx = idx[:max_iterations] + [idx[-1]]
     data = [history[i][np.isfinite(history[i])] for i in idx]
     labels = ["initial" if i == 0 else f"iter {i}" for i in idx]
@@ -87,11 +91,17 @@ def violin_plot(path: Path, history: list[np.ndarray], title: str, max_iteration
     for ax, sel in ((axes[0], [0]), (axes[1], list(range(1, len(idx))) or [0])):
         d = [data[i] if data[i].size else np.array([np.nan]) for i in sel]
         parts = ax.violinplot(d, showmeans=True, showmedians=True)
-        del parts
+        parts["cmeans"].set_color("tab:red")
+        parts["cmedians"].set_color("tab:green")
+        parts["cmedians"].set_linestyle("--")
         ax.set_xticks(range(1, len(sel) + 1), [labels[i] for i in sel])
         ax.set_ylabel("RPE per frame (mm)")
     axes[0].set_title("initial geometry")
-    axes[1].set_title(title)
+    axes[1].set_title(title + skipped, fontsize=10)
+    axes[1].legend(handles=[Line2D([], [], color="tab:red", label="mean"),
+                            Line2D([], [], color="tab:green", linestyle="--", label="median"),
+                            Line2D([], [], color="tab:blue", label="extremes")],
+                   loc="upper right", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -114,8 +124,8 @@ def corrections_plot(path: Path, corrections: dict[str, np.ndarray], title: str)
     a1.set_ylabel("deg")
     a2.set_ylabel("mm")
     a2.set_xlabel("frame index")
-    a1.legend(loc="upper right", fontsize=8)
-    a2.legend(loc="upper right", fontsize=8)
+    for ax in (a1, a2):  # beside the axes, never over the data
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, borderaxespad=0.0)
     a1.set_title(title)
     fig.tight_layout()
     fig.savefig(path, dpi=100)

@@ -12,12 +12,12 @@ from recon.errors import (
 from recon.fdk import fdk
 from recon.grid import check_fov, grid_for_geometry
 from recon.operator import Projector, backproject_voxels, projector
-from recon.pipeline import ReconResult, reconstruct_scan
+from recon.pipeline import ReconResult, compare_reconstructions, reconstruct_scan
 from recon.pwls import DEFAULT_BETA, PwlsResult, pwls_sps
 from recon.quality import reference_volume, rmse, wire_fwhm
 
 __all__ = [
     "BadFramesError", "DEFAULT_BETA", "FieldOfViewError", "GeometryMissingError", "MemoryBudgetError", "Projector", "PwlsResult",
-    "ReconError", "ReconExistsError", "ReconResult", "VolumeGrid", "backproject_voxels", "check_fov", "fdk", "grid_for_geometry",
+    "ReconError", "ReconExistsError", "ReconResult", "VolumeGrid", "backproject_voxels", "check_fov", "compare_reconstructions", "fdk", "grid_for_geometry",
     "projector", "pwls_sps", "reconstruct_scan", "reference_volume", "rmse", "wire_fwhm",
 ]

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import io
 import math
 import xml.etree.ElementTree as ET
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -55,38 +57,102 @@ def _scale_bar_mm(width_mm: float) -> float:
     return float(max(m * base for m in (1, 2, 5) if m * base <= target))
 
 
-def export_png(volume: NDArray[np.float32], grid: VolumeGrid, stem: Path,
-               window: tuple[float, float] | None = None) -> list[Path]:
-    """Central axial, coronal and sagittal slices as PNGs with a millimetre scale bar."""
+def display_window(volume: NDArray[np.float32], metal_mu: float = 0.1) -> tuple[float, float, str]:
+    """Grey window ``(lo, hi, note)``: the 1st to 99.5th percentile, of the voxels below ``metal_mu`` (1/mm) when
+    metal is present, so that steel does not push the anatomy into black; ``note`` says so."""
+    sample = np.asarray(volume[:: max(1, volume.shape[0] // 64)], dtype=np.float32).ravel()
+    sample = sample[np.isfinite(sample)]
+    if sample.size == 0:
+        return 0.0, 1.0, ""
+    metal = sample > metal_mu
+    note = ""
+    if 0 < metal.mean() < 0.5:
+        sample = sample[~metal]
+        note = f"; metal above {metal_mu:g}/mm saturates"
+    lo, hi = (float(v) for v in np.percentile(sample, [1.0, 99.5]))
+    return lo, max(hi, lo + 1e-9), note
+
+
+def slice_views(volume: NDArray[np.float32], grid: VolumeGrid,
+                index: dict[str, int] | None = None) -> dict[str, tuple[NDArray[np.float32], tuple[float, ...], str, str]]:
+    """Axial, coronal and sagittal slices (the middle ones unless ``index`` says) with extents (mm) and axis labels."""
+    nz, ny, nx = volume.shape
+    at = {"axial": nz // 2, "coronal": ny // 2, "sagittal": nx // 2, **(index or {})}
+    ext = grid.extent_mm
+    return {
+        "axial": (volume[at["axial"]], (ext[0, 0], ext[0, 1], ext[1, 0], ext[1, 1]), "x (mm)", "y (mm)"),
+        "coronal": (volume[:, at["coronal"], :], (ext[0, 0], ext[0, 1], ext[2, 0], ext[2, 1]), "x (mm)", "z (mm)"),
+        "sagittal": (volume[:, :, at["sagittal"]], (ext[1, 0], ext[1, 1], ext[2, 0], ext[2, 1]), "y (mm)", "z (mm)"),
+    }
+
+
+def _draw_slice(ax: Any, img: NDArray[np.float32], extent: tuple[float, ...], window: tuple[float, float],
+                xlabel: str, ylabel: str, title: str) -> None:
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+    ax.imshow(img, cmap="gray", vmin=window[0], vmax=window[1], extent=extent, origin="lower", interpolation="nearest")
+    bar = _scale_bar_mm(extent[1] - extent[0])
+    ax.add_artist(AnchoredSizeBar(ax.transData, bar, f"{bar:g} mm", "lower right", pad=0.4, color="yellow",
+                                  frameon=False, size_vertical=(extent[3] - extent[2]) / 150))
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=9)
+
+
+def _pyplot() -> Any:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
-    nz, ny, nx = volume.shape
-    ext = grid.extent_mm
-    lo, hi = window if window is not None else (float(np.percentile(volume, 1)), float(np.percentile(volume, 99.5)))
-    views = {
-        "axial": (volume[nz // 2], (ext[0, 0], ext[0, 1], ext[1, 0], ext[1, 1]), "x (mm)", "y (mm)"),
-        "coronal": (volume[:, ny // 2, :], (ext[0, 0], ext[0, 1], ext[2, 0], ext[2, 1]), "x (mm)", "z (mm)"),
-        "sagittal": (volume[:, :, nx // 2], (ext[1, 0], ext[1, 1], ext[2, 0], ext[2, 1]), "y (mm)", "z (mm)"),
-    }
+    return plt
+
+
+def export_png(volume: NDArray[np.float32], grid: VolumeGrid, stem: Path,
+               window: tuple[float, float] | None = None) -> list[Path]:
+    """Central axial, coronal and sagittal slices as PNGs with axes in mm and a scale bar."""
+    plt = _pyplot()
+    lo, hi, note = (*window, "") if window is not None else display_window(volume)
     out = []
-    for label, (img, extent, xl, yl) in views.items():
+    for label, (img, extent, xl, yl) in slice_views(volume, grid).items():
         fig, ax = plt.subplots(figsize=(5, 5 * (extent[3] - extent[2]) / max(extent[1] - extent[0], 1e-9) + 0.5))
-        ax.imshow(img, cmap="gray", vmin=lo, vmax=hi, extent=extent, origin="lower", interpolation="nearest")
-        bar = _scale_bar_mm(extent[1] - extent[0])
-        ax.add_artist(AnchoredSizeBar(ax.transData, bar, f"{bar:g} mm", "lower right", pad=0.4, color="yellow",
-                                      frameon=False, size_vertical=(extent[3] - extent[2]) / 150))
-        ax.set_xlabel(xl)
-        ax.set_ylabel(yl)
-        ax.set_title(f"{label} (1/mm, window {lo:.3g}..{hi:.3g})", fontsize=9)
+        _draw_slice(ax, img, extent, (lo, hi), xl, yl, f"{label} (1/mm, window {lo:.3g}..{hi:.3g}{note})")
         path = stem.with_name(f"{stem.name}_{label}.png")
         fig.savefig(path, dpi=100, bbox_inches="tight")
         plt.close(fig)
         out.append(path)
     return out
+
+
+def slice_png(volume: NDArray[np.float32], grid: VolumeGrid, axis: str, index: int, title: str = "") -> bytes:
+    """One slice as PNG bytes: axes in mm, a scale bar, the volume's display window (metal excluded) in the title."""
+    plt = _pyplot()
+    lo, hi, note = display_window(volume)
+    img, extent, xl, yl = slice_views(volume, grid, {axis: index})[axis]
+    fig, ax = plt.subplots(figsize=(5, 5 * (extent[3] - extent[2]) / max(extent[1] - extent[0], 1e-9) + 0.5))
+    _draw_slice(ax, img, extent, (lo, hi), xl, yl,
+                f"{title}{axis} slice {index} (1/mm, window {lo:.3g}..{hi:.3g}{note})")
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def export_comparison(volumes: Sequence[tuple[str, NDArray[np.float32]]], grid: VolumeGrid, path: Path,
+                      title: str) -> Path:
+    """One figure, a row per volume (e.g. calibrated and nominal geometry), central slices in one shared grey
+    window (that of the first volume), each row titled with its label, the figure with ``title``."""
+    plt = _pyplot()
+    lo, hi, note = display_window(volumes[0][1])
+    fig, axes = plt.subplots(len(volumes), 3, figsize=(12, 4 * len(volumes)), squeeze=False)
+    for row, (label, vol) in enumerate(volumes):
+        for col, (view, (img, extent, xl, yl)) in enumerate(slice_views(vol, grid).items()):
+            _draw_slice(axes[row, col], img, extent, (lo, hi), xl, yl, f"{label}: {view}")
+    fig.suptitle(f"{title}\nsame grey window for every panel: {lo:.3g}..{hi:.3g} 1/mm{note}", fontsize=11)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
 
 
 def export_volume(volume: NDArray[np.float32], grid: VolumeGrid, formats: list[str], stem: Path) -> list[Path]:

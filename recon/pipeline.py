@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -280,3 +281,25 @@ def reconstruct_scan(
         exported = export_volume(vol, grid, formats, base / f"{scan_path.stem}_{name}")
     return ReconResult(name, scan_path, algorithm, geometry, grid.shape, grid.voxel_mm, grid.origin_mm, cost,
                        elapsed, exported, params, vol)
+
+
+def compare_reconstructions(path: str | os.PathLike[str], names: Sequence[str], out: str | os.PathLike[str]) -> Path:
+    """A PNG of reconstructions of one scan side by side, a row each, in one grey window (the first one's), each
+    row named by its algorithm and geometry, the figure by the scan file and its orbit. They must share a grid."""
+    from recon.export import export_comparison
+
+    rows: list[tuple[str, NDArray[np.float32]]] = []
+    grid = None
+    with ScanFile(path) as scan:
+        orbit, params = scan.orbit
+        for name in names:
+            vol, attrs = scan.read_recon(name)
+            g = VolumeGrid(vol.shape, tuple(attrs["voxel_mm"]), tuple(attrs["origin_mm"]))
+            if grid is not None and g != grid:
+                raise ReconError(f"{scan.path}: /recon/{name} is on another grid than /recon/{names[0]}; "
+                                 "compare reconstructions made with the same --shape and --voxel-mm")
+            grid = g
+            rows.append((f"{attrs['algorithm'].upper()}, {attrs['geometry']} geometry", vol))
+        title = f"{scan.path.name}: {orbit or 'orbit unknown'}, {int(scan.projection_indices.size)} projections"
+    assert grid is not None
+    return export_comparison(rows, grid, Path(out), title)

@@ -34,12 +34,13 @@ def _truth_error(scan_path: Path) -> None:
     click.echo(f"   geometry error against the twins' truth: nominal {nominal:.2f} px -> calibrated {calibrated:.3f} px RMS")
 
 
-def _reconstruct(scan_path: Path, out_dir: Path, algorithm: str, geometry: str, iterations: int, voxels: int) -> None:
-    """One reconstruction with PNG slices (a failure is reported and the demo goes on)."""
+def _reconstruct(scan_path: Path, out_dir: Path, algorithm: str, geometry: str, iterations: int, voxels: int,
+                 voxel_mm: float | None = None) -> Any:
+    """One reconstruction with PNG slices (a failure is reported and the demo goes on); its result or None."""
     from recon import ReconError, reconstruct_scan
 
     kwargs: dict[str, Any] = dict(algorithm=algorithm, geometry=geometry, shape=(voxels, voxels, voxels),
-                                  export="png", out_dir=out_dir / "recon")
+                                  voxel_mm=voxel_mm, export="png", out_dir=out_dir / "recon")
     if iterations:
         kwargs["iterations"] = iterations
     try:
@@ -47,9 +48,10 @@ def _reconstruct(scan_path: Path, out_dir: Path, algorithm: str, geometry: str, 
             rr = reconstruct_scan(scan_path, progress=bar, **kwargs)
     except ReconError as exc:
         click.echo(f"   {algorithm} / {geometry} failed: {exc}")
-        return
+        return None
     click.echo(f"   {algorithm} / {geometry}: {rr.volume_shape} in {rr.elapsed_s:.1f} s -> /recon/{rr.name}; "
                f"slices: {', '.join(str(p) for p in rr.exported[:3])}")
+    return rr
 
 
 @click.command()
@@ -134,8 +136,19 @@ def demo(out_dir: Path, config_path: Path | None, frames: int, size: int, voxels
     runs = [("fdk", geometry, 0), ("fdk", "nominal", 0)] if geometry != "nominal" else [("fdk", "nominal", 0)]
     if pwls_iterations > 0:
         runs.insert(1, ("pwls", geometry, pwls_iterations))
-    for algorithm, geo, iters in runs:
-        _reconstruct(scan_path, out_dir, algorithm, geo, iters, voxels)
+    first = None
+    for algorithm, geo, iters in runs:  # every volume on the grid of the first, so that they compare voxel by voxel
+        rr = _reconstruct(scan_path, out_dir, algorithm, geo, iters, voxels, first.voxel_mm[0] if first else None)
+        first = first or rr
+    if geometry == "calibrated":
+        from recon import ReconError, compare_reconstructions
+
+        try:
+            figure = compare_reconstructions(scan_path, ["fdk_calibrated", "fdk_nominal"],
+                                             out_dir / "recon" / "comparison.png")
+            click.echo(f"   calibrated next to nominal, one grey window: {figure}")
+        except ReconError as exc:
+            click.echo(f"   no comparison figure: {exc}")
 
     click.echo(f"\ndone in {time.monotonic() - t_start:.0f} s. Scan file (frames, geometry, calibration, volumes): {scan_path}")
     cmd = _orbitct_command()

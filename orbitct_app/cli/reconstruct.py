@@ -41,16 +41,26 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
                    "iteration (three volumes of memory, slower); auto keeps them in memory while they fit.")
 @click.option("--name", default=None, help="Name under /recon (default ALGORITHM_GEOMETRY[_mar]).")
 @click.option("--overwrite", is_flag=True, help="Replace a reconstruction of the same name already in the file.")
+@click.option("--compare", "compare_geometry", type=click.Choice(["calibrated", "nominal", "truth"]), default=None,
+              help="Also reconstruct with this geometry on the same grid and write both side by side in one grey "
+                   "window (<scan>_<name>_vs_<geometry>.png).")
 @click.option("--export", "export", type=click.Choice(["nifti", "tiff", "png"]), multiple=True,
               help="Also write the volume as NIfTI, TIFF stack or PNG slices (repeatable).")
 @click.option("--out-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Folder for exports (default: next to the scan file).")
 def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | None, shape: tuple[int, int, int] | None,
                 iterations: int, beta: float | None, subsets: int, window: str, mar: bool, mar_method: str,
-                stream: str, name: str | None, overwrite: bool, export: tuple[str, ...], out_dir: Path | None) -> None:
+                stream: str, name: str | None, overwrite: bool, compare_geometry: str | None, export: tuple[str, ...],
+                out_dir: Path | None) -> None:
     """Reconstruct SCAN (an orbitct scan file) and store the volume in it."""
     from orbitct.scanfile import ScanFileError
-    from recon import DEFAULT_BETA, ReconError, ReconExistsError, reconstruct_scan
+    from recon import (
+        DEFAULT_BETA,
+        ReconError,
+        ReconExistsError,
+        compare_reconstructions,
+        reconstruct_scan,
+    )
 
     try:
         with ProgressBar() as bar:
@@ -71,3 +81,24 @@ def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | Non
         click.echo(f"  cost {res.cost[0]:.6g} -> {res.cost[-1]:.6g} over {len(res.cost) - 1} iterations")
     for p in res.exported:
         click.echo(f"  wrote {p}")
+    if compare_geometry is None:
+        return
+    if compare_geometry == geometry:
+        raise click.UsageError(f"--compare {compare_geometry} is the geometry already reconstructed; compare with another")
+    try:
+        with ProgressBar() as bar:
+            other = reconstruct_scan(
+                scan, algorithm=algorithm, geometry=compare_geometry, voxel_mm=res.voxel_mm[0], shape=res.volume_shape,
+                iterations=iterations, beta=DEFAULT_BETA if beta is None else beta, mar=mar_method if mar else False,
+                name=f"{res.name}_vs_{compare_geometry}", progress=bar, window=window, subsets=subsets, stream=stream,
+                overwrite=overwrite,
+            )
+        base = out_dir if out_dir is not None else res.path.parent
+        base.mkdir(parents=True, exist_ok=True)
+        figure = compare_reconstructions(res.path, [res.name, other.name],
+                                         base / f"{res.path.stem}_{res.name}_vs_{compare_geometry}.png")
+    except ReconExistsError as exc:
+        raise click.ClickException(f"{exc}; --overwrite replaces it") from None
+    except (ReconError, ScanFileError) as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(f"  /recon/{other.name} with {compare_geometry} geometry, {other.elapsed_s:.1f} s; side by side: {figure}")

@@ -112,7 +112,10 @@ def serve(bench_config: Path | None, sim: bool | None, host: str | None, port: i
         click.echo(f"--sim development token (all roles, valid until the service stops):\n  {service.dev_token}")
     click.echo(f"orbitct service on http://{settings.host}:{settings.port}  (API docs: /docs)")
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=log_level, access_log=False)
-    SignalAwareServer(config, service).run()
+    try:
+        SignalAwareServer(config, service).run()
+    except KeyboardInterrupt:  # Ctrl-C: the service has shut down cleanly (scan aborted, devices stopped)
+        click.echo("orbitct service stopped (Ctrl-C)")
 
 
 @click.group()

@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import io
 import math
 from typing import Annotated, Any, Literal
 
 import numpy as np
 from fastapi import APIRouter, Query, Response
 from fastapi.responses import FileResponse
-from PIL import Image
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from orbitct_app.service.core.errors import (
@@ -118,19 +116,22 @@ def _volume(service: Any, job_id: str) -> np.ndarray:
             responses={200: {"content": {"image/png": {}}}})
 def get_slice(job_id: str, axis: Literal["axial", "coronal", "sagittal"], service: ServiceDep, _: Reader,
               index: Annotated[int | None, Query(ge=0, le=4096, description="slice index (default: the middle)")] = None) -> Response:
-    """Axial (z), coronal (y) or sagittal (x) slice, grey levels from the volume's 0.5 and 99.5 percentiles."""
+    """Axial (z), coronal (y) or sagittal (x) slice with axes in millimetres and a scale bar; grey levels from
+    the volume's 1st to 99.5th percentile, of the voxels below 0.1/mm when metal is present (the title says so)."""
+    from orbitct.geometry import VolumeGrid
+    from recon.export import slice_png
+
     vol = _volume(service, job_id)
+    job = job_or_404(service, job_id, "reconstruction")
     dim = {"axial": 0, "coronal": 1, "sagittal": 2}[axis]
     n = vol.shape[dim]
     i = n // 2 if index is None else index
     if i >= n:
         raise Invalid(f"index {i} is outside 0..{n - 1} for {axis} slices")
-    img = np.asarray(np.take(vol, i, axis=dim), dtype=np.float32)
-    lo, hi = np.percentile(vol[:: max(1, vol.shape[0] // 32)], [0.5, 99.5])
-    scaled = np.clip((img - lo) / max(float(hi - lo), 1e-12), 0, 1)
-    buf = io.BytesIO()
-    Image.fromarray((scaled[::-1] * 255).astype(np.uint8)).save(buf, format="PNG")
-    return Response(buf.getvalue(), media_type="image/png")
+    result = job["result"]
+    grid = VolumeGrid(tuple(vol.shape), tuple(result["voxel_mm"]), tuple(result["origin_mm"]))
+    png = slice_png(np.asarray(vol, dtype=np.float32), grid, axis, i, title=f"{result.get('name', job_id)}: ")
+    return Response(png, media_type="image/png")
 
 
 @router.get("/{job_id}/volume", response_class=FileResponse, summary="Download the volume",

@@ -28,3 +28,6 @@ def test_demo_small(tmp_path: Path) -> None:
             m = re.search(r"calibrated ([0-9.]+) mm", result.output)
             assert m is not None and float(m.group(1)) < 1.0
             assert "fdk_calibrated" in sf.recon_names()
+    assert (out / "recon" / "comparison.png").read_bytes()[:4] == b"\x89PNG"
+    assert "calibrated next to nominal, one grey window" in result.output
+    assert "inspect it with:" in result.output and "orbitct inspect" in result.output

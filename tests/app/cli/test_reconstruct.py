@@ -31,3 +31,24 @@ def test_cli_reconstructs_and_reports_errors(tmp_path: Path) -> None:
     assert bad.exit_code != 0 and "auto" in bad.output and "file" in bad.output
     bad = runner.invoke(cli, ["reconstruct", str(path), "--geometry", "nominal", "--shape", "10,10"])
     assert bad.exit_code != 0 and "NZ,NY,NX" in bad.output
+
+
+def test_compare_puts_two_geometries_side_by_side_in_one_window(tmp_path: Path) -> None:
+    g = ViewGeometry.from_carm(np.linspace(0, 2 * np.pi, 30, endpoint=False), 0.0, 785.0, 1200.0, bench_detector(40))
+    truth = g.transformed(np.eye(3), (3.0, 0.0, 0.0))
+    path = tmp_path / "s.h5"
+    write_sphere_scan(path, g, truth=truth)
+    args = ["reconstruct", str(path), "--algorithm", "fdk", "--geometry", "truth", "--shape", "16,24,24",
+            "--voxel-mm", "4", "--compare", "nominal"]
+    res = CliRunner().invoke(cli, args)
+    assert res.exit_code == 0, res.output
+    figure = tmp_path / "s_fdk_truth_vs_nominal.png"
+    assert f"side by side: {figure}" in res.output and figure.read_bytes()[:4] == b"\x89PNG"
+    with ScanFile(path) as sf:
+        assert sorted(sf.recon_names()) == ["fdk_truth", "fdk_truth_vs_nominal"]
+        assert sf.read_recon("fdk_truth_vs_nominal")[1]["geometry"] == "nominal"
+    again = CliRunner().invoke(cli, args)
+    assert again.exit_code == 1 and "already has a reconstruction named 'fdk_truth'" in again.output
+    assert CliRunner().invoke(cli, [*args, "--overwrite"]).exit_code == 0
+    same = CliRunner().invoke(cli, [*args[:-1], "truth", "--overwrite"])
+    assert same.exit_code == 2 and "already reconstructed" in same.output
