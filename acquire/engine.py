@@ -157,6 +157,7 @@ class ScanEngine:
         progress: ProgressCallback | None = None,
         start_extra: Mapping[str, Any] | None = None,
         skip_preflight: bool = False,
+        interlock: Callable[[], str | None] | None = None,
     ) -> None:
         if mode not in MODES:
             raise AcquireError(f"mode must be one of {MODES}, got {mode!r}")
@@ -168,6 +169,8 @@ class ScanEngine:
         self.frame_rate_hz = float(frame_rate_hz)
         self.start_extra = dict(start_extra or {})
         self.skip_preflight = skip_preflight
+        # why the scan must stop now, from outside the engine (a latched emergency stop), or None
+        self.interlock = interlock
         self.state = "idle"
         self.n_done = 0
         self._abort_reason: str | None = None
@@ -207,8 +210,17 @@ class ScanEngine:
             self._stop_task = asyncio.ensure_future(self.rig.stop_all())
 
     def _check_abort(self) -> None:
+        if self._abort_reason is None and self.interlock is not None:
+            self._abort_reason = self.interlock()
         if self._abort_reason is not None:
             raise ScanAborted(self._abort_reason)
+
+    def _why(self, exc: BaseException) -> str:
+        """The reason a scan ended on ``exc``: an abort or a latched stop outranks what it caused (a device
+        refusing because the stop switched it off)."""
+        if self._abort_reason is None and self.interlock is not None:
+            self._abort_reason = self.interlock()
+        return self._abort_reason or _reason(exc)
 
     @property
     def paused(self) -> bool:
@@ -256,9 +268,9 @@ class ScanEngine:
             status = "refused"
             raise
         except (KeyboardInterrupt, asyncio.CancelledError) as exc:
-            status, reason, pending, interrupted = "aborted", self._abort_reason or _reason(exc), exc, True
+            status, reason, pending, interrupted = "aborted", self._why(exc), exc, True
         except Exception as exc:  # noqa: BLE001 - a device or recorder error ends the scan safely
-            status, reason = "aborted", self._abort_reason or _reason(exc)
+            status, reason = "aborted", self._why(exc)
             log.error("scan aborted: %s", reason)
         finally:
             await self._cleanup(status, interrupted)

@@ -7,7 +7,7 @@ import dataclasses
 import json
 import signal
 import threading
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -117,12 +117,14 @@ def start_extra(cfg: BenchConfig | CArmConfig, plan: ScanPlan, frame_rate_hz: fl
 class ScanRunner:
     """Runs one scan in the caller's loop (:meth:`run`) or in a background thread (:meth:`start`)."""
 
-    def __init__(self, request: ScanRequest, *, progress: ProgressCallback | None = None, rig: Rig | None = None) -> None:
+    def __init__(self, request: ScanRequest, *, progress: ProgressCallback | None = None, rig: Rig | None = None,
+                 interlock: Callable[[], str | None] | None = None) -> None:
         if request.mode not in MODES:
             raise AcquireError(f"mode must be one of {MODES}, got {request.mode!r}")
         self.request = request
         self._user_progress = progress
         self._rig = rig
+        self._interlock = interlock
         self.error: BaseException | None = None
         self.result: ScanResult | None = None
         self._engine: ScanEngine | None = None
@@ -184,7 +186,8 @@ class ScanRunner:
                           recorder: ScanRecorder) -> ScanResult:
         rate = float(self.request.frame_rate_hz or cfg.exposure.frame_rate_hz)
         engine = ScanEngine(rig, plan, motion=cfg.motion, frame_rate_hz=rate, mode=self.request.mode,
-                            subscribers=[recorder], progress=self._progress, start_extra=start_extra(cfg, plan, rate))
+                            subscribers=[recorder], progress=self._progress, start_extra=start_extra(cfg, plan, rate),
+                            interlock=self._interlock)
         self._attach(engine)
         outcome = await engine.run()
         return ScanResult(Path(self.request.out), outcome.status, outcome.reason, outcome.n_frames,

@@ -283,7 +283,8 @@ class RigServer:
             raise CommandError("conflict", f"the bench is busy with scan {self.scan_id}; one scan at a time")
         req = self._request(spec)
         self.scan_id = scan_id
-        self.runner = ScanRunner(req, progress=lambda ev: self._progress(scan_id, ev), rig=self.rig)
+        self.runner = ScanRunner(req, progress=lambda ev: self._progress(scan_id, ev), rig=self.rig,
+                                 interlock=self._latched_reason)
         asyncio.ensure_future(self._scan(scan_id, self.runner, Path(spec["out"])))
 
     async def _scan(self, scan_id: str, runner: Any, path: Path) -> None:
@@ -339,13 +340,18 @@ class RigServer:
         while not self._closing.is_set():
             if not self.latch.flag.wait(1.0, poll_s=0.01):
                 continue
-            if self.scan_id is not None:
-                state = self.latch.state()
-                reason = state.get("reason") or "emergency stop"
-                if not reason.startswith("emergency stop"):
-                    reason = f"emergency stop by {state.get('by')}: {reason}"
+            reason = self._latched_reason()
+            if self.scan_id is not None and reason is not None:
                 self.loop.call_soon_threadsafe(self._abort_running, reason)
             time.sleep(0.02)
+
+    def _latched_reason(self) -> str | None:
+        """Why scans must stop now: the latched emergency stop (who and why), or None while it is clear."""
+        if self.latch is None or not self.latch.flag.is_set():
+            return None
+        state = self.latch.state()
+        reason = state.get("reason") or "emergency stop"
+        return reason if reason.startswith("emergency stop") else f"emergency stop by {state.get('by')}: {reason}"
 
     def _abort_running(self, reason: str) -> None:
         if self.runner is not None:
