@@ -29,11 +29,6 @@ class DataDirLock:
         self.path = self.data_dir / LOCK_NAME
         self._fd: int | None = None
 
-    @property
-    def held(self) -> bool:
-        """Whether this object holds the lock."""
-        return self._fd is not None
-
     def holder(self) -> dict[str, Any]:
         """What the lock file says about the service holding it (``{}`` if unreadable)."""
         try:
