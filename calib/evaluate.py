@@ -7,7 +7,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from orbitct.geometry import ViewGeometry
-from orbitct.rotations import rotvec_to_matrix, similarity_fit
+from orbitct.rotations import matrix_to_rotvec, rotvec_to_matrix, similarity_fit
 
 
 def fov_points(geometry: ViewGeometry, n_per_axis: int = 5, fill: float = 0.8) -> NDArray[np.float64]:
@@ -56,4 +56,46 @@ def similarity_aligned_error_px(
     return float(np.sqrt((diff**2).sum(-1).mean())), per_view
 
 
-__all__ = ["fov_points", "similarity_aligned_error_px"]
+def _kabsch(P: NDArray[np.float64], Q: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per set, the rigid motion ``q ~ R p + t`` of point sets ``(N, K, 3)``; returns ``R (N,3,3)``, ``t (N,3)``."""
+    pc, qc = P.mean(1), Q.mean(1)
+    H = np.einsum("nki,nkj->nij", P - pc[:, None], Q - qc[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
+    D = np.repeat(np.eye(3)[None], P.shape[0], 0)
+    D[:, 2, 2] = d
+    R = np.swapaxes(Vt, 1, 2) @ D @ np.swapaxes(U, 1, 2)
+    return R, qc - np.einsum("nij,nj->ni", R, pc)
+
+
+def _assembly_points(g: ViewGeometry) -> NDArray[np.float64]:
+    """Source, detector centre and the detector's u and v directions as four points per view ``(N, 4, 3)``."""
+    v = g.vectors
+    arm = 0.5 * np.linalg.norm(v[:, 0:3] - v[:, 3:6], axis=1, keepdims=True)
+    u = v[:, 6:9] / np.linalg.norm(v[:, 6:9], axis=1, keepdims=True)
+    w = v[:, 9:12] / np.linalg.norm(v[:, 9:12], axis=1, keepdims=True)
+    return np.stack([v[:, 0:3], v[:, 3:6], v[:, 3:6] + arm * u, v[:, 3:6] + arm * w], 1)
+
+
+def true_corrections(
+    estimate: ViewGeometry, nominal: ViewGeometry, truth: ViewGeometry
+) -> dict[str, NDArray[np.float64]]:
+    """The per-view corrections (``rotvec_rad``, ``shift_mm``, as the calibration reports them) that turn the
+    nominal views into the true ones, with the truth first moved into the calibrated frame by the best
+    similarity (the calibration fixes its frame by the BBs, not by the truth); NaN where a view has no estimate."""
+    n = truth.n_views
+    out = {"rotvec_rad": np.full((n, 3), np.nan), "shift_mm": np.full((n, 3), np.nan), "frame": np.arange(n)}
+    ok = estimate.valid & truth.valid & nominal.valid
+    idx = np.flatnonzero(ok)
+    if idx.size < 2:
+        return out
+    et, tt = estimate[idx], truth[idx]
+    s, R, c = similarity_fit(np.concatenate([tt.S, tt.D]), np.concatenate([et.S, et.D]))
+    aligned = tt.scaled(s).transformed(R, c)
+    Rv, tv = _kabsch(_assembly_points(nominal[idx]), _assembly_points(aligned))
+    out["rotvec_rad"][idx] = matrix_to_rotvec(Rv)
+    out["shift_mm"][idx] = tv
+    return out
+
+
+__all__ = ["fov_points", "similarity_aligned_error_px", "true_corrections"]

@@ -17,7 +17,7 @@ from threadpoolctl import threadpool_limits
 
 from calib.bundle import bundle_adjust
 from calib.detect import FrameDetector, N_FIELDS, _refine, settings_for
-from calib.evaluate import fov_points
+from calib.evaluate import fov_points, true_corrections
 from calib.errors import (
     BadFramesError,
     FrameTooLargeError,
@@ -89,6 +89,7 @@ class CalibrationResult:
     corrections: dict[str, NDArray[np.float64]]
     warnings: list[str] = field(default_factory=list)
     unsolved_views: list[int] = field(default_factory=list)
+    true_corrections: dict[str, NDArray[np.float64]] | None = None  # simulated scans: the truth, same frame
 
     @property
     def n_bbs(self) -> int:
@@ -309,6 +310,7 @@ def _calibrate_scan(
         if not sf.has_geometry("nominal"):
             raise NoNominalGeometryError(f"{target}: no /geometry/nominal; calibration starts from the nominal geometry")
         nominal_all = sf.geometry("nominal")
+        truth_all = sf.geometry("truth") if sf.has_geometry("truth") else None
         n_all = sf.n_frames
         nominal = nominal_all[proj]
         cands, diameter_mm, d_px = _detect(sf, proj, nominal, opt, progress)
@@ -392,6 +394,7 @@ def _calibrate_scan(
         corrections={"rotvec_rad": corr_R, "shift_mm": corr_t, "frame": np.arange(n_all)},
         warnings=warnings,
         unsolved_views=unsolved.tolist(),
+        true_corrections=None if truth_all is None else true_corrections(full_geom, nominal_all, truth_all),
     )
     if report_dir is not None:
         from calib.report import write_report

@@ -102,6 +102,18 @@ def test_results_written_as_scan_file_says(simulated_scan: Callable[..., Path], 
         assert np.allclose(mats[sf.projection_indices], g.matrices[sf.projection_indices])
     for name in ("table1.md", "table1.csv", "rpe_violin.png", "corrections.png"):
         assert (tmp_path / "rep" / name).stat().st_size > 0
+    # a simulated scan: the corrections plot overlays the truth, in the calibrated frame; across each
+    # view's beam they agree (along it a shift only changes magnification and the BBs barely see it)
+    truth = res.true_corrections
+    assert truth is not None
+    proj = np.flatnonzero(np.isfinite(res.corrections["shift_mm"][:, 0]))
+    beam = res.nominal.D[proj] - res.nominal.S[proj]
+    beam /= np.linalg.norm(beam, axis=1, keepdims=True)
+    diff = res.corrections["shift_mm"][proj] - truth["shift_mm"][proj]
+    across = diff - (diff * beam).sum(1, keepdims=True) * beam
+    spread = np.std(truth["shift_mm"][proj], axis=0).max()
+    assert spread > 1.0  # the simulated errors are there to be found
+    assert np.sqrt(np.mean((across**2).sum(1))) < 0.1 * spread
 
 
 def test_cli_calibrates_in_place_and_reports(simulated_scan: Callable[..., Path], tmp_path: Path) -> None:
