@@ -78,8 +78,16 @@ ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorBody, "description": "missing or unknown bearer token"},
     403: {"model": ErrorBody, "description": "the token's role may not do this"},
     404: {"model": ErrorBody, "description": "unknown id or file"},
+    413: {"model": ErrorBody, "description": "the request body is larger than the service's max_body_bytes"},
     422: {"model": ErrorBody, "description": "invalid parameters: field and reason in `details`"},
 }
+NOT_SUCCEEDED: dict[int | str, dict[str, Any]] = {
+    409: {"model": ErrorBody, "description": "the job has not succeeded (queued, running, failed or cancelled); its "
+                                             "results exist once it has"}}
+BENCH_UNAVAILABLE: dict[int | str, dict[str, Any]] = {
+    503: {"model": ErrorBody, "description": "the bench process is not connected or did not answer in time"}}
+DISK_FULL: dict[int | str, dict[str, Any]] = {
+    507: {"model": ErrorBody, "description": "the data directory's disk is full (GET /health shows the disk state)"}}
 
 
 def _field_name(loc: tuple[Any, ...] | list[Any]) -> str:

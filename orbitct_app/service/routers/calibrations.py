@@ -8,7 +8,14 @@ from fastapi import APIRouter, Query, Response
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-from orbitct_app.service.core.errors import ERROR_RESPONSES, Conflict, NotFound
+from orbitct_app.service.core.errors import (
+    DISK_FULL,
+    ERROR_RESPONSES,
+    NOT_SUCCEEDED,
+    Conflict,
+    ErrorBody,
+    NotFound,
+)
 from orbitct_app.service.core.files import confined
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
 from orbitct_app.service.schemas import JobOut, job_or_404, job_out, scan_or_404
@@ -52,7 +59,8 @@ def submit(service: Any, kind: str, request: BaseModel, owner: str, response: Re
 
 
 @router.post("", response_model=JobOut, status_code=202, summary="Start a calibration job",
-             responses={409: {"description": "the scan is not complete (running, aborted, interrupted)"}})
+             responses={409: {"model": ErrorBody, "description": "the scan is not complete (running, aborted, interrupted)"},
+                        **DISK_FULL})
 def start_calibration(body: CalibrationRequest, service: ServiceDep, who: Analyst, response: Response) -> JobOut:
     """Queue a calibration of the scan; progress on ``/jobs/{id}/events``."""
     check_scan_ready(service, body.scan_id)
@@ -80,7 +88,7 @@ class RpeTable(BaseModel):
     per_frame_mm: dict[str, float]
 
 
-@router.get("/{job_id}/rpe", response_model=RpeTable, summary="RPE table of a finished calibration")
+@router.get("/{job_id}/rpe", response_model=RpeTable, summary="RPE table of a finished calibration", responses=NOT_SUCCEEDED)
 def get_rpe(job_id: str, service: ServiceDep, _: Reader) -> RpeTable:
     """Table-1 figures, RPE statistics per iteration, and the RPE of every projection frame (mm)."""
     job = _finished(service, job_id)
@@ -92,14 +100,14 @@ def get_rpe(job_id: str, service: ServiceDep, _: Reader) -> RpeTable:
     return RpeTable(table=job["result"].get("table", {}), iterations=job["result"].get("iterations", []), per_frame_mm=per_frame)
 
 
-@router.get("/{job_id}/files", response_model=list[str], summary="Report files (plots, tables)")
+@router.get("/{job_id}/files", response_model=list[str], summary="Report files (plots, tables)", responses=NOT_SUCCEEDED)
 def list_files(job_id: str, service: ServiceDep, _: Reader) -> list[str]:
     """Names of the report files: violin plots, per-view corrections, Table 1 (Markdown, CSV)."""
     return list(_finished(service, job_id)["result"].get("files", []))
 
 
 @router.get("/{job_id}/files/{name}", response_class=FileResponse, summary="One report file",
-            responses={200: {"content": {"image/png": {}, "text/csv": {}, "text/markdown": {}}}})
+            responses={200: {"content": {"image/png": {}, "text/csv": {}, "text/markdown": {}}}, **NOT_SUCCEEDED})
 def get_file(job_id: str, name: str, service: ServiceDep, _: Reader) -> FileResponse:
     """A plot (PNG) or table of the report; names come from ``/files``."""
     _finished(service, job_id)

@@ -10,15 +10,17 @@ from fastapi import APIRouter, Path
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from orbitct_app.service.core.errors import (
+    BENCH_UNAVAILABLE,
     ERROR_RESPONSES,
     Conflict,
+    ErrorBody,
     FieldProblem,
     Invalid,
 )
 from orbitct_app.service.deps import Operator, Reader, ServiceDep
 
 log = logging.getLogger("orbitct.service.devices")
-router = APIRouter(prefix="/devices", tags=["devices"], responses=ERROR_RESPONSES)
+router = APIRouter(prefix="/devices", tags=["devices"], responses={**ERROR_RESPONSES, **BENCH_UNAVAILABLE})
 DeviceName = Annotated[str, Path(max_length=40, pattern=r"^[A-Za-z0-9_-]+$")]
 MOVE_TIMEOUT_S = 120.0
 
@@ -97,7 +99,7 @@ async def get_device(name: DeviceName, service: ServiceDep, _: Reader) -> Device
 
 
 @router.post("/{name}/reference", response_model=DeviceState, summary="Reference a motion device",
-             responses={409: {"description": "a scan is running, or an emergency stop is latched"}})
+             responses={409: {"model": ErrorBody, "description": "a scan is running, or an emergency stop is latched"}})
 async def reference(name: DeviceName, service: ServiceDep, _: Operator) -> DeviceState:
     """Servo on and reference every axis; returns when done."""
     _idle(service, "referencing")
@@ -105,7 +107,7 @@ async def reference(name: DeviceName, service: ServiceDep, _: Operator) -> Devic
 
 
 @router.post("/{name}/move", response_model=DeviceState, summary="Maintenance move",
-             responses={409: {"description": "a scan is running, the device is not referenced, or an emergency stop is "
+             responses={409: {"model": ErrorBody, "description": "a scan is running, the device is not referenced, or an emergency stop is "
                                              "latched"}})
 async def move(name: DeviceName, body: MoveRequest, service: ServiceDep, _: Operator) -> DeviceState:
     """Absolute move of some axes; limits (and the hexapod workspace) are checked before anything moves."""
@@ -123,7 +125,7 @@ async def stop_device(name: DeviceName, service: ServiceDep, _: Operator) -> Dev
 
 
 @router.post("/{name}/reset-fault", response_model=DeviceState, summary="Reset a generator fault",
-             responses={409: {"description": "the fault's cause persists (door open, fault input), or a scan is running"}})
+             responses={409: {"model": ErrorBody, "description": "the fault's cause persists (door open, fault input), or a scan is running"}})
 async def reset_fault(name: DeviceName, service: ServiceDep, who: Operator) -> DeviceState:
     """Clear the X-ray generator's latched fault once its cause is gone; refused, naming the cause, while it persists.
 

@@ -7,7 +7,12 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Header, Query
 from pydantic import BaseModel
 
-from orbitct_app.service.core.errors import ERROR_RESPONSES, Conflict
+from orbitct_app.service.core.errors import (
+    DISK_FULL,
+    ERROR_RESPONSES,
+    Conflict,
+    ErrorBody,
+)
 from orbitct_app.service.core.events import sse_response
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
 from orbitct_app.service.schemas import JobOut, job_or_404, job_out
@@ -62,7 +67,8 @@ def job_events(job_id: str, service: ServiceDep, _: Reader,
     return sse_response(service.bus, f"job:{job_id}", last_event_id)
 
 
-@router.post("/{job_id}/cancel", response_model=CancelOut, status_code=202, summary="Cancel a job")
+@router.post("/{job_id}/cancel", response_model=CancelOut, status_code=202, summary="Cancel a job",
+             responses={409: {"model": ErrorBody, "description": "the job has already ended"}, **DISK_FULL})
 def cancel_job(job_id: str, service: ServiceDep, _: Analyst) -> CancelOut:
     """Cancel a queued or running job (a running worker gets a grace period, then is killed)."""
     job = job_or_404(service, job_id)

@@ -11,7 +11,9 @@ from fastapi.responses import FileResponse
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from orbitct_app.service.core.errors import (
+    DISK_FULL,
     ERROR_RESPONSES,
+    NOT_SUCCEEDED,
     Conflict,
     ErrorBody,
     Invalid,
@@ -77,7 +79,7 @@ def _has_geometry(service: Any, scan: dict[str, Any], name: str, in_file: list[s
 
 @router.post("", response_model=JobOut, status_code=202, summary="Start a reconstruction job",
              responses={409: {"model": ErrorBody, "description": "the scan is not complete, lacks the requested "
-                              "geometry, or already has a reconstruction of that name (without overwrite)"}})
+                              "geometry, or already has a reconstruction of that name (without overwrite)"}, **DISK_FULL})
 def start_reconstruction(body: ReconstructionRequest, service: ServiceDep, who: Analyst, response: Response) -> JobOut:
     """Queue a reconstruction; progress (iteration, cost) on ``/jobs/{id}/events``."""
     scan = check_scan_ready(service, body.scan_id)
@@ -113,7 +115,7 @@ def _volume(service: Any, job_id: str) -> np.ndarray:
 
 
 @router.get("/{job_id}/slices/{axis}", summary="One slice as PNG", response_class=Response,
-            responses={200: {"content": {"image/png": {}}}})
+            responses={200: {"content": {"image/png": {}}}, **NOT_SUCCEEDED})
 def get_slice(job_id: str, axis: Literal["axial", "coronal", "sagittal"], service: ServiceDep, _: Reader,
               index: Annotated[int | None, Query(ge=0, le=4096, description="slice index (default: the middle)")] = None) -> Response:
     """Axial (z), coronal (y) or sagittal (x) slice with axes in millimetres and a scale bar; grey levels from
@@ -135,7 +137,8 @@ def get_slice(job_id: str, axis: Literal["axial", "coronal", "sagittal"], servic
 
 
 @router.get("/{job_id}/volume", response_class=FileResponse, summary="Download the volume",
-            responses={200: {"content": {"application/octet-stream": {}}}})
+            responses={200: {"content": {"application/octet-stream": {}}},
+                       409: {"model": ErrorBody, "description": "the job has not succeeded, or has no export in that format"}})
 def get_volume(job_id: str, service: ServiceDep, _: Reader, format: Literal["nifti", "npy"] = "nifti") -> FileResponse:
     """The volume as NIfTI (``.nii.gz``, millimetres) or a NumPy float32 array (z, y, x)."""
     _volume(service, job_id)
@@ -148,14 +151,14 @@ def get_volume(job_id: str, service: ServiceDep, _: Reader, format: Literal["nif
     return FileResponse(confined(folder, sorted(names)[0]), filename=sorted(names)[0])
 
 
-@router.get("/{job_id}/files", response_model=list[str], summary="Result files")
+@router.get("/{job_id}/files", response_model=list[str], summary="Result files", responses=NOT_SUCCEEDED)
 def list_files(job_id: str, service: ServiceDep, _: Reader) -> list[str]:
     """Names of the exported files (slices, NIfTI)."""
     _volume(service, job_id)
     return sorted(p.name for p in service.jobs.job_dir(job_id).iterdir() if p.is_file())
 
 
-@router.get("/{job_id}/files/{name}", response_class=FileResponse, summary="One result file")
+@router.get("/{job_id}/files/{name}", response_class=FileResponse, summary="One result file", responses=NOT_SUCCEEDED)
 def get_file(job_id: str, name: str, service: ServiceDep, _: Reader) -> FileResponse:
     """An exported file by name (from ``/files``)."""
     _volume(service, job_id)

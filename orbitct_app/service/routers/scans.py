@@ -11,6 +11,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from orbitct.orbits import ORBIT_KINDS
 from orbitct_app.service.core.errors import (
+    BENCH_UNAVAILABLE,
+    DISK_FULL,
     ERROR_RESPONSES,
     Conflict,
     ErrorBody,
@@ -112,6 +114,7 @@ def _check_params(service: Any, body: ScanCreate) -> dict[str, Any]:
 
 @router.post("", response_model=ScanOut, status_code=202, summary="Start a scan",
              responses={409: {"model": ErrorBody, "description": "the bench is busy with another scan, or an emergency stop is latched"},
+                        **BENCH_UNAVAILABLE,
                         507: {"model": ErrorBody, "description": "the scan would not fit on the data directory's disk with the reserve "
                                              "(storage.reserve_mb) left: the message gives the numbers"},
                         202: {"headers": {"Location": {"description": "URL of the new scan", "schema": {"type": "string"}}}}})
@@ -164,7 +167,8 @@ def scan_events(scan_id: str, service: ServiceDep, _: Reader,
     return sse_response(service.bus, f"scan:{scan_id}", last_event_id)
 
 
-@router.post("/{scan_id}/abort", response_model=ScanOut, status_code=202, summary="Abort a running scan")
+@router.post("/{scan_id}/abort", response_model=ScanOut, status_code=202, summary="Abort a running scan",
+             responses={409: {"model": ErrorBody, "description": "the scan is not running"}, **BENCH_UNAVAILABLE, **DISK_FULL})
 def abort_scan(scan_id: str, service: ServiceDep, _: ScanOperator, body: ScanAction | None = None) -> ScanOut:
     """Halt every axis, X-rays off, file marked aborted with the reason."""
     row = scan_or_404(service, scan_id)
@@ -174,7 +178,8 @@ def abort_scan(scan_id: str, service: ServiceDep, _: ScanOperator, body: ScanAct
     return _out(service, service.store.get_scan(scan_id))
 
 
-@router.post("/{scan_id}/pause", response_model=ScanOut, status_code=202, summary="Pause at the next frame")
+@router.post("/{scan_id}/pause", response_model=ScanOut, status_code=202, summary="Pause at the next frame",
+             responses={409: {"model": ErrorBody, "description": "the scan is not running"}, **BENCH_UNAVAILABLE, **DISK_FULL})
 def pause_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
     """The current frame completes; X-rays stay off while paused."""
     scan_or_404(service, scan_id)
@@ -182,7 +187,8 @@ def pause_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
     return _out(service, service.store.get_scan(scan_id))
 
 
-@router.post("/{scan_id}/resume", response_model=ScanOut, status_code=202, summary="Resume a paused scan")
+@router.post("/{scan_id}/resume", response_model=ScanOut, status_code=202, summary="Resume a paused scan",
+             responses={409: {"model": ErrorBody, "description": "the scan is not running"}, **BENCH_UNAVAILABLE, **DISK_FULL})
 def resume_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
     """Continue from the next frame."""
     scan_or_404(service, scan_id)
@@ -191,7 +197,8 @@ def resume_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
 
 
 @router.get("/{scan_id}/file", response_class=FileResponse, summary="Download the scan file (HDF5)",
-            responses={200: {"content": {"application/x-hdf5": {}}}, 409: {"description": "still acquiring or being written by a job"}})
+            responses={200: {"content": {"application/x-hdf5": {}}},
+                       409: {"model": ErrorBody, "description": "still acquiring or being written by a job"}})
 def download_scan(scan_id: str, service: ServiceDep, _: Reader) -> FileResponse:
     """The scan file (``scan-file.md``), once the scan has ended and no job writes to it."""
     row = scan_or_404(service, scan_id)

@@ -11,7 +11,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Header, Request
 from pydantic import BaseModel, ConfigDict, Field
 
-from orbitct_app.service.core.errors import ERROR_RESPONSES, Conflict
+from orbitct_app.service.core.errors import ERROR_RESPONSES, Conflict, ErrorBody
 from orbitct_app.service.core.events import sse_response
 from orbitct_app.service.deps import Reader, Resetter, ServiceDep, Stopper
 from orbitct_app.service.safety.estop import TOPIC
@@ -95,7 +95,7 @@ async def latch_state(service: ServiceDep, _: Reader) -> LatchOut:
 
 
 @router.post("/reset", response_model=LatchOut, summary="Reset the emergency stop (operator)",
-             responses={409: {"description": "no stop is latched"}})
+             responses={409: {"model": ErrorBody, "description": "no stop is latched"}})
 async def reset(service: ServiceDep, who: Resetter, body: ResetRequest | None = None) -> LatchOut:
     """Clear the latch after checking the bench; logged with who and when. Nothing moves and X-rays stay off."""
     try:
