@@ -12,6 +12,7 @@ import h5py
 
 from acquire.errors import RepairError
 from orbitct.scanfile import ScanFile, ScanFileError
+from orbitct.scanfile.reader import frames_with_pixels
 from orbitct.scanfile.writer import FORMAT
 
 INTERRUPTED = "interrupted"
@@ -32,6 +33,8 @@ class RepairReport:
         if not self.changed:
             return f"{self.path}: status is already {self.status_before!r} with {self.n_frames} frames; nothing to repair"
         cut = f" (partial frame data cut from {self.truncated_from})" if self.truncated_from is not None else ""
+        if self.status_before != "acquiring":
+            return f"{self.path}: {self.status_before}; kept {self.n_frames} complete frames{cut}"
         return f"{self.path}: was {self.status_before!r}; kept {self.n_frames} complete frames{cut}; marked aborted ({INTERRUPTED})"
 
 
@@ -98,25 +101,28 @@ def repair_scan(path: str | os.PathLike[str], *, force: bool = False, quiet_s: f
         status = str(f.attrs.get("status", "complete"))
         if "frames/image_key" not in f:
             raise RepairError(f"{p}: has no /frames/image_key; nothing can be recovered")
-        # image_key is written last for each frame: its length counts the complete frames
+        # image_key is written last for each frame: its length counts the complete frames, unless the disk
+        # filled up while the last ones were written and their pixels never reached the file
         n = int(f["frames/image_key"].shape[0])
-        if status != "acquiring":
+        if "frames/data" in f and isinstance(f["frames/data"], h5py.Dataset):
+            n = min(n, frames_with_pixels(f["frames/data"], n, p.stat().st_size))
+        if status != "acquiring" and n == f["frames/image_key"].shape[0]:
             return RepairReport(p, status, n, None, False)
-        busy = None if force else live_writer(f, mtime, quiet_s)
+        busy = None if force or status != "acquiring" else live_writer(f, mtime, quiet_s)
         if busy is not None:
             raise RepairError(f"{p}: not repaired: {busy}; stop that acquisition first (or repair anyway with --force)")
         longest = max([n] + [ds.shape[0] for ds in _per_frame_datasets(f)])
-        short = [ds.name for ds in _per_frame_datasets(f) if ds.shape[0] < n]
-        if short:
-            n = min(ds.shape[0] for ds in _per_frame_datasets(f))
+        n = min([n] + [ds.shape[0] for ds in _per_frame_datasets(f)])
+        if f["frames/image_key"].shape[0] > n:
             f["frames/image_key"].resize(n, axis=0)
         for ds in _per_frame_datasets(f):
             if ds.shape[0] > n:
                 ds.resize(n, axis=0)
         if "truth/geometry/vectors" in f and f["truth/geometry/vectors"].shape[0] != n:
             del f["truth/geometry/vectors"]  # partial truth is not the truth of this file
-        f.attrs["status"] = "aborted"
-        f.attrs["status_reason"] = INTERRUPTED
+        if status == "acquiring":
+            f.attrs["status"] = "aborted"
+            f.attrs["status_reason"] = INTERRUPTED
         f.flush()
     finally:
         f.close()

@@ -79,6 +79,24 @@ def _degenerate_views(v: NDArray[np.float64], proj: NDArray[np.bool_]) -> dict[s
     return out
 
 
+def frames_with_pixels(data: h5py.Dataset, n: int, file_bytes: int, look_back: int = 8) -> int:
+    """How many of the first ``n`` frames have their pixels in the file. A disk that fills up while a frame is
+    written can leave the frame counted with no data chunk, or with one past the end of the file; only the
+    last ``look_back`` frames are looked at (frames are written in order). Frames stored one per chunk only."""
+    if n == 0 or data.chunks is None or data.chunks[0] != 1 or data.shape[0] < n:
+        return n
+    k = n
+    while k > 0 and n - k < look_back:
+        try:
+            info = data.id.get_chunk_info_by_coord((k - 1,) + (0,) * (data.ndim - 1))
+        except (RuntimeError, ValueError, AttributeError):
+            return n  # this HDF5 cannot tell
+        if info.byte_offset is not None and info.byte_offset + info.size <= file_bytes:
+            break
+        k -= 1
+    return k
+
+
 class ScanFile(ScanResults):
     """An open scan file, checked against ``scan-file.md`` on open. Use as a context manager.
 
@@ -163,7 +181,10 @@ class ScanFile(ScanResults):
             if len(set(lengths.values())) != 1:
                 raise self._fail(f"per-frame datasets disagree in length: {lengths}")
             n = data.shape[0]
-        self.n_frames = int(n)
+        complete = frames_with_pixels(data, int(n), self.path.stat().st_size)
+        # frames counted at the end whose pixels never reached the file (the disk filled up): left out
+        self.frames_without_pixels = int(n) - complete
+        self.n_frames = complete
         keys = key[: self.n_frames]
         bad = set(np.unique(keys).tolist()) - {int(k) for k in ImageKey}
         if bad:

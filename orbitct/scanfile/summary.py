@@ -41,6 +41,7 @@ def scan_summary(f: "ScanFile") -> dict[str, Any]:
         "status": f.status,
         "status_reason": f.status_reason,
         "n_frames": f.n_frames,
+        "frames_without_pixels": f.frames_without_pixels,
         "frames_by_kind": f.count_by_kind(),
         "dtype": str(f.frames.dtype),
         "detector": {"rows": panel.rows, "cols": panel.cols, "pitch_mm": list(panel.pitch_mm)},

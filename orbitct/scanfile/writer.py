@@ -20,7 +20,7 @@ from numpy.typing import ArrayLike
 
 from orbitct import __version__
 from orbitct.geometry import Panel, ViewGeometry
-from orbitct.scanfile.errors import ScanFileError
+from orbitct.scanfile.errors import DiskFullError, ScanFileError
 from orbitct.scanfile.keys import ImageKey
 
 FORMAT = "orbitct.scan"
@@ -53,6 +53,11 @@ def _put_row(ds: h5py.Dataset, i: int, value: Any) -> None:
     ds.id.write(h5py.h5s.create_simple(row.shape), space, row)
 
 
+def _free_bytes(folder: Path) -> int:
+    st = os.statvfs(folder)
+    return st.f_bavail * st.f_frsize
+
+
 class ScanWriter:
     """Append frames to a new scan file; use as a context manager."""
 
@@ -70,6 +75,7 @@ class ScanWriter:
         compression: str | None = None,
         true_geometry: bool = False,
         overwrite: bool = False,
+        min_free_bytes: int | None = None,
     ) -> None:
         self.path = Path(path)
         if self.path.exists() and not overwrite:
@@ -80,6 +86,12 @@ class ScanWriter:
         self._axes = _axis_units(axes)
         self._n = 0
         self._closed = False
+        self._broken = False
+        frame_bytes = panel.rows * panel.cols * np.dtype(frame_dtype).itemsize
+        # HDF5 cannot recover from a write that fails for want of space (h5py#914: the file handle is left
+        # half-closed and the process may crash on exit), so a frame is refused while there is still room
+        # to close the file cleanly: two frames and 1 MiB for the metadata, unless told otherwise
+        self._min_free = 2 * frame_bytes + (1 << 20) if min_free_bytes is None else int(min_free_bytes)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         f = h5py.File(self.path, "w")
         self._f = f
@@ -152,6 +164,8 @@ class ScanWriter:
         """Append one frame with its metadata and flush; returns the frame index."""
         if self._closed:
             raise ScanFileError(f"{self.path}: writer is closed")
+        if self._broken:
+            raise ScanFileError(f"{self.path}: a frame could not be written; this writer takes no more")
         try:
             key = ImageKey.parse(image_key)
         except ValueError as exc:
@@ -168,24 +182,48 @@ class ScanWriter:
             if unknown:
                 raise ScanFileError(f"{grp}: unknown axes {sorted(unknown)}; declared axes are {sorted(self._axes)}")
         i, ds = self._n, self._per_frame
+        if self._min_free > 0:
+            free = _free_bytes(self.path.parent)
+            if free < self._min_free:
+                raise DiskFullError(f"{self.path}: frame {i} not written: {free / 1e6:.1f} MB free, "
+                                    f"{self._min_free / 1e6:.1f} MB needed to write it and close the file cleanly; "
+                                    f"the {i} frames before it are kept")
         if ds["frames/data"].dtype == np.uint16:
             arr = np.clip(np.rint(arr), 0, 65535).astype(np.uint16) if arr.dtype != np.uint16 else arr
-        _put_row(ds["frames/data"], i, arr)
-        for grp, values in axis_values.items():
-            for name in self._axes:
-                _put_row(ds[f"frames/{grp}/{name}"], i, values.get(name, np.nan))
-        _put_row(ds["geometry/nominal/vectors"], i, vec)
-        _put_row(ds["geometry/nominal/matrices"], i, ViewGeometry(vec, self.panel).matrices[0])
-        if "truth/geometry/vectors" in ds:
-            truth = np.full(12, np.nan) if true_vector is None else np.asarray(true_vector, float).reshape(12)
-            _put_row(ds["truth/geometry/vectors"], i, truth)
-        _put_row(ds["frames/time_s"], i, float(time_s))
-        # image_key is written last: its length is the count of complete frames.
-        _put_row(ds["frames/image_key"], i, int(key))
+        try:
+            _put_row(ds["frames/data"], i, arr)
+            for grp, values in axis_values.items():
+                for name in self._axes:
+                    _put_row(ds[f"frames/{grp}/{name}"], i, values.get(name, np.nan))
+            _put_row(ds["geometry/nominal/vectors"], i, vec)
+            _put_row(ds["geometry/nominal/matrices"], i, ViewGeometry(vec, self.panel).matrices[0])
+            if "truth/geometry/vectors" in ds:
+                truth = np.full(12, np.nan) if true_vector is None else np.asarray(true_vector, float).reshape(12)
+                _put_row(ds["truth/geometry/vectors"], i, truth)
+            _put_row(ds["frames/time_s"], i, float(time_s))
+            # image_key is written last: its length is the count of complete frames.
+            _put_row(ds["frames/image_key"], i, int(key))
+            if flush:
+                self._f.flush()
+        except (OSError, RuntimeError) as exc:  # HDF5 reports a failed write (a full disk) as either
+            self._failed_write(i, exc)
         self._n = i + 1
-        if flush:
-            self._f.flush()
         return i
+
+    def _failed_write(self, i: int, exc: BaseException) -> None:
+        """Frame ``i`` could not be written: leave it uncounted, stop writing, and say why in one line."""
+        for ds in self._per_frame.values():  # every per-frame dataset back to i rows, so that they agree
+            try:
+                if ds.shape[0] > i:
+                    ds.id.set_extent((i,) + ds.shape[1:])
+            except (OSError, RuntimeError):
+                pass  # readers also leave out a last frame whose pixels are not in the file
+        self._broken = True
+        text = str(exc)
+        full = "errno = 28" in text or "No space left" in text
+        why = "the disk is full" if full else text.splitlines()[0][:200]
+        raise (DiskFullError if full else ScanFileError)(
+            f"{self.path}: frame {i} could not be written ({why}); the {i} frames before it are kept") from None
 
     def write_truth(
         self,
@@ -229,10 +267,20 @@ class ScanWriter:
             return
         if status not in STATUSES:
             raise ScanFileError(f"status must be one of {STATUSES}, got {status!r}")
-        self._f.attrs["status"] = status
-        self._f.attrs["status_reason"] = reason
-        self._f.close()
         self._closed = True
+        try:
+            self._f.attrs["status"] = status
+            self._f.attrs["status_reason"] = reason
+            self._f.close()
+        except (OSError, RuntimeError):
+            if not self._broken:
+                raise
+            # the disk is full: the status stays 'acquiring' and `orbitct scan repair` marks it aborted later
+            self._per_frame.clear()
+            try:
+                self._f.close()
+            except (OSError, RuntimeError):
+                pass
 
     def __enter__(self) -> "ScanWriter":
         return self

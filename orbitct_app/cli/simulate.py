@@ -87,6 +87,9 @@ def inspect(scan: Path, as_json: bool) -> None:
     click.echo(f"  detector    {d['rows']} x {d['cols']} px @ {d['pitch_mm'][0]:.4g} x {d['pitch_mm'][1]:.4g} mm")
     click.echo("  frames      " + ", ".join(f"{v} {k}" for k, v in summary["frames_by_kind"].items() if v) +
                f" ({summary['n_frames']} total, {summary['dtype']})")
+    if summary["frames_without_pixels"]:
+        click.echo(f"  warning     {summary['frames_without_pixels']} more frame(s) at the end have no pixels in the file "
+                   "(the disk filled up while they were written) and are left out; orbitct scan repair trims them")
     if summary["duration_s"] is not None:
         click.echo(f"  duration    {summary['duration_s']:.1f} s")
     click.echo(f"  orbit       {summary['orbit']['name'] or '-'} {json.dumps(summary['orbit']['params'])}")

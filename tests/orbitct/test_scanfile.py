@@ -186,3 +186,4 @@ def test_writer_rejects_bad_input(tmp_path: Path) -> None:
         ScanWriter(path, DET)
     with pytest.raises(ScanFileError, match="must look like 'device.axis'"):
         ScanWriter(tmp_path / "x.h5", DET, axes={"angle": "deg"})
+

@@ -73,3 +73,44 @@ def test_a_disk_filling_up_mid_scan_stops_it_cleanly_with_every_frame_kept(tmp_p
         again = CliRunner().invoke(cli, ["scan", "--config", str(_config(tmp_path, 2.0)), "--orbit", "circular",
                                          "--frames", "20", "--sim", "--out", str(disk / "after.h5")])
         assert again.exit_code == 0, again.output
+
+
+ENOSPC_WRITER = """
+import sys
+import numpy as np
+from orbitct.geometry import Panel
+from orbitct.scanfile import DiskFullError, ScanWriter
+
+w = ScanWriter(sys.argv[1], Panel(256, 256, 1.0, 1.0), min_free_bytes=int(sys.argv[2]))
+try:
+    for i in range(1000):
+        w.append(np.full((256, 256), 100 + i), 0, float(i), nominal_vector=[0, -500, 0, 0, 500, 0, 1, 0, 0, 0, 0, 1])
+except DiskFullError as exc:
+    print(exc)
+w.finish("aborted", "disk full")
+"""
+
+
+@pytest.mark.parametrize("min_free_bytes", [None, 0], ids=["guarded", "real-ENOSPC"])
+def test_a_disk_that_fills_up_leaves_a_file_whose_every_counted_frame_has_its_pixels(
+    tmp_path: Path, min_free_bytes: int | None
+) -> None:
+    """The writer stops while the file can still be closed cleanly; and when the space goes anyway (another
+    program, or no guard: HDF5's own ENOSPC), readers and repair leave out the frames whose pixels are missing."""
+    with small_filesystem(tmp_path / "disk", 8) as disk:
+        out = disk / "s.h5"
+        guard = str(2 * 256 * 256 * 2 + (1 << 20)) if min_free_bytes is None else "0"
+        run = subprocess.run([sys.executable, "-c", ENOSPC_WRITER, str(out), guard], capture_output=True, text=True,
+                             timeout=120)
+        assert "could not be written" in run.stdout or "not written" in run.stdout, run.stdout + run.stderr
+        if min_free_bytes is None:  # stopped before HDF5 saw a failed write: a clean exit
+            assert run.returncode == 0 and "MB free" in run.stdout, run.stderr
+        fill(disk, leave_bytes=0).unlink()  # nothing else: the space is back
+        with ScanFile(out) as sf:
+            n = sf.n_frames
+            assert 40 <= n < 64 and sf.status in ("aborted", "acquiring")
+            assert all(sf.frames[i].min() == 100 + i for i in range(n))  # every counted frame is whole
+        repaired = CliRunner().invoke(cli, ["scan", "repair", str(out)])
+        assert repaired.exit_code == 0, repaired.output
+        shown = CliRunner().invoke(cli, ["inspect", str(out)])
+        assert shown.exit_code == 0 and "aborted" in shown.output and "warning" not in shown.output, shown.output
