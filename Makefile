@@ -11,6 +11,8 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test]'
+	@echo "compiling the numerical kernels once (cached; the first calibration and reconstruction then start at full speed)"
+	$(BIN)/orbitct warmup
 	@touch $(STAMP)
 
 venv: $(STAMP)

@@ -28,9 +28,11 @@ from calib.errors import (
 )
 from calib.identify import fill_states, identify, usable_views
 from calib.model import INTRINSICS, ViewModel, ViewState
+from calib.quality import FAILED, MIN_OWN_BBS, STATUS_CODES, Verdict, ViewQuality, assess_views, centroid_noise_px, judge
 from calib.paper import paper_calibrate
 from calib.rays import marker_rays, rpe_per_frame, triangulate_least_squares
 from calib.track import TrackingSettings
+from orbitct.compiletime import CompileClock
 from orbitct.geometry import ViewGeometry
 from orbitct.progress import ProgressCallback, report
 from orbitct.scanfile import ImageKey, ScanFile, frame_problem
@@ -46,7 +48,9 @@ class CalibrationOptions:
     iterations: int | None = None  # paper: alternations (default 3); bundle: max LM iterations (default 30)
     intrinsics: str = "fixed"  # bundle only: "fixed", "sdd" or "sdd+pp"
     loss_scale_px: float = 0.5  # Huber threshold of the bundle adjustment
-    min_bbs_per_view: int = 3
+    min_bbs_per_view: int = 3  # a view with fewer is never fitted on its own (the bundle needs 4 to call it its own)
+    bridge_max_views: int = 10  # bundle: widest run of views without 4 BBs that is bridged from its neighbours
+    max_predicted_px: float = 0.5  # quality check: largest predicted field-of-view error a view may have
     min_observations: int | None = None  # frames a BB must be seen in (default max(8, 5% of projections))
     diameter_mm: float | None = None  # BB diameter; default /markers@diameter_mm, else estimated
     k_sigma: float = 6.0  # detection threshold in noise standard deviations
@@ -90,6 +94,10 @@ class CalibrationResult:
     warnings: list[str] = field(default_factory=list)
     unsolved_views: list[int] = field(default_factory=list)
     true_corrections: dict[str, NDArray[np.float64]] | None = None  # simulated scans: the truth, same frame
+    quality: "Verdict | None" = None
+    compile_s: float = 0.0  # numba compiling its kernels on first use (after installation); not in elapsed_s
+    view_status: NDArray[np.int8] | None = None  # per frame: STATUS_CODES, -1 for non-projections
+    predicted_px: NDArray[np.float64] | None = None  # per frame: predicted field-of-view error (px)
 
     @property
     def n_bbs(self) -> int:
@@ -107,6 +115,7 @@ class CalibrationResult:
             "elapsed_s": self.elapsed_s,
             "detect_s": self.detect_s,
             "estimate_s": self.estimate_s,
+            "compile_s": self.compile_s,
             "rpe_mean_mm": last.rpe_mean_mm,
             "rpe_median_mm": last.rpe_median_mm,
             "rpe_std_mm": last.rpe_std_mm,
@@ -114,6 +123,7 @@ class CalibrationResult:
             "iterations": [asdict(s) for s in self.iterations],
             "warnings": list(self.warnings),
             "unsolved_views": list(self.unsolved_views),
+            "quality": self.quality.summary() if self.quality is not None else None,
         }
 
 
@@ -274,8 +284,8 @@ def calibrate_scan(
 ) -> CalibrationResult:
     """Calibrate a scan's geometry from the BBs in its projections and write the results."""
     # the linear algebra here is small; BLAS threads would only spin against the detection threads
-    with threadpool_limits(limits=1, user_api="blas"):
-        return _calibrate_scan(path, method, out, report_dir, progress, options)
+    with threadpool_limits(limits=1, user_api="blas"), CompileClock() as clock:
+        return _calibrate_scan(path, method, out, report_dir, progress, options, clock)
 
 
 def _calibrate_scan(
@@ -285,6 +295,7 @@ def _calibrate_scan(
     report_dir: str | os.PathLike[str] | None,
     progress: ProgressCallback | None,
     options: dict[str, Any],
+    clock: CompileClock,
 ) -> CalibrationResult:
     opt = _options(method, options)
     src = Path(path)
@@ -314,7 +325,8 @@ def _calibrate_scan(
         n_all = sf.n_frames
         nominal = nominal_all[proj]
         cands, diameter_mm, d_px = _detect(sf, proj, nominal, opt, progress)
-    t_detect = time.perf_counter() - t0
+    compile_detect = clock.seconds  # kernels compiled on first use: not calibration time
+    t_detect = time.perf_counter() - t0 - compile_detect
     report(progress, "track", 0, 1, "identifying BBs")
     min_obs = opt.min_observations or max(8, int(0.05 * len(proj)))
     tset = TrackingSettings(diameter_px=d_px, motion_px=_motion_px(nominal), jitter_px=opt.jitter_mm * d_px / diameter_mm)
@@ -327,17 +339,14 @@ def _calibrate_scan(
             f"(BB diameter {diameter_mm:.2f} mm = {d_px:.1f} px; if the BBs are another size, give it: "
             "orbitct calibrate --diameter-mm, or \"diameter_mm\" in POST /calibrations)"
         )
-    t1 = time.perf_counter()
-    geometry_p, xyz, state, uv, history, n_iter, more = _estimate(method, model, uv, opt, progress)
+    t1, compiled_before = time.perf_counter(), clock.seconds
+    geometry_p, xyz, state, uv, history, n_iter, more, quality = _estimate(method, model, uv, opt, progress)
     warnings += more
-    t_est = time.perf_counter() - t1
+    t_est = time.perf_counter() - t1 - (clock.seconds - compiled_before)
     solved = geometry_p.valid
     unsolved = proj[~solved]
-    if unsolved.size:
-        warnings.append(
-            f"{unsolved.size} view(s) see fewer than {opt.min_bbs_per_view} BBs and have NaN geometry: "
-            f"frames {unsolved[:10].tolist()}{' ...' if unsolved.size > 10 else ''}"
-        )
+    verdict = judge(quality, proj, opt.max_predicted_px, opt.bridge_max_views, method)
+    warnings += verdict.warnings
     resid = _residual_px(geometry_p, uv, xyz)
     ok_r = np.isfinite(resid)
     reproj_rms = float(np.sqrt(np.mean(resid[ok_r] ** 2))) if ok_r.any() else float("nan")
@@ -348,8 +357,12 @@ def _calibrate_scan(
     uv_all = np.full((n_all, uv.shape[1], 2), np.nan)
     uv_all[proj] = uv
     rpe_all = np.full(n_all, np.nan)
-    rpe_all[proj] = history[-1][0]
-    elapsed = time.perf_counter() - t0
+    rpe_all[proj] = np.where(quality.status == "own", rpe_per_frame(geometry_p, uv, xyz), np.nan)
+    status_all = np.full(n_all, -1, np.int8)
+    status_all[proj] = [STATUS_CODES[str(v)] for v in quality.status]
+    predicted_all = np.full(n_all, np.nan)
+    predicted_all[proj] = quality.predicted_px
+    elapsed = time.perf_counter() - t0 - clock.seconds
     report(progress, "write", 0, 1, str(target))
     with ScanFile(target, "r+") as sf:
         sf.write_calibration(
@@ -369,7 +382,9 @@ def _calibrate_scan(
                 if method == "bundle"
                 else "none (paper method)",
                 "warnings_json": list(warnings),
+                **verdict.attrs(),
             },
+            per_view={"view_status": status_all, "predicted_px": predicted_all},
         )
     report(progress, "write", 1, 1, str(target))
     corr_R = np.full((n_all, 3), np.nan)
@@ -390,11 +405,15 @@ def _calibrate_scan(
         elapsed_s=elapsed,
         detect_s=t_detect,
         estimate_s=t_est,
+        compile_s=clock.seconds,
         reproj_rms_px=reproj_rms,
         corrections={"rotvec_rad": corr_R, "shift_mm": corr_t, "frame": np.arange(n_all)},
         warnings=warnings,
         unsolved_views=unsolved.tolist(),
         true_corrections=None if truth_all is None else true_corrections(full_geom, nominal_all, truth_all),
+        quality=verdict,
+        view_status=status_all,
+        predicted_px=predicted_all,
     )
     if report_dir is not None:
         from calib.report import write_report
@@ -410,7 +429,7 @@ def _leave_one_out_outliers(
     is largest and above ``tol_px``."""
     n, k = uv.shape[:2]
     seen = np.isfinite(uv).all(-1)
-    views = np.flatnonzero(seen.sum(1) >= 4)
+    views = np.flatnonzero(seen.sum(1) >= 5)  # with 4, the pose refitted on 3 has no redundancy to judge by
     out = np.zeros((n, k), bool)
     if views.size == 0:
         return out
@@ -467,8 +486,8 @@ History = list[tuple[NDArray[np.float64], NDArray[np.float64]]]
 
 def _estimate(
     method: str, model: ViewModel, uv: NDArray[np.float64], opt: CalibrationOptions, progress: ProgressCallback | None
-) -> tuple[ViewGeometry, NDArray[np.float64], ViewState, NDArray[np.float64], History, int, list[str]]:
-    """Geometry of the projection views (NaN where unsolved), BB centres, states, cleaned uv, history."""
+) -> tuple[ViewGeometry, NDArray[np.float64], ViewState, NDArray[np.float64], History, int, list[str], ViewQuality]:
+    """Geometry of the projection views (NaN where failed), BB centres, states, cleaned uv, history, quality."""
     warnings: list[str] = []
     n = uv.shape[0]
     ok = usable_views(uv, opt.min_bbs_per_view)
@@ -510,7 +529,7 @@ def _estimate(
         # a pose absorbs much of one wrong blob: test each detection against the pose fitted without it,
         # and views with only 3 BBs (no redundancy) against the neighbouring view
         bad |= _leave_one_out_outliers(sub, res.state, res.xyz, np.where(bad[..., None], np.nan, uvs), 1.5 * opt.outlier_px)
-        bad |= _disagree_with_neighbour(sub, res.state, res.xyz, uvs, 3.0 * opt.outlier_px, max_bbs=3)
+        bad |= _disagree_with_neighbour(sub, res.state, res.xyz, uvs, 3.0 * opt.outlier_px, max_bbs=4)
         if bad.sum() > n_bad:
             warnings.append(f"{int(bad.sum()) - n_bad} detection(s) disagree with their view fitted without them (or, with 3 BBs, with the neighbouring view); set to NaN")
         if bad.any():
@@ -524,24 +543,34 @@ def _estimate(
             record(res.state, res.xyz)
         state, xyz = res.state, res.xyz
         n_iter = len(history) - 1
-    geometry = sub.geometry(state)
-    still = usable_views(uvs, opt.min_bbs_per_view)
-    vec = np.full((n, 12), np.nan)
-    vec[np.flatnonzero(ok)[still]] = geometry.vectors[still]
     full_state = ViewState.identity(n, model.n_intrinsics)
     full_state.R[ok], full_state.t[ok], full_state.k[ok] = state.R, state.t, state.k
-    solved = np.isfinite(vec).all(1)
-    if (~solved).any() and solved.any():
-        # views left unsolved: keep only detections that agree with the neighbouring views' geometry
-        guess = model.project(fill_states(full_state, solved, n), xyz)
-        off = np.linalg.norm(guess - uv, axis=-1) > 3.0 * opt.outlier_px
-        off &= ~solved[:, None]
+    uv = uv.copy()
+    uv[ok] = uvs
+    in_bundle = np.zeros(n, bool)
+    in_bundle[np.flatnonzero(ok)[usable_views(uvs, opt.min_bbs_per_view)]] = True
+    if (~in_bundle).any() and in_bundle.any():
+        # views outside the adjustment: keep only detections that agree with the neighbouring views' geometry
+        guess = model.project(fill_states(full_state, in_bundle, n), xyz)
+        off = (np.linalg.norm(guess - uv, axis=-1) > 3.0 * opt.outlier_px) & ~in_bundle[:, None]
         if off.any():
-            uv = uv.copy()
             uv[off] = np.nan
-            warnings.append(f"{int(off.sum())} detection(s) in unsolved views disagree with their neighbours and were set to NaN")
-    full_state = ViewState(np.where(solved[:, None, None], full_state.R, np.nan), np.where(solved[:, None], full_state.t, np.nan), full_state.k)
-    return model.nominal.with_vectors(vec), xyz, full_state, uv, history, n_iter, warnings
+            warnings.append(f"{int(off.sum())} detection(s) in views outside the adjustment disagree with their "
+                            "neighbours and were set to NaN")
+    resid_xy = sub.geometry(state).project(xyz) - uvs
+    noise = centroid_noise_px(resid_xy, sub.n_params * sub.nominal.n_views + 3 * xyz.shape[0] - 7)
+    paper = method == "paper"
+    full_state, quality = assess_views(model, full_state, xyz, uv, noise_px=noise,
+                                       min_own_bbs=opt.min_bbs_per_view if paper else max(MIN_OWN_BBS, opt.min_bbs_per_view),
+                                       max_gap=0 if paper else opt.bridge_max_views)
+    if quality.counts()["own"] == 0:
+        raise NoMarkersError(
+            f"no view sees the {MIN_OWN_BBS if not paper else opt.min_bbs_per_view} BBs it needs to be calibrated (and "
+            f"checked) on its own: at most {int(quality.n_bbs.max(initial=0))} BBs per view; a pose fitted to 3 BBs "
+            "has no redundancy and cannot be trusted. Tape more BBs on the object (6 to 10 are recommended).")
+    vec = model.geometry(ViewState(np.nan_to_num(full_state.R), np.nan_to_num(full_state.t), full_state.k)).vectors.copy()
+    vec[quality.status == FAILED] = np.nan
+    return model.nominal.with_vectors(vec), xyz, full_state, uv, history, n_iter, warnings, quality
 
 
 __all__ = ["CalibrationOptions", "CalibrationResult", "IterationStats", "METHODS", "calibrate_scan", "fill_states"]

@@ -33,9 +33,15 @@ TABLE_ROWS = (
 )
 
 
-def table1_row(result: "CalibrationResult") -> dict[str, float]:
-    """The paper's Table 1 figures for one calibration (RPE after the last iteration)."""
-    last = result.iterations[-1]
+PAPER_ITERATION = 2  # the published Table 1 reports the alternation after two iterations
+
+
+def table1_row(result: "CalibrationResult", iteration: int | None = None) -> dict[str, float]:
+    """The paper's Table 1 figures for one calibration: RPE after ``iteration`` (default: the last for the
+    bundle method, the second for the paper method, as the published table)."""
+    if iteration is None:
+        iteration = PAPER_ITERATION if result.method == "paper" else len(result.iterations) - 1
+    last = result.iterations[min(iteration, len(result.iterations) - 1)]
     frames, bbs = result.n_frames, result.n_bbs
     return {
         "frames": frames,
@@ -149,7 +155,24 @@ def corrections_plot(
 def write_report(result: "CalibrationResult", out_dir: Path, extra_columns: dict[str, dict[str, Any]] | None = None) -> list[Path]:
     """Write table1.md, table1.csv, rpe_violin.png and corrections.png into ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    columns = {f"this scan ({result.method})": table1_row(result), **(extra_columns or {})}
+    n_last = len(result.iterations) - 1
+    if result.method == "paper" and n_last > PAPER_ITERATION:  # the published table's iteration, later ones beside it
+        columns = {f"this scan (paper, iteration {PAPER_ITERATION})": table1_row(result, PAPER_ITERATION),
+                   f"this scan (paper, iteration {n_last})": table1_row(result, n_last)}
+    else:
+        columns = {f"this scan ({result.method})": table1_row(result)}
+    columns.update(extra_columns or {})
+    q = result.quality
+    quality = ""
+    if q is not None:
+        v = q.counts
+        quality = (f"\n## Quality: {'passed' if q.passed else 'FAILED'}\n\n"
+                   f"- views calibrated from their own BBs (4 or more): {v['own']}; bridged from their neighbours: "
+                   f"{v['bridged']}; failed (NaN geometry): {v['failed']}\n"
+                   f"- predicted error of the field of view (px): median {q.predicted_px_median:.3f}, max "
+                   f"{q.predicted_px_max:.3f}" + (f" (frame {q.worst_frame})" if q.worst_frame is not None else "")
+                   + f"; threshold {q.threshold_px:g}\n- centroid noise measured from the residuals: {q.noise_px:.3f} px\n"
+                   + "".join(f"- {r}\n" for r in q.reasons))
     md = out_dir / "table1.md"
     iters = "\n".join(
         f"| {s.index} | {s.rpe_mean_mm:.4f} | {s.rpe_median_mm:.4f} | {s.rpe_std_mm:.4f} | {s.reproj_rms_px:.4f} |"
@@ -160,6 +183,7 @@ def write_report(result: "CalibrationResult", out_dir: Path, extra_columns: dict
         + markdown_table(columns)
         + "\n## RPE per iteration (0 = initial geometry)\n\n| iteration | mean (mm) | median (mm) | std (mm) | reproj. RMS (px) |\n"
         "| ---: | ---: | ---: | ---: | ---: |\n" + iters + "\n"
+        + quality
         + ("\n## Warnings\n\n" + "\n".join(f"- {w}" for w in result.warnings) + "\n" if result.warnings else "")
     )
     csv_path = out_dir / "table1.csv"

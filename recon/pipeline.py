@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from collections.abc import Sequence
@@ -59,6 +60,7 @@ class ReconResult:
     exported: list[Path] = field(default_factory=list)
     params: dict[str, Any] = field(default_factory=dict)
     volume: NDArray[np.float32] | None = field(default=None, repr=False)
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def grid(self) -> VolumeGrid:
@@ -158,6 +160,21 @@ def _views(scan: ScanFile, geometry: str) -> tuple[NDArray[np.intp], ViewGeometr
     return frames[ok], g[np.flatnonzero(ok)], int((~ok).sum())
 
 
+def _geometry_warnings(scan: ScanFile, geometry: str) -> list[str]:
+    """A calibrated geometry that failed its quality check is used as asked, but never silently."""
+    if geometry != "calibrated":
+        return []
+    attrs = scan.h5["geometry/calibrated"].attrs
+    if str(attrs.get("quality", "")) != "failed":
+        return []
+    try:
+        reasons = json.loads(str(attrs.get("quality_reasons_json", "[]")))
+    except ValueError:
+        reasons = []
+    return ["the calibrated geometry failed its quality check" + (f" ({'; '.join(map(str, reasons))})" if reasons else "")
+            + "; the volume inherits those views' errors"]
+
+
 def _load(scan: ScanFile, frames: NDArray[np.intp], with_weights: bool,
           progress: ProgressCallback | None) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
     det = scan.panel
@@ -222,6 +239,7 @@ def reconstruct_scan(
         if name in scan.recon_names() and not overwrite:
             raise ReconExistsError(scan.path, name)
         frames, geom, dropped = _views(scan, geometry)
+        warnings = _geometry_warnings(scan, geometry)
         grid = grid_for_geometry(geom, voxel_mm=voxel_mm, shape=shape)
         fov_fraction = check_fov(grid, geom)
         det = geom.panel
@@ -280,7 +298,7 @@ def reconstruct_scan(
         base = Path(out_dir) if out_dir is not None else scan_path.parent
         exported = export_volume(vol, grid, formats, base / f"{scan_path.stem}_{name}")
     return ReconResult(name, scan_path, algorithm, geometry, grid.shape, grid.voxel_mm, grid.origin_mm, cost,
-                       elapsed, exported, params, vol)
+                       elapsed, exported, params, vol, warnings)
 
 
 def compare_reconstructions(path: str | os.PathLike[str], names: Sequence[str], out: str | os.PathLike[str]) -> Path:

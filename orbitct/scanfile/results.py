@@ -59,8 +59,10 @@ class ScanResults:
         elapsed_s: float,
         reproj_rms_px: float,
         extra_attrs: dict[str, Any] | None = None,
+        per_view: dict[str, ArrayLike] | None = None,
     ) -> None:
-        """Store ``/geometry/calibrated`` and ``/markers/{uv,xyz,rpe_mm}``."""
+        """Store ``/geometry/calibrated`` (with ``per_view`` datasets beside the vectors, one row per frame) and
+        ``/markers/{uv,xyz,rpe_mm}``."""
         self._accepts_results()
         if geometry.n_views != self.n_frames:
             raise self._fail(f"calibrated geometry has {geometry.n_views} views, the scan has {self.n_frames} frames")
@@ -79,6 +81,11 @@ class ScanResults:
         )
         for k, v in (extra_attrs or {}).items():
             g.attrs[k] = to_json(v) if isinstance(v, (dict, list)) else v
+        for name, values in (per_view or {}).items():
+            arr = np.asarray(values)
+            if arr.shape[:1] != (self.n_frames,):
+                raise self._fail(f"calibrated {name} has {arr.shape[:1]} rows, the scan has {self.n_frames} frames")
+            self._replace(f"geometry/calibrated/{name}", arr)
         self._f.require_group("markers")
         self._replace("markers/uv", np.asarray(uv, dtype=float))
         self._replace("markers/xyz", np.asarray(xyz, dtype=float))

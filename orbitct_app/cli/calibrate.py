@@ -22,15 +22,26 @@ from orbitct_app.cli.progress import ProgressBar
 @click.option("--intrinsics", type=click.Choice(["fixed", "sdd", "sdd+pp"]), default="fixed", show_default=True,
               help="bundle: also estimate per view the source-detector distance and the piercing point.")
 @click.option("--diameter-mm", type=float, default=None, help="BB diameter (default: /markers@diameter_mm, else estimated).")
+@click.option("--max-predicted-px", type=click.FloatRange(min=0.0, min_open=True), default=0.5, show_default=True,
+              help="Quality check: the largest predicted field-of-view error a view may have.")
+@click.option("--bridge-max-views", type=click.IntRange(0, 1000), default=10, show_default=True,
+              help="bundle: the widest run of views with fewer than 4 BBs that is bridged from its neighbours.")
+@click.option("--accept-poor", is_flag=True,
+              help="Exit 0 even when the quality check fails (the geometry is stored either way, marked failed).")
 def calibrate(
     scan: Path, method: str, out: Path | None, report_dir: Path | None, iterations: int | None, intrinsics: str,
-    diameter_mm: float | None,
+    diameter_mm: float | None, max_predicted_px: float, bridge_max_views: int, accept_poor: bool,
 ) -> None:
-    """Calibrate SCAN's geometry from the BBs on the object; writes /geometry/calibrated and /markers."""
+    """Calibrate SCAN's geometry from the BBs on the object; writes /geometry/calibrated and /markers.
+
+    Exit status: 0 calibrated and the quality check passed; 1 not calibrated (the message says why);
+    3 calibrated but the quality check failed (views without a geometry, or a predicted error above
+    --max-predicted-px): the geometry is stored, marked failed, and the reasons are printed."""
     import calib
     from orbitct.scanfile import ScanFileError
 
-    options: dict[str, object] = {"intrinsics": intrinsics}
+    options: dict[str, object] = {"intrinsics": intrinsics, "max_predicted_px": max_predicted_px,
+                                  "bridge_max_views": bridge_max_views}
     if iterations is not None:
         options["iterations"] = iterations
     if diameter_mm is not None:
@@ -46,11 +57,27 @@ def calibrate(
         f"({1000 * res.elapsed_s / max(res.n_frames, 1):.2f} ms/frame; detection {res.detect_s:.2f} s, "
         f"estimation {res.estimate_s:.2f} s)"
     )
+    if res.compile_s > 0.5:
+        click.echo(f"first use after installation: {res.compile_s:.1f} s compiling numerical kernels (cached for the "
+                   "next run; not counted above)")
     click.echo(
         f"RPE mean {last.rpe_mean_mm:.4f} mm, median {last.rpe_median_mm:.4f} mm, std {last.rpe_std_mm:.4f} mm; "
         f"reprojection RMS {res.reproj_rms_px:.3f} px (initial RPE mean {res.iterations[0].rpe_mean_mm:.3f} mm)"
     )
+    q = res.quality
+    if q is not None:
+        v = q.counts
+        worst = f" (frame {q.worst_frame})" if q.worst_frame is not None else ""
+        click.echo(f"views: {v['own']} from their own BBs, {v['bridged']} bridged, {v['failed']} failed; predicted "
+                   f"error median {q.predicted_px_median:.3f} px, max {q.predicted_px_max:.3f} px{worst}; centroid "
+                   f"noise {q.noise_px:.3f} px")
     for w in res.warnings:
         click.echo(f"warning: {w}", err=True)
     if report_dir is not None:
         click.echo(f"report written to {report_dir}")
+    if q is not None and not q.passed:
+        click.echo("QUALITY CHECK FAILED: " + "; ".join(q.reasons), err=True)
+        click.echo("The geometry is stored, marked quality=failed. What to do: README, 'When a calibration fails its "
+                   "quality check'." + ("" if accept_poor else " (--accept-poor exits 0 anyway.)"), err=True)
+        if not accept_poor:
+            raise SystemExit(3)

@@ -126,6 +126,12 @@ def demo(out_dir: Path, config_path: Path | None, frames: int, size: int, voxels
         if cal.iterations:
             click.echo(f"   RPE: nominal {cal.iterations[0].rpe_mean_mm:.3f} mm -> calibrated {last.rpe_mean_mm:.3f} mm "
                        f"(reprojection RMS {cal.reproj_rms_px:.3f} px)")
+        q = cal.quality
+        if q is not None:
+            click.echo(f"   views: {q.counts['own']} from their own BBs, {q.counts['bridged']} bridged, {q.counts['failed']} "
+                       f"failed; predicted error median {q.predicted_px_median:.2f} px, max {q.predicted_px_max:.2f} px")
+            if not q.passed:
+                click.echo("   QUALITY CHECK FAILED: " + "; ".join(q.reasons))
         for w in cal.warnings[:5]:
             click.echo(f"   warning: {w}")
         _truth_error(scan_path)

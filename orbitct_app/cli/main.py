@@ -22,6 +22,7 @@ COMMANDS: dict[str, str] = {
     "stop": "orbitct_app.cli.remote:stop",
     "reset": "orbitct_app.cli.remote:reset",
     "reset-fault": "orbitct_app.cli.remote:reset_fault",
+    "warmup": "orbitct_app.cli.warmup:warmup",
 }
 
 

@@ -81,6 +81,8 @@ def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | Non
         click.echo(f"  cost {res.cost[0]:.6g} -> {res.cost[-1]:.6g} over {len(res.cost) - 1} iterations")
     for p in res.exported:
         click.echo(f"  wrote {p}")
+    for w in res.warnings:
+        click.echo(f"warning: {w}", err=True)
     if compare_geometry is None:
         return
     if compare_geometry == geometry:

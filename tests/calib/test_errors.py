@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import calib
-from orbitct.scanfile import ScanWriter
+from orbitct.scanfile import ScanFile, ScanWriter
 from tests.helpers.calib_scans import (
     detector,
     perturbed,
@@ -84,19 +84,41 @@ def test_bad_options(fov_scan: Path) -> None:
         calib.calibrate_scan(fov_scan, intrinsics="everything")
 
 
-def test_view_with_too_few_bbs_gets_nan_and_a_warning(fov_scan: Path, tmp_path: Path) -> None:
-    """Frames 50-54 blanked to the flat field: no BBs there."""
+def _blank(fov_scan: Path, tmp_path: Path, frames: range) -> Path:
     p = tmp_path / "blank.h5"
     shutil.copyfile(fov_scan, p)
     with h5py.File(p, "r+") as f:
         flat = f["frames/data"][1]
-        for i in range(52, 57):
+        for i in frames:
             f["frames/data"][i] = flat
-    res = calib.calibrate_scan(p)
+    return p
+
+
+def test_a_short_run_of_views_without_bbs_is_bridged_and_says_so(fov_scan: Path, tmp_path: Path) -> None:
+    """Frames 52-56 blanked to the flat field: no BBs there; bridged from frames 51 and 57, with a predicted
+    error that grows towards the middle of the gap."""
     bad = list(range(52, 57))
+    res = calib.calibrate_scan(_blank(fov_scan, tmp_path, range(52, 57)))
+    assert res.unsolved_views == [] and res.geometry.valid[bad].all()
+    assert (res.view_status[bad] == 1).all() and (res.view_status[[50, 60]] == 0).all()
+    assert any("5 view(s) bridged" in w and "52" in w for w in res.warnings)
+    pred = res.predicted_px
+    assert pred[54] > pred[52] > pred[50] and pred[54] > pred[56] > pred[60]
+    with ScanFile(res.path) as sf:
+        assert np.array_equal(sf.h5["geometry/calibrated/view_status"][:], res.view_status)
+
+
+def test_a_long_run_of_views_without_bbs_fails_loudly(fov_scan: Path, tmp_path: Path) -> None:
+    """Frames 40-59 blank: wider than bridge_max_views (10); NaN geometry, and the verdict is failed."""
+    bad = list(range(40, 60))
+    res = calib.calibrate_scan(_blank(fov_scan, tmp_path, range(40, 60)))
     assert res.unsolved_views == bad
     assert not res.geometry.valid[bad].any() and res.geometry.valid[60]
-    assert any("fewer than 3 BBs" in w for w in res.warnings)
+    assert res.quality is not None and not res.quality.passed
+    assert "20 of" in res.quality.reasons[0] and "failed" in res.quality.reasons[0]
+    with ScanFile(res.path) as sf:
+        attrs = sf.h5["geometry/calibrated"].attrs
+        assert attrs["quality"] == "failed" and attrs["n_views_failed"] == 20
 
 
 @pytest.mark.slow
@@ -112,3 +134,48 @@ def test_manual_seeds_for_the_first_frame_are_accepted(fov_scan: Path, tmp_path:
     assert res.n_bbs == 8
     with pytest.raises(calib.OptionError, match="seeds_uv"):
         calib.calibrate_scan(fov_scan, out=tmp_path / "s2.h5", seeds_uv=[1.0, 2.0, 3.0])
+
+
+@pytest.fixture(scope="module")
+def few_bb_scans(tmp_path_factory: pytest.TempPathFactory) -> dict[int, tuple[Path, object]]:
+    """256 px, 120 views of 3 and of 4 BBs (no clutter), and their true geometry."""
+    root = tmp_path_factory.mktemp("few")
+    nominal = sawtooth(120, 256)
+    truth = perturbed(nominal, shift_mm=4.0)
+    return {k: (write_scan(root / f"k{k}.h5", nominal, truth, spiral_markers(k, radius=60.0, height=60.0)), truth)
+            for k in (3, 4)}
+
+
+def test_three_bbs_cannot_be_trusted_and_say_so(few_bb_scans: dict[int, tuple[Path, object]], tmp_path: Path) -> None:
+    """A pose fitted to 3 BBs fits them exactly whatever their errors: no view can be checked."""
+    with pytest.raises(calib.NoMarkersError, match="no view sees the 4 BBs.*at most 3 BBs per view"):
+        calib.calibrate_scan(few_bb_scans[3][0], out=tmp_path / "o.h5")
+
+
+def test_four_bbs_keep_their_correct_detections(few_bb_scans: dict[int, tuple[Path, object]], tmp_path: Path) -> None:
+    """With 4 BBs, leaving one out leaves 3 that any pose fits: that rule must not remove correct detections."""
+    from calib.evaluate import similarity_aligned_error_px
+
+    path, truth = few_bb_scans[4]
+    res = calib.calibrate_scan(path, out=tmp_path / "o.h5")
+    proj = np.arange(2, 122)
+    seen = np.isfinite(res.uv[proj]).all(-1)
+    assert res.n_bbs == 4 and seen.mean() > 0.97
+    assert not any("disagree with their view fitted without them" in w for w in res.warnings)
+    err, per = similarity_aligned_error_px(res.geometry[proj], truth)
+    assert err < 0.3
+    # the predicted error is the size of the true one (every view here is observed alike)
+    pred = res.predicted_px[proj]
+    ok = np.isfinite(pred) & np.isfinite(per)
+    assert ok.all() and res.quality is not None and res.quality.passed
+    assert 0.5 < np.median(pred) / np.median(per) < 2.0
+    assert np.percentile(per, 95) < 3.0 * pred.max()
+
+
+def test_a_reconstruction_from_a_failed_calibration_says_so(fov_scan: Path, tmp_path: Path) -> None:
+    import recon
+
+    res = calib.calibrate_scan(_blank(fov_scan, tmp_path, range(40, 60)))
+    assert res.quality is not None and not res.quality.passed
+    rr = recon.reconstruct_scan(res.path, algorithm="fdk", geometry="calibrated", shape=(8, 16, 16), voxel_mm=8.0)
+    assert rr.warnings and "failed its quality check" in rr.warnings[0] and "20 of" in rr.warnings[0]

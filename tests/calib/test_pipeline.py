@@ -128,3 +128,21 @@ def test_cli_calibrates_in_place_and_reports(simulated_scan: Callable[..., Path]
         assert sf.h5["geometry/calibrated"].attrs["method"] == "paper"
     r = CliRunner().invoke(cli, ["calibrate", str(scan), "--method", "magic"])
     assert r.exit_code != 0
+
+
+def test_the_predicted_error_tracks_the_true_one_and_fails_the_poor_views(simulated_scan: Callable[..., Path],
+                                                                          tmp_path: Path) -> None:
+    """96 views at 192 px: a few views see only 4 BBs in a poor layout, or are bridged; the prediction says
+    which, the verdict fails on them (max_predicted_px 0.5), and they are the truly poor ones."""
+    scan = simulated_scan("A", 192, 96)
+    res = calib.calibrate_scan(scan, out=tmp_path / "o.h5")
+    proj, _, truth = _truth(scan)
+    _, per = similarity_aligned_error_px(res.geometry[proj], truth[proj])
+    pred = res.predicted_px[proj]
+    ok = np.isfinite(pred) & np.isfinite(per)
+    assert np.corrcoef(pred[ok], per[ok])[0, 1] > 0.5
+    assert 0.5 < np.median(pred[ok]) / np.median(per[ok]) < 2.0
+    assert res.quality is not None and not res.quality.passed
+    flagged = ok & (pred > 0.5)
+    assert flagged.any() and per[flagged].min() > 2.0 * np.median(per[ok])
+    assert "max_predicted_px" in res.quality.reasons[-1]

@@ -18,6 +18,15 @@ def _finite(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
+def _quality(verdict: Any) -> dict[str, Any] | None:
+    if verdict is None:
+        return None
+    out = verdict.summary()
+    for key in ("predicted_px_median", "predicted_px_max", "centroid_noise_px"):
+        out[key] = _finite(out[key])
+    return out
+
+
 def run_calibration(scan_path: Path, params: dict[str, Any], out_dir: Path,
                     progress: Callable[[ProgressEvent], None]) -> dict[str, Any]:
     """Calibrate the scan in place; report plots and the RPE table go to ``out_dir``."""
@@ -50,6 +59,7 @@ def run_calibration(scan_path: Path, params: dict[str, Any], out_dir: Path,
         "method": res.method, "table": table, "iterations": iterations,
         "reproj_rms_px": _finite(res.reproj_rms_px), "warnings": [str(w) for w in res.warnings][:200],
         "unsolved_views": [int(v) for v in res.unsolved_views][:10_000],
+        "quality": _quality(res.quality),
         "files": sorted(p.name for p in out_dir.iterdir() if p.is_file()),
     }
 
@@ -70,5 +80,6 @@ def run_reconstruction(scan_path: Path, params: dict[str, Any], out_dir: Path,
         "voxel_mm": [float(v) for v in res.voxel_mm], "origin_mm": [float(v) for v in res.origin_mm],
         "cost": [_finite(c) for c in res.cost], "elapsed_s": float(res.elapsed_s),
         "min": _finite(volume.min()), "max": _finite(volume.max()), "mean": _finite(volume.mean()),
+        "warnings": [str(w) for w in res.warnings],
         "files": sorted(p.name for p in out_dir.iterdir() if p.is_file()),
     }

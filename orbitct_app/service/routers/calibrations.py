@@ -33,8 +33,11 @@ class CalibrationRequest(BaseModel):
     method: Literal["bundle", "paper"] = Field("bundle", description="joint bundle adjustment, or the paper's alternation")
     iterations: int | None = Field(None, ge=1, le=100, description="estimation iterations (default: the method's)")
     intrinsics: Literal["fixed", "sdd", "sdd+pp"] | None = Field(None, description="per-view parameters besides the pose")
-    loss: Literal["linear", "huber", "soft_l1", "cauchy"] | None = Field(None, description="robust loss of the bundle method")
-    min_bbs_per_view: int | None = Field(None, ge=2, le=100)
+    min_bbs_per_view: int | None = Field(None, ge=3, le=100, description="fewer BBs: a view is never fitted on its own")
+    max_predicted_px: float | None = Field(None, gt=0.0, le=100.0, description="quality check: the largest predicted "
+                                           "field-of-view error a view may have (default 0.5 px)")
+    bridge_max_views: int | None = Field(None, ge=0, le=1000, description="bundle: the widest run of views with fewer "
+                                         "than 4 BBs bridged from its neighbours (default 10)")
     diameter_mm: float | None = Field(None, gt=0.1, le=50.0, description="BB diameter when the file does not say")
 
 

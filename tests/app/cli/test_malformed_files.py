@@ -23,7 +23,7 @@ ALL = frozenset({INSPECT, CALIBRATE, RECONSTRUCT})
 USE = frozenset({CALIBRATE, RECONSTRUCT})  # damage the summary can show but the computations must refuse
 COMMANDS = {
     INSPECT: ["inspect"],
-    CALIBRATE: ["calibrate"],
+    CALIBRATE: ["calibrate", "--accept-poor"],  # garbage must be refused outright, not merely judged poor
     RECONSTRUCT: ["reconstruct", "--algorithm", "fdk", "--geometry", "nominal", "--shape", "8,8,8", "--voxel-mm", "4"],
 }
 Mutation = Callable[[h5py.File], Any]

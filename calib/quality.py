@@ -1,0 +1,256 @@
+"""How far each view's calibrated geometry can be trusted, and views bridged from their neighbours.
+
+A view is calibrated from its *own* BBs when they over-determine its rigid pose (at least four BBs: eight
+measurements for six unknowns). A view with fewer is *bridged*: its correction is interpolated from the
+nearest own views on either side and refined with its own BBs, if any, under that prior. A view too far from
+any own view *fails* (NaN geometry). Every view gets a predicted error in pixels: its pose covariance (the
+measured centroid noise through the bundle adjustment's Jacobian, conditional on the BB centres; for bridged
+views combined with the prior) propagated to points filling the field of view.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import null_space
+
+from calib.bundle import gauge_matrix
+from calib.evaluate import fov_points
+from calib.model import ViewModel, ViewState
+from orbitct.rotations import matrix_to_rotvec, rotvec_to_matrix
+
+OWN, BRIDGED, FAILED = "own", "bridged", "failed"
+STATUS_CODES = {OWN: 0, BRIDGED: 1, FAILED: 2}  # /geometry/calibrated/view_status (-1: not a projection)
+MIN_OWN_BBS = 4
+
+
+@dataclass(frozen=True)
+class ViewQuality:
+    """Per projection view: status, BBs used, predicted error (px); and the centroid noise it assumes."""
+
+    status: NDArray[np.str_]
+    n_bbs: NDArray[np.int_]
+    predicted_px: NDArray[np.float64]
+    noise_px: float
+
+    def counts(self) -> dict[str, int]:
+        """Views calibrated from their own BBs, bridged, failed."""
+        return {s: int((self.status == s).sum()) for s in (OWN, BRIDGED, FAILED)}
+
+
+def centroid_noise_px(residual_xy: NDArray[np.float64], n_params: int = 0) -> float:
+    """Standard deviation of one centroid coordinate from reprojection residuals ``(..., 2)`` of a fit with
+    ``n_params`` unknowns: the RMS of the residuals within five robust sigmas (gross outliers left out, heavy
+    tails kept), corrected for the degrees of freedom the fit used up."""
+    r = residual_xy[np.isfinite(residual_xy).all(-1)].ravel()
+    if r.size == 0:
+        return float("nan")
+    mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    kept = r[np.abs(r) <= 5.0 * mad] if mad > 0 else r
+    dof = max(kept.size - n_params * kept.size / r.size, 1.0)
+    return float(np.sqrt((kept**2).sum() / dof))
+
+
+def _rigid_normal(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64]
+                  ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Gauss-Newton normal matrix ``J^T J`` ``(N,6,6)`` and gradient ``J^T r`` ``(N,6)`` of the rigid pose."""
+    pred, Jv, _ = model.project_jac(state, xyz)
+    seen = np.isfinite(uv).all(-1)
+    r = np.where(seen[..., None], pred - np.nan_to_num(uv), 0.0)
+    J = (Jv[..., :6] * seen[..., None, None]).reshape(len(pred), -1, 6)
+    return np.swapaxes(J, 1, 2) @ J, (np.swapaxes(J, 1, 2) @ r.reshape(len(pred), -1, 1))[..., 0]
+
+
+def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64]
+                              ) -> NDArray[np.float64]:
+    """Per view, the rigid pose's covariance ``(N,6,6)`` for unit centroid noise, the BB centres' own
+    uncertainty included: ``H_vv^-1 + H_vv^-1 H_vp C_p H_pv H_vv^-1``, where ``C_p`` inverts the Schur complement
+    on the centres in the gauge that holds the constellation's centroid, orientation and size (a similarity of
+    the whole solution changes no pixel error measured after similarity alignment)."""
+    _, Jv, Jp = model.project_jac(state, xyz)
+    seen = np.isfinite(uv).all(-1)
+    n, k = seen.shape
+    Jv = Jv[..., :6] * seen[..., None, None]
+    Jp = Jp * seen[..., None, None]
+    Hvv = np.einsum("nkai,nkaj->nij", Jv, Jv) + 1e-9 * np.eye(6)
+    Hvp = np.einsum("nkai,nkaj->nikj", Jv, Jp).reshape(n, 6, 3 * k)
+    Hpp = np.einsum("nkai,nkaj->kij", Jp, Jp)
+    Hvv_inv = np.linalg.inv(Hvv)
+    S = -np.einsum("nix,nij,njy->xy", Hvp, Hvv_inv, Hvp)
+    for j in range(k):
+        S[3 * j:3 * j + 3, 3 * j:3 * j + 3] += Hpp[j]
+    Nb = null_space(gauge_matrix(xyz))  # (3K, 3K-7): displacements that keep the gauge
+    Cp = Nb @ np.linalg.pinv(Nb.T @ S @ Nb, hermitian=True) @ Nb.T
+    A = Hvv_inv @ Hvp  # (N, 6, 3K)
+    return Hvv_inv + A @ Cp @ np.swapaxes(A, 1, 2)
+
+
+def _predicted_px(model: ViewModel, state: ViewState, cov: NDArray[np.float64]) -> NDArray[np.float64]:
+    """RMS over field-of-view points of the 2-D projection error implied by pose covariances ``(N,6,6)``."""
+    pts = fov_points(model.nominal, 4)
+    _, Jv, _ = model.project_jac(state, pts)
+    J = Jv[..., :6]  # (N, M, 2, 6)
+    var = np.einsum("nmai,nij,nmaj->n", J, cov, J) / pts.shape[0]
+    return np.sqrt(np.maximum(var, 0.0))
+
+
+def _interpolated(state: ViewState, own: NDArray[np.bool_], max_gap: int
+                  ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Correction ``(N,6)`` (rotation vector, shift) interpolated from own views, and each view's distance in
+    views to the nearest own view (``inf`` where a gap is wider than ``max_gap``, or an end is farther)."""
+    n = len(own)
+    idx = np.flatnonzero(own)
+    c = np.concatenate([matrix_to_rotvec(state.R), state.t], 1)
+    out = np.full((n, 6), np.nan)
+    dist = np.full(n, np.inf)
+    if idx.size == 0:
+        return out, dist, c
+    i = np.arange(n)
+    right = np.clip(np.searchsorted(idx, i), 0, idx.size - 1)
+    left = np.clip(right - 1, 0, idx.size - 1)
+    a, b = idx[left], idx[right]
+    inside = (a < i) & (i < b)
+    w = np.where(inside, (i - a) / np.maximum(b - a, 1), 0.0)[:, None]
+    out[inside] = ((1 - w) * c[a] + w * c[b])[inside]
+    gap_ok = inside & (b - a - 1 <= max_gap)
+    dist[gap_ok] = np.minimum(i - a, b - i)[gap_ok]
+    ends = ~inside  # before the first or after the last own view: hold the nearest one
+    near = np.where(np.abs(a - i) <= np.abs(b - i), a, b)
+    out[ends] = c[near[ends]]
+    end_ok = ends & (np.abs(near - i) <= max_gap // 2)
+    dist[end_ok] = np.abs(near - i)[end_ok]
+    dist[own] = 0.0
+    return out, dist, c
+
+
+def assess_views(
+    model: ViewModel,
+    state: ViewState,
+    xyz: NDArray[np.float64],
+    uv: NDArray[np.float64],
+    *,
+    noise_px: float,
+    max_gap: int = 10,
+    min_own_bbs: int = MIN_OWN_BBS,
+) -> tuple[ViewState, ViewQuality]:
+    """Bridge the views without enough BBs of their own and predict every view's error.
+
+    ``state`` holds the bundle's corrections for the own views (others are ignored); returns the states of
+    all views (NaN for failed ones) and their quality."""
+    n = model.nominal.n_views
+    n_bbs = np.isfinite(uv).all(-1).sum(1)
+    own = n_bbs >= min_own_bbs
+    sigma2 = max(noise_px, 1e-3) ** 2
+    prior_c, dist, c = _interpolated(state, own, max_gap)
+    status = np.where(own, OWN, np.where(np.isfinite(dist), BRIDGED, FAILED)).astype("<U7")
+    # random-walk prior: the variance of a step between neighbouring own views, times the distance in views
+    idx = np.flatnonzero(own)
+    if idx.size >= 3:
+        steps = np.diff(c[idx], axis=0) ** 2 / np.diff(idx)[:, None]
+        q = np.median(steps, axis=0) + 1e-12
+    else:
+        q = np.array([1e-4] * 3 + [1.0] * 3)
+    R = state.R.copy()
+    t = state.t.copy()
+    k = state.k.copy()
+    cov = np.full((n, 6, 6), np.nan)
+    if idx.size:
+        cov[idx] = sigma2 * _marginal_pose_covariance(ViewModel(model.nominal[idx], model.intrinsics),
+                                                      ViewState(R[idx], t[idx], k[idx]), xyz, uv[idx])
+    br = np.flatnonzero(status == BRIDGED)
+    if br.size:
+        R[br] = rotvec_to_matrix(prior_c[br, :3])
+        t[br] = prior_c[br, 3:]
+        k[br] = 0.0 if k.shape[1] == 0 else np.nanmedian(k[idx], axis=0) if idx.size else 0.0
+        P_inv = 1.0 / (q[None] * np.maximum(dist[br], 1.0)[:, None])  # (B, 6) diagonal prior precision
+        sub = ViewModel(model.nominal[br], model.intrinsics)
+        st = ViewState(R[br], t[br], k[br])
+        delta = np.zeros((br.size, 6))
+        for _ in range(5):  # MAP Gauss-Newton of each bridged view under its prior, with its own BBs if any
+            H, g = _rigid_normal(sub, st, xyz, uv[br])
+            A = H / sigma2 + P_inv[:, :, None] * np.eye(6)
+            rhs = g / sigma2 + P_inv * delta
+            step = -np.linalg.solve(A, rhs[..., None])[..., 0]
+            delta = delta + step
+            st = st.stepped(np.concatenate([step, np.zeros((br.size, st.k.shape[1]))], 1))
+        H, _ = _rigid_normal(sub, st, xyz, uv[br])
+        cov[br] = np.linalg.inv(H / sigma2 + P_inv[:, :, None] * np.eye(6))
+        R[br], t[br], k[br] = st.R, st.t, st.k
+    bad = status == FAILED
+    R[bad] = np.nan
+    t[bad] = np.nan
+    full = ViewState(R, t, k)
+    predicted = np.full(n, np.nan)
+    good = ~bad
+    if good.any():
+        g_idx = np.flatnonzero(good)
+        predicted[g_idx] = _predicted_px(ViewModel(model.nominal[g_idx], model.intrinsics),
+                                         ViewState(R[g_idx], t[g_idx], k[g_idx]), cov[g_idx])
+    return full, ViewQuality(status, n_bbs, predicted, float(noise_px))
+
+
+def _frames(frames: NDArray[np.intp]) -> str:
+    return f"frames {frames[:10].tolist()}{' ...' if frames.size > 10 else ''}"
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Whether a calibration can be trusted, and why not: the summary a user reads first."""
+
+    passed: bool
+    reasons: list[str]
+    warnings: list[str]
+    counts: dict[str, int]
+    predicted_px_median: float
+    predicted_px_max: float
+    worst_frame: int | None
+    noise_px: float
+    threshold_px: float
+
+    def summary(self) -> dict[str, object]:
+        """JSON-ready."""
+        return {"passed": self.passed, "reasons": list(self.reasons), "views": dict(self.counts),
+                "predicted_px_median": self.predicted_px_median, "predicted_px_max": self.predicted_px_max,
+                "worst_frame": self.worst_frame, "centroid_noise_px": self.noise_px,
+                "max_predicted_px": self.threshold_px}
+
+    def attrs(self) -> dict[str, object]:
+        """Attributes of ``/geometry/calibrated``."""
+        return {"quality": "passed" if self.passed else "failed", "quality_reasons_json": list(self.reasons),
+                "n_views_own": self.counts[OWN], "n_views_bridged": self.counts[BRIDGED],
+                "n_views_failed": self.counts[FAILED], "predicted_px_median": self.predicted_px_median,
+                "predicted_px_max": self.predicted_px_max, "centroid_noise_px": self.noise_px,
+                "max_predicted_px": self.threshold_px}
+
+
+def judge(quality: ViewQuality, frames: NDArray[np.intp], threshold_px: float, max_gap: int, method: str) -> Verdict:
+    """The verdict on a calibration's views: failed views, or a predicted error above ``threshold_px``, fail it."""
+    counts = quality.counts()
+    reasons: list[str] = []
+    warnings: list[str] = []
+    failed = frames[quality.status == FAILED]
+    need = "BBs than its pose needs" if method == "paper" else f"than {MIN_OWN_BBS} BBs and lie more than {max_gap} views from a view that has them"
+    if failed.size:
+        reasons.append(f"{failed.size} of {frames.size} view(s) failed (fewer {need}; NaN geometry): {_frames(failed)}")
+    bridged = frames[quality.status == BRIDGED]
+    if bridged.size:
+        warnings.append(f"{bridged.size} view(s) bridged from their neighbours (fewer than {MIN_OWN_BBS} BBs of their "
+                        f"own): {_frames(bridged)}")
+    pred = quality.predicted_px
+    fin = np.isfinite(pred)
+    med = float(np.median(pred[fin])) if fin.any() else float("nan")
+    worst = int(np.nanargmax(pred)) if fin.any() else None
+    top = float(pred[worst]) if worst is not None else float("nan")
+    if worst is not None and top > threshold_px:
+        over = frames[fin & (pred > threshold_px)]
+        reasons.append(f"{over.size} view(s) have a predicted error above {threshold_px:g} px (max_predicted_px), "
+                       f"up to {top:.2f} px at frame {int(frames[worst])}: {_frames(over)}")
+    if not np.isfinite(quality.noise_px):
+        reasons.append("the centroid noise could not be measured (no residuals)")
+    return Verdict(not reasons, reasons, warnings, counts, med, top, None if worst is None else int(frames[worst]),
+                   quality.noise_px, float(threshold_px))
+
+
+__all__ = ["Verdict", "judge", "BRIDGED", "FAILED", "MIN_OWN_BBS", "OWN", "STATUS_CODES", "ViewQuality", "assess_views", "centroid_noise_px"]
