@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import os
 import shutil
+import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
-import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -16,8 +16,7 @@ from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 
 from calib.bundle import bundle_adjust
-from calib.detect import FrameDetector, N_FIELDS, _refine, settings_for
-from calib.evaluate import fov_points, true_corrections
+from calib.detect import N_FIELDS, FrameDetector, _refine, settings_for
 from calib.errors import (
     BadFramesError,
     FrameTooLargeError,
@@ -26,10 +25,20 @@ from calib.errors import (
     NoProjectionsError,
     OptionError,
 )
+from calib.evaluate import fov_points, true_corrections
 from calib.identify import fill_states, identify, usable_views
 from calib.model import INTRINSICS, ViewModel, ViewState
-from calib.quality import FAILED, MIN_OWN_BBS, STATUS_CODES, Verdict, ViewQuality, assess_views, centroid_noise_px, judge
 from calib.paper import paper_calibrate
+from calib.quality import (
+    FAILED,
+    MIN_OWN_BBS,
+    STATUS_CODES,
+    Verdict,
+    ViewQuality,
+    assess_views,
+    centroid_noise_px,
+    judge,
+)
 from calib.rays import marker_rays, rpe_per_frame, triangulate_least_squares
 from calib.track import TrackingSettings
 from orbitct.compiletime import CompileClock
@@ -39,6 +48,7 @@ from orbitct.scanfile import ImageKey, ScanFile, frame_problem
 from orbitct.statistics import rpe_statistics
 
 METHODS = ("bundle", "paper")
+FIRST_LOSS_SCALE_PX = 0.5  # Huber threshold of the first solve, before the centroid noise is measured
 
 
 @dataclass
@@ -47,7 +57,7 @@ class CalibrationOptions:
 
     iterations: int | None = None  # paper: alternations (default 3); bundle: max LM iterations (default 30)
     intrinsics: str = "fixed"  # bundle only: "fixed", "sdd" or "sdd+pp"
-    loss_scale_px: float = 0.5  # Huber threshold of the bundle adjustment
+    loss_scale_px: float | None = None  # Huber threshold (px); default: 1.5 x the measured centroid noise
     min_bbs_per_view: int = 3  # a view with fewer is never fitted on its own (the bundle needs 4 to call it its own)
     bridge_max_views: int = 10  # bundle: widest run of views without 4 BBs that is bridged from its neighbours
     max_predicted_px: float = 0.5  # quality check: largest predicted field-of-view error a view may have
@@ -335,9 +345,10 @@ def _calibrate_scan(
     report(progress, "track", 1, 1, f"{uv.shape[1]} BBs")
     if uv.shape[1] < 3:
         raise NoMarkersError(
-            f"{target}: found {uv.shape[1]} BB(s) seen in at least {min_obs} frames; at least 3 are needed "
-            f"(BB diameter {diameter_mm:.2f} mm = {d_px:.1f} px; if the BBs are another size, give it: "
-            "orbitct calibrate --diameter-mm, or \"diameter_mm\" in POST /calibrations)"
+            f"{target}: found {uv.shape[1]} BB(s) seen in at least {min_obs} frames; at least 3 are needed. "
+            f"Either the BBs could not be followed from frame to frame (motion errors far beyond the nominal "
+            f"orbit: check the nominal geometry), or they are not {diameter_mm:.2f} mm ({d_px:.1f} px) BBs (give "
+            "the size: orbitct calibrate --diameter-mm, or \"diameter_mm\" in POST /calibrations)"
         )
     t1, compiled_before = time.perf_counter(), clock.seconds
     geometry_p, xyz, state, uv, history, n_iter, more, quality = _estimate(method, model, uv, opt, progress)
@@ -516,7 +527,8 @@ def _estimate(
         xyz0 = triangulate_least_squares(*marker_rays(sub.nominal, uvs))
         record(sub.identity(), xyz0)
         res = bundle_adjust(
-            sub, uvs, xyz0, loss_scale_px=opt.loss_scale_px, max_iterations=iters, callback=lambda i, s, x, c: record(s, x)
+            sub, uvs, xyz0, loss_scale_px=opt.loss_scale_px or FIRST_LOSS_SCALE_PX, max_iterations=iters,
+            callback=lambda i, s, x, c: record(s, x)
         )
         # detections far off the solution are wrong blobs: drop them and refine once more
         r = _residual_px(sub.geometry(res.state), uvs, res.xyz)
@@ -532,13 +544,18 @@ def _estimate(
         bad |= _disagree_with_neighbour(sub, res.state, res.xyz, uvs, 3.0 * opt.outlier_px, max_bbs=4)
         if bad.sum() > n_bad:
             warnings.append(f"{int(bad.sum()) - n_bad} detection(s) disagree with their view fitted without them (or, with 3 BBs, with the neighbouring view); set to NaN")
-        if bad.any():
+        loss = opt.loss_scale_px
+        if loss is None:  # the robust loss fitted to this scan's centroid noise, measured on the first solution
+            clean = np.where(bad[..., None], np.nan, sub.geometry(res.state).project(res.xyz) - uvs)
+            sigma = centroid_noise_px(clean, sub.n_params * sub.nominal.n_views + 3 * res.xyz.shape[0] - 7)
+            loss = float(np.clip(1.5 * sigma, 0.02, FIRST_LOSS_SCALE_PX)) if np.isfinite(sigma) else FIRST_LOSS_SCALE_PX
+        if bad.any() or loss != FIRST_LOSS_SCALE_PX:
             uvs = uvs.copy()
             uvs[bad] = np.nan
             uv = uv.copy()
             uv[ok] = uvs
             res = bundle_adjust(
-                sub, uvs, res.xyz, res.state, loss_scale_px=opt.loss_scale_px, max_iterations=iters, gauge_xyz=xyz0
+                sub, uvs, res.xyz, res.state, loss_scale_px=loss, max_iterations=iters, gauge_xyz=xyz0
             )
             record(res.state, res.xyz)
         state, xyz = res.state, res.xyz

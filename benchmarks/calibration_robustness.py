@@ -1,0 +1,168 @@
+"""Benchmark: does calibration stay accurate, and honest, where robotic C-arms live?
+
+A matrix of simulated scans (issue "Calibration that never lies"): initial errors 1-4 times the published bench
+profile over several seeds, 4 to 16 BBs, a truncating panel, metal (experiment C), 50 and 800 views. For each:
+accuracy against the truth (RMS px over field-of-view points after the best similarity alignment), the oracle
+floor (the same solver fed the true projections of every BB where it falls on the panel, plus Gaussian noise
+of the measured centroid noise), views own / bridged / failed, the verdict, the largest predicted error, time. Two columns
+judge it: `<=2x floor` (accuracy target) and `honest` (no case may pass its quality check with an error above
+3 times its floor).
+
+    python benchmarks/calibration_robustness.py                  # 384 px, 250 frames (about 5 minutes)
+    python benchmarks/calibration_robustness.py --size 768 --frames 500
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
+
+import numpy as np  # noqa: E402
+from machine_info import describe_machine  # noqa: E402
+
+
+def _phantom(experiment: str, seed: int, n_bbs: int | None) -> Any:
+    from orbitct.phantoms.experiments import experiment_phantom
+
+    ph = experiment_phantom(experiment, seed)
+    if n_bbs is None:
+        return ph
+    keep = {f"bb{k}" for k in range(n_bbs)}
+    prims = tuple(p for p in ph.primitives if not p.label.startswith("bb") or p.label in keep)
+    return replace(ph, primitives=prims, markers_xyz=ph.markers_xyz[:n_bbs], name=ph.name)
+
+
+def _scan(cache: Path, case: dict[str, Any], size: int, frames: int) -> Path:
+    from orbitct.errorprofiles import make_profile
+    from orbitct.simulator.scan import simulate_scan
+
+    n = int(case.get("frames", frames))
+    m = float(case.get("error_x", 1.0))
+    key = f"{case['exp']}_{size}_{n}_x{m:g}_k{case.get('bbs', 'all')}_p{case.get('pitch_scale', 1)}_s{case['seed']}"
+    path = cache / f"{key}.h5"
+    if not path.exists():
+        profile = make_profile("bench", case["seed"], angle_scale=m * n / 500.0, shift_amplitude_mm=8.0 * m,
+                               shift_noise_mm=2.0 * m)
+        pitch = 427.0 / 768 * case.get("pitch_scale", 768 / size)
+        simulate_scan(_phantom(case["exp"], case["seed"], case.get("bbs")), out=path, n_frames=n, detector_px=size,
+                      pitch_mm=pitch, errors=profile, seed=case["seed"], overwrite=True)
+    return path
+
+
+def _oracle_px(scan: Path, res: Any) -> float:
+    """The floor: the same solver fed the true projections of every BB in every view where it falls on the
+    panel, plus Gaussian noise of the centroid noise measured on this calibration's detections."""
+    from calib.bundle import bundle_adjust
+    from calib.evaluate import similarity_aligned_error_px
+    from calib.model import ViewModel
+    from calib.rays import marker_rays, triangulate_least_squares
+    from orbitct.scanfile import ScanFile
+
+    with ScanFile(scan) as sf:
+        proj = sf.projection_indices
+        truth = sf.geometry("truth")[proj]
+        nominal = sf.geometry("nominal")[proj]
+        true_uv = truth.project(sf.truth_markers_xyz())
+        rows, cols = sf.panel.rows, sf.panel.cols
+    uv = res.uv[proj]
+    seen = np.isfinite(uv[..., 0])
+    d = np.linalg.norm(uv[:, :, None] - true_uv[:, None], axis=-1)
+    near = np.nanmin(np.where(np.isfinite(d), d, np.inf), axis=2)
+    good = seen & (near < 2.0)  # detections of a true BB (wrong identities left out of the noise)
+    j = np.nanargmin(np.where(np.isfinite(d), d, np.inf), axis=2)
+    diff = (uv - np.take_along_axis(true_uv, j[..., None].repeat(2, -1), axis=1))[good]
+    noise = float(np.sqrt(np.mean(diff**2))) if diff.size else 0.1
+    ref = true_uv + np.random.default_rng(0).normal(0.0, noise, true_uv.shape)
+    inside = (ref[..., 0] > 2) & (ref[..., 0] < cols - 3) & (ref[..., 1] > 2) & (ref[..., 1] < rows - 3)
+    ref[~inside] = np.nan
+    ok = inside.sum(1) >= 4
+    if ok.sum() < 2:
+        return float("nan")
+    sub = ViewModel(nominal[np.flatnonzero(ok)])
+    xyz0 = triangulate_least_squares(*marker_rays(sub.nominal, ref[ok]))
+    r = bundle_adjust(sub, ref[ok], xyz0)
+    return similarity_aligned_error_px(sub.geometry(r.state), truth[np.flatnonzero(ok)])[0]
+
+
+def run_case(cache: Path, case: dict[str, Any], size: int, frames: int) -> dict[str, Any]:
+    """Simulate (cached), calibrate, and judge one case."""
+    import calib
+    from calib.evaluate import similarity_aligned_error_px
+    from orbitct.scanfile import ScanFile
+
+    scan = _scan(cache, case, size, frames)
+    work = Path(tempfile.mkdtemp(dir=cache)) / "c.h5"
+    row: dict[str, Any] = {"case": case["name"]}
+    with ScanFile(scan) as sf:
+        row["true_bbs"] = int(sf.truth_markers_xyz().shape[0])
+        row["frames"] = int(sf.projection_indices.size)
+    t = time.perf_counter()
+    try:
+        res = calib.calibrate_scan(scan, out=work)
+    except calib.CalibrationError as exc:
+        row.update(time_s=time.perf_counter() - t, outcome="refused", message=str(exc).split(": ", 1)[-1].split(". ")[0][:70])
+        return row
+    with ScanFile(scan) as sf:
+        proj = sf.projection_indices
+        truth = sf.geometry("truth")[proj]
+    err, _ = similarity_aligned_error_px(res.geometry[proj], truth)
+    q = res.quality
+    floor = _oracle_px(scan, res)
+    n_four = int((np.isfinite(res.uv[proj]).all(-1).sum(1) >= 4).sum())
+    row.update(time_s=res.elapsed_s, bbs=res.n_bbs, err_px=err, floor_px=floor, ratio=err / floor,
+               own=q.counts["own"], bridged=q.counts["bridged"], failed=q.counts["failed"], four=n_four,
+               predicted_max=q.predicted_px_max, outcome="passed" if q.passed else "FAILED check")
+    row["within_2x"] = bool(err <= 2 * floor and q.counts["own"] >= 0.95 * n_four)
+    row["honest"] = not (q.passed and err > 3 * floor)
+    return row
+
+
+CASES: list[dict[str, Any]] = (
+    [{"name": f"A errors x{m} seed {s}", "exp": "A", "error_x": m, "seed": s} for m in (1, 2, 3, 4) for s in (0, 1, 2)]
+    + [{"name": f"B {k} BBs", "exp": "B", "bbs": k, "seed": 0} for k in (4, 5, 6, 8, 16)]
+    + [{"name": "A truncating panel (768-px pitch: size/768 of the FOV)", "exp": "A", "seed": 0, "pitch_scale": 1.0},
+       {"name": "C metal, 2 mm BBs", "exp": "C", "seed": 0},
+       {"name": "A 50 views", "exp": "A", "seed": 0, "frames": 50},
+       {"name": "A 800 views", "exp": "A", "seed": 0, "frames": 800}]
+)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", type=int, default=384, help="detector pixels per side (pitch scaled to the 427 mm panel)")
+    ap.add_argument("--frames", type=int, default=250, help="projections per scan (cases that set their own keep it)")
+    ap.add_argument("--cache", type=Path, default=Path(os.environ.get("TMPDIR", "/tmp")) / "orbitct-robustness")
+    ap.add_argument("--only", default="", help="run the cases whose name contains this text")
+    args = ap.parse_args()
+    args.cache.mkdir(parents=True, exist_ok=True)
+    print(describe_machine())
+    print(f"{args.size} px, {args.frames} frames; 1-min load at start {os.getloadavg()[0]:.2f}\n")
+    head = ("case", "frames", "BBs found/true", "err px", "floor px", "ratio", "own/bridged/failed (of >=4 BBs)",
+            "pred. max px", "verdict", "<=2x floor", "honest", "s")
+    print("| " + " | ".join(head) + " |\n|" + "---|" * len(head))
+    for case in CASES:
+        if args.only not in case["name"]:
+            continue
+        r = run_case(args.cache, case, args.size, args.frames)
+        if r["outcome"] == "refused":
+            print(f"| {r['case']} | {r['frames']} | -/{r['true_bbs']} | - | - | - | - | - | refused: {r['message']} | "
+                  f"no | yes | {r['time_s']:.1f} |", flush=True)
+            continue
+        print(f"| {r['case']} | {r['frames']} | {r['bbs']}/{r['true_bbs']} | {r['err_px']:.3f} | {r['floor_px']:.3f} | "
+              f"{r['ratio']:.2f} | {r['own']}/{r['bridged']}/{r['failed']} ({r['four']}) | {r['predicted_max']:.2f} | "
+              f"{r['outcome']} | {'yes' if r['within_2x'] else 'NO'} | {'yes' if r['honest'] else 'NO'} | "
+              f"{r['time_s']:.1f} |", flush=True)
+    print(f"\n1-min load at end {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
