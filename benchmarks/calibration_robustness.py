@@ -95,12 +95,16 @@ def _oracle_px(scan: Path, res: Any) -> float:
 
 def run_case(cache: Path, case: dict[str, Any], size: int, frames: int) -> dict[str, Any]:
     """Simulate (cached), calibrate, and judge one case."""
+    with tempfile.TemporaryDirectory(dir=cache) as work:
+        return _run_case(cache, case, size, frames, Path(work) / "c.h5")
+
+
+def _run_case(cache: Path, case: dict[str, Any], size: int, frames: int, work: Path) -> dict[str, Any]:
     import calib
     from calib.evaluate import similarity_aligned_error_px
     from orbitct.scanfile import ScanFile
 
     scan = _scan(cache, case, size, frames)
-    work = Path(tempfile.mkdtemp(dir=cache)) / "c.h5"
     row: dict[str, Any] = {"case": case["name"]}
     with ScanFile(scan) as sf:
         row["true_bbs"] = int(sf.truth_markers_xyz().shape[0])

@@ -27,7 +27,7 @@ def fill_states(state: ViewState, solved: NDArray[np.bool_], n: int) -> ViewStat
 
 
 def rough_solve(
-    model: ViewModel, uv: NDArray[np.float64], min_bbs: int = 3, iterations: int = 8
+    model: ViewModel, uv: NDArray[np.float64], min_bbs: int = 3, iterations: int = 8, prior_scale: float = 1.0
 ) -> tuple[ViewState, NDArray[np.float64], NDArray[np.bool_]]:
     """Quick robust bundle adjustment on the views that see enough markers; states for every view."""
     ok_views = usable_views(uv, min_bbs)
@@ -40,7 +40,8 @@ def rough_solve(
         uvs[:, bad] = np.nan
         xyz0[bad] = 0.0
     # the weak pull towards the nominal poses holds parts of the orbit that share no BB track together
-    res = bundle_adjust(sub, uvs, xyz0, loss_scale_px=2.0, max_iterations=iterations, pose_prior=(0.05, 20.0))
+    res = bundle_adjust(sub, uvs, xyz0, loss_scale_px=2.0, max_iterations=iterations,
+                        pose_prior=(0.05 * prior_scale, 20.0 * prior_scale))
     full = ViewState.identity(model.nominal.n_views, 0)
     full.R[ok_views], full.t[ok_views] = res.state.R, res.state.t
     return fill_states(full, ok_views, model.nominal.n_views), res.xyz, ok_views
@@ -197,8 +198,10 @@ def identify(
     min_observations: int,
     min_found_share: float = 0.25,
     max_rough_points: int = 40,
+    prior_scale: float = 1.0,
 ) -> tuple[NDArray[np.float64], list[str]]:
-    """Marker centroids ``(P, K, 2)`` over projection views, K found here; and warnings."""
+    """Marker centroids ``(P, K, 2)`` over projection views, K found here; and warnings. ``prior_scale`` widens
+    the pull of the rough solves towards the nominal poses (orbits far from their nominal)."""
     warnings: list[str] = []
     frags = link_fragments(cands, settings, nominal_model.nominal)
     if frags.shape[1] < 3:
@@ -206,7 +209,7 @@ def identify(
     geo = ViewModel(nominal_model.nominal, "fixed")
     no_k = np.zeros((len(cands), 0))
     longest = np.argsort(-np.isfinite(frags[..., 0]).sum(0))[:max_rough_points]
-    state, _, _ = rough_solve(nominal_model, frags[:, np.sort(longest)])
+    state, _, _ = rough_solve(nominal_model, frags[:, np.sort(longest)], prior_scale=prior_scale)
     rough = geo.geometry(ViewState(state.R, state.t, no_k))
     fxyz = triangulate_least_squares(*marker_rays(rough, frags))
     frags, rms = merge_fragments(frags, rough, fxyz, max(1.5, 0.35 * settings.diameter_px), 15.0)
@@ -220,7 +223,7 @@ def identify(
         if uv.shape[1] < 3:
             break
         k_before = uv.shape[1]
-        state, xyz, _ = rough_solve(nominal_model, uv)
+        state, xyz, _ = rough_solve(nominal_model, uv, prior_scale=prior_scale)
         err = np.linalg.norm(geo.project(ViewState(state.R, state.t, no_k), xyz) - uv, axis=-1)
         with np.errstate(invalid="ignore"):
             med = np.nanmedian(err, axis=0)

@@ -48,6 +48,8 @@ from orbitct.scanfile import ImageKey, ScanFile, frame_problem
 from orbitct.statistics import rpe_statistics
 
 METHODS = ("bundle", "paper")
+DEFAULT_JITTER_MM = 3.0
+RECOVERY_JITTER_MM = (8.0, 15.0, 25.0)  # tracking allowances tried in turn when the BBs are not followed
 FIRST_LOSS_SCALE_PX = 0.5  # Huber threshold of the first solve, before the centroid noise is measured
 
 
@@ -69,6 +71,7 @@ class CalibrationOptions:
     workers: int = 2  # detection threads
     seeds_uv: Any = None  # optional (K, 2) BB positions (col, row) in the first projection
     jitter_mm: float = 3.0  # frame-to-frame jitter of the orbit around the nominal (object scale) for tracking
+    recover: bool = True  # track again allowing larger jumps (RECOVERY_JITTER_MM) when the first result fails
 
 
 @dataclass
@@ -337,26 +340,55 @@ def _calibrate_scan(
         cands, diameter_mm, d_px = _detect(sf, proj, nominal, opt, progress)
     compile_detect = clock.seconds  # kernels compiled on first use: not calibration time
     t_detect = time.perf_counter() - t0 - compile_detect
-    report(progress, "track", 0, 1, "identifying BBs")
     min_obs = opt.min_observations or max(8, int(0.05 * len(proj)))
-    tset = TrackingSettings(diameter_px=d_px, motion_px=_motion_px(nominal), jitter_px=opt.jitter_mm * d_px / diameter_mm)
     model = ViewModel(nominal, opt.intrinsics)
-    uv, warnings = identify(cands, ViewModel(nominal, "fixed"), tset, diameter_mm, min_obs)
-    report(progress, "track", 1, 1, f"{uv.shape[1]} BBs")
-    if uv.shape[1] < 3:
-        raise NoMarkersError(
-            f"{target}: found {uv.shape[1]} BB(s) seen in at least {min_obs} frames; at least 3 are needed. "
-            f"Either the BBs could not be followed from frame to frame (motion errors far beyond the nominal "
-            f"orbit: check the nominal geometry), or they are not {diameter_mm:.2f} mm ({d_px:.1f} px) BBs (give "
-            "the size: orbitct calibrate --diameter-mm, or \"diameter_mm\" in POST /calibrations)"
-        )
     t1, compiled_before = time.perf_counter(), clock.seconds
-    geometry_p, xyz, state, uv, history, n_iter, more, quality = _estimate(method, model, uv, opt, progress)
-    warnings += more
-    t_est = time.perf_counter() - t1 - (clock.seconds - compiled_before)
+    best: tuple[Any, ...] | None = None
+    failure: NoMarkersError | None = None
+    t_identify = 0.0
+    # recovery: when the BBs cannot be followed with the orbit's expected jitter, or the views they give
+    # fail the quality check, track again allowing larger frame-to-frame jumps; a result found that way is
+    # kept only if it passes the check (a larger allowance also links more wrong blobs)
+    levels = [opt.jitter_mm] + ([j for j in RECOVERY_JITTER_MM if j > opt.jitter_mm] if opt.recover else [])
+    for jitter_mm in levels:
+        report(progress, "track", 0, 1, f"identifying BBs (jitter {jitter_mm:g} mm)")
+        tset = TrackingSettings(diameter_px=d_px, motion_px=_motion_px(nominal), jitter_px=jitter_mm * d_px / diameter_mm)
+        t_id = time.perf_counter()
+        uv, found_warnings = identify(cands, ViewModel(nominal, "fixed"), tset, diameter_mm, min_obs,
+                                      prior_scale=max(1.0, jitter_mm / DEFAULT_JITTER_MM))
+        t_identify += time.perf_counter() - t_id
+        report(progress, "track", 1, 1, f"{uv.shape[1]} BBs")
+        if uv.shape[1] < 3:
+            failure = NoMarkersError(
+                f"{target}: found {uv.shape[1]} BB(s) seen in at least {min_obs} frames; at least 3 are needed. "
+                f"Either the BBs could not be followed from frame to frame (motion errors far beyond the nominal "
+                f"orbit, even allowing {jitter_mm:g} mm jumps: check the nominal geometry), or they are not "
+                f"{diameter_mm:.2f} mm ({d_px:.1f} px) BBs (give the size: orbitct calibrate --diameter-mm, or "
+                "\"diameter_mm\" in POST /calibrations)")
+            continue
+        try:
+            outcome = _estimate(method, model, uv, opt, progress)
+        except NoMarkersError as exc:
+            failure = exc
+            continue
+        verdict = judge(outcome[7], proj, opt.max_predicted_px, opt.bridge_max_views, method)
+        if best is None or verdict.passed:  # a larger allowance replaces the first result only when it passes
+            best = (jitter_mm, found_warnings, outcome, verdict)
+        if verdict.passed:
+            break
+    if best is None:
+        assert failure is not None
+        raise failure
+    jitter_used, warnings, outcome, verdict = best
+    geometry_p, xyz, state, uv, history, n_iter, more, quality = outcome
+    warnings = list(warnings) + more
+    if jitter_used != opt.jitter_mm:
+        warnings.append(f"the BBs were followed only when allowing {jitter_used:g} mm jumps between frames (the "
+                        f"orbit's expected jitter is {opt.jitter_mm:g} mm, option jitter_mm): the orbit is far "
+                        "from its nominal")
+    t_est = time.perf_counter() - t1 - (clock.seconds - compiled_before) - t_identify  # identification apart
     solved = geometry_p.valid
     unsolved = proj[~solved]
-    verdict = judge(quality, proj, opt.max_predicted_px, opt.bridge_max_views, method)
     warnings += verdict.warnings
     resid = _residual_px(geometry_p, uv, xyz)
     ok_r = np.isfinite(resid)
