@@ -44,7 +44,7 @@ from calib.track import TrackingSettings
 from orbitct.compiletime import CompileClock
 from orbitct.geometry import ViewGeometry
 from orbitct.progress import ProgressCallback, report
-from orbitct.scanfile import ImageKey, ScanFile, frame_problem
+from orbitct.scanfile import ImageKey, ScanFile, describe_frame_problems, frame_problem
 from orbitct.statistics import rpe_statistics
 
 METHODS = ("bundle", "paper")
@@ -230,10 +230,9 @@ def _detect(
         for m, fut in pending:
             take(m, fut.result())
     if problems:
-        shown = ", ".join(f"frame {i} ({why})" for i, why in sorted(problems.items())[:5])
-        more = f" and {len(problems) - 5} more" if len(problems) > 5 else ""
-        raise BadFramesError(f"{sf.path}: {len(problems)} of {total} projections are unusable: {shown}{more}; "
-                             "a geometry fitted to them would be wrong, so none is stored")
+        raise BadFramesError(f"{sf.path}: {len(problems)} of {total} projections are unusable: "
+                             f"{describe_frame_problems(problems)}; a geometry fitted to them would be wrong, so none "
+                             "is stored")
     report(progress, "detect", total, total, "")
     return cands, float(diameter_mm), d_px
 
@@ -325,9 +324,8 @@ def _calibrate_scan(
         _check_frame_memory(sf)
         bad = sf.frame_problems(np.flatnonzero(np.isin(sf.image_key, (ImageKey.DARK, ImageKey.FLAT))))
         if bad:
-            shown = ", ".join(f"frame {i} ({why})" for i, why in sorted(bad.items())[:5])
-            raise BadFramesError(f"{target}: dark or flat frames are unusable: {shown}; every projection is "
-                                 "normalised with them")
+            raise BadFramesError(f"{target}: dark or flat frames are unusable: {describe_frame_problems(bad)}; every "
+                                 "projection is normalised with them")
         proj = sf.projection_indices
         if proj.size == 0:
             raise NoProjectionsError(f"{target}: no projection frames (image_key 0); counts are {sf.count_by_kind()}")

@@ -1,5 +1,7 @@
 """Errors raised by reconstruction."""
 
+from orbitct.scanfile import describe_frame_problems
+
 
 class ReconError(ValueError):
     """Reconstruction input or setting that cannot be used; the message says what is allowed."""
@@ -30,7 +32,5 @@ class BadFramesError(ReconError):
 
     def __init__(self, path: object, problems: dict[int, str], n_used: int) -> None:
         self.problems = dict(problems)
-        shown = ", ".join(f"frame {i} ({why})" for i, why in list(problems.items())[:5])
-        more = f" and {len(problems) - 5} more" if len(problems) > 5 else ""
-        super().__init__(f"{path}: {len(problems)} of the {n_used} frames needed are unusable: {shown}{more}; "
-                         "a volume made from them would be wrong, so none is stored")
+        super().__init__(f"{path}: {len(problems)} of the {n_used} frames needed are unusable: "
+                         f"{describe_frame_problems(problems)}; a volume made from them would be wrong, so none is stored")

@@ -36,6 +36,10 @@ DEFAULT_PORT = 50000
 class ServoOffError(NotReferencedError):
     """A move was refused because the servo of an axis is off (switch it on with ``servo(True)``)."""
 
+    def __init__(self, message: str, axes: tuple[str, ...] = ()) -> None:
+        super().__init__(message)
+        self.axes = tuple(axes)  # the axes whose servo is off (user names)
+
 
 class GcsMotionDevice(Driver):
     """Base driver: axes exposed under user names, mapped to the controller's axis identifiers."""
@@ -214,7 +218,8 @@ class GcsMotionDevice(Driver):
         servo, ref = await self.servo_on(), await self.referenced()
         off = [k for k, v in servo.items() if not v]
         if off:
-            return ServoOffError(f"{self.name}: servo off on {', '.join(off)}; switch it on with servo(True); nothing moved")
+            return ServoOffError(f"{self.name}: servo off on {', '.join(off)}; switch it on with servo(True); nothing moved",
+                                 tuple(off))
         unref = [k for k, v in ref.items() if not v]
         if not unref:
             return exc  # the controller's own reason (servo and reference look fine from here)

@@ -3,8 +3,8 @@ results (calibration, reconstructions, status) and the one scan summary."""
 
 from orbitct.scanfile.errors import DiskFullError, ScanFileError
 from orbitct.scanfile.keys import ImageKey
-from orbitct.scanfile.reader import ScanFile, frame_problem
+from orbitct.scanfile.reader import ScanFile, describe_frame_problems, frame_problem
 from orbitct.scanfile.summary import scan_summary
 from orbitct.scanfile.writer import FORMAT, VERSION, ScanWriter
 
-__all__ = ["FORMAT", "VERSION", "DiskFullError", "ImageKey", "ScanFile", "ScanFileError", "ScanWriter", "frame_problem", "scan_summary"]
+__all__ = ["FORMAT", "VERSION", "DiskFullError", "ImageKey", "ScanFile", "ScanFileError", "ScanWriter", "describe_frame_problems", "frame_problem", "scan_summary"]

@@ -21,6 +21,13 @@ from orbitct.scanfile.writer import FORMAT, STATUSES, VERSION
 GEOMETRY_NAMES = ("nominal", "calibrated", "truth")
 
 
+def describe_frame_problems(problems: dict[int, str], shown: int = 5) -> str:
+    """The first ``shown`` problems as ``frame 12 (why), ...`` and how many more, for one-line messages."""
+    items = sorted(problems.items())
+    more = f" and {len(items) - shown} more" if len(items) > shown else ""
+    return ", ".join(f"frame {i} ({why})" for i, why in items[:shown]) + more
+
+
 def frame_problem(frame: NDArray[Any], projection: bool) -> str | None:
     """Why a frame must not be used, or None: NaN or infinite pixels (any frame); a projection with no pixel above
     zero (no signal) or saturated (more than half its pixels at the uint16 maximum)."""

@@ -23,8 +23,9 @@ async def test_describe_exposes_axis_r(stage: RotationStage) -> None:
 
 
 async def test_refusals_then_reference_and_move(stage: RotationStage, world: SimWorld) -> None:
-    with pytest.raises(ServoOffError):
+    with pytest.raises(ServoOffError) as refused:
         await stage.move({"R": 10.0})
+    assert refused.value.axes == ("R",)
     with pytest.raises(OutOfLimitsError, match="R=371"):
         await stage.move({"R": 371.0})
     await stage.reference()

@@ -230,7 +230,7 @@ class RigServer:
         try:
             await dev.move(targets)
         except ServoOffError as exc:  # the driver speaks Python; the fix over REST is the reference route
-            off = str(exc).split("servo off on ", 1)[-1].split(";", 1)[0]
+            off = ", ".join(exc.axes)
             raise CommandError("conflict", f"{name}: servo is off on {off}; POST /devices/{name}/reference switches "
                                            "it on and references the axes; nothing moved") from None
         return await self._state(dev)
