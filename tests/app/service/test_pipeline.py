@@ -56,6 +56,9 @@ def test_scan_calibrate_reconstruct(api, tmp_path: Path) -> None:  # type: ignor
 
     cal = wait_for(api, f"/jobs/{cal_id}", ended, 300)
     assert cal["state"] == "succeeded", cal
+    quality = api.get(f"/calibrations/{cal_id}").json()["result"]["quality"]
+    assert isinstance(quality["passed"], bool) and sum(quality["views"].values()) == 40
+    assert quality["predicted_px_max"] is not None and quality["centroid_noise_px"] > 0
     rpe = api.get(f"/calibrations/{cal_id}/rpe").json()
     assert rpe["table"]["frames"] == 40 and rpe["table"]["bbs"] >= 3
     assert rpe["table"]["rpe_mean_mm"] < 1.0 and len(rpe["per_frame_mm"]) == 40
