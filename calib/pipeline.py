@@ -40,7 +40,7 @@ from calib.quality import (
     judge,
 )
 from calib.rays import marker_rays, rpe_per_frame, triangulate_least_squares
-from calib.track import TrackingSettings
+from calib.track import TrackingSettings, assign_to_predictions
 from orbitct.compiletime import CompileClock
 from orbitct.geometry import ViewGeometry
 from orbitct.progress import ProgressCallback, report
@@ -70,7 +70,7 @@ class CalibrationOptions:
     outlier_px: float = 1.0  # bundle: detections off by more than max(this, 6 robust sigma) become NaN
     workers: int = 2  # detection threads
     seeds_uv: Any = None  # optional (K, 2) BB positions (col, row) in the first projection
-    jitter_mm: float = 3.0  # frame-to-frame jitter of the orbit around the nominal (object scale) for tracking
+    jitter_mm: float = DEFAULT_JITTER_MM  # frame-to-frame jitter of the orbit around the nominal (object scale) for tracking
     recover: bool = True  # track again allowing larger jumps (RECOVERY_JITTER_MM) when the first result fails
 
 
@@ -370,6 +370,8 @@ def _calibrate_scan(
             failure = exc
             continue
         verdict = judge(outcome[7], proj, opt.max_predicted_px, opt.bridge_max_views, method)
+        if method == "bundle" and not verdict.passed:
+            outcome, verdict = _reassign(cands, model, tset, outcome, verdict, proj, opt, progress)
         if best is None or verdict.passed:  # a larger allowance replaces the first result only when it passes
             best = (jitter_mm, found_warnings, outcome, verdict)
         if verdict.passed:
@@ -461,6 +463,38 @@ def _calibrate_scan(
 
         write_report(result, Path(report_dir))
     return result
+
+
+def _reassign(
+    cands: list[NDArray[np.float64]], model: ViewModel, tset: TrackingSettings, outcome: tuple[Any, ...],
+    verdict: Verdict, proj: NDArray[np.intp], opt: CalibrationOptions, progress: ProgressCallback | None,
+) -> tuple[tuple[Any, ...], Verdict]:
+    """Assign the detections again, to every BB predicted through the calibrated geometry (views that failed:
+    through their nearest calibrated neighbour), and estimate again; kept when more views are calibrated from
+    their own BBs. Tracking predicts through the rough nominal-based poses, which miss BBs in views that see
+    few of them (a truncating panel)."""
+    geometry, xyz, state, uv = outcome[0], outcome[1], outcome[2], outcome[3]
+    solved = geometry.valid
+    if not solved.any():
+        return outcome, verdict
+    filled = fill_states(ViewState(np.nan_to_num(state.R), np.nan_to_num(state.t), state.k), solved, len(solved))
+    predicted = model.project(filled, xyz)
+    det = model.nominal.panel
+    margin = 0.5 * tset.diameter_px + 1.0
+    inside = ((predicted[..., 0] >= margin) & (predicted[..., 0] <= det.cols - 1 - margin)
+              & (predicted[..., 1] >= margin) & (predicted[..., 1] <= det.rows - 1 - margin))
+    predicted[~inside] = np.nan
+    again = assign_to_predictions(cands, predicted, tset, gate_px=max(2.0, 0.5 * tset.diameter_px))
+    if np.isfinite(again).all(-1).sum() <= np.isfinite(uv).all(-1).sum():
+        return outcome, verdict
+    try:
+        second = _estimate("bundle", model, again, opt, progress)
+    except NoMarkersError:
+        return outcome, verdict
+    second_verdict = judge(second[7], proj, opt.max_predicted_px, opt.bridge_max_views, "bundle")
+    if (second_verdict.passed, second_verdict.counts["own"]) > (verdict.passed, verdict.counts["own"]):
+        return second, second_verdict
+    return outcome, verdict
 
 
 def _leave_one_out_outliers(
@@ -571,7 +605,7 @@ def _estimate(
         # a pose absorbs much of one wrong blob: test each detection against the pose fitted without it,
         # and views with only 3 BBs (no redundancy) against the neighbouring view
         bad |= _leave_one_out_outliers(sub, res.state, res.xyz, np.where(bad[..., None], np.nan, uvs), 1.5 * opt.outlier_px)
-        bad |= _disagree_with_neighbour(sub, res.state, res.xyz, uvs, 3.0 * opt.outlier_px, max_bbs=4)
+        bad |= _disagree_with_neighbour(sub, res.state, res.xyz, uvs, 3.0 * opt.outlier_px, max_bbs=3)
         if bad.sum() > n_bad:
             warnings.append(f"{int(bad.sum()) - n_bad} detection(s) disagree with their view fitted without them (or, with 3 BBs, with the neighbouring view); set to NaN")
         loss = opt.loss_scale_px
