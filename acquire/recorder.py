@@ -12,7 +12,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from acquire.records import FrameRecord, ScanEnd, ScanStart
-from acquire.storage import MB, SpaceWatch, frame_bytes
+from acquire.storage import SpaceWatch, frame_bytes
+from orbitct.diskspace import MB
 from orbitct.scanfile import ImageKey, ScanWriter
 
 

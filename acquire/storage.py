@@ -9,29 +9,19 @@ room to spare and never cut by a full disk.
 from __future__ import annotations
 
 import os
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from acquire.errors import DiskSpaceError
+from orbitct.diskspace import MB, format_bytes, free_bytes
 from orbitct.geometry import Panel
 
-MB = 1024 * 1024
 # per frame besides the pixels: nominal vector and matrix, true vector, time, image key, encoders and
 # commanded positions of up to 8 axes, injected errors; plus the HDF5 chunk index (rounded up)
 _META_PER_FRAME_BYTES = 12 * 8 * 3 + 8 + 1 + 2 * 8 * 8 + 6 * 8 + 64
 _FIXED_BYTES = 2 * MB  # groups, attributes, configuration, truth markers, the file's own structures
-
-
-def format_bytes(n: float) -> str:
-    """Human-readable size: ``512 kB``, ``37.1 MB``, ``2.40 GB``."""
-    if n < MB:
-        return f"{n / 1024:.0f} kB"
-    if n < 1024 * MB:
-        return f"{n / MB:.1f} MB"
-    return f"{n / (1024 * MB):.2f} GB"
 
 
 def frame_bytes(panel: Panel, frame_dtype: str = "uint16") -> int:
@@ -42,14 +32,6 @@ def frame_bytes(panel: Panel, frame_dtype: str = "uint16") -> int:
 def scan_bytes(panel: Panel, n_frames: int, frame_dtype: str = "uint16") -> int:
     """Estimated size of a scan file of ``n_frames`` frames (uncompressed)."""
     return int(n_frames) * frame_bytes(panel, frame_dtype) + _FIXED_BYTES
-
-
-def free_bytes(path: str | os.PathLike[str]) -> int:
-    """Free bytes, for this user, on the filesystem that holds ``path`` (its nearest existing folder)."""
-    folder = Path(path).resolve()
-    while not folder.exists() and folder != folder.parent:
-        folder = folder.parent
-    return shutil.disk_usage(folder).free
 
 
 def check_room(out: str | os.PathLike[str], panel: Panel, n_frames: int, reserve_mb: float,

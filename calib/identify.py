@@ -9,7 +9,7 @@ from calib.bundle import bundle_adjust
 from calib.model import ViewModel, ViewState
 from calib.rays import marker_rays, triangulate_least_squares
 from calib.track import TrackingSettings, assign_to_predictions, link_fragments
-from orbitct.geometry import ViewGeometry
+from orbitct.geometry import Panel, ViewGeometry
 
 
 def usable_views(uv: NDArray[np.float64], min_bbs: int) -> NDArray[np.bool_]:
@@ -190,6 +190,16 @@ def _merge_close(xyz: NDArray[np.float64], uv: NDArray[np.float64], diameter_mm:
     return np.array(pts).reshape(-1, 3)
 
 
+def assign_visible(cands: list[NDArray[np.float64]], predicted: NDArray[np.float64], panel: Panel,
+                   settings: TrackingSettings) -> NDArray[np.float64]:
+    """Assign candidates to the predicted BB positions ``(P, K, 2)`` that lie wholly on the panel."""
+    margin = 0.5 * settings.diameter_px + 1.0
+    inside = ((predicted[..., 0] >= margin) & (predicted[..., 0] <= panel.cols - 1 - margin)
+              & (predicted[..., 1] >= margin) & (predicted[..., 1] <= panel.rows - 1 - margin))
+    return assign_to_predictions(cands, np.where(inside[..., None], predicted, np.nan), settings,
+                                 gate_px=max(2.0, 0.5 * settings.diameter_px))
+
+
 def identify(
     cands: list[NDArray[np.float64]],
     nominal_model: ViewModel,
@@ -218,7 +228,6 @@ def identify(
     # short leftovers are clutter (or BB pieces the final assignment recovers); they only weaken the solve
     uv = frags[:, np.isfinite(frags[..., 0]).sum(0) >= max(settings.min_fragment, min_observations // 2)]
     det = nominal_model.nominal.panel
-    margin = 0.5 * settings.diameter_px + 1.0
     for _ in range(4):
         if uv.shape[1] < 3:
             break
@@ -231,14 +240,7 @@ def identify(
         uv, xyz = uv[:, consistent], xyz[consistent]
         xyz = _merge_close(xyz, uv, diameter_mm)
         predicted = geo.project(ViewState(state.R, state.t, no_k), xyz)
-        inside = (
-            (predicted[..., 0] >= margin)
-            & (predicted[..., 0] <= det.cols - 1 - margin)
-            & (predicted[..., 1] >= margin)
-            & (predicted[..., 1] <= det.rows - 1 - margin)
-        )
-        predicted[~inside] = np.nan
-        uv = assign_to_predictions(cands, predicted, settings, gate_px=max(2.0, 0.5 * settings.diameter_px))
+        uv = assign_visible(cands, predicted, det, settings)
         # a real BB is found in a good share of the frames where it should be visible
         found = np.isfinite(uv).all(-1).sum(0)
         expected = np.isfinite(predicted).all(-1).sum(0)

@@ -26,7 +26,7 @@ from calib.errors import (
     OptionError,
 )
 from calib.evaluate import fov_points, true_corrections
-from calib.identify import fill_states, identify, usable_views
+from calib.identify import assign_visible, fill_states, identify, usable_views
 from calib.model import INTRINSICS, ViewModel, ViewState
 from calib.paper import paper_calibrate
 from calib.quality import (
@@ -40,7 +40,7 @@ from calib.quality import (
     judge,
 )
 from calib.rays import marker_rays, rpe_per_frame, triangulate_least_squares
-from calib.track import TrackingSettings, assign_to_predictions
+from calib.track import TrackingSettings
 from orbitct.compiletime import CompileClock
 from orbitct.geometry import ViewGeometry
 from orbitct.progress import ProgressCallback, report
@@ -478,13 +478,7 @@ def _reassign(
     if not solved.any():
         return outcome, verdict
     filled = fill_states(ViewState(np.nan_to_num(state.R), np.nan_to_num(state.t), state.k), solved, len(solved))
-    predicted = model.project(filled, xyz)
-    det = model.nominal.panel
-    margin = 0.5 * tset.diameter_px + 1.0
-    inside = ((predicted[..., 0] >= margin) & (predicted[..., 0] <= det.cols - 1 - margin)
-              & (predicted[..., 1] >= margin) & (predicted[..., 1] <= det.rows - 1 - margin))
-    predicted[~inside] = np.nan
-    again = assign_to_predictions(cands, predicted, tset, gate_px=max(2.0, 0.5 * tset.diameter_px))
+    again = assign_visible(cands, model.project(filled, xyz), model.nominal.panel, tset)
     if np.isfinite(again).all(-1).sum() <= np.isfinite(uv).all(-1).sum():
         return outcome, verdict
     try:

@@ -209,6 +209,14 @@ class Verdict:
     noise_px: float
     threshold_px: float
 
+    def line(self) -> str:
+        """One line for people: the views by kind, the predicted error, the noise it assumes."""
+        v = self.counts
+        worst = f" (frame {self.worst_frame})" if self.worst_frame is not None else ""
+        return (f"views: {v[OWN]} from their own BBs, {v[BRIDGED]} bridged, {v[FAILED]} failed; predicted error "
+                f"median {self.predicted_px_median:.3f} px, max {self.predicted_px_max:.3f} px{worst}; centroid "
+                f"noise {self.noise_px:.3f} px")
+
     def summary(self) -> dict[str, object]:
         """JSON-ready."""
         return {"passed": self.passed, "reasons": list(self.reasons), "views": dict(self.counts),

@@ -165,14 +165,8 @@ def write_report(result: "CalibrationResult", out_dir: Path, extra_columns: dict
     q = result.quality
     quality = ""
     if q is not None:
-        v = q.counts
-        quality = (f"\n## Quality: {'passed' if q.passed else 'FAILED'}\n\n"
-                   f"- views calibrated from their own BBs (4 or more): {v['own']}; bridged from their neighbours: "
-                   f"{v['bridged']}; failed (NaN geometry): {v['failed']}\n"
-                   f"- predicted error of the field of view (px): median {q.predicted_px_median:.3f}, max "
-                   f"{q.predicted_px_max:.3f}" + (f" (frame {q.worst_frame})" if q.worst_frame is not None else "")
-                   + f"; threshold {q.threshold_px:g}\n- centroid noise measured from the residuals: {q.noise_px:.3f} px\n"
-                   + "".join(f"- {r}\n" for r in q.reasons))
+        quality = (f"\n## Quality: {'passed' if q.passed else 'FAILED'}\n\n- {q.line()}; largest allowed "
+                   f"{q.threshold_px:g} px\n" + "".join(f"- {r}\n" for r in q.reasons))
     md = out_dir / "table1.md"
     iters = "\n".join(
         f"| {s.index} | {s.rpe_mean_mm:.4f} | {s.rpe_median_mm:.4f} | {s.rpe_std_mm:.4f} | {s.reproj_rms_px:.4f} |"

@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from orbitct import __version__
+from orbitct.diskspace import format_bytes, free_bytes
 from orbitct.geometry import Panel, ViewGeometry
 from orbitct.scanfile.errors import DiskFullError, ScanFileError
 from orbitct.scanfile.keys import ImageKey
@@ -51,11 +52,6 @@ def _put_row(ds: h5py.Dataset, i: int, value: Any) -> None:
     space = ds.id.get_space()
     space.select_hyperslab((i,) + (0,) * len(tail), row.shape)
     ds.id.write(h5py.h5s.create_simple(row.shape), space, row)
-
-
-def _free_bytes(folder: Path) -> int:
-    st = os.statvfs(folder)
-    return st.f_bavail * st.f_frsize
 
 
 class ScanWriter:
@@ -183,10 +179,10 @@ class ScanWriter:
                 raise ScanFileError(f"{grp}: unknown axes {sorted(unknown)}; declared axes are {sorted(self._axes)}")
         i, ds = self._n, self._per_frame
         if self._min_free > 0:
-            free = _free_bytes(self.path.parent)
+            free = free_bytes(self.path.parent)
             if free < self._min_free:
-                raise DiskFullError(f"{self.path}: frame {i} not written: {free / 1e6:.1f} MB free, "
-                                    f"{self._min_free / 1e6:.1f} MB needed to write it and close the file cleanly; "
+                raise DiskFullError(f"{self.path}: frame {i} not written: {format_bytes(free)} free, "
+                                    f"{format_bytes(self._min_free)} needed to write it and close the file cleanly; "
                                     f"the {i} frames before it are kept")
         if ds["frames/data"].dtype == np.uint16:
             arr = np.clip(np.rint(arr), 0, 65535).astype(np.uint16) if arr.dtype != np.uint16 else arr

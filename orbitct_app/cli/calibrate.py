@@ -66,11 +66,7 @@ def calibrate(
     )
     q = res.quality
     if q is not None:
-        v = q.counts
-        worst = f" (frame {q.worst_frame})" if q.worst_frame is not None else ""
-        click.echo(f"views: {v['own']} from their own BBs, {v['bridged']} bridged, {v['failed']} failed; predicted "
-                   f"error median {q.predicted_px_median:.3f} px, max {q.predicted_px_max:.3f} px{worst}; centroid "
-                   f"noise {q.noise_px:.3f} px")
+        click.echo(q.line())
     for w in res.warnings:
         click.echo(f"warning: {w}", err=True)
     if report_dir is not None:

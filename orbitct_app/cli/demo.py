@@ -128,8 +128,7 @@ def demo(out_dir: Path, config_path: Path | None, frames: int, size: int, voxels
                        f"(reprojection RMS {cal.reproj_rms_px:.3f} px)")
         q = cal.quality
         if q is not None:
-            click.echo(f"   views: {q.counts['own']} from their own BBs, {q.counts['bridged']} bridged, {q.counts['failed']} "
-                       f"failed; predicted error median {q.predicted_px_median:.2f} px, max {q.predicted_px_max:.2f} px")
+            click.echo(f"   {q.line()}")
             if not q.passed:
                 click.echo("   QUALITY CHECK FAILED: " + "; ".join(q.reasons))
         for w in cal.warnings[:5]:

@@ -102,7 +102,7 @@ def serve(bench_config: Path | None, sim: bool | None, host: str | None, port: i
 
         if not disk_full(exc):
             raise
-        from acquire.storage import format_bytes, free_bytes
+        from orbitct.diskspace import format_bytes, free_bytes
 
         raise click.ClickException(f"cannot start: the disk of the data directory {settings.data_dir} is full "
                                    f"({format_bytes(free_bytes(settings.data_dir))} free) and the service cannot create "

@@ -66,7 +66,7 @@ class Service:
 
     def disk(self) -> tuple[str, int]:
         """``(state, free bytes)`` of the data directory's disk: ``ok``, ``low`` (below the reserve) or ``full``."""
-        from acquire.storage import MB, free_bytes
+        from orbitct.diskspace import MB, free_bytes
 
         free = free_bytes(self.settings.data_dir)
         if free < 4 * MB:
@@ -137,7 +137,7 @@ class Service:
             log.warning("%s", self.latch.refusal("scans, moves and referencing"))
         disk, free = self.disk()
         if disk != "ok":
-            from acquire.storage import format_bytes
+            from orbitct.diskspace import format_bytes
 
             log.warning("the data directory's disk is %s: %s free in %s, the bench keeps %s free "
                         "(storage.reserve_mb); scans are refused until there is room", disk, format_bytes(free),
