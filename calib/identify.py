@@ -7,6 +7,7 @@ from numpy.typing import NDArray
 
 from calib.bundle import bundle_adjust
 from calib.model import ViewModel, ViewState
+from calib.quality import rigid_pose_normal
 from calib.rays import marker_rays, triangulate_least_squares
 from calib.track import TrackingSettings, assign_to_predictions, link_fragments
 from orbitct.geometry import Panel, ViewGeometry
@@ -173,21 +174,29 @@ def _join_across(frags: NDArray[np.float64], geometry: ViewGeometry, near_mm: fl
     return out
 
 
-def _merge_close(xyz: NDArray[np.float64], uv: NDArray[np.float64], diameter_mm: float) -> NDArray[np.float64]:
-    """Centres closer than most of a BB diameter are one BB (two balls cannot overlap): average them."""
-    count = np.isfinite(uv).all(-1).sum(0).astype(float)
-    pts = list(xyz)
-    wts = list(count)
-    while len(pts) > 1:
-        P = np.array(pts)
-        d = np.linalg.norm(P[:, None] - P[None], axis=-1) + np.eye(len(P)) * 1e9
-        a, b = np.unravel_index(np.argmin(d), d.shape)
-        if d[a, b] >= 0.75 * diameter_mm:
+def merge_duplicates(xyz: NDArray[np.float64], uv: NDArray[np.float64], diameter_mm: float,
+                     near_diameters: float = 2.0) -> NDArray[np.float64]:
+    """3-D points ``(K,3)`` with duplicates of one BB removed, keeping the one seen in more frames of ``uv``.
+
+    Two points are one BB when they lie closer than most of a BB diameter (two balls cannot overlap), or
+    closer than ``near_diameters`` diameters while their tracks are (almost) never seen in the same frame
+    (pieces of one BB's track that a rough geometry placed apart). Two real BBs that close are seen
+    together: both are kept, and views where their projections overlap are left out later."""
+    seen = np.isfinite(uv).all(-1)
+    count = seen.sum(0)
+    together = seen.T.astype(np.int32) @ seen.astype(np.int32)
+    alive = np.ones(len(xyz), bool)
+    dist = np.linalg.norm(xyz[:, None] - xyz[None], axis=-1)
+    for flat in np.argsort(dist, axis=None):
+        a, b = np.unravel_index(flat, dist.shape)
+        if dist[a, b] >= near_diameters * diameter_mm:
             break
-        pts[a] = (wts[a] * P[a] + wts[b] * P[b]) / (wts[a] + wts[b])
-        wts[a] += wts[b]
-        del pts[b], wts[b]
-    return np.array(pts).reshape(-1, 3)
+        if a >= b or not (alive[a] and alive[b]):
+            continue
+        apart = together[a, b] >= max(3, 0.1 * min(count[a], count[b]))
+        if dist[a, b] < 0.75 * diameter_mm or not apart:
+            alive[b if count[a] >= count[b] else a] = False
+    return xyz[alive]
 
 
 def assign_visible(cands: list[NDArray[np.float64]], predicted: NDArray[np.float64], panel: Panel,
@@ -198,6 +207,33 @@ def assign_visible(cands: list[NDArray[np.float64]], predicted: NDArray[np.float
               & (predicted[..., 1] >= margin) & (predicted[..., 1] <= panel.rows - 1 - margin))
     return assign_to_predictions(cands, np.where(inside[..., None], predicted, np.nan), settings,
                                  gate_px=max(2.0, 0.5 * settings.diameter_px))
+
+
+def assign_by_pose(cands: list[NDArray[np.float64]], model: ViewModel, state: ViewState, xyz: NDArray[np.float64],
+                   settings: TrackingSettings, rounds: int = 3) -> NDArray[np.float64]:
+    """Assign candidates to the BBs ``xyz`` predicted through ``state`` (a guess per view, such as its nearest
+    calibrated neighbour), then, per view with four or more matches, fit the view's rigid pose to them and
+    assign again through it. A pose follows the parallax of BBs at different depths that a 2-D shift and
+    affine map cannot, so large per-view errors still land every BB on its own blob."""
+    uv = assign_visible(cands, model.project(state, xyz), model.nominal.panel, settings)
+    for _ in range(rounds):
+        fit = usable_views(uv, 4)
+        if not fit.any():
+            break
+        idx = np.flatnonzero(fit)
+        sub = ViewModel(model.nominal[idx], model.intrinsics)
+        st = ViewState(state.R[idx], state.t[idx], state.k[idx])
+        for _ in range(5):  # Gauss-Newton on the rigid pose, all views at once
+            H, g = rigid_pose_normal(sub, st, xyz, uv[idx])
+            step = -np.linalg.solve(H + 1e-6 * np.eye(6), g[..., None])[..., 0]
+            st = st.stepped(np.concatenate([step, np.zeros((idx.size, model.n_intrinsics))], 1))
+        state = ViewState(state.R.copy(), state.t.copy(), state.k.copy())
+        state.R[idx], state.t[idx] = st.R, st.t
+        again = assign_visible(cands, model.project(state, xyz), model.nominal.panel, settings)
+        if np.array_equal(again, uv, equal_nan=True):
+            break
+        uv = again
+    return uv
 
 
 def identify(
@@ -238,7 +274,7 @@ def identify(
             med = np.nanmedian(err, axis=0)
         consistent = med < max(1.0, 3.0 * float(np.nanmedian(med)))
         uv, xyz = uv[:, consistent], xyz[consistent]
-        xyz = _merge_close(xyz, uv, diameter_mm)
+        xyz = merge_duplicates(xyz, uv, diameter_mm)
         predicted = geo.project(ViewState(state.R, state.t, no_k), xyz)
         uv = assign_visible(cands, predicted, det, settings)
         # a real BB is found in a good share of the frames where it should be visible

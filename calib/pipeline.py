@@ -26,12 +26,13 @@ from calib.errors import (
     OptionError,
 )
 from calib.evaluate import fov_points, true_corrections
-from calib.identify import assign_visible, fill_states, identify, usable_views
+from calib.identify import assign_by_pose, fill_states, identify, usable_views
 from calib.model import INTRINSICS, ViewModel, ViewState
 from calib.paper import paper_calibrate
 from calib.quality import (
     FAILED,
     MIN_OWN_BBS,
+    OWN,
     STATUS_CODES,
     Verdict,
     ViewQuality,
@@ -370,7 +371,7 @@ def _calibrate_scan(
             failure = exc
             continue
         verdict = judge(outcome[7], proj, opt.max_predicted_px, opt.bridge_max_views, method)
-        if method == "bundle" and not verdict.passed:
+        if method == "bundle" and (not verdict.passed or verdict.counts[OWN] < proj.size):
             outcome, verdict = _reassign(cands, model, tset, outcome, verdict, proj, opt, progress)
         if best is None or verdict.passed:  # a larger allowance replaces the first result only when it passes
             best = (jitter_mm, found_warnings, outcome, verdict)
@@ -469,17 +470,17 @@ def _reassign(
     cands: list[NDArray[np.float64]], model: ViewModel, tset: TrackingSettings, outcome: tuple[Any, ...],
     verdict: Verdict, proj: NDArray[np.intp], opt: CalibrationOptions, progress: ProgressCallback | None,
 ) -> tuple[tuple[Any, ...], Verdict]:
-    """Assign the detections again, to every BB predicted through the calibrated geometry (views that failed:
-    through their nearest calibrated neighbour), and estimate again; kept when more views are calibrated from
-    their own BBs. Tracking predicts through the rough nominal-based poses, which miss BBs in views that see
-    few of them (a truncating panel)."""
-    geometry, xyz, state, uv = outcome[0], outcome[1], outcome[2], outcome[3]
-    solved = geometry.valid
+    """Assign the detections again, to every BB predicted through the calibrated geometry (views not calibrated
+    from their own BBs: through their nearest view that is), and estimate again; kept when it passes where the
+    first did not, or calibrates more views from their own BBs. Tracking predicts through rough poses, which
+    miss BBs in views that see few of them (a truncating panel) or jump far (a robotic arm)."""
+    xyz, state, uv = outcome[1], outcome[2], outcome[3]
+    solved = outcome[7].status == OWN
     if not solved.any():
         return outcome, verdict
     filled = fill_states(ViewState(np.nan_to_num(state.R), np.nan_to_num(state.t), state.k), solved, len(solved))
-    again = assign_visible(cands, model.project(filled, xyz), model.nominal.panel, tset)
-    if np.isfinite(again).all(-1).sum() <= np.isfinite(uv).all(-1).sum():
+    again = assign_by_pose(cands, model, filled, xyz, tset)
+    if np.array_equal(again, uv, equal_nan=True):
         return outcome, verdict
     try:
         second = _estimate("bundle", model, again, opt, progress)

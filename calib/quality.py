@@ -24,6 +24,7 @@ from orbitct.rotations import matrix_to_rotvec, rotvec_to_matrix
 OWN, BRIDGED, FAILED = "own", "bridged", "failed"
 STATUS_CODES = {OWN: 0, BRIDGED: 1, FAILED: 2}  # /geometry/calibrated/view_status (-1: not a projection)
 MIN_OWN_BBS = 4
+MAX_VIEW_MISFIT = 4.0  # a view's residual RMS over the centroid noise (dof-corrected) beyond which its BBs disagree
 
 
 @dataclass(frozen=True)
@@ -34,6 +35,12 @@ class ViewQuality:
     n_bbs: NDArray[np.int_]
     predicted_px: NDArray[np.float64]
     noise_px: float
+    misfit: NDArray[np.float64]  # own views: residual RMS over the centroid noise, dof-corrected (NaN: others)
+
+    @property
+    def inconsistent(self) -> NDArray[np.bool_]:
+        """Views with enough BBs whose BBs disagree with their fitted pose (failed for that reason)."""
+        return np.nan_to_num(self.misfit) > MAX_VIEW_MISFIT
 
     def counts(self) -> dict[str, int]:
         """Views calibrated from their own BBs, bridged, failed."""
@@ -53,7 +60,7 @@ def centroid_noise_px(residual_xy: NDArray[np.float64], n_params: int = 0) -> fl
     return float(np.sqrt((kept**2).sum() / dof))
 
 
-def _rigid_normal(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64]
+def rigid_pose_normal(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64]
                   ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Gauss-Newton normal matrix ``J^T J`` ``(N,6,6)`` and gradient ``J^T r`` ``(N,6)`` of the rigid pose."""
     pred, Jv, _ = model.project_jac(state, xyz)
@@ -94,6 +101,18 @@ def _predicted_px(model: ViewModel, state: ViewState, cov: NDArray[np.float64]) 
     J = Jv[..., :6]  # (N, M, 2, 6)
     var = np.einsum("nmai,nij,nmaj->n", J, cov, J) / pts.shape[0]
     return np.sqrt(np.maximum(var, 0.0))
+
+
+def view_misfit(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64],
+                noise_px: float) -> NDArray[np.float64]:
+    """Per view, ``sqrt(chi^2 / dof) / noise``: about 1 when its detections fit its pose within the centroid
+    noise; large when one of them belongs to another BB or the object moved (NaN without redundancy)."""
+    r = model.project(state, xyz) - uv
+    seen = np.isfinite(r).all(-1)
+    dof = 2 * seen.sum(1) - 6
+    ss = np.where(seen[..., None], r, 0.0) ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(dof > 0, np.sqrt(ss.sum((1, 2)) / np.maximum(dof, 1)) / max(noise_px, 1e-3), np.nan)
 
 
 def _interpolated(state: ViewState, own: NDArray[np.bool_], max_gap: int
@@ -142,9 +161,16 @@ def assess_views(
     n = model.nominal.n_views
     n_bbs = np.isfinite(uv).all(-1).sum(1)
     own = n_bbs >= min_own_bbs
+    misfit = np.full(n, np.nan)
+    if own.any():
+        o = np.flatnonzero(own)
+        misfit[o] = view_misfit(ViewModel(model.nominal[o], model.intrinsics), ViewState(state.R[o], state.t[o], state.k[o]),
+                                xyz, uv[o], noise_px)
+    inconsistent = np.nan_to_num(misfit) > MAX_VIEW_MISFIT
+    own &= ~inconsistent  # neither its own pose nor an anchor for its neighbours
     sigma2 = max(noise_px, 1e-3) ** 2
     prior_c, dist, c = _interpolated(state, own, max_gap)
-    status = np.where(own, OWN, np.where(np.isfinite(dist), BRIDGED, FAILED)).astype("<U7")
+    status = np.where(own, OWN, np.where(np.isfinite(dist) & ~inconsistent, BRIDGED, FAILED)).astype("<U7")
     # random-walk prior: the variance of a step between neighbouring own views, times the distance in views
     idx = np.flatnonzero(own)
     if idx.size >= 3:
@@ -169,13 +195,13 @@ def assess_views(
         st = ViewState(R[br], t[br], k[br])
         delta = np.zeros((br.size, 6))
         for _ in range(5):  # MAP Gauss-Newton of each bridged view under its prior, with its own BBs if any
-            H, g = _rigid_normal(sub, st, xyz, uv[br])
+            H, g = rigid_pose_normal(sub, st, xyz, uv[br])
             A = H / sigma2 + P_inv[:, :, None] * np.eye(6)
             rhs = g / sigma2 + P_inv * delta
             step = -np.linalg.solve(A, rhs[..., None])[..., 0]
             delta = delta + step
             st = st.stepped(np.concatenate([step, np.zeros((br.size, st.k.shape[1]))], 1))
-        H, _ = _rigid_normal(sub, st, xyz, uv[br])
+        H, _ = rigid_pose_normal(sub, st, xyz, uv[br])
         cov[br] = np.linalg.inv(H / sigma2 + P_inv[:, :, None] * np.eye(6))
         R[br], t[br], k[br] = st.R, st.t, st.k
     bad = status == FAILED
@@ -188,7 +214,7 @@ def assess_views(
         g_idx = np.flatnonzero(good)
         predicted[g_idx] = _predicted_px(ViewModel(model.nominal[g_idx], model.intrinsics),
                                          ViewState(R[g_idx], t[g_idx], k[g_idx]), cov[g_idx])
-    return full, ViewQuality(status, n_bbs, predicted, float(noise_px))
+    return full, ViewQuality(status, n_bbs, predicted, float(noise_px), misfit)
 
 
 def _frames(frames: NDArray[np.intp]) -> str:
@@ -238,10 +264,15 @@ def judge(quality: ViewQuality, frames: NDArray[np.intp], threshold_px: float, m
     counts = quality.counts()
     reasons: list[str] = []
     warnings: list[str] = []
-    failed = frames[quality.status == FAILED]
+    odd = quality.inconsistent
+    failed = frames[(quality.status == FAILED) & ~odd]
     need = "BBs than its pose needs" if method == "paper" else f"than {MIN_OWN_BBS} BBs and lie more than {max_gap} views from a view that has them"
     if failed.size:
         reasons.append(f"{failed.size} of {frames.size} view(s) failed (fewer {need}; NaN geometry): {_frames(failed)}")
+    if odd.any():
+        reasons.append(f"{int(odd.sum())} view(s) failed because their BBs disagree with their own pose (residuals up to "
+                       f"{float(np.nanmax(quality.misfit)):.1f} times the centroid noise, allowed {MAX_VIEW_MISFIT:g}: a BB "
+                       f"taken for another, or the object moved): {_frames(frames[odd])}")
     bridged = frames[quality.status == BRIDGED]
     if bridged.size:
         warnings.append(f"{bridged.size} view(s) bridged from their neighbours (fewer than {MIN_OWN_BBS} BBs of their "
@@ -261,4 +292,4 @@ def judge(quality: ViewQuality, frames: NDArray[np.intp], threshold_px: float, m
                    quality.noise_px, float(threshold_px))
 
 
-__all__ = ["Verdict", "judge", "BRIDGED", "FAILED", "MIN_OWN_BBS", "OWN", "STATUS_CODES", "ViewQuality", "assess_views", "centroid_noise_px"]
+__all__ = ["Verdict", "judge", "BRIDGED", "FAILED", "MAX_VIEW_MISFIT", "MIN_OWN_BBS", "OWN", "STATUS_CODES", "ViewQuality", "assess_views", "centroid_noise_px"]

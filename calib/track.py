@@ -51,6 +51,17 @@ class TrackingSettings:
         """How far the common shift of a frame's BBs may be from the track predictions."""
         return self.gate_px + 0.5 * self.motion_px + self.jitter_px
 
+    @property
+    def residual_px(self) -> float:
+        """How far a BB may lie from its prediction once the frame's common shift is removed: rotations and
+        magnification changes leave more the larger the allowed jump."""
+        return max(1.5 * self.gate_px, 0.25 * self.search_px)
+
+    @property
+    def ambiguous_px(self) -> float:
+        """Two tracks predicted closer than this could swap BBs: both end there (3-D linking joins the pieces)."""
+        return 2.0 * max(self.gate_px, 0.5 * self.residual_px)
+
 
 def ball_like(c: NDArray[np.float64], s: TrackingSettings) -> NDArray[np.bool_]:
     """Candidates whose size and roundness fit a projected BB."""
@@ -156,38 +167,69 @@ def _hungarian(pred, cand, gate):  # type: ignore[no-untyped-def]
 
 
 @numba.njit(cache=True)
-def _near_and_shift(pred, vis, cand, search_px, reach_px):  # type: ignore[no-untyped-def]
-    """Candidates within ``reach_px`` of some visible prediction, and the frame's common shift: the median
-    displacement from each visible prediction to its nearest candidate, over those nearer than ``search_px``
-    (NaN if none)."""
+def _near_and_shift(pred, vis, cand, search_px, reach_px, radius):  # type: ignore[no-untyped-def]
+    """Candidates within ``reach_px`` of some visible prediction, and the frame's common shift (NaN if none).
+
+    The shift is found by consensus: every displacement from a visible prediction to a candidate within
+    ``search_px`` is a hypothesis, scored by how many visible predictions it brings within ``radius`` of a
+    candidate (ties: the smaller sum of squared distances); the median displacement of those inliers is
+    the shift. A large jump of the whole frame therefore cannot pair BBs with their neighbours."""
     m_n = cand.shape[0]
+    t_n = pred.shape[0]
     best = np.full(m_n, np.inf)
-    sx = np.empty(pred.shape[0])
-    sy = np.empty(pred.shape[0])
-    n_s = 0
-    for t in range(pred.shape[0]):
+    for t in range(t_n):
         if not vis[t]:
             continue
-        dmin = np.inf
-        jmin = -1
         for m in range(m_n):
-            dx = cand[m, 0] - pred[t, 0]
-            dy = cand[m, 1] - pred[t, 1]
-            d = np.sqrt(dx * dx + dy * dy)
+            d = np.sqrt((cand[m, 0] - pred[t, 0]) ** 2 + (cand[m, 1] - pred[t, 1]) ** 2)
             if d < best[m]:
                 best[m] = d
-            if d < dmin:
-                dmin = d
-                jmin = m
-        if jmin >= 0 and dmin < search_px:
-            sx[n_s] = cand[jmin, 0] - pred[t, 0]
-            sy[n_s] = cand[jmin, 1] - pred[t, 1]
-            n_s += 1
     kept = np.flatnonzero(best < reach_px)
     shift = np.full(2, np.nan)
-    if n_s:
-        shift[0] = np.median(sx[:n_s])
-        shift[1] = np.median(sy[:n_s])
+    best_n, best_ss = 0, np.inf
+    r2 = radius * radius
+    for t in range(t_n):
+        if not vis[t]:
+            continue
+        for m in kept:
+            hx = cand[m, 0] - pred[t, 0]
+            hy = cand[m, 1] - pred[t, 1]
+            if hx * hx + hy * hy >= search_px * search_px:
+                continue
+            n_in, ss = 0, 0.0
+            for u in range(t_n):
+                if not vis[u]:
+                    continue
+                dmin = r2
+                for q in kept:
+                    d2 = (cand[q, 0] - pred[u, 0] - hx) ** 2 + (cand[q, 1] - pred[u, 1] - hy) ** 2
+                    if d2 < dmin:
+                        dmin = d2
+                if dmin < r2:
+                    n_in += 1
+                ss += dmin
+            if n_in > best_n or (n_in == best_n and ss < best_ss):
+                best_n, best_ss = n_in, ss
+                shift[0], shift[1] = hx, hy
+    if best_n == 0:
+        return kept, shift
+    sx = np.empty(t_n)
+    sy = np.empty(t_n)
+    n_s = 0
+    for u in range(t_n):  # refine: median displacement of the inliers
+        if not vis[u]:
+            continue
+        dmin, jmin = r2, -1
+        for q in kept:
+            d2 = (cand[q, 0] - pred[u, 0] - shift[0]) ** 2 + (cand[q, 1] - pred[u, 1] - shift[1]) ** 2
+            if d2 < dmin:
+                dmin, jmin = d2, q
+        if jmin >= 0:
+            sx[n_s] = cand[jmin, 0] - pred[u, 0]
+            sy[n_s] = cand[jmin, 1] - pred[u, 1]
+            n_s += 1
+    shift[0] = np.median(sx[:n_s])
+    shift[1] = np.median(sy[:n_s])
     return kept, shift
 
 
@@ -233,7 +275,7 @@ def _realign(pred, vis, cand, idx):  # type: ignore[no-untyped-def]
 
 
 @numba.njit(cache=True)
-def _match(pred, cand, search_px, gate):  # type: ignore[no-untyped-def]
+def _match(pred, cand, search_px, gate, radius):  # type: ignore[no-untyped-def]
     """:func:`match_frame` for predictions ``(T,2)``, candidates ``(M,2)`` and gates ``(T,)``."""
     t_n = pred.shape[0]
     pred = pred.copy()
@@ -243,7 +285,7 @@ def _match(pred, cand, search_px, gate):  # type: ignore[no-untyped-def]
         vis[t] = np.isfinite(pred[t, 0]) and np.isfinite(pred[t, 1])
     if not vis.any() or cand.shape[0] == 0:
         return none, pred
-    kept, shift = _near_and_shift(pred, vis, cand, search_px, search_px + 2.0 * gate.max())
+    kept, shift = _near_and_shift(pred, vis, cand, search_px, search_px + 2.0 * gate.max(), radius)
     if kept.size == 0:
         return none, pred
     near = cand[kept]
@@ -252,9 +294,10 @@ def _match(pred, cand, search_px, gate):  # type: ignore[no-untyped-def]
             if vis[t]:
                 pred[t, 0] += shift[0]
                 pred[t, 1] += shift[1]
-    idx = _hungarian(pred, near, gate * 1.5)
+    idx = _hungarian(pred, near, np.maximum(gate * 1.5, radius))
     pred = _realign(pred, vis, near, idx)
-    idx = _hungarian(pred, near, gate)
+    # parallax of BBs at different depths under a rotation is not affine; it grows with the allowed jump
+    idx = _hungarian(pred, near, np.maximum(gate, 0.5 * radius))
     for t in range(t_n):
         if idx[t] >= 0:
             idx[t] = kept[idx[t]]
@@ -262,20 +305,26 @@ def _match(pred, cand, search_px, gate):  # type: ignore[no-untyped-def]
 
 
 def match_frame(
-    pred: NDArray[np.float64], cand: NDArray[np.float64], search_px: float, gate_px: NDArray[np.float64] | float
+    pred: NDArray[np.float64], cand: NDArray[np.float64], search_px: float, gate_px: NDArray[np.float64] | float,
+    residual_px: float | None = None,
 ) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
     """Assign candidates ``(M,2)`` to predictions ``(T,2)`` (NaN = not expected) after removing the frame's
-    common shift (median nearest-neighbour displacement) and, with 6 or more matches, an affine distortion.
-    Returns the assignment (-1 = none) and the aligned predictions."""
+    common shift (the displacement most predictions agree on within ``residual_px``, default 1.5 gates) and,
+    with 6 or more matches, an affine distortion. Returns the assignment (-1 = none) and the aligned
+    predictions."""
     pred = np.ascontiguousarray(pred, dtype=np.float64)
     gate = np.ascontiguousarray(np.broadcast_to(np.asarray(gate_px, dtype=np.float64), (len(pred),)))
-    return _match(pred, np.ascontiguousarray(cand, dtype=np.float64), float(search_px), gate)
+    radius = 1.5 * float(gate.max(initial=0.0)) if residual_px is None else float(residual_px)
+    return _match(pred, np.ascontiguousarray(cand, dtype=np.float64), float(search_px), gate, radius)
 
 
 @numba.njit(cache=True)
-def _predict_from_rays(ray_o, ray_d, count, active, P):  # type: ignore[no-untyped-def]
-    """Pixels ``(T, 2)`` in the view of ``P (3,4)`` of active tracks: the least-squares intersection of their
-    last rays (ring buffers ``(cap, W, 3)``; one ray: its point nearest the isocenter)."""
+def _predict_from_rays(ray_o, ray_d, count, active, P, last_uv, P_last):  # type: ignore[no-untyped-def]
+    """Pixels ``(T, 2)`` in the view of ``P (3,4)`` of active tracks: each track's last detection ``last_uv``
+    moved by the nominal motion, from its last view (``P_last (T,3,4)``) to this one, of the least-squares
+    intersection of its last rays (ring buffers ``(cap, W, 3)``; one ray: its point nearest the isocenter).
+    The motion depends little on where along the rays the point lies, so the prediction inherits the
+    error of the last detection's view, not that of a point triangulated through views that each err."""
     window = ray_o.shape[1]
     out = np.empty((active.shape[0], 2))
     A = np.empty((3, 3))
@@ -304,9 +353,23 @@ def _predict_from_rays(ray_o, ray_d, count, active, P):  # type: ignore[no-untyp
         h0 = P[0, 0] * x[0] + P[0, 1] * x[1] + P[0, 2] * x[2] + P[0, 3]
         h1 = P[1, 0] * x[0] + P[1, 1] * x[1] + P[1, 2] * x[2] + P[1, 3]
         h2 = P[2, 0] * x[0] + P[2, 1] * x[1] + P[2, 2] * x[2] + P[2, 3]
-        out[a, 0] = h0 / h2
-        out[a, 1] = h1 / h2
+        Q = P_last[a]
+        g0 = Q[0, 0] * x[0] + Q[0, 1] * x[1] + Q[0, 2] * x[2] + Q[0, 3]
+        g1 = Q[1, 0] * x[0] + Q[1, 1] * x[1] + Q[1, 2] * x[2] + Q[1, 3]
+        g2 = Q[2, 0] * x[0] + Q[2, 1] * x[1] + Q[2, 2] * x[2] + Q[2, 3]
+        out[a, 0] = last_uv[t, 0] + h0 / h2 - g0 / g2
+        out[a, 1] = last_uv[t, 1] + h1 / h2 - g1 / g2
     return out
+
+
+def _crowded(pred: NDArray[np.float64], within_px: float) -> NDArray[np.bool_]:
+    """Predictions ``(T,2)`` closer than ``within_px`` to another one."""
+    if len(pred) < 2:
+        return np.zeros(len(pred), bool)
+    d = np.linalg.norm(pred[:, None] - pred[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    with np.errstate(invalid="ignore"):
+        return (d < within_px).any(1)
 
 
 class _TrackStore:
@@ -318,6 +381,7 @@ class _TrackStore:
         self.ray_d = np.zeros((capacity, window, 3))
         self.count = np.zeros(capacity, np.int64)
         self.last = np.zeros(capacity, np.int64)
+        self.last_uv = np.zeros((capacity, 2))
         self.misses = np.zeros(capacity, np.int64)
         self.n = 0
         self.obs: list[tuple[int, NDArray[np.intp], NDArray[np.float64]]] = []  # (frame, track ids, uv)
@@ -327,7 +391,7 @@ class _TrackStore:
         if need <= cap:
             return
         new = max(need, 2 * cap)
-        for name in ("ray_o", "ray_d", "count", "last", "misses"):
+        for name in ("ray_o", "ray_d", "count", "last", "last_uv", "misses"):
             old = getattr(self, name)
             arr = np.zeros((new,) + old.shape[1:], old.dtype)
             arr[:cap] = old
@@ -349,6 +413,7 @@ class _TrackStore:
         self.ray_d[ids, slot] = direction
         self.count[ids] += 1
         self.last[ids] = frame
+        self.last_uv[ids] = uv
         self.misses[ids] = 0
         self.obs.append((frame, ids, uv))
 
@@ -377,10 +442,14 @@ def link_fragments(cands: list[NDArray[np.float64]], s: TrackingSettings, nomina
         matched_c = np.zeros(len(c), bool)
         matched_t = np.zeros(len(active), bool)
         if len(active) and len(c):
-            pred_a = _predict_from_rays(store.ray_o, store.ray_d, store.count, active, matrices[p])
+            pred_a = _predict_from_rays(store.ray_o, store.ray_d, store.count, active, matrices[p], store.last_uv,
+                                        matrices[store.last[active]])
             gates = gate * (1.0 + 0.5 * np.clip(p - store.last[active] - 1, 0, None))
-            idx, _ = match_frame(pred_a, uv_c, s.search_px, gates)
+            idx, aligned = match_frame(pred_a, uv_c, s.search_px, gates, s.residual_px)
             matched_t = idx >= 0
+            ended = _crowded(aligned, s.ambiguous_px)
+            store.misses[active[ended]] = s.max_gap  # ended here: not continued, not coasting
+            matched_t &= ~ended
             matched_c[idx[matched_t]] = True
             origin, direction = _rays(nominal, p, uv_c[idx[matched_t]])
             store.add(p, active[matched_t], uv_c[idx[matched_t]], origin, direction)
@@ -419,7 +488,8 @@ def assign_to_predictions(
         c = cands[p]
         if not len(c) or not vis_all[p].any():
             continue
-        idx, _ = _match(np.ascontiguousarray(pred_all[p]), np.ascontiguousarray(c[:, :2]), float(s.search_px), gate)
+        idx, _ = _match(np.ascontiguousarray(pred_all[p]), np.ascontiguousarray(c[:, :2]), float(s.search_px), gate,
+                        float(s.residual_px))
         rows = np.flatnonzero(idx >= 0)
         records[p, rows] = c[idx[rows]]
     uv = records[..., :2].copy()
