@@ -133,9 +133,10 @@ def _refine_in(raw, dark, den, col0, row0, radius, half, passes, li):  # type: i
     ata = np.zeros((3, 3))
     atb = np.zeros(3)
     for p in range(passes):
-        ic_new = int(np.floor(cx + 0.5))
-        ir_new = int(np.floor(cy + 0.5))
-        if ic_new - half < 0 or ir_new - half < 0 or ic_new + half >= cols or ir_new + half >= rows:
+        # the window stays on the panel: near an edge the BB sits off its centre (it must still hold the disc)
+        ic_new = min(max(int(np.floor(cx + 0.5)), half), cols - 1 - half)
+        ir_new = min(max(int(np.floor(cy + 0.5)), half), rows - 1 - half)
+        if ic_new < half or ir_new < half or abs(cx - ic_new) + r_in > half or abs(cy - ir_new) + r_in > half:
             return out
         if p == 0 or ic_new != ic or ir_new != ir:  # the window's line integrals only change when it moves
             ic, ir = ic_new, ir_new
@@ -158,7 +159,8 @@ def _refine_in(raw, dark, den, col0, row0, radius, half, passes, li):  # type: i
                 s_z += row_z
                 s_xz += row_xz
                 s_yz += (a - half) * row_z
-        if p == 0 and s_z > 0:  # the paper's estimator: plain intensity centroid of the square window
+        if p == 0 and s_z > 0 and abs(cx - ic) <= 0.5 and abs(cy - ir) <= 0.5:
+            # the paper's estimator: plain intensity centroid of the square window (centred on the BB only)
             out[6] = ic + s_xz / s_z
             out[7] = ir + s_yz / s_z
         # background plane z = c0 + c1 x + c2 y fitted to the window outside the BB (x, y about the pixel ic, ir):
@@ -335,27 +337,43 @@ class FrameDetector:
         self.dark_b = self.dark[: rb * b, : cb * b].reshape(rb, b, cb, b).mean((1, 3)).astype(np.float32)
         self.den_b = self.den[: rb * b, : cb * b].reshape(rb, b, cb, b).mean((1, 3)).astype(np.float32)
         self.radius_b = max(0.5 * settings.diameter_px / b, 0.75)
-        self._kernel = _disc_kernel_spectrum((rb, cb), self.radius_b)
-        self.border = int(np.ceil(2 * self.radius_b + 2))
+        # the correlation runs on the image padded with its edge values, so BBs near an edge are not blurred
+        # with the opposite edge (a circular convolution wraps around)
+        self.pad = int(np.ceil(2.0 * self.radius_b + 1.5)) + 1
+        self.padded = (scipy.fft.next_fast_len(rb + 2 * self.pad, real=True),
+                       scipy.fft.next_fast_len(cb + 2 * self.pad, real=True))
+        self._kernel = _disc_kernel_spectrum(self.padded, self.radius_b)
+        self.border = int(np.ceil(self.radius_b))  # peaks searched wherever a whole BB fits on the panel
+        self.noise_border = int(np.ceil(2 * self.radius_b + 2))
         self.half = int(np.ceil(settings.diameter_px)) + 2
         self.noise: float | None = None
 
     def response(self, raw: NDArray[np.generic]) -> NDArray[np.float32]:
         """Disc-kernel correlation of the binned line-integral image."""
         li = _binned_line_integrals(raw, self.dark_b, self.den_b, self.settings.binning)
-        return scipy.fft.irfft2(scipy.fft.rfft2(li) * self._kernel, s=li.shape).astype(np.float32)
+        rb, cb = li.shape
+        pr, pc, q = self.padded[0] - rb, self.padded[1] - cb, self.pad
+        big = np.pad(li, ((q, pr - q), (q, pc - q)), mode="edge")
+        resp = scipy.fft.irfft2(scipy.fft.rfft2(big) * self._kernel, s=big.shape)
+        return np.ascontiguousarray(resp[q : q + rb, q : q + cb], dtype=np.float32)
 
-    def estimate_noise(self, resp: NDArray[np.float32]) -> float:
-        """Robust standard deviation of the response (median absolute deviation)."""
-        sub = resp[self.border : -self.border : 2, self.border : -self.border : 2]
-        return float(1.4826 * np.median(np.abs(sub - np.median(sub)))) + 1e-9
+    def estimate_noise(self, raw: NDArray[np.generic]) -> float:
+        """Standard deviation of the response due to pixel noise: the binned line integrals' noise (robust, from
+        differences of neighbouring pixels, so edges of the object do not count) through the kernel. Structure in
+        the image is not noise: a frame filled by the object would otherwise raise the threshold above faint BBs."""
+        li = _binned_line_integrals(raw, self.dark_b, self.den_b, self.settings.binning)
+        e = self.noise_border
+        dif = np.diff(li[e:-e, e:-e], axis=1).ravel()
+        pixel = 1.4826 * float(np.median(np.abs(dif - np.median(dif)))) / np.sqrt(2.0)
+        kernel = scipy.fft.irfft2(self._kernel, s=self.padded)
+        return pixel * float(np.sqrt((kernel**2).sum())) + 1e-9
 
     def candidates(self, raw: NDArray[np.generic]) -> NDArray[np.float64]:
         """Candidate records ``(M, N_FIELDS)`` (see ``CANDIDATE_FIELDS``), strongest first."""
         s = self.settings
         resp = self.response(raw)
         if self.noise is None:
-            self.noise = self.estimate_noise(resp)
+            self.noise = self.estimate_noise(raw)
         peaks = _local_maxima(resp, s.k_sigma * self.noise, self.border, s.max_candidates)
         peaks = peaks[np.argsort(-peaks[:, 2])]
         out = _refine_all(raw, self.dark, self.den, peaks, s.binning, 0.5 * s.diameter_px, self.half, s.refine_passes, self.noise)

@@ -255,6 +255,8 @@ def identify(
     geo = ViewModel(nominal_model.nominal, "fixed")
     no_k = np.zeros((len(cands), 0))
     longest = np.argsort(-np.isfinite(frags[..., 0]).sum(0))[:max_rough_points]
+    if usable_views(frags[:, longest], 3).sum() < 2:  # no two views share three pieces: nothing to solve
+        return np.full((len(cands), 0, 2), np.nan), warnings
     state, _, _ = rough_solve(nominal_model, frags[:, np.sort(longest)], prior_scale=prior_scale)
     rough = geo.geometry(ViewState(state.R, state.t, no_k))
     fxyz = triangulate_least_squares(*marker_rays(rough, frags))
@@ -265,7 +267,7 @@ def identify(
     uv = frags[:, np.isfinite(frags[..., 0]).sum(0) >= max(settings.min_fragment, min_observations // 2)]
     det = nominal_model.nominal.panel
     for _ in range(4):
-        if uv.shape[1] < 3:
+        if uv.shape[1] < 3 or usable_views(uv, 3).sum() < 2:
             break
         k_before = uv.shape[1]
         state, xyz, _ = rough_solve(nominal_model, uv, prior_scale=prior_scale)

@@ -7,7 +7,7 @@ import shutil
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -372,7 +372,9 @@ def _calibrate_scan(
             continue
         verdict = judge(outcome[7], proj, opt.max_predicted_px, opt.bridge_max_views, method)
         if method == "bundle" and (not verdict.passed or verdict.counts[OWN] < proj.size):
-            outcome, verdict = _reassign(cands, model, tset, outcome, verdict, proj, opt, progress)
+            # views between calibrated ones may have jumped far: search as widely as the widest allowance
+            wide = replace(tset, jitter_px=max(levels) * d_px / diameter_mm)
+            outcome, verdict = _reassign(cands, model, wide, outcome, verdict, proj, opt, progress)
         if best is None or verdict.passed:  # a larger allowance replaces the first result only when it passes
             best = (jitter_mm, found_warnings, outcome, verdict)
         if verdict.passed:

@@ -24,7 +24,13 @@ from orbitct.rotations import matrix_to_rotvec, rotvec_to_matrix
 OWN, BRIDGED, FAILED = "own", "bridged", "failed"
 STATUS_CODES = {OWN: 0, BRIDGED: 1, FAILED: 2}  # /geometry/calibrated/view_status (-1: not a projection)
 MIN_OWN_BBS = 4
-MAX_VIEW_MISFIT = 4.0  # a view's residual RMS over the centroid noise (dof-corrected) beyond which its BBs disagree
+MAX_VIEW_MISFIT = 4.0  # a view's residual RMS (dof-corrected) beyond this many centroid noises: its BBs disagree
+MIN_MISFIT_PX = 0.25  # ... and beyond this: centroids of real blobs carry biases of a few tenths of a pixel
+
+
+def misfit_limit_px(noise_px: float) -> float:
+    """The residual RMS of a view (px, dof-corrected) beyond which its BBs disagree with its pose."""
+    return max(MAX_VIEW_MISFIT * noise_px, MIN_MISFIT_PX)
 
 
 @dataclass(frozen=True)
@@ -35,12 +41,12 @@ class ViewQuality:
     n_bbs: NDArray[np.int_]
     predicted_px: NDArray[np.float64]
     noise_px: float
-    misfit: NDArray[np.float64]  # own views: residual RMS over the centroid noise, dof-corrected (NaN: others)
+    misfit_px: NDArray[np.float64]  # views with 4+ BBs: residual RMS, dof-corrected (NaN: others)
 
     @property
     def inconsistent(self) -> NDArray[np.bool_]:
         """Views with enough BBs whose BBs disagree with their fitted pose (failed for that reason)."""
-        return np.nan_to_num(self.misfit) > MAX_VIEW_MISFIT
+        return np.nan_to_num(self.misfit_px) > misfit_limit_px(self.noise_px)
 
     def counts(self) -> dict[str, int]:
         """Views calibrated from their own BBs, bridged, failed."""
@@ -103,16 +109,17 @@ def _predicted_px(model: ViewModel, state: ViewState, cov: NDArray[np.float64]) 
     return np.sqrt(np.maximum(var, 0.0))
 
 
-def view_misfit(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64],
-                noise_px: float) -> NDArray[np.float64]:
-    """Per view, ``sqrt(chi^2 / dof) / noise``: about 1 when its detections fit its pose within the centroid
-    noise; large when one of them belongs to another BB or the object moved (NaN without redundancy)."""
+def view_misfit_px(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64]
+                   ) -> NDArray[np.float64]:
+    """Per view, the residual RMS corrected for the six pose parameters, ``sqrt(sum r^2 / (2n - 6))``: about the
+    centroid noise when its detections fit its pose; large when one belongs to another BB or the object
+    moved (NaN without redundancy)."""
     r = model.project(state, xyz) - uv
     seen = np.isfinite(r).all(-1)
     dof = 2 * seen.sum(1) - 6
     ss = np.where(seen[..., None], r, 0.0) ** 2
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(dof > 0, np.sqrt(ss.sum((1, 2)) / np.maximum(dof, 1)) / max(noise_px, 1e-3), np.nan)
+        return np.where(dof > 0, np.sqrt(ss.sum((1, 2)) / np.maximum(dof, 1)), np.nan)
 
 
 def _interpolated(state: ViewState, own: NDArray[np.bool_], max_gap: int
@@ -164,9 +171,9 @@ def assess_views(
     misfit = np.full(n, np.nan)
     if own.any():
         o = np.flatnonzero(own)
-        misfit[o] = view_misfit(ViewModel(model.nominal[o], model.intrinsics), ViewState(state.R[o], state.t[o], state.k[o]),
-                                xyz, uv[o], noise_px)
-    inconsistent = np.nan_to_num(misfit) > MAX_VIEW_MISFIT
+        misfit[o] = view_misfit_px(ViewModel(model.nominal[o], model.intrinsics),
+                                   ViewState(state.R[o], state.t[o], state.k[o]), xyz, uv[o])
+    inconsistent = np.nan_to_num(misfit) > misfit_limit_px(noise_px)
     own &= ~inconsistent  # neither its own pose nor an anchor for its neighbours
     sigma2 = max(noise_px, 1e-3) ** 2
     prior_c, dist, c = _interpolated(state, own, max_gap)
@@ -270,9 +277,9 @@ def judge(quality: ViewQuality, frames: NDArray[np.intp], threshold_px: float, m
     if failed.size:
         reasons.append(f"{failed.size} of {frames.size} view(s) failed (fewer {need}; NaN geometry): {_frames(failed)}")
     if odd.any():
-        reasons.append(f"{int(odd.sum())} view(s) failed because their BBs disagree with their own pose (residuals up to "
-                       f"{float(np.nanmax(quality.misfit)):.1f} times the centroid noise, allowed {MAX_VIEW_MISFIT:g}: a BB "
-                       f"taken for another, or the object moved): {_frames(frames[odd])}")
+        reasons.append(f"{int(odd.sum())} view(s) failed because their BBs disagree with their own pose (residual RMS up "
+                       f"to {float(np.nanmax(quality.misfit_px)):.2f} px, allowed {misfit_limit_px(quality.noise_px):.2f} px: "
+                       f"a BB taken for another, or the object moved): {_frames(frames[odd])}")
     bridged = frames[quality.status == BRIDGED]
     if bridged.size:
         warnings.append(f"{bridged.size} view(s) bridged from their neighbours (fewer than {MIN_OWN_BBS} BBs of their "

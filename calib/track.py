@@ -501,7 +501,11 @@ def assign_to_predictions(
     dd[~np.isfinite(dd)] = np.inf
     dd[:, np.arange(k), np.arange(k)] = np.inf
     uv[dd.min(2, initial=np.inf) < s.overlap_factor * s.diameter_px] = np.nan
-    typical = np.nanmedian(np.where(shaped, amp, np.nan), axis=0)
-    faint = amp < s.min_amplitude_ratio * typical[None]
+    shaped_amp = np.where(shaped, amp, np.nan)
+    any_shaped = shaped.any(0)  # a BB never seen with a good shape has no typical amplitude (and no detection)
+    typical = np.full(k, np.nan)
+    typical[any_shaped] = np.nanmedian(shaped_amp[:, any_shaped], axis=0)
+    with np.errstate(invalid="ignore"):
+        faint = amp < s.min_amplitude_ratio * typical[None]
     uv[~shaped | faint] = np.nan
     return uv

@@ -40,11 +40,14 @@ def test_bbs_leaving_the_field_of_view(fov_scan: Path, tmp_path: Path) -> None:
     tuv = ViewGeometry(tv[proj], res.geometry.panel).project(txyz)
     assert res.n_bbs == 8
     k = int(np.argmin(np.abs(res.xyz[:, 2] - res.xyz[:, 2].max())))  # the high BB
-    inside = (tuv[:, 7, 1] > 3) & (tuv[:, 7, 1] < 252)
+    truth = ViewGeometry(tv[proj], res.geometry.panel)
+    r_px = 0.5 * 3.17 * float(np.median(truth.sdd / truth.sod())) / truth.panel.pitch_row  # the BB's radius
+    inside = (tuv[:, 7, 1] - r_px >= 0) & (tuv[:, 7, 1] + r_px <= 255)  # the whole BB on the panel
     seen = np.isfinite(res.uv[proj, k, 0])
     assert 0.1 < inside.mean() < 0.95
-    assert not seen[~inside].any()
+    assert not seen[~inside].any()  # a BB cut by the edge is never used
     assert seen[inside].mean() > 0.8
+    assert tuv[seen, 7, 1].min() < r_px + 1.5  # found up to the edge
     found = res.uv[proj][seen, k]
     assert np.abs(found - tuv[seen, 7]).max() < 1.0
     assert not res.unsolved_views

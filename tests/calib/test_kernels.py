@@ -99,3 +99,13 @@ def test_match_frame_removes_common_shift_and_affine_distortion() -> None:
     expect[3] = -1
     np.testing.assert_array_equal(idx, expect)
     assert np.nanmax(np.linalg.norm(aligned - np.where(np.isnan(pred_in), np.nan, cand), axis=1)) < 1.0
+
+
+def test_match_frame_follows_a_jump_larger_than_the_spacing_of_the_bbs() -> None:
+    """A whole frame jumps 30 px while its BBs lie about 20 px apart: the nearest candidate of most predictions
+    is a neighbour's BB, but the shift most predictions agree on is the true one."""
+    rng = np.random.default_rng(2)
+    pred = np.array([[100.0 + 20.0 * i, 200.0 + (8.0 if i % 2 else 0.0)] for i in range(8)])
+    cand = pred + np.array([30.0, 4.0]) + rng.normal(0, 0.3, pred.shape)
+    idx, _ = match_frame(pred, cand[::-1], search_px=45.0, gate_px=np.full(8, 2.5), residual_px=8.0)
+    np.testing.assert_array_equal(idx, np.arange(8)[::-1])

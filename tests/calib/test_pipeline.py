@@ -165,3 +165,48 @@ def test_twice_the_bench_errors_are_recovered_by_tracking_with_larger_jumps(tmp_
     assert res.quality is not None and res.quality.passed and res.quality.counts["own"] == proj.size
     assert err < 0.3
     assert any("allowing" in w and "mm jumps" in w for w in res.warnings)
+
+
+def test_four_times_the_bench_errors_calibrate_to_the_floor(tmp_path: Path) -> None:
+    """Errors four times the bench profile (about 4 deg and 40 mm; frames jump farther than the BBs lie apart):
+    every BB keeps its identity, every view is calibrated from its own BBs, as accurately as at 1x."""
+    from orbitct.errorprofiles import make_profile
+    from orbitct.simulator.scan import simulate_scan
+
+    scan = tmp_path / "x4.h5"
+    simulate_scan("A", out=scan, n_frames=250, detector_px=256, seed=1, overwrite=True,
+                  errors=make_profile("bench", 1, angle_scale=4 * 250 / 500, shift_amplitude_mm=32.0, shift_noise_mm=8.0))
+    res = calib.calibrate_scan(scan, out=tmp_path / "o.h5")
+    proj, truth_uv, truth = _truth(scan)
+    owner, purity, worst = _identity(res.uv[proj], truth_uv[proj])
+    assert res.n_bbs == 8 and sorted(owner.tolist()) == list(range(8)) and purity == 1.0 and worst < 1.0
+    err, _ = similarity_aligned_error_px(res.geometry[proj], truth[proj])
+    assert res.quality is not None and res.quality.passed and res.quality.counts["own"] == proj.size
+    assert err < 0.3
+
+
+def test_a_truncating_panel_uses_bbs_up_to_its_edge_and_flags_what_it_cannot_see(tmp_path: Path) -> None:
+    """A 384 px panel with the native 768-px pitch sees half the field: BBs enter and leave all the time.
+    Views with four or more whole BBs are calibrated from them (BBs detected up to the panel's edge); the
+    others are bridged, and any view whose geometry is off by more than 1 px is flagged by its prediction."""
+    from orbitct.errorprofiles import make_profile
+    from orbitct.simulator.scan import simulate_scan
+
+    scan = tmp_path / "cut.h5"
+    simulate_scan("A", out=scan, n_frames=120, detector_px=384, pitch_mm=427.0 / 768, seed=0, overwrite=True,
+                  errors=make_profile("bench", 0, angle_scale=120 / 500))
+    res = calib.calibrate_scan(scan, out=tmp_path / "o.h5")
+    proj, truth_uv, truth = _truth(scan)
+    g = truth[proj]
+    r_px = 0.5 * 3.17 * float(np.median(g.sdd / g.sod())) / g.panel.pitch_row
+    whole = ((truth_uv[proj] - r_px - 1 >= 0) & (truth_uv[proj] + r_px + 1 <= 383)).all(-1)
+    four = whole.sum(1) >= 4
+    status = res.view_status[proj]
+    assert (status[four] == 0).mean() >= 0.9
+    uv = res.uv[proj]
+    edge_px = np.nanmin(np.minimum(uv, 383 - uv))
+    assert edge_px < r_px + 2.0  # some BB used with its disc touching the edge zone
+    _, per = similarity_aligned_error_px(res.geometry[proj], g)
+    off = np.isfinite(per) & (per > 1.0)
+    assert (res.predicted_px[proj][off] > 0.5).all()
+    assert off.any() and res.quality is not None and not res.quality.passed  # and the verdict says so

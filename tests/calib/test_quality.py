@@ -1,0 +1,53 @@
+"""The quality of each view: own, bridged or failed, and the predicted error; a view whose BBs disagree fails."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from calib.model import ViewModel, ViewState
+from calib.quality import BRIDGED, FAILED, OWN, assess_views, judge
+from orbitct.rotations import rotvec_to_matrix
+from tests.helpers.calib_scans import sawtooth, spiral_markers
+
+
+def _setup(noise_px: float = 0.1, seed: int = 0) -> tuple[ViewModel, ViewState, np.ndarray, np.ndarray]:
+    """40 views of 6 BBs whose true corrections wander like a real orbit's (a random walk), and their
+    detections with Gaussian centroid noise."""
+    rng = np.random.default_rng(seed)
+    model = ViewModel(sawtooth(40, 256))
+    xyz = spiral_markers(6, radius=50.0, height=50.0)
+    state = ViewState(rotvec_to_matrix(np.cumsum(rng.normal(0, 1e-3, (40, 3)), 0)),
+                      np.cumsum(rng.normal(0, 0.3, (40, 3)), 0), np.zeros((40, 0)))
+    uv = model.project(state, xyz) + rng.normal(0.0, noise_px, (40, 6, 2))
+    return model, state, xyz, uv
+
+
+def test_views_with_four_bbs_are_own_with_three_bridged_and_too_far_failed() -> None:
+    model, truth, xyz, uv = _setup()
+    uv[10, 3:] = np.nan  # 3 BBs: bridged from its neighbours
+    uv[14:26, 3:] = np.nan  # a gap of 12 views, wider than max_gap: none is bridged
+    uv[32:, 3:] = np.nan  # the last 8 views: those within max_gap / 2 of the last own view are bridged
+    state, q = assess_views(model, truth, xyz, uv, noise_px=0.1, max_gap=10)
+    assert q.status[0] == OWN and q.status[10] == BRIDGED
+    assert (q.status[14:26] == FAILED).all() and np.isnan(state.t[14:26]).all() and np.isnan(q.predicted_px[14:26]).all()
+    assert (q.status[32:37] == BRIDGED).all() and (q.status[37:] == FAILED).all()
+    assert q.predicted_px[36] > q.predicted_px[33] > 0  # the farther from a view with its own BBs, the less certain
+
+
+def test_a_bb_taken_for_another_fails_its_view_and_the_verdict_says_why() -> None:
+    """With four BBs the pose still has two redundant measurements: one of them on a neighbour's blob (8 px
+    off) leaves residuals far above the centroid noise, whatever pose the fit finds."""
+    model, truth, xyz, uv = _setup()
+    uv[15, 4:] = np.nan
+    uv[15, 3] += np.array([8.0, 0.0])
+    st, q = assess_views(model, truth, xyz, uv, noise_px=0.1)
+    assert q.status[15] == FAILED and q.inconsistent[15] and q.inconsistent.sum() == 1
+    verdict = judge(q, np.arange(40), 0.5, 10, "bundle")
+    assert not verdict.passed and any("disagree with their own pose" in r and "[15]" in r for r in verdict.reasons)
+
+
+def test_centroid_biases_of_a_few_tenths_of_a_pixel_do_not_fail_a_view() -> None:
+    model, truth, xyz, uv = _setup(noise_px=0.03)
+    uv[5, 2] += np.array([0.2, 0.0])  # 7 times the noise, but within what real blobs do
+    _, q = assess_views(model, truth, xyz, uv, noise_px=0.03)
+    assert q.status[5] == OWN and not q.inconsistent.any()
