@@ -500,7 +500,13 @@ def assign_to_predictions(
         dd = np.linalg.norm(pred_all[:, :, None] - pred_all[:, None], axis=-1)
     dd[~np.isfinite(dd)] = np.inf
     dd[:, np.arange(k), np.arange(k)] = np.inf
-    uv[dd.min(2, initial=np.inf) < s.overlap_factor * s.diameter_px] = np.nan
+    # two BBs whose projections touch: both are kept only when the detector resolved them into two blobs at
+    # least a BB diameter apart (one blob of two, or a centroid pulled towards the other, is neither's)
+    near = np.argmin(np.where(np.isfinite(dd), dd, np.inf), axis=2) if k else np.zeros((n, 0), int)
+    other = np.take_along_axis(uv, near[..., None].repeat(2, -1), axis=1)
+    with np.errstate(invalid="ignore"):
+        resolved = np.linalg.norm(uv - other, axis=-1) >= s.diameter_px
+    uv[(dd.min(2, initial=np.inf) < s.overlap_factor * s.diameter_px) & ~resolved] = np.nan
     shaped_amp = np.where(shaped, amp, np.nan)
     any_shaped = shaped.any(0)  # a BB never seen with a good shape has no typical amplitude (and no detection)
     typical = np.full(k, np.nan)

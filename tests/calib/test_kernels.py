@@ -109,3 +109,26 @@ def test_match_frame_follows_a_jump_larger_than_the_spacing_of_the_bbs() -> None
     cand = pred + np.array([30.0, 4.0]) + rng.normal(0, 0.3, pred.shape)
     idx, _ = match_frame(pred, cand[::-1], search_px=45.0, gate_px=np.full(8, 2.5), residual_px=8.0)
     np.testing.assert_array_equal(idx, np.arange(8)[::-1])
+
+
+def _records(uv: np.ndarray, diameter_px: float) -> np.ndarray:
+    """Candidate records of clean round blobs at ``uv``."""
+    from calib.detect import N_FIELDS
+
+    rec = np.zeros((len(uv), N_FIELDS))
+    rec[:, :2] = uv
+    rec[:, 2:7] = [20.0, 1.0, 0.5 * diameter_px, 1.0, 0.01]
+    return rec
+
+
+def test_touching_bbs_are_kept_when_resolved_into_two_blobs_and_dropped_when_merged() -> None:
+    from calib.track import TrackingSettings, assign_to_predictions
+
+    s = TrackingSettings(diameter_px=4.4)
+    pred = np.array([[[100.0, 100.0], [105.0, 100.0], [200.0, 150.0]]])  # two BBs 5 px apart: they touch
+    two = _records(np.array([[100.1, 100.0], [105.0, 100.1], [200.0, 150.0]]), 4.4)
+    uv = assign_to_predictions([two], pred, s, gate_px=2.2)
+    assert np.isfinite(uv).all()
+    one = _records(np.array([[102.5, 100.0], [200.0, 150.0]]), 4.4)  # one blob of two: neither's centroid
+    uv = assign_to_predictions([one], pred, s, gate_px=2.2)
+    assert np.isnan(uv[0, :2]).all() and np.isfinite(uv[0, 2]).all()
