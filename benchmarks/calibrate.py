@@ -75,7 +75,8 @@ def _run(scan: str, method: str, work: str, queue: Any, trace: bool) -> None:
         np.full((64, 64), 5000, np.uint16)
     )
     match_frame(np.arange(16.0).reshape(8, 2), np.arange(16.0).reshape(8, 2) + 0.1, 5.0, np.full(8, 2.0))
-    _predict_from_rays(np.ones((1, 8, 3)), np.ones((1, 8, 3)), np.ones(1, np.int64), np.zeros(1, np.int64), np.ones((3, 4)))
+    _predict_from_rays(np.ones((1, 8, 3)), np.ones((1, 8, 3)), np.ones(1, np.int64), np.zeros(1, np.int64), np.ones((3, 4)),
+                       np.zeros((1, 2)), np.ones((1, 3, 4)))
     proc = psutil.Process()
     cpu0 = proc.cpu_times()
     load = os.getloadavg()[0]

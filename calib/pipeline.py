@@ -191,10 +191,8 @@ def _detect(
     diameter_mm = opt.diameter_mm if opt.diameter_mm is not None else sf.marker_diameter_mm
     if diameter_mm is None:
         diameter_mm = _estimate_diameter_mm(sf, proj, dark, flat, mag, pitch, opt)
-    d_px = diameter_mm * mag / pitch
-    settings = settings_for(d_px, det.shape)
-    settings.k_sigma, settings.max_candidates = opt.k_sigma, opt.max_candidates
-    fd = FrameDetector(dark, flat, settings)
+    d_px = projected_diameter_px(sf, nominal, diameter_mm)
+    fd = frame_detector(dark, flat, d_px, opt)
     total = len(proj)
     step = max(1, total // 100)
     cands: list[NDArray[np.float64]] = [np.zeros((0, N_FIELDS))] * total
@@ -236,6 +234,13 @@ def _detect(
                              "is stored")
     report(progress, "detect", total, total, "")
     return cands, float(diameter_mm), d_px
+
+
+def frame_detector(dark: NDArray[np.float32], flat: NDArray[np.float32], d_px: float, opt: CalibrationOptions) -> FrameDetector:
+    """The detector every projection of a scan goes through (BB size in pixels, the options' threshold)."""
+    settings = settings_for(d_px, dark.shape)
+    settings.k_sigma, settings.max_candidates = opt.k_sigma, opt.max_candidates
+    return FrameDetector(dark, flat, settings)
 
 
 def _seed_records(raw: NDArray[Any], fd: FrameDetector, seeds: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -301,6 +306,70 @@ def calibrate_scan(
         return _calibrate_scan(path, method, out, report_dir, progress, options, clock)
 
 
+@dataclass(frozen=True)
+class _ScanInputs:
+    """What a calibration reads from its scan file besides the frames."""
+
+    target: Path
+    proj: NDArray[np.intp]
+    nominal_all: ViewGeometry
+    truth_all: ViewGeometry | None
+
+    @property
+    def nominal(self) -> ViewGeometry:
+        return self.nominal_all[self.proj]
+
+
+def _read_inputs(sf: ScanFile, target: Path, check_frames: bool = True) -> _ScanInputs:
+    """Refuse a scan that cannot be calibrated (before any work); its projections and geometries."""
+    sf.refuse_if_acquiring()  # the result could not be stored
+    if check_frames:
+        _check_frame_memory(sf)
+        bad = sf.frame_problems(np.flatnonzero(np.isin(sf.image_key, (ImageKey.DARK, ImageKey.FLAT))))
+        if bad:
+            raise BadFramesError(f"{target}: dark or flat frames are unusable: {describe_frame_problems(bad)}; every "
+                                 "projection is normalised with them")
+    proj = sf.projection_indices
+    if proj.size == 0:
+        raise NoProjectionsError(f"{target}: no projection frames (image_key 0); counts are {sf.count_by_kind()}")
+    if not sf.has_geometry("nominal"):
+        raise NoNominalGeometryError(f"{target}: no /geometry/nominal; calibration starts from the nominal geometry")
+    return _ScanInputs(target, proj, sf.geometry("nominal"), sf.geometry("truth") if sf.has_geometry("truth") else None)
+
+
+def projected_diameter_px(sf: ScanFile, nominal: ViewGeometry, diameter_mm: float) -> float:
+    """A BB's projected diameter in pixels at the nominal magnification."""
+    mag = float(np.median(nominal.sdd / nominal.sod()))
+    return diameter_mm * mag / float(np.sqrt(sf.panel.pitch_col * sf.panel.pitch_row))
+
+
+def calibrate_candidates(
+    path: str | os.PathLike[str],
+    candidates: list[NDArray[np.float64]],
+    *,
+    diameter_mm: float,
+    method: str = "bundle",
+    report_dir: str | os.PathLike[str] | None = None,
+    progress: ProgressCallback | None = None,
+    detect_s: float = 0.0,
+    **options: Any,
+) -> CalibrationResult:
+    """Calibrate a scan from BB candidates already detected in its projections (one array per projection, in
+    order; as :mod:`calib.live` collects them while the scan runs) and write the results in place, exactly
+    as :func:`calibrate_scan` does."""
+    with threadpool_limits(limits=1, user_api="blas"), CompileClock() as clock:
+        opt = _options(method, options)
+        target = Path(path)
+        t0 = time.perf_counter()
+        with ScanFile(target) as sf:
+            inputs = _read_inputs(sf, target, check_frames=False)
+            if len(candidates) != inputs.proj.size:
+                raise OptionError(f"{target}: {len(candidates)} candidate lists for {inputs.proj.size} projections")
+            d_px = projected_diameter_px(sf, inputs.nominal, diameter_mm)
+        return _solve_and_write(inputs, candidates, diameter_mm, d_px, method, opt, progress, clock, t0, detect_s,
+                                report_dir)
+
+
 def _calibrate_scan(
     path: str | os.PathLike[str],
     method: str,
@@ -321,24 +390,29 @@ def _calibrate_scan(
             shutil.copyfile(src, target)
     t0 = time.perf_counter()  # the copy above is not part of the calibration time
     with ScanFile(target) as sf:
-        sf.refuse_if_acquiring()  # before any work: the result could not be stored
-        _check_frame_memory(sf)
-        bad = sf.frame_problems(np.flatnonzero(np.isin(sf.image_key, (ImageKey.DARK, ImageKey.FLAT))))
-        if bad:
-            raise BadFramesError(f"{target}: dark or flat frames are unusable: {describe_frame_problems(bad)}; every "
-                                 "projection is normalised with them")
-        proj = sf.projection_indices
-        if proj.size == 0:
-            raise NoProjectionsError(f"{target}: no projection frames (image_key 0); counts are {sf.count_by_kind()}")
-        if not sf.has_geometry("nominal"):
-            raise NoNominalGeometryError(f"{target}: no /geometry/nominal; calibration starts from the nominal geometry")
-        nominal_all = sf.geometry("nominal")
-        truth_all = sf.geometry("truth") if sf.has_geometry("truth") else None
-        n_all = sf.n_frames
-        nominal = nominal_all[proj]
-        cands, diameter_mm, d_px = _detect(sf, proj, nominal, opt, progress)
-    compile_detect = clock.seconds  # kernels compiled on first use: not calibration time
-    t_detect = time.perf_counter() - t0 - compile_detect
+        inputs = _read_inputs(sf, target)
+        cands, diameter_mm, d_px = _detect(sf, inputs.proj, inputs.nominal, opt, progress)
+    t_detect = time.perf_counter() - t0 - clock.seconds  # kernels compiled on first use: not calibration time
+    return _solve_and_write(inputs, cands, diameter_mm, d_px, method, opt, progress, clock, t0, t_detect, report_dir)
+
+
+def _solve_and_write(
+    inputs: _ScanInputs,
+    cands: list[NDArray[np.float64]],
+    diameter_mm: float,
+    d_px: float,
+    method: str,
+    opt: CalibrationOptions,
+    progress: ProgressCallback | None,
+    clock: CompileClock,
+    t0: float,
+    t_detect: float,
+    report_dir: str | os.PathLike[str] | None,
+) -> CalibrationResult:
+    """Identify the BBs in the candidates, estimate, judge, write ``/geometry/calibrated``; the result."""
+    target, proj, nominal_all, truth_all = inputs.target, inputs.proj, inputs.nominal_all, inputs.truth_all
+    n_all = nominal_all.n_views
+    nominal = inputs.nominal
     min_obs = opt.min_observations or max(8, int(0.05 * len(proj)))
     model = ViewModel(nominal, opt.intrinsics)
     t1, compiled_before = time.perf_counter(), clock.seconds
@@ -651,4 +725,5 @@ def _estimate(
     return model.nominal.with_vectors(vec), xyz, full_state, uv, history, n_iter, warnings, quality
 
 
-__all__ = ["CalibrationOptions", "CalibrationResult", "IterationStats", "METHODS", "calibrate_scan", "fill_states"]
+__all__ = ["CalibrationOptions", "CalibrationResult", "IterationStats", "METHODS", "calibrate_candidates", "calibrate_scan",
+           "fill_states", "projected_diameter_px"]

@@ -382,6 +382,7 @@ class _TrackStore:
         self.count = np.zeros(capacity, np.int64)
         self.last = np.zeros(capacity, np.int64)
         self.last_uv = np.zeros((capacity, 2))
+        self.last_P = np.zeros((capacity, 3, 4))
         self.misses = np.zeros(capacity, np.int64)
         self.n = 0
         self.obs: list[tuple[int, NDArray[np.intp], NDArray[np.float64]]] = []  # (frame, track ids, uv)
@@ -391,7 +392,7 @@ class _TrackStore:
         if need <= cap:
             return
         new = max(need, 2 * cap)
-        for name in ("ray_o", "ray_d", "count", "last", "last_uv", "misses"):
+        for name in ("ray_o", "ray_d", "count", "last", "last_uv", "last_P", "misses"):
             old = getattr(self, name)
             arr = np.zeros((new,) + old.shape[1:], old.dtype)
             arr[:cap] = old
@@ -404,74 +405,115 @@ class _TrackStore:
         self.n += m
         return ids
 
-    def add(self, frame: int, ids: NDArray[np.intp], uv: NDArray[np.float64], origin: NDArray[np.float64], direction: NDArray[np.float64]) -> None:
-        """Detections ``uv (m,2)`` with their rays for tracks ``ids`` in ``frame``."""
+    def add(self, frame: int, ids: NDArray[np.intp], uv: NDArray[np.float64], view: ViewGeometry) -> None:
+        """Detections ``uv (m,2)`` for tracks ``ids`` in ``frame``, seen through the one-view geometry ``view``."""
         if not len(ids):
             return
+        origin, direction = _rays(view, uv)
         slot = self.count[ids] % self.window
         self.ray_o[ids, slot] = origin
         self.ray_d[ids, slot] = direction
         self.count[ids] += 1
         self.last[ids] = frame
         self.last_uv[ids] = uv
+        self.last_P[ids] = view.matrices[0]
         self.misses[ids] = 0
         self.obs.append((frame, ids, uv))
 
 
-def _rays(nominal: ViewGeometry, p: int, uv: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Source and unit directions ``(m, 3)`` of the rays through pixels ``uv (m, 2)`` of nominal view ``p``."""
-    c0, r0 = nominal.panel.center
-    pts = nominal.D[p] + (uv[:, 0:1] - c0) * nominal.u[p] + (uv[:, 1:2] - r0) * nominal.v[p]
-    d = pts - nominal.S[p]
+def _rays(view: ViewGeometry, uv: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Source and unit directions ``(m, 3)`` of the rays through pixels ``uv (m, 2)`` of the one view ``view``."""
+    c0, r0 = view.panel.center
+    pts = view.D[0] + (uv[:, 0:1] - c0) * view.u[0] + (uv[:, 1:2] - r0) * view.v[0]
+    d = pts - view.S[0]
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    return nominal.S[p], d
+    return view.S[0], d
 
 
-def link_fragments(cands: list[NDArray[np.float64]], s: TrackingSettings, nominal: ViewGeometry) -> NDArray[np.float64]:
-    """2-D tracks ``(P, F, 2)`` over projections (NaN where a fragment has no detection).
+@dataclass(frozen=True)
+class FrameLinks:
+    """What linking did with one frame: tracks continued (ids, detections), tracks that ended because another
+    came too close (they could swap BBs), tracks expected but not found, tracks started, and where the
+    active tracks were predicted (aligned to the frame; rows follow ``expected``)."""
 
-    Each active track's next position is predicted by triangulating its last detections through the nominal
-    geometry (one detection: the point of its ray nearest the isocenter) and projecting into the next view."""
-    store = _TrackStore()
-    active = np.zeros(0, np.int64)
-    gate = s.gate_px
-    matrices = nominal.matrices
-    for p, c in enumerate(cands):
-        c = c[ball_like(c, s)] if len(c) else c
+    continued: NDArray[np.intp]
+    uv: NDArray[np.float64]
+    crowded: NDArray[np.intp]
+    missed: NDArray[np.intp]
+    started: NDArray[np.intp]
+    started_uv: NDArray[np.float64]
+    expected: NDArray[np.intp]
+    predicted: NDArray[np.float64]
+    n_ball_like: int
+
+
+class FrameLinker:
+    """Links ball-like candidates into 2-D tracks one frame at a time (offline for a whole scan, or live).
+
+    Each active track's next position is its last detection moved by the nominal motion of the point its last
+    rays triangulate to (one detection: the point of its ray nearest the isocenter)."""
+
+    def __init__(self, settings: TrackingSettings) -> None:
+        self.settings = settings
+        self.store = _TrackStore()
+        self.active = np.zeros(0, np.int64)
+
+    def step(self, p: int, c: NDArray[np.float64], view: ViewGeometry) -> FrameLinks:
+        """Link the candidates ``c`` of frame ``p`` (nominal one-view geometry ``view``)."""
+        s, store, active = self.settings, self.store, self.active
+        ball = ball_like(c, s) if len(c) else np.zeros(0, bool)
+        c = c[ball]
         uv_c = np.ascontiguousarray(c[:, :2])
         matched_c = np.zeros(len(c), bool)
         matched_t = np.zeros(len(active), bool)
-        if len(active) and len(c):
-            pred_a = _predict_from_rays(store.ray_o, store.ray_d, store.count, active, matrices[p], store.last_uv,
-                                        matrices[store.last[active]])
-            gates = gate * (1.0 + 0.5 * np.clip(p - store.last[active] - 1, 0, None))
-            idx, aligned = match_frame(pred_a, uv_c, s.search_px, gates, s.residual_px)
-            matched_t = idx >= 0
-            ended = _crowded(aligned, s.ambiguous_px)
-            store.misses[active[ended]] = s.max_gap  # ended here: not continued, not coasting
-            matched_t &= ~ended
-            matched_c[idx[matched_t]] = True
-            origin, direction = _rays(nominal, p, uv_c[idx[matched_t]])
-            store.add(p, active[matched_t], uv_c[idx[matched_t]], origin, direction)
-        missed = active[~matched_t]
-        store.misses[missed] += 1
+        crowded = np.zeros(len(active), bool)
+        aligned = np.full((len(active), 2), np.nan)
+        idx = np.full(len(active), -1)
+        if len(active):
+            pred_a = _predict_from_rays(store.ray_o, store.ray_d, store.count, active, view.matrices[0], store.last_uv,
+                                        store.last_P[active])
+            aligned = pred_a
+            if len(c):
+                gates = s.gate_px * (1.0 + 0.5 * np.clip(p - store.last[active] - 1, 0, None))
+                idx, aligned = match_frame(pred_a, uv_c, s.search_px, gates, s.residual_px)
+                matched_t = idx >= 0
+                crowded = _crowded(aligned, s.ambiguous_px)
+                store.misses[active[crowded]] = s.max_gap  # ended here: not continued, not coasting
+                matched_t &= ~crowded
+                matched_c[idx[matched_t]] = True
+                store.add(p, active[matched_t], uv_c[idx[matched_t]], view)
+        missed = active[~matched_t & ~crowded]
+        store.misses[active[~matched_t]] += 1
         still = active[matched_t | (store.misses[active] <= s.max_gap)]
         fresh = np.flatnonzero(~matched_c)
         ids = store.new_tracks(len(fresh))
-        if len(fresh):
-            origin, direction = _rays(nominal, p, uv_c[fresh])
-            store.add(p, ids, uv_c[fresh], origin, direction)
-        active = np.concatenate([still, ids])
-    count = store.count[: store.n]
-    keep = np.flatnonzero(count >= s.min_fragment)
-    column = np.full(store.n, -1)
-    column[keep] = np.arange(len(keep))
-    out = np.full((len(cands), len(keep), 2), np.nan)
-    for p, ids, uv in store.obs:
-        col = column[ids]
-        ok = col >= 0
-        out[p, col[ok]] = uv[ok]
-    return out
+        store.add(p, ids, uv_c[fresh], view)
+        self.active = np.concatenate([still, ids])
+        return FrameLinks(active[matched_t], uv_c[idx[matched_t]], active[crowded], missed, ids, uv_c[fresh],
+                          active, aligned, int(ball.sum()))
+
+    def fragments(self, n_frames: int, min_length: int) -> NDArray[np.float64]:
+        """2-D tracks ``(P, F, 2)`` of at least ``min_length`` detections (NaN where a track has none)."""
+        store = self.store
+        count = store.count[: store.n]
+        keep = np.flatnonzero(count >= min_length)
+        column = np.full(store.n, -1)
+        column[keep] = np.arange(len(keep))
+        out = np.full((n_frames, len(keep), 2), np.nan)
+        for p, ids, uv in store.obs:
+            col = column[ids]
+            ok = col >= 0
+            out[p, col[ok]] = uv[ok]
+        return out
+
+
+def link_fragments(cands: list[NDArray[np.float64]], s: TrackingSettings, nominal: ViewGeometry) -> NDArray[np.float64]:
+    """2-D tracks ``(P, F, 2)`` over projections (NaN where a fragment has no detection), linked frame by frame
+    (:class:`FrameLinker`) through the nominal geometry."""
+    linker = FrameLinker(s)
+    for p, c in enumerate(cands):
+        linker.step(p, c, nominal[p : p + 1])
+    return linker.fragments(len(cands), s.min_fragment)
 
 
 def assign_to_predictions(
