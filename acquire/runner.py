@@ -7,7 +7,7 @@ import dataclasses
 import json
 import signal
 import threading
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,6 +19,7 @@ from acquire.engine import MODES, Rig, ScanEngine
 from acquire.errors import AcquireError, ScanStateError
 from acquire.plan import ScanPlan, plan_bench_scan, plan_carm_scan
 from acquire.recorder import ScanRecorder, SimulationTruth
+from acquire.records import Subscriber
 from acquire.rigs import open_rig
 from acquire.rigs.carm import export_orbit
 from acquire.storage import check_room
@@ -118,13 +119,16 @@ class ScanRunner:
     """Runs one scan in the caller's loop (:meth:`run`) or in a background thread (:meth:`start`)."""
 
     def __init__(self, request: ScanRequest, *, progress: ProgressCallback | None = None, rig: Rig | None = None,
-                 interlock: Callable[[], str | None] | None = None) -> None:
+                 interlock: Callable[[], str | None] | None = None, subscribers: Sequence[Subscriber] = ()) -> None:
+        """``subscribers`` receive the scan's events after the recorder (live analysis: it sees each frame once it
+        is written, and the complete file once closed)."""
         if request.mode not in MODES:
             raise AcquireError(f"mode must be one of {MODES}, got {request.mode!r}")
         self.request = request
         self._user_progress = progress
         self._rig = rig
         self._interlock = interlock
+        self._subscribers = list(subscribers)
         self.error: BaseException | None = None
         self.result: ScanResult | None = None
         self._engine: ScanEngine | None = None
@@ -186,7 +190,7 @@ class ScanRunner:
                           recorder: ScanRecorder) -> ScanResult:
         rate = float(self.request.frame_rate_hz or cfg.exposure.frame_rate_hz)
         engine = ScanEngine(rig, plan, motion=cfg.motion, frame_rate_hz=rate, mode=self.request.mode,
-                            subscribers=[recorder], progress=self._progress, start_extra=start_extra(cfg, plan, rate),
+                            subscribers=[recorder, *self._subscribers], progress=self._progress, start_extra=start_extra(cfg, plan, rate),
                             interlock=self._interlock)
         self._attach(engine)
         outcome = await engine.run()
@@ -258,7 +262,8 @@ class ScanRunner:
         self._call("abort", reason)
 
 
-def run_scan(request: ScanRequest, *, progress: ProgressCallback | None = None) -> ScanResult:
+def run_scan(request: ScanRequest, *, progress: ProgressCallback | None = None,
+             subscribers: Sequence[Subscriber] = ()) -> ScanResult:
     """Run one scan to its end in a fresh event loop (blocking).
 
     In the main thread the first SIGINT (Ctrl-C), SIGTERM (``kill``, ``systemctl stop``, ``timeout``)
@@ -266,7 +271,7 @@ def run_scan(request: ScanRequest, *, progress: ProgressCallback | None = None) 
     aborted with :data:`SIGNAL_REASONS` of that signal. A second signal acts at once (Ctrl-C raises
     KeyboardInterrupt, which still halts everything on its way out).
     """
-    runner = ScanRunner(request, progress=progress)
+    runner = ScanRunner(request, progress=progress, subscribers=subscribers)
 
     async def main() -> ScanResult:
         loop = asyncio.get_running_loop()

@@ -409,7 +409,7 @@ class _TrackStore:
         """Detections ``uv (m,2)`` for tracks ``ids`` in ``frame``, seen through the one-view geometry ``view``."""
         if not len(ids):
             return
-        origin, direction = _rays(view, uv)
+        origin, direction = view_rays(view, uv)
         slot = self.count[ids] % self.window
         self.ray_o[ids, slot] = origin
         self.ray_d[ids, slot] = direction
@@ -421,7 +421,7 @@ class _TrackStore:
         self.obs.append((frame, ids, uv))
 
 
-def _rays(view: ViewGeometry, uv: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def view_rays(view: ViewGeometry, uv: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Source and unit directions ``(m, 3)`` of the rays through pixels ``uv (m, 2)`` of the one view ``view``."""
     c0, r0 = view.panel.center
     pts = view.D[0] + (uv[:, 0:1] - c0) * view.u[0] + (uv[:, 1:2] - r0) * view.v[0]

@@ -18,6 +18,9 @@ class ProgressBar:
         self._bars: dict[str, tqdm] = {}
 
     def __call__(self, event: ProgressEvent) -> None:
+        if event.stage.endswith("-warning"):  # warnings are lines, shown on any stderr
+            self.note(f"warning: {event.message}")
+            return
         if not self.enabled:
             return
         try:
@@ -37,6 +40,16 @@ class ProgressBar:
             post["info"] = event.message
         bar.set_postfix(post, refresh=False)
         bar.refresh()
+
+    def note(self, text: str) -> None:
+        """A line above the bars (on stderr, terminal or not)."""
+        try:
+            if self.enabled:
+                tqdm.write(text, file=sys.stderr)
+            else:
+                print(text, file=sys.stderr, flush=True)
+        except OSError:
+            self.enabled = False
 
     def close(self) -> None:
         """Close every bar."""

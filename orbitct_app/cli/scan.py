@@ -48,11 +48,22 @@ def _parse_params(items: tuple[str, ...]) -> dict[str, object]:
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
 @click.option("--data-dir", type=click.Path(file_okay=False, path_type=Path), envvar="ORBITCT_DATA_DIR", default=None,
               help="The service's data directory (or ORBITCT_DATA_DIR): refuse to scan while its emergency stop is latched.")
+@click.option("--calibrate", "calibrate_mode", type=click.Choice(["none", "live"]), default="none", show_default=True,
+              help="live: detect and follow the BBs while the frames arrive, warn during the scan, and write the "
+                   "calibrated geometry as soon as the last frame is in (as orbitct calibrate would).")
+@click.option("--bb-diameter-mm", type=click.FloatRange(0.1, 20), default=None,
+              help="BB diameter for --calibrate live (default with --sim: the twins' BBs).")
+@click.option("--abort-on", "abort_on", multiple=True,
+              type=click.Choice(["bb_lost", "bb_left_fov", "few_bbs", "bb_distorted", "fell_behind"]),
+              help="Stop the scan safely on this live calibration warning (repeatable).")
+@click.option("--lost-frames", type=click.IntRange(1, 10000), default=10, show_default=True,
+              help="--calibrate live: warn when a followed BB is missing for more than this many frames.")
 @click.pass_context
 def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int | None, params: tuple[str, ...],
          errors: str, seed: int,
          mode: str, sim: bool, detector_size: int | None, frame_rate_hz: float | None, out: Path | None,
-         overwrite: bool, data_dir: Path | None) -> None:
+         overwrite: bool, data_dir: Path | None, calibrate_mode: str, bb_diameter_mm: float | None,
+         abort_on: tuple[str, ...], lost_frames: int) -> None:
     """Acquire a scan: orbitct scan --config config/bench.yaml --orbit sawtooth --sim --out scan.h5"""
     if ctx.invoked_subcommand is not None:
         return
@@ -71,9 +82,14 @@ def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int |
     req = ScanRequest(config=config_path, out=out, orbit=orbit, frames=frames, orbit_params=_parse_params(params),
                       errors=errors, seed=seed, mode=mode,
                       sim=sim, detector_size=detector_size, frame_rate_hz=frame_rate_hz, overwrite=overwrite)
+    if abort_on and calibrate_mode != "live":
+        _fail("--abort-on needs --calibrate live")
+    live = None
     try:
         with ProgressBar() as bar:
-            res = run_scan(req, progress=bar)
+            if calibrate_mode == "live":
+                live = _live_subscriber(req, out, bb_diameter_mm, abort_on, lost_frames, bar)
+            res = run_scan(req, progress=bar, subscribers=[live] if live is not None else [])
     except AcquireError as exc:
         _fail(str(exc))
     except KeyboardInterrupt:
@@ -89,6 +105,40 @@ def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int |
         pass
     if res.status != "complete":
         sys.exit(signals.get(res.reason, 1))
+    if live is not None:
+        _report_live(live)
+
+
+def _live_subscriber(req: object, out: Path, bb_diameter_mm: float | None, abort_on: tuple[str, ...], lost_frames: int,
+                     bar: ProgressBar) -> object:
+    """The live calibration subscriber, with the BB size from the option or, on the twins, their BBs."""
+    from calib.errors import CalibrationError
+    from orbitct_app.live_calibration import LiveCalibrationSubscriber
+
+    if bb_diameter_mm is None:
+        if not getattr(req, "sim"):
+            _fail("--calibrate live needs --bb-diameter-mm (the size of the BBs on the object)")
+        bb_diameter_mm = req.resolved_config().sim.bb_diameter_mm  # type: ignore[attr-defined]
+
+    try:
+        return LiveCalibrationSubscriber(out, bb_diameter_mm, abort_on=abort_on, lost_frames=lost_frames, progress=bar)
+    except CalibrationError as exc:
+        _fail(str(exc))
+        raise
+
+
+def _report_live(live: object) -> None:
+    """The live calibration's outcome after a complete scan; exit 3 when its quality check failed."""
+    err, res = getattr(live, "error"), getattr(live, "result")
+    if err is not None or res is None:
+        click.echo(f"live calibration failed: {err}; the scan is complete: orbitct calibrate FILE", err=True)
+        sys.exit(1)
+    click.echo(f"calibrated during the scan: {res.n_bbs} BBs, geometry written "
+               f"{getattr(live, 'live').last_frame_to_geometry_s:.2f} s after the last frame")
+    click.echo(res.quality.line())
+    if not res.quality.passed:
+        click.echo("QUALITY CHECK FAILED: " + "; ".join(res.quality.reasons), err=True)
+        sys.exit(3)
 
 
 @scan.command("repair")

@@ -1,0 +1,460 @@
+"""Calibration while a scan runs: BBs detected and followed as frames arrive, warnings while the operator can
+still act, and the geometry in the file as soon as the last frame is.
+
+A :class:`LiveCalibration` is fed every frame of a scan, in order (:meth:`LiveCalibration.add_frame`, which only
+queues the frame: the acquisition never waits for it). A worker process detects the BBs in each projection
+with the same detector as ``orbitct calibrate``, links them frame to frame (:class:`calib.track.FrameLinker`)
+and raises warnings naming frames and positions. When the scan is complete, :meth:`LiveCalibration.finish`
+identifies the BBs and estimates the geometry from the candidates already found
+(:func:`calib.pipeline.calibrate_candidates`: the results and quality figures are those of the offline
+calibration of the same file). Frames that arrive while more than ``max_pending`` wait are not held: they are
+detected from the file after the scan, and a warning says so.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import multiprocessing as mp
+import os
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calib.detect import N_FIELDS, FrameDetector
+from calib.errors import CalibrationError
+from calib.pipeline import (
+    DEFAULT_JITTER_MM,
+    CalibrationResult,
+    _motion_px,
+    _options,
+    calibrate_candidates,
+    frame_detector,
+)
+from calib.track import FrameLinker, FrameLinks, TrackingSettings, match_frame, view_rays
+from orbitct.geometry import ViewGeometry
+from orbitct.progress import ProgressCallback, report
+from orbitct.scanfile import ImageKey, ScanFile
+
+#: what a live warning can be about
+WARNING_KINDS = ("bb_lost", "bb_found", "bb_left_fov", "few_bbs", "bb_distorted", "fell_behind")
+
+
+class LiveCalibrationError(CalibrationError):
+    """Live calibration cannot run as asked (no BB size, frames out of order, used after it finished)."""
+
+
+@dataclass(frozen=True)
+class LiveWarning:
+    """Something the operator should know while the scan runs: ``kind`` (see :data:`WARNING_KINDS`), the scan
+    frame it was raised at, the first frame it concerns, and a sentence naming frames and positions."""
+
+    kind: str
+    frame: int
+    since_frame: int
+    message: str
+    uv: tuple[float, float] | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready."""
+        return {"kind": self.kind, "frame": self.frame, "since_frame": self.since_frame, "message": self.message,
+                "uv": None if self.uv is None else list(self.uv)}
+
+
+@dataclass
+class LiveSettings:
+    """When live calibration warns (frames are scan frames; positions are detector pixels)."""
+
+    lost_frames: int = 10  # a followed BB missing for more than this many frames where it should be visible
+    min_bbs: int = 4  # a view with fewer BBs cannot be calibrated from its own
+    watch_after: int = 15  # a BB is watched (lost / left the field of view) once followed this many frames
+    max_pending: int = 256  # frames waiting for detection beyond this are detected from the file after the scan
+    edge_margin_px: float = 2.0  # extra margin inside the panel for "should be visible"
+
+
+@dataclass
+class _Watched:
+    """A BB followed long enough to be missed: its rays' normal equations (for its 3-D point) and state."""
+
+    A: NDArray[np.float64] = field(default_factory=lambda: np.zeros((3, 3)))
+    b: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    count: int = 0
+    last_frame: int = -1
+    last_uv: tuple[float, float] = (0.0, 0.0)
+    missing_since: int | None = None  # scan frame since when it is not found where it should be visible
+    warned: bool = False
+    outside: bool = False
+
+    def add_ray(self, origin: NDArray[np.float64], direction: NDArray[np.float64]) -> None:
+        P = np.eye(3) - np.outer(direction, direction)
+        self.A += P
+        self.b += P @ origin
+        self.count += 1
+
+    def point(self) -> NDArray[np.float64]:
+        return np.linalg.lstsq(self.A, self.b, rcond=None)[0]
+
+
+class _Follower:
+    """What runs in the worker process: detection of every projection, frame-to-frame linking, watched BBs and
+    the warnings (sent through ``emit``)."""
+
+    def __init__(self, nominal: ViewGeometry, image_key: NDArray[np.integer[Any]], diameter_mm: float,
+                 settings: LiveSettings, options: dict[str, Any], emit: Callable[[str, Any], None]) -> None:
+        self.nominal = nominal
+        self.image_key = np.asarray(image_key)
+        self.diameter_mm = float(diameter_mm)
+        self.settings = settings
+        self.opt = _options("bundle", {**options, "diameter_mm": diameter_mm})
+        self.emit = emit
+        proj = np.flatnonzero(self.image_key == ImageKey.PROJECTION)
+        self._proj_index = proj
+        self.n_projections = int(proj.size)
+        panel = nominal.panel
+        mag = float(np.nanmedian(nominal.sdd[proj] / nominal.sod()[proj])) if proj.size else 1.0
+        self.d_px = self.diameter_mm * mag / float(np.sqrt(panel.pitch_col * panel.pitch_row))
+        self.tracking = TrackingSettings(diameter_px=self.d_px, motion_px=_motion_px(nominal[proj]) if proj.size else 0.0,
+                                         jitter_px=DEFAULT_JITTER_MM * self.d_px / self.diameter_mm)
+        self.linker = FrameLinker(self.tracking)
+        self.candidates: list[NDArray[np.float64] | None] = []
+        self.bbs_per_frame: list[int] = []
+        self.detect_s = 0.0
+        self._dark_sum: NDArray[np.float64] | None = None
+        self._flat_sum: NDArray[np.float64] | None = None
+        self._n_dark = 0
+        self._n_flat = 0
+        self._detector: FrameDetector | None = None
+        self._deferred: list[int] = []  # projection numbers detected from the file after the scan
+        self._watched: dict[int, _Watched] = {}  # by the track that found it
+        self._tracks_seen: set[int] = set()  # tracks already considered as new BBs
+        self._few_since: int | None = None
+        self._last_distorted = -10**9
+        self._behind_warned = False
+        self._next_index = 0
+
+    def take(self, index: int, frame: NDArray[Any] | None) -> None:
+        """Scan frame ``index``; indices jumped over are projections that were not sent (detected after the scan)."""
+        self.skip_to(index)
+        self._next_index = index + 1
+        self._process(index, int(self.image_key[index]), frame)
+
+    def skip_to(self, index: int) -> None:
+        """Frames before ``index`` that never came: projections detected after the scan."""
+        for skipped in range(self._next_index, index):
+            self._process(skipped, int(self.image_key[skipped]), None)
+        self._next_index = max(self._next_index, index)
+
+    # --------------------------------------------------------------- per frame
+    def _process(self, index: int, key: int, frame: NDArray[Any] | None) -> None:
+        if frame is not None and (key == ImageKey.DARK or key == ImageKey.FLAT):
+            f = frame.astype(np.float64)
+            if key == ImageKey.DARK:
+                self._dark_sum = f if self._dark_sum is None else self._dark_sum + f
+                self._n_dark += 1
+            else:
+                self._flat_sum = f if self._flat_sum is None else self._flat_sum + f
+                self._n_flat += 1
+            return
+        if key != ImageKey.PROJECTION:
+            return
+        p = len(self.candidates)
+        if frame is None or self._dark_sum is None or self._flat_sum is None:
+            self.candidates.append(None)
+            self._deferred.append(p)
+            self.bbs_per_frame.append(-1)
+            if not self._behind_warned:
+                self._behind_warned = True
+                why = ("no dark and flat frames came before the first projection" if self._dark_sum is None
+                       or self._flat_sum is None else f"more than {self.settings.max_pending} frames were waiting")
+                self._warn("fell_behind", index, index, f"live calibration is not following frame {index} on: {why}; "
+                           "those frames are detected from the file after the scan (the geometry comes later)")
+            return
+        if self._detector is None:
+            dark = (self._dark_sum / self._n_dark).astype(np.float32)
+            flat = (self._flat_sum / self._n_flat).astype(np.float32)
+            self._detector = frame_detector(dark, flat, self.d_px, self.opt)
+        t = time.perf_counter()
+        c = self._detector.candidates(frame)
+        self.detect_s += time.perf_counter() - t
+        self.candidates.append(c)
+        if self._deferred:  # frames are missing before this one: follow no more, warn no more
+            self.bbs_per_frame.append(-1)
+            return
+        view = self.nominal[index : index + 1]
+        links = self.linker.step(p, c, view)
+        self._watch(index, p, c, links, view)
+
+    def _watch(self, index: int, p: int, c: NDArray[np.float64], links: FrameLinks, view: ViewGeometry) -> None:
+        """Per frame: BBs found, warnings. A track followed for ``watch_after`` frames whose 3-D point (its rays
+        through the nominal geometry) is no known BB's becomes a watched BB; from then on every watched BB is
+        predicted in each frame (its point through the view, moved by the frame's common shift) and assigned to the
+        frame's BB-like blobs, so a BB keeps its identity whatever the 2-D tracks do where BBs cross."""
+        s = self.settings
+        n_bbs = int(links.continued.size + links.started.size)
+        self.bbs_per_frame.append(n_bbs)
+        self.emit("progress", ("live-calibration", p + 1, self.n_projections, f"frame {index}: {n_bbs} BBs",
+                               {"bbs": float(n_bbs), "frame": float(index)}))
+        if n_bbs < s.min_bbs:  # a view with too few BBs (once per run of such frames)
+            if self._few_since is None:
+                self._few_since = index
+                self._warn("few_bbs", index, index, f"frame {index} shows {n_bbs} BB(s); a view needs {s.min_bbs} to be "
+                           "calibrated from its own (more BBs where this part of the orbit looks, or it is bridged)")
+        else:
+            self._few_since = None
+        blobs = np.concatenate([links.uv, links.started_uv])
+        watched = list(self._watched.values())
+        if watched:
+            pred = view.project(np.array([w.point() for w in watched]))[0]
+            idx, _ = match_frame(pred, blobs, self.tracking.search_px, self.tracking.gate_px, self.tracking.residual_px)
+            hit = idx >= 0  # where a missing BB should be: its point through the view, moved by the frame's shift
+            shift = np.median(blobs[idx[hit]] - pred[hit], axis=0) if hit.sum() >= 2 else np.zeros(2)
+            aligned = pred + shift
+            origin, direction = view_rays(view, blobs) if len(blobs) else (None, None)
+            panel = view.panel
+            margin = 0.5 * self.d_px + 1.0 + s.edge_margin_px
+            for w, j, uv in zip(watched, idx.tolist(), aligned):
+                if j >= 0:
+                    w.add_ray(origin, direction[j])
+                    if w.warned:
+                        self._warn("bb_found", index, w.missing_since or index, f"frame {index}: the BB lost since frame "
+                                   f"{w.missing_since} is found again at ({blobs[j, 0]:.0f}, {blobs[j, 1]:.0f}) px",
+                                   uv=(float(blobs[j, 0]), float(blobs[j, 1])))
+                    w.last_frame, w.last_uv = index, (float(blobs[j, 0]), float(blobs[j, 1]))
+                    w.missing_since, w.warned, w.outside = None, False, False
+                    continue
+                inside = bool(np.isfinite(uv).all() and margin <= uv[0] <= panel.cols - 1 - margin
+                              and margin <= uv[1] <= panel.rows - 1 - margin)
+                if not inside:
+                    if not w.outside and w.last_frame >= index - 2:
+                        self._warn("bb_left_fov", index, index, f"frame {index}: the BB last at ({w.last_uv[0]:.0f}, "
+                                   f"{w.last_uv[1]:.0f}) px left the field of view", uv=w.last_uv)
+                    w.outside, w.missing_since, w.warned = True, None, False
+                    continue
+                w.outside = False
+                self._distorted(index, c, uv)
+                if w.missing_since is None:
+                    w.missing_since = index
+                if not w.warned and index - w.missing_since + 1 > s.lost_frames:
+                    w.warned = True
+                    self._warn("bb_lost", index, w.missing_since,
+                               f"frame {index}: the BB last seen at ({w.last_uv[0]:.0f}, {w.last_uv[1]:.0f}) px in frame "
+                               f"{w.last_frame} is missing since frame {w.missing_since} where it should be visible near "
+                               f"({uv[0]:.0f}, {uv[1]:.0f}) px (over metal, bone or another BB, or fallen off?)",
+                               uv=(float(uv[0]), float(uv[1])))
+        self._new_bbs(links, view)
+
+    def _new_bbs(self, links: FrameLinks, view: ViewGeometry) -> None:
+        """Tracks followed for ``watch_after`` frames whose point lies more than two BB diameters from every
+        watched BB become watched BBs (their whole history of rays)."""
+        known = np.array([w.point() for w in self._watched.values()]).reshape(-1, 3)
+        for t in links.continued.tolist():
+            if t in self._tracks_seen or self.linker.store.count[t] < self.settings.watch_after:
+                continue
+            self._tracks_seen.add(t)
+            w = _Watched()
+            for frame_p, ids, uv in self.linker.store.obs:
+                hit = np.flatnonzero(ids == t)
+                if hit.size:
+                    f = int(self._proj_index[frame_p])
+                    o, d = view_rays(self.nominal[f : f + 1], uv[hit])
+                    w.add_ray(o, d[0])
+                    w.last_frame, w.last_uv = f, (float(uv[hit[0], 0]), float(uv[hit[0], 1]))
+            x = w.point()
+            if known.size and np.linalg.norm(known - x, axis=1).min() < 2.0 * self.diameter_mm + 5.0:
+                continue  # a BB already watched, followed by another track
+            self._watched[t] = w
+            known = np.vstack([known, x])
+
+    def _distorted(self, index: int, c: NDArray[np.float64], uv: NDArray[np.float64]) -> None:
+        """Warn (once per lost_frames frames) when a blob lies where a missing BB should be but is not ball-like."""
+        if not len(c) or index - self._last_distorted <= self.settings.lost_frames:
+            return
+        d = np.linalg.norm(c[:, :2] - uv, axis=1)
+        near = d < 2.0 * self.tracking.gate_px
+        if near.any():
+            self._last_distorted = index
+            self._warn("bb_distorted", index, index, f"frame {index}: the blob where a BB should be, near ({uv[0]:.0f}, "
+                       f"{uv[1]:.0f}) px, does not look like a BB (over metal or bone, or merged with another BB)",
+                       uv=(float(uv[0]), float(uv[1])))
+
+    def _warn(self, kind: str, frame: int, since: int, message: str, uv: tuple[float, float] | None = None) -> None:
+        self.emit("warning", LiveWarning(kind, int(frame), int(since), message, uv))
+
+
+def _worker(frames: Any, events: Any, nominal: ViewGeometry, image_key: NDArray[Any], diameter_mm: float,
+            settings: LiveSettings, options: dict[str, Any]) -> None:
+    """The worker process: frames ``(index, frame)`` in, events out; ``("end", n_frames)`` ends the scan (the
+    candidates go back), ``"stop"`` ends it without them."""
+    try:
+        with contextlib.suppress(OSError, AttributeError):
+            os.nice(10)  # the acquisition goes first; this one catches up when a frame takes longer
+        follower = _Follower(nominal, image_key, diameter_mm, settings, options, lambda kind, x: events.put((kind, x)))
+        events.put(("ready", None))
+        while True:
+            item = frames.get()
+            if item[0] == "end":
+                follower.skip_to(item[1])
+                events.put(("done", (follower.candidates, follower._deferred, follower.detect_s,
+                                     follower.bbs_per_frame, follower.d_px)))
+                return
+            if isinstance(item, str) and item == "stop":
+                events.put(("stopped", None))
+                return
+            follower.take(*item)
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it from finish()
+        events.put(("error", f"{type(exc).__name__}: {exc}"))
+
+
+class LiveCalibration:
+    """Calibrates a scan while its frames arrive (see the module's description).
+
+    ``nominal``: the nominal geometry of every frame of the plan (darks and flats NaN), ``image_key``: the
+    plan's image keys, ``path``: the scan file the recorder writes (read after the scan for the final solve
+    and for any frame not detected live). Detection and following run in a worker process (the acquisition
+    shares no interpreter lock with them); ``on_warning`` and ``progress`` are called in a thread of this one."""
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        nominal: ViewGeometry,
+        image_key: NDArray[np.integer[Any]],
+        diameter_mm: float,
+        *,
+        settings: LiveSettings | None = None,
+        progress: ProgressCallback | None = None,
+        on_warning: Callable[[LiveWarning], None] | None = None,
+        **options: Any,
+    ) -> None:
+        if not diameter_mm or not diameter_mm > 0:
+            raise LiveCalibrationError(f"live calibration needs the BB diameter in mm (> 0), got {diameter_mm!r}")
+        _options("bundle", {**options, "diameter_mm": diameter_mm})  # refuse bad options here, not in the worker
+        self.path = Path(path)
+        self.options = dict(options)
+        self.settings = settings or LiveSettings()
+        self.image_key = np.asarray(image_key)
+        self.diameter_mm = float(diameter_mm)
+        self.progress = progress
+        self.on_warning = on_warning
+        self.n_projections = int((self.image_key == ImageKey.PROJECTION).sum())
+        self.warnings: list[LiveWarning] = []
+        self.detect_s = 0.0
+        self.frames_detected_after_scan = 0
+        self.last_frame_s: float | None = None  # perf_counter when the last frame was handed over
+        self.last_frame_to_geometry_s: float | None = None
+        self.timing: dict[str, float] = {}  # after the scan: catching up, the final solve (s)
+        self._next_index = 0
+        self._closed = False
+        self._outcome: tuple[Any, ...] | None = None
+        self._failure: str | None = None
+        self._ended = threading.Event()
+        ctx = mp.get_context("spawn")
+        self._frames = ctx.Queue(maxsize=self.settings.max_pending)
+        self._events = ctx.Queue()
+        self._process = ctx.Process(target=_worker, name="orbitct-live-calibration", daemon=True,
+                                    args=(self._frames, self._events, nominal, self.image_key, self.diameter_mm,
+                                          self.settings, self.options))
+        self._process.start()
+        self._listener = threading.Thread(target=self._listen, name="orbitct-live-events", daemon=True)
+        self._listener.start()
+
+    def _listen(self) -> None:
+        while True:
+            kind, x = self._events.get()
+            if kind == "warning":
+                self.warnings.append(x)
+                report(self.progress, "live-warning", x.frame, self.n_projections, x.message)
+                if self.on_warning is not None:
+                    self.on_warning(x)
+            elif kind == "progress":
+                report(self.progress, x[0], x[1], x[2], x[3], **x[4])
+            elif kind in ("done", "stopped", "error"):
+                if kind == "done":
+                    self._outcome = x
+                elif kind == "error":
+                    self._failure = x
+                self._ended.set()
+                return
+
+    # ------------------------------------------------------------------ feeding
+    def add_frame(self, index: int, image_key: int, frame: NDArray[Any]) -> None:
+        """Hand over scan frame ``index`` (in order); returns at once. While ``max_pending`` frames wait, a
+        projection is not sent (it is detected from the file after the scan); darks and flats always are."""
+        if self._closed:
+            raise LiveCalibrationError("frames after the scan ended")
+        if index != self._next_index:
+            raise LiveCalibrationError(f"frame {index} arrived, frame {self._next_index} was expected (in order)")
+        self._next_index += 1
+        self.last_frame_s = time.perf_counter()
+        if int(image_key) != ImageKey.PROJECTION:
+            self._frames.put((index, np.asarray(frame)))
+            return
+        try:
+            self._frames.put_nowait((index, np.asarray(frame)))
+        except queue.Full:
+            pass  # the worker sees the gap in the indices
+
+    # ------------------------------------------------------------------ the end
+    def close(self) -> None:
+        """Stop the worker without a result (a scan that did not complete: its frames calibrate offline)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._frames.put("stop")
+        self._ended.wait(30.0)
+        self._process.join(10.0)
+        if self._process.is_alive():
+            self._process.terminate()
+
+    def finish(self, progress: ProgressCallback | None = None) -> CalibrationResult:
+        """After the recorder closed the complete file: detect what is left, identify, estimate, write
+        ``/geometry/calibrated`` as ``orbitct calibrate`` does, and return the result."""
+        if self._closed:
+            raise LiveCalibrationError("this live calibration already ended")
+        self._closed = True
+        t_end = time.perf_counter()
+        self._frames.put(("end", self._next_index))
+        self._ended.wait()
+        self._process.join(10.0)
+        self.timing["catch_up_s"] = time.perf_counter() - t_end  # the worker's backlog when the scan ended
+        if self._failure is not None or self._outcome is None:
+            raise LiveCalibrationError(f"live calibration failed in its worker: {self._failure}")
+        candidates, deferred, self.detect_s, _, d_px = self._outcome
+        self.frames_detected_after_scan = len(deferred)
+        opt = _options("bundle", {**self.options, "diameter_mm": self.diameter_mm})
+        with ScanFile(self.path) as sf:
+            proj = sf.projection_indices
+            if proj.size != len(candidates):
+                raise LiveCalibrationError(f"{self.path}: {proj.size} projections in the file, {len(candidates)} "
+                                           "seen live")
+            if deferred:
+                t = time.perf_counter()
+                dark, flat = sf.dark_flat()
+                fd = frame_detector(dark, flat, d_px, opt)
+                fd.noise = fd.estimate_noise(np.asarray(sf.frames[int(proj[0])]))  # as offline: the first projection
+                for p in deferred:
+                    candidates[p] = fd.candidates(np.asarray(sf.frames[int(proj[p])]))
+                self.detect_s += time.perf_counter() - t
+        cands = [np.zeros((0, N_FIELDS)) if c is None else c for c in candidates]
+        t_solve = time.perf_counter()
+        result = calibrate_candidates(self.path, cands, diameter_mm=self.diameter_mm, progress=progress or self.progress,
+                                      detect_s=self.detect_s, **self.options)
+        self.timing["solve_s"] = time.perf_counter() - t_solve
+        if self.last_frame_s is not None:
+            self.last_frame_to_geometry_s = time.perf_counter() - self.last_frame_s
+        result.warnings[:0] = [w.message for w in self.warnings]
+        with ScanFile(self.path, "r+") as sf:
+            g = sf.h5["geometry/calibrated"]
+            g.attrs["live"] = True
+            g.attrs["live_warnings_json"] = json.dumps([w.as_dict() for w in self.warnings])
+            g.attrs["live_frames_detected_after_scan"] = len(deferred)
+        return result
+
+
+__all__ = ["LiveCalibration", "LiveCalibrationError", "LiveSettings", "LiveWarning", "WARNING_KINDS"]

@@ -1,0 +1,130 @@
+"""Calibration while frames arrive: the same result as offline, warnings at the right frames."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+import calib
+from calib.live import LiveCalibration, LiveCalibrationError, LiveSettings, LiveWarning
+from orbitct.scanfile import ScanFile
+from tests.helpers.calib_scans import perturbed, sawtooth, spiral_markers, write_scan
+
+pytestmark = pytest.mark.slow
+
+
+def _feed(path: Path, **settings: int) -> tuple[LiveCalibration, calib.CalibrationResult]:
+    """Every frame of the file, in order, as an acquisition would hand them over; then finish."""
+    with ScanFile(path) as sf:
+        nominal, keys, frames, diameter = sf.geometry("nominal"), np.asarray(sf.image_key), sf.frames[:], sf.marker_diameter_mm
+    live = LiveCalibration(path, nominal, keys, diameter, settings=LiveSettings(**settings))
+    for i, (key, frame) in enumerate(zip(keys, frames)):
+        live.add_frame(i, int(key), frame)
+    return live, live.finish()
+
+
+def _truth_uv(path: Path) -> np.ndarray:
+    """True BB positions ``(frames, K, 2)`` (NaN for darks and flats)."""
+    with ScanFile(path) as sf:
+        return sf.geometry("truth").project(sf.truth_markers_xyz())
+
+
+@pytest.fixture(scope="module")
+def scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """256 px, 120 views, 8 BBs."""
+    nominal = sawtooth(120, 256)
+    return write_scan(tmp_path_factory.mktemp("live") / "s.h5", nominal, perturbed(nominal, shift_mm=4.0),
+                      spiral_markers(8, radius=60.0, height=60.0))
+
+
+def test_live_writes_what_offline_calibration_writes(scan: Path, tmp_path: Path) -> None:
+    live_file, offline_file = tmp_path / "live.h5", tmp_path / "offline.h5"
+    shutil.copyfile(scan, live_file)
+    off = calib.calibrate_scan(scan, out=offline_file)
+    live, res = _feed(live_file)
+    np.testing.assert_array_equal(res.geometry.vectors, off.geometry.vectors)
+    assert res.quality is not None and off.quality is not None and res.quality.summary() == off.quality.summary()
+    with ScanFile(live_file) as sf:
+        g = sf.h5["geometry/calibrated"]
+        assert g.attrs["live"] and g.attrs["live_frames_detected_after_scan"] == 0
+        assert json.loads(g.attrs["live_warnings_json"]) == [w.as_dict() for w in live.warnings]
+    assert live.last_frame_to_geometry_s is not None and live.last_frame_to_geometry_s > 0
+
+
+def test_a_bb_hidden_behind_metal_for_40_frames_is_reported_then_found_again(scan: Path, tmp_path: Path) -> None:
+    """Frames 30-69 (projections 28-67) cover one BB with a large dense blob: 'lost' once it has been missing
+    for more than lost_frames frames, 'found' when it shows again; both name where it is."""
+    path = tmp_path / "hidden.h5"
+    shutil.copyfile(scan, path)
+    tuv = _truth_uv(path)
+    k, first, last = 3, 30, 69
+    rng = np.random.default_rng(0)
+    with h5py.File(path, "r+") as f:
+        frames = f["frames/data"]
+        rows, cols = frames.shape[1:]
+        yy, xx = np.mgrid[0:rows, 0:cols]
+        for i in range(first, last + 1):
+            c, r = tuv[i, k]
+            img = frames[i].astype(float)
+            disc = (xx - c) ** 2 + (yy - r) ** 2 < 10.0**2
+            img[disc] = rng.poisson(30.0, int(disc.sum()))  # metal: photon-starved, larger than a BB
+            frames[i] = img.astype(frames.dtype)
+    live, _ = _feed(path, lost_frames=10)
+    lost = [w for w in live.warnings if w.kind == "bb_lost"]
+    found = [w for w in live.warnings if w.kind == "bb_found"]
+    assert len(lost) == 1, [w.message for w in live.warnings]
+    w = lost[0]
+    assert first <= w.since_frame <= first + 2 and w.frame == w.since_frame + 10
+    assert w.uv is not None and np.hypot(*(np.array(w.uv) - tuv[w.frame, k])) < 8.0
+    assert any(last < f.frame <= last + 3 for f in found)
+
+
+def test_a_bb_leaving_the_field_of_view_is_reported_where_it_leaves(tmp_path: Path) -> None:
+    """BB 8 sits high on the object and leaves the top of the panel on the upward tilts: each time it leaves
+    after being followed, a warning at that frame; never 'lost' while it is outside."""
+    nominal = sawtooth(120, 256)
+    xyz = np.vstack([spiral_markers(7, radius=60.0, height=60.0), [[0.0, 60.0, 128.0]]])
+    path = write_scan(tmp_path / "fov.h5", nominal, perturbed(nominal, shift_mm=4.0), xyz)
+    live, _ = _feed(path)
+    tuv = _truth_uv(path)
+    inside = tuv[:, 7, 1] > 3.0
+    leaves = [i for i in range(3, len(inside)) if inside[i - 1] and not inside[i]]
+    left = [w for w in live.warnings if w.kind == "bb_left_fov"]
+    assert leaves and left
+    for w in left:
+        assert min(abs(w.frame - i) for i in leaves) <= 2, (w.frame, leaves)
+        assert w.uv is not None and w.uv[1] < 40  # at the top edge
+    assert not [w for w in live.warnings if w.kind == "bb_lost" and not inside[w.frame]]
+
+
+def test_frames_beyond_what_may_wait_are_detected_from_the_file_after_the_scan(scan: Path, tmp_path: Path) -> None:
+    path = tmp_path / "behind.h5"
+    shutil.copyfile(scan, path)
+    off = calib.calibrate_scan(scan, out=tmp_path / "offline.h5")
+    live, res = _feed(path, max_pending=5)  # the whole scan arrives at once: most frames cannot wait
+    behind = [w for w in live.warnings if w.kind == "fell_behind"]
+    assert len(behind) == 1 and "after the scan" in behind[0].message
+    np.testing.assert_array_equal(res.geometry.vectors, off.geometry.vectors)
+    with ScanFile(path) as sf:
+        assert sf.h5["geometry/calibrated"].attrs["live_frames_detected_after_scan"] > 0
+
+
+def test_frames_out_of_order_and_a_missing_bb_size_are_refused(scan: Path) -> None:
+    with ScanFile(scan) as sf:
+        nominal, keys = sf.geometry("nominal"), np.asarray(sf.image_key)
+    with pytest.raises(LiveCalibrationError, match="BB diameter"):
+        LiveCalibration(scan, nominal, keys, 0.0)
+    live = LiveCalibration(scan, nominal, keys, 3.17)
+    with pytest.raises(LiveCalibrationError, match="in order"):
+        live.add_frame(1, int(keys[1]), np.zeros((256, 256), np.uint16))
+    live.close()
+
+
+def test_warning_is_json_ready() -> None:
+    w = LiveWarning("bb_lost", 12, 2, "m", (1.0, 2.0))
+    assert json.loads(json.dumps(w.as_dict()))["uv"] == [1.0, 2.0]
