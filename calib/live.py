@@ -38,7 +38,14 @@ from calib.pipeline import (
     calibrate_candidates,
     frame_detector,
 )
-from calib.track import FrameLinker, FrameLinks, TrackingSettings, match_frame, view_rays
+from calib.track import (
+    FrameLinker,
+    FrameLinks,
+    TrackingSettings,
+    ball_like,
+    match_frame,
+    view_rays,
+)
 from orbitct.geometry import ViewGeometry
 from orbitct.progress import ProgressCallback, report
 from orbitct.scanfile import ImageKey, ScanFile
@@ -277,7 +284,7 @@ class _Follower:
         if not len(c) or index - self._last_distorted <= self.settings.lost_frames:
             return
         d = np.linalg.norm(c[:, :2] - uv, axis=1)
-        near = d < 2.0 * self.tracking.gate_px
+        near = (d < 2.0 * self.tracking.gate_px) & ~ball_like(c, self.tracking)
         if near.any():
             self._last_distorted = index
             self._warn("bb_distorted", index, index, f"frame {index}: the blob where a BB should be, near ({uv[0]:.0f}, "

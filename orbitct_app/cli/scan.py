@@ -133,8 +133,10 @@ def _report_live(live: object) -> None:
     if err is not None or res is None:
         click.echo(f"live calibration failed: {err}; the scan is complete: orbitct calibrate FILE", err=True)
         sys.exit(1)
-    click.echo(f"calibrated during the scan: {res.n_bbs} BBs, geometry written "
-               f"{getattr(live, 'live').last_frame_to_geometry_s:.2f} s after the last frame")
+    lc = getattr(live, "live")
+    click.echo(f"calibrated during the scan: {res.n_bbs} BBs, geometry written {lc.last_frame_to_geometry_s:.2f} s "
+               f"after the last frame (catching up {lc.timing.get('catch_up_s', 0.0):.2f} s, final solve "
+               f"{lc.timing.get('solve_s', 0.0):.2f} s); {len(lc.warnings)} warning(s) during the scan")
     click.echo(res.quality.line())
     if not res.quality.passed:
         click.echo("QUALITY CHECK FAILED: " + "; ".join(res.quality.reasons), err=True)

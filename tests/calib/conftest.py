@@ -30,3 +30,15 @@ def simulated_scan(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., Pa
         return made[key]
 
     return make
+
+
+@pytest.fixture(scope="session")
+def fov_scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """256 px, 120 views; BB 8 sits high on the object and leaves the top of the FOV on the upward tilts."""
+    import numpy as np
+
+    from tests.helpers.calib_scans import perturbed, sawtooth, spiral_markers, write_scan
+
+    nominal = sawtooth(120, 256)
+    xyz = np.vstack([spiral_markers(7, radius=60.0, height=60.0), [[0.0, 60.0, 128.0]]])
+    return write_scan(tmp_path_factory.mktemp("fov") / "fov.h5", nominal, perturbed(nominal, shift_mm=4.0), xyz)

@@ -20,14 +20,6 @@ from tests.helpers.calib_scans import (
 )
 
 
-@pytest.fixture(scope="module")
-def fov_scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """256 px, 120 views; BB 8 sits high on the object and leaves the top of the FOV on the upward tilts."""
-    nominal = sawtooth(120, 256)
-    xyz = np.vstack([spiral_markers(7, radius=60.0, height=60.0), [[0.0, 60.0, 128.0]]])
-    return write_scan(tmp_path_factory.mktemp("fov") / "fov.h5", nominal, perturbed(nominal, shift_mm=4.0), xyz)
-
-
 @pytest.mark.slow
 def test_bbs_leaving_the_field_of_view(fov_scan: Path, tmp_path: Path) -> None:
     res = calib.calibrate_scan(fov_scan, out=tmp_path / "o.h5")

@@ -84,12 +84,11 @@ def test_a_bb_hidden_behind_metal_for_40_frames_is_reported_then_found_again(sca
     assert any(last < f.frame <= last + 3 for f in found)
 
 
-def test_a_bb_leaving_the_field_of_view_is_reported_where_it_leaves(tmp_path: Path) -> None:
+def test_a_bb_leaving_the_field_of_view_is_reported_where_it_leaves(fov_scan: Path, tmp_path: Path) -> None:
     """BB 8 sits high on the object and leaves the top of the panel on the upward tilts: each time it leaves
     after being followed, a warning at that frame; never 'lost' while it is outside."""
-    nominal = sawtooth(120, 256)
-    xyz = np.vstack([spiral_markers(7, radius=60.0, height=60.0), [[0.0, 60.0, 128.0]]])
-    path = write_scan(tmp_path / "fov.h5", nominal, perturbed(nominal, shift_mm=4.0), xyz)
+    path = tmp_path / "fov.h5"
+    shutil.copyfile(fov_scan, path)
     live, _ = _feed(path)
     tuv = _truth_uv(path)
     inside = tuv[:, 7, 1] > 3.0

@@ -1,0 +1,122 @@
+"""Live calibration on the twins: beside the recorder, geometry in the file at the end, stop on a warning, killed."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from click.testing import CliRunner
+
+import calib
+from acquire.rigs.bench import open_bench
+from acquire.runner import ScanRunner
+from calib.evaluate import similarity_aligned_error_px
+from orbitct.scanfile import ScanFile
+from orbitct_app.cli.main import cli
+from orbitct_app.live_calibration import LiveCalibrationSubscriber
+from tests.helpers.bench import small_config, small_request
+
+pytestmark = [pytest.mark.system, pytest.mark.slow, pytest.mark.timeout(300)]
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_a_scan_calibrated_live_is_as_accurate_as_offline_when_it_ends(tmp_path: Path) -> None:
+    """Live detection normalises with the darks and flats taken before the first projection (offline uses those
+    after the projections too), so the geometry differs a little; its accuracy against the twins' truth does not."""
+    out = tmp_path / "live.h5"
+    cfg = small_config(size=192)
+    sub = LiveCalibrationSubscriber(out, cfg.sim.bb_diameter_mm)
+    res = asyncio.run(ScanRunner(small_request(out, frames=60, config=cfg), subscribers=[sub]).run())
+    assert res.status == "complete" and sub.error is None and sub.result is not None
+    assert sub.live is not None and sub.live.last_frame_to_geometry_s is not None
+    with ScanFile(out) as sf:
+        assert sf.status == "complete" and sf.h5["geometry/calibrated"].attrs["live"]
+        proj = sf.projection_indices
+        live_geometry, truth = sf.geometry("calibrated")[proj], sf.geometry("truth")[proj]
+    offline = calib.calibrate_scan(out, out=tmp_path / "offline.h5")
+    live_err, _ = similarity_aligned_error_px(live_geometry, truth)
+    offline_err, _ = similarity_aligned_error_px(offline.geometry[proj], truth)
+    assert live_err <= 1.05 * offline_err + 0.005, (live_err, offline_err)
+
+
+def test_stop_on_a_warning_halts_the_axes_switches_x_rays_off_and_says_why(tmp_path: Path) -> None:
+    """A scan that must stop when a view shows fewer BBs than it needs (here: fewer than 99) stops at the next
+    frame, through the engine's own path."""
+    out = tmp_path / "stopped.h5"
+    cfg = small_config(size=128)
+    req = small_request(out, frames=40, config=cfg)
+    sub = LiveCalibrationSubscriber(out, cfg.sim.bb_diameter_mm, abort_on=["few_bbs"])
+    sub.settings.min_bbs = 99
+
+    async def main() -> Any:
+        async with open_bench(cfg, sim=True) as bench:
+            res = await ScanRunner(req, rig=bench, subscribers=[sub]).run()
+            assert not await bench.hexapod.moving() and not await bench.stage.moving()
+            state = await bench.xray.read()
+            assert not state["hv_on"] and not state["exposing"]
+            return res
+
+    res = asyncio.run(main())
+    assert res.status == "aborted" and "live calibration warning (few_bbs)" in res.reason
+    assert res.n_frames < res.n_planned
+    with ScanFile(out) as sf:
+        assert sf.status == "aborted" and "few_bbs" in sf.status_reason
+        assert "geometry/calibrated" not in sf.h5  # an aborted scan is not calibrated live
+
+
+def test_cli_scan_calibrate_live_reports_the_geometry_and_refuses_without_a_bb_size(tmp_path: Path) -> None:
+    out = tmp_path / "cli.h5"
+    config = tmp_path / "bench.yaml"
+    config.write_text(yaml.safe_dump(small_config(size=192).model_dump(mode="json")))
+    r = CliRunner().invoke(cli, ["scan", "--config", str(config), "--orbit", "sawtooth", "--frames", "60", "--sim",
+                                 "--out", str(out), "--calibrate", "live",
+                                 "-p", "amplitude_deg=6"])
+    assert r.exit_code in (0, 3), r.output
+    assert "calibrated during the scan" in r.output and "geometry written" in r.output
+    with ScanFile(out) as sf:
+        assert sf.has_geometry("calibrated")
+    r = CliRunner().invoke(cli, ["scan", "--config", str(config), "--out", str(tmp_path / "x.h5"), "--calibrate",
+                                 "live"])
+    assert r.exit_code == 2 and "--bb-diameter-mm" in r.output
+    r = CliRunner().invoke(cli, ["scan", "--config", str(config), "--sim", "--out", str(tmp_path / "y.h5"),
+                                 "--abort-on", "bb_lost"])
+    assert r.exit_code == 2 and "--abort-on needs --calibrate live" in r.output
+
+
+def test_a_killed_scan_with_live_calibration_leaves_a_file_that_calibrates_offline(tmp_path: Path) -> None:
+    out = tmp_path / "killed.h5"
+    script = textwrap.dedent(f"""
+        import sys
+        sys.path.insert(0, {str(ROOT)!r})
+        from acquire.runner import run_scan
+        from orbitct_app.live_calibration import LiveCalibrationSubscriber
+        from tests.helpers.bench import small_config, small_request
+        if __name__ == "__main__":
+            cfg = small_config(size=192)
+            def progress(event):
+                if event.stage == "scan" and not event.message:
+                    print(event.done, flush=True)
+            sub = LiveCalibrationSubscriber({str(out)!r}, cfg.sim.bb_diameter_mm)
+            run_scan(small_request({str(out)!r}, frames=200, config=cfg), progress=progress, subscribers=[sub])
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    assert proc.stdout is not None
+    reported = 0
+    while reported < 70:
+        line = proc.stdout.readline()
+        assert line, f"scan process ended early (rc={proc.poll()})"
+        reported = int(line)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=10)
+    r = CliRunner().invoke(cli, ["scan", "repair", str(out)])
+    assert r.exit_code == 0, r.output
+    res = calib.calibrate_scan(out, out=tmp_path / "offline.h5", bridge_max_views=60, max_predicted_px=100.0)
+    assert res.n_bbs >= 4 and res.quality is not None and res.quality.counts["own"] > 0
