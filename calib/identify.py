@@ -7,7 +7,7 @@ from numpy.typing import NDArray
 
 from calib.bundle import bundle_adjust
 from calib.model import ViewModel, ViewState
-from calib.quality import rigid_pose_normal
+from calib.quality import fit_rigid_poses
 from calib.rays import marker_rays, triangulate_least_squares
 from calib.track import TrackingSettings, assign_to_predictions, link_fragments
 from orbitct.geometry import Panel, ViewGeometry
@@ -222,11 +222,7 @@ def assign_by_pose(cands: list[NDArray[np.float64]], model: ViewModel, state: Vi
             break
         idx = np.flatnonzero(fit)
         sub = ViewModel(model.nominal[idx], model.intrinsics)
-        st = ViewState(state.R[idx], state.t[idx], state.k[idx])
-        for _ in range(5):  # Gauss-Newton on the rigid pose, all views at once
-            H, g = rigid_pose_normal(sub, st, xyz, uv[idx])
-            step = -np.linalg.solve(H + 1e-6 * np.eye(6), g[..., None])[..., 0]
-            st = st.stepped(np.concatenate([step, np.zeros((idx.size, model.n_intrinsics))], 1))
+        st = fit_rigid_poses(sub, ViewState(state.R[idx], state.t[idx], state.k[idx]), xyz, uv[idx])
         state = ViewState(state.R.copy(), state.t.copy(), state.k.copy())
         state.R[idx], state.t[idx] = st.R, st.t
         again = assign_visible(cands, model.project(state, xyz), model.nominal.panel, settings)

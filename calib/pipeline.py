@@ -38,6 +38,7 @@ from calib.quality import (
     ViewQuality,
     assess_views,
     centroid_noise_px,
+    fit_rigid_poses,
     judge,
 )
 from calib.rays import marker_rays, rpe_per_frame, triangulate_least_squares
@@ -584,21 +585,9 @@ def _leave_one_out_outliers(
     keep = seen[rep_v, rep_k]
     rep_v, rep_k = rep_v[keep], rep_k[keep]
     sub = ViewModel(model.nominal[rep_v], model.intrinsics)
-    st = ViewState(state.R[rep_v].copy(), state.t[rep_v].copy(), state.k[rep_v].copy())
     obs = uv[rep_v].copy()
-    obs[np.arange(len(rep_v)), rep_k] = np.nan
-    use = np.isfinite(obs).all(-1)
-    obs0 = np.where(use[..., None], obs, 0.0)
-    for _ in range(4):  # Gauss-Newton on the rigid pose only, all left-out problems at once
-        pred, Jv, _ = sub.project_jac(st, xyz)
-        r = np.where(use[..., None], pred - obs0, 0.0)
-        m = len(rep_v)
-        J = (Jv[..., :6] * use[..., None, None]).reshape(m, 2 * k, 6)
-        Jt = np.swapaxes(J, 1, 2)
-        H = Jt @ J + 1e-9 * np.eye(6)  # the unused rows of J are zero
-        g = (Jt @ r.reshape(m, 2 * k, 1))[..., 0]
-        step = -np.linalg.solve(H, g[..., None])[..., 0]
-        st = st.stepped(np.concatenate([step, np.zeros((len(rep_v), model.n_intrinsics))], 1))
+    obs[np.arange(len(rep_v)), rep_k] = np.nan  # all left-out problems at once
+    st = fit_rigid_poses(sub, ViewState(state.R[rep_v], state.t[rep_v], state.k[rep_v]), xyz, obs, iterations=4)
     pred = sub.project(st, xyz)
     loo = np.linalg.norm(pred[np.arange(len(rep_v)), rep_k] - uv[rep_v, rep_k], axis=-1)
     worst = np.full((n, k), -1.0)
@@ -637,6 +626,10 @@ def _estimate(
     warnings: list[str] = []
     n = uv.shape[0]
     ok = usable_views(uv, opt.min_bbs_per_view)
+    placed = np.isfinite(uv[ok]).all(-1).sum(0) >= 3  # a BB in fewer of the solved views has no position to solve for
+    if not placed.all():
+        uv = uv[:, placed]
+        ok = usable_views(uv, opt.min_bbs_per_view)
     if ok.sum() < 2:
         raise NoMarkersError(f"only {int(ok.sum())} view(s) see {opt.min_bbs_per_view} or more BBs; nothing to calibrate")
     sub = ViewModel(model.nominal[np.flatnonzero(ok)], model.intrinsics)

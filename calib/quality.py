@@ -76,6 +76,18 @@ def rigid_pose_normal(model: ViewModel, state: ViewState, xyz: NDArray[np.float6
     return np.swapaxes(J, 1, 2) @ J, (np.swapaxes(J, 1, 2) @ r.reshape(len(pred), -1, 1))[..., 0]
 
 
+def fit_rigid_poses(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64],
+                    iterations: int = 5) -> ViewState:
+    """Each view's rigid pose refitted to its detections ``uv`` (NaN = not used) of the BBs ``xyz``, all views at
+    once (Gauss-Newton from ``state``; the BB centres and intrinsics stay)."""
+    st = state
+    for _ in range(iterations):
+        H, g = rigid_pose_normal(model, st, xyz, uv)
+        step = -np.linalg.solve(H + 1e-9 * np.eye(6), g[..., None])[..., 0]
+        st = st.stepped(np.concatenate([step, np.zeros((len(step), model.n_intrinsics))], 1))
+    return st
+
+
 def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64]
                               ) -> NDArray[np.float64]:
     """Per view, the rigid pose's covariance ``(N,6,6)`` for unit centroid noise, the BB centres' own
@@ -299,4 +311,4 @@ def judge(quality: ViewQuality, frames: NDArray[np.intp], threshold_px: float, m
                    quality.noise_px, float(threshold_px))
 
 
-__all__ = ["Verdict", "judge", "BRIDGED", "FAILED", "MAX_VIEW_MISFIT", "MIN_OWN_BBS", "OWN", "STATUS_CODES", "ViewQuality", "assess_views", "centroid_noise_px"]
+__all__ = ["Verdict", "judge", "BRIDGED", "FAILED", "MAX_VIEW_MISFIT", "MIN_OWN_BBS", "OWN", "STATUS_CODES", "ViewQuality", "assess_views", "centroid_noise_px", "fit_rigid_poses"]

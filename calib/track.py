@@ -530,8 +530,9 @@ def assign_to_predictions(
         c = cands[p]
         if not len(c) or not vis_all[p].any():
             continue
+        # predictions through a 3-D geometry: what the frame's shift leaves grows with the allowed jitter only
         idx, _ = _match(np.ascontiguousarray(pred_all[p]), np.ascontiguousarray(c[:, :2]), float(s.search_px), gate,
-                        float(s.residual_px))
+                        max(1.5 * float(gate_px), 0.25 * (s.jitter_px + s.gate_px)))
         rows = np.flatnonzero(idx >= 0)
         records[p, rows] = c[idx[rows]]
     uv = records[..., :2].copy()

@@ -13,7 +13,6 @@ import pytest
 import calib
 from calib.live import LiveCalibration, LiveCalibrationError, LiveSettings, LiveWarning
 from orbitct.scanfile import ScanFile
-from tests.helpers.calib_scans import perturbed, sawtooth, spiral_markers, write_scan
 
 pytestmark = pytest.mark.slow
 
@@ -34,12 +33,10 @@ def _truth_uv(path: Path) -> np.ndarray:
         return sf.geometry("truth").project(sf.truth_markers_xyz())
 
 
-@pytest.fixture(scope="module")
-def scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """256 px, 120 views, 8 BBs."""
-    nominal = sawtooth(120, 256)
-    return write_scan(tmp_path_factory.mktemp("live") / "s.h5", nominal, perturbed(nominal, shift_mm=4.0),
-                      spiral_markers(8, radius=60.0, height=60.0))
+@pytest.fixture
+def scan(fov_scan: Path) -> Path:
+    """256 px, 120 views, 8 BBs (one leaves the field of view on the upward tilts): the calibration tests' scan."""
+    return fov_scan
 
 
 def test_live_writes_what_offline_calibration_writes(scan: Path, tmp_path: Path) -> None:
