@@ -107,12 +107,12 @@ def test_a_killed_scan_with_live_calibration_leaves_a_file_that_calibrates_offli
                 if event.stage == "scan" and not event.message:
                     print(event.done, flush=True)
             sub = LiveCalibrationSubscriber({str(out)!r}, cfg.sim.bb_diameter_mm)
-            run_scan(small_request({str(out)!r}, frames=200, config=cfg), progress=progress, subscribers=[sub])
+            run_scan(small_request({str(out)!r}, frames=120, config=cfg), progress=progress, subscribers=[sub])
     """)
     proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=ROOT)
     assert proc.stdout is not None
     reported = 0
-    while reported < 70:
+    while reported < 45:
         line = proc.stdout.readline()
         assert line, f"scan process ended early (rc={proc.poll()})"
         reported = int(line)
