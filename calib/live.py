@@ -353,6 +353,7 @@ class LiveCalibration:
         self.warnings: list[LiveWarning] = []
         self.detect_s = 0.0
         self.frames_detected_after_scan = 0
+        self.bbs_per_frame: list[int] = []  # after the scan: BB-like blobs per projection (-1: not followed live)
         self.last_frame_s: float | None = None  # perf_counter when the last frame was handed over
         self.last_frame_to_geometry_s: float | None = None
         self.timing: dict[str, float] = {}  # after the scan: catching up, the final solve (s)
@@ -432,7 +433,7 @@ class LiveCalibration:
         self.timing["catch_up_s"] = time.perf_counter() - t_end  # the worker's backlog when the scan ended
         if self._failure is not None or self._outcome is None:
             raise LiveCalibrationError(f"live calibration failed in its worker: {self._failure}")
-        candidates, deferred, self.detect_s, _, d_px = self._outcome
+        candidates, deferred, self.detect_s, self.bbs_per_frame, d_px = self._outcome
         self.frames_detected_after_scan = len(deferred)
         opt = _options("bundle", {**self.options, "diameter_mm": self.diameter_mm})
         with ScanFile(self.path) as sf:
