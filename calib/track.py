@@ -432,19 +432,12 @@ def view_rays(view: ViewGeometry, uv: NDArray[np.float64]) -> tuple[NDArray[np.f
 
 @dataclass(frozen=True)
 class FrameLinks:
-    """What linking did with one frame: tracks continued (ids, detections), tracks that ended because another
-    came too close (they could swap BBs), tracks expected but not found, tracks started, and where the
-    active tracks were predicted (aligned to the frame; rows follow ``expected``)."""
+    """What linking did with one frame: tracks continued and tracks started (ids and detections)."""
 
     continued: NDArray[np.intp]
     uv: NDArray[np.float64]
-    crowded: NDArray[np.intp]
-    missed: NDArray[np.intp]
     started: NDArray[np.intp]
     started_uv: NDArray[np.float64]
-    expected: NDArray[np.intp]
-    predicted: NDArray[np.float64]
-    n_ball_like: int
 
 
 class FrameLinker:
@@ -466,31 +459,25 @@ class FrameLinker:
         uv_c = np.ascontiguousarray(c[:, :2])
         matched_c = np.zeros(len(c), bool)
         matched_t = np.zeros(len(active), bool)
-        crowded = np.zeros(len(active), bool)
-        aligned = np.full((len(active), 2), np.nan)
         idx = np.full(len(active), -1)
-        if len(active):
+        if len(active) and len(c):
             pred_a = _predict_from_rays(store.ray_o, store.ray_d, store.count, active, view.matrices[0], store.last_uv,
                                         store.last_P[active])
-            aligned = pred_a
-            if len(c):
-                gates = s.gate_px * (1.0 + 0.5 * np.clip(p - store.last[active] - 1, 0, None))
-                idx, aligned = match_frame(pred_a, uv_c, s.search_px, gates, s.residual_px)
-                matched_t = idx >= 0
-                crowded = _crowded(aligned, s.ambiguous_px)
-                store.misses[active[crowded]] = s.max_gap  # ended here: not continued, not coasting
-                matched_t &= ~crowded
-                matched_c[idx[matched_t]] = True
-                store.add(p, active[matched_t], uv_c[idx[matched_t]], view)
-        missed = active[~matched_t & ~crowded]
+            gates = s.gate_px * (1.0 + 0.5 * np.clip(p - store.last[active] - 1, 0, None))
+            idx, aligned = match_frame(pred_a, uv_c, s.search_px, gates, s.residual_px)
+            matched_t = idx >= 0
+            crowded = _crowded(aligned, s.ambiguous_px)
+            store.misses[active[crowded]] = s.max_gap  # ended here: not continued, not coasting
+            matched_t &= ~crowded
+            matched_c[idx[matched_t]] = True
+            store.add(p, active[matched_t], uv_c[idx[matched_t]], view)
         store.misses[active[~matched_t]] += 1
         still = active[matched_t | (store.misses[active] <= s.max_gap)]
         fresh = np.flatnonzero(~matched_c)
         ids = store.new_tracks(len(fresh))
         store.add(p, ids, uv_c[fresh], view)
         self.active = np.concatenate([still, ids])
-        return FrameLinks(active[matched_t], uv_c[idx[matched_t]], active[crowded], missed, ids, uv_c[fresh],
-                          active, aligned, int(ball.sum()))
+        return FrameLinks(active[matched_t], uv_c[idx[matched_t]], ids, uv_c[fresh])
 
     def fragments(self, n_frames: int, min_length: int) -> NDArray[np.float64]:
         """2-D tracks ``(P, F, 2)`` of at least ``min_length`` detections (NaN where a track has none)."""
