@@ -8,6 +8,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from orbitct import __version__
+from orbitct_app.console.pages import install_console
 from orbitct_app.service.core.errors import ContentLengthLimit, install_error_handlers
 from orbitct_app.service.core.settings import ServiceSettings
 from orbitct_app.service.routers import (
@@ -18,6 +19,7 @@ from orbitct_app.service.routers import (
     orbits,
     reconstructions,
     scans,
+    session,
     stop,
 )
 from orbitct_app.service.state import Service
@@ -30,6 +32,7 @@ TAGS = [
     {"name": "calibrations", "description": "Geometric calibration from BBs (analyst)."},
     {"name": "reconstructions", "description": "FDK and PWLS reconstruction (analyst)."},
     {"name": "jobs", "description": "State, progress, log and cancellation of calibration and reconstruction jobs."},
+    {"name": "session", "description": "The web console's sign-in: a token exchanged for a session cookie (CSRF-protected)."},
     {"name": "health", "description": "Liveness, no token needed."},
 ]
 
@@ -59,11 +62,14 @@ def create_app(settings: ServiceSettings, *, service: Service | None = None) -> 
         ),
         openapi_tags=TAGS,
         lifespan=lifespan,
+        docs_url=None,  # served by the console from orbitct's own copies of Swagger UI and ReDoc (no CDN)
+        redoc_url=None,
     )
     app.state.service = svc
     install_error_handlers(app)
     app.add_middleware(ContentLengthLimit, max_bytes=settings.max_body_bytes)
-    for module in (health, stop, devices, orbits, scans, calibrations, reconstructions, jobs):
+    for module in (health, session, stop, devices, orbits, scans, calibrations, reconstructions, jobs):
         app.include_router(module.router)
+    install_console(app)
     return app
 

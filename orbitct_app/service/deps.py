@@ -9,6 +9,7 @@ from fastapi import Depends, HTTPException, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from orbitct_app.service.core.auth import Principal
+from orbitct_app.service.core.sessions import COOKIE, CSRF_HEADER, SAFE_METHODS, csrf_ok
 
 if TYPE_CHECKING:
     from orbitct_app.service.state import Service
@@ -25,9 +26,20 @@ ServiceDep = Annotated["Service", Depends(get_service)]
 
 
 async def get_principal(request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> Principal:
-    """Who calls, from the bearer token; 401 if missing or unknown."""
+    """Who calls: from the bearer token, else from the console's session cookie (state-changing requests made with
+    the cookie need its CSRF token in ``X-CSRF-Token``); 401 if neither, 403 on a missing or wrong CSRF token."""
     challenge = {"WWW-Authenticate": "Bearer"}
-    if credentials is None or credentials.scheme.lower() != "bearer" or not credentials.credentials:
+    if credentials is None:
+        signed_in = request.app.state.service.sessions.lookup(request.cookies.get(COOKIE, ""))
+        if signed_in is None:
+            raise HTTPException(401, "a bearer token is required (Authorization: Bearer <token>), or sign in at /sign-in",
+                                headers=challenge)
+        session, principal = signed_in
+        if request.method not in SAFE_METHODS and not csrf_ok(session, request.headers.get(CSRF_HEADER)):
+            raise HTTPException(403, f"this request came with the session cookie but without its {CSRF_HEADER} header; "
+                                     "reload the page")
+        return principal
+    if credentials.scheme.lower() != "bearer" or not credentials.credentials:
         raise HTTPException(401, "a bearer token is required (Authorization: Bearer <token>)", headers=challenge)
     if len(credentials.credentials) > 512:
         raise HTTPException(401, "unknown token", headers=challenge)

@@ -15,6 +15,7 @@ from orbitct_app.service.core.datadir import DataDirLock
 from orbitct_app.service.core.db import Store
 from orbitct_app.service.core.events import EventBus
 from orbitct_app.service.core.files import summarize_scan
+from orbitct_app.service.core.sessions import SessionStore
 from orbitct_app.service.core.settings import ServiceSettings
 from orbitct_app.service.jobs.manager import JobManager
 from orbitct_app.service.rig.client import RigClient
@@ -40,6 +41,7 @@ class Service:
         if settings.sim:
             self.dev_token = settings.dev_token or TOKEN_PREFIX + "dev_" + secrets.token_urlsafe(24)
         self.tokens = TokenRegistry(settings.tokens, settings.tokens_path, self.dev_token)
+        self.sessions = SessionStore(self.tokens)
         self.store = Store(settings.db_path)
         self.bus = EventBus(self.store)
         self.latch = StopLatch(settings.data_dir, SharedFlag(mp.get_context("spawn")))

@@ -28,6 +28,9 @@ PERMISSIONS: dict[str, frozenset[str]] = {
 SIM_DEV_ROLE = "sim-dev"
 PERMISSIONS[SIM_DEV_ROLE] = PERMISSIONS["operator"] | PERMISSIONS["analyst"]
 TOKEN_PREFIX = "oct_"
+# A stop the web server forwards to the guard for a signed-in console user: the service's forwarding secret as the
+# token, "name|role" of the user in this header
+ON_BEHALF_HEADER = "X-Orbitct-On-Behalf-Of"
 
 
 class TokenFileError(ValueError):
@@ -139,7 +142,10 @@ class TokenRegistry:
 
     def authenticate(self, token: str) -> Principal | None:
         """The principal of ``token``, or None if it is unknown."""
-        digest = hash_token(token)
+        return self.authenticate_hash(hash_token(token))
+
+    def authenticate_hash(self, digest: str) -> Principal | None:
+        """The principal of the token whose SHA-256 is ``digest`` (a signed-in session re-checks it on each request)."""
         found: Principal | None = None
         if self._dev_hash is not None and hmac.compare_digest(self._dev_hash, digest):
             found = Principal(name="sim-dev", role=SIM_DEV_ROLE)

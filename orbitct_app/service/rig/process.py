@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from orbitct.progress import ProgressEvent
+from orbitct_app.service.rig.preview import LatestFrame
 
 log = logging.getLogger("orbitct.service.rig.process")
 
@@ -99,6 +100,7 @@ class RigServer:
         self.rig: Any = None
         self.runner: Any = None
         self.scan_id: str | None = None
+        self.preview = LatestFrame()
         self.loop: asyncio.AbstractEventLoop | None = None
         self._send_lock = threading.Lock()
         self._closing = asyncio.Event()
@@ -283,8 +285,9 @@ class RigServer:
             raise CommandError("conflict", f"the bench is busy with scan {self.scan_id}; one scan at a time")
         req = self._request(spec)
         self.scan_id = scan_id
+        self.preview = LatestFrame()
         self.runner = ScanRunner(req, progress=lambda ev: self._progress(scan_id, ev), rig=self.rig,
-                                 interlock=self._latched_reason)
+                                 interlock=self._latched_reason, subscribers=[self.preview])
         asyncio.ensure_future(self._scan(scan_id, self.runner, Path(spec["out"])))
 
     async def _scan(self, scan_id: str, runner: Any, path: Path) -> None:
@@ -315,6 +318,11 @@ class RigServer:
         self.send("progress", scan_id, {"stage": event.stage, "done": int(event.done), "total": int(event.total),
                                         "message": event.message,
                                         "metrics": {k: float(v) for k, v in dict(event.metrics).items()}})
+
+    async def cmd_latest_frame(self, scan_id: str) -> dict[str, Any] | None:
+        """The running scan's newest frame, small and 8-bit (None before its first frame)."""
+        self._running(scan_id)
+        return await asyncio.get_running_loop().run_in_executor(None, self.preview.snapshot)
 
     async def cmd_pause(self, scan_id: str) -> None:
         """Pause at the next frame boundary."""

@@ -112,6 +112,35 @@ def _check_params(service: Any, body: ScanCreate) -> dict[str, Any]:
     return model.model_dump(mode="json", exclude_none=True)
 
 
+def _preflight(service: Any, body: ScanCreate, params: dict[str, Any], rel: str) -> dict[str, Any]:
+    """The bench's pre-flight of the scan (every frame against every axis limit, room on the disk); its spec."""
+    spec = {"out": str(service.settings.data_dir / rel), "orbit": body.orbit, "params": params, "errors": body.errors,
+            "seed": body.seed, "mode": body.mode}
+    try:
+        service.rig.preflight(spec)
+    except Invalid as exc:
+        raise Invalid(exc.message, details=[FieldProblem(field="params", reason=exc.message)]) from None
+    return spec
+
+
+class PreflightOut(BaseModel):
+    """A scan the bench could run now: nothing moved."""
+
+    frames: int
+    message: str
+
+
+@router.post("/preflight", response_model=PreflightOut, summary="Check a scan before anything moves",
+             responses={**BENCH_UNAVAILABLE, 507: {"model": ErrorBody, "description": "the scan would not fit on the disk"}})
+def preflight_scan(body: ScanCreate, service: ServiceDep, _: Reader) -> PreflightOut:
+    """Plan the scan and check every frame against every axis limit and the disk's room, as starting it would; 422
+    names the first infeasible frame and axis. Nothing moves, and a later start checks again."""
+    params = _check_params(service, body)
+    _preflight(service, body, params, f"scans/preflight-{uuid.uuid4().hex[:8]}.h5")
+    n = int(params["n_frames"])
+    return PreflightOut(frames=n, message=f"all {n} frames are within the limits of every axis, and the scan fits on the disk")
+
+
 @router.post("", response_model=ScanOut, status_code=202, summary="Start a scan",
              responses={409: {"model": ErrorBody, "description": "the bench is busy with another scan, or an emergency stop is latched"},
                         **BENCH_UNAVAILABLE,
@@ -128,12 +157,7 @@ def start_scan(body: ScanCreate, service: ServiceDep, who: ScanOperator, respons
         raise Conflict(f"the bench is busy with scan {service.rig.busy}; one scan at a time")
     scan_id = uuid.uuid4().hex[:16]
     rel = f"scans/{scan_id}.h5"
-    spec = {"out": str(service.settings.data_dir / rel), "orbit": body.orbit, "params": params, "errors": body.errors,
-            "seed": body.seed, "mode": body.mode}
-    try:
-        service.rig.preflight(spec)
-    except Invalid as exc:
-        raise Invalid(exc.message, details=[FieldProblem(field="params", reason=exc.message)]) from None
+    spec = _preflight(service, body, params, rel)
     service.store.add_scan(scan_id, name=body.name, orbit=body.orbit, request=body.model_dump(mode="json") | {"params": params},
                            file=rel, owner=who.name, frames_total=int(params["n_frames"]))
     try:
@@ -165,6 +189,29 @@ def scan_events(scan_id: str, service: ServiceDep, _: Reader,
     """Events ``state``, ``progress`` (one per frame) and a final ``end``, in order; resumes after ``Last-Event-ID``."""
     scan_or_404(service, scan_id)
     return sse_response(service.bus, f"scan:{scan_id}", last_event_id)
+
+
+class FrameOut(BaseModel):
+    """The newest frame of a running scan, small and 8-bit, for a live view."""
+
+    index: int = Field(description="frame index in the scan file")
+    kind: str = Field(description="projection, flat or dark")
+    width: int
+    height: int
+    scale: float = Field(description="picture pixels per detector pixel")
+    pixels: str = Field(description="base64 of width x height bytes, row by row (1st to 99.5th percentile as 0 to 255)")
+
+
+@router.get("/{scan_id}/frames/latest", response_model=FrameOut, summary="The newest frame of a running scan",
+            responses={204: {"description": "no frame yet"}, 409: {"model": ErrorBody, "description": "the scan is not running"},
+                       **BENCH_UNAVAILABLE})
+async def latest_frame(scan_id: str, service: ServiceDep, _: Reader) -> Any:
+    """A preview of the frame acquired last (the file has every frame at full depth)."""
+    row = scan_or_404(service, scan_id)
+    if service.rig.busy != scan_id:
+        raise Conflict(f"scan {scan_id} is {row['state']}, not running; its frames are in the scan file")
+    frame = await service.rig.run("latest_frame", scan_id=scan_id)
+    return Response(status_code=204) if frame is None else FrameOut(**frame)
 
 
 @router.post("/{scan_id}/abort", response_model=ScanOut, status_code=202, summary="Abort a running scan",

@@ -84,7 +84,7 @@ async def emergency_stop(request: Request, service: ServiceDep, who: Stopper, bo
     ``halted`` is true only when each device's stop was acknowledged and its read-back confirms it;
     otherwise ``message`` and ``devices`` say what could not be verified. Any valid token may stop.
     """
-    reply = await service.estop.stop(who, (body or StopRequest()).reason, request.headers["authorization"])
+    reply = await service.estop.stop(who, (body or StopRequest()).reason, request.headers.get("authorization"))
     return StopOut(**reply)
 
 

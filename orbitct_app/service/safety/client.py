@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing as mp
+import secrets
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -12,6 +13,7 @@ from typing import Any
 import httpx
 
 from acquire.rigs.links import DeviceLink
+from orbitct_app.service.core.auth import ON_BEHALF_HEADER, Principal
 from orbitct_app.service.core.children import Backoff, end_child
 from orbitct_app.service.core.settings import ServiceSettings
 
@@ -31,6 +33,7 @@ class GuardClient:
     def __init__(self, settings: ServiceSettings, flag: Any, dev_token: str | None,
                  on_stop: Callable[[dict[str, Any]], None]) -> None:
         self.settings, self.flag, self.dev_token, self._on_stop = settings, flag, dev_token, on_stop
+        self._forward_secret = secrets.token_urlsafe(32)  # stops of signed-in console users (no token of theirs here)
         self.state = "not started"
         self.port: int | None = None
         self._links: dict[str, tuple[str, dict[str, Any]]] = {}
@@ -76,7 +79,8 @@ class GuardClient:
         self._process = _CTX.Process(
             target=guard_main, name="orbitct-guard", daemon=True,
             args=(self._links, str(s.data_dir), self.flag, s.host, port, [t.model_dump() for t in s.tokens],
-                  str(s.tokens_path), self.dev_token, child, s.bench_nice - 1 if s.bench_nice < 0 else 0),
+                  str(s.tokens_path), self.dev_token, child, s.bench_nice - 1 if s.bench_nice < 0 else 0,
+                  self._forward_secret),
         )
         self._process.start()
         child.close()
@@ -117,13 +121,16 @@ class GuardClient:
         if not self._closing:
             self._spawn(self.port if self.port is not None else port)  # the same port: clients keep their URL
 
-    async def stop(self, authorization: str, reason: str) -> dict[str, Any]:
-        """Forward a stop (with the caller's own token) to the guard; its verified reply."""
+    async def stop(self, authorization: str | None, reason: str, who: Principal) -> dict[str, Any]:
+        """Forward a stop to the guard with the caller's own token, or (a console session, no token here) with this
+        service's forwarding secret on behalf of ``who``; the guard's verified reply."""
         if not self.alive or self.url is None:
             raise GuardUnavailable(f"the guard is not listening ({self.state})")
+        headers = {"Authorization": authorization} if authorization else {
+            "Authorization": f"Bearer {self._forward_secret}", ON_BEHALF_HEADER: f"{who.name}|{who.role}"}
         try:
             async with httpx.AsyncClient(timeout=FORWARD_TIMEOUT_S) as client:
-                r = await client.post(f"{self.url}/stop", json={"reason": reason}, headers={"Authorization": authorization})
+                r = await client.post(f"{self.url}/stop", json={"reason": reason}, headers=headers)
         except httpx.HTTPError as exc:
             raise GuardUnavailable(f"the guard did not answer ({type(exc).__name__}: {exc})") from None
         if r.status_code != 202:

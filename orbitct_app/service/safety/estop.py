@@ -33,12 +33,12 @@ class EmergencyStop:
         """A stop happened (told by the guard, or done here): one ``stop`` event."""
         self.bus.publish(TOPIC, "stop", {k: v for k, v in reply.items() if k != "accepted"})
 
-    async def stop(self, who: Principal, reason: str, authorization: str) -> dict[str, Any]:
+    async def stop(self, who: Principal, reason: str, authorization: str | None) -> dict[str, Any]:
         """Stop through the guard, else through the rig process; the reply says what was verified and by which path."""
         scan_id = self.rig.busy
         reason = reason or f"emergency stop by {who.name}"
         try:
-            reply = await self.guard.stop(authorization, reason)
+            reply = await self.guard.stop(authorization, reason, who)
             reply["via"] = "guard"
         except GuardUnavailable as exc:
             log.error("emergency stop: %s; stopping through the rig process", exc)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hmac
 import json
 import logging
 import os
@@ -28,7 +29,7 @@ from typing import Any
 
 from acquire.rigs.links import DeviceLink
 from devices.halt import HaltCheck, halt_and_verify, summary
-from orbitct_app.service.core.auth import Principal, TokenRegistry
+from orbitct_app.service.core.auth import ON_BEHALF_HEADER, Principal, TokenRegistry
 from orbitct_app.service.core.settings import TokenHash
 from orbitct_app.service.safety.latch import StopLatch
 
@@ -120,8 +121,10 @@ class DeviceGuard:
 class Guard:
     """The stop itself: latch first, then halt and verify; tells the web server what happened."""
 
-    def __init__(self, devices: DeviceGuard, latch: StopLatch, tokens: TokenRegistry, events: Connection | None) -> None:
+    def __init__(self, devices: DeviceGuard, latch: StopLatch, tokens: TokenRegistry, events: Connection | None,
+                 forward_secret: str = "") -> None:
         self.devices, self.latch, self.tokens, self._events = devices, latch, tokens, events
+        self.forward_secret = forward_secret
         self._send_lock = threading.Lock()
 
     def stop(self, who: Principal, reason: str) -> dict[str, Any]:
@@ -176,6 +179,11 @@ class StopHandler(BaseHTTPRequestHandler):
             self._error(401, "unauthorized", "a bearer token is required (Authorization: Bearer <token>)")
             return None
         who = self.guard.tokens.authenticate(token.strip())
+        behalf = self.headers.get(ON_BEHALF_HEADER, "")
+        if who is None and behalf and self.guard.forward_secret and hmac.compare_digest(
+                token.strip().encode(), self.guard.forward_secret.encode()):
+            name, _, role = behalf.partition("|")  # the web server checked this signed-in user's session
+            who = Principal(name=name[:100], role=role[:20])
         if who is None:
             self._error(401, "unauthorized", "unknown token")
             return None
@@ -241,7 +249,7 @@ class _Server(ThreadingHTTPServer):
 
 def guard_main(links: dict[str, tuple[str, dict[str, Any]]], data_dir: str, flag: Any, host: str, port: int,
                tokens: list[dict[str, Any]], tokens_path: str | None, dev_token: str | None, conn: Connection,
-               nice: int = 0) -> None:
+               nice: int = 0, forward_secret: str = "") -> None:
     """Entry point of the guard process: listen on ``host:port`` (0: any free port), report the port, serve."""
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s guard: %(message)s")
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # the driver names a garbled reply itself
@@ -251,7 +259,7 @@ def guard_main(links: dict[str, tuple[str, dict[str, Any]]], data_dir: str, flag
     registry = TokenRegistry([TokenHash.model_validate(t) for t in tokens], Path(tokens_path) if tokens_path else None,
                              dev_token)
     devices = DeviceGuard({k: DeviceLink(*v) for k, v in links.items()})
-    guard = Guard(devices, StopLatch(Path(data_dir), flag), registry, conn)
+    guard = Guard(devices, StopLatch(Path(data_dir), flag), registry, conn, forward_secret)
     handler = type("BoundStopHandler", (StopHandler,), {"guard": guard})
     try:
         server = _Server((host, port), handler)

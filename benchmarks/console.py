@@ -1,0 +1,145 @@
+"""Web console under load: browser-equivalent clients on the live scan page; does the scan slow down, how fast do
+pages load?
+
+Usage: .venv/bin/python benchmarks/console.py [--clients 10] [--frames 300] [--detector 768] [--reload-s 3]
+       [--time-scale 1.0] [--max-s 600]
+Starts ``orbitct serve --sim`` on loopback, runs a scan alone, then the same scan with ``--clients``
+signed-in clients that each do what Chromium does on ``/console/scans/{id}``: load the page (HTML,
+then its style sheet, script and icon at once), then, as ``console.js`` does, read the scan and the
+latch, follow the scan's and the stop's event streams, and fetch the latest frame every second;
+each client reloads the page every ``--reload-s`` seconds. A page load is timed from the request for
+the HTML to the last of its files. The clients run in a process of their own.
+Prints the frame rate alone and loaded, and page-load and frame-preview latency percentiles.
+Targets (issue 16): frame rate drop < 10 %, page loads p95 < 300 ms with 10 clients.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import multiprocessing as mp
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+# this folder last on the import path (its scripts are named like modules of the project), the project first
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
+from machine_info import describe_machine  # noqa: E402
+from service import TOKEN, frame_rate, pct, scan_ended, scan_started, start_service  # noqa: E402
+
+ASSETS = ("/static/console.css", "/static/console.js", "/static/favicon.svg")
+
+
+async def client(base: str, scan_id: str, stop: asyncio.Event, reload_s: float, loads: list[float],
+                 previews: list[float], errors: list[str]) -> None:
+    """One browser on the live scan page until ``stop``."""
+    async with httpx.AsyncClient(base_url=base, timeout=30, limits=httpx.Limits(max_connections=6)) as http:
+        signed = await http.post("/session", json={"token": TOKEN})
+        if signed.status_code != 200:
+            errors.append(f"sign-in {signed.status_code}")
+            return
+        csrf = signed.json()["csrf_token"]
+        http.headers["X-CSRF-Token"] = csrf
+        while not stop.is_set():
+            t = time.perf_counter()
+            page = await http.get(f"/console/scans/{scan_id}")
+            answers = await asyncio.gather(*(http.get(a) for a in ASSETS))
+            loads.append(time.perf_counter() - t)
+            for r in (page, *answers):
+                if r.status_code != 200:
+                    errors.append(f"{r.request.url.path} {r.status_code}")
+            await asyncio.gather(http.get(f"/scans/{scan_id}"), http.get("/stop"))
+            streams = [asyncio.create_task(follow(http, f"/scans/{scan_id}/events")), asyncio.create_task(follow(http, "/stop/events"))]
+            until = time.monotonic() + reload_s
+            while time.monotonic() < until and not stop.is_set():
+                t = time.perf_counter()
+                r = await http.get(f"/scans/{scan_id}/frames/latest")
+                if r.status_code in (200, 204):
+                    previews.append(time.perf_counter() - t)
+                elif r.status_code != 409:  # 409: the scan has just ended
+                    errors.append(f"frame {r.status_code}")
+                await asyncio.sleep(1.0)
+            for task in streams:
+                task.cancel()
+
+
+async def follow(http: httpx.AsyncClient, path: str) -> None:
+    """Read an event stream as EventSource does, until cancelled."""
+    async with http.stream("GET", path, timeout=None) as r:
+        async for _ in r.aiter_bytes():
+            pass
+
+
+def load_process(base: str, scan_id: str, clients: int, reload_s: float, conn: Any) -> None:
+    """The clients, in a process of their own; sends (page loads, previews, errors) when told to stop."""
+
+    async def run() -> tuple[list[float], list[float], list[str]]:
+        stop = asyncio.Event()
+        loads: list[float] = []
+        previews: list[float] = []
+        errors: list[str] = []
+        tasks = [asyncio.create_task(client(base, scan_id, stop, reload_s, loads, previews, errors)) for _ in range(clients)]
+        conn.send("started")
+        await asyncio.get_running_loop().run_in_executor(None, conn.recv)
+        stop.set()
+        await asyncio.wait(tasks, timeout=10)
+        return loads, previews, errors
+
+    conn.send(asyncio.run(run()))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--clients", type=int, default=10, help="browsers on the live scan page (default 10)")
+    ap.add_argument("--frames", type=int, default=300, help="projections per scan (default 300)")
+    ap.add_argument("--detector", type=int, default=768, help="simulated panel rows = cols (default 768)")
+    ap.add_argument("--reload-s", type=float, default=3.0, help="each client reloads the page this often (default 3)")
+    ap.add_argument("--time-scale", type=float, default=1.0, help="twin speed-up (default 1 = real time)")
+    ap.add_argument("--max-s", type=float, default=600.0, help="give up a scan after this long (default 600)")
+    args = ap.parse_args()
+    print(describe_machine())
+    with tempfile.TemporaryDirectory(prefix="orbitct-console-bench-") as tmp:
+        proc, base = start_service(Path(tmp), args.detector, args.time_scale)
+        try:
+            with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=60) as api:
+                alone = scan_ended(api, scan_started(api, args.frames), args.max_s)
+                scan_id = scan_started(api, args.frames)
+                parent, child = mp.Pipe()
+                loader = mp.get_context("spawn").Process(target=load_process, args=(base, scan_id, args.clients, args.reload_s, child))
+                loader.start()
+                parent.recv()
+                loaded = scan_ended(api, scan_id, args.max_s)
+                parent.send("stop")
+                loads, previews, errors = parent.recv()
+                loader.join(30)
+        finally:
+            proc.terminate()
+            proc.wait(30)
+    rate_alone, rate_loaded = frame_rate(alone), frame_rate(loaded)
+    drop = 100.0 * (1.0 - rate_loaded / rate_alone)
+    print(f"\n{args.clients} browser-equivalent clients on the live scan page, {args.frames} projections of "
+          f"{args.detector}^2 px, time scale {args.time_scale:g}\n")
+    print("| measure | value | target |")
+    print("| --- | --- | --- |")
+    print(f"| frame rate alone | {rate_alone:.2f} frames/s | |")
+    print(f"| frame rate with the clients | {rate_loaded:.2f} frames/s | |")
+    print(f"| frame-rate drop | {drop:.1f} % | < 10 % |")
+    if loads:
+        print(f"| page loads (HTML + CSS + JS + icon), {len(loads)} | p50 {pct(loads, 50):.0f} ms, p95 {pct(loads, 95):.0f} ms, "
+              f"max {pct(loads, 100):.0f} ms | p95 < 300 ms |")
+    if previews:
+        print(f"| latest-frame previews, {len(previews)} | p50 {pct(previews, 50):.0f} ms, p95 {pct(previews, 95):.0f} ms | |")
+    print(f"| errors | {len(errors)} {sorted(set(errors))[:5] if errors else ''} | none |")
+    ok = drop < 10.0 and bool(loads) and pct(loads, 95) < 300.0 and not errors
+    print("\n" + ("targets met" if ok else "TARGETS NOT MET"))
+    sys.exit(0 if ok else 1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,599 @@
+// orbitct console: every page talks to the REST API with the session cookie and its CSRF token.
+// No framework and no build step; data is put into the page as text (never as HTML), so API content cannot inject markup.
+'use strict';
+
+const $ = (sel, root = document) => root.querySelector(sel);
+const $$ = (sel, root = document) => Array.from(root.querySelectorAll(sel));
+const CSRF = (document.querySelector('meta[name="csrf-token"]') || {}).content || '';
+const FINAL = ['complete', 'aborted', 'failed', 'interrupted', 'succeeded', 'cancelled'];
+
+class ApiError extends Error {
+  constructor(message, status) { super(message); this.status = status; }
+}
+
+/** Call the REST API; JSON in and out (or the raw response with raw: true); errors become ApiError with the API's message. */
+async function api(method, path, body, { raw = false } = {}) {
+  const options = { method, headers: {}, credentials: 'same-origin' };
+  if (method !== 'GET') options.headers['X-CSRF-Token'] = CSRF;
+  if (body !== undefined) { options.headers['Content-Type'] = 'application/json'; options.body = JSON.stringify(body); }
+  let response;
+  try { response = await fetch(path, options); } catch (exc) { throw new ApiError('the service does not answer (' + exc.message + ')', 0); }
+  if (response.status === 401 && document.body.dataset.page !== 'sign-in') {
+    location.assign('/sign-in?next=' + encodeURIComponent(location.pathname));
+    throw new ApiError('signed out: sign in again', 401);
+  }
+  if (!response.ok) {
+    let message = response.status + ' ' + response.statusText;
+    try {
+      const e = await response.json();
+      message = e.message || message;
+      const extra = (e.details || []).filter((d) => !message.includes(d.reason)).map((d) => d.field + ': ' + d.reason);
+      if (extra.length) message += ' (' + extra.join('; ') + ')';
+    } catch (_) { /* not JSON */ }
+    throw new ApiError(message, response.status);
+  }
+  if (raw) return response;
+  if (response.status === 204) return null;
+  return (response.headers.get('content-type') || '').includes('json') ? response.json() : response.text();
+}
+
+/** An element with attributes and children (strings become text nodes). */
+function el(tag, attrs = {}, ...children) {
+  const node = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs)) {
+    if (v === undefined || v === null || v === false) continue;
+    if (k === 'class') node.className = v; else if (k === 'text') node.textContent = v;
+    else if (k.startsWith('on')) node.addEventListener(k.slice(2), v); else node.setAttribute(k, v === true ? '' : v);
+  }
+  for (const c of children.flat()) if (c !== null && c !== undefined) node.append(c instanceof Node ? c : String(c));
+  return node;
+}
+
+function fmt(v, digits = 3) {
+  if (v === null || v === undefined) return '—';
+  if (typeof v === 'boolean') return v ? 'yes' : 'no';
+  if (typeof v === 'number') return Number.isInteger(v) ? String(v) : String(Number(v.toPrecision(digits)));
+  if (Array.isArray(v)) return v.map((x) => fmt(x, digits)).join(', ');
+  if (typeof v === 'object') return Object.entries(v).map(([k, x]) => k + ' ' + fmt(x, digits)).join(', ');
+  return String(v);
+}
+
+function label(key) { return key.replace(/_utc$/, ' (UTC)').replace(/_/g, ' ').replace(/ mm$/, ' (mm)').replace(/ deg$/, ' (deg)').replace(/ px$/, ' (px)').replace(/ s$/, ' (s)'); }
+
+function facts(dl, entries) {
+  dl.replaceChildren(...entries.filter(([, v]) => v !== undefined).flatMap(([k, v]) => [el('dt', { text: label(k) }), el('dd', { text: fmt(v) })]));
+}
+
+function badge(node, state) { node.textContent = state; node.className = 'badge ' + state; }
+
+/** The error slot next to where an action was taken. */
+function errorSlot(node) {
+  const scope = node.closest('fieldset, form, .actions, .card, section, .latch, main') || document.body;
+  return $('.error', scope) || $('main .error');
+}
+
+/** Run an action from a button: disabled while it runs, its error shown beside it. */
+async function act(button, fn) {
+  const slot = errorSlot(button);
+  if (slot) slot.textContent = '';
+  button.disabled = true;
+  try { return await fn(); } catch (exc) { if (slot) slot.textContent = exc.message; else alert(exc.message); return undefined; }
+  finally { button.disabled = false; }
+}
+
+/** Server-sent events with named handlers; the browser resumes after the last id on reconnect. */
+function listen(path, handlers) {
+  const source = new EventSource(path, { withCredentials: true });
+  for (const [name, fn] of Object.entries(handlers)) source.addEventListener(name, (ev) => fn(JSON.parse(ev.data), ev));
+  return source;
+}
+
+function every(ms, fn) { fn(); return setInterval(() => { if (!document.hidden) fn(); }, ms); }
+
+// ---------------------------------------------------------------- on every page: stop, latch, sign-out
+function initFrame() {
+  const stop = $('#estop');
+  const press = async () => {
+    const notice = $('#stop-result');
+    notice.hidden = false;
+    notice.textContent = 'Stopping the bench…';
+    try {
+      const r = await api('POST', '/stop', { reason: 'emergency stop from the web console' });
+      notice.textContent = (r.halted ? 'Stopped and verified: ' : 'STOP NOT VERIFIED: ') + r.message
+        + (r.scan_aborted ? ' Scan ' + r.scan_aborted + ' aborted.' : '');
+      notice.className = r.halted ? 'notice' : 'notice error';
+    } catch (exc) {
+      notice.textContent = 'The stop request failed: ' + exc.message + '. Use the hardware stop button.';
+      notice.className = 'notice error';
+    }
+    refreshLatch();
+  };
+  stop.addEventListener('click', press);
+  document.addEventListener('keydown', (ev) => { if (ev.key === 'Escape' && !ev.repeat) { ev.preventDefault(); press(); } });
+  $('#sign-out').addEventListener('click', async () => {
+    try { await api('POST', '/session/sign-out'); } finally { location.assign('/sign-in'); }
+  });
+  const reset = $('#reset-stop');
+  if (reset) {
+    reset.addEventListener('click', () => act(reset, async () => {
+      await api('POST', '/stop/reset', { note: $('#reset-note').value });
+      $('#stop-result').hidden = true;
+      await refreshLatch();
+    }));
+  }
+  refreshLatch();
+  listen('/stop/events', { stop: refreshLatch, reset: refreshLatch });
+}
+
+async function refreshLatch() {
+  try {
+    const s = await api('GET', '/stop');
+    $('#latch').hidden = !s.latched;
+    $('#latch-text').textContent = s.latched ? `Since ${s.since_utc} by ${s.by}: ${s.reason}. No motion or X-rays until it is reset.` : '';
+    document.body.classList.toggle('latched', s.latched);
+  } catch (_) { /* the next event or page load tries again */ }
+}
+
+// ---------------------------------------------------------------- sign-in
+function pageSignIn() {
+  const form = $('#sign-in-form');
+  form.addEventListener('submit', (ev) => {
+    ev.preventDefault();
+    act($('button', form), async () => {
+      const token = $('#token').value.trim();
+      $('#token').value = '';
+      await api('POST', '/session', { token });
+      location.assign(document.body.dataset.next || '/console/bench');
+    });
+  });
+}
+
+// ---------------------------------------------------------------- bench
+async function pageBench() {
+  const box = $('#devices');
+  let devices;
+  try { devices = await api('GET', '/devices'); } catch (exc) { $('#bench-error').textContent = exc.message; box.replaceChildren(); return; }
+  box.replaceChildren();
+  for (const dev of devices) {
+    const card = $('#device-card').content.firstElementChild.cloneNode(true);
+    card.dataset.device = dev.name;
+    $('.name', card).textContent = dev.name;
+    $('.model', card).textContent = `${dev.model} · serial ${dev.serial}${dev.uri ? ' · ' + dev.uri : ''}`;
+    const move = $('form.move', card);
+    const ref = $('.reference', card);
+    if (ref) {
+      ref.hidden = dev.axes.length === 0;
+      ref.addEventListener('click', () => act(ref, async () => { render(card, await api('POST', `/devices/${dev.name}/reference`)); }));
+    }
+    if (move && dev.axes.length) {
+      move.hidden = false;
+      $('.axes', move).replaceChildren(...dev.axes.map((a) => el('label', {},
+        `${a.name} (${a.unit}, ${a.low} to ${a.high})`,
+        el('input', { type: 'number', step: 'any', min: a.low, max: a.high, name: a.name, 'aria-label': `target of axis ${a.name} in ${a.unit}` }))));
+      move.addEventListener('submit', (ev) => {
+        ev.preventDefault();
+        const targets = {};
+        for (const input of $$('input', move)) if (input.value !== '') targets[input.name] = Number(input.value);
+        act($('button', move), async () => {
+          if (!Object.keys(targets).length) throw new ApiError('enter a target for at least one axis');
+          render(card, await api('POST', `/devices/${dev.name}/move`, { targets }));
+        });
+      });
+    }
+    const fault = $('.reset-fault', card);
+    if (fault) fault.addEventListener('click', () => act(fault, async () => { render(card, await api('POST', `/devices/${dev.name}/reset-fault`)); }));
+    box.append(card);
+  }
+  every(2000, () => devices.forEach(async (dev) => {
+    const card = $(`[data-device="${dev.name}"]`, box);
+    try { render(card, await api('GET', `/devices/${dev.name}`)); } catch (exc) { $('.error', card).textContent = exc.message; }
+  }));
+
+  function render(card, reading) {
+    const rows = Object.entries(reading.state).map(([k, v]) => {
+      const cls = typeof v === 'boolean' ? (v === (k.includes('fault') || k.includes('moving') || k === 'exposing' || k.includes('high_voltage')) ? 'no' : 'yes') : '';
+      return el('tr', {}, el('th', { text: label(k) }), el('td', { class: cls, text: fmt(v, 5) }));
+    });
+    $('table.state tbody', card).replaceChildren(...rows);
+    const fault = $('.reset-fault', card);
+    if (fault) fault.hidden = !Object.entries(reading.state).some(([k, v]) => k.includes('fault') && v && v !== 'none');
+  }
+}
+
+// ---------------------------------------------------------------- new scan
+async function pageScanNew() {
+  const form = $('#scan-form');
+  const kinds = await api('GET', '/orbits');
+  const select = $('#orbit');
+  select.replaceChildren(...kinds.map((k) => el('option', { value: k.kind, text: k.kind })));
+  const pick = () => {
+    const kind = kinds.find((k) => k.kind === select.value);
+    $('#orbit-description').textContent = kind.description;
+    const props = kind.parameters.properties || {};
+    const required = kind.parameters.required || [];
+    $('#frames').placeholder = props.n_frames && props.n_frames.default ? `default ${props.n_frames.default}` : "the orbit's default";
+    $('#params').replaceChildren(...Object.entries(props).filter(([name]) => name !== 'n_frames').map(([name, p]) => paramInput(name, p, required.includes(name))));
+    $('#check-result').hidden = true;
+  };
+  select.addEventListener('change', pick);
+  pick();
+  detector();
+
+  const body = () => {
+    const params = {};
+    for (const input of $$('#params [data-param]')) {
+      if (input.type === 'checkbox') { params[input.dataset.param] = input.checked; continue; }
+      if (input.value === '') continue;
+      params[input.dataset.param] = input.dataset.kind === 'json' ? JSON.parse(input.value) : input.type === 'number' ? Number(input.value) : input.value;
+    }
+    const frames = $('#frames').value;
+    return { name: $('#scan-name').value, orbit: select.value, params, frames: frames === '' ? null : Number(frames),
+             errors: $('#errors').value, seed: Number($('#seed').value || 0), mode: $('#mode').value };
+  };
+  $('#check').addEventListener('click', (ev) => act(ev.currentTarget, async () => {
+    const scan = body();
+    const spec = { kind: scan.orbit, params: { ...scan.params, ...(scan.frames ? { n_frames: scan.frames } : {}) } };
+    const summary = await api('POST', '/orbits/validate', spec);
+    $('#check-result').hidden = false;
+    facts($('#orbit-summary'), [['frames', summary.n_frames], ['segments', summary.n_segments], ['rotation_deg', summary.rotation_deg],
+      ['tilt_deg', summary.tilt_deg], ['step per frame (rotation, tilt) (deg)', summary.step_deg]]);
+    const png = await api('POST', '/orbits/preview', spec, { raw: true });
+    const img = $('#preview');
+    img.src = URL.createObjectURL(await png.blob());
+    img.hidden = false;
+    const pf = $('#preflight');
+    try {
+      const r = await api('POST', '/scans/preflight', scan);
+      pf.textContent = '✔ Pre-flight passed: ' + r.message;
+      pf.className = 'yes';
+    } catch (exc) {
+      pf.textContent = '✘ Pre-flight refused: ' + exc.message;
+      pf.className = 'no';
+    }
+  }));
+  form.addEventListener('submit', (ev) => {
+    ev.preventDefault();
+    act($('#start'), async () => {
+      const scan = await api('POST', '/scans', body());
+      location.assign(`/console/scans/${scan.id}`);
+    });
+  });
+
+  async function detector() {
+    try {
+      const devices = await api('GET', '/devices');
+      const det = devices.find((d) => /detector|panel/i.test(d.name)) || null;
+      if (!det) { $('#detector').textContent = 'no detector connected'; return; }
+      const reading = await api('GET', `/devices/${det.name}`);
+      const dl = el('dl', { class: 'facts' });
+      facts(dl, [['device', `${det.name} (${det.model})`], ...Object.entries(reading.state).filter(([, v]) => typeof v !== 'object')]);
+      $('#detector').replaceChildren(dl, el('p', { class: 'help', text: 'Detector settings come from the bench configuration.' }));
+    } catch (exc) { $('#detector').textContent = exc.message; }
+  }
+}
+
+function paramInput(name, p, required) {
+  const schema = p.anyOf ? (p.anyOf.find((x) => x.type && x.type !== 'null') || p) : p;
+  const id = 'param-' + name;
+  const text = label(name) + (p.description ? ` — ${p.description}` : '');
+  let input;
+  if (schema.type === 'boolean') {
+    input = el('input', { id, type: 'checkbox', 'data-param': name });
+    input.checked = p.default === true;
+    return el('label', { class: 'check', for: id }, input, text);
+  }
+  if (schema.enum) {
+    input = el('select', { id, 'data-param': name }, ...(required ? [] : [el('option', { value: '', text: 'default' })]),
+      ...schema.enum.map((v) => el('option', { value: v, text: v, selected: v === p.default })));
+  } else if (schema.type === 'number' || schema.type === 'integer') {
+    input = el('input', { id, type: 'number', step: schema.type === 'integer' ? 1 : 'any', 'data-param': name, required,
+      min: schema.minimum ?? (schema.exclusiveMinimum !== undefined ? undefined : undefined), max: schema.maximum });
+    if (p.default !== undefined && p.default !== null) input.value = p.default;
+  } else {
+    input = el('input', { id, 'data-param': name, 'data-kind': schema.type === 'string' ? 'text' : 'json', required,
+      placeholder: schema.type === 'string' ? '' : 'JSON, e.g. [[0, 0], [90, 10]]' });
+    if (p.default !== undefined && p.default !== null) input.value = typeof p.default === 'string' ? p.default : JSON.stringify(p.default);
+  }
+  return el('div', {}, el('label', { for: id, text }), input);
+}
+
+// ---------------------------------------------------------------- scans
+function pageScans() {
+  const load = async () => {
+    const state = $('#state').value;
+    const text = $('#text').value.toLowerCase();
+    try {
+      const rows = await api('GET', '/scans?limit=200' + (state ? '&state=' + state : ''));
+      $('#scan-table tbody').replaceChildren(...rows.filter((s) => !text || (s.name + ' ' + s.id).toLowerCase().includes(text)).map((s) => el('tr', {},
+        el('td', {}, el('a', { href: `/console/scans/${s.id}`, text: s.name || '(no name)' })), el('td', {}, el('code', { text: s.id })),
+        el('td', { text: s.orbit }), el('td', {}, el('span', { class: 'badge ' + s.state, text: s.state })),
+        el('td', { text: `${s.frames_done} / ${s.frames_total}` }), el('td', { text: s.owner }), el('td', { text: s.created_utc.slice(0, 19).replace('T', ' ') }))));
+      if (!$('#scan-table tbody').children.length) $('#scan-table tbody').append(el('tr', {}, el('td', { colspan: 7, class: 'muted', text: 'No scans match.' })));
+      $('main > .error').textContent = '';
+    } catch (exc) { $('main > .error').textContent = exc.message; }
+  };
+  $('#state').addEventListener('change', load);
+  $('#text').addEventListener('input', load);
+  every(3000, load);
+}
+
+// ---------------------------------------------------------------- one scan: live, summary, jobs
+async function pageScan() {
+  const id = document.body.dataset.scan;
+  let scan;
+  let events = null;
+  let framePoll = null;
+  const show = (s) => {
+    scan = s;
+    $('#scan-name').textContent = s.name || s.id;
+    badge($('#scan-state'), s.state);
+    facts($('#scan-facts'), [['id', s.id], ['orbit', s.orbit], ['owner', s.owner], ['created_utc', s.created_utc], ['started_utc', s.started_utc],
+      ['finished_utc', s.finished_utc], ['frames', `${s.frames_done} of ${s.frames_total}`]]);
+    $('#scan-reason').hidden = !s.reason;
+    $('#scan-reason').textContent = s.reason;
+    const live = !FINAL.includes(s.state);
+    $('#live').hidden = !live && !events;
+    if (s.progress && Object.keys(s.progress).length) progress(s.progress);
+    buttons(s.state);
+    if (!live) ended(s);
+  };
+  const progress = (p) => {
+    const bar = $('#scan-progress');
+    bar.max = Math.max(p.total || 1, 1);
+    bar.value = p.done || 0;
+    const m = p.metrics || {};
+    const parts = [`${p.stage || 'scan'}: frame ${p.done} of ${p.total}`];
+    if (m.rate_fps) parts.push(`${m.rate_fps.toFixed(1)} frames/s`);
+    if (m.time_left_s !== undefined && m.time_left_s !== null) parts.push(`${Math.round(m.time_left_s)} s left`);
+    if (p.message) parts.push(p.message);
+    $('#scan-progress-text').textContent = parts.join(' · ');
+  };
+  const buttons = (state) => {
+    if (!$('#pause')) return;
+    $('#pause').hidden = state !== 'running';
+    $('#resume').hidden = state !== 'paused';
+    $('#abort').hidden = FINAL.includes(state);
+  };
+  const ended = (s) => {
+    if (framePoll) { clearInterval(framePoll); framePoll = null; }
+    $('#results').hidden = false;
+    const summary = s.summary || {};
+    facts($('#scan-summary'), Object.entries(summary).filter(([k]) => k !== 'timing').map(([k, v]) => [k, v]));
+    $('#download').hidden = s.state === 'running' || s.state === 'queued';
+    $('#jobs').hidden = s.state !== 'complete';
+    if (s.state === 'complete') jobs();
+  };
+  if ($('#pause')) {
+    $('#pause').addEventListener('click', (ev) => act(ev.currentTarget, async () => show(await api('POST', `/scans/${id}/pause`))));
+    $('#resume').addEventListener('click', (ev) => act(ev.currentTarget, async () => show(await api('POST', `/scans/${id}/resume`))));
+    $('#abort').addEventListener('click', (ev) => act(ev.currentTarget, async () => {
+      if (!confirm('Abort this scan? Axes halt and X-rays go off; the file keeps the frames so far.')) return;
+      show(await api('POST', `/scans/${id}/abort`, { reason: 'aborted from the web console' }));
+    }));
+  }
+  try { show(await api('GET', `/scans/${id}`)); } catch (exc) { $('#scan-error').textContent = exc.message; return; }
+  if (!FINAL.includes(scan.state)) {
+    $('#live').hidden = false;
+    events = listen(`/scans/${id}/events`, {
+      progress: (p) => progress(p),
+      state: (d) => { if (d.state) { badge($('#scan-state'), d.state); buttons(d.state); } },
+      warning: (d) => $('#scan-warnings').append(el('li', { text: d.message || JSON.stringify(d) })),
+      end: async () => { events.close(); show(await api('GET', `/scans/${id}`)); },
+    });
+    framePoll = every(1000, latestFrame);
+  }
+
+  async function latestFrame() {
+    try {
+      const f = await api('GET', `/scans/${id}/frames/latest`);
+      if (!f || !f.pixels) return;
+      const canvas = $('#frame');
+      canvas.width = f.width; canvas.height = f.height;
+      const ctx = canvas.getContext('2d');
+      const img = ctx.createImageData(f.width, f.height);
+      const bytes = Uint8Array.from(atob(f.pixels), (c) => c.charCodeAt(0));
+      for (let i = 0; i < bytes.length; i++) { img.data[4 * i] = img.data[4 * i + 1] = img.data[4 * i + 2] = bytes[i]; img.data[4 * i + 3] = 255; }
+      ctx.putImageData(img, 0, 0);
+      ctx.strokeStyle = '#ff3b30'; ctx.lineWidth = 1.5;
+      for (const [u, v] of f.bbs || []) { ctx.beginPath(); ctx.arc(u * f.scale, v * f.scale, 5, 0, 2 * Math.PI); ctx.stroke(); }
+      $('#frame-caption').textContent = `${f.kind} frame ${f.index}` + (f.bbs ? ` · ${f.bbs.length} BBs detected` : '');
+    } catch (_) { /* no frame yet */ }
+  }
+
+  async function jobs() {
+    const list = await api('GET', `/jobs?scan_id=${id}`);
+    $('#scan-jobs tbody').replaceChildren(...list.map((j) => el('tr', {},
+      el('td', { text: j.kind }), el('td', {}, el('code', { text: j.id })), el('td', {}, el('span', { class: 'badge ' + j.state, text: j.state })),
+      el('td', { text: j.progress && j.progress.total ? `${j.progress.stage} ${j.progress.done}/${j.progress.total}` : '' }),
+      el('td', { text: fmt(j.params) }),
+      el('td', {}, j.kind === 'calibration' ? el('a', { href: `/console/calibrations/${j.id}`, text: 'report' })
+        : j.state === 'succeeded' ? el('a', { href: `/console/reconstructions/${j.id}`, text: 'viewer' }) : ''))));
+    if (list.some((j) => !FINAL.includes(j.state))) setTimeout(jobs, 1500);
+  }
+  const cal = $('#calibrate-form');
+  if (cal) {
+    cal.addEventListener('submit', (ev) => {
+      ev.preventDefault();
+      act($('#calibrate'), async () => {
+        const body = { scan_id: id, method: $('#cal-method').value };
+        if ($('#cal-intrinsics').value) body.intrinsics = $('#cal-intrinsics').value;
+        await api('POST', '/calibrations', body);
+        await jobs();
+      });
+    });
+    $('#reconstruct-form').addEventListener('submit', (ev) => {
+      ev.preventDefault();
+      act($('#reconstruct'), async () => {
+        const algorithm = $('#rec-algorithm').value;
+        const body = { scan_id: id, algorithm, geometry: $('#rec-geometry').value, mar: $('#rec-mar').checked, overwrite: $('#rec-overwrite').checked };
+        const n = $('#rec-shape').value;
+        if (n) body.shape = [Number(n), Number(n), Number(n)];
+        if (algorithm === 'pwls') body.iterations = Number($('#rec-iterations').value);
+        await api('POST', '/reconstructions', body);
+        await jobs();
+      });
+    });
+  }
+}
+
+// ---------------------------------------------------------------- calibration report
+async function pageCalibration() {
+  const id = document.body.dataset.job;
+  const show = async () => {
+    let job;
+    try { job = await api('GET', `/calibrations/${id}`); } catch (exc) { $('main > .error').textContent = exc.message; return; }
+    badge($('#job-state'), job.state);
+    facts($('#job-facts'), [['scan', job.scan_id], ['parameters', job.params], ['owner', job.owner], ['started_utc', job.started_utc],
+      ['finished_utc', job.finished_utc], ['reason', job.reason || undefined]]);
+    if (!FINAL.includes(job.state)) {
+      const bar = $('#job-progress');
+      bar.hidden = false;
+      const source = listen(`/jobs/${id}/events`, {
+        progress: (p) => { bar.max = Math.max(p.total || 1, 1); bar.value = p.done || 0; $('#job-progress-text').textContent = `${p.stage} ${p.done} of ${p.total} ${p.message || ''}`; },
+        end: () => { source.close(); bar.hidden = true; show(); },
+      });
+      return;
+    }
+    if (job.state !== 'succeeded') return;
+    const result = job.result || {};
+    const quality = result.quality || {};
+    $('#verdict').hidden = false;
+    const text = quality.passed === undefined ? 'NO QUALITY VERDICT: this calibration cannot be trusted without one'
+      : quality.passed ? `Passed: predicted field-of-view error ${fmt(quality.predicted_px_median)} px (median), ${fmt(quality.predicted_px_max)} px (worst view, frame ${quality.worst_frame}); limit ${fmt(quality.max_predicted_px)} px; centroid noise ${fmt(quality.centroid_noise_px)} px.`
+        : `FAILED: ${(quality.reasons || []).join('; ')}. Do not use this geometry.`;
+    $('#verdict-text').textContent = text + (quality.views ? ` Views: ${fmt(quality.views)}.` : '');
+    $('#verdict-text').className = quality.passed ? 'yes' : 'no';
+    $('#cal-warnings').replaceChildren(...(result.warnings || []).map((w) => el('li', { text: w })));
+    const rpe = await api('GET', `/calibrations/${id}/rpe`);
+    $('#table1').hidden = false;
+    $('#table1 > table tbody').replaceChildren(...Object.entries(rpe.table).map(([k, v]) => el('tr', {}, el('th', { text: label(k) }), el('td', { text: fmt(v, 4) }))));
+    $('#iterations tbody').replaceChildren(...rpe.iterations.map((it) => el('tr', {}, el('td', { text: it.index }), el('td', { text: fmt(it.rpe_mean_mm, 4) }),
+      el('td', { text: fmt(it.rpe_median_mm, 4) }), el('td', { text: fmt(it.rpe_std_mm, 4) }), el('td', { text: fmt(it.reproj_rms_px, 4) }))));
+    const files = await api('GET', `/calibrations/${id}/files`);
+    $('#figures').hidden = false;
+    $('#figures .figures').replaceChildren(...files.filter((f) => f.endsWith('.png')).map((f) => el('figure', {},
+      el('img', { src: `/calibrations/${id}/files/${encodeURIComponent(f)}`, alt: f.replace(/[_.]/g, ' ') }), el('figcaption', { text: f }))));
+    $('#figures .files').replaceChildren(...files.map((f) => el('li', {}, el('a', { href: `/calibrations/${id}/files/${encodeURIComponent(f)}`, download: f, text: f }))));
+  };
+  show();
+}
+
+// ---------------------------------------------------------------- jobs
+function pageJobs() {
+  const mayCancel = (document.body.dataset.may || '').split(' ').includes('analysis');
+  const load = async () => {
+    try {
+      const list = await api('GET', '/jobs?limit=200');
+      $('#job-table tbody').replaceChildren(...list.map((j) => el('tr', {},
+        el('td', { text: j.kind }), el('td', {}, el('code', { text: j.id })), el('td', {}, el('a', { href: `/console/scans/${j.scan_id}`, text: j.scan_id })),
+        el('td', {}, el('span', { class: 'badge ' + j.state, text: j.state }), j.reason ? el('div', { class: 'muted', text: j.reason }) : null),
+        el('td', { text: j.progress && j.progress.total ? `${j.progress.stage} ${j.progress.done}/${j.progress.total}` : '' }),
+        el('td', { text: j.owner }), el('td', { text: j.created_utc.slice(0, 19).replace('T', ' ') }),
+        el('td', {},
+          el('button', { type: 'button', text: 'Log', onclick: () => showLog(j.id) }),
+          j.kind === 'calibration' ? el('a', { href: `/console/calibrations/${j.id}`, text: 'report' }) : null,
+          j.kind === 'reconstruction' && j.state === 'succeeded' ? el('a', { href: `/console/reconstructions/${j.id}`, text: 'viewer' }) : null,
+          mayCancel && !FINAL.includes(j.state) ? el('button', { type: 'button', class: 'danger', text: 'Cancel',
+            onclick: (ev) => act(ev.currentTarget, async () => { await api('POST', `/jobs/${j.id}/cancel`); load(); }) }) : null))));
+      if (!list.length) $('#job-table tbody').append(el('tr', {}, el('td', { colspan: 8, class: 'muted', text: 'No jobs yet.' })));
+      $('main > .error').textContent = '';
+    } catch (exc) { $('main > .error').textContent = exc.message; }
+  };
+  const showLog = async (jobId) => {
+    const box = $('#job-log');
+    box.hidden = false;
+    $('.id', box).textContent = jobId;
+    const lines = await api('GET', `/jobs/${jobId}/log`);
+    $('pre', box).textContent = lines.map((l) => `${l.utc || ''} ${l.level || ''} ${l.message || JSON.stringify(l)}`).join('\n') || '(empty)';
+  };
+  every(2000, load);
+}
+
+// ---------------------------------------------------------------- volume viewer
+async function pageViewer() {
+  const id = document.body.dataset.job;
+  let job;
+  try { job = await api('GET', `/reconstructions/${id}`); } catch (exc) { $('main > .error').textContent = exc.message; return; }
+  const others = (await api('GET', `/reconstructions?scan_id=${job.scan_id}`)).filter((j) => j.id !== id && j.state === 'succeeded');
+  const compare = $('#compare');
+  compare.append(...others.map((j) => el('option', { value: j.id, text: `${j.result.name || j.id} (${j.params.geometry})` })));
+  const wanted = document.body.dataset.compare || (others.find((j) => j.params.geometry !== job.params.geometry && j.params.algorithm === job.params.algorithm) || {}).id || '';
+  compare.value = wanted;
+  const caption = (j) => `${j.result.name || j.id}: ${j.params.algorithm.toUpperCase()}, ${j.params.geometry} geometry, ${fmt(j.result.shape)} voxels of ${fmt(j.result.voxel_mm)} mm`;
+  $('#caption-a').textContent = caption(job);
+  const gl = document.createElement('canvas').getContext('webgl2');
+  if (!window.niivue || !gl) { fallback(job, others.find((j) => j.id === compare.value)); return; }
+
+  const NV = window.niivue.Niivue;
+  const make = async (canvas) => {
+    const nv = new NV({ isRuler: true, isColorbar: true, backColor: [0, 0, 0, 1], show3Dcrosshair: true, crosshairWidth: 1,
+      crosshairColor: [1, 0.8, 0, 0.6], rulerColor: [1, 1, 1, 0.9], loadingText: 'loading the volume...' });
+    await nv.attachToCanvas(canvas);
+    return nv;
+  };
+  const a = await make($('#gl-a'));
+  let b = null;
+  const load = async (nv, j) => {
+    await nv.loadVolumes([{ url: `/reconstructions/${j.id}/volume?format=nifti`, name: `${j.id}.nii.gz`, colormap: 'gray' }]);
+  };
+  await load(a, job);
+  const vol = a.volumes[0];
+  $('#wmin').value = vol.cal_min.toPrecision(4);
+  $('#wmax').value = vol.cal_max.toPrecision(4);
+  const viewers = () => [a, b].filter(Boolean);
+  const window_ = () => {
+    const lo = Number($('#wmin').value); const hi = Number($('#wmax').value);
+    if (!(hi > lo)) { $('main > .error').textContent = 'the window needs "to" above "from"'; return; }
+    $('main > .error').textContent = '';
+    for (const nv of viewers()) { nv.volumes[0].cal_min = lo; nv.volumes[0].cal_max = hi; nv.updateGLVolume(); }
+  };
+  const view = () => {
+    const type = { axial: 0, coronal: 1, sagittal: 2, multi: 3, '3d': 4 }[$('#view').value];
+    for (const nv of viewers()) nv.setSliceType(type);
+  };
+  const pair = async () => {
+    const other = others.find((j) => j.id === compare.value);
+    $('#pane-b').hidden = !other;
+    if (!other) { b = null; a.broadcastTo([]); return; }
+    if (!b) b = await make($('#gl-b'));
+    $('#caption-b').textContent = caption(other);
+    await load(b, other);
+    a.broadcastTo(b, { '2d': true, '3d': true });
+    b.broadcastTo(a, { '2d': true, '3d': true });
+    window_(); view();
+  };
+  $('#wmin').addEventListener('change', window_);
+  $('#wmax').addEventListener('change', window_);
+  $('#view').addEventListener('change', view);
+  compare.addEventListener('change', pair);
+  $('#auto-window').addEventListener('click', () => {
+    $('#wmin').value = vol.robust_min !== undefined ? vol.robust_min.toPrecision(4) : vol.global_min.toPrecision(4);
+    $('#wmax').value = vol.robust_max !== undefined ? vol.robust_max.toPrecision(4) : vol.global_max.toPrecision(4);
+    window_();
+  });
+  view();
+  await pair();
+  document.body.dataset.viewerReady = 'yes';
+}
+
+function fallback(job, other) {
+  const note = $('#viewer-fallback');
+  note.hidden = false;
+  note.textContent = 'This browser has no WebGL2, so the 3-D viewer cannot run; the middle slices are shown as pictures '
+    + '(window: 1st to 99.5th percentile of each volume).';
+  const pictures = (j, fig) => fig.replaceChildren(el('figcaption', { text: j.result.name || j.id }),
+    ...['axial', 'coronal', 'sagittal'].map((axis) => el('img', { src: `/reconstructions/${j.id}/slices/${axis}`, alt: `${axis} slice of ${j.id}` })));
+  pictures(job, $('#gl-a').closest('figure'));
+  if (other) { $('#pane-b').hidden = false; pictures(other, $('#pane-b')); }
+  document.body.dataset.viewerReady = 'fallback';
+}
+
+// ---------------------------------------------------------------- start
+const PAGES = { 'sign-in': pageSignIn, bench: pageBench, 'scan-new': pageScanNew, scans: pageScans, scan: pageScan,
+  calibration: pageCalibration, jobs: pageJobs, viewer: pageViewer };
+document.addEventListener('DOMContentLoaded', () => {
+  const page = document.body.dataset.page;
+  if (page !== 'sign-in') initFrame();
+  const run = PAGES[page];
+  if (run) Promise.resolve(run()).catch((exc) => { const slot = $('main .error'); if (slot) slot.textContent = exc.message; });
+});

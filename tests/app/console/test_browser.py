@@ -1,0 +1,232 @@
+"""The web console in real headless Chromium on the simulated bench: a technician's whole session, the emergency
+stop, a viewer who is offered nothing that changes the bench, the API docs offline; screenshots of every page go to
+``test-artefacts/console/``."""
+
+from __future__ import annotations
+
+import re
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from orbitct_app.service.core.auth import create_token
+from tests.helpers.browser import chromium
+from tests.helpers.service import ROOT, ended, serve_subprocess, small_bench_config
+
+pytestmark = [pytest.mark.system, pytest.mark.slow]
+SHOTS = ROOT / "test-artefacts" / "console"
+TIMEOUT_MS = 180_000
+
+
+class Console:
+    """The service under test: its URL, a token per role, and the API for checking what the pages claim."""
+
+    def __init__(self, base: str, tokens: dict[str, str], browser: Any) -> None:
+        self.base, self.tokens, self.browser = base, tokens, browser
+        self.outside: list[str] = []  # every request a page made to anything but orbitct
+
+    def api(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
+        return httpx.request(method, self.base + path, headers={"Authorization": f"Bearer {self.tokens['operator']}"},
+                             timeout=30, **kwargs)
+
+    def sign_in(self, role: str) -> Any:
+        """A new browser context (its own cookies) signed in as ``role``; on the bench page."""
+        context = self.browser.new_context(viewport={"width": 1280, "height": 800})
+        page = context.new_page()
+        page.set_default_timeout(30_000)
+        page.on("request", lambda r: None if r.url.startswith((self.base, "data:", "blob:")) else self.outside.append(r.url))
+        page.goto(self.base + "/")
+        assert "/sign-in" in page.url, page.url
+        page.fill("#token", self.tokens[role])
+        page.click("#sign-in-form button[type=submit]")
+        page.wait_for_url("**/console/bench")
+        page.wait_for_selector("[data-device]")
+        return page
+
+
+def shot(page: Any, name: str) -> None:
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(SHOTS / f"{name}.png"), full_page=True)
+
+
+@pytest.fixture(scope="module")
+def console(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Console]:
+    folder = tmp_path_factory.mktemp("console")
+    data = folder / "data"
+    data.mkdir()
+    tokens = {role: create_token(data / "tokens.json", role, f"tech-{role}") for role in ("operator", "analyst", "viewer")}  # type: ignore[arg-type]
+    proc, base, _ = serve_subprocess(small_bench_config(folder), data, "oct_dev_console_tests_only")
+    try:
+        with chromium() as browser:
+            yield Console(base, tokens, browser)
+    finally:
+        proc.terminate()
+        proc.wait(30)
+
+
+def _scan(page: Any, console: Console, frames: int) -> str:
+    page.goto(console.base + "/console/scans/new")
+    page.select_option("#orbit", "sawtooth")
+    page.fill("#param-amplitude_deg", "6")
+    page.fill("#param-cycles", "2")
+    page.fill("#frames", str(frames))
+    page.fill("#scan-name", f"console test {frames}")
+    page.click("#check")
+    page.wait_for_selector("#preflight.yes")
+    assert "within the limits" in page.inner_text("#preflight")
+    assert page.is_visible("#preview")
+    shot(page, "new-scan")
+    page.click("#start")
+    page.wait_for_url(re.compile(r".*/console/scans/[0-9a-f]{16}$"))
+    return str(page.url.rsplit("/", 1)[1])
+
+
+def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Console) -> None:
+    from playwright.sync_api import expect
+
+    # operator: a short scan, watched to the end
+    page = console.sign_in("operator")
+    shot(page, "bench")
+    scan_id = _scan(page, console, 40)
+    expect(page.locator("#scan-progress-text")).to_contain_text("frame", timeout=TIMEOUT_MS)
+    expect(page.locator("#scan-state")).to_have_text("complete", timeout=TIMEOUT_MS)
+    expect(page.locator("#scan-progress-text")).to_contain_text("of 46")  # 40 projections, 4 darks and flats before, 2 after
+    assert console.api("GET", f"/scans/{scan_id}").json().get("state") == "complete", console.api("GET", f"/scans/{scan_id}").text
+    shot(page, "scan-complete")
+    assert page.locator("#calibrate-form").count() == 0, "an operator does not calibrate"
+    page.click("#sign-out")
+    page.wait_for_url("**/sign-in")
+    page.context.close()
+
+    # analyst: calibration and its report, FDK with the calibrated and the nominal geometry, the viewer
+    page = console.sign_in("analyst")
+    page.goto(f"{console.base}/console/scans/{scan_id}")
+    page.click("#calibrate")
+    rows = page.locator("#scan-jobs tbody tr")
+    expect(rows).to_have_count(1)
+    expect(rows.first).to_contain_text("succeeded", timeout=TIMEOUT_MS)
+    page.fill("#rec-shape", "48")
+    page.click("#reconstruct")
+    expect(rows).to_have_count(2)
+    page.select_option("#rec-geometry", "nominal")
+    page.click("#reconstruct")
+    expect(rows).to_have_count(3)
+    for i in range(3):
+        expect(rows.nth(i)).to_contain_text("succeeded", timeout=TIMEOUT_MS)
+    shot(page, "scan-with-jobs")
+    page.click("#scan-jobs >> text=report")
+    expect(page.locator("#table1")).to_be_visible()
+    expect(page.locator("#verdict-text")).not_to_be_empty()
+    expect(page.locator("#figures img")).to_have_count(2)  # the RPE violins and the per-view corrections
+    assert page.locator("#iterations tbody tr").count() >= 2
+    page.wait_for_function("Array.from(document.images).every((i) => i.complete && i.naturalWidth > 0)")
+    shot(page, "calibration-report")
+    page.go_back()
+    calibrated = next(j for j in console.api("GET", f"/reconstructions?scan_id={scan_id}").json() if j["params"]["geometry"] == "calibrated")
+    page.goto(f"{console.base}/console/reconstructions/{calibrated['id']}")
+    page.wait_for_selector("body[data-viewer-ready]", timeout=60_000)
+    assert page.get_attribute("body", "data-viewer-ready") == "yes", "WebGL2 (SwiftShader) runs the 3-D viewer"
+    assert page.is_visible("#pane-b") and "nominal geometry" in page.inner_text("#caption-b")
+    page.fill("#wmin", "0")
+    page.fill("#wmax", "0.03")
+    page.dispatch_event("#wmax", "change")
+    windows = page.evaluate("() => [document.getElementById('wmin').value, document.getElementById('wmax').value]")
+    assert windows == ["0", "0.03"]
+    time.sleep(1.0)
+    shot(page, "viewer")
+    page.select_option("#view", "3d")
+    time.sleep(1.0)
+    shot(page, "viewer-3d")
+    page.goto(console.base + "/console/jobs")
+    expect(page.locator("#job-table tbody tr")).to_have_count(3)
+    page.locator("#job-table button", has_text="Log").first.click()
+    expect(page.locator("#job-log pre")).not_to_be_empty()
+    shot(page, "jobs")
+    page.context.close()
+
+    # operator again: a long scan, stopped with the emergency stop (the key Esc) while it runs
+    page = console.sign_in("operator")
+    scan_id = _scan(page, console, 2000)
+    expect(page.locator("#scan-progress-text")).to_contain_text("frame", timeout=60_000)
+    page.wait_for_function("document.getElementById('scan-progress').value >= 5", timeout=60_000)
+    page.wait_for_selector("#frame-caption >> text=frame")  # the latest frame is drawn
+    shot(page, "scan-live")
+    page.keyboard.press("Escape")
+    expect(page.locator("#stop-result")).to_contain_text("Stopped and verified", timeout=30_000)
+    expect(page.locator("#latch")).to_be_visible()
+    expect(page.locator("#scan-state")).to_have_text("aborted", timeout=30_000)
+    shot(page, "emergency-stop")
+    scan = console.api("GET", f"/scans/{scan_id}").json()
+    assert ended(scan) and scan["state"] == "aborted" and "emergency stop" in scan["reason"]
+    xray = console.api("GET", "/devices/xray").json()["state"]
+    assert xray["hv_on"] is False and xray["exposing"] is False
+    for motion in ("hexapod", "rotation_stage"):
+        moving = console.api("GET", f"/devices/{motion}").json()["state"]["moving"]
+        assert not any(moving.values()) if isinstance(moving, dict) else moving is False, (motion, moving)
+    # the latch holds until an operator resets it, from the banner on any page
+    page.goto(console.base + "/console/scans")
+    expect(page.locator("#latch")).to_be_visible()
+    page.fill("#reset-note", "checked the bench")
+    page.click("#reset-stop")
+    expect(page.locator("#latch")).to_be_hidden()
+    assert console.api("GET", "/stop").json()["latched"] is False
+    shot(page, "scans")
+    page.context.close()
+    assert not console.outside, f"pages fetched from outside orbitct: {console.outside}"
+
+
+def test_a_viewer_finds_no_controls_that_change_the_bench_and_the_api_refuses_them(console: Console) -> None:
+    page = console.sign_in("viewer")
+    assert page.locator("button.reference").count() == 0 and page.locator("form.move").count() == 0
+    assert page.locator("#reset-stop").count() == 0
+    page.goto(console.base + "/console/scans/new")
+    page.wait_for_selector("#orbit option", state="attached")
+    assert page.locator("#start").count() == 0 and "may look at orbits but not start scans" in page.inner_text("main")
+    # what the page does not offer, the API refuses even with the page's own session and CSRF token
+    status = page.evaluate("""async () => {
+        const csrf = document.querySelector('meta[name="csrf-token"]').content;
+        const r = await fetch('/scans', {method: 'POST', headers: {'Content-Type': 'application/json', 'X-CSRF-Token': csrf},
+                                         body: JSON.stringify({orbit: 'sawtooth', frames: 4})});
+        return [r.status, (await r.json()).message];
+    }""")
+    assert status[0] == 403 and "viewer" in status[1]
+    # ... and a cross-site form post (the cookie without the CSRF header) is refused too
+    forged = page.evaluate("""async () => (await fetch('/devices/hexapod/reference', {method: 'POST'})).status""")
+    assert forged == 403
+    # the token never reaches the page or the URL
+    assert console.tokens["viewer"] not in page.content() and console.tokens["viewer"] not in page.url
+    shot(page, "viewer-new-scan")
+    page.context.close()
+    assert not console.outside, console.outside
+
+
+def test_the_api_docs_render_with_no_internet(console: Console) -> None:
+    context = console.browser.new_context(viewport={"width": 1280, "height": 800})
+    page = context.new_page()
+    blocked: list[tuple[str, str]] = []
+
+    def offline(route: Any) -> None:  # a lab network without internet: only orbitct answers
+        if route.request.url.startswith(console.base):
+            route.continue_()
+        else:
+            blocked.append((route.request.resource_type, route.request.url))
+            route.abort("internetdisconnected")
+
+    page.route("**/*", offline)
+    page.goto(console.base + "/docs")
+    page.wait_for_selector(".swagger-ui .info .title", timeout=60_000)
+    assert "orbitct" in page.inner_text(".swagger-ui .info .title")
+    page.wait_for_selector(".opblock-tag-section")
+    shot(page, "docs")
+    page.goto(console.base + "/redoc")
+    page.wait_for_selector("redoc h1", timeout=60_000)
+    assert "orbitct" in page.inner_text("redoc h1")
+    shot(page, "redoc")
+    context.close()
+    assert not [b for b in blocked if b[0] in ("script", "stylesheet", "font", "fetch", "xhr")], blocked
+    # ReDoc's footer asks its CDN for a logo: the page's policy blocks it before any request leaves
+    assert all(url == "https://cdn.redoc.ly/redoc/logo-mini.svg" for _, url in blocked), blocked
