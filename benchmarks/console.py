@@ -25,7 +25,6 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-import numpy as np
 
 # this folder last on the import path (its scripts are named like modules of the project), the project first
 _HERE = Path(__file__).resolve().parent

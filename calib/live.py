@@ -206,6 +206,7 @@ class _Follower:
         s = self.settings
         n_bbs = int(links.continued.size + links.started.size)
         self.bbs_per_frame.append(n_bbs)
+        self.emit("marks", (index, np.vstack([links.uv.reshape(-1, 2), links.started_uv.reshape(-1, 2)]).round(2).tolist()))
         self.emit("progress", ("live-calibration", p + 1, self.n_projections, f"frame {index}: {n_bbs} BBs",
                                {"bbs": float(n_bbs), "frame": float(index)}))
         if n_bbs < s.min_bbs:  # a view with too few BBs (once per run of such frames)
@@ -295,6 +296,14 @@ class _Follower:
         self.emit("warning", LiveWarning(kind, int(frame), int(since), message, uv))
 
 
+def _end_when_orphaned(parent: int) -> None:
+    """Thread of the worker: end the process once the acquisition's process is gone (killed, perhaps while a frame
+    was half written into the queue, which would leave the worker waiting for the rest forever)."""
+    while os.getppid() == parent:
+        time.sleep(0.5)
+    os._exit(0)
+
+
 def _worker(frames: Any, events: Any, nominal: ViewGeometry, image_key: NDArray[Any], diameter_mm: float,
             settings: LiveSettings, options: dict[str, Any]) -> None:
     """The worker process: frames ``(index, frame)`` in, events out; ``("end", n_frames)`` ends the scan (the
@@ -304,6 +313,7 @@ def _worker(frames: Any, events: Any, nominal: ViewGeometry, image_key: NDArray[
             os.nice(10)  # the acquisition goes first; this one catches up when a frame takes longer
         follower = _Follower(nominal, image_key, diameter_mm, settings, options, lambda kind, x: events.put((kind, x)))
         events.put(("ready", None))
+        threading.Thread(target=_end_when_orphaned, args=(os.getppid(),), name="orphan-watch", daemon=True).start()
         while True:
             item = frames.get()
             if item[0] == "end":
@@ -357,6 +367,7 @@ class LiveCalibration:
         self.last_frame_s: float | None = None  # perf_counter when the last frame was handed over
         self.last_frame_to_geometry_s: float | None = None
         self.timing: dict[str, float] = {}  # after the scan: catching up, the final solve (s)
+        self.latest_marks: tuple[int, list[list[float]]] | None = None  # (scan frame, [[u, v], ...] of its BBs) newest
         self._next_index = 0
         self._closed = False
         self._outcome: tuple[Any, ...] | None = None
@@ -382,6 +393,8 @@ class LiveCalibration:
                     self.on_warning(x)
             elif kind == "progress":
                 report(self.progress, x[0], x[1], x[2], x[3], **x[4])
+            elif kind == "marks":
+                self.latest_marks = x
             elif kind in ("done", "stopped", "error"):
                 if kind == "done":
                     self._outcome = x

@@ -116,8 +116,14 @@ def test_a_killed_scan_with_live_calibration_leaves_a_file_that_calibrates_offli
         line = proc.stdout.readline()
         assert line, f"scan process ended early (rc={proc.poll()})"
         reported = int(line)
+    import psutil
+
+    children = psutil.Process(proc.pid).children(recursive=True)  # the live calibration's worker among them
+    assert children
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait(timeout=10)
+    _, alive = psutil.wait_procs(children, timeout=15)  # orphaned, the worker notices and ends by itself
+    assert not alive, [c.cmdline() for c in alive]
     r = CliRunner().invoke(cli, ["scan", "repair", str(out)])
     assert r.exit_code == 0, r.output
     res = calib.calibrate_scan(out, out=tmp_path / "offline.h5", bridge_max_views=60, max_predicted_px=100.0)

@@ -227,8 +227,14 @@ async function pageScanNew() {
       params[input.dataset.param] = input.dataset.kind === 'json' ? JSON.parse(input.value) : input.type === 'number' ? Number(input.value) : input.value;
     }
     const frames = $('#frames').value;
-    return { name: $('#scan-name').value, orbit: select.value, params, frames: frames === '' ? null : Number(frames),
-             errors: $('#errors').value, seed: Number($('#seed').value || 0), mode: $('#mode').value };
+    const scan = { name: $('#scan-name').value, orbit: select.value, params, frames: frames === '' ? null : Number(frames),
+                   errors: $('#errors').value, seed: Number($('#seed').value || 0), mode: $('#mode').value };
+    if ($('#calibrate-live').checked) {
+      scan.calibrate = 'live';
+      if ($('#bb-diameter').value) scan.bb_diameter_mm = Number($('#bb-diameter').value);
+      scan.abort_on = $$('#abort-on input:checked').map((box) => box.value);
+    }
+    return scan;
   };
   $('#check').addEventListener('click', (ev) => act(ev.currentTarget, async () => {
     const scan = body();
@@ -327,8 +333,7 @@ async function pageScan() {
     scan = s;
     $('#scan-name').textContent = s.name || s.id;
     badge($('#scan-state'), s.state);
-    facts($('#scan-facts'), [['id', s.id], ['orbit', s.orbit], ['owner', s.owner], ['created_utc', s.created_utc], ['started_utc', s.started_utc],
-      ['finished_utc', s.finished_utc], ['frames', `${s.frames_done} of ${s.frames_total}`]]);
+    scanFacts(s);
     $('#scan-reason').hidden = !s.reason;
     $('#scan-reason').textContent = s.reason;
     const live = !FINAL.includes(s.state);
@@ -337,7 +342,10 @@ async function pageScan() {
     buttons(s.state);
     if (!live) ended(s);
   };
+  const scanFacts = (s) => facts($('#scan-facts'), [['id', s.id], ['orbit', s.orbit], ['owner', s.owner], ['created_utc', s.created_utc],
+    ['started_utc', s.started_utc], ['finished_utc', s.finished_utc], ['frames', `${s.frames_done} of ${s.frames_total}`]]);
   const progress = (p) => {
+    if (scan && p.total) { scan.frames_done = p.done; scan.frames_total = p.total; scanFacts(scan); }
     const bar = $('#scan-progress');
     bar.max = Math.max(p.total || 1, 1);
     bar.value = p.done || 0;
@@ -526,7 +534,7 @@ async function pageViewer() {
 
   const NV = window.niivue.Niivue;
   const make = async (canvas) => {
-    const nv = new NV({ isRuler: true, isColorbar: true, backColor: [0, 0, 0, 1], show3Dcrosshair: true, crosshairWidth: 1,
+    const nv = new NV({ isRuler: true, isColorbar: true, backColor: [0, 0, 0, 1], show3Dcrosshair: true, crosshairWidth: 1.5, crosshairWidthUnit: 'mm',
       crosshairColor: [1, 0.8, 0, 0.6], rulerColor: [1, 1, 1, 0.9], loadingText: 'loading the volume...' });
     await nv.attachToCanvas(canvas);
     return nv;

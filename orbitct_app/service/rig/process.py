@@ -53,6 +53,19 @@ def _plain(value: Any) -> Any:
     return str(value)
 
 
+def _live_outcome(live: Any) -> dict[str, Any]:
+    """What a scan's live calibration came to, for the scan's summary."""
+    lc, res = live.live, live.result
+    out: dict[str, Any] = {"warnings": len(live.warnings)}
+    if res is None:
+        out["outcome"] = f"failed: {live.error}" if live.error is not None else "not finished (the scan did not complete)"
+        return out
+    out.update(outcome="passed" if res.quality.passed else "QUALITY CHECK FAILED: " + "; ".join(res.quality.reasons),
+               bbs=int(res.n_bbs), quality=res.quality.line(),
+               geometry_after_last_frame_s=round(float(lc.last_frame_to_geometry_s or 0.0), 3))
+    return out
+
+
 def classify(exc: BaseException) -> tuple[str, str]:
     """``(kind, message)`` of an error raised by a command."""
     from acquire.errors import AcquireError, DiskSpaceError, ScanStateError
@@ -101,6 +114,7 @@ class RigServer:
         self.runner: Any = None
         self.scan_id: str | None = None
         self.preview = LatestFrame()
+        self.live: Any = None
         self.loop: asyncio.AbstractEventLoop | None = None
         self._send_lock = threading.Lock()
         self._closing = asyncio.Event()
@@ -285,10 +299,28 @@ class RigServer:
             raise CommandError("conflict", f"the bench is busy with scan {self.scan_id}; one scan at a time")
         req = self._request(spec)
         self.scan_id = scan_id
-        self.preview = LatestFrame()
+        self.live = self._live_calibration(scan_id, spec, req)
+        self.preview = LatestFrame(marks=None if self.live is None else lambda: self.live.live and self.live.live.latest_marks)
+        subscribers = [self.preview] + ([self.live] if self.live is not None else [])
         self.runner = ScanRunner(req, progress=lambda ev: self._progress(scan_id, ev), rig=self.rig,
-                                 interlock=self._latched_reason, subscribers=[self.preview])
+                                 interlock=self._latched_reason, subscribers=subscribers)
         asyncio.ensure_future(self._scan(scan_id, self.runner, Path(spec["out"])))
+
+    def _live_calibration(self, scan_id: str, spec: dict[str, Any], req: Any) -> Any:
+        """The live calibration subscriber a scan asked for (``calibrate: live``), its warnings sent as scan events."""
+        if spec.get("calibrate", "none") != "live":
+            return None
+        from calib.errors import CalibrationError
+        from orbitct_app.live_calibration import LiveCalibrationSubscriber
+
+        diameter = spec.get("bb_diameter_mm") or (req.resolved_config().sim.bb_diameter_mm if self.sim else None)
+        if not diameter:
+            raise CommandError("invalid", "live calibration needs bb_diameter_mm (the size of the BBs on the object)")
+        try:
+            return LiveCalibrationSubscriber(spec["out"], float(diameter), abort_on=spec.get("abort_on", ()),
+                                             on_warning=lambda w: self.send("scan_warning", scan_id, w.as_dict()))
+        except CalibrationError as exc:
+            raise CommandError("invalid", str(exc)) from None
 
     async def _scan(self, scan_id: str, runner: Any, path: Path) -> None:
         from orbitct_app.service.core.files import summarize_scan
@@ -311,7 +343,9 @@ class RigServer:
                 summary = {"error": f"scan file unreadable: {type(exc).__name__}: {exc}".replace(str(path), path.name)}
             if timing:
                 summary["timing"], summary["elapsed_s"] = timing, elapsed
-            self.scan_id, self.runner = None, None
+            if self.live is not None:
+                summary["live_calibration"] = _live_outcome(self.live)
+            self.scan_id, self.runner, self.live = None, None, None
             self.send("scan_end", scan_id, state, reason, summary)
 
     def _progress(self, scan_id: str, event: ProgressEvent) -> None:
@@ -390,6 +424,11 @@ def rig_main(config_path: str, sim: bool, commands: Connection, stops: Connectio
     """Entry point of the bench process (asks for priority ``nice`` over the web server where allowed)."""
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s bench: %(message)s")
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # the driver names a garbled reply itself
+    # The web server starts this process as a daemon (it dies with the server); here it may start its own
+    # processes (a live calibration's worker, which ends by itself if this process disappears).
+    import multiprocessing
+
+    multiprocessing.current_process().daemon = False
     if nice < 0:
         try:
             os.setpriority(os.PRIO_PROCESS, 0, nice)

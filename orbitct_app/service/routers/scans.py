@@ -7,8 +7,9 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Header, Query, Response
 from fastapi.responses import FileResponse
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from calib.live import WARNING_KINDS
 from orbitct.orbits import ORBIT_KINDS
 from orbitct_app.service.core.errors import (
     BENCH_UNAVAILABLE,
@@ -45,6 +46,20 @@ class ScanCreate(BaseModel):
     errors: Literal["bench", "none"] = Field("none", description="error profile injected into the commanded poses")
     seed: int = Field(0, ge=0, le=2**31 - 1)
     mode: Literal["step", "continuous"] = "step"
+    calibrate: Literal["none", "live"] = Field("none", description="live: detect and follow the BBs while the frames "
+                                               "arrive (warnings on the event stream, BBs on the latest frame) and write "
+                                               "the calibrated geometry right after the last frame")
+    bb_diameter_mm: float | None = Field(None, gt=0.1, le=50.0, description="BB diameter for live calibration "
+                                         "(default on the simulated bench: its BBs)")
+    abort_on: list[Literal[tuple(WARNING_KINDS)]] = Field(  # type: ignore[valid-type]
+        default_factory=list, max_length=len(WARNING_KINDS),
+        description="live calibration warnings that stop the scan safely (axes halted, X-rays off, file aborted)")
+
+    @model_validator(mode="after")
+    def _live_only(self) -> "ScanCreate":
+        if self.abort_on and self.calibrate != "live":
+            raise ValueError("abort_on needs calibrate: live")
+        return self
 
 
 class ScanOut(BaseModel):
@@ -115,7 +130,8 @@ def _check_params(service: Any, body: ScanCreate) -> dict[str, Any]:
 def _preflight(service: Any, body: ScanCreate, params: dict[str, Any], rel: str) -> dict[str, Any]:
     """The bench's pre-flight of the scan (every frame against every axis limit, room on the disk); its spec."""
     spec = {"out": str(service.settings.data_dir / rel), "orbit": body.orbit, "params": params, "errors": body.errors,
-            "seed": body.seed, "mode": body.mode}
+            "seed": body.seed, "mode": body.mode, "calibrate": body.calibrate, "bb_diameter_mm": body.bb_diameter_mm,
+            "abort_on": list(body.abort_on)}
     try:
         service.rig.preflight(spec)
     except Invalid as exc:
@@ -200,6 +216,8 @@ class FrameOut(BaseModel):
     height: int
     scale: float = Field(description="picture pixels per detector pixel")
     pixels: str = Field(description="base64 of width x height bytes, row by row (1st to 99.5th percentile as 0 to 255)")
+    bbs: list[tuple[float, float]] | None = Field(None, description="BBs the live calibration found in this frame: "
+                                                  "(column, row) in detector pixels (none without calibrate: live)")
 
 
 @router.get("/{scan_id}/frames/latest", response_model=FrameOut, summary="The newest frame of a running scan",

@@ -7,7 +7,6 @@ from __future__ import annotations
 import re
 import time
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import httpx
@@ -68,13 +67,15 @@ def console(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Console]:
         proc.wait(30)
 
 
-def _scan(page: Any, console: Console, frames: int) -> str:
+def _scan(page: Any, console: Console, frames: int, live: bool = False) -> str:
     page.goto(console.base + "/console/scans/new")
     page.select_option("#orbit", "sawtooth")
     page.fill("#param-amplitude_deg", "6")
     page.fill("#param-cycles", "2")
     page.fill("#frames", str(frames))
     page.fill("#scan-name", f"console test {frames}")
+    if live:
+        page.check("#calibrate-live")
     page.click("#check")
     page.wait_for_selector("#preflight.yes")
     assert "within the limits" in page.inner_text("#preflight")
@@ -150,10 +151,11 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
 
     # operator again: a long scan, stopped with the emergency stop (the key Esc) while it runs
     page = console.sign_in("operator")
-    scan_id = _scan(page, console, 2000)
+    scan_id = _scan(page, console, 2000, live=True)
     expect(page.locator("#scan-progress-text")).to_contain_text("frame", timeout=60_000)
     page.wait_for_function("document.getElementById('scan-progress').value >= 5", timeout=60_000)
-    page.wait_for_selector("#frame-caption >> text=frame")  # the latest frame is drawn
+    # the latest frame is drawn, with the BBs the live calibration found in it
+    expect(page.locator("#frame-caption")).to_contain_text("BBs detected", timeout=60_000)
     shot(page, "scan-live")
     page.keyboard.press("Escape")
     expect(page.locator("#stop-result")).to_contain_text("Stopped and verified", timeout=30_000)
