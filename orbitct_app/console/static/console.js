@@ -190,9 +190,13 @@ async function pageBench() {
   }));
 
   function render(card, reading) {
+    // red: a state that moves, exposes or is faulted; green: a good state that is on; the rest plain
+    const alarming = (k) => /fault|moving|exposing|hv_on|high_voltage/.test(k);
+    const rounded = (v) => (typeof v === 'number' && !Number.isInteger(v) ? Number(v.toFixed(4))
+      : v && typeof v === 'object' && !Array.isArray(v) ? Object.fromEntries(Object.entries(v).map(([a, x]) => [a, rounded(x)])) : v);
     const rows = Object.entries(reading.state).map(([k, v]) => {
-      const cls = typeof v === 'boolean' ? (v === (k.includes('fault') || k.includes('moving') || k === 'exposing' || k.includes('high_voltage')) ? 'no' : 'yes') : '';
-      return el('tr', {}, el('th', { text: label(k) }), el('td', { class: cls, text: fmt(v, 5) }));
+      const cls = typeof v !== 'boolean' ? '' : alarming(k) ? (v ? 'no' : '') : (v ? 'yes' : '');
+      return el('tr', {}, el('th', { text: label(k) }), el('td', { class: cls, text: fmt(rounded(v), 6) }));
     });
     $('table.state tbody', card).replaceChildren(...rows);
     const fault = $('.reset-fault', card);
@@ -522,6 +526,9 @@ async function pageViewer() {
   const id = document.body.dataset.job;
   let job;
   try { job = await api('GET', `/reconstructions/${id}`); } catch (exc) { $('main > .error').textContent = exc.message; return; }
+  $('#download-nifti').href = `/reconstructions/${id}/volume?format=nifti`;
+  $('#download-npy').href = `/reconstructions/${id}/volume?format=npy`;
+  $('#to-scan').href = `/console/scans/${job.scan_id}`;
   const others = (await api('GET', `/reconstructions?scan_id=${job.scan_id}`)).filter((j) => j.id !== id && j.state === 'succeeded');
   const compare = $('#compare');
   compare.append(...others.map((j) => el('option', { value: j.id, text: `${j.result.name || j.id} (${j.params.geometry})` })));

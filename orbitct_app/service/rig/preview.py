@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import base64
 import math
-import threading
 from collections import deque
 from collections.abc import Callable
 from typing import Any
@@ -20,16 +19,16 @@ class LatestFrame:
     ``marks``, when given, returns ``(frame index, [[u, v], ...])`` of the BBs a live calibration found last; the
     snapshot then shows that frame (if still kept) with its BBs, so the marks sit on the picture they belong to."""
 
-    KEEP = 32  # frames kept: how far a live calibration may lag and still get its marks drawn
+    KEEP = 4  # frames kept (references): how far a live calibration may lag and still get its marks drawn
 
     def __init__(self, marks: Callable[[], tuple[int, list[list[float]]] | None] | None = None) -> None:
         self._records: deque[Any] = deque(maxlen=self.KEEP)
         self._marks = marks
-        self._lock = threading.Lock()
+        self._last: tuple[tuple[int, int | None], dict[str, Any]] | None = None
 
     def on_start(self, start: Any) -> None:
-        with self._lock:
-            self._records.clear()
+        self._records.clear()
+        self._last = None
 
     def on_frame(self, record: Any) -> None:
         self._records.append(record)
@@ -50,12 +49,17 @@ class LatestFrame:
             by_index = {r.index: r for r in records}
             if marked[0] in by_index:
                 record, bbs = by_index[marked[0]], marked[1]
+        key = (record.index, None if bbs is None else len(bbs))
+        if self._last is not None and self._last[0] == key:  # many viewers, one frame: computed once
+            return self._last[1]
         frame = np.asarray(record.frame, dtype=np.float32)
         step = max(1, math.ceil(max(frame.shape) / max_px))
         rows, cols = (frame.shape[0] // step) * step, (frame.shape[1] // step) * step
         small = frame[:rows, :cols].reshape(rows // step, step, cols // step, step).mean(axis=(1, 3))
         lo, hi = np.percentile(small, [1.0, 99.5])
         grey = np.clip((small - lo) / max(float(hi - lo), 1e-6) * 255.0, 0, 255).astype(np.uint8)
-        return {"index": int(record.index), "kind": IMAGE_KINDS.get(int(record.image_key), "frame"),
-                "width": int(grey.shape[1]), "height": int(grey.shape[0]), "scale": 1.0 / step,
-                "pixels": base64.b64encode(grey.tobytes()).decode("ascii"), "bbs": bbs}
+        snapshot = {"index": int(record.index), "kind": IMAGE_KINDS.get(int(record.image_key), "frame"),
+                    "width": int(grey.shape[1]), "height": int(grey.shape[0]), "scale": 1.0 / step,
+                    "pixels": base64.b64encode(grey.tobytes()).decode("ascii"), "bbs": bbs}
+        self._last = (key, snapshot)
+        return snapshot

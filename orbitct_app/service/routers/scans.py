@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import asyncio
+import time
 import uuid
 from typing import Annotated, Any, Literal
 
@@ -228,8 +230,21 @@ async def latest_frame(scan_id: str, service: ServiceDep, _: Reader) -> Any:
     row = scan_or_404(service, scan_id)
     if service.rig.busy != scan_id:
         raise Conflict(f"scan {scan_id} is {row['state']}, not running; its frames are in the scan file")
-    frame = await service.rig.run("latest_frame", scan_id=scan_id)
+    frame = await _latest_frame(service, scan_id)
     return Response(status_code=204) if frame is None else FrameOut(**frame)
+
+
+PREVIEW_MAX_AGE_S = 0.5  # every viewer of a running scan within this long gets the same preview: one bench request
+_previews: dict[str, tuple[float, asyncio.Future[Any]]] = {}
+
+
+async def _latest_frame(service: Any, scan_id: str) -> Any:
+    now = time.monotonic()
+    cached = _previews.get(scan_id)
+    if cached is None or now - cached[0] > PREVIEW_MAX_AGE_S:
+        _previews.clear()  # one scan runs at a time
+        cached = _previews[scan_id] = (now, asyncio.ensure_future(service.rig.run("latest_frame", scan_id=scan_id)))
+    return await asyncio.shield(cached[1])
 
 
 @router.post("/{scan_id}/abort", response_model=ScanOut, status_code=202, summary="Abort a running scan",

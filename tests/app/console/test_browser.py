@@ -32,9 +32,9 @@ class Console:
         return httpx.request(method, self.base + path, headers={"Authorization": f"Bearer {self.tokens['operator']}"},
                              timeout=30, **kwargs)
 
-    def sign_in(self, role: str) -> Any:
+    def sign_in(self, role: str, viewport: tuple[int, int] = (1280, 800)) -> Any:
         """A new browser context (its own cookies) signed in as ``role``; on the bench page."""
-        context = self.browser.new_context(viewport={"width": 1280, "height": 800})
+        context = self.browser.new_context(viewport={"width": viewport[0], "height": viewport[1]})
         page = context.new_page()
         page.set_default_timeout(30_000)
         page.on("request", lambda r: None if r.url.startswith((self.base, "data:", "blob:")) else self.outside.append(r.url))
@@ -119,6 +119,7 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
     for i in range(3):
         expect(rows.nth(i)).to_contain_text("succeeded", timeout=TIMEOUT_MS)
     shot(page, "scan-with-jobs")
+    assert page.locator("#scan-jobs a", has_text="viewer").count() == 2
     page.click("#scan-jobs >> text=report")
     expect(page.locator("#table1")).to_be_visible()
     expect(page.locator("#verdict-text")).not_to_be_empty()
@@ -132,6 +133,8 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
     page.wait_for_selector("body[data-viewer-ready]", timeout=60_000)
     assert page.get_attribute("body", "data-viewer-ready") == "yes", "WebGL2 (SwiftShader) runs the 3-D viewer"
     assert page.is_visible("#pane-b") and "nominal geometry" in page.inner_text("#caption-b")
+    nifti = page.get_attribute("#download-nifti", "href")
+    assert httpx.get(console.base + nifti, headers={"Authorization": f"Bearer {console.tokens['viewer']}"}).content[:2] == b"\x1f\x8b"
     page.fill("#wmin", "0")
     page.fill("#wmax", "0.03")
     page.dispatch_event("#wmax", "change")
@@ -182,7 +185,12 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
 
 
 def test_a_viewer_finds_no_controls_that_change_the_bench_and_the_api_refuses_them(console: Console) -> None:
-    page = console.sign_in("viewer")
+    page = console.sign_in("viewer", viewport=(820, 1180))  # a tablet, upright
+    stop = page.locator("#estop").bounding_box()
+    assert stop is not None and stop["x"] >= 0 and stop["x"] + stop["width"] <= 820 and stop["y"] < 200, stop
+    page.keyboard.press("Tab")  # keyboard reachable: the first stop is the skip link, then the navigation
+    assert page.evaluate("document.activeElement.className") == "skip"
+    shot(page, "tablet-bench")
     assert page.locator("button.reference").count() == 0 and page.locator("form.move").count() == 0
     assert page.locator("#reset-stop").count() == 0
     page.goto(console.base + "/console/scans/new")
