@@ -20,8 +20,11 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/orbitct demo --out demo-output
 
+# Two test processes (one per core of the target machines); a file's tests stay in one process (their fixtures).
+TEST_WORKERS ?= 2
+
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 bench: $(STAMP)
 	for b in benchmarks/*.py; do $(BIN)/python $$b || exit 1; done

@@ -36,8 +36,7 @@ def _parse(path: Path) -> ast.Module:
     # Python 3.11.7 can fail in ast.parse when garbage collection runs Python code mid-parse
     # ("AST constructor recursion depth mismatch", fixed in 3.11.8): parse with the collector paused.
     source = path.read_text(encoding="utf-8")
-    gc.collect()
-    gc.disable()
+    gc.disable()  # (no gc.collect() first: in a test process with a large heap that took minutes over the tree)
     try:
         return ast.parse(source, filename=str(path))
     finally:

@@ -9,10 +9,11 @@ handler reads or changes the bench itself.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 from urllib.parse import quote
 
-from fastapi import APIRouter, FastAPI, Request
+from fastapi import APIRouter, FastAPI, Query, Request
+from fastapi import Path as PathParam
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
@@ -40,6 +41,7 @@ NAV = [("bench", "Bench", "/console/bench"), ("scan-new", "New scan", "/console/
 
 templates = Jinja2Templates(directory=str(HERE / "templates"))
 router = APIRouter(include_in_schema=False)
+Id = Annotated[str, PathParam(pattern=r"^[A-Za-z0-9_-]{1,64}$")]  # a scan or job id as the API makes them
 
 
 def _render(request: Request, template: str, page: str, title: str, **context: Any) -> Response:
@@ -98,21 +100,21 @@ def scans(request: Request) -> Response:
 
 
 @router.get("/console/scans/{scan_id}", response_class=HTMLResponse)
-def scan(request: Request, scan_id: str) -> Response:
+def scan(request: Request, scan_id: Id) -> Response:
     """One scan: live progress while it runs, then its summary, jobs and downloads."""
-    return _render(request, "scan.html", "scan", "Scan", scan_id=scan_id[:64])
+    return _render(request, "scan.html", "scan", "Scan", scan_id=scan_id)
 
 
 @router.get("/console/calibrations/{job_id}", response_class=HTMLResponse)
-def calibration(request: Request, job_id: str) -> Response:
+def calibration(request: Request, job_id: Id) -> Response:
     """A calibration's report: the Table 1 figures, RPE per iteration, corrections per view."""
-    return _render(request, "calibration.html", "calibration", "Calibration report", job_id=job_id[:64])
+    return _render(request, "calibration.html", "calibration", "Calibration report", job_id=job_id)
 
 
 @router.get("/console/reconstructions/{job_id}", response_class=HTMLResponse)
-def viewer(request: Request, job_id: str, compare: str = "") -> Response:
+def viewer(request: Request, job_id: Id, compare: Annotated[str, Query(pattern=r"^[A-Za-z0-9_-]{0,64}$")] = "") -> Response:
     """Slices and 3-D of a reconstruction, beside another of the same scan with the same window."""
-    return _render(request, "viewer.html", "viewer", "Volume viewer", job_id=job_id[:64], compare=compare[:64])
+    return _render(request, "viewer.html", "viewer", "Volume viewer", job_id=job_id, compare=compare)
 
 
 @router.get("/console/jobs", response_class=HTMLResponse)

@@ -57,7 +57,8 @@ def create_app(settings: ServiceSettings, *, service: Service | None = None) -> 
         summary="Non-circular cone-beam CT on a bench: scans, BB calibration and reconstruction over HTTP.",
         description=(
             "Every endpoint but `/health` and the API docs needs `Authorization: Bearer <token>` "
-            "(tokens from `orbitct token create --role operator|analyst|viewer`). Errors are JSON "
+            "(tokens from `orbitct token create --role operator|analyst|viewer`), or the web console's session "
+            "cookie from `POST /session` (then `X-CSRF-Token` with every POST). The console is at `/`. Errors are JSON "
             "`{error, message, details: [{field, reason}]}`. Progress streams are server-sent events."
         ),
         openapi_tags=TAGS,

@@ -47,6 +47,14 @@ class Console:
         return page
 
 
+def until(page: Any, predicate: str, timeout_s: float = 30.0) -> None:
+    """Poll a function in the page (``wait_for_function`` evaluates a string, which the pages' policy forbids)."""
+    t0 = time.monotonic()
+    while not page.evaluate(predicate):
+        assert time.monotonic() - t0 < timeout_s, f"not true after {timeout_s} s: {predicate}"
+        time.sleep(0.1)
+
+
 def shot(page: Any, name: str) -> None:
     SHOTS.mkdir(parents=True, exist_ok=True)
     page.screenshot(path=str(SHOTS / f"{name}.png"), full_page=True)
@@ -125,7 +133,7 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
     expect(page.locator("#verdict-text")).not_to_be_empty()
     expect(page.locator("#figures img")).to_have_count(2)  # the RPE violins and the per-view corrections
     assert page.locator("#iterations tbody tr").count() >= 2
-    page.wait_for_function("Array.from(document.images).every((i) => i.complete && i.naturalWidth > 0)")
+    until(page, "() => Array.from(document.images).every((i) => i.complete && i.naturalWidth > 0)")
     shot(page, "calibration-report")
     page.go_back()
     calibrated = next(j for j in console.api("GET", f"/reconstructions?scan_id={scan_id}").json() if j["params"]["geometry"] == "calibrated")
@@ -156,7 +164,7 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
     page = console.sign_in("operator")
     scan_id = _scan(page, console, 2000, live=True)
     expect(page.locator("#scan-progress-text")).to_contain_text("frame", timeout=60_000)
-    page.wait_for_function("document.getElementById('scan-progress').value >= 5", timeout=60_000)
+    until(page, "() => document.getElementById('scan-progress').value >= 5", 60.0)
     # the latest frame is drawn, with the BBs the live calibration found in it
     expect(page.locator("#frame-caption")).to_contain_text("BBs detected", timeout=60_000)
     shot(page, "scan-live")
