@@ -233,6 +233,7 @@ async function pageScanNew() {
     const frames = $('#frames').value;
     const scan = { name: $('#scan-name').value, orbit: select.value, params, frames: frames === '' ? null : Number(frames),
                    errors: $('#errors').value, seed: Number($('#seed').value || 0), mode: $('#mode').value };
+    if ($('#frame-rate').value) scan.frame_rate_hz = Number($('#frame-rate').value);
     if ($('#calibrate-live').checked) {
       scan.calibrate = 'live';
       if ($('#bb-diameter').value) scan.bb_diameter_mm = Number($('#bb-diameter').value);
@@ -272,12 +273,21 @@ async function pageScanNew() {
   async function detector() {
     try {
       const devices = await api('GET', '/devices');
-      const det = devices.find((d) => /detector|panel/i.test(d.name)) || null;
-      if (!det) { $('#detector').textContent = 'no detector connected'; return; }
-      const reading = await api('GET', `/devices/${det.name}`);
+      const det = devices.find((d) => /detector|panel/i.test(d.name));
+      const xray = devices.find((d) => /xray|generator/i.test(d.name));
+      const entries = [];
+      if (det) {
+        const s = (await api('GET', `/devices/${det.name}`)).state;
+        entries.push(['panel', `${det.name} (${det.model})`], ['pixels (rows, columns)', s.shape], ['binning', s.binning]);
+      }
+      if (xray) {
+        const s = (await api('GET', `/devices/${xray.name}`)).state;
+        entries.push(['generator', `${xray.name} (${xray.model})`], ['tube voltage (kV)', s.kv], ['tube current (mA)', s.ma],
+          ['exposure per frame (ms)', s.exposure_ms]);
+      }
       const dl = el('dl', { class: 'facts' });
-      facts(dl, [['device', `${det.name} (${det.model})`], ...Object.entries(reading.state).filter(([, v]) => typeof v !== 'object')]);
-      $('#detector').replaceChildren(dl, el('p', { class: 'help', text: 'Detector settings come from the bench configuration.' }));
+      facts(dl, entries);
+      $('#detector').replaceChildren(dl, el('p', { class: 'help', text: 'Panel size, binning and X-ray technique come from the bench configuration; the frame rate can be set per scan.' }));
     } catch (exc) { $('#detector').textContent = exc.message; }
   }
 }

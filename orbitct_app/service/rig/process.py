@@ -275,7 +275,8 @@ class RigServer:
         from acquire.runner import ScanRequest
 
         return ScanRequest(config=self.config, out=Path(spec["out"]), orbit=spec["orbit"], orbit_params=spec["params"],
-                           errors=spec["errors"], seed=spec["seed"], mode=spec["mode"], sim=self.sim)
+                           errors=spec["errors"], seed=spec["seed"], mode=spec["mode"], sim=self.sim,
+                           frame_rate_hz=spec.get("frame_rate_hz"))
 
     async def cmd_preflight(self, spec: dict[str, Any]) -> None:
         """Plan the scan and check it against every limit; nothing moves."""

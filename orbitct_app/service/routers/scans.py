@@ -48,6 +48,8 @@ class ScanCreate(BaseModel):
     errors: Literal["bench", "none"] = Field("none", description="error profile injected into the commanded poses")
     seed: int = Field(0, ge=0, le=2**31 - 1)
     mode: Literal["step", "continuous"] = "step"
+    frame_rate_hz: float | None = Field(None, gt=0.0, le=1000.0, description="detector frame rate (default: the bench "
+                                        "configuration's exposure.frame_rate_hz); the pre-flight checks the motion keeps up")
     calibrate: Literal["none", "live"] = Field("none", description="live: detect and follow the BBs while the frames "
                                                "arrive (warnings on the event stream, BBs on the latest frame) and write "
                                                "the calibrated geometry right after the last frame")
@@ -132,7 +134,7 @@ def _check_params(service: Any, body: ScanCreate) -> dict[str, Any]:
 def _preflight(service: Any, body: ScanCreate, params: dict[str, Any], rel: str) -> dict[str, Any]:
     """The bench's pre-flight of the scan (every frame against every axis limit, room on the disk); its spec."""
     spec = {"out": str(service.settings.data_dir / rel), "orbit": body.orbit, "params": params, "errors": body.errors,
-            "seed": body.seed, "mode": body.mode, "calibrate": body.calibrate, "bb_diameter_mm": body.bb_diameter_mm,
+            "seed": body.seed, "mode": body.mode, "frame_rate_hz": body.frame_rate_hz, "calibrate": body.calibrate, "bb_diameter_mm": body.bb_diameter_mm,
             "abort_on": list(body.abort_on)}
     try:
         service.rig.preflight(spec)

@@ -84,6 +84,9 @@ def _scan(page: Any, console: Console, frames: int, live: bool = False) -> str:
     page.fill("#scan-name", f"console test {frames}")
     if live:
         page.check("#calibrate-live")
+    else:
+        page.fill("#frame-rate", "20")
+    assert "tube voltage (kV)" in page.inner_text("#detector")
     page.click("#check")
     page.wait_for_selector("#preflight.yes")
     assert "within the limits" in page.inner_text("#preflight")

@@ -82,6 +82,9 @@ def test_the_api_docs_use_orbitcts_own_copies_of_swagger_ui_and_redoc(shared_api
 def test_preflight_names_the_first_infeasible_frame_and_the_live_frame_follows_the_scan(api) -> None:  # type: ignore[no-untyped-def]
     ok = api.post("/scans/preflight", role="viewer", json={**SMALL_SAWTOOTH, "frames": 20})
     assert ok.status_code == 200 and ok.json()["frames"] == 20 and "within the limits" in ok.json()["message"]
+    fast = api.post("/scans/preflight", json={**SMALL_SAWTOOTH, "frames": 500, "frame_rate_hz": 1000.0, "mode": "continuous"})
+    assert fast.status_code == 422 and "at 1000 frames/s" in fast.json()["message"], fast.text  # too fast for the stage
+    assert api.post("/scans/preflight", json={**SMALL_SAWTOOTH, "frame_rate_hz": 0}).status_code == 422
     too_far = api.post("/scans/preflight", json={"orbit": "sawtooth", "params": {"amplitude_deg": 40.0}, "frames": 50})
     assert too_far.status_code == 422 and "frame" in too_far.json()["message"], too_far.text
     assert not list(api.data_dir.rglob("*.h5")), "a pre-flight writes nothing"
