@@ -171,6 +171,10 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
     # the latest frame is drawn, with the BBs the live calibration found in it
     expect(page.locator("#frame-caption")).to_contain_text("BBs detected", timeout=60_000)
     shot(page, "scan-live")
+    # a reload mid-scan: the page picks the stream up again and the count goes on
+    before = page.evaluate("() => document.getElementById('scan-progress').value")
+    page.reload()
+    until(page, f"() => document.getElementById('scan-progress').value > {before}", 60.0)
     page.keyboard.press("Escape")
     expect(page.locator("#stop-result")).to_contain_text("Stopped and verified", timeout=30_000)
     expect(page.locator("#latch")).to_be_visible()
