@@ -17,6 +17,7 @@ COMMANDS: dict[str, str] = {
     "demo": "orbitct_app.cli.demo:demo",
     "calibrate": "orbitct_app.cli.calibrate:calibrate",
     "reconstruct": "orbitct_app.cli.reconstruct:reconstruct",
+    "export": "orbitct_app.cli.export:export",
     "serve": "orbitct_app.cli.serve:serve",
     "token": "orbitct_app.cli.serve:token",
     "stop": "orbitct_app.cli.remote:stop",

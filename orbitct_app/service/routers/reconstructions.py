@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -149,6 +150,42 @@ def get_volume(job_id: str, service: ServiceDep, _: Reader, format: Literal["nif
     if not names:
         raise Conflict("this reconstruction has no NIfTI export")
     return FileResponse(confined(folder, sorted(names)[0]), filename=sorted(names)[0])
+
+
+@router.get("/{job_id}/dicom", response_class=FileResponse, summary="The volume as a DICOM CT series (zip)",
+            responses={200: {"content": {"application/zip": {}}}, **NOT_SUCCEEDED})
+def get_dicom(job_id: str, service: ServiceDep, _: Reader,
+              water_mu_per_mm: Annotated[float | None, Query(gt=0.0, le=10.0, description="attenuation of water (1/mm) "
+                                                             "for Hounsfield units (default 0.0206, the simulator's)")] = None,
+              patient_id: Annotated[str, Query(max_length=64, pattern=r"^[\w .-]*$")] = "") -> FileResponse:
+    """One CT image per axial slice in Hounsfield units, the object frame as the patient frame, fresh UIDs, the
+    algorithm and geometry in the series description; zipped (written once per water value)."""
+    import tempfile
+    import zipfile
+
+    from orbitct.geometry import VolumeGrid
+    from recon.dicom import WATER_MU_PER_MM, SeriesInfo, export_dicom_ct
+
+    vol = _volume(service, job_id)
+    job = job_or_404(service, job_id, "reconstruction")
+    result, params = job["result"], job["params"]
+    water = water_mu_per_mm or WATER_MU_PER_MM
+    folder = service.jobs.job_dir(job_id)
+    name = f"dicom-{job_id}-{water:g}{'-' + patient_id if patient_id else ''}.zip".replace(" ", "_")
+    target = folder / name
+    if not target.exists():
+        grid = VolumeGrid(tuple(vol.shape), tuple(result["voxel_mm"]), tuple(result["origin_mm"]))
+        info = SeriesInfo(description=f"orbitct {result.get('name', job_id)}: {params.get('algorithm', '?').upper()} "
+                                      f"{params.get('geometry', '?')} geometry", patient_id=patient_id or job["scan_id"],
+                          water_mu_per_mm=water)
+        with tempfile.TemporaryDirectory(dir=folder) as tmp:
+            files = export_dicom_ct(np.asarray(vol, dtype=np.float32), grid, Path(tmp) / "series", info)
+            partial = Path(tmp) / "series.zip"
+            with zipfile.ZipFile(partial, "w", zipfile.ZIP_DEFLATED) as zf:
+                for f in files:
+                    zf.write(f, f"{job_id}/{f.name}")
+            partial.replace(target)
+    return FileResponse(confined(folder, name), media_type="application/zip", filename=f"{job_id}-dicom.zip")
 
 
 @router.get("/{job_id}/files", response_model=list[str], summary="Result files", responses=NOT_SUCCEEDED)

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import io
 import threading
+import zipfile
 from pathlib import Path
 
 import numpy as np
+import pydicom
 import pytest
 
 from orbitct.scanfile import ScanFile
@@ -81,6 +83,15 @@ def test_scan_calibrate_reconstruct(api, tmp_path: Path) -> None:  # type: ignor
     assert np.load(io.BytesIO(r.content)).shape == (24, 32, 32)
     r = api.get(f"/reconstructions/{rec_id}/volume")
     assert r.status_code == 200 and r.content[:2] == b"\x1f\x8b"  # gzip-compressed NIfTI
+    r = api.get(f"/reconstructions/{rec_id}/dicom", params={"patient_id": "phantom 1"})
+    assert r.status_code == 200 and r.headers["content-type"] == "application/zip"
+    with zipfile.ZipFile(io.BytesIO(r.content)) as zf:
+        names = sorted(zf.namelist())
+        assert len(names) == 24 and names[0] == f"{rec_id}/CT000001.dcm"
+        ct = pydicom.dcmread(io.BytesIO(zf.read(names[0])))
+    assert ct.Modality == "CT" and ct.PatientID == "phantom 1" and "FDK calibrated geometry" in ct.SeriesDescription
+    assert (ct.Rows, ct.Columns) == (32, 32)
+    assert api.get(f"/reconstructions/{rec_id}/dicom", params={"water_mu_per_mm": 0}).status_code == 422
     assert [j["id"] for j in api.get("/jobs", params={"scan_id": scan_id}).json()] == [rec_id, cal_id]
 
     # the same reconstruction again: the name is taken in the scan file; replaced only when asked

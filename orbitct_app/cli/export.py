@@ -1,0 +1,56 @@
+"""``orbitct export dicom``: a reconstruction of a scan file as a DICOM CT image series."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+@click.group()
+def export() -> None:
+    """Write what a scan file holds in formats other tools read."""
+
+
+@export.command("dicom")
+@click.argument("scan", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--recon", "name", required=True, help="Name of the reconstruction under /recon (see `orbitct inspect`).")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Folder for the series (one CT000001.dcm ... per axial slice); created if needed, must be empty.")
+@click.option("--water-mu-per-mm", type=click.FloatRange(min=1e-6, max=10.0), default=None,
+              help="Attenuation of water at the scan's effective energy (HU = 1000 (mu - water) / water; default "
+                   "0.0206 1/mm, the simulator's water).")
+@click.option("--patient-name", default="", help="DICOM Patient's Name (default empty).")
+@click.option("--patient-id", default="", help="DICOM Patient ID (default: the scan file's name).")
+@click.option("--study-description", default="", help="DICOM Study Description.")
+def dicom(scan: Path, name: str, out_dir: Path, water_mu_per_mm: float | None, patient_name: str, patient_id: str,
+          study_description: str) -> None:
+    """Export reconstruction NAME of SCAN as a CT series in Hounsfield units (the object frame as patient frame)."""
+    from orbitct.geometry import VolumeGrid
+    from orbitct.scanfile import ScanFile, ScanFileError
+    from recon.dicom import WATER_MU_PER_MM, SeriesInfo, export_dicom_ct
+    from recon.errors import ReconError
+
+    if out_dir.exists() and any(out_dir.iterdir()):
+        raise click.ClickException(f"{out_dir} is not empty: give a new or empty folder for the series")
+    try:
+        with ScanFile(scan) as sf:
+            volume, attrs = sf.read_recon(name)
+            calibrated = sf.has_geometry("calibrated")
+    except ScanFileError as exc:
+        raise click.ClickException(str(exc)) from None
+    grid = VolumeGrid(tuple(volume.shape), tuple(attrs["voxel_mm"]), tuple(attrs["origin_mm"]))
+    geometry = str(attrs.get("geometry", "?"))
+    provenance = f"{str(attrs.get('algorithm', '?')).upper()} {geometry} geometry"
+    if geometry == "calibrated" and calibrated:
+        provenance += " (BB calibration)"
+    info = SeriesInfo(description=f"orbitct {name}: {provenance}", patient_name=patient_name,
+                      patient_id=patient_id or scan.stem[:64], study_description=study_description,
+                      water_mu_per_mm=water_mu_per_mm or WATER_MU_PER_MM)
+    try:
+        files = export_dicom_ct(volume, grid, out_dir, info)
+    except ReconError as exc:
+        raise click.ClickException(str(exc)) from None
+    nz, ny, nx = volume.shape
+    click.echo(f"wrote {len(files)} CT slices of {nx}x{ny} px ({grid.voxel_mm[0]:g} x {grid.voxel_mm[1]:g} mm, "
+               f"{grid.voxel_mm[2]:g} mm apart) to {out_dir}: {info.description}")

@@ -1,0 +1,110 @@
+"""A reconstruction as a DICOM CT image series (one file per axial slice), encoded by pydicom.
+
+The object frame is the DICOM patient frame: patient x, y, z (mm) are the object's x, y, z, so an
+axial slice (constant z) has row direction +x and column direction +y. Values are Hounsfield units,
+``1000 (mu - mu_water) / mu_water`` from the reconstruction's 1/mm, stored as signed 16-bit integers
+(slope 1, intercept 0; clipped to [-1024, 32767]).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from orbitct import __version__
+from orbitct.geometry import VolumeGrid
+from recon.errors import ReconError
+
+WATER_MU_PER_MM = 0.0206  # the simulator's water at its effective energy (orbitct.phantoms.materials)
+HU_RANGE = (-1024, 32767)
+
+
+@dataclass(frozen=True)
+class SeriesInfo:
+    """Who and what the series is about; empty patient fields stay empty (DICOM type 2)."""
+
+    description: str = ""
+    patient_name: str = ""
+    patient_id: str = ""
+    study_description: str = ""
+    study_uid: str = ""  # empty: a new study
+    series_number: int = 1
+    water_mu_per_mm: float = WATER_MU_PER_MM
+
+
+def to_hounsfield(volume: NDArray[np.floating], water_mu_per_mm: float) -> NDArray[np.int16]:
+    """Hounsfield units of a 1/mm volume, rounded and clipped to the 16-bit range CT stores."""
+    if not water_mu_per_mm > 0:
+        raise ReconError(f"water attenuation must be > 0 1/mm, got {water_mu_per_mm!r}")
+    hu = 1000.0 * (np.asarray(volume, dtype=np.float64) - water_mu_per_mm) / water_mu_per_mm
+    return np.clip(np.rint(np.nan_to_num(hu, nan=HU_RANGE[0])), *HU_RANGE).astype(np.int16)
+
+
+def export_dicom_ct(volume: NDArray[np.floating], grid: VolumeGrid, out_dir: Path, info: SeriesInfo = SeriesInfo()) -> list[Path]:
+    """Write ``volume`` (nz, ny, nx; 1/mm) on ``grid`` as a CT series into ``out_dir`` (``CT000001.dcm``, ...)."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import (
+        PYDICOM_IMPLEMENTATION_UID,
+        CTImageStorage,
+        ExplicitVRLittleEndian,
+        generate_uid,
+    )
+
+    vol = np.asarray(volume)
+    if vol.ndim != 3 or tuple(vol.shape) != tuple(grid.shape):
+        raise ReconError(f"volume shape {vol.shape} does not match the grid {grid.shape}")
+    hu = to_hounsfield(vol, info.water_mu_per_mm)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    now = dt.datetime.now()
+    date, time = now.strftime("%Y%m%d"), now.strftime("%H%M%S")
+    study_uid = info.study_uid or generate_uid()
+    series_uid, frame_uid = generate_uid(), generate_uid()
+    vx, vy, vz = grid.voxel_mm
+    x0, y0, z0 = grid.origin_mm
+    centre = float(np.median(hu)) if hu.size else 0.0
+    paths = []
+    for k in range(hu.shape[0]):
+        meta = FileMetaDataset()
+        meta.MediaStorageSOPClassUID = CTImageStorage
+        meta.MediaStorageSOPInstanceUID = generate_uid()
+        meta.TransferSyntaxUID = ExplicitVRLittleEndian
+        meta.ImplementationClassUID = PYDICOM_IMPLEMENTATION_UID
+        ds = Dataset()
+        ds.file_meta = meta
+        ds.SpecificCharacterSet = "ISO_IR 100"
+        ds.SOPClassUID, ds.SOPInstanceUID = CTImageStorage, meta.MediaStorageSOPInstanceUID
+        ds.ImageType = ["DERIVED", "SECONDARY", "AXIAL"]
+        ds.Modality = "CT"
+        ds.Manufacturer = "orbitct"
+        ds.SoftwareVersions = __version__
+        ds.PatientName, ds.PatientID, ds.PatientBirthDate, ds.PatientSex = info.patient_name, info.patient_id, "", ""
+        ds.StudyInstanceUID, ds.StudyDate, ds.StudyTime, ds.StudyID = study_uid, date, time, "1"
+        ds.ReferringPhysicianName, ds.AccessionNumber = "", ""
+        if info.study_description:
+            ds.StudyDescription = info.study_description[:64]
+        ds.SeriesInstanceUID, ds.SeriesNumber, ds.SeriesDate, ds.SeriesTime = series_uid, info.series_number, date, time
+        ds.SeriesDescription = info.description[:64]
+        ds.Laterality, ds.PatientPosition = "", ""  # a bench object: neither is known
+        ds.FrameOfReferenceUID, ds.PositionReferenceIndicator = frame_uid, ""
+        ds.InstanceNumber, ds.AcquisitionNumber, ds.KVP = k + 1, 1, ""
+        ds.ContentDate, ds.ContentTime = date, time
+        ds.ImagePositionPatient = [f"{x0:.6g}", f"{y0:.6g}", f"{z0 + k * vz:.6g}"]
+        ds.ImageOrientationPatient = [1, 0, 0, 0, 1, 0]
+        ds.SliceLocation = f"{z0 + k * vz:.6g}"
+        ds.PixelSpacing = [f"{vy:.6g}", f"{vx:.6g}"]  # row spacing (between rows: y), column spacing (x)
+        ds.SliceThickness = f"{vz:.6g}"
+        ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
+        ds.Rows, ds.Columns = int(hu.shape[1]), int(hu.shape[2])
+        ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 1
+        ds.RescaleIntercept, ds.RescaleSlope, ds.RescaleType = 0, 1, "HU"
+        ds.WindowCenter, ds.WindowWidth = f"{centre:.0f}", "2000"
+        ds.PixelData = np.ascontiguousarray(hu[k]).tobytes()
+        path = out_dir / f"CT{k + 1:06d}.dcm"
+        ds.save_as(path, enforce_file_format=True)
+        paths.append(path)
+    return paths
