@@ -307,7 +307,7 @@ function paramInput(name, p, required) {
       ...schema.enum.map((v) => el('option', { value: v, text: v, selected: v === p.default })));
   } else if (schema.type === 'number' || schema.type === 'integer') {
     input = el('input', { id, type: 'number', step: schema.type === 'integer' ? 1 : 'any', 'data-param': name, required,
-      min: schema.minimum ?? (schema.exclusiveMinimum !== undefined ? undefined : undefined), max: schema.maximum });
+      min: schema.minimum ?? schema.exclusiveMinimum, max: schema.maximum ?? schema.exclusiveMaximum });
     if (p.default !== undefined && p.default !== null) input.value = p.default;
   } else {
     input = el('input', { id, 'data-param': name, 'data-kind': schema.type === 'string' ? 'text' : 'json', required,

@@ -134,8 +134,8 @@ def _check_params(service: Any, body: ScanCreate) -> dict[str, Any]:
 def _preflight(service: Any, body: ScanCreate, params: dict[str, Any], rel: str) -> dict[str, Any]:
     """The bench's pre-flight of the scan (every frame against every axis limit, room on the disk); its spec."""
     spec = {"out": str(service.settings.data_dir / rel), "orbit": body.orbit, "params": params, "errors": body.errors,
-            "seed": body.seed, "mode": body.mode, "frame_rate_hz": body.frame_rate_hz, "calibrate": body.calibrate, "bb_diameter_mm": body.bb_diameter_mm,
-            "abort_on": list(body.abort_on)}
+            "seed": body.seed, "mode": body.mode, "frame_rate_hz": body.frame_rate_hz, "calibrate": body.calibrate,
+            "bb_diameter_mm": body.bb_diameter_mm, "abort_on": list(body.abort_on)}
     try:
         service.rig.preflight(spec)
     except Invalid as exc:
