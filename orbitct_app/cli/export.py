@@ -1,4 +1,5 @@
-"""``orbitct export dicom``: a reconstruction of a scan file as a DICOM CT image series."""
+"""``orbitct export dicom`` (a reconstruction as a DICOM CT image series) and ``orbitct export nxtomo`` (a scan as
+NXtomo)."""
 
 from __future__ import annotations
 
@@ -54,3 +55,20 @@ def dicom(scan: Path, name: str, out_dir: Path, water_mu_per_mm: float | None, p
     nz, ny, nx = volume.shape
     click.echo(f"wrote {len(files)} CT slices of {nx}x{ny} px ({grid.voxel_mm[0]:g} x {grid.voxel_mm[1]:g} mm, "
                f"{grid.voxel_mm[2]:g} mm apart) to {out_dir}: {info.description}")
+
+
+@export.command("nxtomo")
+@click.argument("scan", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="The NXtomo file to write (.nx).")
+@click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
+def nxtomo(scan: Path, out: Path, overwrite: bool) -> None:
+    """Export SCAN as NXtomo (NeXus): frames, image keys, angles, distances, per-frame transformations, and the full
+    per-view geometry in an ``orbitct`` collection."""
+    from orbitct.scanfile import ScanFileError
+    from orbitct.scanfile.nxtomo import ENTRY, export_nxtomo
+
+    try:
+        path = export_nxtomo(scan, out, overwrite=overwrite)
+    except ScanFileError as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(f"wrote {path} (NXtomo entry /{ENTRY})")

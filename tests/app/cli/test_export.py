@@ -36,3 +36,13 @@ def test_export_dicom_writes_a_series_with_the_provenance_and_refuses_what_it_ca
     missing = runner.invoke(cli, ["export", "dicom", str(scan), "--recon", "pwls", "--out", str(tmp_path / "x")])
     assert missing.exit_code != 0 and "no reconstruction 'pwls'" in missing.output and "fdk_nominal" in missing.output
     assert "Traceback" not in missing.output
+
+
+def test_export_nxtomo_writes_the_file_and_refuses_to_overwrite(tmp_path: Path) -> None:
+    scan = write_small_scan(tmp_path / "small.h5")
+    runner = CliRunner()
+    res = runner.invoke(cli, ["export", "nxtomo", str(scan), "--out", str(tmp_path / "small.nx")])
+    assert res.exit_code == 0 and "NXtomo entry /entry0000" in res.output, res.output
+    again = runner.invoke(cli, ["export", "nxtomo", str(scan), "--out", str(tmp_path / "small.nx")])
+    assert again.exit_code != 0 and "exists" in again.output and "Traceback" not in again.output
+    assert runner.invoke(cli, ["export", "nxtomo", str(scan), "--out", str(tmp_path / "small.nx"), "--overwrite"]).exit_code == 0
