@@ -12,13 +12,13 @@ class ApiError extends Error {
 }
 
 /** Call the REST API; JSON in and out (or the raw response with raw: true); errors become ApiError with the API's message. */
-async function api(method, path, body, { raw = false } = {}) {
+async function api(method, path, body, { raw = false, signIn = true } = {}) {
   const options = { method, headers: {}, credentials: 'same-origin' };
   if (method !== 'GET') options.headers['X-CSRF-Token'] = CSRF;
   if (body !== undefined) { options.headers['Content-Type'] = 'application/json'; options.body = JSON.stringify(body); }
   let response;
   try { response = await fetch(path, options); } catch (exc) { throw new ApiError('the service does not answer (' + exc.message + ')', 0); }
-  if (response.status === 401 && document.body.dataset.page !== 'sign-in') {
+  if (response.status === 401 && signIn && document.body.dataset.page !== 'sign-in') {
     location.assign('/sign-in?next=' + encodeURIComponent(location.pathname));
     throw new ApiError('signed out: sign in again', 401);
   }
@@ -98,7 +98,8 @@ function initFrame() {
     notice.hidden = false;
     notice.textContent = 'Stopping the bench…';
     try {
-      const r = await api('POST', '/stop', { reason: 'emergency stop from the web console' });
+      // an expired session must not take the page away from a failed stop: the failure stays on screen
+      const r = await api('POST', '/stop', { reason: 'emergency stop from the web console' }, { signIn: false });
       notice.textContent = (r.halted ? 'Stopped and verified: ' : 'STOP NOT VERIFIED: ') + r.message
         + (r.scan_aborted ? ' Scan ' + r.scan_aborted + ' aborted.' : '');
       notice.className = r.halted ? 'notice' : 'notice error';
