@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from orbitct import __version__
+from orbitct.dicom import new_instance
 from orbitct.geometry import VolumeGrid
 from recon.errors import ReconError
 
@@ -46,13 +47,7 @@ def to_hounsfield(volume: NDArray[np.floating], water_mu_per_mm: float) -> NDArr
 
 def export_dicom_ct(volume: NDArray[np.floating], grid: VolumeGrid, out_dir: Path, info: SeriesInfo = SeriesInfo()) -> list[Path]:
     """Write ``volume`` (nz, ny, nx; 1/mm) on ``grid`` as a CT series into ``out_dir`` (``CT000001.dcm``, ...)."""
-    from pydicom.dataset import Dataset, FileMetaDataset
-    from pydicom.uid import (
-        PYDICOM_IMPLEMENTATION_UID,
-        CTImageStorage,
-        ExplicitVRLittleEndian,
-        generate_uid,
-    )
+    from pydicom.uid import CTImageStorage, generate_uid
 
     vol = np.asarray(volume)
     if vol.ndim != 3 or tuple(vol.shape) != tuple(grid.shape):
@@ -69,15 +64,7 @@ def export_dicom_ct(volume: NDArray[np.floating], grid: VolumeGrid, out_dir: Pat
     centre = float(np.median(hu)) if hu.size else 0.0
     paths = []
     for k in range(hu.shape[0]):
-        meta = FileMetaDataset()
-        meta.MediaStorageSOPClassUID = CTImageStorage
-        meta.MediaStorageSOPInstanceUID = generate_uid()
-        meta.TransferSyntaxUID = ExplicitVRLittleEndian
-        meta.ImplementationClassUID = PYDICOM_IMPLEMENTATION_UID
-        ds = Dataset()
-        ds.file_meta = meta
-        ds.SpecificCharacterSet = "ISO_IR 100"
-        ds.SOPClassUID, ds.SOPInstanceUID = CTImageStorage, meta.MediaStorageSOPInstanceUID
+        ds = new_instance(CTImageStorage)
         ds.ImageType = ["DERIVED", "SECONDARY", "AXIAL"]
         ds.Modality = "CT"
         ds.Manufacturer = "orbitct"

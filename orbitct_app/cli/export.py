@@ -1,5 +1,5 @@
-"""``orbitct export dicom`` (a reconstruction as a DICOM CT image series) and ``orbitct export nxtomo`` (a scan as
-NXtomo)."""
+"""``orbitct export dicom`` (a reconstruction as a DICOM CT image series), ``orbitct export xa`` (a C-arm scan's run as
+DICOM XA, as the C-arm exports it) and ``orbitct export nxtomo`` (a scan as NXtomo)."""
 
 from __future__ import annotations
 
@@ -72,3 +72,30 @@ def nxtomo(scan: Path, out: Path, overwrite: bool) -> None:
     except ScanFileError as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(f"wrote {path} (NXtomo entry /{ENTRY})")
+
+
+@export.command("xa")
+@click.argument("scan", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="The XA file to write (.dcm).")
+@click.option("--frames", "part", default=None, help="Only projections FIRST:LAST (0-based, LAST excluded): one run of "
+              "an orbit acquired as several.")
+def xa(scan: Path, out: Path, part: str | None) -> None:
+    """Write the projections of a C-arm scan as one multi-frame DICOM XA run (positioner angles per frame, distances,
+    pixel spacing), as a C-arm's own export does; `orbitct import dicom` reads it back."""
+    from orbitct.scanfile import ScanFileError
+    from orbitct.scanfile.xa import write_xa_run
+
+    span = None
+    if part is not None:
+        try:
+            first, last = (int(x) for x in part.split(":"))
+        except ValueError:
+            raise click.BadParameter(f"expected FIRST:LAST (e.g. 0:100), got {part!r}", param_hint="--frames") from None
+        span = (first, last)
+    if out.exists():
+        raise click.ClickException(f"{out} exists; choose another name")
+    try:
+        path = write_xa_run(scan, out, part=span)
+    except ScanFileError as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(f"wrote {path}")

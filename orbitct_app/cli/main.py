@@ -18,6 +18,7 @@ COMMANDS: dict[str, str] = {
     "calibrate": "orbitct_app.cli.calibrate:calibrate",
     "reconstruct": "orbitct_app.cli.reconstruct:reconstruct",
     "export": "orbitct_app.cli.export:export",
+    "import": "orbitct_app.cli.imports:import_group",
     "serve": "orbitct_app.cli.serve:serve",
     "token": "orbitct_app.cli.serve:token",
     "stop": "orbitct_app.cli.remote:stop",
