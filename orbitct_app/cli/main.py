@@ -19,6 +19,7 @@ COMMANDS: dict[str, str] = {
     "reconstruct": "orbitct_app.cli.reconstruct:reconstruct",
     "export": "orbitct_app.cli.export:export",
     "import": "orbitct_app.cli.imports:import_group",
+    "pacs": "orbitct_app.cli.pacs:pacs",
     "serve": "orbitct_app.cli.serve:serve",
     "token": "orbitct_app.cli.serve:token",
     "stop": "orbitct_app.cli.remote:stop",

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import os
-import shutil
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
 import pytest
+
+from tests.helpers.tools import require_tool
 
 # The flags a closed lab network needs (no background connections) and software WebGL2 for the volume viewer.
 CHROMIUM_ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
@@ -17,14 +18,8 @@ CHROMIUM_ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-
 
 
 def chromium_path() -> str:
-    """The Chromium executable; fails in CI (``.ci/run`` installs it) and skips elsewhere when there is none."""
-    path = os.environ.get("ORBITCT_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
-    if path is None:
-        why = "no chromium on PATH (Debian: apt-get install chromium; or set ORBITCT_CHROMIUM)"
-        if os.environ.get("CI"):
-            pytest.fail(why + "; .ci/run installs it and the console's browser tests must run in CI")
-        pytest.skip(why)
-    return path
+    """The Chromium executable (``ORBITCT_CHROMIUM``, else Debian's ``chromium``); fails in CI, skips elsewhere."""
+    return os.environ.get("ORBITCT_CHROMIUM") or require_tool("chromium", "chromium")
 
 
 @contextmanager

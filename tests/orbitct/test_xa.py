@@ -3,8 +3,6 @@ geometry (one run or several), and every missing or contradictory attribute refu
 
 from __future__ import annotations
 
-import os
-import shutil
 import subprocess
 from pathlib import Path
 
@@ -16,6 +14,7 @@ from acquire.config import parse_config
 from acquire.runner import ScanRequest, run_scan
 from orbitct.scanfile import ScanFile, ScanFileError
 from orbitct.scanfile.xa import import_xa, write_xa_run
+from tests.helpers.tools import require_tool
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(180)]
 
@@ -36,12 +35,8 @@ def test_the_twins_run_comes_back_from_xa_with_its_nominal_geometry(carm_scan: P
     xa = write_xa_run(carm_scan, tmp_path / "run1.dcm")
     ds = pydicom.dcmread(xa)
     assert ds.Modality == "XA" and int(ds.NumberOfFrames) == 80 and ds.PositionerMotion == "DYNAMIC"
-    tool = shutil.which("dciodvfy")
-    if tool is None and os.environ.get("CI"):
-        pytest.fail("dciodvfy (dicom3tools) is missing; .ci/run installs it")
-    if tool is not None:
-        res = subprocess.run([tool, str(xa)], capture_output=True, text=True, timeout=60)
-        assert not [x for x in (res.stdout + res.stderr).splitlines() if x.startswith("Error")], res.stderr
+    res = subprocess.run([require_tool("dciodvfy", "dicom3tools"), str(xa)], capture_output=True, text=True, timeout=60)
+    assert not [x for x in (res.stdout + res.stderr).splitlines() if x.startswith("Error")], res.stderr
     scan = import_xa([xa], tmp_path / "imported.h5")
     with ScanFile(carm_scan) as a, ScanFile(scan) as b:
         proj = a.projection_indices

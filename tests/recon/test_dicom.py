@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-import shutil
 import subprocess
 from pathlib import Path
 
@@ -14,6 +12,7 @@ import pytest
 from orbitct.geometry import VolumeGrid
 from recon.dicom import SeriesInfo, export_dicom_ct, to_hounsfield
 from recon.errors import ReconError
+from tests.helpers.tools import require_tool
 
 
 def _series(tmp_path: Path) -> tuple[VolumeGrid, np.ndarray, np.ndarray, list[Path]]:
@@ -60,12 +59,7 @@ def test_hounsfield_units_are_clipped_and_bad_input_is_refused(tmp_path: Path) -
 
 
 def test_every_object_passes_dciodvfy(tmp_path: Path) -> None:
-    tool = shutil.which("dciodvfy")
-    if tool is None:
-        why = "dciodvfy (Debian package dicom3tools) is not installed"
-        if os.environ.get("CI"):
-            pytest.fail(why + "; .ci/run installs it")
-        pytest.skip(why)
+    tool = require_tool("dciodvfy", "dicom3tools")
     _, _, _, files = _series(tmp_path)
     for f in (files[0], files[len(files) // 2], files[-1]):
         res = subprocess.run([tool, str(f)], capture_output=True, text=True, timeout=60)

@@ -1,0 +1,96 @@
+"""The clinical path against a real Orthanc: a reconstruction pushed as a CT series (C-STORE), found (C-FIND) and
+fetched back (C-GET); a C-arm run pushed as XA, fetched and imported; clear errors for a wrong node."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pydicom
+import pytest
+from click.testing import CliRunner
+
+from orbitct.geometry import VolumeGrid
+from orbitct_app.cli.main import cli
+from orbitct_app.pacs import PacsError, PacsNode, find_series, get_series, send
+from recon.dicom import SeriesInfo, export_dicom_ct
+from tests.helpers.orthanc import orthanc
+from tests.helpers.service import free_port
+
+pytestmark = [pytest.mark.system, pytest.mark.timeout(180)]
+
+
+def test_a_ct_series_goes_to_orthanc_and_comes_back_the_same(tmp_path: Path) -> None:
+    grid = VolumeGrid((6, 10, 12), (0.8, 0.8, 1.5), (-4.0, -4.0, -3.0))
+    volume = np.full(grid.shape, 0.0206, np.float32)
+    volume[3, 5, 6] = 0.05
+    files = export_dicom_ct(volume, grid, tmp_path / "ct", SeriesInfo(description="orbitct test", patient_id="PACS-1"))
+    with orthanc(tmp_path / "orthanc") as node:
+        assert send(files, node) == 6
+        found = find_series(node, PatientID="PACS-1")
+        assert len(found) == 1 and found[0]["Modality"] == "CT" and found[0]["SeriesDescription"] == "orbitct test"
+        back = get_series(node, found[0]["StudyInstanceUID"], found[0]["SeriesInstanceUID"], tmp_path / "back")
+    assert len(back) == 6
+    ours = {pydicom.dcmread(f).SOPInstanceUID: pydicom.dcmread(f) for f in files}
+    for f in back:
+        ds = pydicom.dcmread(f)
+        mine = ours[ds.SOPInstanceUID]
+        assert np.array_equal(ds.pixel_array, mine.pixel_array)
+        assert list(ds.ImagePositionPatient) == list(mine.ImagePositionPatient)
+
+
+def test_the_pacs_commands_push_find_and_pull(tmp_path: Path) -> None:
+    grid = VolumeGrid((3, 4, 5), 1.0, (0.0, 0.0, 0.0))
+    export_dicom_ct(np.full(grid.shape, 0.0206, np.float32), grid, tmp_path / "ct", SeriesInfo(patient_id="PACS-2"))
+    runner = CliRunner()
+    with orthanc(tmp_path / "orthanc") as node:
+        res = runner.invoke(cli, ["pacs", "send", str(tmp_path / "ct"), "--to", str(node)])
+        assert res.exit_code == 0 and "stored 3 object(s)" in res.output, res.output
+        res = runner.invoke(cli, ["pacs", "find", "--on", str(node), "--patient-id", "PACS-2"])
+        assert res.exit_code == 0 and "CT" in res.output, res.output
+        series = res.output.split()[res.output.split().index("CT") - 1]
+        res = runner.invoke(cli, ["pacs", "get", series, "--from", str(node), "--out", str(tmp_path / "pulled")])
+        assert res.exit_code == 0 and "3 file(s)" in res.output, res.output
+    bad = runner.invoke(cli, ["pacs", "find", "--on", "ORTHANC@host"])
+    assert bad.exit_code != 0 and "dicom://AE_TITLE@host:port" in bad.output
+
+
+def test_an_unreachable_node_is_named() -> None:
+    with pytest.raises(PacsError, match="no association"):
+        find_series(PacsNode("NOBODY", "127.0.0.1", free_port()))
+    with pytest.raises(PacsError, match="expected dicom://"):
+        PacsNode.parse("http://x:1")
+
+
+def _carm_scan(path: Path, n: int = 12) -> Path:
+    """A small C-arm scan file (what the C-arm twin records), without the twin: frames, angles, nominal views."""
+    from orbitct.geometry import Panel, ViewGeometry
+    from orbitct.scanfile import ScanWriter
+
+    panel = Panel(24, 32, 1.5, 1.5)
+    primary, secondary = np.linspace(-20.0, 20.0, n), np.linspace(-5.0, 5.0, n)
+    views = ViewGeometry.from_carm(np.radians(primary), np.radians(secondary), 785.0, 1200.0, panel)
+    rng = np.random.default_rng(0)
+    with ScanWriter(path, panel, axes={"carm.primary": "deg", "carm.secondary": "deg"}, orbit_name="test") as w:
+        for i in range(n):
+            angles = {"carm.primary": float(primary[i]), "carm.secondary": float(secondary[i])}
+            w.append(rng.integers(1000, 4000, (24, 32)).astype(np.uint16), "projection", 0.1 * i,
+                     nominal_vector=views.vectors[i], encoders=angles, commanded=angles)
+    return path
+
+
+def test_an_xa_run_pulled_from_orthanc_imports_with_its_geometry(tmp_path: Path) -> None:
+    from orbitct.scanfile import ScanFile
+    from orbitct.scanfile.xa import import_xa, write_xa_run
+
+    scan = _carm_scan(tmp_path / "carm.h5")
+    run = write_xa_run(scan, tmp_path / "xa" / "run.dcm", patient_id="PACS-3")
+    with orthanc(tmp_path / "orthanc") as node:
+        send([run], node)
+        found = find_series(node, PatientID="PACS-3", Modality="XA")
+        assert len(found) == 1
+        pulled = get_series(node, found[0]["StudyInstanceUID"], found[0]["SeriesInstanceUID"], tmp_path / "pulled")
+    imported = import_xa(pulled, tmp_path / "imported.h5")
+    with ScanFile(scan) as a, ScanFile(imported) as b:
+        assert b.geometry("nominal")[b.projection_indices].allclose(a.geometry("nominal"), atol_mm=1e-6)
+        assert np.array_equal(np.asarray(b.frames[b.projection_indices.tolist()]), np.asarray(a.frames[:]))
