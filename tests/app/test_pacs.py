@@ -94,3 +94,44 @@ def test_an_xa_run_pulled_from_orthanc_imports_with_its_geometry(tmp_path: Path)
     with ScanFile(scan) as a, ScanFile(imported) as b:
         assert b.geometry("nominal")[b.projection_indices].allclose(a.geometry("nominal"), atol_mm=1e-6)
         assert np.array_equal(np.asarray(b.frames[b.projection_indices.tolist()]), np.asarray(a.frames[:]))
+
+
+@pytest.mark.slow
+def test_the_clinical_path_end_to_end(tmp_path: Path) -> None:
+    """C-arm twin -> XA -> Orthanc -> fetched -> imported -> calibrated -> reconstructed -> CT series -> Orthanc."""
+    import calib
+    import recon
+    from acquire.config import parse_config
+    from acquire.runner import ScanRequest, run_scan
+    from calib.evaluate import similarity_aligned_error_px
+    from orbitct.scanfile import ScanFile
+    from orbitct.scanfile.xa import import_xa, write_xa_run
+
+    cfg = parse_config({"kind": "carm", "geometry": {"detector": {"rows": 192, "cols": 192}},
+                        "calibration_frames": {"darks_before": 1, "flats_before": 1, "darks_after": 0, "flats_after": 0},
+                        "sim": {"time_scale": 25.0}})
+    twin = tmp_path / "twin.h5"
+    done = run_scan(ScanRequest(config=cfg, out=twin, orbit="sawtooth", frames=120, sim=True,
+                                orbit_params={"start_deg": -180.0, "amplitude_deg": 10.0}))
+    assert done.status == "complete", done.reason
+    run = write_xa_run(twin, tmp_path / "export" / "run.dcm", patient_id="E2E")
+    with orthanc(tmp_path / "orthanc") as node:
+        send([run], node)
+        xa = find_series(node, PatientID="E2E", Modality="XA")[0]
+        pulled = get_series(node, xa["StudyInstanceUID"], xa["SeriesInstanceUID"], tmp_path / "pulled")
+        scan = import_xa(pulled, tmp_path / "imported.h5")
+        result = calib.calibrate_scan(scan, diameter_mm=cfg.sim.bb_diameter_mm)
+        assert result.n_bbs >= 4 and result.quality is not None and result.quality.counts["own"] >= 100
+        with ScanFile(scan) as sf, ScanFile(twin) as truth:  # the imported run calibrates to the twin's true geometry
+            true_views = truth.geometry("truth")[truth.projection_indices]
+            calibrated_px, _ = similarity_aligned_error_px(sf.geometry("calibrated")[sf.projection_indices], true_views)
+            nominal_px, _ = similarity_aligned_error_px(sf.geometry("nominal")[sf.projection_indices], true_views)
+        assert calibrated_px < 0.6 and calibrated_px < 0.6 * nominal_px, (calibrated_px, nominal_px)  # 0.37 vs 0.99 px
+        rec = recon.reconstruct_scan(scan, algorithm="fdk", geometry="calibrated", shape=(24, 48, 48))
+        with ScanFile(scan) as sf:
+            volume, attrs = sf.read_recon(rec.name)
+        grid = VolumeGrid(volume.shape, tuple(attrs["voxel_mm"]), tuple(attrs["origin_mm"]))
+        series = export_dicom_ct(volume, grid, tmp_path / "ct", SeriesInfo(description="e2e calibrated", patient_id="E2E"))
+        send(series, node)
+        ct = find_series(node, PatientID="E2E", Modality="CT")
+    assert len(ct) == 1 and ct[0]["SeriesDescription"] == "e2e calibrated" and ct[0]["NumberOfSeriesRelatedInstances"] == "24"
