@@ -68,6 +68,9 @@ async def _read_back(device: Any) -> tuple[bool, str]:
     return True, "not moving"
 
 
+RECHECK_S = 0.05  # pause before stopping a device again that read back not halted
+
+
 async def _halt_one(device: Any, timeout_s: float) -> HaltCheck:
     name = str(getattr(device, "name", device))
     problems: list[str] = []
@@ -76,15 +79,28 @@ async def _halt_one(device: Any, timeout_s: float) -> HaltCheck:
             await _send_stop(device)
     except Exception as exc:  # noqa: BLE001 - reported, never raised: the other devices still get their stop
         problems.append(f"stop not acknowledged ({_text(exc, name)})")
-    halted, verified = False, ""
+    halted, verified, first, again = False, "", "", 0
     try:
         async with asyncio.timeout(timeout_s):
             halted, verified = await _read_back(device)
+            # Something else may have commanded the device between the stop and the read-back (a scan that has not
+            # yet seen the latch switching high voltage on for its next frame): stop it again until it stays halted.
+            while not halted and not problems:
+                first = first or verified
+                await asyncio.sleep(RECHECK_S)
+                await _send_stop(device)
+                again += 1
+                halted, verified = await _read_back(device)
     except Exception as exc:  # noqa: BLE001
-        problems.append(f"read-back failed ({_text(exc, name)})")
+        if not (again and isinstance(exc, TimeoutError)):
+            problems.append(f"read-back failed ({_text(exc, name)})")
+        elif verified:  # it kept coming back: say what it read and how often it was stopped
+            verified += f" (still, after {again} more stop(s) within {timeout_s:g} s)"
     if not halted and verified:
         problems.append(verified)
         verified = ""
+    if halted and again:
+        verified += f"; after the stop it read back {first!r}: stopped {again} more time(s)"
     return HaltCheck(name, halted and not problems, verified, "; ".join(problems))
 
 

@@ -72,3 +72,26 @@ async def test_garbled_or_missing_confirmation_is_not_halted(xray) -> None:  # t
 async def test_nothing_to_halt_is_not_a_success() -> None:
     ok, line = summary(await halt_and_verify([object()]))
     assert not ok and "no device" in line
+
+
+class _Regenerating:
+    """A generator that something else switches back on once right after the stop (a scan's next frame)."""
+
+    name = "xray"
+
+    def __init__(self, on_after_stop: int) -> None:
+        self.on_after_stop, self.offs = on_after_stop, 0
+
+    async def xray_off(self) -> None:
+        self.offs += 1
+
+    async def read(self) -> dict[str, object]:
+        on = self.offs <= self.on_after_stop
+        return {"hv_on": on, "exposing": False, "state": "READY" if on else "IDLE"}
+
+
+async def test_high_voltage_switched_on_again_after_the_stop_is_stopped_again_and_said() -> None:
+    (check,) = await halt_and_verify([_Regenerating(on_after_stop=1)], timeout_s=1.0)
+    assert check.halted and "stopped 1 more time(s)" in check.verified and "high voltage on" in check.verified, check
+    (stuck,) = await halt_and_verify([_Regenerating(on_after_stop=10**6)], timeout_s=0.3)
+    assert not stuck.halted and "high voltage on" in stuck.problem and "more stop(s) within 0.3 s" in stuck.problem, stuck
