@@ -300,9 +300,9 @@ class RigServer:
             raise CommandError("conflict", f"the bench is busy with scan {self.scan_id}; one scan at a time")
         req = self._request(spec)
         self.scan_id = scan_id
-        self.live = self._live_calibration(scan_id, spec, req)
-        self.preview = LatestFrame(marks=None if self.live is None else lambda: self.live.live and self.live.live.latest_marks)
-        subscribers = [self.preview] + ([self.live] if self.live is not None else [])
+        live = self.live = self._live_calibration(scan_id, spec, req)
+        self.preview = LatestFrame(marks=None if live is None else lambda: live.live.latest_marks if live.live else None)
+        subscribers = [self.preview] + ([live] if live is not None else [])
         self.runner = ScanRunner(req, progress=lambda ev: self._progress(scan_id, ev), rig=self.rig,
                                  interlock=self._latched_reason, subscribers=subscribers)
         asyncio.ensure_future(self._scan(scan_id, self.runner, Path(spec["out"])))
