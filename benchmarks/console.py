@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import multiprocessing as mp
+import os
 import sys
 import tempfile
 import time
@@ -84,8 +85,10 @@ async def follow(http: httpx.AsyncClient, path: str) -> None:
             pass
 
 
-def load_process(base: str, scan_id: str, clients: int, reload_s: float, conn: Any) -> None:
-    """The clients, in a process of their own; sends (page loads, previews, errors) when told to stop."""
+def load_process(base: str, scan_id: str, clients: int, reload_s: float, nice: int, conn: Any) -> None:
+    """The clients, in a process of their own (at ``nice``); sends (page loads, previews, errors) when told to stop."""
+    if nice:
+        os.nice(nice)
 
     async def run() -> tuple[list[float], list[float], list[str]]:
         stop = asyncio.Event()
@@ -110,6 +113,8 @@ def main() -> None:
     ap.add_argument("--reload-s", type=float, default=3.0, help="each client reloads the page this often (default 3)")
     ap.add_argument("--time-scale", type=float, default=1.0, help="twin speed-up (default 1 = real time)")
     ap.add_argument("--max-s", type=float, default=600.0, help="give up a scan after this long (default 600)")
+    ap.add_argument("--clients-nice", type=int, default=0, help="run the clients at this niceness (19: they stand in "
+                    "for browsers on other machines and take CPU only when the service and the bench leave some)")
     args = ap.parse_args()
     print(describe_machine())
     with tempfile.TemporaryDirectory(prefix="orbitct-console-bench-") as tmp:
@@ -119,7 +124,7 @@ def main() -> None:
                 alone = scan_ended(api, scan_started(api, args.frames), args.max_s)
                 scan_id = scan_started(api, args.frames)
                 parent, child = mp.Pipe()
-                loader = mp.get_context("spawn").Process(target=load_process, args=(base, scan_id, args.clients, args.reload_s, child))
+                loader = mp.get_context("spawn").Process(target=load_process, args=(base, scan_id, args.clients, args.reload_s, args.clients_nice, child))
                 loader.start()
                 parent.recv()
                 loaded = scan_ended(api, scan_id, args.max_s)
@@ -131,8 +136,8 @@ def main() -> None:
             proc.wait(30)
     rate_alone, rate_loaded = frame_rate(alone), frame_rate(loaded)
     drop = 100.0 * (1.0 - rate_loaded / rate_alone)
-    print(f"\n{args.clients} browser-equivalent clients on the live scan page, {args.frames} projections of "
-          f"{args.detector}^2 px, time scale {args.time_scale:g}\n")
+    print(f"\n{args.clients} browser-equivalent clients on the live scan page (nice {args.clients_nice}), {args.frames} "
+          f"projections of {args.detector}^2 px, time scale {args.time_scale:g}\n")
     print("| measure | value | target |")
     print("| --- | --- | --- |")
     print(f"| frame rate alone | {rate_alone:.2f} frames/s | |")
