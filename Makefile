@@ -13,6 +13,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[test]'
 	@echo "compiling the numerical kernels once (cached; the first calibration and reconstruction then start at full speed)"
 	$(BIN)/orbitct warmup
+	$(BIN)/python -m orbitct_app.console.assets
 	@touch $(STAMP)
 
 venv: $(STAMP)

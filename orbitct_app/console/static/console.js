@@ -605,8 +605,9 @@ async function pageViewer() {
 function fallback(job, other) {
   const note = $('#viewer-fallback');
   note.hidden = false;
-  note.textContent = 'This browser has no WebGL2, so the 3-D viewer cannot run; the middle slices are shown as pictures '
-    + '(window: 1st to 99.5th percentile of each volume).';
+  note.textContent = (window.niivue ? 'This browser has no WebGL2, so the 3-D viewer cannot run'
+    : 'The 3-D viewer\'s library is not installed on this server (python -m orbitct_app.console.assets)')
+    + '; the middle slices are shown as pictures (window: 1st to 99.5th percentile of each volume).';
   const pictures = (j, fig) => fig.replaceChildren(el('figcaption', { text: j.result.name || j.id }),
     ...['axial', 'coronal', 'sagittal'].map((axis) => el('img', { src: `/reconstructions/${j.id}/slices/${axis}`, alt: `${axis} slice of ${j.id}` })));
   pictures(job, $('#gl-a').closest('figure'));

@@ -29,3 +29,27 @@ def test_the_console_pages_load_only_the_pinned_library_versions() -> None:
     assert referenced == {"niivue-0.69.0/niivue.umd.js"}
     for ref in referenced:
         assert (VENDOR / ref).is_file(), ref
+
+
+def test_the_fetch_installs_only_the_pinned_file(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    import io
+    import tarfile
+
+    import pytest
+
+    from orbitct_app.console import assets
+
+    body = b"console library"
+    tgz = tmp_path / "pkg.tgz"
+    with tarfile.open(tgz, "w:gz") as tar:
+        info = tarfile.TarInfo("package/dist/lib.js")
+        info.size = len(body)
+        tar.addfile(info, io.BytesIO(body))
+    target = tmp_path / "vendor" / "lib.js"
+    monkeypatch.setattr(assets, "FETCHED", [(tgz.as_uri(), "package/dist/lib.js", target, "0" * 64)])
+    with pytest.raises(RuntimeError, match="does not have the pinned SHA-256"):
+        assets.fetch()
+    assert not target.exists()
+    monkeypatch.setattr(assets, "FETCHED", [(tgz.as_uri(), "package/dist/lib.js", target, hashlib.sha256(body).hexdigest())])
+    assert assets.fetch() == [target] and target.read_bytes() == body
+    assert assets.fetch() == []  # already there
