@@ -182,6 +182,7 @@ class ScanEngine:
         self._acquire_s = 0.0
         self._readback_s = 0.0
         self._record_s = 0.0
+        self._prepare_s = 0.0
         self._run_s = 0.0
         self._move_s: float | None = None  # estimated move + settle to the next projection
 
@@ -231,10 +232,10 @@ class ScanEngine:
     def timing(self) -> dict[str, float]:
         """Seconds of the frame loop: total, in detector acquisition (exposure, rendering, readout), in
         commanded moves and settling, and the rest (executor and recorder overhead), of which read-backs
-        and recording (subscribers' ``on_frame``)."""
+        and recording (subscribers' ``on_frame``) and waiting, after a move, for the source's preparation."""
         rest = self._run_s - self._acquire_s - self._motion_s
         return {"run_s": self._run_s, "acquire_s": self._acquire_s, "motion_s": self._motion_s, "overhead_s": rest,
-                "readback_s": self._readback_s, "record_s": self._record_s}
+                "readback_s": self._readback_s, "record_s": self._record_s, "prepare_wait_s": self._prepare_s}
 
     # ---------------------------------------------------------------- run
     async def run(self) -> ScanOutcome:
@@ -405,7 +406,9 @@ class ScanEngine:
                         if prep is not None:
                             self._learn_move(time.monotonic() - t_m)
                             if prep.started:  # under way: let it finish; not yet: the exposure prepares itself
+                                t_p = time.monotonic()
                                 await prep.task
+                                self._prepare_s += time.monotonic() - t_p
                     finally:  # done, failed or aborted: no preparation outlives the move (cancelled: X-rays off)
                         if prep is not None and not prep.task.done():
                             prep.task.cancel()

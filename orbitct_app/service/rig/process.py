@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import logging
 import os
+import queue
 import signal
 import threading
 import time
@@ -116,15 +117,26 @@ class RigServer:
         self.preview = LatestFrame()
         self.live: Any = None
         self.loop: asyncio.AbstractEventLoop | None = None
-        self._send_lock = threading.Lock()
+        self._outbox: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
+        self._sender = threading.Thread(target=self._send_out, name="bench-sender", daemon=True)
+        self._sender.start()
         self._closing = asyncio.Event()
         self._close_reason = "service shutting down"
 
     def send(self, *message: Any) -> None:
-        """One message to the web server (ignored once it is gone)."""
-        with self._send_lock:
+        """Queue one message to the web server; never blocks (a busy web server must not slow the scan down)."""
+        self._outbox.put(message)
+
+    def _send_out(self) -> None:
+        """Sender thread: writes the queued messages in order (dropped once the web server is gone)."""
+        while (message := self._outbox.get()) is not None:
             with contextlib.suppress(OSError, EOFError, BrokenPipeError):
                 self._events.send(message)
+
+    def close_outbox(self, timeout_s: float = 5.0) -> None:
+        """Send what is queued, then end the sender thread."""
+        self._outbox.put(None)
+        self._sender.join(timeout_s)
 
     # ---------------------------------------------------------------- lifecycle
     async def serve(self, commands: Connection, stops: Connection) -> None:
@@ -445,3 +457,4 @@ def rig_main(config_path: str, sim: bool, commands: Connection, stops: Connectio
         asyncio.run(server.serve(commands, stops))
     finally:
         server.send("exited")
+        server.close_outbox()
