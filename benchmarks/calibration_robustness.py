@@ -115,17 +115,31 @@ def _oracle_px(scan: Path, res: Any) -> float:
     return similarity_aligned_error_px(sub.geometry(r.state), truth[np.flatnonzero(ok)])[0]
 
 
-def _scale_error_pct(uv: Any, true_uv: Any, xyz: Any, true_xyz: Any) -> float:
-    """How much larger (%) the calibrated BB constellation is than the true one: RMS distances from the
-    centroid, each found BB matched to the true BB its detections mostly lie on (NaN if two share one)."""
+def _owners(uv: Any, true_uv: Any) -> list[int] | None:
+    """The true BB each found BB's detections mostly lie on; None if two share one or fewer than 3 were found."""
     d = np.linalg.norm(uv[:, :, None] - true_uv[:, None], axis=-1)
     d[~np.isfinite(d)] = np.inf
     owner = [int(np.bincount(d[np.isfinite(uv[:, k, 0]), k].argmin(1), minlength=true_uv.shape[1]).argmax())
              for k in range(uv.shape[1])]
-    if len(set(owner)) < len(owner) or len(owner) < 3:
-        return float("nan")
-    a, b = xyz - xyz.mean(0), true_xyz[owner] - true_xyz[owner].mean(0)
-    return float(100.0 * (np.sqrt((a**2).sum() / (b**2).sum()) - 1.0))
+    return None if len(set(owner)) < len(owner) or len(owner) < 3 else owner
+
+
+def _scale_errors_pct(uv: Any, true_uv: Any, xyz: Any, true_xyz: Any) -> tuple[float, float]:
+    """How much larger (%) the calibrated BB constellation is than the true one (RMS distances from the centroid),
+    as calibrated and with a scale bar: the two BBs furthest apart, their true distance given as the bar (what
+    ``orbitct calibrate --scale-bar-mm L --scale-bar-bbs I,J`` does); NaN where BBs cannot be matched."""
+    from calib.scale import find_scale_bar
+
+    owner = _owners(uv, true_uv)
+    if owner is None:
+        return float("nan"), float("nan")
+    t = true_xyz[owner]
+    a, b = xyz - xyz.mean(0), t - t.mean(0)
+    plain = float(np.sqrt((a**2).sum() / (b**2).sum()))
+    far = np.linalg.norm(t[:, None] - t[None], axis=-1)
+    i, j = np.unravel_index(int(far.argmax()), far.shape)
+    bar = find_scale_bar(xyz, float(far[i, j]), bbs=(int(i) + 1, int(j) + 1))
+    return 100.0 * (plain - 1.0), 100.0 * (plain * bar.factor - 1.0)
 
 
 def run_case(cache: Path, case: dict[str, Any], size: int, frames: int) -> dict[str, Any]:
@@ -158,7 +172,7 @@ def _run_case(cache: Path, case: dict[str, Any], size: int, frames: int, work: P
         r_px = 0.5 * float(sf.marker_diameter_mm) * float(np.median(truth.sdd / truth.sod())) / truth.panel.pitch_row
         rows, cols = sf.panel.rows, sf.panel.cols
     err, _ = similarity_aligned_error_px(res.geometry[proj], truth)
-    row["scale_pct"] = _scale_error_pct(res.uv[proj], true_uv, res.xyz, true_xyz)
+    row["scale_pct"], row["scale_bar_pct"] = _scale_errors_pct(res.uv[proj], true_uv, res.xyz, true_xyz)
     q = res.quality
     floor = _oracle_px(scan, res)
     m = r_px + 1.0  # views that show four or more whole BBs (the truth: found or not)
@@ -196,7 +210,7 @@ def main() -> None:
     print(describe_machine())
     print(f"{args.size} px, {args.frames} frames; 1-min load at start {os.getloadavg()[0]:.2f}\n")
     head = ("case", "frames", "BBs found/true", "err px", "floor px", "ratio", "own/bridged/failed (of >=4 BBs)",
-            "pred. max px", "verdict", "<=2x floor", "honest", "scale %", "s")
+            "pred. max px", "verdict", "<=2x floor", "honest", "scale %", "scale % (bar)", "s")
     print("| " + " | ".join(head) + " |\n|" + "---|" * len(head))
     for case in CASES:
         if args.only not in case["name"]:
@@ -204,12 +218,12 @@ def main() -> None:
         r = run_case(args.cache, case, args.size, args.frames)
         if r["outcome"] == "refused":
             print(f"| {r['case']} | {r['frames']} | -/{r['true_bbs']} | - | - | - | - | - | refused: {r['message']} | "
-                  f"no | yes | - | {r['time_s']:.1f} |", flush=True)
+                  f"no | yes | - | - | {r['time_s']:.1f} |", flush=True)
             continue
         print(f"| {r['case']} | {r['frames']} | {r['bbs']}/{r['true_bbs']} | {r['err_px']:.3f} | {r['floor_px']:.3f} | "
               f"{r['ratio']:.2f} | {r['own']}/{r['bridged']}/{r['failed']} ({r['four']}) | {r['predicted_max']:.2f} | "
               f"{r['outcome']} | {'yes' if r['within_2x'] else 'NO'} | {'yes' if r['honest'] else 'NO'} | "
-              f"{r['scale_pct']:+.2f} | {r['time_s']:.1f} |", flush=True)
+              f"{r['scale_pct']:+.2f} | {r['scale_bar_pct']:+.3f} | {r['time_s']:.1f} |", flush=True)
     print(f"\n1-min load at end {os.getloadavg()[0]:.2f}")
 
 

@@ -42,6 +42,7 @@ from calib.quality import (
     judge,
 )
 from calib.rays import marker_rays, rpe_per_frame, triangulate_least_squares
+from calib.scale import ScaleBar, find_scale_bar, rescaled_views
 from calib.track import TrackingSettings
 from orbitct.compiletime import CompileClock
 from orbitct.geometry import ViewGeometry
@@ -74,6 +75,8 @@ class CalibrationOptions:
     seeds_uv: Any = None  # optional (K, 2) BB positions (col, row) in the first projection
     jitter_mm: float = DEFAULT_JITTER_MM  # frame-to-frame jitter of the orbit around the nominal (object scale) for tracking
     recover: bool = True  # track again allowing larger jumps (RECOVERY_JITTER_MM) when the first result fails
+    scale_bar_mm: float | None = None  # known distance between two BBs (a scale bar): sets the metric scale
+    scale_bar_bbs: tuple[int, int] | None = None  # which BBs span it (1-based, as the report numbers them); default: the one pair near its length
 
 
 @dataclass
@@ -113,6 +116,7 @@ class CalibrationResult:
     compile_s: float = 0.0  # numba compiling its kernels on first use (after installation); not in elapsed_s
     view_status: NDArray[np.int8] | None = None  # per frame: STATUS_CODES, -1 for non-projections
     predicted_px: NDArray[np.float64] | None = None  # per frame: predicted field-of-view error (px)
+    scale_bar: ScaleBar | None = None  # the pair of BBs that set the metric scale, when a scale bar was given
 
     @property
     def n_bbs(self) -> int:
@@ -139,7 +143,18 @@ class CalibrationResult:
             "warnings": list(self.warnings),
             "unsolved_views": list(self.unsolved_views),
             "quality": self.quality.summary() if self.quality is not None else None,
+            "scale": self.scale_line(),
         }
+
+    def scale_line(self) -> str:
+        """Where the metric scale comes from, in words."""
+        if self.scale_bar is not None:
+            return self.scale_bar.describe()
+        if self.method != "bundle":
+            return "metric scale from the nominal geometry (the paper method fixes no gauge)"
+        return ("metric scale from the nominal geometry: distances in the calibrated frame can be off by about the "
+                "orbit's mean error along the beam over the source distance (1-2 % on the bench profile); a scale bar "
+                "fixes it (--scale-bar-mm)")
 
 
 def _options(method: str, options: dict[str, Any]) -> CalibrationOptions:
@@ -158,6 +173,10 @@ def _options(method: str, options: dict[str, Any]) -> CalibrationOptions:
         raise OptionError(f"min_bbs_per_view must be >= 3 (a rigid pose needs 3 BBs), got {opt.min_bbs_per_view}")
     if opt.diameter_mm is not None and not opt.diameter_mm > 0:
         raise OptionError(f"diameter_mm must be > 0, got {opt.diameter_mm}")
+    if opt.scale_bar_mm is not None and not (np.isfinite(opt.scale_bar_mm) and opt.scale_bar_mm > 0):
+        raise OptionError(f"scale_bar_mm must be a positive length in mm, got {opt.scale_bar_mm}")
+    if opt.scale_bar_bbs is not None and opt.scale_bar_mm is None:
+        raise OptionError("scale_bar_bbs names the BBs of a scale bar: give its length too (scale_bar_mm)")
     return opt
 
 
@@ -460,6 +479,12 @@ def _solve_and_write(
     jitter_used, warnings, outcome, verdict = best
     geometry_p, xyz, state, uv, history, n_iter, more, quality = outcome
     warnings = list(warnings) + more
+    bar = None
+    if opt.scale_bar_mm is not None:
+        bar = find_scale_bar(xyz, opt.scale_bar_mm, opt.scale_bar_bbs)
+        geometry_p, xyz = rescaled_views(geometry_p, bar.factor), xyz * bar.factor
+        state = ViewState(state.R, state.t + (bar.factor - 1.0) * geometry_p.S / bar.factor, state.k)
+        history = [(rpe * bar.factor, resid) for rpe, resid in history]  # RPE is a distance: it scales, pixels do not
     if jitter_used != opt.jitter_mm:
         warnings.append(f"the BBs were followed only when allowing {jitter_used:g} mm jumps between frames (the "
                         f"orbit's expected jitter is {opt.jitter_mm:g} mm, option jitter_mm): the orbit is far "
@@ -499,9 +524,11 @@ def _solve_and_write(
                 "n_bbs": int(xyz.shape[0]),
                 "bb_diameter_mm": float(diameter_mm),
                 "intrinsics": opt.intrinsics,
-                "gauge": "BB constellation keeps centroid, orientation and RMS size of its nominal triangulation"
-                if method == "bundle"
-                else "none (paper method)",
+                "gauge": (bar.describe() if bar is not None else
+                          "BB constellation keeps centroid, orientation and RMS size of its nominal triangulation"
+                          if method == "bundle" else "none (paper method)"),
+                **({} if bar is None else {"scale_bar_mm": bar.length_mm, "scale_bar_bbs": [b + 1 for b in bar.bbs],
+                                           "scale_factor": bar.factor}),
                 "warnings_json": list(warnings),
                 **verdict.attrs(),
             },
@@ -535,6 +562,7 @@ def _solve_and_write(
         quality=verdict,
         view_status=status_all,
         predicted_px=predicted_all,
+        scale_bar=bar,
     )
     if report_dir is not None:
         from calib.report import write_report

@@ -152,6 +152,14 @@ def corrections_plot(
     plt.close(fig)
 
 
+def _bb_table(result: "CalibrationResult") -> str:
+    """The BBs by number (as ``--scale-bar-bbs`` names them), with their positions and how often each was seen."""
+    seen = np.isfinite(result.uv[..., 0]).sum(0)
+    rows = "\n".join(f"| {k + 1} | {x:.2f} | {y:.2f} | {z:.2f} | {int(seen[k])} |" for k, (x, y, z) in enumerate(result.xyz))
+    return (f"\n## BBs (object frame)\n\n{result.scale_line()}.\n\n| BB | x (mm) | y (mm) | z (mm) | frames |\n"
+            "| ---: | ---: | ---: | ---: | ---: |\n" + rows + "\n")
+
+
 def write_report(result: "CalibrationResult", out_dir: Path, extra_columns: dict[str, dict[str, Any]] | None = None) -> list[Path]:
     """Write table1.md, table1.csv, rpe_violin.png and corrections.png into ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -178,6 +186,7 @@ def write_report(result: "CalibrationResult", out_dir: Path, extra_columns: dict
         + "\n## RPE per iteration (0 = initial geometry)\n\n| iteration | mean (mm) | median (mm) | std (mm) | reproj. RMS (px) |\n"
         "| ---: | ---: | ---: | ---: | ---: |\n" + iters + "\n"
         + quality
+        + _bb_table(result)
         + ("\n## Warnings\n\n" + "\n".join(f"- {w}" for w in result.warnings) + "\n" if result.warnings else "")
     )
     csv_path = out_dir / "table1.csv"

@@ -26,11 +26,16 @@ from orbitct_app.cli.progress import ProgressBar
               help="Quality check: the largest predicted field-of-view error a view may have.")
 @click.option("--bridge-max-views", type=click.IntRange(0, 1000), default=10, show_default=True,
               help="bundle: the widest run of views with fewer than 4 BBs that is bridged from its neighbours.")
+@click.option("--scale-bar-mm", type=click.FloatRange(min=0.0, min_open=True), default=None,
+              help="Known distance between two BBs (a scale bar measured on the bench): sets the metric scale.")
+@click.option("--scale-bar-bbs", type=str, default=None, metavar="I,J",
+              help="Which BBs span the scale bar (numbers as in the report); default: the one pair near its length.")
 @click.option("--accept-poor", is_flag=True,
               help="Exit 0 even when the quality check fails (the geometry is stored either way, marked failed).")
 def calibrate(
     scan: Path, method: str, out: Path | None, report_dir: Path | None, iterations: int | None, intrinsics: str,
-    diameter_mm: float | None, max_predicted_px: float, bridge_max_views: int, accept_poor: bool,
+    diameter_mm: float | None, max_predicted_px: float, bridge_max_views: int, scale_bar_mm: float | None,
+    scale_bar_bbs: str | None, accept_poor: bool,
 ) -> None:
     """Calibrate SCAN's geometry from the BBs on the object; writes /geometry/calibrated and /markers.
 
@@ -46,6 +51,10 @@ def calibrate(
         options["iterations"] = iterations
     if diameter_mm is not None:
         options["diameter_mm"] = diameter_mm
+    if scale_bar_mm is not None:
+        options["scale_bar_mm"] = scale_bar_mm
+    if scale_bar_bbs is not None:
+        options["scale_bar_bbs"] = _bb_pair(scale_bar_bbs)
     try:
         with ProgressBar() as bar:
             res = calib.calibrate_scan(scan, method=method, out=out, report_dir=report_dir, progress=bar, **options)
@@ -67,6 +76,7 @@ def calibrate(
     q = res.quality
     if q is not None:
         click.echo(q.line())
+    click.echo(res.scale_line())
     for w in res.warnings:
         click.echo(f"warning: {w}", err=True)
     if report_dir is not None:
@@ -77,3 +87,11 @@ def calibrate(
                    "quality check'." + ("" if accept_poor else " (--accept-poor exits 0 anyway.)"), err=True)
         if not accept_poor:
             raise SystemExit(3)
+
+
+def _bb_pair(text: str) -> tuple[int, int]:
+    """``I,J`` -> two BB numbers, or a one-line usage error."""
+    parts = text.replace(" ", "").split(",")
+    if len(parts) != 2 or not all(p.isdigit() for p in parts):
+        raise click.BadParameter(f"{text!r}: give two BB numbers as I,J (for example 2,7)", param_hint="--scale-bar-bbs")
+    return int(parts[0]), int(parts[1])

@@ -33,6 +33,8 @@ def run_calibration(scan_path: Path, params: dict[str, Any], out_dir: Path,
     import calib
 
     options = {k: v for k, v in params.items() if k != "method" and v is not None}
+    if "scale_bar_bbs" in options:
+        options["scale_bar_bbs"] = tuple(options["scale_bar_bbs"])
     res = calib.calibrate_scan(scan_path, method=params.get("method", "bundle"), out=None,
                                report_dir=out_dir, progress=progress, **options)
     rpe = np.asarray(res.rpe_mm, dtype=float)
@@ -59,7 +61,7 @@ def run_calibration(scan_path: Path, params: dict[str, Any], out_dir: Path,
         "method": res.method, "table": table, "iterations": iterations,
         "reproj_rms_px": _finite(res.reproj_rms_px), "warnings": [str(w) for w in res.warnings][:200],
         "unsolved_views": [int(v) for v in res.unsolved_views][:10_000],
-        "quality": _quality(res.quality),
+        "quality": _quality(res.quality), "scale": res.scale_line(),
         "files": sorted(p.name for p in out_dir.iterdir() if p.is_file()),
     }
 

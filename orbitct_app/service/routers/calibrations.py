@@ -39,6 +39,10 @@ class CalibrationRequest(BaseModel):
     bridge_max_views: int | None = Field(None, ge=0, le=1000, description="bundle: the widest run of views with fewer "
                                          "than 4 BBs bridged from its neighbours (default 10)")
     diameter_mm: float | None = Field(None, gt=0.1, le=50.0, description="BB diameter when the file does not say")
+    scale_bar_mm: float | None = Field(None, gt=0.0, le=5000.0, description="known distance between two BBs (a scale "
+                                       "bar measured on the bench): sets the metric scale")
+    scale_bar_bbs: tuple[Annotated[int, Field(ge=1)], Annotated[int, Field(ge=1)]] | None = Field(
+        None, description="which BBs span the scale bar (numbers as in the report); default: the one pair near its length")
 
 
 def check_scan_ready(service: Any, scan_id: str) -> dict[str, Any]:

@@ -48,6 +48,8 @@ def test_scan_calibrate_reconstruct(api, tmp_path: Path) -> None:  # type: ignor
     # recon on calibrated geometry before any calibration: 409
     assert api.post("/reconstructions", role="analyst", json={"scan_id": scan_id}).status_code == 409
 
+    r = api.post("/calibrations", role="analyst", json={"scan_id": scan_id, "scale_bar_mm": 50.0, "scale_bar_bbs": [0, 2]})
+    assert r.status_code == 422 and "scale_bar_bbs" in r.text  # BBs are numbered from 1
     r = api.post("/calibrations", role="analyst", json={"scan_id": scan_id, "method": "bundle"})
     assert r.status_code == 202, r.text
     cal_id = r.json()["id"]
@@ -61,6 +63,7 @@ def test_scan_calibrate_reconstruct(api, tmp_path: Path) -> None:  # type: ignor
     quality = api.get(f"/calibrations/{cal_id}").json()["result"]["quality"]
     assert isinstance(quality["passed"], bool) and sum(quality["views"].values()) == 40
     assert quality["predicted_px_max"] is not None and quality["centroid_noise_px"] > 0
+    assert "metric scale from the nominal geometry" in api.get(f"/calibrations/{cal_id}").json()["result"]["scale"]
     rpe = api.get(f"/calibrations/{cal_id}/rpe").json()
     assert rpe["table"]["frames"] == 40 and rpe["table"]["bbs"] >= 3
     assert rpe["table"]["rpe_mean_mm"] < 1.0 and len(rpe["per_frame_mm"]) == 40
