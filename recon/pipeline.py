@@ -191,13 +191,14 @@ def _load(scan: ScanFile, frames: NDArray[np.intp], with_weights: bool,
 
 
 def _pwls(li: Any, w: Any, grid: VolumeGrid, geom: ViewGeometry, window: str, beta: float, iterations: int,
-          neighbourhood: int, subsets: int, progress: ProgressCallback | None) -> tuple[NDArray[np.float32], list[float], float]:
+          neighbourhood: int, subsets: int, progress: ProgressCallback | None,
+          momentum: bool = False) -> tuple[NDArray[np.float32], list[float], float]:
     """FDK into the interior of a padded volume, then PWLS updating that volume in place."""
     A = projector(grid, geom)
     xp = np.zeros(A.padded_shape, np.float32)
     fdk(li, grid, geom, window=window, out=xp[1:-1, 1:-1, 1:-1], progress=progress)
     res = pwls_sps(A, li, w, beta=beta, iterations=iterations, x0=xp, neighbourhood=neighbourhood,
-                   subsets=subsets, progress=progress)
+                   subsets=subsets, momentum=momentum, progress=progress)
     return res.volume, res.cost, res.beta_abs
 
 
@@ -208,6 +209,7 @@ def reconstruct_scan(
     export: str | list[str] | None = None, out_dir: str | os.PathLike[str] | None = None,
     progress: ProgressCallback | None = None, window: str = "hann", subsets: int = 1, neighbourhood: int = 1,
     metal_mu: float = 0.1, mar_threshold: float = 0.5, stream: str = "auto", overwrite: bool = False,
+    momentum: bool = False,
 ) -> ReconResult:
     """Reconstruct ``path`` with FDK or PWLS and store it as ``/recon/<name>`` in the scan file.
 
@@ -257,7 +259,7 @@ def reconstruct_scan(
             vol = fdk(FileLineIntegrals(scan, frames), grid, geom, window=window, progress=progress)
         elif mode == "file":
             vol, cost, beta_abs = _pwls(FileLineIntegrals(scan, frames), FileWeights(scan, frames), grid, geom,
-                                        window, beta, iterations, neighbourhood, subsets, progress)
+                                        window, beta, iterations, neighbourhood, subsets, progress, momentum)
             extra.update(beta_abs=beta_abs, stream="file")
         else:
             li, w = _load(scan, frames, algorithm == "pwls", progress)
@@ -275,7 +277,7 @@ def reconstruct_scan(
                 report(progress, "mar", 1, 1, f"{int(metal.sum())} metal voxels")
             if algorithm == "pwls":
                 vol, cost, beta_abs = _pwls(li, w, grid, geom, window, beta, iterations, neighbourhood, subsets,
-                                            progress)
+                                            progress, momentum)
                 extra.update(beta_abs=beta_abs, stream="memory")
             else:
                 vol = fdk(li, grid, geom, window=window, progress=progress)
@@ -287,7 +289,7 @@ def reconstruct_scan(
             "fov_fraction": fov_fraction, "grid": grid.to_json(), **extra,
         }
         if algorithm == "pwls":
-            params.update(beta=beta, neighbourhood=neighbourhood, subsets=subsets, cost=cost)
+            params.update(beta=beta, neighbourhood=neighbourhood, subsets=subsets, momentum=momentum, cost=cost)
         scan_path = scan.path
     with ScanFile(scan_path, "r+") as out:
         out.write_recon(name, vol, voxel_mm=grid.voxel_mm, origin_mm=grid.origin_mm, algorithm=algorithm,

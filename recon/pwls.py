@@ -3,11 +3,17 @@
 Cost: ``0.5 * sum_i w_i ([Ax]_i - y_i)^2 + beta_abs * sum_{pairs j~k} omega_jk (x_j - x_k)^2 / 2``.
 ``beta`` is relative: the penalty curvature of an interior voxel is ``beta`` times the median
 data curvature, so one value suits different voxel sizes, view counts and dose levels.
+
+``momentum=True`` combines the ordered subsets with Nesterov's momentum (OS-SQS-mom, Kim, Ramani and
+Fessler, IEEE TMI 2015): each subset step starts from an extrapolation of the last two iterates. Safeguard:
+the momentum restarts (O'Donoghue and Candes, 2015) whenever a step's gradient points against the
+direction the iterates moved, the sign that the extrapolation overshot; the cost then cannot run away.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -31,6 +37,7 @@ class PwlsResult:
     iterations: int = 0
     elapsed_s: float = 0.0
     beta_abs: float = 0.0
+    restarts: int = 0  # momentum restarts (the safeguard acting)
 
 
 def neighbour_offsets(order: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
@@ -136,6 +143,30 @@ def _sps_step(xp, gp, denom, scale, nonneg):
                 xp[z + 1, y + 1, xx + 1] = v
 
 
+@njit(parallel=True, cache=True, fastmath=True, boundscheck=False)
+def _momentum_step(zp, gp, denom, scale, nonneg, x_prev, gamma):
+    """One OS-momentum step on padded ``zp`` (the extrapolated point): ``x = [z - scale * grad / denom]_+``,
+    then ``z <- x + gamma (x - x_prev)`` and ``x_prev <- x``. Returns ``sum grad * (x - x_prev_old)`` (the
+    restart test: positive when the step's gradient opposes the move)."""
+    nz, ny, nx = denom.shape
+    part = np.zeros(nz)
+    for z in prange(nz):
+        acc = 0.0
+        for y in range(ny):
+            for xx in range(nx):
+                den = denom[z, y, xx]
+                zv = zp[z + 1, y + 1, xx + 1]
+                v = zv if den <= 0.0 else zv - scale * gp[z + 1, y + 1, xx + 1] / den
+                if nonneg and v < 0.0:
+                    v = 0.0
+                old = x_prev[z, y, xx]
+                acc += gp[z + 1, y + 1, xx + 1] * (v - old)
+                zp[z + 1, y + 1, xx + 1] = v + gamma * (v - old)
+                x_prev[z, y, xx] = v
+        part[z] = acc
+    return part.sum()
+
+
 def statistical_weights(raw: NDArray, dark: NDArray, flat: NDArray) -> NDArray[np.float32]:
     """PWLS weights ~ 1/variance of the line integrals: detected counts over mean open-beam counts."""
     open_beam = float(np.mean(np.asarray(flat, dtype=np.float64) - dark))
@@ -169,9 +200,12 @@ def pwls_sps(A: Projector, y: NDArray[np.float32] | ProjectionStack,
              weights: NDArray[np.float32] | ProjectionStack | None = None, *,
              beta: float = DEFAULT_BETA, iterations: int = 50, x0: NDArray[np.float32] | None = None,
              neighbourhood: int = 1, subsets: int = 1, nonneg: bool = True, chunk_views: int = 8,
-             progress: ProgressCallback | None = None) -> PwlsResult:
-    """Minimise the PWLS cost by (ordered-subset) SPS; the cost is monotone without subsets.
+             momentum: bool = False, progress: ProgressCallback | None = None,
+             callback: Callable[[int, NDArray[np.float32]], None] | None = None) -> PwlsResult:
+    """Minimise the PWLS cost by (ordered-subset) SPS; the cost is monotone without subsets and momentum.
 
+    ``momentum`` adds Nesterov's momentum to the subset steps (one more volume in memory; see the module).
+    ``callback(iteration, image)`` sees the iterate after each iteration (a view: copy what you keep).
     ``y`` and ``weights`` may be arrays or anything sliceable along views (an HDF5 dataset):
     they are read ``chunk_views`` views at a time, so only the volume-sized state (iterate,
     gradient, surrogate denominators) and one chunk of projections are held in memory.
@@ -223,9 +257,13 @@ def pwls_sps(A: Projector, y: NDArray[np.float32] | ProjectionStack,
             xp[1:-1, 1:-1, 1:-1] = x0
     if nonneg:
         np.maximum(xp, 0, out=xp)
+    x_prev = np.array(xp[1:-1, 1:-1, 1:-1]) if momentum else None  # the last iterate; xp holds the extrapolation
+    t_k, restarts = 1.0, 0
     cost: list[float] = []
     for it in range(iterations + 1):
         final = it == iterations
+        if final and x_prev is not None:
+            xp[1:-1, 1:-1, 1:-1] = x_prev  # the result is the iterate, not the extrapolated point
         data_term = 0.0
         rough = 0.0
         for m, ps in enumerate(passes):
@@ -244,12 +282,21 @@ def pwls_sps(A: Projector, y: NDArray[np.float32] | ProjectionStack,
             rr = penalty_add(xp, offs, omega, beta_abs / subsets, gp)
             if m == 0:
                 rough = rr
-            _sps_step(xp, gp, denom, float(subsets), nonneg)
+            if x_prev is None:
+                _sps_step(xp, gp, denom, float(subsets), nonneg)
+                continue
+            t_next = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t_k * t_k))
+            if _momentum_step(xp, gp, denom, float(subsets), nonneg, x_prev, (t_k - 1.0) / t_next) > 0.0:
+                xp[1:-1, 1:-1, 1:-1] = x_prev  # overshot: restart the momentum from the iterate
+                t_next, restarts = 1.0, restarts + 1
+            t_k = t_next
         cost.append(float(data_term + beta_abs * rough))
+        if callback is not None and not final:
+            callback(it + 1, xp[1:-1, 1:-1, 1:-1] if x_prev is None else x_prev)
         if it < iterations:
             el = time.perf_counter() - t0
             report(progress, "pwls", it + 1, iterations, "iterations", cost=cost[-1],
                    time_left_s=el / (it + 1) * (iterations - it - 1))
-    del gp, denom, buf, r
+    del gp, denom, buf, r, x_prev
     x = xp[1:-1, 1:-1, 1:-1] if in_place else np.ascontiguousarray(xp[1:-1, 1:-1, 1:-1])
-    return PwlsResult(x, cost, iterations, time.perf_counter() - t0, beta_abs)
+    return PwlsResult(x, cost, iterations, time.perf_counter() - t0, beta_abs, restarts)

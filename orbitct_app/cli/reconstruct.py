@@ -31,6 +31,8 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
 @click.option("--iterations", type=click.IntRange(min=1), default=50, show_default=True, help="PWLS iterations.")
 @click.option("--beta", type=click.FloatRange(min=0), default=None, help="Relative penalty strength (default 0.01; larger = smoother).")
 @click.option("--subsets", type=click.IntRange(min=1), default=1, show_default=True, help="Ordered subsets for PWLS.")
+@click.option("--momentum", is_flag=True, help="PWLS: ordered subsets with Nesterov's momentum (use with --subsets, "
+              "e.g. 12; a fraction of the iterations reaches the plain solver's image).")
 @click.option("--window", type=click.Choice(["ram-lak", "shepp-logan", "cosine", "hann"]), default="hann", show_default=True,
               help="Ramp filter window for FDK (and the PWLS initial image).")
 @click.option("--mar", is_flag=True, help="Metal artifact reduction (screws, BBs).")
@@ -49,7 +51,7 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
 @click.option("--out-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Folder for exports (default: next to the scan file).")
 def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | None, shape: tuple[int, int, int] | None,
-                iterations: int, beta: float | None, subsets: int, window: str, mar: bool, mar_method: str,
+                iterations: int, beta: float | None, subsets: int, momentum: bool, window: str, mar: bool, mar_method: str,
                 stream: str, name: str | None, overwrite: bool, compare_geometry: str | None, export: tuple[str, ...],
                 out_dir: Path | None) -> None:
     """Reconstruct SCAN (an orbitct scan file) and store the volume in it."""
@@ -68,7 +70,7 @@ def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | Non
                 scan, algorithm=algorithm, geometry=geometry, voxel_mm=voxel_mm, shape=shape, iterations=iterations,
                 beta=DEFAULT_BETA if beta is None else beta, mar=mar_method if mar else False, name=name,
                 export=list(export), out_dir=out_dir, progress=bar, window=window, subsets=subsets, stream=stream,
-                overwrite=overwrite,
+                overwrite=overwrite, momentum=momentum,
             )
     except ReconExistsError as exc:
         raise click.ClickException(f"{exc}; --overwrite replaces it, --name NAME keeps both") from None
@@ -93,7 +95,7 @@ def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | Non
                 scan, algorithm=algorithm, geometry=compare_geometry, voxel_mm=res.voxel_mm[0], shape=res.volume_shape,
                 iterations=iterations, beta=DEFAULT_BETA if beta is None else beta, mar=mar_method if mar else False,
                 name=f"{res.name}_vs_{compare_geometry}", progress=bar, window=window, subsets=subsets, stream=stream,
-                overwrite=overwrite,
+                overwrite=overwrite, momentum=momentum,
             )
         base = out_dir if out_dir is not None else res.path.parent
         base.mkdir(parents=True, exist_ok=True)

@@ -117,3 +117,20 @@ def test_pwls_updates_a_padded_start_in_place(sawtooth_data) -> None:
         pwls_sps(A, y, w, iterations=1, x0=np.zeros(A.padded_shape, np.float64))
     with pytest.raises(ReconError, match="out"):
         fdk(y, GRID, g, out=np.zeros((2, 2, 2), np.float32))
+
+
+@pytest.mark.slow
+def test_os_momentum_gets_further_in_few_passes_and_agrees_with_the_minimiser(sawtooth_data) -> None:
+    g, y, w = sawtooth_data
+    A = projector(GRID, g)
+    seen: list[int] = []
+    mom = pwls_sps(A, y, w, iterations=8, subsets=6, momentum=True, callback=lambda k, x: seen.append(k))
+    plain_os = pwls_sps(A, y, w, iterations=8, subsets=6)
+    sps = pwls_sps(A, y, w, iterations=8)
+    assert seen == list(range(1, 9))
+    assert mom.cost[-1] < plain_os.cost[-1] < sps.cost[-1]  # the final cost is exact, at each result
+    assert mom.volume.min() >= 0  # the result is the iterate, not the extrapolated point
+    # the same minimiser: many SPS iterations from the momentum result change little, and cost no less
+    polished = pwls_sps(A, y, w, iterations=40, x0=mom.volume)
+    assert polished.cost[-1] <= mom.cost[-1]
+    assert (mom.cost[-1] - polished.cost[-1]) < 0.02 * (sps.cost[0] - polished.cost[-1])

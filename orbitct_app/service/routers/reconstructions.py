@@ -42,6 +42,8 @@ class ReconstructionRequest(BaseModel):
     shape: tuple[Annotated[int, Field(ge=4, le=1024)], Annotated[int, Field(ge=4, le=1024)], Annotated[int, Field(ge=4, le=1024)]] | None = Field(
         None, description="(nz, ny, nx); default fits the field of view")
     iterations: int = Field(50, ge=1, le=500, description="PWLS iterations (ignored by FDK)")
+    subsets: int = Field(1, ge=1, le=64, description="PWLS ordered subsets")
+    momentum: bool = Field(False, description="PWLS: ordered subsets with Nesterov's momentum (with subsets, e.g. 12)")
     beta: float | None = Field(None, ge=0.0, le=1e6, description="relative penalty strength")
     mar: bool = Field(False, description="metal artifact reduction")
     stream: Literal["auto", "memory", "file"] = Field(
