@@ -119,6 +119,26 @@ def test_open_interlock_refuses_and_exposes_nothing(twin: tuple[XrayTwin, TwinTh
     assert tw.world.xray_frame_counter == 0
 
 
+def test_software_interlock_refuses_high_voltage_until_it_clears(twin: tuple[XrayTwin, TwinThread]) -> None:
+    tw, _ = twin
+    latched: list[str] = ["emergency stop by test: smoke"]
+
+    async def body(gen: XrayGenerator) -> None:
+        gen.interlock = lambda: latched[0] if latched else None
+        with pytest.raises(InterlockOpenError, match="high voltage refused: emergency stop by test: smoke"):
+            await gen.prepare()
+        with pytest.raises(InterlockOpenError, match="high voltage refused"):
+            await gen.expose()
+        state = await gen.read()
+        assert state["hv_on"] is False and state["frame_counter"] == 0
+        latched.clear()  # reset: exposures work again
+        await gen.expose(release=True)
+        assert (await gen.read())["frame_counter"] == 1
+
+    run(twin, body)
+    assert tw.world.xray_frame_counter == 1
+
+
 def test_door_opening_during_exposure_aborts(twin: tuple[XrayTwin, TwinThread]) -> None:
     tw, th = twin
 
