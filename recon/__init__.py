@@ -8,7 +8,9 @@ from recon.errors import (
     MemoryBudgetError,
     ReconError,
     ReconExistsError,
+    TooLongError,
 )
+from recon.estimate import reconstruction_seconds
 from recon.fdk import fdk
 from recon.grid import check_fov, grid_for_geometry
 from recon.operator import Projector, backproject_voxels, projector
@@ -18,6 +20,6 @@ from recon.quality import reference_volume, rmse, wire_fwhm
 
 __all__ = [
     "BadFramesError", "DEFAULT_BETA", "FieldOfViewError", "GeometryMissingError", "MemoryBudgetError", "Projector", "PwlsResult",
-    "ReconError", "ReconExistsError", "ReconResult", "VolumeGrid", "backproject_voxels", "check_fov", "compare_reconstructions", "fdk", "grid_for_geometry",
-    "projector", "pwls_sps", "reconstruct_scan", "reference_volume", "rmse", "wire_fwhm",
+    "ReconError", "ReconExistsError", "ReconResult", "TooLongError", "VolumeGrid", "backproject_voxels", "check_fov", "compare_reconstructions", "fdk", "grid_for_geometry",
+    "projector", "pwls_sps", "reconstruct_scan", "reconstruction_seconds", "reference_volume", "rmse", "wire_fwhm",
 ]

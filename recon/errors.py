@@ -19,6 +19,14 @@ class MemoryBudgetError(ReconError):
     """The reconstruction would need more memory than the machine has available."""
 
 
+class TooLongError(ReconError):
+    """The reconstruction is estimated to take longer than the caller's limit; ``estimated_s`` says how long."""
+
+    def __init__(self, message: str, estimated_s: float) -> None:
+        self.estimated_s = estimated_s
+        super().__init__(message)
+
+
 class ReconExistsError(ReconError):
     """The scan file already holds a reconstruction of that name (replacing it must be asked for)."""
 

@@ -23,7 +23,9 @@ from recon.errors import (
     MemoryBudgetError,
     ReconError,
     ReconExistsError,
+    TooLongError,
 )
+from recon.estimate import describe_seconds, reconstruction_seconds
 from recon.export import FORMATS, export_volume
 from recon.fdk import WINDOWS, fdk
 from recon.grid import check_fov, grid_for_geometry
@@ -209,14 +211,15 @@ def reconstruct_scan(
     export: str | list[str] | None = None, out_dir: str | os.PathLike[str] | None = None,
     progress: ProgressCallback | None = None, window: str = "hann", subsets: int = 1, neighbourhood: int = 1,
     metal_mu: float = 0.1, mar_threshold: float = 0.5, stream: str = "auto", overwrite: bool = False,
-    momentum: bool = False,
+    momentum: bool = False, max_seconds: float | None = None,
 ) -> ReconResult:
     """Reconstruct ``path`` with FDK or PWLS and store it as ``/recon/<name>`` in the scan file.
 
     ``stream`` (PWLS): 'memory' loads projections and weights once, 'file' recomputes them from
     the scan file chunk by chunk every iteration (three volumes of memory, slower), 'auto'
     picks 'memory' while it fits in half the free memory. A reconstruction of the same name is replaced only with
-    ``overwrite`` (:class:`ReconExistsError` otherwise, before any work).
+    ``overwrite`` (:class:`ReconExistsError` otherwise, before any work). One estimated to take longer than
+    ``max_seconds`` (:mod:`recon.estimate`) raises :class:`TooLongError` before anything large is allocated.
     """
     t0 = time.perf_counter()
     if algorithm not in ALGORITHMS:
@@ -249,6 +252,14 @@ def reconstruct_scan(
         check_memory(estimate_bytes(algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method), mode),
                      f"{scan.path}: {algorithm} of {frames.size} views of {det.rows} x {det.cols} pixels onto "
                      f"{grid.shape} voxels")
+        estimated_s = reconstruction_seconds(algorithm, grid, int(frames.size), det.rows, det.cols,
+                                             iterations if algorithm == "pwls" else 0)
+        if max_seconds is not None and estimated_s > max_seconds:
+            raise TooLongError(
+                f"{scan.path}: {algorithm} of {frames.size} views of {det.rows} x {det.cols} pixels onto {grid.shape} "
+                f"voxels of {grid.voxel_mm[0]:g} mm is estimated to take {describe_seconds(estimated_s)} on this "
+                f"machine now, more than the limit of {describe_seconds(max_seconds)}; a larger voxel size, a smaller "
+                "shape or (PWLS) ordered subsets with momentum and fewer iterations are faster", estimated_s)
         needed = np.union1d(frames, np.flatnonzero(np.isin(scan.image_key, (ImageKey.DARK, ImageKey.FLAT))))
         problems = scan.frame_problems(needed)  # after the memory check: it reads every frame it needs
         if problems:
@@ -286,7 +297,7 @@ def reconstruct_scan(
         elapsed = time.perf_counter() - t0
         params = {
             "window": window, "views": int(frames.size), "views_dropped_nonfinite": dropped,
-            "fov_fraction": fov_fraction, "grid": grid.to_json(), **extra,
+            "fov_fraction": fov_fraction, "grid": grid.to_json(), "estimated_s": estimated_s, **extra,
         }
         if algorithm == "pwls":
             params.update(beta=beta, neighbourhood=neighbourhood, subsets=subsets, momentum=momentum, cost=cost)

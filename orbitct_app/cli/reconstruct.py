@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
 from orbitct_app.cli.progress import ProgressBar
+
+if TYPE_CHECKING:
+    from recon import ReconResult
 
 
 def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tuple[int, int, int] | None:
@@ -50,35 +54,53 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
               help="Also write the volume as NIfTI, TIFF stack or PNG slices (repeatable).")
 @click.option("--out-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Folder for exports (default: next to the scan file).")
+@click.option("--max-minutes", type=click.FloatRange(min=0.0, min_open=True), default=10.0, show_default=True,
+              envvar="ORBITCT_MAX_MINUTES",
+              help="A reconstruction estimated to take longer asks first on a terminal, and is refused elsewhere.")
+@click.option("--yes", is_flag=True, help="Start even when the estimate is above --max-minutes.")
 def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | None, shape: tuple[int, int, int] | None,
                 iterations: int, beta: float | None, subsets: int, momentum: bool, window: str, mar: bool, mar_method: str,
                 stream: str, name: str | None, overwrite: bool, compare_geometry: str | None, export: tuple[str, ...],
-                out_dir: Path | None) -> None:
-    """Reconstruct SCAN (an orbitct scan file) and store the volume in it."""
+                out_dir: Path | None, max_minutes: float, yes: bool) -> None:
+    """Reconstruct SCAN (an orbitct scan file) and store the volume in it.
+
+    The time it will take is estimated before anything large is allocated (from the projectors' speed on this
+    machine now); above --max-minutes it asks on a terminal and refuses elsewhere, unless --yes."""
+    import sys
+
     from orbitct.scanfile import ScanFileError
     from recon import (
         DEFAULT_BETA,
         ReconError,
         ReconExistsError,
+        TooLongError,
         compare_reconstructions,
         reconstruct_scan,
     )
 
-    try:
+    def run(limit_s: float | None) -> ReconResult:
         with ProgressBar() as bar:
-            res = reconstruct_scan(
+            return reconstruct_scan(
                 scan, algorithm=algorithm, geometry=geometry, voxel_mm=voxel_mm, shape=shape, iterations=iterations,
                 beta=DEFAULT_BETA if beta is None else beta, mar=mar_method if mar else False, name=name,
                 export=list(export), out_dir=out_dir, progress=bar, window=window, subsets=subsets, stream=stream,
-                overwrite=overwrite, momentum=momentum,
+                overwrite=overwrite, momentum=momentum, max_seconds=limit_s,
             )
+
+    try:
+        try:
+            res = run(None if yes else 60.0 * max_minutes)
+        except TooLongError as exc:
+            if not (sys.stdin.isatty() and click.confirm(f"{exc}. Start it anyway?", default=False, err=True)):
+                raise click.ClickException(f"{exc}; --yes starts it anyway, --max-minutes M sets the limit") from None
+            res = run(None)
     except ReconExistsError as exc:
         raise click.ClickException(f"{exc}; --overwrite replaces it, --name NAME keeps both") from None
     except (ReconError, ScanFileError) as exc:
         raise click.ClickException(str(exc)) from None
     nz, ny, nx = res.volume_shape
     click.echo(f"{res.path}: /recon/{res.name}  {algorithm} with {geometry} geometry, {nz}x{ny}x{nx} voxels of "
-               f"{res.voxel_mm[0]:g} mm, {res.elapsed_s:.1f} s")
+               f"{res.voxel_mm[0]:g} mm, {res.elapsed_s:.1f} s (estimated {res.params['estimated_s']:.1f} s)")
     if res.cost:
         click.echo(f"  cost {res.cost[0]:.6g} -> {res.cost[-1]:.6g} over {len(res.cost) - 1} iterations")
     for p in res.exported:

@@ -52,3 +52,31 @@ def test_compare_puts_two_geometries_side_by_side_in_one_window(tmp_path: Path) 
     assert CliRunner().invoke(cli, [*args, "--overwrite"]).exit_code == 0
     same = CliRunner().invoke(cli, [*args[:-1], "truth", "--overwrite"])
     assert same.exit_code == 2 and "already reconstructed" in same.output
+
+
+def test_a_reconstruction_estimated_above_the_limit_is_refused_off_a_terminal_unless_asked(tmp_path: Path) -> None:
+    g = ViewGeometry.from_carm(np.linspace(0, 2 * np.pi, 40, endpoint=False), 0.0, 785.0, 1200.0, bench_detector(48))
+    path = tmp_path / "s.h5"
+    write_sphere_scan(path, g)
+    args = ["reconstruct", str(path), "--algorithm", "pwls", "--geometry", "nominal", "--shape", "24,40,40",
+            "--voxel-mm", "3", "--iterations", "20", "--max-minutes", "0.0005"]
+    refused = CliRunner().invoke(cli, args)
+    assert refused.exit_code == 1, refused.output
+    assert "is estimated to take" in refused.output and "more than the limit of 0 s" in refused.output
+    assert "--yes starts it anyway" in refused.output and "Traceback" not in refused.output
+    with ScanFile(path) as sf:
+        assert sf.recon_names() == []  # nothing started, nothing stored
+    started = CliRunner().invoke(cli, [*args, "--yes"])
+    assert started.exit_code == 0, started.output
+    assert "(estimated " in started.output
+    assert CliRunner(env={"ORBITCT_MAX_MINUTES": "60"}).invoke(cli, [*args[:-2], "--name", "env"]).exit_code == 0
+
+
+def test_the_time_estimate_follows_the_work() -> None:
+    from orbitct.geometry import VolumeGrid
+    from recon import reconstruction_seconds
+
+    small, big = VolumeGrid.centered((32, 32, 32), 2.0), VolumeGrid.centered((64, 64, 64), 2.0)
+    fdk_s = reconstruction_seconds("fdk", small, 100, 64, 64)
+    assert 0 < fdk_s < reconstruction_seconds("fdk", big, 100, 64, 64)
+    assert reconstruction_seconds("pwls", small, 100, 64, 64, 10) < reconstruction_seconds("pwls", small, 100, 64, 64, 50)
