@@ -43,6 +43,8 @@ class ServiceSettings(BaseSettings):
     max_body_bytes: int = Field(default=64 * 1024, ge=1024, le=16 * 1024 * 1024)
     job_workers: int = Field(default=1, ge=1, le=8, description="calibration/reconstruction processes at once")
     cancel_grace_s: float = Field(default=5.0, ge=0.1, le=120.0, description="time a cancelled job gets before it is killed")
+    reconstruction_max_minutes: float = Field(default=60.0, gt=0.0, le=10080.0, description="a reconstruction job estimated "
+                                              "to take longer fails at once, before any work (a request may raise it)")
     max_scan_frames: int = Field(default=5000, ge=1, le=100_000)
     bench_nice: int = Field(default=-5, ge=-20, le=0, description="priority asked for the bench process (needs root or CAP_SYS_NICE)")
     status_interval_s: float = Field(default=0.25, ge=0.01, le=10.0, description="how often scan progress goes to the DB")

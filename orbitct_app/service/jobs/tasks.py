@@ -72,6 +72,8 @@ def run_reconstruction(scan_path: Path, params: dict[str, Any], out_dir: Path,
     import recon
 
     kwargs = {k: v for k, v in params.items() if v is not None}
+    if "max_minutes" in kwargs:
+        kwargs["max_seconds"] = 60.0 * float(kwargs.pop("max_minutes"))
     if "shape" in kwargs:
         kwargs["shape"] = tuple(kwargs["shape"])
     res = recon.reconstruct_scan(scan_path, export=["nifti", "png"], out_dir=out_dir, progress=progress, **kwargs)
@@ -81,6 +83,7 @@ def run_reconstruction(scan_path: Path, params: dict[str, Any], out_dir: Path,
         "name": res.name, "shape": [int(n) for n in res.volume_shape],
         "voxel_mm": [float(v) for v in res.voxel_mm], "origin_mm": [float(v) for v in res.origin_mm],
         "cost": [_finite(c) for c in res.cost], "elapsed_s": float(res.elapsed_s),
+        "estimated_s": _finite(res.params.get("estimated_s", float("nan"))),
         "min": _finite(volume.min()), "max": _finite(volume.max()), "mean": _finite(volume.mean()),
         "warnings": [str(w) for w in res.warnings],
         "files": sorted(p.name for p in out_dir.iterdir() if p.is_file()),

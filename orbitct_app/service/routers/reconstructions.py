@@ -51,6 +51,9 @@ class ReconstructionRequest(BaseModel):
     name: str | None = Field(None, pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$",
                              description="name under /recon in the scan file (default ALGORITHM_GEOMETRY[_mar])")
     overwrite: bool = Field(False, description="replace a reconstruction of that name already in the scan file")
+    max_minutes: float | None = Field(None, gt=0.0, le=10080.0, description="the job fails at once, before any work, "
+                                      "when it is estimated to take longer (default: the service's "
+                                      "reconstruction_max_minutes, 60)")
 
     @model_validator(mode="after")
     def _size(self) -> "ReconstructionRequest":
@@ -94,6 +97,8 @@ def start_reconstruction(body: ReconstructionRequest, service: ServiceDep, who: 
     if name in recons and not body.overwrite:
         raise Conflict(f"scan {body.scan_id} already has a reconstruction named {name!r}; send \"overwrite\": true "
                        "to replace it, or another \"name\"")
+    if body.max_minutes is None:
+        body = body.model_copy(update={"max_minutes": service.settings.reconstruction_max_minutes})
     return submit(service, "reconstruction", body, who.name, response)
 
 

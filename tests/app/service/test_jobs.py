@@ -118,3 +118,17 @@ def test_restart_marks_running_job_interrupted(make_api, workload) -> None:  # t
     assert job["state"] == "interrupted" and "stopped while it was running" in job["reason"]
     events = parse_sse(api2.get(f"/jobs/{job_id}/events").text)
     assert events[-1]["event"] == "end" and events[-1]["data"]["state"] == "interrupted"
+
+
+def test_a_reconstruction_estimated_above_the_limit_fails_at_once_with_the_estimate(api) -> None:  # type: ignore[no-untyped-def]
+    scan_id = _complete_scan(api)
+    r = api.post("/reconstructions", role="analyst", json={"scan_id": scan_id, "geometry": "nominal", "algorithm": "pwls",
+                                                           "shape": [16, 24, 24], "iterations": 50, "max_minutes": 1e-6})
+    assert r.status_code == 202, r.text
+    job = _wait(api, r.json()["id"])
+    assert job["state"] == "failed" and "is estimated to take" in job["reason"] and "more than the limit" in job["reason"], job
+    assert job["params"]["max_minutes"] == 1e-6
+    r = api.post("/reconstructions", role="analyst", json={"scan_id": scan_id, "geometry": "nominal", "algorithm": "fdk",
+                                                           "shape": [16, 24, 24]})
+    job = _wait(api, r.json()["id"])  # the service's limit (60 min by default) lets it through
+    assert job["state"] == "succeeded" and job["params"]["max_minutes"] == 60.0 and job["result"]["estimated_s"] > 0, job
