@@ -260,6 +260,7 @@ class ScanEngine:
             self._notify("on_start", start)
             started = True
             self.state = "running"
+            await self._subscribers_ready()
             t0 = time.monotonic()
             if self.mode == "step":
                 await self._run_step(t0)
@@ -325,6 +326,23 @@ class ScanEngine:
                     log.error("subscriber %r failed in %s: %s", sub, method, exc)
             else:
                 fn(event)
+
+    async def _subscribers_ready(self) -> None:
+        """Await subscribers that start work of their own (an ``async ready()``) before the first frame; an abort
+        meanwhile ends the wait."""
+        for sub in self.subscribers:
+            ready = getattr(sub, "ready", None)
+            if ready is None:
+                continue
+            task = asyncio.ensure_future(ready())
+            try:
+                while not task.done():
+                    self._check_abort()
+                    await asyncio.wait({task}, timeout=0.05)
+            finally:
+                if not task.done():
+                    task.cancel()
+            task.result()
 
     async def _boundary(self) -> None:
         """Frame boundary: honour abort and pause (X-rays stay off while paused)."""

@@ -54,7 +54,8 @@ class ScanEnd:
 
 
 class Subscriber(Protocol):
-    """Receives the engine's events in order, in the engine's thread."""
+    """Receives the engine's events in order, in the engine's thread. A subscriber that starts work of its own may
+    also have an ``async ready()``: the engine awaits it after ``on_start`` and before the first frame."""
 
     def on_start(self, start: ScanStart) -> None:
         """Before the first frame."""

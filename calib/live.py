@@ -373,6 +373,7 @@ class LiveCalibration:
         self._outcome: tuple[Any, ...] | None = None
         self._failure: str | None = None
         self._ended = threading.Event()
+        self._ready = threading.Event()
         ctx = mp.get_context("spawn")
         self._frames = ctx.Queue(maxsize=self.settings.max_pending)
         self._events = ctx.Queue()
@@ -395,6 +396,8 @@ class LiveCalibration:
                 report(self.progress, x[0], x[1], x[2], x[3], **x[4])
             elif kind == "marks":
                 self.latest_marks = x
+            elif kind == "ready":
+                self._ready.set()
             elif kind in ("done", "stopped", "error"):
                 if kind == "done":
                     self._outcome = x
@@ -402,6 +405,16 @@ class LiveCalibration:
                     self._failure = x
                 self._ended.set()
                 return
+
+    def wait_ready(self, timeout_s: float = 60.0) -> None:
+        """Return once the worker follows frames (it starts in a process of its own, at low priority: on a busy
+        machine that takes seconds); :class:`LiveCalibrationError` if it did not within ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        while not self._ready.wait(0.05):
+            if self._ended.is_set() or not self._process.is_alive() or time.monotonic() > deadline:
+                reason = self._failure or ("its process ended" if not self._process.is_alive() else
+                                           f"not within {timeout_s:g} s")
+                raise LiveCalibrationError(f"the live calibration did not start: {reason}")
 
     # ------------------------------------------------------------------ feeding
     def add_frame(self, index: int, image_key: int, frame: NDArray[Any]) -> None:

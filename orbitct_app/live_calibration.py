@@ -9,6 +9,7 @@ file aborted with the warning as its reason.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import threading
 from collections.abc import Callable, Iterable
@@ -62,10 +63,22 @@ class LiveCalibrationSubscriber:
                     self._stop_reason = f"stopped on a live calibration warning ({w.kind}): {w.message}"
 
     def on_start(self, start: ScanStart) -> None:
-        """Before the first frame: the plan gives every frame's nominal geometry and kind."""
+        """Before the first frame: the plan gives every frame's nominal geometry and kind; starts the worker."""
         self.live = LiveCalibration(self.path, start.plan.nominal, start.plan.image_key, self.diameter_mm,
                                     settings=self.settings, progress=self.progress, on_warning=self._warned,
                                     **self.options)
+
+    async def ready(self) -> None:
+        """Awaited by the engine before the first frame: returns once the worker follows frames (it starts in a
+        process of its own at low priority: seconds on a busy machine), so that its warnings, and a stop on them,
+        come while the scan runs. The scan's event loop stays free meanwhile."""
+        if self.live is None:
+            return
+        try:
+            await asyncio.to_thread(self.live.wait_ready)
+        except CalibrationError:
+            self.live.close()
+            raise
 
     def on_frame(self, record: FrameRecord) -> None:
         """Queue the frame (returns at once); stop the scan if a chosen warning came up."""

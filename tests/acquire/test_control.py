@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import time
 from typing import Any
 
 import pytest
@@ -175,3 +176,54 @@ def test_the_source_prepares_during_the_move_not_after_it(request_factory) -> No
     status, after = acquire_s_per_projection(False)
     assert status == "complete"
     assert after - ahead > 0.6 * prep_s, (ahead, after)  # without: each exposure prepares first
+
+
+class _SlowToStart:
+    """A subscriber whose own work takes a while to start (an ``async ready()``, as a live calibration has)."""
+
+    def __init__(self, ready_after_s: float) -> None:
+        self.ready_after_s, self.ready_at, self.first_frame_at, self.loop_free = ready_after_s, None, None, 0
+
+    def on_start(self, start: Any) -> None:
+        pass
+
+    async def ready(self) -> None:
+        for _ in range(int(self.ready_after_s / 0.01)):
+            await asyncio.sleep(0.01)
+            self.loop_free += 1  # the scan's loop keeps running meanwhile (heartbeats, stops)
+        self.ready_at = time.monotonic()
+
+    def on_frame(self, record: Any) -> None:
+        self.first_frame_at = self.first_frame_at or time.monotonic()
+
+    def on_finish(self, end: Any) -> None:
+        pass
+
+
+def test_the_first_frame_waits_for_subscribers_ready_and_a_stop_ends_the_wait(request_factory) -> None:
+    slow = _SlowToStart(0.3)
+    req = request_factory(frames=6, config=small_config())
+
+    async def main() -> Any:
+        async with open_bench(req.resolved_config(), sim=True) as bench:
+            return await ScanRunner(req, rig=bench, subscribers=[slow]).run()
+
+    assert asyncio.run(main()).status == "complete"
+    assert slow.ready_at is not None and slow.first_frame_at is not None and slow.first_frame_at >= slow.ready_at
+    assert slow.loop_free >= 20
+
+    never = _SlowToStart(600.0)
+
+    async def scenario(runner: ScanRunner, task: asyncio.Task, bench: BenchRig, events: list) -> None:
+        await asyncio.sleep(0.5)
+        runner.abort("operator pressed stop while a subscriber was starting")
+        res = await asyncio.wait_for(task, 10)
+        assert res.status == "aborted" and res.n_frames == 0 and never.first_frame_at is None
+        await _assert_safe(bench)
+
+    async def main_never() -> Any:
+        async with open_bench(req.resolved_config(), sim=True) as bench:
+            runner = ScanRunner(req, rig=bench, subscribers=[never])
+            await scenario(runner, asyncio.ensure_future(runner.run()), bench, [])
+
+    asyncio.run(main_never())
