@@ -28,7 +28,7 @@ from recon.errors import (
 from recon.estimate import describe_seconds, reconstruction_seconds
 from recon.export import FORMATS, export_volume
 from recon.fdk import WINDOWS, fdk
-from recon.grid import check_fov, grid_for_geometry
+from recon.grid import check_fov, grid_for_geometry, object_grid
 from recon.mar import (
     METHODS,
     add_metal_back,
@@ -44,6 +44,7 @@ from recon.pwls import DEFAULT_BETA, pwls_sps, statistical_weights
 ALGORITHMS = ("fdk", "pwls")
 GEOMETRIES = ("calibrated", "nominal", "truth")
 STREAM_MODES = ("auto", "memory", "file")
+FITS = ("object", "fov")  # the default grid: fitted to the object, or the whole field of view
 
 
 @dataclass
@@ -211,7 +212,7 @@ def reconstruct_scan(
     export: str | list[str] | None = None, out_dir: str | os.PathLike[str] | None = None,
     progress: ProgressCallback | None = None, window: str = "hann", subsets: int = 1, neighbourhood: int = 1,
     metal_mu: float = 0.1, mar_threshold: float = 0.5, stream: str = "auto", overwrite: bool = False,
-    momentum: bool = False, max_seconds: float | None = None,
+    momentum: bool = False, max_seconds: float | None = None, fit: str = "object", grid: VolumeGrid | None = None,
 ) -> ReconResult:
     """Reconstruct ``path`` with FDK or PWLS and store it as ``/recon/<name>`` in the scan file.
 
@@ -220,6 +221,8 @@ def reconstruct_scan(
     picks 'memory' while it fits in half the free memory. A reconstruction of the same name is replaced only with
     ``overwrite`` (:class:`ReconExistsError` otherwise, before any work). One estimated to take longer than
     ``max_seconds`` (:mod:`recon.estimate`) raises :class:`TooLongError` before anything large is allocated.
+    Without ``shape`` the grid is fitted to the object (``fit='object'``, :func:`recon.grid.object_grid`) or covers
+    the whole field of view (``fit='fov'``); ``grid`` gives the grid itself (another reconstruction's, to compare).
     """
     t0 = time.perf_counter()
     if algorithm not in ALGORITHMS:
@@ -238,6 +241,8 @@ def reconstruct_scan(
         raise ReconError(f"voxel_mm must be > 0, got {voxel_mm}")
     if stream not in STREAM_MODES:
         raise ReconError(f"stream must be one of {STREAM_MODES}, got {stream!r}")
+    if fit not in FITS:
+        raise ReconError(f"fit must be one of {FITS}, got {fit!r}")
     name = name or f"{algorithm}_{geometry}" + ("_mar" if mar_method else "")
     with ScanFile(path, "r") as scan:  # read-only while computing: other readers may hold the file
         scan.refuse_if_acquiring()  # before any work: the result could not be stored
@@ -245,13 +250,23 @@ def reconstruct_scan(
             raise ReconExistsError(scan.path, name)
         frames, geom, dropped = _views(scan, geometry)
         warnings = _geometry_warnings(scan, geometry)
-        grid = grid_for_geometry(geom, voxel_mm=voxel_mm, shape=shape)
+        fitted = grid is None and shape is None and fit == "object"
+        grid_note = "as given" if grid is not None or shape is not None else "the whole field of view"
+        grid = grid if grid is not None else grid_for_geometry(geom, voxel_mm=voxel_mm, shape=shape)
         fov_fraction = check_fov(grid, geom)
         det = geom.panel
         mode = choose_stream(stream, algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method))
         check_memory(estimate_bytes(algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method), mode),
                      f"{scan.path}: {algorithm} of {frames.size} views of {det.rows} x {det.cols} pixels onto "
                      f"{grid.shape} voxels")
+        needed = np.union1d(frames, np.flatnonzero(np.isin(scan.image_key, (ImageKey.DARK, ImageKey.FLAT))))
+        problems = scan.frame_problems(needed)  # after the memory check: it reads every frame it needs
+        if problems:
+            raise BadFramesError(scan.path, problems, needed.size)
+        if fitted:
+            report(progress, "grid", 0, 1, "finding the object")
+            grid, grid_note = object_grid(FileLineIntegrals(scan, frames), geom, grid)
+            report(progress, "grid", 1, 1, grid_note)
         estimated_s = reconstruction_seconds(algorithm, grid, int(frames.size), det.rows, det.cols,
                                              iterations if algorithm == "pwls" else 0)
         if max_seconds is not None and estimated_s > max_seconds:
@@ -260,10 +275,6 @@ def reconstruct_scan(
                 f"voxels of {grid.voxel_mm[0]:g} mm is estimated to take {describe_seconds(estimated_s)} on this "
                 f"machine now, more than the limit of {describe_seconds(max_seconds)}; a larger voxel size, a smaller "
                 "shape or (PWLS) ordered subsets with momentum and fewer iterations are faster", estimated_s)
-        needed = np.union1d(frames, np.flatnonzero(np.isin(scan.image_key, (ImageKey.DARK, ImageKey.FLAT))))
-        problems = scan.frame_problems(needed)  # after the memory check: it reads every frame it needs
-        if problems:
-            raise BadFramesError(scan.path, problems, needed.size)
         cost: list[float] = []
         extra: dict[str, Any] = {}
         if algorithm == "fdk" and not mar_method:
@@ -297,7 +308,8 @@ def reconstruct_scan(
         elapsed = time.perf_counter() - t0
         params = {
             "window": window, "views": int(frames.size), "views_dropped_nonfinite": dropped,
-            "fov_fraction": fov_fraction, "grid": grid.to_json(), "estimated_s": estimated_s, **extra,
+            "fov_fraction": fov_fraction, "grid": grid.to_json(), "grid_choice": grid_note, "estimated_s": estimated_s,
+            **extra,
         }
         if algorithm == "pwls":
             params.update(beta=beta, neighbourhood=neighbourhood, subsets=subsets, momentum=momentum, cost=cost)

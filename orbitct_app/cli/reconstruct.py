@@ -32,6 +32,9 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
               help="Which per-view geometry of the scan to use (truth exists only in simulated scans).")
 @click.option("--voxel-mm", type=float, default=None, help="Isotropic voxel size in mm (default: detector pitch at the isocenter).")
 @click.option("--shape", callback=_shape, default=None, help="Volume shape NZ,NY,NX (default: fits the field of view).")
+@click.option("--grid", "fit", type=click.Choice(["object", "fov"]), default="object", show_default=True,
+              help="Without --shape: fit the grid to the object (found in a coarse reconstruction) or cover the whole "
+                   "field of view.")
 @click.option("--iterations", type=click.IntRange(min=1), default=50, show_default=True, help="PWLS iterations.")
 @click.option("--beta", type=click.FloatRange(min=0), default=None, help="Relative penalty strength (default 0.01; larger = smoother).")
 @click.option("--subsets", type=click.IntRange(min=1), default=1, show_default=True, help="Ordered subsets for PWLS.")
@@ -59,7 +62,7 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
               help="A reconstruction estimated to take longer asks first on a terminal, and is refused elsewhere.")
 @click.option("--yes", is_flag=True, help="Start even when the estimate is above --max-minutes.")
 def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | None, shape: tuple[int, int, int] | None,
-                iterations: int, beta: float | None, subsets: int, momentum: bool, window: str, mar: bool, mar_method: str,
+                fit: str, iterations: int, beta: float | None, subsets: int, momentum: bool, window: str, mar: bool, mar_method: str,
                 stream: str, name: str | None, overwrite: bool, compare_geometry: str | None, export: tuple[str, ...],
                 out_dir: Path | None, max_minutes: float, yes: bool) -> None:
     """Reconstruct SCAN (an orbitct scan file) and store the volume in it.
@@ -84,7 +87,7 @@ def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | Non
                 scan, algorithm=algorithm, geometry=geometry, voxel_mm=voxel_mm, shape=shape, iterations=iterations,
                 beta=DEFAULT_BETA if beta is None else beta, mar=mar_method if mar else False, name=name,
                 export=list(export), out_dir=out_dir, progress=bar, window=window, subsets=subsets, stream=stream,
-                overwrite=overwrite, momentum=momentum, max_seconds=limit_s,
+                overwrite=overwrite, momentum=momentum, max_seconds=limit_s, fit=fit,
             )
 
     try:
@@ -101,6 +104,7 @@ def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | Non
     nz, ny, nx = res.volume_shape
     click.echo(f"{res.path}: /recon/{res.name}  {algorithm} with {geometry} geometry, {nz}x{ny}x{nx} voxels of "
                f"{res.voxel_mm[0]:g} mm, {res.elapsed_s:.1f} s (estimated {res.params['estimated_s']:.1f} s)")
+    click.echo(f"  grid: {res.params['grid_choice']}")
     if res.cost:
         click.echo(f"  cost {res.cost[0]:.6g} -> {res.cost[-1]:.6g} over {len(res.cost) - 1} iterations")
     for p in res.exported:
@@ -114,8 +118,7 @@ def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | Non
     try:
         with ProgressBar() as bar:
             other = reconstruct_scan(
-                scan, algorithm=algorithm, geometry=compare_geometry, voxel_mm=res.voxel_mm[0], shape=res.volume_shape,
-                iterations=iterations, beta=DEFAULT_BETA if beta is None else beta, mar=mar_method if mar else False,
+                scan, algorithm=algorithm, geometry=compare_geometry, grid=res.grid, iterations=iterations, beta=DEFAULT_BETA if beta is None else beta, mar=mar_method if mar else False,
                 name=f"{res.name}_vs_{compare_geometry}", progress=bar, window=window, subsets=subsets, stream=stream,
                 overwrite=overwrite, momentum=momentum,
             )

@@ -177,3 +177,45 @@ def test_no_results_go_into_a_file_still_acquiring(scan_a: Path, tmp_path: Path)
         f.attrs["status"] = "acquiring"
     with pytest.raises(ScanFileError, match="still marked 'acquiring'.*orbitct scan repair"):
         reconstruct_scan(path, algorithm="fdk", geometry="nominal", voxel_mm=VOXEL, shape=(8, 8, 8))
+
+
+def test_the_default_grid_is_fitted_to_the_object_and_says_so(tmp_path: Path) -> None:
+    from orbitct.geometry import ViewGeometry
+    from tests.helpers.recon import bench_detector, voxelized_spheres, write_sphere_scan
+
+    # a 60 mm ball (and two inside it) in a field of view about 280 mm across
+    g = ViewGeometry.from_carm(np.linspace(0, 2 * np.pi, 60, endpoint=False), 0.0, 785.0, 1200.0, bench_detector(96))
+    path = tmp_path / "ball.h5"
+    write_sphere_scan(path, g)
+    fov = reconstruct_scan(path, algorithm="fdk", geometry="nominal", fit="fov", name="fov")
+    obj = reconstruct_scan(path, algorithm="fdk", geometry="nominal", name="obj")
+    assert "fitted to the object" in obj.params["grid_choice"] and "whole field of view" in fov.params["grid_choice"]
+    assert np.prod(obj.volume_shape) < 0.25 * np.prod(fov.volume_shape)
+    ext = obj.grid.extent_mm
+    assert (ext[:, 0] <= -60.0).all() and (ext[:, 1] >= 60.0).all()  # the whole ball, with its margin
+    assert (ext[:, 0] >= -60.0 - 25.0).all() and (ext[:, 1] <= 60.0 + 25.0).all()  # and not much more
+    truth = voxelized_spheres(obj.grid)
+    err = lambda v: float(np.sqrt(np.mean((v - truth) ** 2)))  # noqa: E731
+    on_fov = fov.volume[tuple(slice(int(round((obj.grid.origin_mm[a] - fov.grid.origin_mm[a]) / fov.voxel_mm[a])), None)
+                              for a in (2, 1, 0))][: obj.volume_shape[0], : obj.volume_shape[1], : obj.volume_shape[2]]
+    assert on_fov.shape == obj.volume.shape
+    assert err(obj.volume) < 1.05 * err(on_fov)  # the same image where the object is
+
+
+@pytest.mark.parametrize("experiment", ["A", "C"])
+def test_the_fitted_grid_holds_all_of_the_phantom(tmp_path: Path, experiment: str) -> None:
+    from orbitct.phantoms import experiment_phantom
+    from orbitct.simulator.scan import simulate_scan
+    from recon import reference_volume
+
+    path = tmp_path / f"{experiment}.h5"
+    simulate_scan(experiment, out=path, n_frames=60, detector_px=128)
+    obj = reconstruct_scan(path, algorithm="fdk", geometry="truth", name="obj")
+    fov = reconstruct_scan(path, algorithm="fdk", geometry="truth", name="fov", fit="fov")
+    phantom = reference_volume(experiment_phantom(experiment, 0), fov.grid, supersample=1)
+    z, y, x = fov.grid.coords_mm()
+    ext = obj.grid.extent_mm
+    inside = (((x >= ext[0, 0]) & (x <= ext[0, 1]))[None, None, :] & ((y >= ext[1, 0]) & (y <= ext[1, 1]))[None, :, None]
+              & ((z >= ext[2, 0]) & (z <= ext[2, 1]))[:, None, None])
+    assert phantom[~inside].sum() <= 1e-3 * phantom.sum()  # nothing of the object (BBs included) left outside
+    assert obj.volume.size < fov.volume.size

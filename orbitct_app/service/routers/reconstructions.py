@@ -40,7 +40,9 @@ class ReconstructionRequest(BaseModel):
     geometry: Literal["calibrated", "nominal", "truth"] = Field("calibrated", description="which geometry of the scan file")
     voxel_mm: float | None = Field(None, gt=0.005, le=20.0, description="isotropic voxel size; default fits the field of view")
     shape: tuple[Annotated[int, Field(ge=4, le=1024)], Annotated[int, Field(ge=4, le=1024)], Annotated[int, Field(ge=4, le=1024)]] | None = Field(
-        None, description="(nz, ny, nx); default fits the field of view")
+        None, description="(nz, ny, nx), centred on the isocenter; default: see fit")
+    fit: Literal["object", "fov"] = Field("object", description="without shape: the grid fitted to the object (found in a "
+                                          "coarse reconstruction) or the whole field of view")
     iterations: int = Field(50, ge=1, le=500, description="PWLS iterations (ignored by FDK)")
     subsets: int = Field(1, ge=1, le=64, description="PWLS ordered subsets")
     momentum: bool = Field(False, description="PWLS: ordered subsets with Nesterov's momentum (with subsets, e.g. 12)")
