@@ -44,6 +44,7 @@ from machine_info import describe_machine  # noqa: E402
 from service import TOKEN, frame_rate, pct, scan_ended, scan_started, start_service  # noqa: E402
 
 ASSETS = ("/static/console.css", "/static/console.js", "/static/favicon.svg")
+TIMING_PARTS = ("motion_s", "acquire_s", "readback_s", "record_s", "prepare_wait_s", "overhead_s")  # a scan's timing
 PROBE_RELOAD_S = 1.0  # the measuring viewer reloads every second (more samples; a heavier viewer than the others)
 
 
@@ -139,8 +140,9 @@ def main() -> None:
                 ctx = mp.get_context("spawn")
                 crowd, crowd_end = mp.Pipe()  # all viewers but one, in one process
                 probe, probe_end = mp.Pipe()  # one viewer in a process of its own: its page loads are the measure
-                loaders = [ctx.Process(target=load_process, args=(base, scan_id, args.clients - 1, args.reload_s, args.clients_nice, crowd_end)),
-                           ctx.Process(target=load_process, args=(base, scan_id, 1, PROBE_RELOAD_S, args.clients_nice, probe_end))]
+                nice = args.clients_nice
+                loaders = [ctx.Process(target=load_process, args=(base, scan_id, args.clients - 1, args.reload_s, nice, crowd_end)),
+                           ctx.Process(target=load_process, args=(base, scan_id, 1, PROBE_RELOAD_S, nice, probe_end))]
                 for loader in loaders:
                     loader.start()
                 crowd.recv(), probe.recv()
@@ -165,12 +167,12 @@ def main() -> None:
     print(f"| frame rate with the clients | {rate_loaded:.2f} frames/s | |")
     for label, scan in (("alone", alone), ("with the clients", loaded)):
         timing, n = scan["summary"]["timing"], scan["summary"]["n_frames"]
-        parts = ", ".join(f"{k.removesuffix('_s')} {1000 * timing[k] / n:.0f}" for k in ("motion_s", "acquire_s", "readback_s", "record_s", "prepare_wait_s", "overhead_s"))
+        parts = ", ".join(f"{k.removesuffix('_s')} {1000 * timing[k] / n:.0f}" for k in TIMING_PARTS)
         print(f"| ms per frame {label} | {parts} | |")
     print(f"| frame-rate drop | {drop:.1f} % | < 10 % |")
     if loads:
-        print(f"| page loads (HTML + CSS + JS + icon) of the viewer in its own process, {len(loads)} | p50 {pct(loads, 50):.0f} ms, "
-              f"p95 {pct(loads, 95):.0f} ms, max {pct(loads, 100):.0f} ms | p95 < 300 ms |")
+        print(f"| page loads (HTML + CSS + JS + icon) of the viewer in its own process, {len(loads)} | "
+              f"p50 {pct(loads, 50):.0f} ms, p95 {pct(loads, 95):.0f} ms, max {pct(loads, 100):.0f} ms | p95 < 300 ms |")
     if crowd_loads:
         print(f"| page loads of the other {args.clients - 1} viewers (one Python process: its own event loop adds to them), "
               f"{len(crowd_loads)} | p50 {pct(crowd_loads, 50):.0f} ms, p95 {pct(crowd_loads, 95):.0f} ms | |")

@@ -14,7 +14,7 @@ from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Generic, Protocol, TypeVar, runtime_checkable
 
-from devices.errors import DeviceTimeoutError
+from devices.errors import DeviceTimeoutError, InterlockOpenError
 from devices.frame_protocol import Frame
 
 log = logging.getLogger(__name__)
@@ -133,6 +133,15 @@ class Driver:
         self.name = name
         self.uri = uri
         self._on_close: list[Callable[[], Any]] = []
+        # software interlock: returns why nothing may move or expose now (a latched emergency stop), None when it
+        # may; asked right before every command that would start motion or switch high voltage on
+        self.interlock: Callable[[], str | None] | None = None
+
+    def _check_interlock(self, action: str) -> None:
+        """Refuse ``action`` while the software interlock names a reason."""
+        reason = self.interlock() if self.interlock is not None else None
+        if reason:
+            raise InterlockOpenError(f"{self.name}: {action} refused: {reason}; reset the stop first")
 
     def on_close(self, release: Callable[[], Any]) -> None:
         """Call ``release()`` (a function or coroutine function) once, when this driver closes."""

@@ -116,6 +116,7 @@ class CArm(Detector):
         why = self.limits_now.check_point(p, s)
         if why:
             raise OutOfLimitsError(f"{self.name}: {why}; nothing moved")
+        self._check_interlock("move")
         await self._l().command(f"MOVE {p:.6f} {s:.6f}", retry=False)
         await self._wait_on_target()
 

@@ -88,9 +88,6 @@ class XrayGenerator(Driver):
         self._hold_task: asyncio.Task[None] | None = None
         self._hold_sending = False
         self._link_fault: tuple[float, str, str] | None = None  # last link trouble: when, clock time, what
-        # software interlock: returns why high voltage must stay off (a latched emergency stop), None when it may go on;
-        # asked right before every request that would switch it on
-        self.interlock: Callable[[], str | None] | None = None
 
     # ------------------------------------------------------------- connection
     async def connect(self) -> None:
@@ -343,12 +340,6 @@ class XrayGenerator(Driver):
             raise InterlockOpenError(f"{self.name}: door interlock is open; close the door before preparing or exposing")
         return ir, di
 
-    def _check_interlock(self) -> None:
-        """Refuse to switch high voltage on while the software interlock names a reason."""
-        reason = self.interlock() if self.interlock is not None else None
-        if reason:
-            raise InterlockOpenError(f"{self.name}: high voltage refused: {reason}; reset the stop first")
-
     async def _raise_for_state(self, ir: list[int], what: str) -> None:
         state = ir[reg.STATE]
         if state == GeneratorState.FAULT:
@@ -395,7 +386,7 @@ class XrayGenerator(Driver):
             raise DeviceError(f"{self.name}: cannot prepare in state {GeneratorState(ir[reg.STATE]).name}")
         if ir[reg.STATE] == GeneratorState.DONE:
             await self._write_coil(reg.EXPOSE_REQ, False)  # a previous exposure was never released
-        self._check_interlock()
+        self._check_interlock("high voltage")
         await self._write_coil(reg.PREP_REQ, True)
         await self._wait_state(status, {GeneratorState.READY}, "prepare", self.prep_timeout_s)
 
@@ -423,7 +414,7 @@ class XrayGenerator(Driver):
         exposure_s = hr.registers[reg.EXPOSURE_MS] / 1000.0
         try:
             await self._write_coil(reg.EXPOSE_REQ, False)  # the request acts on a rising edge: start from low
-            self._check_interlock()
+            self._check_interlock("high voltage")
             # sent exactly once: a lost request or reply is an error, never a second exposure
             await self._write_coil(reg.EXPOSE_REQ, True, retry=False)
             ir = await self._wait_state(status, {GeneratorState.DONE}, "exposure", exposure_s * 2 + self.timeout_s + 1.0)

@@ -28,7 +28,8 @@ from recon.errors import (
 from recon.estimate import describe_seconds, reconstruction_seconds
 from recon.export import FORMATS, export_volume
 from recon.fdk import WINDOWS, fdk
-from recon.grid import check_fov, grid_for_geometry, object_grid
+from recon.fitgrid import object_grid
+from recon.grid import check_fov, grid_for_geometry
 from recon.mar import (
     METHODS,
     add_metal_back,

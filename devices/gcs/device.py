@@ -260,6 +260,7 @@ class GcsMotionDevice(Driver):
         sent = {self.axis_map[k]: float(targets[k]) for k in checked}
         self._moves_sent += 1
         move_mark = self._moves_sent
+        self._check_interlock("move")
         try:
             await self.client.command(format_command(command, sent))
         except ControllerError as exc:
@@ -324,6 +325,7 @@ class GcsMotionDevice(Driver):
     async def _referencing(self, status: Status[None] | None) -> None:
         if not all((await self.servo_on()).values()):
             await self.servo(True)
+        self._check_interlock("referencing")
         await self.client.command(format_command("FRF", list(self.axis_map.values())))
         t0 = time.monotonic()
         while not await self.ready():

@@ -31,7 +31,7 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
 @click.option("--geometry", type=click.Choice(["calibrated", "nominal", "truth"]), default="calibrated", show_default=True,
               help="Which per-view geometry of the scan to use (truth exists only in simulated scans).")
 @click.option("--voxel-mm", type=float, default=None, help="Isotropic voxel size in mm (default: detector pitch at the isocenter).")
-@click.option("--shape", callback=_shape, default=None, help="Volume shape NZ,NY,NX (default: fits the field of view).")
+@click.option("--shape", callback=_shape, default=None, help="Volume shape NZ,NY,NX, centred on the isocenter (default: see --grid).")
 @click.option("--grid", "fit", type=click.Choice(["object", "fov"]), default="object", show_default=True,
               help="Without --shape: fit the grid to the object (found in a coarse reconstruction) or cover the whole "
                    "field of view.")
@@ -62,9 +62,9 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
               help="A reconstruction estimated to take longer asks first on a terminal, and is refused elsewhere.")
 @click.option("--yes", is_flag=True, help="Start even when the estimate is above --max-minutes.")
 def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | None, shape: tuple[int, int, int] | None,
-                fit: str, iterations: int, beta: float | None, subsets: int, momentum: bool, window: str, mar: bool, mar_method: str,
-                stream: str, name: str | None, overwrite: bool, compare_geometry: str | None, export: tuple[str, ...],
-                out_dir: Path | None, max_minutes: float, yes: bool) -> None:
+                fit: str, iterations: int, beta: float | None, subsets: int, momentum: bool, window: str, mar: bool,
+                mar_method: str, stream: str, name: str | None, overwrite: bool, compare_geometry: str | None,
+                export: tuple[str, ...], out_dir: Path | None, max_minutes: float, yes: bool) -> None:
     """Reconstruct SCAN (an orbitct scan file) and store the volume in it.
 
     The time it will take is estimated before anything large is allocated (from the projectors' speed on this
@@ -118,7 +118,8 @@ def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | Non
     try:
         with ProgressBar() as bar:
             other = reconstruct_scan(
-                scan, algorithm=algorithm, geometry=compare_geometry, grid=res.grid, iterations=iterations, beta=DEFAULT_BETA if beta is None else beta, mar=mar_method if mar else False,
+                scan, algorithm=algorithm, geometry=compare_geometry, grid=res.grid, iterations=iterations,
+                beta=DEFAULT_BETA if beta is None else beta, mar=mar_method if mar else False,
                 name=f"{res.name}_vs_{compare_geometry}", progress=bar, window=window, subsets=subsets, stream=stream,
                 overwrite=overwrite, momentum=momentum,
             )

@@ -10,6 +10,7 @@ import pytest
 from devices.errors import (
     ControllerError,
     DeviceError,
+    InterlockOpenError,
     NotReferencedError,
     OutOfLimitsError,
 )
@@ -104,6 +105,19 @@ async def test_coupled_workspace_refused_with_vmo(ready_hexapod: Hexapod, hexapo
     with pytest.raises(GcsOutOfLimitsError) as info:
         await ready_hexapod.client.command("MOV X 50 Y 50 U 30 V 30")
     assert info.value.code == 7
+
+
+async def test_software_interlock_refuses_motion_until_it_clears(ready_hexapod: Hexapod) -> None:
+    latched = ["emergency stop by test: smoke"]
+    ready_hexapod.interlock = lambda: latched[0] if latched else None
+    with pytest.raises(InterlockOpenError, match="move refused: emergency stop by test: smoke"):
+        await ready_hexapod.move({"Z": 1.0})
+    with pytest.raises(InterlockOpenError, match="referencing refused"):
+        await ready_hexapod.reference()
+    assert (await ready_hexapod.target())["Z"] == pytest.approx(0.0)  # nothing was commanded
+    latched.clear()  # reset: it moves again
+    await ready_hexapod.move({"Z": 1.0})
+    assert (await ready_hexapod.position())["Z"] == pytest.approx(1.0, abs=0.01)
 
 
 async def test_relative_move(ready_hexapod: Hexapod) -> None:

@@ -152,7 +152,7 @@ class RigServer:
                 self.config = load_config(self.config_path)
                 links = None if self.links is None else {k: DeviceLink(*v) for k, v in self.links.items()}
                 self.rig = await stack.enter_async_context(open_rig(self.config, sim=self.sim, links=links))
-                for device in self.rig.devices:  # no high voltage while a stop is latched, whatever asks for it
+                for device in self.rig.devices:  # no motion, no high voltage while a stop is latched, whoever asks
                     if hasattr(device, "interlock"):
                         device.interlock = self._latched_reason
                 self.send("connected", self._describe_config())
