@@ -43,6 +43,7 @@ from calib.quality import (
 )
 from calib.rays import marker_rays, rpe_per_frame, triangulate_least_squares
 from calib.scale import ScaleBar, find_scale_bar, rescaled_views
+from calib.split import FrameWindows, SplitSettings, fit_pair, isolated, merged_pairs, radial_profile
 from calib.track import TrackingSettings
 from orbitct.compiletime import CompileClock
 from orbitct.geometry import ViewGeometry
@@ -477,6 +478,9 @@ def _solve_and_write(
         assert failure is not None
         raise failure
     jitter_used, warnings, outcome, verdict = best
+    n_split = 0
+    if method == "bundle":
+        outcome, verdict, n_split = _split_merged(target, proj, model, outcome, verdict, d_px, opt, progress)
     geometry_p, xyz, state, uv, history, n_iter, more, quality = outcome
     warnings = list(warnings) + more
     bar = None
@@ -530,6 +534,7 @@ def _solve_and_write(
                 **({} if bar is None else {"scale_bar_mm": bar.length_mm, "scale_bar_bbs": [b + 1 for b in bar.bbs],
                                            "scale_factor": bar.factor}),
                 "warnings_json": list(warnings),
+                "split_blobs": n_split,
                 **verdict.attrs(),
             },
             per_view={"view_status": status_all, "predicted_px": predicted_all},
@@ -595,6 +600,50 @@ def _reassign(
     if (second_verdict.passed, second_verdict.counts["own"]) > (verdict.passed, verdict.counts["own"]):
         return second, second_verdict
     return outcome, verdict
+
+
+def _split_merged(
+    target: Path, proj: NDArray[np.intp], model: ViewModel, outcome: tuple[Any, ...], verdict: Verdict, d_px: float,
+    opt: CalibrationOptions, progress: ProgressCallback | None,
+) -> tuple[tuple[Any, ...], Verdict, int]:
+    """Views where two BBs project onto one blob (both left out by the assignment): their two centroids fitted
+    in the frame (:mod:`calib.split`), then the geometry estimated again; kept when the result is no worse.
+    Also the number of blobs split."""
+    geometry_p, xyz, uv = outcome[0], outcome[1], outcome[3]
+    with np.errstate(invalid="ignore"):
+        predicted = geometry_p.project(xyz)
+    s = SplitSettings(diameter_px=d_px, max_shift_px=max(2.0, 0.5 * d_px))
+    pairs = merged_pairs(predicted, uv, TrackingSettings(diameter_px=d_px).overlap_factor * d_px)
+    if not pairs:
+        return outcome, verdict, 0
+    report(progress, "split", 0, len(pairs), "blobs of two BBs")
+    new = uv.copy()
+    n_split = 0
+    with ScanFile(target) as sf:
+        dark, flat = sf.dark_flat()
+        den = np.maximum(flat - dark, 1.0).astype(np.float32)
+        for p in sorted({v for v, _, _ in pairs}):
+            frame = FrameWindows(np.asarray(sf.frames[int(proj[p])]), dark, den)
+            profile = radial_profile(frame, uv[p, isolated(predicted[p], uv[p], 2.0 * d_px + 4.0)], s.radius_px)
+            if profile is None:
+                continue
+            for _, j, k in (q for q in pairs if q[0] == p):
+                guess = predicted[p, [j, k]]
+                fit = fit_pair(frame, guess, profile, s)
+                if fit is not None and fit.trusted(guess, s):
+                    new[p, [j, k]] = fit.uv
+                    n_split += 1
+    report(progress, "split", len(pairs), len(pairs), f"{n_split} split")
+    if n_split == 0:
+        return outcome, verdict, 0
+    try:
+        second = _estimate("bundle", model, new, opt, progress)
+    except NoMarkersError:
+        return outcome, verdict, 0
+    second_verdict = judge(second[7], proj, opt.max_predicted_px, opt.bridge_max_views, "bundle")
+    if (second_verdict.passed, second_verdict.counts["own"]) >= (verdict.passed, verdict.counts["own"]):
+        return second, second_verdict, n_split
+    return outcome, verdict, 0
 
 
 def _leave_one_out_outliers(
