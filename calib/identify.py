@@ -241,11 +241,13 @@ def identify(
     min_found_share: float = 0.25,
     max_rough_points: int = 40,
     prior_scale: float = 1.0,
+    linked: NDArray[np.float64] | None = None,
 ) -> tuple[NDArray[np.float64], list[str]]:
     """Marker centroids ``(P, K, 2)`` over projection views, K found here; and warnings. ``prior_scale`` widens
-    the pull of the rough solves towards the nominal poses (orbits far from their nominal)."""
+    the pull of the rough solves towards the nominal poses (orbits far from their nominal). ``linked``: the 2-D
+    tracks of :func:`link_fragments` with these settings when they exist already (linked while the scan ran)."""
     warnings: list[str] = []
-    frags = link_fragments(cands, settings, nominal_model.nominal)
+    frags = link_fragments(cands, settings, nominal_model.nominal) if linked is None else linked
     if frags.shape[1] < 3:
         return np.full((len(cands), frags.shape[1], 2), np.nan), warnings
     geo = ViewModel(nominal_model.nominal, "fixed")

@@ -20,6 +20,7 @@ import os
 import queue
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,8 +31,9 @@ from numpy.typing import NDArray
 
 from calib.detect import N_FIELDS, FrameDetector
 from calib.errors import CalibrationError
+from calib.framepose import FramePose, StepWatch, fit_frame_pose
+from calib.model import ViewState
 from calib.pipeline import (
-    DEFAULT_JITTER_MM,
     CalibrationResult,
     _motion_px,
     _options,
@@ -51,7 +53,7 @@ from orbitct.progress import ProgressCallback, report
 from orbitct.scanfile import ImageKey, ScanFile
 
 #: what a live warning can be about
-WARNING_KINDS = ("bb_lost", "bb_found", "bb_left_fov", "few_bbs", "bb_distorted", "fell_behind")
+WARNING_KINDS = ("bb_lost", "bb_found", "bb_left_fov", "few_bbs", "bb_distorted", "object_moved", "fell_behind")
 
 
 class LiveCalibrationError(CalibrationError):
@@ -128,7 +130,7 @@ class _Follower:
         mag = float(np.nanmedian(nominal.sdd[proj] / nominal.sod()[proj])) if proj.size else 1.0
         self.d_px = self.diameter_mm * mag / float(np.sqrt(panel.pitch_col * panel.pitch_row))
         self.tracking = TrackingSettings(diameter_px=self.d_px, motion_px=_motion_px(nominal[proj]) if proj.size else 0.0,
-                                         jitter_px=DEFAULT_JITTER_MM * self.d_px / self.diameter_mm)
+                                         jitter_px=self.opt.jitter_mm * self.d_px / self.diameter_mm)
         self.linker = FrameLinker(self.tracking)
         self.candidates: list[NDArray[np.float64] | None] = []
         self.bbs_per_frame: list[int] = []
@@ -145,6 +147,10 @@ class _Follower:
         self._last_distorted = -10**9
         self._behind_warned = False
         self._next_index = 0
+        self._last_pose: ViewState | None = None
+        self._misfits: deque[float] = deque(maxlen=50)
+        self._steps = StepWatch()
+        self.rpe_mm: list[float] = []  # per frame with a pose, in order
 
     def take(self, index: int, frame: NDArray[Any] | None) -> None:
         """Scan frame ``index``; indices jumped over are projections that were not sent (detected after the scan)."""
@@ -207,8 +213,8 @@ class _Follower:
         n_bbs = int(links.continued.size + links.started.size)
         self.bbs_per_frame.append(n_bbs)
         self.emit("marks", (index, np.vstack([links.uv.reshape(-1, 2), links.started_uv.reshape(-1, 2)]).round(2).tolist()))
-        self.emit("progress", ("live-calibration", p + 1, self.n_projections, f"frame {index}: {n_bbs} BBs",
-                               {"bbs": float(n_bbs), "frame": float(index)}))
+        metrics = {"bbs": float(n_bbs), "frame": float(index)}
+        message = f"frame {index}: {n_bbs} BBs"
         if n_bbs < s.min_bbs:  # a view with too few BBs (once per run of such frames)
             if self._few_since is None:
                 self._few_since = index
@@ -225,6 +231,13 @@ class _Follower:
             shift = np.median(blobs[idx[hit]] - pred[hit], axis=0) if hit.sum() >= 2 else np.zeros(2)
             aligned = pred + shift
             origin, direction = view_rays(view, blobs) if len(blobs) else (None, None)
+            pose = self._frame_pose(index, view, np.array([w.point() for w in watched]),
+                                    np.where((idx >= 0)[:, None], blobs[np.maximum(idx, 0)], np.nan) if len(blobs) else
+                                    np.full((len(watched), 2), np.nan))
+            if pose is not None:
+                metrics.update(rpe_mm=pose.rpe_mm, rpe_mean_mm=float(np.mean(self.rpe_mm)), predicted_px=pose.predicted_px,
+                               misfit_px=pose.misfit_px)
+                message += f", RPE {pose.rpe_mm:.3f} mm, predicted {pose.predicted_px:.2f} px"
             panel = view.panel
             margin = 0.5 * self.d_px + 1.0 + s.edge_margin_px
             for w, j, uv in zip(watched, idx.tolist(), aligned):
@@ -257,6 +270,38 @@ class _Follower:
                                f"({uv[0]:.0f}, {uv[1]:.0f}) px (over metal, bone or another BB, or fallen off?)",
                                uv=(float(uv[0]), float(uv[1])))
         self._new_bbs(links, view)
+        self.emit("progress", ("live-calibration", p + 1, self.n_projections, message, metrics))
+
+    def _frame_pose(self, index: int, view: ViewGeometry, xyz: NDArray[np.float64], uv: NDArray[np.float64]
+                    ) -> FramePose | None:
+        """The frame's pose from its watched BBs (:func:`calib.framepose.fit_frame_pose`); feeds the running RPE,
+        the centroid noise and the jump watch, which warns when the object moved."""
+        pose = fit_frame_pose(view, xyz, uv, self._noise_px(), self._last_pose)
+        if pose is None:
+            return None
+        self._last_pose = pose.state
+        self.rpe_mm.append(pose.rpe_mm)
+        if np.isfinite(pose.misfit_px):
+            self._misfits.append(pose.misfit_px)
+        step = self._steps.add(index, pose.motion_mm)
+        if step is not None:
+            self._warn("object_moved", index, step.since_frame,
+                       f"frame {index}: the geometry fitted to each frame jumped by {step.size_mm:.1f} mm at frame "
+                       f"{step.since_frame} and stayed ({step.sigmas:.0f} sigma of its frame-to-frame noise): the object "
+                       "moved on the table? A move of the object with its BBs is calibrated away; if it moved against "
+                       "its BBs (loose tape, soft tissue), stop and scan again")
+        return pose
+
+    def _noise_px(self) -> float:
+        """Centroid noise from the recent frames' pose misfits (0.15 px before there are any)."""
+        return float(np.median(self._misfits)) if len(self._misfits) >= 5 else 0.15
+
+    def linked(self) -> NDArray[np.float64] | None:
+        """The 2-D tracks of every projection, linked as the offline calibration links them; None when frames
+        were left for after the scan (following stopped there)."""
+        if self._deferred:
+            return None
+        return self.linker.fragments(len(self.candidates), self.tracking.min_fragment)
 
     def _new_bbs(self, links: FrameLinks, view: ViewGeometry) -> None:
         """Tracks followed for ``watch_after`` frames whose point lies more than two BB diameters from every
@@ -319,7 +364,7 @@ def _worker(frames: Any, events: Any, nominal: ViewGeometry, image_key: NDArray[
             if item[0] == "end":
                 follower.skip_to(item[1])
                 events.put(("done", (follower.candidates, follower._deferred, follower.detect_s,
-                                     follower.bbs_per_frame, follower.d_px)))
+                                     follower.bbs_per_frame, follower.d_px, follower.linked())))
                 return
             if isinstance(item, str) and item == "stop":
                 events.put(("stopped", None))
@@ -455,11 +500,10 @@ class LiveCalibration:
         t_end = time.perf_counter()
         self._frames.put(("end", self._next_index))
         self._ended.wait()
-        self._process.join(10.0)
         self.timing["catch_up_s"] = time.perf_counter() - t_end  # the worker's backlog when the scan ended
         if self._failure is not None or self._outcome is None:
             raise LiveCalibrationError(f"live calibration failed in its worker: {self._failure}")
-        candidates, deferred, self.detect_s, self.bbs_per_frame, d_px = self._outcome
+        candidates, deferred, self.detect_s, self.bbs_per_frame, d_px, linked = self._outcome
         self.frames_detected_after_scan = len(deferred)
         opt = _options("bundle", {**self.options, "diameter_mm": self.diameter_mm})
         with ScanFile(self.path) as sf:
@@ -478,11 +522,12 @@ class LiveCalibration:
         cands = [np.zeros((0, N_FIELDS)) if c is None else c for c in candidates]
         t_solve = time.perf_counter()
         result = calibrate_candidates(self.path, cands, diameter_mm=self.diameter_mm, progress=progress or self.progress,
-                                      detect_s=self.detect_s, **self.options)
+                                      detect_s=self.detect_s, linked=linked, **self.options)
         self.timing["solve_s"] = time.perf_counter() - t_solve
         if self.last_frame_s is not None:
             self.last_frame_to_geometry_s = time.perf_counter() - self.last_frame_s
         result.warnings[:0] = [w.message for w in self.warnings]
+        self._process.join(10.0)  # it ends by itself after the candidates (not waited for before the solve)
         with ScanFile(self.path, "r+") as sf:
             g = sf.h5["geometry/calibrated"]
             g.attrs["live"] = True

@@ -121,6 +121,16 @@ def _predicted_px(model: ViewModel, state: ViewState, cov: NDArray[np.float64]) 
     return np.sqrt(np.maximum(var, 0.0))
 
 
+def pose_predicted_px(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64],
+                      noise_px: float) -> NDArray[np.float64]:
+    """Per view, the predicted error (px, RMS over field-of-view points) of a rigid pose fitted to ``uv`` with the
+    BB centres ``xyz`` taken as known and centroid noise ``noise_px`` (while a scan runs: the centres come from many
+    views, the pose from one)."""
+    H, _ = rigid_pose_normal(model, state, xyz, uv)
+    cov = noise_px**2 * np.linalg.inv(H + 1e-9 * np.eye(6))
+    return _predicted_px(model, state, cov)
+
+
 def view_misfit_px(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64]
                    ) -> NDArray[np.float64]:
     """Per view, the residual RMS corrected for the six pose parameters, ``sqrt(sum r^2 / (2n - 6))``: about the

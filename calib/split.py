@@ -129,21 +129,37 @@ def fit_pair(frame: FrameWindows, guess: NDArray[np.float64], profile: NDArray[n
     li, xy = got
     plane = _plane_design(xy, mid)
 
-    def design(p: NDArray[np.float64]) -> NDArray[np.float64]:
+    slope = np.gradient(profile[1], profile[0])
+
+    def design(p: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """Model columns (two profiles, plane), distances to both centres (M, 2), unit vectors from pixel to centre."""
         c = p.reshape(2, 2)
-        f1 = np.interp(np.linalg.norm(xy - c[0], axis=1), profile[0], profile[1], right=0.0)
-        f2 = np.interp(np.linalg.norm(xy - c[1], axis=1), profile[0], profile[1], right=0.0)
-        return np.column_stack([f1, f2, plane])
+        d = c[None] - xy[:, None]  # (M, 2 centres, 2)
+        r = np.linalg.norm(d, axis=-1)
+        f = np.interp(r, profile[0], profile[1], right=0.0)
+        unit = d / np.maximum(r, 1e-9)[..., None]
+        return np.column_stack([f, plane]), r, unit
+
+    def solved(p: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
+                                                 NDArray[np.float64]]:
+        a, r, unit = design(p)
+        q, _ = np.linalg.qr(a)
+        coef = np.linalg.lstsq(a, li, rcond=None)[0]  # also when the centres meet (two equal columns)
+        return a @ coef - li, coef, q, np.interp(r, profile[0], slope, right=0.0)[..., None] * unit
 
     def residual(p: NDArray[np.float64]) -> NDArray[np.float64]:
-        a = design(p)
-        coef, *_ = np.linalg.lstsq(a, li, rcond=None)
-        return a @ coef - li
+        return solved(p)[0]
 
-    sol = scipy.optimize.least_squares(residual, guess.ravel(), method="lm", x_scale=0.5)
+    def jacobian(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Variable projection (Kaufman): the model's derivative along each centre coordinate, amplitudes held,
+        projected off the span of the columns (the amplitudes and the plane re-fit to any change)."""
+        _, coef, q, grad = solved(p)
+        dA = np.concatenate([coef[0] * grad[:, 0], coef[1] * grad[:, 1]], axis=1)  # (M, 4)
+        return dA - q @ (q.T @ dA)
+
+    sol = scipy.optimize.least_squares(residual, guess.ravel(), jac=jacobian, method="lm", x_scale=0.5)
     uv = sol.x.reshape(2, 2)
-    coef, *_ = np.linalg.lstsq(design(sol.x), li, rcond=None)
-    res = sol.fun
+    res, coef, _, _ = solved(sol.x)
     n_free = len(li) - 9
     s2 = float(res @ res) / max(n_free, 1)
     jtj = sol.jac.T @ sol.jac

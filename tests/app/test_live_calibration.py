@@ -20,6 +20,8 @@ import calib
 from acquire.rigs.bench import open_bench
 from acquire.runner import ScanRunner
 from calib.evaluate import similarity_aligned_error_px
+from devices.sim import twin_of
+from orbitct.phantoms.experiments import experiment_phantom
 from orbitct.scanfile import ScanFile
 from orbitct_app.cli.main import cli
 from orbitct_app.live_calibration import LiveCalibrationSubscriber
@@ -128,3 +130,56 @@ def test_a_killed_scan_with_live_calibration_leaves_a_file_that_calibrates_offli
     assert r.exit_code == 0, r.output
     res = calib.calibrate_scan(out, out=tmp_path / "offline.h5", bridge_max_views=60, max_predicted_px=100.0)
     assert res.n_bbs >= 4 and res.quality is not None and res.quality.counts["own"] > 0
+
+
+class _NudgeObject:
+    """Moves the object (and the BBs on it) on the simulated table once frame ``at`` has been taken: the panel twin
+    images it shifted by ``shift_mm`` from then on."""
+
+    def __init__(self, bench: Any, at: int, shift_mm: tuple[float, float, float]) -> None:
+        self.twin, self.at, self.shift = twin_of(bench.detector), at, np.asarray(shift_mm, float)
+        self.phantom = experiment_phantom(bench.config.sim.phantom, seed=bench.config.sim.seed)
+
+    def on_start(self, start: Any) -> None:
+        pass
+
+    def on_frame(self, record: Any) -> None:
+        if record.index == self.at:
+            from dataclasses import replace
+
+            ph = self.phantom
+            moved = replace(ph, markers_xyz=ph.markers_xyz + self.shift,
+                            primitives=tuple(replace(p, center=p.center + self.shift) for p in ph.primitives))
+            self.twin.set_phantom(moved)
+
+    def on_finish(self, end: Any) -> None:
+        pass
+
+
+def test_an_object_moved_by_2_mm_mid_scan_is_reported_within_a_few_frames(tmp_path: Path) -> None:
+    """Each frame's pose is fitted to the BBs while the scan runs (running RPE and predicted error in the progress
+    events); the object moved by 2 mm after frame 84 raises one 'object_moved' naming frame 85, a few frames on."""
+    out = tmp_path / "moved.h5"
+    cfg = small_config(size=192, calibration_frames={"darks_before": 2, "flats_before": 2, "darks_after": 0,
+                                                     "flats_after": 0})
+    events: list[Any] = []
+    sub = LiveCalibrationSubscriber(out, cfg.sim.bb_diameter_mm, progress=events.append)
+    at = 84
+
+    async def main() -> Any:
+        async with open_bench(cfg, sim=True) as bench:
+            nudge = _NudgeObject(bench, at, (2.0, 0.0, 0.0))
+            return await ScanRunner(small_request(out, frames=130, config=cfg), rig=bench,
+                                    subscribers=[sub, nudge]).run()
+
+    res = asyncio.run(main())
+    assert res.status == "complete" and sub.error is None and sub.live is not None
+    moved = [w for w in sub.live.warnings if w.kind == "object_moved"]
+    assert len(moved) == 1, [w.message for w in sub.live.warnings]
+    assert at + 1 <= moved[0].since_frame <= at + 3 and moved[0].frame <= at + 10, moved[0].message
+    live = [e for e in events if e.stage == "live-calibration" and "rpe_mm" in e.metrics]
+    assert len(live) > 60
+    predicted = np.array([e.metrics["predicted_px"] for e in live])
+    rpe = np.array([e.metrics["rpe_mm"] for e in live])
+    assert (predicted > 0).all() and np.median(predicted) < 0.5 and np.median(rpe) < 0.5, (predicted, rpe)
+    assert "RPE" in live[-1].message and "predicted" in live[-1].message

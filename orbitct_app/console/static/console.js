@@ -371,6 +371,13 @@ async function pageScan() {
     if (p.message) parts.push(p.message);
     $('#scan-progress-text').textContent = parts.join(' · ');
   };
+  const liveCalibration = (d) => {
+    const m = d.metrics || {};
+    const parts = [`live calibration: projection ${d.done} of ${d.total}`, `${m.bbs ?? '?'} BBs`];
+    if (m.rpe_mm !== undefined) parts.push(`RPE ${m.rpe_mm.toFixed(3)} mm (mean ${m.rpe_mean_mm.toFixed(3)})`);
+    if (m.predicted_px !== undefined) parts.push(`predicted error ${m.predicted_px.toFixed(2)} px`);
+    return parts.join(' · ');
+  };
   const buttons = (state) => {
     if (!$('#pause')) return;
     $('#pause').hidden = state !== 'running';
@@ -401,6 +408,7 @@ async function pageScan() {
       progress: (p) => progress(p),
       state: (d) => { if (d.state) { badge($('#scan-state'), d.state); buttons(d.state); } },
       warning: (d) => $('#scan-warnings').append(el('li', { text: d.message || JSON.stringify(d) })),
+      calibration: (d) => { $('#live-calibration-text').textContent = liveCalibration(d); },
       end: async () => { events.close(); show(await api('GET', `/scans/${id}`)); },
     });
     framePoll = every(1000, latestFrame);

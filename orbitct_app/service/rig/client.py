@@ -162,6 +162,8 @@ class RigClient:
             self._on_scan_end(*message[1:])
         elif kind == "scan_warning":
             self._bus.publish(f"scan:{message[1]}", "warning", message[2])
+        elif kind == "scan_calibration":
+            self._bus.publish(f"scan:{message[1]}", "calibration", message[2])
         elif kind == "connected":
             self.connection_state = "connected"
             self._connected.set()

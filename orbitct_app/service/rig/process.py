@@ -18,6 +18,7 @@ import queue
 import signal
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -334,7 +335,8 @@ class RigServer:
             raise CommandError("invalid", "live calibration needs bb_diameter_mm (the size of the BBs on the object)")
         try:
             return LiveCalibrationSubscriber(spec["out"], float(diameter), abort_on=spec.get("abort_on", ()),
-                                             on_warning=lambda w: self.send("scan_warning", scan_id, w.as_dict()))
+                                             on_warning=lambda w: self.send("scan_warning", scan_id, w.as_dict()),
+                                             progress=self._calibration_events(scan_id))
         except CalibrationError as exc:
             raise CommandError("invalid", str(exc)) from None
 
@@ -363,6 +365,21 @@ class RigServer:
                 summary["live_calibration"] = _live_outcome(self.live)
             self.scan_id, self.runner, self.live = None, None, None
             self.send("scan_end", scan_id, state, reason, summary)
+
+    def _calibration_events(self, scan_id: str, every_s: float = 0.5) -> Callable[[ProgressEvent], None]:
+        """The live calibration's per-frame figures (BBs, RPE, predicted error) as scan events, at most one per
+        ``every_s`` (viewers see about one per second; a per-frame stream would cost the scan)."""
+        last = [-1e9]
+
+        def send(event: ProgressEvent) -> None:
+            now = time.monotonic()
+            if event.stage != "live-calibration" or now - last[0] < every_s:
+                return
+            last[0] = now
+            self.send("scan_calibration", scan_id, {"done": int(event.done), "total": int(event.total),
+                                                    "message": event.message,
+                                                    "metrics": {k: float(v) for k, v in dict(event.metrics).items()}})
+        return send
 
     def _progress(self, scan_id: str, event: ProgressEvent) -> None:
         self.send("progress", scan_id, {"stage": event.stage, "done": int(event.done), "total": int(event.total),

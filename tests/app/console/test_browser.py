@@ -170,6 +170,8 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
     until(page, "() => document.getElementById('scan-progress').value >= 5", 60.0)
     # the latest frame is drawn, with the BBs the live calibration found in it
     expect(page.locator("#frame-caption")).to_contain_text("BBs detected", timeout=60_000)
+    # and the running RPE and the predicted error of the frames' geometry, once the BBs are followed in 3-D
+    expect(page.locator("#live-calibration-text")).to_contain_text("predicted error", timeout=60_000)
     shot(page, "scan-live")
     # a reload mid-scan: the page picks the stream up again and the count goes on
     before = page.evaluate("() => document.getElementById('scan-progress').value")

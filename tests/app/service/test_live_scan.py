@@ -1,5 +1,5 @@
-"""A scan started over the API can calibrate while it runs: BBs on the latest frame, warnings on the scan's event
-stream, the calibrated geometry in the file when the scan ends, the outcome in its summary."""
+"""A scan started over the API can calibrate while it runs: BBs on the latest frame, warnings and the running RPE
+and predicted error on the scan's event stream, the calibrated geometry in the file when the scan ends, the outcome in its summary."""
 
 from __future__ import annotations
 
@@ -32,8 +32,11 @@ def test_a_live_calibrated_scan_marks_bbs_and_ends_with_the_calibrated_geometry(
     assert "calibrated" in scan["summary"]["geometries"]
     with ScanFile(api.data_dir / "scans" / f"{scan_id}.h5") as sf:
         assert sf.has_geometry("calibrated")
-    kinds = {e["event"] for e in parse_sse(api.get(f"/scans/{scan_id}/events").text)}
-    assert {"state", "progress", "end"} <= kinds
+    events = parse_sse(api.get(f"/scans/{scan_id}/events").text)
+    assert {"state", "progress", "calibration", "end"} <= {e["event"] for e in events}
+    figures = [e["data"]["metrics"] for e in events if e["event"] == "calibration" and "rpe_mm" in e["data"]["metrics"]]
+    assert figures, "the running RPE and predicted error came on the scan's stream while it ran"
+    assert all(f["bbs"] >= 4 and 0 < f["predicted_px"] < 2.0 and f["rpe_mm"] < 1.0 for f in figures)
 
 
 def test_live_calibration_options_are_checked_at_the_boundary(api) -> None:  # type: ignore[no-untyped-def]
