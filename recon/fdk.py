@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -122,6 +123,29 @@ def filter_views(proj: NDArray[np.float32], geometry: ViewGeometry, H: NDArray[n
         out[n, 1:-1, 1:-1] = scipy.fft.irfft(spec, n=npad, axis=-1)[:, : det.cols] * np.float32(1.0 / tau[n])
 
 
+@dataclass(frozen=True)
+class FdkWeights:
+    """What FDK weights each view by, fixed by the whole orbit: the ramp filter, per-view weights (angular increment
+    times SOD^2) and optional Parker weights per (view, column). A part of the views is back-projected with its
+    rows of these (:func:`fdk_views`), so parts computed apart sum to the whole."""
+
+    H: NDArray[np.float64]
+    weights: NDArray[np.float64]
+    parker: NDArray[np.float64] | None
+
+    @classmethod
+    def of(cls, geometry: ViewGeometry, window: str = "ram-lak", short_scan: str = "auto") -> "FdkWeights":
+        """The weights of every view of ``geometry``."""
+        if not geometry.valid.all():
+            raise ReconError("FDK needs finite geometry for every view it is given")
+        wv, parker, _ = redundancy_weights(geometry, short_scan)
+        return cls(ramp_filter(geometry.panel.cols, window), wv * geometry.sod() ** 2, parker)
+
+    def part(self, views: slice | NDArray[np.intp]) -> "FdkWeights":
+        """The weights of some of the views."""
+        return FdkWeights(self.H, self.weights[views], None if self.parker is None else self.parker[views])
+
+
 def fdk(projections: NDArray[np.float32] | ProjectionStack, grid: VolumeGrid, geometry: ViewGeometry, *,
         window: str = "ram-lak", short_scan: str = "auto", chunk: int = 8,
         out: NDArray[np.float32] | None = None, progress: ProgressCallback | None = None) -> NDArray[np.float32]:
@@ -134,11 +158,17 @@ def fdk(projections: NDArray[np.float32] | ProjectionStack, grid: VolumeGrid, ge
     n = geometry.n_views
     if tuple(projections.shape) != (n, det.rows, det.cols):
         raise ReconError(f"projections: expected shape {(n, det.rows, det.cols)}, got {tuple(projections.shape)}")
-    if not geometry.valid.all():
-        raise ReconError("FDK needs finite geometry for every view it is given")
-    H = ramp_filter(det.cols, window)
-    wv, parker, _ = redundancy_weights(geometry, short_scan)
-    weights = wv * geometry.sod() ** 2
+    return fdk_views(projections, grid, geometry, FdkWeights.of(geometry, window, short_scan), chunk=chunk, out=out,
+                     progress=progress)
+
+
+def fdk_views(projections: NDArray[np.float32] | ProjectionStack, grid: VolumeGrid, geometry: ViewGeometry,
+              weights: FdkWeights, *, chunk: int = 8, out: NDArray[np.float32] | None = None,
+              progress: ProgressCallback | None = None) -> NDArray[np.float32]:
+    """The back-projection of some views (their ``geometry``, ``weights`` and line integrals); FDK is its sum
+    over all views."""
+    det = geometry.panel
+    n = geometry.n_views
     if out is None:
         vol = np.zeros(grid.shape, dtype=np.float32)
     elif out.shape != grid.shape or out.dtype != np.float32:
@@ -151,8 +181,8 @@ def fdk(projections: NDArray[np.float32] | ProjectionStack, grid: VolumeGrid, ge
         i1 = min(n, i0 + chunk)
         g = geometry[i0:i1]
         part = buf[: i1 - i0]
-        filter_views(projections[i0:i1], g, H, None if parker is None else parker[i0:i1], part)
-        backproject_padded(part, grid, g, weights[i0:i1], vol)
+        filter_views(projections[i0:i1], g, weights.H, None if weights.parker is None else weights.parker[i0:i1], part)
+        backproject_padded(part, grid, g, weights.weights[i0:i1], vol)
         report(progress, "fdk", i1, n, "views")
     return vol
 

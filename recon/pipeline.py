@@ -41,6 +41,7 @@ from recon.mar import (
 )
 from recon.operator import projector
 from recon.pwls import DEFAULT_BETA, pwls_sps, statistical_weights
+from recon.stack import FileLineIntegrals, FileWeights
 
 ALGORITHMS = ("fdk", "pwls")
 GEOMETRIES = ("calibrated", "nominal", "truth")
@@ -70,29 +71,6 @@ class ReconResult:
     def grid(self) -> VolumeGrid:
         """The grid the volume is sampled on."""
         return VolumeGrid(self.volume_shape, self.voxel_mm, self.origin_mm)
-
-
-class FileLineIntegrals:
-    """Line integrals of chosen frames read from the scan file on demand (sliceable along views)."""
-
-    def __init__(self, scan: ScanFile, frames: NDArray[np.intp]) -> None:
-        self._scan = scan
-        self._frames = frames
-        self.shape = (frames.size,) + scan.panel.shape
-
-    def __getitem__(self, index: slice | NDArray[np.intp]) -> NDArray[np.float32]:
-        return np.stack([self._frame(int(i)) for i in self._frames[index]])
-
-    def _frame(self, i: int) -> NDArray[np.float32]:
-        return self._scan.line_integrals(i)
-
-
-class FileWeights(FileLineIntegrals):
-    """PWLS statistical weights of chosen frames computed from the scan file's raw counts on demand."""
-
-    def _frame(self, i: int) -> NDArray[np.float32]:
-        dark, flat = self._scan.dark_flat()
-        return statistical_weights(self._scan.frames[i], dark, flat)
 
 
 def estimate_bytes(algorithm: str, grid: VolumeGrid, n_views: int, rows: int, cols: int, mar: bool,
@@ -214,6 +192,7 @@ def reconstruct_scan(
     progress: ProgressCallback | None = None, window: str = "hann", subsets: int = 1, neighbourhood: int = 1,
     metal_mu: float = 0.1, mar_threshold: float = 0.5, stream: str = "auto", overwrite: bool = False,
     momentum: bool = False, max_seconds: float | None = None, fit: str = "object", grid: VolumeGrid | None = None,
+    cluster: Any | None = None,
 ) -> ReconResult:
     """Reconstruct ``path`` with FDK or PWLS and store it as ``/recon/<name>`` in the scan file.
 
@@ -224,6 +203,8 @@ def reconstruct_scan(
     ``max_seconds`` (:mod:`recon.estimate`) raises :class:`TooLongError` before anything large is allocated.
     Without ``shape`` the grid is fitted to the object (``fit='object'``, :func:`recon.grid.object_grid`) or covers
     the whole field of view (``fit='fov'``); ``grid`` gives the grid itself (another reconstruction's, to compare).
+    ``cluster``: a ``dask.distributed.Client`` whose workers share FDK's views (:mod:`recon.cluster`; they read the
+    scan file at the same path); PWLS and metal artefact reduction run here.
     """
     t0 = time.perf_counter()
     if algorithm not in ALGORITHMS:
@@ -278,7 +259,12 @@ def reconstruct_scan(
                 "shape or (PWLS) ordered subsets with momentum and fewer iterations are faster", estimated_s)
         cost: list[float] = []
         extra: dict[str, Any] = {}
-        if algorithm == "fdk" and not mar_method:
+        if algorithm == "fdk" and not mar_method and cluster is not None:
+            from recon.cluster import fdk_on_cluster
+
+            vol = fdk_on_cluster(cluster, scan.path, frames, grid, geom, window=window, progress=progress)
+            extra.update(cluster_workers=len(cluster.scheduler_info()["workers"]))
+        elif algorithm == "fdk" and not mar_method:
             vol = fdk(FileLineIntegrals(scan, frames), grid, geom, window=window, progress=progress)
         elif mode == "file":
             vol, cost, beta_abs = _pwls(FileLineIntegrals(scan, frames), FileWeights(scan, frames), grid, geom,

@@ -61,10 +61,13 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
               envvar="ORBITCT_MAX_MINUTES",
               help="A reconstruction estimated to take longer asks first on a terminal, and is refused elsewhere.")
 @click.option("--yes", is_flag=True, help="Start even when the estimate is above --max-minutes.")
+@click.option("--scheduler", default=None, envvar="ORBITCT_SCHEDULER", metavar="tcp://HOST:PORT",
+              help="FDK: split the views across the workers of this Dask scheduler (they read SCAN at the same path).")
 def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | None, shape: tuple[int, int, int] | None,
                 fit: str, iterations: int, beta: float | None, subsets: int, momentum: bool, window: str, mar: bool,
                 mar_method: str, stream: str, name: str | None, overwrite: bool, compare_geometry: str | None,
-                export: tuple[str, ...], out_dir: Path | None, max_minutes: float, yes: bool) -> None:
+                export: tuple[str, ...], out_dir: Path | None, max_minutes: float, yes: bool, scheduler: str | None
+                ) -> None:
     """Reconstruct SCAN (an orbitct scan file) and store the volume in it.
 
     The time it will take is estimated before anything large is allocated (from the projectors' speed on this
@@ -81,13 +84,15 @@ def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | Non
         reconstruct_scan,
     )
 
+    cluster = _cluster(scheduler, algorithm, mar)
+
     def run(limit_s: float | None) -> ReconResult:
         with ProgressBar() as bar:
             return reconstruct_scan(
                 scan, algorithm=algorithm, geometry=geometry, voxel_mm=voxel_mm, shape=shape, iterations=iterations,
                 beta=DEFAULT_BETA if beta is None else beta, mar=mar_method if mar else False, name=name,
                 export=list(export), out_dir=out_dir, progress=bar, window=window, subsets=subsets, stream=stream,
-                overwrite=overwrite, momentum=momentum, max_seconds=limit_s, fit=fit,
+                overwrite=overwrite, momentum=momentum, max_seconds=limit_s, fit=fit, cluster=cluster,
             )
 
     try:
@@ -105,6 +110,8 @@ def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | Non
     click.echo(f"{res.path}: /recon/{res.name}  {algorithm} with {geometry} geometry, {nz}x{ny}x{nx} voxels of "
                f"{res.voxel_mm[0]:g} mm, {res.elapsed_s:.1f} s (estimated {res.params['estimated_s']:.1f} s)")
     click.echo(f"  grid: {res.params['grid_choice']}")
+    if cluster is not None:
+        click.echo(f"  views split across {res.params['cluster_workers']} Dask workers at {scheduler}")
     if res.cost:
         click.echo(f"  cost {res.cost[0]:.6g} -> {res.cost[-1]:.6g} over {len(res.cost) - 1} iterations")
     for p in res.exported:
@@ -121,7 +128,7 @@ def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | Non
                 scan, algorithm=algorithm, geometry=compare_geometry, grid=res.grid, iterations=iterations,
                 beta=DEFAULT_BETA if beta is None else beta, mar=mar_method if mar else False,
                 name=f"{res.name}_vs_{compare_geometry}", progress=bar, window=window, subsets=subsets, stream=stream,
-                overwrite=overwrite, momentum=momentum,
+                overwrite=overwrite, momentum=momentum, cluster=cluster,
             )
         base = out_dir if out_dir is not None else res.path.parent
         base.mkdir(parents=True, exist_ok=True)
@@ -132,3 +139,29 @@ def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | Non
     except (ReconError, ScanFileError) as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(f"  /recon/{other.name} with {compare_geometry} geometry, {other.elapsed_s:.1f} s; side by side: {figure}")
+
+
+def _cluster(address: str | None, algorithm: str, mar: bool) -> object | None:
+    """A client of the Dask scheduler at ``address`` for FDK's views; None without one."""
+    import re
+
+    if address is None:
+        return None
+    if not re.fullmatch(r"(tcp|tls)://[^\s/:]+:\d{1,5}", address):
+        raise click.BadParameter(f"{address!r} is not a scheduler address; give tcp://HOST:PORT", param_hint="--scheduler")
+    if algorithm != "fdk" or mar:
+        raise click.UsageError("--scheduler splits FDK's views across the cluster's workers; PWLS and --mar run on "
+                               "this machine (or as a job of `orbitct serve`, whose jobs run on the cluster)")
+    from distributed import Client
+
+    try:
+        client = Client(address, timeout=10, set_as_default=False)
+    except Exception as exc:  # noqa: BLE001 - any failure to connect is the same answer
+        raise click.ClickException(f"cannot reach the Dask scheduler at {address}: {type(exc).__name__}: {exc}") from None
+    if not client.scheduler_info()["workers"]:
+        try:
+            client.wait_for_workers(1, timeout=30)
+        except Exception:  # noqa: BLE001
+            client.close()
+            raise click.ClickException(f"the Dask scheduler at {address} has no workers (none joined within 30 s)") from None
+    return client

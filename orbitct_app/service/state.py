@@ -52,7 +52,8 @@ class Service:
         self.guard = GuardClient(settings, self.latch.flag, self.dev_token, on_stop=lambda reply: self.estop.published(reply))
         self.estop = EmergencyStop(self.latch, self.guard, self.rig, self.bus)
         self.jobs = JobManager(self.store, self.bus, settings.data_dir, workers=settings.job_workers,
-                               cancel_grace_s=settings.cancel_grace_s, scan_busy=lambda s: self.rig.busy == s)
+                               cancel_grace_s=settings.cancel_grace_s, scan_busy=lambda s: self.rig.busy == s,
+                               scheduler=settings.dask_scheduler)
 
     @property
     def reserve_mb(self) -> float:

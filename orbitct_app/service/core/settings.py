@@ -41,7 +41,11 @@ class ServiceSettings(BaseSettings):
     tokens: list[TokenHash] = Field(default_factory=list, description="token hashes configured inline")
     dev_token: str | None = Field(default=None, min_length=16, max_length=200, description="--sim only: a fixed dev token")
     max_body_bytes: int = Field(default=64 * 1024, ge=1024, le=16 * 1024 * 1024)
-    job_workers: int = Field(default=1, ge=1, le=8, description="calibration/reconstruction processes at once")
+    job_workers: int = Field(default=1, ge=1, le=64, description="calibration/reconstruction jobs at once (and the "
+                             "embedded Dask cluster's worker processes)")
+    dask_scheduler: str | None = Field(default=None, pattern=r"^(tcp|tls)://[^\s/:]+:\d{1,5}$",
+                                       description="an existing Dask scheduler that runs the jobs (tcp://host:8786); "
+                                       "default: an embedded local cluster")
     cancel_grace_s: float = Field(default=5.0, ge=0.1, le=120.0, description="time a cancelled job gets before it is killed")
     reconstruction_max_minutes: float = Field(default=60.0, gt=0.0, le=10080.0, description="a reconstruction job estimated "
                                               "to take longer fails at once, before any work (a request may raise it)")

@@ -1,24 +1,24 @@
-"""Calibration and reconstruction jobs, each in its own worker process; progress and logs flow back to the DB and the event bus."""
+"""Calibration and reconstruction jobs on a Dask cluster (``dask.distributed``): an embedded local cluster of worker
+processes by default, or an existing scheduler given by address. Progress, log lines and the outcome flow back to
+the DB and the event bus; a cancel is asked of the job at its next progress event, and its worker is restarted when
+it does not stop within the grace period."""
 
 from __future__ import annotations
 
 import json
 import logging
-import multiprocessing as mp
 import os
+import queue
 import threading
 import time
-import traceback
 import uuid
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
-from multiprocessing.connection import Connection
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from orbitct.progress import ProgressEvent
-from orbitct_app.service.core.children import die_with_parent
 from orbitct_app.service.core.db import Store, utc_now
 from orbitct_app.service.core.events import EventBus
 from orbitct_app.service.jobs.tasks import run_calibration, run_reconstruction
@@ -30,65 +30,87 @@ JOB_TARGETS: dict[str, Callable[..., dict[str, Any]]] = {
     "calibration": run_calibration,
     "reconstruction": run_reconstruction,
 }
-_CTX = mp.get_context("spawn")
 JOB_NICE = 5
+TOPIC = "orbitct-jobs"  # the Dask event topic jobs report on
+CANCEL_CHECK_S = 0.2  # how often a job asks whether it was cancelled (at its progress events)
 
 
 class JobCancelled(Exception):
     """Raised inside a worker when its job was cancelled."""
 
 
+class JobEngineError(RuntimeError):
+    """The Dask cluster cannot be started or reached."""
+
+
 # ------------------------------------------------------------------ worker side
-class _PipeLogHandler(logging.Handler):
-    def __init__(self, conn: Connection) -> None:
+class _EventLogHandler(logging.Handler):
+    def __init__(self, send: Callable[[str, Any], None]) -> None:
         super().__init__(level=logging.INFO)
-        self._conn = conn
+        self._send = send
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
-            self._conn.send(("log", f"{record.levelname.lower()}: {record.getMessage()}"))
+            self._send("log", f"{record.levelname.lower()}: {record.getMessage()}")
         except Exception:  # noqa: BLE001 - a log line must never break the job
             pass
 
 
-def _worker_main(func: Callable[..., dict[str, Any]], scan_path: str, params: dict[str, Any], out_dir: str,
-                 conn: Connection, cancel: Any, parent_pid: int) -> None:
-    """Entry point of a job process: run ``target`` and send progress, log lines and the outcome over ``conn``;
-    killed with the service."""
-    die_with_parent(parent_pid)
-    try:
-        os.nice(JOB_NICE)  # batch work: never take CPU from a running acquisition
-    except OSError:
-        pass
-    logging.basicConfig(level=logging.WARNING)
-    logging.getLogger().addHandler(_PipeLogHandler(conn))
-    logging.getLogger().setLevel(logging.INFO)
-    logging.captureWarnings(True)
-    warnings.simplefilter("default")
+def run_job(func: Callable[..., dict[str, Any]], job_id: str, scan_path: str, params: dict[str, Any],
+            out_dir: str) -> dict[str, Any]:
+    """What a Dask worker runs for one job: ``func`` with a progress callback that reports on :data:`TOPIC` and
+    raises :class:`JobCancelled` once the job's cancel event is set. Returns the result, or the outcome
+    ``{"cancelled": reason}`` / ``{"error": message}``, with ``events``, the number of events sent before it."""
+    from distributed import Event, get_worker
+
+    worker = get_worker()
+    if not getattr(worker, "_orbitct_niced", False):
+        try:
+            os.nice(JOB_NICE)  # batch work: never take CPU from a running acquisition
+        except OSError:
+            pass
+        worker._orbitct_niced = True  # type: ignore[attr-defined]
+    sent = [0]
+    cancel = Event(f"orbitct-cancel-{job_id}")
+    checked = [0.0]
     last_stage = [""]
 
+    def send(kind: str, payload: Any) -> None:
+        sent[0] += 1
+        worker.log_event(TOPIC, {"job": job_id, "seq": sent[0], "kind": kind, "payload": payload})
+
     def progress(event: ProgressEvent) -> None:
-        if cancel.is_set():
-            raise JobCancelled("cancelled on request")
-        conn.send(("progress", {
-            "stage": event.stage, "done": int(event.done), "total": int(event.total),
-            "message": event.message, "metrics": {k: float(v) for k, v in dict(event.metrics).items()},
-        }))
+        now = time.monotonic()
+        if now - checked[0] > CANCEL_CHECK_S:
+            checked[0] = now
+            if cancel.is_set():
+                raise JobCancelled("cancelled on request")
+        send("progress", {"stage": event.stage, "done": int(event.done), "total": int(event.total),
+                          "message": event.message, "metrics": {k: float(v) for k, v in dict(event.metrics).items()}})
         if event.stage != last_stage[0]:
             last_stage[0] = event.stage
-            conn.send(("log", f"stage {event.stage}: {event.message}".rstrip(": ")))
+            send("log", f"stage {event.stage}: {event.message}".rstrip(": "))
 
+    handler = _EventLogHandler(send)
+    thread = threading.get_ident()
+    handler.addFilter(lambda record: record.thread == thread)  # this job's lines, not the worker's other threads'
+    root = logging.getLogger()
+    root.addHandler(handler)
     try:
-        Path(out_dir).mkdir(parents=True, exist_ok=True)
-        result = func(Path(scan_path), params, Path(out_dir), progress)
-        conn.send(("result", result))
+        with warnings.catch_warnings():
+            warnings.simplefilter("default")
+            Path(out_dir).mkdir(parents=True, exist_ok=True)
+            send("log", f"running on the Dask worker {worker.address} (pid {os.getpid()})")
+            result = func(Path(scan_path), params, Path(out_dir), progress)
+        return {"result": result, "events": sent[0]}
     except JobCancelled as exc:
-        conn.send(("cancelled", str(exc)))
-    except BaseException as exc:  # noqa: BLE001 - every failure becomes a message to the parent
-        conn.send(("log", "error: " + "".join(traceback.format_exception_only(type(exc), exc)).strip()))
-        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        return {"cancelled": str(exc), "events": sent[0]}
+    except Exception as exc:  # noqa: BLE001 - every failure becomes the job's reason
+        text = f"{type(exc).__name__}: {exc}"
+        send("log", "error: " + text)
+        return {"error": text, "events": sent[0]}
     finally:
-        conn.close()
+        root.removeHandler(handler)
 
 
 # ------------------------------------------------------------------ service side
@@ -96,23 +118,38 @@ def _worker_main(func: Callable[..., dict[str, Any]], scan_path: str, params: di
 class _Running:
     job_id: str
     scan_id: str
-    process: Any
-    conn: Connection
-    cancel: Any
+    future: Any
+    cancel: Any  # distributed.Event
     cancel_at: float | None = None
     outcome: tuple[str, str, dict[str, Any]] | None = None
+    events_expected: int | None = None
+    events_seen: int = 0
+    done_at: float | None = None
+    progress: dict[str, Any] | None = None
+    lines: list[str] = field(default_factory=list)
 
 
 class JobManager:
-    """Queue of jobs; runs up to ``workers`` at once, never two on the same scan file."""
+    """Queue of jobs; runs up to ``workers`` at once on the Dask cluster, never two on the same scan file.
+
+    ``scheduler``: the address of an existing Dask scheduler (``tcp://host:8786``); without one an embedded local
+    cluster of ``workers`` worker processes starts with the service. The workers must see the data directory at
+    the same path."""
 
     def __init__(self, store: Store, bus: EventBus, data_dir: Path, *, workers: int = 1, cancel_grace_s: float = 5.0,
-                 scan_busy: Callable[[str], bool] | None = None) -> None:
+                 scan_busy: Callable[[str], bool] | None = None, scheduler: str | None = None,
+                 scheduler_timeout_s: float = 10.0) -> None:
+        """``scheduler_timeout_s``: how long connecting to ``scheduler`` may take."""
         self._store, self._bus = store, bus
         self._data_dir = Path(data_dir).resolve()
         self._workers, self._grace = workers, cancel_grace_s
         self._scan_busy = scan_busy or (lambda scan_id: False)
+        self._scheduler, self._scheduler_timeout = scheduler, scheduler_timeout_s
+        self._client: Any = None
+        self._cluster: Any = None
+        self.engine_state = "starting"  # starting | connected | failed: <why> | lost: <why>
         self._running: dict[str, _Running] = {}
+        self._events: queue.Queue[dict[str, Any]] = queue.Queue()
         self._lock = threading.Lock()
         self._queue_lock = threading.Lock()
         self._wake = threading.Event()
@@ -121,8 +158,15 @@ class JobManager:
         self._thread = threading.Thread(target=self._loop, name="orbitct-jobs", daemon=True)
 
     def start(self) -> None:
-        """Start the dispatcher thread."""
+        """Start the dispatcher thread (it connects to the cluster, or starts the embedded one)."""
         self._thread.start()
+
+    @property
+    def where(self) -> str:
+        """Where jobs run, in words."""
+        if self._scheduler:
+            return f"the Dask scheduler at {self._scheduler}"
+        return f"an embedded Dask cluster of {self._workers} worker process(es)"
 
     def job_dir(self, job_id: str) -> Path:
         """Output folder of a job (report plots, slices, exports)."""
@@ -149,7 +193,8 @@ class JobManager:
             with self._lock:
                 running = self._running.get(job_id)
                 if running is not None:
-                    running.cancel.set()
+                    with _quiet():
+                        running.cancel.set()
                     running.cancel_at = running.cancel_at or time.monotonic()
                     self._wake.set()
                     return "cancelling"
@@ -160,45 +205,93 @@ class JobManager:
         return job["state"] if job is not None else "unknown"
 
     def shutdown(self, reason: str = "service stopped while the job was running") -> None:
-        """Stop the dispatcher; running jobs are terminated and marked interrupted.
-
-        The workers are ended before the dispatcher thread: they were started from it and die with it
-        (parent-death signal), so it outlives their grace period.
-        """
+        """Stop the dispatcher; running jobs are cancelled on the cluster and marked interrupted; the embedded
+        cluster stops."""
         self._stop.set()  # nothing new is launched
         with self._queue_lock, self._lock:
             running = list(self._running.values())
             self._running.clear()
         for r in running:
-            r.cancel.set()
-            r.process.join(timeout=min(self._grace, 2.0))
-            if r.process.is_alive():
-                r.process.kill()
-                r.process.join(timeout=5.0)
+            with _quiet():
+                r.cancel.set()
+            with _quiet():
+                r.future.cancel()
             self._finish(r.job_id, "interrupted", reason, {})
         self._exit.set()
         self._wake.set()
         if self._thread.is_alive():
-            self._thread.join(timeout=10.0)
+            self._thread.join(timeout=30.0)
+
+    # ------------------------------------------------------------ the cluster
+    def _connect(self) -> None:
+        from distributed import Client, LocalCluster
+
+        try:
+            if self._scheduler:
+                self._client = Client(self._scheduler, timeout=self._scheduler_timeout, set_as_default=False)
+            else:
+                self._cluster = LocalCluster(n_workers=self._workers, threads_per_worker=1, processes=True,
+                                             dashboard_address="127.0.0.1:0", host="127.0.0.1", memory_limit=0,
+                                             silence_logs=logging.WARNING)
+                self._client = Client(self._cluster, set_as_default=False)
+            self._client.subscribe_topic(TOPIC, lambda event: self._events.put(event[1]))
+        except Exception as exc:  # noqa: BLE001 - the service runs on, jobs stay queued and say why
+            self.engine_state = f"failed: {self.where} could not be reached ({type(exc).__name__}: {exc})"
+            log.error("job engine: %s", self.engine_state)
+            self._close_client()
+            return
+        self.engine_state = "connected"
+        log.info("jobs run on %s", self.where)
+
+    def _close_client(self) -> None:
+        if self._client is not None:
+            with _quiet():
+                self._client.close(timeout=5)
+        if self._cluster is not None:
+            with _quiet():
+                self._cluster.close()
+        self._client = self._cluster = None
+
+    def _engine_lost(self) -> bool:
+        """Whether the client is out of touch with the scheduler (it keeps trying to reconnect); running jobs then
+        fail with the reason (their futures are gone) and queued ones wait."""
+        status = getattr(self._client, "status", "closed")
+        if status == "running":
+            if self.engine_state.startswith("lost"):
+                self.engine_state = "connected"
+                log.warning("job engine: %s is back", self.where)
+            return False
+        if not self.engine_state.startswith("lost"):
+            self.engine_state = f"lost: {self.where} went away (client {status})"
+            log.error("job engine: %s", self.engine_state)
+        return True
 
     # ------------------------------------------------------------ internals
     def _loop(self) -> None:
-        while not self._exit.is_set():
-            try:
-                self._start_queued()
-                self._poll_running()
-            except Exception:  # noqa: BLE001 - the dispatcher must survive anything
-                log.exception("job dispatcher error")
-            self._wake.wait(0.05)
-            self._wake.clear()
+        self._connect()
+        try:
+            while not self._exit.is_set():
+                try:
+                    self._dispatch_events()
+                    if self._client is not None:
+                        lost = self._engine_lost()
+                        if not lost:
+                            self._start_queued()
+                        self._poll_running(lost)
+                except Exception:  # noqa: BLE001 - the dispatcher must survive anything
+                    log.exception("job dispatcher error")
+                self._wake.wait(0.05)
+                self._wake.clear()
+        finally:
+            self._close_client()
 
     def _start_queued(self) -> None:
         with self._queue_lock:
             self._start_queued_locked()
 
     def _start_queued_locked(self) -> None:
-        if self._stop.is_set():
-            return
+        if self._stop.is_set() or self.engine_state != "connected" or self._client.status != "running":
+            return  # queued jobs wait for the cluster
         with self._lock:
             free = self._workers - len(self._running)
             busy = {r.scan_id for r in self._running.values()}
@@ -219,65 +312,110 @@ class JobManager:
             free -= 1
 
     def _launch(self, job: dict[str, Any], scan_path: Path) -> None:
-        parent, child = _CTX.Pipe(duplex=False)
-        cancel = _CTX.Event()
-        out_dir = self.job_dir(job["id"])
-        proc = _CTX.Process(
-            target=_worker_main, name=f"orbitct-job-{job['id']}", daemon=True,
-            args=(JOB_TARGETS[job["kind"]], str(scan_path), job["params"], str(out_dir), child, cancel, os.getpid()),
-        )
-        self._store.update_job(job["id"], state="running", started_utc=utc_now())
-        self._bus.publish(f"job:{job['id']}", "state", {"state": "running", "reason": ""})
-        proc.start()
-        child.close()
-        with self._lock:
-            self._running[job["id"]] = _Running(job["id"], job["scan_id"], proc, parent, cancel)
-        self._store.add_log(job["id"], [f"started {job['kind']} on scan {job['scan_id']} (pid {proc.pid})"])
+        from distributed import Event
 
-    def _poll_running(self) -> None:
+        job_id = job["id"]
+        cancel = Event(f"orbitct-cancel-{job_id}", client=self._client)
+        cancel.clear()
+        future = self._client.submit(run_job, JOB_TARGETS[job["kind"]], job_id, str(scan_path), job["params"],
+                                     str(self.job_dir(job_id)), key=f"orbitct-job-{job_id}", pure=False)
+        self._store.update_job(job_id, state="running", started_utc=utc_now())
+        self._bus.publish(f"job:{job_id}", "state", {"state": "running", "reason": ""})
+        with self._lock:
+            self._running[job_id] = _Running(job_id, job["scan_id"], future, cancel)
+        self._store.add_log(job_id, [f"started {job['kind']} on scan {job['scan_id']} ({self.where})"])
+
+    def _dispatch_events(self) -> None:
+        """Progress and log lines the workers sent, to the DB and the bus, in the order each job sent them."""
+        while True:
+            try:
+                msg = self._events.get_nowait()
+            except queue.Empty:
+                break
+            with self._lock:
+                r = self._running.get(str(msg.get("job")))
+            if r is None:
+                continue
+            r.events_seen = max(r.events_seen, int(msg.get("seq", 0)))
+            if msg["kind"] == "progress":
+                payload = dict(msg["payload"])
+                payload["message"] = self._scrub(str(payload.get("message", "")))[:500]
+                r.progress = payload
+                self._bus.publish(f"job:{r.job_id}", "progress", payload)
+            elif msg["kind"] == "log":
+                r.lines.append(self._scrub(str(msg["payload"])))
         with self._lock:
             running = list(self._running.values())
         for r in running:
-            self._drain(r)
-            if r.cancel_at is not None and r.process.is_alive() and time.monotonic() - r.cancel_at > self._grace:
-                r.process.kill()
-                r.outcome = ("cancelled", "cancelled on request (worker killed after the grace period)", {})
-            if not r.process.is_alive():
-                r.process.join(timeout=1.0)
-                self._drain(r)
-                state, reason, result = r.outcome or (
-                    ("cancelled", "cancelled on request", {}) if r.cancel.is_set()
-                    else ("failed", f"worker process ended without a result (exit code {r.process.exitcode})", {})
-                )
-                with self._lock:
-                    self._running.pop(r.job_id, None)
-                self._finish(r.job_id, state, reason, result)
-                self._wake.set()
+            if r.progress is not None:
+                self._store.update_job(r.job_id, progress=r.progress)
+                r.progress = None
+            if r.lines:
+                self._store.add_log(r.job_id, r.lines)
+                r.lines = []
 
-    def _drain(self, r: _Running) -> None:
-        progress: dict[str, Any] | None = None
-        lines: list[str] = []
-        try:
-            while r.conn.poll():
-                kind, payload = r.conn.recv()
-                if kind == "progress":
-                    payload["message"] = self._scrub(str(payload.get("message", "")))[:500]
-                    progress = payload
-                    self._bus.publish(f"job:{r.job_id}", "progress", payload)
-                elif kind == "log":
-                    lines.append(self._scrub(str(payload)))
-                elif kind == "result":
-                    r.outcome = ("succeeded", "", payload)
-                elif kind == "cancelled":
-                    r.outcome = ("cancelled", "cancelled on request", {})
-                elif kind == "error":
-                    r.outcome = ("failed", self._scrub(str(payload))[:1000], {})
-        except (EOFError, OSError):
-            pass
-        if progress is not None:
-            self._store.update_job(r.job_id, progress=progress)
-        if lines:
-            self._store.add_log(r.job_id, lines)
+    def _poll_running(self, lost: bool) -> None:
+        with self._lock:
+            running = list(self._running.values())
+        for r in running:
+            if r.outcome is None:
+                r.outcome = self._outcome(r, lost)
+                if r.outcome is not None:
+                    r.done_at = time.monotonic()
+            if r.outcome is None and r.cancel_at is not None and time.monotonic() - r.cancel_at > self._grace:
+                self._restart_worker_of(r)
+                r.outcome = ("cancelled", "cancelled on request (its worker was restarted after the grace period)", {})
+                r.done_at = time.monotonic()
+            if r.outcome is None:
+                continue
+            # the events a job sent before its result travel apart from it: wait for them (a little)
+            if (r.events_expected is not None and r.events_seen < r.events_expected
+                    and time.monotonic() - (r.done_at or 0.0) < 2.0):
+                continue
+            with self._lock:
+                self._running.pop(r.job_id, None)
+            self._dispatch_events()
+            state, reason, result = r.outcome
+            self._finish(r.job_id, state, reason, result)
+            self._wake.set()
+
+    def _outcome(self, r: _Running, lost: bool) -> tuple[str, str, dict[str, Any]] | None:
+        """The job's final state, reason and result once its future has one (None while it runs)."""
+        status = r.future.status
+        if status == "finished":
+            out = r.future.result()
+            r.events_expected = int(out.get("events", 0))
+            if "result" in out:
+                return "succeeded", "", out["result"]
+            if "cancelled" in out:
+                return "cancelled", str(out["cancelled"]), {}
+            return "failed", self._scrub(str(out.get("error", "unknown error")))[:1000], {}
+        if status == "error":
+            exc = r.future.exception()
+            name = type(exc).__name__
+            if name == "KilledWorker":
+                why = (f"the Dask worker running it died, also when the job was run again ({exc}); too little memory, "
+                       "or the worker was killed")
+            else:
+                why = f"{name}: {exc}"
+            return "failed", self._scrub(why)[:1000], {}
+        if lost or status in ("cancelled", "lost"):
+            if r.cancel_at is not None:
+                return "cancelled", "cancelled on request", {}
+            client_status = getattr(self._client, "status", "closed")
+            why = (f"{self.where} went away (client {client_status})" if client_status != "running"
+                   else f"{self.where} dropped the job (its future is {status})")
+            return "failed", f"{why}; the job's work there is lost: submit it again", {}
+        return None
+
+    def _restart_worker_of(self, r: _Running) -> None:
+        """A cancelled job that did not stop: its worker process is restarted (Dask's nanny starts a fresh one)."""
+        with _quiet():
+            key = r.future.key
+            where = [w for w, keys in self._client.processing().items() if key in keys]
+            r.future.cancel()
+            if where:
+                self._client.restart_workers(where, timeout=30)
 
     def _scrub(self, text: str) -> str:
         """Hide the service's own paths in messages shown to clients."""
@@ -289,3 +427,15 @@ class JobManager:
         self._store.add_log(job_id, [f"{state}" + (f": {reason}" if reason else "")])
         self._bus.publish(f"job:{job_id}", "state", {"state": state, "reason": reason})
         self._bus.publish(f"job:{job_id}", "end", {"state": state, "reason": reason})
+
+
+class _quiet:
+    """A block whose errors are logged, not raised (talking to a cluster that may be gone)."""
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, t: Any, e: BaseException | None, tb: Any) -> bool:
+        if e is not None:
+            log.debug("job engine: %s", e)
+        return True

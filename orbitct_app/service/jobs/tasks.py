@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -76,7 +77,10 @@ def run_reconstruction(scan_path: Path, params: dict[str, Any], out_dir: Path,
         kwargs["max_seconds"] = 60.0 * float(kwargs.pop("max_minutes"))
     if "shape" in kwargs:
         kwargs["shape"] = tuple(kwargs["shape"])
-    res = recon.reconstruct_scan(scan_path, export=["nifti", "png"], out_dir=out_dir, progress=progress, **kwargs)
+    with _cluster_client() as cluster:
+        if kwargs.get("algorithm") == "fdk" and not kwargs.get("mar") and cluster is not None:
+            kwargs["cluster"] = cluster  # FDK's views across the cluster's workers (recon.cluster)
+        res = recon.reconstruct_scan(scan_path, export=["nifti", "png"], out_dir=out_dir, progress=progress, **kwargs)
     volume = np.asarray(res.volume, dtype=np.float32)
     np.save(out_dir / "volume.npy", volume)
     return {
@@ -85,6 +89,21 @@ def run_reconstruction(scan_path: Path, params: dict[str, Any], out_dir: Path,
         "cost": [_finite(c) for c in res.cost], "elapsed_s": float(res.elapsed_s),
         "estimated_s": _finite(res.params.get("estimated_s", float("nan"))),
         "min": _finite(volume.min()), "max": _finite(volume.max()), "mean": _finite(volume.mean()),
-        "warnings": [str(w) for w in res.warnings],
+        "warnings": [str(w) for w in res.warnings], "workers": int(res.params.get("cluster_workers", 1)),
         "files": sorted(p.name for p in out_dir.iterdir() if p.is_file()),
     }
+
+
+@contextlib.contextmanager
+def _cluster_client() -> Iterator[Any]:
+    """On a worker of a Dask cluster with two or more workers: a client of that cluster (the job's thread leaves the
+    worker's pool meanwhile, so the parts can run there too); otherwise None."""
+    try:
+        from distributed import get_worker, worker_client
+
+        get_worker()
+    except (ImportError, ValueError):
+        yield None
+        return
+    with worker_client() as client:
+        yield client if len(client.scheduler_info()["workers"]) >= 2 else None

@@ -1,0 +1,166 @@
+"""Jobs and a split reconstruction on a real Dask cluster: ``dask scheduler`` and two ``dask worker`` processes on
+loopback, started here as a lab starts them."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from orbitct.geometry import ViewGeometry, VolumeGrid
+from tests.app.service.test_jobs import _complete_scan, _wait
+from tests.helpers.dask_cluster import DaskCluster
+from tests.helpers.recon import bench_detector, write_sphere_scan
+from tests.helpers.service import SMALL_SAWTOOTH, ended, parse_sse, wait_for
+
+pytestmark = [pytest.mark.system, pytest.mark.slow, pytest.mark.timeout(400)]
+
+
+@pytest.fixture
+def cluster(tmp_path: Path) -> Iterator[DaskCluster]:
+    (tmp_path / "dask").mkdir()
+    c = DaskCluster(tmp_path / "dask", n_workers=2)
+    try:
+        yield c
+    finally:
+        c.close()
+
+
+@pytest.fixture
+def sphere_scan(tmp_path: Path) -> Path:
+    t = np.linspace(0, 2 * np.pi, 48, endpoint=False)
+    geometry = ViewGeometry.from_carm(t, np.radians(15) * np.sin(2 * t), 785.0, 1200.0, bench_detector(64))
+    path = tmp_path / "spheres.h5"
+    write_sphere_scan(path, geometry)
+    return path
+
+
+def test_fdk_split_across_two_workers_equals_one_process(cluster: DaskCluster, sphere_scan: Path, tmp_path: Path) -> None:
+    from distributed import get_task_stream
+
+    import recon
+
+    other = tmp_path / "single.h5"
+    shutil.copyfile(sphere_scan, other)
+    grid = VolumeGrid.centered((32, 48, 48), 2.5)
+    client = cluster.client()
+    try:
+        with get_task_stream(client=client) as stream:
+            split = recon.reconstruct_scan(sphere_scan, algorithm="fdk", geometry="nominal", grid=grid, cluster=client)
+        single = recon.reconstruct_scan(other, algorithm="fdk", geometry="nominal", grid=grid)
+    finally:
+        client.close()
+    parts = [t for t in stream.data if "orbitct-fdk" in str(t["key"]) and "sum" not in str(t["key"])]
+    assert len(parts) == 4 and len({t["worker"] for t in parts}) == 2  # two parts on each of the two workers
+    assert split.params["cluster_workers"] == 2
+    scale = float(np.abs(single.volume).max())
+    np.testing.assert_allclose(split.volume, single.volume, rtol=0, atol=1e-5 * scale)  # float32 round-off
+
+
+def test_calibration_and_reconstruction_jobs_run_on_the_cluster_with_progress(make_api: Any,
+                                                                              cluster: DaskCluster) -> None:
+    api = make_api(dask_scheduler=cluster.address)
+    r = api.post("/scans", json={**SMALL_SAWTOOTH, "frames": 40})
+    assert r.status_code == 202, r.text
+    scan_id = r.json()["id"]
+    assert wait_for(api, f"/scans/{scan_id}", ended)["state"] == "complete"
+    cal = api.post("/calibrations", role="analyst", json={"scan_id": scan_id}).json()["id"]
+    rec = api.post("/reconstructions", role="analyst",
+                   json={"scan_id": scan_id, "algorithm": "fdk", "geometry": "calibrated", "shape": [24, 32, 32]}).json()["id"]
+    workers = set(cluster.client().scheduler_info()["workers"])
+    for job_id in (cal, rec):
+        job = _wait(api, job_id, timeout_s=180.0)
+        assert job["state"] == "succeeded", job
+        events = parse_sse(api.get(f"/jobs/{job_id}/events").text)
+        assert sum(e["event"] == "progress" for e in events) >= 3
+        log = " ".join(line["line"] for line in api.get(f"/jobs/{job_id}/log").json())
+        assert "the Dask scheduler at " + cluster.address in log
+        assert any(f"running on the Dask worker {w}" in log for w in workers), log
+    recon_job = api.get(f"/jobs/{rec}").json()
+    assert recon_job["result"]["shape"] == [24, 32, 32]
+    assert recon_job["result"]["workers"] == 2  # the job's FDK split its views across both workers
+
+
+def _worker_running(client: Any, key_part: str, timeout_s: float = 60.0) -> str:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for worker, keys in client.processing().items():
+            if any(key_part in str(k) for k in keys):
+                return str(worker)
+        time.sleep(0.05)
+    raise AssertionError(f"no worker is running {key_part}")
+
+
+def _slow_job(make_api: Any, cluster: DaskCluster, monkeypatch: pytest.MonkeyPatch, frames: int) -> tuple[Any, str, str]:
+    """A service on the cluster running the frame-means workload (0.1 s a frame) on a scan of ``frames`` frames:
+    the service, the scan and the job."""
+    from orbitct_app.service.jobs import manager as jobs_module
+    from tests.helpers.workloads import frame_means
+
+    monkeypatch.setitem(jobs_module.JOB_TARGETS, "calibration", frame_means)
+    api = make_api(dask_scheduler=cluster.address)
+    scan_id = _complete_scan(api, n=frames)
+    return api, scan_id, api.service.jobs.submit("calibration", scan_id, {"delay_s": 0.1}, "t")
+
+
+def test_a_worker_killed_mid_job_ends_in_a_completed_job_or_a_clear_failure(make_api: Any, cluster: DaskCluster,
+                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    api, _, job_id = _slow_job(make_api, cluster, monkeypatch, 40)
+    client = cluster.client()
+    try:
+        worker = _worker_running(client, job_id)
+        pid = client.run(os.getpid, workers=[worker])[worker]
+        time.sleep(0.5)
+        os.kill(pid, signal.SIGKILL)  # the worker process dies mid-job (its nanny starts a new one)
+    finally:
+        client.close()
+    job = _wait(api, job_id, timeout_s=120.0)
+    if job["state"] == "failed":
+        assert "worker" in job["reason"] and "died" in job["reason"], job
+    else:
+        assert job["state"] == "succeeded", job  # Dask ran the (read-only) work again on a live worker
+        assert job["result"]["n"] == 42
+
+
+def test_a_scheduler_that_goes_away_fails_running_jobs_with_the_reason(make_api: Any, cluster: DaskCluster,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    api, scan_id, job_id = _slow_job(make_api, cluster, monkeypatch, 200)
+    _wait(api, job_id, ("running",))
+    time.sleep(1.0)
+    cluster.kill_scheduler()
+    t0 = time.monotonic()
+    job = _wait(api, job_id, ("failed", "succeeded", "cancelled"), timeout_s=90.0)
+    assert job["state"] == "failed" and "Dask scheduler at " + cluster.address in job["reason"], job
+    assert "went away" in job["reason"]
+    assert time.monotonic() - t0 < 60.0
+    assert api.get("/jobs").status_code == 200  # the service keeps answering
+    assert api.get(f"/jobs/{job_id}/log").status_code == 200
+    assert api.get("/health").json()["jobs"] == "lost"
+    later = api.service.jobs.submit("calibration", scan_id, {}, "t")  # waits for the cluster instead of hanging
+    time.sleep(1.0)
+    assert api.get(f"/jobs/{later}").json()["state"] == "queued"
+
+
+def test_cli_reconstructs_on_the_cluster_and_refuses_what_it_cannot(cluster: DaskCluster, sphere_scan: Path) -> None:
+    from click.testing import CliRunner
+
+    from orbitct_app.cli.main import cli
+
+    base = ["reconstruct", str(sphere_scan), "--geometry", "nominal", "--shape", "24,32,32"]
+    r = CliRunner().invoke(cli, [*base, "--algorithm", "fdk", "--scheduler", cluster.address])
+    assert r.exit_code == 0, r.output
+    assert f"views split across 2 Dask workers at {cluster.address}" in r.output
+    r = CliRunner().invoke(cli, [*base, "--algorithm", "pwls", "--scheduler", cluster.address])
+    assert r.exit_code == 2 and "--scheduler splits FDK's views" in r.output
+    r = CliRunner().invoke(cli, [*base, "--algorithm", "fdk", "--scheduler", "localhost:8786"])
+    assert r.exit_code == 2 and "tcp://HOST:PORT" in r.output
+    r = CliRunner().invoke(cli, [*base, "--algorithm", "fdk", "--overwrite", "--scheduler", "tcp://127.0.0.1:9"])
+    assert r.exit_code == 1 and "cannot reach the Dask scheduler at tcp://127.0.0.1:9" in r.output
+    assert "Traceback" not in r.output
