@@ -17,6 +17,7 @@ from orbitct_app.service.routers import (
     health,
     jobs,
     orbits,
+    pacs,
     reconstructions,
     scans,
     session,
@@ -32,6 +33,7 @@ TAGS = [
     {"name": "calibrations", "description": "Geometric calibration from BBs (analyst)."},
     {"name": "reconstructions", "description": "FDK and PWLS reconstruction (analyst)."},
     {"name": "jobs", "description": "State, progress, log and cancellation of calibration and reconstruction jobs."},
+    {"name": "pacs", "description": "The DICOM nodes of the settings: find series, import C-arm runs, send volumes (analyst)."},
     {"name": "session", "description": "The web console's sign-in: a token exchanged for a session cookie (CSRF-protected)."},
     {"name": "health", "description": "Liveness, no token needed."},
 ]
@@ -69,7 +71,7 @@ def create_app(settings: ServiceSettings, *, service: Service | None = None) -> 
     app.state.service = svc
     install_error_handlers(app)
     app.add_middleware(ContentLengthLimit, max_bytes=settings.max_body_bytes)
-    for module in (health, session, stop, devices, orbits, scans, calibrations, reconstructions, jobs):
+    for module in (health, session, stop, devices, orbits, scans, calibrations, reconstructions, jobs, pacs):
         app.include_router(module.router)
     install_console(app)
     return app

@@ -68,6 +68,12 @@ class InsufficientStorage(ApiError):
     status, code = 507, "insufficient_storage"
 
 
+class Upstream(ApiError):
+    """Another system the request needed (a PACS node) could not be reached or refused."""
+
+    status, code = 502, "bad_gateway"
+
+
 class Unavailable(ApiError):
     """A part of the service that is not ready (devices not connected)."""
 
@@ -117,7 +123,7 @@ def _json(status: int, code: str, message: str, details: list[FieldProblem] | No
 _HTTP_CODES = {
     400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found", 405: "method_not_allowed",
     406: "not_acceptable", 409: "conflict", 413: "request_too_large", 415: "unsupported_media_type",
-    422: "invalid_parameters", 429: "too_many_requests", 503: "unavailable", 507: "insufficient_storage",
+    422: "invalid_parameters", 429: "too_many_requests", 502: "bad_gateway", 503: "unavailable", 507: "insufficient_storage",
 }
 
 

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
-from pydantic import BaseModel, Field, model_validator
+from pydantic import BaseModel, Field, field_validator, model_validator
 from pydantic_settings import (
     BaseSettings,
     PydanticBaseSettingsSource,
@@ -49,9 +50,27 @@ class ServiceSettings(BaseSettings):
     cancel_grace_s: float = Field(default=5.0, ge=0.1, le=120.0, description="time a cancelled job gets before it is killed")
     reconstruction_max_minutes: float = Field(default=60.0, gt=0.0, le=10080.0, description="a reconstruction job estimated "
                                               "to take longer fails at once, before any work (a request may raise it)")
+    pacs_nodes: dict[str, str] = Field(default_factory=dict, description="DICOM nodes the service may query, fetch "
+                                       "runs from and send series to: name -> dicom://AE_TITLE@host:port")
+    pacs_calling_aet: str = Field(default="ORBITCT", min_length=1, max_length=16, pattern=r"^[ -~]*[!-~][ -~]*$",
+                                  description="the AE title orbitct calls the nodes with")
     max_scan_frames: int = Field(default=5000, ge=1, le=100_000)
     bench_nice: int = Field(default=-5, ge=-20, le=0, description="priority asked for the bench process (needs root or CAP_SYS_NICE)")
     status_interval_s: float = Field(default=0.25, ge=0.01, le=10.0, description="how often scan progress goes to the DB")
+
+    @field_validator("pacs_nodes")
+    @classmethod
+    def _pacs_nodes(cls, nodes: dict[str, str]) -> dict[str, str]:
+        from orbitct_app.pacs import PacsError, PacsNode
+
+        for name, uri in nodes.items():
+            if not re.fullmatch(r"[A-Za-z0-9_-]{1,32}", name):
+                raise ValueError(f"PACS node name {name!r}: 1 to 32 letters, digits, '_' or '-'")
+            try:
+                PacsNode.parse(uri)
+            except PacsError as exc:
+                raise ValueError(str(exc)) from None
+        return nodes
 
     @model_validator(mode="after")
     def _dev_token_only_in_sim(self) -> "ServiceSettings":

@@ -172,29 +172,38 @@ def get_dicom(job_id: str, service: ServiceDep, _: Reader,
     import tempfile
     import zipfile
 
-    from orbitct.geometry import VolumeGrid
-    from recon.dicom import WATER_MU_PER_MM, SeriesInfo, export_dicom_ct
+    from recon.dicom import WATER_MU_PER_MM
 
-    vol = _volume(service, job_id)
-    job = job_or_404(service, job_id, "reconstruction")
-    result, params = job["result"], job["params"]
+    _volume(service, job_id)  # 404 or 409 before anything is written
     water = water_mu_per_mm or WATER_MU_PER_MM
     folder = service.jobs.job_dir(job_id)
     name = f"dicom-{job_id}-{water:g}{'-' + patient_id if patient_id else ''}.zip".replace(" ", "_")
     target = folder / name
     if not target.exists():
-        grid = VolumeGrid(tuple(vol.shape), tuple(result["voxel_mm"]), tuple(result["origin_mm"]))
-        info = SeriesInfo(description=f"orbitct {result.get('name', job_id)}: {params.get('algorithm', '?').upper()} "
-                                      f"{params.get('geometry', '?')} geometry", patient_id=patient_id or job["scan_id"],
-                          water_mu_per_mm=water)
         with tempfile.TemporaryDirectory(dir=folder) as tmp:
-            files = export_dicom_ct(np.asarray(vol, dtype=np.float32), grid, Path(tmp) / "series", info)
+            files = dicom_series(service, job_id, Path(tmp) / "series", water, patient_id)
             partial = Path(tmp) / "series.zip"
             with zipfile.ZipFile(partial, "w", zipfile.ZIP_DEFLATED) as zf:
                 for f in files:
                     zf.write(f, f"{job_id}/{f.name}")
             partial.replace(target)
     return FileResponse(confined(folder, name), media_type="application/zip", filename=f"{job_id}-dicom.zip")
+
+
+def dicom_series(service: Any, job_id: str, out_dir: Path, water_mu_per_mm: float | None = None,
+                 patient_id: str = "") -> list[Path]:
+    """Write a succeeded reconstruction as a DICOM CT series into ``out_dir``; the files."""
+    from orbitct.geometry import VolumeGrid
+    from recon.dicom import WATER_MU_PER_MM, SeriesInfo, export_dicom_ct
+
+    vol = _volume(service, job_id)
+    job = job_or_404(service, job_id, "reconstruction")
+    result, params = job["result"], job["params"]
+    grid = VolumeGrid(tuple(vol.shape), tuple(result["voxel_mm"]), tuple(result["origin_mm"]))
+    info = SeriesInfo(description=f"orbitct {result.get('name', job_id)}: {params.get('algorithm', '?').upper()} "
+                                  f"{params.get('geometry', '?')} geometry", patient_id=patient_id or job["scan_id"],
+                      water_mu_per_mm=water_mu_per_mm or WATER_MU_PER_MM)
+    return export_dicom_ct(np.asarray(vol, dtype=np.float32), grid, out_dir, info)
 
 
 @router.get("/{job_id}/files", response_model=list[str], summary="Result files", responses=NOT_SUCCEEDED)
