@@ -6,10 +6,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from pydantic import ValidationError
 
 from orbitct_app.pacs import find_series, send
-from orbitct_app.service.core.settings import load_settings
 from tests.app.service.test_jobs import _wait
 from tests.app.test_pacs import _carm_scan
 from tests.helpers.orthanc import orthanc
@@ -59,13 +57,3 @@ def test_runs_come_in_as_scans_and_volumes_go_out_through_the_configured_node(ma
         assert r.status_code == 502 and "NOBODY" in r.json()["message"] and r.json()["error"] == "bad_gateway"
         r = api.post("/pacs/lab/import", role="analyst", json={**body, "series_uids": ["1.2.3.4"]})
         assert r.status_code == 502 and "retrieving series 1.2.3.4 failed" in r.json()["message"]
-
-
-def test_nodes_in_the_settings_are_checked(tmp_path: Path) -> None:
-    f = tmp_path / "service.yaml"
-    f.write_text("pacs_nodes: {lab: 'http://pacs:104'}\n")
-    with pytest.raises(ValidationError, match="dicom://AE_TITLE@host:port"):
-        load_settings(f)
-    f.write_text("pacs_nodes: {'bad name!': 'dicom://PACS@pacs:104'}\n")
-    with pytest.raises(ValidationError, match="PACS node name"):
-        load_settings(f)
