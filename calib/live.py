@@ -88,6 +88,11 @@ class LiveSettings:
     edge_margin_px: float = 2.0  # extra margin inside the panel for "should be visible"
 
 
+#: a watched BB's 3-D point is fixed after this many rays: the frame the live poses and the motion watch refer to
+#: stays that of the scan's start (a point that kept absorbing rays would follow an object that moved)
+POINT_RAYS = 60
+
+
 @dataclass
 class _Watched:
     """A BB followed long enough to be missed: its rays' normal equations (for its 3-D point) and state."""
@@ -102,10 +107,12 @@ class _Watched:
     outside: bool = False
 
     def add_ray(self, origin: NDArray[np.float64], direction: NDArray[np.float64]) -> None:
+        self.count += 1
+        if self.count > POINT_RAYS:
+            return
         P = np.eye(3) - np.outer(direction, direction)
         self.A += P
         self.b += P @ origin
-        self.count += 1
 
     def point(self) -> NDArray[np.float64]:
         return np.linalg.lstsq(self.A, self.b, rcond=None)[0]

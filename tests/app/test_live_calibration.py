@@ -168,7 +168,7 @@ def test_an_object_moved_by_2_mm_mid_scan_is_reported_within_a_few_frames(tmp_pa
 
     async def main() -> Any:
         async with open_bench(cfg, sim=True) as bench:
-            nudge = _NudgeObject(bench, at, (2.0, 0.0, 0.0))
+            nudge = _NudgeObject(bench, at, (0.0, 0.0, -2.0))  # it settles by 2 mm on the stage
             return await ScanRunner(small_request(out, frames=130, config=cfg), rig=bench,
                                     subscribers=[sub, nudge]).run()
 
