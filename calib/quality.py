@@ -121,6 +121,14 @@ def _predicted_px(model: ViewModel, state: ViewState, cov: NDArray[np.float64]) 
     return np.sqrt(np.maximum(var, 0.0))
 
 
+def placement_predicted_px(model: ViewModel, xyz: NDArray[np.float64], uv: NDArray[np.float64],
+                           noise_px: float) -> NDArray[np.float64]:
+    """Per view, the predicted error (px, RMS over field-of-view points) of a calibration of BBs ``xyz`` seen at
+    ``uv`` (NaN = not seen) with centroid noise ``noise_px``, at the nominal views (planning: nothing measured)."""
+    state = model.identity()
+    return _predicted_px(model, state, noise_px**2 * _marginal_pose_covariance(model, state, xyz, uv))
+
+
 def pose_predicted_px(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64],
                       noise_px: float) -> NDArray[np.float64]:
     """Per view, the predicted error (px, RMS over field-of-view points) of a rigid pose fitted to ``uv`` with the

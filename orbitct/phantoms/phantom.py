@@ -69,6 +69,18 @@ class Phantom:
         """Indices of metal primitives (BBs, screws, wires)."""
         return np.array([i for i, p in enumerate(self.primitives) if p.is_metal], dtype=np.intp)
 
+    def with_markers(self, xyz: ArrayLike, diameter_mm: float | None = None) -> "Phantom":
+        """The same object with its BBs (primitives labelled ``bb<k>``) replaced by steel balls at ``xyz`` (K, 3)."""
+        from orbitct.phantoms.primitives import sphere
+
+        d = float(diameter_mm if diameter_mm is not None else self.marker_diameter_mm or 0.0)
+        if not d > 0:
+            raise PhantomError("with_markers needs the BB diameter (the phantom has none)")
+        centres = np.array(xyz, dtype=float).reshape(-1, 3)
+        keep = tuple(p for p in self.primitives if not str(p.label).startswith("bb"))
+        bbs = tuple(sphere(c, d / 2, material="steel", label=f"bb{k}") for k, c in enumerate(centres))
+        return Phantom(self.name, keep + bbs, centres, d, self.description)
+
     def subset(self, keep: ArrayLike, name: str | None = None) -> "Phantom":
         """Phantom of the primitives selected by index or boolean mask (markers kept as they are)."""
         idx = np.arange(len(self.primitives))[np.asarray(keep)]

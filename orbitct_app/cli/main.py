@@ -12,6 +12,7 @@ COMMANDS: dict[str, str] = {
     "simulate": "orbitct_app.cli.simulate:simulate",
     "inspect": "orbitct_app.cli.simulate:inspect",
     "orbit": "orbitct_app.cli.orbit:orbit",
+    "plan": "orbitct_app.cli.plan:plan",
     "twin": "orbitct_app.cli.twin:twin",
     "scan": "orbitct_app.cli.scan:scan",
     "demo": "orbitct_app.cli.demo:demo",

@@ -28,8 +28,11 @@ from orbitct_app.cli.progress import ProgressBar
 @click.option("--flats", type=click.IntRange(min=0), default=10, show_default=True, help="flat frames")
 @click.option("--out", "-o", type=click.Path(dir_okay=False, path_type=Path), required=True, help="scan file to write")
 @click.option("--overwrite", is_flag=True, help="replace --out if it exists")
+@click.option("--bbs-from", "bbs_from", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
+              help="place the BBs as in this plan (orbitct plan bbs --out PLAN.json)")
 def simulate(experiment: str, orbit_name: str | None, params: tuple[str, ...], frames: int | None, detector_size: int,
-             pitch_mm: float | None, errors: str, seed: int, darks: int, flats: int, out: Path, overwrite: bool) -> None:
+             pitch_mm: float | None, errors: str, seed: int, darks: int, flats: int, out: Path, overwrite: bool,
+             bbs_from: Path | None) -> None:
     """Simulate a scan of an experiment phantom and write it as a scan file."""
     from orbitct.orbits import OrbitError
     from orbitct.simulator import resolve_orbit, simulate_scan
@@ -40,12 +43,34 @@ def simulate(experiment: str, orbit_name: str | None, params: tuple[str, ...], f
         orbit = resolve_orbit(experiment, orbit_name, frames, **parse_params(params))
     except OrbitError as exc:
         raise click.UsageError(str(exc)) from None
+    phantom: object = experiment.upper()
+    if bbs_from is not None:
+        phantom = _planned_phantom(experiment.upper(), seed, bbs_from)
     with ProgressBar() as bar:
-        res = simulate_scan(experiment.upper(), orbit, out=out, detector_px=detector_size, pitch_mm=pitch_mm,
+        res = simulate_scan(phantom, orbit, out=out, detector_px=detector_size, pitch_mm=pitch_mm,
                             errors=errors, seed=seed, n_dark=darks, n_flat=flats, overwrite=overwrite, progress=bar)
     click.echo(f"wrote {res.path}: {res.n_projections} projections + {darks} darks + {flats} flats, "
                f"orbit {res.orbit.name}, {res.phantom.n_markers} markers, {res.elapsed_s:.1f} s "
                f"({res.frames_per_s:.1f} frames/s)")
+
+
+def _planned_phantom(experiment: str, seed: int, plan: Path) -> object:
+    """The experiment's object with the BBs of a plan (JSON of ``orbitct plan bbs``)."""
+    import json
+
+    from orbitct.phantoms.experiments import experiment_phantom
+
+    try:
+        body = json.loads(plan.read_text())
+        xyz = [b["xyz_mm"] for b in body["bbs"]]
+        diameter = float(body["bb_diameter_mm"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise click.BadParameter(f"{plan}: not a BB plan ({type(exc).__name__}: {exc}); write one with "
+                                 "`orbitct plan bbs`", param_hint="--bbs-from") from None
+    if body.get("experiment", experiment) != experiment:
+        raise click.BadParameter(f"{plan} was planned for experiment {body['experiment']}, not {experiment}",
+                                 param_hint="--bbs-from")
+    return experiment_phantom(experiment, seed).with_markers(xyz, diameter)
 
 
 def _value(text: str) -> object:

@@ -1,0 +1,96 @@
+"""The BB planner's prediction: usable BBs per view, and the predicted calibration error against a measured one."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calib.plan import metal_of, predict_placement, usable_bbs
+from orbitct.phantoms.primitives import sphere
+from tests.helpers.calib_scans import sawtooth, spiral_markers
+
+D_MM = 3.17
+
+
+def test_bbs_off_the_panel_overlapping_or_behind_metal_are_not_usable() -> None:
+    g = sawtooth(60, 256)
+    xyz = spiral_markers(8)
+    usable, uv = usable_bbs(g, xyz, D_MM)
+    assert usable.all(axis=1).mean() > 0.5  # most views see all eight
+    twin = np.vstack([xyz, xyz[0] + [0.0, 0.0, 2.0]])  # a ninth BB 2 mm above the first: one blob in every view
+    usable, _ = usable_bbs(g, twin, D_MM)
+    assert not usable[:, 0].any() and not usable[:, 8].any()
+    far = np.vstack([xyz, [[0.0, 0.0, 400.0]]])  # far above the field of view
+    usable, _ = usable_bbs(g, far, D_MM)
+    assert not usable[:, 8].any()
+    screw = sphere(0.3 * xyz[2], 6.0, material="titanium", label="screw")  # metal between the axis and BB 2
+    usable, _ = usable_bbs(g, xyz, D_MM, metal=[screw])
+    assert 0 < (~usable[:, 2]).sum() < g.n_views and usable[:, 5].sum() >= usable_bbs(g, xyz, D_MM)[0][:, 5].sum() - 2
+
+
+def test_more_bbs_predict_a_smaller_error_and_three_leave_every_view_under_determined() -> None:
+    g = sawtooth(120, 256)
+    xyz = spiral_markers(10)
+    few, many = predict_placement(g, xyz[:5], D_MM), predict_placement(g, xyz, D_MM)
+    assert np.nanmedian(many.predicted_px) < np.nanmedian(few.predicted_px)
+    assert predict_placement(g, xyz, D_MM, noise_px=0.2).summary()["predicted_px_median"] == pytest.approx(
+        2 * many.summary()["predicted_px_median"])  # linear in the centroid noise
+    three = predict_placement(g, xyz[:3], D_MM)
+    assert three.under_determined.size == g.n_views and np.isnan(three.predicted_px).all()
+
+
+@pytest.mark.slow
+def test_the_prediction_matches_a_calibration_of_the_same_placement(tmp_path: Path) -> None:
+    """Experiment A with its own BBs, simulated and calibrated: the error predicted from the nominal orbit and the
+    calibration's measured centroid noise is within a factor of 1.5 of the error measured against the truth."""
+    import calib
+    from calib.evaluate import similarity_aligned_error_px
+    from orbitct.errorprofiles import make_profile
+    from orbitct.phantoms.experiments import experiment_phantom
+    from orbitct.scanfile import ScanFile
+    from orbitct.simulator.scan import simulate_scan
+
+    ph = experiment_phantom("A", 0)
+    path = tmp_path / "a.h5"
+    simulate_scan(ph, out=path, n_frames=120, detector_px=256, errors=make_profile("bench", 0, angle_scale=120 / 500))
+    res = calib.calibrate_scan(path)
+    with ScanFile(path) as sf:
+        proj = sf.projection_indices
+        truth, nominal = sf.geometry("truth")[proj], sf.geometry("nominal")[proj]
+    own = np.flatnonzero(res.view_status[proj] == 0)
+    measured = similarity_aligned_error_px(res.geometry[proj][own], truth[own])[0]
+    assert res.quality is not None
+    pred = predict_placement(nominal, ph.markers_xyz, ph.marker_diameter_mm, noise_px=res.quality.attrs()["centroid_noise_px"],
+                             metal=metal_of(ph))
+    predicted = float(np.sqrt(np.nanmean(pred.predicted_px[own] ** 2)))
+    assert 1 / 1.5 <= predicted / measured <= 1.5, (predicted, measured)
+
+
+def test_cli_plans_bbs_writes_the_plan_and_its_picture_and_the_simulator_uses_it(tmp_path: Path) -> None:
+    import json
+
+    from click.testing import CliRunner
+
+    from orbitct.scanfile import ScanFile
+    from orbitct_app.cli.main import cli
+
+    plan = tmp_path / "plan.json"
+    r = CliRunner().invoke(cli, ["plan", "bbs", "-e", "A", "--frames", "60", "--detector-size", "192", "--bbs", "6",
+                                 "--out", str(plan)])
+    assert r.exit_code == 0, r.output
+    body = json.loads(plan.read_text())
+    assert len(body["bbs"]) == 6 and body["predicted"]["under_determined"] == 0
+    assert len(body["per_view"]["n_bbs"]) == 60 and plan.with_suffix(".png").stat().st_size > 10_000
+    assert "planned (6 BBs): predicted error median" in r.output and "the experiment's own (8 BBs)" in r.output
+    scan = tmp_path / "planned.h5"
+    r = CliRunner().invoke(cli, ["simulate", "-e", "A", "--frames", "20", "--detector-size", "64", "--bbs-from", str(plan),
+                                 "--out", str(scan)])
+    assert r.exit_code == 0, r.output
+    with ScanFile(scan) as sf:
+        np.testing.assert_allclose(sf.truth_markers_xyz(), [b["xyz_mm"] for b in body["bbs"]])
+    plan.write_text("{}")
+    r = CliRunner().invoke(cli, ["simulate", "-e", "A", "--frames", "20", "--detector-size", "64", "--bbs-from", str(plan),
+                                 "--out", str(tmp_path / "x.h5")])
+    assert r.exit_code == 2 and "not a BB plan" in r.output and "Traceback" not in r.output
