@@ -293,8 +293,9 @@ class _Follower:
         step = self._steps.add(index, pose.motion_mm)
         if step is not None:
             self._warn("object_moved", index, step.since_frame,
-                       f"frame {index}: the geometry fitted to each frame jumped by {step.size_mm:.1f} mm at frame "
-                       f"{step.since_frame} and stayed ({step.sigmas:.0f} sigma of its frame-to-frame noise): the object "
+                       f"frame {index}: where each frame's fitted pose puts the BBs jumped by {step.size_mm:.1f} mm (at "
+                       f"the isocenter) at frame {step.since_frame} and stayed ({step.sigmas:.0f} sigma of its "
+                       "frame-to-frame noise): the object "
                        "moved on the table? A move of the object with its BBs is calibrated away; if it moved against "
                        "its BBs (loose tape, soft tissue), stop and scan again")
         return pose
