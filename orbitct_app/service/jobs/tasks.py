@@ -77,9 +77,10 @@ def run_reconstruction(scan_path: Path, params: dict[str, Any], out_dir: Path,
         kwargs["max_seconds"] = 60.0 * float(kwargs.pop("max_minutes"))
     if "shape" in kwargs:
         kwargs["shape"] = tuple(kwargs["shape"])
-    with _cluster_client() as cluster:
-        if kwargs.get("algorithm") == "fdk" and not kwargs.get("mar") and cluster is not None:
-            kwargs["cluster"] = cluster  # FDK's views across the cluster's workers (recon.cluster)
+    split = kwargs.get("algorithm") == "fdk" and not kwargs.get("mar")  # FDK's views across the workers
+    with _cluster_client() if split else contextlib.nullcontext() as cluster:
+        if cluster is not None:
+            kwargs["cluster"] = cluster
         res = recon.reconstruct_scan(scan_path, export=["nifti", "png"], out_dir=out_dir, progress=progress, **kwargs)
     volume = np.asarray(res.volume, dtype=np.float32)
     np.save(out_dir / "volume.npy", volume)
