@@ -56,20 +56,37 @@ class _EventLogHandler(logging.Handler):
             pass
 
 
+def _exit_with(owner_pid: int) -> None:
+    """Thread of an embedded cluster's worker: end the process once the service that owns it is gone (a job
+    must not write into a scan file whose record says it never did)."""
+    import psutil
+
+    while psutil.pid_exists(owner_pid):
+        time.sleep(0.5)
+    os._exit(1)
+
+
 def run_job(func: Callable[..., dict[str, Any]], job_id: str, scan_path: str, params: dict[str, Any],
-            out_dir: str) -> dict[str, Any]:
+            out_dir: str, owner_pid: int | None = None) -> dict[str, Any]:
     """What a Dask worker runs for one job: ``func`` with a progress callback that reports on :data:`TOPIC` and
     raises :class:`JobCancelled` once the job's cancel event is set. Returns the result, or the outcome
-    ``{"cancelled": reason}`` / ``{"error": message}``, with ``events``, the number of events sent before it."""
+    ``{"cancelled": reason}`` / ``{"error": message}``, with ``events``, the number of events sent before it.
+    ``owner_pid``: on an embedded cluster, the service's process; the worker ends when it is gone."""
     from distributed import Event, get_worker
 
     worker = get_worker()
+    if owner_pid is not None and not getattr(worker, "_orbitct_owner_watch", False):
+        threading.Thread(target=_exit_with, args=(owner_pid,), name="orbitct-owner-watch", daemon=True).start()
+        worker._orbitct_owner_watch = True  # type: ignore[attr-defined]
     if not getattr(worker, "_orbitct_niced", False):
         try:
             os.nice(JOB_NICE)  # batch work: never take CPU from a running acquisition
         except OSError:
             pass
         worker._orbitct_niced = True  # type: ignore[attr-defined]
+        logging.captureWarnings(True)  # a job's Python warnings go to its log like its log lines
+        if logging.getLogger().level > logging.INFO:
+            logging.getLogger().setLevel(logging.INFO)  # as before Dask: a job's info lines reach its log
     sent = [0]
     cancel = Event(f"orbitct-cancel-{job_id}")
     checked = [0.0]
@@ -318,7 +335,8 @@ class JobManager:
         cancel = Event(f"orbitct-cancel-{job_id}", client=self._client)
         cancel.clear()
         future = self._client.submit(run_job, JOB_TARGETS[job["kind"]], job_id, str(scan_path), job["params"],
-                                     str(self.job_dir(job_id)), key=f"orbitct-job-{job_id}", pure=False)
+                                     str(self.job_dir(job_id)), None if self._scheduler else os.getpid(),
+                                     key=f"orbitct-job-{job_id}", pure=False)
         self._store.update_job(job_id, state="running", started_utc=utc_now())
         self._bus.publish(f"job:{job_id}", "state", {"state": "running", "reason": ""})
         with self._lock:
