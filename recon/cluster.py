@@ -68,6 +68,10 @@ def fdk_on_cluster(client: Any, path: str | os.PathLike[str], frames: NDArray[np
             time.sleep(0.02)
             continue
         for f in finished:
+            if f.status != "finished":  # an error, or a scheduler that went away: say so rather than wait
+                why = f"{type(f.exception()).__name__}: {f.exception()}" if f.status == "error" else f.status
+                raise ClusterError(f"the cluster lost the FDK of {os.fspath(path)} ({why}); the scheduler "
+                                   f"{client.scheduler.address} went away or a part failed")
             pending.remove(f)
             ready.append(f)
             if f.key in sizes:
