@@ -40,6 +40,7 @@ from calib.quality import (
     centroid_noise_px,
     fit_rigid_poses,
     judge,
+    misfit_limit_px,
 )
 from calib.rays import marker_rays, rpe_per_frame, triangulate_least_squares
 from calib.scale import ScaleBar, find_scale_bar, rescaled_views
@@ -477,7 +478,7 @@ def _solve_and_write(
             outcome, verdict = _reassign(cands, model, wide, outcome, verdict, proj, opt, progress)
         if best is None or verdict.passed:  # a larger allowance replaces the first result only when it passes
             best = (jitter_mm, found_warnings, outcome, verdict)
-        if verdict.passed:
+        if verdict.passed or _mild_misfits_only(outcome[7], verdict):
             break
     if best is None:
         assert failure is not None
@@ -605,6 +606,16 @@ def _reassign(
     if (second_verdict.passed, second_verdict.counts["own"]) > (verdict.passed, verdict.counts["own"]):
         return second, second_verdict
     return outcome, verdict
+
+
+def _mild_misfits_only(quality: ViewQuality, verdict: Verdict) -> bool:
+    """Whether the only reason a result failed is a few views with enough BBs whose residual exceeds the misfit
+    limit by less than half again (centroid biases, not a BB taken for another, which leaves pixels): tracking
+    again with larger jumps cannot change that, so the recovery stops (the verdict still fails)."""
+    odd = quality.inconsistent
+    if len(verdict.reasons) != 1 or not odd.any() or ((quality.status == FAILED) & ~odd).any():
+        return False
+    return float(np.nanmax(quality.misfit_px[odd])) < 1.5 * misfit_limit_px(quality.noise_px)
 
 
 def _split_merged(
