@@ -23,7 +23,7 @@ def test_a_second_service_on_the_same_data_directory_is_refused(make_api, tmp_pa
     with pytest.raises(DataDirBusy, match=r"another orbitct service \(pid \d+.*uses the data directory"):
         make_api()  # same data directory
     result = CliRunner().invoke(cli, ["serve", "--config", str(small_bench_config(tmp_path)), "--sim",
-                                      "--data-dir", str(api.data_dir), "--port", str(free_port())])
+                                      "--data-dir", str(api.data_dir), "--port", str(free_port()), "--stop-port", "0"])
     assert result.exit_code == 1 and "another orbitct service" in result.output and "--data-dir" in result.output
     assert "Traceback" not in result.output
     scan = wait_for(api, f"/scans/{scan_id}", ended)

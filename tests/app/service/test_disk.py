@@ -96,7 +96,8 @@ def test_serve_on_a_fresh_data_directory_of_a_full_disk_says_so_in_one_line(tmp_
     with small_filesystem(tmp_path / "disk", 4) as disk:
         fill(disk, leave_bytes=0)
         result = CliRunner().invoke(cli, ["serve", "--config", str(_config(tmp_path / "config", 4.0)), "--sim",
-                                          "--data-dir", str(disk / "data"), "--port", str(free_port())])
+                                          "--data-dir", str(disk / "data"), "--port", str(free_port()),
+                                          "--stop-port", "0"])  # port + 1 may be taken (CI: Dask's listeners)
         assert result.exit_code == 1, result.output
         assert "cannot start: the disk of the data directory" in result.output and "is full" in result.output
         assert "Traceback" not in result.output
