@@ -47,29 +47,42 @@ def _spearman(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.corrcoef(ra, rb)[0, 1])
 
 
-def _case(work: Path, orbit: str, xyz: np.ndarray, size: int, frames: int, seed: int) -> dict[str, Any]:
+def _case(work: Path, key: str, orbit: str | None, frames: int, xyz: np.ndarray, size: int, seed: int,
+          layout_seed: int) -> dict[str, Any]:
+    """Experiment ``key``'s object (layout ``layout_seed``) with BBs ``xyz``, simulated on ``orbit`` (None: the
+    experiment's) with the bench errors and noise of ``seed``, calibrated and measured against the truth: the error
+    over the views calibrated from their own BBs and over every calibrated view, the centroid noise, the views."""
     import calib
     from calib.evaluate import similarity_aligned_error_px
     from orbitct.errorprofiles import make_profile
     from orbitct.phantoms.experiments import experiment_phantom
     from orbitct.scanfile import ScanFile
+    from orbitct.simulator import resolve_orbit
     from orbitct.simulator.scan import simulate_scan
 
-    phantom = experiment_phantom("A", seed).with_markers(xyz)
-    path = work / f"{orbit}_{seed}.h5"
-    simulate_scan(phantom, orbit, out=path, n_frames=frames, detector_px=size, seed=seed, overwrite=True,
+    phantom = experiment_phantom(key, layout_seed).with_markers(xyz)
+    path = work / f"{key}_{orbit}_{seed}.h5"
+    simulate_scan(phantom, resolve_orbit(key, orbit, frames), out=path, detector_px=size, seed=seed, overwrite=True,
                   errors=make_profile("bench", seed, angle_scale=frames / 500.0))
     try:
         res = calib.calibrate_scan(path, diameter_mm=phantom.marker_diameter_mm, max_predicted_px=100.0)
     except calib.CalibrationError as exc:
-        return {"measured_px": float("nan"), "noise_px": float("nan"), "why": str(exc)[:80], "path": path}
+        path.unlink()
+        return {"measured_px": float("nan"), "valid_px": float("nan"), "why": str(exc)[:80]}
     with ScanFile(path) as sf:
         proj = sf.projection_indices
         truth, nominal = sf.geometry("truth")[proj], sf.geometry("nominal")[proj]
+    path.unlink()
+    geometry = res.geometry[proj]
     own = np.flatnonzero(res.view_status[proj] == 0)
-    err = similarity_aligned_error_px(res.geometry[proj][own], truth[own])[0] if own.size >= 2 else float("nan")
+    valid = np.flatnonzero(geometry.valid)
+
+    def error(views: np.ndarray) -> float:
+        return float(similarity_aligned_error_px(geometry[views], truth[views])[0]) if views.size >= 2 else float("nan")
+
     noise = float(res.quality.attrs()["centroid_noise_px"]) if res.quality is not None else float("nan")
-    return {"measured_px": float(err), "noise_px": noise, "nominal": nominal, "own": own, "why": "", "path": path}
+    return {"measured_px": error(own), "valid_px": error(valid), "noise_px": noise, "nominal": nominal, "own": own,
+            "why": ""}
 
 
 def _planned_against_own(args: Any, noise: float | None) -> None:
@@ -92,36 +105,10 @@ def _planned_against_own(args: Any, noise: float | None) -> None:
             errs = []
             with tempfile.TemporaryDirectory() as work:
                 for seed in range(3):
-                    case = _case_of(Path(work), key, frames, xyz, args.size, seed)
-                    errs.append(case)
+                    errs.append(_case(Path(work), key, None, frames, xyz, args.size, seed, layout_seed=0)["valid_px"])
             means[name] = float(np.nanmean(errs))
             print(f"| {key} | {name} | {ph.n_markers} | {' / '.join(f'{e:.3f}' for e in errs)} | {means[name]:.3f} |")
         print(f"| {key} | planned vs own | | | {100 * (means['planned'] / means['own'] - 1):+.0f} % |")
-
-
-def _case_of(work: Path, key: str, frames: int, xyz: np.ndarray, size: int, seed: int) -> float:
-    """Measured error (px) of experiment ``key`` with BBs ``xyz``, simulated with ``seed`` and calibrated."""
-    import calib
-    from calib.evaluate import similarity_aligned_error_px
-    from orbitct.errorprofiles import make_profile
-    from orbitct.phantoms.experiments import experiment_phantom
-    from orbitct.scanfile import ScanFile
-    from orbitct.simulator import resolve_orbit
-    from orbitct.simulator.scan import simulate_scan
-
-    phantom = experiment_phantom(key, 0).with_markers(xyz)
-    path = work / f"{key}_{seed}.h5"
-    simulate_scan(phantom, resolve_orbit(key, None, frames), out=path, detector_px=size, seed=seed, overwrite=True,
-                  errors=make_profile("bench", seed, angle_scale=frames / 500.0))
-    try:
-        res = calib.calibrate_scan(path, max_predicted_px=100.0)
-    except calib.CalibrationError:
-        return float("nan")
-    with ScanFile(path) as sf:
-        proj = sf.projection_indices
-        truth = sf.geometry("truth")[proj]
-    ok = res.geometry[proj].valid
-    return float(similarity_aligned_error_px(res.geometry[proj][np.flatnonzero(ok)], truth[np.flatnonzero(ok)])[0])
 
 
 def main() -> None:
@@ -145,7 +132,7 @@ def main() -> None:
             for i in range(args.placements):
                 k = int(rng.choice([4, 5, 6, 8, 10]))
                 xyz = _placement(rng, k, 75.0 + d / 2, 80.0)
-                case = _case(Path(work), orbit, xyz, args.size, args.frames, seed=100 + i)
+                case = _case(Path(work), "A", orbit, args.frames, xyz, args.size, 100 + i, layout_seed=100 + i)
                 if not np.isfinite(case["measured_px"]):
                     rows.append((orbit, k, float("nan"), float("nan"), case["why"]))
                     continue
@@ -154,7 +141,6 @@ def main() -> None:
                 p = pred.predicted_px[case["own"]]
                 predicted = float(np.sqrt(np.nanmean(p**2)))
                 rows.append((orbit, k, predicted, case["measured_px"], ""))
-                Path(case["path"]).unlink()
     if rows:
         print(f"centroid noise used for every prediction (measured on the first case): {noise:.3f} px\n")
         print("| orbit | BBs | predicted px | measured px | ratio |\n|---|---|---|---|---|")

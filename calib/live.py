@@ -232,13 +232,14 @@ class _Follower:
         blobs = np.concatenate([links.uv, links.started_uv])
         watched = list(self._watched.values())
         if watched:
-            pred = view.project(np.array([w.point() for w in watched]))[0]
+            points = np.array([w.point() for w in watched])  # once per frame: a least-squares solve per BB
+            pred = view.project(points)[0]
             idx, _ = match_frame(pred, blobs, self.tracking.search_px, self.tracking.gate_px, self.tracking.residual_px)
             hit = idx >= 0  # where a missing BB should be: its point through the view, moved by the frame's shift
             shift = np.median(blobs[idx[hit]] - pred[hit], axis=0) if hit.sum() >= 2 else np.zeros(2)
             aligned = pred + shift
             origin, direction = view_rays(view, blobs) if len(blobs) else (None, None)
-            pose = self._frame_pose(index, view, np.array([w.point() for w in watched]),
+            pose = self._frame_pose(index, view, points,
                                     np.where((idx >= 0)[:, None], blobs[np.maximum(idx, 0)], np.nan) if len(blobs) else
                                     np.full((len(watched), 2), np.nan))
             if pose is not None:
