@@ -72,6 +72,9 @@ def send(files: Sequence[Path], node: PacsNode, calling: str = CALLING_AET) -> i
     return len(datasets)
 
 
+RETRIEVED_CLASSES = ("1.2.840.10008.5.1.4.1.1.2", "1.2.840.10008.5.1.4.1.1.2.1",  # CT, Enhanced CT
+                     "1.2.840.10008.5.1.4.1.1.12.1", "1.2.840.10008.5.1.4.1.1.12.1.1",  # XA, Enhanced XA
+                     "1.2.840.10008.5.1.4.1.1.12.2", "1.2.840.10008.5.1.4.1.1.12.2.1")  # XRF, Enhanced XRF
 SERIES_KEYS = ("StudyInstanceUID", "SeriesInstanceUID", "Modality", "SeriesDescription", "PatientID",
                "NumberOfSeriesRelatedInstances")
 
@@ -105,13 +108,9 @@ def get_series(node: PacsNode, study_uid: str, series_uid: str, out_dir: Path, c
     """C-GET one series into ``out_dir`` (the node sends it back on the same association); the files written."""
     from pydicom.dataset import Dataset
     from pynetdicom import build_role, evt
-    from pynetdicom.sop_class import (
-        CTImageStorage,
-        StudyRootQueryRetrieveInformationModelGet,
-        XRayAngiographicImageStorage,
-    )
+    from pynetdicom.sop_class import StudyRootQueryRetrieveInformationModelGet
 
-    classes = list(sop_classes) or [CTImageStorage, XRayAngiographicImageStorage]
+    classes = list(sop_classes) or list(RETRIEVED_CLASSES)
     out_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
 

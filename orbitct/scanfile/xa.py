@@ -1,10 +1,10 @@
 """C-arm runs as DICOM X-ray angiography (XA) multi-frame objects, both ways (pydicom encodes and decodes).
 
-``write_xa_run`` writes a C-arm scan's projections as one XA object, as a C-arm's own export does: the
-positioner angles of the first frame and, per frame, their increments from it; source-to-detector and
-source-to-isocenter distances; imager pixel spacing. ``import_xa`` reads one or more such runs of one orbit
-(in acquisition order) into a scan file with the nominal geometry those attributes give, and records what
-it had to assume (no darks and flats in an XA run: dark 0, flat the run's bright level; the principal point
+``write_xa_run`` writes a C-arm scan's projections as one object, as a C-arm's own export does: classic XA or
+XRF (the positioner angles of the first frame and, per frame, their increments from it; source-to-detector and
+source-to-isocenter distances; imager pixel spacing) or Enhanced XA (the same per frame in functional groups).
+``import_xa`` reads one or more such runs of one orbit (in acquisition order) into a scan file with the nominal
+geometry those attributes give, and records what it had to assume (no darks and flats in an XA run: dark 0, flat the run's bright level; the principal point
 at the detector centre). Angles: primary = LAO (+) / RAO (-) = orbitct's rotation ``theta``, secondary =
 CRAN (+) / CAUD (-) = its tilt ``phi`` (``geometry.md``).
 """
@@ -19,23 +19,25 @@ from typing import Any
 
 import numpy as np
 
-from orbitct.dicom import new_instance
 from orbitct.geometry import Panel, ViewGeometry
+from orbitct.scanfile._xa_objects import RUN_KINDS, Run, RunKind, classic, enhanced
 from orbitct.scanfile.errors import ScanFileError
 from orbitct.scanfile.keys import ImageKey
 from orbitct.scanfile.reader import ScanFile
 from orbitct.scanfile.writer import ScanWriter
 
 AXES = {"carm.primary": "deg", "carm.secondary": "deg"}
-REQUIRED = ("NumberOfFrames", "Rows", "Columns", "PositionerPrimaryAngle", "PositionerSecondaryAngle",
-            "DistanceSourceToDetector", "DistanceSourceToPatient", "ImagerPixelSpacing", "PixelData")
+REQUIRED = ("NumberOfFrames", "Rows", "Columns", "PixelData")
+CLASSIC_REQUIRED = ("PositionerPrimaryAngle", "PositionerSecondaryAngle", "DistanceSourceToDetector",
+                    "DistanceSourceToPatient", "ImagerPixelSpacing")
 
 
-def write_xa_run(scan: str | Path, out: str | Path, *, patient_id: str = "", part: tuple[int, int] | None = None) -> Path:
+def write_xa_run(scan: str | Path, out: str | Path, *, patient_id: str = "", part: tuple[int, int] | None = None,
+                 kind: RunKind = "xa") -> Path:
     """Write the projections of C-arm scan ``scan`` (projections ``part[0]:part[1]`` only, when given: one run of an
-    orbit acquired as several) as one multi-frame XA object ``out``."""
-    from pydicom.uid import XRayAngiographicImageStorage, generate_uid
-
+    orbit acquired as several) as one multi-frame object ``out``: classic XA, XRF, or Enhanced XA."""
+    if kind not in RUN_KINDS:
+        raise ScanFileError(f"run kind {kind!r}: allowed are {', '.join(RUN_KINDS)}")
     with ScanFile(scan) as sf:
         proj = sf.projection_indices
         if part is not None:
@@ -55,57 +57,110 @@ def write_xa_run(scan: str | Path, out: str | Path, *, patient_id: str = "", par
         frames = np.asarray(sf.frames[proj.tolist()], dtype=np.uint16)
         pitch_col, pitch_row = sf.panel.pitch_mm
         times = sf.time_s[proj]
-    sad, sdd = float(np.median(nominal.sod())), float(np.median(nominal.sdd))
-    primary, secondary = angles["carm.primary"], angles["carm.secondary"]
-    now = dt.datetime.now()
-    ds = new_instance(XRayAngiographicImageStorage)
-    ds.Modality, ds.Manufacturer, ds.ImageType = "XA", "orbitct C-arm twin", ["ORIGINAL", "PRIMARY", "SINGLE PLANE"]
-    ds.PatientName, ds.PatientID, ds.PatientBirthDate, ds.PatientSex = "", patient_id or Path(scan).stem[:64], "", ""
-    ds.StudyInstanceUID, ds.SeriesInstanceUID = generate_uid(), generate_uid()
-    ds.StudyDate = ds.SeriesDate = ds.AcquisitionDate = ds.ContentDate = now.strftime("%Y%m%d")
-    ds.StudyTime = ds.SeriesTime = ds.ContentTime = now.strftime("%H%M%S")
-    ds.AcquisitionDateTime = (now + dt.timedelta(seconds=float(np.nan_to_num(times[0])))).strftime("%Y%m%d%H%M%S.%f")
-    ds.StudyID, ds.SeriesNumber, ds.InstanceNumber, ds.AccessionNumber, ds.ReferringPhysicianName = "1", 1, 1, "", ""
-    ds.PatientOrientation, ds.Laterality, ds.KVP, ds.RadiationSetting = "", "", "", "GR"
-    ds.XRayTubeCurrent, ds.ExposureTime, ds.Exposure = "", "", ""  # the technique is in the bench configuration
-    ds.PositionerMotion = "DYNAMIC"
-    ds.PositionerPrimaryAngle, ds.PositionerSecondaryAngle = f"{primary[0]:.10g}", f"{secondary[0]:.10g}"
-    ds.PositionerPrimaryAngleIncrement = [f"{a:.10g}" for a in primary - primary[0]]
-    ds.PositionerSecondaryAngleIncrement = [f"{a:.10g}" for a in secondary - secondary[0]]
-    ds.DistanceSourceToDetector, ds.DistanceSourceToPatient = f"{sdd:.10g}", f"{sad:.10g}"
-    ds.ImagerPixelSpacing = [f"{pitch_row:.10g}", f"{pitch_col:.10g}"]  # row spacing, column spacing
-    ds.FrameTime = f"{1000.0 * float(np.median(np.diff(times))) if times.size > 1 else 0.0:.10g}"
-    ds.FrameIncrementPointer = (0x0018, 0x1063)
-    ds.NumberOfFrames = int(frames.shape[0])
-    ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
-    ds.Rows, ds.Columns = int(frames.shape[1]), int(frames.shape[2])
-    ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 0
-    ds.PixelIntensityRelationship = "LIN"
-    ds.PixelData = np.ascontiguousarray(frames).tobytes()
+        exposure = (sf.attrs_json("provenance", "config_json") or {}).get("exposure") or {}
+    run = Run(frames=frames, primary_deg=angles["carm.primary"], secondary_deg=angles["carm.secondary"],
+              sad_mm=float(np.median(nominal.sod())), sdd_mm=float(np.median(nominal.sdd)), pitch_row_mm=pitch_row,
+              pitch_col_mm=pitch_col, times_s=np.nan_to_num(times), patient_id=patient_id or Path(scan).stem[:64],
+              kv=exposure.get("kv"), ma=exposure.get("ma"), exposure_ms=exposure.get("exposure_ms"))
+    start = dt.datetime.now() + dt.timedelta(seconds=float(run.times_s[0]))
+    ds = enhanced(run, start) if kind == "enhanced-xa" else classic(run, kind, start)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     ds.save_as(out, enforce_file_format=True)
     return out
 
 
-def _run(path: Path) -> dict[str, Any]:
-    """The geometry-relevant content of one XA run, or ScanFileError naming what is missing or wrong."""
-    import pydicom
+def _number(path: Path, where: Any, name: str) -> float:
+    """Attribute ``name`` of dataset ``where`` as a float, or ScanFileError naming it."""
+    value = where.get(name) if where is not None else None
+    if value is None or value == "":
+        raise ScanFileError(f"{path}: missing {name}: cannot build the geometry without it")
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise ScanFileError(f"{path}: {name} is {value!r}, expected a number") from None
+
+
+def _macro(ds: Any, frame: int, sequence: str) -> Any:
+    """The item of functional group ``sequence`` for ``frame``: its own, else the shared one, else None."""
+    own, shared = ds.get("PerFrameFunctionalGroupsSequence") or [], ds.get("SharedFunctionalGroupsSequence") or []
+    for group in ([own[frame]] if frame < len(own) else []) + list(shared[:1]):
+        if sequence in group and len(group[sequence].value):
+            return group[sequence].value[0]
+    return None
+
+
+def _required_macro(path: Path, ds: Any, frame: int, sequence: str, group: str) -> Any:
+    item = _macro(ds, frame, sequence)
+    if item is None:
+        raise ScanFileError(f"{path}: frame {frame + 1} has no {sequence} (the {group} functional group, neither its "
+                            "own nor shared): cannot build its geometry")
+    return item
+
+
+def _enhanced_geometry(path: Path, ds: Any, n: int) -> dict[str, Any]:
+    """Angles, distances, pixel spacing and field-of-view rotation from an Enhanced XA's functional groups."""
+    per_frame = ds.get("PerFrameFunctionalGroupsSequence")
+    if per_frame is None or len(per_frame) != n:
+        raise ScanFileError(f"{path}: PerFrameFunctionalGroupsSequence has {0 if per_frame is None else len(per_frame)} "
+                            f"items for {n} frames")
+    primary, secondary, sad, sdd, spacing, rotation, times = [], [], set(), set(), set(), set(), []
+    for i in range(n):
+        positioner = _required_macro(path, ds, i, "PositionerPositionSequence", "X-Ray Positioner")
+        primary.append(_number(path, positioner, "PositionerPrimaryAngle"))
+        secondary.append(_number(path, positioner, "PositionerSecondaryAngle"))
+        geometry = _required_macro(path, ds, i, "XRayGeometrySequence", "X-Ray Geometry")
+        sad.add(_number(path, geometry, "DistanceSourceToIsocenter"))
+        sdd.add(_number(path, geometry, "DistanceSourceToDetector"))
+        pixels = _macro(ds, i, "FramePixelDataPropertiesSequence")
+        if pixels is None or "ImagerPixelSpacing" not in pixels:
+            raise ScanFileError(f"{path}: frame {i + 1}: missing ImagerPixelSpacing (FramePixelDataPropertiesSequence)")
+        spacing.add(tuple(float(v) for v in pixels.ImagerPixelSpacing))
+        _linear(path, pixels)
+        view = _macro(ds, i, "FieldOfViewSequence")
+        rotation.add(float(view.get("FieldOfViewRotation", 0.0) or 0.0) if view is not None else 0.0)
+        content = _macro(ds, i, "FrameContentSequence")
+        times.append(str(content.get("FrameAcquisitionDateTime", "")) if content is not None else "")
+    for name, values in (("DistanceSourceToIsocenter", sad), ("DistanceSourceToDetector", sdd),
+                         ("ImagerPixelSpacing", spacing), ("FieldOfViewRotation", rotation)):
+        if len(values) > 1:
+            raise ScanFileError(f"{path}: {name} changes between frames ({sorted(values)[:3]}...): a run with a "
+                                "moving detector or changing distances is not supported")
+    seconds = [_seconds(t) for t in times]
+    frame_time_s = float(np.median(np.diff(seconds))) if n > 1 and None not in seconds else 0.0
+    return {"primary": np.array(primary), "secondary": np.array(secondary), "sad": sad.pop(), "sdd": sdd.pop(),
+            "spacing": list(spacing.pop()), "rotation_deg": rotation.pop(), "frame_time_s": frame_time_s}
+
+
+def _seconds(stamp: str) -> float | None:
+    """A DICOM date-time (DT) in seconds, None when absent or unreadable."""
+    from pydicom.valuerep import DT
 
     try:
-        ds = pydicom.dcmread(path)
-    except Exception as exc:  # noqa: BLE001 - any unreadable file is named with the reason
-        raise ScanFileError(f"{path}: not a readable DICOM file ({type(exc).__name__}: {exc})") from None
-    if ds.get("Modality") not in ("XA", "RF"):
-        raise ScanFileError(f"{path}: modality {ds.get('Modality')!r}, expected an XA (or XRF) run")
-    if "PerFrameFunctionalGroupsSequence" in ds:
-        raise ScanFileError(f"{path}: Enhanced XA (per-frame functional groups) is not supported yet; export the run "
-                            "as classic multi-frame XA")
-    missing = [k for k in REQUIRED if k not in ds or ds.get(k) in (None, "")]
+        return DT(stamp).timestamp() if stamp else None
+    except ValueError:
+        return None
+
+
+def _linear(path: Path, where: Any) -> None:
+    """Refuse pixel data that are not proportional to the detected intensity (line integrals need that)."""
+    relation = str(where.get("PixelIntensityRelationship", "LIN") or "LIN")
+    if relation != "LIN":
+        raise ScanFileError(f"{path}: PixelIntensityRelationship is {relation}; only LIN (raw, proportional to the "
+                            "X-ray intensity) can be turned into line integrals without the vendor's LUT")
+
+
+def _require(path: Path, ds: Any, names: Sequence[str]) -> None:
+    missing = [k for k in names if k not in ds or ds.get(k) in (None, "")]
     if missing:
         raise ScanFileError(f"{path}: missing {', '.join(missing)}: cannot build the geometry without "
                             f"{'them' if len(missing) > 1 else 'it'}")
-    n = int(ds.NumberOfFrames)
+
+
+def _classic_geometry(path: Path, ds: Any, n: int) -> dict[str, Any]:
+    """Angles (first frame plus increments), distances and pixel spacing of a classic XA or XRF object."""
+    _require(path, ds, CLASSIC_REQUIRED)
+    _linear(path, ds)
     incr = {}
     for name in ("PositionerPrimaryAngleIncrement", "PositionerSecondaryAngleIncrement"):
         values = np.atleast_1d(np.asarray(ds.get(name, [0.0] * n), dtype=float))
@@ -114,19 +169,41 @@ def _run(path: Path) -> dict[str, Any]:
         if values.size != n:
             raise ScanFileError(f"{path}: {name} has {values.size} values for {n} frames")
         incr[name] = values
-    sdd, sad = float(ds.DistanceSourceToDetector), float(ds.DistanceSourceToPatient)
+    return {"primary": float(ds.PositionerPrimaryAngle) + incr["PositionerPrimaryAngleIncrement"],
+            "secondary": float(ds.PositionerSecondaryAngle) + incr["PositionerSecondaryAngleIncrement"],
+            "sad": float(ds.DistanceSourceToPatient), "sdd": float(ds.DistanceSourceToDetector),
+            "spacing": [float(v) for v in ds.ImagerPixelSpacing],
+            "rotation_deg": float(ds.get("FieldOfViewRotation", 0.0) or 0.0),
+            "frame_time_s": float(ds.get("FrameTime", 0.0) or 0.0) / 1000.0}
+
+
+def _run(path: Path) -> dict[str, Any]:
+    """The geometry-relevant content of one XA/XRF run (classic or enhanced), or ScanFileError naming what is missing
+    or wrong."""
+    import pydicom
+
+    try:
+        ds = pydicom.dcmread(path)
+    except Exception as exc:  # noqa: BLE001 - any unreadable file is named with the reason
+        raise ScanFileError(f"{path}: not a readable DICOM file ({type(exc).__name__}: {exc})") from None
+    if ds.get("Modality") not in ("XA", "RF"):
+        raise ScanFileError(f"{path}: modality {ds.get('Modality')!r}, expected an XA (or XRF) run")
+    _require(path, ds, REQUIRED)
+    n = int(ds.NumberOfFrames)
+    is_enhanced = "PerFrameFunctionalGroupsSequence" in ds or "SharedFunctionalGroupsSequence" in ds
+    found = _enhanced_geometry(path, ds, n) if is_enhanced else _classic_geometry(path, ds, n)
+    sdd, sad, spacing = found["sdd"], found["sad"], found["spacing"]
+    distance = "DistanceSourceToIsocenter" if is_enhanced else "DistanceSourceToPatient"
     if not sdd > sad > 0:
-        raise ScanFileError(f"{path}: DistanceSourceToDetector ({sdd}) must exceed DistanceSourceToPatient ({sad}) > 0")
-    spacing = [float(v) for v in ds.ImagerPixelSpacing]
+        raise ScanFileError(f"{path}: DistanceSourceToDetector ({sdd}) must exceed {distance} ({sad}) > 0")
     if len(spacing) != 2 or min(spacing) <= 0:
         raise ScanFileError(f"{path}: ImagerPixelSpacing must be two positive numbers, got {spacing}")
     frames = ds.pixel_array.reshape(n, int(ds.Rows), int(ds.Columns))
     return {"path": path, "frames": frames, "sad": sad, "sdd": sdd, "pitch": (spacing[1], spacing[0]),
-            "primary": float(ds.PositionerPrimaryAngle) + incr["PositionerPrimaryAngleIncrement"],
-            "secondary": float(ds.PositionerSecondaryAngle) + incr["PositionerSecondaryAngleIncrement"],
-            "eta": math.radians(float(ds.get("FieldOfViewRotation", 0.0) or 0.0)),
+            "primary": found["primary"], "secondary": found["secondary"], "eta": math.radians(found["rotation_deg"]),
             "when": str(ds.get("AcquisitionDateTime", "")) or str(ds.get("AcquisitionTime", "")),
-            "frame_time_s": float(ds.get("FrameTime", 0.0) or 0.0) / 1000.0}
+            "frame_time_s": found["frame_time_s"], "kind": "Enhanced XA" if is_enhanced else
+            ("XRF" if ds.Modality == "RF" else "XA")}
 
 
 def import_xa(files: Sequence[str | Path], out: str | Path, *, overwrite: bool = False) -> Path:
@@ -137,7 +214,7 @@ def import_xa(files: Sequence[str | Path], out: str | Path, *, overwrite: bool =
     runs = sorted((_run(p) for p in paths), key=lambda r: r["when"])
     first = runs[0]
     for r in runs[1:]:
-        for key in ("sad", "sdd", "pitch"):
+        for key in ("sad", "sdd", "pitch", "eta"):
             if not np.allclose(r[key], first[key], rtol=1e-6):
                 raise ScanFileError(f"{r['path']}: {key} {r[key]} differs from {first['path']}'s {first[key]}: "
                                     "runs of one orbit share the C-arm's distances and detector")
@@ -155,8 +232,16 @@ def import_xa(files: Sequence[str | Path], out: str | Path, *, overwrite: bool =
     assumptions = ["no dark or flat frames in an XA run: one dark of 0 and one flat at the run's bright level "
                    f"({bright:.10g}, the 99.9th percentile) were added",
                    "principal point at the detector centre (XA does not record it)",
-                   "angles: primary = LAO/RAO = rotation theta, secondary = CRAN/CAUD = tilt phi; increments are "
-                   "offsets from the first frame's angle"]
+                   "pixel data raw (PixelIntensityRelationship LIN): line integrals are -log(frame / flat)",
+                   "angles: primary = LAO/RAO = rotation theta, secondary = CRAN/CAUD = tilt phi"]
+    kinds = sorted({r["kind"] for r in runs})
+    if "Enhanced XA" in kinds:
+        assumptions.append("Enhanced XA: each frame's angles from its X-Ray Positioner functional group, distances "
+                           "from X-Ray Geometry (source to isocenter, source to detector), pixel spacing from X-Ray "
+                           "Frame Pixel Data Properties, detector rotation from Field of View")
+    if {"XA", "XRF"} & set(kinds):
+        assumptions.append("classic XA/XRF: per-frame angles are the first frame's plus its increments; "
+                           "DistanceSourceToPatient is the source-to-isocenter distance")
     dtype = "uint16" if frames.dtype.kind == "u" and frames.dtype.itemsize <= 2 else "float32"
     with ScanWriter(out, panel, frame_dtype=dtype, axes=AXES, orbit_name="dicom-xa",
                     orbit_params={"runs": len(runs), "files": [p.name for p in paths]}, overwrite=overwrite) as w:
@@ -168,5 +253,5 @@ def import_xa(files: Sequence[str | Path], out: str | Path, *, overwrite: bool =
             w.append(frames[i].astype(dtype, copy=False), ImageKey.PROJECTION, t, nominal_vector=geometry.vectors[i],
                      encoders=angles, commanded=angles, flush=False)
             t += first["frame_time_s"]
-        w.set_attrs("provenance", imported_from="DICOM XA", import_assumptions_json={"assumed": assumptions})
+        w.set_attrs("provenance", imported_from="DICOM " + " + ".join(kinds), import_assumptions_json={"assumed": assumptions})
     return Path(out)

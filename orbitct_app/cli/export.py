@@ -79,8 +79,10 @@ def nxtomo(scan: Path, out: Path, overwrite: bool) -> None:
 @click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="The XA file to write (.dcm).")
 @click.option("--frames", "part", default=None, help="Only projections FIRST:LAST (0-based, LAST excluded): one run of "
               "an orbit acquired as several.")
-def xa(scan: Path, out: Path, part: str | None) -> None:
-    """Write the projections of a C-arm scan as one multi-frame DICOM XA run (positioner angles per frame, distances,
+@click.option("--kind", type=click.Choice(["xa", "xrf", "enhanced-xa"]), default="xa", show_default=True,
+              help="Classic XA, XRF, or Enhanced XA (per-frame functional groups).")
+def xa(scan: Path, out: Path, part: str | None, kind: str) -> None:
+    """Write the projections of a C-arm scan as one multi-frame DICOM run (positioner angles per frame, distances,
     pixel spacing), as a C-arm's own export does; `orbitct import dicom` reads it back."""
     from orbitct.scanfile import ScanFileError
     from orbitct.scanfile.xa import write_xa_run
@@ -95,7 +97,7 @@ def xa(scan: Path, out: Path, part: str | None) -> None:
     if out.exists():
         raise click.ClickException(f"{out} exists; choose another name")
     try:
-        path = write_xa_run(scan, out, part=span)
+        path = write_xa_run(scan, out, part=span, kind=kind)  # type: ignore[arg-type]
     except ScanFileError as exc:
         raise click.ClickException(str(exc)) from None
-    click.echo(f"wrote {path}")
+    click.echo(f"wrote {path} ({kind})")

@@ -71,7 +71,8 @@ def _carm_scan(path: Path, n: int = 12) -> Path:
     primary, secondary = np.linspace(-20.0, 20.0, n), np.linspace(-5.0, 5.0, n)
     views = ViewGeometry.from_carm(np.radians(primary), np.radians(secondary), 785.0, 1200.0, panel)
     rng = np.random.default_rng(0)
-    with ScanWriter(path, panel, axes={"carm.primary": "deg", "carm.secondary": "deg"}, orbit_name="test") as w:
+    with ScanWriter(path, panel, axes={"carm.primary": "deg", "carm.secondary": "deg"}, orbit_name="test",
+                    config={"exposure": {"kv": 90.0, "ma": 1.0, "exposure_ms": 10.0}}) as w:
         for i in range(n):
             angles = {"carm.primary": float(primary[i]), "carm.secondary": float(secondary[i])}
             w.append(rng.integers(1000, 4000, (24, 32)).astype(np.uint16), "projection", 0.1 * i,
@@ -79,15 +80,16 @@ def _carm_scan(path: Path, n: int = 12) -> Path:
     return path
 
 
-def test_an_xa_run_pulled_from_orthanc_imports_with_its_geometry(tmp_path: Path) -> None:
+@pytest.mark.parametrize("kind", ["xa", "enhanced-xa", "xrf"])
+def test_an_xa_run_pulled_from_orthanc_imports_with_its_geometry(tmp_path: Path, kind: str) -> None:
     from orbitct.scanfile import ScanFile
     from orbitct.scanfile.xa import import_xa, write_xa_run
 
     scan = _carm_scan(tmp_path / "carm.h5")
-    run = write_xa_run(scan, tmp_path / "xa" / "run.dcm", patient_id="PACS-3")
+    run = write_xa_run(scan, tmp_path / "xa" / "run.dcm", patient_id="PACS-3", kind=kind)  # type: ignore[arg-type]
     with orthanc(tmp_path / "orthanc") as node:
         send([run], node)
-        found = find_series(node, PatientID="PACS-3", Modality="XA")
+        found = find_series(node, PatientID="PACS-3", Modality="RF" if kind == "xrf" else "XA")
         assert len(found) == 1
         pulled = get_series(node, found[0]["StudyInstanceUID"], found[0]["SeriesInstanceUID"], tmp_path / "pulled")
     imported = import_xa(pulled, tmp_path / "imported.h5")

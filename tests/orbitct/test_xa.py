@@ -3,8 +3,11 @@ geometry (one run or several), and every missing or contradictory attribute refu
 
 from __future__ import annotations
 
+import copy
 import subprocess
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pydicom
@@ -31,12 +34,27 @@ def carm_scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-def test_the_twins_run_comes_back_from_xa_with_its_nominal_geometry(carm_scan: Path, tmp_path: Path) -> None:
-    xa = write_xa_run(carm_scan, tmp_path / "run1.dcm")
-    ds = pydicom.dcmread(xa)
-    assert ds.Modality == "XA" and int(ds.NumberOfFrames) == 80 and ds.PositionerMotion == "DYNAMIC"
-    res = subprocess.run([require_tool("dciodvfy", "dicom3tools"), str(xa)], capture_output=True, text=True, timeout=60)
+def _valid(path: Path) -> None:
+    res = subprocess.run([require_tool("dciodvfy", "dicom3tools"), str(path)], capture_output=True, text=True, timeout=60)
     assert not [x for x in (res.stdout + res.stderr).splitlines() if x.startswith("Error")], res.stderr
+
+
+@pytest.mark.parametrize(("kind", "sop_class", "modality"), [("xa", "1.2.840.10008.5.1.4.1.1.12.1", "XA"),
+                                                              ("xrf", "1.2.840.10008.5.1.4.1.1.12.2", "RF"),
+                                                              ("enhanced-xa", "1.2.840.10008.5.1.4.1.1.12.1.1", "XA")])
+def test_the_twins_run_comes_back_from_xa_with_its_nominal_geometry(carm_scan: Path, tmp_path: Path, kind: str,
+                                                                    sop_class: str, modality: str) -> None:
+    xa = write_xa_run(carm_scan, tmp_path / "run1.dcm", kind=kind)  # type: ignore[arg-type]
+    ds = pydicom.dcmread(xa)
+    assert ds.SOPClassUID == sop_class and ds.Modality == modality and int(ds.NumberOfFrames) == 80
+    _valid(xa)
+    if kind == "enhanced-xa":  # the angles per frame in functional groups, the technique from the bench's configuration
+        assert "PositionerPrimaryAngle" not in ds and float(ds.KVP) == 90.0
+        assert len(ds.PerFrameFunctionalGroupsSequence) == 80
+        assert ds.PerFrameFunctionalGroupsSequence[5].PositionerPositionSequence[0].PositionerPrimaryAngle != \
+            ds.PerFrameFunctionalGroupsSequence[0].PositionerPositionSequence[0].PositionerPrimaryAngle
+    else:
+        assert ds.PositionerMotion == "DYNAMIC"
     scan = import_xa([xa], tmp_path / "imported.h5")
     with ScanFile(carm_scan) as a, ScanFile(scan) as b:
         proj = a.projection_indices
@@ -49,6 +67,7 @@ def test_the_twins_run_comes_back_from_xa_with_its_nominal_geometry(carm_scan: P
         assert b.geometry("nominal")[b.projection_indices].allclose(a.geometry("nominal")[proj], atol_mm=1e-3 + 20 * gap_deg)
         assumptions = b.attrs_json("provenance", "import_assumptions_json")["assumed"]
         assert any("dark" in x for x in assumptions) and any("principal point" in x for x in assumptions)
+        assert any("PixelIntensityRelationship LIN" in x for x in assumptions)
 
 
 def test_an_orbit_in_several_runs_imports_in_acquisition_order(carm_scan: Path, tmp_path: Path) -> None:
@@ -96,6 +115,56 @@ def test_contradictory_attributes_are_refused(carm_scan: Path, tmp_path: Path) -
         import_xa([ct], tmp_path / "w.h5")
 
 
+def test_runs_of_one_orbit_may_come_as_different_kinds(carm_scan: Path, tmp_path: Path) -> None:
+    runs = [write_xa_run(carm_scan, tmp_path / f"run{i}.dcm", part=(40 * i, 40 * (i + 1)), kind=kind)  # type: ignore[arg-type]
+            for i, kind in enumerate(("enhanced-xa", "xa"))]
+    mixed = import_xa(runs, tmp_path / "mixed.h5")
+    single = import_xa([write_xa_run(carm_scan, tmp_path / "all.dcm")], tmp_path / "one.h5")
+    with ScanFile(mixed) as a, ScanFile(single) as b:
+        assert a.geometry("nominal").allclose(b.geometry("nominal"), atol_mm=1e-6)
+        assumed = a.attrs_json("provenance", "import_assumptions_json")["assumed"]
+        assert any(x.startswith("Enhanced XA:") for x in assumed) and any(x.startswith("classic XA/XRF:") for x in assumed)
+
+
+def _edit_enhanced(carm_scan: Path, tmp_path: Path, edit: Callable[[Any], None]) -> Path:
+    path = write_xa_run(carm_scan, tmp_path / "enhanced.dcm", kind="enhanced-xa")
+    ds = pydicom.dcmread(path)
+    edit(ds)
+    ds.save_as(path)
+    return path
+
+
+def _frame(ds: Any, i: int) -> Any:
+    return ds.PerFrameFunctionalGroupsSequence[i]
+
+
+def _shared(ds: Any) -> Any:
+    return ds.SharedFunctionalGroupsSequence[0]
+
+
+@pytest.mark.parametrize(("edit", "message"), [
+    (lambda ds: delattr(_frame(ds, 7), "PositionerPositionSequence"), "frame 8 has no PositionerPositionSequence"),
+    (lambda ds: delattr(_frame(ds, 3).PositionerPositionSequence[0], "PositionerSecondaryAngle"),
+     "missing PositionerSecondaryAngle"),
+    (lambda ds: delattr(_shared(ds), "XRayGeometrySequence"), "no XRayGeometrySequence"),
+    (lambda ds: delattr(_shared(ds).XRayGeometrySequence[0], "DistanceSourceToIsocenter"),
+     "missing DistanceSourceToIsocenter"),
+    (lambda ds: delattr(_shared(ds).FramePixelDataPropertiesSequence[0], "ImagerPixelSpacing"),
+     "missing ImagerPixelSpacing"),
+    (lambda ds: setattr(_shared(ds).FramePixelDataPropertiesSequence[0], "PixelIntensityRelationship", "LOG"),
+     "PixelIntensityRelationship is LOG; only LIN"),
+    (lambda ds: setattr(_frame(ds, 9), "XRayGeometrySequence", copy.deepcopy(_shared(ds).XRayGeometrySequence)) or
+     setattr(_frame(ds, 9).XRayGeometrySequence[0], "DistanceSourceToDetector", 1400.0),
+     "DistanceSourceToDetector changes between frames"),
+    (lambda ds: setattr(ds, "PerFrameFunctionalGroupsSequence", ds.PerFrameFunctionalGroupsSequence[:-1]),
+     "PerFrameFunctionalGroupsSequence has 79 items for 80 frames"),
+])
+def test_what_an_enhanced_run_lacks_or_contradicts_is_named(carm_scan: Path, tmp_path: Path,
+                                                           edit: Callable[[Any], None], message: str) -> None:
+    with pytest.raises(ScanFileError, match=message):
+        import_xa([_edit_enhanced(carm_scan, tmp_path, edit)], tmp_path / "x.h5")
+
+
 def test_the_commands_export_and_import_a_run(carm_scan: Path, tmp_path: Path) -> None:
     from click.testing import CliRunner
 
@@ -106,8 +175,16 @@ def test_the_commands_export_and_import_a_run(carm_scan: Path, tmp_path: Path) -
     assert res.exit_code == 0, res.output
     assert runner.invoke(cli, ["export", "xa", str(carm_scan), "--out", str(tmp_path / "runs" / "r2.dcm"),
                                "--frames", "40:80"]).exit_code == 0
+    assert runner.invoke(cli, ["export", "xa", str(carm_scan), "--out", str(tmp_path / "runs" / "r3.dcm"),
+                               "--frames", "80:80", "--kind", "enhanced-xa"]).exit_code != 0  # no frames
     res = runner.invoke(cli, ["import", "dicom", str(tmp_path / "runs"), "--out", str(tmp_path / "in.h5")])
     assert res.exit_code == 0 and "80 projections from 2 run(s)" in res.output and "assumed: principal point" in res.output
+    res = runner.invoke(cli, ["export", "xa", str(carm_scan), "--out", str(tmp_path / "enh" / "r.dcm"), "--kind",
+                              "enhanced-xa"])
+    assert res.exit_code == 0 and "(enhanced-xa)" in res.output, res.output
+    assert pydicom.dcmread(tmp_path / "enh" / "r.dcm").SOPClassUID == "1.2.840.10008.5.1.4.1.1.12.1.1"
+    res = runner.invoke(cli, ["export", "xa", str(carm_scan), "--out", str(tmp_path / "k.dcm"), "--kind", "ct"])
+    assert res.exit_code != 0 and "xa" in res.output and "enhanced-xa" in res.output
     bad = runner.invoke(cli, ["export", "xa", str(carm_scan), "--out", str(tmp_path / "x.dcm"), "--frames", "a:b"])
     assert bad.exit_code != 0 and "FIRST:LAST" in bad.output
     none = runner.invoke(cli, ["import", "dicom", str(tmp_path), "--out", str(tmp_path / "n.h5")])
