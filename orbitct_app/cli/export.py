@@ -24,12 +24,15 @@ def export() -> None:
 @click.option("--patient-name", default="", help="DICOM Patient's Name (default empty).")
 @click.option("--patient-id", default="", help="DICOM Patient ID (default: the scan file's name).")
 @click.option("--study-description", default="", help="DICOM Study Description.")
+@click.option("--enhanced", is_flag=True, help="One multi-frame Enhanced CT object (OUT/CT_ENHANCED.dcm) instead of "
+              "one CT image per slice.")
 def dicom(scan: Path, name: str, out_dir: Path, water_mu_per_mm: float | None, patient_name: str, patient_id: str,
-          study_description: str) -> None:
-    """Export reconstruction NAME of SCAN as a CT series in Hounsfield units (the object frame as patient frame)."""
+          study_description: str, enhanced: bool) -> None:
+    """Export reconstruction NAME of SCAN as a CT series (or one Enhanced CT object) in Hounsfield units (the object
+    frame as patient frame)."""
     from orbitct.geometry import VolumeGrid
     from orbitct.scanfile import ScanFile, ScanFileError
-    from recon.dicom import WATER_MU_PER_MM, SeriesInfo, export_dicom_ct
+    from recon.dicom import WATER_MU_PER_MM, SeriesInfo, export_dicom_ct, export_enhanced_ct
     from recon.errors import ReconError
 
     if out_dir.exists() and any(out_dir.iterdir()):
@@ -49,10 +52,16 @@ def dicom(scan: Path, name: str, out_dir: Path, water_mu_per_mm: float | None, p
                       patient_id=patient_id or scan.stem[:64], study_description=study_description,
                       water_mu_per_mm=water_mu_per_mm or WATER_MU_PER_MM)
     try:
-        files = export_dicom_ct(volume, grid, out_dir, info)
+        if enhanced:
+            path = export_enhanced_ct(volume, grid, out_dir / "CT_ENHANCED.dcm", info)
+        else:
+            files = export_dicom_ct(volume, grid, out_dir, info)
     except ReconError as exc:
         raise click.ClickException(str(exc)) from None
     nz, ny, nx = volume.shape
+    if enhanced:
+        click.echo(f"wrote {path}: one Enhanced CT object of {nz} frames of {nx}x{ny} px: {info.description}")
+        return
     click.echo(f"wrote {len(files)} CT slices of {nx}x{ny} px ({grid.voxel_mm[0]:g} x {grid.voxel_mm[1]:g} mm, "
                f"{grid.voxel_mm[2]:g} mm apart) to {out_dir}: {info.description}")
 

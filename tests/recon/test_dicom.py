@@ -10,12 +10,12 @@ import pydicom
 import pytest
 
 from orbitct.geometry import VolumeGrid
-from recon.dicom import SeriesInfo, export_dicom_ct, to_hounsfield
+from recon.dicom import SeriesInfo, export_dicom_ct, export_enhanced_ct, to_hounsfield
 from recon.errors import ReconError
 from tests.helpers.tools import require_tool
 
 
-def _series(tmp_path: Path) -> tuple[VolumeGrid, np.ndarray, np.ndarray, list[Path]]:
+def _sphere() -> tuple[VolumeGrid, np.ndarray, np.ndarray]:
     grid = VolumeGrid((20, 24, 28), (0.8, 0.8, 1.25), (-10.8, -9.2, -12.5))  # anisotropic, off-centre, nx != ny
     z, y, x = np.meshgrid(*(np.arange(n) for n in grid.shape), indexing="ij")
     pos = np.stack([grid.origin_mm[0] + x * grid.voxel_mm[0], grid.origin_mm[1] + y * grid.voxel_mm[1],
@@ -23,8 +23,25 @@ def _series(tmp_path: Path) -> tuple[VolumeGrid, np.ndarray, np.ndarray, list[Pa
     centre = np.array([3.1, -4.0, 6.2])  # a bone-like sphere off the axes, in the object frame (mm)
     volume = np.full(grid.shape, 0.0206, np.float32)
     volume[np.linalg.norm(pos - centre, axis=-1) < 2.5] = 0.06
+    return grid, volume, centre
+
+
+def _series(tmp_path: Path) -> tuple[VolumeGrid, np.ndarray, np.ndarray, list[Path]]:
+    grid, volume, centre = _sphere()
     files = export_dicom_ct(volume, grid, tmp_path / "series", SeriesInfo(description="test", patient_id="P1"))
     return grid, volume, centre, files
+
+
+def _bright_centre(images: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
+    """HU-weighted centre (patient mm) of voxels above 500 HU; each image as (hu, position, orientation, spacing)."""
+    points, weights = [], []
+    for hu, ipp, iop, spacing in images:
+        row_dir, col_dir = iop[:3], iop[3:]
+        dr, dc = spacing
+        for r, c in zip(*np.nonzero(hu > 500)):
+            points.append(ipp + c * dc * row_dir + r * dr * col_dir)  # column index along the row direction
+            weights.append(hu[r, c])
+    return np.average(np.array(points), axis=0, weights=weights)
 
 
 def test_the_series_puts_a_known_sphere_where_the_object_frame_has_it(tmp_path: Path) -> None:
@@ -32,17 +49,11 @@ def test_the_series_puts_a_known_sphere_where_the_object_frame_has_it(tmp_path: 
     slices = [pydicom.dcmread(f) for f in files]
     assert len(slices) == grid.shape[0] and len({s.SeriesInstanceUID for s in slices}) == 1
     assert len({s.SOPInstanceUID for s in slices}) == len(slices) and slices[0].Modality == "CT"
-    points, weights = [], []
-    for s in slices:
-        hu = s.pixel_array.astype(float) * float(s.RescaleSlope) + float(s.RescaleIntercept)
-        assert hu.shape == (grid.shape[1], grid.shape[2])
-        row_dir, col_dir = np.array(s.ImageOrientationPatient[:3], float), np.array(s.ImageOrientationPatient[3:], float)
-        ipp = np.array(s.ImagePositionPatient, float)
-        dr, dc = (float(v) for v in s.PixelSpacing)
-        for r, c in zip(*np.nonzero(hu > 500)):
-            points.append(ipp + c * dc * row_dir + r * dr * col_dir)  # column index along the row direction
-            weights.append(hu[r, c])
-    found = np.average(np.array(points), axis=0, weights=weights)
+    images = [(s.pixel_array.astype(float) * float(s.RescaleSlope) + float(s.RescaleIntercept),
+               np.array(s.ImagePositionPatient, float), np.array(s.ImageOrientationPatient, float),
+               [float(v) for v in s.PixelSpacing]) for s in slices]
+    assert images[0][0].shape == (grid.shape[1], grid.shape[2])
+    found = _bright_centre(images)
     assert np.all(np.abs(found - centre) < 0.5 * np.array(grid.voxel_mm)), (found, centre)
     water = slices[0].pixel_array.astype(float) * float(slices[0].RescaleSlope) + float(slices[0].RescaleIntercept)
     assert np.all(water == 0)  # water is 0 HU
@@ -65,3 +76,22 @@ def test_every_object_passes_dciodvfy(tmp_path: Path) -> None:
         res = subprocess.run([tool, str(f)], capture_output=True, text=True, timeout=60)
         errors = [line for line in (res.stdout + res.stderr).splitlines() if line.startswith("Error")]
         assert not errors, f"{f.name}: {errors}"
+
+
+def test_one_enhanced_ct_object_holds_the_same_volume_in_the_same_place(tmp_path: Path) -> None:
+    grid, volume, centre = _sphere()
+    path = export_enhanced_ct(volume, grid, tmp_path / "ct.dcm", SeriesInfo(description="test", patient_id="P1"))
+    res = subprocess.run([require_tool("dciodvfy", "dicom3tools"), str(path)], capture_output=True, text=True, timeout=60)
+    assert not [x for x in (res.stdout + res.stderr).splitlines() if x.startswith("Error")], res.stderr
+    ds = pydicom.dcmread(path)
+    assert ds.SOPClassUID == "1.2.840.10008.5.1.4.1.1.2.1" and int(ds.NumberOfFrames) == grid.shape[0]
+    shared = ds.SharedFunctionalGroupsSequence[0]
+    rescale = shared.PixelValueTransformationSequence[0]
+    iop = np.array(shared.PlaneOrientationSequence[0].ImageOrientationPatient, float)
+    spacing = [float(v) for v in shared.PixelMeasuresSequence[0].PixelSpacing]
+    hu = ds.pixel_array.astype(float) * float(rescale.RescaleSlope) + float(rescale.RescaleIntercept)
+    images = [(hu[k], np.array(f.PlanePositionSequence[0].ImagePositionPatient, float), iop, spacing)
+              for k, f in enumerate(ds.PerFrameFunctionalGroupsSequence)]
+    found = _bright_centre(images)
+    assert np.all(np.abs(found - centre) < 0.5 * np.array(grid.voxel_mm)), (found, centre)
+    np.testing.assert_array_equal(hu, to_hounsfield(volume, 0.0206))  # the series' values, frame k = slice k

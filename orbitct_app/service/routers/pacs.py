@@ -67,12 +67,13 @@ class ImportOut(BaseModel):
 
 
 class SendRequest(BaseModel):
-    """Send a succeeded reconstruction to a node as a DICOM CT series."""
+    """Send a succeeded reconstruction to a node as a DICOM CT series (or one Enhanced CT object)."""
 
     model_config = ConfigDict(extra="forbid")
     reconstruction_id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")
     water_mu_per_mm: float | None = Field(default=None, gt=0.0, le=10.0)
     patient_id: str = Field(default="", max_length=64, pattern=r"^[\w .-]*$")
+    enhanced: bool = False
 
 
 class SendOut(BaseModel):
@@ -158,7 +159,7 @@ def store(node: str, body: SendRequest, service: ServiceDep, _: Analyst) -> Send
     target = _node(service, node)
     with tempfile.TemporaryDirectory(dir=service.settings.data_dir) as tmp:
         files = dicom_series(service, body.reconstruction_id, Path(tmp) / "series", body.water_mu_per_mm,
-                             body.patient_id)
+                             body.patient_id, body.enhanced)
         try:
             stored = send(files, target, service.settings.pacs_calling_aet)
         except PacsError as exc:

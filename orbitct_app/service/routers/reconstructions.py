@@ -161,14 +161,18 @@ def get_volume(job_id: str, service: ServiceDep, _: Reader, format: Literal["nif
     return FileResponse(confined(folder, sorted(names)[0]), filename=sorted(names)[0])
 
 
-@router.get("/{job_id}/dicom", response_class=FileResponse, summary="The volume as a DICOM CT series (zip)",
+@router.get("/{job_id}/dicom", response_class=FileResponse, summary="The volume as a DICOM CT series or one Enhanced "
+            "CT object (zip)",
             responses={200: {"content": {"application/zip": {}}}, **NOT_SUCCEEDED})
 def get_dicom(job_id: str, service: ServiceDep, _: Reader,
               water_mu_per_mm: Annotated[float | None, Query(gt=0.0, le=10.0, description="attenuation of water (1/mm) "
                                                              "for Hounsfield units (default 0.0206, the simulator's)")] = None,
-              patient_id: Annotated[str, Query(max_length=64, pattern=r"^[\w .-]*$")] = "") -> FileResponse:
-    """One CT image per axial slice in Hounsfield units, the object frame as the patient frame, fresh UIDs, the
-    algorithm and geometry in the series description; zipped (written once per water value)."""
+              patient_id: Annotated[str, Query(max_length=64, pattern=r"^[\w .-]*$")] = "",
+              enhanced: Annotated[bool, Query(description="one Enhanced CT object instead of one CT image per "
+                                                          "slice")] = False) -> FileResponse:
+    """One CT image per axial slice (or one multi-frame Enhanced CT object) in Hounsfield units, the object frame as
+    the patient frame, fresh UIDs, the algorithm and geometry in the series description; zipped (written once per
+    water value)."""
     import tempfile
     import zipfile
 
@@ -177,11 +181,12 @@ def get_dicom(job_id: str, service: ServiceDep, _: Reader,
     _volume(service, job_id)  # 404 or 409 before anything is written
     water = water_mu_per_mm or WATER_MU_PER_MM
     folder = service.jobs.job_dir(job_id)
-    name = f"dicom-{job_id}-{water:g}{'-' + patient_id if patient_id else ''}.zip".replace(" ", "_")
+    name = (f"dicom-{job_id}-{water:g}{'-' + patient_id if patient_id else ''}{'-enhanced' if enhanced else ''}"
+            ".zip").replace(" ", "_")
     target = folder / name
     if not target.exists():
         with tempfile.TemporaryDirectory(dir=folder) as tmp:
-            files = dicom_series(service, job_id, Path(tmp) / "series", water, patient_id)
+            files = dicom_series(service, job_id, Path(tmp) / "series", water, patient_id, enhanced)
             partial = Path(tmp) / "series.zip"
             with zipfile.ZipFile(partial, "w", zipfile.ZIP_DEFLATED) as zf:
                 for f in files:
@@ -190,11 +195,15 @@ def get_dicom(job_id: str, service: ServiceDep, _: Reader,
     return FileResponse(confined(folder, name), media_type="application/zip", filename=f"{job_id}-dicom.zip")
 
 
+ENHANCED_CT_NAME = "CT_ENHANCED.dcm"
+
+
 def dicom_series(service: Any, job_id: str, out_dir: Path, water_mu_per_mm: float | None = None,
-                 patient_id: str = "") -> list[Path]:
-    """Write a succeeded reconstruction as a DICOM CT series into ``out_dir``; the files."""
+                 patient_id: str = "", enhanced: bool = False) -> list[Path]:
+    """Write a succeeded reconstruction as a DICOM CT series (or one Enhanced CT object) into ``out_dir``; the
+    files."""
     from orbitct.geometry import VolumeGrid
-    from recon.dicom import WATER_MU_PER_MM, SeriesInfo, export_dicom_ct
+    from recon.dicom import WATER_MU_PER_MM, SeriesInfo, export_dicom_ct, export_enhanced_ct
 
     vol = _volume(service, job_id)
     job = job_or_404(service, job_id, "reconstruction")
@@ -203,6 +212,8 @@ def dicom_series(service: Any, job_id: str, out_dir: Path, water_mu_per_mm: floa
     info = SeriesInfo(description=f"orbitct {result.get('name', job_id)}: {params.get('algorithm', '?').upper()} "
                                   f"{params.get('geometry', '?')} geometry", patient_id=patient_id or job["scan_id"],
                       water_mu_per_mm=water_mu_per_mm or WATER_MU_PER_MM)
+    if enhanced:
+        return [export_enhanced_ct(np.asarray(vol, dtype=np.float32), grid, out_dir / ENHANCED_CT_NAME, info)]
     return export_dicom_ct(np.asarray(vol, dtype=np.float32), grid, out_dir, info)
 
 

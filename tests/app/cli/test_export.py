@@ -31,6 +31,13 @@ def test_export_dicom_writes_a_series_with_the_provenance_and_refuses_what_it_ca
     assert ds.PatientID == "bench-01" and ds.StudyDescription == "phantom A" and "fdk_nominal" in ds.SeriesDescription
     assert int(ds.pixel_array[2, 1]) == 1000 and float(ds.ImagePositionPatient[2]) == 1.0
 
+    res = runner.invoke(cli, ["export", "dicom", str(scan), "--recon", "fdk_nominal", "--out", str(tmp_path / "ect"),
+                              "--enhanced"])
+    assert res.exit_code == 0 and "one Enhanced CT object of 6 frames of 4x5 px" in res.output, res.output
+    ds = pydicom.dcmread(tmp_path / "ect" / "CT_ENHANCED.dcm")
+    assert ds.SOPClassUID == "1.2.840.10008.5.1.4.1.1.2.1" and ds.pixel_array.shape == (6, 5, 4)
+    assert int(ds.pixel_array[3, 2, 1]) == 1000 and "fdk_nominal" in ds.SeriesDescription
+
     again = runner.invoke(cli, ["export", "dicom", str(scan), "--recon", "fdk_nominal", "--out", str(tmp_path / "ct")])
     assert again.exit_code != 0 and "is not empty" in again.output
     missing = runner.invoke(cli, ["export", "dicom", str(scan), "--recon", "pwls", "--out", str(tmp_path / "x")])

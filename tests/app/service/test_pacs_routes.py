@@ -5,9 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import pydicom
 import pytest
 
-from orbitct_app.pacs import find_series, send
+from orbitct_app.pacs import find_series, get_series, send
 from tests.app.service.test_jobs import _wait
 from tests.app.test_pacs import _carm_scan
 from tests.helpers.orthanc import orthanc
@@ -50,6 +51,12 @@ def test_runs_come_in_as_scans_and_volumes_go_out_through_the_configured_node(ma
         assert r.json() == {"node": "lab", "stored": 8}
         ct = find_series(node, PatientID="REST-1", Modality="CT")
         assert len(ct) == 1 and ct[0]["NumberOfSeriesRelatedInstances"] == "8"
+        r = api.post("/pacs/lab/store", role="analyst", json={"reconstruction_id": rec, "patient_id": "REST-2",
+                                                               "enhanced": True})
+        assert r.json() == {"node": "lab", "stored": 1}, r.text
+        ect = find_series(node, PatientID="REST-2", Modality="CT")
+        pulled = get_series(node, ect[0]["StudyInstanceUID"], ect[0]["SeriesInstanceUID"], tmp_path / "ect")
+        assert int(pydicom.dcmread(pulled[0]).NumberOfFrames) == 8
 
         r = api.get("/pacs/nowhere/series")
         assert r.status_code == 404 and "configured: down, lab" in r.json()["message"]

@@ -94,6 +94,10 @@ def test_scan_calibrate_reconstruct(api, tmp_path: Path) -> None:  # type: ignor
         ct = pydicom.dcmread(io.BytesIO(zf.read(names[0])))
     assert ct.Modality == "CT" and ct.PatientID == "phantom 1" and "FDK calibrated geometry" in ct.SeriesDescription
     assert (ct.Rows, ct.Columns) == (32, 32)
+    r = api.get(f"/reconstructions/{rec_id}/dicom", params={"enhanced": True})
+    with zipfile.ZipFile(io.BytesIO(r.content)) as zf:
+        assert zf.namelist() == [f"{rec_id}/CT_ENHANCED.dcm"]
+        assert int(pydicom.dcmread(io.BytesIO(zf.read(zf.namelist()[0]))).NumberOfFrames) == 24
     assert api.get(f"/reconstructions/{rec_id}/dicom", params={"water_mu_per_mm": 0}).status_code == 422
     assert [j["id"] for j in api.get("/jobs", params={"scan_id": scan_id}).json()] == [rec_id, cal_id]
 
