@@ -36,6 +36,7 @@ class SeriesInfo:
     study_uid: str = ""  # empty: a new study
     series_number: int = 1
     water_mu_per_mm: float = WATER_MU_PER_MM
+    comments: str = ""  # a caveat every image carries (ImageComments)
 
 
 def to_hounsfield(volume: NDArray[np.floating], water_mu_per_mm: float) -> NDArray[np.int16]:
@@ -61,6 +62,8 @@ def _header(ds: Any, info: SeriesInfo, uids: tuple[str, str, str], now: dt.datet
     ds.PatientPosition = ""  # a bench object: not known
     ds.FrameOfReferenceUID, ds.PositionReferenceIndicator = frame_uid, ""
     ds.ContentDate, ds.ContentTime = date, time
+    if info.comments:
+        ds.ImageComments = info.comments[:10240]
 
 
 def export_dicom_ct(volume: NDArray[np.floating], grid: VolumeGrid, out_dir: Path, info: SeriesInfo = SeriesInfo()) -> list[Path]:

@@ -57,5 +57,6 @@ def scan_summary(f: "ScanFile") -> dict[str, Any]:
         },
         "phantom": (f"{ph.get('name', '')}: {len(ph.get('primitives', []))} primitives" if ph else ""),
         "recon": f.recon_names(),
+        "import_assumptions": list(f.attrs_json("provenance", "import_assumptions_json").get("assumed", [])),
         "file_bytes": f.path.stat().st_size,
     }

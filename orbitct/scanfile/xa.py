@@ -26,6 +26,16 @@ from orbitct.scanfile.keys import ImageKey
 from orbitct.scanfile.reader import ScanFile
 from orbitct.scanfile.writer import ScanWriter
 
+PATIENT_SIDES_UNKNOWN = ("left and right relative to the patient are not established: frames are read with columns "
+                         "along u and rows along v (PatientOrientation not read), and a reconstruction may be the "
+                         "patient's mirror image; check against a marker (docs/geometry.md)")
+
+
+def patient_sides_caveat(assumptions: Sequence[str]) -> str:
+    """The caveat a volume reconstructed from an imported run carries ('' when the scan was not imported)."""
+    return f"reconstructed from an imported C-arm run: {PATIENT_SIDES_UNKNOWN}" if PATIENT_SIDES_UNKNOWN in assumptions else ""
+
+
 AXES = {"carm.primary": "deg", "carm.secondary": "deg"}
 REQUIRED = ("NumberOfFrames", "Rows", "Columns", "PixelData")
 CLASSIC_REQUIRED = ("PositionerPrimaryAngle", "PositionerSecondaryAngle", "DistanceSourceToDetector",
@@ -233,7 +243,8 @@ def import_xa(files: Sequence[str | Path], out: str | Path, *, overwrite: bool =
                    f"({bright:.10g}, the 99.9th percentile) were added",
                    "principal point at the detector centre (XA does not record it)",
                    "pixel data raw (PixelIntensityRelationship LIN): line integrals are -log(frame / flat)",
-                   "angles: primary = LAO/RAO = rotation theta, secondary = CRAN/CAUD = tilt phi"]
+                   "angles: primary = LAO/RAO = rotation theta, secondary = CRAN/CAUD = tilt phi",
+                   PATIENT_SIDES_UNKNOWN]
     kinds = sorted({r["kind"] for r in runs})
     if "Enhanced XA" in kinds:
         assumptions.append("Enhanced XA: each frame's angles from its X-Ray Positioner functional group, distances "

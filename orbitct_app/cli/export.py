@@ -32,6 +32,7 @@ def dicom(scan: Path, name: str, out_dir: Path, water_mu_per_mm: float | None, p
     frame as patient frame)."""
     from orbitct.geometry import VolumeGrid
     from orbitct.scanfile import ScanFile, ScanFileError
+    from orbitct.scanfile.xa import patient_sides_caveat
     from recon.dicom import WATER_MU_PER_MM, SeriesInfo, export_dicom_ct, export_enhanced_ct
     from recon.errors import ReconError
 
@@ -41,6 +42,7 @@ def dicom(scan: Path, name: str, out_dir: Path, water_mu_per_mm: float | None, p
         with ScanFile(scan) as sf:
             volume, attrs = sf.read_recon(name)
             calibrated = sf.has_geometry("calibrated")
+            caveat = patient_sides_caveat(sf.attrs_json("provenance", "import_assumptions_json").get("assumed", []))
     except ScanFileError as exc:
         raise click.ClickException(str(exc)) from None
     grid = VolumeGrid(tuple(volume.shape), tuple(attrs["voxel_mm"]), tuple(attrs["origin_mm"]))
@@ -50,7 +52,9 @@ def dicom(scan: Path, name: str, out_dir: Path, water_mu_per_mm: float | None, p
         provenance += " (BB calibration)"
     info = SeriesInfo(description=f"orbitct {name}: {provenance}", patient_name=patient_name,
                       patient_id=patient_id or scan.stem[:64], study_description=study_description,
-                      water_mu_per_mm=water_mu_per_mm or WATER_MU_PER_MM)
+                      water_mu_per_mm=water_mu_per_mm or WATER_MU_PER_MM, comments=caveat)
+    if caveat:
+        click.echo(f"warning: {caveat} (in every image's ImageComments)", err=True)
     try:
         if enhanced:
             path = export_enhanced_ct(volume, grid, out_dir / "CT_ENHANCED.dcm", info)

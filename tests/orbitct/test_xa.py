@@ -179,6 +179,12 @@ def test_the_commands_export_and_import_a_run(carm_scan: Path, tmp_path: Path) -
                                "--frames", "80:80", "--kind", "enhanced-xa"]).exit_code != 0  # no frames
     res = runner.invoke(cli, ["import", "dicom", str(tmp_path / "runs"), "--out", str(tmp_path / "in.h5")])
     assert res.exit_code == 0 and "80 projections from 2 run(s)" in res.output and "assumed: principal point" in res.output
+    with ScanFile(tmp_path / "in.h5", "r+") as sf:  # a volume of the imported run goes out with the caveat
+        sf.write_recon("fdk", np.zeros((2, 3, 4), np.float32), voxel_mm=(1.0, 1.0, 1.0), origin_mm=(0.0, 0.0, 0.0),
+                       algorithm="fdk", geometry="nominal", iterations=0, elapsed_s=0.1, params={})
+    res = runner.invoke(cli, ["export", "dicom", str(tmp_path / "in.h5"), "--recon", "fdk", "--out", str(tmp_path / "ct")])
+    assert res.exit_code == 0 and "warning: reconstructed from an imported C-arm run: left and right" in res.output
+    assert "mirror image" in pydicom.dcmread(tmp_path / "ct" / "CT000001.dcm").ImageComments
     res = runner.invoke(cli, ["export", "xa", str(carm_scan), "--out", str(tmp_path / "enh" / "r.dcm"), "--kind",
                               "enhanced-xa"])
     assert res.exit_code == 0 and "(enhanced-xa)" in res.output, res.output

@@ -203,6 +203,7 @@ def dicom_series(service: Any, job_id: str, out_dir: Path, water_mu_per_mm: floa
     """Write a succeeded reconstruction as a DICOM CT series (or one Enhanced CT object) into ``out_dir``; the
     files."""
     from orbitct.geometry import VolumeGrid
+    from orbitct.scanfile.xa import patient_sides_caveat
     from recon.dicom import WATER_MU_PER_MM, SeriesInfo, export_dicom_ct, export_enhanced_ct
 
     vol = _volume(service, job_id)
@@ -211,7 +212,9 @@ def dicom_series(service: Any, job_id: str, out_dir: Path, water_mu_per_mm: floa
     grid = VolumeGrid(tuple(vol.shape), tuple(result["voxel_mm"]), tuple(result["origin_mm"]))
     info = SeriesInfo(description=f"orbitct {result.get('name', job_id)}: {params.get('algorithm', '?').upper()} "
                                   f"{params.get('geometry', '?')} geometry", patient_id=patient_id or job["scan_id"],
-                      water_mu_per_mm=water_mu_per_mm or WATER_MU_PER_MM)
+                      water_mu_per_mm=water_mu_per_mm or WATER_MU_PER_MM,
+                      comments=patient_sides_caveat(((service.store.get_scan(job["scan_id"]) or {}).get("summary") or {})
+                                                    .get("import_assumptions", [])))
     if enhanced:
         return [export_enhanced_ct(np.asarray(vol, dtype=np.float32), grid, out_dir / ENHANCED_CT_NAME, info)]
     return export_dicom_ct(np.asarray(vol, dtype=np.float32), grid, out_dir, info)

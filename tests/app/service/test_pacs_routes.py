@@ -56,7 +56,8 @@ def test_runs_come_in_as_scans_and_volumes_go_out_through_the_configured_node(ma
         assert r.json() == {"node": "lab", "stored": 1}, r.text
         ect = find_series(node, PatientID="REST-2", Modality="CT")
         pulled = get_series(node, ect[0]["StudyInstanceUID"], ect[0]["SeriesInstanceUID"], tmp_path / "ect")
-        assert int(pydicom.dcmread(pulled[0]).NumberOfFrames) == 8
+        enhanced_ct = pydicom.dcmread(pulled[0])
+        assert int(enhanced_ct.NumberOfFrames) == 8 and "left and right" in enhanced_ct.ImageComments  # the caveat
 
         r = api.get("/pacs/nowhere/series")
         assert r.status_code == 404 and "configured: down, lab" in r.json()["message"]
