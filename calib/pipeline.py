@@ -41,6 +41,7 @@ from calib.quality import (
     fit_rigid_poses,
     judge,
     misfit_limit_px,
+    view_misfit_px,
 )
 from calib.rays import marker_rays, rpe_per_frame, triangulate_least_squares
 from calib.scale import ScaleBar, find_scale_bar, rescaled_views
@@ -693,6 +694,34 @@ def _leave_one_out_outliers(
     return out
 
 
+def _drop_single_misfits(
+    model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64], quality: ViewQuality,
+    min_own_bbs: int,
+) -> tuple[ViewState, NDArray[np.float64], int]:
+    """Views that failed only because one detection disagrees with the rest (a biased centroid, a BB taken for
+    another): without that detection, and with the pose refitted to the others, they fit within the misfit limit
+    and still see ``min_own_bbs`` BBs. Returns the states and detections with those views mended, and how many."""
+    limit = misfit_limit_px(quality.noise_px)
+    views = np.flatnonzero(quality.inconsistent & (quality.n_bbs >= max(min_own_bbs + 2, 6)))  # 5+ BBs stay
+    if views.size == 0:
+        return state, uv, 0
+    sub = ViewModel(model.nominal[views], model.intrinsics)
+    st = ViewState(state.R[views], state.t[views], state.k[views])
+    worst = _leave_one_out_outliers(sub, st, xyz, uv[views], 0.0)
+    trial = uv[views].copy()
+    trial[worst] = np.nan
+    refit = fit_rigid_poses(sub, st, xyz, trial, iterations=4)
+    mended = np.nan_to_num(view_misfit_px(sub, refit, xyz, trial), nan=np.inf) <= limit
+    if not mended.any():
+        return state, uv, 0
+    idx = views[mended]
+    uv = uv.copy()
+    uv[idx] = trial[mended]
+    R, t, k = state.R.copy(), state.t.copy(), state.k.copy()
+    R[idx], t[idx], k[idx] = refit.R[mended], refit.t[mended], refit.k[mended]
+    return ViewState(R, t, k), uv, int(idx.size)
+
+
 def _disagree_with_neighbour(
     model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64], tol_px: float, max_bbs: int = 4
 ) -> NDArray[np.bool_]:
@@ -800,9 +829,17 @@ def _estimate(
     resid_xy = sub.geometry(state).project(xyz) - uvs
     noise = centroid_noise_px(resid_xy, sub.n_params * sub.nominal.n_views + 3 * xyz.shape[0] - 7)
     paper = method == "paper"
-    full_state, quality = assess_views(model, full_state, xyz, uv, noise_px=noise,
-                                       min_own_bbs=opt.min_bbs_per_view if paper else max(MIN_OWN_BBS, opt.min_bbs_per_view),
+    min_own = opt.min_bbs_per_view if paper else max(MIN_OWN_BBS, opt.min_bbs_per_view)
+    fitted_state = full_state
+    full_state, quality = assess_views(model, fitted_state, xyz, uv, noise_px=noise, min_own_bbs=min_own,
                                        max_gap=0 if paper else opt.bridge_max_views)
+    if not paper and quality.inconsistent.any():
+        fitted_state, uv, n_mended = _drop_single_misfits(model, fitted_state, xyz, uv, quality, min_own)
+        if n_mended:
+            warnings.append(f"{n_mended} view(s) fitted only without one detection that disagreed with the rest of "
+                            "the view; that detection was set to NaN")
+            full_state, quality = assess_views(model, fitted_state, xyz, uv, noise_px=noise, min_own_bbs=min_own,
+                                               max_gap=opt.bridge_max_views)
     if quality.counts()["own"] == 0:
         raise NoMarkersError(
             f"no view sees the {MIN_OWN_BBS if not paper else opt.min_bbs_per_view} BBs it needs to be calibrated (and "

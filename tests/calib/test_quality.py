@@ -51,3 +51,30 @@ def test_centroid_biases_of_a_few_tenths_of_a_pixel_do_not_fail_a_view() -> None
     uv[5, 2] += np.array([0.2, 0.0])  # 7 times the noise, but within what real blobs do
     _, q = assess_views(model, truth, xyz, uv, noise_px=0.03)
     assert q.status[5] == OWN and not q.inconsistent.any()
+
+
+def test_a_view_failed_by_one_detection_is_mended_without_it_and_only_then() -> None:
+    """The calibration drops the one detection that keeps a view from fitting (a biased centroid a pixel off)
+    when the view still sees 5 or more BBs and then fits; two disagreeing detections, or too few BBs, stay failed."""
+    from calib.pipeline import _drop_single_misfits
+
+    rng = np.random.default_rng(3)
+    model = ViewModel(sawtooth(40, 256))
+    xyz = spiral_markers(8, radius=50.0, height=50.0)
+    truth = ViewState(rotvec_to_matrix(np.cumsum(rng.normal(0, 1e-3, (40, 3)), 0)),
+                      np.cumsum(rng.normal(0, 0.3, (40, 3)), 0), np.zeros((40, 0)))
+    uv = model.project(truth, xyz) + rng.normal(0.0, 0.05, (40, 8, 2))
+    uv[12, 5] += np.array([1.2, 0.0])  # one biased detection: mended
+    uv[20, 1] += np.array([1.2, 0.0])  # two: the view stays failed
+    uv[20, 6] += np.array([0.0, -1.2])
+    uv[25, 5:] = np.nan  # five BBs, one biased: four would be left, too few to judge by
+    uv[25, 0] += np.array([1.2, 0.0])
+    _, q = assess_views(model, truth, xyz, uv, noise_px=0.05)
+    assert set(np.flatnonzero(q.inconsistent)) == {12, 20, 25}
+    state, mended_uv, n = _drop_single_misfits(model, truth, xyz, uv, q, min_own_bbs=4)
+    assert n == 1 and np.isnan(mended_uv[12, 5]).all() and np.isfinite(mended_uv[12, [0, 1, 2, 3, 4, 6, 7]]).all()
+    assert np.array_equal(mended_uv[20], uv[20], equal_nan=True) and np.array_equal(mended_uv[25], uv[25], equal_nan=True)
+    _, q2 = assess_views(model, state, xyz, mended_uv, noise_px=0.05)
+    assert q2.status[12] == OWN and q2.status[20] == FAILED and q2.status[25] == FAILED
+    moved = np.abs(model.project(state, xyz)[12] - model.project(truth, xyz)[12]).max()
+    assert moved < 0.15  # the refitted pose puts every BB (the dropped one too) where the truth does
