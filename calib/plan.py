@@ -10,6 +10,7 @@ with fewer than four usable BBs cannot be calibrated from its own (NaN).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -96,6 +97,33 @@ def metal_of(phantom: Any) -> list[Any]:
     return [p for p in phantom.primitives if p.is_metal and not str(p.label).startswith("bb")]
 
 
+@dataclass(frozen=True)
+class KeepOut:
+    """A patch of the surface where no BB may go (a wound, a label, where the object is held): polar angles from
+    ``angle_from_deg`` counterclockwise to ``angle_to_deg`` (through 0 when ``to < from``) between two heights."""
+
+    angle_from_deg: float
+    angle_to_deg: float
+    z_min_mm: float
+    z_max_mm: float
+
+    @classmethod
+    def parse(cls, text: str) -> "KeepOut":
+        """``FROM:TO,ZMIN:ZMAX`` (degrees, mm), e.g. ``300:60,-20:10``; ValueError naming what is wrong."""
+        try:
+            (a0, a1), (z0, z1) = ([float(v) for v in part.split(":")] for part in text.split(","))
+        except ValueError:
+            raise ValueError(f"keep-out {text!r}: expected FROM_DEG:TO_DEG,ZMIN_MM:ZMAX_MM (e.g. 300:60,-20:10)") from None
+        if not z0 < z1:
+            raise ValueError(f"keep-out {text!r}: the lower height {z0:g} must be below the upper {z1:g}")
+        return cls(a0 % 360.0, a1 % 360.0, z0, z1)
+
+    def contains(self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Whether surface points (polar angle, height) lie in the patch."""
+        a = np.degrees(angle_rad) % 360.0
+        span = (self.angle_to_deg - self.angle_from_deg) % 360.0
+        inside = (a - self.angle_from_deg) % 360.0 <= span
+        return inside & (z_mm >= self.z_min_mm) & (z_mm <= self.z_max_mm)
 
 
 @dataclass(frozen=True)
@@ -137,13 +165,17 @@ def placement_score(pred: PlanPrediction) -> float:
 
 
 def plan_placement(geometry: ViewGeometry, surface: Surface, n_bbs: int, diameter_mm: float, *, noise_px: float = 0.1,
-                   metal: list[Any] | None = None, seed: int = 0, trials: int = 200, rounds: int = 3, moves: int = 12,
-                   min_spacing_mm: float = 25.0) -> Placement:
-    """Search BB positions on ``surface`` that minimise :func:`placement_score` for the views of ``geometry``:
-    ``trials`` random placements (BBs at least ``min_spacing_mm`` apart), then ``rounds`` of moving each BB to the
-    best of ``moves`` random places. The search scores about 125 of the views; the result is predicted on all."""
+                   metal: list[Any] | None = None, keep_out: Sequence[KeepOut] = (), seed: int = 0, trials: int = 200,
+                   rounds: int = 3, moves: int = 12, min_spacing_mm: float = 25.0) -> Placement:
+    """Search BB positions on ``surface`` outside the ``keep_out`` patches that minimise :func:`placement_score` for
+    the views of ``geometry``: ``trials`` random placements (BBs at least ``min_spacing_mm`` apart), then ``rounds``
+    of moving each BB to the best of ``moves`` random places. The search scores about 125 of the views; the result
+    is predicted on all."""
     rng = np.random.default_rng(seed)
     coarse = geometry[:: max(1, geometry.n_views // 125)]
+    probe = (rng.uniform(0, 2 * np.pi, 4000), rng.uniform(surface.z_min_mm, surface.z_max_mm, 4000))
+    if not _allowed(probe[0], probe[1], keep_out).any():
+        raise ValueError("the keep-out zones cover the whole surface: no place is left for a BB")
 
     def spaced(ang: NDArray[np.float64], z: NDArray[np.float64]) -> bool:
         xyz = surface.points(ang, z, diameter_mm)
@@ -151,7 +183,12 @@ def plan_placement(geometry: ViewGeometry, surface: Surface, n_bbs: int, diamete
         return bool((d[np.triu_indices(len(xyz), 1)] >= min_spacing_mm).all())
 
     def draw(n: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        return rng.uniform(0, 2 * np.pi, n), rng.uniform(surface.z_min_mm, surface.z_max_mm, n)
+        ang, z = np.empty(0), np.empty(0)
+        while ang.size < n:  # uniform over the surface less the keep-out zones
+            a, h = rng.uniform(0, 2 * np.pi, 4 * n), rng.uniform(surface.z_min_mm, surface.z_max_mm, 4 * n)
+            keep = _allowed(a, h, keep_out)
+            ang, z = np.concatenate([ang, a[keep]]), np.concatenate([z, h[keep]])
+        return ang[:n], z[:n]
 
     def score(ang: NDArray[np.float64], z: NDArray[np.float64]) -> float:
         return placement_score(predict_placement(coarse, surface.points(ang, z, diameter_mm), diameter_mm,
@@ -183,5 +220,40 @@ def plan_placement(geometry: ViewGeometry, surface: Surface, n_bbs: int, diamete
     return Placement(ang, z, xyz, full, placement_score(full))
 
 
-__all__ = ["METAL_CHORD_MM", "OVERLAP_DIAMETERS", "Placement", "PlanPrediction", "Surface", "metal_of",
-           "placement_score", "plan_placement", "predict_placement", "usable_bbs"]
+def _allowed(angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64], keep_out: Sequence[KeepOut]) -> NDArray[np.bool_]:
+    out = np.ones(angle_rad.shape, bool)
+    for zone in keep_out:
+        out &= ~zone.contains(angle_rad, z_mm)
+    return out
+
+
+@dataclass(frozen=True)
+class CountSuggestion:
+    """The fewest BBs whose planned placement reaches a target accuracy, and what each count tried reached."""
+
+    target_px: float
+    n_bbs: int | None  # None: not reached with the most BBs tried
+    tried: dict[int, dict[str, Any]]  # count -> the planned placement's prediction summary
+
+
+def suggest_bb_count(geometry: ViewGeometry, surface: Surface, diameter_mm: float, target_px: float, *,
+                     n_min: int = MIN_OWN_BBS, n_max: int = 20, **plan_options: Any) -> CountSuggestion:
+    """The fewest BBs (from ``n_min`` up to ``n_max``) whose planned placement leaves no view under-determined and
+    predicts every view's error at or below ``target_px``; each count is planned with ``plan_options`` (a lighter
+    search than a final plan's is enough to rank counts)."""
+    options = {"trials": 80, "rounds": 2, **plan_options}
+    tried: dict[int, dict[str, Any]] = {}
+    for n in range(n_min, n_max + 1):
+        try:
+            placed = plan_placement(geometry, surface, n, diameter_mm, **options)
+        except ValueError:  # n BBs no longer fit at the spacing: more will not either
+            break
+        summary = placed.prediction.summary()
+        tried[n] = summary
+        if summary["under_determined"] == 0 and summary["predicted_px_max"] <= target_px:
+            return CountSuggestion(target_px, n, tried)
+    return CountSuggestion(target_px, None, tried)
+
+
+__all__ = ["METAL_CHORD_MM", "OVERLAP_DIAMETERS", "CountSuggestion", "KeepOut", "Placement", "PlanPrediction", "Surface",
+           "metal_of", "placement_score", "plan_placement", "predict_placement", "suggest_bb_count", "usable_bbs"]

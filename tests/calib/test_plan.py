@@ -7,7 +7,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.plan import metal_of, predict_placement, usable_bbs
+from calib.plan import (
+    KeepOut,
+    Surface,
+    metal_of,
+    plan_placement,
+    predict_placement,
+    suggest_bb_count,
+    usable_bbs,
+)
 from orbitct.phantoms.primitives import sphere
 from tests.helpers.calib_scans import sawtooth, spiral_markers
 
@@ -90,7 +98,51 @@ def test_cli_plans_bbs_writes_the_plan_and_its_picture_and_the_simulator_uses_it
     assert r.exit_code == 0, r.output
     with ScanFile(scan) as sf:
         np.testing.assert_allclose(sf.truth_markers_xyz(), [b["xyz_mm"] for b in body["bbs"]])
+    counted = tmp_path / "counted.json"
+    r = CliRunner().invoke(cli, ["plan", "bbs", "-e", "A", "--frames", "60", "--detector-size", "192", "--target-px", "0.3",
+                                 "--max-bbs", "8", "--keep-out", "0:90,-80:80", "--out", str(counted)])
+    assert r.exit_code == 0, r.output
+    body = json.loads(counted.read_text())
+    suggestion = body["count_suggestion"]
+    assert suggestion["target_px"] == 0.3 and "fewest BBs for 0.3 px in every view" in r.output
+    if suggestion["n_bbs"] is not None:
+        assert len(body["bbs"]) == suggestion["n_bbs"] and body["predicted"]["predicted_px_max"] <= 0.3
+    assert body["keep_out"] == [{"angle_from_deg": 0.0, "angle_to_deg": 90.0, "z_min_mm": -80.0, "z_max_mm": 80.0}]
+    assert all(not 0.0 <= b["angle_deg"] <= 90.0 for b in body["bbs"])
+    r = CliRunner().invoke(cli, ["plan", "bbs", "-e", "A", "--keep-out", "0:90", "--out", str(tmp_path / "k.json")])
+    assert r.exit_code == 2 and "FROM_DEG:TO_DEG,ZMIN_MM:ZMAX_MM" in r.output and "Traceback" not in r.output
     plan.write_text("{}")
     r = CliRunner().invoke(cli, ["simulate", "-e", "A", "--frames", "20", "--detector-size", "64", "--bbs-from", str(plan),
                                  "--out", str(tmp_path / "x.h5")])
     assert r.exit_code == 2 and "not a BB plan" in r.output and "Traceback" not in r.output
+
+
+def test_keep_out_zones_are_parsed_wrap_through_zero_and_stay_free_of_bbs() -> None:
+    zone = KeepOut.parse("300:60,-20:10")
+    assert zone == KeepOut(300.0, 60.0, -20.0, 10.0)
+    inside = zone.contains(np.radians([330.0, 10.0, 59.0, 90.0, 10.0]), np.array([0.0, 0.0, 0.0, 0.0, 30.0]))
+    assert inside.tolist() == [True, True, True, False, False]
+    for bad, message in (("300:60", "expected FROM_DEG"), ("a:b,1:2", "expected FROM_DEG"), ("0:90,10:5", "must be below")):
+        with pytest.raises(ValueError, match=message):
+            KeepOut.parse(bad)
+    g = sawtooth(60, 256)
+    surface = Surface(60.0, 60.0, -40.0, 40.0)
+    zones = (KeepOut(0.0, 180.0, -40.0, 40.0), KeepOut(180.0, 270.0, -40.0, 0.0))  # three quarters of the surface
+    placed = plan_placement(g, surface, 5, D_MM, keep_out=zones, trials=30, rounds=1, min_spacing_mm=10.0)
+    assert not any(z.contains(placed.angle_rad, placed.z_mm).any() for z in zones)
+    with pytest.raises(ValueError, match="cover the whole surface"):
+        plan_placement(g, surface, 5, D_MM, keep_out=(KeepOut(0.0, 359.99, -50.0, 50.0),))
+
+
+def test_the_suggested_count_is_the_fewest_bbs_that_reach_the_target() -> None:
+    g = sawtooth(60, 256)
+    surface = Surface(60.0, 60.0, -40.0, 40.0)
+    options = {"trials": 30, "rounds": 1, "min_spacing_mm": 15.0}
+    loose = suggest_bb_count(g, surface, D_MM, 10.0, n_max=8, **options)
+    assert loose.n_bbs is not None and list(loose.tried) == list(range(4, loose.n_bbs + 1))
+    reached = loose.tried[loose.n_bbs]
+    assert reached["under_determined"] == 0 and reached["predicted_px_max"] <= 10.0
+    target = 0.8 * reached["predicted_px_max"]  # a bit better than that count reached: more BBs, or none
+    tighter = suggest_bb_count(g, surface, D_MM, target, n_max=12, **options)
+    assert tighter.n_bbs is None or tighter.n_bbs > loose.n_bbs
+    assert suggest_bb_count(g, surface, D_MM, 1e-6, n_max=6, **options).n_bbs is None

@@ -1,0 +1,192 @@
+"""A BB plan for one of the experiments' objects and an orbit, as the CLI (``orbitct plan bbs``) and the REST service
+(``/plans/bbs``) make it: the placement, its prediction beside the experiment's own, optionally the fewest BBs for a
+target accuracy, the JSON a person or the simulator (``--bbs-from``) reads, and its picture."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+MAX_BBS = 40
+
+
+class BBPlanError(ValueError):
+    """The request cannot be planned (unknown orbit, BBs that do not fit, keep-out zones covering everything)."""
+
+
+@dataclass(frozen=True)
+class BBPlanRequest:
+    """What to plan for: the experiment's object, the orbit, the panel, the BBs and the search."""
+
+    experiment: str
+    orbit: str | None = None
+    frames: int | None = None
+    n_bbs: int = 8
+    detector_px: int = 768
+    noise_px: float = 0.1
+    seed: int = 0
+    keep_out: tuple[Any, ...] = ()  # calib.plan.KeepOut
+    target_px: float | None = None  # suggest the fewest BBs whose worst view reaches this (then n_bbs is that count)
+    max_bbs: int = 20
+
+
+@dataclass
+class BBPlan:
+    """The plan as JSON-ready ``body`` plus what its picture needs."""
+
+    body: dict[str, Any]
+    placed: Any  # calib.plan.Placement
+    own: Any  # calib.plan.PlanPrediction of the experiment's placement
+    surface: Any
+    warnings: list[str] = field(default_factory=list)
+
+
+def make_bb_plan(req: BBPlanRequest) -> BBPlan:
+    """Plan the BBs for ``req``; BBPlanError with a one-line reason when it cannot."""
+    from calib.plan import (
+        Surface,
+        metal_of,
+        placement_score,
+        plan_placement,
+        predict_placement,
+        suggest_bb_count,
+    )
+    from orbitct.orbits import OrbitError
+    from orbitct.phantoms.experiments import BB_SURFACES, experiment_phantom
+    from orbitct.simulator import resolve_orbit
+    from orbitct.simulator.bench import SimulatedBench
+
+    key = req.experiment.upper()
+    if key not in BB_SURFACES:
+        raise BBPlanError(f"experiment {req.experiment!r}: allowed are {', '.join(sorted(BB_SURFACES))}")
+    try:
+        orbit = resolve_orbit(key, req.orbit, req.frames)
+    except OrbitError as exc:
+        raise BBPlanError(str(exc)) from None
+    phantom = experiment_phantom(key)
+    d = float(phantom.marker_diameter_mm or 3.0)
+    geometry = SimulatedBench.with_panel(req.detector_px).nominal_geometry(orbit)
+    metal = metal_of(phantom)
+    surface = Surface(*BB_SURFACES[key])
+    options: dict[str, Any] = {"noise_px": req.noise_px, "metal": metal, "keep_out": req.keep_out, "seed": req.seed}
+    warnings: list[str] = []
+    n_bbs, suggestion = req.n_bbs, None
+    try:
+        if req.target_px is not None:
+            suggestion = suggest_bb_count(geometry, surface, d, req.target_px, n_max=req.max_bbs, **options)
+            if suggestion.n_bbs is None:
+                n_bbs = max(suggestion.tried, default=req.n_bbs)
+                warnings.append(f"no placement of up to {req.max_bbs} BBs reaches {req.target_px:g} px in every view; "
+                                f"planned {n_bbs} BBs, the most that fit")
+            else:
+                n_bbs = suggestion.n_bbs
+        placed = plan_placement(geometry, surface, n_bbs, d, **options)
+    except ValueError as exc:
+        raise BBPlanError(str(exc)) from None
+    own = predict_placement(geometry, phantom.markers_xyz, d, noise_px=req.noise_px, metal=metal)
+    pred = placed.prediction
+    if pred.under_determined.size:
+        warnings.append(f"{pred.under_determined.size} view(s) see fewer than 4 usable BBs (first: "
+                        f"{pred.under_determined[:8].tolist()}); more BBs, or another orbit")
+    body: dict[str, Any] = {
+        "experiment": key, "orbit": orbit.name, "views": int(geometry.n_views), "detector_px": req.detector_px,
+        "bb_diameter_mm": d, "noise_px": req.noise_px, "surface": vars(surface),
+        "keep_out": [vars(z) for z in req.keep_out],
+        "bbs": [{"number": k + 1, "xyz_mm": [round(float(v), 2) for v in placed.xyz[k]],
+                 "angle_deg": round(float(np.degrees(placed.angle_rad[k])) % 360.0, 1),
+                 "height_mm": round(float(placed.z_mm[k]), 1)} for k in range(n_bbs)],
+        "predicted": pred.summary(), "score": placed.score,
+        "experiment_placement": {"bbs": int(phantom.n_markers), "predicted": own.summary(), "score": placement_score(own)},
+        "per_view": {"n_bbs": pred.n_bbs.tolist(),
+                     "predicted_px": [None if not np.isfinite(v) else round(float(v), 4) for v in pred.predicted_px]},
+        "warnings": warnings,
+    }
+    if suggestion is not None:
+        body["count_suggestion"] = {"target_px": suggestion.target_px, "n_bbs": suggestion.n_bbs,
+                                    "tried": {str(n): s for n, s in suggestion.tried.items()}}
+    return BBPlan(_json_ready(body), placed, own, surface, warnings)
+
+
+def _json_ready(value: Any) -> Any:
+    """``value`` with NaN and infinities as None and numpy scalars as Python numbers (valid JSON throughout)."""
+    if isinstance(value, dict):
+        return {str(k): _json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_ready(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+def write_bb_plan(plan: BBPlan, out: Path) -> Path:
+    """Write the plan's JSON to ``out`` and its picture beside it (``.png``); the picture's path."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(plan.body, indent=1))
+    picture = out.with_suffix(".png")
+    _picture(picture, plan)
+    return picture
+
+
+def plan_lines(plan: BBPlan) -> list[str]:
+    """The plan as a person reads it at the table: the BBs, then the prediction beside the experiment's own."""
+    b = plan.body
+    lines = [f"{b['experiment']}, orbit {b['orbit']} ({b['views']} views), {len(b['bbs'])} BBs of {b['bb_diameter_mm']:g} "
+             f"mm, centroid noise {b['noise_px']:g} px"]
+    if "count_suggestion" in b:
+        c = b["count_suggestion"]
+        lines.append(f"  fewest BBs for {c['target_px']:g} px in every view: {c['n_bbs'] if c['n_bbs'] else 'not reached'} "
+                     f"(worst view by count: " + ", ".join(f"{n}: {s['predicted_px_max']:.3f}" for n, s in c["tried"].items())
+                     + ")")
+    lines.append("  BB  angle deg  height mm   x mm    y mm    z mm")
+    for bb in b["bbs"]:
+        x, y, z = bb["xyz_mm"]
+        lines.append(f"  {bb['number']:>2}  {bb['angle_deg']:9.1f}  {bb['height_mm']:9.1f}  {x:6.1f}  {y:6.1f}  {z:6.1f}")
+    for name, s, n in (("planned", b["predicted"], len(b["bbs"])),
+                       ("the experiment's own", b["experiment_placement"]["predicted"], b["experiment_placement"]["bbs"])):
+        lines.append(f"  {name} ({n} BBs): predicted error median {s['predicted_px_median']:.3f} px, worst "
+                     f"{s['predicted_px_max']:.3f} px; usable BBs per view at least {s['bbs_min']}, median "
+                     f"{s['bbs_median']:g}; {s['under_determined']} view(s) under-determined")
+    return lines
+
+
+def _picture(path: Path, plan: BBPlan) -> None:
+    """The BBs on the unrolled surface with their numbers and the keep-out zones; BBs per view and the predicted
+    error along the orbit."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    placed, own, surface = plan.placed, plan.own, plan.surface
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4.2))
+    for zone in plan.body["keep_out"]:
+        a0, a1 = zone["angle_from_deg"], zone["angle_to_deg"]
+        spans = [(a0, a1)] if a1 >= a0 else [(a0, 360.0), (0.0, a1)]
+        for lo, hi in spans:
+            ax0.add_patch(Rectangle((lo, zone["z_min_mm"]), hi - lo, zone["z_max_mm"] - zone["z_min_mm"],
+                                    color="grey", alpha=0.3, label=None))
+    ax0.scatter(np.degrees(placed.angle_rad) % 360.0, placed.z_mm, s=60, c="tab:red")
+    for k, (a, z) in enumerate(zip(np.degrees(placed.angle_rad) % 360.0, placed.z_mm, strict=True)):
+        ax0.annotate(str(k + 1), (a, z), textcoords="offset points", xytext=(5, 5))
+    ax0.set(xlim=(0, 360), ylim=(surface.z_min_mm - 5, surface.z_max_mm + 5), xlabel="angle on the object (deg, from +x)",
+            ylabel="height (mm)", title=f"experiment {plan.body['experiment']}: where to tape the BBs"
+            + (" (grey: keep out)" if plan.body["keep_out"] else ""))
+    ax0.grid(alpha=0.3)
+    views = np.arange(placed.prediction.n_bbs.size)
+    ax1.plot(views, placed.prediction.predicted_px, label="planned: predicted error (px)")
+    ax1.plot(views, own.predicted_px, label="experiment's placement", alpha=0.7)
+    ax1.set(xlabel="view", ylabel="predicted error (px)", title="calibration accuracy along the orbit")
+    ax1b = ax1.twinx()
+    ax1b.step(views, placed.prediction.n_bbs, color="grey", alpha=0.4, where="mid")
+    ax1b.set_ylabel("usable BBs (planned)")
+    ax1.legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
