@@ -184,11 +184,13 @@ def plan_placement(geometry: ViewGeometry, surface: Surface, n_bbs: int, diamete
 
     def draw(n: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         ang, z = np.empty(0), np.empty(0)
-        while ang.size < n:  # uniform over the surface less the keep-out zones
+        for _ in range(1000):  # uniform over the surface less the keep-out zones
             a, h = rng.uniform(0, 2 * np.pi, 4 * n), rng.uniform(surface.z_min_mm, surface.z_max_mm, 4 * n)
             keep = _allowed(a, h, keep_out)
             ang, z = np.concatenate([ang, a[keep]]), np.concatenate([z, h[keep]])
-        return ang[:n], z[:n]
+            if ang.size >= n:
+                return ang[:n], z[:n]
+        raise ValueError("the keep-out zones leave less than 0.1 % of the surface: no room to place BBs")
 
     def score(ang: NDArray[np.float64], z: NDArray[np.float64]) -> float:
         return placement_score(predict_placement(coarse, surface.points(ang, z, diameter_mm), diameter_mm,

@@ -33,7 +33,12 @@ def dicom(scan: Path, name: str, out_dir: Path, water_mu_per_mm: float | None, p
     from orbitct.geometry import VolumeGrid
     from orbitct.scanfile import ScanFile, ScanFileError
     from orbitct.scanfile.xa import patient_sides_caveat
-    from recon.dicom import WATER_MU_PER_MM, SeriesInfo, export_dicom_ct, export_enhanced_ct
+    from recon.dicom import (
+        WATER_MU_PER_MM,
+        SeriesInfo,
+        export_dicom_ct,
+        export_enhanced_ct,
+    )
     from recon.errors import ReconError
 
     if out_dir.exists() and any(out_dir.iterdir()):

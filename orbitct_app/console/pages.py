@@ -37,7 +37,7 @@ CSP = ("default-src 'self'; img-src 'self' data: blob:; style-src 'self' 'unsafe
 DOCS_CSP = ("default-src 'self'; script-src 'self' 'unsafe-inline'; style-src 'self' 'unsafe-inline'; img-src 'self' data: "
             "blob:; worker-src 'self' blob:; connect-src 'self'; font-src 'self' data:; frame-ancestors 'none'")
 NAV = [("bench", "Bench", "/console/bench"), ("scan-new", "New scan", "/console/scans/new"),
-       ("scans", "Scans", "/console/scans"), ("jobs", "Jobs", "/console/jobs")]
+       ("scans", "Scans", "/console/scans"), ("jobs", "Jobs", "/console/jobs"), ("plans", "BB plans", "/console/plans")]
 
 templates = Jinja2Templates(directory=str(HERE / "templates"))
 router = APIRouter(include_in_schema=False)
@@ -121,6 +121,12 @@ def viewer(request: Request, job_id: Id, compare: Annotated[str, Query(pattern=r
 def jobs(request: Request) -> Response:
     """Calibration and reconstruction jobs: queue, progress, log, cancel."""
     return _render(request, "jobs.html", "jobs", "Jobs")
+
+
+@router.get("/console/plans", response_class=HTMLResponse)
+def plans(request: Request) -> Response:
+    """Plan where to tape the BBs (analysts), and the plans made so far."""
+    return _render(request, "plans.html", "plans", "BB plans")
 
 
 def install_console(app: FastAPI) -> None:

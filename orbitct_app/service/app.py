@@ -18,6 +18,7 @@ from orbitct_app.service.routers import (
     jobs,
     orbits,
     pacs,
+    plans,
     reconstructions,
     scans,
     session,
@@ -34,6 +35,7 @@ TAGS = [
     {"name": "reconstructions", "description": "FDK and PWLS reconstruction (analyst)."},
     {"name": "jobs", "description": "State, progress, log and cancellation of calibration and reconstruction jobs."},
     {"name": "pacs", "description": "The DICOM nodes of the settings: find series, import C-arm runs, send volumes (analyst)."},
+    {"name": "plans", "description": "BB plans: where to tape the BBs for an object and orbit, with the predicted accuracy per view (analyst creates)."},
     {"name": "session", "description": "The web console's sign-in: a token exchanged for a session cookie (CSRF-protected)."},
     {"name": "health", "description": "Liveness, no token needed."},
 ]
@@ -71,7 +73,7 @@ def create_app(settings: ServiceSettings, *, service: Service | None = None) -> 
     app.state.service = svc
     install_error_handlers(app)
     app.add_middleware(ContentLengthLimit, max_bytes=settings.max_body_bytes)
-    for module in (health, session, stop, devices, orbits, scans, calibrations, reconstructions, jobs, pacs):
+    for module in (health, session, stop, devices, orbits, scans, calibrations, reconstructions, jobs, pacs, plans):
         app.include_router(module.router)
     install_console(app)
     return app

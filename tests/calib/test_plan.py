@@ -131,7 +131,7 @@ def test_keep_out_zones_are_parsed_wrap_through_zero_and_stay_free_of_bbs() -> N
     placed = plan_placement(g, surface, 5, D_MM, keep_out=zones, trials=30, rounds=1, min_spacing_mm=10.0)
     assert not any(z.contains(placed.angle_rad, placed.z_mm).any() for z in zones)
     with pytest.raises(ValueError, match="cover the whole surface"):
-        plan_placement(g, surface, 5, D_MM, keep_out=(KeepOut(0.0, 359.99, -50.0, 50.0),))
+        plan_placement(g, surface, 5, D_MM, keep_out=(KeepOut(0.0, 180.0, -50.0, 50.0), KeepOut(180.0, 0.0, -50.0, 50.0)))
 
 
 def test_the_suggested_count_is_the_fewest_bbs_that_reach_the_target() -> None:

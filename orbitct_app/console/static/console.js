@@ -540,6 +540,74 @@ function pageJobs() {
   every(2000, load);
 }
 
+// ---------------------------------------------------------------- BB plans
+function pagePlans() {
+  const show = async (id) => {
+    const plan = await api('GET', `/plans/bbs/${id}`);
+    const box = $('#plan-result');
+    box.hidden = false;
+    $('.id', box).textContent = id;
+    const p = plan.predicted;
+    const own = plan.experiment_placement;
+    const entries = [['experiment', plan.experiment], ['orbit', `${plan.orbit} (${plan.views} views)`], ['BBs', plan.bbs.length],
+      ['predicted error px', `median ${fmt(p.predicted_px_median)}, worst ${fmt(p.predicted_px_max)}`],
+      ['usable BBs per view', `at least ${p.bbs_min}, median ${fmt(p.bbs_median)}`], ['under determined views', p.under_determined],
+      ['the experiment\'s own placement', `${own.bbs} BBs: worst ${fmt(own.predicted.predicted_px_max)} px, ${own.predicted.under_determined} under-determined`]];
+    if (plan.count_suggestion) {
+      const c = plan.count_suggestion;
+      entries.push(['fewest BBs for target', c.n_bbs === null ? `${c.target_px} px not reached` : `${c.n_bbs} for ${c.target_px} px`]);
+    }
+    facts($('#plan-facts'), entries);
+    $('#plan-warnings').replaceChildren(...(plan.warnings || []).map((w) => el('li', { class: 'error', text: w })));
+    $('#plan-picture').src = `/plans/bbs/${id}/picture`;
+    $('#plan-bbs-table tbody').replaceChildren(...plan.bbs.map((b) => el('tr', {}, el('td', { text: b.number }),
+      el('td', { text: fmt(b.angle_deg, 4) }), el('td', { text: fmt(b.height_mm, 4) }), ...b.xyz_mm.map((v) => el('td', { text: fmt(v, 4) })))));
+    const { id: _, ...body } = plan;
+    $('#plan-json').href = URL.createObjectURL(new Blob([JSON.stringify(body, null, 1)], { type: 'application/json' }));
+    $('#plan-json').download = `bb-plan-${id}.json`;
+    document.body.dataset.plan = id;
+  };
+  const load = async () => {
+    const slot = $('#plan-table').closest('section').querySelector('.error');
+    try {
+      const list = await api('GET', '/plans/bbs');
+      $('#plan-table tbody').replaceChildren(...list.map((p) => el('tr', {},
+        el('td', {}, el('a', { href: `?plan=${p.id}`, text: p.id, onclick: (ev) => { ev.preventDefault(); history.replaceState(null, '', `?plan=${p.id}`); show(p.id); } })),
+        el('td', { text: p.experiment }), el('td', { text: p.orbit }), el('td', { text: p.views }), el('td', { text: p.bbs }),
+        el('td', { text: fmt(p.predicted_px_max) }), el('td', { text: p.under_determined }))));
+      if (!list.length) $('#plan-table tbody').append(el('tr', {}, el('td', { colspan: 7, class: 'muted', text: 'No plans yet.' })));
+      slot.textContent = '';
+    } catch (exc) { slot.textContent = exc.message; }
+  };
+  const form = $('#plan-form');
+  if (form) {
+    form.addEventListener('submit', (ev) => {
+      ev.preventDefault();
+      act($('#plan-make'), async () => {
+        const number = (sel) => ($(sel).value === '' ? undefined : Number($(sel).value));
+        const keepOut = $('#plan-keep-out').value.split('\n').map((l) => l.trim()).filter(Boolean).map((line) => {
+          const m = line.match(/^(-?[\d.]+):(-?[\d.]+),(-?[\d.]+):(-?[\d.]+)$/);
+          if (!m) throw new ApiError(`keep-out "${line}": expected FROM_DEG:TO_DEG,ZMIN_MM:ZMAX_MM (e.g. 300:60,-20:10)`, 0);
+          return { angle_from_deg: ((Number(m[1]) % 360) + 360) % 360, angle_to_deg: ((Number(m[2]) % 360) + 360) % 360,
+            z_min_mm: Number(m[3]), z_max_mm: Number(m[4]) };
+        });
+        $('#plan-make').textContent = 'Planning…';
+        try {
+          const plan = await api('POST', '/plans/bbs', { experiment: $('#plan-experiment').value, frames: number('#plan-frames'),
+            bbs: number('#plan-bbs'), target_px: number('#plan-target'), keep_out: keepOut, detector_px: number('#plan-detector'),
+            noise_px: number('#plan-noise') });
+          history.replaceState(null, '', `?plan=${plan.id}`);
+          await show(plan.id);
+          await load();
+        } finally { $('#plan-make').textContent = 'Plan'; }
+      });
+    });
+  }
+  const wanted = new URLSearchParams(location.search).get('plan');
+  if (wanted && /^[0-9a-f]{12}$/.test(wanted)) show(wanted).catch((exc) => { $('#plan-table').closest('section').querySelector('.error').textContent = exc.message; });
+  every(5000, load);
+}
+
 // ---------------------------------------------------------------- volume viewer
 async function pageViewer() {
   const id = document.body.dataset.job;
@@ -625,7 +693,7 @@ function fallback(job, other) {
 
 // ---------------------------------------------------------------- start
 const PAGES = { 'sign-in': pageSignIn, bench: pageBench, 'scan-new': pageScanNew, scans: pageScans, scan: pageScan,
-  calibration: pageCalibration, jobs: pageJobs, viewer: pageViewer };
+  calibration: pageCalibration, jobs: pageJobs, viewer: pageViewer, plans: pagePlans };
 document.addEventListener('DOMContentLoaded', () => {
   const page = document.body.dataset.page;
   if (page !== 'sign-in') initFrame();

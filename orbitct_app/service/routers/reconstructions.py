@@ -204,7 +204,12 @@ def dicom_series(service: Any, job_id: str, out_dir: Path, water_mu_per_mm: floa
     files."""
     from orbitct.geometry import VolumeGrid
     from orbitct.scanfile.xa import patient_sides_caveat
-    from recon.dicom import WATER_MU_PER_MM, SeriesInfo, export_dicom_ct, export_enhanced_ct
+    from recon.dicom import (
+        WATER_MU_PER_MM,
+        SeriesInfo,
+        export_dicom_ct,
+        export_enhanced_ct,
+    )
 
     vol = _volume(service, job_id)
     job = job_or_404(service, job_id, "reconstruction")

@@ -257,3 +257,34 @@ def test_the_api_docs_render_with_no_internet(console: Console) -> None:
     assert not [b for b in blocked if b[0] in ("script", "stylesheet", "font", "fetch", "xhr")], blocked
     # ReDoc's footer asks its CDN for a logo: the page's policy blocks it before any request leaves
     assert all(url == "https://cdn.redoc.ly/redoc/logo-mini.svg" for _, url in blocked), blocked
+
+
+def test_an_analyst_plans_bbs_and_a_viewer_reads_the_plan(console: Console) -> None:
+    page = console.sign_in("analyst")
+    page.goto(console.base + "/console/plans")
+    page.select_option("#plan-experiment", "A")
+    page.fill("#plan-frames", "60")
+    page.fill("#plan-bbs", "6")
+    page.fill("#plan-detector", "192")
+    page.fill("#plan-keep-out", "bad line")
+    page.click("#plan-make")
+    until(page, "() => document.querySelector('#plan-form .error').textContent.includes('FROM_DEG:TO_DEG')")
+    page.fill("#plan-keep-out", "300:60,-80:80")
+    page.click("#plan-make")
+    page.wait_for_selector("body[data-plan]", timeout=60_000)
+    plan_id = page.evaluate("document.body.dataset.plan")
+    assert page.locator("#plan-bbs-table tbody tr").count() == 6
+    until(page, "() => document.getElementById('plan-picture').complete && document.getElementById('plan-picture').naturalWidth > 0")
+    angles = [float(page.inner_text(f"#plan-bbs-table tbody tr:nth-child({k}) td:nth-child(2)")) for k in range(1, 7)]
+    assert all(60.0 < a < 300.0 for a in angles), angles  # outside the keep-out patch
+    assert "the experiment's own placement" in page.inner_text("#plan-facts")
+    until(page, f"() => document.querySelector('#plan-table').textContent.includes('{plan_id}')")
+    shot(page, "bb-plan")
+    page.context.close()
+    viewer = console.sign_in("viewer")
+    viewer.goto(console.base + f"/console/plans?plan={plan_id}")
+    viewer.wait_for_selector("body[data-plan]")
+    assert viewer.locator("#plan-form").count() == 0 and "may look at plans but not make them" in viewer.inner_text("main")
+    assert viewer.locator("#plan-bbs-table tbody tr").count() == 6
+    viewer.context.close()
+    assert not console.outside, console.outside

@@ -10,7 +10,7 @@ import pytest
 from orbitct_app.service.core.sessions import CSRF_HEADER
 from tests.helpers.service import SMALL_SAWTOOTH, ended, wait_for
 
-PAGES = ["/console/bench", "/console/scans/new", "/console/scans", "/console/jobs", "/console/scans/abc",
+PAGES = ["/console/bench", "/console/scans/new", "/console/scans", "/console/jobs", "/console/plans", "/console/scans/abc",
          "/console/calibrations/abc", "/console/reconstructions/abc"]
 
 

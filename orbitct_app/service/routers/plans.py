@@ -1,0 +1,136 @@
+"""``/plans/bbs``: where to tape the BBs for one of the experiments' objects and an orbit, as ``orbitct plan bbs``
+makes it; each plan is kept (its JSON, which ``orbitct simulate --bbs-from`` reads, and its picture)."""
+
+from __future__ import annotations
+
+import json
+import uuid
+from typing import Any, Literal
+
+from fastapi import APIRouter, Response
+from fastapi.responses import FileResponse
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from orbitct_app.bbplan import (
+    MAX_BBS,
+    BBPlanError,
+    BBPlanRequest,
+    make_bb_plan,
+    write_bb_plan,
+)
+from orbitct_app.service.core.errors import ERROR_RESPONSES, Invalid, NotFound
+from orbitct_app.service.core.files import confined
+from orbitct_app.service.deps import Analyst, Reader, ServiceDep
+
+router = APIRouter(prefix="/plans/bbs", tags=["plans"], responses=ERROR_RESPONSES)
+
+
+class KeepOutIn(BaseModel):
+    """A patch of the object's surface without BBs: polar angles (deg, counterclockwise from +x; through 0 when
+    ``angle_to_deg < angle_from_deg``) between two heights (mm)."""
+
+    model_config = ConfigDict(extra="forbid")
+    angle_from_deg: float = Field(ge=0.0, lt=360.0)
+    angle_to_deg: float = Field(ge=0.0, lt=360.0)
+    z_min_mm: float = Field(ge=-1000.0, le=1000.0)
+    z_max_mm: float = Field(ge=-1000.0, le=1000.0)
+
+    @model_validator(mode="after")
+    def _heights(self) -> "KeepOutIn":
+        if not self.z_min_mm < self.z_max_mm:
+            raise ValueError(f"z_min_mm ({self.z_min_mm:g}) must be below z_max_mm ({self.z_max_mm:g})")
+        return self
+
+
+class BBPlanIn(BaseModel):
+    """What to plan: the object and default orbit of an experiment, the orbit, the panel, how many BBs (or the
+    accuracy to reach with as few as possible), where not to put them, and the detection's centroid noise."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"experiment": "A", "frames": 500, "bbs": 8, "keep_out": [
+            {"angle_from_deg": 300, "angle_to_deg": 60, "z_min_mm": -20, "z_max_mm": 10}]}]})
+
+    experiment: Literal["A", "B", "C"]
+    orbit: str | None = Field(default=None, max_length=40, pattern=r"^[a-z_-]+$")
+    frames: int | None = Field(default=None, ge=2, le=5000)
+    bbs: int = Field(default=8, ge=4, le=MAX_BBS)
+    target_px: float | None = Field(default=None, gt=0.0, le=10.0,
+                                    description="plan the fewest BBs whose every view is predicted within this (px)")
+    max_bbs: int = Field(default=20, ge=4, le=MAX_BBS)
+    keep_out: list[KeepOutIn] = Field(default_factory=list, max_length=20)
+    detector_px: int = Field(default=768, ge=8, le=4096)
+    noise_px: float = Field(default=0.1, gt=0.0, le=5.0)
+    seed: int = Field(default=0, ge=0, le=2**31)
+
+
+class BBPlanSummary(BaseModel):
+    """A kept plan, listed."""
+
+    id: str
+    experiment: str
+    orbit: str
+    views: int
+    bbs: int
+    predicted_px_max: float | None
+    under_determined: int
+
+
+def _plans_dir(service: Any) -> Any:
+    folder = service.settings.data_dir / "plans"
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def _summary(plan_id: str, body: dict[str, Any]) -> BBPlanSummary:
+    return BBPlanSummary(id=plan_id, experiment=body["experiment"], orbit=body["orbit"], views=body["views"],
+                         bbs=len(body["bbs"]), predicted_px_max=body["predicted"]["predicted_px_max"],
+                         under_determined=body["predicted"]["under_determined"])
+
+
+@router.post("", status_code=201, summary="Plan the BBs for an experiment's object and orbit")
+def create_plan(body: BBPlanIn, service: ServiceDep, response: Response, _: Analyst) -> dict[str, Any]:
+    """Search BB positions that minimise the predicted calibration error of the orbit's views (seconds; with
+    ``target_px``, a minute or so); 201 with the plan (``Location: /plans/bbs/{id}``), the experiment's own
+    placement beside it, and warnings for views left under-determined."""
+    from calib.plan import KeepOut
+
+    request = BBPlanRequest(experiment=body.experiment, orbit=body.orbit, frames=body.frames, n_bbs=body.bbs,
+                            detector_px=body.detector_px, noise_px=body.noise_px, seed=body.seed,
+                            keep_out=tuple(KeepOut(**z.model_dump()) for z in body.keep_out), target_px=body.target_px,
+                            max_bbs=body.max_bbs)
+    try:
+        plan = make_bb_plan(request)
+    except BBPlanError as exc:
+        raise Invalid(str(exc)) from None
+    plan_id = uuid.uuid4().hex[:12]
+    write_bb_plan(plan, _plans_dir(service) / f"{plan_id}.json")
+    response.headers["Location"] = f"/plans/bbs/{plan_id}"
+    return {"id": plan_id, **plan.body}
+
+
+@router.get("", response_model=list[BBPlanSummary], summary="The kept plans, newest first")
+def list_plans(service: ServiceDep, _: Reader) -> list[BBPlanSummary]:
+    """Every kept plan with its experiment, orbit, BB count and worst predicted view."""
+    files = sorted(_plans_dir(service).glob("*.json"), key=lambda p: p.stat().st_mtime, reverse=True)
+    return [_summary(f.stem, json.loads(f.read_text())) for f in files]
+
+
+def _plan_file(service: Any, plan_id: str, suffix: str) -> Any:
+    path = confined(_plans_dir(service), f"{plan_id}{suffix}")
+    if not path.exists():
+        raise NotFound(f"no BB plan {plan_id!r}")
+    return path
+
+
+@router.get("/{plan_id}", summary="One plan (the JSON `orbitct simulate --bbs-from` reads)")
+def get_plan(plan_id: str, service: ServiceDep, _: Reader) -> dict[str, Any]:
+    """The plan as it was made: BBs (object frame, and angle/height on the object), predictions per view."""
+    return {"id": plan_id, **json.loads(_plan_file(service, plan_id, ".json").read_text())}
+
+
+@router.get("/{plan_id}/picture", response_class=FileResponse, summary="The plan's picture (PNG)",
+            responses={200: {"content": {"image/png": {}}}})
+def get_picture(plan_id: str, service: ServiceDep, _: Reader) -> FileResponse:
+    """The BBs with their numbers on the unrolled surface (keep-out zones grey), and BBs and predicted error per
+    view along the orbit."""
+    return FileResponse(_plan_file(service, plan_id, ".png"), media_type="image/png")
