@@ -88,7 +88,8 @@ def _case(work: Path, key: str, orbit: str | None, frames: int, xyz: np.ndarray,
 def _planned_against_own(args: Any, noise: float | None) -> None:
     """Experiments A and C: their own placement against ``orbitct plan bbs``' with as many BBs, each simulated over
     three seeds (errors and noise) and calibrated; measured error side by side."""
-    from calib.plan import Surface, metal_of, plan_placement
+    from calib.plan import metal_of, plan_placement
+    from calib.surfaces import EllipticCylinder
     from orbitct.phantoms.experiments import BB_SURFACES, experiment_phantom
     from orbitct.simulator import resolve_orbit
     from orbitct.simulator.bench import SimulatedBench
@@ -98,7 +99,7 @@ def _planned_against_own(args: Any, noise: float | None) -> None:
         ph = experiment_phantom(key)
         frames = args.frames if key == "A" else int(round(args.frames * 857 / 500))
         g = SimulatedBench.with_panel(args.size).nominal_geometry(resolve_orbit(key, None, frames))
-        placed = plan_placement(g, Surface(*BB_SURFACES[key]), ph.n_markers, float(ph.marker_diameter_mm),
+        placed = plan_placement(g, EllipticCylinder(*BB_SURFACES[key]), ph.n_markers, float(ph.marker_diameter_mm),
                                 noise_px=noise or 0.1, metal=metal_of(ph))
         means = {}
         for name, xyz in (("own", ph.markers_xyz), ("planned", placed.xyz)):

@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from calib.model import ViewModel
 from calib.quality import MIN_OWN_BBS, placement_predicted_px
+from calib.surfaces import TapeSurface
 from orbitct.geometry import ViewGeometry
 
 #: a projected BB closer than this many diameters to another one is not counted (one blob of two)
@@ -127,24 +128,6 @@ class KeepOut:
 
 
 @dataclass(frozen=True)
-class Surface:
-    """Where BBs can be taped: the side of an elliptic cylinder about the z axis (semi-axes ``a_mm`` along x and
-    ``b_mm`` along y), between heights ``z_min_mm`` and ``z_max_mm``."""
-
-    a_mm: float
-    b_mm: float
-    z_min_mm: float
-    z_max_mm: float
-
-    def points(self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64], diameter_mm: float) -> NDArray[np.float64]:
-        """BB centres on the surface (a BB's radius outside it) at polar angles and heights."""
-        p = np.stack([self.a_mm * np.cos(angle_rad), self.b_mm * np.sin(angle_rad), np.zeros_like(angle_rad)], -1)
-        normal = np.stack([np.cos(angle_rad) / self.a_mm, np.sin(angle_rad) / self.b_mm, np.zeros_like(angle_rad)], -1)
-        normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
-        return p + 0.5 * diameter_mm * normal + np.stack([0 * z_mm, 0 * z_mm, z_mm], -1)
-
-
-@dataclass(frozen=True)
 class Placement:
     """Planned BBs: polar angles (rad) and heights (mm) on the surface, their centres, and the prediction."""
 
@@ -164,7 +147,7 @@ def placement_score(pred: PlanPrediction) -> float:
     return float(np.sqrt(np.mean(p**2)) + 0.5 * p.max() + 10.0 * pred.under_determined.size / pred.n_bbs.size)
 
 
-def plan_placement(geometry: ViewGeometry, surface: Surface, n_bbs: int, diameter_mm: float, *, noise_px: float = 0.1,
+def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, diameter_mm: float, *, noise_px: float = 0.1,
                    metal: list[Any] | None = None, keep_out: Sequence[KeepOut] = (), seed: int = 0, trials: int = 200,
                    rounds: int = 3, moves: int = 12, min_spacing_mm: float = 25.0) -> Placement:
     """Search BB positions on ``surface`` outside the ``keep_out`` patches that minimise :func:`placement_score` for
@@ -174,7 +157,7 @@ def plan_placement(geometry: ViewGeometry, surface: Surface, n_bbs: int, diamete
     rng = np.random.default_rng(seed)
     coarse = geometry[:: max(1, geometry.n_views // 125)]
     probe = (rng.uniform(0, 2 * np.pi, 4000), rng.uniform(surface.z_min_mm, surface.z_max_mm, 4000))
-    if not _allowed(probe[0], probe[1], keep_out).any():
+    if not (_allowed(probe[0], probe[1], keep_out) & surface.covers(*probe)).any():
         raise ValueError("the keep-out zones cover the whole surface: no place is left for a BB")
 
     def spaced(ang: NDArray[np.float64], z: NDArray[np.float64]) -> bool:
@@ -186,7 +169,7 @@ def plan_placement(geometry: ViewGeometry, surface: Surface, n_bbs: int, diamete
         ang, z = np.empty(0), np.empty(0)
         for _ in range(1000):  # uniform over the surface less the keep-out zones
             a, h = rng.uniform(0, 2 * np.pi, 4 * n), rng.uniform(surface.z_min_mm, surface.z_max_mm, 4 * n)
-            keep = _allowed(a, h, keep_out)
+            keep = _allowed(a, h, keep_out) & surface.covers(a, h)
             ang, z = np.concatenate([ang, a[keep]]), np.concatenate([z, h[keep]])
             if ang.size >= n:
                 return ang[:n], z[:n]
@@ -238,7 +221,7 @@ class CountSuggestion:
     tried: dict[int, dict[str, Any]]  # count -> the planned placement's prediction summary
 
 
-def suggest_bb_count(geometry: ViewGeometry, surface: Surface, diameter_mm: float, target_px: float, *,
+def suggest_bb_count(geometry: ViewGeometry, surface: TapeSurface, diameter_mm: float, target_px: float, *,
                      n_min: int = MIN_OWN_BBS, n_max: int = 20, **plan_options: Any) -> CountSuggestion:
     """The fewest BBs (from ``n_min`` up to ``n_max``) whose planned placement leaves no view under-determined and
     predicts every view's error at or below ``target_px``; each count is planned with ``plan_options`` (a lighter
@@ -257,5 +240,5 @@ def suggest_bb_count(geometry: ViewGeometry, surface: Surface, diameter_mm: floa
     return CountSuggestion(target_px, None, tried)
 
 
-__all__ = ["METAL_CHORD_MM", "OVERLAP_DIAMETERS", "CountSuggestion", "KeepOut", "Placement", "PlanPrediction", "Surface",
+__all__ = ["METAL_CHORD_MM", "OVERLAP_DIAMETERS", "CountSuggestion", "KeepOut", "Placement", "PlanPrediction",
            "metal_of", "placement_score", "plan_placement", "predict_placement", "suggest_bb_count", "usable_bbs"]

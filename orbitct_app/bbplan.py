@@ -32,6 +32,7 @@ class BBPlanRequest:
     keep_out: tuple[Any, ...] = ()  # calib.plan.KeepOut
     target_px: float | None = None  # suggest the fewest BBs whose worst view reaches this (then n_bbs is that count)
     max_bbs: int = 20
+    surface: Any = None  # calib.surfaces.TapeSurface (load_surface); None: the experiment's cylinder
 
 
 @dataclass
@@ -48,13 +49,13 @@ class BBPlan:
 def make_bb_plan(req: BBPlanRequest) -> BBPlan:
     """Plan the BBs for ``req``; BBPlanError with a one-line reason when it cannot."""
     from calib.plan import (
-        Surface,
         metal_of,
         placement_score,
         plan_placement,
         predict_placement,
         suggest_bb_count,
     )
+    from calib.surfaces import EllipticCylinder
     from orbitct.orbits import OrbitError
     from orbitct.phantoms.experiments import BB_SURFACES, experiment_phantom
     from orbitct.simulator import resolve_orbit
@@ -71,7 +72,7 @@ def make_bb_plan(req: BBPlanRequest) -> BBPlan:
     d = float(phantom.marker_diameter_mm or 3.0)
     geometry = SimulatedBench.with_panel(req.detector_px).nominal_geometry(orbit)
     metal = metal_of(phantom)
-    surface = Surface(*BB_SURFACES[key])
+    surface = req.surface if req.surface is not None else EllipticCylinder(*BB_SURFACES[key])
     options: dict[str, Any] = {"noise_px": req.noise_px, "metal": metal, "keep_out": req.keep_out, "seed": req.seed}
     warnings: list[str] = []
     n_bbs, suggestion = req.n_bbs, None
@@ -94,7 +95,7 @@ def make_bb_plan(req: BBPlanRequest) -> BBPlan:
                         f"{pred.under_determined[:8].tolist()}); more BBs, or another orbit")
     body: dict[str, Any] = {
         "experiment": key, "orbit": orbit.name, "views": int(geometry.n_views), "detector_px": req.detector_px,
-        "bb_diameter_mm": d, "noise_px": req.noise_px, "surface": vars(surface),
+        "bb_diameter_mm": d, "noise_px": req.noise_px, "surface": surface.describe(),
         "keep_out": [vars(z) for z in req.keep_out],
         "bbs": [{"number": k + 1, "xyz_mm": [round(float(v), 2) for v in placed.xyz[k]],
                  "angle_deg": round(float(np.degrees(placed.angle_rad[k])) % 360.0, 1),
@@ -122,6 +123,74 @@ def _json_ready(value: Any) -> Any:
     if isinstance(value, np.integer):
         return int(value)
     return value
+
+
+MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off")
+
+
+def load_surface(source: str, threshold_per_mm: float | None = None) -> Any:
+    """The outer surface of a real object for the planner (``calib.surfaces.Outline``): a surface mesh
+    (``.stl``, ``.obj``, ``.ply``, ``.off``; mm, object frame), a prior volume as NIfTI (``.nii``, ``.nii.gz``; as
+    ``orbitct`` writes it: axis-aligned, mm) or a reconstruction in a scan file (``SCAN.h5#NAME``), thresholded at
+    ``threshold_per_mm`` (default: Otsu's threshold of the volume). BBPlanError naming what is wrong."""
+    from calib.surfaces import Outline
+
+    path_text, _, recon = source.partition("#")
+    path = Path(path_text)
+    name = path.name.lower()
+    if not path.is_file():
+        raise BBPlanError(f"surface {source!r}: no such file")
+    try:
+        if name.endswith(MESH_SUFFIXES):
+            import trimesh
+
+            mesh = trimesh.load(str(path), force="mesh")
+            if len(getattr(mesh, "faces", [])) == 0:
+                raise BBPlanError(f"surface {source!r}: no triangles in the mesh")
+            points, _ = trimesh.sample.sample_surface(mesh, 200_000, seed=0)
+            return Outline.from_points(np.asarray(points), source=path.name)
+        if name.endswith((".nii", ".nii.gz")):
+            import nibabel as nib
+
+            img = nib.load(str(path))
+            affine = np.asarray(img.affine)
+            if not np.allclose(affine[:3, :3], np.diag(np.diag(affine[:3, :3]))) or (np.diag(affine)[:3] <= 0).any():
+                raise BBPlanError(f"surface {source!r}: the volume's axes must be the object frame's x, y, z (a diagonal, "
+                                  "positive affine, as orbitct writes it)")
+            volume = np.transpose(np.asarray(img.dataobj, dtype=np.float32), (2, 1, 0))
+            voxel, origin = tuple(np.diag(affine)[:3]), tuple(affine[:3, 3])
+        elif name.endswith((".h5", ".hdf5")) and recon:
+            from orbitct.scanfile import ScanFile, ScanFileError
+
+            try:
+                with ScanFile(path) as sf:
+                    volume, attrs = sf.read_recon(recon)
+            except ScanFileError as exc:
+                raise BBPlanError(f"surface {source!r}: {exc}") from None
+            voxel, origin = tuple(attrs["voxel_mm"]), tuple(attrs["origin_mm"])
+        else:
+            raise BBPlanError(f"surface {source!r}: expected a mesh ({', '.join(MESH_SUFFIXES)}), a NIfTI volume "
+                              "(.nii, .nii.gz) or SCAN.h5#RECONSTRUCTION")
+        volume = np.nan_to_num(np.asarray(volume, dtype=np.float32))
+        level = threshold_per_mm if threshold_per_mm is not None else _otsu(volume)
+        return Outline.from_mask(volume > level, voxel, origin, source=f"{path.name}{'#' + recon if recon else ''} "
+                                                                       f"> {level:.4g}/mm")
+    except BBPlanError:
+        raise
+    except ValueError as exc:
+        raise BBPlanError(f"surface {source!r}: {exc}") from None
+
+
+def _otsu(volume: np.ndarray) -> float:
+    """Otsu's threshold: the level that best separates the histogram into two classes (air and object)."""
+    hist, edges = np.histogram(volume, bins=256)
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    w0 = np.cumsum(hist)
+    w1 = w0[-1] - w0
+    m0 = np.cumsum(hist * centres)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        between = w0 * w1 * (m0 / w0 - (m0[-1] - m0) / w1) ** 2
+    return float(centres[int(np.nanargmax(between[:-1]))])
 
 
 def write_bb_plan(plan: BBPlan, out: Path) -> Path:

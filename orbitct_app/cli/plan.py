@@ -34,6 +34,11 @@ def _keep_out(ctx: click.Context, param: click.Parameter, values: tuple[str, ...
 @click.option("--keep-out", "keep_out", multiple=True, callback=_keep_out, metavar="FROM:TO,ZMIN:ZMAX",
               help="a patch of the surface without BBs: polar angles (deg, counterclockwise from +x) and heights (mm), "
                    "e.g. 300:60,-20:10; repeat for more")
+@click.option("--surface", "surface_source", default=None, metavar="MESH|VOLUME|SCAN.h5#RECON",
+              help="the object's real outer surface instead of the experiment's cylinder: a mesh (.stl .obj .ply .off, mm, "
+                   "object frame), a prior volume (.nii/.nii.gz as orbitct writes it) or a reconstruction in a scan file")
+@click.option("--surface-threshold", type=float, default=None, metavar="MU_PER_MM",
+              help="with a volume: the attenuation (1/mm) above which a voxel is the object (default: Otsu's threshold)")
 @click.option("--detector-size", type=click.IntRange(min=8, max=4096), default=768, show_default=True)
 @click.option("--noise-px", type=click.FloatRange(min=0.0, min_open=True), default=0.1, show_default=True,
               help="centroid noise of the BB detection (a calibration reports it as centroid_noise_px)")
@@ -41,20 +46,24 @@ def _keep_out(ctx: click.Context, param: click.Parameter, values: tuple[str, ...
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="the plan (JSON); a picture is written beside it (.png)")
 def bbs(experiment: str, orbit_name: str | None, frames: int | None, n_bbs: int, target_px: float | None, max_bbs: int,
-        keep_out: tuple[object, ...], detector_size: int, noise_px: float, seed: int, out: Path) -> None:
+        keep_out: tuple[object, ...], surface_source: str | None, surface_threshold: float | None, detector_size: int,
+        noise_px: float, seed: int, out: Path) -> None:
     """Search BB positions on the object's surface that minimise the predicted calibration error of the orbit's
     views (the worst views weighted), and compare with the experiment's own placement."""
     from orbitct_app.bbplan import (
         BBPlanError,
         BBPlanRequest,
+        load_surface,
         make_bb_plan,
         plan_lines,
         write_bb_plan,
     )
 
-    request = BBPlanRequest(experiment=experiment, orbit=orbit_name, frames=frames, n_bbs=n_bbs, detector_px=detector_size,
-                            noise_px=noise_px, seed=seed, keep_out=keep_out, target_px=target_px, max_bbs=max_bbs)
     try:
+        surface = load_surface(surface_source, surface_threshold) if surface_source else None
+        request = BBPlanRequest(experiment=experiment, orbit=orbit_name, frames=frames, n_bbs=n_bbs,
+                                detector_px=detector_size, noise_px=noise_px, seed=seed, keep_out=keep_out,
+                                target_px=target_px, max_bbs=max_bbs, surface=surface)
         made = make_bb_plan(request)
     except BBPlanError as exc:
         raise click.ClickException(str(exc)) from None

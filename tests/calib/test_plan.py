@@ -9,13 +9,13 @@ import pytest
 
 from calib.plan import (
     KeepOut,
-    Surface,
     metal_of,
     plan_placement,
     predict_placement,
     suggest_bb_count,
     usable_bbs,
 )
+from calib.surfaces import EllipticCylinder, Outline
 from orbitct.phantoms.primitives import sphere
 from tests.helpers.calib_scans import sawtooth, spiral_markers
 
@@ -126,7 +126,7 @@ def test_keep_out_zones_are_parsed_wrap_through_zero_and_stay_free_of_bbs() -> N
         with pytest.raises(ValueError, match=message):
             KeepOut.parse(bad)
     g = sawtooth(60, 256)
-    surface = Surface(60.0, 60.0, -40.0, 40.0)
+    surface = EllipticCylinder(60.0, 60.0, -40.0, 40.0)
     zones = (KeepOut(0.0, 180.0, -40.0, 40.0), KeepOut(180.0, 270.0, -40.0, 0.0))  # three quarters of the surface
     placed = plan_placement(g, surface, 5, D_MM, keep_out=zones, trials=30, rounds=1, min_spacing_mm=10.0)
     assert not any(z.contains(placed.angle_rad, placed.z_mm).any() for z in zones)
@@ -136,7 +136,7 @@ def test_keep_out_zones_are_parsed_wrap_through_zero_and_stay_free_of_bbs() -> N
 
 def test_the_suggested_count_is_the_fewest_bbs_that_reach_the_target() -> None:
     g = sawtooth(60, 256)
-    surface = Surface(60.0, 60.0, -40.0, 40.0)
+    surface = EllipticCylinder(60.0, 60.0, -40.0, 40.0)
     options = {"trials": 30, "rounds": 1, "min_spacing_mm": 15.0}
     loose = suggest_bb_count(g, surface, D_MM, 10.0, n_max=8, **options)
     assert loose.n_bbs is not None and list(loose.tried) == list(range(4, loose.n_bbs + 1))

@@ -1,0 +1,70 @@
+"""The BB plan as the CLI and the REST service make it: real surfaces for the planner from a mesh, a NIfTI prior
+volume, or a reconstruction in a scan file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.calib.test_surfaces import _cylinder_mask
+
+
+def test_load_surface_reads_a_mesh_a_nifti_volume_and_a_scan_files_reconstruction(tmp_path: Path) -> None:
+    import trimesh
+
+    from orbitct.geometry import VolumeGrid
+    from orbitct.scanfile import ScanFile
+    from orbitct_app.bbplan import BBPlanError, load_surface
+    from recon.export import export_nifti
+    from tests.helpers.service import write_small_scan
+
+    mesh = trimesh.creation.cylinder(radius=60.0, height=80.0, sections=128)
+    mesh.export(tmp_path / "object.stl")
+    from_mesh = load_surface(str(tmp_path / "object.stl"))
+    assert from_mesh.z_min_mm == pytest.approx(-40.0, abs=1.5) and from_mesh.z_max_mm == pytest.approx(40.0, abs=1.5)
+    r = np.hypot(*from_mesh.points(np.linspace(0, 6, 20), np.zeros(20), 0.0)[:, :2].T)
+    assert np.allclose(r, 60.0, atol=0.6), r
+
+    mask, voxel, origin = _cylinder_mask()
+    volume = np.where(mask, 0.02, 0.0).astype(np.float32) + np.random.default_rng(1).normal(0, 0.001, mask.shape).astype(np.float32)
+    grid = VolumeGrid(mask.shape, voxel, origin)
+    export_nifti(volume, grid, tmp_path / "prior.nii.gz")
+    from_volume = load_surface(str(tmp_path / "prior.nii.gz"))  # Otsu's threshold between air and object
+    assert "prior.nii.gz >" in from_volume.describe()["source"]
+    assert np.allclose(np.hypot(*from_volume.points(np.linspace(0, 6, 20), np.zeros(20), 0.0)[:, :2].T), 60.0, atol=1.0)
+
+    scan = write_small_scan(tmp_path / "scan.h5")
+    with ScanFile(scan, "r+") as sf:
+        sf.write_recon("prior", volume, voxel_mm=voxel, origin_mm=origin, algorithm="fdk", geometry="nominal",
+                       iterations=0, elapsed_s=0.1, params={})
+    from_scan = load_surface(f"{scan}#prior", threshold_per_mm=0.01)
+    assert from_scan.radius_mm.shape == from_volume.radius_mm.shape
+    for bad, message in ((str(tmp_path / "none.stl"), "no such file"), (str(scan), "expected a mesh"),
+                         (f"{scan}#nosuch", "no reconstruction 'nosuch'")):
+        with pytest.raises(BBPlanError, match=message):
+            load_surface(bad)
+    with pytest.raises(BBPlanError, match="no voxel above the threshold"):
+        load_surface(str(tmp_path / "prior.nii.gz"), threshold_per_mm=1.0)
+
+
+def test_the_cli_plans_on_a_mesh(tmp_path: Path) -> None:
+    import json
+
+    import trimesh
+    from click.testing import CliRunner
+
+    from orbitct_app.cli.main import cli
+
+    trimesh.creation.cylinder(radius=70.0, height=120.0, sections=96).export(tmp_path / "leg.stl")
+    out = tmp_path / "plan.json"
+    r = CliRunner().invoke(cli, ["plan", "bbs", "-e", "A", "--frames", "60", "--detector-size", "192", "--bbs", "6",
+                                 "--surface", str(tmp_path / "leg.stl"), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    body = json.loads(out.read_text())
+    assert body["surface"]["kind"] == "outline" and body["surface"]["source"] == "leg.stl"
+    radii = [np.hypot(*b["xyz_mm"][:2]) for b in body["bbs"]]
+    assert np.allclose(radii, 70.0 + body["bb_diameter_mm"] / 2, atol=1.0), radii
+    bad = CliRunner().invoke(cli, ["plan", "bbs", "-e", "A", "--surface", str(tmp_path / "x.xyz"), "--out", str(out)])
+    assert bad.exit_code == 1 and "no such file" in bad.output and "Traceback" not in bad.output
