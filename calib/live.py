@@ -48,6 +48,7 @@ from calib.track import (
     match_frame,
     view_rays,
 )
+from calib.window import SlidingBundle
 from orbitct.geometry import ViewGeometry
 from orbitct.progress import ProgressCallback, report
 from orbitct.scanfile import ImageKey, ScanFile
@@ -158,6 +159,8 @@ class _Follower:
         self._misfits: deque[float] = deque(maxlen=50)
         self._steps = StepWatch()
         self.rpe_mm: list[float] = []  # per frame with a pose, in order
+        self.window = SlidingBundle()
+        self._refined: dict[int, NDArray[np.float64]] = {}  # watched BBs' points from the latest window
 
     def take(self, index: int, frame: NDArray[Any] | None) -> None:
         """Scan frame ``index``; indices jumped over are projections that were not sent (detected after the scan)."""
@@ -230,19 +233,25 @@ class _Follower:
         else:
             self._few_since = None
         blobs = np.concatenate([links.uv, links.started_uv])
-        watched = list(self._watched.values())
+        keys = tuple(self._watched)
+        watched = [self._watched[t] for t in keys]
         if watched:
-            points = np.array([w.point() for w in watched])  # once per frame: a least-squares solve per BB
+            # once per frame: the window's refined point, else a least-squares solve of the BB's rays
+            points = np.array([self._refined[t] if t in self._refined else w.point() for t, w in zip(keys, watched)])
             pred = view.project(points)[0]
             idx, _ = match_frame(pred, blobs, self.tracking.search_px, self.tracking.gate_px, self.tracking.residual_px)
             hit = idx >= 0  # where a missing BB should be: its point through the view, moved by the frame's shift
             shift = np.median(blobs[idx[hit]] - pred[hit], axis=0) if hit.sum() >= 2 else np.zeros(2)
             aligned = pred + shift
             origin, direction = view_rays(view, blobs) if len(blobs) else (None, None)
-            pose = self._frame_pose(index, view, points,
-                                    np.where((idx >= 0)[:, None], blobs[np.maximum(idx, 0)], np.nan) if len(blobs) else
-                                    np.full((len(watched), 2), np.nan))
+            matched = (np.where((idx >= 0)[:, None], blobs[np.maximum(idx, 0)], np.nan) if len(blobs) else
+                       np.full((len(watched), 2), np.nan))
+            pose = self._frame_pose(index, view, points, matched)
             if pose is not None:
+                self.window.add(index, keys, matched, pose.state)
+                if self.window.due:
+                    self._refined.update(self.window.refine(self.nominal, dict(zip(keys, points)),
+                                                            loss_px=max(1.5 * self._noise_px(), 0.05)))
                 metrics.update(rpe_mm=pose.rpe_mm, rpe_mean_mm=float(np.mean(self.rpe_mm)), predicted_px=pose.predicted_px,
                                misfit_px=pose.misfit_px)
                 message += f", RPE {pose.rpe_mm:.3f} mm, predicted {pose.predicted_px:.2f} px"
@@ -373,7 +382,8 @@ def _worker(frames: Any, events: Any, nominal: ViewGeometry, image_key: NDArray[
             if item[0] == "end":
                 follower.skip_to(item[1])
                 events.put(("done", (follower.candidates, follower._deferred, follower.detect_s,
-                                     follower.bbs_per_frame, follower.d_px, follower.linked())))
+                                     follower.bbs_per_frame, follower.d_px, follower.linked(),
+                                     (follower.window.windows, follower.window.seconds))))
                 return
             if isinstance(item, str) and item == "stop":
                 events.put(("stopped", None))
@@ -512,7 +522,8 @@ class LiveCalibration:
         self.timing["catch_up_s"] = time.perf_counter() - t_end  # the worker's backlog when the scan ended
         if self._failure is not None or self._outcome is None:
             raise LiveCalibrationError(f"live calibration failed in its worker: {self._failure}")
-        candidates, deferred, self.detect_s, self.bbs_per_frame, d_px, linked = self._outcome
+        candidates, deferred, self.detect_s, self.bbs_per_frame, d_px, linked, windows = self._outcome
+        self.timing["windows"], self.timing["window_s"] = float(windows[0]), float(windows[1])
         self.frames_detected_after_scan = len(deferred)
         opt = _options("bundle", {**self.options, "diameter_mm": self.diameter_mm})
         with ScanFile(self.path) as sf:

@@ -136,7 +136,9 @@ def _report_live(live: object) -> None:
     lc = getattr(live, "live")
     click.echo(f"calibrated during the scan: {res.n_bbs} BBs, geometry written {lc.last_frame_to_geometry_s:.2f} s "
                f"after the last frame (catching up {lc.timing.get('catch_up_s', 0.0):.2f} s, final solve "
-               f"{lc.timing.get('solve_s', 0.0):.2f} s); {len(lc.warnings)} warning(s) during the scan")
+               f"{lc.timing.get('solve_s', 0.0):.2f} s); {len(lc.warnings)} warning(s) during the scan; "
+               f"{int(lc.timing.get('windows', 0))} sliding bundle adjustment(s) in the worker "
+               f"({lc.timing.get('window_s', 0.0):.2f} s)")
     click.echo(res.quality.line())
     if not res.quality.passed:
         click.echo("QUALITY CHECK FAILED: " + "; ".join(res.quality.reasons), err=True)

@@ -51,6 +51,7 @@ def test_live_writes_what_offline_calibration_writes(scan: Path, tmp_path: Path)
         assert g.attrs["live"] and g.attrs["live_frames_detected_after_scan"] == 0
         assert json.loads(g.attrs["live_warnings_json"]) == [w.as_dict() for w in live.warnings]
     assert live.last_frame_to_geometry_s is not None and live.last_frame_to_geometry_s > 0
+    assert live.timing["windows"] >= 1  # the streaming state was refined by sliding bundle adjustments
 
 
 def test_a_bb_hidden_behind_metal_for_40_frames_is_reported_then_found_again(scan: Path, tmp_path: Path) -> None:
