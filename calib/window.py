@@ -11,6 +11,7 @@ nominal rays, the final calibration's 0.017 mm).
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from dataclasses import dataclass
 
@@ -56,8 +57,6 @@ class SlidingBundle:
                ) -> dict[int, NDArray[np.float64]]:
         """Adjust the window: the refined points of the BBs it saw in 3 or more frames (the others: none), and the
         window's poses updated in place; ``loss_px`` is the Huber scale (about the centroid noise)."""
-        import time
-
         t0 = time.perf_counter()
         self._since = 0
         frames = list(self._recent)
