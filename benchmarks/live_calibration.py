@@ -42,9 +42,10 @@ def _scan(out: Path, size: int, frames: int, live: bool) -> dict[str, float]:
     if live and m is not None:
         out_.update(after_s=float(m.group(1)), catch_up_s=float(m.group(2)), solve_s=float(m.group(3)),
                     warnings=float(m.group(4)))
-        w = re.search(r"(\d+) sliding bundle adjustment\(s\) in the worker \(([\d.]+) s\)", text)
+        w = re.search(r"(\d+) sliding bundle adjustment\(s\) in the worker \(([\d.]+) s\); live poses for (\d+) of",
+                      text)
         if w is not None:
-            out_.update(windows=float(w.group(1)), window_s=float(w.group(2)))
+            out_.update(windows=float(w.group(1)), window_s=float(w.group(2)), posed=float(w.group(3)))
     out_["passed"] = float("QUALITY CHECK FAILED" not in run.stderr)
     return out_
 
@@ -89,7 +90,8 @@ def main() -> None:
               f"{'passed' if offline.quality is not None and offline.quality.passed else 'failed'} |")
         print(f"\nlive warnings during the scan: {int(live['warnings'])}")
         if "windows" in live:
-            print(f"sliding bundle adjustments in the worker: {int(live['windows'])} ({live['window_s']:.2f} s in all)")
+            print(f"sliding bundle adjustments in the worker: {int(live['windows'])} ({live['window_s']:.2f} s in all); "
+                  f"frames posed live: {int(live['posed'])} of {args.frames}")
     print(f"1-min load at end {os.getloadavg()[0]:.2f}")
 
 

@@ -383,7 +383,7 @@ def _worker(frames: Any, events: Any, nominal: ViewGeometry, image_key: NDArray[
                 follower.skip_to(item[1])
                 events.put(("done", (follower.candidates, follower._deferred, follower.detect_s,
                                      follower.bbs_per_frame, follower.d_px, follower.linked(),
-                                     (follower.window.windows, follower.window.seconds))))
+                                     (follower.window.windows, follower.window.seconds, len(follower.rpe_mm)))))
                 return
             if isinstance(item, str) and item == "stop":
                 events.put(("stopped", None))
@@ -523,7 +523,7 @@ class LiveCalibration:
         if self._failure is not None or self._outcome is None:
             raise LiveCalibrationError(f"live calibration failed in its worker: {self._failure}")
         candidates, deferred, self.detect_s, self.bbs_per_frame, d_px, linked, windows = self._outcome
-        self.timing["windows"], self.timing["window_s"] = float(windows[0]), float(windows[1])
+        self.timing["windows"], self.timing["window_s"], self.timing["posed"] = (float(w) for w in windows)
         self.frames_detected_after_scan = len(deferred)
         opt = _options("bundle", {**self.options, "diameter_mm": self.diameter_mm})
         with ScanFile(self.path) as sf:

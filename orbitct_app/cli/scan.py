@@ -138,7 +138,8 @@ def _report_live(live: object) -> None:
                f"after the last frame (catching up {lc.timing.get('catch_up_s', 0.0):.2f} s, final solve "
                f"{lc.timing.get('solve_s', 0.0):.2f} s); {len(lc.warnings)} warning(s) during the scan; "
                f"{int(lc.timing.get('windows', 0))} sliding bundle adjustment(s) in the worker "
-               f"({lc.timing.get('window_s', 0.0):.2f} s)")
+               f"({lc.timing.get('window_s', 0.0):.2f} s); live poses for {int(lc.timing.get('posed', 0))} of "
+               f"{lc.n_projections} projections")
     click.echo(res.quality.line())
     if not res.quality.passed:
         click.echo("QUALITY CHECK FAILED: " + "; ".join(res.quality.reasons), err=True)
