@@ -171,12 +171,23 @@ def load_surface(source: str, threshold_per_mm: float | None = None) -> Any:
         else:
             raise BBPlanError(f"surface {source!r}: expected a mesh ({', '.join(MESH_SUFFIXES)}), a NIfTI volume "
                               "(.nii, .nii.gz) or SCAN.h5#RECONSTRUCTION")
-        volume = np.nan_to_num(np.asarray(volume, dtype=np.float32))
-        level = threshold_per_mm if threshold_per_mm is not None else _otsu(volume)
-        return Outline.from_mask(volume > level, voxel, origin, source=f"{path.name}{'#' + recon if recon else ''} "
-                                                                       f"> {level:.4g}/mm")
+        return outline_from_volume(volume, voxel, origin, threshold_per_mm, f"{path.name}{'#' + recon if recon else ''}")
     except BBPlanError:
         raise
+    except ValueError as exc:
+        raise BBPlanError(f"surface {source!r}: {exc}") from None
+
+
+def outline_from_volume(volume: np.ndarray, voxel_mm: tuple[float, ...], origin_mm: tuple[float, ...],
+                        threshold_per_mm: float | None, source: str) -> Any:
+    """The outer surface of the voxels of a prior volume (nz, ny, nx; 1/mm) above ``threshold_per_mm`` (default:
+    Otsu's threshold); BBPlanError when nothing is above it."""
+    from calib.surfaces import Outline
+
+    volume = np.nan_to_num(np.asarray(volume, dtype=np.float32))
+    level = threshold_per_mm if threshold_per_mm is not None else _otsu(volume)
+    try:
+        return Outline.from_mask(volume > level, tuple(voxel_mm), tuple(origin_mm), source=f"{source} > {level:.4g}/mm")
     except ValueError as exc:
         raise BBPlanError(f"surface {source!r}: {exc}") from None
 

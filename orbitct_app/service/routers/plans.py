@@ -16,11 +16,14 @@ from orbitct_app.bbplan import (
     BBPlanError,
     BBPlanRequest,
     make_bb_plan,
+    outline_from_volume,
     write_bb_plan,
 )
 from orbitct_app.service.core.errors import ERROR_RESPONSES, Invalid, NotFound
 from orbitct_app.service.core.files import confined
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
+from orbitct_app.service.routers.reconstructions import reconstruction_volume
+from orbitct_app.service.schemas import job_or_404
 
 router = APIRouter(prefix="/plans/bbs", tags=["plans"], responses=ERROR_RESPONSES)
 
@@ -61,6 +64,11 @@ class BBPlanIn(BaseModel):
     detector_px: int = Field(default=768, ge=8, le=4096)
     noise_px: float = Field(default=0.1, gt=0.0, le=5.0)
     seed: int = Field(default=0, ge=0, le=2**31)
+    surface_reconstruction_id: str | None = Field(
+        default=None, min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$",
+        description="plan on the object's real outer surface: a succeeded reconstruction of it (a prior volume)")
+    surface_threshold_per_mm: float | None = Field(default=None, gt=0.0, le=10.0,
+                                                   description="its object/air threshold (default: Otsu's)")
 
 
 class BBPlanSummary(BaseModel):
@@ -94,10 +102,19 @@ def create_plan(body: BBPlanIn, service: ServiceDep, response: Response, _: Anal
     placement beside it, and warnings for views left under-determined."""
     from calib.plan import KeepOut
 
+    surface = None
+    if body.surface_reconstruction_id is not None:
+        job = job_or_404(service, body.surface_reconstruction_id, "reconstruction")
+        volume = reconstruction_volume(service, body.surface_reconstruction_id)
+        try:
+            surface = outline_from_volume(volume, job["result"]["voxel_mm"], job["result"]["origin_mm"],
+                                          body.surface_threshold_per_mm, f"reconstruction {job['id']}")
+        except BBPlanError as exc:
+            raise Invalid(str(exc)) from None
     request = BBPlanRequest(experiment=body.experiment, orbit=body.orbit, frames=body.frames, n_bbs=body.bbs,
                             detector_px=body.detector_px, noise_px=body.noise_px, seed=body.seed,
                             keep_out=tuple(KeepOut(**z.model_dump()) for z in body.keep_out), target_px=body.target_px,
-                            max_bbs=body.max_bbs)
+                            max_bbs=body.max_bbs, surface=surface)
     try:
         plan = make_bb_plan(request)
     except BBPlanError as exc:

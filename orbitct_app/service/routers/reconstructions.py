@@ -117,7 +117,8 @@ def get_reconstruction(job_id: str, service: ServiceDep, _: Reader) -> JobOut:
     return job_out(job_or_404(service, job_id, "reconstruction"))
 
 
-def _volume(service: Any, job_id: str) -> np.ndarray:
+def reconstruction_volume(service: Any, job_id: str) -> np.ndarray:
+    """A succeeded reconstruction's volume (nz, ny, nx; 1/mm), memory-mapped; 404 or 409 otherwise."""
     job = job_or_404(service, job_id, "reconstruction")
     if job["state"] != "succeeded":
         raise Conflict(f"reconstruction {job_id} is {job['state']}; results exist once it has succeeded")
@@ -133,7 +134,7 @@ def get_slice(job_id: str, axis: Literal["axial", "coronal", "sagittal"], servic
     from orbitct.geometry import VolumeGrid
     from recon.export import slice_png
 
-    vol = _volume(service, job_id)
+    vol = reconstruction_volume(service, job_id)
     job = job_or_404(service, job_id, "reconstruction")
     dim = {"axial": 0, "coronal": 1, "sagittal": 2}[axis]
     n = vol.shape[dim]
@@ -151,7 +152,7 @@ def get_slice(job_id: str, axis: Literal["axial", "coronal", "sagittal"], servic
                        409: {"model": ErrorBody, "description": "the job has not succeeded, or has no export in that format"}})
 def get_volume(job_id: str, service: ServiceDep, _: Reader, format: Literal["nifti", "npy"] = "nifti") -> FileResponse:
     """The volume as NIfTI (``.nii.gz``, millimetres) or a NumPy float32 array (z, y, x)."""
-    _volume(service, job_id)
+    reconstruction_volume(service, job_id)
     folder = service.jobs.job_dir(job_id)
     if format == "npy":
         return FileResponse(confined(folder, "volume.npy"), filename=f"{job_id}.npy")
@@ -178,7 +179,7 @@ def get_dicom(job_id: str, service: ServiceDep, _: Reader,
 
     from recon.dicom import WATER_MU_PER_MM
 
-    _volume(service, job_id)  # 404 or 409 before anything is written
+    reconstruction_volume(service, job_id)  # 404 or 409 before anything is written
     water = water_mu_per_mm or WATER_MU_PER_MM
     folder = service.jobs.job_dir(job_id)
     name = (f"dicom-{job_id}-{water:g}{'-' + patient_id if patient_id else ''}{'-enhanced' if enhanced else ''}"
@@ -211,7 +212,7 @@ def dicom_series(service: Any, job_id: str, out_dir: Path, water_mu_per_mm: floa
         export_enhanced_ct,
     )
 
-    vol = _volume(service, job_id)
+    vol = reconstruction_volume(service, job_id)
     job = job_or_404(service, job_id, "reconstruction")
     result, params = job["result"], job["params"]
     grid = VolumeGrid(tuple(vol.shape), tuple(result["voxel_mm"]), tuple(result["origin_mm"]))
@@ -228,12 +229,12 @@ def dicom_series(service: Any, job_id: str, out_dir: Path, water_mu_per_mm: floa
 @router.get("/{job_id}/files", response_model=list[str], summary="Result files", responses=NOT_SUCCEEDED)
 def list_files(job_id: str, service: ServiceDep, _: Reader) -> list[str]:
     """Names of the exported files (slices, NIfTI)."""
-    _volume(service, job_id)
+    reconstruction_volume(service, job_id)
     return sorted(p.name for p in service.jobs.job_dir(job_id).iterdir() if p.is_file())
 
 
 @router.get("/{job_id}/files/{name}", response_class=FileResponse, summary="One result file", responses=NOT_SUCCEEDED)
 def get_file(job_id: str, name: str, service: ServiceDep, _: Reader) -> FileResponse:
     """An exported file by name (from ``/files``)."""
-    _volume(service, job_id)
+    reconstruction_volume(service, job_id)
     return FileResponse(confined(service.jobs.job_dir(job_id), name))

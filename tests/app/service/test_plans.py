@@ -54,3 +54,34 @@ def test_bad_plan_requests_are_refused_in_one_line(shared_api: Any, body: dict[s
 def test_an_unknown_plan_is_404(shared_api: Any) -> None:
     assert shared_api.get("/plans/bbs/0123456789ab").status_code == 404
     assert shared_api.get("/plans/bbs/..%2Fsecrets/picture").status_code == 404
+
+
+def test_a_plan_on_a_prior_reconstructions_surface(make_api: Any) -> None:
+    """A succeeded reconstruction of the object (here a 62 mm acrylic cylinder written as one) is its real surface."""
+    import numpy as np
+
+    from tests.app.service.test_jobs import _complete_scan
+
+    api = make_api()
+    scan_id = _complete_scan(api)
+    job_id = "r000000000000001"
+    api.service.store.add_job(job_id, kind="reconstruction", scan_id=scan_id, params={"algorithm": "fdk"}, owner="t")
+    z, y, x = np.meshgrid(np.arange(-70.0, 71.0, 2.0), np.arange(-80.0, 81.0, 2.0), np.arange(-80.0, 81.0, 2.0),
+                          indexing="ij")
+    volume = np.where((np.hypot(x, y) <= 62.0) & (np.abs(z) <= 60.0), 0.0228, 0.0).astype(np.float32)
+    folder = api.service.jobs.job_dir(job_id)
+    folder.mkdir(parents=True, exist_ok=True)
+    np.save(folder / "volume.npy", volume)
+    api.service.store.update_job(job_id, state="succeeded", result={"voxel_mm": [2.0, 2.0, 2.0],
+                                                                    "origin_mm": [-80.0, -80.0, -70.0]})
+    body = {"experiment": "A", "frames": 60, "detector_px": 192, "bbs": 6, "surface_reconstruction_id": job_id}
+    r = api.post("/plans/bbs", role="analyst", json=body)
+    assert r.status_code == 201, r.text
+    plan = r.json()
+    assert plan["surface"]["kind"] == "outline" and plan["surface"]["source"].startswith(f"reconstruction {job_id} >")
+    radii = [np.hypot(*b["xyz_mm"][:2]) for b in plan["bbs"]]
+    assert np.allclose(radii, 62.0 + plan["bb_diameter_mm"] / 2, atol=2.0), radii
+    r = api.post("/plans/bbs", role="analyst", json={**body, "surface_threshold_per_mm": 5.0})
+    assert r.status_code == 422 and "no voxel above the threshold" in r.json()["message"]
+    r = api.post("/plans/bbs", role="analyst", json={**body, "surface_reconstruction_id": "nosuchjob"})
+    assert r.status_code == 404
