@@ -1,4 +1,5 @@
-"""The start of every DICOM object orbitct writes (pydicom encodes it): file meta, SOP identity, character set."""
+"""The start of every DICOM object orbitct writes (pydicom encodes it): file meta, SOP identity, character set; and
+the items its sequences (functional groups, codes) are made of."""
 
 from __future__ import annotations
 
@@ -25,3 +26,17 @@ def new_instance(sop_class_uid: str) -> Any:
     ds.SpecificCharacterSet = "ISO_IR 100"
     ds.SOPClassUID, ds.SOPInstanceUID = sop_class_uid, meta.MediaStorageSOPInstanceUID
     return ds
+
+
+def sequence_item(**attrs: Any) -> Any:
+    """A pydicom ``Dataset`` to put in a sequence, with the attributes given by keyword."""
+    from pydicom.dataset import Dataset
+
+    item = Dataset()
+    for key, value in attrs.items():
+        setattr(item, key, value)
+    return item
+
+
+#: the anatomic region of a whole object (SNOMED CT "Entire body"): what a bench object or phantom is
+ENTIRE_BODY = {"CodeValue": "38266002", "CodingSchemeDesignator": "SCT", "CodeMeaning": "Entire body"}

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from orbitct import __version__
-from orbitct.dicom import new_instance
+from orbitct.dicom import ENTIRE_BODY, new_instance, sequence_item
 from orbitct.geometry import VolumeGrid
 from recon.errors import ReconError
 
@@ -106,15 +106,6 @@ def export_dicom_ct(volume: NDArray[np.floating], grid: VolumeGrid, out_dir: Pat
     return paths
 
 
-def _item(**attrs: Any) -> Any:
-    from pydicom.dataset import Dataset
-
-    item = Dataset()
-    for key, value in attrs.items():
-        setattr(item, key, value)
-    return item
-
-
 def export_enhanced_ct(volume: NDArray[np.floating], grid: VolumeGrid, out: Path, info: SeriesInfo = SeriesInfo()) -> Path:
     """Write ``volume`` (nz, ny, nx; 1/mm) on ``grid`` as one Enhanced CT object ``out``: one frame per axial slice,
     spacing, orientation and rescale shared, each frame's position in its own functional group."""
@@ -145,30 +136,29 @@ def export_enhanced_ct(volume: NDArray[np.floating], grid: VolumeGrid, out: Path
     ds.Rows, ds.Columns = int(hu.shape[1]), int(hu.shape[2])
     ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 1
     dim_uid = generate_uid()
-    ds.DimensionOrganizationSequence = Sequence([_item(DimensionOrganizationUID=dim_uid)])
+    ds.DimensionOrganizationSequence = Sequence([sequence_item(DimensionOrganizationUID=dim_uid)])
     ds.DimensionOrganizationType = "3D"
-    ds.DimensionIndexSequence = Sequence([_item(DimensionOrganizationUID=dim_uid, DimensionIndexPointer=0x00200032,
+    ds.DimensionIndexSequence = Sequence([sequence_item(DimensionOrganizationUID=dim_uid, DimensionIndexPointer=0x00200032,
                                                 FunctionalGroupPointer=0x00209113,
                                                 DimensionDescriptionLabel="Image position")])
     centre = float(np.median(hu)) if hu.size else 0.0
-    ds.SharedFunctionalGroupsSequence = Sequence([_item(
-        PixelMeasuresSequence=Sequence([_item(PixelSpacing=[f"{vy:.6g}", f"{vx:.6g}"], SliceThickness=f"{vz:.6g}",
+    ds.SharedFunctionalGroupsSequence = Sequence([sequence_item(
+        PixelMeasuresSequence=Sequence([sequence_item(PixelSpacing=[f"{vy:.6g}", f"{vx:.6g}"], SliceThickness=f"{vz:.6g}",
                                               SpacingBetweenSlices=f"{vz:.6g}")]),
-        PlaneOrientationSequence=Sequence([_item(ImageOrientationPatient=[1, 0, 0, 0, 1, 0])]),
-        PixelValueTransformationSequence=Sequence([_item(RescaleIntercept=0, RescaleSlope=1, RescaleType="HU")]),
-        FrameVOILUTSequence=Sequence([_item(WindowCenter=f"{centre:.0f}", WindowWidth="2000")]),
-        FrameAnatomySequence=Sequence([_item(FrameLaterality="U", AnatomicRegionSequence=Sequence([_item(
-            CodeValue="38266002", CodingSchemeDesignator="SCT", CodeMeaning="Entire body")]))]),
-        IrradiationEventIdentificationSequence=Sequence([_item(IrradiationEventUID=generate_uid())]),
-        CTImageFrameTypeSequence=Sequence([_item(FrameType=["DERIVED", "PRIMARY", "VOLUME", "NONE"],
+        PlaneOrientationSequence=Sequence([sequence_item(ImageOrientationPatient=[1, 0, 0, 0, 1, 0])]),
+        PixelValueTransformationSequence=Sequence([sequence_item(RescaleIntercept=0, RescaleSlope=1, RescaleType="HU")]),
+        FrameVOILUTSequence=Sequence([sequence_item(WindowCenter=f"{centre:.0f}", WindowWidth="2000")]),
+        FrameAnatomySequence=Sequence([sequence_item(FrameLaterality="U", AnatomicRegionSequence=Sequence([sequence_item(**ENTIRE_BODY)]))]),
+        IrradiationEventIdentificationSequence=Sequence([sequence_item(IrradiationEventUID=generate_uid())]),
+        CTImageFrameTypeSequence=Sequence([sequence_item(FrameType=["DERIVED", "PRIMARY", "VOLUME", "NONE"],
                                                  PixelPresentation="MONOCHROME", VolumetricProperties="VOLUME",
                                                  VolumeBasedCalculationTechnique="NONE")]),
     )])
     frames = []
     for k in range(hu.shape[0]):
-        frames.append(_item(
-            FrameContentSequence=Sequence([_item(DimensionIndexValues=[k + 1], FrameAcquisitionNumber=1)]),
-            PlanePositionSequence=Sequence([_item(ImagePositionPatient=[f"{x0:.6g}", f"{y0:.6g}", f"{z0 + k * vz:.6g}"])]),
+        frames.append(sequence_item(
+            FrameContentSequence=Sequence([sequence_item(DimensionIndexValues=[k + 1], FrameAcquisitionNumber=1)]),
+            PlanePositionSequence=Sequence([sequence_item(ImagePositionPatient=[f"{x0:.6g}", f"{y0:.6g}", f"{z0 + k * vz:.6g}"])]),
         ))
     ds.PerFrameFunctionalGroupsSequence = Sequence(frames)
     ds.PixelData = np.ascontiguousarray(hu).tobytes()

@@ -9,7 +9,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from orbitct.dicom import new_instance
+from orbitct.dicom import ENTIRE_BODY, new_instance, sequence_item
 from orbitct.scanfile.errors import ScanFileError
 
 RunKind = Literal["xa", "xrf", "enhanced-xa"]
@@ -93,19 +93,6 @@ def _technique(ds: Any, run: Run) -> None:
         ds.ExposureInuAs = round(run.ma * run.exposure_ms)
 
 
-def _item(**attrs: Any) -> Any:
-    from pydicom.dataset import Dataset
-
-    item = Dataset()
-    for key, value in attrs.items():
-        setattr(item, key, value)
-    return item
-
-
-def _code(value: str, scheme: str, meaning: str) -> Any:
-    return _item(CodeValue=value, CodingSchemeDesignator=scheme, CodeMeaning=meaning)
-
-
 def enhanced(run: Run, start: dt.datetime) -> Any:
     """An Enhanced XA object: what is the same for every frame in the shared functional groups (distances,
     pixel spacing, field of view, the irradiation event), each frame's angles and time in its own."""
@@ -135,42 +122,42 @@ def enhanced(run: Run, start: dt.datetime) -> Any:
     ds.AcquisitionProtocolName = "orbitct rotational run"
     # the dimensions: frames in acquisition order
     dim_uid = generate_uid()
-    ds.DimensionOrganizationSequence = Sequence([_item(DimensionOrganizationUID=dim_uid)])
-    ds.DimensionIndexSequence = Sequence([_item(DimensionOrganizationUID=dim_uid, DimensionIndexPointer=0x00209128,
+    ds.DimensionOrganizationSequence = Sequence([sequence_item(DimensionOrganizationUID=dim_uid)])
+    ds.DimensionIndexSequence = Sequence([sequence_item(DimensionOrganizationUID=dim_uid, DimensionIndexPointer=0x00209128,
                                                 FunctionalGroupPointer=0x00209111,
                                                 DimensionDescriptionLabel="Temporal position")])
-    shared = _item(
-        XRayGeometrySequence=Sequence([_item(DistanceSourceToIsocenter=run.sad_mm, DistanceSourceToDetector=run.sdd_mm)]),
-        FramePixelDataPropertiesSequence=Sequence([_item(
+    shared = sequence_item(
+        XRayGeometrySequence=Sequence([sequence_item(DistanceSourceToIsocenter=run.sad_mm, DistanceSourceToDetector=run.sdd_mm)]),
+        FramePixelDataPropertiesSequence=Sequence([sequence_item(
             FrameType=["ORIGINAL", "PRIMARY", "SINGLE PLANE", "NONE"],
             ImagerPixelSpacing=[run.pitch_row_mm, run.pitch_col_mm], PixelIntensityRelationship="LIN",
             PixelIntensityRelationshipSign=1, GeometricalProperties="UNIFORM", ImageProcessingApplied="NONE")]),
-        FieldOfViewSequence=Sequence([_item(
+        FieldOfViewSequence=Sequence([sequence_item(
             FieldOfViewShape="RECTANGLE", FieldOfViewDimensionsInFloat=[run.pitch_row_mm * ds.Rows, run.pitch_col_mm * ds.Columns],
             FieldOfViewOrigin=[0.0, 0.0], FieldOfViewRotation="0", FieldOfViewHorizontalFlip="NO")]),
-        FrameVOILUTSequence=Sequence([_item(WindowCenter=float(np.percentile(run.frames, 50)),
+        FrameVOILUTSequence=Sequence([sequence_item(WindowCenter=float(np.percentile(run.frames, 50)),
                                             WindowWidth=max(1.0, float(np.ptp(run.frames))))]),
-        TablePositionSequence=Sequence([_item(  # the twin has no table: at its reference position
+        TablePositionSequence=Sequence([sequence_item(  # the twin has no table: at its reference position
             TableTopVerticalPosition=0.0, TableTopLongitudinalPosition=0.0, TableTopLateralPosition=0.0,
             TableHorizontalRotationAngle=0.0, TableHeadTiltAngle=0.0, TableCradleTiltAngle=0.0)]),
-        CollimatorShapeSequence=Sequence([_item(  # open: the whole panel
+        CollimatorShapeSequence=Sequence([sequence_item(  # open: the whole panel
             CollimatorShape="RECTANGULAR", CollimatorLeftVerticalEdge=0, CollimatorRightVerticalEdge=int(ds.Columns),
             CollimatorUpperHorizontalEdge=0, CollimatorLowerHorizontalEdge=int(ds.Rows))]),
-        FrameAcquisitionSequence=Sequence([_item(KVP=_num(run.kv), XRayTubeCurrentInmA=float(run.ma))]),
-        IrradiationEventIdentificationSequence=Sequence([_item(IrradiationEventUID=generate_uid())]),
-        FrameAnatomySequence=Sequence([_item(FrameLaterality="U", AnatomicRegionSequence=Sequence(
-            [_code("38266002", "SCT", "Entire body")]))]),
+        FrameAcquisitionSequence=Sequence([sequence_item(KVP=_num(run.kv), XRayTubeCurrentInmA=float(run.ma))]),
+        IrradiationEventIdentificationSequence=Sequence([sequence_item(IrradiationEventUID=generate_uid())]),
+        FrameAnatomySequence=Sequence([sequence_item(FrameLaterality="U", AnatomicRegionSequence=Sequence(
+            [sequence_item(**ENTIRE_BODY)]))]),
     )
     ds.SharedFunctionalGroupsSequence = Sequence([shared])
     frames = []
     for i in range(n):
         when = start + dt.timedelta(seconds=float(run.times_s[i] - run.times_s[0]))
-        frames.append(_item(
-            FrameContentSequence=Sequence([_item(FrameAcquisitionDateTime=when.strftime("%Y%m%d%H%M%S.%f"),
+        frames.append(sequence_item(
+            FrameContentSequence=Sequence([sequence_item(FrameAcquisitionDateTime=when.strftime("%Y%m%d%H%M%S.%f"),
                                                  FrameReferenceDateTime=when.strftime("%Y%m%d%H%M%S.%f"),
                                                  FrameAcquisitionDuration=float(run.exposure_ms), TemporalPositionIndex=i + 1,
                                                  DimensionIndexValues=[i + 1])]),
-            PositionerPositionSequence=Sequence([_item(PositionerPrimaryAngle=float(run.primary_deg[i]),
+            PositionerPositionSequence=Sequence([sequence_item(PositionerPrimaryAngle=float(run.primary_deg[i]),
                                                        PositionerSecondaryAngle=float(run.secondary_deg[i]))]),
         ))
     ds.PerFrameFunctionalGroupsSequence = Sequence(frames)
