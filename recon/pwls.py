@@ -15,6 +15,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 from numba import njit, prange
@@ -185,7 +186,7 @@ class _Pass:
     """One subset's views, walked in chunks: operator, view numbers, and chunk bounds in the operator."""
 
     def __init__(self, A: Projector, views: NDArray[np.intp], chunk: int) -> None:
-        self.op = A if views.size == A.proj_shape[0] else A.subset(views)
+        self.op = A if views.size == A.proj_shape[0] else A.subset(views) if views.size else None
         self.views = views
         self.chunks = [(j, min(j + chunk, views.size)) for j in range(0, views.size, chunk)]
 
@@ -194,6 +195,69 @@ class _Pass:
         v = self.views[j0:j1]
         index = slice(int(v[0]), int(v[-1]) + 1) if v[-1] - v[0] == v.size - 1 else v
         return np.ascontiguousarray(stack[index], dtype=np.float32)
+
+
+class DataTerm(Protocol):
+    """The data term ``0.5 sum_i w_i ([Ax]_i - y_i)^2`` of views cut into ordered subsets, as the solver needs it."""
+
+    padded_shape: tuple[int, int, int]
+    subsets: int
+
+    def curvature(self, out: NDArray[np.float32]) -> None:
+        """Add the surrogate's data curvature ``A^T (w * A 1)`` into the padded ``out``."""
+
+    def gradient(self, xp: NDArray[np.float32], subset: int, out: NDArray[np.float32] | None) -> float:
+        """Subset ``subset``'s term at the padded ``xp``; its gradient ``A_m^T w (A_m x - y_m)`` is added into the
+        padded ``out`` (skipped when None)."""
+
+
+class ViewsData:
+    """The data term of projections held here (arrays, or anything sliceable along views, read in chunks).
+
+    ``subset_views``: the views of each ordered subset (default: every ``subsets``-th view, starting at each
+    offset); a subset may be empty.
+    """
+
+    def __init__(self, A: Projector, y: NDArray[np.float32] | ProjectionStack,
+                 weights: NDArray[np.float32] | ProjectionStack | None, *, subsets: int = 1, chunk_views: int = 8,
+                 subset_views: list[NDArray[np.intp]] | None = None) -> None:
+        if tuple(y.shape) != A.proj_shape:
+            raise ReconError(f"projections: expected shape {A.proj_shape}, got {tuple(y.shape)}")
+        if weights is not None and tuple(weights.shape) != A.proj_shape:
+            raise ReconError(f"weights: expected shape {A.proj_shape}, got {tuple(weights.shape)}")
+        n_views = A.proj_shape[0]
+        if subset_views is None:
+            subset_views = [np.arange(m, n_views, subsets) for m in range(subsets)]
+        self.A, self.y, self.weights = A, y, weights
+        self.padded_shape = A.padded_shape
+        self.subsets = len(subset_views)
+        self._passes = [_Pass(A, np.asarray(v, np.intp), chunk_views) for v in subset_views]
+        self._whole = _Pass(A, np.arange(n_views), chunk_views)
+        self._buf = np.empty((min(chunk_views, n_views),) + A.proj_shape[1:], np.float32)
+        self._no_w = np.ones((1, 1, 1), np.float32)
+
+    def curvature(self, out: NDArray[np.float32]) -> None:
+        """Add ``A^T (w * A 1)`` into the padded ``out``."""
+        ones = np.zeros(self.padded_shape, np.float32)
+        ones[1:-1, 1:-1, 1:-1] = 1.0
+        for j0, j1 in self._whole.chunks:
+            r = self.A.forward_padded(ones, self._buf[: j1 - j0], j0)
+            if self.weights is not None:
+                r *= self._whole.read(self.weights, j0, j1)
+            self.A.back_padded(r, out, j0)
+
+    def gradient(self, xp: NDArray[np.float32], subset: int, out: NDArray[np.float32] | None) -> float:
+        """Subset ``subset``'s data term at ``xp``; its gradient added into ``out`` unless None."""
+        ps = self._passes[subset]
+        weighted = self.weights is not None
+        value = 0.0
+        for j0, j1 in ps.chunks:
+            r = ps.op.forward_padded(xp, self._buf[: j1 - j0], j0)
+            value += _residual(r, ps.read(self.y, j0, j1),
+                               ps.read(self.weights, j0, j1) if weighted else self._no_w, weighted)
+            if out is not None:
+                ps.op.back_padded(r, out, j0)
+        return value
 
 
 def pwls_sps(A: Projector, y: NDArray[np.float32] | ProjectionStack,
@@ -212,35 +276,33 @@ def pwls_sps(A: Projector, y: NDArray[np.float32] | ProjectionStack,
     An ``x0`` of shape ``A.padded_shape`` (the start in its interior) becomes the iterate
     itself, saving a volume: the result is then a view of its interior.
     """
+    if subsets < 1 or chunk_views < 1:
+        raise ReconError(f"need subsets >= 1 and chunk_views >= 1; got {subsets}, {chunk_views}")
+    data = ViewsData(A, y, weights, subsets=subsets, chunk_views=chunk_views)
+    return pwls_solve(data, beta=beta, iterations=iterations, x0=x0, neighbourhood=neighbourhood, nonneg=nonneg,
+                      momentum=momentum, progress=progress, callback=callback)
+
+
+def pwls_solve(data: DataTerm, *, beta: float = DEFAULT_BETA, iterations: int = 50,
+               x0: NDArray[np.float32] | None = None, neighbourhood: int = 1, nonneg: bool = True,
+               momentum: bool = False, progress: ProgressCallback | None = None,
+               callback: Callable[[int, NDArray[np.float32]], None] | None = None) -> PwlsResult:
+    """:func:`pwls_sps` on any :class:`DataTerm` (projections held here, or spread over a cluster's workers)."""
     t0 = time.perf_counter()
-    if iterations < 0 or subsets < 1 or beta < 0 or chunk_views < 1:
-        raise ReconError(f"need iterations >= 0, subsets >= 1, beta >= 0, chunk_views >= 1; "
-                         f"got {iterations}, {subsets}, {beta}, {chunk_views}")
-    if tuple(y.shape) != A.proj_shape:
-        raise ReconError(f"projections: expected shape {A.proj_shape}, got {tuple(y.shape)}")
-    weighted = weights is not None
-    if weighted and tuple(weights.shape) != A.proj_shape:
-        raise ReconError(f"weights: expected shape {A.proj_shape}, got {tuple(weights.shape)}")
-    in_place = x0 is not None and np.shape(x0) == A.padded_shape
+    if iterations < 0 or beta < 0:
+        raise ReconError(f"need iterations >= 0 and beta >= 0; got {iterations}, {beta}")
+    padded = tuple(data.padded_shape)
+    vol_shape = tuple(n - 2 for n in padded)
+    in_place = x0 is not None and np.shape(x0) == padded
     if in_place and not (x0.dtype == np.float32 and x0.flags.c_contiguous and x0.flags.writeable):
         raise ReconError("a padded x0 is updated in place: it must be a writeable C-contiguous float32 array")
-    if x0 is not None and not in_place and np.shape(x0) != A.vol_shape:
-        raise ReconError(f"x0: expected shape {A.vol_shape} (or padded {A.padded_shape}), got {np.shape(x0)}")
+    if x0 is not None and not in_place and np.shape(x0) != vol_shape:
+        raise ReconError(f"x0: expected shape {vol_shape} (or padded {padded}), got {np.shape(x0)}")
     offs, omega = neighbour_offsets(neighbourhood)
-    n_views = A.proj_shape[0]
-    passes = [_Pass(A, np.arange(m, n_views, subsets), chunk_views) for m in range(subsets)]
-    whole = passes[0] if subsets == 1 else _Pass(A, np.arange(n_views), chunk_views)
-    buf = np.empty((min(chunk_views, n_views),) + A.proj_shape[1:], np.float32)
-    no_w = np.ones((1, 1, 1), np.float32)
-    gp = np.zeros(A.padded_shape, np.float32)  # gradient accumulator (its border is scratch)
+    subsets = data.subsets
     # data curvature d = A^T (w * A 1), computed once into a volume of its own
-    denom_p = np.zeros(A.padded_shape, np.float32)
-    gp[1:-1, 1:-1, 1:-1] = 1.0
-    for j0, j1 in whole.chunks:
-        r = A.forward_padded(gp, buf[: j1 - j0], j0)
-        if weighted:
-            r *= whole.read(weights, j0, j1)
-        A.back_padded(r, denom_p, j0)
+    denom_p = np.zeros(padded, np.float32)
+    data.curvature(denom_p)
     denom = denom_p[1:-1, 1:-1, 1:-1]
     del denom_p
     sample = denom[::2, ::2, ::2]  # the median of a sub-lattice sets the scale; no volume-sized copy
@@ -248,11 +310,12 @@ def pwls_sps(A: Projector, y: NDArray[np.float32] | ProjectionStack,
     beta_abs = float(beta * (np.median(pos) if pos.size else 0.0) / (2 * omega.sum()))
     del sample, pos
     _add_penalty_curvature(denom, beta_abs, offs, omega)
+    gp = np.zeros(padded, np.float32)  # gradient accumulator (its border is scratch)
     if in_place:
         xp = x0  # the iterate, zero-bordered for the projector
         _zero_border(xp)
     else:
-        xp = np.zeros(A.padded_shape, np.float32)
+        xp = np.zeros(padded, np.float32)
         if x0 is not None:
             xp[1:-1, 1:-1, 1:-1] = x0
     if nonneg:
@@ -266,14 +329,10 @@ def pwls_sps(A: Projector, y: NDArray[np.float32] | ProjectionStack,
             xp[1:-1, 1:-1, 1:-1] = x_prev  # the result is the iterate, not the extrapolated point
         data_term = 0.0
         rough = 0.0
-        for m, ps in enumerate(passes):
+        for m in range(subsets):
             if not final:
                 gp.fill(0.0)
-            for j0, j1 in ps.chunks:
-                r = ps.op.forward_padded(xp, buf[: j1 - j0], j0)
-                data_term += _residual(r, ps.read(y, j0, j1), ps.read(weights, j0, j1) if weighted else no_w, weighted)
-                if not final:
-                    ps.op.back_padded(r, gp, j0)
+            data_term += data.gradient(xp, m, None if final else gp)
             if final:
                 if m == 0:
                     rough = penalty_add(xp, offs, omega, 0.0, gp)
@@ -297,6 +356,6 @@ def pwls_sps(A: Projector, y: NDArray[np.float32] | ProjectionStack,
             el = time.perf_counter() - t0
             report(progress, "pwls", it + 1, iterations, "iterations", cost=cost[-1],
                    time_left_s=el / (it + 1) * (iterations - it - 1))
-    del gp, denom, buf, r, x_prev
+    del gp, denom, x_prev
     x = xp[1:-1, 1:-1, 1:-1] if in_place else np.ascontiguousarray(xp[1:-1, 1:-1, 1:-1])
     return PwlsResult(x, cost, iterations, time.perf_counter() - t0, beta_abs, restarts)
