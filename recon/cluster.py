@@ -1,15 +1,20 @@
 """One reconstruction split across the workers of a Dask cluster (``dask.distributed``).
 
-FDK is a sum over views: the views are cut into parts (two per worker), each worker reads its part's frames from
-the scan file itself (the workers see the file at the same path: a shared disk), filters and back-projects them
-with the whole orbit's weights (:class:`recon.fdk.FdkWeights`), and the partial volumes are summed pairwise on the
-workers as they finish (the transfers of a level run side by side); only the sum comes back. The result equals one process's within float32 round-off (the order of
-the sum differs). A part is read-only work, so when a worker is lost Dask runs it again elsewhere.
+The workers see the scan file at the same path (a shared disk) and read their own views from it; only volumes
+travel. **FDK** is a sum over views: the views are cut into parts (two per worker), each filtered and
+back-projected with the whole orbit's weights (:class:`recon.fdk.FdkWeights`). **PWLS** keeps one part of the
+views per worker for the whole run (its line integrals and weights loaded once, in the worker's memory); for
+each ordered subset the iterate is broadcast to the workers, each returns its views' share of the subset's
+gradient and data term, and the solver's step (penalty, surrogate, momentum) runs here. In both, partial volumes
+are summed pairwise on the workers as they finish (the transfers of a level run side by side); only the sum comes
+back. The result equals one process's within float32 round-off (the order of the sum differs). Every task is
+read-only work, so when a worker is lost Dask runs it again elsewhere (a part of the views is read again).
 """
 
 from __future__ import annotations
 
 import os
+import threading
 import time
 import uuid
 from typing import Any
@@ -22,9 +27,11 @@ from orbitct.progress import ProgressCallback, report
 from orbitct.scanfile import ScanFile
 from recon.errors import ReconError
 from recon.fdk import FdkWeights, fdk_views
-from recon.stack import FileLineIntegrals
+from recon.operator import projector
+from recon.pwls import DEFAULT_BETA, PwlsResult, ViewsData, pwls_solve
+from recon.stack import FileLineIntegrals, FileWeights
 
-#: parts per worker: a part that finishes late on a slow worker then holds up less
+#: FDK's parts per worker: a part that finishes late on a slow worker then holds up less
 PARTS_PER_WORKER = 2
 
 
@@ -39,53 +46,209 @@ def _fdk_part(path: str, frames: NDArray[np.intp], grid: VolumeGrid, geometry: V
         return fdk_views(FileLineIntegrals(scan, frames), grid, geometry, weights)
 
 
-def _sum(a: NDArray[np.float32], b: NDArray[np.float32]) -> NDArray[np.float32]:
-    return np.add(a, b)  # a new array: a task run again after a lost worker must find its inputs unchanged
+def _sum(a: Any, b: Any) -> Any:
+    """Two partial results added (arrays, or tuples of arrays and numbers, element by element); a new object: a
+    task run again after a lost worker must find its inputs unchanged."""
+    if isinstance(a, tuple):
+        return tuple(np.add(u, v) for u, v in zip(a, b, strict=True))
+    return np.add(a, b)
+
+
+def _connected_workers(client: Any, timeout_s: float) -> list[str]:
+    """The addresses of the cluster's workers, waiting up to ``timeout_s`` for the first one."""
+    try:
+        client.wait_for_workers(1, timeout=timeout_s)
+        return sorted(client.scheduler_info()["workers"])
+    except Exception as exc:  # noqa: BLE001 - any failure to find a worker is the same answer
+        raise ClusterError(f"no Dask worker joined the scheduler {client.scheduler.address} within "
+                           f"{timeout_s:g} s ({type(exc).__name__})") from None
+
+
+def _sum_on_workers(client: Any, parts: list[Any], what: str, key: str,
+                    done: Any = None) -> Any:
+    """The sum of the results of ``parts``, added pairwise on the workers as they finish; only the sum is fetched.
+    ``done(future)`` is called as each part finishes. A part that fails, or a scheduler that goes away, raises
+    :class:`ClusterError` naming ``what`` rather than waiting."""
+    pending, ready, sums = list(parts), [], 0
+    first = {f.key for f in parts}
+    while pending or len(ready) > 1:
+        finished = [f for f in pending if f.status != "pending"]
+        if not finished:
+            time.sleep(0.005)
+            continue
+        for f in finished:
+            if f.status != "finished":
+                why = f"{type(f.exception()).__name__}: {f.exception()}" if f.status == "error" else f.status
+                raise ClusterError(f"the cluster lost {what} ({why}); the scheduler {client.scheduler.address} "
+                                   "went away or a part failed")
+            pending.remove(f)
+            ready.append(f)
+            if done is not None and f.key in first:
+                done(f)
+        while len(ready) >= 2:
+            a, b = ready.pop(0), ready.pop(0)
+            sums += 1
+            pending.append(client.submit(_sum, a, b, key=f"{key}-sum{sums}", pure=False))
+    try:
+        return ready[0].result()
+    except Exception as exc:  # noqa: BLE001 - reported with what was lost
+        raise ClusterError(f"the cluster lost {what}: {type(exc).__name__}: {exc}") from None
 
 
 def fdk_on_cluster(client: Any, path: str | os.PathLike[str], frames: NDArray[np.intp], grid: VolumeGrid,
                    geometry: ViewGeometry, *, window: str = "ram-lak", progress: ProgressCallback | None = None,
                    workers_timeout_s: float = 30.0) -> NDArray[np.float32]:
     """FDK of the projections ``frames`` of the scan at ``path`` (their ``geometry``) on the workers of ``client``."""
-    try:
-        client.wait_for_workers(1, timeout=workers_timeout_s)
-    except Exception as exc:  # noqa: BLE001 - any failure to find a worker is the same answer
-        raise ClusterError(f"no Dask worker joined the scheduler {client.scheduler.address} within "
-                           f"{workers_timeout_s:g} s ({type(exc).__name__})") from None
-    n_workers = max(1, len(client.scheduler_info()["workers"]))
+    n_workers = len(_connected_workers(client, workers_timeout_s))
     weights = FdkWeights.of(geometry, window)
     n_parts = int(min(frames.size, PARTS_PER_WORKER * n_workers))
     bounds = np.linspace(0, frames.size, n_parts + 1).astype(int)
-    run = uuid.uuid4().hex[:8]
+    key = f"orbitct-fdk-{uuid.uuid4().hex[:8]}"
     parts = [client.submit(_fdk_part, os.fspath(path), frames[a:b], grid, geometry[a:b], weights.part(slice(a, b)),
-                           key=f"orbitct-fdk-{run}-{i}", pure=False)
+                           key=f"{key}-{i}", pure=False)
              for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))]
     sizes = dict(zip((p.key for p in parts), np.diff(bounds).tolist(), strict=True))
-    pending, ready, done, sums = list(parts), [], 0, 0
-    while pending or len(ready) > 1:  # sum finished parts pairwise on the workers: the transfers run side by side
-        finished = [f for f in pending if f.status != "pending"]
-        if not finished:
-            time.sleep(0.02)
-            continue
-        for f in finished:
-            if f.status != "finished":  # an error, or a scheduler that went away: say so rather than wait
-                why = f"{type(f.exception()).__name__}: {f.exception()}" if f.status == "error" else f.status
-                raise ClusterError(f"the cluster lost the FDK of {os.fspath(path)} ({why}); the scheduler "
-                                   f"{client.scheduler.address} went away or a part failed")
-            pending.remove(f)
-            ready.append(f)
-            if f.key in sizes:
-                done += sizes[f.key]
-                report(progress, "fdk", done, int(frames.size), f"views ({n_workers} workers)")
-        while len(ready) >= 2:
-            a, b = ready.pop(0), ready.pop(0)
-            sums += 1
-            pending.append(client.submit(_sum, a, b, key=f"orbitct-fdk-{run}-sum{sums}", pure=False))
-    total = ready[0]
-    try:
-        return np.asarray(total.result(), dtype=np.float32)
-    except Exception as exc:  # noqa: BLE001 - reported with what was lost
-        raise ClusterError(f"the cluster lost the FDK of {os.fspath(path)}: {type(exc).__name__}: {exc}") from None
+    count = [0]
+
+    def done(f: Any) -> None:
+        count[0] += sizes[f.key]
+        report(progress, "fdk", count[0], int(frames.size), f"views ({n_workers} workers)")
+
+    total = _sum_on_workers(client, parts, f"the FDK of {os.fspath(path)}", key, done)
+    return np.asarray(total, dtype=np.float32)
 
 
-__all__ = ["ClusterError", "PARTS_PER_WORKER", "fdk_on_cluster"]
+class ViewPart:
+    """On a worker: a run of a scan's views held for a PWLS run (line integrals and weights read once) and their
+    share of its data term. Its subsets are the run's: global view ``offset + j`` is in subset ``(offset + j) % M``.
+
+    Pickled as the recipe, not the data: moved or spilled, it reads its views from the file again.
+    """
+
+    def __init__(self, path: str, frames: NDArray[np.intp], offset: int, grid: VolumeGrid, geometry: ViewGeometry,
+                 subsets: int, chunk_views: int = 8) -> None:
+        self._recipe = (path, frames, offset, grid, geometry, subsets, chunk_views)
+        with ScanFile(path) as scan:
+            every = np.arange(frames.size)
+            y, w = FileLineIntegrals(scan, frames)[every], FileWeights(scan, frames)[every]
+        index = offset + np.arange(frames.size)
+        self.data = ViewsData(projector(grid, geometry), y, w, chunk_views=chunk_views,
+                              subset_views=[np.flatnonzero(index % subsets == m) for m in range(subsets)])
+        self._lock = threading.Lock()  # one projector: one task at a time on it
+        self._nbytes = y.nbytes + w.nbytes
+
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        return (ViewPart, self._recipe)
+
+    def __sizeof__(self) -> int:  # what Dask counts for it: the views it holds
+        return self._nbytes
+
+    def curvature(self) -> NDArray[np.float32]:
+        """This part's ``A^T (w * A 1)`` (padded)."""
+        out = np.zeros(self.data.padded_shape, np.float32)
+        with self._lock:
+            self.data.curvature(out)
+        return out
+
+    def gradient(self, xp: NDArray[np.float32], subset: int, with_gradient: bool) -> tuple[Any, ...]:
+        """(gradient, term) of this part's views in ``subset`` at ``xp``; (term,) without the gradient."""
+        out = np.zeros(self.data.padded_shape, np.float32) if with_gradient else None
+        with self._lock:
+            value = self.data.gradient(xp, subset, out)
+        return (value,) if out is None else (out, value)
+
+
+def _part_curvature(part: ViewPart) -> NDArray[np.float32]:
+    return part.curvature()
+
+
+def _part_gradient(part: ViewPart, xp: NDArray[np.float32], subset: int, with_gradient: bool) -> tuple[Any, ...]:
+    return part.gradient(xp, subset, with_gradient)
+
+
+class ClusterData:
+    """The PWLS data term (:class:`recon.pwls.DataTerm`) of a scan's views spread over a cluster's workers, one
+    :class:`ViewPart` each. Close it (or use it as a context manager) to free the workers' memory."""
+
+    def __init__(self, client: Any, path: str | os.PathLike[str], frames: NDArray[np.intp], grid: VolumeGrid,
+                 geometry: ViewGeometry, *, subsets: int = 1, chunk_views: int = 8,
+                 workers_timeout_s: float = 30.0) -> None:
+        if subsets < 1:
+            raise ReconError(f"need subsets >= 1, got {subsets}")
+        workers = _connected_workers(client, workers_timeout_s)
+        self.client, self.subsets = client, subsets
+        self.padded_shape = tuple(n + 2 for n in grid.shape)
+        self.what = f"the PWLS of {os.fspath(path)}"
+        self._key = f"orbitct-pwls-{uuid.uuid4().hex[:8]}"
+        self._calls = 0
+        n_parts = int(min(frames.size, len(workers)))
+        bounds = np.linspace(0, frames.size, n_parts + 1).astype(int)
+        self.parts = [client.submit(ViewPart, os.fspath(path), frames[a:b], int(a), grid, geometry[a:b], subsets,
+                                    chunk_views, key=f"{self._key}-part{i}", pure=False, workers=[workers[i]],
+                                    allow_other_workers=True)
+                      for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))]
+        self.workers = n_parts
+        self.bytes_moved = 0  # volumes sent to and summed between the workers, and fetched
+
+    def _next_key(self, what: str) -> str:
+        self._calls += 1
+        return f"{self._key}-{what}{self._calls}"
+
+    def _volumes_moved(self, broadcast: bool) -> None:
+        vol = 4 * int(np.prod(self.padded_shape))
+        self.bytes_moved += vol * ((self.workers if broadcast else 0) + self.workers)  # W - 1 sums, one fetch
+
+    def curvature(self, out: NDArray[np.float32]) -> None:
+        """Add ``A^T (w * A 1)`` of every part into the padded ``out``."""
+        key = self._next_key("curvature")
+        parts = [self.client.submit(_part_curvature, p, key=f"{key}-{i}", pure=False) for i, p in enumerate(self.parts)]
+        out += _sum_on_workers(self.client, parts, self.what, key)
+        self._volumes_moved(False)
+
+    def gradient(self, xp: NDArray[np.float32], subset: int, out: NDArray[np.float32] | None) -> float:
+        """Subset ``subset``'s data term at ``xp`` summed over the parts; its gradient added into ``out``."""
+        key = self._next_key(f"subset{subset}-")
+        try:
+            x = self.client.scatter(xp, broadcast=True, hash=False, timeout=60)
+        except Exception as exc:  # noqa: BLE001 - a scheduler or workers gone: say so rather than wait
+            raise ClusterError(f"the cluster lost {self.what}: cannot send the iterate to the workers "
+                               f"({type(exc).__name__}: {exc})") from None
+        try:
+            parts = [self.client.submit(_part_gradient, p, x, subset, out is not None, key=f"{key}-{i}", pure=False)
+                     for i, p in enumerate(self.parts)]
+            total = _sum_on_workers(self.client, parts, self.what, key)
+        finally:
+            del x  # the workers may drop the iterate
+        self._volumes_moved(True)
+        if out is not None:
+            out += total[0]
+        return float(total[-1])
+
+    def close(self) -> None:
+        """Release the parts (the workers free their views)."""
+        try:
+            self.client.cancel(self.parts)
+        except Exception:  # noqa: BLE001 - a cluster already gone holds nothing
+            pass
+        self.parts = []
+
+    def __enter__(self) -> ClusterData:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def pwls_on_cluster(client: Any, path: str | os.PathLike[str], frames: NDArray[np.intp], grid: VolumeGrid,
+                    geometry: ViewGeometry, *, x0: NDArray[np.float32] | None = None, subsets: int = 1,
+                    beta: float = DEFAULT_BETA, iterations: int = 50, neighbourhood: int = 1, momentum: bool = False,
+                    progress: ProgressCallback | None = None, workers_timeout_s: float = 30.0) -> PwlsResult:
+    """PWLS (:func:`recon.pwls.pwls_sps`) of the projections ``frames`` of the scan at ``path`` with the views
+    spread over the workers of ``client``; ``x0`` as there (padded: updated in place)."""
+    with ClusterData(client, path, frames, grid, geometry, subsets=subsets,
+                     workers_timeout_s=workers_timeout_s) as data:
+        return pwls_solve(data, beta=beta, iterations=iterations, x0=x0, neighbourhood=neighbourhood,
+                          momentum=momentum, progress=progress)
+
+
+__all__ = ["ClusterData", "ClusterError", "PARTS_PER_WORKER", "ViewPart", "fdk_on_cluster", "pwls_on_cluster"]

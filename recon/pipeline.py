@@ -39,7 +39,7 @@ from recon.mar import (
     traces_by_reprojection,
     traces_by_threshold,
 )
-from recon.operator import projector
+from recon.operator import pad_volume, projector
 from recon.pwls import DEFAULT_BETA, pwls_sps, statistical_weights
 from recon.stack import FileLineIntegrals, FileWeights
 
@@ -78,7 +78,8 @@ def estimate_bytes(algorithm: str, grid: VolumeGrid, n_views: int, rows: int, co
     """Peak working memory (bytes) a reconstruction needs, before anything is allocated.
 
     ``stream`` 'file' is PWLS reading projections and weights from the scan file each iteration;
-    'memory' holds both in memory (FDK always streams unless MAR needs the projections at hand).
+    'memory' holds both in memory (FDK always streams unless MAR needs the projections at hand); 'cluster' keeps
+    them on a Dask cluster's workers (:mod:`recon.cluster`), this process holding only volumes.
     """
     nz, ny, nx = grid.shape
     vol = grid.nbytes
@@ -89,6 +90,8 @@ def estimate_bytes(algorithm: str, grid: VolumeGrid, n_views: int, rows: int, co
     mar_extra = 2 * proj + proj // 4 + 3 * vol if mar else 0
     if algorithm == "fdk":
         total = vol + fdk_chunk + (proj + mar_extra if mar else 0)
+    elif stream == "cluster":  # the views stay on the workers: here the iterate, its momentum, gradient, surrogate
+        total = vol + 4 * padded
     elif stream == "file":
         # FDK into the padded iterate, then iterate + gradient + surrogate denominators
         total = max(padded + fdk_chunk, 3 * padded + pwls_chunk)
@@ -203,8 +206,8 @@ def reconstruct_scan(
     ``max_seconds`` (:mod:`recon.estimate`) raises :class:`TooLongError` before anything large is allocated.
     Without ``shape`` the grid is fitted to the object (``fit='object'``, :func:`recon.grid.object_grid`) or covers
     the whole field of view (``fit='fov'``); ``grid`` gives the grid itself (another reconstruction's, to compare).
-    ``cluster``: a ``dask.distributed.Client`` whose workers share FDK's views (:mod:`recon.cluster`; they read the
-    scan file at the same path); PWLS and metal artefact reduction run here.
+    ``cluster``: a ``dask.distributed.Client`` whose workers share the views of FDK and of PWLS (:mod:`recon.cluster`;
+    they read the scan file at the same path; ``stream`` does not apply); metal artefact reduction runs here.
     """
     t0 = time.perf_counter()
     if algorithm not in ALGORITHMS:
@@ -237,7 +240,8 @@ def reconstruct_scan(
         grid = grid if grid is not None else grid_for_geometry(geom, voxel_mm=voxel_mm, shape=shape)
         fov_fraction = check_fov(grid, geom)
         det = geom.panel
-        mode = choose_stream(stream, algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method))
+        mode = ("cluster" if cluster is not None and algorithm == "pwls" and not mar_method
+                else choose_stream(stream, algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method)))
         check_memory(estimate_bytes(algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method), mode),
                      f"{scan.path}: {algorithm} of {frames.size} views of {det.rows} x {det.cols} pixels onto "
                      f"{grid.shape} voxels")
@@ -259,11 +263,17 @@ def reconstruct_scan(
                 "shape or (PWLS) ordered subsets with momentum and fewer iterations are faster", estimated_s)
         cost: list[float] = []
         extra: dict[str, Any] = {}
-        if algorithm == "fdk" and not mar_method and cluster is not None:
-            from recon.cluster import fdk_on_cluster
+        if not mar_method and cluster is not None:
+            from recon.cluster import fdk_on_cluster, pwls_on_cluster
 
             vol = fdk_on_cluster(cluster, scan.path, frames, grid, geom, window=window, progress=progress)
             extra.update(cluster_workers=len(cluster.scheduler_info()["workers"]))
+            if algorithm == "pwls":
+                res = pwls_on_cluster(cluster, scan.path, frames, grid, geom, x0=pad_volume(vol), subsets=subsets,
+                                      beta=beta, iterations=iterations, neighbourhood=neighbourhood,
+                                      momentum=momentum, progress=progress)
+                vol, cost = res.volume, res.cost
+                extra.update(beta_abs=res.beta_abs, stream="cluster")
         elif algorithm == "fdk" and not mar_method:
             vol = fdk(FileLineIntegrals(scan, frames), grid, geom, window=window, progress=progress)
         elif mode == "file":

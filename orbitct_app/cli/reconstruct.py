@@ -62,7 +62,8 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
               help="A reconstruction estimated to take longer asks first on a terminal, and is refused elsewhere.")
 @click.option("--yes", is_flag=True, help="Start even when the estimate is above --max-minutes.")
 @click.option("--scheduler", default=None, envvar="ORBITCT_SCHEDULER", metavar="tcp://HOST:PORT",
-              help="FDK: split the views across the workers of this Dask scheduler (they read SCAN at the same path).")
+              help="FDK and PWLS: split the views across the workers of this Dask scheduler (they read SCAN at the "
+                   "same path).")
 def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | None, shape: tuple[int, int, int] | None,
                 fit: str, iterations: int, beta: float | None, subsets: int, momentum: bool, window: str, mar: bool,
                 mar_method: str, stream: str, name: str | None, overwrite: bool, compare_geometry: str | None,
@@ -84,7 +85,7 @@ def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | Non
         reconstruct_scan,
     )
 
-    cluster = _cluster(scheduler, algorithm, mar)
+    cluster = _cluster(scheduler, mar)
 
     def run(limit_s: float | None) -> ReconResult:
         with ProgressBar() as bar:
@@ -141,17 +142,17 @@ def reconstruct(scan: Path, algorithm: str, geometry: str, voxel_mm: float | Non
     click.echo(f"  /recon/{other.name} with {compare_geometry} geometry, {other.elapsed_s:.1f} s; side by side: {figure}")
 
 
-def _cluster(address: str | None, algorithm: str, mar: bool) -> object | None:
-    """A client of the Dask scheduler at ``address`` for FDK's views; None without one."""
+def _cluster(address: str | None, mar: bool) -> object | None:
+    """A client of the Dask scheduler at ``address`` for the views of FDK and PWLS; None without one."""
     import re
 
     if address is None:
         return None
     if not re.fullmatch(r"(tcp|tls)://[^\s/:]+:\d{1,5}", address):
         raise click.BadParameter(f"{address!r} is not a scheduler address; give tcp://HOST:PORT", param_hint="--scheduler")
-    if algorithm != "fdk" or mar:
-        raise click.UsageError("--scheduler splits FDK's views across the cluster's workers; PWLS and --mar run on "
-                               "this machine (or as a job of `orbitct serve`, whose jobs run on the cluster)")
+    if mar:
+        raise click.UsageError("--scheduler splits the views of FDK and PWLS across the cluster's workers; --mar runs "
+                               "on this machine (or as a job of `orbitct serve`, whose jobs run on the cluster)")
     from distributed import Client
 
     try:

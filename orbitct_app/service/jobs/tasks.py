@@ -77,7 +77,7 @@ def run_reconstruction(scan_path: Path, params: dict[str, Any], out_dir: Path,
         kwargs["max_seconds"] = 60.0 * float(kwargs.pop("max_minutes"))
     if "shape" in kwargs:
         kwargs["shape"] = tuple(kwargs["shape"])
-    split = kwargs.get("algorithm") == "fdk" and not kwargs.get("mar")  # FDK's views across the workers
+    split = not kwargs.get("mar")  # the views of FDK and PWLS across the workers; MAR runs on the job's worker
     with _cluster_client() if split else contextlib.nullcontext() as cluster:
         if cluster is not None:
             kwargs["cluster"] = cluster

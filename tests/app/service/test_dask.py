@@ -64,6 +64,70 @@ def test_fdk_split_across_two_workers_equals_one_process(cluster: DaskCluster, s
     np.testing.assert_allclose(split.volume, single.volume, rtol=0, atol=1e-5 * scale)  # float32 round-off
 
 
+def test_pwls_split_across_two_workers_equals_one_process(cluster: DaskCluster, sphere_scan: Path,
+                                                         tmp_path: Path) -> None:
+    from distributed import get_task_stream
+
+    import recon
+
+    other = tmp_path / "single.h5"
+    shutil.copyfile(sphere_scan, other)
+    grid = VolumeGrid.centered((32, 48, 48), 2.5)
+    kwargs = {"algorithm": "pwls", "geometry": "nominal", "grid": grid, "iterations": 4, "subsets": 5, "momentum": True}
+    client = cluster.client()
+    try:
+        with get_task_stream(client=client) as stream:
+            split = recon.reconstruct_scan(sphere_scan, cluster=client, **kwargs)
+        single = recon.reconstruct_scan(other, **kwargs)
+    finally:
+        client.close()
+    keys = [str(t["key"]) for t in stream.data]
+    parts = [t for t in stream.data if "orbitct-pwls" in str(t["key"]) and "part" in str(t["key"])]
+    assert len(parts) == 2 and len({t["worker"] for t in parts}) == 2  # one part of the views on each worker
+    assert sum("subset" in k and "sum" not in k for k in keys) == 2 * 5 * 5  # 2 parts x 5 subsets x (4 passes + cost)
+    assert split.params["cluster_workers"] == 2 and split.params["stream"] == "cluster"
+    scale = float(np.abs(single.volume).max())
+    np.testing.assert_allclose(split.volume, single.volume, rtol=0, atol=1e-4 * scale)  # float32 round-off
+    np.testing.assert_allclose(split.cost, single.cost, rtol=1e-5)
+
+
+def test_a_worker_killed_mid_pwls_ends_in_the_same_image_or_a_clear_failure(cluster: DaskCluster,
+                                                                           sphere_scan: Path, tmp_path: Path) -> None:
+    import threading
+
+    import recon
+    from recon.cluster import ClusterError
+
+    other = tmp_path / "single.h5"
+    shutil.copyfile(sphere_scan, other)
+    grid = VolumeGrid.centered((32, 48, 48), 2.5)
+    kwargs = {"algorithm": "pwls", "geometry": "nominal", "grid": grid, "iterations": 40, "subsets": 4}
+    client, outcome = cluster.client(), {}
+
+    def run() -> None:
+        try:
+            outcome["result"] = recon.reconstruct_scan(sphere_scan, cluster=client, **kwargs)
+        except ClusterError as exc:
+            outcome["error"] = exc
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    try:
+        worker = _worker_running(client, "subset")  # PWLS is under way: the parts hold their views
+        pid = client.run(os.getpid, workers=[worker])[worker]
+        os.kill(pid, signal.SIGKILL)
+        thread.join(timeout=240.0)
+        assert not thread.is_alive(), "the reconstruction hangs after a worker was killed"
+    finally:
+        client.close()
+    if "error" in outcome:
+        assert "the cluster lost the PWLS of" in str(outcome["error"])
+        return
+    single = recon.reconstruct_scan(other, **kwargs)  # the lost part was read again elsewhere: the same image
+    scale = float(np.abs(single.volume).max())
+    np.testing.assert_allclose(outcome["result"].volume, single.volume, rtol=0, atol=1e-4 * scale)
+
+
 def test_calibration_and_reconstruction_jobs_run_on_the_cluster_with_progress(make_api: Any,
                                                                               cluster: DaskCluster) -> None:
     api = make_api(dask_scheduler=cluster.address)
@@ -74,8 +138,11 @@ def test_calibration_and_reconstruction_jobs_run_on_the_cluster_with_progress(ma
     cal = api.post("/calibrations", role="analyst", json={"scan_id": scan_id}).json()["id"]
     rec = api.post("/reconstructions", role="analyst",
                    json={"scan_id": scan_id, "algorithm": "fdk", "geometry": "calibrated", "shape": [24, 32, 32]}).json()["id"]
+    pwls = api.post("/reconstructions", role="analyst",
+                    json={"scan_id": scan_id, "algorithm": "pwls", "geometry": "calibrated", "shape": [24, 32, 32],
+                          "iterations": 2, "subsets": 2, "momentum": True}).json()["id"]
     workers = set(cluster.client().scheduler_info()["workers"])
-    for job_id in (cal, rec):
+    for job_id in (cal, rec, pwls):
         job = _wait(api, job_id, timeout_s=180.0)
         assert job["state"] == "succeeded", job
         events = parse_sse(api.get(f"/jobs/{job_id}/events").text)
@@ -86,6 +153,8 @@ def test_calibration_and_reconstruction_jobs_run_on_the_cluster_with_progress(ma
     recon_job = api.get(f"/jobs/{rec}").json()
     assert recon_job["result"]["shape"] == [24, 32, 32]
     assert recon_job["result"]["workers"] == 2  # the job's FDK split its views across both workers
+    pwls_job = api.get(f"/jobs/{pwls}").json()
+    assert pwls_job["result"]["workers"] == 2 and len(pwls_job["result"]["cost"]) == 3  # PWLS's views too
 
 
 def _worker_running(client: Any, key_part: str, timeout_s: float = 60.0) -> str:
@@ -157,8 +226,11 @@ def test_cli_reconstructs_on_the_cluster_and_refuses_what_it_cannot(cluster: Das
     r = CliRunner().invoke(cli, [*base, "--algorithm", "fdk", "--scheduler", cluster.address])
     assert r.exit_code == 0, r.output
     assert f"views split across 2 Dask workers at {cluster.address}" in r.output
-    r = CliRunner().invoke(cli, [*base, "--algorithm", "pwls", "--scheduler", cluster.address])
-    assert r.exit_code == 2 and "--scheduler splits FDK's views" in r.output
+    r = CliRunner().invoke(cli, [*base, "--algorithm", "pwls", "--iterations", "2", "--scheduler", cluster.address])
+    assert r.exit_code == 0, r.output
+    assert f"views split across 2 Dask workers at {cluster.address}" in r.output and "cost " in r.output
+    r = CliRunner().invoke(cli, [*base, "--algorithm", "pwls", "--mar", "--scheduler", cluster.address])
+    assert r.exit_code == 2 and "--mar runs on this machine" in r.output
     r = CliRunner().invoke(cli, [*base, "--algorithm", "fdk", "--scheduler", "localhost:8786"])
     assert r.exit_code == 2 and "tcp://HOST:PORT" in r.output
     r = CliRunner().invoke(cli, [*base, "--algorithm", "fdk", "--overwrite", "--scheduler", "tcp://127.0.0.1:9"])
