@@ -21,6 +21,13 @@ from calib.quality import fit_rigid_poses, pose_predicted_px, view_misfit_px
 from calib.rays import rpe_per_frame
 from orbitct.geometry import ViewGeometry
 
+#: a BB whose detection misses the fitted pose by more than this many centroid noises (and OUTLIER_MIN_PX) is
+#: taken for a wrong assignment and the pose fitted without it, at most MAX_DROPPED times, keeping four BBs
+OUTLIER_NOISES = 6.0
+OUTLIER_MIN_PX = 1.0
+MAX_DROPPED = 2
+
+
 @dataclass(frozen=True)
 class FramePose:
     """The rigid correction of one frame fitted to its watched BBs, and how well it is known."""
@@ -42,11 +49,17 @@ def fit_frame_pose(view: ViewGeometry, xyz: NDArray[np.float64], uv: NDArray[np.
     if seen.sum() < 4:
         return None
     model = ViewModel(view)
-    xyz_s, uv_s = xyz[seen], uv[None, seen]
-    st = fit_rigid_poses(model, start.copy() if start is not None else model.identity(), xyz_s, uv_s)
-    if not (np.isfinite(st.R).all() and np.isfinite(st.t).all()):
-        return None
-    geometry = model.geometry(st)
+    for _ in range(MAX_DROPPED + 1):
+        xyz_s, uv_s = xyz[seen], uv[None, seen]
+        st = fit_rigid_poses(model, start.copy() if start is not None else model.identity(), xyz_s, uv_s)
+        if not (np.isfinite(st.R).all() and np.isfinite(st.t).all()):
+            return None
+        geometry = model.geometry(st)
+        residual = np.linalg.norm(geometry.project(xyz_s)[0] - uv_s[0], axis=1)
+        worst = int(np.argmax(residual))
+        if seen.sum() <= 4 or residual[worst] <= max(OUTLIER_NOISES * noise_px, OUTLIER_MIN_PX):
+            break
+        seen[np.flatnonzero(seen)[worst]] = False  # a blob taken for this BB that is another: fitted without it
     # the motion the detector sees best: the shift of the BBs' mean projection from where the nominal view puts it,
     # along the panel's columns and rows, in mm at the isocenter (a pose's depth along the beam is poorly known)
     shift_px = (geometry.project(xyz_s)[0] - view.project(xyz_s)[0]).mean(0)

@@ -104,6 +104,7 @@ class _Watched:
     last_frame: int = -1
     last_uv: tuple[float, float] = (0.0, 0.0)
     missing_since: int | None = None  # scan frame since when it is not found where it should be visible
+    track: int = -1  # the 2-D track its latest detection belongs to
     warned: bool = False
     outside: bool = False
 
@@ -157,10 +158,13 @@ class _Follower:
         self._next_index = 0
         self._last_pose: ViewState | None = None
         self._misfits: deque[float] = deque(maxlen=50)
-        self._steps = StepWatch()
+        # the orbit's errors are smooth along the orbit: the jump watch's baseline is a fifth of the scan (40 to 80
+        # frames), so that a short scan's faster drift per frame still fits its parabola
+        self._steps = StepWatch(baseline=int(np.clip(0.2 * self.n_projections, 40, 80)))
         self.rpe_mm: list[float] = []  # per frame with a pose, in order
         self.window = SlidingBundle()
         self._refined: dict[int, NDArray[np.float64]] = {}  # watched BBs' points from the latest window
+        self._shift = np.zeros(2)  # the latest frame's shift of the watched BBs from their predicted pixels
 
     def take(self, index: int, frame: NDArray[Any] | None) -> None:
         """Scan frame ``index``; indices jumped over are projections that were not sent (detected after the scan)."""
@@ -233,16 +237,31 @@ class _Follower:
         else:
             self._few_since = None
         blobs = np.concatenate([links.uv, links.started_uv])
+        claimed = np.zeros(len(blobs), bool)  # blobs that are a watched BB in this frame
         keys = tuple(self._watched)
         watched = [self._watched[t] for t in keys]
         if watched:
             # once per frame: the window's refined point, else a least-squares solve of the BB's rays
             points = np.array([self._refined[t] if t in self._refined else w.point() for t, w in zip(keys, watched)])
             pred = view.project(points)[0]
-            idx, _ = match_frame(pred, blobs, self.tracking.search_px, self.tracking.gate_px, self.tracking.residual_px)
+            # searched around the last frame's shift: the points, triangulated through the nominal views, and the
+            # orbit's errors put the BBs off their nominal projection by a shift that drifts along the orbit
+            idx, _ = match_frame(pred + self._shift, blobs, self.tracking.search_px, self.tracking.gate_px,
+                                 self.tracking.residual_px)
             hit = idx >= 0  # where a missing BB should be: its point through the view, moved by the frame's shift
-            shift = np.median(blobs[idx[hit]] - pred[hit], axis=0) if hit.sum() >= 2 else np.zeros(2)
-            aligned = pred + shift
+            if hit.sum() >= 2:
+                self._shift = np.median(blobs[idx[hit]] - pred[hit], axis=0)
+            tracks = np.concatenate([links.continued, links.started])
+            followed = {int(t): j for j, t in enumerate(links.continued.tolist())}
+            for k, w in enumerate(watched):  # not where its point says but still on its 2-D track: the same BB
+                j = followed.get(w.track, -1)
+                if idx[k] < 0 and j >= 0 and j not in idx:
+                    idx[k] = j
+            hit = idx >= 0
+            claimed[idx[hit]] = True
+            for k in np.flatnonzero(hit):
+                watched[k].track = int(tracks[idx[k]])
+            aligned = pred + self._shift
             origin, direction = view_rays(view, blobs) if len(blobs) else (None, None)
             matched = (np.where((idx >= 0)[:, None], blobs[np.maximum(idx, 0)], np.nan) if len(blobs) else
                        np.full((len(watched), 2), np.nan))
@@ -286,7 +305,7 @@ class _Follower:
                                f"{w.last_frame} is missing since frame {w.missing_since} where it should be visible near "
                                f"({uv[0]:.0f}, {uv[1]:.0f}) px (over metal, bone or another BB, or fallen off?)",
                                uv=(float(uv[0]), float(uv[1])))
-        self._new_bbs(links, view)
+        self._new_bbs(links, view, claimed[: links.continued.size])
         self.emit("progress", ("live-calibration", p + 1, self.n_projections, message, metrics))
 
     def _frame_pose(self, index: int, view: ViewGeometry, xyz: NDArray[np.float64], uv: NDArray[np.float64]
@@ -321,14 +340,18 @@ class _Follower:
             return None
         return self.linker.fragments(len(self.candidates), self.tracking.min_fragment)
 
-    def _new_bbs(self, links: FrameLinks, view: ViewGeometry) -> None:
-        """Tracks followed for ``watch_after`` frames whose point lies more than two BB diameters from every
-        watched BB become watched BBs (their whole history of rays)."""
+    def _new_bbs(self, links: FrameLinks, view: ViewGeometry, claimed: NDArray[np.bool_]) -> None:
+        """Tracks followed for ``watch_after`` frames become watched BBs (their whole history of rays), unless their
+        blob in this frame is a watched BB's (``claimed``, per continued track) or their point lies within two BB
+        diameters of a watched BB's (a BB followed again by a new track after a crossing: its few rays place it
+        poorly in depth, so the frame's assignment decides first)."""
         known = np.array([w.point() for w in self._watched.values()]).reshape(-1, 3)
-        for t in links.continued.tolist():
+        for t, taken in zip(links.continued.tolist(), claimed.tolist(), strict=True):
             if t in self._tracks_seen or self.linker.store.count[t] < self.settings.watch_after:
                 continue
             self._tracks_seen.add(t)
+            if taken:
+                continue
             w = _Watched()
             for frame_p, ids, uv in self.linker.store.obs:
                 hit = np.flatnonzero(ids == t)
@@ -340,6 +363,7 @@ class _Follower:
             x = w.point()
             if known.size and np.linalg.norm(known - x, axis=1).min() < 2.0 * self.diameter_mm + 5.0:
                 continue  # a BB already watched, followed by another track
+            w.track = t
             self._watched[t] = w
             known = np.vstack([known, x])
 
