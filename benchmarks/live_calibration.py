@@ -19,6 +19,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
@@ -26,7 +27,7 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(
 from machine_info import describe_machine  # noqa: E402
 
 
-def _scan(out: Path, size: int, frames: int, live: bool) -> dict[str, float]:
+def _scan(out: Path, size: int, frames: int, live: bool) -> dict[str, Any]:
     """``orbitct scan`` on the twins (a fresh process, as an operator runs it); what it printed, as numbers."""
     cmd = [sys.executable, "-m", "orbitct_app.cli.main", "scan", "--config", str(_HERE.parent / "config" / "bench.yaml"),
            "--orbit", "sawtooth", "--frames", str(frames), "--errors", "bench", "--sim", "--detector-size", str(size),
@@ -36,12 +37,13 @@ def _scan(out: Path, size: int, frames: int, live: bool) -> dict[str, float]:
     done = re.search(r"complete: (\d+)/\d+ frames in ([\d.]+) s", text)
     if done is None:
         raise SystemExit(f"scan failed (exit {run.returncode}):\n{text}\n{run.stderr[-2000:]}")
-    out_: dict[str, float] = {"frames": float(done.group(1)), "elapsed_s": float(done.group(2))}
+    out_: dict[str, Any] = {"frames": float(done.group(1)), "elapsed_s": float(done.group(2))}
     m = re.search(r"geometry written ([\d.]+) s after the last frame \(catching up ([\d.]+) s, final solve ([\d.]+) s\); "
-                  r"(\d+) warning", text)
+                  r"(\d+) warning\(s\) during the scan( \(([^)]*)\))?", text)
     if live and m is not None:
         out_.update(after_s=float(m.group(1)), catch_up_s=float(m.group(2)), solve_s=float(m.group(3)),
                     warnings=float(m.group(4)))
+        out_["warning_kinds"] = m.group(6) or "none"
         w = re.search(r"(\d+) sliding bundle adjustment\(s\) in the worker \(([\d.]+) s\); live poses for (\d+) of",
                       text)
         if w is not None:
@@ -88,7 +90,7 @@ def main() -> None:
         print(f"| offline orbitct calibrate of the same file | - | {offline_wall:.2f} (after the scan, wall) | - | "
               f"{offline.elapsed_s:.2f} | {off_err:.3f} ({100 * (live_err / off_err - 1):+.1f} % live vs offline) | "
               f"{'passed' if offline.quality is not None and offline.quality.passed else 'failed'} |")
-        print(f"\nlive warnings during the scan: {int(live['warnings'])}")
+        print(f"\nlive warnings during the scan: {int(live['warnings'])} ({live.get('warning_kinds', '?')})")
         if "windows" in live:
             print(f"sliding bundle adjustments in the worker: {int(live['windows'])} ({live['window_s']:.2f} s in all); "
                   f"frames posed live: {int(live['posed'])} of {args.frames}")

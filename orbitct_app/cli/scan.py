@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from collections import Counter
 from pathlib import Path
 
 import click
@@ -134,9 +135,11 @@ def _report_live(live: object) -> None:
         click.echo(f"live calibration failed: {err}; the scan is complete: orbitct calibrate FILE", err=True)
         sys.exit(1)
     lc = getattr(live, "live")
+    kinds = Counter(w.kind for w in lc.warnings)
+    named = f" ({', '.join(f'{k} {n}' for k, n in sorted(kinds.items()))})" if kinds else ""
     click.echo(f"calibrated during the scan: {res.n_bbs} BBs, geometry written {lc.last_frame_to_geometry_s:.2f} s "
                f"after the last frame (catching up {lc.timing.get('catch_up_s', 0.0):.2f} s, final solve "
-               f"{lc.timing.get('solve_s', 0.0):.2f} s); {len(lc.warnings)} warning(s) during the scan; "
+               f"{lc.timing.get('solve_s', 0.0):.2f} s); {len(lc.warnings)} warning(s) during the scan{named}; "
                f"{int(lc.timing.get('windows', 0))} sliding bundle adjustment(s) in the worker "
                f"({lc.timing.get('window_s', 0.0):.2f} s); live poses for {int(lc.timing.get('posed', 0))} of "
                f"{lc.n_projections} projections")
