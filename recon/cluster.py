@@ -166,6 +166,25 @@ def _part_gradient(part: ViewPart, xp: NDArray[np.float32], subset: int, with_gr
     return part.gradient(xp, subset, with_gradient)
 
 
+def check_pwls_memory(client: Any, n_views: int, geometry: ViewGeometry, grid: VolumeGrid) -> None:
+    """Refuse, before anything runs, PWLS whose part of the views would not fit in a worker's memory limit (one
+    part per worker: its line integrals and weights, and the two volumes a task holds, the iterate it was sent
+    and its gradient). :class:`ClusterError` says what is needed and what to do."""
+    info = client.scheduler_info()["workers"]
+    workers = sorted(info)[: min(n_views, len(info))]  # one part each (none yet: found out when waiting for them)
+    views = -(-n_views // max(1, len(workers)))
+    panel = geometry.panel
+    padded = int(np.prod([n + 2 for n in grid.shape]))
+    needed = 2 * 4 * views * panel.rows * panel.cols + 2 * 4 * padded
+    limits = [int(info[w].get("memory_limit") or 0) for w in workers]
+    tight = [lim for lim in limits if 0 < lim < needed / 0.8]  # Dask pauses a worker at 80 % of its limit
+    if tight:
+        raise ClusterError(f"PWLS on the cluster needs about {needed / 2**30:.2f} GiB on each of {len(workers)} "
+                           f"worker(s) ({views} views of {panel.rows} x {panel.cols} pixels and two volumes), more "
+                           f"than 80 % of a worker's memory limit ({min(tight) / 2**30:.2f} GiB); add workers, give them "
+                           "more memory (dask worker --memory-limit), or use a larger voxel size")
+
+
 class ClusterData:
     """The PWLS data term (:class:`recon.pwls.DataTerm`) of a scan's views spread over a cluster's workers, one
     :class:`ViewPart` each. Close it (or use it as a context manager) to free the workers' memory."""
@@ -183,6 +202,7 @@ class ClusterData:
         self._calls = 0
         n_parts = int(min(frames.size, len(workers)))
         bounds = np.linspace(0, frames.size, n_parts + 1).astype(int)
+        check_pwls_memory(client, int(frames.size), geometry, grid)
         self.parts = [client.submit(ViewPart, os.fspath(path), frames[a:b], int(a), grid, geometry[a:b], subsets,
                                     chunk_views, key=f"{self._key}-part{i}", pure=False, workers=[workers[i]],
                                     allow_other_workers=True)
@@ -251,4 +271,5 @@ def pwls_on_cluster(client: Any, path: str | os.PathLike[str], frames: NDArray[n
                           momentum=momentum, progress=progress)
 
 
-__all__ = ["ClusterData", "ClusterError", "PARTS_PER_WORKER", "ViewPart", "fdk_on_cluster", "pwls_on_cluster"]
+__all__ = ["ClusterData", "ClusterError", "PARTS_PER_WORKER", "ViewPart", "check_pwls_memory", "fdk_on_cluster",
+           "pwls_on_cluster"]

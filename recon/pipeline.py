@@ -264,8 +264,10 @@ def reconstruct_scan(
         cost: list[float] = []
         extra: dict[str, Any] = {}
         if not mar_method and cluster is not None:
-            from recon.cluster import fdk_on_cluster, pwls_on_cluster
+            from recon.cluster import check_pwls_memory, fdk_on_cluster, pwls_on_cluster
 
+            if algorithm == "pwls":
+                check_pwls_memory(cluster, int(frames.size), geom, grid)  # before the FDK start image runs there
             vol = fdk_on_cluster(cluster, scan.path, frames, grid, geom, window=window, progress=progress)
             extra.update(cluster_workers=len(cluster.scheduler_info()["workers"]))
             if algorithm == "pwls":

@@ -91,6 +91,24 @@ def test_pwls_split_across_two_workers_equals_one_process(cluster: DaskCluster, 
     np.testing.assert_allclose(split.cost, single.cost, rtol=1e-5)
 
 
+def test_pwls_that_would_not_fit_a_workers_memory_limit_is_refused_before_loading(sphere_scan: Path) -> None:
+    from distributed import Client, LocalCluster
+
+    import recon
+    from recon.cluster import ClusterError
+
+    import dask
+
+    grid = VolumeGrid.centered((32, 48, 48), 2.5)
+    off = {f"distributed.worker.memory.{k}": False for k in ("target", "spill", "pause", "terminate")}
+    with dask.config.set(off), LocalCluster(n_workers=1, threads_per_worker=1, processes=False, memory_limit="1MB",
+                                            dashboard_address=None) as local, Client(local, set_as_default=False) as client:
+        with pytest.raises(ClusterError, match=r"needs about .* GiB on each of 1 worker.*memory limit"):
+            recon.reconstruct_scan(sphere_scan, algorithm="pwls", geometry="nominal", grid=grid, iterations=1,
+                                   cluster=client)
+        assert not client.has_what()[next(iter(client.scheduler_info()["workers"]))]  # nothing was loaded
+
+
 def test_a_worker_killed_mid_pwls_ends_in_the_same_image_or_a_clear_failure(cluster: DaskCluster,
                                                                            sphere_scan: Path, tmp_path: Path) -> None:
     import threading
