@@ -49,7 +49,7 @@ def fit_frame_pose(view: ViewGeometry, xyz: NDArray[np.float64], uv: NDArray[np.
     if seen.sum() < 4:
         return None
     model = ViewModel(view)
-    for _ in range(MAX_DROPPED + 1):
+    for attempt in range(MAX_DROPPED + 1):
         xyz_s, uv_s = xyz[seen], uv[None, seen]
         st = fit_rigid_poses(model, start.copy() if start is not None else model.identity(), xyz_s, uv_s)
         if not (np.isfinite(st.R).all() and np.isfinite(st.t).all()):
@@ -57,7 +57,8 @@ def fit_frame_pose(view: ViewGeometry, xyz: NDArray[np.float64], uv: NDArray[np.
         geometry = model.geometry(st)
         residual = np.linalg.norm(geometry.project(xyz_s)[0] - uv_s[0], axis=1)
         worst = int(np.argmax(residual))
-        if seen.sum() <= 4 or residual[worst] <= max(OUTLIER_NOISES * noise_px, OUTLIER_MIN_PX):
+        if (attempt == MAX_DROPPED or seen.sum() <= 4
+                or residual[worst] <= max(OUTLIER_NOISES * noise_px, OUTLIER_MIN_PX)):
             break
         seen[np.flatnonzero(seen)[worst]] = False  # a blob taken for this BB that is another: fitted without it
     # the motion the detector sees best: the shift of the BBs' mean projection from where the nominal view puts it,

@@ -200,30 +200,22 @@ class ClusterData:
         self.what = f"the PWLS of {os.fspath(path)}"
         self._key = f"orbitct-pwls-{uuid.uuid4().hex[:8]}"
         self._calls = 0
-        n_parts = int(min(frames.size, len(workers)))
-        bounds = np.linspace(0, frames.size, n_parts + 1).astype(int)
+        bounds = np.linspace(0, frames.size, int(min(frames.size, len(workers))) + 1).astype(int)
         check_pwls_memory(client, int(frames.size), geometry, grid)
         self.parts = [client.submit(ViewPart, os.fspath(path), frames[a:b], int(a), grid, geometry[a:b], subsets,
                                     chunk_views, key=f"{self._key}-part{i}", pure=False, workers=[workers[i]],
                                     allow_other_workers=True)
                       for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))]
-        self.workers = n_parts
-        self.bytes_moved = 0  # volumes sent to and summed between the workers, and fetched
 
     def _next_key(self, what: str) -> str:
         self._calls += 1
         return f"{self._key}-{what}{self._calls}"
-
-    def _volumes_moved(self, broadcast: bool) -> None:
-        vol = 4 * int(np.prod(self.padded_shape))
-        self.bytes_moved += vol * ((self.workers if broadcast else 0) + self.workers)  # W - 1 sums, one fetch
 
     def curvature(self, out: NDArray[np.float32]) -> None:
         """Add ``A^T (w * A 1)`` of every part into the padded ``out``."""
         key = self._next_key("curvature")
         parts = [self.client.submit(_part_curvature, p, key=f"{key}-{i}", pure=False) for i, p in enumerate(self.parts)]
         out += _sum_on_workers(self.client, parts, self.what, key)
-        self._volumes_moved(False)
 
     def gradient(self, xp: NDArray[np.float32], subset: int, out: NDArray[np.float32] | None) -> float:
         """Subset ``subset``'s data term at ``xp`` summed over the parts; its gradient added into ``out``."""
@@ -239,7 +231,6 @@ class ClusterData:
             total = _sum_on_workers(self.client, parts, self.what, key)
         finally:
             del x  # the workers may drop the iterate
-        self._volumes_moved(True)
         if out is not None:
             out += total[0]
         return float(total[-1])
