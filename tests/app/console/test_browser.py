@@ -86,7 +86,10 @@ def _scan(page: Any, console: Console, frames: int, live: bool = False) -> str:
         page.check("#calibrate-live")
     else:
         page.fill("#frame-rate", "20")
-    assert "tube voltage (kV)" in page.inner_text("#detector")
+    from playwright.sync_api import expect
+
+    # the page reads the detector from the service after it loads: wait for it, do not race it
+    expect(page.locator("#detector")).to_contain_text("tube voltage (kV)", timeout=TIMEOUT_MS)
     page.click("#check")
     page.wait_for_selector("#preflight.yes")
     assert "within the limits" in page.inner_text("#preflight")
