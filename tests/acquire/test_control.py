@@ -159,8 +159,9 @@ def test_device_fault_ends_scan_safely_with_clear_reason(request_factory, fault:
 def test_the_source_prepares_during_the_move_not_after_it(request_factory) -> None:
     """Step mode with high voltage off between exposures: the preparation runs while the axes move, so the
     exposure finds the generator ready (a rig that cannot prepare ahead pays the preparation per frame)."""
-    cfg = small_config(time_scale=2.0, exposure={"exposure_ms": 2.0, "frame_rate_hz": 8.0, "prep_ms": 600.0})
-    prep_s = 0.6 / 2.0  # wall clock; the moves between projections take longer
+    cfg = small_config(time_scale=2.0, exposure={"exposure_ms": 2.0, "frame_rate_hz": 8.0, "prep_ms": 400.0})
+    prep_s = 0.4 / 2.0  # wall clock; the moves between projections take longer (about 0.3 s: a preparation of
+    # 0.3 s made the gap between exposures tie with it, and the generator then sometimes kept high voltage on)
 
     def acquire_s_per_projection(prepare_ahead: bool) -> tuple[str, float]:
         async def main() -> tuple[str, float]:
