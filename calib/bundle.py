@@ -29,11 +29,14 @@ class BundleResult:
     converged: bool = False
 
 
-def gauge_matrix(xyz0: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Seven linear constraints ``G (xyz - xyz0) = 0`` (centroid, small rotation, scale) on ``(K,3)`` -> ``(7, 3K)``."""
+def gauge_matrix(xyz0: NDArray[np.float64], weights: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+    """Seven linear constraints ``G (xyz - xyz0) = 0`` (centroid, small rotation, scale) on ``(K,3)`` -> ``(7, 3K)``;
+    ``weights`` (K,) say how much each point takes part (zero: its displacement is not constrained; default all)."""
     k = xyz0.shape[0]
-    c = xyz0 - xyz0.mean(0)
-    scale = max(float(np.sqrt((c**2).sum(1).mean())), 1e-9)
+    w = np.ones(k) if weights is None else np.asarray(weights, dtype=float)
+    w = w / w.sum()
+    c = xyz0 - w @ xyz0
+    scale = max(float(np.sqrt(w @ (c**2).sum(1))), 1e-9)
     c = c / scale
     G = np.zeros((7, k, 3))
     G[0:3] = np.eye(3)[:, None, :]
@@ -43,7 +46,7 @@ def gauge_matrix(xyz0: NDArray[np.float64]) -> NDArray[np.float64]:
         e[i] = 1.0
         G[3 + i] = np.cross(c, e)  # e . (c x d) = (e x c) . d, sign irrelevant for a constraint
     G[6] = c
-    return G.reshape(7, 3 * k) / np.sqrt(k)
+    return (G * w[None, :, None]).reshape(7, 3 * k) * np.sqrt(k)  # uniform weights: rows of norm 1/sqrt(K)
 
 
 def _huber_weights(norm: NDArray[np.float64], delta: float) -> NDArray[np.float64]:
@@ -65,12 +68,13 @@ def bundle_adjust(
     tol: float = 1e-6,
     intrinsics_prior_mm: float = 5.0,
     gauge_xyz: NDArray[np.float64] | None = None,
+    gauge_weights: NDArray[np.float64] | None = None,
     pose_prior: tuple[float, float] | None = None,
     callback: Callable[[int, ViewState, NDArray[np.float64], float], None] | None = None,
 ) -> BundleResult:
     """Minimise the Huber reprojection cost over view corrections and BB centres (``uv`` NaN = not seen).
 
-    The gauge is fixed by :func:`gauge_matrix` of ``gauge_xyz`` (default ``xyz0``)."""
+    The gauge is fixed by :func:`gauge_matrix` of ``gauge_xyz`` (default ``xyz0``) and ``gauge_weights``."""
     n, k = uv.shape[:2]
     seen = np.isfinite(uv).all(-1)
     obs = np.where(seen[..., None], uv, 0.0)
@@ -78,7 +82,7 @@ def bundle_adjust(
     xyz = xyz0.copy()
     p = model.n_params
     ref = xyz0 if gauge_xyz is None else gauge_xyz
-    G = gauge_matrix(ref)
+    G = gauge_matrix(ref, gauge_weights)
     prior_w = np.zeros(p)
     prior_w[6:] = 1.0 / intrinsics_prior_mm**2
     if pose_prior is not None:  # (rad, mm): weak pull of every view towards its nominal pose

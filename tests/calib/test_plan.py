@@ -15,7 +15,7 @@ from calib.plan import (
     suggest_bb_count,
     usable_bbs,
 )
-from calib.surfaces import EllipticCylinder, Outline
+from calib.surfaces import EllipticCylinder
 from orbitct.phantoms.primitives import sphere
 from tests.helpers.calib_scans import sawtooth, spiral_markers
 
