@@ -205,6 +205,22 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
     return Placement(ang, z, xyz, full, placement_score(full))
 
 
+def hand_spiral(surface: TapeSurface, n_bbs: int, diameter_mm: float, *, seed: int = 0) -> NDArray[np.float64]:
+    """BB centres as a person tapes them by hand in the published workflow: one turn round the object, an equal angle
+    apart (from a random start), climbing evenly between a tenth of the height from either end, each off by up to
+    10 degrees and 4 mm, or a quarter of the step (experiment A's own placement is such a spiral). ValueError where the surface has none."""
+    rng = np.random.default_rng([seed, 1811])
+    k = np.arange(n_bbs)
+    step_deg, span = 360.0 / n_bbs, surface.z_max_mm - surface.z_min_mm
+    step_mm = 0.8 * span / max(n_bbs - 1, 1)
+    off_deg, off_mm = min(10.0, step_deg / 4), min(4.0, step_mm / 4)  # never as close as to swap places
+    angle = np.radians(rng.uniform(0, 360) + step_deg * k + rng.uniform(-off_deg, off_deg, n_bbs))
+    z = surface.z_min_mm + 0.1 * span + step_mm * k + rng.uniform(-off_mm, off_mm, n_bbs)
+    if not surface.covers(angle, z).all():
+        raise ValueError("a hand-made spiral leaves the surface (an outline with holes?)")
+    return surface.points(angle, z, diameter_mm)
+
+
 def _allowed(angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64], keep_out: Sequence[KeepOut]) -> NDArray[np.bool_]:
     out = np.ones(angle_rad.shape, bool)
     for zone in keep_out:
@@ -241,4 +257,4 @@ def suggest_bb_count(geometry: ViewGeometry, surface: TapeSurface, diameter_mm: 
 
 
 __all__ = ["METAL_CHORD_MM", "OVERLAP_DIAMETERS", "CountSuggestion", "KeepOut", "Placement", "PlanPrediction",
-           "metal_of", "placement_score", "plan_placement", "predict_placement", "suggest_bb_count", "usable_bbs"]
+           "hand_spiral", "metal_of", "placement_score", "plan_placement", "predict_placement", "suggest_bb_count", "usable_bbs"]

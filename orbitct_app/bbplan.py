@@ -1,6 +1,7 @@
 """A BB plan for one of the experiments' objects and an orbit, as the CLI (``orbitct plan bbs``) and the REST service
-(``/plans/bbs``) make it: the placement, its prediction beside the experiment's own, optionally the fewest BBs for a
-target accuracy, the JSON a person or the simulator (``--bbs-from``) reads, and its picture."""
+(``/plans/bbs``) make it: the placement, its prediction beside a hand-made spiral's and the experiment's own,
+optionally the fewest BBs for a target accuracy, the JSON a person or the simulator (``--bbs-from``) reads, and its
+picture."""
 
 from __future__ import annotations
 
@@ -49,6 +50,7 @@ class BBPlan:
 def make_bb_plan(req: BBPlanRequest) -> BBPlan:
     """Plan the BBs for ``req``; BBPlanError with a one-line reason when it cannot."""
     from calib.plan import (
+        hand_spiral,
         metal_of,
         placement_score,
         plan_placement,
@@ -89,6 +91,14 @@ def make_bb_plan(req: BBPlanRequest) -> BBPlan:
     except ValueError as exc:
         raise BBPlanError(str(exc)) from None
     own = predict_placement(geometry, phantom.markers_xyz, d, noise_px=req.noise_px, metal=metal)
+    spiral: Any = None  # none to compare with where it leaves the surface or enters a keep-out zone
+    try:
+        spiral_xyz = hand_spiral(surface, n_bbs, d, seed=req.seed)
+        angle, z = np.arctan2(spiral_xyz[:, 1], spiral_xyz[:, 0]), spiral_xyz[:, 2]
+        if not any(zone.contains(angle, z).any() for zone in req.keep_out):
+            spiral = predict_placement(geometry, spiral_xyz, d, noise_px=req.noise_px, metal=metal)
+    except ValueError:
+        pass
     pred = placed.prediction
     if pred.under_determined.size:
         warnings.append(f"{pred.under_determined.size} view(s) see fewer than 4 usable BBs (first: "
@@ -102,6 +112,8 @@ def make_bb_plan(req: BBPlanRequest) -> BBPlan:
                  "height_mm": round(float(placed.z_mm[k]), 1)} for k in range(n_bbs)],
         "predicted": pred.summary(), "score": placed.score,
         "experiment_placement": {"bbs": int(phantom.n_markers), "predicted": own.summary(), "score": placement_score(own)},
+        "hand_spiral": None if spiral is None else {"bbs": n_bbs, "predicted": spiral.summary(),
+                                                    "score": placement_score(spiral)},
         "per_view": {"n_bbs": pred.n_bbs.tolist(),
                      "predicted_px": [None if not np.isfinite(v) else round(float(v), 4) for v in pred.predicted_px]},
         "warnings": warnings,
@@ -214,7 +226,8 @@ def write_bb_plan(plan: BBPlan, out: Path) -> Path:
 
 
 def plan_lines(plan: BBPlan) -> list[str]:
-    """The plan as a person reads it at the table: the BBs, then the prediction beside the experiment's own."""
+    """The plan as a person reads it at the table: the BBs, then the prediction beside a hand-made spiral's and the
+    experiment's own."""
     b = plan.body
     lines = [f"{b['experiment']}, orbit {b['orbit']} ({b['views']} views), {len(b['bbs'])} BBs of {b['bb_diameter_mm']:g} "
              f"mm, centroid noise {b['noise_px']:g} px"]
@@ -227,8 +240,11 @@ def plan_lines(plan: BBPlan) -> list[str]:
     for bb in b["bbs"]:
         x, y, z = bb["xyz_mm"]
         lines.append(f"  {bb['number']:>2}  {bb['angle_deg']:9.1f}  {bb['height_mm']:9.1f}  {x:6.1f}  {y:6.1f}  {z:6.1f}")
-    for name, s, n in (("planned", b["predicted"], len(b["bbs"])),
-                       ("the experiment's own", b["experiment_placement"]["predicted"], b["experiment_placement"]["bbs"])):
+    compared = [("planned", b["predicted"], len(b["bbs"]))]
+    if b.get("hand_spiral"):
+        compared.append(("a hand-made spiral", b["hand_spiral"]["predicted"], b["hand_spiral"]["bbs"]))
+    compared.append(("the experiment's own", b["experiment_placement"]["predicted"], b["experiment_placement"]["bbs"]))
+    for name, s, n in compared:
         lines.append(f"  {name} ({n} BBs): predicted error median {s['predicted_px_median']:.3f} px, worst "
                      f"{s['predicted_px_max']:.3f} px; usable BBs per view at least {s['bbs_min']}, median "
                      f"{s['bbs_median']:g}; {s['under_determined']} view(s) under-determined")

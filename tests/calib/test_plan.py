@@ -9,6 +9,7 @@ import pytest
 
 from calib.plan import (
     KeepOut,
+    hand_spiral,
     metal_of,
     plan_placement,
     predict_placement,
@@ -92,6 +93,7 @@ def test_cli_plans_bbs_writes_the_plan_and_its_picture_and_the_simulator_uses_it
     assert len(body["bbs"]) == 6 and body["predicted"]["under_determined"] == 0
     assert len(body["per_view"]["n_bbs"]) == 60 and plan.with_suffix(".png").stat().st_size > 10_000
     assert "planned (6 BBs): predicted error median" in r.output and "the experiment's own (8 BBs)" in r.output
+    assert "a hand-made spiral (6 BBs)" in r.output and body["hand_spiral"]["bbs"] == 6
     scan = tmp_path / "planned.h5"
     r = CliRunner().invoke(cli, ["simulate", "-e", "A", "--frames", "20", "--detector-size", "64", "--bbs-from", str(plan),
                                  "--out", str(scan)])
@@ -115,6 +117,17 @@ def test_cli_plans_bbs_writes_the_plan_and_its_picture_and_the_simulator_uses_it
     r = CliRunner().invoke(cli, ["simulate", "-e", "A", "--frames", "20", "--detector-size", "64", "--bbs-from", str(plan),
                                  "--out", str(tmp_path / "x.h5")])
     assert r.exit_code == 2 and "not a BB plan" in r.output and "Traceback" not in r.output
+
+
+def test_a_hand_made_spiral_climbs_one_turn_round_the_object_evenly() -> None:
+    surface = EllipticCylinder(75.0, 75.0, -80.0, 80.0)
+    xyz = hand_spiral(surface, 8, D_MM, seed=3)
+    assert xyz.shape == (8, 3)
+    np.testing.assert_allclose(np.hypot(xyz[:, 0], xyz[:, 1]), 75.0 + D_MM / 2)  # on the surface, a BB's radius out
+    steps = np.degrees(np.diff(np.unwrap(np.arctan2(xyz[:, 1], xyz[:, 0])))) % 360.0
+    assert np.all((steps > 45.0 - 20.0) & (steps < 45.0 + 20.0)), steps  # one turn, an eighth apart, give or take
+    assert np.all(np.diff(xyz[:, 2]) > 0) and -80 < xyz[0, 2] < -50 and 50 < xyz[-1, 2] < 80
+    assert not np.allclose(hand_spiral(surface, 8, D_MM, seed=4), xyz)  # each hand places them a little differently
 
 
 def test_keep_out_zones_are_parsed_wrap_through_zero_and_stay_free_of_bbs() -> None:

@@ -553,6 +553,10 @@ function pagePlans() {
       ['predicted error px', `median ${fmt(p.predicted_px_median)}, worst ${fmt(p.predicted_px_max)}`],
       ['usable BBs per view', `at least ${p.bbs_min}, median ${fmt(p.bbs_median)}`], ['under determined views', p.under_determined],
       ['the experiment\'s own placement', `${own.bbs} BBs: worst ${fmt(own.predicted.predicted_px_max)} px, ${own.predicted.under_determined} under-determined`]];
+    if (plan.hand_spiral) {
+      const h = plan.hand_spiral;
+      entries.push(['a hand-made spiral', `${h.bbs} BBs: median ${fmt(h.predicted.predicted_px_median)}, worst ${fmt(h.predicted.predicted_px_max)} px, ${h.predicted.under_determined} under-determined`]);
+    }
     if (plan.count_suggestion) {
       const c = plan.count_suggestion;
       entries.push(['fewest BBs for target', c.n_bbs === null ? `${c.target_px} px not reached` : `${c.n_bbs} for ${c.target_px} px`]);

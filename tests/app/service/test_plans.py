@@ -21,6 +21,7 @@ def test_a_plan_is_made_kept_and_read_back(shared_api: Any) -> None:
     assert len(plan["bbs"]) == 6 and plan["views"] == 60 and plan["predicted"]["under_determined"] == 0
     assert all(60.0 < b["angle_deg"] < 300.0 for b in plan["bbs"])  # outside the keep-out zone
     assert plan["experiment_placement"]["bbs"] == 8 and len(plan["per_view"]["predicted_px"]) == 60
+    assert plan["hand_spiral"] is None  # a spiral round the object would enter the keep-out zone: nothing to compare
     assert api.get(f"/plans/bbs/{plan['id']}").json() == plan
     picture = api.get(f"/plans/bbs/{plan['id']}/picture")
     assert picture.status_code == 200 and picture.content[:4] == b"\x89PNG"
@@ -33,6 +34,7 @@ def test_a_plan_is_made_kept_and_read_back(shared_api: Any) -> None:
     assert suggestion["target_px"] == 0.3 and set(suggestion["tried"]) <= {str(n) for n in range(4, 9)}
     if suggestion["n_bbs"] is not None:
         assert len(counted["bbs"]) == suggestion["n_bbs"]
+    assert counted["hand_spiral"]["bbs"] == len(counted["bbs"])  # no keep-out: a spiral of as many BBs beside it
 
 
 @pytest.mark.parametrize(("body", "status", "needle"), [
