@@ -73,7 +73,7 @@ class CalibrationOptions:
     min_observations: int | None = None  # frames a BB must be seen in (default max(8, 5% of projections))
     diameter_mm: float | None = None  # BB diameter; default /markers@diameter_mm, else estimated
     k_sigma: float = 6.0  # detection threshold in noise standard deviations
-    max_candidates: int = 128
+    max_candidates: int = 128  # strongest peaks kept per frame, at least (see calib.detect.CANDIDATE_AREA_PX)
     outlier_px: float = 1.0  # bundle: detections off by more than max(this, 6 robust sigma) become NaN
     workers: int = 2  # detection threads
     seeds_uv: Any = None  # optional (K, 2) BB positions (col, row) in the first projection
@@ -723,12 +723,15 @@ def _drop_single_misfits(
 
 
 def _disagree_with_neighbour(
-    model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64], tol_px: float, max_bbs: int = 4
+    model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64], tol_px: float, max_bbs: int = 3
 ) -> NDArray[np.bool_]:
     """Detections in views seeing at most ``max_bbs`` BBs that lie more than ``tol_px`` from where the previous
-    (or next) view's geometry puts them, after removing the common shift of the view."""
+    (or next) view's geometry puts them, after removing the common shift of the view. Views with exactly
+    :data:`MIN_OWN_BBS` (one pose to spare) are judged against how far detections in views seeing six or more
+    BBs lie from their neighbour's: more than twice that distribution's 99th percentile."""
     n = uv.shape[0]
-    few = np.isfinite(uv).all(-1).sum(1) <= max_bbs
+    count = np.isfinite(uv).all(-1).sum(1)
+    few = count <= max_bbs
     if n < 2 or not few.any():
         return np.zeros(uv.shape[:2], bool)
     nb = np.where(np.arange(n) > 0, np.arange(n) - 1, 1)
@@ -736,8 +739,13 @@ def _disagree_with_neighbour(
     d = uv - guess
     with np.errstate(invalid="ignore"):
         shift = np.nanmedian(d, axis=1, keepdims=True)
-        off = np.linalg.norm(d - shift, axis=-1) > tol_px
-    return off & few[:, None] & np.isfinite(uv).all(-1)
+        off = np.linalg.norm(d - shift, axis=-1)
+    tol = np.full(n, tol_px)
+    ref = off[(count >= 6)[:, None] & np.isfinite(off)]
+    if ref.size:  # the orbit's own frame-to-frame changes beyond a common shift (a wide panel sees rotations)
+        tol[count == MIN_OWN_BBS] = max(tol_px, 2.0 * float(np.quantile(ref, 0.99)))
+    with np.errstate(invalid="ignore"):
+        return (off > tol[:, None]) & few[:, None] & np.isfinite(uv).all(-1)
 
 
 History = list[tuple[NDArray[np.float64], NDArray[np.float64]]]
@@ -790,12 +798,15 @@ def _estimate(
         n_bad = int(bad.sum())
         if n_bad:
             warnings.append(f"{n_bad} detection(s) off by more than {max(opt.outlier_px, 6 * sigma):.2f} px set to NaN")
-        # a pose absorbs much of one wrong blob: test each detection against the pose fitted without it,
-        # and views with only 3 BBs (no redundancy) against the neighbouring view
+        # a pose absorbs much of one wrong blob: test each detection against the pose fitted without it, and
+        # views left with 4 BBs or fewer (too little redundancy to tell a wrong one) against the neighbouring
+        # view: two wrong blobs among four can fit a wrong pose closely (experiment C at 512 px: 7 px off)
         bad |= _leave_one_out_outliers(sub, res.state, res.xyz, np.where(bad[..., None], np.nan, uvs), 1.5 * opt.outlier_px)
-        bad |= _disagree_with_neighbour(sub, res.state, res.xyz, uvs, 3.0 * opt.outlier_px, max_bbs=3)
+        bad |= _disagree_with_neighbour(sub, res.state, res.xyz, np.where(bad[..., None], np.nan, uvs),
+                                        3.0 * opt.outlier_px, max_bbs=MIN_OWN_BBS)
         if bad.sum() > n_bad:
-            warnings.append(f"{int(bad.sum()) - n_bad} detection(s) disagree with their view fitted without them (or, with 3 BBs, with the neighbouring view); set to NaN")
+            warnings.append(f"{int(bad.sum()) - n_bad} detection(s) disagree with their view fitted without them (or, "
+                            f"with {MIN_OWN_BBS} BBs or fewer, with the neighbouring view); set to NaN")
         loss = opt.loss_scale_px
         if loss is None:  # the robust loss fitted to this scan's centroid noise, measured on the first solution
             clean = np.where(bad[..., None], np.nan, sub.geometry(res.state).project(res.xyz) - uvs)

@@ -61,3 +61,29 @@ def test_bb_diameter_estimated_when_the_file_does_not_say(small_scan: Path) -> N
         mag = float(np.median(nominal.sdd / nominal.sod()))
         d = _estimate_diameter_mm(sf, sf.projection_indices, dark, flat, mag, sf.panel.pitch_col, CalibrationOptions())
     assert d == pytest.approx(3.17, rel=0.25)
+
+
+def test_a_frame_full_of_stronger_structure_keeps_its_bbs_among_the_candidates() -> None:
+    """A lateral view of a torso holds more peaks stronger than its BBs (bone edges, screws) than a fixed 128
+    candidates: the detector keeps the strongest per area searched (one per CANDIDATE_AREA_PX binned pixels)."""
+    from calib.detect import CANDIDATE_AREA_PX
+
+    rng = np.random.default_rng(3)
+    size, d_px = 512, 3.6
+    cells = rng.permutation([(r, c) for r in range(20) for c in range(20)])
+    centres = cells * 25.0 + 18.0 + rng.uniform(-3, 3, cells.shape)
+    rows, cols = np.mgrid[0:size, 0:size].astype(float)
+    li = np.zeros((size, size))
+    for k, (r, c) in enumerate(centres[:230]):
+        radius, height = (1.8, 0.8) if k < 10 else (5.0, 2.5)  # the first ten are the BBs: smaller, fainter
+        rho2 = np.clip(radius**2 - (rows - r) ** 2 - (cols - c) ** 2, 0.0, None)
+        li += height * np.sqrt(rho2) / radius
+    dark = np.full((size, size), 100.0, np.float32)
+    flat = np.full((size, size), 20000.0, np.float32)
+    raw = rng.poisson((flat - dark) * np.exp(-li)) + dark
+    det = FrameDetector(dark, flat, settings_for(d_px, (size, size)))
+    assert det.settings.max_candidates == 128 and size * size // CANDIDATE_AREA_PX == 256
+    c = det.candidates(raw)
+    assert len(c) > 128
+    found = np.linalg.norm(c[:, None, :2] - centres[None, :10, ::-1], axis=-1).min(0)
+    assert (found < 1.0).all(), found
