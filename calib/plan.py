@@ -208,7 +208,8 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
 def hand_spiral(surface: TapeSurface, n_bbs: int, diameter_mm: float, *, seed: int = 0) -> NDArray[np.float64]:
     """BB centres as a person tapes them by hand in the published workflow: one turn round the object, an equal angle
     apart (from a random start), climbing evenly between a tenth of the height from either end, each off by up to
-    10 degrees and 4 mm, or a quarter of the step (experiment A's own placement is such a spiral). ValueError where the surface has none."""
+    10 degrees and 4 mm, or a quarter of the step (experiment A's own placement is such a spiral). ValueError where
+    the surface has none."""
     rng = np.random.default_rng([seed, 1811])
     k = np.arange(n_bbs)
     step_deg, span = 360.0 / n_bbs, surface.z_max_mm - surface.z_min_mm
