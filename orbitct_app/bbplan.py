@@ -45,6 +45,7 @@ class BBPlan:
     own: Any  # calib.plan.PlanPrediction of the experiment's placement
     surface: Any
     warnings: list[str] = field(default_factory=list)
+    spiral: Any = None  # calib.plan.PlanPrediction of a hand-made spiral of as many BBs (None: none to compare)
 
 
 def make_bb_plan(req: BBPlanRequest) -> BBPlan:
@@ -121,7 +122,7 @@ def make_bb_plan(req: BBPlanRequest) -> BBPlan:
     if suggestion is not None:
         body["count_suggestion"] = {"target_px": suggestion.target_px, "n_bbs": suggestion.n_bbs,
                                     "tried": {str(n): s for n, s in suggestion.tried.items()}}
-    return BBPlan(_json_ready(body), placed, own, surface, warnings)
+    return BBPlan(_json_ready(body), placed, own, surface, warnings, spiral)
 
 
 def _json_ready(value: Any) -> Any:
@@ -277,6 +278,8 @@ def _picture(path: Path, plan: BBPlan) -> None:
     ax0.grid(alpha=0.3)
     views = np.arange(placed.prediction.n_bbs.size)
     ax1.plot(views, placed.prediction.predicted_px, label="planned: predicted error (px)")
+    if plan.spiral is not None:
+        ax1.plot(views, plan.spiral.predicted_px, label="a hand-made spiral", alpha=0.7)
     ax1.plot(views, own.predicted_px, label="experiment's placement", alpha=0.7)
     ax1.set(xlabel="view", ylabel="predicted error (px)", title="calibration accuracy along the orbit")
     ax1b = ax1.twinx()
