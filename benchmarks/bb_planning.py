@@ -3,7 +3,8 @@
 Random placements of 4 to 10 BBs on experiment A's cylinder, on two orbits (sawtooth, and DCArc: a double
 circle plus an arc), each simulated (bench error profile), calibrated with ``orbitct calibrate`` (bundle) and
 measured against the truth (RMS px over field-of-view points after similarity alignment, views calibrated from
-their own BBs). The prediction (``calib.plan.predict_placement``, nominal views, nothing rendered) uses one
+their own BBs; the calibration runs with its default check, as a user runs it, and a result that fails it is
+marked). The prediction (``calib.plan.predict_placement``, nominal views, nothing rendered) uses one
 centroid noise for every case: the one measured on the first case's calibration (a lab measures it once per
 detector and BB size). Prints each case, the Spearman rank correlation, the share within a factor of 1.5, and
 the prediction's time for 500 views and 10 BBs. Then, per experiment, hand-made spirals like the published
@@ -68,7 +69,7 @@ def _case(work: Path, key: str, orbit: str | None, frames: int, xyz: np.ndarray,
     simulate_scan(phantom, resolve_orbit(key, orbit, frames), out=path, detector_px=size, seed=seed, overwrite=True,
                   errors=make_profile("bench", seed, angle_scale=frames / 500.0))
     try:
-        res = calib.calibrate_scan(path, diameter_mm=phantom.marker_diameter_mm, max_predicted_px=100.0)
+        res = calib.calibrate_scan(path, diameter_mm=phantom.marker_diameter_mm)  # the default check, as a user runs it
     except calib.CalibrationError as exc:
         path.unlink()
         return {"measured_px": float("nan"), "valid_px": float("nan"), "why": str(exc)[:80]}
@@ -85,7 +86,7 @@ def _case(work: Path, key: str, orbit: str | None, frames: int, xyz: np.ndarray,
 
     noise = float(res.quality.attrs()["centroid_noise_px"]) if res.quality is not None else float("nan")
     return {"measured_px": error(own), "valid_px": error(valid), "noise_px": noise, "nominal": nominal, "own": own,
-            "why": ""}
+            "passed": res.quality is not None and res.quality.passed, "why": ""}
 
 
 PAPER_FRAMES = {"A": 500, "B": 656, "C": 857}
@@ -118,13 +119,15 @@ def _planned_against_spiral(args: Any, noise: float | None) -> None:
         for name, per_seed in placements.items():
             under = [predict_placement(g, xyz, d, noise_px=noise or 0.1, metal=metal_of(ph)).under_determined.size
                      for xyz in per_seed]
-            errs = []
+            errs, marks = [], []
             with tempfile.TemporaryDirectory() as work:
                 for seed, xyz in enumerate(per_seed):
-                    errs.append(_case(Path(work), key, None, frames, xyz, args.size, seed, layout_seed=0)["valid_px"])
+                    case = _case(Path(work), key, None, frames, xyz, args.size, seed, layout_seed=0)
+                    errs.append(case["valid_px"])
+                    marks.append("" if case.get("passed") else " (check failed)")
             means[name] = float(np.nanmean(errs))
             print(f"| {key} | {name} | {ph.n_markers} | {frames} | {' / '.join(map(str, under))} | "
-                  f"{' / '.join(f'{e:.3f}' for e in errs)} | {means[name]:.3f} |", flush=True)
+                  f"{' / '.join(f'{e:.3f}{m}' for e, m in zip(errs, marks, strict=True))} | {means[name]:.3f} |", flush=True)
         changes.append(100 * (means["planned"] / means["hand spiral"] - 1))
         print(f"| {key} | planned vs hand spiral | | | | | {changes[-1]:+.0f} % |", flush=True)
         own_change = 100 * (means["planned"] / means["experiment's own"] - 1)
@@ -157,19 +160,19 @@ def main() -> None:
                 xyz = _placement(rng, k, 75.0 + d / 2, 80.0)
                 case = _case(Path(work), "A", orbit, args.frames, xyz, args.size, 100 + i, layout_seed=100 + i)
                 if not np.isfinite(case["measured_px"]):
-                    rows.append((orbit, k, float("nan"), float("nan"), case["why"]))
+                    rows.append((orbit, k, float("nan"), float("nan"), f"refused: {case['why']}"))
                     continue
                 noise = noise if noise is not None else case["noise_px"]
                 pred = predict_placement(case["nominal"], xyz, d, noise_px=noise)
                 p = pred.predicted_px[case["own"]]
                 predicted = float(np.sqrt(np.nanmean(p**2)))
-                rows.append((orbit, k, predicted, case["measured_px"], ""))
+                rows.append((orbit, k, predicted, case["measured_px"], "" if case["passed"] else "(check failed)"))
     if rows:
         print(f"centroid noise used for every prediction (measured on the first case): {noise:.3f} px\n")
         print("| orbit | BBs | predicted px | measured px | ratio |\n|---|---|---|---|---|")
         for orbit, k, pr, me, why in rows:
             ratio = pr / me if np.isfinite(pr) and me > 0 else float("nan")
-            print(f"| {orbit} | {k} | {pr:.3f} | {me:.3f} | {ratio:.2f} |" + (f" refused: {why}" if why else ""))
+            print(f"| {orbit} | {k} | {pr:.3f} | {me:.3f} | {ratio:.2f} |" + (f" {why}" if why else ""))
         ok = [(pr, me) for _, _, pr, me, _ in rows if np.isfinite(pr) and np.isfinite(me)]
         pr_a, me_a = np.array([o[0] for o in ok]), np.array([o[1] for o in ok])
         within = float(np.mean((pr_a / me_a <= 1.5) & (me_a / pr_a <= 1.5))) if ok else float("nan")
