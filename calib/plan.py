@@ -205,11 +205,12 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
     return Placement(ang, z, xyz, full, placement_score(full))
 
 
-def hand_spiral(surface: TapeSurface, n_bbs: int, diameter_mm: float, *, seed: int = 0) -> NDArray[np.float64]:
+def hand_spiral(surface: TapeSurface, n_bbs: int, diameter_mm: float, *, seed: int = 0,
+                keep_out: Sequence[KeepOut] = ()) -> NDArray[np.float64]:
     """BB centres as a person tapes them by hand in the published workflow: one turn round the object, an equal angle
     apart (from a random start), climbing evenly between a tenth of the height from either end, each off by up to
     10 degrees and 4 mm, or a quarter of the step (experiment A's own placement is such a spiral). ValueError where
-    the surface has none."""
+    the surface has none, or a BB would fall in one of the ``keep_out`` patches."""
     rng = np.random.default_rng([seed, 1811])
     k = np.arange(n_bbs)
     step_deg, span = 360.0 / n_bbs, surface.z_max_mm - surface.z_min_mm
@@ -219,6 +220,8 @@ def hand_spiral(surface: TapeSurface, n_bbs: int, diameter_mm: float, *, seed: i
     z = surface.z_min_mm + 0.1 * span + step_mm * k + rng.uniform(-off_mm, off_mm, n_bbs)
     if not surface.covers(angle, z).all():
         raise ValueError("a hand-made spiral leaves the surface (an outline with holes?)")
+    if not _allowed(angle, z, keep_out).all():
+        raise ValueError("a hand-made spiral puts a BB in a keep-out zone")
     return surface.points(angle, z, diameter_mm)
 
 

@@ -92,14 +92,11 @@ def make_bb_plan(req: BBPlanRequest) -> BBPlan:
     except ValueError as exc:
         raise BBPlanError(str(exc)) from None
     own = predict_placement(geometry, phantom.markers_xyz, d, noise_px=req.noise_px, metal=metal)
-    spiral: Any = None  # none to compare with where it leaves the surface or enters a keep-out zone
     try:
-        spiral_xyz = hand_spiral(surface, n_bbs, d, seed=req.seed)
-        angle, z = np.arctan2(spiral_xyz[:, 1], spiral_xyz[:, 0]), spiral_xyz[:, 2]
-        if not any(zone.contains(angle, z).any() for zone in req.keep_out):
-            spiral = predict_placement(geometry, spiral_xyz, d, noise_px=req.noise_px, metal=metal)
-    except ValueError:
-        pass
+        spiral: Any = predict_placement(geometry, hand_spiral(surface, n_bbs, d, seed=req.seed, keep_out=req.keep_out),
+                                        d, noise_px=req.noise_px, metal=metal)
+    except ValueError:  # the spiral leaves the surface or enters a keep-out zone: none to compare with
+        spiral = None
     pred = placed.prediction
     if pred.under_determined.size:
         warnings.append(f"{pred.under_determined.size} view(s) see fewer than 4 usable BBs (first: "

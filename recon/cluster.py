@@ -17,6 +17,7 @@ import os
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -65,7 +66,7 @@ def _connected_workers(client: Any, timeout_s: float) -> list[str]:
 
 
 def _sum_on_workers(client: Any, parts: list[Any], what: str, key: str,
-                    done: Any = None) -> Any:
+                    done: Callable[[Any], None] | None = None) -> Any:
     """The sum of the results of ``parts``, added pairwise on the workers as they finish; only the sum is fetched.
     ``done(future)`` is called as each part finishes. A part that fails, or a scheduler that goes away, raises
     :class:`ClusterError` naming ``what`` rather than waiting."""

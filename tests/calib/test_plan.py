@@ -128,6 +128,8 @@ def test_a_hand_made_spiral_climbs_one_turn_round_the_object_evenly() -> None:
     assert np.all((steps > 45.0 - 20.0) & (steps < 45.0 + 20.0)), steps  # one turn, an eighth apart, give or take
     assert np.all(np.diff(xyz[:, 2]) > 0) and -80 < xyz[0, 2] < -50 and 50 < xyz[-1, 2] < 80
     assert not np.allclose(hand_spiral(surface, 8, D_MM, seed=4), xyz)  # each hand places them a little differently
+    with pytest.raises(ValueError, match="keep-out"):  # one turn round the object crosses a patch of 120 degrees
+        hand_spiral(surface, 8, D_MM, seed=3, keep_out=[KeepOut.parse("300:60,-80:80")])
 
 
 def test_keep_out_zones_are_parsed_wrap_through_zero_and_stay_free_of_bbs() -> None:
