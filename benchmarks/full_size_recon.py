@@ -66,28 +66,51 @@ def _scan(cache: Path, size: int, frames: int) -> Path:
 
 
 def _solve(A: Any, y: Any, w: Any, x0: np.ndarray, truth: np.ndarray, mask: np.ndarray, iterations: int,
-           subsets: int, momentum: bool) -> dict[str, Any]:
-    """One PWLS run from ``x0``: per pass the wall time (RMSE bookkeeping excluded), the RMSE; the costs."""
+           subsets: int, momentum: bool, state: Path | None = None, key: dict[str, Any] | None = None) -> dict[str, Any]:
+    """One PWLS run from ``x0``: per pass the wall time (RMSE bookkeeping excluded), the RMSE; the costs.
+
+    With ``state`` (plain SPS only: its iterate is all it carries from one iteration to the next) the iterate and the
+    figures so far are saved there after every iteration, and a later run with the same ``key`` resumes from them
+    (the costs are then those of the last sitting).
+    """
     from recon import pwls_sps, rmse
 
     rmses: list[float] = []
     times: list[float] = []
+    sittings = 1
+    if state is not None and state.exists():
+        with np.load(state) as saved:
+            old = {k: saved[k].item() for k in key or {}}
+            if old != key:
+                raise SystemExit(f"{state}: saved for {old}, not {key}; remove it to start again")
+            x0 = saved["x"]
+            rmses, times = list(saved["rmse"]), list(saved["times"])
+            sittings = int(saved["sittings"]) + 1
+        print(f"    resumed after {len(rmses)} iterations (sitting {sittings})", flush=True)
+    if len(rmses) >= iterations > 0:
+        return {"rmse": rmses, "times": times, "cost": [], "total_s": times[-1], "peak": 0, "restarts": 0,
+                "final_rmse": rmses[iterations - 1], "sittings": sittings - 1}
+    base = times[-1] if times else 0.0
     aside = [0.0]
 
     def record(_: int, image: np.ndarray) -> None:
         t = time.perf_counter()
         rmses.append(rmse(image, truth, mask))
+        times.append(base + t - t0 - aside[0])
+        if state is not None:
+            part = state.with_name(state.name + ".part.npz")
+            np.savez(part, x=image, rmse=rmses, times=times, sittings=sittings, **(key or {}))
+            part.replace(state)
         aside[0] += time.perf_counter() - t
-        times.append(time.perf_counter() - t0 - aside[0])
         print(f"    pass {len(rmses)}: {times[-1]:.0f} s, RMSE {rmses[-1]:.5f} /mm", flush=True)
 
     with PeakMemory() as mem:
         t0 = time.perf_counter()
-        res = pwls_sps(A, y, w, iterations=iterations, subsets=subsets, momentum=momentum, x0=x0.copy(),
-                       callback=record)
-        total = time.perf_counter() - t0 - aside[0]
+        res = pwls_sps(A, y, w, iterations=iterations - len(rmses), subsets=subsets, momentum=momentum,
+                       x0=x0.copy(), callback=record)
+        total = base + time.perf_counter() - t0 - aside[0]
     return {"rmse": rmses, "times": times, "cost": res.cost, "total_s": total, "peak": mem.peak,
-            "restarts": res.restarts, "final_rmse": rmse(res.volume, truth, mask)}
+            "restarts": res.restarts, "final_rmse": rmse(res.volume, truth, mask), "sittings": sittings}
 
 
 def main() -> None:
@@ -99,6 +122,9 @@ def main() -> None:
     ap.add_argument("--passes", type=int, default=4, help="passes of the accelerated PWLS")
     ap.add_argument("--reference-iterations", type=int, default=0,
                     help="plain SPS iterations of the reference (50 in the published workflow; 0: estimated only)")
+    ap.add_argument("--reference-state", type=Path, default=None,
+                    help="file (.npz) where the reference saves its iterate after every iteration and resumes from "
+                         "(its hours can then run over several sittings, e.g. niced beside other work)")
     ap.add_argument("--cache", type=Path, default=Path(os.environ.get("TMPDIR", "/tmp")) / "orbitct-cluster-bench")
     args = ap.parse_args()
     args.cache.mkdir(parents=True, exist_ok=True)
@@ -141,37 +167,47 @@ def main() -> None:
         A = recon.projector(grid, geometry)
         A.forward_padded(np.zeros(A.padded_shape, np.float32), np.empty((1,) + A.proj_shape[1:], np.float32), 0)
         det = geometry.panel
-        print(f"\naccelerated PWLS: {args.subsets} subsets with momentum, {args.passes} passes "
-              f"(estimated {describe_seconds(recon.reconstruction_seconds('pwls', grid, frames.size, det.rows, det.cols, args.passes))})",
-              flush=True)
-        acc = _solve(A, y, w, x0, truth, mask, args.passes, args.subsets, True)
+        acc = None
+        if args.passes:
+            print(f"\naccelerated PWLS: {args.subsets} subsets with momentum, {args.passes} passes (estimated "
+                  f"{describe_seconds(recon.reconstruction_seconds('pwls', grid, frames.size, det.rows, det.cols, args.passes))})",
+                  flush=True)
+            acc = _solve(A, y, w, x0, truth, mask, args.passes, args.subsets, True)
         ref = None
         est = recon.reconstruction_seconds("pwls", grid, frames.size, det.rows, det.cols, 50)
         if args.reference_iterations:
             print(f"\nplain SPS, {args.reference_iterations} iterations (50 estimated {describe_seconds(est)})", flush=True)
-            ref = _solve(A, y, w, x0, truth, mask, args.reference_iterations, 1, False)
+            key = {"size": args.size, "frames": args.frames, "voxel_mm": args.voxel_mm, "shape": str(grid.shape)}
+            ref = _solve(A, y, w, x0, truth, mask, args.reference_iterations, 1, False, args.reference_state, key)
     setup = fdk.elapsed_s + t_load
     target = ref["final_rmse"] if ref else None
     reach = None
-    if target is not None:
+    if target is not None and acc:
         reach = next((k for k, e in enumerate(acc["rmse"]) if e <= WITHIN * target), None)
-    rows.append(f"| accelerated PWLS, {args.subsets} subsets + momentum | {args.passes} | {acc['total_s']:.1f} | "
-                f"{acc['peak'] / 2**30:.2f} | {acc['final_rmse']:.5f} | {acc['restarts']} restarts |")
+    if acc:
+        rows.append(f"| accelerated PWLS, {args.subsets} subsets + momentum | {args.passes} | {acc['total_s']:.1f} | "
+                    f"{acc['peak'] / 2**30:.2f} | {acc['final_rmse']:.5f} | {acc['restarts']} restarts |")
     if ref:
+        note = f"over {ref['sittings']} sittings (solver time summed)" if ref["sittings"] > 1 else "-"
         rows.append(f"| plain SPS (reference) | {args.reference_iterations} | {ref['total_s']:.1f} | "
-                    f"{ref['peak'] / 2**30:.2f} | {ref['final_rmse']:.5f} | - |")
+                    f"{ref['peak'] / 2**30:.2f} | {ref['final_rmse']:.5f} | {note} |")
     print(f"\ngrid {grid.shape} of {args.voxel_mm:g} mm, {frames.size} views of {det.rows} x {det.cols}; "
           "peak = this process's resident memory during the stage (the projections and weights stay loaded)\n")
     print("| stage | passes | wall s | peak GiB | RMSE /mm (metal left out) | note |")
     print("| --- | --- | --- | --- | --- | --- |")
     print("\n".join(rows))
-    print("\naccelerated PWLS per pass (cost at the points each pass took its gradient; the last one at the result):")
-    print("| pass | wall s (solver) | time to image s (FDK, reading, solver) | cost | RMSE /mm |")
-    print("| --- | --- | --- | --- | --- |")
-    for k, (e, s) in enumerate(zip(acc["rmse"], acc["times"], strict=True)):
-        print(f"| {k + 1} | {s:.0f} | {setup + s:.0f} | {acc['cost'][k + 1]:.6g} | {e:.5f} |")
+    if acc:
+        print("\naccelerated PWLS per pass (cost at the points each pass took its gradient; the last one at the result):")
+        print("| pass | wall s (solver) | time to image s (FDK, reading, solver) | cost | RMSE /mm |")
+        print("| --- | --- | --- | --- | --- |")
+        for k, (e, s) in enumerate(zip(acc["rmse"], acc["times"], strict=True)):
+            print(f"| {k + 1} | {s:.0f} | {setup + s:.0f} | {acc['cost'][k + 1]:.6g} | {e:.5f} |")
+    if ref:
+        print("\nplain SPS RMSE /mm by iteration: " + ", ".join(f"{k + 1}: {e:.5f}" for k, e in enumerate(ref["rmse"])))
     print(f"\nFDK: {fdk.elapsed_s:.1f} s, target < 60 s: {'met' if fdk.elapsed_s < 60 else 'NOT MET'}")
-    if target is None:
+    if acc is None:
+        print("accelerated PWLS: not run (--passes 0)")
+    elif target is None:
         print(f"accelerated PWLS against 50 plain SPS iterations: not measured (50 plain SPS iterations estimated "
               f"{describe_seconds(est)}; run with --reference-iterations 50)")
     elif reach is None:
