@@ -305,10 +305,7 @@ class ViewGeometry:
         if p.ndim == 3 and p.shape[0] != self.n_views:
             raise GeometryError(f"points: expected {self.n_views} views in (N, K, 3), got {p.shape}")
         P = self.matrices
-        if p.ndim == 2:
-            h = np.einsum("nij,kj->nki", P[:, :, :3], p) + P[:, None, :, 3]
-        else:
-            h = np.einsum("nij,nkj->nki", P[:, :, :3], p) + P[:, None, :, 3]
+        h = np.matmul(p, np.swapaxes(P[:, :, :3], 1, 2)) + P[:, None, :, 3]  # (N, K, 3)
         w = h[..., 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             return h[..., :2] / w[..., None], w
