@@ -26,6 +26,14 @@ from orbitct.geometry import ViewGeometry
 OVERLAP_DIAMETERS = 1.25
 #: a BB whose ray crosses more than this much metal of the object (mm) is not counted
 METAL_CHORD_MM = 0.5
+#: a BB whose detection window (its diameter and 2 px either side) holds the object's silhouette edge is measured
+#: this many times noisier across the edge than the centroid noise a calibration reports (an RMS over all its
+#: detections, these included): the background there is no plane. Experiment A at 512 px: 0.2-0.35 px across the
+#: edge, 0.06-0.1 px elsewhere, 0.11 px reported; with 2, its own placement's predicted error is 0.92-1.04 times the
+#: measured one at 256 and 512 px (3: 1.1-1.3; without edges: 0.8)
+EDGE_NOISE_FACTOR = 2.0
+#: polar angles at which the silhouette is looked for (degrees apart)
+_OUTLINE_STEP_DEG = 6.0
 
 
 @dataclass(frozen=True)
@@ -59,8 +67,7 @@ def usable_bbs(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: fl
     with ``metal`` (primitives with ``chords``, such as a phantom's screws), not behind metal; and their pixels."""
     uv = geometry.project(xyz)  # (P, K, 2)
     det = geometry.panel
-    mag = geometry.sdd / geometry.sod()
-    d_px = diameter_mm * mag / float(np.sqrt(det.pitch_col * det.pitch_row))  # (P,)
+    d_px = _diameter_px(geometry, diameter_mm)
     margin = 0.5 * d_px[:, None] + 1.0
     ok = (np.isfinite(uv).all(-1) & (uv[..., 0] >= margin) & (uv[..., 0] <= det.cols - 1 - margin)
           & (uv[..., 1] >= margin) & (uv[..., 1] <= det.rows - 1 - margin))
@@ -77,10 +84,49 @@ def usable_bbs(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: fl
     return ok, uv
 
 
+def _diameter_px(geometry: ViewGeometry, diameter_mm: float) -> NDArray[np.float64]:
+    """A BB's projected diameter per view (px, at the isocenter's magnification)."""
+    det = geometry.panel
+    return diameter_mm * geometry.sdd / geometry.sod() / float(np.sqrt(det.pitch_col * det.pitch_row))
+
+
+def edge_noise(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: float, surface: TapeSurface
+               ) -> NDArray[np.float64]:
+    """Per view and BB, the detection's noise covariance relative to the centroid noise ``(P, K, 2, 2)``: the
+    identity, or :data:`EDGE_NOISE_FACTOR` squared across the silhouette edge of ``surface`` (its outline at the
+    BB's height, projected) where that edge lies within the BB's detection window."""
+    k = xyz.shape[0]
+    angles = np.radians(np.arange(0.0, 360.0, _OUTLINE_STEP_DEG))
+    a = np.tile(angles, k)
+    z = np.repeat(xyz[:, 2], angles.size)
+    outline = surface.points(a, z, 0.0)
+    covered = surface.covers(a, z)
+    outline[~covered] = np.nan
+    uv = geometry.project(xyz)  # (P, K, 2)
+    up = geometry.project(xyz + [0.0, 0.0, 1.0]) - uv  # the object's axis in the image: the edge runs along it
+    across = np.stack([up[..., 1], -up[..., 0]], -1)
+    across /= np.linalg.norm(across, axis=-1, keepdims=True)
+    rel = geometry.project(outline).reshape(geometry.n_views, k, angles.size, 2) - uv[:, :, None]
+    s = rel[..., 0] * across[..., 0, None] + rel[..., 1] * across[..., 1, None]  # (P, K, T) px across the edge
+    if not covered.all():  # heights or angles without surface: no edge there (none at all: never exposed)
+        lo, hi = np.where(np.isnan(s), np.inf, s).min(-1), np.where(np.isnan(s), -np.inf, s).max(-1)
+    else:
+        lo, hi = s.min(-1), s.max(-1)
+    gap = np.where(np.abs(lo) < np.abs(hi), -lo, hi)  # px from the centre to the nearer edge, > 0 inside the outline
+    d_px = _diameter_px(geometry, diameter_mm)
+    # the detector's window reaches ceil(d) + 2 px from the centre, and the background's bend inside the edge 2 px
+    # further; a BB more than 2 px outside the outline sees only its own side (experiment A at 512 px)
+    exposed = (gap >= -2.0) & (gap <= (np.ceil(d_px) + 4.0)[:, None])
+    var = np.broadcast_to(np.eye(2), exposed.shape + (2, 2)).copy()
+    var[exposed] += (EDGE_NOISE_FACTOR**2 - 1.0) * np.einsum("ma,mb->mab", across[exposed], across[exposed])
+    return var
+
+
 def predict_placement(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: float, *, noise_px: float = 0.1,
-                      metal: list[Any] | None = None) -> PlanPrediction:
+                      metal: list[Any] | None = None, surface: TapeSurface | None = None) -> PlanPrediction:
     """The usable BBs of every view of ``geometry`` (nominal) and each view's predicted calibration error (px) at
-    centroid noise ``noise_px`` (the calibrations of simulated scans measure 0.05-0.15 px)."""
+    centroid noise ``noise_px`` (the calibrations of simulated scans measure 0.05-0.15 px); with the object's
+    ``surface``, BBs at its silhouette edge are counted noisier across it (:func:`edge_noise`)."""
     usable, uv = usable_bbs(geometry, xyz, diameter_mm, metal)
     n = usable.sum(1)
     predicted = np.full(geometry.n_views, np.nan)
@@ -89,7 +135,8 @@ def predict_placement(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter
         idx = np.flatnonzero(own)
         seen = np.where(usable[idx, :, None], uv[idx], np.nan)
         placed = np.isfinite(seen).all(-1).sum(0) >= 3  # a BB seen in fewer views has no position of its own
-        predicted[idx] = placement_predicted_px(ViewModel(geometry[idx]), xyz[placed], seen[:, placed], noise_px)
+        var = None if surface is None else edge_noise(geometry[idx], xyz[placed], diameter_mm, surface)
+        predicted[idx] = placement_predicted_px(ViewModel(geometry[idx]), xyz[placed], seen[:, placed], noise_px, var)
     return PlanPrediction(usable, n, predicted, float(noise_px))
 
 
@@ -193,7 +240,7 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
 
     def score(ang: NDArray[np.float64], z: NDArray[np.float64]) -> float:
         return placement_score(predict_placement(coarse, surface.points(ang, z, diameter_mm), diameter_mm,
-                                                 noise_px=noise_px, metal=metal))
+                                                 noise_px=noise_px, metal=metal, surface=surface))
 
     best: tuple[float, NDArray[np.float64], NDArray[np.float64]] | None = None
     for _ in range(trials):
@@ -218,7 +265,7 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
                 if s2 < s_best:
                     s_best, ang, z = s2, a2, z2
     xyz = surface.points(ang, z, diameter_mm)
-    full = predict_placement(geometry, xyz, diameter_mm, noise_px=noise_px, metal=metal)
+    full = predict_placement(geometry, xyz, diameter_mm, noise_px=noise_px, metal=metal, surface=surface)
     return Placement(ang, z, xyz, full, placement_score(full))
 
 
@@ -277,5 +324,5 @@ def suggest_bb_count(geometry: ViewGeometry, surface: TapeSurface, diameter_mm: 
     return CountSuggestion(target_px, None, tried)
 
 
-__all__ = ["METAL_CHORD_MM", "OVERLAP_DIAMETERS", "CountSuggestion", "KeepOut", "Placement", "PlanPrediction",
-           "hand_spiral", "metal_of", "placement_score", "plan_placement", "predict_placement", "suggest_bb_count", "usable_bbs"]
+__all__ = ["EDGE_NOISE_FACTOR", "METAL_CHORD_MM", "OVERLAP_DIAMETERS", "CountSuggestion", "KeepOut", "Placement", "PlanPrediction",
+           "edge_noise", "hand_spiral", "metal_of", "placement_score", "plan_placement", "predict_placement", "suggest_bb_count", "usable_bbs"]

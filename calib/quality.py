@@ -88,12 +88,16 @@ def fit_rigid_poses(model: ViewModel, state: ViewState, xyz: NDArray[np.float64]
     return st
 
 
-def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64]
-                              ) -> NDArray[np.float64]:
+def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64],
+                              variance: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
     """Per view, the rigid pose's covariance ``(N,6,6)`` for unit centroid noise, the BB centres' own
     uncertainty included: ``H_vv^-1 + H_vv^-1 H_vp C_p H_pv H_vv^-1``, where ``C_p`` inverts the Schur complement
     on the centres in the gauge that holds the constellation's centroid, orientation and size (a similarity of
-    the whole solution changes no pixel error measured after similarity alignment)."""
+    the whole solution changes no pixel error measured after similarity alignment).
+
+    ``variance`` ``(N,K,2,2)``: each detection's noise covariance relative to the unit one (the identity
+    everywhere: the formula above). The bundle adjustment weights every detection alike, so unequal noise enters
+    as the sandwich ``H^-1 M H^-1`` (``M`` the normal matrix with the noise covariances inside), pose blocks only."""
     _, Jv, Jp = model.project_jac(state, xyz)
     seen = np.isfinite(uv).all(-1)
     n, k = seen.shape
@@ -109,7 +113,22 @@ def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[n
     Nb = null_space(gauge_matrix(xyz))  # (3K, 3K-7): displacements that keep the gauge
     Cp = Nb @ np.linalg.pinv(Nb.T @ S @ Nb, hermitian=True) @ Nb.T
     A = Hvv_inv @ Hvp  # (N, 6, 3K)
-    return Hvv_inv + A @ Cp @ np.swapaxes(A, 1, 2)
+    if variance is None:
+        return Hvv_inv + A @ Cp @ np.swapaxes(A, 1, 2)
+    # the inverse normal matrix, rows of view n: G_n = [Hvv_n^-1 at n] + A_n Cp R with R = [A_1^T ... A_N^T, -I]
+    VJv = np.matmul(variance, Jv)  # unseen detections are zero in Jv and Jp already
+    Mvv = np.matmul(np.swapaxes(Jv.reshape(n, 2 * k, 6), 1, 2), VJv.reshape(n, 2 * k, 6))
+    Mvp = np.einsum("nkai,nkaj->nikj", VJv, Jp).reshape(n, 6, 3 * k)
+    Mpp = np.zeros((3 * k, 3 * k))
+    for j, block in enumerate(np.einsum("nkai,nkaj->kij", Jp, np.matmul(variance, Jp))):
+        Mpp[3 * j:3 * j + 3, 3 * j:3 * j + 3] = block
+    At = np.swapaxes(A, 1, 2)
+    RMD = (At @ Mvv - np.swapaxes(Mvp, 1, 2)) @ Hvv_inv  # R M D_n^T, (N, 3K, 6)
+    AtMvp = (At @ Mvp).sum(0)
+    RMR = (At @ Mvv @ A).sum(0) - AtMvp - AtMvp.T + Mpp
+    cross = A @ Cp @ RMD
+    return (Hvv_inv @ Mvv @ Hvv_inv + cross + np.swapaxes(cross, 1, 2)
+            + A @ (Cp @ RMR @ Cp) @ At)
 
 
 def _predicted_px(model: ViewModel, state: ViewState, cov: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -122,11 +141,12 @@ def _predicted_px(model: ViewModel, state: ViewState, cov: NDArray[np.float64]) 
 
 
 def placement_predicted_px(model: ViewModel, xyz: NDArray[np.float64], uv: NDArray[np.float64],
-                           noise_px: float) -> NDArray[np.float64]:
+                           noise_px: float, variance: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
     """Per view, the predicted error (px, RMS over field-of-view points) of a calibration of BBs ``xyz`` seen at
-    ``uv`` (NaN = not seen) with centroid noise ``noise_px``, at the nominal views (planning: nothing measured)."""
+    ``uv`` (NaN = not seen) with centroid noise ``noise_px`` (each detection's covariance ``noise_px**2`` times
+    ``variance`` ``(N,K,2,2)``, when given), at the nominal views (planning: nothing measured)."""
     state = model.identity()
-    return _predicted_px(model, state, noise_px**2 * _marginal_pose_covariance(model, state, xyz, uv))
+    return _predicted_px(model, state, noise_px**2 * _marginal_pose_covariance(model, state, xyz, uv, variance))
 
 
 def pose_predicted_px(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64],

@@ -91,10 +91,10 @@ def make_bb_plan(req: BBPlanRequest) -> BBPlan:
         placed = plan_placement(geometry, surface, n_bbs, d, **options)
     except ValueError as exc:
         raise BBPlanError(str(exc)) from None
-    own = predict_placement(geometry, phantom.markers_xyz, d, noise_px=req.noise_px, metal=metal)
+    own = predict_placement(geometry, phantom.markers_xyz, d, noise_px=req.noise_px, metal=metal, surface=surface)
     try:
         spiral: Any = predict_placement(geometry, hand_spiral(surface, n_bbs, d, seed=req.seed, keep_out=req.keep_out),
-                                        d, noise_px=req.noise_px, metal=metal)
+                                        d, noise_px=req.noise_px, metal=metal, surface=surface)
     except ValueError:  # the spiral leaves the surface or enters a keep-out zone: none to compare with
         spiral = None
     pred = placed.prediction

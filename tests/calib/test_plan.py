@@ -57,7 +57,7 @@ def test_the_prediction_matches_a_calibration_of_the_same_placement(tmp_path: Pa
     import calib
     from calib.evaluate import similarity_aligned_error_px
     from orbitct.errorprofiles import make_profile
-    from orbitct.phantoms.experiments import experiment_phantom
+    from orbitct.phantoms.experiments import BB_SURFACES, experiment_phantom
     from orbitct.scanfile import ScanFile
     from orbitct.simulator.scan import simulate_scan
 
@@ -72,8 +72,9 @@ def test_the_prediction_matches_a_calibration_of_the_same_placement(tmp_path: Pa
     measured = similarity_aligned_error_px(res.geometry[proj][own], truth[own])[0]
     assert res.quality is not None
     pred = predict_placement(nominal, ph.markers_xyz, ph.marker_diameter_mm, noise_px=res.quality.attrs()["centroid_noise_px"],
-                             metal=metal_of(ph))
+                             metal=metal_of(ph), surface=EllipticCylinder(*BB_SURFACES["A"]))
     predicted = float(np.sqrt(np.nanmean(pred.predicted_px[own] ** 2)))
+    print(f"predicted {predicted:.4f} px, measured {measured:.4f} px")
     assert 1 / 1.5 <= predicted / measured <= 1.5, (predicted, measured)
 
 
@@ -161,6 +162,32 @@ def test_the_suggested_count_is_the_fewest_bbs_that_reach_the_target() -> None:
     tighter = suggest_bb_count(g, surface, D_MM, target, n_max=12, **options)
     assert tighter.n_bbs is None or tighter.n_bbs > loose.n_bbs
     assert suggest_bb_count(g, surface, D_MM, 1e-6, n_max=6, **options).n_bbs is None
+
+
+def test_a_bb_at_the_objects_silhouette_is_counted_noisier_across_the_edge() -> None:
+    """On a cylinder, a BB's detection window holds the silhouette edge where the ray grazes the surface: there
+    (and only near there) its noise is EDGE_NOISE_FACTOR times larger across the edge; the prediction rises."""
+    from calib.plan import EDGE_NOISE_FACTOR, edge_noise
+
+    g = sawtooth(120, 256)
+    surface = EllipticCylinder(70.0, 70.0, -80.0, 80.0)
+    xyz = hand_spiral(surface, 8, D_MM, seed=1)
+    var = edge_noise(g, xyz, D_MM, surface)
+    eig = np.linalg.eigvalsh(var)
+    exposed = eig[..., 1] > 1.5
+    np.testing.assert_allclose(eig[exposed], np.broadcast_to([1.0, EDGE_NOISE_FACTOR**2], eig[exposed].shape), rtol=1e-9)
+    np.testing.assert_allclose(eig[~exposed], 1.0)
+    ray = xyz[None] - g.S[:, None]
+    ray /= np.linalg.norm(ray, axis=-1, keepdims=True)
+    normal = xyz[:, :2] / np.linalg.norm(xyz[:, :2], axis=1, keepdims=True)
+    graze = np.abs(np.einsum("pka,ka->pk", ray[..., :2], normal))  # 0: the ray grazes the surface at the BB
+    assert exposed[graze < 0.1].all() and not exposed[graze > 0.6].any()
+    assert 0.1 < exposed.mean() < 0.4
+    across = np.linalg.eigh(var[exposed])[1][..., :, 1]
+    assert (np.abs(across[:, 0]) > 0.9).all()  # across a z-aligned edge: along the detector's columns
+    plain, edgy = predict_placement(g, xyz, D_MM), predict_placement(g, xyz, D_MM, surface=surface)
+    assert (edgy.predicted_px >= plain.predicted_px * (1 - 1e-9)).all()
+    assert np.nanmedian(edgy.predicted_px) > 1.1 * np.nanmedian(plain.predicted_px)
 
 
 def test_sixteen_bbs_25_mm_apart_are_placed_on_a_small_cylinder_whatever_the_seed() -> None:

@@ -78,3 +78,38 @@ def test_a_view_failed_by_one_detection_is_mended_without_it_and_only_then() -> 
     assert q2.status[12] == OWN and q2.status[20] == FAILED and q2.status[25] == FAILED
     moved = np.abs(model.project(state, xyz)[12] - model.project(truth, xyz)[12]).max()
     assert moved < 0.15  # the refitted pose puts every BB (the dropped one too) where the truth does
+
+
+def test_unequal_centroid_noise_enters_the_predicted_pose_covariance_as_the_sandwich() -> None:
+    """The bundle weights every detection alike; with unequal noise its pose covariance is ``H^-1 M H^-1`` over all
+    views' poses and the BB centres (similarity gauge held): the per-view blocks equal that dense computation."""
+    from scipy.linalg import block_diag, null_space
+
+    from calib.bundle import gauge_matrix
+    from calib.quality import _marginal_pose_covariance
+
+    model, _, xyz, uv = _setup()
+    uv[5, 2] = np.nan
+    state = model.identity()
+    rng = np.random.default_rng(3)
+    L = rng.normal(size=uv.shape[:2] + (2, 2))
+    variance = L @ np.swapaxes(L, -1, -2) + 0.1 * np.eye(2)
+    got = _marginal_pose_covariance(model, state, xyz, uv, variance)
+    same = _marginal_pose_covariance(model, state, xyz, uv, np.broadcast_to(np.eye(2), variance.shape))
+    plain = _marginal_pose_covariance(model, state, xyz, uv)
+    np.testing.assert_allclose(same, plain, rtol=1e-6, atol=1e-7 * np.abs(plain).max())
+
+    _, Jv, Jp = model.project_jac(state, xyz)
+    n, k = uv.shape[:2]
+    seen = np.isfinite(uv).all(-1)
+    J = np.zeros((n, k, 2, 6 * n + 3 * k))
+    for i in range(n):
+        J[i, :, :, 6 * i:6 * i + 6] = Jv[i, :, :, :6]
+    for j in range(k):
+        J[:, j, :, 6 * n + 3 * j:6 * n + 3 * j + 3] = Jp[:, j]
+    basis = block_diag(np.eye(6 * n), null_space(gauge_matrix(xyz)))
+    JB = J[seen].reshape(-1, 6 * n + 3 * k) @ basis
+    Hi = np.linalg.inv(JB.T @ JB)
+    dense = Hi @ JB.T @ block_diag(*variance[seen]) @ JB @ Hi
+    want = np.stack([dense[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(n)])
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7 * np.abs(want).max())
