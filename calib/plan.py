@@ -28,7 +28,7 @@ OVERLAP_DIAMETERS = 1.25
 METAL_CHORD_MM = 0.5
 #: a BB whose detection window (its diameter and 2 px either side) holds the object's silhouette edge is measured
 #: this many times noisier across the edge than the centroid noise a calibration reports (an RMS over all its
-#: detections, these included): the background there is no plane. Experiment A at 512 px: 0.2-0.35 px across the
+#: detections, these included): the background there is no plane. Experiment A at 512 px: 0.2-0.47 px across the
 #: edge, 0.06-0.1 px elsewhere, 0.11 px reported; with 2, its own placement's predicted error is 0.92-1.04 times the
 #: measured one at 256 and 512 px (3: 1.1-1.3; without edges: 0.8)
 EDGE_NOISE_FACTOR = 2.0
