@@ -199,9 +199,8 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
                    rounds: int = 3, moves: int = 12, min_spacing_mm: float = 25.0) -> Placement:
     """Search BB positions on ``surface`` outside the ``keep_out`` patches that minimise :func:`placement_score` for
     the views of ``geometry``: ``trials`` random placements (BBs at least ``min_spacing_mm`` apart, placed one at a
-    time), then ``rounds``
-    of moving each BB to the best of ``moves`` random places. The search scores about 125 of the views; the result
-    is predicted on all."""
+    time), then ``rounds`` of moving each BB to the best of ``moves`` random places. The search scores about 125 of
+    the views; the result is predicted on all."""
     rng = np.random.default_rng(seed)
     coarse = geometry[:: max(1, geometry.n_views // 125)]
     probe = (rng.uniform(0, 2 * np.pi, 4000), rng.uniform(surface.z_min_mm, surface.z_max_mm, 4000))

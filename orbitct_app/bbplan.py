@@ -51,6 +51,7 @@ class BBPlan:
 def make_bb_plan(req: BBPlanRequest) -> BBPlan:
     """Plan the BBs for ``req``; BBPlanError with a one-line reason when it cannot."""
     from calib.plan import (
+        EDGE_NOISE_FACTOR,
         hand_spiral,
         metal_of,
         placement_score,
@@ -103,7 +104,8 @@ def make_bb_plan(req: BBPlanRequest) -> BBPlan:
                         f"{pred.under_determined[:8].tolist()}); more BBs, or another orbit")
     body: dict[str, Any] = {
         "experiment": key, "orbit": orbit.name, "views": int(geometry.n_views), "detector_px": req.detector_px,
-        "bb_diameter_mm": d, "noise_px": req.noise_px, "surface": surface.describe(),
+        "bb_diameter_mm": d, "noise_px": req.noise_px, "edge_noise_factor": EDGE_NOISE_FACTOR,
+        "surface": surface.describe(),
         "keep_out": [vars(z) for z in req.keep_out],
         "bbs": [{"number": k + 1, "xyz_mm": [round(float(v), 2) for v in placed.xyz[k]],
                  "angle_deg": round(float(np.degrees(placed.angle_rad[k])) % 360.0, 1),
