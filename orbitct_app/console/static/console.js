@@ -549,7 +549,9 @@ function pagePlans() {
     $('.id', box).textContent = id;
     const p = plan.predicted;
     const own = plan.experiment_placement;
-    const entries = [['experiment', plan.experiment], ['orbit', `${plan.orbit} (${plan.views} views)`], ['BBs', plan.bbs.length],
+    const surface = plan.surface.kind === 'outline' ? `outline of ${plan.surface.source}` : plan.surface.kind;
+    const entries = [['experiment', plan.experiment], ['surface', surface], ['orbit', `${plan.orbit} (${plan.views} views)`],
+      ['BBs', plan.bbs.length],
       ['predicted error px', `median ${fmt(p.predicted_px_median)}, worst ${fmt(p.predicted_px_max)}`],
       ['usable BBs per view', `at least ${p.bbs_min}, median ${fmt(p.bbs_median)}`], ['under determined views', p.under_determined],
       ['the experiment\'s own placement', `${own.bbs} BBs: worst ${fmt(own.predicted.predicted_px_max)} px, ${own.predicted.under_determined} under-determined`]];
@@ -585,6 +587,10 @@ function pagePlans() {
   };
   const form = $('#plan-form');
   if (form) {
+    api('GET', '/reconstructions?limit=100').then((jobs) => {
+      $('#plan-surface').append(...jobs.filter((j) => j.state === 'succeeded').map((j) => el('option', { value: j.id,
+        text: `reconstruction ${j.id} of scan ${j.scan_id} (${j.params.algorithm}, ${j.params.geometry || 'nominal'} geometry)` })));
+    }).catch((exc) => { $('.error', form).textContent = exc.message; });
     form.addEventListener('submit', (ev) => {
       ev.preventDefault();
       act($('#plan-make'), async () => {
@@ -599,7 +605,8 @@ function pagePlans() {
         try {
           const plan = await api('POST', '/plans/bbs', { experiment: $('#plan-experiment').value, frames: number('#plan-frames'),
             bbs: number('#plan-bbs'), target_px: number('#plan-target'), keep_out: keepOut, detector_px: number('#plan-detector'),
-            noise_px: number('#plan-noise') });
+            noise_px: number('#plan-noise'), surface_reconstruction_id: $('#plan-surface').value || undefined,
+            surface_threshold_per_mm: number('#plan-surface-threshold') });
           history.replaceState(null, '', `?plan=${plan.id}`);
           await show(plan.id);
           await load();

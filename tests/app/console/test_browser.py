@@ -28,8 +28,8 @@ class Console:
         self.base, self.tokens, self.browser = base, tokens, browser
         self.outside: list[str] = []  # every request a page made to anything but orbitct
 
-    def api(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
-        return httpx.request(method, self.base + path, headers={"Authorization": f"Bearer {self.tokens['operator']}"},
+    def api(self, method: str, path: str, role: str = "operator", **kwargs: Any) -> httpx.Response:
+        return httpx.request(method, self.base + path, headers={"Authorization": f"Bearer {self.tokens[role]}"},
                              timeout=30, **kwargs)
 
     def sign_in(self, role: str, viewport: tuple[int, int] = (1280, 800)) -> Any:
@@ -290,4 +290,35 @@ def test_an_analyst_plans_bbs_and_a_viewer_reads_the_plan(console: Console) -> N
     assert viewer.locator("#plan-form").count() == 0 and "may look at plans but not make them" in viewer.inner_text("main")
     assert viewer.locator("#plan-bbs-table tbody tr").count() == 6
     viewer.context.close()
+    assert not console.outside, console.outside
+
+
+def test_an_analyst_plans_bbs_on_the_surface_of_a_reconstruction(console: Console) -> None:
+    """The form offers every succeeded reconstruction as the object's real surface (its outline, Otsu's threshold)."""
+    from playwright.sync_api import expect
+
+    page = console.sign_in("operator")
+    scan_id = _scan(page, console, 20)
+    expect(page.locator("#scan-state")).to_have_text("complete", timeout=TIMEOUT_MS)
+    page.context.close()
+    job = console.api("POST", "/reconstructions", role="analyst", json={
+        "scan_id": scan_id, "algorithm": "fdk", "geometry": "nominal", "shape": [48, 48, 48]}).json()
+    deadline = time.monotonic() + TIMEOUT_MS / 1000
+    while console.api("GET", f"/reconstructions/{job['id']}").json()["state"] != "succeeded":
+        assert time.monotonic() < deadline, console.api("GET", f"/reconstructions/{job['id']}").json()
+        time.sleep(0.2)
+    page = console.sign_in("analyst")
+    page.goto(console.base + "/console/plans")
+    until(page, f"() => !!document.querySelector('#plan-surface option[value=\"{job['id']}\"]')")
+    page.select_option("#plan-surface", job["id"])
+    page.fill("#plan-frames", "60")
+    page.fill("#plan-bbs", "6")
+    page.fill("#plan-detector", "192")
+    page.click("#plan-make")
+    until(page, f"() => document.querySelector('#plan-facts').textContent.includes('outline of reconstruction {job['id']}')",
+          timeout_s=60.0)
+    plan_id = page.evaluate("document.body.dataset.plan")
+    plan = console.api("GET", f"/plans/bbs/{plan_id}").json()
+    assert plan["surface"]["kind"] == "outline" and len(plan["bbs"]) == 6
+    page.context.close()
     assert not console.outside, console.outside
