@@ -587,10 +587,24 @@ function pagePlans() {
   };
   const form = $('#plan-form');
   if (form) {
-    api('GET', '/reconstructions?limit=100').then((jobs) => {
-      $('#plan-surface').append(...jobs.filter((j) => j.state === 'succeeded').map((j) => el('option', { value: j.id,
-        text: `reconstruction ${j.id} of scan ${j.scan_id} (${j.params.algorithm}, ${j.params.geometry || 'nominal'} geometry)` })));
+    const meshOption = (m) => el('option', { value: `mesh:${m.id}`, text: `mesh ${m.name} (${m.id})` });
+    Promise.all([api('GET', '/surfaces'), api('GET', '/reconstructions?limit=100')]).then(([meshes, jobs]) => {
+      $('#plan-surface').append(...meshes.map(meshOption), ...jobs.filter((j) => j.state === 'succeeded').map((j) => el('option', {
+        value: `reconstruction:${j.id}`, text: `reconstruction ${j.id} of scan ${j.scan_id} (${j.params.algorithm}, ${j.params.geometry || 'nominal'} geometry)` })));
     }).catch((exc) => { $('.error', form).textContent = exc.message; });
+    $('#plan-mesh').addEventListener('change', () => act($('#plan-make'), async () => {
+      const file = $('#plan-mesh').files[0];
+      if (!file) return;
+      let response;
+      try {
+        response = await fetch(`/surfaces?name=${encodeURIComponent(file.name)}`, { method: 'POST', body: file,
+          credentials: 'same-origin', headers: { 'X-CSRF-Token': CSRF, 'Content-Type': 'application/octet-stream' } });
+      } catch (exc) { throw new ApiError('the service does not answer (' + exc.message + ')', 0); }
+      const answer = await response.json().catch(() => ({}));
+      if (!response.ok) throw new ApiError(answer.message || `${response.status} ${response.statusText}`, response.status);
+      $('#plan-surface').append(meshOption(answer));
+      $('#plan-surface').value = `mesh:${answer.id}`;
+    }));
     form.addEventListener('submit', (ev) => {
       ev.preventDefault();
       act($('#plan-make'), async () => {
@@ -601,12 +615,13 @@ function pagePlans() {
           return { angle_from_deg: ((Number(m[1]) % 360) + 360) % 360, angle_to_deg: ((Number(m[2]) % 360) + 360) % 360,
             z_min_mm: Number(m[3]), z_max_mm: Number(m[4]) };
         });
+        const [kind, surfaceId] = $('#plan-surface').value.split(':');
+        const surface = kind === 'mesh' ? { surface_id: surfaceId } : kind === 'reconstruction' ? { surface_reconstruction_id: surfaceId } : {};
         $('#plan-make').textContent = 'Planning…';
         try {
           const plan = await api('POST', '/plans/bbs', { experiment: $('#plan-experiment').value, frames: number('#plan-frames'),
             bbs: number('#plan-bbs'), target_px: number('#plan-target'), keep_out: keepOut, detector_px: number('#plan-detector'),
-            noise_px: number('#plan-noise'), surface_reconstruction_id: $('#plan-surface').value || undefined,
-            surface_threshold_per_mm: number('#plan-surface-threshold') });
+            noise_px: number('#plan-noise'), surface_threshold_per_mm: number('#plan-surface-threshold'), ...surface });
           history.replaceState(null, '', `?plan=${plan.id}`);
           await show(plan.id);
           await load();

@@ -84,7 +84,8 @@ ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorBody, "description": "missing or unknown bearer token"},
     403: {"model": ErrorBody, "description": "the token's role may not do this"},
     404: {"model": ErrorBody, "description": "unknown id or file"},
-    413: {"model": ErrorBody, "description": "the request body is larger than the service's max_body_bytes"},
+    413: {"model": ErrorBody, "description": "the request body is larger than the service's max_body_bytes "
+                                            "(max_upload_bytes for uploads)"},
     422: {"model": ErrorBody, "description": "invalid parameters: field and reason in `details`"},
 }
 NOT_SUCCEEDED: dict[int | str, dict[str, Any]] = {
@@ -188,27 +189,30 @@ def install_error_handlers(app: FastAPI) -> None:
 
 
 class ContentLengthLimit:
-    """ASGI middleware: a JSON 413 for any request body over ``max_bytes`` (declared or streamed)."""
+    """ASGI middleware: a JSON 413 for any request body over ``max_bytes`` (declared or streamed), or over the limit
+    ``larger`` gives the paths that start with one of its prefixes (uploads)."""
 
-    def __init__(self, app: Any, max_bytes: int) -> None:
-        self.app, self.max_bytes = app, max_bytes
+    def __init__(self, app: Any, max_bytes: int, larger: dict[str, int] | None = None) -> None:
+        self.app, self.max_bytes, self.larger = app, max_bytes, dict(larger or {})
 
-    async def _refuse(self, scope: Any, receive: Any, send: Any) -> None:
-        response = _json(413, "request_too_large", f"request body larger than {self.max_bytes} bytes")
+    async def _refuse(self, scope: Any, receive: Any, send: Any, limit: int) -> None:
+        response = _json(413, "request_too_large", f"request body larger than {limit} bytes")
         await response(scope, receive, send)
 
     async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        path = scope.get("path", "")
+        limit = next((n for prefix, n in self.larger.items() if path.startswith(prefix)), self.max_bytes)
         length = dict(scope.get("headers", ())).get(b"content-length")
         if length is not None:
             try:
-                too_big = int(length) > self.max_bytes
+                too_big = int(length) > limit
             except ValueError:
                 too_big = True
             if too_big:
-                await self._refuse(scope, receive, send)
+                await self._refuse(scope, receive, send, limit)
                 return
             await self.app(scope, receive, send)
             return
@@ -223,8 +227,8 @@ class ContentLengthLimit:
                 break
             chunks.append(message.get("body", b""))
             size += len(chunks[-1])
-            if size > self.max_bytes:
-                await self._refuse(scope, receive, send)
+            if size > limit:
+                await self._refuse(scope, receive, send, limit)
                 return
             if not message.get("more_body", False):
                 break

@@ -42,6 +42,8 @@ class ServiceSettings(BaseSettings):
     tokens: list[TokenHash] = Field(default_factory=list, description="token hashes configured inline")
     dev_token: str | None = Field(default=None, min_length=16, max_length=200, description="--sim only: a fixed dev token")
     max_body_bytes: int = Field(default=64 * 1024, ge=1024, le=16 * 1024 * 1024)
+    max_upload_bytes: int = Field(default=32 * 1024 * 1024, ge=1024, le=1024 * 1024 * 1024,
+                                  description="largest file an upload may send (a surface mesh: POST /surfaces)")
     job_workers: int = Field(default=1, ge=1, le=64, description="calibration/reconstruction jobs at once (and the "
                              "embedded Dask cluster's worker processes)")
     dask_scheduler: str | None = Field(default=None, pattern=r"^(tcp|tls)://[^\s/:]+:\d{1,5}$",

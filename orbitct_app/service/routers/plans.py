@@ -23,6 +23,7 @@ from orbitct_app.service.core.errors import ERROR_RESPONSES, Invalid, NotFound
 from orbitct_app.service.core.files import confined
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
 from orbitct_app.service.routers.reconstructions import reconstruction_volume
+from orbitct_app.service.routers.surfaces import load_kept_surface
 from orbitct_app.service.schemas import job_or_404
 
 router = APIRouter(prefix="/plans/bbs", tags=["plans"], responses=ERROR_RESPONSES)
@@ -69,6 +70,14 @@ class BBPlanIn(BaseModel):
         description="plan on the object's real outer surface: a succeeded reconstruction of it (a prior volume)")
     surface_threshold_per_mm: float | None = Field(default=None, gt=0.0, le=10.0,
                                                    description="its object/air threshold (default: Otsu's)")
+    surface_id: str | None = Field(default=None, pattern=r"^[0-9a-f]{12}$",
+                                   description="plan on an uploaded surface mesh (POST /surfaces)")
+
+    @model_validator(mode="after")
+    def _one_surface(self) -> "BBPlanIn":
+        if self.surface_id is not None and self.surface_reconstruction_id is not None:
+            raise ValueError("give surface_id or surface_reconstruction_id, not both")
+        return self
 
 
 class BBPlanSummary(BaseModel):
@@ -111,6 +120,8 @@ def create_plan(body: BBPlanIn, service: ServiceDep, response: Response, _: Anal
                                           body.surface_threshold_per_mm, f"reconstruction {job['id']}")
         except BBPlanError as exc:
             raise Invalid(str(exc)) from None
+    elif body.surface_id is not None:
+        surface = load_kept_surface(service, body.surface_id)
     request = BBPlanRequest(experiment=body.experiment, orbit=body.orbit, frames=body.frames, n_bbs=body.bbs,
                             detector_px=body.detector_px, noise_px=body.noise_px, seed=body.seed,
                             keep_out=tuple(KeepOut(**z.model_dump()) for z in body.keep_out), target_px=body.target_px,

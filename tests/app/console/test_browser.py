@@ -293,8 +293,9 @@ def test_an_analyst_plans_bbs_and_a_viewer_reads_the_plan(console: Console) -> N
     assert not console.outside, console.outside
 
 
-def test_an_analyst_plans_bbs_on_the_surface_of_a_reconstruction(console: Console) -> None:
-    """The form offers every succeeded reconstruction as the object's real surface (its outline, Otsu's threshold)."""
+def test_an_analyst_plans_bbs_on_a_reconstructions_surface_and_on_an_uploaded_mesh(console: Console) -> None:
+    """The form offers every succeeded reconstruction and every uploaded mesh as the object's real surface, and
+    uploads a mesh (a file that is no mesh is refused in one line)."""
     from playwright.sync_api import expect
 
     page = console.sign_in("operator")
@@ -309,8 +310,8 @@ def test_an_analyst_plans_bbs_on_the_surface_of_a_reconstruction(console: Consol
         time.sleep(0.2)
     page = console.sign_in("analyst")
     page.goto(console.base + "/console/plans")
-    until(page, f"() => !!document.querySelector('#plan-surface option[value=\"{job['id']}\"]')")
-    page.select_option("#plan-surface", job["id"])
+    until(page, f"() => !!document.querySelector('#plan-surface option[value=\"reconstruction:{job['id']}\"]')")
+    page.select_option("#plan-surface", f"reconstruction:{job['id']}")
     page.fill("#plan-frames", "60")
     page.fill("#plan-bbs", "6")
     page.fill("#plan-detector", "192")
@@ -320,5 +321,18 @@ def test_an_analyst_plans_bbs_on_the_surface_of_a_reconstruction(console: Consol
     plan_id = page.evaluate("document.body.dataset.plan")
     plan = console.api("GET", f"/plans/bbs/{plan_id}").json()
     assert plan["surface"]["kind"] == "outline" and len(plan["bbs"]) == 6
+
+    # a mesh of the object uploaded from the form becomes the surface chosen
+    import trimesh
+
+    stl = bytes(trimesh.creation.cylinder(radius=62.0, height=120.0, sections=96).export(file_type="stl"))
+    page.set_input_files("#plan-mesh", files=[{"name": "bad.stl", "mimeType": "model/stl", "buffer": b"no mesh"}])
+    until(page, "() => document.querySelector('#plan-form .error').textContent.includes(\"'bad.stl'\")")
+    page.set_input_files("#plan-mesh", files=[{"name": "leg.stl", "mimeType": "model/stl", "buffer": stl}])
+    until(page, "() => document.getElementById('plan-surface').value.startsWith('mesh:')")
+    page.click("#plan-make")
+    until(page, "() => document.querySelector('#plan-facts').textContent.includes('outline of leg.stl')", timeout_s=60.0)
+    plan = console.api("GET", f"/plans/bbs/{page.evaluate('document.body.dataset.plan')}").json()
+    assert plan["surface"]["source"] == "leg.stl" and len(plan["bbs"]) == 6
     page.context.close()
     assert not console.outside, console.outside
