@@ -15,7 +15,8 @@ class ApiError extends Error {
 async function api(method, path, body, { raw = false, signIn = true } = {}) {
   const options = { method, headers: {}, credentials: 'same-origin' };
   if (method !== 'GET') options.headers['X-CSRF-Token'] = CSRF;
-  if (body !== undefined) { options.headers['Content-Type'] = 'application/json'; options.body = JSON.stringify(body); }
+  if (body instanceof Blob) { options.headers['Content-Type'] = 'application/octet-stream'; options.body = body; }  // a file, as is
+  else if (body !== undefined) { options.headers['Content-Type'] = 'application/json'; options.body = JSON.stringify(body); }
   let response;
   try { response = await fetch(path, options); } catch (exc) { throw new ApiError('the service does not answer (' + exc.message + ')', 0); }
   if (response.status === 401 && signIn && document.body.dataset.page !== 'sign-in') {
@@ -595,13 +596,7 @@ function pagePlans() {
     $('#plan-mesh').addEventListener('change', () => act($('#plan-make'), async () => {
       const file = $('#plan-mesh').files[0];
       if (!file) return;
-      let response;
-      try {
-        response = await fetch(`/surfaces?name=${encodeURIComponent(file.name)}`, { method: 'POST', body: file,
-          credentials: 'same-origin', headers: { 'X-CSRF-Token': CSRF, 'Content-Type': 'application/octet-stream' } });
-      } catch (exc) { throw new ApiError('the service does not answer (' + exc.message + ')', 0); }
-      const answer = await response.json().catch(() => ({}));
-      if (!response.ok) throw new ApiError(answer.message || `${response.status} ${response.statusText}`, response.status);
+      const answer = await api('POST', `/surfaces?name=${encodeURIComponent(file.name)}`, file);
       $('#plan-surface').append(meshOption(answer));
       $('#plan-surface').value = `mesh:${answer.id}`;
     }));

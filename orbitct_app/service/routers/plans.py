@@ -121,7 +121,10 @@ def create_plan(body: BBPlanIn, service: ServiceDep, response: Response, _: Anal
         except BBPlanError as exc:
             raise Invalid(str(exc)) from None
     elif body.surface_id is not None:
-        surface = load_kept_surface(service, body.surface_id)
+        try:
+            surface = load_kept_surface(service, body.surface_id)
+        except BBPlanError as exc:
+            raise Invalid(str(exc)) from None
     request = BBPlanRequest(experiment=body.experiment, orbit=body.orbit, frames=body.frames, n_bbs=body.bbs,
                             detector_px=body.detector_px, noise_px=body.noise_px, seed=body.seed,
                             keep_out=tuple(KeepOut(**z.model_dump()) for z in body.keep_out), target_px=body.target_px,
