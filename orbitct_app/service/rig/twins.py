@@ -3,7 +3,8 @@
 The rig process and the guard reach them over loopback sockets exactly as they reach real
 controllers, so the rig process can die and be restarted (and the guard can still stop the
 devices meanwhile) without the simulated hardware going with it. The twins ignore the
-service's signals and end when the web server does.
+service's signals and end when the web server does: at once when it shuts them down, a few seconds after
+it died otherwise, so that the orphaned rig process halts them and closes its scan as it would on hardware.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ from orbitct_app.service.core.children import Backoff, end_child
 log = logging.getLogger("orbitct.service.twins")
 _CTX = mp.get_context("spawn")
 START_TIMEOUT_S = 120.0
+#: how long the twins outlive a web server that died without shutting them down (seconds)
+ORPHAN_GRACE_S = 5.0
 
 
 def twins_main(config_path: str, ports: dict[str, int], conn: Connection, nice: int = 0) -> None:
@@ -53,12 +56,14 @@ def twins_main(config_path: str, ports: dict[str, int], conn: Connection, nice: 
         return
     try:
         conn.send(("ready", {k: (v.uri, v.options) for k, v in running.links.items()}))
-        with contextlib.suppress(EOFError, OSError):
+        try:
             while True:
                 message = conn.recv()
                 if message == "shutdown":
                     break
                 conn.send(("hazard", _hazard(running.twins, *message[1:])))
+        except (EOFError, OSError):  # the web server died: hardware would still be there for the orphaned rig
+            time.sleep(ORPHAN_GRACE_S)  # process and the guard to halt, read back and close the scan file
     finally:
         context.__exit__(None, None, None)
 
