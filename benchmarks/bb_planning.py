@@ -4,12 +4,13 @@ Random placements of 4 to 10 BBs on experiment A's cylinder, on two orbits (sawt
 circle plus an arc), each simulated (bench error profile), calibrated with ``orbitct calibrate`` (bundle) and
 measured against the truth (RMS px over field-of-view points after similarity alignment, views calibrated from
 their own BBs; the calibration runs with its default check, as a user runs it, and a result that fails it is
-marked). The prediction (``calib.plan.predict_placement``, nominal views, nothing rendered) uses one
-centroid noise for every case: the one measured on the first case's calibration (a lab measures it once per
-detector and BB size). Prints each case, the Spearman rank correlation, the share within a factor of 1.5, and
-the prediction's time for 500 views and 10 BBs. Then, per experiment, hand-made spirals like the published
-placement against a planned placement with as many BBs, and the experiment's own placement beside them (three
-seeds each; frames scaled like the paper's 500 / 656 / 857).
+marked). The prediction (``calib.plan.predict_placement``, nominal views, nothing rendered, the cylinder's
+outline for its silhouette edge) uses one centroid noise for every case: the one measured on the first case's
+calibration (a lab measures it once per detector and BB size). Prints each case, the Spearman rank correlation,
+the share within a factor of 1.5, and the prediction's time for 500 views and 10 BBs. Then, per experiment,
+hand-made spirals like the published placement against planned placements with as many BBs (one plan per seed),
+and the experiment's own placement beside them (three seeds each; frames scaled like the paper's 500 / 656 / 857;
+``--frames 500``: the paper's counts).
 
     python benchmarks/bb_planning.py                 # 256 px, 120 frames, 10 placements per orbit
     python benchmarks/bb_planning.py --placements 4  # quicker
@@ -94,9 +95,10 @@ PAPER_FRAMES = {"A": 500, "B": 656, "C": 857}
 
 def _planned_against_spiral(args: Any, noise: float | None) -> None:
     """Hand-made spirals like the published one (``calib.plan.hand_spiral``, one per seed) against ``orbitct plan
-    bbs``' placement with as many BBs (planned anew per seed: the search is random too), and the experiment's own placement (A: such a spiral; B: the Cho phantom's
-    two designed rings; C: BBs taped at random), each simulated over three seeds (errors and noise) and calibrated:
-    measured error side by side, and the views each leaves under-determined (predicted)."""
+    bbs``' placement with as many BBs (planned anew per seed: the search is random too), and the experiment's own
+    placement (A: such a spiral; B: the Cho phantom's two designed rings; C: BBs taped at random), each simulated
+    over three seeds (errors and noise) and calibrated: predicted and measured error side by side, and the views
+    each leaves under-determined (predicted)."""
     from calib.plan import hand_spiral, metal_of, plan_placement, predict_placement
     from calib.surfaces import EllipticCylinder
     from orbitct.phantoms.experiments import BB_SURFACES, experiment_phantom
