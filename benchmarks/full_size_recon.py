@@ -188,9 +188,10 @@ def main() -> None:
         rows.append(f"| accelerated PWLS, {args.subsets} subsets + momentum | {args.passes} | {acc['total_s']:.1f} | "
                     f"{acc['peak'] / 2**30:.2f} | {acc['final_rmse']:.5f} | {acc['restarts']} restarts |")
     if ref:
-        note = f"over {ref['sittings']} sittings (solver time summed)" if ref["sittings"] > 1 else "-"
+        notes = [f"over {ref['sittings']} sittings (solver time summed)"] if ref["sittings"] > 1 else []
         if ref["peak"] is None:
-            note = f"read back from {args.reference_state.name}; " + note
+            notes.insert(0, f"read back from {args.reference_state.name}")
+        note = "; ".join(notes) or "-"
         peak = "-" if ref["peak"] is None else f"{ref['peak'] / 2**30:.2f}"  # None: read back, not run now
         rows.append(f"| plain SPS (reference) | {args.reference_iterations} | {ref['total_s']:.1f} | "
                     f"{peak} | {ref['final_rmse']:.5f} | {note} |")
