@@ -1,12 +1,12 @@
 """The streaming state of live calibration refined as the scan goes: a bundle adjustment over the latest frames.
 
-Each frame's pose is fitted to the watched BBs' points as it arrives (:mod:`calib.framepose`); those points
-come from rays through the *nominal* geometry, so they carry the orbit's errors. Every ``every`` posed frames,
+Each frame's pose is fitted to the watched BBs' points as it arrives (:mod:`calib.framepose`); those points come
+from rays through the *nominal* geometry, so they carry the orbit's errors. Every ``every`` posed frames,
 :class:`SlidingBundle` adjusts the last ``size`` posed frames' poses and the points of the BBs they see together
 (Huber cost; as in the offline adjustment the points' centroid, orientation and size are held, here those of the
 BBs seen in :data:`MIN_SEEN` frames), and the refined points serve the frames after: the live RPE and predicted
-error then measure the frames against points nearer the truth (on a simulated 220-frame scan, the last 100 frames' live RPE 0.025 mm against 0.079 mm from the
-nominal rays, the final calibration's 0.017 mm).
+error then measure the frames against points nearer the truth (on a simulated 220-frame scan, the last 100 frames'
+live RPE 0.025 mm against 0.079 mm from the nominal rays, the final calibration's 0.017 mm).
 """
 
 from __future__ import annotations
