@@ -6,10 +6,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib.bundle import bundle_adjust
+from calib.detect import N_FIELDS
 from calib.model import ViewModel, ViewState
 from calib.quality import fit_rigid_poses
 from calib.rays import marker_rays, triangulate_least_squares
-from calib.track import TrackingSettings, assign_to_predictions, link_fragments
+from calib.track import BG_RMS, RADIUS, TrackingSettings, assign_to_predictions, link_fragments
 from orbitct.geometry import Panel, ViewGeometry
 
 
@@ -230,6 +231,72 @@ def assign_by_pose(cands: list[NDArray[np.float64]], model: ViewModel, state: Vi
             break
         uv = again
     return uv
+
+
+def _nearest_candidates(cands: list[NDArray[np.float64]], predicted: NDArray[np.float64], gate_px: float
+                        ) -> NDArray[np.float64]:
+    """Per frame and BB, the candidate record nearest to ``predicted`` ``(P, K, 2)`` within ``gate_px``
+    ``(P, K, fields)`` (NaN: none). For BBs looked for one at a time: the frame shift that :func:`assign_visible`
+    allows would let a lone BB take any blob nearby."""
+    out = np.full(predicted.shape[:2] + (N_FIELDS,), np.nan)
+    for p, c in enumerate(cands):
+        if not len(c):
+            continue
+        d = np.linalg.norm(c[None, :, :2] - predicted[p][:, None], axis=-1)  # (K, M)
+        d[~np.isfinite(d)] = np.inf
+        j = np.argmin(d, axis=1)
+        hit = d[np.arange(len(j)), j] <= gate_px
+        out[p, hit] = c[j[hit]]
+    return out
+
+
+def recover_missed(cands: list[NDArray[np.float64]], geometry: ViewGeometry, xyz: NDArray[np.float64],
+                   frags: NDArray[np.float64], settings: TrackingSettings, min_observations: int,
+                   diameter_mm: float, min_found_share: float = 0.5, rounds: int = 25) -> NDArray[np.float64]:
+    """Centres ``(M, 3)`` of BBs beside ``xyz`` that identification lost: a BB whose 2-D track broke into pieces
+    too short to triangulate through the rough first poses (over bone edges and clutter, which blur the
+    frame-to-frame links) is dropped as inconsistent and never looked for again. Each piece of track ``frags``
+    that no BB of ``xyz`` explains is triangulated through a calibrated ``geometry`` and grown (the nearest
+    candidates along its predicted path assigned to it, triangulated again, until it settles). It is kept when it
+    fits one point, is found in ``min_found_share`` of the frames that should see it, looks like the BBs of
+    ``xyz`` (radius within 20 %, background no more than 2.5 times as rough: not a bone edge or a screw head)
+    and lies clear of every BB kept."""
+    gate = max(2.0, 0.5 * settings.diameter_px)
+    seen = np.isfinite(frags[..., 0])
+    known = _nearest_candidates(cands, geometry.project(xyz), gate)
+    if not np.isfinite(known[..., 0]).any():
+        return np.zeros((0, 3))
+    radius, rough = np.nanmedian(known[..., RADIUS]), np.nanmedian(known[..., BG_RMS])
+    with np.errstate(invalid="ignore"):
+        dist = np.linalg.norm(frags[:, :, None] - geometry.project(xyz)[:, None], axis=-1)
+    near = np.where(np.isfinite(dist), dist, np.inf).min(-1) < max(2.0, settings.diameter_px)
+    alone = (seen & ~near).sum(0)
+    lonely = (alone >= settings.min_fragment) & (alone >= 0.8 * seen.sum(0))
+    kept = [np.asarray(q, float) for q in xyz]
+    out: list[NDArray[np.float64]] = []
+    tol = max(1.0, 0.35 * settings.diameter_px)
+    for f in np.flatnonzero(lonely)[np.argsort(-alone[lonely])]:
+        track, point, records = frags[:, f : f + 1], None, None
+        for _ in range(rounds):
+            point, rms = _fit_rms(geometry, track)
+            if not np.isfinite(point).all() or not rms[0] <= tol:
+                point = None
+                break
+            records = _nearest_candidates(cands, geometry.project(point), gate)
+            grown = records[..., :2]
+            if np.array_equal(np.isfinite(grown), np.isfinite(track)):
+                break
+            track = grown
+        if point is None or records is None or any(np.linalg.norm(point[0] - q) < 2.0 * diameter_mm for q in kept):
+            continue
+        found = int(np.isfinite(track).all(-1).sum())
+        expected = int(np.isfinite(geometry.project(point)).all(-1).sum())
+        like = (abs(np.nanmedian(records[..., RADIUS]) / radius - 1.0) <= 0.2
+                and np.nanmedian(records[..., BG_RMS]) <= 2.5 * rough)
+        if like and found >= max(min_observations, min_found_share * expected):
+            out.append(point[0])
+            kept.append(point[0])
+    return np.array(out).reshape(-1, 3)
 
 
 def identify(

@@ -26,11 +26,12 @@ from calib.errors import (
     OptionError,
 )
 from calib.evaluate import fov_points, true_corrections
-from calib.identify import assign_by_pose, fill_states, identify, usable_views
+from calib.identify import assign_by_pose, fill_states, identify, recover_missed, usable_views
 from calib.model import INTRINSICS, ViewModel, ViewState
 from calib.paper import paper_calibrate
 from calib.quality import (
     FAILED,
+    FIRST_LOSS_SCALE_PX,
     MIN_OWN_BBS,
     OWN,
     STATUS_CODES,
@@ -39,6 +40,7 @@ from calib.quality import (
     assess_views,
     centroid_noise_px,
     fit_rigid_poses,
+    huber_threshold_px,
     judge,
     misfit_limit_px,
     view_misfit_px,
@@ -46,7 +48,7 @@ from calib.quality import (
 from calib.rays import marker_rays, rpe_per_frame, triangulate_least_squares
 from calib.scale import ScaleBar, find_scale_bar, rescaled_views
 from calib.split import FrameWindows, SplitSettings, fit_pair, isolated, merged_pairs, radial_profile
-from calib.track import TrackingSettings
+from calib.track import TrackingSettings, link_fragments
 from orbitct.compiletime import CompileClock
 from orbitct.geometry import ViewGeometry
 from orbitct.progress import ProgressCallback, report
@@ -57,7 +59,6 @@ METHODS = ("bundle", "paper")
 SPLIT_MIN_SHARE = 0.01  # blobs of two BBs are split when there are at least this share of the detections
 DEFAULT_JITTER_MM = 3.0
 RECOVERY_JITTER_MM = (8.0, 15.0, 25.0)  # tracking allowances tried in turn when the BBs are not followed
-FIRST_LOSS_SCALE_PX = 0.5  # Huber threshold of the first solve, before the centroid noise is measured
 
 
 @dataclass
@@ -487,6 +488,12 @@ def _solve_and_write(
     jitter_used, warnings, outcome, verdict = best
     n_split = 0
     if method == "bundle":
+        tset = TrackingSettings(diameter_px=d_px, motion_px=_motion_px(nominal), jitter_px=jitter_used * d_px / diameter_mm)
+        outcome, verdict, n_found = _recover_missed(cands, model, tset, outcome, verdict, proj, diameter_mm, min_obs, opt,
+                                                    progress, linked if jitter_used == opt.jitter_mm else None)
+        if n_found:
+            warnings = list(warnings) + [f"{n_found} BB(s) lost while identifying (their tracks broke into short pieces) "
+                                         "were found again through the calibrated views and calibrated with the rest"]
         outcome, verdict, n_split = _split_merged(target, proj, model, outcome, verdict, d_px, opt, progress)
     geometry_p, xyz, state, uv, history, n_iter, more, quality = outcome
     warnings = list(warnings) + more
@@ -599,14 +606,46 @@ def _reassign(
     again = assign_by_pose(cands, model, filled, xyz, tset)
     if np.array_equal(again, uv, equal_nan=True):
         return outcome, verdict
-    try:
-        second = _estimate("bundle", model, again, opt, progress)
-    except NoMarkersError:
-        return outcome, verdict
-    second_verdict = judge(second[7], proj, opt.max_predicted_px, opt.bridge_max_views, "bundle")
-    if (second_verdict.passed, second_verdict.counts["own"]) > (verdict.passed, verdict.counts["own"]):
-        return second, second_verdict
+    outcome, verdict, _ = _estimate_again(model, again, proj, opt, progress, outcome, verdict, must_improve=True)
     return outcome, verdict
+
+
+def _estimate_again(model: ViewModel, uv: NDArray[np.float64], proj: NDArray[np.intp], opt: CalibrationOptions,
+                    progress: ProgressCallback | None, outcome: tuple[Any, ...], verdict: Verdict, *,
+                    must_improve: bool = False) -> tuple[tuple[Any, ...], Verdict, bool]:
+    """Estimate again from detections ``uv``: that outcome and verdict (and True) unless it fails where the first
+    passed or calibrates fewer views from their own BBs (or, ``must_improve``, does no better on both)."""
+    try:
+        second = _estimate("bundle", model, uv, opt, progress)
+    except NoMarkersError:
+        return outcome, verdict, False
+    second_verdict = judge(second[7], proj, opt.max_predicted_px, opt.bridge_max_views, "bundle")
+    new, old = (second_verdict.passed, second_verdict.counts["own"]), (verdict.passed, verdict.counts["own"])
+    if new > old or (new == old and not must_improve):
+        return second, second_verdict, True
+    return outcome, verdict, False
+
+
+def _recover_missed(
+    cands: list[NDArray[np.float64]], model: ViewModel, tset: TrackingSettings, outcome: tuple[Any, ...],
+    verdict: Verdict, proj: NDArray[np.intp], diameter_mm: float, min_obs: int, opt: CalibrationOptions,
+    progress: ProgressCallback | None, linked: NDArray[np.float64] | None,
+) -> tuple[tuple[Any, ...], Verdict, int]:
+    """Look for BBs that identification lost (:func:`calib.identify.recover_missed`) through the calibrated views;
+    with any found, assign and estimate again with them; kept unless it fails where the first passed or calibrates
+    fewer views from their own BBs. Also the number found."""
+    geometry, xyz, state = outcome[0], outcome[1], outcome[2]
+    solved = outcome[7].status == OWN
+    if not solved.any():
+        return outcome, verdict, 0
+    frags = link_fragments(cands, tset, model.nominal) if linked is None else linked
+    missed = recover_missed(cands, geometry, xyz, frags, tset, min_obs, diameter_mm)
+    if not len(missed):
+        return outcome, verdict, 0
+    filled = fill_states(ViewState(np.nan_to_num(state.R), np.nan_to_num(state.t), state.k), solved, len(solved))
+    again = assign_by_pose(cands, model, filled, np.concatenate([xyz, missed]), tset)
+    outcome, verdict, kept = _estimate_again(model, again, proj, opt, progress, outcome, verdict)
+    return outcome, verdict, len(missed) if kept else 0
 
 
 def _mild_misfits_only(quality: ViewQuality, verdict: Verdict) -> bool:
@@ -655,14 +694,8 @@ def _split_merged(
     report(progress, "split", len(pairs), len(pairs), f"{n_split} split")
     if n_split == 0:
         return outcome, verdict, 0
-    try:
-        second = _estimate("bundle", model, new, opt, progress)
-    except NoMarkersError:
-        return outcome, verdict, 0
-    second_verdict = judge(second[7], proj, opt.max_predicted_px, opt.bridge_max_views, "bundle")
-    if (second_verdict.passed, second_verdict.counts["own"]) >= (verdict.passed, verdict.counts["own"]):
-        return second, second_verdict, n_split
-    return outcome, verdict, 0
+    outcome, verdict, kept = _estimate_again(model, new, proj, opt, progress, outcome, verdict)
+    return outcome, verdict, n_split if kept else 0
 
 
 def _leave_one_out_outliers(
@@ -811,7 +844,7 @@ def _estimate(
         if loss is None:  # the robust loss fitted to this scan's centroid noise, measured on the first solution
             clean = np.where(bad[..., None], np.nan, sub.geometry(res.state).project(res.xyz) - uvs)
             sigma = centroid_noise_px(clean, sub.n_params * sub.nominal.n_views + 3 * res.xyz.shape[0] - 7)
-            loss = float(np.clip(1.5 * sigma, 0.02, FIRST_LOSS_SCALE_PX)) if np.isfinite(sigma) else FIRST_LOSS_SCALE_PX
+            loss = huber_threshold_px(sigma)
         if bad.any() or loss != FIRST_LOSS_SCALE_PX:
             uvs = uvs.copy()
             uvs[bad] = np.nan

@@ -89,7 +89,8 @@ def fit_rigid_poses(model: ViewModel, state: ViewState, xyz: NDArray[np.float64]
 
 
 def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64],
-                              variance: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+                              variance: NDArray[np.float64] | None = None, slope: NDArray[np.float64] | None = None
+                              ) -> NDArray[np.float64]:
     """Per view, the rigid pose's covariance ``(N,6,6)`` for unit centroid noise, the BB centres' own
     uncertainty included: ``H_vv^-1 + H_vv^-1 H_vp C_p H_pv H_vv^-1``, where ``C_p`` inverts the Schur complement
     on the centres in the gauge that holds the constellation's centroid, orientation and size (a similarity of
@@ -97,12 +98,22 @@ def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[n
 
     ``variance`` ``(N,K,2,2)``: each detection's noise covariance relative to the unit one (the identity
     everywhere: the formula above). The bundle adjustment weights every detection alike, so unequal noise enters
-    as the sandwich ``H^-1 M H^-1`` (``M`` the normal matrix with the noise covariances inside), pose blocks only."""
+    as the sandwich ``H^-1 M H^-1`` (``M`` the normal matrix with the noise covariances inside), pose blocks only.
+    ``slope`` ``(N,K,2,2)``: each detection's weight in ``H`` (a robust loss's expected derivative, see
+    :func:`huber_moments`; the identity by default), applied as its square root to the Jacobians."""
     _, Jv, Jp = model.project_jac(state, xyz)
     seen = np.isfinite(uv).all(-1)
     n, k = seen.shape
     Jv = Jv[..., :6] * seen[..., None, None]
     Jp = Jp * seen[..., None, None]
+    if slope is not None:  # H = sum J^T A J: Jacobians times A^1/2, noise covariance V -> A^-1/2 V A^-1/2
+        lam, vec = np.linalg.eigh(slope)
+        lam = np.maximum(lam, 1e-9)
+        half = np.einsum("...ab,...b,...cb->...ac", vec, np.sqrt(lam), vec)
+        inv_half = np.einsum("...ab,...b,...cb->...ac", vec, 1.0 / np.sqrt(lam), vec)
+        Jv, Jp = np.matmul(half, Jv), np.matmul(half, Jp)
+        base = np.broadcast_to(np.eye(2), slope.shape) if variance is None else variance
+        variance = inv_half @ base @ inv_half
     Hvv = np.einsum("nkai,nkaj->nij", Jv, Jv) + 1e-9 * np.eye(6)
     Hvp = np.einsum("nkai,nkaj->nikj", Jv, Jp).reshape(n, 6, 3 * k)
     Hpp = np.einsum("nkai,nkaj->kij", Jp, Jp)
@@ -131,6 +142,37 @@ def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[n
             + A @ (Cp @ RMR @ Cp) @ At)
 
 
+#: the bundle's Huber threshold before the centroid noise is measured (px), and the most it ever is
+FIRST_LOSS_SCALE_PX = 0.5
+
+
+def huber_threshold_px(noise_px: float) -> float:
+    """The bundle's Huber threshold for a scan whose centroid noise measured ``noise_px``: 1.5 times it, within
+    0.02 px and :data:`FIRST_LOSS_SCALE_PX` (the first solve's, also the threshold where the noise is unknown)."""
+    return float(np.clip(1.5 * noise_px, 0.02, FIRST_LOSS_SCALE_PX)) if np.isfinite(noise_px) else FIRST_LOSS_SCALE_PX
+
+
+def huber_moments(covariance: NDArray[np.float64], loss_scale_px: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """For detections with Gaussian noise ``covariance`` ``(..., 2, 2)`` (px^2) fitted with the bundle's Huber loss on
+    the residual's length (threshold ``loss_scale_px``): the expected derivative of the influence ``psi(r)``, which
+    takes the place of the identity in the normal matrix, and ``E[psi psi^T]``, which takes the place of the noise
+    covariance (``psi(r) = r min(1, delta / |r|)``; 8 x 8 Gauss-Hermite nodes). A detection far noisier than the
+    threshold counts about ``delta / |r|`` as much: the fit never lets it pull with its full error."""
+    t, w = np.polynomial.hermite_e.hermegauss(8)
+    z = np.stack(np.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)  # standard normal nodes
+    wz = np.outer(w, w).ravel() / (2 * np.pi)
+    chol = np.linalg.cholesky(covariance + 1e-12 * np.eye(2))
+    r = np.einsum("...ab,qb->...qa", chol, z)  # (..., Q, 2)
+    n = np.maximum(np.linalg.norm(r, axis=-1), 1e-12)
+    scale = np.minimum(1.0, loss_scale_px / n)
+    psi = r * scale[..., None]
+    outer = np.einsum("...qa,...qb->...qab", psi, psi)
+    unit = r / n[..., None]
+    slope = np.where((n > loss_scale_px)[..., None, None],
+                     scale[..., None, None] * (np.eye(2) - np.einsum("...qa,...qb->...qab", unit, unit)), np.eye(2))
+    return np.einsum("q,...qab->...ab", wz, slope), np.einsum("q,...qab->...ab", wz, outer)
+
+
 def _predicted_px(model: ViewModel, state: ViewState, cov: NDArray[np.float64]) -> NDArray[np.float64]:
     """RMS over field-of-view points of the 2-D projection error implied by pose covariances ``(N,6,6)``."""
     pts = fov_points(model.nominal, 4)
@@ -141,12 +183,18 @@ def _predicted_px(model: ViewModel, state: ViewState, cov: NDArray[np.float64]) 
 
 
 def placement_predicted_px(model: ViewModel, xyz: NDArray[np.float64], uv: NDArray[np.float64],
-                           noise_px: float, variance: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+                           noise_px: float, variance: NDArray[np.float64] | None = None,
+                           loss_scale_px: float | None = None) -> NDArray[np.float64]:
     """Per view, the predicted error (px, RMS over field-of-view points) of a calibration of BBs ``xyz`` seen at
     ``uv`` (NaN = not seen) with centroid noise ``noise_px`` (each detection's covariance ``noise_px**2`` times
-    ``variance`` ``(N,K,2,2)``, when given), at the nominal views (planning: nothing measured)."""
+    ``variance`` ``(N,K,2,2)``, when given), at the nominal views (planning: nothing measured); with
+    ``loss_scale_px``, fitted with the bundle's Huber loss of that threshold (:func:`huber_moments`)."""
     state = model.identity()
-    return _predicted_px(model, state, noise_px**2 * _marginal_pose_covariance(model, state, xyz, uv, variance))
+    if loss_scale_px is None:
+        return _predicted_px(model, state, noise_px**2 * _marginal_pose_covariance(model, state, xyz, uv, variance))
+    rel = np.broadcast_to(np.eye(2), uv.shape[:2] + (2, 2)) if variance is None else variance
+    slope, spread = huber_moments(noise_px**2 * np.nan_to_num(rel), loss_scale_px)
+    return _predicted_px(model, state, _marginal_pose_covariance(model, state, xyz, uv, spread, slope))
 
 
 def pose_predicted_px(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64],
@@ -349,4 +397,4 @@ def judge(quality: ViewQuality, frames: NDArray[np.intp], threshold_px: float, m
                    quality.noise_px, float(threshold_px))
 
 
-__all__ = ["Verdict", "judge", "BRIDGED", "FAILED", "MAX_VIEW_MISFIT", "MIN_OWN_BBS", "OWN", "STATUS_CODES", "ViewQuality", "assess_views", "centroid_noise_px", "fit_rigid_poses"]
+__all__ = ["Verdict", "judge", "BRIDGED", "FAILED", "MAX_VIEW_MISFIT", "MIN_OWN_BBS", "OWN", "STATUS_CODES", "ViewQuality", "assess_views", "centroid_noise_px", "fit_rigid_poses", "FIRST_LOSS_SCALE_PX", "huber_moments", "huber_threshold_px"]

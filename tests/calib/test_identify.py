@@ -31,3 +31,46 @@ def test_centres_closer_than_a_bb_are_one_bb_even_if_seen_together() -> None:
     xyz = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
     uv = _tracks(100, [range(0, 100), range(0, 40)])
     np.testing.assert_array_equal(merge_duplicates(xyz, uv, diameter_mm=3.0), xyz[[0]])
+
+
+def _records(uv: np.ndarray, radius_px: float, background_rms: float) -> np.ndarray:
+    """Candidate records at pixels ``uv`` (M, 2) with a BB-like amplitude and shape."""
+    from calib.detect import CANDIDATE_FIELDS
+
+    rec = np.zeros((len(uv), len(CANDIDATE_FIELDS)))
+    rec[:, 0:2] = uv
+    f = CANDIDATE_FIELDS.index
+    rec[:, f("score")], rec[:, f("amplitude")], rec[:, f("radius_px")] = 30.0, 1.3, radius_px
+    rec[:, f("elongation")], rec[:, f("background_rms")] = 1.05, background_rms
+    return rec
+
+
+def test_a_bb_whose_track_broke_into_pieces_is_found_again_through_the_calibrated_views() -> None:
+    """Identification kept five BBs; the sixth left only a 6-frame piece of track. Grown along its path through the
+    calibrated views it is found in every frame and returned; a blob track seen in a third of the frames, and a
+    round blob twice a BB's size in every frame (a screw head), are not BBs."""
+    from calib.identify import recover_missed
+    from calib.track import TrackingSettings
+    from tests.helpers.calib_scans import sawtooth, spiral_markers
+
+    g = sawtooth(60, 256)
+    xyz = spiral_markers(6)
+    clutter = np.array([[10.0, -20.0, 5.0], [-30.0, 15.0, -20.0]])
+    uv, uc = g.project(xyz), g.project(clutter)
+    rng = np.random.default_rng(0)
+    cands = []
+    for p in range(g.n_views):
+        rec = [_records(uv[p] + rng.normal(0, 0.05, uv[p].shape), 2.0, 0.05)]
+        if p % 3 == 0:
+            rec.append(_records(uc[p, :1], 2.0, 0.05))
+        rec.append(_records(uc[p, 1:], 4.0, 0.05))
+        cands.append(np.concatenate(rec))
+    frags = np.full((g.n_views, 3, 2), np.nan)
+    frags[20:26, 0] = uv[20:26, 5]
+    frags[0:12:3, 1] = uc[0:12:3, 0]
+    frags[30:40, 2] = uc[30:40, 1]
+    settings = TrackingSettings(diameter_px=4.0)
+    found = recover_missed(cands, g, xyz[:5], frags, settings, min_observations=10, diameter_mm=3.17)
+    assert found.shape == (1, 3)
+    np.testing.assert_allclose(found[0], xyz[5], atol=0.2)
+    assert recover_missed(cands, g, xyz, frags, settings, min_observations=10, diameter_mm=3.17).shape == (0, 3)

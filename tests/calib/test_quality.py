@@ -113,3 +113,47 @@ def test_unequal_centroid_noise_enters_the_predicted_pose_covariance_as_the_sand
     dense = Hi @ JB.T @ block_diag(*variance[seen]) @ JB @ Hi
     want = np.stack([dense[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(n)])
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7 * np.abs(want).max())
+
+
+def test_a_robust_loss_caps_what_a_noisy_detection_pulls_with() -> None:
+    """Huber moments: far below the threshold the detection counts fully with its covariance; far above, its weight
+    in the normal matrix falls as ``delta / |r|`` and what it pulls with is bounded by ``delta**2``."""
+    from calib.quality import huber_moments
+
+    cov = np.array([[0.01**2, 0.0], [0.0, 0.02**2]])
+    slope, spread = huber_moments(cov, 0.5)
+    np.testing.assert_allclose(slope, np.eye(2), atol=1e-9)
+    np.testing.assert_allclose(spread, cov, rtol=1e-6, atol=1e-12)
+    big = np.array([[2.0**2, 0.0], [0.0, 2.0**2]])
+    slope, spread = huber_moments(np.stack([big, 4 * big]), 0.2)
+    assert np.trace(spread[0]) <= 0.2**2 * 1.001 and np.trace(spread[1]) <= 0.2**2 * 1.001
+    assert 0.0 < slope[1, 0, 0] < slope[0, 0, 0] < 0.2
+
+
+def test_a_weighted_normal_matrix_enters_the_sandwich_as_the_dense_computation_does() -> None:
+    """With each detection's weight ``A`` in the normal matrix (a robust loss) and ``B`` inside: ``H^-1 M H^-1``
+    with ``H = sum J^T A J`` and ``M = sum J^T B J``, per-view blocks equal to the dense computation."""
+    from scipy.linalg import block_diag, null_space
+
+    from calib.bundle import gauge_matrix
+    from calib.quality import _marginal_pose_covariance
+
+    model, _, xyz, uv = _setup()
+    state = model.identity()
+    rng = np.random.default_rng(4)
+    L1, L2 = rng.normal(size=(2,) + uv.shape[:2] + (2, 2))
+    slope = L1 @ np.swapaxes(L1, -1, -2) + 0.2 * np.eye(2)
+    spread = L2 @ np.swapaxes(L2, -1, -2) + 0.1 * np.eye(2)
+    got = _marginal_pose_covariance(model, state, xyz, uv, spread, slope)
+    _, Jv, Jp = model.project_jac(state, xyz)
+    n, k = uv.shape[:2]
+    J = np.zeros((n, k, 2, 6 * n + 3 * k))
+    for i in range(n):
+        J[i, :, :, 6 * i:6 * i + 6] = Jv[i, :, :, :6]
+    for j in range(k):
+        J[:, j, :, 6 * n + 3 * j:6 * n + 3 * j + 3] = Jp[:, j]
+    JB = J.reshape(-1, 6 * n + 3 * k) @ block_diag(np.eye(6 * n), null_space(gauge_matrix(xyz)))
+    Hi = np.linalg.inv(JB.T @ block_diag(*slope.reshape(-1, 2, 2)) @ JB)
+    dense = Hi @ JB.T @ block_diag(*spread.reshape(-1, 2, 2)) @ JB @ Hi
+    want = np.stack([dense[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(n)])
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7 * np.abs(want).max())
