@@ -5,7 +5,8 @@ circle plus an arc), each simulated (bench error profile), calibrated with ``orb
 measured against the truth (RMS px over field-of-view points after similarity alignment, views calibrated from
 their own BBs; the calibration runs with its default check, as a user runs it, and a result that fails it is
 marked). The prediction (``calib.plan.predict_placement``, nominal views, nothing rendered, the cylinder's
-outline for its silhouette edge) uses one centroid noise for every case: the one measured on the first case's
+outline for its silhouette edge; by default also the phantom as the object's background, see
+``calib.background``) uses one centroid noise for every case: the one measured on the first case's
 calibration (a lab measures it once per detector and BB size). Prints each case, the Spearman rank correlation,
 the share within a factor of 1.5, and the prediction's time for 500 views and 10 BBs. Then, per experiment,
 hand-made spirals like the published placement against planned placements with as many BBs (one plan per seed),
@@ -99,6 +100,7 @@ def _planned_against_spiral(args: Any, noise: float | None) -> None:
     placement (A: such a spiral; B: the Cho phantom's two designed rings; C: BBs taped at random), each simulated
     over three seeds (errors and noise) and calibrated: predicted and measured error side by side, and the views
     each leaves under-determined (predicted)."""
+    from calib.background import phantom_background
     from calib.plan import hand_spiral, metal_of, plan_placement, predict_placement
     from calib.surfaces import EllipticCylinder
     from orbitct.phantoms.experiments import BB_SURFACES, experiment_phantom
@@ -114,14 +116,17 @@ def _planned_against_spiral(args: Any, noise: float | None) -> None:
         d = float(ph.marker_diameter_mm)
         g = SimulatedBench.with_panel(args.size).nominal_geometry(resolve_orbit(key, None, frames))
         surface = EllipticCylinder(*BB_SURFACES[key])
+        background = phantom_background(ph, g, surface) if args.background else None
+        t0 = time.perf_counter()
+        planned = [plan_placement(g, surface, ph.n_markers, d, noise_px=noise or 0.1, metal=metal_of(ph), seed=seed,
+                                  background=background).xyz for seed in range(3)]
+        print(f"| {key} | (planning: {(time.perf_counter() - t0) / 3:.0f} s per plan) | | | | | | |", flush=True)
         placements = {"hand spiral": [hand_spiral(surface, ph.n_markers, d, seed=seed) for seed in range(3)],
-                      "planned": [plan_placement(g, surface, ph.n_markers, d, noise_px=noise or 0.1, metal=metal_of(ph),
-                                                 seed=seed).xyz for seed in range(3)],
-                      "experiment's own": [ph.markers_xyz] * 3}
+                      "planned": planned, "experiment's own": [ph.markers_xyz] * 3}
         means = {}
         for name, per_seed in placements.items():
-            preds = [predict_placement(g, xyz, d, noise_px=noise or 0.1, metal=metal_of(ph), surface=surface)
-                     for xyz in per_seed]
+            preds = [predict_placement(g, xyz, d, noise_px=noise or 0.1, metal=metal_of(ph), surface=surface,
+                                       background=background) for xyz in per_seed]
             under = [p.under_determined.size for p in preds]
             predicted = np.mean([p.summary()["predicted_px_rms"] for p in preds])
             errs, marks = [], []
@@ -147,7 +152,11 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=120, help="projections")
     ap.add_argument("--placements", type=int, default=10, help="random placements per orbit (0: skip the ranking)")
     ap.add_argument("--compare", default="A,B,C", help="experiments whose own placement is compared with a planned one")
+    ap.add_argument("--background", action=argparse.BooleanOptionalAction, default=True,
+                    help="plan and predict with the object's background (photons and structure under each BB; the "
+                         "experiment's phantom as the prior model of the object)")
     args = ap.parse_args()
+    from calib.background import phantom_background
     from calib.plan import predict_placement
     from calib.surfaces import EllipticCylinder
     from orbitct.phantoms.experiments import BB_SURFACES, experiment_phantom
@@ -170,7 +179,9 @@ def main() -> None:
                     rows.append((orbit, k, float("nan"), float("nan"), f"refused: {case['why']}"))
                     continue
                 noise = noise if noise is not None else case["noise_px"]
-                pred = predict_placement(case["nominal"], xyz, d, noise_px=noise, surface=surface)
+                background = (phantom_background(experiment_phantom("A", 100 + i), case["nominal"], surface)
+                              if args.background else None)
+                pred = predict_placement(case["nominal"], xyz, d, noise_px=noise, surface=surface, background=background)
                 p = pred.predicted_px[case["own"]]
                 predicted = float(np.sqrt(np.nanmean(p**2)))
                 rows.append((orbit, k, predicted, case["measured_px"], "" if case["passed"] else "(check failed)"))
@@ -197,6 +208,14 @@ def main() -> None:
     for _ in range(20):
         predict_placement(g, xyz, d, surface=surface)
     print(f"prediction time, 500 views and 10 BBs: {1e3 * (time.perf_counter() - t0) / 20:.1f} ms (target < 50 ms)")
+    background = phantom_background(experiment_phantom("A"), g, surface)
+    t0 = time.perf_counter()
+    predict_placement(g, xyz, d, surface=surface, background=background)
+    t1 = time.perf_counter()
+    for _ in range(20):
+        predict_placement(g, xyz, d, surface=surface, background=background)
+    print(f"with experiment A's background: {1e3 * (t1 - t0):.0f} ms the first time (a ray fan through the phantom per "
+          f"BB and view), {1e3 * (time.perf_counter() - t1) / 20:.1f} ms for the same BBs again")
     print(f"1-min load at end {os.getloadavg()[0]:.2f}")
 
 

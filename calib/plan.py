@@ -17,8 +17,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from calib.background import ObjectBackground
 from calib.model import ViewModel
-from calib.quality import MIN_OWN_BBS, placement_predicted_px
+from calib.quality import MIN_OWN_BBS, huber_threshold_px, placement_predicted_px
 from calib.surfaces import TapeSurface
 from orbitct.geometry import ViewGeometry
 
@@ -32,6 +33,8 @@ METAL_CHORD_MM = 0.5
 #: edge, 0.06-0.1 px elsewhere, 0.11 px reported; with 2, its own placement's predicted error is 0.92-1.04 times the
 #: measured one at 256 and 512 px (3: 1.1-1.3; without edges: 0.8)
 EDGE_NOISE_FACTOR = 2.0
+#: the planner's best random placements (ranked by geometry alone) ranked again with the object's background
+_RERANKED = 10
 #: polar angles at which the silhouette is looked for (degrees apart)
 _OUTLINE_STEP_DEG = 6.0
 
@@ -123,10 +126,13 @@ def edge_noise(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: fl
 
 
 def predict_placement(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: float, *, noise_px: float = 0.1,
-                      metal: list[Any] | None = None, surface: TapeSurface | None = None) -> PlanPrediction:
+                      metal: list[Any] | None = None, surface: TapeSurface | None = None,
+                      background: ObjectBackground | None = None) -> PlanPrediction:
     """The usable BBs of every view of ``geometry`` (nominal) and each view's predicted calibration error (px) at
     centroid noise ``noise_px`` (the calibrations of simulated scans measure 0.05-0.15 px); with the object's
-    ``surface``, BBs at its silhouette edge are counted noisier across it (:func:`edge_noise`)."""
+    ``background`` (a model of what lies behind each BB), each detection's noise follows the photons and the
+    structure under it (:class:`calib.background.ObjectBackground`); else with the object's ``surface``, BBs at its
+    silhouette edge are counted noisier across it (:func:`edge_noise`)."""
     usable, uv = usable_bbs(geometry, xyz, diameter_mm, metal)
     n = usable.sum(1)
     predicted = np.full(geometry.n_views, np.nan)
@@ -135,8 +141,12 @@ def predict_placement(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter
         idx = np.flatnonzero(own)
         seen = np.where(usable[idx, :, None], uv[idx], np.nan)
         placed = np.isfinite(seen).all(-1).sum(0) >= 3  # a BB seen in fewer views has no position of its own
-        var = None if surface is None else edge_noise(geometry[idx], xyz[placed], diameter_mm, surface)
-        predicted[idx] = placement_predicted_px(ViewModel(geometry[idx]), xyz[placed], seen[:, placed], noise_px, var)
+        if background is not None:
+            var = background.variance(geometry, xyz[placed], diameter_mm, noise_px)[idx]
+        else:
+            var = None if surface is None else edge_noise(geometry[idx], xyz[placed], diameter_mm, surface)
+        predicted[idx] = placement_predicted_px(ViewModel(geometry[idx]), xyz[placed], seen[:, placed], noise_px, var,
+                                                None if background is None else huber_threshold_px(noise_px))
     return PlanPrediction(usable, n, predicted, float(noise_px))
 
 
@@ -196,11 +206,13 @@ def placement_score(pred: PlanPrediction) -> float:
 
 def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, diameter_mm: float, *, noise_px: float = 0.1,
                    metal: list[Any] | None = None, keep_out: Sequence[KeepOut] = (), seed: int = 0, trials: int = 200,
-                   rounds: int = 3, moves: int = 12, min_spacing_mm: float = 25.0) -> Placement:
+                   rounds: int = 3, moves: int = 12, min_spacing_mm: float = 25.0,
+                   background: ObjectBackground | None = None) -> Placement:
     """Search BB positions on ``surface`` outside the ``keep_out`` patches that minimise :func:`placement_score` for
     the views of ``geometry``: ``trials`` random placements (BBs at least ``min_spacing_mm`` apart, placed one at a
     time), then ``rounds`` of moving each BB to the best of ``moves`` random places. The search scores about 125 of
-    the views; the result is predicted on all."""
+    the views; the result is predicted on all. With the object's ``background`` (see :func:`predict_placement`) the
+    trials are ranked without it (it costs a ray fan per BB and view) and the best few ranked again with it."""
     rng = np.random.default_rng(seed)
     coarse = geometry[:: max(1, geometry.n_views // 125)]
     probe = (rng.uniform(0, 2 * np.pi, 4000), rng.uniform(surface.z_min_mm, surface.z_max_mm, 4000))
@@ -237,22 +249,22 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
             ang, z = np.append(ang, a[0]), np.append(z, h[0])
         return ang, z
 
-    def score(ang: NDArray[np.float64], z: NDArray[np.float64]) -> float:
-        return placement_score(predict_placement(coarse, surface.points(ang, z, diameter_mm), diameter_mm,
-                                                 noise_px=noise_px, metal=metal, surface=surface))
+    def score(ang: NDArray[np.float64], z: NDArray[np.float64], object_background: ObjectBackground | None = background
+              ) -> float:
+        return placement_score(predict_placement(coarse, surface.points(ang, z, diameter_mm), diameter_mm, noise_px=noise_px,
+                                                 metal=metal, surface=surface, background=object_background))
 
-    best: tuple[float, NDArray[np.float64], NDArray[np.float64]] | None = None
+    ranked: list[tuple[float, NDArray[np.float64], NDArray[np.float64]]] = []
     for _ in range(trials):
         drawn = draw_spaced(n_bbs)
-        if drawn is None:
-            continue
-        ang, z = drawn
-        s = score(ang, z)
-        if best is None or s < best[0]:
-            best = (s, ang, z)
-    if best is None:
+        if drawn is not None:
+            ranked.append((score(*drawn, None), *drawn))
+    if not ranked:
         raise ValueError(f"{n_bbs} BBs {min_spacing_mm:g} mm apart do not fit on the surface; fewer BBs or less spacing")
-    s_best, ang, z = best
+    ranked.sort(key=lambda t: t[0])
+    if background is not None:
+        ranked = sorted(((score(a, h), a, h) for _, a, h in ranked[:_RERANKED]), key=lambda t: t[0])
+    s_best, ang, z = ranked[0]
     for _ in range(rounds):
         for k in range(n_bbs):
             for a_new, z_new in zip(*draw(moves), strict=True):
@@ -264,7 +276,8 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
                 if s2 < s_best:
                     s_best, ang, z = s2, a2, z2
     xyz = surface.points(ang, z, diameter_mm)
-    full = predict_placement(geometry, xyz, diameter_mm, noise_px=noise_px, metal=metal, surface=surface)
+    full = predict_placement(geometry, xyz, diameter_mm, noise_px=noise_px, metal=metal, surface=surface,
+                             background=background)
     return Placement(ang, z, xyz, full, placement_score(full))
 
 

@@ -50,8 +50,8 @@ class BBPlan:
 
 def make_bb_plan(req: BBPlanRequest) -> BBPlan:
     """Plan the BBs for ``req``; BBPlanError with a one-line reason when it cannot."""
+    from calib.background import PHOTON_FLOOR, SHIFT_FACTOR, phantom_background
     from calib.plan import (
-        EDGE_NOISE_FACTOR,
         hand_spiral,
         metal_of,
         placement_score,
@@ -59,6 +59,7 @@ def make_bb_plan(req: BBPlanRequest) -> BBPlan:
         predict_placement,
         suggest_bb_count,
     )
+    from calib.quality import huber_threshold_px
     from calib.surfaces import EllipticCylinder
     from orbitct.orbits import OrbitError
     from orbitct.phantoms.experiments import BB_SURFACES, experiment_phantom
@@ -77,7 +78,9 @@ def make_bb_plan(req: BBPlanRequest) -> BBPlan:
     geometry = SimulatedBench.with_panel(req.detector_px).nominal_geometry(orbit)
     metal = metal_of(phantom)
     surface = req.surface if req.surface is not None else EllipticCylinder(*BB_SURFACES[key])
-    options: dict[str, Any] = {"noise_px": req.noise_px, "metal": metal, "keep_out": req.keep_out, "seed": req.seed}
+    background = phantom_background(phantom, geometry, surface)  # what lies behind each BB: photons, bone edges
+    options: dict[str, Any] = {"noise_px": req.noise_px, "metal": metal, "keep_out": req.keep_out, "seed": req.seed,
+                               "background": background}
     warnings: list[str] = []
     n_bbs, suggestion = req.n_bbs, None
     try:
@@ -92,10 +95,11 @@ def make_bb_plan(req: BBPlanRequest) -> BBPlan:
         placed = plan_placement(geometry, surface, n_bbs, d, **options)
     except ValueError as exc:
         raise BBPlanError(str(exc)) from None
-    own = predict_placement(geometry, phantom.markers_xyz, d, noise_px=req.noise_px, metal=metal, surface=surface)
+    own = predict_placement(geometry, phantom.markers_xyz, d, noise_px=req.noise_px, metal=metal, surface=surface,
+                            background=background)
     try:
         spiral: Any = predict_placement(geometry, hand_spiral(surface, n_bbs, d, seed=req.seed, keep_out=req.keep_out),
-                                        d, noise_px=req.noise_px, metal=metal, surface=surface)
+                                        d, noise_px=req.noise_px, metal=metal, surface=surface, background=background)
     except ValueError:  # the spiral leaves the surface or enters a keep-out zone: none to compare with
         spiral = None
     pred = placed.prediction
@@ -104,7 +108,9 @@ def make_bb_plan(req: BBPlanRequest) -> BBPlan:
                         f"{pred.under_determined[:8].tolist()}); more BBs, or another orbit")
     body: dict[str, Any] = {
         "experiment": key, "orbit": orbit.name, "views": int(geometry.n_views), "detector_px": req.detector_px,
-        "bb_diameter_mm": d, "noise_px": req.noise_px, "edge_noise_factor": EDGE_NOISE_FACTOR,
+        "bb_diameter_mm": d, "noise_px": req.noise_px,
+        "noise_model": {"background": f"experiment {key}'s phantom", "photon_floor": PHOTON_FLOOR,
+                        "shift_factor": SHIFT_FACTOR, "huber_threshold_px": huber_threshold_px(req.noise_px)},
         "surface": surface.describe(),
         "keep_out": [vars(z) for z in req.keep_out],
         "bbs": [{"number": k + 1, "xyz_mm": [round(float(v), 2) for v in placed.xyz[k]],

@@ -1,0 +1,102 @@
+"""What the object puts behind a BB: the photons left and the centroid shift of a background that is no plane."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calib.background import ObjectBackground, phantom_background
+from calib.detect import _refine
+from calib.plan import predict_placement
+from calib.surfaces import EllipticCylinder
+from orbitct.phantoms.phantom import Phantom
+from orbitct.phantoms.primitives import cylinder
+from orbitct.simulator.projector import line_integrals
+from tests.helpers.calib_scans import sawtooth, spiral_markers
+
+D_MM = 3.17
+
+
+def _body(radius_mm: float = 60.0) -> Phantom:
+    return Phantom("body", (cylinder((0, 0, 0), (0, 0, 1), radius_mm, 300.0, material="tissue", label="body"),),
+                   np.zeros((0, 3)), D_MM, "")
+
+
+def _shift(background: ObjectBackground, geometry, xyz: np.ndarray) -> np.ndarray:  # type: ignore[no-untyped-def]
+    background.variance(geometry, xyz, D_MM, 0.1)
+    return np.stack([background._cache[(id(geometry), x.tobytes(), D_MM)][:, 1:] for x in xyz], 1)
+
+
+def test_the_centroid_shift_over_the_objects_edge_is_the_detectors() -> None:
+    """A BB where the ray grazes a tissue cylinder, from 1 mm inside to 3 mm outside its outline: the computed
+    shift is the detector's own (``_refine`` on the noise-free frame, less its result for the BB alone)."""
+    g = sawtooth(8, 256)[:1]
+    body = _body()
+    source = g.S[0]
+    tangent = np.arctan2(source[1], source[0]) + np.arccos(60.0 / np.linalg.norm(source[:2]))
+    bg = ObjectBackground.of(body.line_integral, g, EllipticCylinder(60.0, 60.0, -50.0, 50.0))
+    flat, dark = np.full(g.panel.shape, 1e4, np.float32), np.zeros(g.panel.shape, np.float32)
+    computed, measured = [], []
+    for off in (-1.0, 0.0, 1.0, 2.0, 3.0):
+        c = (60.0 + D_MM / 2 + off) * np.array([np.cos(tangent), np.sin(tangent), 0.0]) + [0.0, 0.0, 10.0]
+        uv = g.project(c[None])[0, 0]
+        d_px = D_MM * np.linalg.norm(g.pixel_to_point(uv[None, None])[0, 0] - source) / np.linalg.norm(c - source)
+        d_px /= g.panel.pitch_col
+        both = body.with_markers(c[None])
+        alone = both.subset([str(p.label).startswith("bb") for p in both.primitives])
+        found = []
+        for ph in (both, alone):
+            raw = (flat * np.exp(-line_integrals(ph, g, 0))).astype(np.float32)
+            found.append(_refine(raw, dark, flat, float(uv[0]), float(uv[1]), 0.5 * d_px, int(np.ceil(d_px)) + 2, 3)[:2])
+        measured.append(found[0] - found[1])
+        computed.append(_shift(bg, g, c[None])[0, 0])
+    measured, computed = np.array(measured), np.array(computed)
+    assert np.abs(measured).max() > 0.04  # the edge does shift the centroid
+    np.testing.assert_allclose(computed[1:], measured[1:], atol=0.01)
+    assert np.sign(computed[0, 0]) == np.sign(measured[0, 0]) and abs(computed[0, 0] - measured[0, 0]) < 0.025
+
+
+def test_the_photon_factor_follows_the_thickness_and_averages_one_over_the_surface() -> None:
+    """Relative noise variance ``exp(L - reference)``: the reference is where ``exp(L)`` has its mean over points
+    spread on the surface; a BB seen through more of the object is noisier."""
+    g = sawtooth(40, 256)
+    body = _body(70.0)
+    surface = EllipticCylinder(70.0, 70.0, -40.0, 40.0)
+    bg = ObjectBackground.of(body.line_integral, g, surface)
+    xyz = spiral_markers(8, radius=70.0 + D_MM / 2)
+    var = bg.variance(g, xyz, D_MM, 0.1)
+    photons = np.stack([bg._cache[(id(g), x.tobytes(), D_MM)][:, 0] for x in xyz], 1)
+    direction = xyz[None] - g.S[:, None]
+    direction /= np.linalg.norm(direction, axis=-1, keepdims=True)
+    through = body.line_integral(np.repeat(g.S, len(xyz), 0), direction.reshape(-1, 3)).reshape(photons.shape)
+    deep = through > np.quantile(through, 0.8)
+    shallow = through < np.quantile(through, 0.2)
+    assert photons[deep].min() > photons[shallow].max()
+    np.testing.assert_allclose(np.log(photons[deep]), through[deep] - bg.reference, atol=0.15)
+    assert 0.5 < float(np.mean(photons)) < 2.0
+    assert np.all(np.linalg.eigvalsh(var) > 0)
+
+
+def test_a_bb_over_bone_edges_is_predicted_worse_than_over_soft_tissue() -> None:
+    """A dense rod just inside the surface, along the object's axis: BBs taped over it see its edges cross their
+    detection windows in many views; their shifts grow beyond the object's own (its outline), BBs a quarter turn
+    away keep theirs, and a placement with two BBs over the rod is predicted worse than without the rod."""
+    g = sawtooth(60, 256)
+    surface = EllipticCylinder(70.0, 70.0, -40.0, 40.0)
+    body = cylinder((0, 0, 0), (0, 0, 1), 70.0, 300.0, material="tissue", label="body")
+    rod = cylinder((60.0, 0.0, 0.0), (0, 0, 1), 6.0, 300.0, material="cortical", label="rod")
+    plain = phantom_background(Phantom("plain", (body,), np.zeros((0, 3)), D_MM, ""), g, surface)
+    bony = phantom_background(Phantom("rod", (body, rod), np.zeros((0, 3)), D_MM, ""), g, surface)
+    angles = np.radians([0.0, 3.0, -3.0, 2.0, -2.0, 1.0])  # over the rod
+    z = np.linspace(-30.0, 30.0, angles.size)
+    over, away = surface.points(angles, z, D_MM), surface.points(angles + np.pi / 2, z, D_MM)
+
+    def rms(bg: ObjectBackground, xyz: np.ndarray) -> float:
+        return float(np.sqrt((_shift(bg, g, xyz) ** 2).sum(-1).mean()))
+
+    assert rms(bony, over) > 1.3 * rms(plain, over)
+    assert rms(bony, away) == pytest.approx(rms(plain, away), rel=0.1)
+    xyz = np.vstack([over[:2], spiral_markers(6, radius=70.0 + D_MM / 2)])
+    with_rod = predict_placement(g, xyz, D_MM, surface=surface, background=bony).summary()["predicted_px_rms"]
+    without = predict_placement(g, xyz, D_MM, surface=surface, background=plain).summary()["predicted_px_rms"]
+    assert with_rod > without
