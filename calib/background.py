@@ -116,8 +116,12 @@ class ObjectBackground:
         rho2 = ((rel[:, :, None] + ss[None, None]) ** 2).sum(-1) / (0.5 * d_px[:, None, None]) ** 2
         ball = (self.bb_mu_per_mm * diameter_mm * np.sqrt(np.maximum(1.0 - rho2, 0.0))).mean(-1) * in_disc
         weight = np.where(in_disc, np.maximum(ball + residual, 0.0), 0.0)
-        shift = (np.einsum("pm,pma->pa", weight, rel) / weight.sum(1)[:, None]
-                 - np.einsum("pm,pma->pa", ball, rel) / ball.sum(1)[:, None])
+        total = weight.sum(1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            shift = (np.einsum("pm,pma->pa", weight, rel) / total[:, None]
+                     - np.einsum("pm,pma->pa", ball, rel) / ball.sum(1)[:, None])
+        # a background falling away faster than the BB rises leaves it nothing to weigh: half a diameter off
+        shift = np.where((total > 0)[:, None], shift, 0.5 * d_px[:, None])
         photons = np.exp(np.clip(coef[:, 0] - self.reference, -20.0, 20.0))
         return np.concatenate([photons[:, None], shift], 1)
 
