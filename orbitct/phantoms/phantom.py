@@ -10,7 +10,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from orbitct.phantoms.primitives import Primitive, PhantomError
+from orbitct.phantoms.chords import weighted_chord_sum
+from orbitct.phantoms.primitives import PhantomError, Primitive
 
 
 @dataclass(frozen=True)
@@ -106,7 +107,8 @@ class Phantom:
 
     def line_integral(self, origins: ArrayLike, directions: ArrayLike) -> NDArray[np.float64]:
         """Exact line integrals along lines ``(K, 3)`` (no detector involved)."""
-        return sum((p.mu * p.chords(origins, directions) for p in self.primitives), np.zeros(1))
+        pk = self.packed
+        return weighted_chord_sum(pk.kind, pk.center, pk.rotation, pk.semi_axes, pk.mu, origins, directions)
 
     def to_json(self) -> dict[str, Any]:
         """Plain-JSON description (stored as ``/truth@phantom_json`` in simulated scans)."""
