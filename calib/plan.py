@@ -141,12 +141,15 @@ def predict_placement(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter
         idx = np.flatnonzero(own)
         seen = np.where(usable[idx, :, None], uv[idx], np.nan)
         placed = np.isfinite(seen).all(-1).sum(0) >= 3  # a BB seen in fewer views has no position of its own
-        if background is not None:
-            var = background.variance(geometry, xyz[placed], diameter_mm, noise_px)[idx]
+        if background is not None:  # noise_px, as a calibration reports it, holds typical shifts: the rest is random
+            random_px = background.random_noise_px(noise_px)
+            var = background.variance(geometry, xyz[placed], diameter_mm, random_px)[idx]
+            bias = background.bias(geometry, xyz[placed], diameter_mm)[idx]
+            predicted[idx] = placement_predicted_px(ViewModel(geometry[idx]), xyz[placed], seen[:, placed], random_px,
+                                                    var, huber_threshold_px(noise_px), bias)
         else:
             var = None if surface is None else edge_noise(geometry[idx], xyz[placed], diameter_mm, surface)
-        predicted[idx] = placement_predicted_px(ViewModel(geometry[idx]), xyz[placed], seen[:, placed], noise_px, var,
-                                                None if background is None else huber_threshold_px(noise_px))
+            predicted[idx] = placement_predicted_px(ViewModel(geometry[idx]), xyz[placed], seen[:, placed], noise_px, var)
     return PlanPrediction(usable, n, predicted, float(noise_px))
 
 

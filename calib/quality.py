@@ -89,8 +89,8 @@ def fit_rigid_poses(model: ViewModel, state: ViewState, xyz: NDArray[np.float64]
 
 
 def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64],
-                              variance: NDArray[np.float64] | None = None, slope: NDArray[np.float64] | None = None
-                              ) -> NDArray[np.float64]:
+                              variance: NDArray[np.float64] | None = None, slope: NDArray[np.float64] | None = None,
+                              bias: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
     """Per view, the rigid pose's covariance ``(N,6,6)`` for unit centroid noise, the BB centres' own
     uncertainty included: ``H_vv^-1 + H_vv^-1 H_vp C_p H_pv H_vv^-1``, where ``C_p`` inverts the Schur complement
     on the centres in the gauge that holds the constellation's centroid, orientation and size (a similarity of
@@ -100,7 +100,9 @@ def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[n
     everywhere: the formula above). The bundle adjustment weights every detection alike, so unequal noise enters
     as the sandwich ``H^-1 M H^-1`` (``M`` the normal matrix with the noise covariances inside), pose blocks only.
     ``slope`` ``(N,K,2,2)``: each detection's weight in ``H`` (a robust loss's expected derivative, see
-    :func:`huber_moments`; the identity by default), applied as its square root to the Jacobians."""
+    :func:`huber_moments`; the identity by default), applied as its square root to the Jacobians. ``bias``
+    ``(N,K,2)``: a known offset of each detection (in the units of the noise): the pose error it causes, solved
+    through the same normal equations (BB centres free, gauge held), enters as its outer product."""
     _, Jv, Jp = model.project_jac(state, xyz)
     seen = np.isfinite(uv).all(-1)
     n, k = seen.shape
@@ -114,6 +116,8 @@ def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[n
         Jv, Jp = np.matmul(half, Jv), np.matmul(half, Jp)
         base = np.broadcast_to(np.eye(2), slope.shape) if variance is None else variance
         variance = inv_half @ base @ inv_half
+        if bias is not None:
+            bias = np.einsum("...ab,...b->...a", half, bias)
     Hvv = np.einsum("nkai,nkaj->nij", Jv, Jv) + 1e-9 * np.eye(6)
     Hvp = np.einsum("nkai,nkaj->nikj", Jv, Jp).reshape(n, 6, 3 * k)
     Hpp = np.einsum("nkai,nkaj->kij", Jp, Jp)
@@ -124,8 +128,16 @@ def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[n
     Nb = null_space(gauge_matrix(xyz))  # (3K, 3K-7): displacements that keep the gauge
     Cp = Nb @ np.linalg.pinv(Nb.T @ S @ Nb, hermitian=True) @ Nb.T
     A = Hvv_inv @ Hvp  # (N, 6, 3K)
+    shifted = 0.0
+    if bias is not None:  # H delta = J^T b: Schur on the centres, then each view's pose
+        b = np.where(seen[..., None], np.nan_to_num(bias), 0.0)
+        g_v = np.einsum("nkai,nka->ni", Jv, b)
+        g_p = np.einsum("nkai,nka->ki", Jp, b).reshape(3 * k)
+        d_p = Cp @ (g_p - np.einsum("nix,ni->x", A, g_v))
+        d_v = np.einsum("nij,nj->ni", Hvv_inv, g_v) - A @ d_p
+        shifted = np.einsum("ni,nj->nij", d_v, d_v)
     if variance is None:
-        return Hvv_inv + A @ Cp @ np.swapaxes(A, 1, 2)
+        return Hvv_inv + A @ Cp @ np.swapaxes(A, 1, 2) + shifted
     # the inverse normal matrix, rows of view n: G_n = [Hvv_n^-1 at n] + A_n Cp R with R = [A_1^T ... A_N^T, -I]
     VJv = np.matmul(variance, Jv)  # unseen detections are zero in Jv and Jp already
     Mvv = np.matmul(np.swapaxes(Jv.reshape(n, 2 * k, 6), 1, 2), VJv.reshape(n, 2 * k, 6))
@@ -139,7 +151,7 @@ def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[n
     RMR = (At @ Mvv @ A).sum(0) - AtMvp - AtMvp.T + Mpp
     cross = A @ Cp @ RMD
     return (Hvv_inv @ Mvv @ Hvv_inv + cross + np.swapaxes(cross, 1, 2)
-            + A @ (Cp @ RMR @ Cp) @ At)
+            + A @ (Cp @ RMR @ Cp) @ At + shifted)
 
 
 #: the bundle's Huber threshold before the centroid noise is measured (px), and the most it ever is
@@ -184,17 +196,25 @@ def _predicted_px(model: ViewModel, state: ViewState, cov: NDArray[np.float64]) 
 
 def placement_predicted_px(model: ViewModel, xyz: NDArray[np.float64], uv: NDArray[np.float64],
                            noise_px: float, variance: NDArray[np.float64] | None = None,
-                           loss_scale_px: float | None = None) -> NDArray[np.float64]:
+                           loss_scale_px: float | None = None, bias_px: NDArray[np.float64] | None = None
+                           ) -> NDArray[np.float64]:
     """Per view, the predicted error (px, RMS over field-of-view points) of a calibration of BBs ``xyz`` seen at
     ``uv`` (NaN = not seen) with centroid noise ``noise_px`` (each detection's covariance ``noise_px**2`` times
-    ``variance`` ``(N,K,2,2)``, when given), at the nominal views (planning: nothing measured); with
-    ``loss_scale_px``, fitted with the bundle's Huber loss of that threshold (:func:`huber_moments`)."""
+    ``variance`` ``(N,K,2,2)``, when given) and known offsets ``bias_px`` ``(N,K,2)``, at the nominal views
+    (planning: nothing measured); with ``loss_scale_px``, fitted with the bundle's Huber loss of that threshold
+    (:func:`huber_moments`; the offsets count in the loss's weights as a spread)."""
     state = model.identity()
     if loss_scale_px is None:
-        return _predicted_px(model, state, noise_px**2 * _marginal_pose_covariance(model, state, xyz, uv, variance))
+        rel_bias = None if bias_px is None else bias_px / noise_px
+        return _predicted_px(model, state, noise_px**2 * _marginal_pose_covariance(model, state, xyz, uv, variance,
+                                                                                  bias=rel_bias))
     rel = np.broadcast_to(np.eye(2), uv.shape[:2] + (2, 2)) if variance is None else variance
-    slope, spread = huber_moments(noise_px**2 * np.nan_to_num(rel), loss_scale_px)
-    return _predicted_px(model, state, _marginal_pose_covariance(model, state, xyz, uv, spread, slope))
+    total = noise_px**2 * np.nan_to_num(rel)
+    if bias_px is not None:
+        total = total + np.einsum("...a,...b->...ab", np.nan_to_num(bias_px), np.nan_to_num(bias_px))
+    slope, _ = huber_moments(total, loss_scale_px)
+    _, spread = huber_moments(noise_px**2 * np.nan_to_num(rel), loss_scale_px)
+    return _predicted_px(model, state, _marginal_pose_covariance(model, state, xyz, uv, spread, slope, bias_px))
 
 
 def pose_predicted_px(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64],

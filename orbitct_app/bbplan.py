@@ -50,7 +50,7 @@ class BBPlan:
 
 def make_bb_plan(req: BBPlanRequest) -> BBPlan:
     """Plan the BBs for ``req``; BBPlanError with a one-line reason when it cannot."""
-    from calib.background import PHOTON_FLOOR, SHIFT_FACTOR, phantom_background
+    from calib.background import PHOTON_FLOOR, SHIFT_FACTOR, SHIFT_SCATTER, phantom_background
     from calib.plan import (
         hand_spiral,
         metal_of,
@@ -110,7 +110,7 @@ def make_bb_plan(req: BBPlanRequest) -> BBPlan:
         "experiment": key, "orbit": orbit.name, "views": int(geometry.n_views), "detector_px": req.detector_px,
         "bb_diameter_mm": d, "noise_px": req.noise_px,
         "noise_model": {"background": f"experiment {key}'s phantom", "photon_floor": PHOTON_FLOOR,
-                        "shift_factor": SHIFT_FACTOR, "huber_threshold_px": huber_threshold_px(req.noise_px)},
+                        "shift_factor": SHIFT_FACTOR, "shift_scatter": SHIFT_SCATTER, "huber_threshold_px": huber_threshold_px(req.noise_px)},
         "surface": surface.describe(),
         "keep_out": [vars(z) for z in req.keep_out],
         "bbs": [{"number": k + 1, "xyz_mm": [round(float(v), 2) for v in placed.xyz[k]],

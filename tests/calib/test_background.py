@@ -24,7 +24,7 @@ def _body(radius_mm: float = 60.0) -> Phantom:
 
 def _shift(background: ObjectBackground, geometry, xyz: np.ndarray) -> np.ndarray:  # type: ignore[no-untyped-def]
     background.variance(geometry, xyz, D_MM, 0.1)
-    return np.stack([background._cache[(id(geometry), x.tobytes(), D_MM)][:, 1:] for x in xyz], 1)
+    return background._computed(geometry, xyz, D_MM)[1]
 
 
 def test_the_centroid_shift_over_the_objects_edge_is_the_detectors() -> None:
@@ -34,7 +34,7 @@ def test_the_centroid_shift_over_the_objects_edge_is_the_detectors() -> None:
     body = _body()
     source = g.S[0]
     tangent = np.arctan2(source[1], source[0]) + np.arccos(60.0 / np.linalg.norm(source[:2]))
-    bg = ObjectBackground.of(body.line_integral, g, EllipticCylinder(60.0, 60.0, -50.0, 50.0))
+    bg = ObjectBackground.of(body.line_integral, g, EllipticCylinder(60.0, 60.0, -50.0, 50.0), D_MM)
     flat, dark = np.full(g.panel.shape, 1e4, np.float32), np.zeros(g.panel.shape, np.float32)
     computed, measured = [], []
     for off in (-1.0, 0.0, 1.0, 2.0, 3.0):
@@ -62,10 +62,10 @@ def test_the_photon_factor_follows_the_thickness_and_averages_one_over_the_surfa
     g = sawtooth(40, 256)
     body = _body(70.0)
     surface = EllipticCylinder(70.0, 70.0, -40.0, 40.0)
-    bg = ObjectBackground.of(body.line_integral, g, surface)
+    bg = ObjectBackground.of(body.line_integral, g, surface, D_MM)
     xyz = spiral_markers(8, radius=70.0 + D_MM / 2)
     var = bg.variance(g, xyz, D_MM, 0.1)
-    photons = np.stack([bg._cache[(id(g), x.tobytes(), D_MM)][:, 0] for x in xyz], 1)
+    photons = bg._computed(g, xyz, D_MM)[0]
     direction = xyz[None] - g.S[:, None]
     direction /= np.linalg.norm(direction, axis=-1, keepdims=True)
     through = body.line_integral(np.repeat(g.S, len(xyz), 0), direction.reshape(-1, 3)).reshape(photons.shape)
@@ -100,3 +100,17 @@ def test_a_bb_over_bone_edges_is_predicted_worse_than_over_soft_tissue() -> None
     with_rod = predict_placement(g, xyz, D_MM, surface=surface, background=bony).summary()["predicted_px_rms"]
     without = predict_placement(g, xyz, D_MM, surface=surface, background=plain).summary()["predicted_px_rms"]
     assert with_rod > without
+
+
+def test_the_random_noise_is_what_a_reported_noise_leaves_after_the_typical_shifts() -> None:
+    """A calibration's centroid noise is the robust RMS of all residuals, shifts included: the photons' share is
+    what makes BBs spread on the surface report it; smaller over bone than over soft tissue alone."""
+    g = sawtooth(40, 256)
+    surface = EllipticCylinder(70.0, 70.0, -40.0, 40.0)
+    body = cylinder((0, 0, 0), (0, 0, 1), 70.0, 300.0, material="tissue", label="body")
+    rods = tuple(cylinder((60.0 * np.cos(a), 60.0 * np.sin(a), 0.0), (0, 0, 1), 6.0, 300.0, material="cortical",
+                          label=f"rod{i}") for i, a in enumerate(np.linspace(0, 2 * np.pi, 8, endpoint=False)))
+    soft = phantom_background(Phantom("soft", (body,), np.zeros((0, 3)), D_MM, ""), g, surface)
+    bony = phantom_background(Phantom("bony", (body,) + rods, np.zeros((0, 3)), D_MM, ""), g, surface)
+    assert 0.7 * 0.1 < soft.random_noise_px(0.1) <= 0.1
+    assert 0.025 <= bony.random_noise_px(0.1) < soft.random_noise_px(0.1)

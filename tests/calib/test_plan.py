@@ -95,7 +95,7 @@ def test_cli_plans_bbs_writes_the_plan_and_its_picture_and_the_simulator_uses_it
     assert len(body["per_view"]["n_bbs"]) == 60 and plan.with_suffix(".png").stat().st_size > 10_000
     assert "planned (6 BBs): predicted error median" in r.output and "the experiment's own (8 BBs)" in r.output
     assert "a hand-made spiral (6 BBs)" in r.output and body["hand_spiral"]["bbs"] == 6
-    assert body["noise_px"] == 0.1 and body["noise_model"]["shift_factor"] == 1.75  # what the prediction assumed
+    assert body["noise_px"] == 0.1 and body["noise_model"]["shift_factor"] == 1.65  # what the prediction assumed
     scan = tmp_path / "planned.h5"
     r = CliRunner().invoke(cli, ["simulate", "-e", "A", "--frames", "20", "--detector-size", "64", "--bbs-from", str(plan),
                                  "--out", str(scan)])

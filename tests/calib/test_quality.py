@@ -157,3 +157,9 @@ def test_a_weighted_normal_matrix_enters_the_sandwich_as_the_dense_computation_d
     dense = Hi @ JB.T @ block_diag(*spread.reshape(-1, 2, 2)) @ JB @ Hi
     want = np.stack([dense[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(n)])
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7 * np.abs(want).max())
+    # a known offset of every detection: the pose error it causes, through the same normal equations
+    bias = rng.normal(size=uv.shape[:2] + (2,))
+    with_bias = _marginal_pose_covariance(model, state, xyz, uv, spread, slope, bias)
+    delta = Hi @ JB.T @ block_diag(*slope.reshape(-1, 2, 2)) @ bias.reshape(-1)
+    shift = np.stack([np.outer(delta[6 * i:6 * i + 6], delta[6 * i:6 * i + 6]) for i in range(n)])
+    np.testing.assert_allclose(with_bias - got, shift, rtol=1e-5, atol=1e-7 * np.abs(shift).max())
