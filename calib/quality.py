@@ -168,21 +168,29 @@ def huber_moments(covariance: NDArray[np.float64], loss_scale_px: float) -> tupl
     """For detections with Gaussian noise ``covariance`` ``(..., 2, 2)`` (px^2) fitted with the bundle's Huber loss on
     the residual's length (threshold ``loss_scale_px``): the expected derivative of the influence ``psi(r)``, which
     takes the place of the identity in the normal matrix, and ``E[psi psi^T]``, which takes the place of the noise
-    covariance (``psi(r) = r min(1, delta / |r|)``; 8 x 8 Gauss-Hermite nodes). A detection far noisier than the
+    covariance (``psi(r) = r min(1, delta / |r|)``; 6 x 6 Gauss-Hermite nodes). A detection far noisier than the
     threshold counts about ``delta / |r|`` as much: the fit never lets it pull with its full error."""
-    t, w = np.polynomial.hermite_e.hermegauss(8)
-    z = np.stack(np.meshgrid(t, t, indexing="ij"), -1).reshape(-1, 2)  # standard normal nodes
+    t, w = np.polynomial.hermite_e.hermegauss(6)
+    z0, z1 = (v.ravel() for v in np.meshgrid(t, t, indexing="ij"))  # standard normal nodes
     wz = np.outer(w, w).ravel() / (2 * np.pi)
-    chol = np.linalg.cholesky(covariance + 1e-12 * np.eye(2))
-    r = np.einsum("...ab,qb->...qa", chol, z)  # (..., Q, 2)
-    n = np.maximum(np.linalg.norm(r, axis=-1), 1e-12)
+    c = np.asarray(covariance, float)
+    l00 = np.sqrt(np.maximum(c[..., 0, 0], 1e-24))
+    l10 = c[..., 1, 0] / l00
+    l11 = np.sqrt(np.maximum(c[..., 1, 1] - l10**2, 1e-24))
+    r0 = l00[..., None] * z0  # (..., Q): the residual at each node
+    r1 = l10[..., None] * z0 + l11[..., None] * z1
+    n = np.maximum(np.hypot(r0, r1), 1e-12)
     scale = np.minimum(1.0, loss_scale_px / n)
-    psi = r * scale[..., None]
-    outer = np.einsum("...qa,...qb->...qab", psi, psi)
-    unit = r / n[..., None]
-    slope = np.where((n > loss_scale_px)[..., None, None],
-                     scale[..., None, None] * (np.eye(2) - np.einsum("...qa,...qb->...qab", unit, unit)), np.eye(2))
-    return np.einsum("q,...qab->...ab", wz, slope), np.einsum("q,...qab->...ab", wz, outer)
+    out = n > loss_scale_px
+    u0, u1 = r0 / n, r1 / n
+    s2 = scale**2
+    spread = np.stack([np.stack([(r0 * r0 * s2) @ wz, (r0 * r1 * s2) @ wz], -1),
+                       np.stack([(r0 * r1 * s2) @ wz, (r1 * r1 * s2) @ wz], -1)], -2)
+    d00 = np.where(out, scale * (1.0 - u0 * u0), 1.0) @ wz
+    d01 = np.where(out, -scale * u0 * u1, 0.0) @ wz
+    d11 = np.where(out, scale * (1.0 - u1 * u1), 1.0) @ wz
+    slope = np.stack([np.stack([d00, d01], -1), np.stack([d01, d11], -1)], -2)
+    return slope, spread
 
 
 def _predicted_px(model: ViewModel, state: ViewState, cov: NDArray[np.float64]) -> NDArray[np.float64]:
