@@ -1,14 +1,15 @@
-"""What the object puts behind a BB's detection, predicted from a model of the object (a phantom, a prior volume).
+"""What the object puts behind a BB's detection, predicted from a model of the object (a phantom).
 
-Two things make one detection noisier than another (experiment C at 512 px, every detection against the truth):
-the photons left behind the object — the centroid scatter grows with the line integral under the BB, 0.055 px at
-1-1.5 to 0.185 px at 4-7, about as ``exp(L / 2)`` — and a background that is no plane across the detection window
-(bone edges, lungs, the object's own outline): the plane fitted round the BB leaves a residual inside its disc that
-shifts the centroid, by up to 1 px. Both are computed here per view and BB from the object's line integrals along
-rays through the detection window, as the detector (:mod:`calib.detect`) sees it: the plane fitted to a ring round
-the BB, the residual's first moment over the disc divided by the BB's own signal. The shift enters the prediction
-as a known offset of each detection, carried through the bundle's normal equations (part of it is a BB centre
-placed off), with a scatter round it as a variance.
+Two things make one detection worse than another (experiment C at 512 px, 8000 detections against the truth):
+the photons left behind the object — the centroid scatter grows with the line integral ``L`` under the BB, about
+as ``exp(L)`` in variance (0.043 px per axis where ``exp(L - reference)`` is 0.07, 0.23 px where it is 3.5) — and a
+background that is no plane across the detection window (bone edges, clutter, the object's own outline): the plane
+fitted round the BB leaves a residual inside its disc that shifts the centroid, by up to 1 px. Both are computed
+here per view and BB from the object's line integrals along rays through the detection window, as the detector
+(:mod:`calib.detect`) sees it: the plane fitted to the ring round the BB, then the weighted centroid (positive
+weights only) of the BB plus the residual against the BB's alone. The shift enters the prediction as a known
+offset of each detection, carried through the bundle's normal equations (part of it is a BB centre placed off),
+with a scatter round it as a variance.
 """
 
 from __future__ import annotations
@@ -28,7 +29,8 @@ from orbitct.phantoms.materials import mu_of
 LineIntegral = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]
 
 #: the detections' scatter beyond the photons' share: ``noise**2 * (exp(L - reference) + PHOTON_FLOOR)`` fits
-#: experiment C at 512 px (0.038 px per axis at 0.26 of the reference's photon factor, 0.176 px at 8)
+#: experiment C at 512 px (detections without a computed shift: 0.043 px per axis at a photon factor of 0.07, 0.106
+#: at 0.85, 0.228 at 3.5)
 PHOTON_FLOOR = 0.1
 #: the shift computed here is the detector's on a sharp frame (within 0.01 px over a tissue edge, tested); the
 #: simulated panel's blur, like a real panel's, widens the BB and the edge: the measured shifts are 1.55 (experiment
@@ -38,6 +40,7 @@ SHIFT_FACTOR = 1.65
 #: what the measured shifts scatter round SHIFT_FACTOR times the computed one, as a share of the computed one:
 #: 0.31 (A) to 0.86 (C), beyond the photons' share
 SHIFT_SCATTER = 0.6
+
 
 @dataclass(frozen=True)
 class ObjectBackground:
@@ -52,6 +55,7 @@ class ObjectBackground:
     bb_mu_per_mm: float = field(default_factory=lambda: mu_of("steel"))
     _cache: dict[tuple[int, bytes, float], NDArray[np.float64]] = field(default_factory=dict, compare=False, repr=False)
     _keep: list[ViewGeometry] = field(default_factory=list, compare=False, repr=False)
+    _random: dict[float, float] = field(default_factory=dict, compare=False, repr=False)
 
     @classmethod
     def of(cls, line_integral: LineIntegral, geometry: ViewGeometry, surface: TapeSurface, diameter_mm: float,
@@ -79,6 +83,12 @@ class ObjectBackground:
         calibration reports (:func:`calib.quality.centroid_noise_px`); at least a quarter of it."""
         if self.typical is None or not len(self.typical):
             return float(noise_px)
+        if noise_px not in self._random:
+            self._random[noise_px] = self._random_noise_px(noise_px)
+        return self._random[noise_px]
+
+    def _random_noise_px(self, noise_px: float) -> float:
+        assert self.typical is not None
         rng = np.random.default_rng(0)
         f = (self.typical[:, 0] + PHOTON_FLOOR) / (1.0 + PHOTON_FLOOR)
         shift = self.typical[:, 1:]

@@ -263,12 +263,13 @@ def recover_missed(cands: list[NDArray[np.float64]], geometry: ViewGeometry, xyz
     and lies clear of every BB kept."""
     gate = max(2.0, 0.5 * settings.diameter_px)
     seen = np.isfinite(frags[..., 0])
-    known = _nearest_candidates(cands, geometry.project(xyz), gate)
+    projected = geometry.project(xyz)
+    known = _nearest_candidates(cands, projected, gate)
     if not np.isfinite(known[..., 0]).any():
         return np.zeros((0, 3))
     radius, rough = np.nanmedian(known[..., RADIUS]), np.nanmedian(known[..., BG_RMS])
     with np.errstate(invalid="ignore"):
-        dist = np.linalg.norm(frags[:, :, None] - geometry.project(xyz)[:, None], axis=-1)
+        dist = np.linalg.norm(frags[:, :, None] - projected[:, None], axis=-1)
     near = np.where(np.isfinite(dist), dist, np.inf).min(-1) < max(2.0, settings.diameter_px)
     alone = (seen & ~near).sum(0)
     lonely = (alone >= settings.min_fragment) & (alone >= 0.8 * seen.sum(0))
