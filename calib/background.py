@@ -65,6 +65,8 @@ class ObjectBackground:
         angle, z = np.meshgrid(np.linspace(0, 2 * np.pi, 16, endpoint=False),
                                np.linspace(surface.z_min_mm, surface.z_max_mm, 7))
         keep = surface.covers(angle.ravel(), z.ravel())
+        if not keep.any():  # a surface with holes at every sample: no typical BB to refer to
+            return cls(line_integral, 0.0, None, **options)
         pts = surface.points(angle.ravel()[keep], z.ravel()[keep], diameter_mm)
         sub = geometry[:: max(1, geometry.n_views // 60)]
         direction = pts[None] - sub.S[:, None]
