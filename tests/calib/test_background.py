@@ -9,6 +9,7 @@ from calib.background import ObjectBackground, phantom_background
 from calib.detect import _refine
 from calib.plan import predict_placement
 from calib.surfaces import EllipticCylinder
+from orbitct.geometry import ViewGeometry
 from orbitct.phantoms.phantom import Phantom
 from orbitct.phantoms.primitives import cylinder
 from orbitct.simulator.projector import line_integrals
@@ -22,8 +23,8 @@ def _body(radius_mm: float = 60.0) -> Phantom:
                    np.zeros((0, 3)), D_MM, "")
 
 
-def _shift(background: ObjectBackground, geometry, xyz: np.ndarray) -> np.ndarray:  # type: ignore[no-untyped-def]
-    background.variance(geometry, xyz, D_MM, 0.1)
+def _shift(background: ObjectBackground, geometry: ViewGeometry, xyz: np.ndarray) -> np.ndarray:
+    """The computed centroid shifts ``(P, K, 2)`` (px)."""
     return background._computed(geometry, xyz, D_MM)[1]
 
 
