@@ -451,13 +451,15 @@ def _solve_and_write(
     # fail the quality check, track again allowing larger frame-to-frame jumps; a result found that way is
     # kept only if it passes the check (a larger allowance also links more wrong blobs)
     levels = [opt.jitter_mm] + ([j for j in RECOVERY_JITTER_MM if j > opt.jitter_mm] if opt.recover else [])
+    tracks: dict[float, tuple[TrackingSettings, NDArray[np.float64]]] = {}  # per allowance: settings, 2-D tracks
     for jitter_mm in levels:
         report(progress, "track", 0, 1, f"identifying BBs (jitter {jitter_mm:g} mm)")
         tset = TrackingSettings(diameter_px=d_px, motion_px=_motion_px(nominal), jitter_px=jitter_mm * d_px / diameter_mm)
         t_id = time.perf_counter()
+        frags = linked if linked is not None and jitter_mm == opt.jitter_mm else link_fragments(cands, tset, nominal)
+        tracks[jitter_mm] = (tset, frags)
         uv, found_warnings = identify(cands, ViewModel(nominal, "fixed"), tset, diameter_mm, min_obs,
-                                      prior_scale=max(1.0, jitter_mm / DEFAULT_JITTER_MM),
-                                      linked=linked if jitter_mm == opt.jitter_mm else None)
+                                      prior_scale=max(1.0, jitter_mm / DEFAULT_JITTER_MM), linked=frags)
         t_identify += time.perf_counter() - t_id
         report(progress, "track", 1, 1, f"{uv.shape[1]} BBs")
         if uv.shape[1] < 3:
@@ -488,9 +490,9 @@ def _solve_and_write(
     jitter_used, warnings, outcome, verdict = best
     n_split = 0
     if method == "bundle":
-        tset = TrackingSettings(diameter_px=d_px, motion_px=_motion_px(nominal), jitter_px=jitter_used * d_px / diameter_mm)
+        tset, frags = tracks[jitter_used]
         outcome, verdict, n_found = _recover_missed(cands, model, tset, outcome, verdict, proj, diameter_mm, min_obs, opt,
-                                                    progress, linked if jitter_used == opt.jitter_mm else None)
+                                                    progress, frags)
         if n_found:
             warnings = list(warnings) + [f"{n_found} BB(s) lost while identifying (their tracks broke into short pieces) "
                                          "were found again through the calibrated views and calibrated with the rest"]
@@ -629,16 +631,15 @@ def _estimate_again(model: ViewModel, uv: NDArray[np.float64], proj: NDArray[np.
 def _recover_missed(
     cands: list[NDArray[np.float64]], model: ViewModel, tset: TrackingSettings, outcome: tuple[Any, ...],
     verdict: Verdict, proj: NDArray[np.intp], diameter_mm: float, min_obs: int, opt: CalibrationOptions,
-    progress: ProgressCallback | None, linked: NDArray[np.float64] | None,
+    progress: ProgressCallback | None, frags: NDArray[np.float64],
 ) -> tuple[tuple[Any, ...], Verdict, int]:
-    """Look for BBs that identification lost (:func:`calib.identify.recover_missed`) through the calibrated views;
-    with any found, assign and estimate again with them; kept unless it fails where the first passed or calibrates
-    fewer views from their own BBs. Also the number found."""
+    """Look for BBs that identification lost (:func:`calib.identify.recover_missed`) among the 2-D tracks ``frags``
+    it was given, through the calibrated views; with any found, assign and estimate again with them; kept unless it
+    fails where the first passed or calibrates fewer views from their own BBs. Also the number found."""
     geometry, xyz, state = outcome[0], outcome[1], outcome[2]
     solved = outcome[7].status == OWN
     if not solved.any():
         return outcome, verdict, 0
-    frags = link_fragments(cands, tset, model.nominal) if linked is None else linked
     missed = recover_missed(cands, geometry, xyz, frags, tset, min_obs, diameter_mm)
     if not len(missed):
         return outcome, verdict, 0
