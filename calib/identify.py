@@ -233,20 +233,29 @@ def assign_by_pose(cands: list[NDArray[np.float64]], model: ViewModel, state: Vi
     return uv
 
 
-def _nearest_candidates(cands: list[NDArray[np.float64]], predicted: NDArray[np.float64], gate_px: float
-                        ) -> NDArray[np.float64]:
-    """Per frame and BB, the candidate record nearest to ``predicted`` ``(P, K, 2)`` within ``gate_px``
-    ``(P, K, fields)`` (NaN: none). For BBs looked for one at a time: the frame shift that :func:`assign_visible`
-    allows would let a lone BB take any blob nearby."""
-    out = np.full(predicted.shape[:2] + (N_FIELDS,), np.nan)
+def _stacked(cands: list[NDArray[np.float64]]) -> NDArray[np.float64]:
+    """The candidate records of every frame in one array ``(P, M, fields)``, padded with NaN to the longest."""
+    out = np.full((len(cands), max((len(c) for c in cands), default=0), N_FIELDS), np.nan)
     for p, c in enumerate(cands):
-        if not len(c):
-            continue
-        d = np.linalg.norm(c[None, :, :2] - predicted[p][:, None], axis=-1)  # (K, M)
-        d[~np.isfinite(d)] = np.inf
-        j = np.argmin(d, axis=1)
-        hit = d[np.arange(len(j)), j] <= gate_px
-        out[p, hit] = c[j[hit]]
+        out[p, : len(c)] = c
+    return out
+
+
+def _nearest_candidates(table: NDArray[np.float64], predicted: NDArray[np.float64], gate_px: float
+                        ) -> NDArray[np.float64]:
+    """Per frame and BB, the candidate record of ``table`` (:func:`_stacked`) nearest to ``predicted``
+    ``(P, K, 2)`` within ``gate_px``: ``(P, K, fields)`` (NaN: none). For BBs looked for one at a time: the frame
+    shift that :func:`assign_visible` allows would let a lone BB take any blob nearby."""
+    out = np.full(predicted.shape[:2] + (N_FIELDS,), np.nan)
+    if not table.shape[1]:
+        return out
+    with np.errstate(invalid="ignore"):
+        d = np.linalg.norm(table[:, None, :, :2] - predicted[:, :, None], axis=-1)  # (P, K, M)
+    d[~np.isfinite(d)] = np.inf
+    j = np.argmin(d, axis=-1)
+    hit = np.take_along_axis(d, j[..., None], axis=-1)[..., 0] <= gate_px
+    p = np.broadcast_to(np.arange(len(table))[:, None], j.shape)
+    out[hit] = table[p[hit], j[hit]]
     return out
 
 
@@ -264,7 +273,8 @@ def recover_missed(cands: list[NDArray[np.float64]], geometry: ViewGeometry, xyz
     gate = max(2.0, 0.5 * settings.diameter_px)
     seen = np.isfinite(frags[..., 0])
     projected = geometry.project(xyz)
-    known = _nearest_candidates(cands, projected, gate)
+    table = _stacked(cands)
+    known = _nearest_candidates(table, projected, gate)
     if not np.isfinite(known[..., 0]).any():
         return np.zeros((0, 3))
     radius, rough = np.nanmedian(known[..., RADIUS]), np.nanmedian(known[..., BG_RMS])
@@ -283,7 +293,7 @@ def recover_missed(cands: list[NDArray[np.float64]], geometry: ViewGeometry, xyz
             if not np.isfinite(point).all() or not rms[0] <= tol:
                 point = None
                 break
-            records = _nearest_candidates(cands, geometry.project(point), gate)
+            records = _nearest_candidates(table, geometry.project(point), gate)
             grown = records[..., :2]
             if np.array_equal(np.isfinite(grown), np.isfinite(track)):
                 break
