@@ -79,9 +79,7 @@ def merge_fragments(
     od = (o * d).sum(-1)  # (N,F)
     b = o.sum(0) - (d * od[..., None]).sum(0)
     c = (o * o).sum((0, 2)) - (od**2).sum(0)
-    det = geometry.panel
-    ok_v = geometry.valid
-    mm_per_px = float(np.sqrt(det.pitch_col * det.pitch_row) / np.median(geometry.sdd[ok_v] / geometry.sod()[ok_v]))
+    mm_per_px = 1.0 / float(np.median(geometry[geometry.valid].projected_size_px(1.0)))
     tol_mm = tol_px * mm_per_px
     groups = [[j] for j in range(f)]
     alive = np.ones(f, bool)

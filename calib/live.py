@@ -39,6 +39,7 @@ from calib.pipeline import (
     _options,
     calibrate_candidates,
     frame_detector,
+    projected_diameter_px,
 )
 from calib.track import (
     FrameLinker,
@@ -135,9 +136,7 @@ class _Follower:
         proj = np.flatnonzero(self.image_key == ImageKey.PROJECTION)
         self._proj_index = proj
         self.n_projections = int(proj.size)
-        panel = nominal.panel
-        mag = float(np.nanmedian(nominal.sdd[proj] / nominal.sod()[proj])) if proj.size else 1.0
-        self.d_px = self.diameter_mm * mag / float(np.sqrt(panel.pitch_col * panel.pitch_row))
+        self.d_px = projected_diameter_px(nominal[proj], self.diameter_mm) if proj.size else 1.0
         self.tracking = TrackingSettings(diameter_px=self.d_px, motion_px=_motion_px(nominal[proj]) if proj.size else 0.0,
                                          jitter_px=self.opt.jitter_mm * self.d_px / self.diameter_mm)
         self.linker = FrameLinker(self.tracking)

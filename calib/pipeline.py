@@ -216,7 +216,7 @@ def _detect(
     diameter_mm = opt.diameter_mm if opt.diameter_mm is not None else sf.marker_diameter_mm
     if diameter_mm is None:
         diameter_mm = _estimate_diameter_mm(sf, proj, dark, flat, mag, pitch, opt)
-    d_px = projected_diameter_px(sf, nominal, diameter_mm)
+    d_px = projected_diameter_px(nominal, diameter_mm)
     fd = frame_detector(dark, flat, d_px, opt)
     total = len(proj)
     step = max(1, total // 100)
@@ -362,10 +362,9 @@ def _read_inputs(sf: ScanFile, target: Path, check_frames: bool = True) -> _Scan
     return _ScanInputs(target, proj, sf.geometry("nominal"), sf.geometry("truth") if sf.has_geometry("truth") else None)
 
 
-def projected_diameter_px(sf: ScanFile, nominal: ViewGeometry, diameter_mm: float) -> float:
-    """A BB's projected diameter in pixels at the nominal magnification."""
-    mag = float(np.median(nominal.sdd / nominal.sod()))
-    return diameter_mm * mag / float(np.sqrt(sf.panel.pitch_col * sf.panel.pitch_row))
+def projected_diameter_px(nominal: ViewGeometry, diameter_mm: float) -> float:
+    """A BB's projected diameter in pixels at the nominal magnification (the median over the views)."""
+    return float(np.nanmedian(nominal.projected_size_px(diameter_mm)))
 
 
 def calibrate_candidates(
@@ -392,7 +391,7 @@ def calibrate_candidates(
             inputs = _read_inputs(sf, target, check_frames=False)
             if len(candidates) != inputs.proj.size:
                 raise OptionError(f"{target}: {len(candidates)} candidate lists for {inputs.proj.size} projections")
-            d_px = projected_diameter_px(sf, inputs.nominal, diameter_mm)
+            d_px = projected_diameter_px(inputs.nominal, diameter_mm)
         return _solve_and_write(inputs, candidates, diameter_mm, d_px, method, opt, progress, clock, t0, detect_s,
                                 report_dir, linked)
 

@@ -70,7 +70,7 @@ def usable_bbs(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: fl
     with ``metal`` (primitives with ``chords``, such as a phantom's screws), not behind metal; and their pixels."""
     uv = geometry.project(xyz)  # (P, K, 2)
     det = geometry.panel
-    d_px = _diameter_px(geometry, diameter_mm)
+    d_px = geometry.projected_size_px(diameter_mm)
     margin = 0.5 * d_px[:, None] + 1.0
     ok = (np.isfinite(uv).all(-1) & (uv[..., 0] >= margin) & (uv[..., 0] <= det.cols - 1 - margin)
           & (uv[..., 1] >= margin) & (uv[..., 1] <= det.rows - 1 - margin))
@@ -85,12 +85,6 @@ def usable_bbs(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: fl
         chord = sum(np.asarray(m.chords(origin, direction)) for m in metal).reshape(ok.shape)
         ok &= chord <= METAL_CHORD_MM
     return ok, uv
-
-
-def _diameter_px(geometry: ViewGeometry, diameter_mm: float) -> NDArray[np.float64]:
-    """A BB's projected diameter per view (px, at the isocenter's magnification)."""
-    det = geometry.panel
-    return diameter_mm * geometry.sdd / geometry.sod() / float(np.sqrt(det.pitch_col * det.pitch_row))
 
 
 def edge_noise(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: float, surface: TapeSurface
@@ -116,7 +110,7 @@ def edge_noise(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: fl
     else:
         lo, hi = s.min(-1), s.max(-1)
     gap = np.where(np.abs(lo) < np.abs(hi), -lo, hi)  # px from the centre to the nearer edge, > 0 inside the outline
-    d_px = _diameter_px(geometry, diameter_mm)
+    d_px = geometry.projected_size_px(diameter_mm)
     # the detector's window reaches ceil(d) + 2 px from the centre, and the background's bend inside the edge 2 px
     # further; a BB more than 2 px outside the outline sees only its own side (experiment A at 512 px)
     exposed = (gap >= -2.0) & (gap <= (np.ceil(d_px) + 4.0)[:, None])

@@ -162,6 +162,12 @@ class ViewGeometry:
         """Source-to-point distance per view (mm), by default to the object origin."""
         return np.linalg.norm(self.S - np.asarray(isocenter, dtype=float), axis=1)
 
+    def projected_size_px(self, size_mm: float) -> NDArray[np.float64]:
+        """Per view, how many pixels an object ``size_mm`` across at the isocenter spans on the panel (the
+        magnification SDD / SOD over the panel's mean pitch; NaN where a view has no geometry)."""
+        panel = self._panel
+        return float(size_mm) * self.sdd / self.sod() / float(np.sqrt(panel.pitch_col * panel.pitch_row))
+
     # ----------------------------------------------------------- matrices
     @property
     def matrices(self) -> NDArray[np.float64]:

@@ -86,6 +86,18 @@ def test_transformed_moves_projections_consistently() -> None:
     assert np.allclose(g.transformed(R, t).project(pts @ R.T + t), g.project(pts), atol=1e-9)
 
 
+def test_projected_size_is_what_a_small_object_at_the_isocenter_spans() -> None:
+    g = random_views(6, seed=4)
+    size_px = g.projected_size_px(2.0)
+    # two points 1 mm either side of the origin, across the beam along the panel's columns: their projections lie
+    # size_px apart (the panel's mean pitch: the columns' and rows' pitches differ here, so along u by their ratio)
+    across = g.u / np.linalg.norm(g.u, axis=1, keepdims=True)
+    for n in range(g.n_views):
+        uv = g[n : n + 1].project(np.array([-across[n], across[n]]))[0]
+        along_u_px = abs(uv[1, 0] - uv[0, 0]) * DET.pitch_col / np.sqrt(DET.pitch_col * DET.pitch_row)
+        assert along_u_px == pytest.approx(size_px[n], rel=2e-3)
+
+
 def test_slicing_and_nan_views() -> None:
     g = random_views(10)
     assert g[2:5].n_views == 3 and g[3].n_views == 1
