@@ -28,6 +28,10 @@ OUTLIER_MIN_PX = 1.0
 MAX_DROPPED = 2
 
 
+#: a frame of the jump watch's baseline off its curve by more than this many sigmas is left out of the curve
+OUTLIER_SIGMAS = 4.0
+
+
 @dataclass(frozen=True)
 class FramePose:
     """The rigid correction of one frame fitted to its watched BBs, and how well it is known."""
@@ -38,7 +42,7 @@ class FramePose:
     misfit_px: float  # residual RMS corrected for the six pose parameters
     predicted_px: float  # RMS over field-of-view points of the projection error the pose's covariance implies
 
-    motion_mm: NDArray[np.float64]  # how far the fit moved the BBs' projections from the nominal view's (see below)
+    motion_mm: NDArray[np.float64]  # how far the fit moved the isocenter's projection (:func:`isocenter_motion_mm`)
 
 
 def fit_frame_pose(view: ViewGeometry, xyz: NDArray[np.float64], uv: NDArray[np.float64], noise_px: float,
@@ -61,19 +65,25 @@ def fit_frame_pose(view: ViewGeometry, xyz: NDArray[np.float64], uv: NDArray[np.
                 or residual[worst] <= max(OUTLIER_NOISES * noise_px, OUTLIER_MIN_PX)):
             break
         seen[np.flatnonzero(seen)[worst]] = False  # a blob taken for this BB that is another: fitted without it
-    # the motion the detector sees best: the shift of the BBs' mean projection from where the nominal view puts it,
-    # along the panel's columns and rows, in mm at the isocenter (a pose's depth along the beam is poorly known)
-    shift_px = (geometry.project(xyz_s)[0] - view.project(xyz_s)[0]).mean(0)
-    panel = view.panel
-    mm_per_px = np.array([panel.pitch_col, panel.pitch_row]) * float(view.sod()[0] / view.sdd[0])
     return FramePose(
         state=st,
-        motion_mm=shift_px * mm_per_px,
+        motion_mm=isocenter_motion_mm(view, geometry)[0],
         n_bbs=int(seen.sum()),
         rpe_mm=float(rpe_per_frame(geometry, uv_s, xyz_s)[0]),
         misfit_px=float(view_misfit_px(model, st, xyz_s, uv_s)[0]),
         predicted_px=float(pose_predicted_px(model, st, xyz_s, uv_s, noise_px)[0]),
     )
+
+
+def isocenter_motion_mm(nominal: ViewGeometry, corrected: ViewGeometry) -> NDArray[np.float64]:
+    """Per view ``(N, 2)``, how far the corrected view moves the isocenter's projection from where the nominal view
+    puts it, along the panel's columns and rows, in mm at the isocenter: the motion the detector sees best (a pose's
+    depth along the beam is poorly known). A fixed point, not the BBs' mean: the BBs seen differ from their nominal
+    projections by different amounts, so the mean of those seen would jump whenever one is hidden or found."""
+    isocenter = np.zeros((1, 3))
+    shift_px = corrected.project(isocenter)[:, 0] - nominal.project(isocenter)[:, 0]
+    panel = nominal.panel
+    return shift_px * np.array([panel.pitch_col, panel.pitch_row]) * (nominal.sod() / nominal.sdd)[:, None]
 
 
 @dataclass(frozen=True)
@@ -89,11 +99,12 @@ class StepWatch:
     """Finds a jump that stays in a series of per-frame motions (:attr:`FramePose.motion_mm`).
 
     A parabola is fitted per component to the ``baseline`` frames before the latest ``m`` (m = 4, 8 and 16 are
-    tried: a large jump shows in 4 frames, a jump the size of the frame-to-frame noise needs more); the median
-    of the latest ``m`` against the parabola's extrapolation, in units of its standard error (the median's and
-    the extrapolation's, from the baseline's scatter), must exceed ``sigmas`` over the six components together (root sum of squares), and the jump be at
-    least ``min_mm``. After a jump
-    the baseline starts again behind it."""
+    tried: a large jump shows in 4 frames, a jump the size of the frame-to-frame noise needs more; frames off the
+    curve by more than :data:`OUTLIER_SIGMAS` are left out and it is fitted again; nothing is judged before there
+    are ``baseline`` frames); the median of the latest ``m`` against the parabola's extrapolation, in units of its
+    standard error (the median's and the extrapolation's, from the baseline's scatter), must exceed ``sigmas`` over
+    the components together (root sum of squares), and the jump be at least ``min_mm``. After a jump the baseline
+    starts again behind it."""
 
     def __init__(self, baseline: int = 80, sigmas: float = 8.0, min_mm: float = 1.0, recent: tuple[int, ...] = (4, 8, 16),
                  max_gap: int = 5) -> None:
@@ -112,15 +123,21 @@ class StepWatch:
         values = np.array(self._values)
         frames = np.array(self._frames, float)
         for m in self.recent:
-            base_n = min(self.baseline, len(values) - m)
-            if base_n < max(12, self.baseline // 2):
+            if len(values) - m < self.baseline:  # a curve through fewer frames bends with their noise
                 continue
+            base_n = self.baseline
             base = slice(len(values) - m - base_n, len(values) - m)
             x = frames[base] - frames[base].mean()
             A = np.column_stack([np.ones(base_n), x, x * x])
             coef, *_ = np.linalg.lstsq(A, values[base], rcond=None)
             resid = values[base] - A @ coef
             sigma = 1.4826 * np.median(np.abs(resid - np.median(resid, axis=0)), axis=0) + 1e-3
+            inlier = (np.abs(resid) <= OUTLIER_SIGMAS * sigma).all(1)  # a wrong pose would bend the curve: fitted again
+            if not inlier.all():
+                A = A[inlier]
+                coef, *_ = np.linalg.lstsq(A, values[base][inlier], rcond=None)
+                resid = values[base][inlier] - A @ coef
+                sigma = 1.4826 * np.median(np.abs(resid - np.median(resid, axis=0)), axis=0) + 1e-3
             xr = frames[-m:] - frames[base].mean()
             line = np.column_stack([np.ones(m), xr, xr * xr]) @ coef
             jump = np.median(values[-m:] - line, axis=0)
@@ -142,4 +159,4 @@ class StepWatch:
         return None
 
 
-__all__ = ["FramePose", "Step", "StepWatch", "fit_frame_pose"]
+__all__ = ["FramePose", "Step", "StepWatch", "fit_frame_pose", "isocenter_motion_mm"]

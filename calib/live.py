@@ -54,8 +54,19 @@ from orbitct.geometry import ViewGeometry
 from orbitct.progress import ProgressCallback, report
 from orbitct.scanfile import ImageKey, ScanFile
 
-#: what a live warning can be about
-WARNING_KINDS = ("bb_lost", "bb_found", "bb_left_fov", "few_bbs", "bb_distorted", "object_moved", "fell_behind")
+#: what a live warning can be about, and in a few words what it says (the console's choices)
+WARNING_MEANINGS = {
+    "bb_lost": "a BB is lost",
+    "bb_found": "a lost BB is found again",
+    "bb_left_fov": "a BB leaves the panel",
+    "few_bbs": "a view shows too few BBs",
+    "bb_distorted": "a BB looks distorted (over metal or bone, or merged)",
+    "object_moved": "the object moved on the table",
+    "fell_behind": "calibration falls behind",
+}
+WARNING_KINDS = tuple(WARNING_MEANINGS)
+#: the warnings a scan may be stopped on: all but the good news
+ABORT_KINDS = tuple(k for k in WARNING_KINDS if k != "bb_found")
 
 
 class LiveCalibrationError(CalibrationError):
@@ -89,6 +100,9 @@ class LiveSettings:
     max_pending: int = 256  # frames waiting for detection beyond this are detected from the file after the scan
     edge_margin_px: float = 2.0  # extra margin inside the panel for "should be visible"
 
+
+#: frames whose pose misses its BBs by more than this many centroid noises do not feed the watch for a moved object
+WATCH_MISFIT = 3.0
 
 #: a watched BB's 3-D point is fixed after this many rays: the frame the live poses and the motion watch refer to
 #: stays that of the scan's start (a point that kept absorbing rays would follow an object that moved)
@@ -164,6 +178,7 @@ class _Follower:
         self.window = SlidingBundle()
         self._refined: dict[int, NDArray[np.float64]] = {}  # watched BBs' points from the latest window
         self._shift = np.zeros(2)  # the latest frame's shift of the watched BBs from their predicted pixels
+        self._motion_offset = np.zeros(2)  # what the sliding adjustments moved the poses' isocenter, summed
 
     def take(self, index: int, frame: NDArray[Any] | None) -> None:
         """Scan frame ``index``; indices jumped over are projections that were not sent (detected after the scan)."""
@@ -270,6 +285,7 @@ class _Follower:
                 if self.window.due:
                     self._refined.update(self.window.refine(self.nominal, dict(zip(keys, points)),
                                                             loss_px=max(1.5 * self._noise_px(), 0.05)))
+                    self._motion_offset += self.window.moved_mm  # the jump watch's series carried across it
                 metrics.update(rpe_mm=pose.rpe_mm, rpe_mean_mm=float(np.mean(self.rpe_mm)), predicted_px=pose.predicted_px,
                                misfit_px=pose.misfit_px)
                 message += f", RPE {pose.rpe_mm:.3f} mm, predicted {pose.predicted_px:.2f} px"
@@ -311,14 +327,17 @@ class _Follower:
                     ) -> FramePose | None:
         """The frame's pose from its watched BBs (:func:`calib.framepose.fit_frame_pose`); feeds the running RPE,
         the centroid noise and the jump watch, which warns when the object moved."""
-        pose = fit_frame_pose(view, xyz, uv, self._noise_px(), self._last_pose)
+        noise_px = self._noise_px()
+        pose = fit_frame_pose(view, xyz, uv, noise_px, self._last_pose)
         if pose is None:
             return None
         self._last_pose = pose.state
         self.rpe_mm.append(pose.rpe_mm)
         if np.isfinite(pose.misfit_px):
             self._misfits.append(pose.misfit_px)
-        step = self._steps.add(index, pose.motion_mm)
+        if not pose.misfit_px <= WATCH_MISFIT * noise_px:  # a doubtful pose (a wrong or rough detection)
+            return pose
+        step = self._steps.add(index, pose.motion_mm - self._motion_offset)
         if step is not None:
             self._warn("object_moved", index, step.since_frame,
                        f"frame {index}: where each frame's fitted pose puts the BBs jumped by {step.size_mm:.1f} mm (at "
@@ -579,4 +598,5 @@ class LiveCalibration:
         return result
 
 
-__all__ = ["LiveCalibration", "LiveCalibrationError", "LiveSettings", "LiveWarning", "WARNING_KINDS"]
+__all__ = ["ABORT_KINDS", "LiveCalibration", "LiveCalibrationError", "LiveSettings", "LiveWarning", "WARNING_KINDS",
+           "WARNING_MEANINGS"]

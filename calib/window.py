@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib.bundle import bundle_adjust
+from calib.framepose import isocenter_motion_mm
 from calib.model import ViewModel, ViewState
 from orbitct.geometry import ViewGeometry
 from orbitct.rotations import rotvec_to_matrix
@@ -31,6 +32,9 @@ class _Posed:
     uv: NDArray[np.float64]  # (K, 2), NaN = not found
     pose: NDArray[np.float64]  # (6,) rotation vector, shift
 
+
+#: the frames at the window's end whose mean move carries the jump watch's series across an adjustment
+CARRY_FRAMES = 10
 
 #: the window's gauge (the points' centroid, orientation and size) is held by the BBs it saw in at least this many
 #: frames: a BB seen in a few frames only is placed poorly in depth and would drag the others with it
@@ -46,6 +50,7 @@ class SlidingBundle:
         self._since = 0
         self.windows = 0
         self.seconds = 0.0
+        self.moved_mm = np.zeros(2)  # what the latest adjustment moved the window's poses (see refine)
 
     def add(self, view: int, keys: tuple[int, ...], uv: NDArray[np.float64], state: ViewState) -> None:
         """Nominal view ``view`` was posed at ``state`` from watched BBs ``keys`` seen at ``uv``."""
@@ -65,6 +70,7 @@ class SlidingBundle:
         fewer than four BBs were seen in :data:`MIN_SEEN` frames."""
         t0 = time.perf_counter()
         self._since = 0
+        self.moved_mm = np.zeros(2)
         frames = list(self._recent)
         keys = sorted({k for f in frames for k in f.keys if k in points})
         col = {k: i for i, k in enumerate(keys)}
@@ -87,6 +93,12 @@ class SlidingBundle:
                             gauge_weights=anchor.astype(float))
         if not (np.isfinite(res.xyz).all() and np.isfinite(res.state.t).all()):
             return {}
+        # the adjustment moves the poses with the points (their gauge is the anchors', not the nominal rays'): how far,
+        # on average over the window, it moved the isocenter's projection, so that a series of per-frame motions
+        # can be carried across it
+        moved = (isocenter_motion_mm(model.nominal, model.geometry(res.state))
+                 - isocenter_motion_mm(model.nominal, model.geometry(state0)))
+        self.moved_mm = np.mean(moved[-CARRY_FRAMES:], axis=0)
         refined = np.concatenate([res.state.rotvec, res.state.t], 1)
         for f, r in zip(frames, refined, strict=True):
             f.pose = r

@@ -11,6 +11,10 @@ import yaml
 
 from orbitct_app.cli.progress import ProgressBar
 
+#: calib.live.ABORT_KINDS, spelled out so that the CLI starts without importing the calibration (half a second);
+#: tests/app/test_live_calibration.py holds the two the same
+ABORT_KINDS = ("bb_lost", "bb_left_fov", "few_bbs", "bb_distorted", "object_moved", "fell_behind")
+
 
 def _fail(message: str) -> None:
     click.echo(f"error: {message}", err=True)
@@ -55,7 +59,7 @@ def _parse_params(items: tuple[str, ...]) -> dict[str, object]:
 @click.option("--bb-diameter-mm", type=click.FloatRange(0.1, 20), default=None,
               help="BB diameter for --calibrate live (default with --sim: the twins' BBs).")
 @click.option("--abort-on", "abort_on", multiple=True,
-              type=click.Choice(["bb_lost", "bb_left_fov", "few_bbs", "bb_distorted", "fell_behind"]),
+              type=click.Choice(ABORT_KINDS),
               help="Stop the scan safely on this live calibration warning (repeatable).")
 @click.option("--lost-frames", type=click.IntRange(1, 10000), default=10, show_default=True,
               help="--calibrate live: warn when a followed BB is missing for more than this many frames.")

@@ -19,6 +19,7 @@ from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
 from fastapi.templating import Jinja2Templates
 
+from calib.live import ABORT_KINDS, WARNING_MEANINGS
 from orbitct import __version__
 from orbitct_app.service.core.auth import PERMISSIONS
 from orbitct_app.service.core.sessions import COOKIE
@@ -90,7 +91,8 @@ def bench(request: Request) -> Response:
 @router.get("/console/scans/new", response_class=HTMLResponse)
 def scan_new(request: Request) -> Response:
     """Orbit, parameters, preview and pre-flight, then start."""
-    return _render(request, "scan_new.html", "scan-new", "New scan")
+    return _render(request, "scan_new.html", "scan-new", "New scan",
+                   abort_kinds=[(kind, WARNING_MEANINGS[kind]) for kind in ABORT_KINDS])
 
 
 @router.get("/console/scans", response_class=HTMLResponse)

@@ -96,6 +96,15 @@ def test_cli_scan_calibrate_live_reports_the_geometry_and_refuses_without_a_bb_s
     assert r.exit_code == 2 and "--abort-on needs --calibrate live" in r.output
 
 
+def test_the_cli_offers_to_stop_on_every_warning_but_the_good_news() -> None:
+    from calib.live import ABORT_KINDS
+    from orbitct_app.cli import scan
+
+    assert scan.ABORT_KINDS == ABORT_KINDS and "object_moved" in ABORT_KINDS and "bb_found" not in ABORT_KINDS
+    r = CliRunner().invoke(cli, ["scan", "--help"])
+    assert "object_moved" in r.output
+
+
 def test_a_killed_scan_with_live_calibration_leaves_a_file_that_calibrates_offline(tmp_path: Path) -> None:
     out = tmp_path / "killed.h5"
     script = textwrap.dedent(f"""
@@ -184,3 +193,32 @@ def test_an_object_moved_by_2_mm_mid_scan_is_reported_within_a_few_frames(tmp_pa
     rpe = np.array([e.metrics["rpe_mm"] for e in live])
     assert (predicted > 0).all() and np.median(predicted) < 0.5 and np.median(rpe) < 0.5, (predicted, rpe)
     assert "RPE" in live[-1].message and "predicted" in live[-1].message
+
+
+def test_a_scan_set_to_stop_when_the_object_moves_stops_there_safely(tmp_path: Path) -> None:
+    """``abort_on=["object_moved"]``: the object moved by 2 mm after frame 84 stops the scan a few frames on, through
+    the engine's own path (axes halted, X-rays off, the file aborted with the warning as its reason). The plan runs
+    well past the move: the live worker runs at a lower priority and may be some frames behind."""
+    out = tmp_path / "moved-stop.h5"
+    cfg = small_config(size=192, calibration_frames={"darks_before": 2, "flats_before": 2, "darks_after": 0,
+                                                     "flats_after": 0})
+    sub = LiveCalibrationSubscriber(out, cfg.sim.bb_diameter_mm, abort_on=["object_moved"])
+
+    async def main() -> Any:
+        async with open_bench(cfg, sim=True) as bench:
+            nudge = _NudgeObject(bench, 84, (0.0, 0.0, -2.0))
+            res = await ScanRunner(small_request(out, frames=200, config=cfg), rig=bench,
+                                   subscribers=[sub, nudge]).run()
+            assert not await bench.hexapod.moving() and not await bench.stage.moving()
+            state = await bench.xray.read()
+            assert not state["hv_on"] and not state["exposing"]
+            return res
+
+    res = asyncio.run(main())
+    assert res.status == "aborted" and "live calibration warning (object_moved)" in res.reason, res.reason
+    assert res.n_frames < res.n_planned
+    assert sub.live is not None
+    moved = [w for w in sub.live.warnings if w.kind == "object_moved"]
+    assert len(moved) == 1 and 85 <= moved[0].since_frame <= 87, [w.message for w in sub.live.warnings]
+    with ScanFile(out) as sf:
+        assert sf.status == "aborted" and "object_moved" in sf.status_reason

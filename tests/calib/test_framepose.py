@@ -70,3 +70,28 @@ def test_a_curve_is_not_extrapolated_across_frames_without_a_pose() -> None:
     watch = StepWatch()
     for f in [*range(0, 120), *range(210, 300)]:  # 90 frames where too few BBs were followed for a pose
         assert watch.add(f, v[f]) is None, f
+
+
+def test_the_motion_watched_does_not_jump_when_a_bb_is_hidden() -> None:
+    """The isocenter's shift, not the BBs' mean: hiding one BB moves the measured motion by no more than the pose's
+    noise (the BBs' mean projection would move by how much that BB differs from the others)."""
+    nominal = sawtooth(10, 256)[3:4]
+    xyz = spiral_markers(8)
+    truth = nominal.transformed(rot_xyz(np.array([0.02]), np.array([-0.01]), np.array([0.015])), np.array([[4.0, -3.0, 2.0]]))
+    uv = truth.project(xyz)[0]
+    every = fit_frame_pose(nominal, xyz, uv, noise_px=0.1)
+    for hidden in range(8):
+        one_less = fit_frame_pose(nominal, xyz, np.where(np.arange(8)[:, None] == hidden, np.nan, uv), noise_px=0.1)
+        assert every is not None and one_less is not None
+        assert np.abs(one_less.motion_mm - every.motion_mm).max() < 0.01, hidden
+
+
+def test_one_wrong_pose_in_the_baseline_does_not_bend_the_curve() -> None:
+    """A frame posed wrongly (8 mm off) among the baseline is left out of the curve; the frames after it raise
+    nothing, and a real move after it is still seen at once."""
+    v = _series(500, noise_mm=0.05)
+    v[250] += 8.0
+    assert _first_step(v) is None
+    v[300:, 0] += 2.0
+    got = _first_step(v)
+    assert got is not None and got[1] == 300 and got[0] <= 304

@@ -66,6 +66,18 @@ def test_pages_render_only_the_controls_of_the_role(shared_api) -> None:  # type
     api.client.cookies.clear()
 
 
+def test_a_new_scan_may_stop_on_every_live_warning_but_the_good_news(shared_api) -> None:  # type: ignore[no-untyped-def]
+    from calib.live import ABORT_KINDS
+
+    api = shared_api
+    _sign_in(api, "operator")
+    html = api.client.get("/console/scans/new").text
+    offered = re.findall(r'<div id="abort-on">(.*?)</div>', html, re.S)[0]
+    assert re.findall(r'value="([a-z_]+)"', offered) == list(ABORT_KINDS)
+    assert "the object moved on the table" in offered and "bb_found" not in offered
+    api.client.cookies.clear()
+
+
 def test_the_api_docs_use_orbitcts_own_copies_of_swagger_ui_and_redoc(shared_api) -> None:  # type: ignore[no-untyped-def]
     api = shared_api
     for path in ("/docs", "/redoc"):
