@@ -10,7 +10,7 @@ from calib.detect import N_FIELDS
 from calib.model import ViewModel, ViewState
 from calib.quality import fit_rigid_poses
 from calib.rays import marker_rays, triangulate_least_squares
-from calib.track import BG_RMS, RADIUS, TrackingSettings, assign_to_predictions, link_fragments
+from calib.track import TrackingSettings, assign_to_predictions, like_the_others, link_fragments
 from orbitct.geometry import Panel, ViewGeometry
 
 
@@ -275,7 +275,6 @@ def recover_missed(cands: list[NDArray[np.float64]], geometry: ViewGeometry, xyz
     known = _nearest_candidates(table, projected, gate)
     if not np.isfinite(known[..., 0]).any():
         return np.zeros((0, 3))
-    radius, rough = np.nanmedian(known[..., RADIUS]), np.nanmedian(known[..., BG_RMS])
     with np.errstate(invalid="ignore"):
         dist = np.linalg.norm(frags[:, :, None] - projected[:, None], axis=-1)
     near = np.where(np.isfinite(dist), dist, np.inf).min(-1) < max(2.0, settings.diameter_px)
@@ -300,9 +299,7 @@ def recover_missed(cands: list[NDArray[np.float64]], geometry: ViewGeometry, xyz
             continue
         found = int(np.isfinite(track).all(-1).sum())
         expected = int(np.isfinite(geometry.project(point)).all(-1).sum())
-        like = (abs(np.nanmedian(records[..., RADIUS]) / radius - 1.0) <= 0.2
-                and np.nanmedian(records[..., BG_RMS]) <= 2.5 * rough)
-        if like and found >= max(min_observations, min_found_share * expected):
+        if like_the_others(records, known) and found >= max(min_observations, min_found_share * expected):
             out.append(point[0])
             kept.append(point[0])
     return np.array(out).reshape(-1, 3)

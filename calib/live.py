@@ -46,6 +46,7 @@ from calib.track import (
     FrameLinks,
     TrackingSettings,
     ball_like,
+    like_the_others,
     match_frame,
     view_rays,
 )
@@ -122,6 +123,7 @@ class _Watched:
     track: int = -1  # the 2-D track its latest detection belongs to
     warned: bool = False
     outside: bool = False
+    look: NDArray[np.float64] = field(default_factory=lambda: np.full(N_FIELDS, np.nan))  # median blob record
 
     def add_ray(self, origin: NDArray[np.float64], direction: NDArray[np.float64]) -> None:
         self.count += 1
@@ -362,7 +364,8 @@ class _Follower:
         """Tracks followed for ``watch_after`` frames become watched BBs (their whole history of rays), unless their
         blob in this frame is a watched BB's (``claimed``, per continued track) or their point lies within two BB
         diameters of a watched BB's (a BB followed again by a new track after a crossing: its few rays place it
-        poorly in depth, so the frame's assignment decides first)."""
+        poorly in depth, so the frame's assignment decides first), or their blobs do not look like the watched BBs'
+        (:func:`calib.track.like_the_others`, once three are watched)."""
         known = np.array([w.point() for w in self._watched.values()]).reshape(-1, 3)
         for t, taken in zip(links.continued.tolist(), claimed.tolist(), strict=True):
             if t in self._tracks_seen or self.linker.store.count[t] < self.settings.watch_after:
@@ -371,6 +374,7 @@ class _Follower:
             if taken:
                 continue
             w = _Watched()
+            records = []
             for frame_p, ids, uv in self.linker.store.obs:
                 hit = np.flatnonzero(ids == t)
                 if hit.size:
@@ -378,9 +382,14 @@ class _Follower:
                     o, d = view_rays(self.nominal[f : f + 1], uv[hit])
                     w.add_ray(o, d[0])
                     w.last_frame, w.last_uv = f, (float(uv[hit[0], 0]), float(uv[hit[0], 1]))
+                    c = self.candidates[frame_p]
+                    records.append(c[np.argmin(np.linalg.norm(c[:, :2] - uv[hit[0]], axis=1))])
             x = w.point()
             if known.size and np.linalg.norm(known - x, axis=1).min() < 2.0 * self.diameter_mm + 5.0:
                 continue  # a BB already watched, followed by another track
+            w.look = np.nanmedian(np.array(records), axis=0)
+            if len(self._watched) >= 3 and not like_the_others(w.look, np.array([v.look for v in self._watched.values()])):
+                continue  # round for a few frames, but not like the BBs: a structure of the object
             w.track = t
             self._watched[t] = w
             known = np.vstack([known, x])

@@ -75,6 +75,15 @@ def ball_like(c: NDArray[np.float64], s: TrackingSettings) -> NDArray[np.bool_]:
     )
 
 
+def like_the_others(records: NDArray[np.float64], others: NDArray[np.float64]) -> bool:
+    """Whether blobs ``records`` (one BB's, over frames; NaN rows ignored) look like the BBs of ``others``: median
+    radius within 20 % of theirs and a background at most 2.5 times as rough (not a bone edge, a screw head or
+    a structure of the object that is round for a few frames)."""
+    radius, rough = np.nanmedian(others[..., RADIUS]), np.nanmedian(others[..., BG_RMS])
+    return bool(abs(np.nanmedian(records[..., RADIUS]) / radius - 1.0) <= 0.2
+                and np.nanmedian(records[..., BG_RMS]) <= 2.5 * rough)
+
+
 @numba.njit(cache=True)
 def _gated_cost(pred, cand, gate):  # type: ignore[no-untyped-def]
     """Distances ``(T, M)`` with 1e6 where a pair is farther than the row's gate (or not finite), and that mask."""
