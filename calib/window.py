@@ -93,9 +93,9 @@ class SlidingBundle:
                             gauge_weights=anchor.astype(float))
         if not (np.isfinite(res.xyz).all() and np.isfinite(res.state.t).all()):
             return {}
-        # the adjustment moves the poses with the points (their gauge is the anchors', not the nominal rays'): how far,
-        # on average over the window, it moved the isocenter's projection, so that a series of per-frame motions
-        # can be carried across it
+        # the adjustment moves the poses with the points (their gauge is the anchors', not the nominal rays'): how far
+        # it moved the isocenter's projection in the window's last frames (the neighbours of the frames to come), so
+        # that a series of per-frame motions can be carried across it (the window's mean missed by up to 1 mm)
         moved = (isocenter_motion_mm(model.nominal, model.geometry(res.state))
                  - isocenter_motion_mm(model.nominal, model.geometry(state0)))
         self.moved_mm = np.mean(moved[-CARRY_FRAMES:], axis=0)
