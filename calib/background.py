@@ -14,6 +14,7 @@ with a scatter round it as a variance.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -40,6 +41,9 @@ SHIFT_FACTOR = 1.65
 #: what the measured shifts scatter round SHIFT_FACTOR times the computed one, as a share of the computed one:
 #: 0.31 (A) to 0.86 (C), beyond the photons' share
 SHIFT_SCATTER = 0.6
+#: BBs (in views) whose background is kept for the next request, the oldest dropped first: a plan asks for a few
+#: hundred; at 500 views one costs 12 kB
+CACHED_BBS = 4096
 
 
 @dataclass(frozen=True)
@@ -53,8 +57,7 @@ class ObjectBackground:
     reference: float
     typical: NDArray[np.float64] | None = None  # (M, 3): photon factor and computed shift of BBs spread on the surface
     bb_mu_per_mm: float = field(default_factory=lambda: mu_of("steel"))
-    _cache: dict[tuple[int, bytes, float], NDArray[np.float64]] = field(default_factory=dict, compare=False, repr=False)
-    _keep: list[ViewGeometry] = field(default_factory=list, compare=False, repr=False)
+    _cache: dict[tuple[bytes, bytes, float], NDArray[np.float64]] = field(default_factory=dict, compare=False, repr=False)
     _random: dict[float, float] = field(default_factory=dict, compare=False, repr=False)
 
     @classmethod
@@ -124,14 +127,16 @@ class ObjectBackground:
 
     def _computed(self, geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: float
                   ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Photon factors ``(P, K)`` and computed shifts ``(P, K, 2)``, cached per BB and geometry (a planner asks
-        again for the BBs it keeps)."""
+        """Photon factors ``(P, K)`` and computed shifts ``(P, K, 2)``, cached per BB and views (by their content:
+        a planner asks again for the BBs it keeps; at most :data:`CACHED_BBS`)."""
         out = np.empty((geometry.n_views, len(xyz), 3))
+        panel = geometry.panel
+        views = hashlib.blake2b(geometry.vectors.tobytes() + repr(panel).encode(), digest_size=16).digest()
         for k, point in enumerate(np.asarray(xyz, float)):
-            key = (id(geometry), point.tobytes(), float(diameter_mm))
+            key = (views, point.tobytes(), float(diameter_mm))
             if key not in self._cache:
-                if not any(g is geometry for g in self._keep):
-                    self._keep.append(geometry)  # ids stay unique while the geometry is alive
+                while len(self._cache) >= CACHED_BBS:
+                    del self._cache[next(iter(self._cache))]  # the oldest
                 self._cache[key] = self._one(geometry, point, diameter_mm)
             out[:, k] = self._cache[key]
         return out[..., 0], out[..., 1:]

@@ -115,3 +115,22 @@ def test_the_random_noise_is_what_a_reported_noise_leaves_after_the_typical_shif
     bony = phantom_background(Phantom("bony", (body,) + rods, np.zeros((0, 3)), D_MM, ""), g, surface)
     assert 0.7 * 0.1 < soft.random_noise_px(0.1) <= 0.1
     assert 0.025 <= bony.random_noise_px(0.1) < soft.random_noise_px(0.1)
+
+
+def test_the_background_is_cached_by_the_views_content_and_the_cache_is_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A second geometry object with the same views finds what the first computed; other views do not; the oldest
+    BBs make way once :data:`calib.background.CACHED_BBS` are kept (nothing holds the geometries alive)."""
+    import calib.background as background
+
+    g = sawtooth(20, 128)
+    bg = ObjectBackground.of(_body(70.0).line_integral, g, EllipticCylinder(70.0, 70.0, -40.0, 40.0), D_MM)
+    xyz = spiral_markers(6, radius=70.0 + D_MM / 2)
+    first = bg._computed(g, xyz, D_MM)
+    n = len(bg._cache)
+    again = bg._computed(ViewGeometry(g.vectors.copy(), g.panel), xyz, D_MM)
+    assert len(bg._cache) == n and all(np.array_equal(a, b, equal_nan=True) for a, b in zip(first, again, strict=True))
+    bg._computed(sawtooth(21, 128), xyz, D_MM)
+    assert len(bg._cache) == n + 6
+    monkeypatch.setattr(background, "CACHED_BBS", 8)
+    bg._computed(sawtooth(22, 128), xyz, D_MM)
+    assert len(bg._cache) == 8
