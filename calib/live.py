@@ -368,8 +368,8 @@ class _Follower:
         step = self._steps.add(index, pose.motion_mm - self._motion_offset)
         if step is not None:
             self._warn("object_moved", index, step.since_frame,
-                       f"frame {index}: where each frame's fitted pose puts the BBs jumped by {step.size_mm:.1f} mm (at "
-                       f"the isocenter) at frame {step.since_frame} and stayed ({step.sigmas:.0f} sigma of its "
+                       f"frame {index}: where each frame's fitted pose puts the isocenter jumped by {step.size_mm:.1f} mm "
+                       f"at frame {step.since_frame} and stayed ({step.sigmas:.0f} sigma of its "
                        "frame-to-frame noise): the object "
                        "moved on the table? A move of the object with its BBs is calibrated away; if it moved against "
                        "its BBs (loose tape, soft tissue), stop and scan again")
