@@ -3,8 +3,8 @@
 Live calibration knows each watched BB's 3-D point (its rays through the nominal geometry) and, per frame, where
 the watched BBs are. :func:`fit_frame_pose` fits the frame's rigid correction to them (six parameters, the
 points held) and gives the frame's RPE (the paper's figure), its residual RMS and the predicted error of its
-geometry over the field of view from the pose's covariance, and how far the fit moved the BBs' projections from
-the nominal view's. :class:`StepWatch` follows that shift frame by frame: orbit errors are smooth plus
+geometry over the field of view from the pose's covariance, and how far the fit moved the isocenter's projection
+from the nominal view's. :class:`StepWatch` follows that shift frame by frame: orbit errors are smooth plus
 frame-to-frame noise, so a shift that jumps and stays there means the object (with its BBs) moved on the table.
 """
 
