@@ -11,7 +11,9 @@ calibration (a lab measures it once per detector and BB size). Prints each case,
 the share within a factor of 1.5, and the prediction's time for 500 views and 10 BBs. Then, per experiment,
 hand-made spirals like the published placement against planned placements with as many BBs (one plan per seed),
 and the experiment's own placement beside them (three seeds each; frames scaled like the paper's 500 / 656 / 857;
-``--frames 500``: the paper's counts).
+``--frames 500``: the paper's counts). For each, how far its detections lie from the truth and what the same BBs
+in the same views reach from their true projections plus one independent noise for all (the placement's geometry
+alone, ``calib.evaluate.truth_fed_error_px``): what a plan gains by its geometry and what by its detections.
 
     python benchmarks/bb_planning.py                 # 256 px, 120 frames, 10 placements per orbit
     python benchmarks/bb_planning.py --placements 4  # quicker
@@ -59,7 +61,7 @@ def _case(work: Path, key: str, orbit: str | None, frames: int, xyz: np.ndarray,
     experiment's) with the bench errors and noise of ``seed``, calibrated and measured against the truth: the error
     over the views calibrated from their own BBs and over every calibrated view, the centroid noise, the views."""
     import calib
-    from calib.evaluate import similarity_aligned_error_px
+    from calib.evaluate import similarity_aligned_error_px, truth_fed_error_px
     from orbitct.errorprofiles import make_profile
     from orbitct.phantoms.experiments import experiment_phantom
     from orbitct.scanfile import ScanFile
@@ -78,6 +80,7 @@ def _case(work: Path, key: str, orbit: str | None, frames: int, xyz: np.ndarray,
     with ScanFile(path) as sf:
         proj = sf.projection_indices
         truth, nominal = sf.geometry("truth")[proj], sf.geometry("nominal")[proj]
+        truth_xyz = sf.truth_markers_xyz()
     path.unlink()
     geometry = res.geometry[proj]
     own = np.flatnonzero(res.view_status[proj] == 0)
@@ -87,11 +90,17 @@ def _case(work: Path, key: str, orbit: str | None, frames: int, xyz: np.ndarray,
         return float(similarity_aligned_error_px(geometry[views], truth[views])[0]) if views.size >= 2 else float("nan")
 
     noise = float(res.quality.attrs()["centroid_noise_px"]) if res.quality is not None else float("nan")
+    # the placement's geometry alone: the same BBs in the same views from their true projections plus one noise
+    # for every case; and how far the detections themselves lie from the truth
+    geometry_px, detection_px = truth_fed_error_px(res.uv[proj], truth, truth_xyz, nominal, GEOMETRY_NOISE_PX, seed)
     return {"measured_px": error(own), "valid_px": error(valid), "noise_px": noise, "nominal": nominal, "own": own,
+            "geometry_px": geometry_px, "detection_px": detection_px,
             "passed": res.quality is not None and res.quality.passed, "why": ""}
 
 
 PAPER_FRAMES = {"A": 500, "B": 656, "C": 857}
+#: the noise (px per axis) fed with the true projections for a placement's geometry alone
+GEOMETRY_NOISE_PX = 0.1
 
 
 def _planned_against_spiral(args: Any, noise: float | None) -> None:
@@ -108,7 +117,8 @@ def _planned_against_spiral(args: Any, noise: float | None) -> None:
     from orbitct.simulator.bench import SimulatedBench
 
     print("\n| experiment | placement | BBs | views | under-determined views (predicted, per seed) | predicted px (mean) | "
-          "measured px (3 seeds) | mean |\n|---|---|---|---|---|---|---|---|")
+          f"measured px (3 seeds) | mean | detections vs truth, px per axis (mean) | geometry alone: true projections + "
+          f"{GEOMETRY_NOISE_PX:g} px (mean) |\n|---|---|---|---|---|---|---|---|---|---|")
     changes = []
     for key in [k.strip().upper() for k in args.compare.split(",") if k.strip()]:
         ph = experiment_phantom(key)
@@ -120,28 +130,32 @@ def _planned_against_spiral(args: Any, noise: float | None) -> None:
         t0 = time.perf_counter()
         planned = [plan_placement(g, surface, ph.n_markers, d, noise_px=noise or 0.1, metal=metal_of(ph), seed=seed,
                                   background=background).xyz for seed in range(3)]
-        print(f"| {key} | (planning: {(time.perf_counter() - t0) / 3:.0f} s per plan) | | | | | | |", flush=True)
+        print(f"| {key} | (planning: {(time.perf_counter() - t0) / 3:.0f} s per plan) | | | | | | | | |", flush=True)
         placements = {"hand spiral": [hand_spiral(surface, ph.n_markers, d, seed=seed) for seed in range(3)],
                       "planned": planned, "experiment's own": [ph.markers_xyz] * 3}
-        means = {}
+        means, alone = {}, {}
         for name, per_seed in placements.items():
             preds = [predict_placement(g, xyz, d, noise_px=noise or 0.1, metal=metal_of(ph), surface=surface,
                                        background=background) for xyz in per_seed]
             under = [p.under_determined.size for p in preds]
             predicted = np.mean([p.summary()["predicted_px_rms"] for p in preds])
-            errs, marks = [], []
+            errs, marks, detection, geometry = [], [], [], []
             with tempfile.TemporaryDirectory() as work:
                 for seed, xyz in enumerate(per_seed):
                     case = _case(Path(work), key, None, frames, xyz, args.size, seed, layout_seed=0)
                     errs.append(case["valid_px"])
                     marks.append("" if case.get("passed") else " (check failed)")
-            means[name] = float(np.nanmean(errs))
+                    detection.append(case.get("detection_px", float("nan")))
+                    geometry.append(case.get("geometry_px", float("nan")))
+            means[name], alone[name] = float(np.nanmean(errs)), float(np.nanmean(geometry))
             print(f"| {key} | {name} | {ph.n_markers} | {frames} | {' / '.join(map(str, under))} | {predicted:.3f} | "
-                  f"{' / '.join(f'{e:.3f}{m}' for e, m in zip(errs, marks, strict=True))} | {means[name]:.3f} |", flush=True)
+                  f"{' / '.join(f'{e:.3f}{m}' for e, m in zip(errs, marks, strict=True))} | {means[name]:.3f} | "
+                  f"{np.nanmean(detection):.3f} | {alone[name]:.3f} |", flush=True)
         changes.append(100 * (means["planned"] / means["hand spiral"] - 1))
-        print(f"| {key} | planned vs hand spiral | | | | | | {changes[-1]:+.0f} % |", flush=True)
+        print(f"| {key} | planned vs hand spiral | | | | | | {changes[-1]:+.0f} % | | "
+              f"{100 * (alone['planned'] / alone['hand spiral'] - 1):+.0f} % |", flush=True)
         own_change = 100 * (means["planned"] / means["experiment's own"] - 1)
-        print(f"| {key} | planned vs the experiment's own | | | | | | {own_change:+.0f} % |", flush=True)
+        print(f"| {key} | planned vs the experiment's own | | | | | | {own_change:+.0f} % | | |", flush=True)
     if changes:
         print(f"\nplanned vs hand spiral, mean over the experiments: {np.mean(changes):+.0f} % (target: -30 % or better)")
 

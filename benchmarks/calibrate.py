@@ -58,10 +58,7 @@ def _run(scan: str, method: str, work: str, queue: Any, trace: bool) -> None:
     import psutil
 
     import calib
-    from calib.bundle import bundle_adjust
-    from calib.evaluate import similarity_aligned_error_px
-    from calib.model import ViewModel
-    from calib.rays import marker_rays, triangulate_least_squares
+    from calib.evaluate import similarity_aligned_error_px, truth_fed_error_px
     from orbitct.scanfile import ScanFile
 
     out = Path(work) / f"{method}.h5"
@@ -91,27 +88,12 @@ def _run(scan: str, method: str, work: str, queue: Any, trace: bool) -> None:
     peak_rss = _ru_maxrss()
     with ScanFile(scan) as sf:
         proj = sf.projection_indices
-        truth = sf.geometry("truth")[proj]
-        truth_uv = truth.project(sf.truth_markers_xyz())
-    est = res.geometry[proj]
-    err_px, _ = similarity_aligned_error_px(est, truth)
-    # centroid noise of the detections (matched to the nearest true BB projection)
-    uv = res.uv[proj]
-    d = np.linalg.norm(uv[:, :, None] - truth_uv[:, None], axis=-1)
-    seen = np.isfinite(uv[..., 0])
-    j = np.nanargmin(np.where(np.isfinite(d), d, np.inf), axis=2)
-    diff = (uv - np.take_along_axis(truth_uv, j[..., None].repeat(2, -1), axis=1))[seen]
-    noise_px = float(np.sqrt(np.mean(diff**2)))  # per axis
-    # reference: bundle from the true projections of the same BBs in the same views, plus that noise
-    owner = np.array([np.bincount(j[seen[:, k], k], minlength=truth_uv.shape[1]).argmax() for k in range(uv.shape[1])])
-    ref_uv = truth_uv[:, owner] + np.random.default_rng(0).normal(0.0, noise_px, uv.shape)
-    ref_uv[~seen] = np.nan
-    nominal = ViewModel(ScanFile(scan).geometry("nominal")[proj])
-    ok = seen.sum(1) >= 3
-    sub = ViewModel(nominal.nominal[np.flatnonzero(ok)])
-    xyz0 = triangulate_least_squares(*marker_rays(sub.nominal, ref_uv[ok]))
-    ref = bundle_adjust(sub, ref_uv[ok], xyz0)
-    ref_err, _ = similarity_aligned_error_px(sub.geometry(ref.state), truth[np.flatnonzero(ok)])
+        truth, nominal = sf.geometry("truth")[proj], sf.geometry("nominal")[proj]
+        truth_xyz = sf.truth_markers_xyz()
+    err_px, _ = similarity_aligned_error_px(res.geometry[proj], truth)
+    # reference: bundle from the true projections of the same BBs in the same views, plus the detections' own
+    # noise against the truth (per axis)
+    ref_err, noise_px = truth_fed_error_px(res.uv[proj], truth, truth_xyz, nominal)
     last = res.iterations[-1]
     queue.put(
         {
@@ -134,7 +116,7 @@ def _run(scan: str, method: str, work: str, queue: Any, trace: bool) -> None:
             "geom_err_px": err_px,
             "ref_err_px": ref_err,
             "noise_px": noise_px,
-            "seen_share": float(seen.mean()),
+            "seen_share": float(np.isfinite(res.uv[proj][..., 0]).mean()),
             "unsolved": len(res.unsolved_views),
             "peak_traced_mb": peak_traced / 2**20,
             "peak_rss_mb": peak_rss / 2**20,

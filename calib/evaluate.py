@@ -98,4 +98,33 @@ def true_corrections(
     return out
 
 
-__all__ = ["fov_points", "similarity_aligned_error_px", "true_corrections"]
+def truth_fed_error_px(uv: NDArray[np.float64], truth: ViewGeometry, truth_xyz: NDArray[np.float64],
+                       nominal: ViewGeometry, noise_px: float | None = None, seed: int = 0) -> tuple[float, float]:
+    """What the bundle adjustment reaches from the true projections of the BBs a calibration detected, in the
+    views it detected them, plus independent Gaussian noise: the orbit's and placement's own limit, without what
+    the object does to the detections. ``uv`` ``(P, K, 2)`` (NaN: not seen), each column taken for the true BB
+    (``truth_xyz``) it lies nearest to most often; the noise is ``noise_px`` per axis, by default the detections'
+    own RMS error against the truth. Returns the error (RMS px over the FOV, similarity-aligned, over the views
+    with at least three BBs) and the detections' own noise."""
+    from calib.bundle import bundle_adjust
+    from calib.model import ViewModel
+    from calib.rays import marker_rays, triangulate_least_squares
+
+    truth_uv = truth.project(truth_xyz)
+    d = np.linalg.norm(uv[:, :, None] - truth_uv[:, None], axis=-1)
+    seen = np.isfinite(uv[..., 0])
+    j = np.nanargmin(np.where(np.isfinite(d), d, np.inf), axis=2)
+    diff = (uv - np.take_along_axis(truth_uv, j[..., None].repeat(2, -1), axis=1))[seen]
+    own_noise_px = float(np.sqrt(np.mean(diff**2)))
+    owner = np.array([np.bincount(j[seen[:, k], k], minlength=truth_uv.shape[1]).argmax() for k in range(uv.shape[1])])
+    sigma = own_noise_px if noise_px is None else float(noise_px)
+    fed = truth_uv[:, owner] + np.random.default_rng(seed).normal(0.0, sigma, uv.shape)
+    fed[~seen] = np.nan
+    ok = np.flatnonzero(seen.sum(1) >= 3)
+    model = ViewModel(nominal[ok])
+    xyz0 = triangulate_least_squares(*marker_rays(model.nominal, fed[ok]))
+    result = bundle_adjust(model, fed[ok], xyz0)
+    return similarity_aligned_error_px(model.geometry(result.state), truth[ok])[0], own_noise_px
+
+
+__all__ = ["fov_points", "similarity_aligned_error_px", "true_corrections", "truth_fed_error_px"]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from calib.bundle import bundle_adjust, gauge_matrix
-from calib.evaluate import similarity_aligned_error_px
+from calib.evaluate import similarity_aligned_error_px, truth_fed_error_px
 from calib.model import ViewModel
 from calib.paper import paper_calibrate
 from calib.rays import (
@@ -38,6 +38,21 @@ def test_bundle_recovers_truth_from_noisy_true_projections() -> None:
     assert err < 0.1
     resid = np.linalg.norm(est.project(res.xyz) - uv, axis=-1)
     assert np.sqrt(np.mean(resid**2)) < 0.07  # about the centroid noise (0.05 px per axis)
+
+
+def test_truth_fed_error_takes_each_detected_column_for_its_true_bb_and_keeps_what_was_not_seen() -> None:
+    """The reference a benchmark compares with: detections in shuffled columns, some unseen, 0.2 px off the truth;
+    fed back as the true projections of their BBs (plus chosen noise) the same views calibrate to the truth."""
+    nominal, truth, xyz, _ = _problem(n=120)
+    rng = np.random.default_rng(3)
+    order = rng.permutation(len(xyz))
+    uv = truth.project(xyz)[:, order] + rng.normal(0.0, 0.2, (120, len(xyz), 2))
+    uv[rng.random(uv.shape[:2]) < 0.1] = np.nan
+    exact, own = truth_fed_error_px(uv, truth, xyz, nominal, noise_px=0.0)
+    assert own == pytest.approx(0.2, rel=0.05)
+    assert exact < 1e-3
+    noisy, _ = truth_fed_error_px(uv, truth, xyz, nominal)  # the detections' own noise
+    assert 0.05 < noisy < 0.5
 
 
 def test_gauge_keeps_constellation_of_nominal_triangulation() -> None:
