@@ -440,7 +440,7 @@ def _solve_and_write(
     target, proj, nominal_all, truth_all = inputs.target, inputs.proj, inputs.nominal_all, inputs.truth_all
     n_all = nominal_all.n_views
     nominal = inputs.nominal
-    min_obs = opt.min_observations or max(8, int(0.05 * len(proj)))
+    min_obs = _min_observations(opt, len(proj))
     model = ViewModel(nominal, opt.intrinsics)
     t1, compiled_before = time.perf_counter(), clock.seconds
     best: tuple[Any, ...] | None = None
@@ -784,6 +784,11 @@ def _disagree_with_neighbour(
 History = list[tuple[NDArray[np.float64], NDArray[np.float64]]]
 
 
+def _min_observations(opt: CalibrationOptions, n_projections: int) -> int:
+    """Frames a BB must be seen in: ``opt.min_observations``, by default 5 % of the projections and at least 8."""
+    return opt.min_observations or max(8, int(0.05 * n_projections))
+
+
 def _estimate(
     method: str, model: ViewModel, uv: NDArray[np.float64], opt: CalibrationOptions, progress: ProgressCallback | None
 ) -> tuple[ViewGeometry, NDArray[np.float64], ViewState, NDArray[np.float64], History, int, list[str], ViewQuality]:
@@ -791,8 +796,13 @@ def _estimate(
     warnings: list[str] = []
     n = uv.shape[0]
     ok = usable_views(uv, opt.min_bbs_per_view)
-    placed = np.isfinite(uv[ok]).all(-1).sum(0) >= 3  # a BB in fewer of the solved views has no position to solve for
+    # a BB seen in fewer of the solved views than identification asks for is not placed: a few views far apart fit
+    # any pairing of blobs, and views resting on such BBs calibrate as an island of their own, tens of px off
+    min_obs = _min_observations(opt, n)
+    placed = np.isfinite(uv[ok]).all(-1).sum(0) >= min_obs
     if not placed.all():
+        warnings.append(f"{int((~placed).sum())} BB(s) seen in fewer than {min_obs} of the views to solve were left out "
+                        "(too few views to place them)")
         uv = uv[:, placed]
         ok = usable_views(uv, opt.min_bbs_per_view)
     if ok.sum() < 2:
