@@ -198,6 +198,57 @@ def merge_duplicates(xyz: NDArray[np.float64], uv: NDArray[np.float64], diameter
     return xyz[alive]
 
 
+def twin_constellation(xyz: NDArray[np.float64], uv: NDArray[np.float64], tol_mm: float = 1.0, min_pairs: int = 4,
+                       tries: int = 300, seed: int = 0) -> list[tuple[int, int]]:
+    """Pairs ``(a, b)`` of BB points ``xyz`` (K, 3) that are one BB each, identified twice in two parts of the orbit
+    that the rest of the solution does not tie together (frames where tracking broke for every BB at once): each
+    pair is (almost) never seen in the same frame of ``uv``, and one similarity maps every ``b`` onto its ``a``
+    within ``tol_mm`` — at least ``min_pairs`` of them, which distinct BBs taped at random never do. The points
+    seen in more frames are the ``a``; empty when there is no such twin. Triples of pairs whose distances agree
+    on one scale are tried (at most ``tries``), each fitted and counted."""
+    from orbitct.rotations import similarity_fit
+
+    seen = np.isfinite(uv).all(-1)
+    count = seen.sum(0)
+    together = seen.T.astype(np.int32) @ seen.astype(np.int32)
+    apart = together < np.maximum(3, 0.1 * np.minimum(count[:, None], count[None]))
+    a_idx, b_idx = np.nonzero(apart & (count[:, None] >= count[None]) & ~np.eye(len(xyz), dtype=bool))
+    n = a_idx.size
+    if n < min_pairs or len(xyz) < 2 * min_pairs:
+        return []
+    dist = np.linalg.norm(xyz[:, None] - xyz[None], axis=-1)
+    da, db = dist[np.ix_(a_idx, a_idx)], dist[np.ix_(b_idx, b_idx)]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = da / db  # one similarity: the same for every two true pairs
+        fits = (db > 10.0 * tol_mm) & (np.abs(np.log(ratio)) < 0.1)
+    fits &= (a_idx[:, None] != a_idx[None]) & (b_idx[:, None] != b_idx[None]) & (a_idx[:, None] != b_idx[None])
+    p, q = np.nonzero(np.triu(fits, 1))
+    if p.size == 0:
+        return []
+    rng = np.random.default_rng(seed)
+    best: list[tuple[int, int]] = []
+    for i in rng.permutation(p.size)[:tries]:
+        r = ratio[p[i], q[i]]
+        third = np.flatnonzero(fits[p[i]] & fits[q[i]] & (np.abs(ratio[p[i]] / r - 1) < 0.02)
+                               & (np.abs(ratio[q[i]] / r - 1) < 0.02))
+        if third.size == 0:
+            continue
+        trio = np.array([p[i], q[i], third[0]])
+        s, R, t = similarity_fit(xyz[b_idx[trio]], xyz[a_idx[trio]])
+        miss = np.linalg.norm(s * xyz[b_idx] @ R.T + t - xyz[a_idx], axis=1)
+        pairs: list[tuple[int, int]] = []
+        used: set[int] = set()
+        for j in np.argsort(miss):
+            if miss[j] >= tol_mm:
+                break
+            if int(a_idx[j]) not in used and int(b_idx[j]) not in used:
+                pairs.append((int(a_idx[j]), int(b_idx[j])))
+                used |= {int(a_idx[j]), int(b_idx[j])}
+        if len(pairs) > len(best):
+            best = pairs
+    return best if len(best) >= min_pairs else []
+
+
 def assign_visible(cands: list[NDArray[np.float64]], predicted: NDArray[np.float64], panel: Panel,
                    settings: TrackingSettings) -> NDArray[np.float64]:
     """Assign candidates to the predicted BB positions ``(P, K, 2)`` that lie wholly on the panel."""

@@ -26,7 +26,7 @@ from calib.errors import (
     OptionError,
 )
 from calib.evaluate import fov_points, true_corrections
-from calib.identify import assign_by_pose, fill_states, identify, recover_missed, usable_views
+from calib.identify import assign_by_pose, fill_states, identify, recover_missed, twin_constellation, usable_views
 from calib.model import INTRINSICS, ViewModel, ViewState
 from calib.paper import paper_calibrate
 from calib.quality import (
@@ -495,6 +495,15 @@ def _solve_and_write(
         if n_found:
             warnings = list(warnings) + [f"{n_found} BB(s) lost while identifying (their tracks broke into short pieces) "
                                          "were found again through the calibrated views and calibrated with the rest"]
+        outcome, verdict, n_twins = _merge_twins(model, outcome, verdict, proj, opt, progress)
+        if n_twins:
+            warnings = list(warnings) + [f"{n_twins} BBs were identified twice, in two parts of the orbit (tracking broke "
+                                         "for every BB at once); each pair was made one BB and calibrated again"]
+        outcome, verdict, n_sparse = _sparse_views_again(cands, model, tracks[opt.jitter_mm][0], outcome, verdict, proj,
+                                                         opt, progress)
+        if n_sparse:
+            warnings = list(warnings) + [f"{n_sparse} view(s) that kept {MIN_OWN_BBS} BBs or fewer where the views around "
+                                         "them see more were assigned again through those views and calibrated with more BBs"]
         outcome, verdict, n_split = _split_merged(target, proj, model, outcome, verdict, d_px, opt, progress)
     geometry_p, xyz, state, uv, history, n_iter, more, quality = outcome
     warnings = list(warnings) + more
@@ -646,6 +655,69 @@ def _recover_missed(
     again = assign_by_pose(cands, model, filled, np.concatenate([xyz, missed]), tset)
     outcome, verdict, kept = _estimate_again(model, again, proj, opt, progress, outcome, verdict)
     return outcome, verdict, len(missed) if kept else 0
+
+
+def _merge_twins(model: ViewModel, outcome: tuple[Any, ...], verdict: Verdict, proj: NDArray[np.intp],
+                 opt: CalibrationOptions, progress: ProgressCallback | None) -> tuple[tuple[Any, ...], Verdict, int]:
+    """BBs identified twice, once in each of two parts of the orbit that nothing else ties together
+    (:func:`calib.identify.twin_constellation`; experiment C at 512 px: every track broke at one frame, and the
+    second half calibrated as a constellation of its own, 8-22 px off, and passed). Each pair is made one BB (the
+    detections of both; in a frame that saw both, neither) and the geometry estimated again. That result replaces
+    the split one whatever its verdict; where it cannot be estimated, the split one stands, failed. Also how many
+    pairs were merged."""
+    xyz, uv = outcome[1], outcome[3]
+    pairs = twin_constellation(xyz, uv)
+    if not pairs:
+        return outcome, verdict, 0
+    merged = uv.copy()
+    for a, b in pairs:
+        has_a, has_b = np.isfinite(merged[:, a]).all(-1), np.isfinite(merged[:, b]).all(-1)
+        merged[~has_a & has_b, a] = merged[~has_a & has_b, b]
+        merged[has_a & has_b, a] = np.nan
+    merged = np.delete(merged, [b for _, b in pairs], axis=1)
+    try:
+        again = _estimate("bundle", model, merged, opt, progress)
+    except NoMarkersError:
+        reason = (f"{len(pairs)} BBs were identified twice, in two parts of the orbit that nothing ties together "
+                  "(tracking broke for every BB at once): those parts' geometries can be far apart")
+        return outcome, replace(verdict, passed=False, reasons=[*verdict.reasons, reason]), 0
+    return again, judge(again[7], proj, opt.max_predicted_px, opt.bridge_max_views, "bundle"), len(pairs)
+
+
+#: views either side that :func:`_sparse_views_again` compares a view's BB count with
+_AROUND = 3
+
+
+def _sparse_views_again(
+    cands: list[NDArray[np.float64]], model: ViewModel, tset: TrackingSettings, outcome: tuple[Any, ...],
+    verdict: Verdict, proj: NDArray[np.intp], opt: CalibrationOptions, progress: ProgressCallback | None,
+) -> tuple[tuple[Any, ...], Verdict, int]:
+    """Views left with :data:`MIN_OWN_BBS` BBs or fewer where the views around them (three either side) see at
+    least two more: frames that jumped, where tracking kept few blobs, perhaps wrong ones that a pose with two
+    measurements to spare absorbs (experiment C at 512 px: two of four blobs wrong, views 5.8 and 7 px off and
+    passing, a bridged neighbour with them). Their BBs are assigned again through the poses of the views around
+    them (``tset``: the orbit's own jitter) and the geometry estimated again with the views that gain BBs; kept
+    unless worse. Also how many views gained."""
+    state, uv, quality = outcome[2], outcome[3], outcome[7]
+    count = np.isfinite(uv).all(-1).sum(1)
+    if count.size < 3:
+        return outcome, verdict, 0
+    padded = np.pad(count.astype(float), _AROUND, constant_values=np.nan)
+    window = np.lib.stride_tricks.sliding_window_view(padded, 2 * _AROUND + 1)
+    around = np.nanmedian(np.delete(window, _AROUND, axis=1), axis=1)
+    sparse = (count <= MIN_OWN_BBS) & (around >= count + 2)
+    if not sparse.any():
+        return outcome, verdict, 0
+    solved = (quality.status == OWN) & ~sparse
+    filled = fill_states(ViewState(np.nan_to_num(state.R), np.nan_to_num(state.t), state.k), solved, len(solved))
+    again = assign_by_pose(cands, model, filled, outcome[1], tset)
+    gain = sparse & (np.isfinite(again).all(-1).sum(1) > count)
+    if not gain.any():
+        return outcome, verdict, 0
+    new = uv.copy()
+    new[gain] = again[gain]
+    outcome, verdict, kept = _estimate_again(model, new, proj, opt, progress, outcome, verdict)
+    return outcome, verdict, int(gain.sum()) if kept else 0
 
 
 def _mild_misfits_only(quality: ViewQuality, verdict: Verdict) -> bool:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib.identify import merge_duplicates
+from calib.identify import merge_duplicates, twin_constellation
 
 
 def _tracks(n: int, frames: list[range]) -> np.ndarray:
@@ -19,6 +19,25 @@ def test_pieces_of_one_bb_never_seen_together_merge_into_the_one_seen_more() -> 
     uv = _tracks(100, [range(0, 70), range(70, 100), range(0, 100)])
     out = merge_duplicates(xyz, uv, diameter_mm=3.0)
     np.testing.assert_array_equal(out, xyz[[0, 2]])
+
+
+def test_a_constellation_identified_twice_in_two_halves_of_the_orbit_is_found_as_pairs() -> None:
+    """Eight BBs seen in frames 0-119, and the same eight moved by a similarity (as a second half that calibrated
+    in a frame of its own) seen in frames 120-199, one of them also once in the first half: eight pairs. Two BBs
+    that no similarity maps, and BBs at random seen in different halves, make none."""
+    rng = np.random.default_rng(4)
+    xyz = rng.uniform(-80.0, 80.0, (8, 3))
+    angle = np.radians(2.0)
+    rot = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+    twin = 0.97 * xyz @ rot.T + [9.0, -14.0, 10.0]
+    extra = rng.uniform(-80.0, 80.0, (2, 3))
+    points = np.concatenate([xyz, twin, extra])
+    uv = _tracks(200, [range(0, 120)] * 8 + [range(120, 200)] * 8 + [range(0, 200)] * 2)
+    uv[50, 9] = 7.0  # one blob of the first half taken for a BB of the second
+    pairs = twin_constellation(points, uv)
+    assert sorted(pairs) == [(k, k + 8) for k in range(8)]
+    others = rng.uniform(-80.0, 80.0, (18, 3))
+    assert twin_constellation(others, uv) == []
 
 
 def test_two_bbs_4_mm_apart_seen_together_stay_two() -> None:
