@@ -87,7 +87,8 @@ class XrayGenerator(Driver):
         self._action_lock = asyncio.Lock()
         self._hold_task: asyncio.Task[None] | None = None
         self._hold_sending = False
-        self._link_fault: tuple[float, str, str] | None = None  # last link trouble: when, clock time, what
+        self._link_fault: tuple[float, str, str] | None = None  # link trouble: last seen, when it began, its cause
+        self._link_down = False  # no heartbeat has gone through since the last link fault
 
     # ------------------------------------------------------------- connection
     async def connect(self) -> None:
@@ -249,6 +250,7 @@ class XrayGenerator(Driver):
                 # no reconnect from here: a lost link lets the generator's own watchdog switch X-rays off
                 self._note_link_fault(exc)
                 continue  # link trouble is reported by the next action; the generator's watchdog keeps it safe
+            self._link_down = False
             value = int(r.registers[0])
             if value != last_value:
                 last_value, last_change = value, time.monotonic()
@@ -259,7 +261,13 @@ class XrayGenerator(Driver):
                 )
 
     def _note_link_fault(self, exc: DeviceError) -> None:
-        self._link_fault = (time.monotonic(), time.strftime("%H:%M:%S"), str(exc).removeprefix(f"{self.name}: "))
+        """Remember link trouble: the fault that began it (a timeout is followed by "not connected" until the link
+        is back; the cause is what a watchdog fault names) and when it was last seen."""
+        if self._link_fault is None or not self._link_down:
+            self._link_fault = (time.monotonic(), time.strftime("%H:%M:%S"), str(exc).removeprefix(f"{self.name}: "))
+        else:
+            self._link_fault = (time.monotonic(), *self._link_fault[1:])
+        self._link_down = True
 
     def _fault_text(self, code: int) -> str:
         """``fault N (NAME)``, with the link fault that starved the watchdog when one came shortly before it."""
