@@ -10,7 +10,7 @@ outline for its silhouette edge; by default also the phantom as the object's bac
 calibration (a lab measures it once per detector and BB size). Prints each case, the Spearman rank correlation,
 the share within a factor of 1.5, and the prediction's time for 500 views and 10 BBs. Then, per experiment,
 hand-made spirals like the published placement against planned placements with as many BBs (one plan per seed),
-and the experiment's own placement beside them (three seeds each; frames scaled like the paper's 500 / 656 / 857;
+and the experiment's own placement beside them (three seeds each by default, ``--seeds``; frames scaled like the paper's 500 / 656 / 857;
 ``--frames 500``: the paper's counts). For each, how far its detections lie from the truth and what the same BBs
 in the same views reach from their true projections plus one independent noise for all (the placement's geometry
 alone, ``calib.evaluate.truth_fed_error_px``): what a plan gains by its geometry and what by its detections.
@@ -107,7 +107,7 @@ def _planned_against_spiral(args: Any, noise: float | None) -> None:
     """Hand-made spirals like the published one (``calib.plan.hand_spiral``, one per seed) against ``orbitct plan
     bbs``' placement with as many BBs (planned anew per seed: the search is random too), and the experiment's own
     placement (A: such a spiral; B: the Cho phantom's two designed rings; C: BBs taped at random), each simulated
-    over three seeds (errors and noise) and calibrated: predicted and measured error side by side, and the views
+    over ``args.seeds`` seeds (errors and noise) and calibrated: predicted and measured error side by side, and the views
     each leaves under-determined (predicted)."""
     from calib.background import phantom_background
     from calib.plan import hand_spiral, metal_of, plan_placement, predict_placement
@@ -117,7 +117,7 @@ def _planned_against_spiral(args: Any, noise: float | None) -> None:
     from orbitct.simulator.bench import SimulatedBench
 
     print("\n| experiment | placement | BBs | views | under-determined views (predicted, per seed) | predicted px (mean) | "
-          f"measured px (3 seeds) | mean | detections vs truth, px per axis (mean) | geometry alone: true projections + "
+          f"measured px ({args.seeds} seeds) | mean | detections vs truth, px per axis (mean) | geometry alone: true projections + "
           f"{GEOMETRY_NOISE_PX:g} px (mean) |\n|---|---|---|---|---|---|---|---|---|---|")
     changes = []
     for key in [k.strip().upper() for k in args.compare.split(",") if k.strip()]:
@@ -129,10 +129,10 @@ def _planned_against_spiral(args: Any, noise: float | None) -> None:
         background = phantom_background(ph, g, surface) if args.background else None
         t0 = time.perf_counter()
         planned = [plan_placement(g, surface, ph.n_markers, d, noise_px=noise or 0.1, metal=metal_of(ph), seed=seed,
-                                  background=background).xyz for seed in range(3)]
-        print(f"| {key} | (planning: {(time.perf_counter() - t0) / 3:.0f} s per plan) | | | | | | | | |", flush=True)
-        placements = {"hand spiral": [hand_spiral(surface, ph.n_markers, d, seed=seed) for seed in range(3)],
-                      "planned": planned, "experiment's own": [ph.markers_xyz] * 3}
+                                  background=background).xyz for seed in range(args.seeds)]
+        print(f"| {key} | (planning: {(time.perf_counter() - t0) / args.seeds:.0f} s per plan) | | | | | | | | |", flush=True)
+        placements = {"hand spiral": [hand_spiral(surface, ph.n_markers, d, seed=seed) for seed in range(args.seeds)],
+                      "planned": planned, "experiment's own": [ph.markers_xyz] * args.seeds}
         means, alone = {}, {}
         for name, per_seed in placements.items():
             preds = [predict_placement(g, xyz, d, noise_px=noise or 0.1, metal=metal_of(ph), surface=surface,
@@ -166,6 +166,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=120, help="projections")
     ap.add_argument("--placements", type=int, default=10, help="random placements per orbit (0: skip the ranking)")
     ap.add_argument("--compare", default="A,B,C", help="experiments whose own placement is compared with a planned one")
+    ap.add_argument("--seeds", type=int, default=3, help="seeds (placements, errors and noise) per compared placement")
     ap.add_argument("--background", action=argparse.BooleanOptionalAction, default=True,
                     help="plan and predict with the object's background (photons and structure under each BB; the "
                          "experiment's phantom as the prior model of the object)")
