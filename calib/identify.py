@@ -12,6 +12,7 @@ from calib.quality import fit_rigid_poses
 from calib.rays import marker_rays, triangulate_least_squares
 from calib.track import TrackingSettings, assign_to_predictions, like_the_others, link_fragments
 from orbitct.geometry import Panel, ViewGeometry
+from orbitct.rotations import similarity_fit
 
 
 def usable_views(uv: NDArray[np.float64], min_bbs: int) -> NDArray[np.bool_]:
@@ -206,8 +207,6 @@ def twin_constellation(xyz: NDArray[np.float64], uv: NDArray[np.float64], tol_mm
     within ``tol_mm`` — at least ``min_pairs`` of them, which distinct BBs taped at random never do. The points
     seen in more frames are the ``a``; empty when there is no such twin. Triples of pairs whose distances agree
     on one scale are tried (at most ``tries``), each fitted and counted."""
-    from orbitct.rotations import similarity_fit
-
     seen = np.isfinite(uv).all(-1)
     count = seen.sum(0)
     together = seen.T.astype(np.int32) @ seen.astype(np.int32)
