@@ -86,6 +86,15 @@ def isocenter_motion_mm(nominal: ViewGeometry, corrected: ViewGeometry) -> NDArr
     return shift_px * np.array([panel.pitch_col, panel.pitch_row]) * (nominal.sod() / nominal.sdd)[:, None]
 
 
+def _curve(A: NDArray[np.float64], y: NDArray[np.float64]
+           ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Least-squares coefficients of ``y`` on the design ``A``, the residuals and their robust sigma per column
+    (1.4826 MAD, at least 1e-3)."""
+    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    resid = y - A @ coef
+    return coef, resid, 1.4826 * np.median(np.abs(resid - np.median(resid, axis=0)), axis=0) + 1e-3
+
+
 @dataclass(frozen=True)
 class Step:
     """A jump of the corrections: the first frame after it, its size (mm) and how many noise sigmas that is."""
@@ -129,15 +138,11 @@ class StepWatch:
             base = slice(len(values) - m - base_n, len(values) - m)
             x = frames[base] - frames[base].mean()
             A = np.column_stack([np.ones(base_n), x, x * x])
-            coef, *_ = np.linalg.lstsq(A, values[base], rcond=None)
-            resid = values[base] - A @ coef
-            sigma = 1.4826 * np.median(np.abs(resid - np.median(resid, axis=0)), axis=0) + 1e-3
+            coef, resid, sigma = _curve(A, values[base])
             inlier = (np.abs(resid) <= OUTLIER_SIGMAS * sigma).all(1)  # a wrong pose would bend the curve: fitted again
             if not inlier.all():
                 A = A[inlier]
-                coef, *_ = np.linalg.lstsq(A, values[base][inlier], rcond=None)
-                resid = values[base][inlier] - A @ coef
-                sigma = 1.4826 * np.median(np.abs(resid - np.median(resid, axis=0)), axis=0) + 1e-3
+                coef, resid, sigma = _curve(A, values[base][inlier])
             xr = frames[-m:] - frames[base].mean()
             line = np.column_stack([np.ones(m), xr, xr * xr]) @ coef
             jump = np.median(values[-m:] - line, axis=0)

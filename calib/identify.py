@@ -174,6 +174,15 @@ def _join_across(frags: NDArray[np.float64], geometry: ViewGeometry, near_mm: fl
     return out
 
 
+def _seen_apart(uv: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """``(K, K)``: whether two BBs of ``uv`` are (almost) never seen in the same frame — in fewer than 3 frames or
+    a tenth of the frames of the one seen less: pieces of one BB's track, never two BBs."""
+    seen = np.isfinite(uv).all(-1)
+    count = seen.sum(0)
+    together = seen.T.astype(np.int32) @ seen.astype(np.int32)
+    return together < np.maximum(3, 0.1 * np.minimum(count[:, None], count[None]))
+
+
 def merge_duplicates(xyz: NDArray[np.float64], uv: NDArray[np.float64], diameter_mm: float,
                      near_diameters: float = 2.0) -> NDArray[np.float64]:
     """3-D points ``(K,3)`` with duplicates of one BB removed, keeping the one seen in more frames of ``uv``.
@@ -182,9 +191,8 @@ def merge_duplicates(xyz: NDArray[np.float64], uv: NDArray[np.float64], diameter
     closer than ``near_diameters`` diameters while their tracks are (almost) never seen in the same frame
     (pieces of one BB's track that a rough geometry placed apart). Two real BBs that close are seen
     together: both are kept, and views where their projections overlap are left out later."""
-    seen = np.isfinite(uv).all(-1)
-    count = seen.sum(0)
-    together = seen.T.astype(np.int32) @ seen.astype(np.int32)
+    count = np.isfinite(uv).all(-1).sum(0)
+    apart = _seen_apart(uv)
     alive = np.ones(len(xyz), bool)
     dist = np.linalg.norm(xyz[:, None] - xyz[None], axis=-1)
     for flat in np.argsort(dist, axis=None):
@@ -193,8 +201,7 @@ def merge_duplicates(xyz: NDArray[np.float64], uv: NDArray[np.float64], diameter
             break
         if a >= b or not (alive[a] and alive[b]):
             continue
-        apart = together[a, b] >= max(3, 0.1 * min(count[a], count[b]))
-        if dist[a, b] < 0.75 * diameter_mm or not apart:
+        if dist[a, b] < 0.75 * diameter_mm or apart[a, b]:
             alive[b if count[a] >= count[b] else a] = False
     return xyz[alive]
 
@@ -207,10 +214,8 @@ def twin_constellation(xyz: NDArray[np.float64], uv: NDArray[np.float64], tol_mm
     within ``tol_mm`` — at least ``min_pairs`` of them, which distinct BBs taped at random never do. The points
     seen in more frames are the ``a``; empty when there is no such twin. Triples of pairs whose distances agree
     on one scale are tried (at most ``tries``), each fitted and counted."""
-    seen = np.isfinite(uv).all(-1)
-    count = seen.sum(0)
-    together = seen.T.astype(np.int32) @ seen.astype(np.int32)
-    apart = together < np.maximum(3, 0.1 * np.minimum(count[:, None], count[None]))
+    count = np.isfinite(uv).all(-1).sum(0)
+    apart = _seen_apart(uv)
     a_idx, b_idx = np.nonzero(apart & (count[:, None] >= count[None]) & ~np.eye(len(xyz), dtype=bool))
     n = a_idx.size
     if n < min_pairs or len(xyz) < 2 * min_pairs:

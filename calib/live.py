@@ -110,6 +110,11 @@ WATCH_MISFIT = 3.0
 POINT_RAYS = 60
 
 
+def _record_at(candidates: NDArray[np.float64], uv: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The candidate record (of one frame's ``candidates``) whose centroid is nearest to ``uv``."""
+    return candidates[np.argmin(np.linalg.norm(candidates[:, :2] - uv, axis=1))]
+
+
 @dataclass
 class _Watched:
     """A BB followed long enough to be missed: its rays' normal equations (for its 3-D point) and state."""
@@ -347,8 +352,7 @@ class _Follower:
             j = int(np.argmin(d))
             if d[j] > self.tracking.gate_px:
                 continue
-            record = c[np.argmin(np.linalg.norm(c[:, :2] - blobs[j], axis=1))]
-            if like_the_others(record[None], looks):
+            if like_the_others(_record_at(c, blobs[j])[None], looks):
                 idx[k], free[j] = j, False
 
     def _frame_pose(self, index: int, view: ViewGeometry, xyz: NDArray[np.float64], uv: NDArray[np.float64]
@@ -408,8 +412,7 @@ class _Follower:
                     o, d = view_rays(self.nominal[f : f + 1], uv[hit])
                     w.add_ray(o, d[0])
                     w.last_frame, w.last_uv = f, (float(uv[hit[0], 0]), float(uv[hit[0], 1]))
-                    c = self.candidates[frame_p]
-                    records.append(c[np.argmin(np.linalg.norm(c[:, :2] - uv[hit[0]], axis=1))])
+                    records.append(_record_at(self.candidates[frame_p], uv[hit[0]]))
             x = w.point()
             if known.size and np.linalg.norm(known - x, axis=1).min() < 2.0 * self.diameter_mm + 5.0:
                 continue  # a BB already watched, followed by another track
