@@ -122,12 +122,12 @@ def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[n
     Hvp = np.einsum("nkai,nkaj->nikj", Jv, Jp).reshape(n, 6, 3 * k)
     Hpp = np.einsum("nkai,nkaj->kij", Jp, Jp)
     Hvv_inv = np.linalg.inv(Hvv)
-    S = -np.einsum("nix,nij,njy->xy", Hvp, Hvv_inv, Hvp)
+    A = Hvv_inv @ Hvp  # (N, 6, 3K)
+    S = -(np.swapaxes(Hvp, 1, 2) @ A).sum(0)
     for j in range(k):
         S[3 * j:3 * j + 3, 3 * j:3 * j + 3] += Hpp[j]
     Nb = null_space(gauge_matrix(xyz))  # (3K, 3K-7): displacements that keep the gauge
     Cp = Nb @ np.linalg.pinv(Nb.T @ S @ Nb, hermitian=True) @ Nb.T
-    A = Hvv_inv @ Hvp  # (N, 6, 3K)
     shifted = 0.0
     if bias is not None:  # H delta = J^T b: Schur on the centres, then each view's pose
         b = np.where(seen[..., None], np.nan_to_num(bias), 0.0)
@@ -173,6 +173,8 @@ def huber_moments(covariance: NDArray[np.float64], loss_scale_px: float) -> tupl
     t, w = np.polynomial.hermite_e.hermegauss(6)
     z0, z1 = (v.ravel() for v in np.meshgrid(t, t, indexing="ij"))  # standard normal nodes
     wz = np.outer(w, w).ravel() / (2 * np.pi)
+    half = z0 > 0  # every moment below is even in the residual: the nodes at -z count as those at z
+    z0, z1, wz = z0[half], z1[half], 2.0 * wz[half]
     c = np.asarray(covariance, float)
     l00 = np.sqrt(np.maximum(c[..., 0, 0], 1e-24))
     l10 = c[..., 1, 0] / l00
