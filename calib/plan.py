@@ -155,7 +155,8 @@ def metal_of(phantom: Any) -> list[Any]:
 @dataclass(frozen=True)
 class KeepOut:
     """A patch of the surface where no BB may go (a wound, a label, where the object is held): polar angles from
-    ``angle_from_deg`` counterclockwise to ``angle_to_deg`` (through 0 when ``to < from``) between two heights."""
+    ``angle_from_deg`` counterclockwise to ``angle_to_deg`` (through 0 when ``to < from``; 0 to 360: the whole
+    turn) between two heights."""
 
     angle_from_deg: float
     angle_to_deg: float
@@ -171,13 +172,21 @@ class KeepOut:
             raise ValueError(f"keep-out {text!r}: expected FROM_DEG:TO_DEG,ZMIN_MM:ZMAX_MM (e.g. 300:60,-20:10)") from None
         if not z0 < z1:
             raise ValueError(f"keep-out {text!r}: the lower height {z0:g} must be below the upper {z1:g}")
+        if a1 - a0 >= 360.0:
+            return cls(0.0, 360.0, z0, z1)
+        if a0 % 360.0 == a1 % 360.0:
+            raise ValueError(f"keep-out {text!r}: from {a0:g} to {a1:g} degrees is no patch (the whole turn is 0:360)")
         return cls(a0 % 360.0, a1 % 360.0, z0, z1)
+
+    @property
+    def span_deg(self) -> float:
+        """How far the patch reaches round the object (degrees, up to 360)."""
+        return 360.0 if self.angle_to_deg - self.angle_from_deg >= 360.0 else (self.angle_to_deg - self.angle_from_deg) % 360.0
 
     def contains(self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64]) -> NDArray[np.bool_]:
         """Whether surface points (polar angle, height) lie in the patch."""
         a = np.degrees(angle_rad) % 360.0
-        span = (self.angle_to_deg - self.angle_from_deg) % 360.0
-        inside = (a - self.angle_from_deg) % 360.0 <= span
+        inside = (a - self.angle_from_deg) % 360.0 <= self.span_deg
         return inside & (z_mm >= self.z_min_mm) & (z_mm <= self.z_max_mm)
 
 

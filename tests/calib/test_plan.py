@@ -139,9 +139,16 @@ def test_keep_out_zones_are_parsed_wrap_through_zero_and_stay_free_of_bbs() -> N
     assert zone == KeepOut(300.0, 60.0, -20.0, 10.0)
     inside = zone.contains(np.radians([330.0, 10.0, 59.0, 90.0, 10.0]), np.array([0.0, 0.0, 0.0, 0.0, 30.0]))
     assert inside.tolist() == [True, True, True, False, False]
-    for bad, message in (("300:60", "expected FROM_DEG"), ("a:b,1:2", "expected FROM_DEG"), ("0:90,10:5", "must be below")):
+    for bad, message in (("300:60", "expected FROM_DEG"), ("a:b,1:2", "expected FROM_DEG"), ("0:90,10:5", "must be below"),
+                         ("30:30,0:1", "no patch"), ("0:720,0:1", None)):
+        if message is None:  # more than a turn: the whole turn
+            assert KeepOut.parse(bad) == KeepOut(0.0, 360.0, 0.0, 1.0)
+            continue
         with pytest.raises(ValueError, match=message):
             KeepOut.parse(bad)
+    whole = KeepOut.parse("0:360,-20:10")  # the whole turn, not an empty patch
+    assert whole.span_deg == 360.0 and whole.contains(np.radians([0.0, 90.0, 359.9]), np.zeros(3)).all()
+    assert KeepOut.parse("-180:180,-20:10").span_deg == 360.0 and KeepOut.parse("10:360,0:1").span_deg == 350.0
     g = sawtooth(60, 256)
     surface = EllipticCylinder(60.0, 60.0, -40.0, 40.0)
     zones = (KeepOut(0.0, 180.0, -40.0, 40.0), KeepOut(180.0, 270.0, -40.0, 0.0))  # three quarters of the surface
@@ -149,6 +156,8 @@ def test_keep_out_zones_are_parsed_wrap_through_zero_and_stay_free_of_bbs() -> N
     assert not any(z.contains(placed.angle_rad, placed.z_mm).any() for z in zones)
     with pytest.raises(ValueError, match="cover the whole surface"):
         plan_placement(g, surface, 5, D_MM, keep_out=(KeepOut(0.0, 180.0, -50.0, 50.0), KeepOut(180.0, 0.0, -50.0, 50.0)))
+    with pytest.raises(ValueError, match="cover the whole surface"):
+        plan_placement(g, surface, 5, D_MM, keep_out=(KeepOut.parse("0:360,-50:50"),))
 
 
 def test_the_suggested_count_is_the_fewest_bbs_that_reach_the_target() -> None:

@@ -607,7 +607,9 @@ function pagePlans() {
         const keepOut = $('#plan-keep-out').value.split('\n').map((l) => l.trim()).filter(Boolean).map((line) => {
           const m = line.match(/^(-?[\d.]+):(-?[\d.]+),(-?[\d.]+):(-?[\d.]+)$/);
           if (!m) throw new ApiError(`keep-out "${line}": expected FROM_DEG:TO_DEG,ZMIN_MM:ZMAX_MM (e.g. 300:60,-20:10)`, 0);
-          return { angle_from_deg: ((Number(m[1]) % 360) + 360) % 360, angle_to_deg: ((Number(m[2]) % 360) + 360) % 360,
+          const turn = (deg) => ((deg % 360) + 360) % 360;
+          const whole = Number(m[2]) - Number(m[1]) >= 360;  // 0:360, the whole turn
+          return { angle_from_deg: whole ? 0 : turn(Number(m[1])), angle_to_deg: whole ? 360 : turn(Number(m[2])),
             z_min_mm: Number(m[3]), z_max_mm: Number(m[4]) };
         });
         const [kind, surfaceId] = $('#plan-surface').value.split(':');

@@ -31,11 +31,11 @@ router = APIRouter(prefix="/plans/bbs", tags=["plans"], responses=ERROR_RESPONSE
 
 class KeepOutIn(BaseModel):
     """A patch of the object's surface without BBs: polar angles (deg, counterclockwise from +x; through 0 when
-    ``angle_to_deg < angle_from_deg``) between two heights (mm)."""
+    ``angle_to_deg < angle_from_deg``; 0 to 360: the whole turn) between two heights (mm)."""
 
     model_config = ConfigDict(extra="forbid")
     angle_from_deg: float = Field(ge=0.0, lt=360.0)
-    angle_to_deg: float = Field(ge=0.0, lt=360.0)
+    angle_to_deg: float = Field(ge=0.0, le=360.0)
     z_min_mm: float = Field(ge=-1000.0, le=1000.0)
     z_max_mm: float = Field(ge=-1000.0, le=1000.0)
 
@@ -43,6 +43,9 @@ class KeepOutIn(BaseModel):
     def _heights(self) -> "KeepOutIn":
         if not self.z_min_mm < self.z_max_mm:
             raise ValueError(f"z_min_mm ({self.z_min_mm:g}) must be below z_max_mm ({self.z_max_mm:g})")
+        if self.angle_from_deg == self.angle_to_deg % 360.0 and self.angle_to_deg - self.angle_from_deg != 360.0:
+            raise ValueError(f"angle_from_deg and angle_to_deg ({self.angle_from_deg:g}) make no patch; the whole turn is "
+                             "0 to 360")
         return self
 
 

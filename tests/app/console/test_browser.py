@@ -272,6 +272,9 @@ def test_an_analyst_plans_bbs_and_a_viewer_reads_the_plan(console: Console) -> N
     page.fill("#plan-keep-out", "bad line")
     page.click("#plan-make")
     until(page, "() => document.querySelector('#plan-form .error').textContent.includes('FROM_DEG:TO_DEG')")
+    page.fill("#plan-keep-out", "0:360,-500:500")  # the whole turn: nowhere left to tape a BB
+    page.click("#plan-make")
+    until(page, "() => document.querySelector('#plan-form .error').textContent.includes('cover the whole surface')")
     page.fill("#plan-keep-out", "300:60,-80:80")
     page.click("#plan-make")
     page.wait_for_selector("body[data-plan]", timeout=60_000)

@@ -47,6 +47,11 @@ def test_a_plan_is_made_kept_and_read_back(shared_api: Any) -> None:
       "keep_out": [{"angle_from_deg": 0, "angle_to_deg": 180, "z_min_mm": -500, "z_max_mm": 500},
                    {"angle_from_deg": 180, "angle_to_deg": 0, "z_min_mm": -500, "z_max_mm": 500}]}, 422,
      "cover the whole surface"),
+    ({"experiment": "A", "frames": 20, "detector_px": 64,  # the whole turn, written 0 to 360
+      "keep_out": [{"angle_from_deg": 0, "angle_to_deg": 360, "z_min_mm": -500, "z_max_mm": 500}]}, 422,
+     "cover the whole surface"),
+    ({"experiment": "A", "keep_out": [{"angle_from_deg": 30, "angle_to_deg": 30, "z_min_mm": -5, "z_max_mm": 5}]}, 422,
+     "make no patch"),
 ])
 def test_bad_plan_requests_are_refused_in_one_line(shared_api: Any, body: dict[str, Any], status: int, needle: str) -> None:
     r = shared_api.post("/plans/bbs", role="analyst", json=body)
