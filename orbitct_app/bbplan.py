@@ -231,6 +231,48 @@ def write_bb_plan(plan: BBPlan, out: Path) -> Path:
     return picture
 
 
+#: a BB of a plan file lies within this distance of the isocentre (mm): taped on the object, never beyond it
+PLAN_REACH_MM = 500.0
+
+
+def read_bb_plan(path: Path) -> tuple[str | None, np.ndarray, float]:
+    """The experiment (None when the file names none), BB centres ``(K, 3)`` (mm) and BB diameter (mm) of a plan's
+    JSON (as :func:`write_bb_plan` writes it, or by hand: ``{"bb_diameter_mm": D, "bbs": [{"xyz_mm": [x, y, z]},
+    ...]}``); BBPlanError naming what is wrong."""
+    why = "write one with `orbitct plan bbs`"
+    try:
+        body = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError) as exc:
+        raise BBPlanError(f"{path}: cannot read it ({exc.strerror if isinstance(exc, OSError) else 'not text'})") from None
+    except ValueError as exc:
+        raise BBPlanError(f"{path}: not JSON ({exc}); {why}") from None
+    if not isinstance(body, dict) or not isinstance(body.get("bbs"), list):
+        raise BBPlanError(f"{path}: not a BB plan (an object with a list 'bbs' of {{'xyz_mm': [x, y, z]}}); {why}")
+    d = body.get("bb_diameter_mm")
+    if isinstance(d, bool) or not isinstance(d, int | float) or not 0.0 < d <= 50.0:
+        raise BBPlanError(f"{path}: bb_diameter_mm must be a number of mm in (0, 50], got {d!r}")
+    if not 1 <= len(body["bbs"]) <= MAX_BBS:
+        raise BBPlanError(f"{path}: a plan has 1 to {MAX_BBS} BBs, this one {len(body['bbs'])}")
+    xyz = np.empty((len(body["bbs"]), 3))
+    for k, bb in enumerate(body["bbs"]):
+        v = bb.get("xyz_mm") if isinstance(bb, dict) else None
+        if (not isinstance(v, list) or len(v) != 3
+                or not all(isinstance(c, int | float) and not isinstance(c, bool) for c in v)):
+            raise BBPlanError(f"{path}: BB {k + 1} needs xyz_mm as three numbers (mm), got {v!r}")
+        xyz[k] = v
+    far = np.flatnonzero(~np.isfinite(xyz).all(1) | (np.linalg.norm(np.nan_to_num(xyz, nan=np.inf), axis=1) > PLAN_REACH_MM))
+    if far.size:
+        raise BBPlanError(f"{path}: BB {far[0] + 1} at {xyz[far[0]].tolist()} mm is not within {PLAN_REACH_MM:g} mm of "
+                          "the isocentre (finite numbers, in mm)")
+    gap = np.linalg.norm(xyz[:, None] - xyz[None], axis=-1) + np.diag(np.full(len(xyz), np.inf))
+    if (gap < d).any():
+        i, j = np.unravel_index(np.argmin(gap), gap.shape)
+        raise BBPlanError(f"{path}: BBs {min(i, j) + 1} and {max(i, j) + 1} are {gap[i, j]:.1f} mm apart: BBs of {d:g} mm "
+                          "cannot overlap")
+    experiment = body.get("experiment")
+    return (str(experiment) if experiment is not None else None), xyz, float(d)
+
+
 def plan_lines(plan: BBPlan) -> list[str]:
     """The plan as a person reads it at the table: the BBs, then the prediction beside a hand-made spiral's and the
     experiment's own."""

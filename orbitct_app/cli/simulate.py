@@ -56,19 +56,15 @@ def simulate(experiment: str, orbit_name: str | None, params: tuple[str, ...], f
 
 def _planned_phantom(experiment: str, seed: int, plan: Path) -> object:
     """The experiment's object with the BBs of a plan (JSON of ``orbitct plan bbs``)."""
-    import json
-
     from orbitct.phantoms.experiments import experiment_phantom
+    from orbitct_app.bbplan import BBPlanError, read_bb_plan
 
     try:
-        body = json.loads(plan.read_text())
-        xyz = [b["xyz_mm"] for b in body["bbs"]]
-        diameter = float(body["bb_diameter_mm"])
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise click.BadParameter(f"{plan}: not a BB plan ({type(exc).__name__}: {exc}); write one with "
-                                 "`orbitct plan bbs`", param_hint="--bbs-from") from None
-    if body.get("experiment", experiment) != experiment:
-        raise click.BadParameter(f"{plan} was planned for experiment {body['experiment']}, not {experiment}",
+        planned_for, xyz, diameter = read_bb_plan(plan)
+    except BBPlanError as exc:
+        raise click.BadParameter(str(exc), param_hint="--bbs-from") from None
+    if planned_for not in (None, experiment):
+        raise click.BadParameter(f"{plan} was planned for experiment {planned_for}, not {experiment}",
                                  param_hint="--bbs-from")
     return experiment_phantom(experiment, seed).with_markers(xyz, diameter)
 

@@ -72,3 +72,31 @@ def test_the_cli_plans_on_a_mesh(tmp_path: Path) -> None:
         bad = CliRunner().invoke(cli, ["plan", "bbs", "-e", "A", "--frames", "20", "--detector-size", "64", "--keep-out",
                                        zone, "--out", str(tmp_path / "k.json")])
         assert bad.exit_code != 0 and message in bad.output and "Traceback" not in bad.output, bad.output
+
+
+@pytest.mark.parametrize(("body", "needle"), [
+    ("not json", "not JSON"),
+    ("[1, 2]", "not a BB plan"),
+    ('{"bbs": [{"xyz_mm": [70, 0, 0]}]}', "bb_diameter_mm must be a number"),
+    ('{"bb_diameter_mm": -3, "bbs": [{"xyz_mm": [70, 0, 0]}]}', "bb_diameter_mm must be a number"),
+    ('{"bb_diameter_mm": 3, "bbs": []}', "1 to 40 BBs"),
+    ('{"bb_diameter_mm": 3, "bbs": [{"xyz_mm": [1, 2]}]}', "BB 1 needs xyz_mm as three numbers"),
+    ('{"bb_diameter_mm": 3, "bbs": [{"xyz_mm": [70, 0, 0]}, {"xyz_mm": ["a", 0, 0]}]}', "BB 2 needs xyz_mm"),
+    ('{"bb_diameter_mm": 3, "bbs": [{"xyz_mm": [NaN, 0, 0]}]}', "not within 500 mm"),
+    ('{"bb_diameter_mm": 3, "bbs": [{"xyz_mm": [1e9, 0, 0]}]}', "not within 500 mm"),
+    ('{"bb_diameter_mm": 3, "bbs": [{"xyz_mm": [70, 0, 0]}, {"xyz_mm": [71, 0, 0]}]}', "cannot overlap"),
+    ('{"experiment": "C", "bb_diameter_mm": 3, "bbs": [{"xyz_mm": [70, 0, 0]}]}', "planned for experiment C, not A"),
+])
+def test_simulate_refuses_a_plan_file_that_is_not_one_in_one_line(tmp_path: Path, body: str, needle: str) -> None:
+    """``orbitct simulate --bbs-from``: a plan written by hand or damaged is refused naming what is wrong, before
+    anything is imaged; never a traceback, never a scan of BBs the file did not mean."""
+    from click.testing import CliRunner
+
+    from orbitct_app.cli.main import cli
+
+    plan, out = tmp_path / "plan.json", tmp_path / "x.h5"
+    plan.write_text(body)
+    r = CliRunner().invoke(cli, ["simulate", "-e", "A", "--frames", "10", "--detector-size", "32", "--bbs-from", str(plan),
+                                 "--out", str(out)])
+    assert r.exit_code == 2 and needle in r.output and "Traceback" not in r.output, r.output
+    assert not out.exists()
