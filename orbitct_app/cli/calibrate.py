@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from orbitct_app.cli.progress import ProgressBar
+from orbitct_app.cli.values import FiniteFloat
 
 
 @click.command()
@@ -21,12 +22,12 @@ from orbitct_app.cli.progress import ProgressBar
               help="paper: alternations (default 3); bundle: maximum LM iterations (default 30).")
 @click.option("--intrinsics", type=click.Choice(["fixed", "sdd", "sdd+pp"]), default="fixed", show_default=True,
               help="bundle: also estimate per view the source-detector distance and the piercing point.")
-@click.option("--diameter-mm", type=float, default=None, help="BB diameter (default: /markers@diameter_mm, else estimated).")
-@click.option("--max-predicted-px", type=click.FloatRange(min=0.0, min_open=True), default=0.5, show_default=True,
+@click.option("--diameter-mm", type=FiniteFloat(), default=None, help="BB diameter (default: /markers@diameter_mm, else estimated).")
+@click.option("--max-predicted-px", type=FiniteFloat(min=0.0, min_open=True), default=0.5, show_default=True,
               help="Quality check: the largest predicted field-of-view error a view may have.")
 @click.option("--bridge-max-views", type=click.IntRange(0, 1000), default=10, show_default=True,
               help="bundle: the widest run of views with fewer than 4 BBs that is bridged from its neighbours.")
-@click.option("--scale-bar-mm", type=click.FloatRange(min=0.0, min_open=True), default=None,
+@click.option("--scale-bar-mm", type=FiniteFloat(min=0.0, min_open=True), default=None,
               help="Known distance between two BBs (a scale bar measured on the bench): sets the metric scale.")
 @click.option("--scale-bar-bbs", type=str, default=None, metavar="I,J",
               help="Which BBs span the scale bar (numbers as in the report); default: the one pair near its length.")

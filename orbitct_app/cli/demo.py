@@ -11,6 +11,7 @@ from typing import Any
 import click
 
 from orbitct_app.cli.progress import ProgressBar
+from orbitct_app.cli.values import SEED, FiniteFloat
 
 DEFAULT_CONFIG = Path("config/bench.yaml")
 
@@ -62,12 +63,12 @@ def _reconstruct(scan_path: Path, out_dir: Path, algorithm: str, geometry: str, 
 @click.option("--frames", type=click.IntRange(10, 2000), default=240, show_default=True, help="Projections.")
 @click.option("--size", type=click.IntRange(32, 1024), default=256, show_default=True, help="Detector pixels (square).")
 @click.option("--voxels", type=click.IntRange(16, 512), default=96, show_default=True, help="Reconstruction grid (cube).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the bench error profile.")
-@click.option("--tilt-deg", type=click.FloatRange(1, 25), default=20.0, show_default=True,
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the bench error profile.")
+@click.option("--tilt-deg", type=FiniteFloat(1, 25), default=20.0, show_default=True,
               help="Sawtooth tilt amplitude (the paper's experiment A: 20).")
 @click.option("--pwls-iterations", type=click.IntRange(0, 200), default=0, show_default=True,
               help="Also run PWLS with this many iterations (0: FDK only, faster).")
-@click.option("--time-scale", type=click.FloatRange(1, 1000), default=25.0, show_default=True,
+@click.option("--time-scale", type=FiniteFloat(1, 1000), default=25.0, show_default=True,
               help="The twins move this many times faster than the real bench (1 = real time).")
 @click.option("--skip-calibration", is_flag=True, help="Stop after the scan.")
 def demo(out_dir: Path, config_path: Path | None, frames: int, size: int, voxels: int, seed: int, tilt_deg: float,

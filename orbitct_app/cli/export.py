@@ -7,6 +7,8 @@ from pathlib import Path
 
 import click
 
+from orbitct_app.cli.values import FiniteFloat
+
 
 @click.group()
 def export() -> None:
@@ -18,7 +20,7 @@ def export() -> None:
 @click.option("--recon", "name", required=True, help="Name of the reconstruction under /recon (see `orbitct inspect`).")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Folder for the series (one CT000001.dcm ... per axial slice); created if needed, must be empty.")
-@click.option("--water-mu-per-mm", type=click.FloatRange(min=1e-6, max=10.0), default=None,
+@click.option("--water-mu-per-mm", type=FiniteFloat(min=1e-6, max=10.0), default=None,
               help="Attenuation of water at the scan's effective energy (HU = 1000 (mu - water) / water; default "
                    "0.0206 1/mm, the simulator's water).")
 @click.option("--patient-name", default="", help="DICOM Patient's Name (default empty).")

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+from orbitct_app.cli.values import SEED, FiniteFloat
+
 
 @click.group()
 def plan() -> None:
@@ -27,7 +29,7 @@ def _keep_out(ctx: click.Context, param: click.Parameter, values: tuple[str, ...
 @click.option("--orbit", "orbit_name", default=None, metavar="NAME", help="orbit kind (default: the experiment's)")
 @click.option("--frames", type=click.IntRange(min=2), default=None, help="projections (default: the orbit's)")
 @click.option("--bbs", "n_bbs", type=click.IntRange(min=4, max=40), default=8, show_default=True, help="BBs to place")
-@click.option("--target-px", type=click.FloatRange(min=0.0, min_open=True), default=None,
+@click.option("--target-px", type=FiniteFloat(min=0.0, min_open=True), default=None,
               help="instead of --bbs: the fewest BBs whose planned placement predicts at most this error in every view")
 @click.option("--max-bbs", type=click.IntRange(min=4, max=40), default=20, show_default=True,
               help="with --target-px: the most BBs to try")
@@ -37,12 +39,12 @@ def _keep_out(ctx: click.Context, param: click.Parameter, values: tuple[str, ...
 @click.option("--surface", "surface_source", default=None, metavar="MESH|VOLUME|SCAN.h5#RECON",
               help="the object's real outer surface instead of the experiment's cylinder: a mesh (.stl .obj .ply .off, mm, "
                    "object frame), a prior volume (.nii/.nii.gz as orbitct writes it) or a reconstruction in a scan file")
-@click.option("--surface-threshold", type=float, default=None, metavar="MU_PER_MM",
+@click.option("--surface-threshold", type=FiniteFloat(), default=None, metavar="MU_PER_MM",
               help="with a volume: the attenuation (1/mm) above which a voxel is the object (default: Otsu's threshold)")
 @click.option("--detector-size", type=click.IntRange(min=8, max=4096), default=768, show_default=True)
-@click.option("--noise-px", type=click.FloatRange(min=0.0, min_open=True), default=0.1, show_default=True,
+@click.option("--noise-px", type=FiniteFloat(min=0.0, min_open=True), default=0.1, show_default=True,
               help="centroid noise of the BB detection (a calibration reports it as centroid_noise_px)")
-@click.option("--seed", type=int, default=0, show_default=True, help="the search's random start")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="the search's random start")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="the plan (JSON); a picture is written beside it (.png)")
 def bbs(experiment: str, orbit_name: str | None, frames: int | None, n_bbs: int, target_px: float | None, max_bbs: int,

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 import click
 
 from orbitct_app.cli.progress import ProgressBar
+from orbitct_app.cli.values import FiniteFloat
 
 if TYPE_CHECKING:
     from recon import ReconResult
@@ -30,13 +31,13 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
 @click.option("--algorithm", type=click.Choice(["fdk", "pwls"]), default="pwls", show_default=True)
 @click.option("--geometry", type=click.Choice(["calibrated", "nominal", "truth"]), default="calibrated", show_default=True,
               help="Which per-view geometry of the scan to use (truth exists only in simulated scans).")
-@click.option("--voxel-mm", type=float, default=None, help="Isotropic voxel size in mm (default: detector pitch at the isocenter).")
+@click.option("--voxel-mm", type=FiniteFloat(), default=None, help="Isotropic voxel size in mm (default: detector pitch at the isocenter).")
 @click.option("--shape", callback=_shape, default=None, help="Volume shape NZ,NY,NX, centred on the isocenter (default: see --grid).")
 @click.option("--grid", "fit", type=click.Choice(["object", "fov"]), default="object", show_default=True,
               help="Without --shape: fit the grid to the object (found in a coarse reconstruction) or cover the whole "
                    "field of view.")
 @click.option("--iterations", type=click.IntRange(min=1), default=50, show_default=True, help="PWLS iterations.")
-@click.option("--beta", type=click.FloatRange(min=0), default=None, help="Relative penalty strength (default 0.01; larger = smoother).")
+@click.option("--beta", type=FiniteFloat(min=0), default=None, help="Relative penalty strength (default 0.01; larger = smoother).")
 @click.option("--subsets", type=click.IntRange(min=1), default=1, show_default=True, help="Ordered subsets for PWLS.")
 @click.option("--momentum", is_flag=True, help="PWLS: ordered subsets with Nesterov's momentum (use with --subsets, "
               "e.g. 12; a fraction of the iterations reaches the plain solver's image).")
@@ -57,7 +58,7 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
               help="Also write the volume as NIfTI, TIFF stack or PNG slices (repeatable).")
 @click.option("--out-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Folder for exports (default: next to the scan file).")
-@click.option("--max-minutes", type=click.FloatRange(min=0.0, min_open=True), default=10.0, show_default=True,
+@click.option("--max-minutes", type=FiniteFloat(min=0.0, min_open=True), default=10.0, show_default=True,
               envvar="ORBITCT_MAX_MINUTES",
               help="A reconstruction estimated to take longer asks first on a terminal, and is refused elsewhere.")
 @click.option("--yes", is_flag=True, help="Start even when the estimate is above --max-minutes.")

@@ -10,6 +10,7 @@ import click
 import yaml
 
 from orbitct_app.cli.progress import ProgressBar
+from orbitct_app.cli.values import SEED, FiniteFloat
 
 #: calib.live.ABORT_KINDS, spelled out so that the CLI starts without importing the calibration (half a second);
 #: tests/app/test_live_calibration.py holds the two the same
@@ -41,13 +42,13 @@ def _parse_params(items: tuple[str, ...]) -> dict[str, object]:
 @click.option("--errors", default="none", show_default=True,
               help="Motion errors injected on top of the orbit: none, or bench (the paper's profile; for studies "
                    "on the twins, never on by default).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the error profile's noise.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the error profile's noise.")
 @click.option("--mode", type=click.Choice(["step", "continuous"]), default="step", show_default=True,
               help="step: move, settle, expose; continuous: constant rotation, exposures triggered at angles.")
 @click.option("--sim", is_flag=True, help="Start the device twins in-process (nothing else needs to run).")
 @click.option("--detector-size", type=click.IntRange(16, 4096), default=None,
               help="Square detector of this many pixels on the same panel (default: the config's).")
-@click.option("--frame-rate", "frame_rate_hz", type=click.FloatRange(0.01, 1000), default=None,
+@click.option("--frame-rate", "frame_rate_hz", type=FiniteFloat(0.01, 1000), default=None,
               help="Frames per second in continuous mode (default: the config's).")
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Scan file to write (.h5).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
@@ -56,7 +57,7 @@ def _parse_params(items: tuple[str, ...]) -> dict[str, object]:
 @click.option("--calibrate", "calibrate_mode", type=click.Choice(["none", "live"]), default="none", show_default=True,
               help="live: detect and follow the BBs while the frames arrive, warn during the scan, and write the "
                    "calibrated geometry as soon as the last frame is in (as orbitct calibrate would).")
-@click.option("--bb-diameter-mm", type=click.FloatRange(0.1, 20), default=None,
+@click.option("--bb-diameter-mm", type=FiniteFloat(0.1, 20), default=None,
               help="BB diameter for --calibrate live (default with --sim: the twins' BBs).")
 @click.option("--abort-on", "abort_on", multiple=True,
               type=click.Choice(ABORT_KINDS),

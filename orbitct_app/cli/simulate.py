@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from orbitct_app.cli.progress import ProgressBar
+from orbitct_app.cli.values import SEED, FiniteFloat
 
 
 @click.command()
@@ -19,11 +20,11 @@ from orbitct_app.cli.progress import ProgressBar
 @click.option("--frames", type=click.IntRange(min=2), default=None, help="projection frames (default: the orbit's)")
 @click.option("--detector-size", type=click.IntRange(min=8, max=4096), default=768, show_default=True,
               help="detector rows = cols (pixels); the 427 mm panel keeps its size")
-@click.option("--pitch-mm", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--pitch-mm", type=FiniteFloat(min=0, min_open=True), default=None,
               help="pixel pitch (default 427 mm / detector size)")
 @click.option("--errors", type=click.Choice(["bench", "none"]), default="bench", show_default=True,
               help="motion errors added to the orbit")
-@click.option("--seed", type=int, default=0, show_default=True, help="phantom layout, errors and noise")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="phantom layout, errors and noise")
 @click.option("--darks", type=click.IntRange(min=0), default=10, show_default=True, help="dark frames")
 @click.option("--flats", type=click.IntRange(min=0), default=10, show_default=True, help="flat frames")
 @click.option("--out", "-o", type=click.Path(dir_okay=False, path_type=Path), required=True, help="scan file to write")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from orbitct_app.cli.twin_console import serve_twin
+from orbitct_app.cli.values import FiniteFloat
 
 
 @click.command("carm")
@@ -12,16 +13,16 @@ from orbitct_app.cli.twin_console import serve_twin
 @click.option("--port", type=click.IntRange(0, 65535), default=5040, show_default=True, help="TCP port (0 = any free port).")
 @click.option("--detector-size", "rows", type=click.IntRange(8, 4096), default=256, show_default=True, help="Panel pixels per side (427 mm panel).")
 @click.option("--phantom", default="B", show_default=True, help="Experiment phantom the C-arm images (A, B or C).")
-@click.option("--primary-range-deg", nargs=2, type=float, default=(-185.0, 185.0), show_default=True, help="LAO/RAO range.")
-@click.option("--secondary-range-deg", nargs=2, type=float, default=(-50.0, 50.0), show_default=True, help="CRAN/CAUD range.")
-@click.option("--max-step-deg", type=click.FloatRange(min=0, min_open=True), default=5.0, show_default=True, help="Largest step between points.")
-@click.option("--max-speed-deg-s", type=click.FloatRange(min=0, min_open=True), default=30.0, show_default=True, help="Top angular speed.")
-@click.option("--sag-deg", type=float, default=0.8, show_default=True, help="Tilt sag amplitude (true tilt = tilt - sag cos(primary) cos(tilt)).")
-@click.option("--drift-mm", type=float, default=2.0, show_default=True, help="Isocenter drift amplitude.")
-@click.option("--eta-deg", type=float, default=0.5, show_default=True, help="In-plane panel rotation.")
-@click.option("--primary-offset-deg", type=float, default=0.3, show_default=True, help="Offset of the true primary angle.")
-@click.option("--time-scale", type=click.FloatRange(min=0, min_open=True), default=1.0, show_default=True, help="Simulated seconds per real second (10 = moves ten times faster).")
-@click.option("--latency-ms", type=click.FloatRange(0), default=0.0, help="Delay added before every reply.")
+@click.option("--primary-range-deg", nargs=2, type=FiniteFloat(), default=(-185.0, 185.0), show_default=True, help="LAO/RAO range.")
+@click.option("--secondary-range-deg", nargs=2, type=FiniteFloat(), default=(-50.0, 50.0), show_default=True, help="CRAN/CAUD range.")
+@click.option("--max-step-deg", type=FiniteFloat(min=0, min_open=True), default=5.0, show_default=True, help="Largest step between points.")
+@click.option("--max-speed-deg-s", type=FiniteFloat(min=0, min_open=True), default=30.0, show_default=True, help="Top angular speed.")
+@click.option("--sag-deg", type=FiniteFloat(), default=0.8, show_default=True, help="Tilt sag amplitude (true tilt = tilt - sag cos(primary) cos(tilt)).")
+@click.option("--drift-mm", type=FiniteFloat(), default=2.0, show_default=True, help="Isocenter drift amplitude.")
+@click.option("--eta-deg", type=FiniteFloat(), default=0.5, show_default=True, help="In-plane panel rotation.")
+@click.option("--primary-offset-deg", type=FiniteFloat(), default=0.3, show_default=True, help="Offset of the true primary angle.")
+@click.option("--time-scale", type=FiniteFloat(min=0, min_open=True), default=1.0, show_default=True, help="Simulated seconds per real second (10 = moves ten times faster).")
+@click.option("--latency-ms", type=FiniteFloat(0), default=0.0, help="Delay added before every reply.")
 @click.option("--console/--no-console", default=None, help="Read hazard/fault commands from stdin (default: when stdin is a terminal).")
 def carm(
     host: str, port: int, rows: int, phantom: str, primary_range_deg: tuple[float, float], secondary_range_deg: tuple[float, float],

@@ -11,6 +11,7 @@ from typing import Any
 import click
 
 from orbitct_app.cli.twin_console import serve_twin
+from orbitct_app.cli.values import SEED, FiniteFloat
 
 
 def _options(fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -19,11 +20,11 @@ def _options(fn: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--port", type=click.IntRange(0, 65535), default=50000, show_default=True,
                      help="TCP port (PI controllers use 50000; 0 = any free port)."),
         click.option("--serial", "serial_pty", is_flag=True, help="Also serve on a pseudo-terminal (prints its path)."),
-        click.option("--time-scale", type=click.FloatRange(min=0.001), default=1.0, show_default=True,
+        click.option("--time-scale", type=FiniteFloat(min=0.001), default=1.0, show_default=True,
                      help="Run motion this many times faster than real."),
         click.option("--perfect", is_flag=True, help="No hidden mechanical errors (read-back = true pose)."),
-        click.option("--seed", type=int, default=None, help="Seed of the hidden mechanical errors."),
-        click.option("--latency-ms", type=click.FloatRange(min=0.0), default=0.0, help="Fault: delay every reply."),
+        click.option("--seed", type=SEED, default=None, help="Seed of the hidden mechanical errors."),
+        click.option("--latency-ms", type=FiniteFloat(min=0.0), default=0.0, help="Fault: delay every reply."),
         click.option("--drop-next", type=click.IntRange(min=0), default=0,
                      help="Fault: drop the connection at each of the next N commands."),
         click.option("--garble-next", type=click.IntRange(min=0), default=0, help="Fault: garble the next N replies."),

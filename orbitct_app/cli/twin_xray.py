@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from orbitct_app.cli.twin_console import serve_twin
+from orbitct_app.cli.values import FiniteFloat
 
 
 @click.command("xray")
@@ -13,7 +14,7 @@ from orbitct_app.cli.twin_console import serve_twin
 @click.option("--prep-ms", type=click.IntRange(0, 60000), default=200, show_default=True, help="Time from PREP to READY.")
 @click.option("--door-open", is_flag=True, help="Start with the door interlock open.")
 @click.option("--fault", type=click.IntRange(0, 4), default=0, help="Start in FAULT with this fault code (3 = generator).")
-@click.option("--latency-ms", type=click.FloatRange(0), default=0.0, help="Delay added before every reply.")
+@click.option("--latency-ms", type=FiniteFloat(0), default=0.0, help="Delay added before every reply.")
 @click.option("--console/--no-console", default=None, help="Read hazard/fault commands from stdin (default: when stdin is a terminal).")
 def xray(host: str, port: int, prep_ms: int, door_open: bool, fault: int, latency_ms: float, console: bool | None) -> None:
     """Serve the simulated X-ray generator's register map over Modbus TCP.
