@@ -29,7 +29,7 @@ from orbitct.reference_bench import BB_DIAMETER_MM, SAD_MM, SDD_MM, reference_pa
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 Range = tuple[float, float]

@@ -225,7 +225,7 @@ class NoErrors(ErrorProfile):
 class CustomParams(BaseModel):
     """Per axis: ``amplitude * sin(2 pi cycles * n / N + random phase) + U(-noise, noise)``."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     angle_amplitude_deg: Triple = Field((0.0, 0.0, 0.0), description="pitch, roll, yaw sine amplitudes")
     angle_cycles: float = Field(1.0, ge=0, le=1000, description="sine periods over the scan")
     angle_noise_deg: Triple = Field((0.0, 0.0, 0.0), description="pitch, roll, yaw uniform noise half-widths")
@@ -258,7 +258,7 @@ class CustomProfile(ErrorProfile):
 class BenchParams(BaseModel):
     """Parameters of the paper's bench profile (defaults reproduce Experiment A)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     angle_scale: float = Field(1.0, ge=0, le=100, description="angular amplitude in units of the per-frame step")
     sag_fraction: float = Field(0.5, ge=0, le=1, description="share of the amplitude that is the sinusoidal sag")
     shift_amplitude_mm: float = Field(8.0, ge=0, le=100, description="isocenter shift sine amplitude")

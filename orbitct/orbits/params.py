@@ -17,7 +17,7 @@ Rotation = Annotated[
 
 
 class _Params(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     n_frames: int = Field(500, ge=2, le=MAX_FRAMES, description="number of projection frames")
 
@@ -81,7 +81,7 @@ class DCArcParams(_Params):
 class RotationArc(BaseModel):
     """Rotation from ``start_deg`` to ``end_deg`` at a fixed tilt."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     kind: Literal["rotation"] = "rotation"
     tilt_deg: Tilt
     start_deg: Rotation
@@ -97,7 +97,7 @@ class RotationArc(BaseModel):
 class TiltArc(BaseModel):
     """Tilt from ``start_deg`` to ``end_deg`` at a fixed rotation."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     kind: Literal["tilt"] = "tilt"
     rotation_deg: Rotation
     start_deg: Tilt

@@ -90,7 +90,7 @@ def gaussian_blur(img: NDArray[np.float32], sigma_px: float) -> NDArray[np.float
 class DetectorModel(BaseModel):
     """Raw-count model of an indirect flat panel (defaults: a 16-bit panel at a moderate dose)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     flat_counts: float = Field(16000.0, gt=0, le=65535, description="mean open-field signal above dark, ADU")
     gain_adu: float = Field(4.0, gt=0, description="ADU per detected X-ray quantum (sets the Poisson noise)")

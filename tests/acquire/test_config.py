@@ -40,6 +40,8 @@ def test_default_bench_numbers() -> None:
         ({"motion": {"settle_ms": "soon"}}, "motion.settle_ms", "valid number"),
         ({"colour": "red"}, "colour", "Extra inputs are not permitted"),
         ({"kind": "submarine"}, "", "bench"),
+        ({"geometry": {"sdd_mm": float("inf")}}, "geometry.sdd_mm", "finite number"),  # YAML .inf: beyond every SAD
+        ({"geometry": {"du_mm": float("nan")}}, "geometry.du_mm", "finite number"),  # unbounded: NaN passed
     ],
 )
 def test_invalid_config_names_field_and_reason(data: dict, field: str, reason: str) -> None:

@@ -124,6 +124,8 @@ def test_nominal_geometry_matches_bench_poses() -> None:
         ("waypoints", {"path": "/no/such/file.csv"}, "does not exist"),
         ("waypoints", {"points": [[0, 0], [10, 90]]}, "less than or equal to 60"),
         ("helix", {}, "unknown orbit 'helix'; known orbits are"),
+        ("sawtooth", {"start_deg": float("nan")}, "start_deg: Input should be a finite number"),
+        ("circular", {"range_deg": float("inf")}, "range_deg: Input should be a finite number"),
     ],
 )
 def test_validation_errors_are_clear(name: str, params: dict, message: str) -> None:
