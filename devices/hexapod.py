@@ -53,8 +53,9 @@ class Hexapod(GcsMotionDevice):
 
     async def set_velocity(self, mm_per_s: float) -> None:
         """Set the system velocity (``VLS``)."""
-        await self.client.command(f"VLS {float(mm_per_s):.6f}")
-        self._velocity = float(mm_per_s)
+        v = self.check_velocity(mm_per_s, "mm/s")
+        await self.client.command(f"VLS {v:.6f}")
+        self._velocity = v
 
     async def pivot(self) -> dict[str, float]:
         """Pivot point R, S, T (``SPI?``) in mm."""

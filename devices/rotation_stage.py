@@ -32,8 +32,9 @@ class RotationStage(GcsMotionDevice):
 
     async def set_velocity(self, deg_per_s: float) -> None:
         """Set the axis velocity (``VEL``)."""
-        await self.client.command(format_command("VEL", {self.axis_map["R"]: float(deg_per_s)}))
-        self._velocity = float(deg_per_s)
+        v = self.check_velocity(deg_per_s, "deg/s")
+        await self.client.command(format_command("VEL", {self.axis_map["R"]: v}))
+        self._velocity = v
 
     def _estimate_s(self, start: Mapping[str, float], targets: Mapping[str, float]) -> float:
         return abs(targets["R"] - start["R"]) / (self._velocity or 1.0) + 1.0

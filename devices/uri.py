@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import parse_qsl, urlsplit
@@ -69,9 +71,12 @@ def checked_options(params: dict[str, Any], allowed: set[str], what: str) -> dic
 def option_number(value: Any, cast: type = float) -> Any:
     """An option value as a number (URI query values arrive as text); UriError when it is not one."""
     try:
-        return cast(value)
+        number = cast(value)
     except (TypeError, ValueError):
         raise UriError(f"option value {value!r} is not a number") from None
+    if not math.isfinite(number):
+        raise UriError(f"option value {value!r} is not a finite number")
+    return number
 
 
 def option_value(value: str) -> Any:
@@ -83,7 +88,10 @@ def option_value(value: str) -> Any:
         return False
     for cast in (int, float):
         try:
-            return cast(value)
+            number = cast(value)
         except ValueError:
-            pass
+            continue
+        if not math.isfinite(number):
+            raise UriError(f"option value {value!r} is not a finite number")
+        return number
     return value

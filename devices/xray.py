@@ -31,7 +31,7 @@ from devices.errors import (
     ProtocolError,
     UriError,
 )
-from devices.uri import parse_uri
+from devices.uri import option_number, parse_uri
 from devices.xray_registers import FaultCode, GeneratorState, Refusal
 
 DEFAULT_PORT = 502
@@ -45,9 +45,9 @@ def _options(uri_params: dict[str, str], options: dict[str, Any]) -> dict[str, f
     if unknown:
         raise UriError(f"X-ray generator: unknown option(s) {', '.join(unknown)}; allowed: {', '.join(sorted(_OPTIONS))}")
     try:
-        return {k: float(v) for k, v in merged.items()}
-    except (TypeError, ValueError) as exc:
-        raise UriError(f"X-ray generator: options must be numbers ({exc})") from None
+        return {k: option_number(v) for k, v in merged.items()}
+    except UriError as exc:
+        raise UriError(f"X-ray generator: options must be finite numbers ({exc})") from None
 
 
 def _retrieve(task: asyncio.Future[Any]) -> None:

@@ -184,6 +184,13 @@ class GcsMotionDevice(Driver):
         }
 
     # ----- checks -----
+    def check_velocity(self, value: float, unit: str) -> float:
+        """A velocity to send: a positive finite number, else :class:`OutOfLimitsError` (nothing sent)."""
+        v = float(value)
+        if not (math.isfinite(v) and v > 0.0):
+            raise OutOfLimitsError(f"{self.name}: velocity {value} {unit} must be a positive finite number; nothing changed")
+        return v
+
     def check_limits(self, targets: Mapping[str, float]) -> dict[str, float]:
         """Validate axis names and values against the soft limits; raise :class:`OutOfLimitsError` naming the axis."""
         if not targets:

@@ -8,7 +8,7 @@ from typing import Protocol
 
 from devices.errors import DeviceTimeoutError, NotConnectedError
 from devices.gcs.framing import reply_complete
-from devices.uri import Endpoint
+from devices.uri import Endpoint, option_number
 
 
 class Transport(Protocol):
@@ -180,7 +180,7 @@ def transport_for(endpoint: Endpoint) -> Transport:
     """The transport for a ``tcp://`` or ``serial://`` endpoint."""
     if endpoint.scheme == "tcp":
         assert endpoint.port is not None
-        return TcpTransport(endpoint.host, endpoint.port, connect_timeout_s=float(endpoint.params.get("connect_timeout", 3.0)))
+        return TcpTransport(endpoint.host, endpoint.port, connect_timeout_s=option_number(endpoint.params.get("connect_timeout", 3.0)))
     if endpoint.scheme == "serial":
         return SerialTransport(endpoint.path, baud=int(endpoint.params.get("baud", 115200)))
     from devices.errors import UriError

@@ -131,6 +131,10 @@ async def test_relative_move(ready_hexapod: Hexapod) -> None:
 async def test_stop_halts_running_move(ready_hexapod: Hexapod, hexapod_twin: TwinThread) -> None:
     await ready_hexapod.set_velocity(0.5)
     assert await ready_hexapod.velocity() == pytest.approx(0.5)
+    for bad in (float("nan"), float("inf"), 0.0, -1.0):  # refused before anything is sent; the velocity stays
+        with pytest.raises(OutOfLimitsError, match="must be a positive finite number; nothing changed"):
+            await ready_hexapod.set_velocity(bad)
+    assert await ready_hexapod.velocity() == pytest.approx(0.5)
     status = ready_hexapod.move({"X": 40.0})
     await asyncio.sleep(0.1)
     assert await ready_hexapod.moving()

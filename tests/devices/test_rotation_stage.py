@@ -32,6 +32,9 @@ async def test_refusals_then_reference_and_move(stage: RotationStage, world: Sim
     assert await stage.referenced() == {"R": True}
     await stage.set_velocity(60.0)
     assert await stage.velocity() == 60.0
+    with pytest.raises(OutOfLimitsError, match="velocity nan deg/s must be a positive finite number"):
+        await stage.set_velocity(float("nan"))
+    assert await stage.velocity() == 60.0
     await stage.move({"R": 120.0})
     pos = (await stage.position())["R"]
     assert pos == pytest.approx(120.0, abs=1e-3)
