@@ -260,7 +260,8 @@ def read_bb_plan(path: Path) -> tuple[str | None, np.ndarray, float]:
                 or not all(isinstance(c, int | float) and not isinstance(c, bool) for c in v)):
             raise BBPlanError(f"{path}: BB {k + 1} needs xyz_mm as three numbers (mm), got {v!r}")
         xyz[k] = v
-    far = np.flatnonzero(~np.isfinite(xyz).all(1) | (np.linalg.norm(np.nan_to_num(xyz, nan=np.inf), axis=1) > PLAN_REACH_MM))
+    reach = np.where(np.isfinite(xyz).all(1), np.linalg.norm(xyz, axis=1), np.inf)
+    far = np.flatnonzero(reach > PLAN_REACH_MM)
     if far.size:
         raise BBPlanError(f"{path}: BB {far[0] + 1} at {xyz[far[0]].tolist()} mm is not within {PLAN_REACH_MM:g} mm of "
                           "the isocentre (finite numbers, in mm)")
