@@ -301,19 +301,23 @@ def plan_lines(plan: BBPlan) -> list[str]:
 
 
 def _picture(path: Path, plan: BBPlan) -> None:
-    """The BBs on the unrolled surface with their numbers and the keep-out zones; BBs per view and the predicted
-    error along the orbit."""
+    """The object with the BBs and their numbers (in 3-D, and unrolled with the keep-out zones); BBs per view and
+    the predicted error along the orbit."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
+    from matplotlib.ticker import MaxNLocator
 
     placed, own, surface = plan.placed, plan.own, plan.surface
-    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig = plt.figure(figsize=(15, 4.6))
+    ax3 = fig.add_subplot(1, 3, 1, projection="3d")
+    ax0, ax1 = fig.add_subplot(1, 3, 2), fig.add_subplot(1, 3, 3)
+    _object_3d(ax3, surface, placed.xyz, plan.body["keep_out"])
     for zone in plan.body["keep_out"]:
         a0, a1 = zone["angle_from_deg"], zone["angle_to_deg"]
-        spans = [(a0, a1)] if a1 >= a0 else [(a0, 360.0), (0.0, a1)]
+        spans = [(a0, a1)] if a1 > a0 else [(a0, 360.0), (0.0, a1)]
         for lo, hi in spans:
             ax0.add_patch(Rectangle((lo, zone["z_min_mm"]), hi - lo, zone["z_max_mm"] - zone["z_min_mm"],
                                     color="grey", alpha=0.3, label=None))
@@ -321,8 +325,8 @@ def _picture(path: Path, plan: BBPlan) -> None:
     for k, (a, z) in enumerate(zip(np.degrees(placed.angle_rad) % 360.0, placed.z_mm, strict=True)):
         ax0.annotate(str(k + 1), (a, z), textcoords="offset points", xytext=(5, 5))
     ax0.set(xlim=(0, 360), ylim=(surface.z_min_mm - 5, surface.z_max_mm + 5), xlabel="angle on the object (deg, from +x)",
-            ylabel="height (mm)", title=f"experiment {plan.body['experiment']}: where to tape the BBs"
-            + (" (grey: keep out)" if plan.body["keep_out"] else ""))
+            ylabel="height (mm)", title="unrolled" + (" (grey: keep out)" if plan.body["keep_out"] else ""))
+    ax0.xaxis.set_major_locator(plt.MultipleLocator(45))
     ax0.grid(alpha=0.3)
     views = np.arange(placed.prediction.n_bbs.size)
     ax1.plot(views, placed.prediction.predicted_px, label="planned: predicted error (px)")
@@ -333,7 +337,55 @@ def _picture(path: Path, plan: BBPlan) -> None:
     ax1b = ax1.twinx()
     ax1b.step(views, placed.prediction.n_bbs, color="grey", alpha=0.4, where="mid")
     ax1b.set_ylabel("usable BBs (planned)")
+    ax1b.yaxis.set_major_locator(MaxNLocator(integer=True))
     ax1.legend(loc="upper left", fontsize=8)
+    b = plan.body
+    fig.suptitle(f"experiment {b['experiment']}: {len(b['bbs'])} BBs of {b['bb_diameter_mm']:g} mm, orbit {b['orbit']} "
+                 f"({b['views']} views)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _object_3d(ax: Any, surface: Any, xyz: np.ndarray, keep_out: list[dict[str, float]]) -> None:
+    """The tape surface as rings and lines, the keep-out zones' borders, the BBs with their numbers (pale behind the
+    object as seen), and the object frame's +x (angle 0) and +z."""
+    from matplotlib.ticker import MaxNLocator
+
+    z_lo, z_hi = surface.z_min_mm, surface.z_max_mm
+    for zone in keep_out:  # its border on the surface: two arcs and two edges
+        a0 = np.radians(zone["angle_from_deg"])
+        span = np.radians((zone["angle_to_deg"] - zone["angle_from_deg"]) % 360.0 or 360.0)
+        arc = a0 + np.linspace(0.0, span, 60)
+        z0, z1 = max(zone["z_min_mm"], z_lo), min(zone["z_max_mm"], z_hi)
+        side = np.linspace(z0, z1, 20)
+        for a, z in ((arc, np.full(arc.size, z0)), (arc, np.full(arc.size, z1)),
+                     (np.full(side.size, a0), side), (np.full(side.size, a0 + span), side)):
+            ax.plot(*surface.points(a, z, 0.0).T, color="black", lw=1.2, alpha=0.6)
+    turn = np.radians(np.arange(0.0, 361.0, 4.0))
+    for z in np.linspace(z_lo, z_hi, 6):
+        ring = surface.points(turn, np.full(turn.size, z), 0.0)
+        ring[~surface.covers(turn, np.full(turn.size, z))] = np.nan
+        ax.plot(*ring.T, color="grey", lw=0.6, alpha=0.5)
+    heights = np.linspace(z_lo, z_hi, 24)
+    for a in np.radians(np.arange(0.0, 360.0, 30.0)):
+        line = surface.points(np.full(heights.size, a), heights, 0.0)
+        line[~surface.covers(np.full(heights.size, a), heights)] = np.nan
+        ax.plot(*line.T, color="grey", lw=0.6, alpha=0.5)
+    elev, azim = 20.0, -60.0
+    ax.view_init(elev=elev, azim=azim)
+    toward = np.array([np.cos(np.radians(azim)), np.sin(np.radians(azim))])  # the eye's side, seen from above
+    front = xyz[:, :2] @ toward >= 0.0
+    for k, p in enumerate(xyz):
+        ax.scatter(*p, s=50, c="tab:red", alpha=1.0 if front[k] else 0.35, depthshade=False)
+        ax.text(*(p + [0.0, 0.0, 6.0]), str(k + 1), fontsize=9, alpha=1.0 if front[k] else 0.5)
+    reach = 1.3 * float(np.nanmax(np.hypot(xyz[:, 0], xyz[:, 1]))) if len(xyz) else 100.0
+    ax.quiver(0, 0, z_lo, reach, 0, 0, color="tab:blue", arrow_length_ratio=0.1)
+    ax.text(reach, 0, z_lo, "+x (0 deg)", color="tab:blue", fontsize=8)
+    ax.quiver(0, 0, z_hi, 0, 0, 0.3 * (z_hi - z_lo), color="tab:blue", arrow_length_ratio=0.2)
+    ax.text(0, 0, z_hi + 0.35 * (z_hi - z_lo), "+z", color="tab:blue", fontsize=8)
+    ax.set(xlabel="x (mm)", ylabel="y (mm)", zlabel="z (mm)", title="where to tape the BBs"
+           + (" (pale: behind; black: keep out)" if keep_out else " (pale: behind)"))
+    for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+        axis.set_major_locator(MaxNLocator(4))
+    ax.set_box_aspect((1.0, 1.0, max(0.4, (z_hi - z_lo) / (2 * reach / 1.3))))
