@@ -308,7 +308,6 @@ def _picture(path: Path, plan: BBPlan) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
-    from matplotlib.ticker import MaxNLocator
 
     placed, own, surface = plan.placed, plan.own, plan.surface
     fig = plt.figure(figsize=(15, 4.6))
@@ -337,7 +336,11 @@ def _picture(path: Path, plan: BBPlan) -> None:
     ax1b = ax1.twinx()
     ax1b.step(views, placed.prediction.n_bbs, color="grey", alpha=0.4, where="mid")
     ax1b.set_ylabel("usable BBs (planned)")
-    ax1b.yaxis.set_major_locator(MaxNLocator(integer=True))
+    counts = placed.prediction.n_bbs
+    if counts.size:  # whole BBs only
+        lo, hi = int(counts.min()), int(counts.max())
+        ax1b.set_ylim(lo - 0.5, hi + 0.5)
+        ax1b.set_yticks(np.arange(lo, hi + 1, max(1, -(-(hi - lo) // 6))))
     ax1.legend(loc="upper left", fontsize=8)
     b = plan.body
     fig.suptitle(f"experiment {b['experiment']}: {len(b['bbs'])} BBs of {b['bb_diameter_mm']:g} mm, orbit {b['orbit']} "
