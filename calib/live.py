@@ -109,6 +109,15 @@ WATCH_MISFIT = 3.0
 #: stays that of the scan's start (a point that kept absorbing rays would follow an object that moved)
 POINT_RAYS = 60
 
+#: a watched BB's rays (through the nominal views) miss its point by at most this RMS (mm; or twice the options'
+#: jitter_mm where that is more), and by at most WATCH_SCATTER_RATIO times the other watched BBs' median: every BB
+#: shares the orbit's errors, so its rays scatter like the others' (BBs on the paper's bench profile 1.6-4.2 mm at
+#: 15-60 rays, at most 1.3 times their median; at 192 px, BBs 2 px across, 0.4-1.2 mm, and tracks that followed
+#: two BBs or a structure 2.3-10 mm). Beyond either the point is no BB's and it is no longer watched: its warnings
+#: would be false ('lost' where no BB was)
+WATCH_SCATTER_MM = 6.0
+WATCH_SCATTER_RATIO = 3.0
+
 
 def _record_at(candidates: NDArray[np.float64], uv: NDArray[np.float64]) -> NDArray[np.float64]:
     """The candidate record (of one frame's ``candidates``) whose centroid is nearest to ``uv``."""
@@ -121,6 +130,7 @@ class _Watched:
 
     A: NDArray[np.float64] = field(default_factory=lambda: np.zeros((3, 3)))
     b: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    c: float = 0.0  # the rays' sum of o^T P o: with A and b, their squared distances from any point
     count: int = 0
     last_frame: int = -1
     last_uv: tuple[float, float] = (0.0, 0.0)
@@ -137,9 +147,16 @@ class _Watched:
         P = np.eye(3) - np.outer(direction, direction)
         self.A += P
         self.b += P @ origin
+        self.c += float(origin @ P @ origin)
 
     def point(self) -> NDArray[np.float64]:
         return np.linalg.lstsq(self.A, self.b, rcond=None)[0]
+
+    def scatter_mm(self) -> float:
+        """RMS distance of its rays from its point (mm)."""
+        x = self.point()
+        n = min(self.count, POINT_RAYS)
+        return float(np.sqrt(max(self.c - 2.0 * x @ self.b + x @ self.A @ x, 0.0) / max(n, 1)))
 
 
 class _Follower:
@@ -186,6 +203,7 @@ class _Follower:
         self._refined: dict[int, NDArray[np.float64]] = {}  # watched BBs' points from the latest window
         self._shift = np.zeros(2)  # the latest frame's shift of the watched BBs from their predicted pixels
         self._motion_offset = np.zeros(2)  # what the sliding adjustments moved the poses' isocenter, summed
+        self._scatter_limit_mm = max(WATCH_SCATTER_MM, 2.0 * self.opt.jitter_mm)
 
     def take(self, index: int, frame: NDArray[Any] | None) -> None:
         """Scan frame ``index``; indices jumped over are projections that were not sent (detected after the scan)."""
@@ -299,9 +317,13 @@ class _Follower:
                 message += f", RPE {pose.rpe_mm:.3f} mm, predicted {pose.predicted_px:.2f} px"
             panel = view.panel
             margin = 0.5 * self.d_px + 1.0 + s.edge_margin_px
-            for w, j, uv in zip(watched, idx.tolist(), aligned):
+            scattered, reference = [], self._scatter_reference_mm()
+            for t, w, j, uv in zip(keys, watched, idx.tolist(), aligned):
                 if j >= 0:
                     w.add_ray(origin, direction[j])
+                    if w.count <= POINT_RAYS and not self._one_point(w, reference):
+                        scattered.append(t)  # its rays meet at no point: not one BB's
+                        continue
                     if w.warned:
                         self._warn("bb_found", index, w.missing_since or index, f"frame {index}: the BB lost since frame "
                                    f"{w.missing_since} is found again at ({blobs[j, 0]:.0f}, {blobs[j, 1]:.0f}) px",
@@ -328,6 +350,9 @@ class _Follower:
                                f"{w.last_frame} is missing since frame {w.missing_since} where it should be visible near "
                                f"({uv[0]:.0f}, {uv[1]:.0f}) px (over metal, bone or another BB, or fallen off?)",
                                uv=(float(uv[0]), float(uv[1])))
+            for t in scattered:
+                del self._watched[t]
+                self._refined.pop(t, None)
         self._new_bbs(links, view, claimed[: links.continued.size])
         self.emit("progress", ("live-calibration", p + 1, self.n_projections, message, metrics))
 
@@ -416,12 +441,25 @@ class _Follower:
             x = w.point()
             if known.size and np.linalg.norm(known - x, axis=1).min() < 2.0 * self.diameter_mm + 5.0:
                 continue  # a BB already watched, followed by another track
+            if not self._one_point(w, self._scatter_reference_mm()):
+                continue  # its rays meet at no point: a track that followed two BBs, or a structure
             w.look = np.nanmedian(np.array(records), axis=0)
             if len(self._watched) >= 3 and not like_the_others(w.look, np.array([v.look for v in self._watched.values()])):
                 continue  # round for a few frames, but not like the BBs: a structure of the object
             w.track = t
             self._watched[t] = w
             known = np.vstack([known, x])
+
+    def _scatter_reference_mm(self) -> float | None:
+        """The watched BBs' median ray scatter (mm); None while fewer than three are watched."""
+        scatter = [w.scatter_mm() for w in self._watched.values()]
+        return float(np.median(scatter)) if len(scatter) >= 3 else None
+
+    def _one_point(self, w: _Watched, reference_mm: float | None) -> bool:
+        """Whether the rays of ``w`` meet at one point as a BB's do: within :data:`WATCH_SCATTER_MM` and
+        :data:`WATCH_SCATTER_RATIO` times the watched BBs' median scatter ``reference_mm``."""
+        scatter = w.scatter_mm()
+        return scatter <= self._scatter_limit_mm and (reference_mm is None or scatter <= WATCH_SCATTER_RATIO * reference_mm)
 
     def _distorted(self, index: int, c: NDArray[np.float64], uv: NDArray[np.float64]) -> None:
         """Warn (once per lost_frames frames) when a blob lies where a missing BB should be but is not ball-like."""

@@ -92,6 +92,31 @@ def test_a_bb_far_in_depth_and_a_round_structure_of_the_object_raise_no_false_wa
     assert set(kinds) <= {"bb_distorted"}  # BBs crossing the phantom's bone edges or each other, where they do
 
 
+def test_bbs_2_px_across_are_never_reported_lost_where_no_bb_is(tmp_path: Path) -> None:
+    """Experiment A's head at 192 px (BBs 2.2 px across), small bench errors: some 2-D tracks follow two BBs, or
+    a structure, long enough to be watched, and their points (rays through the nominal views) are no BB's —
+    'lost' was reported 20-51 px from every BB, four times, and the object 'moved'. Their rays scatter 3-10 mm
+    about the point where a BB's scatter 0.4-1.2: such a point is no longer watched. What is still reported lost is
+    a BB where it is (the detector misses BBs this small now and then)."""
+    from orbitct.errorprofiles import make_profile
+    from orbitct.phantoms.experiments import experiment_phantom
+    from orbitct.simulator import resolve_orbit
+    from orbitct.simulator.scan import simulate_scan
+
+    small = {"angle_amplitude_deg": (0.4, 0.3, 0.5), "angle_noise_deg": (0.05, 0.05, 0.05),
+             "shift_amplitude_mm": (2.0, 1.5, 1.0), "shift_noise_mm": (0.3, 0.3, 0.3)}
+    for seed in (0, 3):
+        path = tmp_path / f"small-bbs-{seed}.h5"
+        simulate_scan(experiment_phantom("A", seed), resolve_orbit("A", "sawtooth", 120, amplitude_deg=6.0), out=path,
+                      detector_px=192, seed=seed, errors=make_profile("custom", seed, **small))
+        live, _ = _feed(path)
+        tuv = _truth_uv(path)
+        assert "object_moved" not in [w.kind for w in live.warnings], [w.message for w in live.warnings]
+        for w in live.warnings:
+            if w.kind == "bb_lost":
+                assert w.uv is not None and np.nanmin(np.hypot(*(tuv[w.frame] - w.uv).T)) < 3.0, w.message
+
+
 def test_a_bb_hidden_behind_metal_for_40_frames_is_reported_then_found_again(scan: Path, tmp_path: Path) -> None:
     """Frames 30-69 (projections 28-67) cover one BB with a large dense blob: 'lost' once it has been missing
     for more than lost_frames frames, 'found' when it shows again; both name where it is."""
