@@ -102,6 +102,10 @@ class LiveSettings:
     edge_margin_px: float = 2.0  # extra margin inside the panel for "should be visible"
 
 
+#: a watched BB missing this many frames in a row, with a blob where it should be that is not ball-like, is reported
+#: distorted (a BB missing from one or two frames, as one crossing a bone edge is, costs the calibration nothing)
+DISTORTED_FRAMES = 3
+
 #: frames whose pose misses its BBs by more than this many centroid noises do not feed the watch for a moved object
 WATCH_MISFIT = 3.0
 
@@ -340,9 +344,10 @@ class _Follower:
                     w.outside, w.missing_since, w.warned = True, None, False
                     continue
                 w.outside = False
-                self._distorted(index, c, uv)
                 if w.missing_since is None:
                     w.missing_since = index
+                if index - w.missing_since + 1 >= DISTORTED_FRAMES:
+                    self._distorted(index, c, uv)
                 if not w.warned and index - w.missing_since + 1 > s.lost_frames:
                     w.warned = True
                     self._warn("bb_lost", index, w.missing_since,

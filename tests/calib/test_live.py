@@ -87,9 +87,8 @@ def test_a_bb_far_in_depth_and_a_round_structure_of_the_object_raise_no_false_wa
                   errors=make_profile("bench", 3, angle_scale=200 / 500))
     live, res = _feed(path)
     assert res.quality is not None and res.quality.passed
-    kinds = [w.kind for w in live.warnings]
-    assert "bb_lost" not in kinds and "object_moved" not in kinds, [w.message for w in live.warnings]
-    assert set(kinds) <= {"bb_distorted"}  # BBs crossing the phantom's bone edges or each other, where they do
+    # nor 'distorted' where a BB crossing a bone edge of the phantom is missed in a frame or two (it had been 1-5 a scan)
+    assert [w.message for w in live.warnings] == []
 
 
 def test_bbs_2_px_across_are_never_reported_lost_where_no_bb_is(tmp_path: Path) -> None:
@@ -138,7 +137,11 @@ def test_a_bb_hidden_behind_metal_for_40_frames_is_reported_then_found_again(sca
     live, _ = _feed(path, lost_frames=10)
     lost = [w for w in live.warnings if w.kind == "bb_lost"]
     found = [w for w in live.warnings if w.kind == "bb_found"]
+    distorted = [w for w in live.warnings if w.kind == "bb_distorted"]
     assert len(lost) == 1, [w.message for w in live.warnings]
+    # the dense disc where the BB should be, once it has been missing DISTORTED_FRAMES frames; never before
+    assert distorted and first + 1 <= distorted[0].frame <= first + 4, [w.message for w in live.warnings]
+    assert all(first <= w.frame <= last for w in distorted), [w.message for w in live.warnings]
     w = lost[0]
     assert first <= w.since_frame <= first + 2 and w.frame == w.since_frame + 10
     assert w.uv is not None and np.hypot(*(np.array(w.uv) - tuv[w.frame, k])) < 8.0
