@@ -347,7 +347,7 @@ class _Follower:
                 if w.missing_since is None:
                     w.missing_since = index
                 if index - w.missing_since + 1 >= DISTORTED_FRAMES:
-                    self._distorted(index, c, uv)
+                    self._distorted(index, w.missing_since, c, uv)
                 if not w.warned and index - w.missing_since + 1 > s.lost_frames:
                     w.warned = True
                     self._warn("bb_lost", index, w.missing_since,
@@ -466,17 +466,18 @@ class _Follower:
         scatter = w.scatter_mm()
         return scatter <= self._scatter_limit_mm and (reference_mm is None or scatter <= WATCH_SCATTER_RATIO * reference_mm)
 
-    def _distorted(self, index: int, c: NDArray[np.float64], uv: NDArray[np.float64]) -> None:
-        """Warn (once per lost_frames frames) when a blob lies where a missing BB should be but is not ball-like."""
+    def _distorted(self, index: int, since: int, c: NDArray[np.float64], uv: NDArray[np.float64]) -> None:
+        """Warn (once per lost_frames frames) when a blob lies where a BB missing since frame ``since`` should be but
+        is not ball-like."""
         if not len(c) or index - self._last_distorted <= self.settings.lost_frames:
             return
         d = np.linalg.norm(c[:, :2] - uv, axis=1)
         near = (d < 2.0 * self.tracking.gate_px) & ~ball_like(c, self.tracking)
         if near.any():
             self._last_distorted = index
-            self._warn("bb_distorted", index, index, f"frame {index}: the blob where a BB should be, near ({uv[0]:.0f}, "
-                       f"{uv[1]:.0f}) px, does not look like a BB (over metal or bone, or merged with another BB)",
-                       uv=(float(uv[0]), float(uv[1])))
+            self._warn("bb_distorted", index, since, f"frame {index}: the blob where a BB missing since frame {since} "
+                       f"should be, near ({uv[0]:.0f}, {uv[1]:.0f}) px, does not look like a BB (over metal or bone, or "
+                       "merged with another BB)", uv=(float(uv[0]), float(uv[1])))
 
     def _warn(self, kind: str, frame: int, since: int, message: str, uv: tuple[float, float] | None = None) -> None:
         self.emit("warning", LiveWarning(kind, int(frame), int(since), message, uv))

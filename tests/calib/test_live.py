@@ -141,6 +141,7 @@ def test_a_bb_hidden_behind_metal_for_40_frames_is_reported_then_found_again(sca
     assert len(lost) == 1, [w.message for w in live.warnings]
     # the dense disc where the BB should be, once it has been missing DISTORTED_FRAMES frames; never before
     assert distorted and first + 1 <= distorted[0].frame <= first + 4, [w.message for w in live.warnings]
+    assert distorted[0].since_frame == distorted[0].frame - 2 and f"missing since frame {distorted[0].since_frame}" in distorted[0].message
     assert all(first <= w.frame <= last for w in distorted), [w.message for w in live.warnings]
     w = lost[0]
     assert first <= w.since_frame <= first + 2 and w.frame == w.since_frame + 10
