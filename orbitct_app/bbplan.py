@@ -355,10 +355,12 @@ def _object_3d(ax: Any, surface: Any, xyz: np.ndarray, keep_out: list[dict[str, 
     object as seen), and the object frame's +x (angle 0) and +z."""
     from matplotlib.ticker import MaxNLocator
 
+    from calib.plan import KeepOut
+
     z_lo, z_hi = surface.z_min_mm, surface.z_max_mm
     for zone in keep_out:  # its border on the surface: two arcs and two edges
         a0 = np.radians(zone["angle_from_deg"])
-        span = np.radians((zone["angle_to_deg"] - zone["angle_from_deg"]) % 360.0 or 360.0)
+        span = np.radians(KeepOut(**zone).span_deg)
         arc = a0 + np.linspace(0.0, span, 60)
         z0, z1 = max(zone["z_min_mm"], z_lo), min(zone["z_max_mm"], z_hi)
         side = np.linspace(z0, z1, 20)
