@@ -27,7 +27,7 @@ ScanId = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9
 class CalibrationRequest(BaseModel):
     """Calibrate a complete scan from the BBs on the object."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"scan_id": "a1b2c3d4e5f60718", "method": "bundle"}]})
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [{"scan_id": "a1b2c3d4e5f60718", "method": "bundle"}]})
 
     scan_id: ScanId
     method: Literal["bundle", "paper"] = Field("bundle", description="joint bundle adjustment, or the paper's alternation")

@@ -35,7 +35,7 @@ class OrbitKindOut(BaseModel):
 class OrbitSpec(BaseModel):
     """An orbit kind and its parameters."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [
         {"kind": "sawtooth", "params": {"n_frames": 500, "amplitude_deg": 20, "cycles": 2}}
     ]})
 

@@ -33,7 +33,7 @@ class KeepOutIn(BaseModel):
     """A patch of the object's surface without BBs: polar angles (deg, counterclockwise from +x; through 0 when
     ``angle_to_deg < angle_from_deg``; 0 to 360: the whole turn) between two heights (mm)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     angle_from_deg: float = Field(ge=0.0, lt=360.0)
     angle_to_deg: float = Field(ge=0.0, le=360.0)
     z_min_mm: float = Field(ge=-1000.0, le=1000.0)
@@ -53,7 +53,7 @@ class BBPlanIn(BaseModel):
     """What to plan: the object and default orbit of an experiment, the orbit, the panel, how many BBs (or the
     accuracy to reach with as few as possible), where not to put them, and the detection's centroid noise."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [
         {"experiment": "A", "frames": 500, "bbs": 8, "keep_out": [
             {"angle_from_deg": 300, "angle_to_deg": 60, "z_min_mm": -20, "z_max_mm": 10}]}]})
 

@@ -31,7 +31,7 @@ MAX_VOXELS = 512**3
 class ReconstructionRequest(BaseModel):
     """Reconstruct a complete scan."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [
         {"scan_id": "a1b2c3d4e5f60718", "algorithm": "pwls", "geometry": "calibrated", "shape": [64, 64, 64], "iterations": 20}
     ]})
 

@@ -36,7 +36,7 @@ ScanState = Literal["queued", "running", "paused", "complete", "aborted", "faile
 class ScanCreate(BaseModel):
     """A scan to run on the bench: orbit, its parameters, injected errors (simulation), mode."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [
         {"name": "experiment A", "orbit": "sawtooth", "params": {"amplitude_deg": 6, "cycles": 2}, "frames": 500,
          "errors": "none", "seed": 0, "mode": "step"},
     ]})
@@ -97,7 +97,7 @@ class ScanOut(BaseModel):
 class ScanAction(BaseModel):
     """Why (optional) for abort."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     reason: str = Field("aborted by the operator", max_length=200)
 
 

@@ -23,7 +23,7 @@ router = APIRouter(prefix="/stop", tags=["stop"], responses=ERROR_RESPONSES)
 class StopRequest(BaseModel):
     """Why the bench is stopped (optional)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     reason: str = Field("", max_length=500)
 
 
@@ -73,7 +73,7 @@ class LatchOut(BaseModel):
 class ResetRequest(BaseModel):
     """A note for the log (what was checked before resetting)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     note: str = Field("", max_length=500)
 
 

@@ -58,6 +58,15 @@ def test_bad_plan_requests_are_refused_in_one_line(shared_api: Any, body: dict[s
     assert r.status_code == status and needle in r.text, r.text
 
 
+def test_numbers_that_are_not_finite_are_refused_by_name(shared_api: Any) -> None:
+    """Python's JSON (and so many clients) writes NaN and Infinity; every request model refuses them by name."""
+    for body, needle in (('{"experiment": "A", "noise_px": NaN}', "noise_px: Input should be a finite number"),
+                         ('{"experiment": "A", "keep_out": [{"angle_from_deg": Infinity, "angle_to_deg": 10, '
+                          '"z_min_mm": 0, "z_max_mm": 1}]}', "keep_out.0.angle_from_deg: Input should be a finite number")):
+        r = shared_api.post("/plans/bbs", role="analyst", content=body, headers={"Content-Type": "application/json"})
+        assert r.status_code == 422 and needle in r.text, r.text
+
+
 def test_an_unknown_plan_is_404(shared_api: Any) -> None:
     assert shared_api.get("/plans/bbs/0123456789ab").status_code == 404
     assert shared_api.get("/plans/bbs/..%2Fsecrets/picture").status_code == 404
