@@ -321,7 +321,9 @@ class _Follower:
                 message += f", RPE {pose.rpe_mm:.3f} mm, predicted {pose.predicted_px:.2f} px"
             panel = view.panel
             margin = 0.5 * self.d_px + 1.0 + s.edge_margin_px
-            scattered, reference = [], self._scatter_reference_mm()
+            # the scatter test only while some BB's point still takes rays (each watched BB's point costs a solve)
+            reference = self._scatter_reference_mm() if any(w.count < POINT_RAYS for w in watched) else None
+            scattered: list[int] = []
             for t, w, j, uv in zip(keys, watched, idx.tolist(), aligned):
                 if j >= 0:
                     w.add_ray(origin, direction[j])
