@@ -210,6 +210,14 @@ def placement_score(pred: PlanPrediction) -> float:
     return float(np.sqrt(np.mean(p**2)) + 0.5 * p.max() + 10.0 * pred.under_determined.size / pred.n_bbs.size)
 
 
+def check_room(surface: TapeSurface, keep_out: Sequence[KeepOut], rng: np.random.Generator | None = None) -> None:
+    """ValueError when the ``keep_out`` patches leave no place on ``surface`` for a BB (4000 random places tried)."""
+    rng = rng or np.random.default_rng(0)
+    probe = (rng.uniform(0, 2 * np.pi, 4000), rng.uniform(surface.z_min_mm, surface.z_max_mm, 4000))
+    if not (_allowed(probe[0], probe[1], keep_out) & surface.covers(*probe)).any():
+        raise ValueError("the keep-out zones cover the whole surface: no place is left for a BB")
+
+
 def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, diameter_mm: float, *, noise_px: float = 0.1,
                    metal: list[Any] | None = None, keep_out: Sequence[KeepOut] = (), seed: int = 0, trials: int = 200,
                    rounds: int = 3, moves: int = 12, min_spacing_mm: float = 25.0,
@@ -221,9 +229,7 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
     trials are ranked without it (it costs a ray fan per BB and view) and the best few ranked again with it."""
     rng = np.random.default_rng(seed)
     coarse = geometry[:: max(1, geometry.n_views // 125)]
-    probe = (rng.uniform(0, 2 * np.pi, 4000), rng.uniform(surface.z_min_mm, surface.z_max_mm, 4000))
-    if not (_allowed(probe[0], probe[1], keep_out) & surface.covers(*probe)).any():
-        raise ValueError("the keep-out zones cover the whole surface: no place is left for a BB")
+    check_room(surface, keep_out, rng)
 
     def spaced(ang: NDArray[np.float64], z: NDArray[np.float64]) -> bool:
         xyz = surface.points(ang, z, diameter_mm)
@@ -342,5 +348,5 @@ def suggest_bb_count(geometry: ViewGeometry, surface: TapeSurface, diameter_mm: 
     return CountSuggestion(target_px, None, tried)
 
 
-__all__ = ["EDGE_NOISE_FACTOR", "METAL_CHORD_MM", "OVERLAP_DIAMETERS", "CountSuggestion", "KeepOut", "Placement", "PlanPrediction",
+__all__ = ["EDGE_NOISE_FACTOR", "METAL_CHORD_MM", "OVERLAP_DIAMETERS", "CountSuggestion", "check_room", "KeepOut", "Placement", "PlanPrediction",
            "edge_noise", "hand_spiral", "metal_of", "placement_score", "plan_placement", "predict_placement", "suggest_bb_count", "usable_bbs"]

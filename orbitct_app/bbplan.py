@@ -48,6 +48,37 @@ class BBPlan:
     spiral: Any = None  # calib.plan.PlanPrediction of a hand-made spiral of as many BBs (None: none to compare)
 
 
+def _resolve(req: BBPlanRequest) -> tuple[str, Any, Any]:
+    """The experiment's key, the orbit and the surface to tape on; BBPlanError naming what is wrong."""
+    from calib.surfaces import EllipticCylinder
+    from orbitct.orbits import OrbitError
+    from orbitct.phantoms.experiments import BB_SURFACES
+    from orbitct.simulator import resolve_orbit
+
+    key = req.experiment.upper()
+    if key not in BB_SURFACES:
+        raise BBPlanError(f"experiment {req.experiment!r}: allowed are {', '.join(sorted(BB_SURFACES))}")
+    try:
+        orbit = resolve_orbit(key, req.orbit, req.frames)
+    except OrbitError as exc:
+        raise BBPlanError(str(exc)) from None
+    return key, orbit, req.surface if req.surface is not None else EllipticCylinder(*BB_SURFACES[key])
+
+
+def check_bb_plan_request(req: BBPlanRequest) -> dict[str, Any]:
+    """What can be told of ``req`` in a moment (before seconds or minutes of planning): the experiment, the orbit,
+    and that the keep-out patches leave room; ``{"experiment", "orbit", "views"}``, or BBPlanError naming what is
+    wrong."""
+    from calib.plan import check_room
+
+    key, orbit, surface = _resolve(req)
+    try:
+        check_room(surface, req.keep_out)
+    except ValueError as exc:
+        raise BBPlanError(str(exc)) from None
+    return {"experiment": key, "orbit": orbit.name, "views": int(orbit.n_frames)}
+
+
 def make_bb_plan(req: BBPlanRequest) -> BBPlan:
     """Plan the BBs for ``req``; BBPlanError with a one-line reason when it cannot."""
     from calib.background import PHOTON_FLOOR, SHIFT_FACTOR, SHIFT_SCATTER, phantom_background
@@ -60,24 +91,14 @@ def make_bb_plan(req: BBPlanRequest) -> BBPlan:
         suggest_bb_count,
     )
     from calib.quality import huber_threshold_px
-    from calib.surfaces import EllipticCylinder
-    from orbitct.orbits import OrbitError
-    from orbitct.phantoms.experiments import BB_SURFACES, experiment_phantom
-    from orbitct.simulator import resolve_orbit
+    from orbitct.phantoms.experiments import experiment_phantom
     from orbitct.simulator.bench import SimulatedBench
 
-    key = req.experiment.upper()
-    if key not in BB_SURFACES:
-        raise BBPlanError(f"experiment {req.experiment!r}: allowed are {', '.join(sorted(BB_SURFACES))}")
-    try:
-        orbit = resolve_orbit(key, req.orbit, req.frames)
-    except OrbitError as exc:
-        raise BBPlanError(str(exc)) from None
+    key, orbit, surface = _resolve(req)
     phantom = experiment_phantom(key)
     d = float(phantom.marker_diameter_mm or 3.0)
     geometry = SimulatedBench.with_panel(req.detector_px).nominal_geometry(orbit)
     metal = metal_of(phantom)
-    surface = req.surface if req.surface is not None else EllipticCylinder(*BB_SURFACES[key])
     background = phantom_background(phantom, geometry, surface)  # what lies behind each BB: photons, bone edges
     options: dict[str, Any] = {"noise_px": req.noise_px, "metal": metal, "keep_out": req.keep_out, "seed": req.seed,
                                "background": background}

@@ -1,5 +1,5 @@
 """Everything one running service owns: settings, store, event bus, tokens, the emergency stop (latch and guard
-process), the rig process (and the simulated bench's twins with ``sim``), the job queue."""
+process), the rig process (and the simulated bench's twins with ``sim``), the job queue and the BB plans."""
 
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ from orbitct_app.service.core.events import EventBus
 from orbitct_app.service.core.files import summarize_scan
 from orbitct_app.service.core.sessions import SessionStore
 from orbitct_app.service.core.settings import ServiceSettings
+from orbitct_app.service.jobs.bbplans import PlanQueue
 from orbitct_app.service.jobs.manager import JobManager
 from orbitct_app.service.rig.client import RigClient
 from orbitct_app.service.rig.twins import SimBench
@@ -54,6 +55,7 @@ class Service:
         self.jobs = JobManager(self.store, self.bus, settings.data_dir, workers=settings.job_workers,
                                cancel_grace_s=settings.cancel_grace_s, scan_busy=lambda s: self.rig.busy == s,
                                scheduler=settings.dask_scheduler)
+        self.plans = PlanQueue(settings.data_dir / "plans")
 
     @property
     def reserve_mb(self) -> float:
@@ -157,11 +159,14 @@ class Service:
         else:
             self.rig.start(links)
         self.jobs.start()
+        self.plans.start()
         if self.dev_token is not None:
             log.warning("--sim development token (all roles): %s", self.dev_token)
 
     def close(self) -> None:
-        """Stop jobs and the rig (a running scan is aborted with :attr:`stop_reason`), flush events, close the store."""
+        """Stop plans, jobs and the rig (a running scan is aborted with :attr:`stop_reason`), flush events, close the
+        store."""
+        self.plans.close()
         self.jobs.shutdown()
         self.rig.close(self.stop_reason)
         self.guard.close()

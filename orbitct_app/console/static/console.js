@@ -543,8 +543,23 @@ function pageJobs() {
 
 // ---------------------------------------------------------------- BB plans
 function pagePlans() {
+  const sleep = (ms) => new Promise((resolve) => { setTimeout(resolve, ms); });
+  /** The plan once it is no longer being made (plans are made one at a time in the background). */
+  const made = async (id) => {
+    for (;;) {
+      const plan = await api('GET', `/plans/bbs/${id}`);
+      if (plan.state !== 'planning') return plan;
+      const progress = $('#plan-progress');
+      progress.hidden = false;
+      $('.id', progress).textContent = id;
+      $('#plan-since').textContent = new Date(plan.created).toLocaleTimeString();
+      await sleep(1000);
+    }
+  };
   const show = async (id) => {
-    const plan = await api('GET', `/plans/bbs/${id}`);
+    const plan = await made(id);
+    $('#plan-progress').hidden = true;
+    if (plan.state !== 'done') throw new ApiError(`plan ${id} ${plan.state}: ${plan.reason}`, 0);
     const box = $('#plan-result');
     box.hidden = false;
     $('.id', box).textContent = id;
@@ -569,7 +584,7 @@ function pagePlans() {
     $('#plan-picture').src = `/plans/bbs/${id}/picture`;
     $('#plan-bbs-table tbody').replaceChildren(...plan.bbs.map((b) => el('tr', {}, el('td', { text: b.number }),
       el('td', { text: fmt(b.angle_deg, 4) }), el('td', { text: fmt(b.height_mm, 4) }), ...b.xyz_mm.map((v) => el('td', { text: fmt(v, 4) })))));
-    const { id: _, ...body } = plan;
+    const { id: _, state: __, ...body } = plan;
     $('#plan-json').href = URL.createObjectURL(new Blob([JSON.stringify(body, null, 1)], { type: 'application/json' }));
     $('#plan-json').download = `bb-plan-${id}.json`;
     document.body.dataset.plan = id;
@@ -579,10 +594,11 @@ function pagePlans() {
     try {
       const list = await api('GET', '/plans/bbs');
       $('#plan-table tbody').replaceChildren(...list.map((p) => el('tr', {},
-        el('td', {}, el('a', { href: `?plan=${p.id}`, text: p.id, onclick: (ev) => { ev.preventDefault(); history.replaceState(null, '', `?plan=${p.id}`); show(p.id); } })),
-        el('td', { text: p.experiment }), el('td', { text: p.orbit }), el('td', { text: p.views }), el('td', { text: p.bbs }),
-        el('td', { text: fmt(p.predicted_px_max) }), el('td', { text: p.under_determined }))));
-      if (!list.length) $('#plan-table tbody').append(el('tr', {}, el('td', { colspan: 7, class: 'muted', text: 'No plans yet.' })));
+        el('td', {}, el('a', { href: `?plan=${p.id}`, text: p.id, onclick: (ev) => { ev.preventDefault(); history.replaceState(null, '', `?plan=${p.id}`); show(p.id).catch((exc) => { slot.textContent = exc.message; }); } })),
+        el('td', { title: p.reason || '' }, el('span', { class: `badge ${p.state}`, text: p.state })),
+        el('td', { text: p.experiment }), el('td', { text: p.orbit }), el('td', { text: p.views }), el('td', { text: fmt(p.bbs) }),
+        el('td', { text: fmt(p.predicted_px_max) }), el('td', { text: fmt(p.under_determined) }))));
+      if (!list.length) $('#plan-table tbody').append(el('tr', {}, el('td', { colspan: 8, class: 'muted', text: 'No plans yet.' })));
       slot.textContent = '';
     } catch (exc) { slot.textContent = exc.message; }
   };
@@ -616,15 +632,22 @@ function pagePlans() {
         const surface = kind === 'mesh' ? { surface_id: surfaceId } : kind === 'reconstruction' ? { surface_reconstruction_id: surfaceId } : {};
         $('#plan-make').textContent = 'Planning…';
         try {
-          const plan = await api('POST', '/plans/bbs', { experiment: $('#plan-experiment').value, frames: number('#plan-frames'),
+          const queued = await api('POST', '/plans/bbs', { experiment: $('#plan-experiment').value, frames: number('#plan-frames'),
             bbs: number('#plan-bbs'), target_px: number('#plan-target'), keep_out: keepOut, detector_px: number('#plan-detector'),
             noise_px: number('#plan-noise'), surface_threshold_per_mm: number('#plan-surface-threshold'), ...surface });
-          history.replaceState(null, '', `?plan=${plan.id}`);
-          await show(plan.id);
+          history.replaceState(null, '', `?plan=${queued.id}`);
+          await load();
+          await show(queued.id);
           await load();
         } finally { $('#plan-make').textContent = 'Plan'; }
       });
     });
+  }
+  const cancel = $('#plan-cancel');
+  if (cancel) {
+    cancel.addEventListener('click', () => act(cancel, async () => {
+      await api('POST', `/plans/bbs/${$('#plan-progress .id').textContent}/cancel`);
+    }));
   }
   const wanted = new URLSearchParams(location.search).get('plan');
   if (wanted && /^[0-9a-f]{12}$/.test(wanted)) show(wanted).catch((exc) => { $('#plan-table').closest('section').querySelector('.error').textContent = exc.message; });

@@ -4,28 +4,23 @@ makes it; each plan is kept (its JSON, which ``orbitct simulate --bbs-from`` rea
 from __future__ import annotations
 
 import json
-import uuid
+import re
+from pathlib import Path
 from typing import Any, Literal
 
 from fastapi import APIRouter, Response
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from orbitct_app.bbplan import (
-    MAX_BBS,
-    BBPlanError,
-    BBPlanRequest,
-    make_bb_plan,
-    outline_from_volume,
-    write_bb_plan,
-)
-from orbitct_app.service.core.errors import ERROR_RESPONSES, Invalid, NotFound
-from orbitct_app.service.core.files import confined
+from orbitct_app.bbplan import MAX_BBS, BBPlanError, BBPlanRequest, check_bb_plan_request, outline_from_volume
+from orbitct_app.service.core.errors import ERROR_RESPONSES, Conflict, ErrorBody, Invalid, NotFound
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
+from orbitct_app.service.jobs.bbplans import PlanEnded, PlansBusy
 from orbitct_app.service.routers.reconstructions import reconstruction_volume
 from orbitct_app.service.routers.surfaces import load_kept_surface
 from orbitct_app.service.schemas import job_or_404
 
+_PLAN_ID = re.compile(r"[0-9a-f]{12}")
 router = APIRouter(prefix="/plans/bbs", tags=["plans"], responses=ERROR_RESPONSES)
 
 
@@ -84,15 +79,35 @@ class BBPlanIn(BaseModel):
 
 
 class BBPlanSummary(BaseModel):
-    """A kept plan, listed."""
+    """A plan, listed: once done, its BB count and worst predicted view; while it is made or when it failed, its
+    state and why."""
 
     id: str
+    state: Literal["planning", "done", "failed", "cancelled"]
     experiment: str
     orbit: str
     views: int
-    bbs: int
+    bbs: int | None
     predicted_px_max: float | None
-    under_determined: int
+    under_determined: int | None
+    created: str | None = None
+    reason: str | None = None
+
+
+class PlanStateOut(BaseModel):
+    """A plan not (or not yet) made: ``planning`` (poll ``GET /plans/bbs/{id}``), ``failed`` or ``cancelled``."""
+
+    id: str
+    state: Literal["planning", "failed", "cancelled"]
+    owner: str
+    created: str
+    experiment: str
+    orbit: str
+    views: int
+    bbs: int | None = None
+    target_px: float | None = None
+    ended: str | None = None
+    reason: str | None = None
 
 
 def _plans_dir(service: Any) -> Any:
@@ -102,16 +117,19 @@ def _plans_dir(service: Any) -> Any:
 
 
 def _summary(plan_id: str, body: dict[str, Any]) -> BBPlanSummary:
-    return BBPlanSummary(id=plan_id, experiment=body["experiment"], orbit=body["orbit"], views=body["views"],
-                         bbs=len(body["bbs"]), predicted_px_max=body["predicted"]["predicted_px_max"],
+    return BBPlanSummary(id=plan_id, state="done", experiment=body["experiment"], orbit=body["orbit"],
+                         views=body["views"], bbs=len(body["bbs"]),
+                         predicted_px_max=body["predicted"]["predicted_px_max"],
                          under_determined=body["predicted"]["under_determined"])
 
 
-@router.post("", status_code=201, summary="Plan the BBs for an experiment's object and orbit")
-def create_plan(body: BBPlanIn, service: ServiceDep, response: Response, _: Analyst) -> dict[str, Any]:
-    """Search BB positions that minimise the predicted calibration error of the orbit's views (seconds; with
-    ``target_px``, a minute or so); 201 with the plan (``Location: /plans/bbs/{id}``), the experiment's own
-    placement beside it, and warnings for views left under-determined."""
+@router.post("", status_code=202, response_model=PlanStateOut, summary="Plan the BBs for an experiment's object and orbit",
+             responses={409: {"model": ErrorBody, "description": "as many plans as allowed are already waiting"}})
+def create_plan(body: BBPlanIn, service: ServiceDep, response: Response, who: Analyst) -> PlanStateOut:
+    """Check the request and queue the plan (202, ``Location: /plans/bbs/{id}``): plans are made one at a time in
+    the background (seconds; with ``target_px``, minutes). Poll ``GET /plans/bbs/{id}`` until its ``state`` is
+    ``done`` (the plan, the experiment's own placement beside it, warnings for views left under-determined),
+    ``failed`` (with the reason) or ``cancelled``."""
     from calib.plan import KeepOut
 
     surface = None
@@ -133,38 +151,75 @@ def create_plan(body: BBPlanIn, service: ServiceDep, response: Response, _: Anal
                             keep_out=tuple(KeepOut(**z.model_dump()) for z in body.keep_out), target_px=body.target_px,
                             max_bbs=body.max_bbs, surface=surface)
     try:
-        plan = make_bb_plan(request)
+        asked = check_bb_plan_request(request)
     except BBPlanError as exc:
         raise Invalid(str(exc)) from None
-    plan_id = uuid.uuid4().hex[:12]
-    write_bb_plan(plan, _plans_dir(service) / f"{plan_id}.json")
-    response.headers["Location"] = f"/plans/bbs/{plan_id}"
-    return {"id": plan_id, **plan.body}
+    asked |= {"bbs": None, "target_px": body.target_px} if body.target_px is not None else {"bbs": body.bbs}
+    try:
+        state = service.plans.submit(request, who.name, asked)
+    except PlansBusy as exc:
+        raise Conflict(str(exc)) from None
+    response.headers["Location"] = f"/plans/bbs/{state['id']}"
+    return PlanStateOut(**state)
 
 
-@router.get("", response_model=list[BBPlanSummary], summary="The kept plans, newest first")
+@router.get("", response_model=list[BBPlanSummary], summary="The plans, newest first")
 def list_plans(service: ServiceDep, _: Reader) -> list[BBPlanSummary]:
-    """Every kept plan with its experiment, orbit, BB count and worst predicted view."""
-    files = sorted(_plans_dir(service).glob("*.json"), key=lambda p: p.stat().st_mtime, reverse=True)
-    return [_summary(f.stem, json.loads(f.read_text())) for f in files]
+    """Every plan: those done with their experiment, orbit, BB count and worst predicted view; those waiting, being
+    made, failed or cancelled with their state."""
+    folder = _plans_dir(service)
+    listed = [(f.stat().st_mtime, _summary(f.stem, json.loads(f.read_text()))) for f in folder.glob("*.json")
+              if _PLAN_ID.fullmatch(f.stem)]
+    done = {s.id for _, s in listed}
+    for changed, state in service.plans.states():
+        if state["id"] not in done:
+            fields = {k: v for k, v in state.items() if k in BBPlanSummary.model_fields}
+            listed.append((changed, BBPlanSummary(predicted_px_max=None, under_determined=None, **fields)))
+    return [s for _, s in sorted(listed, key=lambda x: x[0], reverse=True)]
 
 
-def _plan_file(service: Any, plan_id: str, suffix: str) -> Any:
-    path = confined(_plans_dir(service), f"{plan_id}{suffix}")
-    if not path.exists():
-        raise NotFound(f"no BB plan {plan_id!r}")
-    return path
+def _plan_or_state(service: Any, plan_id: str) -> tuple[Path | None, dict[str, Any] | None]:
+    """The done plan's JSON file, or else its state record (waiting, being made, failed, cancelled); 404 when
+    neither."""
+    if _PLAN_ID.fullmatch(plan_id):
+        path = _plans_dir(service) / f"{plan_id}.json"
+        if path.is_file():
+            return path, None
+        state = service.plans.state(plan_id)
+        if state is not None:
+            return None, state
+    raise NotFound(f"no BB plan {plan_id!r}")
 
 
-@router.get("/{plan_id}", summary="One plan (the JSON `orbitct simulate --bbs-from` reads)")
+@router.get("/{plan_id}", summary="One plan (the JSON `orbitct simulate --bbs-from` reads), or its state")
 def get_plan(plan_id: str, service: ServiceDep, _: Reader) -> dict[str, Any]:
-    """The plan as it was made: BBs (object frame, and angle/height on the object), predictions per view."""
-    return {"id": plan_id, **json.loads(_plan_file(service, plan_id, ".json").read_text())}
+    """The plan as it was made (``state`` done): BBs (object frame, and angle/height on the object), predictions
+    per view; while it is made, or when it failed or was cancelled, its state record (``reason``)."""
+    path, state = _plan_or_state(service, plan_id)
+    return state if path is None else {"id": plan_id, "state": "done", **json.loads(path.read_text())}
 
 
 @router.get("/{plan_id}/picture", response_class=FileResponse, summary="The plan's picture (PNG)",
-            responses={200: {"content": {"image/png": {}}}})
+            responses={200: {"content": {"image/png": {}}}, 409: {"model": ErrorBody, "description": "not made (yet)"}})
 def get_picture(plan_id: str, service: ServiceDep, _: Reader) -> FileResponse:
-    """The BBs with their numbers on the unrolled surface (keep-out zones grey), and BBs and predicted error per
-    view along the orbit."""
-    return FileResponse(_plan_file(service, plan_id, ".png"), media_type="image/png")
+    """The object with the numbered BBs, the BBs on the unrolled surface (keep-out zones grey), and BBs and
+    predicted error per view along the orbit."""
+    path, state = _plan_or_state(service, plan_id)
+    if path is None:
+        reason = f": {state['reason']}" if state.get("reason") else ""  # type: ignore[union-attr]
+        raise Conflict(f"plan {plan_id} is {state['state']}{reason}")  # type: ignore[index]
+    return FileResponse(path.with_suffix(".png"), media_type="image/png")
+
+
+@router.post("/{plan_id}/cancel", status_code=202, response_model=PlanStateOut, summary="Cancel a plan",
+             responses={409: {"model": ErrorBody, "description": "the plan has already ended"}})
+def cancel_plan(plan_id: str, service: ServiceDep, who: Analyst) -> PlanStateOut:
+    """Stop a plan waiting or being made; it ends ``cancelled``."""
+    path, _ = _plan_or_state(service, plan_id)
+    if path is not None:
+        raise Conflict(f"plan {plan_id} is already done")
+    try:
+        service.plans.cancel(plan_id, who.name)
+    except PlanEnded as exc:
+        raise Conflict(str(exc)) from None
+    return PlanStateOut(**service.plans.state(plan_id))

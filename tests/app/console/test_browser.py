@@ -286,6 +286,22 @@ def test_an_analyst_plans_bbs_and_a_viewer_reads_the_plan(console: Console) -> N
     assert "the experiment's own placement" in page.inner_text("#plan-facts")
     until(page, f"() => document.querySelector('#plan-table').textContent.includes('{plan_id}')")
     shot(page, "bb-plan")
+    # a plan of minutes is made in the background: the page says so, and it can be cancelled
+    page.fill("#plan-keep-out", "")
+    page.fill("#plan-frames", "2000")
+    page.fill("#plan-detector", "768")
+    page.fill("#plan-target", "0.001")
+    page.click("#plan-make")
+    page.wait_for_selector("#plan-progress:not([hidden])", timeout=30_000)
+    long_id = page.inner_text("#plan-progress .id")
+    until(page, f"() => [...document.querySelectorAll('#plan-table tr')].some((r) => r.textContent.includes('{long_id}') "
+                "&& r.textContent.includes('planning'))")
+    shot(page, "bb-plan-planning")
+    page.click("#plan-cancel")
+    until(page, "() => document.querySelector('#plan-form .error').textContent.includes('cancelled by')")
+    assert page.is_hidden("#plan-progress")
+    until(page, f"() => [...document.querySelectorAll('#plan-table tr')].some((r) => r.textContent.includes('{long_id}') "
+                "&& r.textContent.includes('cancelled'))")
     page.context.close()
     viewer = console.sign_in("viewer")
     viewer.goto(console.base + f"/console/plans?plan={plan_id}")

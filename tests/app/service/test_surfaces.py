@@ -8,6 +8,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from tests.app.service.test_plans import make_plan
+
 pytestmark = pytest.mark.timeout(180)
 
 
@@ -31,9 +33,7 @@ def test_a_mesh_is_uploaded_listed_and_planned_on(shared_api: Any) -> None:
     assert api.get(f"/surfaces/{kept['id']}").json() == kept
     assert api.get("/surfaces").json()[0] == kept
     body = {"experiment": "A", "frames": 60, "detector_px": 192, "bbs": 6, "surface_id": kept["id"]}
-    r = api.post("/plans/bbs", role="analyst", json=body)
-    assert r.status_code == 201, r.text
-    plan = r.json()
+    plan = make_plan(api, body)
     assert plan["surface"]["source"] == "leg.stl"
     radii = [np.hypot(*b["xyz_mm"][:2]) for b in plan["bbs"]]
     assert np.allclose(radii, 62.0 + plan["bb_diameter_mm"] / 2, atol=1.5), radii
