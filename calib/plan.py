@@ -22,6 +22,7 @@ from calib.model import ViewModel
 from calib.quality import MIN_OWN_BBS, huber_threshold_px, placement_predicted_px
 from calib.surfaces import TapeSurface
 from orbitct.geometry import ViewGeometry
+from orbitct.progress import ProgressCallback, report
 
 #: a projected BB closer than this many diameters to another one is not counted (one blob of two)
 OVERLAP_DIAMETERS = 1.25
@@ -221,12 +222,13 @@ def check_room(surface: TapeSurface, keep_out: Sequence[KeepOut], rng: np.random
 def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, diameter_mm: float, *, noise_px: float = 0.1,
                    metal: list[Any] | None = None, keep_out: Sequence[KeepOut] = (), seed: int = 0, trials: int = 200,
                    rounds: int = 3, moves: int = 12, min_spacing_mm: float = 25.0,
-                   background: ObjectBackground | None = None) -> Placement:
+                   background: ObjectBackground | None = None, progress: ProgressCallback | None = None) -> Placement:
     """Search BB positions on ``surface`` outside the ``keep_out`` patches that minimise :func:`placement_score` for
     the views of ``geometry``: ``trials`` random placements (BBs at least ``min_spacing_mm`` apart, placed one at a
     time), then ``rounds`` of moving each BB to the best of ``moves`` random places. The search scores about 125 of
     the views; the result is predicted on all. With the object's ``background`` (see :func:`predict_placement`) the
-    trials are ranked without it (it costs a ray fan per BB and view) and the best few ranked again with it."""
+    trials are ranked without it (it costs a ray fan per BB and view) and the best few ranked again with it.
+    ``progress`` hears stage ``plan``: trials, re-ranked placements and BB moves done of all."""
     rng = np.random.default_rng(seed)
     coarse = geometry[:: max(1, geometry.n_views // 125)]
     check_room(surface, keep_out, rng)
@@ -266,19 +268,24 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
         return placement_score(predict_placement(coarse, surface.points(ang, z, diameter_mm), diameter_mm, noise_px=noise_px,
                                                  metal=metal, surface=surface, background=object_background))
 
+    steps = trials + (_RERANKED if background is not None else 0) + rounds * n_bbs
     ranked: list[tuple[float, NDArray[np.float64], NDArray[np.float64]]] = []
-    for _ in range(trials):
+    for t in range(trials):
         drawn = draw_spaced(n_bbs)
         if drawn is not None:
             ranked.append((score(*drawn, None), *drawn))
+        if t % 10 == 9:
+            report(progress, "plan", t + 1, steps, f"{n_bbs} BBs: random placements")
     if not ranked:
         raise ValueError(f"{n_bbs} BBs {min_spacing_mm:g} mm apart do not fit on the surface; fewer BBs or less spacing")
     ranked.sort(key=lambda t: t[0])
     if background is not None:
+        report(progress, "plan", trials, steps, f"{n_bbs} BBs: the best {_RERANKED} ranked with the object")
         ranked = sorted(((score(a, h), a, h) for _, a, h in ranked[:_RERANKED]), key=lambda t: t[0])
     s_best, ang, z = ranked[0]
-    for _ in range(rounds):
+    for r in range(rounds):
         for k in range(n_bbs):
+            report(progress, "plan", steps - (rounds - r) * n_bbs + k, steps, f"{n_bbs} BBs: moving BB {k + 1}")
             for a_new, z_new in zip(*draw(moves), strict=True):
                 a2, z2 = ang.copy(), z.copy()
                 a2[k], z2[k] = a_new, z_new
@@ -287,6 +294,7 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
                 s2 = score(a2, z2)
                 if s2 < s_best:
                     s_best, ang, z = s2, a2, z2
+    report(progress, "plan", steps, steps, f"{n_bbs} BBs: predicted on every view")
     xyz = surface.points(ang, z, diameter_mm)
     full = predict_placement(geometry, xyz, diameter_mm, noise_px=noise_px, metal=metal, surface=surface,
                              background=background)
@@ -333,16 +341,21 @@ def suggest_bb_count(geometry: ViewGeometry, surface: TapeSurface, diameter_mm: 
                      n_min: int = MIN_OWN_BBS, n_max: int = 20, **plan_options: Any) -> CountSuggestion:
     """The fewest BBs (from ``n_min`` up to ``n_max``) whose planned placement leaves no view under-determined and
     predicts every view's error at or below ``target_px``; each count is planned with ``plan_options`` (a lighter
-    search than a final plan's is enough to rank counts)."""
+    search than a final plan's is enough to rank counts). ``progress`` hears stage ``count`` (counts tried) besides
+    each count's ``plan``."""
     options = {"trials": 80, "rounds": 2, **plan_options}
+    progress = options.get("progress")
     tried: dict[int, dict[str, Any]] = {}
     for n in range(n_min, n_max + 1):
+        report(progress, "count", n - n_min, n_max - n_min + 1, f"planning {n} BBs")
         try:
             placed = plan_placement(geometry, surface, n, diameter_mm, **options)
         except ValueError:  # n BBs no longer fit at the spacing: more will not either
             break
         summary = placed.prediction.summary()
         tried[n] = summary
+        report(progress, "count", n - n_min + 1, n_max - n_min + 1, f"{n} BBs: worst view {summary['predicted_px_max']:.3g} px",
+               worst_px=float(summary["predicted_px_max"]))
         if summary["under_determined"] == 0 and summary["predicted_px_max"] <= target_px:
             return CountSuggestion(target_px, n, tried)
     return CountSuggestion(target_px, None, tried)

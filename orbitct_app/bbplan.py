@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from orbitct.progress import ProgressCallback
+
 MAX_BBS = 40
 
 
@@ -79,8 +81,9 @@ def check_bb_plan_request(req: BBPlanRequest) -> dict[str, Any]:
     return {"experiment": key, "orbit": orbit.name, "views": int(orbit.n_frames)}
 
 
-def make_bb_plan(req: BBPlanRequest) -> BBPlan:
-    """Plan the BBs for ``req``; BBPlanError with a one-line reason when it cannot."""
+def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -> BBPlan:
+    """Plan the BBs for ``req`` (``progress`` hears the search's stages ``count`` and ``plan``); BBPlanError with a
+    one-line reason when it cannot."""
     from calib.background import PHOTON_FLOOR, SHIFT_FACTOR, SHIFT_SCATTER, phantom_background
     from calib.plan import (
         hand_spiral,
@@ -101,7 +104,7 @@ def make_bb_plan(req: BBPlanRequest) -> BBPlan:
     metal = metal_of(phantom)
     background = phantom_background(phantom, geometry, surface)  # what lies behind each BB: photons, bone edges
     options: dict[str, Any] = {"noise_px": req.noise_px, "metal": metal, "keep_out": req.keep_out, "seed": req.seed,
-                               "background": background}
+                               "background": background, "progress": progress}
     warnings: list[str] = []
     n_bbs, suggestion = req.n_bbs, None
     try:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from orbitct_app.cli.progress import ProgressBar
 from orbitct_app.cli.values import SEED, FiniteFloat
 
 
@@ -66,7 +67,8 @@ def bbs(experiment: str, orbit_name: str | None, frames: int | None, n_bbs: int,
         request = BBPlanRequest(experiment=experiment, orbit=orbit_name, frames=frames, n_bbs=n_bbs,
                                 detector_px=detector_size, noise_px=noise_px, seed=seed, keep_out=keep_out,
                                 target_px=target_px, max_bbs=max_bbs, surface=surface)
-        made = make_bb_plan(request)
+        with ProgressBar() as bar:
+            made = make_bb_plan(request, progress=bar)
     except BBPlanError as exc:
         raise click.ClickException(str(exc)) from None
     picture = write_bb_plan(made, out)

@@ -18,6 +18,7 @@ from calib.plan import (
 )
 from calib.surfaces import EllipticCylinder
 from orbitct.phantoms.primitives import sphere
+from orbitct.progress import ProgressEvent
 from tests.helpers.calib_scans import sawtooth, spiral_markers
 
 D_MM = 3.17
@@ -172,6 +173,20 @@ def test_the_suggested_count_is_the_fewest_bbs_that_reach_the_target() -> None:
     tighter = suggest_bb_count(g, surface, D_MM, target, n_max=12, **options)
     assert tighter.n_bbs is None or tighter.n_bbs > loose.n_bbs
     assert suggest_bb_count(g, surface, D_MM, 1e-6, n_max=6, **options).n_bbs is None
+
+
+def test_the_search_reports_how_far_it_got() -> None:
+    g = sawtooth(60, 256)
+    surface = EllipticCylinder(60.0, 60.0, -40.0, 40.0)
+    events: list[ProgressEvent] = []
+    suggest_bb_count(g, surface, D_MM, 1e-6, n_max=5, trials=30, rounds=1, min_spacing_mm=15.0, progress=events.append)
+    counts = [(e.done, e.total) for e in events if e.stage == "count"]
+    assert counts == [(0, 2), (1, 2), (1, 2), (2, 2)], counts  # before and after 4 BBs, then 5
+    plan = [e for e in events if e.stage == "plan"]
+    assert plan[-1].done == plan[-1].total == 30 + 1 * 5 and plan[-1].message == "5 BBs: predicted on every view"
+    for n in (4, 5):  # each count's search counts up to its end
+        done = [e.done for e in plan if e.message.startswith(f"{n} BBs")]
+        assert done == sorted(done) and done[-1] == 30 + n, done
 
 
 def test_a_bb_at_the_objects_silhouette_is_counted_noisier_across_the_edge() -> None:

@@ -553,6 +553,9 @@ function pagePlans() {
       progress.hidden = false;
       $('.id', progress).textContent = id;
       $('#plan-since').textContent = new Date(plan.created).toLocaleTimeString();
+      const step = plan.progress;
+      $('#plan-step').textContent = step ? `${step.stage === 'count' ? 'BB counts' : 'search'}: ${step.done} of ${step.total} (${step.message})`
+        : 'waiting for its turn';
       await sleep(1000);
     }
   };

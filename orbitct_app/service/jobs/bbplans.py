@@ -1,8 +1,8 @@
 """BB plans made in the background: one at a time, each in a process of its own (spawned, at the jobs' lower
 priority), so a plan of minutes neither holds a request open nor competes with the service's own threads.
 
-A plan's state lives beside it under ``<data>/plans``: ``<id>.state`` (JSON: planning, failed or cancelled, with
-what was asked and why it ended) until the finished plan's ``<id>.json`` and ``<id>.png`` are there; both are
+A plan's state lives beside it under ``<data>/plans``: ``<id>.state`` (JSON: planning with how far it got, failed or
+cancelled, with what was asked and why it ended) until the finished plan's ``<id>.json`` and ``<id>.png`` are there; both are
 moved into place whole, so a reader never sees half a plan."""
 
 from __future__ import annotations
@@ -13,13 +13,16 @@ import logging
 import multiprocessing as mp
 import os
 import shutil
+import signal
 import threading
+import time
 import traceback
 import uuid
 from collections import deque
 from pathlib import Path
 from typing import Any
 
+from orbitct.progress import ProgressEvent
 from orbitct_app.bbplan import BBPlanError, BBPlanRequest, make_bb_plan, write_bb_plan
 from orbitct_app.service.core.children import die_with_parent
 from orbitct_app.service.core.db import utc_now
@@ -31,6 +34,7 @@ PLANNING, DONE, FAILED, CANCELLED = "planning", "done", "failed", "cancelled"
 #: plans that may wait or run at once; one more is refused (each takes a core for seconds to minutes)
 MAX_PLANS_WAITING = 4
 STOPPED_REASON = "the service stopped while the plan was being made"
+PROGRESS_EVERY_S = 0.5  # a plan's record says how far it got at most this often
 _STATE_SUFFIX = ".state"
 
 
@@ -43,13 +47,24 @@ class PlanEnded(RuntimeError):
 
 
 def _make_plan(request: BBPlanRequest, folder: str, plan_id: str, parent_pid: int, conn: Any) -> None:
-    """In the plan's own process: make the plan, move its JSON and picture into place, send None or the reason."""
+    """In the plan's own process: make the plan, move its JSON and picture into place; send ``("progress", {...})``
+    now and then, and last ``("end", None)`` or ``("end", reason)``."""
     die_with_parent(parent_pid)
+    for sig in (signal.SIGINT, signal.SIGHUP):  # Ctrl-C at the service's terminal: the service ends the plan
+        signal.signal(sig, signal.SIG_IGN)
     with contextlib.suppress(OSError):
         os.nice(JOB_NICE)
+    sent = [0.0]
+
+    def progress(event: ProgressEvent) -> None:
+        if time.monotonic() - sent[0] >= PROGRESS_EVERY_S:
+            sent[0] = time.monotonic()
+            conn.send(("progress", {"stage": event.stage, "done": event.done, "total": event.total,
+                                    "message": event.message}))
+
     work = Path(folder) / f".{plan_id}.partial"
     try:
-        plan = make_bb_plan(request)
+        plan = make_bb_plan(request, progress)
         work.mkdir(exist_ok=True)
         write_bb_plan(plan, work / "plan.json")
         os.replace(work / "plan.png", Path(folder) / f"{plan_id}.png")
@@ -63,7 +78,7 @@ def _make_plan(request: BBPlanRequest, folder: str, plan_id: str, parent_pid: in
         traceback.print_exc()
         reason = f"planning failed: {type(exc).__name__}: {exc}"
     shutil.rmtree(work, ignore_errors=True)
-    conn.send(reason)
+    conn.send(("end", reason))
     conn.close()
 
 
@@ -98,6 +113,12 @@ class PlanQueue:
             self._write_state(plan_id, {**current, "state": state, "reason": reason, "ended": utc_now()})
         except OSError as exc:  # a full disk: the plan is already over; say so in the log
             log.error("plan %s %s (%s), and its state could not be written: %s", plan_id, state, reason, exc)
+
+    def _progress(self, plan_id: str, progress: dict[str, Any]) -> None:
+        current = self.state(plan_id)
+        if current is not None and current.get("state") == PLANNING:
+            with contextlib.suppress(OSError):  # a full disk: the plan goes on, its record shows older progress
+                self._write_state(plan_id, {**current, "progress": progress})
 
     def state(self, plan_id: str) -> dict[str, Any] | None:
         """A plan's state record while it waits or is made, or once it failed or was cancelled; None otherwise."""
@@ -183,12 +204,23 @@ class PlanQueue:
                 receive, send = self._ctx.Pipe(duplex=False)
                 process = self._ctx.Process(target=_make_plan, name=f"orbitct-plan-{plan_id}", daemon=True,
                                             args=(request, str(self.folder), plan_id, os.getpid(), send))
-                process.start()
+                try:
+                    process.start()
+                except OSError as exc:  # no process to be had (limits, memory): this plan fails, the queue goes on
+                    receive.close()
+                    send.close()
+                    self._end(plan_id, FAILED, f"cannot start the planning process: {exc}")
+                    continue
                 send.close()
                 self._running = (plan_id, process)
             reason: str | None = "the planning process ended without an answer"
             with contextlib.suppress(EOFError, OSError):
-                reason = receive.recv()
+                while True:
+                    kind, payload = receive.recv()
+                    if kind == "end":
+                        reason = payload
+                        break
+                    self._progress(plan_id, payload)
             receive.close()
             with self._lock:  # the answer ends the plan's turn; its process still has to exit (joined below)
                 self._running = None

@@ -12,8 +12,20 @@ from fastapi import APIRouter, Response
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from orbitct_app.bbplan import MAX_BBS, BBPlanError, BBPlanRequest, check_bb_plan_request, outline_from_volume
-from orbitct_app.service.core.errors import ERROR_RESPONSES, Conflict, ErrorBody, Invalid, NotFound
+from orbitct_app.bbplan import (
+    MAX_BBS,
+    BBPlanError,
+    BBPlanRequest,
+    check_bb_plan_request,
+    outline_from_volume,
+)
+from orbitct_app.service.core.errors import (
+    ERROR_RESPONSES,
+    Conflict,
+    ErrorBody,
+    Invalid,
+    NotFound,
+)
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
 from orbitct_app.service.jobs.bbplans import PlanEnded, PlansBusy
 from orbitct_app.service.routers.reconstructions import reconstruction_volume
@@ -108,6 +120,8 @@ class PlanStateOut(BaseModel):
     target_px: float | None = None
     ended: str | None = None
     reason: str | None = None
+    progress: dict[str, Any] | None = Field(None, description="how far the search got: stage (count, plan), done, "
+                                             "total, message")
 
 
 def _plans_dir(service: Any) -> Any:

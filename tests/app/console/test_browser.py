@@ -296,6 +296,7 @@ def test_an_analyst_plans_bbs_and_a_viewer_reads_the_plan(console: Console) -> N
     long_id = page.inner_text("#plan-progress .id")
     until(page, f"() => [...document.querySelectorAll('#plan-table tr')].some((r) => r.textContent.includes('{long_id}') "
                 "&& r.textContent.includes('planning'))")
+    until(page, "() => /of \\d+ \\(/.test(document.getElementById('plan-step').textContent)")  # how far it got
     shot(page, "bb-plan-planning")
     page.click("#plan-cancel")
     until(page, "() => document.querySelector('#plan-form .error').textContent.includes('cancelled by')")

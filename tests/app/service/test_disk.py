@@ -57,7 +57,8 @@ def test_the_service_rides_out_a_full_disk(make_api, tmp_path: Path) -> None:  #
         assert refused.status_code == 507, refused.text
         assert "not enough disk space" in refused.json()["message"] and api.service.rig.busy is None
         more = fill(disk, leave_bytes=0, name="filler2.bin")  # not a byte left: the database cannot write either
-        for method, path, body in [("POST", "/calibrations", {"scan_id": complete_id}), ("POST", "/scans", {**SMALL_SAWTOOTH, "frames": 20})]:
+        for method, path, body in [("POST", "/calibrations", {"scan_id": complete_id}), ("POST", "/scans", {**SMALL_SAWTOOTH, "frames": 20}),
+                                   ("POST", "/plans/bbs", {"experiment": "A", "frames": 20, "detector_px": 64, "bbs": 4})]:
             r = api.request(method, path, role="dev", json=body)
             assert r.status_code == 507, (path, r.status_code, r.text)
             assert "disk" in r.json()["message"]

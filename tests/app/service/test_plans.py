@@ -75,7 +75,11 @@ def test_a_plan_being_made_is_listed_and_can_be_cancelled(shared_api: Any) -> No
     r = api.get(f"/plans/bbs/{plan_id}/picture")
     assert r.status_code == 409 and "is planning" in r.json()["message"]
     assert api.post(f"/plans/bbs/{plan_id}/cancel", role="viewer").status_code == 403
-    time.sleep(1.0)  # let it start: the process is killed, not just taken off the queue
+    deadline = time.monotonic() + 60.0  # let it start: the process is killed, not just taken off the queue
+    while "progress" not in (record := api.get(f"/plans/bbs/{plan_id}").json()):
+        assert time.monotonic() < deadline, record
+        time.sleep(0.2)
+    assert record["progress"]["stage"] in ("count", "plan") and record["progress"]["total"] > 0, record
     r = api.post(f"/plans/bbs/{plan_id}/cancel", role="analyst")
     assert r.status_code == 202 and r.json()["state"] == "cancelled", r.text
     assert r.json()["reason"] == "cancelled by test-analyst"
