@@ -4,6 +4,7 @@ stopped service left unmade marked failed."""
 
 from __future__ import annotations
 
+import json
 import time
 from typing import Any
 
@@ -120,9 +121,15 @@ def test_a_plan_the_service_stopped_is_failed_after_the_restart(make_api: Any) -
     plan_id = api.post("/plans/bbs", role="analyst", json=LONG).json()["id"]
     api.client.__exit__(None, None, None)  # the service stops while the plan is being made
     assert not any(p.name.startswith("orbitct-plan-") for p in __import__("multiprocessing").active_children())
+    # a service killed outright leaves its plan's record planning (and maybe half a plan): the next one says so
+    (api.data_dir / "plans" / "0123456789ab.state").write_text(json.dumps(
+        {"id": "0123456789ab", "state": "planning", "owner": "t", "created": "2026-01-01T00:00:00.000+00:00",
+         "experiment": "A", "orbit": "sawtooth", "views": 20, "bbs": 4}))
+    (api.data_dir / "plans" / ".0123456789ab.partial").mkdir()
     again = make_api(api.data_dir)
-    plan = again.get(f"/plans/bbs/{plan_id}").json()
-    assert plan["state"] == "failed" and plan["reason"] == "the service stopped while the plan was being made", plan
+    for stopped in (plan_id, "0123456789ab"):
+        plan = again.get(f"/plans/bbs/{stopped}").json()
+        assert plan["state"] == "failed" and plan["reason"] == "the service stopped while the plan was being made", plan
     assert not list((api.data_dir / "plans").glob(".*.partial"))
 
 
