@@ -213,7 +213,7 @@ def placement_score(pred: PlanPrediction) -> float:
 
 def check_room(surface: TapeSurface, keep_out: Sequence[KeepOut], rng: np.random.Generator | None = None) -> None:
     """ValueError when the ``keep_out`` patches leave no place on ``surface`` for a BB (4000 random places tried)."""
-    rng = rng or np.random.default_rng(0)
+    rng = rng if rng is not None else np.random.default_rng(0)
     probe = (rng.uniform(0, 2 * np.pi, 4000), rng.uniform(surface.z_min_mm, surface.z_max_mm, 4000))
     if not (_allowed(probe[0], probe[1], keep_out) & surface.covers(*probe)).any():
         raise ValueError("the keep-out zones cover the whole surface: no place is left for a BB")

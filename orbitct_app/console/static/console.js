@@ -545,10 +545,11 @@ function pageJobs() {
 function pagePlans() {
   const sleep = (ms) => new Promise((resolve) => { setTimeout(resolve, ms); });
   /** The plan once it is no longer being made (plans are made one at a time in the background). */
+  let shown = null;  // the plan last asked for: an earlier one still being polled gives way
   const made = async (id) => {
     for (;;) {
       const plan = await api('GET', `/plans/bbs/${id}`);
-      if (plan.state !== 'planning') return plan;
+      if (plan.state !== 'planning' || shown !== id) return plan;
       const progress = $('#plan-progress');
       progress.hidden = false;
       $('.id', progress).textContent = id;
@@ -560,7 +561,9 @@ function pagePlans() {
     }
   };
   const show = async (id) => {
+    shown = id;
     const plan = await made(id);
+    if (shown !== id) return;
     $('#plan-progress').hidden = true;
     if (plan.state !== 'done') throw new ApiError(`plan ${id} ${plan.state}: ${plan.reason}`, 0);
     const box = $('#plan-result');
