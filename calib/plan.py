@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from calib.background import ObjectBackground
 from calib.model import ViewModel
 from calib.quality import MIN_OWN_BBS, huber_threshold_px, placement_predicted_px
-from calib.surfaces import TapeSurface
+from calib.surfaces import TapeSurface, polar_angle
 from orbitct.geometry import ViewGeometry
 from orbitct.progress import ProgressCallback, report
 
@@ -193,7 +193,8 @@ class KeepOut:
 
 @dataclass(frozen=True)
 class Placement:
-    """Planned BBs: polar angles (rad) and heights (mm) on the surface, their centres, and the prediction."""
+    """Planned BBs: their addresses on the surface (angle, rad, as the surface reads it — the polar angle is
+    :func:`calib.surfaces.polar_angle` — and height, mm), their centres, and the prediction."""
 
     angle_rad: NDArray[np.float64]
     z_mm: NDArray[np.float64]
@@ -215,7 +216,7 @@ def check_room(surface: TapeSurface, keep_out: Sequence[KeepOut], rng: np.random
     """ValueError when the ``keep_out`` patches leave no place on ``surface`` for a BB (4000 random places tried)."""
     rng = rng if rng is not None else np.random.default_rng(0)
     probe = (rng.uniform(0, 2 * np.pi, 4000), rng.uniform(surface.z_min_mm, surface.z_max_mm, 4000))
-    if not (_allowed(probe[0], probe[1], keep_out) & surface.covers(*probe)).any():
+    if not (_allowed(surface, probe[0], probe[1], keep_out) & surface.covers(*probe)).any():
         raise ValueError("the keep-out zones cover the whole surface: no place is left for a BB")
 
 
@@ -242,7 +243,7 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
         ang, z = np.empty(0), np.empty(0)
         for _ in range(1000):  # uniform over the surface less the keep-out zones
             a, h = rng.uniform(0, 2 * np.pi, 4 * n), rng.uniform(surface.z_min_mm, surface.z_max_mm, 4 * n)
-            keep = _allowed(a, h, keep_out) & surface.covers(a, h)
+            keep = _allowed(surface, a, h, keep_out) & surface.covers(a, h)
             ang, z = np.concatenate([ang, a[keep]]), np.concatenate([z, h[keep]])
             if ang.size >= n:
                 return ang[:n], z[:n]
@@ -316,15 +317,19 @@ def hand_spiral(surface: TapeSurface, n_bbs: int, diameter_mm: float, *, seed: i
     z = surface.z_min_mm + 0.1 * span + step_mm * k + rng.uniform(-off_mm, off_mm, n_bbs)
     if not surface.covers(angle, z).all():
         raise ValueError("a hand-made spiral leaves the surface (an outline with holes?)")
-    if not _allowed(angle, z, keep_out).all():
+    if not _allowed(surface, angle, z, keep_out).all():
         raise ValueError("a hand-made spiral puts a BB in a keep-out zone")
     return surface.points(angle, z, diameter_mm)
 
 
-def _allowed(angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64], keep_out: Sequence[KeepOut]) -> NDArray[np.bool_]:
-    out = np.ones(angle_rad.shape, bool)
-    for zone in keep_out:
-        out &= ~zone.contains(angle_rad, z_mm)
+def _allowed(surface: TapeSurface, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64],
+             keep_out: Sequence[KeepOut]) -> NDArray[np.bool_]:
+    """Which addresses (angle, height) of ``surface`` lie outside every patch (patches are in polar angles)."""
+    out = np.ones(np.shape(angle_rad), bool)
+    if keep_out:
+        polar = polar_angle(surface, angle_rad, z_mm)
+        for zone in keep_out:
+            out &= ~zone.contains(polar, z_mm)
     return out
 
 

@@ -1,9 +1,12 @@
-"""Where BBs can be taped: an object's outer surface, addressed by polar angle about the object frame's z axis and
-height, as the BB planner searches it and as a person finds a place on the object.
+"""Where BBs can be taped: an object's outer surface, addressed by an angle about the object frame's z axis and a
+height, as the BB planner searches it; a person finds a place on the object by its polar angle
+(:func:`polar_angle`) and height.
 
-``EllipticCylinder`` is a surface given by parameters (the experiments' objects); ``Outline`` is the outermost
-surface of a real object, from a mask of a prior volume or from points on a surface mesh, as a radius per angle
-and height (star-shaped about the z axis: what a BB taped on the outside can reach).
+``EllipticCylinder`` is a surface given by parameters (the experiments' objects), addressed by the ellipse's own
+angle parameter (evenly spread round it), which differs from the polar angle where the semi-axes differ (up to 8
+degrees on experiment C's torso); ``Outline`` is the outermost surface of a real object, from a mask of a prior
+volume or from points on a surface mesh, as a radius per polar angle and height (star-shaped about the z axis: what
+a BB taped on the outside can reach), addressed by the polar angle itself.
 """
 
 from __future__ import annotations
@@ -16,17 +19,17 @@ from numpy.typing import NDArray
 
 
 class TapeSurface(Protocol):
-    """What the planner needs of a surface."""
+    """What the planner needs of a surface, addressed by an angle (rad) about z and a height (mm)."""
 
     z_min_mm: float
     z_max_mm: float
 
     def points(self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64], diameter_mm: float) -> NDArray[np.float64]:
-        """BB centres on the surface (a BB's radius outside it) at polar angles and heights."""
+        """BB centres on the surface (a BB's radius outside it) at these addresses (angle, height)."""
         ...
 
     def covers(self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64]) -> NDArray[np.bool_]:
-        """Whether the object has surface at these polar angles and heights."""
+        """Whether the object has surface at these addresses (angle, height)."""
         ...
 
     def describe(self) -> dict[str, Any]:
@@ -37,7 +40,7 @@ class TapeSurface(Protocol):
 @dataclass(frozen=True)
 class EllipticCylinder:
     """The side of an elliptic cylinder about the z axis (semi-axes ``a_mm`` along x and ``b_mm`` along y), between
-    heights ``z_min_mm`` and ``z_max_mm``."""
+    heights ``z_min_mm`` and ``z_max_mm``; the address angle t is the ellipse's parameter, at ``(a cos t, b sin t)``."""
 
     a_mm: float
     b_mm: float
@@ -45,7 +48,7 @@ class EllipticCylinder:
     z_max_mm: float
 
     def points(self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64], diameter_mm: float) -> NDArray[np.float64]:
-        """BB centres on the surface (a BB's radius outside it) at polar angles and heights."""
+        """BB centres on the surface (a BB's radius outside it) at these parameter angles and heights."""
         p = np.stack([self.a_mm * np.cos(angle_rad), self.b_mm * np.sin(angle_rad), np.zeros_like(angle_rad)], -1)
         normal = np.stack([np.cos(angle_rad) / self.a_mm, np.sin(angle_rad) / self.b_mm, np.zeros_like(angle_rad)], -1)
         normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
@@ -166,6 +169,28 @@ class Outline:
         return cls(z0 + rows * vz, _fill_angles(radius), source)
 
 
+def polar_angle(surface: TapeSurface, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The polar angle (rad, counterclockwise from +x, in [0, 2 pi)) of the surface at these addresses: where a person
+    finds the place on the object."""
+    p = surface.points(np.asarray(angle_rad, dtype=float), np.asarray(z_mm, dtype=float), 0.0)
+    return np.arctan2(p[..., 1], p[..., 0]) % (2 * np.pi)  # type: ignore[no-any-return]
+
+
+def address_angle(surface: TapeSurface, polar_rad: NDArray[np.float64], z_mm: float) -> NDArray[np.float64]:
+    """The address angles of the surface at polar angles and one height (the inverse of :func:`polar_angle`, which
+    rises once round the turn on a surface star-shaped about z)."""
+    grid = np.linspace(0.0, 2 * np.pi, 1441)
+    polar = polar_angle(surface, grid, np.full(grid.size, z_mm))
+    ok = np.isfinite(polar)  # an outline may have no surface at some angles of this height
+    if ok.sum() < 2:
+        return np.asarray(polar_rad, dtype=float) % (2 * np.pi)  # type: ignore[no-any-return]
+    grid, polar = grid[ok], np.unwrap(polar[ok])
+    polar -= 2 * np.pi * np.floor(polar[0] / (2 * np.pi))
+    target = np.asarray(polar_rad, dtype=float) % (2 * np.pi)
+    target = np.where(target < polar[0], target + 2 * np.pi, target)
+    return np.interp(target, polar, grid) % (2 * np.pi)  # type: ignore[no-any-return]
+
+
 def _fill_angles(radius: NDArray[np.float64]) -> NDArray[np.float64]:
     """Close gaps of a few angles in each height's row (a sparse sampling), periodically; wider gaps stay NaN."""
     out = radius.copy()
@@ -185,4 +210,4 @@ def _fill_angles(radius: NDArray[np.float64]) -> NDArray[np.float64]:
     return out
 
 
-__all__ = ["EllipticCylinder", "Outline", "TapeSurface"]
+__all__ = ["EllipticCylinder", "Outline", "TapeSurface", "address_angle", "polar_angle"]

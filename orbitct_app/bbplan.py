@@ -94,6 +94,7 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
         suggest_bb_count,
     )
     from calib.quality import huber_threshold_px
+    from calib.surfaces import polar_angle
     from orbitct.phantoms.experiments import experiment_phantom
     from orbitct.simulator.bench import SimulatedBench
 
@@ -127,6 +128,7 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
     except ValueError:  # the spiral leaves the surface or enters a keep-out zone: none to compare with
         spiral = None
     pred = placed.prediction
+    polar_deg = np.degrees(polar_angle(surface, placed.angle_rad, placed.z_mm))  # where a person finds each BB
     if pred.under_determined.size:
         warnings.append(f"{pred.under_determined.size} view(s) see fewer than 4 usable BBs (first: "
                         f"{pred.under_determined[:8].tolist()}); more BBs, or another orbit")
@@ -138,7 +140,7 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
         "surface": surface.describe(),
         "keep_out": [vars(z) for z in req.keep_out],
         "bbs": [{"number": k + 1, "xyz_mm": [round(float(v), 2) for v in placed.xyz[k]],
-                 "angle_deg": round(float(np.degrees(placed.angle_rad[k])) % 360.0, 1),
+                 "angle_deg": round(float(polar_deg[k]) % 360.0, 1),
                  "height_mm": round(float(placed.z_mm[k]), 1)} for k in range(n_bbs)],
         "predicted": pred.summary(), "score": placed.score,
         "experiment_placement": {"bbs": int(phantom.n_markers), "predicted": own.summary(), "score": placement_score(own)},
@@ -344,8 +346,9 @@ def _picture(path: Path, plan: BBPlan) -> None:
         for lo, hi in spans:
             ax0.add_patch(Rectangle((lo, zone["z_min_mm"]), hi - lo, zone["z_max_mm"] - zone["z_min_mm"],
                                     color="grey", alpha=0.3, label=None))
-    ax0.scatter(np.degrees(placed.angle_rad) % 360.0, placed.z_mm, s=60, c="tab:red")
-    for k, (a, z) in enumerate(zip(np.degrees(placed.angle_rad) % 360.0, placed.z_mm, strict=True)):
+    polar_deg = [bb["angle_deg"] for bb in plan.body["bbs"]]
+    ax0.scatter(polar_deg, placed.z_mm, s=60, c="tab:red")
+    for k, (a, z) in enumerate(zip(polar_deg, placed.z_mm, strict=True)):
         ax0.annotate(str(k + 1), (a, z), textcoords="offset points", xytext=(5, 5))
     ax0.set(xlim=(0, 360), ylim=(surface.z_min_mm - 5, surface.z_max_mm + 5), xlabel="angle on the object (deg, from +x)",
             ylabel="height (mm)", title="unrolled" + (" (grey: keep out)" if plan.body["keep_out"] else ""))
@@ -380,16 +383,18 @@ def _object_3d(ax: Any, surface: Any, xyz: np.ndarray, keep_out: list[dict[str, 
     from matplotlib.ticker import MaxNLocator
 
     from calib.plan import KeepOut
+    from calib.surfaces import address_angle
 
     z_lo, z_hi = surface.z_min_mm, surface.z_max_mm
-    for zone in keep_out:  # its border on the surface: two arcs and two edges
+    for zone in keep_out:  # its border on the surface (in polar angles): two arcs and two edges
         a0 = np.radians(zone["angle_from_deg"])
         span = np.radians(KeepOut(**zone).span_deg)
         arc = a0 + np.linspace(0.0, span, 60)
         z0, z1 = max(zone["z_min_mm"], z_lo), min(zone["z_max_mm"], z_hi)
         side = np.linspace(z0, z1, 20)
-        for a, z in ((arc, np.full(arc.size, z0)), (arc, np.full(arc.size, z1)),
-                     (np.full(side.size, a0), side), (np.full(side.size, a0 + span), side)):
+        edges = [(address_angle(surface, arc, z), np.full(arc.size, z)) for z in (z0, z1)]
+        edges += [(np.array([address_angle(surface, np.array([a]), z)[0] for z in side]), side) for a in (a0, a0 + span)]
+        for a, z in edges:
             ax.plot(*surface.points(a, z, 0.0).T, color="black", lw=1.2, alpha=0.6)
     turn = np.radians(np.arange(0.0, 361.0, 4.0))
     for z in np.linspace(z_lo, z_hi, 6):
@@ -397,7 +402,7 @@ def _object_3d(ax: Any, surface: Any, xyz: np.ndarray, keep_out: list[dict[str, 
         ring[~surface.covers(turn, np.full(turn.size, z))] = np.nan
         ax.plot(*ring.T, color="grey", lw=0.6, alpha=0.5)
     heights = np.linspace(z_lo, z_hi, 24)
-    for a in np.radians(np.arange(0.0, 360.0, 30.0)):
+    for a in address_angle(surface, np.radians(np.arange(0.0, 360.0, 30.0)), 0.5 * (z_lo + z_hi)):  # every 30 deg
         line = surface.points(np.full(heights.size, a), heights, 0.0)
         line[~surface.covers(np.full(heights.size, a), heights)] = np.nan
         ax.plot(*line.T, color="grey", lw=0.6, alpha=0.5)

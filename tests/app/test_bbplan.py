@@ -74,6 +74,25 @@ def test_the_cli_plans_on_a_mesh(tmp_path: Path) -> None:
         assert bad.exit_code != 0 and message in bad.output and "Traceback" not in bad.output, bad.output
 
 
+def test_a_plan_on_an_elliptic_object_gives_the_polar_angles_a_person_measures(tmp_path: Path) -> None:
+    """Experiment C's torso is an elliptic cylinder (120 by 90 mm): each BB's angle is the polar angle of its place
+    (where the ellipse's parameter is up to 8 degrees off), and none lies in the keep-out patch, in polar angles."""
+    import json
+
+    from click.testing import CliRunner
+
+    from orbitct_app.cli.main import cli
+
+    out = tmp_path / "plan.json"
+    r = CliRunner().invoke(cli, ["plan", "bbs", "-e", "C", "--frames", "40", "--detector-size", "128", "--bbs", "8",
+                                 "--keep-out", "20:70,-100:100", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    bbs = json.loads(out.read_text())["bbs"]
+    polar = np.array([np.degrees(np.arctan2(b["xyz_mm"][1], b["xyz_mm"][0])) % 360.0 for b in bbs])
+    assert np.allclose([b["angle_deg"] for b in bbs], polar, atol=0.3), ([b["angle_deg"] for b in bbs], polar)
+    assert not ((polar >= 20.0) & (polar <= 70.0)).any(), polar
+
+
 @pytest.mark.parametrize(("body", "needle"), [
     ("not json", "not JSON"),
     ("[1, 2]", "not a BB plan"),

@@ -16,7 +16,7 @@ from calib.plan import (
     suggest_bb_count,
     usable_bbs,
 )
-from calib.surfaces import EllipticCylinder
+from calib.surfaces import EllipticCylinder, address_angle, polar_angle
 from orbitct.phantoms.primitives import sphere
 from orbitct.progress import ProgressEvent
 from tests.helpers.calib_scans import sawtooth, spiral_markers
@@ -159,6 +159,25 @@ def test_keep_out_zones_are_parsed_wrap_through_zero_and_stay_free_of_bbs() -> N
         plan_placement(g, surface, 5, D_MM, keep_out=(KeepOut(0.0, 180.0, -50.0, 50.0), KeepOut(180.0, 0.0, -50.0, 50.0)))
     with pytest.raises(ValueError, match="cover the whole surface"):
         plan_placement(g, surface, 5, D_MM, keep_out=(KeepOut.parse("0:360,-50:50"),))
+
+
+def test_keep_out_angles_are_polar_angles_on_an_elliptic_object_too() -> None:
+    """On experiment C's torso (semi-axes 120 and 90 mm) the ellipse's parameter angle, which addresses the surface,
+    is up to 8 degrees off the polar angle a person measures: the patches and the BBs' angles are polar angles."""
+    g = sawtooth(60, 256)
+    surface = EllipticCylinder(120.0, 90.0, -70.0, 70.0)
+    zone = KeepOut(30.0, 60.0, -70.0, 70.0)
+    placed = plan_placement(g, surface, 8, D_MM, keep_out=(zone,), trials=60, rounds=2, min_spacing_mm=20.0, seed=3)
+    xyz = surface.points(placed.angle_rad, placed.z_mm, 0.0)
+    polar = np.arctan2(xyz[:, 1], xyz[:, 0])
+    assert not zone.contains(polar, placed.z_mm).any(), np.degrees(polar) % 360
+    # the parameter angle 62 deg lies at the polar angle 54.7 deg: in the patch (it was taken as outside it)
+    assert np.degrees(polar_angle(surface, np.radians([62.0]), np.zeros(1)))[0] == pytest.approx(54.7, abs=0.1)
+    from calib.plan import _allowed
+
+    assert _allowed(surface, np.radians([62.0, 70.0]), np.zeros(2), (zone,)).tolist() == [False, True]
+    turn = np.radians(np.arange(0.0, 360.0, 7.5))
+    assert np.allclose(polar_angle(surface, address_angle(surface, turn, 0.0), np.zeros(turn.size)), turn, atol=1e-3)
 
 
 def test_the_suggested_count_is_the_fewest_bbs_that_reach_the_target() -> None:
