@@ -2,7 +2,8 @@
 height, as the BB planner searches it; a person finds a place on the object by its polar angle
 (:func:`polar_angle`) and height.
 
-``EllipticCylinder`` is a surface given by parameters (the experiments' objects), addressed by the ellipse's own
+``EllipticCylinder`` and ``Ellipsoid`` are surfaces given by parameters (:func:`shape_from_text`; the experiments'
+objects are elliptic cylinders), addressed by the ellipse's own
 angle parameter (evenly spread round it), which differs from the polar angle where the semi-axes differ (up to 8
 degrees on experiment C's torso); ``Outline`` is the outermost surface of a real object, from a mask of a prior
 volume or from points on a surface mesh, as a radius per polar angle and height (star-shaped about the z axis: what
@@ -61,6 +62,67 @@ class EllipticCylinder:
     def describe(self) -> dict[str, Any]:
         """Kind and parameters."""
         return {"kind": "elliptic cylinder", **vars(self)}
+
+
+@dataclass(frozen=True)
+class Ellipsoid:
+    """An ellipsoid about the isocentre (semi-axes ``a_mm`` along x, ``b_mm`` along y, ``c_mm`` along z), where BBs
+    go between heights ``z_min_mm`` and ``z_max_mm``; the address angle t is the parameter of the ellipse cut at the
+    height, at ``s (a cos t, b sin t)`` with ``s = sqrt(1 - z^2 / c^2)``."""
+
+    a_mm: float
+    b_mm: float
+    c_mm: float
+    z_min_mm: float
+    z_max_mm: float
+
+    def points(self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64], diameter_mm: float) -> NDArray[np.float64]:
+        """BB centres a BB's radius outside the surface along its normal."""
+        ang, z = np.asarray(angle_rad, dtype=float), np.asarray(z_mm, dtype=float)
+        shrink = np.sqrt(np.clip(1.0 - (z / self.c_mm) ** 2, 0.0, None))
+        p = np.stack([self.a_mm * shrink * np.cos(ang), self.b_mm * shrink * np.sin(ang), z], -1)
+        normal = p / np.array([self.a_mm, self.b_mm, self.c_mm]) ** 2
+        normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+        return p + 0.5 * diameter_mm * normal  # type: ignore[no-any-return]
+
+    def covers(self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Everywhere between the two heights."""
+        return (np.asarray(z_mm) >= self.z_min_mm) & (np.asarray(z_mm) <= self.z_max_mm)
+
+    def describe(self) -> dict[str, Any]:
+        """Kind and parameters."""
+        return {"kind": "ellipsoid", **vars(self)}
+
+
+def shape_from_text(text: str) -> EllipticCylinder | Ellipsoid:
+    """A surface by parameters (mm): ``cylinder:R,ZMIN:ZMAX``, ``cylinder:A,B,ZMIN:ZMAX`` (semi-axes along x and
+    y) or ``ellipsoid:A,B,C`` (semi-axes along x, y, z, about the isocentre; BBs within 0.9 C of its middle, or
+    ``ellipsoid:A,B,C,ZMIN:ZMAX``). ValueError naming what is wrong."""
+    kind, _, rest = text.partition(":")
+    usage = {"cylinder": "cylinder:R,ZMIN:ZMAX or cylinder:A,B,ZMIN:ZMAX", "ellipsoid": "ellipsoid:A,B,C or "
+             "ellipsoid:A,B,C,ZMIN:ZMAX"}
+    if kind not in usage:
+        raise ValueError(f"shape {text!r}: expected {usage['cylinder']} or {usage['ellipsoid']} (mm)")
+    parts = rest.split(",")
+    band = parts.pop() if parts and ":" in parts[-1] else None
+    try:
+        axes = [float(v) for v in parts]
+        z = [float(v) for v in band.split(":")] if band is not None else None
+    except ValueError:
+        raise ValueError(f"shape {text!r}: expected {usage[kind]} (numbers, mm)") from None
+    if not all(np.isfinite(v) and 0.0 < v <= 1000.0 for v in axes):
+        raise ValueError(f"shape {text!r}: semi-axes must be in (0, 1000] mm")
+    if z is not None and not (len(z) == 2 and all(np.isfinite(z)) and z[0] < z[1]):
+        raise ValueError(f"shape {text!r}: heights ZMIN:ZMAX must be two numbers, the lower first")
+    if kind == "cylinder" and len(axes) in (1, 2) and z is not None:
+        return EllipticCylinder(axes[0], axes[-1], z[0], z[1])
+    if kind == "ellipsoid" and len(axes) == 3:
+        c = axes[2]
+        lo, hi = z if z is not None else (-0.9 * c, 0.9 * c)
+        if lo < -c or hi > c:
+            raise ValueError(f"shape {text!r}: the heights must lie within the ellipsoid's -{c:g} to {c:g} mm")
+        return Ellipsoid(axes[0], axes[1], c, lo, hi)
+    raise ValueError(f"shape {text!r}: expected {usage[kind]} (mm)")
 
 
 @dataclass(frozen=True)
@@ -210,4 +272,4 @@ def _fill_angles(radius: NDArray[np.float64]) -> NDArray[np.float64]:
     return out
 
 
-__all__ = ["EllipticCylinder", "Outline", "TapeSurface", "address_angle", "polar_angle"]
+__all__ = ["Ellipsoid", "EllipticCylinder", "Outline", "TapeSurface", "address_angle", "polar_angle", "shape_from_text"]

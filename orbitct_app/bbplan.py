@@ -173,17 +173,24 @@ MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off")
 
 
 def load_surface(source: str, threshold_per_mm: float | None = None) -> Any:
-    """The outer surface of a real object for the planner (``calib.surfaces.Outline``): a surface mesh
+    """The object's outer surface for the planner: a shape by parameters (``cylinder:...``, ``ellipsoid:...``, see
+    ``calib.surfaces.shape_from_text``), or a real object's outline (``calib.surfaces.Outline``) from a surface mesh
     (``.stl``, ``.obj``, ``.ply``, ``.off``; mm, object frame), a prior volume as NIfTI (``.nii``, ``.nii.gz``; as
     ``orbitct`` writes it: axis-aligned, mm) or a reconstruction in a scan file (``SCAN.h5#NAME``), thresholded at
     ``threshold_per_mm`` (default: Otsu's threshold of the volume). BBPlanError naming what is wrong."""
-    from calib.surfaces import Outline
+    from calib.surfaces import Outline, shape_from_text
 
+    if source.startswith(("cylinder:", "ellipsoid:")):
+        try:
+            return shape_from_text(source)
+        except ValueError as exc:
+            raise BBPlanError(f"surface {exc}") from None
     path_text, _, recon = source.partition("#")
     path = Path(path_text)
     name = path.name.lower()
     if not path.is_file():
-        raise BBPlanError(f"surface {source!r}: no such file")
+        raise BBPlanError(f"surface {source!r}: no such file (a shape is cylinder:R,ZMIN:ZMAX, cylinder:A,B,ZMIN:ZMAX "
+                          "or ellipsoid:A,B,C[,ZMIN:ZMAX], mm)")
     try:
         if name.endswith(MESH_SUFFIXES):
             import trimesh

@@ -37,9 +37,10 @@ def _keep_out(ctx: click.Context, param: click.Parameter, values: tuple[str, ...
 @click.option("--keep-out", "keep_out", multiple=True, callback=_keep_out, metavar="FROM:TO,ZMIN:ZMAX",
               help="a patch of the surface without BBs: polar angles (deg, counterclockwise from +x) and heights (mm), "
                    "e.g. 300:60,-20:10; repeat for more")
-@click.option("--surface", "surface_source", default=None, metavar="MESH|VOLUME|SCAN.h5#RECON",
-              help="the object's real outer surface instead of the experiment's cylinder: a mesh (.stl .obj .ply .off, mm, "
-                   "object frame), a prior volume (.nii/.nii.gz as orbitct writes it) or a reconstruction in a scan file")
+@click.option("--surface", "surface_source", default=None, metavar="MESH|VOLUME|SCAN.h5#RECON|SHAPE",
+              help="the object's surface instead of the experiment's cylinder: a mesh (.stl .obj .ply .off, mm, object "
+                   "frame), a prior volume (.nii/.nii.gz as orbitct writes it), a reconstruction in a scan file, or a shape "
+                   "in mm: cylinder:R,ZMIN:ZMAX, cylinder:A,B,ZMIN:ZMAX, ellipsoid:A,B,C[,ZMIN:ZMAX]")
 @click.option("--surface-threshold", type=FiniteFloat(), default=None, metavar="MU_PER_MM",
               help="with a volume: the attenuation (1/mm) above which a voxel is the object (default: Otsu's threshold)")
 @click.option("--detector-size", type=click.IntRange(min=8, max=4096), default=768, show_default=True)

@@ -68,6 +68,8 @@ def test_the_cli_plans_on_a_mesh(tmp_path: Path) -> None:
     assert np.allclose(radii, 70.0 + body["bb_diameter_mm"] / 2, atol=1.0), radii
     bad = CliRunner().invoke(cli, ["plan", "bbs", "-e", "A", "--surface", str(tmp_path / "x.xyz"), "--out", str(out)])
     assert bad.exit_code == 1 and "no such file" in bad.output and "Traceback" not in bad.output
+    bad = CliRunner().invoke(cli, ["plan", "bbs", "-e", "A", "--surface", "ellipsoid:70,60", "--out", str(out)])
+    assert bad.exit_code == 1 and "expected ellipsoid:A,B,C" in bad.output and "Traceback" not in bad.output
     for zone, message in (("0:360,-500:500", "cover the whole surface"), ("30:30,-5:5", "no patch")):  # never a plan
         bad = CliRunner().invoke(cli, ["plan", "bbs", "-e", "A", "--frames", "20", "--detector-size", "64", "--keep-out",
                                        zone, "--out", str(tmp_path / "k.json")])

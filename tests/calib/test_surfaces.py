@@ -1,13 +1,19 @@
-"""Surfaces the BB planner tapes on: an elliptic cylinder by parameters, and a real object's outline from a prior
-volume's mask, from a surface mesh, or from a reconstruction in a scan file."""
+"""Surfaces the BB planner tapes on: an elliptic cylinder and an ellipsoid by parameters, and a real object's outline
+from a prior volume's mask, from a surface mesh, or from a reconstruction in a scan file."""
 
 from __future__ import annotations
-
 
 import numpy as np
 import pytest
 
-from calib.surfaces import EllipticCylinder, Outline
+from calib.surfaces import (
+    Ellipsoid,
+    EllipticCylinder,
+    Outline,
+    address_angle,
+    polar_angle,
+    shape_from_text,
+)
 
 D_MM = 3.0
 
@@ -49,3 +55,24 @@ def test_an_elliptic_cylinder_covers_only_its_heights() -> None:
     s = EllipticCylinder(50.0, 30.0, -10.0, 10.0)
     assert s.covers(np.zeros(3), np.array([-10.0, 0.0, 11.0])).tolist() == [True, True, False]
     assert s.describe() == {"kind": "elliptic cylinder", "a_mm": 50.0, "b_mm": 30.0, "z_min_mm": -10.0, "z_max_mm": 10.0}
+
+
+def test_shapes_by_parameters_are_read_and_an_ellipsoid_holds_its_bbs_along_the_normal() -> None:
+    assert shape_from_text("cylinder:60,-40:40") == EllipticCylinder(60.0, 60.0, -40.0, 40.0)
+    assert shape_from_text("cylinder:120,90,-70:70") == EllipticCylinder(120.0, 90.0, -70.0, 70.0)
+    assert shape_from_text("ellipsoid:70,60,90") == Ellipsoid(70.0, 60.0, 90.0, -81.0, 81.0)
+    s = shape_from_text("ellipsoid:70,60,90,-30:60")
+    assert (s.z_min_mm, s.z_max_mm) == (-30.0, 60.0) and s.covers(np.zeros(2), np.array([-31.0, 0.0])).tolist() == [False, True]
+    for bad, needle in (("ellipsoid:70,60", "expected ellipsoid"), ("cylinder:60", "expected cylinder"),
+                        ("cylinder:60,x:3", "numbers"), ("ellipsoid:70,60,90,50:10", "the lower first"),
+                        ("ellipsoid:70,60,90,-100:0", "within the ellipsoid"), ("ellipsoid:70,nan,90", "semi-axes"),
+                        ("sphere:3", "expected cylinder")):
+        with pytest.raises(ValueError, match=needle):
+            shape_from_text(bad)
+    ang, z = np.radians(np.arange(0.0, 360.0, 15.0)), np.linspace(-80.0, 80.0, 24)
+    on, out = s.points(ang, z, 0.0), s.points(ang, z, D_MM)
+    assert np.allclose(((on / [70.0, 60.0, 90.0]) ** 2).sum(-1), 1.0)  # on the surface
+    assert np.allclose(np.linalg.norm(out - on, axis=-1), D_MM / 2)  # a BB's radius out
+    normal = on / np.array([70.0, 60.0, 90.0]) ** 2
+    assert np.allclose(np.cross(out - on, normal), 0.0, atol=1e-9)  # along the normal
+    assert np.allclose(polar_angle(s, address_angle(s, ang, 20.0), np.full(ang.size, 20.0)), ang, atol=1e-3)

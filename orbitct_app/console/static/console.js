@@ -571,7 +571,9 @@ function pagePlans() {
     $('.id', box).textContent = id;
     const p = plan.predicted;
     const own = plan.experiment_placement;
-    const surface = plan.surface.kind === 'outline' ? `outline of ${plan.surface.source}` : plan.surface.kind;
+    const shape = plan.surface.kind === 'ellipsoid' ? `ellipsoid ${plan.surface.a_mm} × ${plan.surface.b_mm} × ${plan.surface.c_mm} mm`
+      : `elliptic cylinder ${plan.surface.a_mm} × ${plan.surface.b_mm} mm`;
+    const surface = plan.surface.kind === 'outline' ? `outline of ${plan.surface.source}` : shape;
     const entries = [['experiment', plan.experiment], ['surface', surface], ['orbit', `${plan.orbit} (${plan.views} views)`],
       ['BBs', plan.bbs.length],
       ['predicted error px', `median ${fmt(p.predicted_px_median)}, worst ${fmt(p.predicted_px_max)}`],
@@ -636,6 +638,8 @@ function pagePlans() {
         });
         const [kind, surfaceId] = $('#plan-surface').value.split(':');
         const surface = kind === 'mesh' ? { surface_id: surfaceId } : kind === 'reconstruction' ? { surface_reconstruction_id: surfaceId } : {};
+        const shape = $('#plan-shape').value.trim();
+        if (shape) surface.surface_shape = shape;
         $('#plan-make').textContent = 'Planning…';
         try {
           const queued = await api('POST', '/plans/bbs', { experiment: $('#plan-experiment').value, frames: number('#plan-frames'),

@@ -17,6 +17,7 @@ from orbitct_app.bbplan import (
     BBPlanError,
     BBPlanRequest,
     check_bb_plan_request,
+    load_surface,
     outline_from_volume,
 )
 from orbitct_app.service.core.errors import (
@@ -82,11 +83,15 @@ class BBPlanIn(BaseModel):
                                                    description="its object/air threshold (default: Otsu's)")
     surface_id: str | None = Field(default=None, pattern=r"^[0-9a-f]{12}$",
                                    description="plan on an uploaded surface mesh (POST /surfaces)")
+    surface_shape: str | None = Field(default=None, max_length=80, pattern=r"^(cylinder|ellipsoid):[-+0-9.eE,:]+$",
+                                      description="plan on a shape by parameters (mm): cylinder:R,ZMIN:ZMAX, "
+                                      "cylinder:A,B,ZMIN:ZMAX or ellipsoid:A,B,C[,ZMIN:ZMAX]")
 
     @model_validator(mode="after")
     def _one_surface(self) -> "BBPlanIn":
-        if self.surface_id is not None and self.surface_reconstruction_id is not None:
-            raise ValueError("give surface_id or surface_reconstruction_id, not both")
+        given = [k for k in ("surface_id", "surface_reconstruction_id", "surface_shape") if getattr(self, k) is not None]
+        if len(given) > 1:
+            raise ValueError(f"give one of surface_id, surface_reconstruction_id and surface_shape, not {' and '.join(given)}")
         return self
 
 
@@ -158,6 +163,11 @@ def create_plan(body: BBPlanIn, service: ServiceDep, response: Response, who: An
     elif body.surface_id is not None:
         try:
             surface = load_kept_surface(service, body.surface_id)
+        except BBPlanError as exc:
+            raise Invalid(str(exc)) from None
+    elif body.surface_shape is not None:
+        try:
+            surface = load_surface(body.surface_shape)
         except BBPlanError as exc:
             raise Invalid(str(exc)) from None
     request = BBPlanRequest(experiment=body.experiment, orbit=body.orbit, frames=body.frames, n_bbs=body.bbs,

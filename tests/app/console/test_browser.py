@@ -313,9 +313,9 @@ def test_an_analyst_plans_bbs_and_a_viewer_reads_the_plan(console: Console) -> N
     assert not console.outside, console.outside
 
 
-def test_an_analyst_plans_bbs_on_a_reconstructions_surface_and_on_an_uploaded_mesh(console: Console) -> None:
-    """The form offers every succeeded reconstruction and every uploaded mesh as the object's real surface, and
-    uploads a mesh (a file that is no mesh is refused in one line)."""
+def test_an_analyst_plans_bbs_on_a_reconstructions_surface_on_an_uploaded_mesh_and_on_a_shape(console: Console) -> None:
+    """The form offers every succeeded reconstruction and every uploaded mesh as the object's real surface, uploads
+    a mesh (a file that is no mesh is refused in one line), and takes a shape by parameters."""
     from playwright.sync_api import expect
 
     page = console.sign_in("operator")
@@ -354,5 +354,13 @@ def test_an_analyst_plans_bbs_on_a_reconstructions_surface_and_on_an_uploaded_me
     until(page, "() => document.querySelector('#plan-facts').textContent.includes('outline of leg.stl')", timeout_s=60.0)
     plan = console.api("GET", f"/plans/bbs/{page.evaluate('document.body.dataset.plan')}").json()
     assert plan["surface"]["source"] == "leg.stl" and len(plan["bbs"]) == 6
+
+    # a shape by parameters: with a mesh still chosen, one line says to give one surface; alone, it is planned on
+    page.fill("#plan-shape", "ellipsoid:70,60,90")
+    page.click("#plan-make")
+    until(page, "() => document.querySelector('#plan-form .error').textContent.includes('not surface_id and surface_shape')")
+    page.select_option("#plan-surface", "")
+    page.click("#plan-make")
+    until(page, "() => document.querySelector('#plan-facts').textContent.includes('ellipsoid 70 × 60 × 90 mm')", timeout_s=60.0)
     page.context.close()
     assert not console.outside, console.outside

@@ -63,6 +63,24 @@ def test_a_plan_is_made_kept_and_read_back(shared_api: Any) -> None:
     assert counted["hand_spiral"]["bbs"] == len(counted["bbs"])  # no keep-out: a spiral of as many BBs beside it
 
 
+def test_a_plan_on_a_shape_by_parameters(shared_api: Any) -> None:
+    plan = make_plan(shared_api, {"experiment": "A", "frames": 40, "detector_px": 128, "bbs": 6,
+                                  "surface_shape": "ellipsoid:70,60,90"})
+    assert plan["surface"] == {"kind": "ellipsoid", "a_mm": 70.0, "b_mm": 60.0, "c_mm": 90.0, "z_min_mm": -81.0,
+                               "z_max_mm": 81.0}
+    for bb in plan["bbs"]:  # on the ellipsoid, a BB's radius outside it
+        x, y, z = bb["xyz_mm"]
+        assert (x / 70.0) ** 2 + (y / 60.0) ** 2 + (z / 90.0) ** 2 > 1.0 and abs(bb["height_mm"]) <= 81.0
+    for shape, needle in (("ellipsoid:70,60", "expected ellipsoid:A,B,C"), ("cylinder:50,-5:5,3", "expected cylinder"),
+                          ("ellipsoid:70,60,90,0:200", "within the ellipsoid"), ("/etc/passwd", "surface_shape"),
+                          ("cylinder:0,-5:5", "semi-axes must be in (0, 1000] mm")):
+        r = shared_api.post("/plans/bbs", role="analyst", json={"experiment": "A", "surface_shape": shape})
+        assert r.status_code == 422 and needle in r.text, (shape, r.text)
+    r = shared_api.post("/plans/bbs", role="analyst", json={"experiment": "A", "surface_shape": "cylinder:50,-5:5",
+                                                            "surface_id": "0123456789ab"})
+    assert r.status_code == 422 and "not surface_id and surface_shape" in r.text, r.text
+
+
 def test_a_plan_being_made_is_listed_and_can_be_cancelled(shared_api: Any) -> None:
     api = shared_api
     r = api.post("/plans/bbs", role="analyst", json=LONG)

@@ -38,7 +38,7 @@ def test_a_mesh_is_uploaded_listed_and_planned_on(shared_api: Any) -> None:
     radii = [np.hypot(*b["xyz_mm"][:2]) for b in plan["bbs"]]
     assert np.allclose(radii, 62.0 + plan["bb_diameter_mm"] / 2, atol=1.5), radii
     both = api.post("/plans/bbs", role="analyst", json={**body, "surface_reconstruction_id": "r1"})
-    assert both.status_code == 422 and "not both" in both.text
+    assert both.status_code == 422 and "not surface_id and surface_reconstruction_id" in both.text
     assert api.post("/plans/bbs", role="analyst", json={**body, "surface_id": "0123456789ab"}).status_code == 404
 
 
