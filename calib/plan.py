@@ -122,13 +122,16 @@ def edge_noise(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: fl
 
 def predict_placement(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: float, *, noise_px: float = 0.1,
                       metal: list[Any] | None = None, surface: TapeSurface | None = None,
-                      background: ObjectBackground | None = None) -> PlanPrediction:
+                      background: ObjectBackground | None = None, moved: Sequence[ViewGeometry] = ()) -> PlanPrediction:
     """The usable BBs of every view of ``geometry`` (nominal) and each view's predicted calibration error (px) at
     centroid noise ``noise_px`` (the calibrations of simulated scans measure 0.05-0.15 px); with the object's
     ``background`` (a model of what lies behind each BB), each detection's noise follows the photons and the
     structure under it (:class:`calib.background.ObjectBackground`); else with the object's ``surface``, BBs at its
-    silhouette edge are counted noisier across it (:func:`edge_noise`)."""
+    silhouette edge are counted noisier across it (:func:`edge_noise`). ``moved``: the same views with the orbit's
+    expected motion errors (samples of an error profile); a BB counts in a view only where it is usable in each."""
     usable, uv = usable_bbs(geometry, xyz, diameter_mm, metal)
+    for views in moved:
+        usable &= usable_bbs(views, xyz, diameter_mm, metal)[0]
     n = usable.sum(1)
     predicted = np.full(geometry.n_views, np.nan)
     own = n >= MIN_OWN_BBS
@@ -223,15 +226,18 @@ def check_room(surface: TapeSurface, keep_out: Sequence[KeepOut], rng: np.random
 def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, diameter_mm: float, *, noise_px: float = 0.1,
                    metal: list[Any] | None = None, keep_out: Sequence[KeepOut] = (), seed: int = 0, trials: int = 200,
                    rounds: int = 3, moves: int = 12, min_spacing_mm: float = 25.0,
-                   background: ObjectBackground | None = None, progress: ProgressCallback | None = None) -> Placement:
+                   background: ObjectBackground | None = None, moved: Sequence[ViewGeometry] = (),
+                   progress: ProgressCallback | None = None) -> Placement:
     """Search BB positions on ``surface`` outside the ``keep_out`` patches that minimise :func:`placement_score` for
     the views of ``geometry``: ``trials`` random placements (BBs at least ``min_spacing_mm`` apart, placed one at a
     time), then ``rounds`` of moving each BB to the best of ``moves`` random places. The search scores about 125 of
     the views; the result is predicted on all. With the object's ``background`` (see :func:`predict_placement`) the
     trials are ranked without it (it costs a ray fan per BB and view) and the best few ranked again with it.
-    ``progress`` hears stage ``plan``: trials, re-ranked placements and BB moves done of all."""
+    ``moved`` as for :func:`predict_placement`. ``progress`` hears stage ``plan``: trials, re-ranked placements and
+    BB moves done of all."""
     rng = np.random.default_rng(seed)
-    coarse = geometry[:: max(1, geometry.n_views // 125)]
+    every = max(1, geometry.n_views // 125)
+    coarse, coarse_moved = geometry[::every], [views[::every] for views in moved]
     check_room(surface, keep_out, rng)
 
     def spaced(ang: NDArray[np.float64], z: NDArray[np.float64]) -> bool:
@@ -267,7 +273,8 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
     def score(ang: NDArray[np.float64], z: NDArray[np.float64], object_background: ObjectBackground | None = background
               ) -> float:
         return placement_score(predict_placement(coarse, surface.points(ang, z, diameter_mm), diameter_mm, noise_px=noise_px,
-                                                 metal=metal, surface=surface, background=object_background))
+                                                 metal=metal, surface=surface, background=object_background,
+                                                 moved=coarse_moved))
 
     steps = trials + (_RERANKED if background is not None else 0) + rounds * n_bbs
     ranked: list[tuple[float, NDArray[np.float64], NDArray[np.float64]]] = []
@@ -298,7 +305,7 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
     report(progress, "plan", steps, steps, f"{n_bbs} BBs: predicted on every view")
     xyz = surface.points(ang, z, diameter_mm)
     full = predict_placement(geometry, xyz, diameter_mm, noise_px=noise_px, metal=metal, surface=surface,
-                             background=background)
+                             background=background, moved=moved)
     return Placement(ang, z, xyz, full, placement_score(full))
 
 

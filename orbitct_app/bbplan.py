@@ -15,6 +15,10 @@ import numpy as np
 from orbitct.progress import ProgressCallback
 
 MAX_BBS = 40
+#: samples of the orbit's motion errors a BB must be usable in (besides the nominal views) to count in a view
+MOTION_SAMPLES = 3
+#: the error profiles a plan may expect of its orbit (``orbitct.errorprofiles``)
+MOTION_ERRORS = ("none", "bench")
 
 
 class BBPlanError(ValueError):
@@ -36,6 +40,7 @@ class BBPlanRequest:
     target_px: float | None = None  # suggest the fewest BBs whose worst view reaches this (then n_bbs is that count)
     max_bbs: int = 20
     surface: Any = None  # calib.surfaces.TapeSurface (load_surface); None: the experiment's cylinder
+    errors: str = "none"  # the orbit's expected motion errors: an error profile's name (bench, none)
 
 
 @dataclass
@@ -60,6 +65,8 @@ def _resolve(req: BBPlanRequest) -> tuple[str, Any, Any]:
     key = req.experiment.upper()
     if key not in BB_SURFACES:
         raise BBPlanError(f"experiment {req.experiment!r}: allowed are {', '.join(sorted(BB_SURFACES))}")
+    if req.errors not in MOTION_ERRORS:
+        raise BBPlanError(f"motion errors {req.errors!r}: allowed are {', '.join(MOTION_ERRORS)}")
     try:
         orbit = resolve_orbit(key, req.orbit, req.frames)
     except OrbitError as exc:
@@ -95,6 +102,7 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
     )
     from calib.quality import huber_threshold_px
     from calib.surfaces import polar_angle
+    from orbitct.errorprofiles import make_profile
     from orbitct.phantoms.experiments import experiment_phantom
     from orbitct.simulator.bench import SimulatedBench
 
@@ -104,8 +112,10 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
     geometry = SimulatedBench.with_panel(req.detector_px).nominal_geometry(orbit)
     metal = metal_of(phantom)
     background = phantom_background(phantom, geometry, surface)  # what lies behind each BB: photons, bone edges
+    moved = [make_profile(req.errors, seed).sample(orbit).apply_to_geometry(geometry)
+             for seed in range(MOTION_SAMPLES)] if req.errors != "none" else []
     options: dict[str, Any] = {"noise_px": req.noise_px, "metal": metal, "keep_out": req.keep_out, "seed": req.seed,
-                               "background": background, "progress": progress}
+                               "background": background, "moved": moved, "progress": progress}
     warnings: list[str] = []
     n_bbs, suggestion = req.n_bbs, None
     try:
@@ -121,10 +131,11 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
     except ValueError as exc:
         raise BBPlanError(str(exc)) from None
     own = predict_placement(geometry, phantom.markers_xyz, d, noise_px=req.noise_px, metal=metal, surface=surface,
-                            background=background)
+                            background=background, moved=moved)
     try:
         spiral: Any = predict_placement(geometry, hand_spiral(surface, n_bbs, d, seed=req.seed, keep_out=req.keep_out),
-                                        d, noise_px=req.noise_px, metal=metal, surface=surface, background=background)
+                                        d, noise_px=req.noise_px, metal=metal, surface=surface, background=background,
+                                        moved=moved)
     except ValueError:  # the spiral leaves the surface or enters a keep-out zone: none to compare with
         spiral = None
     pred = placed.prediction
@@ -135,6 +146,7 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
     body: dict[str, Any] = {
         "experiment": key, "orbit": orbit.name, "views": int(geometry.n_views), "detector_px": req.detector_px,
         "bb_diameter_mm": d, "noise_px": req.noise_px,
+        "motion_errors": {"profile": req.errors, "samples": len(moved)},
         "noise_model": {"background": f"experiment {key}'s phantom", "photon_floor": PHOTON_FLOOR,
                         "shift_factor": SHIFT_FACTOR, "shift_scatter": SHIFT_SCATTER, "huber_threshold_px": huber_threshold_px(req.noise_px)},
         "surface": surface.describe(),
@@ -312,7 +324,7 @@ def plan_lines(plan: BBPlan) -> list[str]:
     experiment's own."""
     b = plan.body
     lines = [f"{b['experiment']}, orbit {b['orbit']} ({b['views']} views), {len(b['bbs'])} BBs of {b['bb_diameter_mm']:g} "
-             f"mm, centroid noise {b['noise_px']:g} px"]
+             f"mm, centroid noise {b['noise_px']:g} px, motion errors {b['motion_errors']['profile']}"]
     if "count_suggestion" in b:
         c = b["count_suggestion"]
         lines.append(f"  fewest BBs for {c['target_px']:g} px in every view: {c['n_bbs'] if c['n_bbs'] else 'not reached'} "

@@ -44,6 +44,9 @@ def _keep_out(ctx: click.Context, param: click.Parameter, values: tuple[str, ...
 @click.option("--surface-threshold", type=FiniteFloat(), default=None, metavar="MU_PER_MM",
               help="with a volume: the attenuation (1/mm) above which a voxel is the object (default: Otsu's threshold)")
 @click.option("--detector-size", type=click.IntRange(min=8, max=4096), default=768, show_default=True)
+@click.option("--errors", type=click.Choice(["none", "bench"]), default="none", show_default=True,
+              help="the orbit's expected motion errors: a BB counts in a view only where it stays usable in three "
+                   "samples of this error profile (bench: the simulated bench's)")
 @click.option("--noise-px", type=FiniteFloat(min=0.0, min_open=True), default=0.1, show_default=True,
               help="centroid noise of the BB detection (a calibration reports it as centroid_noise_px)")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="the search's random start")
@@ -51,7 +54,7 @@ def _keep_out(ctx: click.Context, param: click.Parameter, values: tuple[str, ...
               help="the plan (JSON); a picture is written beside it (.png)")
 def bbs(experiment: str, orbit_name: str | None, frames: int | None, n_bbs: int, target_px: float | None, max_bbs: int,
         keep_out: tuple[object, ...], surface_source: str | None, surface_threshold: float | None, detector_size: int,
-        noise_px: float, seed: int, out: Path) -> None:
+        errors: str, noise_px: float, seed: int, out: Path) -> None:
     """Search BB positions on the object's surface that minimise the predicted calibration error of the orbit's
     views (the worst views weighted), and compare with the experiment's own placement."""
     from orbitct_app.bbplan import (
@@ -67,7 +70,7 @@ def bbs(experiment: str, orbit_name: str | None, frames: int | None, n_bbs: int,
         surface = load_surface(surface_source, surface_threshold) if surface_source else None
         request = BBPlanRequest(experiment=experiment, orbit=orbit_name, frames=frames, n_bbs=n_bbs,
                                 detector_px=detector_size, noise_px=noise_px, seed=seed, keep_out=keep_out,
-                                target_px=target_px, max_bbs=max_bbs, surface=surface)
+                                target_px=target_px, max_bbs=max_bbs, surface=surface, errors=errors)
         with ProgressBar() as bar:
             made = make_bb_plan(request, progress=bar)
     except BBPlanError as exc:

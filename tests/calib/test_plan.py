@@ -40,6 +40,21 @@ def test_bbs_off_the_panel_overlapping_or_behind_metal_are_not_usable() -> None:
     assert 0 < (~usable[:, 2]).sum() < g.n_views and usable[:, 5].sum() >= usable_bbs(g, xyz, D_MM)[0][:, 5].sum() - 2
 
 
+def test_a_bb_counts_only_where_it_stays_usable_under_the_orbits_motion_errors() -> None:
+    from orbitct.errorprofiles import RigidErrors
+
+    g = sawtooth(60, 256)
+    xyz = np.vstack([spiral_markers(8), [[0.0, 0.0, 118.0]]])  # a ninth BB near the top of the field of view
+    nominal = predict_placement(g, xyz, D_MM)
+    near_top = usable_bbs(g, xyz, D_MM)[0][:, 8]
+    assert near_top.sum() >= 50, "the test wants the ninth BB usable in most nominal views"
+    lifted = RigidErrors(np.zeros((60, 3)), np.tile([0.0, 0.0, 30.0], (60, 1))).apply_to_geometry(g)  # 30 mm up
+    moved = predict_placement(g, xyz, D_MM, moved=[lifted])
+    assert (moved.n_bbs <= nominal.n_bbs).all() and (moved.n_bbs < nominal.n_bbs).sum() >= 30
+    assert moved.usable[:, 8].sum() <= 5  # it leaves the panel in (nearly) every moved view: there it does not count
+    assert np.array_equal(predict_placement(g, xyz, D_MM, moved=[g]).n_bbs, nominal.n_bbs)  # no motion, no change
+
+
 def test_more_bbs_predict_a_smaller_error_and_three_leave_every_view_under_determined() -> None:
     g = sawtooth(120, 256)
     xyz = spiral_markers(10)

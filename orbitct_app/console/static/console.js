@@ -575,7 +575,7 @@ function pagePlans() {
       : `elliptic cylinder ${plan.surface.a_mm} × ${plan.surface.b_mm} mm`;
     const surface = plan.surface.kind === 'outline' ? `outline of ${plan.surface.source}` : shape;
     const entries = [['experiment', plan.experiment], ['surface', surface], ['orbit', `${plan.orbit} (${plan.views} views)`],
-      ['BBs', plan.bbs.length],
+      ['BBs', plan.bbs.length], ['motion errors expected', plan.motion_errors ? plan.motion_errors.profile : 'none'],
       ['predicted error px', `median ${fmt(p.predicted_px_median)}, worst ${fmt(p.predicted_px_max)}`],
       ['usable BBs per view', `at least ${p.bbs_min}, median ${fmt(p.bbs_median)}`], ['under determined views', p.under_determined],
       ['the experiment\'s own placement', `${own.bbs} BBs: worst ${fmt(own.predicted.predicted_px_max)} px, ${own.predicted.under_determined} under-determined`]];
@@ -643,7 +643,7 @@ function pagePlans() {
         $('#plan-make').textContent = 'Planning…';
         try {
           const queued = await api('POST', '/plans/bbs', { experiment: $('#plan-experiment').value, frames: number('#plan-frames'),
-            bbs: number('#plan-bbs'), target_px: number('#plan-target'), keep_out: keepOut, detector_px: number('#plan-detector'),
+            bbs: number('#plan-bbs'), target_px: number('#plan-target'), keep_out: keepOut, detector_px: number('#plan-detector'), errors: $('#plan-errors').value,
             noise_px: number('#plan-noise'), surface_threshold_per_mm: number('#plan-surface-threshold'), ...surface });
           history.replaceState(null, '', `?plan=${queued.id}`);
           await load();

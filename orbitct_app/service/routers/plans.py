@@ -74,6 +74,9 @@ class BBPlanIn(BaseModel):
     max_bbs: int = Field(default=20, ge=4, le=MAX_BBS)
     keep_out: list[KeepOutIn] = Field(default_factory=list, max_length=20)
     detector_px: int = Field(default=768, ge=8, le=4096)
+    errors: Literal["none", "bench"] = Field(default="none", description="the orbit's expected motion errors (an "
+                                             "error profile): a BB counts in a view only where it stays usable in "
+                                             "three samples of it")
     noise_px: float = Field(default=0.1, gt=0.0, le=5.0)
     seed: int = Field(default=0, ge=0, le=2**31)
     surface_reconstruction_id: str | None = Field(
@@ -173,7 +176,7 @@ def create_plan(body: BBPlanIn, service: ServiceDep, response: Response, who: An
     request = BBPlanRequest(experiment=body.experiment, orbit=body.orbit, frames=body.frames, n_bbs=body.bbs,
                             detector_px=body.detector_px, noise_px=body.noise_px, seed=body.seed,
                             keep_out=tuple(KeepOut(**z.model_dump()) for z in body.keep_out), target_px=body.target_px,
-                            max_bbs=body.max_bbs, surface=surface)
+                            max_bbs=body.max_bbs, surface=surface, errors=body.errors)
     try:
         asked = check_bb_plan_request(request)
     except BBPlanError as exc:

@@ -65,7 +65,8 @@ def test_a_plan_is_made_kept_and_read_back(shared_api: Any) -> None:
 
 def test_a_plan_on_a_shape_by_parameters(shared_api: Any) -> None:
     plan = make_plan(shared_api, {"experiment": "A", "frames": 40, "detector_px": 128, "bbs": 6,
-                                  "surface_shape": "ellipsoid:70,60,90"})
+                                  "surface_shape": "ellipsoid:70,60,90", "errors": "bench"})
+    assert plan["motion_errors"] == {"profile": "bench", "samples": 3}
     assert plan["surface"] == {"kind": "ellipsoid", "a_mm": 70.0, "b_mm": 60.0, "c_mm": 90.0, "z_min_mm": -81.0,
                                "z_max_mm": 81.0}
     for bb in plan["bbs"]:  # on the ellipsoid, a BB's radius outside it
@@ -154,6 +155,7 @@ def test_a_plan_the_service_stopped_is_failed_after_the_restart(make_api: Any) -
 @pytest.mark.parametrize(("body", "status", "needle"), [
     ({"experiment": "D"}, 422, "experiment"),
     ({"experiment": "A", "bbs": 3}, 422, "bbs"),
+    ({"experiment": "A", "errors": "wobbly"}, 422, "errors"),
     ({"experiment": "A", "keep_out": [{"angle_from_deg": 0, "angle_to_deg": 90, "z_min_mm": 5, "z_max_mm": 1}]}, 422,
      "must be below"),
     ({"experiment": "A", "orbit": "nosuch", "frames": 20}, 422, "nosuch"),
