@@ -33,6 +33,7 @@ class GcsClient:
         self._transport: Transport | None = None
         self._lock = asyncio.Lock()
         self._stale = False  # a reply may still be in flight: reconnect before the next exchange
+        self._reconnected: asyncio.Event | None = None  # unset while a reconnect is under way
 
     @property
     def connected(self) -> bool:
@@ -52,11 +53,15 @@ class GcsClient:
             await transport.close()
 
     async def _reconnect(self) -> None:
-        await self.close()
-        self.stats["reconnects"] += 1
-        if self.endpoint.scheme == "serial":  # a serial line keeps late replies: let them arrive, then flush them
-            await asyncio.sleep(min(self.timeout_s, 0.5))
-        await self.connect()
+        done = self._reconnected = asyncio.Event()
+        try:
+            await self.close()
+            self.stats["reconnects"] += 1
+            if self.endpoint.scheme == "serial":  # a serial line keeps late replies: let them arrive, then flush them
+                await asyncio.sleep(min(self.timeout_s, 0.5))
+            await self.connect()
+        finally:
+            done.set()
 
     async def _exchange(self, command: str) -> list[str]:
         if self._transport is None:
@@ -131,7 +136,10 @@ class GcsClient:
             raise ProtocolError(f"{self.endpoint}: unreadable ERR? reply {lines!r}") from None
 
     async def send_now(self, command: str) -> None:
-        """Write a command at once without waiting for the lock or reading anything (only for stops, which are safe to repeat)."""
+        """Write a command at once without waiting for the lock or reading anything (only for stops, which are safe to
+        repeat); while another exchange reconnects, once the fresh connection is open."""
+        if self._transport is None and self._reconnected is not None:
+            await self._reconnected.wait()  # a query found the connection dropped and is opening a new one
         if self._transport is None:
             raise NotConnectedError(f"{self.endpoint}: not connected")
         if self._stale:

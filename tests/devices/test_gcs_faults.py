@@ -160,6 +160,35 @@ async def test_stop_reaches_the_controller_after_a_silent_disconnect(ready_hexap
         await status
 
 
+async def test_a_stop_while_a_query_reconnects_waits_for_the_new_connection(ready_hexapod: Hexapod,
+                                                                             hexapod_twin: TwinThread) -> None:
+    """A poll finds the connection dropped and opens a new one (slowly: a loaded machine, a slow network); a stop in
+    that moment is sent over the new connection, never refused as 'not connected'."""
+    client = ready_hexapod.client
+    await ready_hexapod.set_velocity(0.5)
+    status = ready_hexapod.move({"Z": 20.0})
+    await asyncio.sleep(0.1)
+    opened = client.connect
+
+    async def slow_connect() -> None:
+        await asyncio.sleep(0.3)
+        await opened()
+
+    client.connect = slow_connect  # type: ignore[method-assign]
+    hexapod_twin.call(hexapod_twin.twin.drop_connections)
+    poll = asyncio.ensure_future(client.query("POS?"))
+    for _ in range(200):  # until the poll has closed the dead connection and is opening a new one
+        if not client.connected:
+            break
+        await asyncio.sleep(0.005)
+    assert not client.connected
+    await ready_hexapod.stop()
+    assert not hexapod_twin.twin.controller.is_moving()
+    await poll
+    with pytest.raises(Exception):
+        await status
+
+
 async def test_serial_resynchronises_after_late_replies(stage_twin: TwinThread) -> None:
     path = stage_twin.run_sync(stage_twin.twin.open_serial)
     dev = RotationStage("stage", f"serial://{path}?baud=115200", timeout_s=0.1)
