@@ -148,6 +148,7 @@ class PlanQueue:
                                 "again when one has ended")
             plan_id = uuid.uuid4().hex[:12]
             state = {"id": plan_id, "state": PLANNING, "owner": owner, "created": utc_now(), **asked}
+            self.folder.mkdir(parents=True, exist_ok=True)  # the data directory may have been tidied by hand
             self._write_state(plan_id, state)
             self._waiting.append((plan_id, request))
             self._wake.notify()

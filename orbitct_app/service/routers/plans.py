@@ -132,12 +132,6 @@ class PlanStateOut(BaseModel):
                                              "total, message")
 
 
-def _plans_dir(service: Any) -> Any:
-    folder = service.settings.data_dir / "plans"
-    folder.mkdir(parents=True, exist_ok=True)
-    return folder
-
-
 def _summary(plan_id: str, body: dict[str, Any]) -> BBPlanSummary:
     return BBPlanSummary(id=plan_id, state="done", experiment=body["experiment"], orbit=body["orbit"],
                          views=body["views"], bbs=len(body["bbs"]),
@@ -194,7 +188,7 @@ def create_plan(body: BBPlanIn, service: ServiceDep, response: Response, who: An
 def list_plans(service: ServiceDep, _: Reader) -> list[BBPlanSummary]:
     """Every plan: those done with their experiment, orbit, BB count and worst predicted view; those waiting, being
     made, failed or cancelled with their state."""
-    folder = _plans_dir(service)
+    folder = service.plans.folder
     listed = [(f.stat().st_mtime, _summary(f.stem, json.loads(f.read_text()))) for f in folder.glob("*.json")
               if _PLAN_ID.fullmatch(f.stem)]
     done = {s.id for _, s in listed}
@@ -209,7 +203,7 @@ def _plan_or_state(service: Any, plan_id: str) -> tuple[Path | None, dict[str, A
     """The done plan's JSON file, or else its state record (waiting, being made, failed, cancelled); 404 when
     neither."""
     if _PLAN_ID.fullmatch(plan_id):
-        path = _plans_dir(service) / f"{plan_id}.json"
+        path = service.plans.folder / f"{plan_id}.json"
         if path.is_file():
             return path, None
         state = service.plans.state(plan_id)
