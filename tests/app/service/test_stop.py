@@ -104,8 +104,12 @@ def test_stop_latch_survives_a_restart(make_api) -> None:  # type: ignore[no-unt
 
 
 def test_garbled_or_missing_stop_confirmation_is_not_halted(api) -> None:  # type: ignore[no-untyped-def]
-    api.service.sim_bench.hazard("xray", "faults.garble_next", 3)  # the stop's reply and its repeat garbled
-    body = api.post("/stop").json()
+    # every reply garbled while the stop runs (the rig's X-ray heartbeats would use up a small count first)
+    api.service.sim_bench.hazard("xray", "faults.garble_next", 1000)
+    try:
+        body = api.post("/stop").json()
+    finally:
+        api.service.sim_bench.hazard("xray", "faults.garble_next", 0)
     assert body["halted"] is False and body["latched"] is True
     xray = next(d for d in body["devices"] if d["device"] == "xray")
     assert not xray["halted"] and "garbled" in xray["problem"] and "xray" in body["message"]
