@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import hmac
 import json
-import os
 import secrets
 import threading
 from dataclasses import dataclass
@@ -13,6 +12,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Literal
 
+from orbitct_app.service.core.jsonfile import write_json_atomically
 from orbitct_app.service.core.settings import Role, TokenHash
 
 Permission = Literal["read", "motion", "scan", "analysis", "stop", "reset"]
@@ -76,12 +76,7 @@ def _write_token_file(path: Path, entries: list[TokenHash]) -> None:
         "tokens": [e.model_dump() for e in entries],
         "updated_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w", encoding="utf-8") as fh:
-        json.dump(body, fh, indent=2)
-    os.replace(tmp, path)
+    write_json_atomically(path, body, private=True)
 
 
 def create_token(path: Path, role: Role, name: str = "") -> str:

@@ -26,6 +26,7 @@ from orbitct.progress import ProgressEvent
 from orbitct_app.bbplan import BBPlanError, BBPlanRequest, make_bb_plan, write_bb_plan
 from orbitct_app.service.core.children import die_with_parent
 from orbitct_app.service.core.db import utc_now
+from orbitct_app.service.core.jsonfile import write_json_atomically
 from orbitct_app.service.jobs.manager import JOB_NICE
 
 log = logging.getLogger("orbitct.service.plans")
@@ -36,6 +37,11 @@ MAX_PLANS_WAITING = 4
 STOPPED_REASON = "the service stopped while the plan was being made"
 PROGRESS_EVERY_S = 0.5  # a plan's record says how far it got at most this often
 _STATE_SUFFIX = ".state"
+
+
+def plan_path(folder: Path, plan_id: str) -> Path:
+    """Where a plan's JSON lies once it is done (its picture beside it, ``.png``)."""
+    return folder / f"{plan_id}.json"
 
 
 class PlansBusy(RuntimeError):
@@ -67,8 +73,9 @@ def _make_plan(request: BBPlanRequest, folder: str, plan_id: str, parent_pid: in
         plan = make_bb_plan(request, progress)
         work.mkdir(exist_ok=True)
         write_bb_plan(plan, work / "plan.json")
-        os.replace(work / "plan.png", Path(folder) / f"{plan_id}.png")
-        os.replace(work / "plan.json", Path(folder) / f"{plan_id}.json")  # last: its presence says the plan is done
+        done = plan_path(Path(folder), plan_id)
+        os.replace(work / "plan.png", done.with_suffix(".png"))
+        os.replace(work / "plan.json", done)  # last: its presence says the plan is done
         reason = None
     except BBPlanError as exc:
         reason = str(exc)
@@ -103,9 +110,7 @@ class PlanQueue:
         return self.folder / f"{plan_id}{_STATE_SUFFIX}"
 
     def _write_state(self, plan_id: str, state: dict[str, Any]) -> None:
-        tmp = self.folder / f".{plan_id}{_STATE_SUFFIX}.tmp"
-        tmp.write_text(json.dumps(state))
-        os.replace(tmp, self._state_path(plan_id))
+        write_json_atomically(self._state_path(plan_id), state, indent=None)
 
     def _end(self, plan_id: str, state: str, reason: str) -> None:
         current = self.state(plan_id) or {"id": plan_id}
@@ -142,7 +147,7 @@ class PlanQueue:
         with self._lock:
             if self._closed:
                 raise PlansBusy("the service is stopping")
-            being_made = self._running is not None and not (self.folder / f"{self._running[0]}.json").exists()
+            being_made = self._running is not None and not plan_path(self.folder, self._running[0]).exists()
             if len(self._waiting) + being_made >= self.max_waiting:
                 raise PlansBusy(f"{self.max_waiting} plans are already waiting or being made (one at a time); try "
                                 "again when one has ended")
@@ -226,7 +231,7 @@ class PlanQueue:
             with self._lock:  # the answer ends the plan's turn; its process still has to exit (joined below)
                 self._running = None
                 who = self._cancelled.pop(plan_id, None)
-                if (self.folder / f"{plan_id}.json").exists():  # done, even if a cancel came too late
+                if plan_path(self.folder, plan_id).exists():  # done, even if a cancel came too late
                     self._state_path(plan_id).unlink(missing_ok=True)
                     log.info("plan %s done", plan_id)
                 elif who is not None:
@@ -240,4 +245,4 @@ class PlanQueue:
             process.join()
 
 
-__all__ = ["CANCELLED", "DONE", "FAILED", "MAX_PLANS_WAITING", "PLANNING", "PlanEnded", "PlanQueue", "PlansBusy"]
+__all__ = ["CANCELLED", "DONE", "FAILED", "MAX_PLANS_WAITING", "PLANNING", "PlanEnded", "PlanQueue", "PlansBusy", "plan_path"]

@@ -28,7 +28,7 @@ from orbitct_app.service.core.errors import (
     NotFound,
 )
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
-from orbitct_app.service.jobs.bbplans import PlanEnded, PlansBusy
+from orbitct_app.service.jobs.bbplans import PlanEnded, PlansBusy, plan_path
 from orbitct_app.service.routers.reconstructions import reconstruction_volume
 from orbitct_app.service.routers.surfaces import load_kept_surface
 from orbitct_app.service.schemas import job_or_404
@@ -203,7 +203,7 @@ def _plan_or_state(service: Any, plan_id: str) -> tuple[Path | None, dict[str, A
     """The done plan's JSON file, or else its state record (waiting, being made, failed, cancelled); 404 when
     neither."""
     if _PLAN_ID.fullmatch(plan_id):
-        path = service.plans.folder / f"{plan_id}.json"
+        path = plan_path(service.plans.folder, plan_id)
         if path.is_file():
             return path, None
         state = service.plans.state(plan_id)

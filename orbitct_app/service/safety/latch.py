@@ -11,12 +11,13 @@ from __future__ import annotations
 import ctypes
 import json
 import multiprocessing as mp
-import os
 import threading
 import time
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Protocol
+
+from orbitct_app.service.core.jsonfile import write_json_atomically
 
 FILE_NAME = "estop.json"
 HISTORY = 50  # stops and resets kept in the file
@@ -95,10 +96,7 @@ class StopLatch:
             return {}
 
     def _write(self, data: dict[str, Any]) -> None:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.{threading.get_ident()}")
-        tmp.write_text(json.dumps(data, indent=2), encoding="utf-8")
-        os.replace(tmp, self.path)
+        write_json_atomically(self.path, data)
 
     def engage(self, by: str, reason: str, via: str) -> dict[str, Any]:
         """Latch (the file, then the flag the other processes watch); a second stop keeps the first one's time and author."""
