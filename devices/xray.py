@@ -36,6 +36,10 @@ from devices.xray_registers import FaultCode, GeneratorState, Refusal
 
 DEFAULT_PORT = 502
 log = logging.getLogger(__name__)
+# pymodbus logs a late reply it skips (one to a request this driver cut short) or a send on a closed link as an ERROR
+# with a dump of the last frames, which reached the operator's terminal in the middle of a scan: this driver names
+# every failure itself, so only pymodbus's critical messages get through
+logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
 _OPTIONS = {"timeout_s", "heartbeat_s", "watchdog_ms", "prep_timeout_s", "poll_s", "device_id", "hold_s", "monitor"}
 
 
@@ -81,6 +85,7 @@ class XrayGenerator(Driver):
         self._host, self._port = self.endpoint.host, self.endpoint.port
         self._opened = False
         self._garbled = asyncio.Event()  # set when a reply that cannot be ours arrives (one per connection)
+        self._asked: dict[int, tuple[int, int]] = {}  # transaction id -> function code and count of the request
         self._heartbeat_task: asyncio.Task[None] | None = None
         self._heartbeat_error: DeviceTimeoutError | None = None  # set while the generator's heartbeat is frozen
         self._hb_counter = 0
@@ -104,7 +109,7 @@ class XrayGenerator(Driver):
     async def _open_client(self) -> None:
         if self._client is not None:
             self._client.close()
-        self._garbled = asyncio.Event()
+        self._garbled, self._asked = asyncio.Event(), {}
         self._client = AsyncModbusTcpClient(
             self._host,
             port=int(self._port or DEFAULT_PORT),
@@ -112,6 +117,7 @@ class XrayGenerator(Driver):
             retries=0,
             reconnect_delay=0,
             trace_packet=self._check_packet,
+            trace_pdu=self._check_reply,
         )
         try:
             async with asyncio.timeout(self.timeout_s + 1.0):  # unlike wait_for, never swallows a cancellation
@@ -158,6 +164,25 @@ class XrayGenerator(Driver):
                 self._garbled.set()  # every request in flight fails now, not at its time-out
         return data
 
+    def _check_reply(self, sending: bool, pdu: Any) -> Any:
+        """Flag a reply that answers another request than the one that bears its transaction id: another function,
+        or fewer values than asked for (pymodbus matches the id only; a device or gateway that answers a request cut
+        short with a later one's id would otherwise hand one read's values to another)."""
+        if sending:
+            if len(self._asked) > 64:  # requests cut short are never answered: forget the oldest
+                self._asked.pop(next(iter(self._asked)))
+            self._asked[pdu.transaction_id] = (pdu.function_code, int(getattr(pdu, "count", 0) or 0))
+            return pdu
+        asked = self._asked.pop(pdu.transaction_id, None)
+        if asked is not None:
+            fc, count = asked
+            got = pdu.function_code & 0x7F
+            short = not pdu.function_code & 0x80 and (
+                (fc in (1, 2) and len(pdu.bits) < count) or (fc in (3, 4) and len(pdu.registers) < count))
+            if got != fc or short:
+                self._garbled.set()  # the stream is out of step: the request in flight fails and the link starts afresh
+        return pdu
+
     async def _request(self, what: str, call: Callable[[AsyncModbusTcpClient], Awaitable[Any]], *, retry: bool = True) -> Any:
         """Run one Modbus request; map failures to named errors; reconnect and repeat once if ``retry``."""
         for attempt in range(2 if retry else 1):
@@ -183,7 +208,8 @@ class XrayGenerator(Driver):
         except (ModbusException, asyncio.TimeoutError):
             if garbled.is_set():
                 client.close()  # the byte stream is out of step: start afresh on the next request
-                raise ProtocolError(f"{self.name}: garbled reply from the X-ray generator ({what})") from None
+                raise ProtocolError(f"{self.name}: garbled reply from the X-ray generator, or one to another request "
+                                    f"({what})") from None
             if not client.connected:
                 raise NotConnectedError(f"{self.name}: X-ray generator dropped the connection ({what})") from None
             raise DeviceTimeoutError(f"{self.name}: no reply from the X-ray generator within {self.timeout_s:g} s ({what})") from None
@@ -203,9 +229,9 @@ class XrayGenerator(Driver):
         watch = asyncio.ensure_future(garbled.wait())
         try:
             await asyncio.wait({call, watch}, return_when=asyncio.FIRST_COMPLETED)
-            if call.done():
-                return call.result()
-            raise ModbusException("garbled packet on the link")
+            if garbled.is_set():  # first: a reply to another request arrives as a done call
+                raise ModbusException("garbled packet on the link")
+            return call.result()
         finally:
             for task in (call, watch):
                 if not task.done():

@@ -32,12 +32,14 @@ class TwinFaults:
     garble_next: int = 0  # answer with corrupted bytes
     error_next: int = 0  # answer with a device error
     missing_frame_next: int = 0  # complete the action but lose the frame (or trigger)
+    misanswer_next: int = 0  # Modbus: answer a register read as the other kind (holding <-> input), as a faulty gateway
     match: str = ""
     errors: dict[str, list[int]] = field(default_factory=dict)  # GCS command -> error codes to report next
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def take(self, name: str, request: str = "") -> bool:
-        """Consume one pending fault called ``name`` (``drop``, ``garble``, ``error``, ``missing_frame``) for ``request``."""
+        """Consume one pending fault called ``name`` (``drop``, ``garble``, ``error``, ``missing_frame``, ``misanswer``)
+        for ``request``."""
         attr = f"{name}_next"
         with self.lock:
             if self.match and self.match not in request:
@@ -62,7 +64,7 @@ class TwinFaults:
         """Remove every pending fault."""
         with self.lock:
             self.latency_s, self.match = 0.0, ""
-            self.drop_next = self.garble_next = self.error_next = self.missing_frame_next = 0
+            self.drop_next = self.garble_next = self.error_next = self.missing_frame_next = self.misanswer_next = 0
             self.drop_executes = True
             self.errors.clear()
 

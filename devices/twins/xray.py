@@ -11,6 +11,7 @@ Also home of :class:`TwinFaults` and :class:`TwinThread`, shared by every twin i
 from __future__ import annotations
 
 import asyncio
+import functools
 import time
 from collections import deque
 from typing import Any, ClassVar
@@ -24,6 +25,7 @@ except ImportError:  # pymodbus < 3.11 names no exception codes: same numbers, o
         ILLEGAL_VALUE = 3
         DEVICE_FAILURE = 4
         DEVICE_BUSY = 6
+from pymodbus.pdu import ExceptionResponse, ModbusPDU
 from pymodbus.server import ModbusTcpServer
 
 from devices import xray_registers as reg
@@ -32,6 +34,34 @@ from devices.twins.world import SimWorld, get_world
 from devices.xray_registers import FaultCode, GeneratorState, Refusal
 
 HEARTBEAT_PERIOD_S = 0.1
+
+
+class _GeneratorServer(ModbusTcpServer):  # type: ignore[misc]
+    """pymodbus's Modbus TCP server, answering each connection's requests one at a time in the order they came, each
+    with its own transaction id, as the generator's controller does. pymodbus's own handler (3.13 to 3.16 at least)
+    labels every reply with the newest request's id: a request that waits (the latency fault) while the client sends
+    the next one (the first cut short) was answered under the second one's id."""
+
+    def callback_new_connection(self) -> Any:
+        handler = super().callback_new_connection()
+        if hasattr(ModbusPDU, "datastore_update") and all(
+                hasattr(handler, name) for name in ("handle_request", "last_pdu", "last_addr", "server_send")):
+            handler.handle_request = functools.partial(_answer_in_order, handler, asyncio.Lock())
+        return handler
+
+
+async def _answer_in_order(handler: Any, turn: asyncio.Lock) -> None:
+    """Answer the request ``handler`` has just received, after those before it (``turn``), under its own id."""
+    pdu, addr = handler.last_pdu, handler.last_addr
+    if pdu is None:
+        return
+    async with turn:
+        try:
+            response = await pdu.datastore_update(handler.server.context, pdu.dev_id)
+        except Exception:  # noqa: BLE001 - as pymodbus does: the client hears a device failure
+            response = ExceptionResponse(pdu.function_code, ExcCodes.DEVICE_FAILURE)
+        response.transaction_id, response.dev_id = pdu.transaction_id, pdu.dev_id
+        handler.server_send(response, addr)
 HV_STATES = (GeneratorState.PREP, GeneratorState.READY, GeneratorState.EXPOSING, GeneratorState.DONE)
 
 
@@ -111,7 +141,7 @@ class XrayTwin:
     async def start(self, host: str = "127.0.0.1", port: int = 0) -> int:
         """Listen on ``host:port`` (0 = any free port); returns the port."""
         self._loop = asyncio.get_running_loop()
-        self._server = ModbusTcpServer(self._datastore(), address=(host, port), trace_packet=self._trace_packet)
+        self._server = _GeneratorServer(self._datastore(), address=(host, port), trace_packet=self._trace_packet)
         await self._server.serve_forever(background=True)
         sockets = self._server.transport.sockets  # type: ignore[attr-defined]
         self._ticker = asyncio.ensure_future(self._tick())
@@ -137,6 +167,8 @@ class XrayTwin:
     def _trace_packet(self, sending: bool, data: bytes) -> bytes:
         if sending and self.faults.take("garble"):
             return garble(data, len(data) // 2)  # the second half: the header still names the transaction
+        if sending and len(data) > 7 and data[7] in (3, 4) and self.faults.take("misanswer"):
+            return data[:7] + bytes([7 - data[7]]) + data[8:]  # function 3 <-> 4: a well-formed reply to another request
         return data
 
     # ------------------------------------------------------- hazards on request

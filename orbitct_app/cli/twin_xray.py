@@ -19,7 +19,8 @@ from orbitct_app.cli.values import FiniteFloat
 def xray(host: str, port: int, prep_ms: int, door_open: bool, fault: int, latency_ms: float, console: bool | None) -> None:
     """Serve the simulated X-ray generator's register map over Modbus TCP.
 
-    Console commands (one a line): door open|closed, fault CODE, heartbeat freeze|run, and the
+    Console commands (one a line): door open|closed, fault CODE, heartbeat freeze|run, misanswer [N]
+    (the next N register reads answered as the other kind of register read, as a faulty gateway), and the
     fault commands every twin takes: latency MS, drop [N], garble [N], error [N], missing [N], match TEXT|-.
     """
     from devices.twins.xray import XrayTwin
@@ -42,6 +43,9 @@ def xray(host: str, port: int, prep_ms: int, door_open: bool, fault: int, latenc
         if words[:1] == ["heartbeat"] and words[1:2] in (["freeze"], ["run"]):
             twin.heartbeat_frozen = words[1] == "freeze"
             return f"heartbeat {words[1]}"
+        if words[:1] == ["misanswer"] and len(words) <= 2:
+            twin.faults.misanswer_next = int(words[1]) if len(words) == 2 else 1  # ValueError: "not understood"
+            return f"misanswer next {twin.faults.misanswer_next}"
         return None
 
     banner = f"X-ray generator twin listening on modbus://{host}:{{}} (device id 1)"

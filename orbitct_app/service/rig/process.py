@@ -456,7 +456,6 @@ def rig_main(config_path: str, sim: bool, commands: Connection, stops: Connectio
              nice: int = 0, links: dict[str, Any] | None = None, data_dir: str | None = None, flag: Any = None) -> None:
     """Entry point of the bench process (asks for priority ``nice`` over the web server where allowed)."""
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s bench: %(message)s")
-    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # the driver names a garbled reply itself
     # The web server starts this process as a daemon (it dies with the server); here it may start its own
     # processes (a live calibration's worker, which ends by itself if this process disappears).
     import multiprocessing

@@ -252,7 +252,6 @@ def guard_main(links: dict[str, tuple[str, dict[str, Any]]], data_dir: str, flag
                nice: int = 0, forward_secret: str = "") -> None:
     """Entry point of the guard process: listen on ``host:port`` (0: any free port), report the port, serve."""
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s guard: %(message)s")
-    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # the driver names a garbled reply itself
     if nice < 0:
         with contextlib.suppress(OSError):
             os.setpriority(os.PRIO_PROCESS, 0, nice)

@@ -14,7 +14,7 @@ import pytest
 
 from devices.carm import CArm
 from devices.carm_program import export_program
-from devices.errors import ControllerError, InterlockOpenError
+from devices.errors import ControllerError, InterlockOpenError, ProtocolError
 from devices.xray import XrayGenerator
 from orbitct.orbits import Orbit
 
@@ -72,6 +72,10 @@ def test_xray_twin_command() -> None:
                     await gen.read()
                 assert "not understood" in console(proc, "explode")
                 assert await gen.expose() == 2
+                assert console(proc, "misanswer 2") == "misanswer next 2"
+                with pytest.raises(ProtocolError, match="another request"):
+                    await gen.read()
+                assert "not understood" in console(proc, "misanswer many")
 
         asyncio.run(main())
 
