@@ -67,6 +67,7 @@ class GcsMotionDevice(Driver):
         self._limits: dict[str, tuple[float, float]] = {}
         self._stopped = 0  # increments on stop(): running moves end with an error
         self._moves_sent = 0  # increments with every MOV/MVR: an earlier move still waiting is superseded
+        self._last_move_of: dict[str, int] = {}  # axis -> the mark of the latest move that set its target
 
     # ----- connection -----
     @property
@@ -267,6 +268,7 @@ class GcsMotionDevice(Driver):
         sent = {self.axis_map[k]: float(targets[k]) for k in checked}
         self._moves_sent += 1
         move_mark = self._moves_sent
+        self._last_move_of.update(dict.fromkeys(checked, move_mark))
         self._check_interlock("move")
         try:
             await self.client.command(format_command(command, sent))
@@ -290,6 +292,10 @@ class GcsMotionDevice(Driver):
         while True:
             if self._stopped != marks[0]:
                 raise ControllerError(E.STOPPED, E.error_text(E.STOPPED), "MOV")
+            retargeted = [k for k in targets if self._last_move_of.get(k) != marks[1]]
+            if retargeted:  # a later move owns these axes now: this one ends here and never halts them at its time limit
+                raise ControllerError(E.STOPPED, f"move superseded by a later move on {', '.join(retargeted)} before it "
+                                                 "arrived", "MOV")
             ont = await self._axis_query("ONT?")
             if all(v != 0 for v in ont.values()):
                 await self._check_arrived(targets, marks)

@@ -216,6 +216,31 @@ async def test_later_move_supersedes_a_running_one(ready_hexapod: Hexapod) -> No
     assert (await ready_hexapod.position())["X"] == pytest.approx(2.0, abs=1e-3)
 
 
+async def test_a_move_retargeted_past_its_time_limit_ends_superseded_and_never_halts(hexapod_twin: TwinThread) -> None:
+    """Continuous mode retargets the hexapod frame by frame while it moves, so an early move may never see its axes
+    on target: it must end as superseded at once, not wait out its time limit and halt the axes under the later
+    moves (a continuous sawtooth scan aborted with "controller error 10 after 'MOV': Controller was stopped by
+    command" in 2 of 4 runs)."""
+    dev = Hexapod("hexapod", hexapod_twin.uri, timeout_s=1.0, move_timeout_s=0.5)
+    await dev.connect()
+    try:
+        await dev.reference()
+        await dev.set_velocity(0.01)  # 1 mm/s on this twin (100 times faster than real)
+        moves, x = [], 0.0
+        t0 = asyncio.get_running_loop().time()
+        while asyncio.get_running_loop().time() - t0 < 1.0:  # twice the time limit; the target runs ahead at 1.2 mm/s
+            x += 0.06
+            moves.append(dev.move({"X": x}))
+            await asyncio.sleep(0.05)
+        await moves[-1]
+        for early in moves[:-1]:
+            with pytest.raises(ControllerError, match="superseded"):
+                await early
+        assert (await dev.position())["X"] == pytest.approx(x, abs=1e-3)
+    finally:
+        await dev.close()
+
+
 async def test_cancelled_reference_halts(hexapod: Hexapod, hexapod_twin: TwinThread) -> None:
     status = hexapod.reference()
     await asyncio.sleep(0.002)
