@@ -7,6 +7,7 @@ navigation program against the connected arm.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 
 import numpy as np
@@ -26,6 +27,20 @@ def _first_outside(values: np.ndarray, low: float, high: float, tol: float = 1e-
     return int(bad[0]) if bad.size else None
 
 
+def errors_note(plan: ScanPlan) -> str:
+    """What a refusal says of the plan's injected motion errors (empty when it has none): they are part of every
+    target, and how to run without them."""
+    if not np.any(plan.errors):
+        return ""
+    try:
+        name = json.loads(plan.error_profile).get("name", plan.error_profile)
+    except (ValueError, AttributeError):
+        name = plan.error_profile
+    whose = f"the {name!r} error profile's" if name not in ("", "none") else "the plan's"
+    scale = ", as large as the orbit's step per frame (fewer frames, larger errors)" if name == "bench" else ""
+    return f"The targets include {whose} injected motion errors{scale}; another seed, more frames or no error profile may pass"
+
+
 def check_limits(plan: ScanPlan, sources: Mapping[str, Mapping[str, Range]]) -> None:
     """Refuse the plan at its first frame that leaves a range of any source (``configured``, ``controller``)."""
     worst: tuple[int, str, float, str] | None = None
@@ -39,7 +54,7 @@ def check_limits(plan: ScanPlan, sources: Mapping[str, Mapping[str, Range]]) -> 
                 worst = (i, axis, float(values[i]), f"the {label} range [{lo:g}, {hi:g}]")
     if worst is not None:
         i, axis, value, allowed = worst
-        raise PreflightError(i, axis, value, allowed, plan.units.get(axis, ""))
+        raise PreflightError(i, axis, value, allowed, plan.units.get(axis, ""), errors_note(plan))
 
 
 def check_speeds(plan: ScanPlan, config: BenchConfig, frame_rate_hz: float) -> None:
@@ -69,7 +84,8 @@ async def check_workspace(plan: ScanPlan, workspace_check: WorkspaceCheck) -> No
     if i is not None:
         p = poses[i]
         pose_txt = ", ".join(f"{a}={p[a]:.3f}" for a in HEXAPOD_AXES)
-        raise PreflightError(i, "hexapod (coupled workspace)", None, f"the controller's workspace (VMO? refused pose {pose_txt})")
+        raise PreflightError(i, "hexapod (coupled workspace)", None, f"the controller's workspace (VMO? refused pose {pose_txt})",
+                             note=errors_note(plan))
 
 
 async def bench_preflight(

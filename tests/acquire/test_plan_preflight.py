@@ -61,6 +61,27 @@ def test_errors_push_translation_out_of_range() -> None:
     with pytest.raises(PreflightError) as info:
         asyncio.run(bench_preflight(plan_bench_scan(CFG, theta, phi, err), CFG))
     assert info.value.frame == 17 + 5 and info.value.axis == "hexapod.Z"
+    assert "nothing moved. The targets include the plan's injected motion errors" in str(info.value)
+
+
+def test_a_refusal_caused_with_the_bench_error_profile_says_so() -> None:
+    """DCArc (tilts up to 29 deg) at 120 frames: the bench profile's errors, as large as a step per frame, take the
+    tilt past the hexapod's 30 deg; the refusal says the errors are part of the targets and what may pass."""
+    from pathlib import Path
+
+    from acquire.config import load_config
+    from acquire.runner import ScanRequest, build_plan
+
+    cfg = load_config(Path(__file__).resolve().parents[2] / "config" / "bench.yaml").with_detector_size(32)
+
+    def plan(errors: str):  # type: ignore[no-untyped-def]
+        return build_plan(ScanRequest(config=cfg, out="unused.h5", orbit="dcarc", frames=120, errors=errors), cfg)
+
+    with pytest.raises(PreflightError, match="hexapod.U") as info:
+        asyncio.run(bench_preflight(plan("bench"), cfg))
+    assert "the 'bench' error profile's injected motion errors" in str(info.value)
+    assert "fewer frames, larger errors" in str(info.value)
+    asyncio.run(bench_preflight(plan("none"), cfg))
 
 
 def test_controller_limits_are_checked_too() -> None:
