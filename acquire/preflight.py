@@ -73,7 +73,7 @@ def check_speeds(plan: ScanPlan, config: BenchConfig, frame_rate_hz: float) -> N
         k, name, v, lim = min(candidates, key=lambda c: c[0])
         unit = "deg/s" if "rotation" in name else "mm/s"
         raise PreflightError(k, name, float(v[k - 1]), f"the allowed [0, {lim:g}] at {frame_rate_hz:g} frames/s "
-                             "(lower --frame-rate or use step mode)", unit)
+                             "(a lower frame rate, or step mode)", unit)
 
 
 async def check_workspace(plan: ScanPlan, workspace_check: WorkspaceCheck) -> None:
