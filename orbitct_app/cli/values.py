@@ -20,6 +20,10 @@ class FiniteFloat(click.FloatRange):
             self.fail(f"{value!r} is not a finite number", param, ctx)
         return rv
 
+    def _describe_range(self) -> str:
+        """No range in the help where there are no bounds (click wrote ``[x<=None]``)."""
+        return "" if self.min is None and self.max is None else super()._describe_range()
+
 
 #: a random seed: what numpy's generators take (0 to 2^32 - 1)
 SEED = click.IntRange(0, 2**32 - 1)

@@ -37,3 +37,11 @@ def test_an_output_file_that_cannot_be_written_ends_the_command_in_one_line(tmp_
         r = CliRunner().invoke(cli, [*args, "--out", str(out)])
         assert r.exit_code == 1 and r.output.startswith("Error: ") and str(blocker) in r.output, r.output  # it or its folder
         assert r.output.count("\n") == 1 and "Traceback" not in r.output, r.output
+
+
+def test_help_shows_no_range_for_an_unbounded_number() -> None:
+    """``--diameter-mm`` and the like have no bounds: their help had read ``[x<=None]``."""
+    for command in (["calibrate", "--help"], ["reconstruct", "--help"], ["plan", "bbs", "--help"], ["twin", "carm", "--help"]):
+        r = CliRunner().invoke(cli, command, terminal_width=200)
+        assert r.exit_code == 0 and "None]" not in r.output, r.output
+    assert "[x>0.0]" in CliRunner().invoke(cli, ["plan", "bbs", "--help"], terminal_width=200).output  # bounded: shown
