@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from acquire.config import MotionConfig
-from acquire.errors import AcquireError, PreflightError, ScanAborted, ScanStateError
+from acquire.errors import AcquireError, RefusedError, ScanAborted, ScanStateError
 from acquire.plan import FramePlan, ScanPlan
 from acquire.records import FrameRecord, ScanEnd, ScanStart, Subscriber
 from devices.frame_protocol import Frame
@@ -43,7 +43,7 @@ class Rig(Protocol):
     sim: bool
 
     async def preflight(self, plan: ScanPlan, mode: str, frame_rate_hz: float) -> None:
-        """Check the whole plan against every limit before anything moves (raise :class:`PreflightError`)."""
+        """Check the whole plan against every limit before anything moves (raise :class:`RefusedError`)."""
 
     async def prepare(self, plan: ScanPlan) -> None:
         """Get ready: servo and references, velocities, X-ray technique, panel armed, program loaded."""
@@ -266,7 +266,7 @@ class ScanEngine:
                 await self._run_step(t0)
             else:
                 await self._run_continuous(t0)
-        except PreflightError:
+        except RefusedError:
             status = "refused"
             raise
         except (KeyboardInterrupt, asyncio.CancelledError) as exc:

@@ -11,7 +11,11 @@ class ConfigError(AcquireError, ValueError):
     """A bench or C-arm configuration that cannot be used; the message names the field and the reason."""
 
 
-class PreflightError(AcquireError):
+class RefusedError(AcquireError):
+    """Pre-flight refused the scan before anything moved; the message says why."""
+
+
+class PreflightError(RefusedError):
     """The orbit (errors included) cannot be run: names the first offending frame and axis."""
 
     def __init__(self, frame: int, axis: str, value: float | None, allowed: str, unit: str = "", note: str = "") -> None:

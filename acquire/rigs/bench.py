@@ -15,7 +15,7 @@ from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from typing import Any, Protocol
 
 from acquire.config import BenchConfig
-from acquire.errors import StallError
+from acquire.errors import RefusedError, StallError
 from acquire.kinematics import HEXAPOD_AXES, STAGE_AXIS
 from acquire.plan import ScanPlan
 from acquire.preflight import bench_preflight
@@ -103,9 +103,15 @@ class BenchRig:
         return None
 
     async def preflight(self, plan: ScanPlan, mode: str, frame_rate_hz: float) -> None:
-        """The generator able to expose (no fault, door closed); every frame against the configured and the
-        controllers' limits and the hexapod's workspace."""
+        """The generator able to expose (no fault, door closed); the panel's frames the size the plan records;
+        every frame against the configured and the controllers' limits and the hexapod's workspace."""
         await self.xray.check_ready()
+        panel = (await self.detector.describe()).extra
+        want = (plan.panel.rows, plan.panel.cols)
+        if panel.get("rows") and panel.get("cols") and (panel["rows"], panel["cols"]) != want:
+            raise RefusedError(f"{self.detector.name} delivers {panel['rows']} x {panel['cols']} px frames, the plan records "
+                              f"{want[0]} x {want[1]} (geometry.detector rows and cols of the configuration, or "
+                              "--detector-size); nothing moved")
         await bench_preflight(plan, self.config, device_limits=await self.device_limits(),
                               workspace_check=self.check_workspace, mode=mode, frame_rate_hz=frame_rate_hz)
 
@@ -119,8 +125,9 @@ class BenchRig:
                 if not self.sim:  # referencing moves the axes to their switches: an operator's decision
                     missing = ", ".join(a for a, ok in ref.items() if not ok)
                     raise NotReferencedError(
-                        f"{dev.name}: axes {missing} are not referenced; reference them first "
-                        f"(REST: POST /devices/{dev.name}/reference); a scan never references real axes on its own"
+                        f"{dev.name}: axes {missing} are not referenced; reference them first (orbitct reference "
+                        f"{dev.name} --config CONFIG, or POST /devices/{dev.name}/reference over REST); a scan never "
+                        "references real axes on its own"
                     )
                 await dev.reference()
             servo = await dev.servo_on()

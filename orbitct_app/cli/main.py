@@ -26,6 +26,7 @@ COMMANDS: dict[str, str] = {
     "stop": "orbitct_app.cli.remote:stop",
     "reset": "orbitct_app.cli.remote:reset",
     "reset-fault": "orbitct_app.cli.remote:reset_fault",
+    "reference": "orbitct_app.cli.reference:reference",
     "warmup": "orbitct_app.cli.warmup:warmup",
 }
 

@@ -143,3 +143,25 @@ def test_the_default_bench_runs_every_published_orbit(orbit: str, params: dict, 
             await rig.preflight(plan, "step", cfg.exposure.frame_rate_hz)
 
     asyncio.run(main())
+
+
+def test_a_panel_that_delivers_frames_of_another_size_is_refused_before_anything_moves() -> None:
+    """The configuration (or --detector-size) and the connected panel disagree on the frame size: refused at pre-flight,
+    naming both sizes; it had surfaced at the first frame, after the move to the first pose."""
+    from pathlib import Path
+
+    from acquire.config import load_config
+    from acquire.errors import RefusedError
+    from acquire.rigs.bench import open_bench
+    from acquire.runner import ScanRequest, build_plan
+
+    cfg = load_config(Path(__file__).resolve().parents[2] / "config" / "bench.yaml").with_detector_size(32)
+    other = cfg.with_detector_size(48)
+    plan = build_plan(ScanRequest(config=other, out="unused.h5", orbit="sawtooth", frames=20), other)
+
+    async def main() -> None:
+        async with open_bench(cfg, sim=True) as rig:
+            with pytest.raises(RefusedError, match="delivers 32 x 32 px frames, the plan records 48 x 48"):
+                await rig.preflight(plan, "step", cfg.exposure.frame_rate_hz)
+
+    asyncio.run(main())
