@@ -63,21 +63,28 @@ def reference(device: str, config_path: Path, data_dir: Path | None, yes: bool) 
         where = ", ".join(f"{n} ({links[n].uri})" for n in names)
         click.confirm(f"Referencing moves every axis of {where} to its reference switch. Is the travel clear?",
                       abort=True, err=True)
+    received: list[signal.Signals] = []
     try:
-        asyncio.run(_reference_all(names, links))
-    except (KeyboardInterrupt, asyncio.CancelledError) as exc:
-        how = "Ctrl-C" if isinstance(exc, KeyboardInterrupt) else "a signal"
-        click.echo(f"interrupted ({how}): the axes were halted; they may be unreferenced", err=True)
-        sys.exit(130)
+        asyncio.run(_reference_all(names, links, received))
+    except (KeyboardInterrupt, asyncio.CancelledError):
+        sig = received[0] if received else signal.SIGINT
+        click.echo(f"interrupted ({'Ctrl-C' if sig == signal.SIGINT else sig.name}): the axes were halted; they may "
+                   "be unreferenced", err=True)
+        sys.exit(128 + int(sig))
 
 
-async def _reference_all(names: list[str], links: dict[str, Any]) -> None:
+async def _reference_all(names: list[str], links: dict[str, Any], received: list[signal.Signals]) -> None:
     from devices.errors import DeviceError
     from devices.factory import open_device
 
     task, loop = asyncio.current_task(), asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGHUP):  # as Ctrl-C: the reference is cancelled and the driver halts the axes
-        loop.add_signal_handler(sig, task.cancel)  # type: ignore[union-attr]
+
+    def cancel(sig: signal.Signals) -> None:  # as Ctrl-C: the reference is cancelled and the driver halts the axes
+        received.append(sig)
+        task.cancel()  # type: ignore[union-attr]
+
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        loop.add_signal_handler(sig, cancel, sig)
     for name in names:
         try:
             dev = await open_device(name, name, links[name].uri, **links[name].options)

@@ -68,3 +68,25 @@ def test_refused_while_the_stop_is_latched_and_for_twins_or_a_carm(tmp_path: Pat
     assert r.exit_code == 2 and "C-arm" in r.output, r.output
     r = CliRunner().invoke(cli, ["reference", "all", "--config", str(_config(tmp_path, "tcp://127.0.0.1:9", stage.uri)), "--yes"])
     assert r.exit_code == 1 and r.output.startswith("error: hexapod:") and "Traceback" not in r.output, r.output
+
+
+def test_sigterm_while_referencing_halts_the_axes(tmp_path: Path) -> None:
+    import signal
+    import subprocess
+    import sys
+
+    hexapod = start_twin("hexapod", world=f"ref-{uuid.uuid4().hex[:8]}", time_scale=0.05)  # referencing takes minutes
+    try:
+        config = str(_config(tmp_path, hexapod.uri, "tcp://127.0.0.1:9"))
+        cmd = [sys.executable, "-c", "from orbitct_app.cli.main import main; main()", "reference", "hexapod", "--config",
+               config, "--yes"]
+        proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+        assert proc.stderr is not None
+        assert "referencing X Y Z U V W" in proc.stderr.readline()
+        proc.send_signal(signal.SIGTERM)
+        rest = proc.stderr.read()
+        assert proc.wait(30) == 128 + signal.SIGTERM and "interrupted (SIGTERM): the axes were halted" in rest, rest
+        controller = hexapod.twin.controller
+        assert not controller.referencing and not controller.motion.moving().any() and not controller.referenced.any()
+    finally:
+        hexapod.stop()
