@@ -34,11 +34,17 @@ from devices.twins.world import SimWorld, get_world
 from devices.xray_registers import FaultCode, GeneratorState, Refusal
 
 HEARTBEAT_PERIOD_S = 0.1
+HV_STATES = (GeneratorState.PREP, GeneratorState.READY, GeneratorState.EXPOSING, GeneratorState.DONE)
+
+
+def _bits_to_registers(bits: list[bool]) -> list[int]:
+    bits = bits + [False] * (-len(bits) % 16)
+    return [sum(1 << i for i, b in enumerate(bits[k : k + 16]) if b) for k in range(0, len(bits), 16)]
 
 
 class _GeneratorServer(ModbusTcpServer):  # type: ignore[misc]
     """pymodbus's Modbus TCP server, answering each connection's requests one at a time in the order they came, each
-    with its own transaction id, as the generator's controller does. pymodbus's own handler (3.13 to 3.16 at least)
+    with its own transaction id, as the generator's controller does. pymodbus's own handler (3.16 at least)
     labels every reply with the newest request's id: a request that waits (the latency fault) while the client sends
     the next one (the first cut short) was answered under the second one's id."""
 
@@ -62,12 +68,6 @@ async def _answer_in_order(handler: Any, turn: asyncio.Lock) -> None:
             response = ExceptionResponse(pdu.function_code, ExcCodes.DEVICE_FAILURE)
         response.transaction_id, response.dev_id = pdu.transaction_id, pdu.dev_id
         handler.server_send(response, addr)
-HV_STATES = (GeneratorState.PREP, GeneratorState.READY, GeneratorState.EXPOSING, GeneratorState.DONE)
-
-
-def _bits_to_registers(bits: list[bool]) -> list[int]:
-    bits = bits + [False] * (-len(bits) % 16)
-    return [sum(1 << i for i, b in enumerate(bits[k : k + 16]) if b) for k in range(0, len(bits), 16)]
 
 
 class XrayTwin:

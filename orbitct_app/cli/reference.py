@@ -33,7 +33,7 @@ def reference(device: str, config_path: Path, data_dir: Path | None, yes: bool) 
 
     A scan refuses unreferenced axes of real controllers; this is how a bench operator references them without
     the REST service (which has POST /devices/NAME/reference). Already referenced axes are left where they are.
-    Ctrl-C halts the axes.
+    Ctrl-C, SIGTERM or SIGHUP halt the axes.
     """
     from acquire.config import BenchConfig, load_config
     from acquire.errors import ConfigError
