@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from acquire.config import MotionConfig
 from acquire.errors import AcquireError, RefusedError, ScanAborted, ScanStateError
-from acquire.plan import FramePlan, ScanPlan
+from acquire.plan import FramePlan, ScanPlan, sweep_end
 from acquire.records import FrameRecord, ScanEnd, ScanStart, Subscriber
 from devices.frame_protocol import Frame
 from orbitct.progress import ProgressCallback, report
@@ -126,20 +126,6 @@ def _reason(exc: BaseException) -> str:
         return "cancelled"
     text = str(exc) or type(exc).__name__
     return text if isinstance(exc, AcquireError) else f"{type(exc).__name__}: {text}"
-
-
-def sweep_end(stage_deg: NDArray[np.float64], start: int, last: int, tol_deg: float = 1e-9) -> int:
-    """Last frame of the run from ``start`` in which the sweep axis keeps turning one way (``start`` if it stays)."""
-    if start >= last or abs(stage_deg[start + 1] - stage_deg[start]) <= tol_deg:
-        return start
-    sign = np.sign(stage_deg[start + 1] - stage_deg[start])
-    end = start + 1
-    while end < last:
-        step = stage_deg[end + 1] - stage_deg[end]
-        if abs(step) <= tol_deg or np.sign(step) != sign:
-            break
-        end += 1
-    return end
 
 
 class ScanEngine:

@@ -154,3 +154,34 @@ def plan_carm_scan(config: CArmConfig, orbit: Orbit) -> ScanPlan:
         orbit_name=orbit.name, orbit_params=dict(orbit.params), error_profile=json.dumps({"name": "carm-systematic"}),
         config=config.model_dump(mode="json"),
     )
+
+
+def sweep_end(stage_deg: NDArray[np.float64], start: int, last: int, tol_deg: float = 1e-9) -> int:
+    """Last frame of the run from ``start`` in which the sweep axis keeps turning one way (``start`` if it stays)."""
+    if start >= last or abs(stage_deg[start + 1] - stage_deg[start]) <= tol_deg:
+        return start
+    sign = np.sign(stage_deg[start + 1] - stage_deg[start])
+    end = start + 1
+    while end < last:
+        step = stage_deg[end + 1] - stage_deg[end]
+        if abs(step) <= tol_deg or np.sign(step) != sign:
+            break
+        end += 1
+    return end
+
+
+def swept_steps(plan: ScanPlan) -> NDArray[np.bool_]:
+    """Per step from frame ``k`` to ``k + 1``: whether continuous mode makes it while the sweep axis (the stage)
+    turns at constant speed between two triggers. Steps between sweeps (where the stage stops or turns back, such
+    as a rewind after a full turn), to and from darks and flats, and along tilt-only arcs are moves of their own."""
+    stage = plan.targets[STAGE_AXIS]
+    proj = np.flatnonzero(plan.image_key == ImageKey.PROJECTION)
+    swept = np.zeros(max(plan.n_frames - 1, 0), dtype=bool)
+    if proj.size == 0:
+        return swept
+    i, last = int(proj[0]), int(proj[-1])
+    while i <= last:
+        end = sweep_end(stage, i, last)
+        swept[i:end] = True
+        i = end + 1
+    return swept

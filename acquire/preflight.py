@@ -15,7 +15,7 @@ import numpy as np
 from acquire.config import BenchConfig
 from acquire.errors import PreflightError
 from acquire.kinematics import HEXAPOD_AXES, STAGE_AXIS
-from acquire.plan import ScanPlan
+from acquire.plan import ScanPlan, swept_steps
 
 # async check of full hexapod poses {'X': mm, ..., 'U': deg, ...}; returns the index of the first unreachable one
 WorkspaceCheck = Callable[[Sequence[Mapping[str, float]]], Awaitable[int | None]]
@@ -58,12 +58,15 @@ def check_limits(plan: ScanPlan, sources: Mapping[str, Mapping[str, Range]]) -> 
 
 
 def check_speeds(plan: ScanPlan, config: BenchConfig, frame_rate_hz: float) -> None:
-    """Continuous mode: refuse frames whose step from the previous one needs more than the allowed speeds."""
+    """Continuous mode: refuse frames whose step from the previous one, made while the stage sweeps between two
+    triggers (:func:`acquire.plan.swept_steps`), needs more than the allowed speeds. Moves between sweeps (a rewind
+    after a full turn, the start of the next arc) are moves of their own, at the configured velocities."""
     dt = 1.0 / frame_rate_hz
-    stage_speed = np.abs(np.diff(plan.targets[STAGE_AXIS])) / dt
+    swept = swept_steps(plan)
+    stage_speed = np.where(swept, np.abs(np.diff(plan.targets[STAGE_AXIS])) / dt, 0.0)
     i = _first_outside(stage_speed, 0.0, config.limits.stage_velocity_deg_s)
     xyz = np.stack([plan.targets[f"hexapod.{a}"] for a in HEXAPOD_AXES[:3]], axis=1)
-    lin = np.linalg.norm(np.diff(xyz, axis=0), axis=1) / dt
+    lin = np.where(swept, np.linalg.norm(np.diff(xyz, axis=0), axis=1) / dt, 0.0)
     j = _first_outside(lin, 0.0, config.limits.hexapod_velocity_mm_s)
     candidates = [(k + 1, n, v, lim) for k, n, v, lim in (
         (i, "rotation_stage velocity", stage_speed, config.limits.stage_velocity_deg_s),

@@ -151,7 +151,11 @@ class BenchRig:
 
     # ------------------------------------------------------------ motion
     async def move_to(self, targets: Mapping[str, float], timeout_s: float) -> None:
-        """Move stage and hexapod at once and wait until both are on target."""
+        """Move stage and hexapod at once and wait until both are on target (retargeting a sweep or a follow-up move
+        still running from continuous mode: its own ending is expected)."""
+        self._raise_background()
+        self._supersede("stage")
+        self._supersede("hexapod")
         moves = [self.stage.move(_device_axes(targets, "rotation_stage")), self.hexapod.move(_device_axes(targets, "hexapod"))]
         waits = [asyncio.ensure_future(_await(m)) for m in moves]
         for w in waits:

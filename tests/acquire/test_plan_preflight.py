@@ -113,6 +113,26 @@ def test_continuous_mode_speed_limit() -> None:
         asyncio.run(bench_preflight(plan, CFG, mode="continuous", frame_rate_hz=1000))
 
 
+def test_continuous_mode_counts_no_speed_for_the_rewind_between_two_turns() -> None:
+    """DCArc: two turns (the stage rewound by 357 deg between them) and a tilt-only arc. The rewind and the arc are
+    moves of their own; only steps made while the stage sweeps between triggers are held to the frame rate."""
+    from pathlib import Path
+
+    from acquire.config import load_config
+    from acquire.plan import swept_steps
+    from acquire.runner import ScanRequest, build_plan
+
+    cfg = load_config(Path(__file__).resolve().parents[2] / "config" / "bench.yaml").with_detector_size(32)
+    plan = build_plan(ScanRequest(config=cfg, out="unused.h5", orbit="dcarc", frames=300), cfg)
+    swept, stage = swept_steps(plan), plan.targets["rotation_stage.R"]
+    rewind = int(np.argmax(np.diff(stage)))
+    assert np.diff(stage)[rewind] > 350 and not swept[rewind] and swept[rewind - 1] and swept[rewind + 1]
+    assert not swept[: int(np.flatnonzero(plan.image_key == ImageKey.PROJECTION)[0])].any()  # to and from darks/flats
+    asyncio.run(bench_preflight(plan, cfg, mode="continuous", frame_rate_hz=10))  # 26 deg/s while sweeping
+    with pytest.raises(PreflightError, match="rotation_stage velocity"):
+        asyncio.run(bench_preflight(plan, cfg, mode="continuous", frame_rate_hz=50))  # 129 deg/s: too fast
+
+
 def test_sweeps_split_where_the_stage_stops_or_reverses() -> None:
     from acquire.engine import sweep_end
 

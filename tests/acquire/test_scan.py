@@ -72,3 +72,21 @@ def test_continuous_scan_triggers_at_angles(request_factory) -> None:
         lag = np.abs(enc["rotation_stage.R"][proj] - cmd["rotation_stage.R"][proj])
         assert lag.max() < 360 / 10 and np.all(np.diff(enc["rotation_stage.R"][proj]) < 0)
         assert sf.h5["acquisition"].attrs["mode"] == "continuous"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("orbit, params", [("dcarc", {}), ("multiarc", {"preset": "pheno"})])
+def test_continuous_scan_of_an_orbit_of_several_sweeps(request_factory, orbit: str, params: dict) -> None:
+    """DCArc (two turns, the stage rewound between them, then a tilt-only arc) and the multi-arc pheno preset in
+    continuous mode: pre-flight had refused them (the rewind counted as a step at the frame rate) and the move to
+    the next sweep had ended the scan (it retargeted the running sweep, whose ending was taken for an error)."""
+    req = request_factory(frames=36, orbit=orbit, orbit_params=params, mode="continuous", frame_rate_hz=3.0,
+                          errors="none", error_params={})  # pheno tilts to 30 deg: the hexapod's limit
+    res = run_scan(req)
+    assert res.status == "complete", res.reason
+    with ScanFile(req.out) as sf:
+        proj = sf.projection_indices
+        assert proj.size == 36 and sf.h5["acquisition"].attrs["mode"] == "continuous"
+        enc, cmd = sf.axes("encoders"), sf.axes("commanded")
+        lag = np.abs(enc["rotation_stage.R"][proj] - cmd["rotation_stage.R"][proj])
+        assert np.nanmax(lag) < 360 / 12, lag  # read back at each trigger, within a step of its angle
