@@ -514,9 +514,10 @@ class ScanEngine:
     async def _ready_at_angle(self, rig: SweepRig, target: float, direction: float, velocity: float,
                               timeout_s: float) -> None:
         """Wait until the sweep reaches ``target`` with the X-ray source ready: a :class:`PreparingRig`'s
-        preparation starts its preparation time (and a fifth more) before the angle, so the exposure is not
-        late by it while the stage turns on (at 4 frames/s on the simulated bench, 2 of 3 projections had been
-        exposed about 5 degrees past their angle, the read-backs taken at the angle)."""
+        preparation starts its preparation time (and a fifth more) before the angle and is renewed half a
+        preparation before it, so the exposure is not late by a preparation while the stage turns on (a DCArc at
+        4 frames/s on the simulated bench had 2 of 3 projections exposed about 5 degrees past their angle, the
+        read-backs taken at the angle)."""
         prep_s = getattr(rig, "prep_s", 0.0) if isinstance(rig, PreparingRig) else 0.0
         if prep_s <= 0:
             await self._wait_for_angle(rig, target, direction, velocity, timeout_s)
