@@ -10,6 +10,7 @@ from typing import Any
 
 import click
 
+from orbitct_app.cli.failure import fail
 from orbitct_app.cli.progress import ProgressBar
 from orbitct_app.cli.values import SEED, FiniteFloat
 
@@ -86,11 +87,9 @@ def demo(out_dir: Path, config_path: Path | None, frames: int, size: int, voxels
     try:
         config = load_config(config_path) if config_path is not None else BenchConfig()
     except AcquireError as exc:
-        click.echo(f"error: {exc}", err=True)
-        sys.exit(2)
+        fail(str(exc))
     if not isinstance(config, BenchConfig):
-        click.echo(f"error: {config_path} is a {config.kind} configuration; the demo needs a bench", err=True)
-        sys.exit(2)
+        fail(f"{config_path} is a {config.kind} configuration; the demo needs a bench")
     config = config.model_copy(update={"sim": config.sim.model_copy(update={"time_scale": time_scale})})
 
     _step(f"1/3 scan: sawtooth +-{tilt_deg:g} deg, {frames} frames at {size}x{size} px, bench error profile "
@@ -102,8 +101,7 @@ def demo(out_dir: Path, config_path: Path | None, frames: int, size: int, voxels
         with ProgressBar() as bar:
             res = run_scan(req, progress=bar)
     except AcquireError as exc:
-        click.echo(f"error: scan refused: {exc}", err=True)
-        sys.exit(1)
+        fail(f"scan refused: {exc}", 1)
     click.echo(f"   {res.status}: {res.n_frames} frames in {res.elapsed_s:.1f} s -> {res.path}")
     if res.status != "complete":
         click.echo(f"   reason: {res.reason}", err=True)

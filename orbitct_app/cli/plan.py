@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from orbitct_app.bbplan import MOTION_ERRORS
 from orbitct_app.cli.progress import ProgressBar
 from orbitct_app.cli.values import SEED, FiniteFloat
 
@@ -44,7 +45,7 @@ def _keep_out(ctx: click.Context, param: click.Parameter, values: tuple[str, ...
 @click.option("--surface-threshold", type=FiniteFloat(), default=None, metavar="MU_PER_MM",
               help="with a volume: the attenuation (1/mm) above which a voxel is the object (default: Otsu's threshold)")
 @click.option("--detector-size", type=click.IntRange(min=8, max=4096), default=768, show_default=True)
-@click.option("--errors", type=click.Choice(["none", "bench"]), default="none", show_default=True,
+@click.option("--errors", type=click.Choice(MOTION_ERRORS), default="none", show_default=True,
               help="the orbit's expected motion errors: a BB counts in a view only where it stays usable in three "
                    "samples of this error profile (bench: the simulated bench's)")
 @click.option("--noise-px", type=FiniteFloat(min=0.0, min_open=True), default=0.1, show_default=True,

@@ -11,14 +11,11 @@ from typing import Any
 
 import click
 
+from orbitct_app.cli.failure import fail
+
 #: the bench's devices with axes to reference, in the order ``all`` takes them (one at a time: the stage rides on
 #: the hexapod or the other way round)
 MOTION_DEVICES = ("hexapod", "rotation_stage")
-
-
-def _fail(message: str, code: int = 2) -> None:
-    click.echo(f"error: {message}", err=True)
-    sys.exit(code)
 
 
 @click.command()
@@ -41,24 +38,24 @@ def reference(device: str, config_path: Path, data_dir: Path | None, yes: bool) 
     try:
         config = load_config(config_path)
     except ConfigError as exc:
-        _fail(str(exc))
+        fail(str(exc))
     if not isinstance(config, BenchConfig):
-        _fail(f"{config_path}: a C-arm configuration; a C-arm has no axes to reference from here (the arm's own "
-              "console does that)")
+        fail(f"{config_path}: a C-arm configuration; a C-arm has no axes to reference from here (the arm's own "
+             "console does that)")
     if data_dir is not None:
         from orbitct_app.service.safety.latch import StopLatch
 
         refused = StopLatch(data_dir).refusal("referencing")
         if refused:
-            _fail(refused)
+            fail(refused)
     from acquire.rigs.bench import bench_links
 
     links = bench_links(config, sim=False)
     names = list(MOTION_DEVICES) if device == "all" else [device]
     for name in names:
         if links[name].uri.startswith("sim://"):
-            _fail(f"{config_path}: {name} is {links[name].uri}, the in-process twins, which are referenced when a "
-                  "scan opens them; reference a real controller (tcp:// or serial://)")
+            fail(f"{config_path}: {name} is {links[name].uri}, the in-process twins, which are referenced when a "
+                 "scan opens them; reference a real controller (tcp:// or serial://)")
     if not yes:
         where = ", ".join(f"{n} ({links[n].uri})" for n in names)
         click.confirm(f"Referencing moves every axis of {where} to its reference switch. Is the travel clear?",
@@ -89,7 +86,7 @@ async def _reference_all(names: list[str], links: dict[str, Any], received: list
         try:
             dev = await open_device(name, name, links[name].uri, **links[name].options)
         except DeviceError as exc:
-            _fail(f"{name}: {exc}", 1)
+            fail(f"{name}: {exc}", 1)
         try:
             before = await dev.referenced()
             if all(before.values()):
@@ -102,6 +99,6 @@ async def _reference_all(names: list[str], links: dict[str, Any], received: list
             where = ", ".join(f"{a} {v:.4g}" for a, v in (await dev.position()).items())
             click.echo(f"{name}: referenced; at {where}")
         except DeviceError as exc:
-            _fail(f"{name}: {exc}", 1)
+            fail(f"{name}: {exc}", 1)
         finally:
             await dev.close()

@@ -14,12 +14,9 @@ from urllib.parse import urlsplit, urlunsplit
 import click
 import httpx
 
+from orbitct_app.cli.failure import fail
+
 TIMEOUT_S = 15.0
-
-
-def _fail(message: str, code: int = 2) -> None:
-    click.echo(f"error: {message}", err=True)
-    sys.exit(code)
 
 
 def _default_stop_url(url: str) -> str:
@@ -46,7 +43,7 @@ def _check(r: httpx.Response, ok: tuple[int, ...]) -> dict[str, Any]:
     except ValueError:
         body = {"message": r.text[:300]}
     if r.status_code not in ok:
-        _fail(f"{r.status_code}: {body.get('message') or body.get('detail') or body}")
+        fail(f"{r.status_code}: {body.get('message') or body.get('detail') or body}")
     return dict(body)
 
 
@@ -69,7 +66,7 @@ def stop(url: str, token: str, stop_url: str | None, reason: str) -> None:
         try:
             r = _post(f"{url.rstrip('/')}/stop", token, {"reason": reason})
         except httpx.HTTPError as exc2:
-            _fail(f"no stop delivered: neither {target} nor {url} answered ({exc2}); stop the bench by hand")
+            fail(f"no stop delivered: neither {target} nor {url} answered ({exc2}); stop the bench by hand")
     body = _check(r, (202,))
     click.echo(("HALTED" if body["halted"] else "NOT VERIFIED") + f" (latched; {body['message']})")
     for device in body.get("devices", []):
@@ -87,7 +84,7 @@ def reset(url: str, token: str, note: str) -> None:
     try:
         r = _post(f"{url.rstrip('/')}/stop/reset", token, {"note": note})
     except httpx.HTTPError as exc:
-        _fail(f"the service at {url} did not answer ({exc})")
+        fail(f"the service at {url} did not answer ({exc})")
     body = _check(r, (200,))
     last = body.get("last_reset") or {}
     click.echo(f"emergency stop reset by {last.get('by')} at {last.get('utc')}")
@@ -101,7 +98,7 @@ def reset_fault(url: str, token: str, device: str) -> None:
     try:
         r = _post(f"{url.rstrip('/')}/devices/{device}/reset-fault", token)
     except httpx.HTTPError as exc:
-        _fail(f"the service at {url} did not answer ({exc})")
+        fail(f"the service at {url} did not answer ({exc})")
     body = _check(r, (200,))
     state = body["state"]
     click.echo(f"{device}: fault reset; state {state.get('state')}, fault {state.get('fault')}")

@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 import yaml
 
+from orbitct_app.cli.failure import fail
 from orbitct_app.cli.progress import ProgressBar
 from orbitct_app.cli.values import SEED, FiniteFloat
 
@@ -17,17 +18,12 @@ from orbitct_app.cli.values import SEED, FiniteFloat
 ABORT_KINDS = ("bb_lost", "bb_left_fov", "few_bbs", "bb_distorted", "object_moved", "fell_behind")
 
 
-def _fail(message: str) -> None:
-    click.echo(f"error: {message}", err=True)
-    sys.exit(2)
-
-
 def _parse_params(items: tuple[str, ...]) -> dict[str, object]:
     out: dict[str, object] = {}
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
-            _fail(f"--param {item!r}: expected KEY=VALUE, e.g. amplitude_deg=8")
+            fail(f"--param {item!r}: expected KEY=VALUE, e.g. amplitude_deg=8")
         out[key.strip()] = yaml.safe_load(value)
     return out
 
@@ -74,7 +70,7 @@ def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int |
     if ctx.invoked_subcommand is not None:
         return
     if config_path is None or out is None:
-        _fail("orbitct scan needs --config FILE and --out FILE (see orbitct scan --help)")
+        fail("orbitct scan needs --config FILE and --out FILE (see orbitct scan --help)")
     from acquire.errors import AcquireError
     from acquire.runner import SIGNAL_REASONS, ScanRequest, run_scan
 
@@ -83,13 +79,13 @@ def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int |
 
         refused = StopLatch(data_dir).refusal("scans")
         if refused:
-            _fail(refused)
+            fail(refused)
 
     req = ScanRequest(config=config_path, out=out, orbit=orbit, frames=frames, orbit_params=_parse_params(params),
                       errors=errors, seed=seed, mode=mode,
                       sim=sim, detector_size=detector_size, frame_rate_hz=frame_rate_hz, overwrite=overwrite)
     if abort_on and calibrate_mode != "live":
-        _fail("--abort-on needs --calibrate live")
+        fail("--abort-on needs --calibrate live")
     live = None
     try:
         with ProgressBar() as bar:
@@ -97,7 +93,7 @@ def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int |
                 live = _live_subscriber(req, out, bb_diameter_mm, abort_on, lost_frames, bar)
             res = run_scan(req, progress=bar, subscribers=[live] if live is not None else [])
     except AcquireError as exc:
-        _fail(str(exc))
+        fail(str(exc))
     except KeyboardInterrupt:
         click.echo(f"scan interrupted (Ctrl-C): axes halted, X-rays off; partial file {out} marked aborted", err=True)
         sys.exit(130)
@@ -123,14 +119,13 @@ def _live_subscriber(req: object, out: Path, bb_diameter_mm: float | None, abort
 
     if bb_diameter_mm is None:
         if not getattr(req, "sim"):
-            _fail("--calibrate live needs --bb-diameter-mm (the size of the BBs on the object)")
+            fail("--calibrate live needs --bb-diameter-mm (the size of the BBs on the object)")
         bb_diameter_mm = req.resolved_config().sim.bb_diameter_mm  # type: ignore[attr-defined]
 
     try:
         return LiveCalibrationSubscriber(out, bb_diameter_mm, abort_on=abort_on, lost_frames=lost_frames, progress=bar)
     except CalibrationError as exc:
-        _fail(str(exc))
-        raise
+        fail(str(exc))
 
 
 def _report_live(live: object) -> None:
@@ -166,5 +161,5 @@ def repair(file: Path, force: bool) -> None:
     try:
         rep = repair_scan(file, force=force)
     except RepairError as exc:
-        _fail(str(exc))
+        fail(str(exc))
     click.echo(rep.summary())
