@@ -518,7 +518,7 @@ class ScanEngine:
         preparation before it, so the exposure is not late by a preparation while the stage turns on (a DCArc at
         4 frames/s on the simulated bench had 2 of 3 projections exposed about 5 degrees past their angle, the
         read-backs taken at the angle)."""
-        prep_s = getattr(rig, "prep_s", 0.0) if isinstance(rig, PreparingRig) else 0.0
+        prep_s = rig.prep_s if isinstance(rig, PreparingRig) else 0.0
         if prep_s <= 0:
             await self._wait_for_angle(rig, target, direction, velocity, timeout_s)
             return
