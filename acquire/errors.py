@@ -15,6 +15,10 @@ class RefusedError(AcquireError):
     """Pre-flight refused the scan before anything moved; the message says why."""
 
 
+class NotReadyError(RefusedError):
+    """The bench cannot start a scan yet (axes not referenced): an operator's step comes first; the message names it."""
+
+
 class PreflightError(RefusedError):
     """The orbit (errors included) cannot be run: names the first offending frame and axis."""
 

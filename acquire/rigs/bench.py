@@ -15,7 +15,7 @@ from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from typing import Any, Protocol
 
 from acquire.config import BenchConfig
-from acquire.errors import RefusedError, StallError
+from acquire.errors import NotReadyError, RefusedError, StallError
 from acquire.kinematics import HEXAPOD_AXES, STAGE_AXIS
 from acquire.plan import ScanPlan
 from acquire.preflight import bench_preflight
@@ -103,9 +103,15 @@ class BenchRig:
         return None
 
     async def preflight(self, plan: ScanPlan, mode: str, frame_rate_hz: float) -> None:
-        """The generator able to expose (no fault, door closed); the panel's frames the size the plan records;
-        every frame against the configured and the controllers' limits and the hexapod's workspace."""
+        """The generator able to expose (no fault, door closed); real axes referenced (a scan never references
+        them); the panel's frames the size the plan records; every frame against the configured and the
+        controllers' limits and the hexapod's workspace."""
         await self.xray.check_ready()
+        if not self.sim:
+            for dev in (self.hexapod, self.stage):
+                unreferenced = await self._unreferenced(dev)
+                if unreferenced:
+                    raise NotReadyError(f"{unreferenced}; nothing moved")
         panel = (await self.detector.describe()).extra
         want = (plan.panel.rows, plan.panel.cols)
         if panel.get("rows") and panel.get("cols") and (panel["rows"], panel["cols"]) != want:
@@ -120,15 +126,10 @@ class BenchRig:
         """Reference and servo the axes if needed, set the pivot, velocities and X-ray technique; arm the detector."""
         config = self.config
         for dev in (self.hexapod, self.stage):
-            ref = await dev.referenced()
-            if not all(ref.values()):
+            unreferenced = await self._unreferenced(dev)
+            if unreferenced:
                 if not self.sim:  # referencing moves the axes to their switches: an operator's decision
-                    missing = ", ".join(a for a, ok in ref.items() if not ok)
-                    raise NotReferencedError(
-                        f"{dev.name}: axes {missing} are not referenced; reference them first (orbitct reference "
-                        f"{dev.name} --config CONFIG, or POST /devices/{dev.name}/reference over REST); a scan never "
-                        "references real axes on its own"
-                    )
+                    raise NotReferencedError(unreferenced)
                 await dev.reference()
             servo = await dev.servo_on()
             if not all(servo.values()):
@@ -140,6 +141,16 @@ class BenchRig:
         await self.xray.configure(kv=ex.kv, ma=ex.ma, exposure_ms=ex.exposure_ms)
         await self.detector.set_trigger("xray")
         await self.detector.arm()
+
+    @staticmethod
+    async def _unreferenced(dev: Any) -> str:
+        """Why ``dev`` cannot move yet: its axes that are not referenced, and how to reference them ('' if all are)."""
+        missing = ", ".join(a for a, ok in (await dev.referenced()).items() if not ok)
+        if not missing:
+            return ""
+        return (f"{dev.name}: axes {missing} are not referenced; reference them first (orbitct reference {dev.name} "
+                f"--config CONFIG, or POST /devices/{dev.name}/reference over REST); a scan never references real axes "
+                "on its own")
 
     async def _set_pivot(self, pivot_mm: Sequence[float], timeout_s: float) -> None:
         current = await self.hexapod.pivot()

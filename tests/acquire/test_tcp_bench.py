@@ -8,9 +8,11 @@ from pathlib import Path
 
 import pytest
 
-from acquire.rigs.bench import open_bench
 from acquire.config import BenchConfig
-from acquire.runner import ScanRequest, ScanRunner
+from acquire.errors import RefusedError
+from acquire.rigs.bench import open_bench
+from acquire.runner import ScanRequest, ScanRunner, build_plan
+from devices.errors import NotReferencedError
 from orbitct.scanfile import ScanFile
 from tests.helpers.bench import SMALL_ERRORS
 from tests.helpers.twin_bench import twin_bench
@@ -35,9 +37,12 @@ def test_unreferenced_real_axes_are_not_referenced_by_a_scan(tcp_config: BenchCo
 
     async def main() -> None:
         async with open_bench(tcp_config, sim=False) as bench:
-            res = await ScanRunner(_request(tcp_config, out), rig=bench).run()
-            assert res.status == "aborted" and "not referenced" in res.reason and "reference them first" in res.reason
+            with pytest.raises(RefusedError, match="not referenced; reference them first .*; nothing moved"):
+                await ScanRunner(_request(tcp_config, out), rig=bench).run()  # by the pre-flight
             assert not await bench.hexapod.moving()
+            # set-up without the pre-flight still never references real axes
+            with pytest.raises(NotReferencedError, match="reference them first"):
+                await bench.prepare(build_plan(_request(tcp_config, out), tcp_config))
 
     asyncio.run(main())
     assert not out.exists()  # nothing was recorded: the scan never started

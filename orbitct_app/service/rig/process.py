@@ -70,7 +70,7 @@ def _live_outcome(live: Any) -> dict[str, Any]:
 
 def classify(exc: BaseException) -> tuple[str, str]:
     """``(kind, message)`` of an error raised by a command."""
-    from acquire.errors import AcquireError, DiskSpaceError, ScanStateError
+    from acquire.errors import AcquireError, DiskSpaceError, NotReadyError, ScanStateError
     from devices.errors import (
         DeviceError,
         DeviceTimeoutError,
@@ -84,7 +84,7 @@ def classify(exc: BaseException) -> tuple[str, str]:
     text = str(exc) or type(exc).__name__
     if isinstance(exc, CommandError):
         return exc.kind, text
-    if isinstance(exc, ScanStateError):
+    if isinstance(exc, (ScanStateError, NotReadyError)):
         return "conflict", text
     if isinstance(exc, DiskSpaceError):
         return "insufficient_storage", text
