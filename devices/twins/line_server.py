@@ -143,7 +143,7 @@ class LineTwinServer:
                     reply = garble(reply, 0, end if end >= 0 else len(reply))  # the reply line; its LF stays
                 writer.write(reply)
                 await writer.drain()
-        except (ConnectionError, OSError):
+        except (ConnectionError, OSError, asyncio.CancelledError):  # cancelled: the twin stops, the link closes
             pass
         finally:
             self._writers.discard(writer)

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import logging
+import socket
+import time
 from collections.abc import Awaitable, Callable
 from typing import Any
 
@@ -213,6 +216,20 @@ def test_standalone_twin_over_tcp() -> None:
         asyncio.run(main())
     finally:
         thread.stop()
+
+
+def test_twin_stopped_while_a_frame_is_awaited_closes_quietly(caplog: pytest.LogCaptureFixture) -> None:
+    """A twin stopped while a request waits ends the link; asyncio logs no 'Exception in callback' traceback."""
+    reset_world("detstop")
+    thread = TwinThread(DetectorTwin(get_world("detstop"), rows=8))
+    with socket.create_connection(("127.0.0.1", thread.port), timeout=5.0) as link:
+        link.sendall(b"ARM\nFRAME? 10000\n")
+        assert link.recv(64).startswith(b"OK")  # ARM's reply; FRAME? waits for an exposure that never comes
+        time.sleep(0.2)
+        with caplog.at_level(logging.ERROR):
+            thread.stop()
+        assert link.recv(64) == b""  # closed
+    assert not [r for r in caplog.records if "Exception in callback" in r.getMessage()], caplog.text
 
 
 def test_bad_options() -> None:

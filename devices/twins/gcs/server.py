@@ -143,7 +143,7 @@ class GcsTwin:
                             await asyncio.sleep(self.faults.latency_s)
                         writer.write(out)
                         await writer.drain()
-        except (ConnectionError, OSError):
+        except (ConnectionError, OSError, asyncio.CancelledError):  # cancelled: the twin stops, the link closes
             pass
         finally:
             self._writers.discard(writer)
