@@ -132,6 +132,17 @@ class BenchDevices(_Model):
 
     _uris = field_validator("hexapod", "rotation_stage", "xray", "detector")(classmethod(lambda cls, v: _check_uri(v)))
 
+    @model_validator(mode="after")
+    def _simulated_panel_sees_its_source(self) -> "BenchDevices":
+        panel = parse_uri(self.detector)
+        if panel.scheme == "sim":  # a twin panel renders the exposures of its own world's X-ray twin, no other
+            source = parse_uri(self.xray)
+            if source.scheme != "sim" or source.host != panel.host:
+                raise ValueError(f"detector {self.detector} is a simulated panel: it takes frames only on exposures of "
+                                 f"the X-ray twin of its world (xray: sim://{panel.host}), not of xray {self.xray}; "
+                                 "make both sim:// or neither")
+        return self
+
 
 class StackConfig(_Model):
     """How the rotation stage and hexapod are stacked, and the hexapod pivot point (lab, mm)."""

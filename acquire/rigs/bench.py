@@ -19,7 +19,7 @@ from acquire.errors import NotReadyError, RefusedError, StallError
 from acquire.kinematics import HEXAPOD_AXES, STAGE_AXIS
 from acquire.plan import ScanPlan
 from acquire.preflight import bench_preflight
-from acquire.rigs.links import DeviceLink
+from acquire.rigs.links import DeviceLink, configured_link
 from acquire.stall import within
 from devices.base import DeviceInfo, FrameSource, Referencing, Status, XraySource
 from devices.errors import NotReferencedError, OutOfLimitsError
@@ -345,6 +345,11 @@ async def open_bench(config: BenchConfig, *, sim: bool = False,
     """
     if links is None:
         links = bench_links(config, sim=sim)
+    real_axes = [k for k in ("hexapod", "rotation_stage") if not links[k].uri.startswith("sim://")]
+    if links["detector"].uri.startswith("sim://") and real_axes:
+        log.warning("the panel is simulated (%s) but %s not: its frames show the simulated object, unmoved by the "
+                    "real axes; a rehearsal of the motion, not a scan to calibrate or reconstruct",
+                    links["detector"].uri, " and ".join(real_axes) + (" are" if len(real_axes) > 1 else " is"))
     opened: dict[str, Any] = {}
     try:
         for kind in BENCH_KINDS:
@@ -365,5 +370,9 @@ def bench_links(config: BenchConfig, *, sim: bool) -> dict[str, DeviceLink]:
     """Where each bench device is reached: its configured URI, or ``sim://bench`` with twin and driver options."""
     if sim:
         return {kind: DeviceLink(f"sim://{SIM_WORLD}", opts) for kind, opts in sim_options(config).items()}
-    uris = config.devices.model_dump()
-    return {kind: DeviceLink(uris[kind], opts) for kind, opts in device_options(config).items()}
+    uris, twins = config.devices.model_dump(), sim_options(config)
+    # a sim:// twin in a real bench's configuration: the configuration's panel, distances, phantom, preparation
+    # time and stack, at real speed (its time scale and the in-process reply time-outs are --sim's)
+    twin_keys = {"rows", "cols", "sad_mm", "sdd_mm", "phantom", "seed", "prep_s", "stack_order"}
+    return {kind: configured_link(uris[kind], opts, {k: v for k, v in twins[kind].items() if k in twin_keys})
+            for kind, opts in device_options(config).items()}

@@ -17,7 +17,7 @@ from typing import Any
 from acquire.config import CArmConfig
 from acquire.errors import AcquireError, PreflightError
 from acquire.plan import CARM_AXES, ScanPlan
-from acquire.rigs.links import DeviceLink
+from acquire.rigs.links import DeviceLink, configured_link
 from acquire.stall import within
 from devices.carm import CArm
 from devices.carm_program import CArmLimits, InfeasibleOrbitError, NavProgram, export_program
@@ -157,9 +157,9 @@ async def open_carm(cfg: CArmConfig, *, sim: bool, links: Mapping[str, DeviceLin
 
 def carm_links(cfg: CArmConfig, *, sim: bool) -> dict[str, DeviceLink]:
     """Where the C-arm is reached: its configured URI, or ``sim://carm`` with the twin's options."""
-    if not sim:
-        return {"carm": DeviceLink(cfg.devices.carm, {})}
     det = cfg.geometry.detector
-    return {"carm": DeviceLink(f"sim://{SIM_WORLD}", {
-        "rows": det.rows, "cols": det.cols, "sad_mm": cfg.geometry.sad_mm, "sdd_mm": cfg.geometry.sdd_mm,
-        "time_scale": cfg.sim.time_scale, "seed": cfg.sim.seed, "phantom": cfg.sim.phantom})}
+    twin = {"rows": det.rows, "cols": det.cols, "sad_mm": cfg.geometry.sad_mm, "sdd_mm": cfg.geometry.sdd_mm,
+            "seed": cfg.sim.seed, "phantom": cfg.sim.phantom}
+    if not sim:  # a sim:// twin configured here runs at real speed
+        return {"carm": configured_link(cfg.devices.carm, {}, twin)}
+    return {"carm": DeviceLink(f"sim://{SIM_WORLD}", {**twin, "time_scale": cfg.sim.time_scale})}

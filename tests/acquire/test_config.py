@@ -42,6 +42,9 @@ def test_default_bench_numbers() -> None:
         ({"kind": "submarine"}, "", "bench"),
         ({"geometry": {"sdd_mm": float("inf")}}, "geometry.sdd_mm", "finite number"),  # YAML .inf: beyond every SAD
         ({"geometry": {"du_mm": float("nan")}}, "geometry.du_mm", "finite number"),  # unbounded: NaN passed
+        # a twin panel never sees a real generator's exposures (it had stalled at the first frame)
+        ({"devices": {"xray": "modbus://10.0.0.5:502"}}, "devices", "make both sim:// or neither"),
+        ({"devices": {"xray": "sim://other"}}, "devices", "X-ray twin of its world (xray: sim://bench)"),
     ],
 )
 def test_invalid_config_names_field_and_reason(data: dict, field: str, reason: str) -> None:
@@ -62,3 +65,19 @@ def test_bad_files(tmp_path: Path) -> None:
     bad.write_text("- 1\n- 2\n")
     with pytest.raises(ConfigError, match="expected a mapping"):
         load_config(bad)
+
+
+def test_a_twin_in_a_real_bench_takes_the_configuration() -> None:
+    """A ``sim://`` device in a real bench's configuration (a rehearsal): the configuration's panel size, distances
+    and phantom, where its URI leaves them open; real speed; real devices get only driver options."""
+    from acquire.rigs.bench import bench_links
+
+    cfg = parse_config({"devices": {"hexapod": "tcp://10.0.0.7:50000", "rotation_stage": "tcp://10.0.0.8:50000",
+                                    "detector": "sim://bench?rows=64"},
+                        "geometry": {"detector": {"rows": 128, "cols": 96}}, "sim": {"phantom": "B"}}, "t.yaml")
+    links = bench_links(cfg, sim=False)
+    det = links["detector"].options
+    assert det["cols"] == 96 and "rows" not in det  # the URI's rows=64 stays the URI's
+    assert det["sad_mm"] == cfg.geometry.sad_mm and det["phantom"] == "B" and "time_scale" not in det
+    assert links["xray"].options["prep_s"] == cfg.exposure.prep_ms / 1000.0
+    assert links["hexapod"].options == {} and links["hexapod"].uri == "tcp://10.0.0.7:50000"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -62,3 +63,22 @@ def test_scan_over_configured_uris(tcp_config: BenchConfig, tmp_path: Path) -> N
         assert sf.status == "complete" and sf.count_by_kind()["projection"] == 10
         assert not sf.has_geometry("truth")  # a real bench knows no truth
         assert set(sf.axes("encoders")) >= {"rotation_stage.R", "hexapod.U"}
+
+
+def test_rehearsal_with_a_simulated_source_and_panel_warns(tcp_config: BenchConfig, tmp_path: Path,
+                                                           caplog: pytest.LogCaptureFixture) -> None:
+    """Real axes with a twin generator and panel: the motion runs, and the frames are said to be no scan's."""
+    cfg = tcp_config.model_copy(update={"devices": tcp_config.devices.model_copy(
+        update={"xray": "sim://bench", "detector": "sim://bench"})})
+
+    async def main() -> None:
+        async with open_bench(cfg, sim=False) as bench:
+            await asyncio.gather(bench.hexapod.reference(), bench.stage.reference())
+            res = await ScanRunner(_request(cfg, tmp_path / "rehearsal.h5"), rig=bench).run()
+            assert res.status == "complete", res.reason
+
+    with caplog.at_level(logging.WARNING, logger="acquire.rigs.bench"):
+        asyncio.run(main())
+    assert "a rehearsal of the motion, not a scan to calibrate" in caplog.text
+    with ScanFile(tmp_path / "rehearsal.h5") as sf:
+        assert sf.frames.shape[1:] == (64, 64)  # the configuration's panel, not the twin's default
