@@ -224,7 +224,12 @@ class Triggerable(Readable, Protocol):
 
 @runtime_checkable
 class XraySource(Triggerable, Protocol):
-    """An X-ray generator: technique, one exposure per trigger, high voltage off on request."""
+    """An X-ray generator: technique, one exposure per trigger, high voltage off on request.
+
+    ``last_exposure_s``: when the last exposure began and ended (``time.monotonic()``), None while unknown.
+    """
+
+    last_exposure_s: tuple[float, float] | None
 
     async def check_ready(self) -> None:
         """Raise unless the generator could expose now (no fault latched, interlock closed); switches nothing on."""

@@ -76,6 +76,9 @@ class XrayGenerator(Driver):
         self.device_id = int(opts.get("device_id", reg.DEVICE_ID))
         # high voltage stays on after an exposure (or a prepare) only this long without the next one; None: until xray_off()
         self.hold_s: float | None = opts.get("hold_s")
+        # the last exposure's start and end (time.monotonic()): the start half the request's exchange after it
+        # left, the end at most its set time after that
+        self.last_exposure_s: tuple[float, float] | None = None
         # a second connection that only reads and switches X-rays off (a safety monitor beside the scan's own):
         # it sets no watchdog, sends no heartbeat and leaves the generator as it is when it closes
         self.monitor = bool(opts.get("monitor", 0.0))
@@ -450,8 +453,12 @@ class XrayGenerator(Driver):
             await self._write_coil(reg.EXPOSE_REQ, False)  # the request acts on a rising edge: start from low
             self._check_interlock("high voltage")
             # sent exactly once: a lost request or reply is an error, never a second exposure
+            self.last_exposure_s = None
+            t_sent = time.monotonic()
             await self._write_coil(reg.EXPOSE_REQ, True, retry=False)
+            t_start = 0.5 * (t_sent + time.monotonic())
             ir = await self._wait_state(status, {GeneratorState.DONE}, "exposure", exposure_s * 2 + self.timeout_s + 1.0)
+            self.last_exposure_s = (t_start, t_start + min(exposure_s, max(time.monotonic() - t_start, 0.0)))
         except DeviceError as exc:
             with contextlib.suppress(DeviceError):
                 await self.xray_off()

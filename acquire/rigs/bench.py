@@ -273,6 +273,10 @@ class BenchRig:
         return await within(stall.frame_s, det, "delivered no frame after the exposure", "stall.frame_s",
                             self.detector.read_frame())
 
+    def last_exposure_s(self) -> tuple[float, float] | None:
+        """When the generator's last exposure began and ended (``time.monotonic()``); None while unknown."""
+        return self.xray.last_exposure_s
+
     async def prepare_exposure(self) -> None:
         """High voltage up while the axes move to the next projection, so the preparation overlaps the move;
         if the exposure comes later than the preparation time after READY, the generator's hold drops it again."""
