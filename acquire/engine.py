@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from acquire.config import MotionConfig
 from acquire.errors import AcquireError, RefusedError, ScanAborted, ScanStateError
-from acquire.plan import FramePlan, ScanPlan, sweep_end
+from acquire.plan import FramePlan, ScanPlan, sweep_end, sweep_run_up_deg, sweep_speed
 from acquire.records import FrameRecord, ScanEnd, ScanStart, Subscriber
 from devices.frame_protocol import Frame
 from orbitct.progress import ProgressCallback, report
@@ -527,9 +527,9 @@ class ScanEngine:
                 idx += 1
                 continue
             # a sweep: position just before the first trigger angle, then turn at constant speed
-            velocity = abs(float(sweep[end] - sweep[idx])) / (end - idx) * self.frame_rate_hz
+            velocity = sweep_speed(sweep, idx, end, self.frame_rate_hz)
             direction = float(np.sign(sweep[end] - sweep[idx]))
-            lead = direction * max(velocity * 0.05, 0.01)
+            lead = direction * sweep_run_up_deg(velocity)
             await rig.move_to({**f.targets, rig.sweep_axis: float(sweep[idx] - lead)}, timeout)
             if isinstance(rig, PreparingRig):  # the first angle comes too soon after the start to get ready on the way
                 await rig.prepare_exposure()

@@ -170,18 +170,44 @@ def sweep_end(stage_deg: NDArray[np.float64], start: int, last: int, tol_deg: fl
     return end
 
 
+#: how long the sweep axis runs before a sweep's first trigger angle and on past its last one (s), at least
+#: :data:`SWEEP_RUN_UP_MIN_DEG`: it is at speed when it passes them
+SWEEP_RUN_UP_S = 0.05
+SWEEP_RUN_UP_MIN_DEG = 0.01
+
+
+def sweep_speed(stage_deg: NDArray[np.float64], start: int, end: int, frame_rate_hz: float) -> float:
+    """The sweep axis's speed (deg/s) from frame ``start`` to ``end`` of one sweep at ``frame_rate_hz``."""
+    return abs(float(stage_deg[end] - stage_deg[start])) / (end - start) * frame_rate_hz
+
+
+def sweep_run_up_deg(speed_deg_s: float) -> float:
+    """How far the sweep axis runs before a sweep's first trigger angle (and on past its last) at ``speed_deg_s``."""
+    return max(speed_deg_s * SWEEP_RUN_UP_S, SWEEP_RUN_UP_MIN_DEG)
+
+
+def sweeps(plan: ScanPlan) -> list[tuple[int, int]]:
+    """The first and last frame of every sweep continuous mode makes: a run of projections in which the sweep axis
+    (the stage) keeps turning one way."""
+    stage = plan.targets[STAGE_AXIS]
+    proj = np.flatnonzero(plan.image_key == ImageKey.PROJECTION)
+    out: list[tuple[int, int]] = []
+    if proj.size == 0:
+        return out
+    i, last = int(proj[0]), int(proj[-1])
+    while i <= last:
+        end = sweep_end(stage, i, last)
+        if end > i:
+            out.append((i, end))
+        i = end + 1
+    return out
+
+
 def swept_steps(plan: ScanPlan) -> NDArray[np.bool_]:
     """Per step from frame ``k`` to ``k + 1``: whether continuous mode makes it while the sweep axis (the stage)
     turns at constant speed between two triggers. Steps between sweeps (where the stage stops or turns back, such
     as a rewind after a full turn), to and from darks and flats, and along tilt-only arcs are moves of their own."""
-    stage = plan.targets[STAGE_AXIS]
-    proj = np.flatnonzero(plan.image_key == ImageKey.PROJECTION)
     swept = np.zeros(max(plan.n_frames - 1, 0), dtype=bool)
-    if proj.size == 0:
-        return swept
-    i, last = int(proj[0]), int(proj[-1])
-    while i <= last:
-        end = sweep_end(stage, i, last)
-        swept[i:end] = True
-        i = end + 1
+    for start, end in sweeps(plan):
+        swept[start:end] = True
     return swept

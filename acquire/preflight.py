@@ -15,7 +15,7 @@ import numpy as np
 from acquire.config import BenchConfig
 from acquire.errors import PreflightError
 from acquire.kinematics import HEXAPOD_AXES, STAGE_AXIS
-from acquire.plan import ScanPlan, swept_steps
+from acquire.plan import ScanPlan, sweep_run_up_deg, sweep_speed, sweeps, swept_steps
 
 # async check of full hexapod poses {'X': mm, ..., 'U': deg, ...}; returns the index of the first unreachable one
 WorkspaceCheck = Callable[[Sequence[Mapping[str, float]]], Awaitable[int | None]]
@@ -79,6 +79,23 @@ def check_speeds(plan: ScanPlan, config: BenchConfig, frame_rate_hz: float) -> N
                              "(a lower frame rate, or step mode)", unit)
 
 
+def check_run_ups(plan: ScanPlan, sources: Mapping[str, Mapping[str, Range]], frame_rate_hz: float) -> None:
+    """Continuous mode: refuse a sweep whose run-up before its first trigger angle, or run-on past its last
+    (:func:`acquire.plan.sweep_run_up_deg`), leaves a range of the sweep axis (the stage) of any source."""
+    stage = plan.targets[STAGE_AXIS]
+    for start, end in sweeps(plan):
+        run = float(np.sign(stage[end] - stage[start])) * sweep_run_up_deg(sweep_speed(stage, start, end, frame_rate_hz))
+        for frame, value, what in ((start, stage[start] - run, "run-up before"), (end, stage[end] + run, "run-on past")):
+            for label, limits in sources.items():
+                if STAGE_AXIS in limits:
+                    lo, hi = limits[STAGE_AXIS]
+                    if not lo <= value <= hi:
+                        raise PreflightError(frame, f"{STAGE_AXIS} ({what} the sweep's trigger angle at "
+                                             f"{frame_rate_hz:g} frames/s)", float(value),
+                                             f"the {label} range [{lo:g}, {hi:g}]", plan.units.get(STAGE_AXIS, ""),
+                                             "A lower frame rate shortens it, or step mode needs none")
+
+
 async def check_workspace(plan: ScanPlan, workspace_check: WorkspaceCheck) -> None:
     """Every full hexapod pose against the controller's coupled workspace (``VMO?``)."""
     columns = [plan.targets[f"hexapod.{a}"] for a in HEXAPOD_AXES]
@@ -107,5 +124,6 @@ async def bench_preflight(
     check_limits(plan, sources)
     if mode == "continuous":
         check_speeds(plan, config, frame_rate_hz or config.exposure.frame_rate_hz)
+        check_run_ups(plan, sources, frame_rate_hz or config.exposure.frame_rate_hz)
     if workspace_check is not None:
         await check_workspace(plan, workspace_check)

@@ -113,6 +113,29 @@ def test_continuous_mode_speed_limit() -> None:
         asyncio.run(bench_preflight(plan, CFG, mode="continuous", frame_rate_hz=1000))
 
 
+def test_continuous_mode_checks_each_sweeps_run_up_against_the_stage_range() -> None:
+    """A sweep starts a little before its first trigger angle and runs a little past its last one, so it is at speed
+    when it passes them; where that leaves the stage's range the scan is refused before anything moves (the
+    stage had turned 2.25 degrees past the configured range unchecked, and the scan completed)."""
+    from acquire.plan import SWEEP_RUN_UP_S, sweeps
+
+    theta, phi = _sawtooth(n=40)
+    plan = plan_bench_scan(CFG, theta, phi)
+    stage = plan.targets["rotation_stage.R"]  # the stage turns -theta: 0 down to -351 deg
+    (start, end), = sweeps(plan)
+    assert stage[start] == 0.0 and stage[end] == pytest.approx(-351.0)
+    tight = CFG.model_copy(update={"limits": CFG.limits.model_copy(update={"rotation_stage_deg": (-352.0, 0.5)})})
+    asyncio.run(bench_preflight(plan, tight, mode="step"))  # every trigger angle is inside
+    asyncio.run(bench_preflight(plan, tight, mode="continuous", frame_rate_hz=0.5))  # runs up 0.2 deg: inside
+    with pytest.raises(PreflightError, match=r"frame 5: axis rotation_stage.R \(run-up before the sweep's trigger "
+                                             r"angle at 5 frames/s\) = 2.25 deg is outside the configured range"):
+        asyncio.run(bench_preflight(plan, tight, mode="continuous", frame_rate_hz=5))  # 45 deg/s: 2.25 deg
+    assert 45.0 * SWEEP_RUN_UP_S == pytest.approx(2.25)
+    wide = CFG.model_copy(update={"limits": CFG.limits.model_copy(update={"rotation_stage_deg": (-352.0, 3.0)})})
+    with pytest.raises(PreflightError, match="run-on past the sweep's trigger angle"):
+        asyncio.run(bench_preflight(plan, wide, mode="continuous", frame_rate_hz=5))  # -351 - 2.25 < -352
+
+
 def test_continuous_mode_counts_no_speed_for_the_rewind_between_two_turns() -> None:
     """DCArc: two turns (the stage rewound by 357 deg between them) and a tilt-only arc. The rewind and the arc are
     moves of their own; only steps made while the stage sweeps between triggers are held to the frame rate."""
