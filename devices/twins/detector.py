@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from devices.frame_protocol import ERR_BAD_ARG, ERR_NOT_ARMED
+from devices.twins.feed import follow_bench
 from devices.twins.line_server import CommandError, LineTwinServer, int_arg
 from devices.twins.world import SimWorld, get_world
 from orbitct.geometry import Panel, ViewGeometry
@@ -83,8 +84,12 @@ class DetectorTwin(LineTwinServer):
         seed: int = 0,
         detector_model: Any = None,
         readout_s: float = 0.0,
+        follow: dict[str, str] | None = None,
     ) -> None:
+        """``follow``: the URIs of a bench's ``hexapod``, ``rotation_stage`` and ``xray`` in other processes, whose
+        pose and exposures this panel's world takes (:func:`devices.twins.feed.follow_bench`)."""
         super().__init__()
+        self.follow = dict(follow) if follow else None
         self.world = world if world is not None else get_world("bench")
         cols = rows if cols is None else cols
         rows, cols = int(rows), int(cols)
@@ -187,6 +192,9 @@ class DetectorTwin(LineTwinServer):
     async def started(self) -> None:
         """Build the renderer and compile its kernels before serving (the first frame is then as fast as any)."""
         await asyncio.get_running_loop().run_in_executor(None, self.warm_up)
+        if self.follow is not None:
+            self.spawn(follow_bench(self.world, hexapod_uri=self.follow["hexapod"],
+                                    stage_uri=self.follow["rotation_stage"], xray_uri=self.follow["xray"]))
         self.spawn(self._watch_generator())
 
     def warm_up(self) -> None:

@@ -3,11 +3,8 @@
 from __future__ import annotations
 
 import asyncio
-import re
 import subprocess
 import sys
-from collections.abc import Iterator
-from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -17,24 +14,9 @@ from devices.carm_program import export_program
 from devices.errors import ControllerError, InterlockOpenError, ProtocolError
 from devices.xray import XrayGenerator
 from orbitct.orbits import Orbit
+from tests.helpers.twin_process import twin_process
 
 pytestmark = [pytest.mark.timeout(120), pytest.mark.system]
-
-
-@contextmanager
-def twin_process(*args: str) -> Iterator[tuple[int, subprocess.Popen[str]]]:
-    """Start ``orbitct twin ARGS --port 0 --console``; yield the port it printed and the process."""
-    cmd = [sys.executable, "-c", "from orbitct_app.cli.main import main; main()", "twin", *args, "--port", "0", "--console"]
-    proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        assert proc.stderr is not None
-        line = proc.stderr.readline()
-        match = re.search(r"127\.0\.0\.1:(\d+)", line)
-        assert match, f"no port in {line!r}"
-        yield int(match.group(1)), proc
-    finally:
-        proc.terminate()
-        proc.wait(10)
 
 
 def console(proc: subprocess.Popen[str], line: str) -> str:
