@@ -17,7 +17,6 @@ import time
 
 import numpy as np
 
-from devices.errors import DeviceError
 from devices.hexapod import Hexapod
 from devices.rotation_stage import RotationStage
 from devices.twins.world import SimWorld
@@ -74,10 +73,12 @@ async def _follow_once(world: SimWorld, hexapod_uri: str, stage_uri: str, xray_u
 async def follow_bench(world: SimWorld, *, hexapod_uri: str, stage_uri: str, xray_uri: str,
                        poll_s: float = POLL_S) -> None:
     """Keep ``world`` fed from the hexapod, rotation stage and generator at these URIs until cancelled; a lost link
-    is logged and connected again after :data:`RETRY_S`."""
+    is logged and connected again after :data:`RETRY_S` (meanwhile the panel sees no exposure: it takes no frame
+    at a stale pose)."""
     while True:
         try:
             await _follow_once(world, hexapod_uri, stage_uri, xray_uri, poll_s)
-        except (DeviceError, OSError) as exc:
-            log.warning("panel twin: lost the bench it images (%s); connecting again in %g s", exc, RETRY_S)
+        except Exception as exc:  # noqa: BLE001 - whatever broke the link: no trigger and no pose pass until it is back
+            log.warning("panel twin: lost the bench it images (%s: %s); connecting again in %g s",
+                        type(exc).__name__, exc, RETRY_S)
             await asyncio.sleep(RETRY_S)

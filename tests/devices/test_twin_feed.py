@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
+import time
 from collections.abc import Iterator
 
 import numpy as np
@@ -15,7 +17,7 @@ from devices.rotation_stage import RotationStage
 from devices.twins.detector import DetectorTwin
 from devices.twins.gcs import start_twin
 from devices.twins.runtime import TwinThread
-from devices.twins.world import SimWorld, reset_world
+from devices.twins.world import SimWorld, get_world, reset_world
 from devices.twins.xray import XrayTwin
 from devices.xray import XrayGenerator
 
@@ -23,20 +25,25 @@ pytestmark = pytest.mark.timeout(120)
 
 
 @pytest.fixture
-def bench_and_panel() -> Iterator[tuple[dict[str, str], SimWorld, str]]:
+def threads() -> Iterator[dict[str, TwinThread]]:
     """Hexapod, stage and generator twins in one world; a panel twin in a world of its own that follows them."""
     bench = reset_world("feed-bench")
-    threads = {"hexapod": start_twin("hexapod", world="feed-bench", time_scale=25.0),
-               "rotation_stage": start_twin("rotation_stage", world="feed-bench", time_scale=25.0),
-               "xray": TwinThread(XrayTwin(bench, time_scale=25.0))}
-    uris = {k: t.uri for k, t in threads.items()}
-    panel_world = reset_world("feed-panel")
-    panel = TwinThread(DetectorTwin(panel_world, rows=16, follow=uris))
+    out = {"hexapod": start_twin("hexapod", world="feed-bench", time_scale=25.0),
+           "rotation_stage": start_twin("rotation_stage", world="feed-bench", time_scale=25.0),
+           "xray": TwinThread(XrayTwin(bench, time_scale=25.0))}
+    out["panel"] = TwinThread(DetectorTwin(reset_world("feed-panel"), rows=16,
+                                           follow={k: t.uri for k, t in out.items()}))
     try:
-        yield uris, panel_world, panel.uri
+        yield out
     finally:
-        for t in (panel, *threads.values()):
+        for t in out.values():
             t.stop()
+
+
+@pytest.fixture
+def bench_and_panel(threads: dict[str, TwinThread]) -> tuple[dict[str, str], SimWorld, str]:
+    panel = threads["panel"]
+    return {k: t.uri for k, t in threads.items() if k != "panel"}, panel.twin.world, panel.uri
 
 
 def test_the_panel_images_the_followed_pose_on_the_followed_generators_exposure(
@@ -60,5 +67,27 @@ def test_the_panel_images_the_followed_pose_on_the_followed_generators_exposure(
                 np.testing.assert_allclose(panel_world.hexapod_true[:3], [pose[a] for a in "XYZ"], atol=1e-3)
                 np.testing.assert_allclose(np.degrees(panel_world.hexapod_true[3:]), [pose[a] for a in "UVW"], atol=1e-3)
                 assert panel_world.xray_kv == 80.0 and panel_world.xray_frame_counter == 1
+
+    asyncio.run(main())
+
+
+def test_a_lost_generator_is_connected_again(threads: dict[str, TwinThread], caplog: pytest.LogCaptureFixture) -> None:
+    """The generator restarts on its port: the panel logs the lost link, connects again, and takes the next
+    exposure's frame; meanwhile it takes none."""
+    port = threads["xray"].port
+    with caplog.at_level(logging.WARNING, logger="devices.twins.feed"):
+        threads["xray"].stop()
+        time.sleep(0.5)
+        threads["xray"] = TwinThread(XrayTwin(get_world("feed-bench"), time_scale=25.0), port=port)
+        time.sleep(1.5)  # one retry
+    assert "lost the bench it images" in caplog.text
+
+    async def main() -> None:
+        async with XrayGenerator("xray", threads["xray"].uri) as gen, \
+                Detector("panel", threads["panel"].uri, timeout_s=10.0) as panel:
+            await panel.set_trigger("xray")
+            await panel.arm()
+            await gen.expose(release=True)
+            assert (await panel.read_frame()).kind == "projection"
 
     asyncio.run(main())
