@@ -51,8 +51,10 @@ class Rig(Protocol):
     async def move_to(self, targets: Mapping[str, float], timeout_s: float) -> None:
         """Move every axis to a frame's targets and wait until all are there."""
 
-    async def acquire(self, image_key: int, after_exposure: Callable[[], None] | None = None) -> Frame:
-        """One frame: dark, flat or projection; ``after_exposure`` runs once X-rays are off again."""
+    async def acquire(self, image_key: int, after_exposure: Callable[[], None] | None = None, *,
+                      next_exposure_s: float | None = None) -> Frame:
+        """One frame: dark, flat or projection; ``after_exposure`` runs once X-rays are off again.
+        ``next_exposure_s``: how soon the next exposure is due, where the engine knows it (a sweep)."""
 
     async def read_positions(self) -> dict[str, float]:
         """Read-back of every recorded axis."""
@@ -179,6 +181,7 @@ class ScanEngine:
         self._readback_s = 0.0
         self._record_s = 0.0
         self._prepare_s = 0.0
+        self._late_restarts = 0
         self._run_s = 0.0
         self._move_s: float | None = None  # estimated move + settle to the next projection
 
@@ -231,7 +234,8 @@ class ScanEngine:
         and recording (subscribers' ``on_frame``) and waiting, after a move, for the source's preparation."""
         rest = self._run_s - self._acquire_s - self._motion_s
         return {"run_s": self._run_s, "acquire_s": self._acquire_s, "motion_s": self._motion_s, "overhead_s": rest,
-                "readback_s": self._readback_s, "record_s": self._record_s, "prepare_wait_s": self._prepare_s}
+                "readback_s": self._readback_s, "record_s": self._record_s, "prepare_wait_s": self._prepare_s,
+                "late_restarts": self._late_restarts}
 
     # ---------------------------------------------------------------- run
     async def run(self) -> ScanOutcome:
@@ -361,7 +365,7 @@ class ScanEngine:
         return None if tv is None else np.asarray(tv, dtype=float)
 
     async def _shoot(self, f: FramePlan, t0: float, after_exposure: Callable[[], None] | None = None, *,
-                     sweeping: bool = False) -> None:
+                     sweeping: bool = False, next_exposure_s: float | None = None) -> None:
         """Read back, expose, record one frame. ``sweeping``: the axes move through the exposure, so they are read
         back again once it is over and each read-back is interpolated to the exposure's middle (read before it
         only, a sweep at 4 frames/s on the simulated bench recorded the stage 0.5 degrees short of where it was)."""
@@ -379,7 +383,7 @@ class ScanEngine:
 
         try:
             if sweeping:
-                frame = await self.rig.acquire(f.image_key, after_exposure=exposed)
+                frame = await self.rig.acquire(f.image_key, after_exposure=exposed, next_exposure_s=next_exposure_s)
             elif after_exposure is None:
                 frame = await self.rig.acquire(f.image_key)
             else:
@@ -514,7 +518,7 @@ class ScanEngine:
                 await rig.move_to(f.targets, timeout)
             await self._shoot(f, t0)
         sweep = plan.targets[rig.sweep_axis]
-        idx = first
+        idx, late_at = first, None  # late_at: the frame whose sweep was last started anew because it came late
         while idx <= last_p:
             await self._boundary()
             f = plan.frame(idx)
@@ -538,9 +542,14 @@ class ScanEngine:
             while idx <= end:
                 f = plan.frame(idx)
                 t_m = time.monotonic()
-                await self._ready_at_angle(rig, float(sweep[idx]), direction, velocity, timeout)
+                past = await self._ready_at_angle(rig, float(sweep[idx]), direction, velocity, timeout)
                 self._record_motion(t_m)
-                await self._shoot(f, t0, sweeping=True)
+                step = abs(float(sweep[idx + 1] - sweep[idx])) if idx < end else abs(float(sweep[idx] - sweep[idx - 1]))
+                if past > 0.5 * step:  # the sweep ran ahead of the exposures: this one would be nearer the next angle
+                    await self._start_sweep_anew(rig, idx, past, step, late_at)
+                    late_at = idx
+                    break
+                await self._shoot(f, t0, sweeping=True, next_exposure_s=1.0 / self.frame_rate_hz if idx < end else None)
                 idx += 1
                 if idx <= end:
                     nxt = plan.frame(idx).targets
@@ -552,17 +561,32 @@ class ScanEngine:
             await self._boundary()
             await self._shoot(plan.frame(i), t0)
 
+    async def _start_sweep_anew(self, rig: SweepRig, idx: int, past_deg: float, step_deg: float,
+                                late_at: int | None) -> None:
+        """Frame ``idx`` is ready ``past_deg`` past its angle, more than half a step: stop the sweep so that it
+        starts again from this frame (a frame exposed there would be recorded at the wrong angle). Late again right
+        after the last such start (``late_at``): the exposures cannot keep up, and the scan ends."""
+        if late_at is not None and 0 <= idx - late_at <= 1:
+            anew = ("again, after its sweep was started anew from it" if idx == late_at else
+                    f"right after its sweep was started anew at frame {late_at}, which had been late too")
+            raise AcquireError(
+                f"continuous mode: frame {idx} was ready {past_deg:.2f} deg past its angle (at most half a step, "
+                f"{0.5 * step_deg:.2f} deg, is allowed) {anew}; the exposures cannot keep up at "
+                f"{self.frame_rate_hz:g} frames/s: a lower frame rate, or step mode")
+        self._late_restarts += 1
+        log.warning("continuous mode: frame %d ready %.2f deg past its angle; its sweep starts again from it", idx, past_deg)
+        await rig.stop_all()
+
     async def _ready_at_angle(self, rig: SweepRig, target: float, direction: float, velocity: float,
-                              timeout_s: float) -> None:
+                              timeout_s: float) -> float:
         """Wait until the sweep reaches ``target`` with the X-ray source ready: a :class:`PreparingRig`'s
         preparation starts its preparation time (and a fifth more) before the angle and is renewed half a
         preparation before it, so the exposure is not late by a preparation while the stage turns on (a DCArc at
         4 frames/s on the simulated bench had 2 of 3 projections exposed about 5 degrees past their angle, the
-        read-backs taken at the angle)."""
+        read-backs taken at the angle). Returns how far past ``target`` the sweep was once ready (deg)."""
         prep_s = rig.prep_s if isinstance(rig, PreparingRig) else 0.0
         if prep_s <= 0:
-            await self._wait_for_angle(rig, target, direction, velocity, timeout_s)
-            return
+            return await self._wait_for_angle(rig, target, direction, velocity, timeout_s)
         lead = direction * velocity * prep_s
         await self._wait_for_angle(rig, target - 1.2 * lead, direction, velocity, timeout_s)
         prep = asyncio.ensure_future(rig.prepare_exposure())  # type: ignore[attr-defined]
@@ -575,7 +599,7 @@ class ScanEngine:
             # before the angle; ready, this is one short exchange that holds it over the angle
             await rig.prepare_exposure()  # type: ignore[attr-defined]
             self._prepare_s += time.monotonic() - t_p
-            await self._wait_for_angle(rig, target, direction, velocity, timeout_s)
+            return await self._wait_for_angle(rig, target, direction, velocity, timeout_s)
         finally:  # failed or aborted: no preparation outlives the wait (cancelled: X-rays off)
             if not prep.done():
                 prep.cancel()
@@ -583,14 +607,15 @@ class ScanEngine:
                     await prep
 
     async def _wait_for_angle(self, rig: SweepRig, target: float, direction: float, velocity: float,
-                              timeout_s: float) -> None:
+                              timeout_s: float) -> float:
+        """Wait until the sweep passes ``target``; how far past it (deg) it was when seen there."""
         deadline = time.monotonic() + timeout_s
         while True:
             self._check_abort()
             pos = await rig.sweep_position()
             remaining = (target - pos) * direction
             if remaining <= 0:
-                return
+                return -remaining
             if time.monotonic() > deadline:
                 raise AcquireError(
                     f"continuous mode: {rig.sweep_axis} did not reach the trigger angle {target:.3f} deg "

@@ -247,10 +247,12 @@ class BenchRig:
                 st.exception()  # retrieved: no "exception never retrieved" warnings
 
     # --------------------------------------------------------- exposures
-    async def acquire(self, image_key: int, after_exposure: Callable[[], None] | None = None) -> Frame:
+    async def acquire(self, image_key: int, after_exposure: Callable[[], None] | None = None, *,
+                      next_exposure_s: float | None = None) -> Frame:
         """One frame: dark (no X-rays), flat (open beam) or projection (X-ray exposure -> detector).
 
         ``after_exposure`` is called once the X-ray exposure is over, before the frame is read out.
+        ``next_exposure_s``: how soon the next exposure is due (a sweep knows); None: as soon as this one came.
         """
         stall, ex = self.config.stall, self.config.exposure
         det = self.detector.name
@@ -262,9 +264,16 @@ class BenchRig:
         t0 = time.monotonic()
         if self._last_exposure is not None:
             self._gap_s = t0 - self._last_exposure
-        # the next exposure is as far away as this one was from the last: further than a preparation takes,
-        # high voltage goes off at once (and the next exposure prepares again); nearer, it stays on
-        release = self._gap_s is not None and self._gap_s > self.prep_s
+        # the next exposure further away than a preparation takes: high voltage goes off at once (and the next
+        # exposure prepares again); nearer, it stays on. Unless the caller knows, the next one is taken to be as far
+        # away as this one was from the last. (Where a preparation itself makes that gap longer than one, the
+        # guess kept the generator off between all the exposures of a sweep after its run-up: each came a
+        # preparation late, the sweep ran ahead of them, and a DCArc's second turn was exposed up to 210 degrees
+        # from its angles.)
+        if next_exposure_s is not None:
+            release = next_exposure_s > self.prep_s
+        else:
+            release = self._gap_s is not None and self._gap_s > self.prep_s
         bound = stall.exposure_s + (ex.exposure_ms + ex.prep_ms) / 1000.0
         await within(bound, self.xray.name, "did not finish the exposure", "stall.exposure_s", self.xray.expose(release=release))
         self._last_exposure = time.monotonic()

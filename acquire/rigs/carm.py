@@ -109,8 +109,10 @@ class CArmRig:
                          self.carm.goto(p))
             self._point = p
 
-    async def acquire(self, image_key: int, after_exposure: Callable[[], None] | None = None) -> Frame:
-        """A dark, flat or projection frame (the C-arm exposes and reads out in one action)."""
+    async def acquire(self, image_key: int, after_exposure: Callable[[], None] | None = None, *,
+                      next_exposure_s: float | None = None) -> Frame:
+        """A dark, flat or projection frame (the C-arm exposes and reads out in one action; it keeps its own source
+        ready, whatever ``next_exposure_s`` says)."""
         stall, ex = self.config.stall, self.config.exposure
         bound = stall.frame_s + stall.exposure_s + (ex.exposure_ms + ex.prep_ms) / 1000.0
         if image_key in (ImageKey.DARK, ImageKey.FLAT):

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -103,8 +105,8 @@ def test_continuous_read_backs_are_interpolated_to_the_middle_of_each_exposure(r
                 axes = await read()
                 return dict.fromkeys(axes, 500.0 * (t + time.monotonic()))  # ms at the middle of the read
 
-            async def acquire_noting(image_key: int, after_exposure: Any = None) -> Any:
-                frame = await acquire(image_key, after_exposure=after_exposure)
+            async def acquire_noting(image_key: int, after_exposure: Any = None, **options: Any) -> Any:
+                frame = await acquire(image_key, after_exposure=after_exposure, **options)
                 if image_key == ImageKey.PROJECTION:
                     middles_ms.append(500.0 * sum(rig.last_exposure_s()))
                 return frame
@@ -120,6 +122,61 @@ def test_continuous_read_backs_are_interpolated_to_the_middle_of_each_exposure(r
     # the twins' threads may run between two readings of the clock (up to 0.03 ms seen under load); read before
     # the exposure only, the read-backs were about 5 ms off
     np.testing.assert_allclose(recorded, middles_ms, rtol=0, atol=0.5)
+
+
+@pytest.mark.slow
+def test_continuous_second_sweep_keeps_the_source_ready(request_factory) -> None:
+    """DCArc in continuous mode, real time, frames closer together than the generator's preparation: after the
+    rewind the source had been switched off after every exposure (the gap to the last exposure taken as the gap to
+    the next), each exposure came a preparation late, and the second turn was exposed up to 210 degrees from its
+    angles (300 frames at 10 frames/s on the sim bench) while the scan reported complete."""
+    cfg = small_config(size=32, time_scale=1.0, exposure={"exposure_ms": 2.0, "prep_ms": 200.0, "frame_rate_hz": 10.0})
+    req = request_factory(frames=100, orbit="dcarc", orbit_params={}, mode="continuous", frame_rate_hz=10.0,
+                          config=cfg, errors="none", error_params={})
+    res = run_scan(req)
+    assert res.status == "complete", res.reason
+    assert res.timing["late_restarts"] == 0
+    with ScanFile(req.out) as sf:
+        proj = sf.projection_indices
+        stage = sf.axes("encoders")["rotation_stage.R"][proj] - sf.axes("commanded")["rotation_stage.R"][proj]
+    assert np.abs(stage).max() < 0.5 * 360 / 46, np.abs(stage).max()  # within half a step (46 frames a turn)
+
+
+@pytest.mark.slow
+def test_continuous_frame_late_starts_its_sweep_anew_and_a_rig_that_cannot_keep_up_ends_the_scan(request_factory) -> None:
+    """A frame whose source is ready only when the sweep is more than half a step past its angle is not exposed
+    there: the sweep starts again from it. Late again right after, the scan ends, naming why."""
+    cfg = small_config(size=32, time_scale=1.0, exposure={"exposure_ms": 2.0, "prep_ms": 20.0, "frame_rate_hz": 8.0})
+
+    def run(slow: Callable[[int], bool]) -> tuple[Any, np.ndarray]:
+        req = request_factory(frames=48, mode="continuous", frame_rate_hz=8.0, config=cfg, errors="none",
+                              error_params={}, orbit="circular", orbit_params={})
+        calls = itertools.count()
+
+        async def main() -> Any:
+            async with open_bench(cfg, sim=True) as rig:
+                prepare = rig.prepare_exposure
+
+                async def slow_prepare() -> None:
+                    if slow(next(calls)):
+                        await asyncio.sleep(0.3)  # more than two steps of the sweep (7.5 deg at 8 frames/s)
+                    await prepare()
+
+                rig.prepare_exposure = slow_prepare  # type: ignore[method-assign]
+                return await ScanRunner(req, rig=rig).run()
+
+        res = asyncio.run(main())
+        with ScanFile(req.out) as sf:
+            proj = sf.projection_indices
+            off = sf.axes("encoders")["rotation_stage.R"][proj] - sf.axes("commanded")["rotation_stage.R"][proj]
+        return res, off
+
+    res, off = run(lambda n: n == 12)  # one slow preparation: a hiccup
+    assert res.status == "complete" and res.timing["late_restarts"] == 1, res
+    assert off.size == 48 and np.abs(off).max() < 3.75, off.round(2)  # every frame within half a step of its angle
+    res, off = run(lambda n: n >= 12)  # every preparation from there on slow: the rig cannot keep up
+    assert res.status == "aborted" and "cannot keep up at 8 frames/s" in res.reason, res.reason
+    assert np.abs(off).max() < 3.75  # nothing recorded at a wrong angle
 
 
 @pytest.mark.slow
