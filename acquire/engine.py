@@ -395,6 +395,7 @@ class ScanEngine:
                 t_after, after = await read_after
                 if window is not None:
                     encoders = _interpolated(encoders, 0.5 * (t_a + t_b), after, t_after, 0.5 * sum(window))
+                    t_frame = 0.5 * sum(window) - t0  # the frame's time: its exposure's middle, as its read-backs
         finally:
             if read_after is not None and not read_after.done():  # failed or aborted: no read outlives the frame
                 read_after.cancel()

@@ -118,7 +118,9 @@ def test_continuous_read_backs_are_interpolated_to_the_middle_of_each_exposure(r
     asyncio.run(main())
     with ScanFile(req.out) as sf:
         recorded = sf.axes("encoders")["rotation_stage.R"][sf.projection_indices]
+        time_s = sf.time_s[sf.projection_indices]
     assert len(middles_ms) == recorded.size == 16
+    np.testing.assert_allclose(np.diff(time_s), np.diff(middles_ms) / 1000.0, rtol=0, atol=1e-6)  # timed alike
     # the twins' threads may run between two readings of the clock (up to 0.03 ms seen under load); read before
     # the exposure only, the read-backs were about 5 ms off
     np.testing.assert_allclose(recorded, middles_ms, rtol=0, atol=0.5)
