@@ -15,6 +15,30 @@ def _finite(value: Any) -> float | None:
     return v if np.isfinite(v) else None
 
 
+def taken_off_command(f: "ScanFile") -> dict[str, dict[str, Any]]:
+    """Per axis, the projections read back further from their commanded position than one step of that axis between
+    projections (the median of its steps): frames taken where their nominal geometry does not say (a sweep that ran
+    ahead of its exposures). ``{axis: {"frames", "max", "step", "unit"}}``, only for axes with such frames."""
+    idx = f.projection_indices
+    encoders, commanded = f.axes("encoders"), f.axes("commanded")
+    out: dict[str, dict[str, Any]] = {}
+    for axis, values in commanded.items():
+        if axis not in encoders or idx.size < 2:
+            continue
+        cmd, read = values[idx], encoders[axis][idx]
+        steps = np.abs(np.diff(cmd))
+        steps = steps[np.isfinite(steps) & (steps > 1e-9)]
+        if steps.size == 0:
+            continue
+        step = float(np.median(steps))
+        off = np.abs(read - cmd)
+        far = np.isfinite(off) & (off > step)
+        if far.any():
+            unit = str(f.h5[f"frames/encoders/{axis}"].attrs.get("unit", ""))
+            out[axis] = {"frames": int(far.sum()), "max": float(off[far].max()), "step": step, "unit": unit}
+    return out
+
+
 def scan_summary(f: "ScanFile") -> dict[str, Any]:
     """JSON-ready summary of an open scan file: status, frames by kind, panel, orbit, geometries, markers, results."""
     panel = f.panel
@@ -43,6 +67,7 @@ def scan_summary(f: "ScanFile") -> dict[str, Any]:
         "n_frames": f.n_frames,
         "frames_without_pixels": f.frames_without_pixels,
         "frames_by_kind": f.count_by_kind(),
+        "taken_off_command": taken_off_command(f),
         "dtype": str(f.frames.dtype),
         "detector": {"rows": panel.rows, "cols": panel.cols, "pitch_mm": list(panel.pitch_mm)},
         "duration_s": float(np.nanmax(times)) if f.n_frames and np.isfinite(times).any() else None,

@@ -112,6 +112,11 @@ def inspect(scan: Path, as_json: bool) -> None:
     if summary["frames_without_pixels"]:
         click.echo(f"  warning     {summary['frames_without_pixels']} more frame(s) at the end have no pixels in the file "
                    "(the disk filled up while they were written) and are left out; orbitct scan repair trims them")
+    for axis, off in summary["taken_off_command"].items():
+        unit = f" {off['unit']}" if off["unit"] else ""
+        click.echo(f"  warning     {off['frames']} projection(s) read back further from their command than a step of "
+                   f"{axis} ({off['step']:.3g}{unit}), up to {off['max']:.3g}{unit}: their nominal geometry is not where "
+                   "they were taken; calibrate from the BBs, or scan again")
     if summary["duration_s"] is not None:
         click.echo(f"  duration    {summary['duration_s']:.1f} s")
     click.echo(f"  orbit       {summary['orbit']['name'] or '-'} {json.dumps(summary['orbit']['params'])}")

@@ -187,3 +187,16 @@ def test_writer_rejects_bad_input(tmp_path: Path) -> None:
     with pytest.raises(ScanFileError, match="must look like 'device.axis'"):
         ScanWriter(tmp_path / "x.h5", DET, axes={"angle": "deg"})
 
+
+
+
+def test_summary_names_projections_taken_away_from_their_command(tmp_path: Path) -> None:
+    """A sweep that ran ahead of its exposures recorded frames far from their angles while the scan completed
+    (a DCArc in continuous mode, before the fix): the summary, and so ``orbitct inspect``, names them."""
+    from orbitct.scanfile import scan_summary
+    from tests.helpers.scanfiles import write_sweep_ahead_scan
+
+    write_sweep_ahead_scan(tmp_path / "ahead.h5")
+    with ScanFile(tmp_path / "ahead.h5") as f:
+        off = scan_summary(f)["taken_off_command"]
+    assert off == {"stage.angle": {"frames": 2, "max": 9.5, "step": 2.0, "unit": "deg"}}  # a step is 2 deg

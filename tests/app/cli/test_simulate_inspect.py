@@ -28,8 +28,19 @@ def test_simulate_then_inspect(tmp_path: Path) -> None:
     for text in ("complete", "6 projection, 3 flat, 2 dark", "sawtooth", "nominal, truth", "3.17 mm", "8 markers",
                  "rotation 0.0..300.0 deg"):
         assert text in r.output
+    assert "warning" not in r.output
     r = CliRunner().invoke(cli, ["inspect", str(out), "--json"])
     assert json.loads(r.output)["frames_by_kind"]["projection"] == 6
+
+
+def test_inspect_warns_of_projections_taken_away_from_their_command(tmp_path: Path) -> None:
+    from tests.helpers.scanfiles import write_sweep_ahead_scan
+
+    write_sweep_ahead_scan(tmp_path / "ahead.h5")
+    r = CliRunner().invoke(cli, ["inspect", str(tmp_path / "ahead.h5")])
+    assert r.exit_code == 0, r.output
+    assert ("warning     2 projection(s) read back further from their command than a step of stage.angle (2 deg), "
+            "up to 9.5 deg: their nominal geometry is not where they were taken") in r.output
 
 
 def test_simulate_orbit_params_and_no_errors(tmp_path: Path) -> None:
