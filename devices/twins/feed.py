@@ -79,6 +79,9 @@ async def follow_bench(world: SimWorld, *, hexapod_uri: str, stage_uri: str, xra
         try:
             await _follow_once(world, hexapod_uri, stage_uri, xray_uri, poll_s)
         except Exception as exc:  # noqa: BLE001 - whatever broke the link: no trigger and no pose pass until it is back
+            task = asyncio.current_task()
+            if task is not None and task.cancelling():  # a stop that a failing connect swallowed (3.11): honour it
+                raise asyncio.CancelledError from exc
             log.warning("panel twin: lost the bench it images (%s: %s); connecting again in %g s",
                         type(exc).__name__, exc, RETRY_S)
             await asyncio.sleep(RETRY_S)
