@@ -17,6 +17,7 @@ import time
 
 import numpy as np
 
+from devices.hexapod import AXES as HEXAPOD_AXES
 from devices.hexapod import Hexapod
 from devices.rotation_stage import RotationStage
 from devices.twins.world import SimWorld
@@ -30,12 +31,11 @@ POLL_S = 0.002
 IDLE_POSE_S = 0.2
 #: how long to wait before connecting again after a link is lost (s)
 RETRY_S = 1.0
-_HEXAPOD_AXES = ("X", "Y", "Z", "U", "V", "W")
 
 
 async def _read_pose(world: SimWorld, hexapod: Hexapod, stage: RotationStage) -> None:
     hexa, turn, pivot = await asyncio.gather(hexapod.position(), stage.position(), hexapod.pivot())
-    pose = np.array([float(hexa[a]) for a in _HEXAPOD_AXES])
+    pose = np.array([float(hexa[a]) for a in HEXAPOD_AXES])
     with world.lock:
         world.hexapod_true = np.concatenate([pose[:3], np.radians(pose[3:])])
         world.pivot_mm = (float(pivot["R"]), float(pivot["S"]), float(pivot["T"]))
