@@ -70,13 +70,16 @@ def bundle_adjust(
     gauge_xyz: NDArray[np.float64] | None = None,
     gauge_weights: NDArray[np.float64] | None = None,
     pose_prior: tuple[float, float] | None = None,
+    scale: NDArray[np.float64] | None = None,
     callback: Callable[[int, ViewState, NDArray[np.float64], float], None] | None = None,
 ) -> BundleResult:
     """Minimise the Huber reprojection cost over view corrections and BB centres (``uv`` NaN = not seen).
 
-    The gauge is fixed by :func:`gauge_matrix` of ``gauge_xyz`` (default ``xyz0``) and ``gauge_weights``."""
+    The gauge is fixed by :func:`gauge_matrix` of ``gauge_xyz`` (default ``xyz0``) and ``gauge_weights``. ``scale``
+    ``(N, K)`` (default 1) is each detection's expected error relative to the others: its residual is divided by it."""
     n, k = uv.shape[:2]
     seen = np.isfinite(uv).all(-1)
+    spread = np.ones((n, k)) if scale is None else np.where(seen, np.asarray(scale, dtype=float), 1.0)
     obs = np.where(seen[..., None], uv, 0.0)
     state = model.identity() if state0 is None else state0.copy()
     xyz = xyz0.copy()
@@ -94,7 +97,7 @@ def bundle_adjust(
 
     def cost_of(st: ViewState, X: NDArray[np.float64]) -> float:
         r = model.project(st, X) - obs
-        nr = np.where(seen, np.linalg.norm(r, axis=-1), 0.0)
+        nr = np.where(seen, np.linalg.norm(r, axis=-1) / spread, 0.0)
         g = G @ (X - ref).ravel()
         return _huber_cost(nr, loss_scale_px) + 0.5 * float((prior_w * prior_params(st) ** 2).sum()) + 0.5 * gauge_w * float(g @ g)
 
@@ -106,7 +109,7 @@ def bundle_adjust(
     mu = 1e-3
     for it in range(1, max_iterations + 1):
         r = np.where(seen[..., None], uv_p - obs, 0.0)
-        w = _huber_weights(np.linalg.norm(r, axis=-1), loss_scale_px) * seen
+        w = _huber_weights(np.linalg.norm(r, axis=-1) / spread, loss_scale_px) * seen / spread**2
         Jv_w = Jv * w[..., None, None]
         Jv_wf = Jv_w.reshape(n, 2 * k, p)
         Hvv = np.swapaxes(Jv_wf, 1, 2) @ Jv.reshape(n, 2 * k, p)

@@ -304,6 +304,38 @@ def _disc_kernel_spectrum(shape: tuple[int, int], radius: float) -> NDArray[np.c
     return scipy.fft.rfft2(full).astype(np.complex64)
 
 
+#: bounds of a detection's spread relative to the scan's typical one (:func:`detection_spread`)
+SPREAD_RANGE = (0.5, 5.0)
+
+
+def detection_spread(cands: list[NDArray[np.float64]], uv: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Each detection's expected centroid error relative to the scan's typical one ``(N, K)``: the RMS of the
+    background plane's residual round it (``background_rms``: photon noise and structure the plane cannot follow,
+    such as the object's outline), over the median of the detections in ``uv`` (per frame, looked up in the frame's
+    candidates ``cands`` by position), within :data:`SPREAD_RANGE`; 1 where ``uv`` holds a position no candidate
+    has (a blob split in two). A BB crossing the object's outline is off by 2-5 times the typical error there."""
+    n, k = uv.shape[:2]
+    rms = np.full((n, k), np.nan)
+    field = CANDIDATE_FIELDS.index("background_rms")
+    for p in range(n):
+        c = cands[p]
+        if not len(c):
+            continue
+        hit = (c[None, :, 0] == uv[p, :, None, 0]) & (c[None, :, 1] == uv[p, :, None, 1])  # (K, M)
+        found = hit.any(1)
+        rms[p, found] = c[hit.argmax(1)[found], field]
+    return relative_spread(rms)
+
+
+def relative_spread(rms: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Background RMS values (NaN: unknown) over their median, within :data:`SPREAD_RANGE`; 1 where unknown."""
+    known = np.isfinite(rms)
+    typical = float(np.median(rms[known])) if known.any() else 0.0
+    if not typical > 0:
+        return np.ones(rms.shape)
+    return np.where(known, np.clip(rms / typical, *SPREAD_RANGE), 1.0)
+
+
 #: the strongest peaks are kept per area searched: an object full of structure (a torso's spine, ribs and screws
 #: seen from the side) can fill a fixed number with peaks stronger than its BBs (experiment C at 512 px: 5 of 10
 #: BBs among the 128 strongest peaks of a lateral view, all 10 among 256)

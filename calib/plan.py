@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib.background import ObjectBackground
+from calib.detect import relative_spread
 from calib.model import ViewModel
 from calib.quality import MIN_OWN_BBS, huber_threshold_px, placement_predicted_px
 from calib.surfaces import TapeSurface, polar_angle
@@ -139,15 +140,22 @@ def predict_placement(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter
         idx = np.flatnonzero(own)
         seen = np.where(usable[idx, :, None], uv[idx], np.nan)
         placed = np.isfinite(seen).all(-1).sum(0) >= 3  # a BB seen in fewer views has no position of its own
+        visible = seen[:, placed]
+        in_view = np.isfinite(visible).all(-1)
         if background is not None:  # noise_px, as a calibration reports it, holds typical shifts: the rest is random
             random_px = background.random_noise_px(noise_px)
             var = background.variance(geometry, xyz[placed], diameter_mm, random_px)[idx]
             bias = background.bias(geometry, xyz[placed], diameter_mm)[idx]
-            predicted[idx] = placement_predicted_px(ViewModel(geometry[idx]), xyz[placed], seen[:, placed], random_px,
-                                                    var, huber_threshold_px(noise_px), bias)
+            rms = background.background_rms(geometry, xyz[placed], diameter_mm, random_px)[idx]
+            predicted[idx] = placement_predicted_px(ViewModel(geometry[idx]), xyz[placed], visible, random_px,
+                                                    var, huber_threshold_px(noise_px), bias,
+                                                    relative_spread(np.where(in_view, rms, np.nan)))
         else:
             var = None if surface is None else edge_noise(geometry[idx], xyz[placed], diameter_mm, surface)
-            predicted[idx] = placement_predicted_px(ViewModel(geometry[idx]), xyz[placed], seen[:, placed], noise_px, var)
+            spread = None if var is None else relative_spread(
+                np.where(in_view, np.sqrt(0.5 * np.trace(var, axis1=-2, axis2=-1)), np.nan))
+            predicted[idx] = placement_predicted_px(ViewModel(geometry[idx]), xyz[placed], visible, noise_px, var,
+                                                    spread=spread)
     return PlanPrediction(usable, n, predicted, float(noise_px))
 
 

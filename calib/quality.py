@@ -206,25 +206,30 @@ def _predicted_px(model: ViewModel, state: ViewState, cov: NDArray[np.float64]) 
 
 def placement_predicted_px(model: ViewModel, xyz: NDArray[np.float64], uv: NDArray[np.float64],
                            noise_px: float, variance: NDArray[np.float64] | None = None,
-                           loss_scale_px: float | None = None, bias_px: NDArray[np.float64] | None = None
-                           ) -> NDArray[np.float64]:
+                           loss_scale_px: float | None = None, bias_px: NDArray[np.float64] | None = None,
+                           spread: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
     """Per view, the predicted error (px, RMS over field-of-view points) of a calibration of BBs ``xyz`` seen at
     ``uv`` (NaN = not seen) with centroid noise ``noise_px`` (each detection's covariance ``noise_px**2`` times
     ``variance`` ``(N,K,2,2)``, when given) and known offsets ``bias_px`` ``(N,K,2)``, at the nominal views
     (planning: nothing measured); with ``loss_scale_px``, fitted with the bundle's Huber loss of that threshold
-    (:func:`huber_moments`; the offsets count in the loss's weights as a spread)."""
+    (:func:`huber_moments`; the offsets count in the loss's weights as a spread); with ``spread`` ``(N,K)``, each
+    residual divided by it first, as the bundle does with :func:`calib.detect.detection_spread`."""
     state = model.identity()
-    if loss_scale_px is None:
+    rel = np.broadcast_to(np.eye(2), uv.shape[:2] + (2, 2)) if variance is None else np.nan_to_num(variance)
+    s2 = np.ones(uv.shape[:2] + (1, 1)) if spread is None else (np.nan_to_num(spread, nan=1.0) ** 2)[..., None, None]
+    if loss_scale_px is None:  # weighted least squares: H = J^T J / s^2, M = J^T V J / s^4
         rel_bias = None if bias_px is None else bias_px / noise_px
-        return _predicted_px(model, state, noise_px**2 * _marginal_pose_covariance(model, state, xyz, uv, variance,
-                                                                                  bias=rel_bias))
-    rel = np.broadcast_to(np.eye(2), uv.shape[:2] + (2, 2)) if variance is None else variance
-    total = noise_px**2 * np.nan_to_num(rel)
+        slope = None if spread is None else np.broadcast_to(np.eye(2), rel.shape) / s2
+        base = variance if spread is None else rel / s2**2
+        return _predicted_px(model, state, noise_px**2 * _marginal_pose_covariance(model, state, xyz, uv, base, slope,
+                                                                                  rel_bias))
+    total = noise_px**2 * rel
     if bias_px is not None:
         total = total + np.einsum("...a,...b->...ab", np.nan_to_num(bias_px), np.nan_to_num(bias_px))
-    slope, _ = huber_moments(total, loss_scale_px)
-    _, spread = huber_moments(noise_px**2 * np.nan_to_num(rel), loss_scale_px)
-    return _predicted_px(model, state, _marginal_pose_covariance(model, state, xyz, uv, spread, slope, bias_px))
+    # the Huber loss acts on the residual over its spread: its moments there, the weights 1 / s^2 on the Jacobians
+    slope, _ = huber_moments(total / s2, loss_scale_px)
+    _, moment = huber_moments(noise_px**2 * rel / s2, loss_scale_px)
+    return _predicted_px(model, state, _marginal_pose_covariance(model, state, xyz, uv, moment / s2, slope / s2, bias_px))
 
 
 def pose_predicted_px(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64],

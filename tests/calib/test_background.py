@@ -28,33 +28,60 @@ def _shift(background: ObjectBackground, geometry: ViewGeometry, xyz: np.ndarray
     return background._computed(geometry, xyz, D_MM)[1]
 
 
+class _Grazing:
+    """One view of a tissue cylinder (60 mm) and BBs where the ray from the source grazes its outline, ``off`` mm
+    outside it (negative: inside); the noise-free frames the detector refines them on."""
+
+    def __init__(self) -> None:
+        self.g = sawtooth(8, 256)[:1]
+        self.body = _body()
+        self.source = self.g.S[0]
+        self.tangent = np.arctan2(self.source[1], self.source[0]) + np.arccos(60.0 / np.linalg.norm(self.source[:2]))
+        self.bg = ObjectBackground.of(self.body.line_integral, self.g, EllipticCylinder(60.0, 60.0, -50.0, 50.0), D_MM)
+        self.flat, self.dark = np.full(self.g.panel.shape, 1e4, np.float32), np.zeros(self.g.panel.shape, np.float32)
+
+    def bb(self, off: float) -> np.ndarray:
+        return (60.0 + D_MM / 2 + off) * np.array([np.cos(self.tangent), np.sin(self.tangent), 0.0]) + [0.0, 0.0, 10.0]
+
+    def refine(self, phantom: Phantom, c: np.ndarray) -> np.ndarray:
+        """The detector's record (``_refine``) for the BB at ``c`` on the noise-free frame of ``phantom``."""
+        uv = self.g.project(c[None])[0, 0]
+        d_px = D_MM * np.linalg.norm(self.g.pixel_to_point(uv[None, None])[0, 0] - self.source)
+        d_px /= np.linalg.norm(c - self.source) * self.g.panel.pitch_col
+        raw = (self.flat * np.exp(-line_integrals(phantom, self.g, 0))).astype(np.float32)
+        return _refine(raw, self.dark, self.flat, float(uv[0]), float(uv[1]), 0.5 * d_px, int(np.ceil(d_px)) + 2, 3)
+
+
 def test_the_centroid_shift_over_the_objects_edge_is_the_detectors() -> None:
     """A BB where the ray grazes a tissue cylinder, from 1 mm inside to 3 mm outside its outline: the computed
     shift is the detector's own (``_refine`` on the noise-free frame, less its result for the BB alone)."""
-    g = sawtooth(8, 256)[:1]
-    body = _body()
-    source = g.S[0]
-    tangent = np.arctan2(source[1], source[0]) + np.arccos(60.0 / np.linalg.norm(source[:2]))
-    bg = ObjectBackground.of(body.line_integral, g, EllipticCylinder(60.0, 60.0, -50.0, 50.0), D_MM)
-    flat, dark = np.full(g.panel.shape, 1e4, np.float32), np.zeros(g.panel.shape, np.float32)
+    view = _Grazing()
     computed, measured = [], []
     for off in (-1.0, 0.0, 1.0, 2.0, 3.0):
-        c = (60.0 + D_MM / 2 + off) * np.array([np.cos(tangent), np.sin(tangent), 0.0]) + [0.0, 0.0, 10.0]
-        uv = g.project(c[None])[0, 0]
-        d_px = D_MM * np.linalg.norm(g.pixel_to_point(uv[None, None])[0, 0] - source) / np.linalg.norm(c - source)
-        d_px /= g.panel.pitch_col
-        both = body.with_markers(c[None])
+        c = view.bb(off)
+        both = view.body.with_markers(c[None])
         alone = both.subset([str(p.label).startswith("bb") for p in both.primitives])
-        found = []
-        for ph in (both, alone):
-            raw = (flat * np.exp(-line_integrals(ph, g, 0))).astype(np.float32)
-            found.append(_refine(raw, dark, flat, float(uv[0]), float(uv[1]), 0.5 * d_px, int(np.ceil(d_px)) + 2, 3)[:2])
-        measured.append(found[0] - found[1])
-        computed.append(_shift(bg, g, c[None])[0, 0])
+        measured.append(view.refine(both, c)[:2] - view.refine(alone, c)[:2])
+        computed.append(_shift(view.bg, view.g, c[None])[0, 0])
     measured, computed = np.array(measured), np.array(computed)
     assert np.abs(measured).max() > 0.04  # the edge does shift the centroid
     np.testing.assert_allclose(computed[1:], measured[1:], atol=0.01)
     assert np.sign(computed[0, 0]) == np.sign(measured[0, 0]) and abs(computed[0, 0] - measured[0, 0]) < 0.025
+
+
+def test_the_background_rms_over_the_objects_edge_is_the_detectors() -> None:
+    """The background RMS the bundle weights a detection by (``background_rms``), predicted for BBs from 2 mm
+    inside the outline of a tissue cylinder to well clear of it: on noise-free frames the structure the plane
+    leaves is the detector's own (``_refine`` on the frame), and it is largest where the outline crosses."""
+    view = _Grazing()
+    predicted, measured = [], []
+    for off in (-2.0, 0.0, 1.0, 3.0, 8.0):
+        c = view.bb(off)
+        measured.append(view.refine(view.body.with_markers(c[None]), c)[5])
+        predicted.append(view.bg.background_rms(view.g, c[None], D_MM, 1e-9)[0, 0])
+    measured, predicted = np.array(measured), np.array(predicted)
+    assert measured[1] > 5 * measured[-1]  # the outline in the window: far rougher than the air beside it
+    np.testing.assert_allclose(predicted, measured, rtol=0.25, atol=2e-3)
 
 
 def test_the_photon_factor_follows_the_thickness_and_averages_one_over_the_surface() -> None:

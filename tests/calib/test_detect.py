@@ -87,3 +87,26 @@ def test_a_frame_full_of_stronger_structure_keeps_its_bbs_among_the_candidates()
     assert len(c) > 128
     found = np.linalg.norm(c[:, None, :2] - centres[None, :10, ::-1], axis=-1).min(0)
     assert (found < 1.0).all(), found
+
+
+def test_detection_spread_is_each_detections_background_rms_over_the_typical_one() -> None:
+    from calib.detect import CANDIDATE_FIELDS, SPREAD_RANGE, detection_spread
+
+    def records(cols_rows_rms: list[tuple[float, float, float]]) -> np.ndarray:
+        rec = np.zeros((len(cols_rows_rms), len(CANDIDATE_FIELDS)))
+        for i, (c, r, rms) in enumerate(cols_rows_rms):
+            rec[i, 0], rec[i, 1], rec[i, CANDIDATE_FIELDS.index("background_rms")] = c, r, rms
+        return rec
+
+    cands = [records([(10.5, 20.25, 0.1), (40.0, 41.0, 0.3), (70.0, 7.0, 9.0)]),
+             records([(11.0, 21.0, 0.1), (41.0, 42.0, 0.01)]),
+             records([])]
+    uv = np.array([[[10.5, 20.25], [40.0, 41.0], [70.0, 7.0]],
+                   [[11.0, 21.0], [41.0, 42.0], [np.nan, np.nan]],
+                   [[12.0, 22.0], [np.nan, np.nan], [50.0, 50.0]]])
+    spread = detection_spread(cands, uv)
+    typical = 0.1  # the median of the five detections found: 0.01, 0.1, 0.1, 0.3, 9.0
+    assert spread[0, 0] == pytest.approx(1.0) and spread[0, 1] == pytest.approx(0.3 / typical)
+    assert spread[0, 2] == SPREAD_RANGE[1] and spread[1, 1] == SPREAD_RANGE[0]  # bounded both ways
+    # a position no candidate has (a blob split in two) and frames without candidates count as typical
+    assert spread[2, 0] == 1.0 and spread[2, 2] == 1.0

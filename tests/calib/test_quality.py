@@ -185,9 +185,29 @@ def test_views_resting_on_bbs_that_only_a_few_views_see_are_not_calibrated_as_an
         shift = 0 if p == 40 else 1  # each island BB takes one real BB's blob in view 40, the next one's elsewhere
         uv[p, 8:] = real[p, np.roll(np.arange(8), -shift)]
         uv[p, :8] = np.nan
-    geometry, kept_xyz, _, kept_uv, _, _, _, quality = _estimate("bundle", ViewModel(nominal), uv, CalibrationOptions(), None)
+    geometry, kept_xyz, _, kept_uv, _, _, _, quality = _estimate("bundle", ViewModel(nominal), uv, CalibrationOptions(), None, None)
     assert kept_xyz.shape[0] == 8 and kept_uv.shape[1] == 8
     assert all(quality.status[p] != OWN for p in island)
     own = np.flatnonzero(quality.status == OWN)
     assert own.size == 160 - len(island)
     assert similarity_aligned_error_px(geometry[own], truth[own])[0] < 0.1
+
+
+def test_a_prediction_weighted_by_the_detections_spread_is_the_bundles() -> None:
+    """``spread`` divides each residual as the bundle does: alike for all it changes nothing; where it is each
+    detection's true noise, the weighted fit is predicted better in every view than the fit weighting all alike
+    (weighted least squares with the right weights is the best linear estimate)."""
+    from calib.quality import huber_threshold_px, placement_predicted_px
+
+    model, _, xyz, uv = _setup()
+    plain = placement_predicted_px(model, xyz, uv, 0.1)
+    np.testing.assert_allclose(placement_predicted_px(model, xyz, uv, 0.1, spread=np.full(uv.shape[:2], 3.0)), plain,
+                               rtol=1e-6)
+    huber = placement_predicted_px(model, xyz, uv, 0.1, loss_scale_px=huber_threshold_px(0.1))
+    np.testing.assert_allclose(placement_predicted_px(model, xyz, uv, 0.1, loss_scale_px=huber_threshold_px(0.1),
+                                                      spread=np.ones(uv.shape[:2])), huber, rtol=1e-9)
+    s = np.exp(np.random.default_rng(2).uniform(np.log(0.5), np.log(5.0), uv.shape[:2]))  # rough backgrounds
+    variance = s[..., None, None] ** 2 * np.eye(2)
+    alike = placement_predicted_px(model, xyz, uv, 0.1, variance)
+    weighted = placement_predicted_px(model, xyz, uv, 0.1, variance, spread=s)
+    assert np.all(weighted <= alike * (1 + 1e-9)) and np.mean(weighted) < 0.8 * np.mean(alike)
