@@ -70,16 +70,16 @@ def bundle_adjust(
     gauge_xyz: NDArray[np.float64] | None = None,
     gauge_weights: NDArray[np.float64] | None = None,
     pose_prior: tuple[float, float] | None = None,
-    scale: NDArray[np.float64] | None = None,
+    spread: NDArray[np.float64] | None = None,
     callback: Callable[[int, ViewState, NDArray[np.float64], float], None] | None = None,
 ) -> BundleResult:
     """Minimise the Huber reprojection cost over view corrections and BB centres (``uv`` NaN = not seen).
 
-    The gauge is fixed by :func:`gauge_matrix` of ``gauge_xyz`` (default ``xyz0``) and ``gauge_weights``. ``scale``
+    The gauge is fixed by :func:`gauge_matrix` of ``gauge_xyz`` (default ``xyz0``) and ``gauge_weights``. ``spread``
     ``(N, K)`` (default 1) is each detection's expected error relative to the others: its residual is divided by it."""
     n, k = uv.shape[:2]
     seen = np.isfinite(uv).all(-1)
-    spread = np.ones((n, k)) if scale is None else np.where(seen, np.asarray(scale, dtype=float), 1.0)
+    spread = np.ones((n, k)) if spread is None else np.where(seen, np.asarray(spread, dtype=float), 1.0)
     obs = np.where(seen[..., None], uv, 0.0)
     state = model.identity() if state0 is None else state0.copy()
     xyz = xyz0.copy()

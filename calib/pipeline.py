@@ -916,7 +916,7 @@ def _estimate(
         spread = None if spread_of is None else spread_of(uv)[ok]
         res = bundle_adjust(
             sub, uvs, xyz0, loss_scale_px=opt.loss_scale_px or FIRST_LOSS_SCALE_PX, max_iterations=iters,
-            scale=spread, callback=lambda i, s, x, c: record(s, x)
+            spread=spread, callback=lambda i, s, x, c: record(s, x)
         )
         # detections far off the solution are wrong blobs: drop them and refine once more
         r = _residual_px(sub.geometry(res.state), uvs, res.xyz)
@@ -946,7 +946,7 @@ def _estimate(
             uv = uv.copy()
             uv[ok] = uvs
             res = bundle_adjust(
-                sub, uvs, res.xyz, res.state, loss_scale_px=loss, max_iterations=iters, gauge_xyz=xyz0, scale=spread
+                sub, uvs, res.xyz, res.state, loss_scale_px=loss, max_iterations=iters, gauge_xyz=xyz0, spread=spread
             )
             record(res.state, res.xyz)
         state, xyz = res.state, res.xyz

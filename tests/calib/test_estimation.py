@@ -113,7 +113,7 @@ def test_pairwise_midpoints_of_rays_through_a_point() -> None:
 
 
 def test_a_detection_with_a_larger_spread_pulls_the_bundle_less() -> None:
-    """``scale`` divides each residual: one BB's detections 1.5 px off in half the views move the solution far
+    """``spread`` divides each residual: one BB's detections 1.5 px off in half the views move the solution far
     less when the bundle is told they are five times as noisy as the rest (as a BB over the outline is)."""
     nominal, truth, xyz, uv = _problem(n=120, noise_px=0.02)
     off = uv.copy()
@@ -123,9 +123,9 @@ def test_a_detection_with_a_larger_spread_pulls_the_bundle_less() -> None:
     spread = np.ones(uv.shape[:2])
     spread[:, 3] = 5.0
     alike = similarity_aligned_error_px(model.geometry(bundle_adjust(model, off, xyz0).state), truth)[0]
-    weighted = similarity_aligned_error_px(model.geometry(bundle_adjust(model, off, xyz0, scale=spread).state), truth)[0]
+    weighted = similarity_aligned_error_px(model.geometry(bundle_adjust(model, off, xyz0, spread=spread).state), truth)[0]
     assert weighted < 0.5 * alike
     # a spread alike for every detection is no weighting at all: the same solution
-    same = bundle_adjust(model, uv, xyz0, scale=np.full(uv.shape[:2], 1.0))
+    same = bundle_adjust(model, uv, xyz0, spread=np.full(uv.shape[:2], 1.0))
     plain = bundle_adjust(model, uv, xyz0)
     assert np.allclose(same.xyz, plain.xyz) and np.allclose(same.state.t, plain.state.t)
