@@ -108,7 +108,15 @@ def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[n
     n, k = seen.shape
     Jv = Jv[..., :6] * seen[..., None, None]
     Jp = Jp * seen[..., None, None]
-    if slope is not None:  # H = sum J^T A J: Jacobians times A^1/2, noise covariance V -> A^-1/2 V A^-1/2
+    if slope is not None and not slope[..., 0, 1].any() and not slope[..., 1, 0].any() \
+            and np.array_equal(slope[..., 0, 0], slope[..., 1, 1]):  # A = a I (weighted least squares): scale
+        root = np.sqrt(np.maximum(slope[..., 0, 0], 1e-9))
+        Jv, Jp = Jv * root[..., None, None], Jp * root[..., None, None]
+        base = np.broadcast_to(np.eye(2), slope.shape) if variance is None else variance
+        variance = base / (root**2)[..., None, None]
+        if bias is not None:
+            bias = bias * root[..., None]
+    elif slope is not None:  # H = sum J^T A J: Jacobians times A^1/2, noise covariance V -> A^-1/2 V A^-1/2
         lam, vec = np.linalg.eigh(slope)
         lam = np.maximum(lam, 1e-9)
         half = np.einsum("...ab,...b,...cb->...ac", vec, np.sqrt(lam), vec)

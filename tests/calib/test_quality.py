@@ -211,3 +211,23 @@ def test_a_prediction_weighted_by_the_detections_spread_is_the_bundles() -> None
     alike = placement_predicted_px(model, xyz, uv, 0.1, variance)
     weighted = placement_predicted_px(model, xyz, uv, 0.1, variance, spread=s)
     assert np.all(weighted <= alike * (1 + 1e-9)) and np.mean(weighted) < 0.8 * np.mean(alike)
+
+
+def test_an_isotropic_weight_takes_the_short_way_to_the_same_covariance() -> None:
+    """Weights ``a I`` (weighted least squares) scale the Jacobians instead of taking matrix roots: the same result
+    as the general path (forced here by an off-diagonal too small to matter)."""
+    from calib.quality import _marginal_pose_covariance
+
+    model, _, xyz, uv = _setup()
+    state = model.identity()
+    rng = np.random.default_rng(5)
+    a = rng.uniform(0.04, 4.0, uv.shape[:2])
+    slope = a[..., None, None] * np.eye(2)
+    nudged = slope.copy()
+    nudged[..., 0, 1] = nudged[..., 1, 0] = 1e-13
+    L = rng.normal(size=uv.shape[:2] + (2, 2))
+    variance = L @ np.swapaxes(L, -1, -2) + 0.1 * np.eye(2)
+    bias = rng.normal(size=uv.shape[:2] + (2,))
+    short = _marginal_pose_covariance(model, state, xyz, uv, variance, slope, bias)
+    general = _marginal_pose_covariance(model, state, xyz, uv, variance, nudged, bias)
+    np.testing.assert_allclose(short, general, rtol=1e-6, atol=1e-9 * np.abs(general).max())

@@ -54,8 +54,11 @@ function fmt(v, digits = 3) {
   if (v === null || v === undefined) return '—';
   if (typeof v === 'boolean') return v ? 'yes' : 'no';
   if (typeof v === 'number') return Number.isInteger(v) ? String(v) : String(Number(v.toPrecision(digits)));
-  if (Array.isArray(v)) return v.map((x) => fmt(x, digits)).join(', ');
-  if (typeof v === 'object') return Object.entries(v).map(([k, x]) => k + ' ' + fmt(x, digits)).join(', ');
+  if (Array.isArray(v)) return v.length ? v.map((x) => fmt(x, digits)).join(', ') : 'none';
+  if (typeof v === 'object') {
+    const entries = Object.entries(v);
+    return entries.length ? entries.map(([k, x]) => k + ' ' + fmt(x, digits)).join(', ') : 'none';
+  }
   return String(v);
 }
 

@@ -112,6 +112,8 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
     expect(page.locator("#scan-progress-text")).to_contain_text("of 46")  # 40 projections, 4 darks and flats before, 2 after
     assert console.api("GET", f"/scans/{scan_id}").json().get("state") == "complete", console.api("GET", f"/scans/{scan_id}").text
     shot(page, "scan-complete")
+    # the twins read back what was commanded: the summary says no projection was taken off command, not a blank
+    expect(page.locator("#scan-summary dt:has-text('taken off command') + dd")).to_have_text("none")
     assert page.locator("#calibrate-form").count() == 0, "an operator does not calibrate"
     page.click("#sign-out")
     page.wait_for_url("**/sign-in")
