@@ -84,7 +84,7 @@ class CalibrationOptions:
     recover: bool = True  # track again allowing larger jumps (RECOVERY_JITTER_MM) when the first result fails
     scale_bar_mm: float | None = None  # known distance between two BBs (a scale bar): sets the metric scale
     scale_bar_bbs: tuple[int, int] | None = None  # which BBs span it (1-based, as the report numbers them); default: the one pair near its length
-    weigh_detections: bool = True  # bundle: weight each detection by the roughness of its background (calib.detect.detection_spread)
+    weigh_detections: bool = True  # bundle: solve once more at the end, each detection weighted by how rough its background is
 
 
 @dataclass
@@ -452,7 +452,6 @@ def _solve_and_write(
     # recovery: when the BBs cannot be followed with the orbit's expected jitter, or the views they give
     # fail the quality check, track again allowing larger frame-to-frame jumps; a result found that way is
     # kept only if it passes the check (a larger allowance also links more wrong blobs)
-    spread_of = partial(detection_spread, cands) if method == "bundle" and opt.weigh_detections else None
     levels = [opt.jitter_mm] + ([j for j in RECOVERY_JITTER_MM if j > opt.jitter_mm] if opt.recover else [])
     tracks: dict[float, tuple[TrackingSettings, NDArray[np.float64]]] = {}  # per allowance: settings, 2-D tracks
     for jitter_mm in levels:
@@ -474,7 +473,7 @@ def _solve_and_write(
                 "\"diameter_mm\" in POST /calibrations)")
             continue
         try:
-            outcome = _estimate(method, model, uv, opt, progress, spread_of)
+            outcome = _estimate(method, model, uv, opt, progress)
         except NoMarkersError as exc:
             failure = exc
             continue
@@ -482,7 +481,7 @@ def _solve_and_write(
         if method == "bundle" and (not verdict.passed or verdict.counts[OWN] < proj.size):
             # views between calibrated ones may have jumped far: search as widely as the widest allowance
             wide = replace(tset, jitter_px=max(levels) * d_px / diameter_mm)
-            outcome, verdict = _reassign(cands, model, wide, outcome, verdict, proj, opt, progress, spread_of)
+            outcome, verdict = _reassign(cands, model, wide, outcome, verdict, proj, opt, progress)
         if best is None or verdict.passed:  # a larger allowance replaces the first result only when it passes
             best = (jitter_mm, found_warnings, outcome, verdict)
         if verdict.passed or _mild_misfits_only(outcome[7], verdict):
@@ -495,20 +494,26 @@ def _solve_and_write(
     if method == "bundle":
         tset, frags = tracks[jitter_used]
         outcome, verdict, n_found = _recover_missed(cands, model, tset, outcome, verdict, proj, diameter_mm, min_obs, opt,
-                                                    progress, frags, spread_of)
+                                                    progress, frags)
         if n_found:
             warnings = list(warnings) + [f"{n_found} BB(s) lost while identifying (their tracks broke into short pieces) "
                                          "were found again through the calibrated views and calibrated with the rest"]
-        outcome, verdict, n_twins = _merge_twins(model, outcome, verdict, proj, opt, progress, spread_of)
+        outcome, verdict, n_twins = _merge_twins(model, outcome, verdict, proj, opt, progress)
         if n_twins:
             warnings = list(warnings) + [f"{n_twins} BBs were identified twice, in two parts of the orbit (tracking broke "
                                          "for every BB at once); each pair was made one BB and calibrated again"]
         outcome, verdict, n_sparse = _sparse_views_again(cands, model, tracks[opt.jitter_mm][0], outcome, verdict, proj,
-                                                         opt, progress, spread_of)
+                                                         opt, progress)
         if n_sparse:
             warnings = list(warnings) + [f"{n_sparse} view(s) that kept {MIN_OWN_BBS} BBs or fewer where the views around "
                                          "them see more were assigned again through those views and calibrated with more BBs"]
-        outcome, verdict, n_split = _split_merged(target, proj, model, outcome, verdict, d_px, opt, progress, spread_of)
+        outcome, verdict, n_split = _split_merged(target, proj, model, outcome, verdict, d_px, opt, progress)
+        if opt.weigh_detections:
+            # identification and its checks weigh every detection alike (a wrong blob over a bone edge must keep
+            # its pull to be found); the detections they kept are then solved once more, each weighted by how
+            # rough its background is, and that solution replaces the first unless it judges worse
+            outcome, verdict, _ = _estimate_again(model, outcome[3], proj, opt, progress, outcome, verdict,
+                                                  spread_of=partial(detection_spread, cands))
     geometry_p, xyz, state, uv, history, n_iter, more, quality = outcome
     warnings = list(warnings) + more
     bar = None
@@ -607,7 +612,6 @@ def _solve_and_write(
 def _reassign(
     cands: list[NDArray[np.float64]], model: ViewModel, tset: TrackingSettings, outcome: tuple[Any, ...],
     verdict: Verdict, proj: NDArray[np.intp], opt: CalibrationOptions, progress: ProgressCallback | None,
-    spread_of: SpreadOf,
 ) -> tuple[tuple[Any, ...], Verdict]:
     """Assign the detections again, to every BB predicted through the calibrated geometry (views not calibrated
     from their own BBs: through their nearest view that is), and estimate again; kept when it passes where the
@@ -621,15 +625,16 @@ def _reassign(
     again = assign_by_pose(cands, model, filled, xyz, tset)
     if np.array_equal(again, uv, equal_nan=True):
         return outcome, verdict
-    outcome, verdict, _ = _estimate_again(model, again, proj, opt, progress, spread_of, outcome, verdict, must_improve=True)
+    outcome, verdict, _ = _estimate_again(model, again, proj, opt, progress, outcome, verdict, must_improve=True)
     return outcome, verdict
 
 
 def _estimate_again(model: ViewModel, uv: NDArray[np.float64], proj: NDArray[np.intp], opt: CalibrationOptions,
-                    progress: ProgressCallback | None, spread_of: SpreadOf, outcome: tuple[Any, ...], verdict: Verdict, *,
-                    must_improve: bool = False) -> tuple[tuple[Any, ...], Verdict, bool]:
-    """Estimate again from detections ``uv``: that outcome and verdict (and True) unless it fails where the first
-    passed or calibrates fewer views from their own BBs (or, ``must_improve``, does no better on both)."""
+                    progress: ProgressCallback | None, outcome: tuple[Any, ...], verdict: Verdict, *,
+                    must_improve: bool = False, spread_of: SpreadOf = None) -> tuple[tuple[Any, ...], Verdict, bool]:
+    """Estimate again from detections ``uv`` (weighted by ``spread_of``, see :func:`_estimate`): that outcome and
+    verdict (and True) unless it fails where the first passed or calibrates fewer views from their own BBs (or,
+    ``must_improve``, does no better on both)."""
     try:
         second = _estimate("bundle", model, uv, opt, progress, spread_of)
     except NoMarkersError:
@@ -644,7 +649,7 @@ def _estimate_again(model: ViewModel, uv: NDArray[np.float64], proj: NDArray[np.
 def _recover_missed(
     cands: list[NDArray[np.float64]], model: ViewModel, tset: TrackingSettings, outcome: tuple[Any, ...],
     verdict: Verdict, proj: NDArray[np.intp], diameter_mm: float, min_obs: int, opt: CalibrationOptions,
-    progress: ProgressCallback | None, frags: NDArray[np.float64], spread_of: SpreadOf,
+    progress: ProgressCallback | None, frags: NDArray[np.float64],
 ) -> tuple[tuple[Any, ...], Verdict, int]:
     """Look for BBs that identification lost (:func:`calib.identify.recover_missed`) among the 2-D tracks ``frags``
     it was given, through the calibrated views; with any found, assign and estimate again with them; kept unless it
@@ -658,13 +663,12 @@ def _recover_missed(
         return outcome, verdict, 0
     filled = fill_states(ViewState(np.nan_to_num(state.R), np.nan_to_num(state.t), state.k), solved, len(solved))
     again = assign_by_pose(cands, model, filled, np.concatenate([xyz, missed]), tset)
-    outcome, verdict, kept = _estimate_again(model, again, proj, opt, progress, spread_of, outcome, verdict)
+    outcome, verdict, kept = _estimate_again(model, again, proj, opt, progress, outcome, verdict)
     return outcome, verdict, len(missed) if kept else 0
 
 
 def _merge_twins(model: ViewModel, outcome: tuple[Any, ...], verdict: Verdict, proj: NDArray[np.intp],
-                 opt: CalibrationOptions, progress: ProgressCallback | None, spread_of: SpreadOf
-                 ) -> tuple[tuple[Any, ...], Verdict, int]:
+                 opt: CalibrationOptions, progress: ProgressCallback | None) -> tuple[tuple[Any, ...], Verdict, int]:
     """BBs identified twice, once in each of two parts of the orbit that nothing else ties together
     (:func:`calib.identify.twin_constellation`; experiment C at 512 px: every track broke at one frame, and the
     second half calibrated as a constellation of its own, 8-22 px off, and passed). Each pair is made one BB (the
@@ -682,7 +686,7 @@ def _merge_twins(model: ViewModel, outcome: tuple[Any, ...], verdict: Verdict, p
         merged[has_a & has_b, a] = np.nan
     merged = np.delete(merged, [b for _, b in pairs], axis=1)
     try:
-        again = _estimate("bundle", model, merged, opt, progress, spread_of)
+        again = _estimate("bundle", model, merged, opt, progress)
     except NoMarkersError:
         reason = (f"{len(pairs)} BBs were identified twice, in two parts of the orbit that nothing ties together "
                   "(tracking broke for every BB at once): those parts' geometries can be far apart")
@@ -697,7 +701,6 @@ _AROUND = 3
 def _sparse_views_again(
     cands: list[NDArray[np.float64]], model: ViewModel, tset: TrackingSettings, outcome: tuple[Any, ...],
     verdict: Verdict, proj: NDArray[np.intp], opt: CalibrationOptions, progress: ProgressCallback | None,
-    spread_of: SpreadOf,
 ) -> tuple[tuple[Any, ...], Verdict, int]:
     """Views left with :data:`MIN_OWN_BBS` BBs or fewer where the views around them (three either side) see at
     least two more: frames that jumped, where tracking kept few blobs, perhaps wrong ones that a pose with two
@@ -723,7 +726,7 @@ def _sparse_views_again(
         return outcome, verdict, 0
     new = uv.copy()
     new[gain] = again[gain]
-    outcome, verdict, kept = _estimate_again(model, new, proj, opt, progress, spread_of, outcome, verdict)
+    outcome, verdict, kept = _estimate_again(model, new, proj, opt, progress, outcome, verdict)
     return outcome, verdict, int(gain.sum()) if kept else 0
 
 
@@ -739,7 +742,7 @@ def _mild_misfits_only(quality: ViewQuality, verdict: Verdict) -> bool:
 
 def _split_merged(
     target: Path, proj: NDArray[np.intp], model: ViewModel, outcome: tuple[Any, ...], verdict: Verdict, d_px: float,
-    opt: CalibrationOptions, progress: ProgressCallback | None, spread_of: SpreadOf,
+    opt: CalibrationOptions, progress: ProgressCallback | None,
 ) -> tuple[tuple[Any, ...], Verdict, int]:
     """Views where two BBs project onto one blob (both left out by the assignment): their two centroids fitted
     in the frame (:mod:`calib.split`), then the geometry estimated again; kept when the result is no worse.
@@ -773,7 +776,7 @@ def _split_merged(
     report(progress, "split", len(pairs), len(pairs), f"{n_split} split")
     if n_split == 0:
         return outcome, verdict, 0
-    outcome, verdict, kept = _estimate_again(model, new, proj, opt, progress, spread_of, outcome, verdict)
+    outcome, verdict, kept = _estimate_again(model, new, proj, opt, progress, outcome, verdict)
     return outcome, verdict, n_split if kept else 0
 
 
@@ -872,7 +875,7 @@ def _min_observations(opt: CalibrationOptions, n_projections: int) -> int:
 
 def _estimate(
     method: str, model: ViewModel, uv: NDArray[np.float64], opt: CalibrationOptions, progress: ProgressCallback | None,
-    spread_of: SpreadOf,
+    spread_of: SpreadOf = None,
 ) -> tuple[ViewGeometry, NDArray[np.float64], ViewState, NDArray[np.float64], History, int, list[str], ViewQuality]:
     """Geometry of the projection views (NaN where failed), BB centres, states, cleaned uv, history, quality.
     ``spread_of(uv)``: each detection's expected error relative to the others, which the bundle divides its
