@@ -513,8 +513,7 @@ def _solve_and_write(
             # its pull to be found); the detections they kept are then solved once more, each weighted by how
             # rough its background is, and that solution replaces the first unless it judges worse
             outcome, verdict, _ = _estimate_again(model, outcome[3], proj, opt, progress, outcome, verdict,
-                                                  spread_of=partial(detection_spread, cands),
-                                                  start=(outcome[2], outcome[1], outcome[4]))
+                                                  spread_of=partial(detection_spread, cands), start=outcome)
     geometry_p, xyz, state, uv, history, n_iter, more, quality = outcome
     warnings = list(warnings) + more
     bar = None
@@ -632,10 +631,9 @@ def _reassign(
 
 def _estimate_again(model: ViewModel, uv: NDArray[np.float64], proj: NDArray[np.intp], opt: CalibrationOptions,
                     progress: ProgressCallback | None, outcome: tuple[Any, ...], verdict: Verdict, *,
-                    must_improve: bool = False, spread_of: SpreadOf = None,
-                    start: tuple[ViewState, NDArray[np.float64], History] | None = None
+                    must_improve: bool = False, spread_of: SpreadOf = None, start: tuple[Any, ...] | None = None
                     ) -> tuple[tuple[Any, ...], Verdict, bool]:
-    """Estimate again from detections ``uv`` (weighted by ``spread_of``, from ``start``: see :func:`_estimate`):
+    """Estimate again from detections ``uv`` (or polish ``start`` with ``spread_of``: see :func:`_estimate`):
     that outcome and verdict (and True) unless it fails where the first passed or calibrates fewer views from their
     own BBs (or, ``must_improve``, does no better on both)."""
     try:
@@ -876,13 +874,13 @@ def _min_observations(opt: CalibrationOptions, n_projections: int) -> int:
     return opt.min_observations or max(8, int(0.05 * n_projections))
 
 
-def _polished(sub: ViewModel, uvs: NDArray[np.float64], start: tuple[ViewState, NDArray[np.float64], History],
-              ok: NDArray[np.bool_], placed: NDArray[np.bool_], spread: NDArray[np.float64] | None,
-              opt: CalibrationOptions, iters: int, record: Callable[[ViewState, NDArray[np.float64]], None]
-              ) -> tuple[ViewState, NDArray[np.float64]]:
-    """One bundle solve of the views ``sub`` (rows ``ok`` of all views) from a previous estimate ``start`` (its
-    failed views from their nominal pose), with the Huber threshold fitted to that estimate's residuals."""
-    full, xyz0 = start[0], start[1][placed]
+def _polished(sub: ViewModel, uvs: NDArray[np.float64], start: tuple[Any, ...], ok: NDArray[np.bool_],
+              placed: NDArray[np.bool_], spread: NDArray[np.float64] | None, opt: CalibrationOptions, iters: int,
+              record: Callable[[ViewState, NDArray[np.float64]], None]) -> tuple[ViewState, NDArray[np.float64]]:
+    """One bundle solve of the views ``sub`` (rows ``ok`` of all views) from a previous outcome of
+    :func:`_estimate` ``start`` (its failed views from their nominal pose), with the Huber threshold fitted to that
+    estimate's residuals."""
+    full, xyz0 = start[2], start[1][placed]
     R = np.where(np.isfinite(full.R[ok]).all((1, 2))[:, None, None], full.R[ok], np.eye(3))
     st0 = ViewState(R, np.nan_to_num(full.t[ok]), full.k[ok])
     loss = opt.loss_scale_px
@@ -896,13 +894,12 @@ def _polished(sub: ViewModel, uvs: NDArray[np.float64], start: tuple[ViewState, 
 
 def _estimate(
     method: str, model: ViewModel, uv: NDArray[np.float64], opt: CalibrationOptions, progress: ProgressCallback | None,
-    spread_of: SpreadOf = None, start: tuple[ViewState, NDArray[np.float64], History] | None = None,
+    spread_of: SpreadOf = None, start: tuple[Any, ...] | None = None,
 ) -> tuple[ViewGeometry, NDArray[np.float64], ViewState, NDArray[np.float64], History, int, list[str], ViewQuality]:
     """Geometry of the projection views (NaN where failed), BB centres, states, cleaned uv, history, quality.
-    ``spread_of(uv)``: each detection's expected error relative to the others, which the bundle divides its
-    residual by (None: all alike). ``start``: the states (all views), BB centres and history of an estimate from
-    these detections, already cleaned of wrong blobs: one solve from there instead of the first solve and its
-    checks, its history continued."""
+    With ``start``, a previous outcome from these detections (already cleaned of wrong blobs): one bundle solve
+    from its solution instead of the first solve and its checks, its history and warnings continued, each residual
+    divided by ``spread_of(uv)``, the detection's expected error relative to the others (None: all alike)."""
     warnings: list[str] = []
     n = uv.shape[0]
     ok = usable_views(uv, opt.min_bbs_per_view)
@@ -937,18 +934,18 @@ def _estimate(
         n_iter = iters
     elif start is not None:
         iters = opt.iterations or 30
-        history.extend(start[2])
+        history.extend(start[4])
+        warnings.extend(start[6])
         state, xyz = _polished(sub, uvs, start, ok, placed, None if spread_of is None else spread_of(uv)[ok], opt,
                                iters, record)
         n_iter = len(history) - 1
     else:
         iters = opt.iterations or 30
-        spread = None if spread_of is None else spread_of(uv)[ok]
         xyz0 = triangulate_least_squares(*marker_rays(sub.nominal, uvs))
         record(sub.identity(), xyz0)
         res = bundle_adjust(
             sub, uvs, xyz0, loss_scale_px=opt.loss_scale_px or FIRST_LOSS_SCALE_PX, max_iterations=iters,
-            spread=spread, callback=lambda i, s, x, c: record(s, x)
+            callback=lambda i, s, x, c: record(s, x)
         )
         # detections far off the solution are wrong blobs: drop them and refine once more
         r = _residual_px(sub.geometry(res.state), uvs, res.xyz)
@@ -978,7 +975,7 @@ def _estimate(
             uv = uv.copy()
             uv[ok] = uvs
             res = bundle_adjust(
-                sub, uvs, res.xyz, res.state, loss_scale_px=loss, max_iterations=iters, gauge_xyz=xyz0, spread=spread
+                sub, uvs, res.xyz, res.state, loss_scale_px=loss, max_iterations=iters, gauge_xyz=xyz0
             )
             record(res.state, res.xyz)
         state, xyz = res.state, res.xyz
