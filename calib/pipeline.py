@@ -11,7 +11,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, fields, replace
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -502,6 +502,8 @@ def _solve_and_write(
         if n_twins:
             warnings = list(warnings) + [f"{n_twins} BBs were identified twice, in two parts of the orbit (tracking broke "
                                          "for every BB at once); each pair was made one BB and calibrated again"]
+            # BBs identified in one part only: the other part's views find them through the merged geometry
+            outcome, verdict = _reassign(cands, model, tset, outcome, verdict, proj, opt, progress, must_improve=False)
         outcome, verdict, n_sparse = _sparse_views_again(cands, model, tracks[opt.jitter_mm][0], outcome, verdict, proj,
                                                          opt, progress)
         if n_sparse:
@@ -513,7 +515,7 @@ def _solve_and_write(
             # its pull to be found); the detections they kept are then solved once more, each weighted by how
             # rough its background is, and that solution replaces the first unless it judges worse
             outcome, verdict, _ = _estimate_again(model, outcome[3], proj, opt, progress, outcome, verdict,
-                                                  spread_of=partial(detection_spread, cands), start=outcome)
+                                                  polish=Polish(outcome, partial(detection_spread, cands)))
     geometry_p, xyz, state, uv, history, n_iter, more, quality = outcome
     warnings = list(warnings) + more
     bar = None
@@ -611,11 +613,13 @@ def _solve_and_write(
 
 def _reassign(
     cands: list[NDArray[np.float64]], model: ViewModel, tset: TrackingSettings, outcome: tuple[Any, ...],
-    verdict: Verdict, proj: NDArray[np.intp], opt: CalibrationOptions, progress: ProgressCallback | None,
+    verdict: Verdict, proj: NDArray[np.intp], opt: CalibrationOptions, progress: ProgressCallback | None, *,
+    must_improve: bool = True,
 ) -> tuple[tuple[Any, ...], Verdict]:
     """Assign the detections again, to every BB predicted through the calibrated geometry (views not calibrated
     from their own BBs: through their nearest view that is), and estimate again; kept when it passes where the
-    first did not, or calibrates more views from their own BBs. Tracking predicts through rough poses, which
+    first did not, or calibrates more views from their own BBs (not ``must_improve``: unless it fails where the
+    first passed or calibrates fewer views from their own BBs). Tracking predicts through rough poses, which
     miss BBs in views that see few of them (a truncating panel) or jump far (a robotic arm)."""
     xyz, state, uv = outcome[1], outcome[2], outcome[3]
     solved = outcome[7].status == OWN
@@ -625,19 +629,19 @@ def _reassign(
     again = assign_by_pose(cands, model, filled, xyz, tset)
     if np.array_equal(again, uv, equal_nan=True):
         return outcome, verdict
-    outcome, verdict, _ = _estimate_again(model, again, proj, opt, progress, outcome, verdict, must_improve=True)
+    outcome, verdict, _ = _estimate_again(model, again, proj, opt, progress, outcome, verdict, must_improve=must_improve)
     return outcome, verdict
 
 
 def _estimate_again(model: ViewModel, uv: NDArray[np.float64], proj: NDArray[np.intp], opt: CalibrationOptions,
                     progress: ProgressCallback | None, outcome: tuple[Any, ...], verdict: Verdict, *,
-                    must_improve: bool = False, spread_of: SpreadOf = None, start: tuple[Any, ...] | None = None
+                    must_improve: bool = False, polish: Polish | None = None
                     ) -> tuple[tuple[Any, ...], Verdict, bool]:
-    """Estimate again from detections ``uv`` (or polish ``start`` with ``spread_of``: see :func:`_estimate`):
+    """Estimate again from detections ``uv`` (or, with ``polish``, solve once more from a previous outcome):
     that outcome and verdict (and True) unless it fails where the first passed or calibrates fewer views from their
     own BBs (or, ``must_improve``, does no better on both)."""
     try:
-        second = _estimate("bundle", model, uv, opt, progress, spread_of, start)
+        second = _estimate("bundle", model, uv, opt, progress, polish)
     except NoMarkersError:
         return outcome, verdict, False
     second_verdict = judge(second[7], proj, opt.max_predicted_px, opt.bridge_max_views, "bundle")
@@ -865,8 +869,14 @@ def _disagree_with_neighbour(
 
 
 History = list[tuple[NDArray[np.float64], NDArray[np.float64]]]
-#: each detection's expected error relative to the others for detections ``uv`` ``(N, K, 2)``, or None: all alike
-SpreadOf = Callable[[NDArray[np.float64]], NDArray[np.float64]] | None
+
+
+class Polish(NamedTuple):
+    """Solve once more from ``start``, a previous outcome of :func:`_estimate` on the same detections, each residual
+    divided by ``spread_of(uv)``: the detection's expected error relative to the others for detections ``(N, K, 2)``."""
+
+    start: tuple[Any, ...]
+    spread_of: Callable[[NDArray[np.float64]], NDArray[np.float64]]
 
 
 def _min_observations(opt: CalibrationOptions, n_projections: int) -> int:
@@ -875,7 +885,7 @@ def _min_observations(opt: CalibrationOptions, n_projections: int) -> int:
 
 
 def _polished(sub: ViewModel, uvs: NDArray[np.float64], start: tuple[Any, ...], ok: NDArray[np.bool_],
-              placed: NDArray[np.bool_], spread: NDArray[np.float64] | None, opt: CalibrationOptions, iters: int,
+              placed: NDArray[np.bool_], spread: NDArray[np.float64], opt: CalibrationOptions, iters: int,
               record: Callable[[ViewState, NDArray[np.float64]], None]) -> tuple[ViewState, NDArray[np.float64]]:
     """One bundle solve of the views ``sub`` (rows ``ok`` of all views) from a previous outcome of
     :func:`_estimate` ``start`` (its failed views from their nominal pose), with the Huber threshold fitted to that
@@ -894,12 +904,12 @@ def _polished(sub: ViewModel, uvs: NDArray[np.float64], start: tuple[Any, ...], 
 
 def _estimate(
     method: str, model: ViewModel, uv: NDArray[np.float64], opt: CalibrationOptions, progress: ProgressCallback | None,
-    spread_of: SpreadOf = None, start: tuple[Any, ...] | None = None,
+    polish: Polish | None = None,
 ) -> tuple[ViewGeometry, NDArray[np.float64], ViewState, NDArray[np.float64], History, int, list[str], ViewQuality]:
     """Geometry of the projection views (NaN where failed), BB centres, states, cleaned uv, history, quality.
-    With ``start``, a previous outcome from these detections (already cleaned of wrong blobs): one bundle solve
-    from its solution instead of the first solve and its checks, its history and warnings continued, each residual
-    divided by ``spread_of(uv)``, the detection's expected error relative to the others (None: all alike)."""
+    With ``polish`` (its previous outcome from these detections, already cleaned of wrong blobs): one bundle solve
+    from that solution instead of the first solve and its checks, its history and warnings continued, each residual
+    divided by the detection's spread."""
     warnings: list[str] = []
     n = uv.shape[0]
     ok = usable_views(uv, opt.min_bbs_per_view)
@@ -932,12 +942,11 @@ def _estimate(
         iters = opt.iterations or 3
         state, xyz = paper_calibrate(sub, uvs, iterations=iters, callback=lambda i, s, x: record(s, x))
         n_iter = iters
-    elif start is not None:
+    elif polish is not None:
         iters = opt.iterations or 30
-        history.extend(start[4])
-        warnings.extend(start[6])
-        state, xyz = _polished(sub, uvs, start, ok, placed, None if spread_of is None else spread_of(uv)[ok], opt,
-                               iters, record)
+        history.extend(polish.start[4])
+        warnings.extend(polish.start[6])
+        state, xyz = _polished(sub, uvs, polish.start, ok, placed, polish.spread_of(uv)[ok], opt, iters, record)
         n_iter = len(history) - 1
     else:
         iters = opt.iterations or 30
