@@ -37,6 +37,11 @@ METAL_CHORD_MM = 0.5
 EDGE_NOISE_FACTOR = 2.0
 #: the planner's best random placements (ranked by geometry alone) ranked again with the object's background
 _RERANKED = 10
+#: the search's moves near a BB's place: normal steps of (degrees of angle, mm of height), shrinking each round
+_LOCAL_STEP = (20.0, 15.0)
+_LOCAL_SHRINK = 0.6
+#: a round of moves that lowers the score by less than this share ends the search
+_ROUND_GAIN = 0.005
 #: polar angles at which the silhouette is looked for (degrees apart)
 _OUTLINE_STEP_DEG = 6.0
 
@@ -215,12 +220,14 @@ class Placement:
 
 
 def placement_score(pred: PlanPrediction) -> float:
-    """What the search minimises: the RMS predicted error over the views plus half the worst view's, plus a view's
-    worth of a large error for every view left under-determined (such a view breaks the reconstruction)."""
+    """What the search minimises: the power mean of order 4 of the predicted errors over the views (the worst views
+    weigh most, as a view that cannot be calibrated breaks the reconstruction, yet every view counts: a smoother
+    landscape than the worst view's alone, which one move of a BB seldom changes), plus a view's worth of a large
+    error for every view left under-determined."""
     p = pred.predicted_px[np.isfinite(pred.predicted_px)]
     if p.size == 0:
         return float("inf")
-    return float(np.sqrt(np.mean(p**2)) + 0.5 * p.max() + 10.0 * pred.under_determined.size / pred.n_bbs.size)
+    return float(np.mean(p**4) ** 0.25 + 10.0 * pred.under_determined.size / pred.n_bbs.size)
 
 
 def check_room(surface: TapeSurface, keep_out: Sequence[KeepOut], rng: np.random.Generator | None = None) -> None:
@@ -233,12 +240,13 @@ def check_room(surface: TapeSurface, keep_out: Sequence[KeepOut], rng: np.random
 
 def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, diameter_mm: float, *, noise_px: float = 0.1,
                    metal: list[Any] | None = None, keep_out: Sequence[KeepOut] = (), seed: int = 0, trials: int = 200,
-                   rounds: int = 3, moves: int = 12, min_spacing_mm: float = 25.0,
+                   rounds: int = 5, moves: int = 12, min_spacing_mm: float = 25.0,
                    background: ObjectBackground | None = None, moved: Sequence[ViewGeometry] = (),
                    progress: ProgressCallback | None = None) -> Placement:
     """Search BB positions on ``surface`` outside the ``keep_out`` patches that minimise :func:`placement_score` for
     the views of ``geometry``: ``trials`` random placements (BBs at least ``min_spacing_mm`` apart, placed one at a
-    time), then ``rounds`` of moving each BB to the best of ``moves`` random places. The search scores about 125 of
+    time), then up to ``rounds`` rounds of moving each BB to the best of ``moves`` places, half anywhere and half near
+    its place (steps shrinking round by round), until a round gains less than 0.5 %. The search scores about 125 of
     the views; the result is predicted on all. With the object's ``background`` (see :func:`predict_placement`) the
     trials are ranked without it (it costs a ray fan per BB and view) and the best few ranked again with it.
     ``moved`` as for :func:`predict_placement`. ``progress`` hears stage ``plan``: trials, re-ranked placements and
@@ -284,6 +292,16 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
                                                  metal=metal, surface=surface, background=object_background,
                                                  moved=coarse_moved))
 
+    def near_or_anywhere(a0: float, z0: float, scale: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``moves`` places for one BB: half anywhere on the surface, half near where it is (``scale`` times
+        :data:`_LOCAL_STEP`), as places anywhere are rarely better once the placement is good."""
+        n_near = moves // 2
+        a_far, z_far = draw(moves - n_near)
+        a = a0 + rng.normal(0, scale * np.radians(_LOCAL_STEP[0]), 8 * n_near)
+        h = z0 + rng.normal(0, scale * _LOCAL_STEP[1], 8 * n_near)
+        keep = np.flatnonzero(_allowed(surface, a, h, keep_out) & surface.covers(a, h))[:n_near]
+        return np.concatenate([a_far, a[keep]]), np.concatenate([z_far, h[keep]])
+
     steps = trials + (_RERANKED if background is not None else 0) + rounds * n_bbs
     ranked: list[tuple[float, NDArray[np.float64], NDArray[np.float64]]] = []
     for t in range(trials):
@@ -300,9 +318,10 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
         ranked = sorted(((score(a, h), a, h) for _, a, h in ranked[:_RERANKED]), key=lambda t: t[0])
     s_best, ang, z = ranked[0]
     for r in range(rounds):
+        s_round = s_best
         for k in range(n_bbs):
             report(progress, "plan", steps - (rounds - r) * n_bbs + k, steps, f"{n_bbs} BBs: moving BB {k + 1}")
-            for a_new, z_new in zip(*draw(moves), strict=True):
+            for a_new, z_new in zip(*near_or_anywhere(ang[k], z[k], _LOCAL_SHRINK**r), strict=True):
                 a2, z2 = ang.copy(), z.copy()
                 a2[k], z2[k] = a_new, z_new
                 if not spaced(a2, z2):
@@ -310,6 +329,8 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
                 s2 = score(a2, z2)
                 if s2 < s_best:
                     s_best, ang, z = s2, a2, z2
+        if s_best > (1 - _ROUND_GAIN) * s_round:
+            break  # the round no longer pays
     report(progress, "plan", steps, steps, f"{n_bbs} BBs: predicted on every view")
     xyz = surface.points(ang, z, diameter_mm)
     full = predict_placement(geometry, xyz, diameter_mm, noise_px=noise_px, metal=metal, surface=surface,

@@ -17,9 +17,10 @@ from orbitct.phantoms.primitives import Primitive, PhantomError, cylinder, ellip
 from orbitct.reference_bench import BB_DIAMETER_MM
 
 EXPERIMENTS = ("A", "B", "C")
-#: where BBs can be taped on each experiment's object: the side of an elliptic cylinder about z,
-#: (semi-axis x, semi-axis y, lowest and highest BB centre height), mm
-BB_SURFACES = {"A": (75.0, 75.0, -80.0, 80.0), "B": (60.0, 60.0, -55.0, 55.0), "C": (120.0, 90.0, -70.0, 70.0)}
+#: where BBs can be taped on each experiment's object: the side of an elliptic cylinder about z less 10 mm at
+#: either end, (semi-axis x, semi-axis y, lowest and highest BB centre height), mm; C's own ten BBs sit within
+#: 70 mm of the torso's middle
+BB_SURFACES = {"A": (75.0, 75.0, -80.0, 80.0), "B": (60.0, 60.0, -55.0, 55.0), "C": (120.0, 90.0, -100.0, 100.0)}
 Z = np.array([0.0, 0.0, 1.0])
 
 

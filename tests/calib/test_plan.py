@@ -11,6 +11,7 @@ from calib.plan import (
     KeepOut,
     hand_spiral,
     metal_of,
+    placement_score,
     plan_placement,
     predict_placement,
     suggest_bb_count,
@@ -221,6 +222,20 @@ def test_the_search_reports_how_far_it_got() -> None:
     for n in (4, 5):  # each count's search counts up to its end
         done = [e.done for e in plan if e.message.startswith(f"{n} BBs")]
         assert done == sorted(done) and done[-1] == 30 + n, done
+
+
+def test_the_search_beats_hand_spirals_and_ends_when_a_round_no_longer_pays() -> None:
+    """Moves near each BB's place beside moves anywhere: the plan scores 15 % below every hand spiral of as many BBs,
+    and of 40 rounds allowed the search uses only those that still lower its score by 0.5 % (7 here)."""
+    g = sawtooth(60, 256)
+    surface = EllipticCylinder(60.0, 60.0, -40.0, 40.0)
+    events: list[ProgressEvent] = []
+    placed = plan_placement(g, surface, 6, D_MM, trials=30, rounds=40, min_spacing_mm=15.0, progress=events.append)
+    moves = {e.done for e in events if e.stage == "plan" and "moving BB" in e.message}
+    assert 6 <= len(moves) < 40 * 6, len(moves)  # at least one round, far from all of them
+    spirals = [placement_score(predict_placement(g, hand_spiral(surface, 6, D_MM, seed=s), D_MM, surface=surface))
+               for s in range(3)]
+    assert placed.score < 0.85 * min(spirals), (placed.score, spirals)
 
 
 def test_a_bb_at_the_objects_silhouette_is_counted_noisier_across_the_edge() -> None:
