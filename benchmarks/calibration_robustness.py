@@ -209,8 +209,9 @@ def placement_cases(n: int, size: int = 512, frames: int = 206) -> list[dict[str
     """``n`` random placements of 5 to 12 BBs (at least 20 mm apart) on experiment C's torso, at ``size`` px: the
     sweep that found results passing far off (frames where the bench jumped; see the calibration's guards)."""
     from calib.surfaces import EllipticCylinder
+    from orbitct.phantoms.experiments import BB_SURFACES
 
-    surface, d = EllipticCylinder(120.0, 90.0, -70.0, 70.0), 2.0  # the torso's middle, where its own BBs sit
+    surface, d = EllipticCylinder(*BB_SURFACES["C"][:2], -70.0, 70.0), 2.0  # the torso's middle, where its own BBs sit
     rng = np.random.default_rng(2026)
     cases = []
     for i in range(n):

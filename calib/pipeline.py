@@ -884,6 +884,12 @@ def _min_observations(opt: CalibrationOptions, n_projections: int) -> int:
     return opt.min_observations or max(8, int(0.05 * n_projections))
 
 
+def _free_parameters(sub: ViewModel, xyz: NDArray[np.float64]) -> int:
+    """What a bundle solve of the views ``sub`` and BB centres ``xyz`` fits: every view's parameters and every
+    centre, less the seven of the similarity gauge (the centroid noise's degrees of freedom)."""
+    return sub.n_params * sub.nominal.n_views + 3 * xyz.shape[0] - 7
+
+
 def _polished(sub: ViewModel, uvs: NDArray[np.float64], start: tuple[Any, ...], ok: NDArray[np.bool_],
               placed: NDArray[np.bool_], spread: NDArray[np.float64], opt: CalibrationOptions, iters: int,
               record: Callable[[ViewState, NDArray[np.float64]], None]) -> tuple[ViewState, NDArray[np.float64]]:
@@ -896,7 +902,7 @@ def _polished(sub: ViewModel, uvs: NDArray[np.float64], start: tuple[Any, ...], 
     loss = opt.loss_scale_px
     if loss is None:
         resid = sub.geometry(st0).project(xyz0) - uvs
-        loss = huber_threshold_px(centroid_noise_px(resid, sub.n_params * sub.nominal.n_views + 3 * xyz0.shape[0] - 7))
+        loss = huber_threshold_px(centroid_noise_px(resid, _free_parameters(sub, xyz0)))
     res = bundle_adjust(sub, uvs, xyz0, st0, loss_scale_px=loss, max_iterations=iters, gauge_xyz=xyz0, spread=spread)
     record(res.state, res.xyz)
     return res.state, res.xyz
@@ -976,7 +982,7 @@ def _estimate(
         loss = opt.loss_scale_px
         if loss is None:  # the robust loss fitted to this scan's centroid noise, measured on the first solution
             clean = np.where(bad[..., None], np.nan, sub.geometry(res.state).project(res.xyz) - uvs)
-            sigma = centroid_noise_px(clean, sub.n_params * sub.nominal.n_views + 3 * res.xyz.shape[0] - 7)
+            sigma = centroid_noise_px(clean, _free_parameters(sub, res.xyz))
             loss = huber_threshold_px(sigma)
         if bad.any() or loss != FIRST_LOSS_SCALE_PX:
             uvs = uvs.copy()
@@ -1004,7 +1010,7 @@ def _estimate(
             warnings.append(f"{int(off.sum())} detection(s) in views outside the adjustment disagree with their "
                             "neighbours and were set to NaN")
     resid_xy = sub.geometry(state).project(xyz) - uvs
-    noise = centroid_noise_px(resid_xy, sub.n_params * sub.nominal.n_views + 3 * xyz.shape[0] - 7)
+    noise = centroid_noise_px(resid_xy, _free_parameters(sub, xyz))
     paper = method == "paper"
     min_own = opt.min_bbs_per_view if paper else max(MIN_OWN_BBS, opt.min_bbs_per_view)
     fitted_state = full_state

@@ -292,7 +292,8 @@ def test_jumped_frames_on_a_torso_do_not_pass_wrong(tmp_path: Path, seed: int) -
     assert err < 0.2 and np.nanmax(per) < 1.0, (err, np.flatnonzero(per > 1.0))
 
 
-#: ten BBs planned on C's torso for 206 views at 512 px (``orbitct plan bbs -e C``, seed 0), up to 100 mm from its middle
+#: ten BBs planned on C's torso for 206 views at 512 px (``calib.plan.plan_placement`` with the phantom's background,
+#: seed 0), up to 100 mm from its middle
 _C_PLANNED = [[-68.2585129615815, 75.14687103558538, 49.34975071862464],
               [100.16704431447579, 51.06381910867867, 88.62180167883189],
               [-59.825749701869775, -79.1059081278152, 69.81830034070651],
