@@ -72,6 +72,9 @@ def stop(url: str, token: str, stop_url: str | None, reason: str) -> None:
     for device in body.get("devices", []):
         what = device["verified"] if device["halted"] else device["problem"]
         click.echo(f"  {device['device']}: {'ok' if device['halted'] else 'NOT verified'} - {what}")
+    for key in ("latch_problem", "note"):
+        if body.get(key):
+            click.echo(f"warning: {body[key]}", err=True)
     if not body["halted"]:
         sys.exit(3)
 

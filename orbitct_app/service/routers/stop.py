@@ -21,10 +21,11 @@ router = APIRouter(prefix="/stop", tags=["stop"], responses=ERROR_RESPONSES)
 
 
 class StopRequest(BaseModel):
-    """Why the bench is stopped (optional)."""
+    """Why the bench is stopped (optional). A stop is never refused for its reason: longer text is cut to 500
+    characters and unknown fields are ignored."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    reason: str = Field("", max_length=500)
+    model_config = ConfigDict(extra="ignore", allow_inf_nan=False)
+    reason: str = Field("", description="shown with the latch; cut to 500 characters")
 
 
 class HaltCheckOut(BaseModel):
@@ -56,6 +57,10 @@ class StopOut(BaseModel):
     reason: str = ""
     message: str
     devices: list[HaltCheckOut] = []
+    latch_recorded: bool = Field(True, description="the latch is written to the data directory (it survives a "
+                                                   "restart); false while it holds in memory only")
+    latch_problem: str | None = Field(None, description="why the latch could not be written yet (retried)")
+    note: str | None = Field(None, description="what was wrong with the request; the stop was taken all the same")
 
 
 class LatchOut(BaseModel):
@@ -68,6 +73,8 @@ class LatchOut(BaseModel):
     last_reset: dict[str, Any] | None = None
     stop_url: str | None = Field(None, description="the guard's own stop listener (POST, any token)")
     guard: str = ""
+    recorded: bool = Field(True, description="the latch's state is written to the data directory")
+    record_problem: str | None = Field(None, description="why it could not be written yet (retried)")
 
 
 class ResetRequest(BaseModel):
@@ -84,7 +91,7 @@ async def emergency_stop(request: Request, service: ServiceDep, who: Stopper, bo
     ``halted`` is true only when each device's stop was acknowledged and its read-back confirms it;
     otherwise ``message`` and ``devices`` say what could not be verified. Any valid token may stop.
     """
-    reply = await service.estop.stop(who, (body or StopRequest()).reason, request.headers.get("authorization"))
+    reply = await service.estop.stop(who, (body or StopRequest()).reason[:500], request.headers.get("authorization"))
     return StopOut(**reply)
 
 

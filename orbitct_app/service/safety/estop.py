@@ -9,6 +9,7 @@ Every stop and reset is an event on the ``safety`` topic (``GET /stop/events``).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from typing import Any
 
@@ -41,17 +42,27 @@ class EmergencyStop:
             reply = await self.guard.stop(authorization, reason, who)
             reply["via"] = "guard"
         except GuardUnavailable as exc:
-            log.error("emergency stop: %s; stopping through the rig process", exc)
             reply = await self._through_rig(who, reason, str(exc))
-            self.published(reply)
+            with contextlib.suppress(Exception):  # the event is told after the halt; its failure never costs the reply
+                log.error("emergency stop: %s; stopped through the rig process", exc)
+                self.published(reply)
         reply["scan_aborted"] = scan_id
         return reply
 
     async def _through_rig(self, who: Principal, reason: str, guard_why: str) -> dict[str, Any]:
+        """Latch in memory, halt over the rig process's links, then record the latch (the guard's order)."""
         by = f"{who.name} ({who.role})"
-        self.latch.engage(by, reason, via="REST (guard unavailable)")
-        base = {"accepted": True, "latched": True, "by": by, "reason": reason, "via": "rig", "devices": []}
-        _, future = self.rig.emergency_stop(reason)
+        self.latch.latch(by, reason, via="REST (guard unavailable)")
+        base: dict[str, Any] = {"accepted": True, "latched": True, "by": by, "reason": reason, "via": "rig",
+                                "devices": []}
+        reply = await self._rig_halt(base, guard_why)
+        reply["latch_recorded"] = await asyncio.to_thread(self.latch.record)
+        if not reply["latch_recorded"]:
+            reply["latch_problem"] = f"{self.latch.record_problem}; the stop holds in memory until it is recorded"
+        return reply
+
+    async def _rig_halt(self, base: dict[str, Any], guard_why: str) -> dict[str, Any]:
+        _, future = self.rig.emergency_stop(base["reason"])
         if future is None:
             return {**base, "via": "none", "halted": False,
                     "message": f"NOT verified: no process can reach the devices ({guard_why}; the rig process is "
