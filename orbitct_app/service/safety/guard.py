@@ -45,6 +45,7 @@ GUARD_OPTIONS: dict[str, dict[str, Any]] = {
 HALT_TIMEOUT_S = 1.0  # per device: the stop's acknowledgement, then the read-back
 RECONNECT_S = 2.0
 MAX_BODY_BYTES = 4096
+MAX_DRAIN_BYTES = 1 << 20  # a larger body (to any route) is refused and its connection closed
 
 
 class DeviceGuard:
@@ -128,17 +129,22 @@ class Guard:
         self._send_lock = threading.Lock()
 
     def stop(self, who: Principal, reason: str) -> dict[str, Any]:
-        """Latch, halt every device, verify; the reply says what was proven."""
+        """Latch in memory, halt every device and verify, then record the latch and answer; nothing that can fail
+        (the latch file, the log, the web server's pipe) comes before the halt, and none of it stops the answer."""
         by = f"{who.name} ({who.role})"
         why = reason or f"emergency stop by {who.name}"
-        self.latch.engage(by, why, via="stop listener")
-        log.warning("emergency stop by %s: %s", by, why)
+        self.latch.latch(by, why, via="stop listener")  # memory only: every process of the service sees it now
         checks = self.devices.halt()
         halted, message = summary(checks)
+        recorded = self.latch.record()
         reply = {"accepted": True, "halted": halted, "latched": True, "message": message,
-                 "devices": [c.to_json() for c in checks], "by": by, "reason": why}
-        if not halted:
-            log.error("emergency stop: %s", message)
+                 "devices": [c.to_json() for c in checks], "by": by, "reason": why, "latch_recorded": recorded}
+        if not recorded:
+            reply["latch_problem"] = f"{self.latch.record_problem}; the stop holds in memory until it is recorded"
+        with contextlib.suppress(Exception):
+            log.warning("emergency stop by %s: %s", by, why)
+            if not halted:
+                log.error("emergency stop: %s", message)
         self._tell("stopped", reply)
         return reply
 
@@ -150,27 +156,111 @@ class Guard:
 
 
 class StopHandler(BaseHTTPRequestHandler):
-    """``POST /stop``, ``GET /stop``, ``GET /health`` (HTTP/1.1, keep-alive, JSON)."""
+    """``POST /stop``, ``GET /stop``, ``GET /health`` (HTTP/1.1, keep-alive, JSON).
+
+    Every request is read whole (its body too, whatever its method or path) before it is answered, so that
+    nothing a client sends on a keep-alive connection can be left unread and swallow the stop that follows it;
+    a body that cannot be read whole (over 1 MiB, malformed, cut short) is answered 413 or 400 and its connection
+    closed, except on ``POST /stop``, where the stop is taken all the same."""
 
     protocol_version = "HTTP/1.1"
     server_version = "orbitct-guard"
     disable_nagle_algorithm = True  # headers and body leave at once, not 40 ms apart (Nagle vs. delayed ACK)
+    timeout = 30  # a connection that sends nothing for this long is closed (its thread is freed)
     guard: Guard  # set on the subclass the server uses
+    raw_body = b""
+    unread = ""  # why the body could not be read whole ('' when it was)
 
     def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - the base class's name
         log.debug("%s " + format, self.address_string(), *args)
 
-    def _reply(self, status: int, body: dict[str, Any]) -> None:
+    def handle_one_request(self) -> None:
+        """One request: parse it, read its body whole, dispatch on method and path (any method: 405, not 501)."""
+        try:
+            self.raw_requestline = self.rfile.readline(65537)
+            if len(self.raw_requestline) > 65536:
+                self.requestline, self.request_version, self.command = "", "", ""
+                self.send_error(414)
+                self.close_connection = True
+                return
+            if not self.raw_requestline:
+                self.close_connection = True
+                return
+            if not self.parse_request():  # an error was sent (and the connection is closed where it must be)
+                return
+            unread = self.unread = self._read_body()
+            if unread:  # not read whole: the connection closes after this answer; a stop is still taken
+                self.close_connection = True
+                if not (self.command == "POST" and self.path.split("?")[0] == "/stop"):
+                    self._error(400 if unread == "malformed" else 413, "bad_request",
+                                f"the request body was {unread}: it was not read, and the connection is closed",
+                                close=True)
+                    return
+            handler = {"GET": self.do_GET, "HEAD": self.do_GET, "POST": self.do_POST,
+                       "OPTIONS": self.do_OPTIONS}.get(self.command)
+            if handler is None:
+                self._error(405, "method_not_allowed", f"the stop listener does not serve {self.command[:20]!r}: "
+                            "it serves POST /stop, GET /stop and GET /health", allow="GET, HEAD, POST, OPTIONS")
+            else:
+                handler()
+            self.wfile.flush()
+        except TimeoutError:
+            self.close_connection = True
+
+    def _read_body(self) -> str:
+        """Read the request's body whole into ``raw_body`` (chunked or sized); what kept it from being read, or ''."""
+        self.raw_body = b""
+        if "chunked" in self.headers.get("Transfer-Encoding", "").lower():
+            return self._read_chunked()
+        try:
+            length = int(self.headers.get("Content-Length") or 0)
+        except ValueError:
+            return "malformed"
+        if length < 0:
+            return "malformed"
+        if length > MAX_DRAIN_BYTES:
+            return f"over {MAX_DRAIN_BYTES} bytes"
+        self.raw_body = self.rfile.read(length) if length else b""
+        return "" if len(self.raw_body) == length else "cut short"
+
+    def _read_chunked(self) -> str:
+        parts: list[bytes] = []
+        total = 0
+        while True:
+            line = self.rfile.readline(1026)
+            try:
+                size = int(line.split(b";")[0].strip(), 16)
+            except ValueError:
+                return "malformed"
+            total += size
+            if size < 0 or total > MAX_DRAIN_BYTES:
+                return f"over {MAX_DRAIN_BYTES} bytes"
+            if size == 0:
+                while self.rfile.readline(65537) not in (b"\r\n", b"\n", b""):  # trailers
+                    pass
+                self.raw_body = b"".join(parts)
+                return ""
+            parts.append(self.rfile.read(size))
+            self.rfile.readline(3)
+
+    def _reply(self, status: int, body: dict[str, Any], *, allow: str = "", close: bool = False) -> None:
         data = json.dumps(body).encode()
         self.send_response(status)
         self.send_header("Content-Type", "application/json")
         self.send_header("Content-Length", str(len(data)))
         self.send_header("Access-Control-Allow-Origin", "*")
+        if allow:
+            self.send_header("Allow", allow)
+        if close:
+            self.close_connection = True
+        if self.close_connection:
+            self.send_header("Connection", "close")
         self.end_headers()
-        self.wfile.write(data)
+        if self.command != "HEAD":
+            self.wfile.write(data)
 
-    def _error(self, status: int, error: str, message: str) -> None:
-        self._reply(status, {"error": error, "message": message, "details": []})
+    def _error(self, status: int, error: str, message: str, **kw: Any) -> None:
+        self._reply(status, {"error": error, "message": message, "details": []}, **kw)
 
     def _principal(self, permission: str) -> Principal | None:
         header = self.headers.get("Authorization", "")
@@ -192,35 +282,36 @@ class StopHandler(BaseHTTPRequestHandler):
             return None
         return who
 
-    def _body(self) -> dict[str, Any] | None:
-        length = int(self.headers.get("Content-Length") or 0)
-        if length > MAX_BODY_BYTES:
-            self._error(413, "too_large", f"request body over {MAX_BODY_BYTES} bytes")
-            return None
-        raw = self.rfile.read(length) if length else b""
+    def _reason(self) -> tuple[str, str]:
+        """The stop's reason from the body, and what was wrong with the body (a stop is taken either way)."""
+        raw = self.raw_body
         if not raw.strip():
-            return {}
+            return "", ""
+        if len(raw) > MAX_BODY_BYTES:
+            return "", f"the body was over {MAX_BODY_BYTES} bytes"
         try:
             body = json.loads(raw)
         except ValueError:
-            self._error(422, "invalid", "the body must be JSON: {\"reason\": \"...\"} or nothing")
-            return None
-        if not isinstance(body, dict) or not isinstance(body.get("reason", ""), str) or len(body.get("reason", "")) > 500:
-            self._error(422, "invalid", "reason must be text of at most 500 characters")
-            return None
-        return body
+            return "", "the body was not JSON ({\"reason\": \"...\"} or nothing)"
+        reason = body.get("reason", "") if isinstance(body, dict) else None
+        if not isinstance(reason, str):
+            return "", "the reason was not text"
+        return reason[:500], "the reason was cut to 500 characters" if len(reason) > 500 else ""
 
     def do_POST(self) -> None:  # noqa: N802 - http.server's naming
         if self.path.split("?")[0] != "/stop":
             self._error(404, "not_found", "the stop listener serves POST /stop, GET /stop and GET /health")
             return
-        body = self._body()  # read first: a keep-alive connection must not be left with unread bytes
-        if body is None:
-            return
         who = self._principal("stop")
         if who is None:
             return
-        self._reply(202, self.guard.stop(who, body.get("reason", "")))
+        reason, problem = self._reason()
+        if self.unread:
+            problem = f"the body was {self.unread} and was not read"
+        reply = self.guard.stop(who, reason)  # a malformed body never keeps a stop from being taken
+        if problem:
+            reply["note"] = f"{problem}; the stop was taken"
+        self._reply(202, reply)
 
     def do_GET(self) -> None:  # noqa: N802
         path = self.path.split("?")[0]
