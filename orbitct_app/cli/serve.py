@@ -36,7 +36,9 @@ class SignalAwareServer(uvicorn.Server):
             signal.signal(signal.SIGHUP, previous)
 
     def handle_exit(self, sig: int, frame: Any) -> None:
-        self.service.stop_reason = f"the service stopped ({signal.Signals(sig).name})"
+        from orbitct_app.service.rig import SERVICE_STOPPED
+
+        self.service.stop_reason = f"{SERVICE_STOPPED} ({signal.Signals(sig).name})"
         super().handle_exit(sig, frame)
 
 

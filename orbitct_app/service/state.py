@@ -19,6 +19,7 @@ from orbitct_app.service.core.sessions import SessionStore
 from orbitct_app.service.core.settings import ServiceSettings
 from orbitct_app.service.jobs.bbplans import PlanQueue
 from orbitct_app.service.jobs.manager import JobManager
+from orbitct_app.service.rig import SERVICE_STOPPED
 from orbitct_app.service.rig.client import RigClient
 from orbitct_app.service.rig.twins import SimBench
 from orbitct_app.service.safety.client import GuardClient
@@ -38,7 +39,7 @@ class Service:
         self.data_lock = DataDirLock(settings.data_dir)
         self.data_lock.acquire(port=settings.port)  # before the database: a second service touches nothing
         self.dev_token: str | None = None
-        self.stop_reason = "service shutting down"  # why a running scan is aborted when the service stops
+        self.stop_reason = f"{SERVICE_STOPPED} (shut down)"  # why a running scan is aborted when the service stops
         if settings.sim:
             self.dev_token = settings.dev_token or TOKEN_PREFIX + "dev_" + secrets.token_urlsafe(24)
         self.tokens = TokenRegistry(settings.tokens, settings.tokens_path, self.dev_token)
@@ -79,8 +80,11 @@ class Service:
         return ("low" if free < self.reserve_mb * MB else "ok"), free
 
     def recover(self) -> tuple[list[str], list[str]]:
-        """Mark scans and jobs a previous process left running as interrupted; repair their scan files."""
+        """Mark scans and jobs a previous process left running as interrupted (or, when the scan file says the scan had
+        ended on its own, as the file says); repair their scan files."""
         scan_ids, job_ids = self.store.mark_interrupted(RESTART_REASON)
+        from acquire.repair import INTERRUPTED
+
         for scan_id in scan_ids:
             row = self.store.get_scan(scan_id)
             path = self.settings.data_dir / row["file"] if row else None
@@ -90,8 +94,15 @@ class Service:
             fields: dict[str, object] = {"summary": summary}
             if isinstance(summary.get("n_frames"), int):
                 fields["frames_done"] = summary["n_frames"]  # the record follows the file
+            ended = str(summary.get("status_reason") or "")
+            if summary.get("status") == "complete" or (summary.get("status") == "aborted" and ended != INTERRUPTED
+                                                       and not ended.startswith(SERVICE_STOPPED)):
+                # the scan had ended on its own, but its record could not be written before the service stopped
+                # (a full disk, a read-only data directory): the record follows the file, with its true reason
+                fields.update(state=summary["status"], reason=ended)
             self.store.update_scan(scan_id, **fields)
-            self.bus.publish(f"scan:{scan_id}", "end", {"state": "interrupted", "reason": RESTART_REASON})
+            self.bus.publish(f"scan:{scan_id}", "end", {"state": fields.get("state", "interrupted"),
+                                                        "reason": fields.get("reason", RESTART_REASON)})
         for job_id in job_ids:
             self.bus.publish(f"job:{job_id}", "end", {"state": "interrupted", "reason": RESTART_REASON})
         if scan_ids or job_ids:

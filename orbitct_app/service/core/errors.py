@@ -14,6 +14,8 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from orbitct_app.service.core.db import StoreUnavailable
+
 log = logging.getLogger("orbitct.service")
 
 
@@ -132,6 +134,8 @@ def disk_full(exc: BaseException) -> bool:
     """Whether ``exc`` says the disk is full (``ENOSPC``, SQLite's "database or disk is full")."""
     if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
         return True
+    if isinstance(exc, StoreUnavailable):
+        return exc.disk_full
     return isinstance(exc, sqlite3.OperationalError) and "disk is full" in str(exc)
 
 
@@ -179,6 +183,9 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+        if isinstance(exc, StoreUnavailable) and not exc.disk_full:  # read-only or locked: the cause, in words
+            log.error("%s %s: %s", request.method, request.url.path, exc)
+            return _json(503, "unavailable", str(exc))
         if disk_full(exc):
             log.error("disk full on %s %s: %s", request.method, request.url.path, exc)
             return _json(507, "insufficient_storage", "the data directory's disk is full; free some space and try "

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import itertools
 import logging
 import multiprocessing as mp
@@ -32,6 +33,7 @@ from orbitct_app.service.core.errors import (
 )
 from orbitct_app.service.core.events import EventBus
 from orbitct_app.service.core.files import summarize_scan
+from orbitct_app.service.rig import SERVICE_STOPPED
 
 log = logging.getLogger("orbitct.service.rig")
 _CTX = mp.get_context("spawn")
@@ -112,7 +114,7 @@ class RigClient:
         if self.connection_state != "connected":
             log.error("bench: %s", self.connection_state)
 
-    def close(self, reason: str = "service shutting down") -> None:
+    def close(self, reason: str = f"{SERVICE_STOPPED} (shut down)") -> None:
         """Abort a running scan, halt everything, stop the bench process."""
         self._closing = True
         if self._process is not None and self._process.is_alive() and self.connection_state == "connected":
@@ -312,13 +314,18 @@ class RigClient:
                                       progress=progress, frames_done=int(summary.get("n_frames", progress.get("done", 0))))
         if progress.get("total"):
             fields["frames_total"] = int(progress["total"])
-        self._db.submit(self._store.update_scan, scan_id, **fields).result(30.0)
-        if active is not None and active.scan_id == scan_id:
-            self._set_state(active, state, reason)
-        self._bus.publish(f"scan:{scan_id}", "end", {"state": state, "reason": reason})
-        if active is not None and active.scan_id == scan_id:
-            self.current = None
-            active.done.set()
+        try:  # a record that cannot be written now is kept by the store and written later; never a reason to hang
+            self._db.submit(self._store.update_scan, scan_id, **fields).result(30.0)
+        except Exception as exc:  # noqa: BLE001 - the scan has ended whatever its record says
+            log.error("scan %s ended (%s) but its record could not be written: %s", scan_id, state, exc)
+        finally:
+            if active is not None and active.scan_id == scan_id:
+                self.current = None  # the bench takes the next scan
+                active.done.set()
+                with contextlib.suppress(Exception):
+                    self._set_state(active, state, reason)
+            with contextlib.suppress(Exception):
+                self._bus.publish(f"scan:{scan_id}", "end", {"state": state, "reason": reason})
 
     def pause(self, scan_id: str) -> None:
         """Pause the running scan at the next frame boundary."""

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from orbitct.progress import ProgressEvent
+from orbitct_app.service.rig import SERVICE_STOPPED
 from orbitct_app.service.rig.preview import LatestFrame
 
 log = logging.getLogger("orbitct.service.rig.process")
@@ -122,7 +123,7 @@ class RigServer:
         self._sender = threading.Thread(target=self._send_out, name="bench-sender", daemon=True)
         self._sender.start()
         self._closing = asyncio.Event()
-        self._close_reason = "service shutting down"
+        self._close_reason = f"{SERVICE_STOPPED} (shut down)"
 
     def send(self, *message: Any) -> None:
         """Queue one message to the web server; never blocks (a busy web server must not slow the scan down)."""
@@ -147,7 +148,7 @@ class RigServer:
 
         self.loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # systemctl stop, a closed terminal, Ctrl-C
-            self.loop.add_signal_handler(sig, self._shutdown, f"the service stopped ({signal.Signals(sig).name})")
+            self.loop.add_signal_handler(sig, self._shutdown, f"{SERVICE_STOPPED} ({signal.Signals(sig).name})")
         async with contextlib.AsyncExitStack() as stack:
             try:
                 self.config = load_config(self.config_path)
@@ -180,7 +181,7 @@ class RigServer:
             try:
                 message = conn.recv()
             except (EOFError, OSError):
-                self.loop.call_soon_threadsafe(self._shutdown, "the web service stopped (its process ended)")
+                self.loop.call_soon_threadsafe(self._shutdown, f"{SERVICE_STOPPED} (its web process ended)")
                 return
             self.loop.call_soon_threadsafe(handler, message)
 
@@ -192,7 +193,7 @@ class RigServer:
     def _on_command(self, message: tuple[int, str, dict[str, Any]]) -> None:
         req_id, name, args = message
         if name == "shutdown":
-            self._shutdown(str(args.get("reason", "service shutting down")))
+            self._shutdown(str(args.get("reason", f"{SERVICE_STOPPED} (shut down)")))
             self.send("reply", req_id, True, None)
             return
         asyncio.ensure_future(self._run_command(req_id, name, args))
@@ -396,8 +397,10 @@ class RigServer:
         self._running(scan_id).pause()
 
     async def cmd_resume(self, scan_id: str) -> None:
-        """Resume a paused scan."""
-        self._running(scan_id).resume()
+        """Resume a paused scan (refused while an emergency stop is latched)."""
+        runner = self._running(scan_id)
+        self._unlatched("resuming a scan")
+        runner.resume()
 
     async def cmd_abort(self, scan_id: str, reason: str) -> None:
         """Abort: halt, X-rays off, file marked aborted."""

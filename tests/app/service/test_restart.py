@@ -74,7 +74,7 @@ def test_sigkill_during_scan_then_restart(make_api, tmp_path: Path) -> None:  # 
     scan = api2.get(f"/scans/{scan_id}").json()
     assert scan["state"] == "interrupted" and "stopped while it was running" in scan["reason"]
     assert scan["summary"]["status"] == "aborted", scan["summary"]
-    assert scan["summary"]["status_reason"] in ("interrupted", "the web service stopped (its process ended)")
+    assert scan["summary"]["status_reason"] in ("interrupted", "the service stopped (its web process ended)")
     assert scan["summary"]["n_frames"] >= 10
     assert scan["frames_done"] == scan["summary"]["n_frames"]  # the record follows the file
     with ScanFile(data / "scans" / f"{scan_id}.h5") as sf:
