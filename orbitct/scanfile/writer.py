@@ -215,11 +215,29 @@ class ScanWriter:
             except (OSError, RuntimeError):
                 pass  # readers also leave out a last frame whose pixels are not in the file
         self._broken = True
+        self._detach()
         text = str(exc)
         full = "errno = 28" in text or "No space left" in text
-        why = "the disk is full" if full else text.splitlines()[0][:200]
+        causes = {"errno = 30": "the filesystem turned read-only", "errno = 5,": "the disk reported an I/O error",
+                  "errno = 122": "the disk quota is used up"}
+        why = "the disk is full" if full else next((c for k, c in causes.items() if k in text),
+                                                   text.splitlines()[0][:200])
         raise (DiskFullError if full else ScanFileError)(
             f"{self.path}: frame {i} could not be written ({why}); the {i} frames before it are kept") from None
+
+    def _detach(self) -> None:
+        """After a write the disk refused (full, read-only, an I/O error), point HDF5's file descriptor at the null
+        device: HDF5 cannot recover from such a write, and closing the file would make it write again and crash the
+        process (h5py#914). What was flushed before stays on disk; `orbitct scan repair` marks the file aborted."""
+        try:
+            fd = int(self._f.id.get_vfd_handle())
+        except (AttributeError, OSError, RuntimeError, TypeError, ValueError):
+            return  # not the POSIX driver: nothing to detach
+        null = os.open(os.devnull, os.O_RDWR)
+        try:
+            os.dup2(null, fd)
+        finally:
+            os.close(null)
 
     def write_truth(
         self,
