@@ -193,7 +193,10 @@ class ScanEngine:
         self._resume.clear()
 
     def resume(self) -> None:
-        """Continue a paused scan."""
+        """Continue a paused scan; never one that is being aborted or while the interlock holds (it stays paused and
+        ends at its next step)."""
+        if self._abort_reason is not None or (self.interlock is not None and self.interlock() is not None):
+            return
         self._resume.set()
 
     def abort(self, reason: str = "aborted by the operator") -> None:

@@ -251,6 +251,8 @@ class ScanRunner:
 
     def resume(self) -> None:
         """Resume a paused scan (thread-safe)."""
+        if self._pending_abort is not None:
+            raise ScanStateError(f"cannot resume a scan that is being aborted ({self._pending_abort})")
         if not self._pending_pause:
             raise ScanStateError(f"cannot resume a scan that is {self.state} (not paused)")
         self._pending_pause = False

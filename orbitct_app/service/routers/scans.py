@@ -272,8 +272,11 @@ def pause_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
 @router.post("/{scan_id}/resume", response_model=ScanOut, status_code=202, summary="Resume a paused scan",
              responses={409: {"model": ErrorBody, "description": "the scan is not running"}, **BENCH_UNAVAILABLE, **DISK_FULL})
 def resume_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
-    """Continue from the next frame."""
+    """Continue from the next frame; refused while an emergency stop is latched or the scan is being aborted."""
     scan_or_404(service, scan_id)
+    refused = service.estop.refusal("resuming a scan")
+    if refused:
+        raise Conflict(refused)
     service.rig.resume(scan_id)
     return _out(service, service.store.get_scan(scan_id))
 
