@@ -50,7 +50,7 @@ async def _send_stop(device: Any) -> None:
         await device.stop()
 
 
-async def _read_back(device: Any) -> tuple[bool, str]:
+async def read_back(device: Any) -> tuple[bool, str]:
     """(halted, what the device reports) from a fresh read-back."""
     if hasattr(device, "xray_off"):
         state = await device.read()
@@ -82,7 +82,7 @@ async def _halt_one(device: Any, timeout_s: float) -> HaltCheck:
     halted, verified, first, again = False, "", "", 0
     try:
         async with asyncio.timeout(timeout_s):
-            halted, verified = await _read_back(device)
+            halted, verified = await read_back(device)
             # Something else may have commanded the device between the stop and the read-back (a scan that has not
             # yet seen the latch switching high voltage on for its next frame): stop it again until it stays halted.
             while not halted and not problems:
@@ -90,7 +90,7 @@ async def _halt_one(device: Any, timeout_s: float) -> HaltCheck:
                 await asyncio.sleep(RECHECK_S)
                 await _send_stop(device)
                 again += 1
-                halted, verified = await _read_back(device)
+                halted, verified = await read_back(device)
     except Exception as exc:  # noqa: BLE001
         if not (again and isinstance(exc, TimeoutError)):
             problems.append(f"read-back failed ({_text(exc, name)})")

@@ -225,3 +225,80 @@ def test_emergency_stop_halts_a_carm_scan(make_api, tmp_path) -> None:  # type: 
     with ScanFile(api.data_dir / "scans" / f"{scan_id}.h5") as sf:
         assert sf.status == "aborted" and 6 <= sf.n_frames < 204
     assert api.post("/scans", json={**SMALL_CARM_SAWTOOTH, "frames": 20}).status_code == 409
+
+
+def _exchange(sock, request: bytes) -> tuple[int, dict[str, str], bytes]:  # type: ignore[no-untyped-def]
+    """Send one raw HTTP/1.1 request on ``sock`` and read one whole answer: status, headers, body."""
+    sock.sendall(request)
+    data = b""
+    while b"\r\n\r\n" not in data:
+        chunk = sock.recv(65536)
+        assert chunk, f"the connection closed before an answer: {data!r}"
+        data += chunk
+    head, _, body = data.partition(b"\r\n\r\n")
+    lines = head.decode("latin-1").split("\r\n")
+    headers = {k.strip().lower(): v.strip() for k, _, v in (line.partition(":") for line in lines[1:])}
+    while len(body) < int(headers.get("content-length", 0)):
+        body += sock.recv(65536)
+    return int(lines[0].split()[1]), headers, body
+
+
+def test_nothing_on_a_keep_alive_connection_swallows_the_stop_that_follows(api) -> None:  # type: ignore[no-untyped-def]
+    import json
+    import socket
+    from urllib.parse import urlsplit
+
+    url = urlsplit(api.get("/stop").json()["stop_url"])
+    token = api.tokens["viewer"]
+    reason = b'{"reason": "keep-alive"}'
+    stop = (f"POST /stop HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\nContent-Type: application/json\r\n"
+            f"Content-Length: {len(reason)}\r\n\r\n").encode() + reason
+    body = b'{"some": "thing", "else": [1, 2, 3]}'
+    first_requests = [
+        b"POST /not-a-route HTTP/1.1\r\nHost: x\r\nContent-Length: %d\r\n\r\n" % len(body) + body,  # unknown route
+        b"PUT /stop HTTP/1.1\r\nHost: x\r\nContent-Length: %d\r\n\r\n" % len(body) + body,  # a method it does not serve
+        b"FROB /stop HTTP/1.1\r\nHost: x\r\nContent-Length: %d\r\n\r\n" % len(body) + body,  # one nobody serves
+        b"POST /nothing HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\n5\r\nhello\r\n0\r\n\r\n",  # chunked
+        b"GET /health HTTP/1.1\r\nHost: x\r\nContent-Length: %d\r\n\r\n" % len(body) + body,  # a GET with a body
+    ]
+    for first in first_requests:
+        with socket.create_connection((url.hostname, url.port), timeout=10) as sock:
+            status, headers, _ = _exchange(sock, first)
+            assert status in (200, 404, 405) and headers.get("connection") != "close", (first[:20], status)
+            status, _, reply = _exchange(sock, stop)
+            assert status == 202, (first[:20], status, reply)
+            assert json.loads(reply)["halted"] is True and json.loads(reply)["reason"] == "keep-alive"
+    # a body too large to read closes its connection, and says so; a stop on a new connection is taken
+    with socket.create_connection((url.hostname, url.port), timeout=10) as sock:
+        status, headers, _ = _exchange(sock, b"POST /x HTTP/1.1\r\nHost: x\r\nContent-Length: 99999999\r\n\r\n")
+        assert status == 413 and headers["connection"] == "close"
+    # a stop whose body is not understood is taken all the same, and the reply says what was wrong
+    bad = f"POST /stop HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\nContent-Length: 9\r\n\r\nnot json!".encode()
+    with socket.create_connection((url.hostname, url.port), timeout=10) as sock:
+        status, _, reply = _exchange(sock, bad)
+        assert status == 202 and json.loads(reply)["halted"] is True and "not JSON" in json.loads(reply)["note"]
+    assert api.post("/stop/reset").status_code == 200
+
+
+def test_a_resume_after_a_stop_is_refused(api) -> None:  # type: ignore[no-untyped-def]
+    scan_id = _start(api)
+    assert api.post(f"/scans/{scan_id}/pause").status_code == 202
+    wait_for(api, f"/scans/{scan_id}", lambda b: b["state"] == "paused", 30)
+    assert api.post("/stop", role="viewer", json={"reason": "resume drill"}).json()["halted"] is True
+    r = api.post(f"/scans/{scan_id}/resume")  # at once, before the scan has ended
+    assert r.status_code == 409 and "emergency stop latched" in r.json()["message"], r.text
+    scan = wait_for(api, f"/scans/{scan_id}", ended, 30)
+    assert scan["state"] == "aborted" and "resume drill" in scan["reason"]
+    assert api.post(f"/scans/{scan_id}/resume").status_code == 409
+    assert api.post("/stop/reset").status_code == 200
+
+
+def test_a_paused_scan_is_not_resumed_while_it_is_being_aborted(api) -> None:  # type: ignore[no-untyped-def]
+    scan_id = _start(api)
+    assert api.post(f"/scans/{scan_id}/pause").status_code == 202
+    wait_for(api, f"/scans/{scan_id}", lambda b: b["state"] == "paused", 30)
+    assert api.post(f"/scans/{scan_id}/abort", json={"reason": "abort drill"}).status_code == 202
+    r = api.post(f"/scans/{scan_id}/resume")
+    assert r.status_code == 409, r.text
+    scan = wait_for(api, f"/scans/{scan_id}", ended, 30)
+    assert scan["state"] == "aborted" and scan["reason"] == "abort drill"
