@@ -485,6 +485,12 @@ class _Follower:
         self.emit("warning", LiveWarning(kind, int(frame), int(since), message, uv))
 
 
+WATCH_S = 0.5  # how often a wait on the worker looks whether its process is still there
+FEED_STALL_S = 2.0  # a dark or flat the worker has not taken in this long: it is hung or far behind, and given up
+SILENT_S = 30.0  # after the scan, a worker that has said nothing for this long is given up
+STOP_WAIT_S = 5.0  # how long a scan that did not complete waits for the worker to stop before it is killed
+
+
 def _end_when_orphaned(parent: int) -> None:
     """Thread of the worker: end the process once the acquisition's process is gone (killed, perhaps while a frame
     was half written into the queue, which would leave the worker waiting for the rest forever)."""
@@ -564,8 +570,11 @@ class LiveCalibration:
         self._failure: str | None = None
         self._ended = threading.Event()
         self._ready = threading.Event()
+        self._last_event_s = time.monotonic()  # when the worker last said something
         ctx = mp.get_context("spawn")
         self._frames = ctx.Queue(maxsize=self.settings.max_pending)
+        # never wait at exit to flush frames into the pipe of a worker that is gone (the process would hang for good)
+        self._frames.cancel_join_thread()
         self._events = ctx.Queue()
         self._process = ctx.Process(target=_worker, name="orbitct-live-calibration", daemon=True,
                                     args=(self._frames, self._events, nominal, self.image_key, self.diameter_mm,
@@ -574,9 +583,38 @@ class LiveCalibration:
         self._listener = threading.Thread(target=self._listen, name="orbitct-live-events", daemon=True)
         self._listener.start()
 
+    def _worker_gone(self) -> str | None:
+        """Why the worker process is gone without saying so (killed, crashed), or None while it runs."""
+        if self._process.is_alive():
+            return None
+        code = self._process.exitcode
+        how = f"was killed by signal {-code}" if code is not None and code < 0 else f"ended (exit code {code})"
+        return f"its worker process {how}"
+
+    def _give_up(self, why: str) -> None:
+        """Stop waiting for the worker (the scan goes on; its frames calibrate offline) and end its process."""
+        if self._failure is None and self._outcome is None:
+            self._failure = why
+        self._ended.set()
+        with contextlib.suppress(Exception):
+            self._process.kill()
+
     def _listen(self) -> None:
         while True:
-            kind, x = self._events.get()
+            try:
+                kind, x = self._events.get(timeout=WATCH_S)
+                self._last_event_s = time.monotonic()
+            except queue.Empty:
+                gone = self._worker_gone()
+                if gone is not None and self._events.empty():  # the events it sent before ending are all read
+                    self._failure = self._failure or gone
+                    self._ended.set()
+                    return
+                continue
+            except (EOFError, OSError, ValueError) as exc:  # the queue's pipe broke with the worker
+                self._failure = self._failure or self._worker_gone() or f"its events could not be read ({exc})"
+                self._ended.set()
+                return
             if kind == "warning":
                 self.warnings.append(x)
                 report(self.progress, "live-warning", x.frame, self.n_projections, x.message)
@@ -616,13 +654,22 @@ class LiveCalibration:
             raise LiveCalibrationError(f"frame {index} arrived, frame {self._next_index} was expected (in order)")
         self._next_index += 1
         self.last_frame_s = time.perf_counter()
-        if int(image_key) != ImageKey.PROJECTION:
-            self._frames.put((index, np.asarray(frame)))
+        if self._ended.is_set():
+            return  # the worker is gone (finish() says why): the scan goes on, its frames calibrate offline
+        if int(image_key) != ImageKey.PROJECTION:  # a dark or flat is never dropped; the worker is, if it stalls
+            try:
+                self._frames.put((index, np.asarray(frame)), timeout=FEED_STALL_S)
+            except queue.Full:
+                self._give_up(f"its worker took no frame for {FEED_STALL_S:g} s (hung, or far behind)")
             return
         try:
             self._frames.put_nowait((index, np.asarray(frame)))
         except queue.Full:
             pass  # the worker sees the gap in the indices
+
+    def _give_up_if_silent(self) -> None:
+        if time.monotonic() - self._last_event_s > SILENT_S:
+            self._give_up(f"its worker said nothing for {SILENT_S:g} s (hung)")
 
     # ------------------------------------------------------------------ the end
     def close(self) -> None:
@@ -630,11 +677,13 @@ class LiveCalibration:
         if self._closed:
             return
         self._closed = True
-        self._frames.put("stop")
-        self._ended.wait(30.0)
-        self._process.join(10.0)
-        if self._process.is_alive():
-            self._process.terminate()
+        with contextlib.suppress(queue.Full, ValueError, OSError):
+            self._frames.put("stop", timeout=1.0)
+        self._ended.wait(STOP_WAIT_S)
+        self._process.join(1.0)
+        if self._process.is_alive():  # hung: SIGKILL (a stopped process would hold a SIGTERM, and the exit with it)
+            self._process.kill()
+            self._process.join(5.0)
 
     def finish(self, progress: ProgressCallback | None = None) -> CalibrationResult:
         """After the recorder closed the complete file: detect what is left, identify, estimate, write
@@ -643,11 +692,18 @@ class LiveCalibration:
             raise LiveCalibrationError("this live calibration already ended")
         self._closed = True
         t_end = time.perf_counter()
-        self._frames.put(("end", self._next_index))
-        self._ended.wait()
+        self._last_event_s = time.monotonic()
+        while not self._ended.is_set():
+            try:
+                self._frames.put(("end", self._next_index), timeout=WATCH_S)
+                break
+            except queue.Full:
+                self._give_up_if_silent()
+        while not self._ended.wait(WATCH_S):  # set when the worker answers, fails, is found gone or is given up
+            self._give_up_if_silent()
         self.timing["catch_up_s"] = time.perf_counter() - t_end  # the worker's backlog when the scan ended
         if self._failure is not None or self._outcome is None:
-            raise LiveCalibrationError(f"live calibration failed in its worker: {self._failure}")
+            raise LiveCalibrationError(f"the live calibration stopped: {self._failure}")
         candidates, deferred, self.detect_s, self.bbs_per_frame, d_px, linked, windows = self._outcome
         self.timing["windows"], self.timing["window_s"], self.timing["posed"] = (float(w) for w in windows)
         self.frames_detected_after_scan = len(deferred)

@@ -2,7 +2,8 @@
 
 The engine hands every frame to :class:`LiveCalibrationSubscriber` after the recorder; the subscriber only
 queues it for :class:`calib.live.LiveCalibration` (its own thread). When the recorder has closed a complete
-file, the subscriber finishes the calibration, which writes ``/geometry/calibrated``. A warning of a kind named
+file, the subscriber finishes the calibration in a thread of its own, which writes ``/geometry/calibrated`` and says
+in ``/acquisition@live_calibration`` whether it did; a worker that died leaves the scan complete and the reason there. A warning of a kind named
 in ``abort_on`` aborts the scan at the next frame through the engine's own path: axes halted, X-rays off, the
 file aborted with the warning as its reason.
 """
@@ -22,6 +23,7 @@ from calib.errors import CalibrationError
 from calib.live import WARNING_KINDS, LiveCalibration, LiveSettings, LiveWarning
 from calib.pipeline import CalibrationResult
 from orbitct.progress import ProgressCallback
+from orbitct.scanfile import ScanFile
 
 log = logging.getLogger(__name__)
 
@@ -49,10 +51,11 @@ class LiveCalibrationSubscriber:
         self.on_warning = on_warning
         self.options = options
         self.live: LiveCalibration | None = None
-        self.result: CalibrationResult | None = None
-        self.error: BaseException | None = None
+        self._result: CalibrationResult | None = None
+        self._error: BaseException | None = None
         self._stop_reason: str | None = None
         self._lock = threading.Lock()
+        self._finishing: threading.Thread | None = None
 
     def _warned(self, w: LiveWarning) -> None:  # in the calibration's thread
         if self.on_warning is not None:
@@ -90,18 +93,55 @@ class LiveCalibrationSubscriber:
         self.live.add_frame(record.index, record.image_key, record.frame)
 
     def on_finish(self, end: ScanEnd) -> None:
-        """After the recorder closed the file: a complete scan is calibrated and written; any other keeps its
-        frames for ``orbitct calibrate`` later."""
+        """After the recorder closed the file: a complete scan's final solve starts in a thread of its own (the
+        scan's loop, and the signals it handles, stay free; :meth:`wait` for it); any other scan keeps its frames
+        for ``orbitct calibrate`` later."""
         if self.live is None:
             return
         if end.status != "complete":
             self.live.close()
             return
+        self._finishing = threading.Thread(target=self._finish, name="orbitct-live-final-solve", daemon=True)
+        self._finishing.start()
+
+    def _finish(self) -> None:
         try:
-            self.result = self.live.finish()
+            self._result = self.live.finish() if self.live is not None else None
         except CalibrationError as exc:
-            self.error = exc
+            self._error = exc
             log.error("live calibration of %s failed: %s", self.path, exc)
+        except Exception as exc:  # noqa: BLE001 - the scan is complete whatever the solve does; said, not raised
+            self._error = exc
+            log.exception("live calibration of %s failed", self.path)
+        self._record_outcome()
+
+    @property
+    def result(self) -> CalibrationResult | None:
+        """The calibration of a complete scan (waits for its final solve); None when there is none."""
+        self.wait()
+        return self._result
+
+    @property
+    def error(self) -> BaseException | None:
+        """Why a complete scan has no live geometry (waits for its final solve); None when it has one."""
+        self.wait()
+        return self._error
+
+    def wait(self, timeout_s: float | None = None) -> bool:
+        """Whether the final solve has ended (waiting up to ``timeout_s``; at once when none was started)."""
+        if self._finishing is None:
+            return True
+        self._finishing.join(timeout_s)
+        return not self._finishing.is_alive()
+
+    def _record_outcome(self) -> None:
+        """Say in the file whether the live geometry is there (never fails the scan: the file is complete)."""
+        outcome = "done" if self._result is not None else f"missing: {self._error}"
+        try:
+            with ScanFile(self.path, "r+") as sf:
+                sf.set_live_calibration(outcome)
+        except Exception as exc:  # noqa: BLE001 - the scan's own record stands; the command says it too
+            log.error("could not record the live calibration's outcome in %s: %s", self.path, exc)
 
     @property
     def warnings(self) -> list[LiveWarning]:

@@ -155,3 +155,17 @@ class ScanResults:
         self._f.attrs["status_reason"] = reason
         self._f.flush()
 
+    def set_live_calibration(self, outcome: str) -> None:
+        """Say in ``/acquisition@live_calibration`` what became of a live calibration asked for with the scan:
+        ``done``, or ``missing: <why>`` when it produced no geometry (``orbitct calibrate`` makes it from the file)."""
+        self._writable()
+        self._f.require_group("acquisition").attrs["live_calibration"] = outcome
+        self._f.flush()
+
+    @property
+    def live_calibration(self) -> str:
+        """``/acquisition@live_calibration``: ``done``, ``missing: <why>``, or '' when none was asked for."""
+        group = self._f.get("acquisition")
+        value = group.attrs.get("live_calibration", "") if isinstance(group, h5py.Group) else ""
+        return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value)
+

@@ -74,6 +74,7 @@ def scan_summary(f: "ScanFile") -> dict[str, Any]:
         "orbit": orbit,
         "geometries": [g for g in ("nominal", "calibrated", "truth") if f.has_geometry(g)],
         "calibration": calibration,
+        "live_calibration": {"outcome": f.live_calibration} if f.live_calibration else {},
         "markers": {
             "diameter_mm": f.marker_diameter_mm,
             "detected": int(markers["uv"].shape[1]) if "uv" in markers else 0,

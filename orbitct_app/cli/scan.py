@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import sys
 from collections import Counter
 from pathlib import Path
@@ -108,7 +109,7 @@ def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int |
     if res.status != "complete":
         sys.exit(signals.get(res.reason, 1))
     if live is not None:
-        _report_live(live)
+        _report_live(live, out)
 
 
 def _live_subscriber(req: object, out: Path, bb_diameter_mm: float | None, abort_on: tuple[str, ...], lost_frames: int,
@@ -128,11 +129,31 @@ def _live_subscriber(req: object, out: Path, bb_diameter_mm: float | None, abort
         fail(str(exc))
 
 
-def _report_live(live: object) -> None:
-    """The live calibration's outcome after a complete scan; exit 3 when its quality check failed."""
+def _wait_for_live(live: object, out: Path) -> None:
+    """Wait for the live calibration's final solve; a signal meanwhile ends the command at once (the scan is complete
+    and recorded; its geometry can be made from the file)."""
+    def interrupted(signum: int, frame: object) -> None:
+        name = signal.Signals(signum).name
+        click.echo(f"live calibration interrupted by {name}: the scan is complete in {out}; `orbitct calibrate "
+                   f"{out}` makes its geometry", err=True)
+        sys.exit(128 + signum)
+
+    previous = {sig: signal.signal(sig, interrupted) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    try:
+        while not getattr(live, "wait")(0.2):
+            pass
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _report_live(live: object, out: Path) -> None:
+    """The live calibration's outcome after a complete scan; exit 1 without a geometry, 3 when its check failed."""
+    _wait_for_live(live, out)
     err, res = getattr(live, "error"), getattr(live, "result")
     if err is not None or res is None:
-        click.echo(f"live calibration failed: {err}; the scan is complete: orbitct calibrate FILE", err=True)
+        click.echo(f"no live geometry ({err}); the scan is complete in {out}: `orbitct calibrate {out}` makes its "
+                   "geometry", err=True)
         sys.exit(1)
     lc = getattr(live, "live")
     kinds = Counter(w.kind for w in lc.warnings)

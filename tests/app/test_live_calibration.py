@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import signal
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 from typing import Any
 
@@ -222,3 +224,70 @@ def test_a_scan_set_to_stop_when_the_object_moves_stops_there_safely(tmp_path: P
     assert len(moved) == 1 and 85 <= moved[0].since_frame <= 87, [w.message for w in sub.live.warnings]
     with ScanFile(out) as sf:
         assert sf.status == "aborted" and "object_moved" in sf.status_reason
+
+
+def _scan_with_live_worker(tmp_path: Path, out: Path, frames: int = 300) -> tuple[subprocess.Popen[str], Any]:
+    """``orbitct scan --sim --calibrate live`` in a process of its own, once its live worker follows frames: the
+    process and the worker (a psutil process)."""
+    import psutil
+
+    config = tmp_path / "bench.yaml"
+    config.write_text(yaml.safe_dump(small_config(size=128).model_dump(mode="json")))
+    proc = subprocess.Popen([sys.executable, "-m", "orbitct_app.cli.main", "scan", "--config", str(config), "--sim",
+                             "--frames", str(frames), "--out", str(out), "--calibrate", "live", "-p", "amplitude_deg=6"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        workers = [c for c in psutil.Process(proc.pid).children() if "resource_tracker" not in " ".join(c.cmdline())]
+        if workers:
+            time.sleep(2.0)  # a few dozen frames followed live
+            assert proc.poll() is None, proc.communicate()
+            return proc, workers[0]
+        assert proc.poll() is None, proc.communicate()
+        time.sleep(0.1)
+    proc.kill()
+    raise AssertionError("no live calibration worker appeared")
+
+
+def test_a_killed_live_worker_leaves_a_complete_scan_that_says_its_geometry_is_missing(tmp_path: Path) -> None:
+    out = tmp_path / "killed-worker.h5"
+    proc, worker = _scan_with_live_worker(tmp_path, out)
+    worker.kill()
+    stdout, stderr = proc.communicate(timeout=120)  # the command ends by itself
+    assert proc.returncode == 1, (stdout, stderr)
+    assert "complete:" in stdout and "no live geometry" in stderr and "killed by signal 9" in stderr, stderr
+    assert f"orbitct calibrate {out}" in stderr and "Traceback" not in stderr
+    with ScanFile(out) as sf:
+        assert sf.status == "complete" and not sf.has_geometry("calibrated")
+        assert sf.live_calibration.startswith("missing: the live calibration stopped: its worker process was killed")
+    r = CliRunner().invoke(cli, ["inspect", str(out), "--json"])
+    assert "missing: the live calibration stopped" in r.output
+    r = CliRunner().invoke(cli, ["calibrate", str(out), "--out", str(tmp_path / "offline.h5")])
+    assert r.exit_code in (0, 3) and "Traceback" not in r.output, r.output  # the geometry from the file, afterwards
+
+
+def test_a_hung_live_worker_never_holds_up_the_scan(tmp_path: Path) -> None:
+    """A worker alive but answering nothing (stopped): the scan runs on, completes and is recorded; the command gives
+    the worker up and says why, by itself."""
+    out = tmp_path / "hung-worker.h5"
+    proc, worker = _scan_with_live_worker(tmp_path, out)
+    worker.suspend()
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 1 and "complete:" in stdout, (stdout, stderr)
+    assert "no live geometry (the live calibration stopped: its worker" in stderr, stderr
+    assert not worker.is_running() or worker.status() == "zombie"
+    with ScanFile(out) as sf:
+        assert sf.status == "complete" and sf.live_calibration.startswith("missing:")
+
+
+def test_sigterm_ends_a_scan_whose_live_worker_hangs(tmp_path: Path) -> None:
+    out = tmp_path / "hung-worker-sigterm.h5"
+    proc, worker = _scan_with_live_worker(tmp_path, out, frames=600)
+    worker.suspend()
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGTERM)
+    stdout, stderr = proc.communicate(timeout=30)  # the scan aborts cleanly; the hung worker is not waited for
+    assert proc.returncode == 128 + signal.SIGTERM, (stdout, stderr)
+    assert not worker.is_running() or worker.status() == "zombie"
+    with ScanFile(out) as sf:
+        assert sf.status == "aborted" and "SIGTERM" in sf.status_reason

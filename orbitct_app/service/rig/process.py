@@ -354,6 +354,8 @@ class RigServer:
         except Exception as exc:  # noqa: BLE001 - pre-flight refusals, configuration and device errors
             state, reason = "failed", classify(exc)[1]
         finally:  # the service hears how every scan ended, whatever its file looks like
+            if self.live is not None:
+                await asyncio.to_thread(self.live.wait)  # the final solve, in its own thread (this loop stays free)
             summary: dict[str, Any] = {}
             try:
                 if path.exists():
