@@ -13,6 +13,7 @@ read-only work, so when a worker is lost Dask runs it again elsewhere (a part of
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
 import time
@@ -33,6 +34,8 @@ from recon.pwls import DEFAULT_BETA, PwlsResult, ViewsData, pwls_solve
 from recon.stack import FileLineIntegrals, FileWeights
 
 #: FDK's parts per worker: a part that finishes late on a slow worker then holds up less
+log = logging.getLogger(__name__)
+LOSS_CHECK_S = 1.0  # how often a PWLS on a cluster looks whether the workers holding its views are still there
 PARTS_PER_WORKER = 2
 
 
@@ -207,6 +210,9 @@ class ClusterData:
                                     chunk_views, key=f"{self._key}-part{i}", pure=False, workers=[workers[i]],
                                     allow_other_workers=True)
                       for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))]
+        self._bounds = [int(b) for b in bounds]
+        self._held: list[set[str]] = [set() for _ in self.parts]  # the workers that held each part when last seen
+        self._checked = 0.0
 
     def _next_key(self, what: str) -> str:
         self._calls += 1
@@ -218,8 +224,28 @@ class ClusterData:
         parts = [self.client.submit(_part_curvature, p, key=f"{key}-{i}", pure=False) for i, p in enumerate(self.parts)]
         out += _sum_on_workers(self.client, parts, self.what, key)
 
+    def _check_parts(self) -> None:
+        """Say (once per loss, at most once a second) when a worker holding views has died: Dask reads those views
+        again on a live worker, which costs time, not the image."""
+        now = time.monotonic()
+        if now - self._checked < LOSS_CHECK_S:
+            return
+        self._checked = now
+        try:
+            holders = self.client.who_has(self.parts)
+        except Exception:  # noqa: BLE001 - a cluster out of touch fails the next step with its own sentence
+            return
+        now_at = [set(holders.get(p.key) or ()) for p in self.parts]
+        # lost: none of the workers that held it holds it now (it is being read again, or was, elsewhere)
+        lost = [i for i, (before, now_) in enumerate(zip(self._held, now_at, strict=True)) if before and not before & now_]
+        self._held = [now_ or before for before, now_ in zip(self._held, now_at, strict=True)]
+        if lost:
+            log.warning("a Dask worker holding %s died (killed, or out of memory); those views are read again on a "
+                        "live worker", ", ".join(f"views {self._bounds[i]}-{self._bounds[i + 1] - 1}" for i in lost))
+
     def gradient(self, xp: NDArray[np.float32], subset: int, out: NDArray[np.float32] | None) -> float:
         """Subset ``subset``'s data term at ``xp`` summed over the parts; its gradient added into ``out``."""
+        self._check_parts()
         key = self._next_key(f"subset{subset}-")
         try:
             x = self.client.scatter(xp, broadcast=True, hash=False, timeout=60)

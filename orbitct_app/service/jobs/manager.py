@@ -33,6 +33,7 @@ JOB_TARGETS: dict[str, Callable[..., dict[str, Any]]] = {
 JOB_NICE = 5
 TOPIC = "orbitct-jobs"  # the Dask event topic jobs report on
 CANCEL_CHECK_S = 0.2  # how often a job asks whether it was cancelled (at its progress events)
+WORKER_CHECK_S = 1.0  # how often the service looks whether the workers running jobs are still there
 
 
 class JobCancelled(Exception):
@@ -117,6 +118,7 @@ def run_job(func: Callable[..., dict[str, Any]], job_id: str, scan_path: str, pa
         with warnings.catch_warnings():
             warnings.simplefilter("default")
             Path(out_dir).mkdir(parents=True, exist_ok=True)
+            send("started", {"worker": worker.address, "pid": os.getpid()})
             send("log", f"running on the Dask worker {worker.address} (pid {os.getpid()})")
             result = func(Path(scan_path), params, Path(out_dir), progress)
         return {"result": result, "events": sent[0]}
@@ -144,6 +146,9 @@ class _Running:
     done_at: float | None = None
     progress: dict[str, Any] | None = None
     lines: list[str] = field(default_factory=list)
+    worker: str | None = None  # the Dask worker running it now (from its own word)
+    attempts: int = 0  # how often a worker started it
+    worker_gone: bool = False  # its worker left the cluster (said once)
 
 
 class JobManager:
@@ -166,6 +171,7 @@ class JobManager:
         self._cluster: Any = None
         self.engine_state = "starting"  # starting | connected | failed: <why> | lost: <why>
         self._running: dict[str, _Running] = {}
+        self._workers_checked = 0.0
         self._events: queue.Queue[dict[str, Any]] = queue.Queue()
         self._lock = threading.Lock()
         self._queue_lock = threading.Lock()
@@ -362,6 +368,8 @@ class JobManager:
                 self._bus.publish(f"job:{r.job_id}", "progress", payload)
             elif msg["kind"] == "log":
                 r.lines.append(self._scrub(str(msg["payload"])))
+            elif msg["kind"] == "started":
+                self._started(r, str(msg["payload"].get("worker", "")))
         with self._lock:
             running = list(self._running.values())
         for r in running:
@@ -372,9 +380,42 @@ class JobManager:
                 self._store.add_log(r.job_id, r.lines)
                 r.lines = []
 
+    def _started(self, r: _Running, worker: str) -> None:
+        """A worker started the job: again, when the one before it died (said in its log and events)."""
+        r.attempts += 1
+        if r.attempts > 1 and not r.worker_gone:  # not said yet by _watch_workers
+            self._tell(r, f"the Dask worker {r.worker} running it died; Dask runs the job again from its start on "
+                          f"the worker {worker} (attempt {r.attempts})")
+        elif r.attempts > 1:
+            self._tell(r, f"Dask runs the job again from its start on the worker {worker} (attempt {r.attempts})")
+        r.worker, r.worker_gone = worker, False
+
+    def _tell(self, r: _Running, text: str) -> None:
+        """One line in the job's log and a ``warning`` event on its stream."""
+        r.lines.append("warning: " + text)
+        self._bus.publish(f"job:{r.job_id}", "warning", {"message": text})
+
+    def _watch_workers(self, running: list[_Running]) -> None:
+        """Say within a second or two when the worker running a job leaves the cluster (killed, out of memory): Dask
+        then runs the job again on a live worker, from its start, or fails it after too many deaths."""
+        watched = [r for r in running if r.worker and not r.worker_gone and r.outcome is None]
+        if not watched or self._client is None or time.monotonic() - self._workers_checked < WORKER_CHECK_S:
+            return
+        self._workers_checked = time.monotonic()
+        try:
+            alive = set(self._client.scheduler_info()["workers"])
+        except Exception:  # noqa: BLE001 - a client out of touch is handled as a lost engine
+            return
+        for r in watched:
+            if r.worker not in alive:
+                r.worker_gone = True  # said once; a second start says it again with the new worker
+                self._tell(r, f"the Dask worker {r.worker} running it died (killed, or out of memory); Dask runs the "
+                              "job again on a live worker from its start, or fails it if its workers keep dying")
+
     def _poll_running(self, lost: bool) -> None:
         with self._lock:
             running = list(self._running.values())
+        self._watch_workers(running)
         for r in running:
             if r.outcome is None:
                 r.outcome = self._outcome(r, lost)

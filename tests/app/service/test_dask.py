@@ -254,3 +254,42 @@ def test_cli_reconstructs_on_the_cluster_and_refuses_what_it_cannot(cluster: Das
     r = CliRunner().invoke(cli, [*base, "--algorithm", "fdk", "--overwrite", "--scheduler", "tcp://127.0.0.1:9"])
     assert r.exit_code == 1 and "cannot reach the Dask scheduler at tcp://127.0.0.1:9" in r.output
     assert "Traceback" not in r.output
+
+
+@pytest.mark.parametrize("whose", ["the job's own worker", "a worker holding views"])
+def test_a_worker_killed_mid_pwls_job_ends_the_job_within_a_minute(make_api: Any, cluster: DaskCluster,
+                                                                   whose: str) -> None:
+    """A PWLS reconstruction job splits its views over both workers; one of them is killed mid-run: the job
+    succeeds on the restarted worker or fails with a sentence naming what was lost, within a minute."""
+    api = make_api(dask_scheduler=cluster.address)
+    scan_id = _complete_scan(api, n=60)
+    r = api.post("/reconstructions", role="analyst",
+                 json={"scan_id": scan_id, "algorithm": "pwls", "geometry": "nominal", "shape": [32, 48, 48],
+                       "iterations": 60, "subsets": 4})
+    assert r.status_code == 202, r.text
+    job_id = r.json()["id"]
+    client = cluster.client()
+    try:
+        subset_worker = _worker_running(client, "subset", timeout_s=120.0)  # PWLS under way on the cluster
+        job_worker = _worker_running(client, job_id)
+        victim = job_worker if whose == "the job's own worker" else \
+            next(w for w in client.scheduler_info()["workers"] if w != job_worker)
+        assert subset_worker
+        pid = client.run(os.getpid, workers=[victim])[victim]
+        os.kill(pid, signal.SIGKILL)
+        killed_at = time.monotonic()
+    finally:
+        client.close()
+    said = "running it died" if whose == "the job's own worker" else "those views are read again"
+    log = ""
+    while said not in log:  # the job says within seconds what died
+        assert time.monotonic() - killed_at < 10.0, log
+        log = " ".join(line["line"] for line in api.get(f"/jobs/{job_id}/log").json())
+        time.sleep(0.2)
+    job = _wait(api, job_id, timeout_s=60.0)
+    assert time.monotonic() - killed_at < 60.0
+    if job["state"] == "failed":
+        assert "Traceback" not in job["reason"] and ("worker" in job["reason"] or "lost" in job["reason"]), job
+    else:
+        assert job["state"] == "succeeded", job
+        assert len(job["result"]["cost"]) == 61
