@@ -55,6 +55,7 @@ from orbitct.compiletime import CompileClock
 from orbitct.geometry import ViewGeometry
 from orbitct.progress import ProgressCallback, report
 from orbitct.scanfile import ImageKey, ScanFile, describe_frame_problems, frame_problem
+from orbitct.scanfile.reader import FRAME_COPIES
 from orbitct.statistics import rpe_statistics
 
 METHODS = ("bundle", "paper")
@@ -307,7 +308,7 @@ def _estimate_diameter_mm(
     return guess_mm
 
 
-def _check_frame_memory(sf: ScanFile, copies: int = 12) -> None:
+def _check_frame_memory(sf: ScanFile, copies: int = FRAME_COPIES) -> None:
     """Refuse frames too large to process here: detection holds about ``copies`` float64 images per worker."""
     import psutil
 
@@ -342,6 +343,7 @@ class _ScanInputs:
     proj: NDArray[np.intp]
     nominal_all: ViewGeometry
     truth_all: ViewGeometry | None
+    file_warnings: list[str] = field(default_factory=list)  # what the reader ignored in the file, and why
 
     @property
     def nominal(self) -> ViewGeometry:
@@ -362,7 +364,8 @@ def _read_inputs(sf: ScanFile, target: Path, check_frames: bool = True) -> _Scan
         raise NoProjectionsError(f"{target}: no projection frames (image_key 0); counts are {sf.count_by_kind()}")
     if not sf.has_geometry("nominal"):
         raise NoNominalGeometryError(f"{target}: no /geometry/nominal; calibration starts from the nominal geometry")
-    return _ScanInputs(target, proj, sf.geometry("nominal"), sf.geometry("truth") if sf.has_geometry("truth") else None)
+    return _ScanInputs(target, proj, sf.geometry("nominal"), sf.geometry("truth") if sf.has_geometry("truth") else None,
+                       list(sf.warnings))
 
 
 def projected_diameter_px(nominal: ViewGeometry, diameter_mm: float) -> float:
@@ -532,6 +535,7 @@ def _solve_and_write(
     solved = geometry_p.valid
     unsolved = proj[~solved]
     warnings += verdict.warnings
+    warnings[:0] = inputs.file_warnings
     resid = _residual_px(geometry_p, uv, xyz)
     ok_r = np.isfinite(resid)
     reproj_rms = float(np.sqrt(np.mean(resid[ok_r] ** 2))) if ok_r.any() else float("nan")

@@ -234,7 +234,7 @@ def reconstruct_scan(
         if name in scan.recon_names() and not overwrite:
             raise ReconExistsError(scan.path, name)
         frames, geom, dropped = _views(scan, geometry)
-        warnings = _geometry_warnings(scan, geometry)
+        warnings = [*scan.warnings, *_geometry_warnings(scan, geometry)]
         fitted = grid is None and shape is None and fit == "object"
         grid_note = "as given" if grid is not None or shape is not None else "the whole field of view"
         grid = grid if grid is not None else grid_for_geometry(geom, voxel_mm=voxel_mm, shape=shape)

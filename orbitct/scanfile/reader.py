@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -19,6 +20,25 @@ from orbitct.scanfile.results import ScanResults
 from orbitct.scanfile.writer import FORMAT, STATUSES, VERSION
 
 GEOMETRY_NAMES = ("nominal", "calibrated", "truth")
+FRAME_COPIES = 12  # float64 copies of a frame that detection and reconstruction hold at once (per worker)
+log = logging.getLogger("orbitct.scanfile")
+_WARNED: set[tuple[str, str]] = set()  # (file, warning) said already in this process
+#: what h5py raises on a damaged file (a broken heap, B-tree or object header, a link loop, a chunk past the end;
+#: SystemError when a callback inside HDF5's iteration met a damaged name that is not UTF-8)
+HDF5_ERRORS = (OSError, RuntimeError, KeyError, ValueError, TypeError, SystemError)
+
+
+def _hdf5_text(exc: BaseException) -> str:
+    """HDF5's own words for a failure, without h5py's prefixes and the call chain."""
+    text = str(exc.args[0] if isinstance(exc, KeyError) and exc.args else exc).splitlines()[0] if str(exc) else ""
+    inner = text[text.find("(") + 1: text.rfind(")")] if "(" in text and text.endswith(")") else text
+    return (inner or type(exc).__name__)[:160]
+
+
+def damaged(path: Path, exc: BaseException) -> ScanFileError:
+    """The one sentence for a file HDF5 cannot read further: damaged, where HDF5 says."""
+    return ScanFileError(f"{path}: the file is damaged and cannot be read ({_hdf5_text(exc)}); an intact copy, or "
+                         "`orbitct scan repair` for a scan whose acquisition was cut short, may help")
 
 
 def describe_frame_problems(problems: dict[int, str], shown: int = 5) -> str:
@@ -114,6 +134,7 @@ class ScanFile(ScanResults):
     def __init__(self, path: str | os.PathLike[str], mode: str = "r", *, allow_external: bool = False) -> None:
         self.path = Path(path)
         self.allow_external = allow_external
+        self.warnings: list[str] = []  # what was ignored in this file, and why
         if mode not in ("r", "r+"):
             raise ScanFileError(f"{self.path}: mode must be 'r' or 'r+', got {mode!r}")
         if not self.path.is_file():
@@ -123,12 +144,38 @@ class ScanFile(ScanResults):
         except OSError as exc:
             raise ScanFileError(f"{self.path}: not a readable HDF5 file ({exc})") from None
         try:
+            self._check_links()
             self._validate()
         except ScanFileError:
             self._f.close()
             raise
+        except HDF5_ERRORS as exc:  # a damaged heap, B-tree or object header, or a link loop, met on the way
+            self._f.close()
+            raise damaged(self.path, exc) from None
 
     # ------------------------------------------------------------ validation
+    def _check_links(self) -> None:
+        """Every object of the file reachable and every soft link resolving to one (no dangling link, no loop): what
+        any command may read later must not fail there. Hard links are ordinary HDF5 (a group may contain itself)."""
+        problems: list[str] = []
+
+        def visit(name: str, link: Any) -> None:
+            if len(problems) >= 3:
+                return
+            if isinstance(link, h5py.SoftLink):
+                try:
+                    target = self._f.get(name)
+                except HDF5_ERRORS as exc:
+                    problems.append(f"/{name} is a soft link to {link.path} that goes round in a loop or cannot be "
+                                    f"followed ({_hdf5_text(exc)})")
+                    return
+                if target is None:
+                    problems.append(f"/{name} is a soft link to {link.path}, which does not exist")
+
+        self._f.visititems_links(visit)
+        if problems:
+            raise self._fail("; ".join(problems))
+
     def _validate(self) -> None:
         f = self._f
         fmt = f.attrs.get("format")
@@ -300,17 +347,32 @@ class ScanFile(ScanResults):
         return {name: np.asarray(ds[: self.n_frames], dtype=float) for name, ds in g.items()}
 
     def attrs_json(self, group: str, key: str) -> Any:
-        """Decode a JSON object attribute (``{}`` when missing)."""
+        """Decode a JSON object attribute (``{}`` when missing). None of these is needed to calibrate or reconstruct:
+        one that is not a JSON object (another writer's list, text that is not JSON) is ignored with a warning."""
         g = self._f.get(group)
         if g is None or key not in g.attrs:
             return {}
+        raw = g.attrs[key]
         try:
-            value = json.loads(g.attrs[key])
-        except (TypeError, ValueError) as exc:
-            raise self._fail(f"/{group}@{key} is not valid JSON ({exc})") from None
+            value = json.loads(raw.decode("utf-8") if isinstance(raw, bytes) else raw)
+        except (TypeError, ValueError, UnicodeDecodeError):
+            self._ignore(f"/{group}@{key}", "is not valid JSON")
+            return {}
         if not isinstance(value, dict):
-            raise self._fail(f"/{group}@{key} must be a JSON object, got {type(value).__name__}")
+            kind = {list: "a list", str: "text", int: "a number", float: "a number", bool: "true or false"}.get(
+                type(value), "null")
+            self._ignore(f"/{group}@{key}", f"is JSON {kind}, not an object")
+            return {}
         return value
+
+    def _ignore(self, where: str, why: str) -> None:
+        """Say once that ``where`` is ignored (:attr:`warnings`, and the log once per process and file)."""
+        text = f"{self.path.name}: {where} {why}; it is ignored (nothing that orbitct calibrates or reconstructs needs it)"
+        if text not in self.warnings:
+            self.warnings.append(text)
+        if (str(self.path), text) not in _WARNED:
+            _WARNED.add((str(self.path), text))
+            log.warning("%s", text)
 
     @property
     def orbit(self) -> tuple[str, dict[str, Any]]:
@@ -388,10 +450,45 @@ class ScanFile(ScanResults):
         idx = range(self.n_frames) if indices is None else [int(i) for i in indices]
         out: dict[int, str] = {}
         for i in idx:
-            why = frame_problem(np.asarray(self.frames[i]), self.image_key[i] == ImageKey.PROJECTION)
+            try:
+                frame = np.asarray(self.frames[i])
+            except HDF5_ERRORS as exc:
+                out[i] = f"cannot be read: {_hdf5_text(exc)}"
+                continue
+            why = frame_problem(frame, self.image_key[i] == ImageKey.PROJECTION)
             if why is not None:
                 out[i] = why
         return out
+
+    def unusable_because(self, check_pixels: bool = True) -> list[str]:
+        """Why neither ``orbitct calibrate`` nor ``orbitct reconstruct`` can use this file (empty when one can): still
+        acquiring, no projections, no geometry, frames too large for this machine, or (``check_pixels``, reading every
+        frame once) frames with NaN, infinite or no signal."""
+        reasons = []
+        if self.status == "acquiring":
+            reasons.append("its status is 'acquiring' (still being written, or left by an acquisition that died): "
+                           "`orbitct scan repair` marks it aborted, keeping its frames")
+        proj = self.projection_indices
+        if proj.size == 0:
+            counts = ", ".join(f"{n} {k}" for k, n in self.count_by_kind().items() if n) or "none"
+            reasons.append(f"it has no projection frames (image_key 0; frames: {counts})")
+        if not (self.has_geometry("nominal") or self.has_geometry("calibrated")):
+            reasons.append("it has no geometry (neither /geometry/nominal nor /geometry/calibrated) to reconstruct "
+                           "or calibrate from")
+        import psutil
+
+        frame_bytes = self.panel.rows * self.panel.cols * 8
+        available = psutil.virtual_memory().available
+        if frame_bytes * FRAME_COPIES > available // 2:
+            reasons.append(f"a frame of {self.panel.rows} x {self.panel.cols} pixels needs about "
+                           f"{frame_bytes * FRAME_COPIES / 2**30:.1f} GiB to process and {available / 2**30:.1f} GiB "
+                           "is available")
+        elif check_pixels and not reasons:
+            needed = np.union1d(proj, np.flatnonzero(np.isin(self.image_key, (ImageKey.DARK, ImageKey.FLAT))))
+            problems = self.frame_problems(needed)
+            if problems:
+                reasons.append(f"frames are unusable: {describe_frame_problems(problems)}")
+        return reasons
 
     # --------------------------------------------------------------- markers
     def markers(self) -> dict[str, NDArray[np.float64]]:

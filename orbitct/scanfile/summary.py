@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
 if TYPE_CHECKING:
     from orbitct.scanfile.reader import ScanFile
+
+T = TypeVar("T")
 
 
 def _finite(value: Any) -> float | None:
@@ -39,8 +42,28 @@ def taken_off_command(f: "ScanFile") -> dict[str, dict[str, Any]]:
     return out
 
 
+def _read(damage: list[str], what: str, read: Callable[[], T], default: T) -> T:
+    """``read()``, or ``default`` when that part of the file is damaged (said in ``damage``)."""
+    from orbitct.scanfile.reader import HDF5_ERRORS, _hdf5_text
+
+    try:
+        return read()
+    except HDF5_ERRORS as exc:
+        damage.append(f"{what} cannot be read ({_hdf5_text(exc)})")
+        return default
+
+
 def scan_summary(f: "ScanFile") -> dict[str, Any]:
-    """JSON-ready summary of an open scan file: status, frames by kind, panel, orbit, geometries, markers, results."""
+    """JSON-ready summary of an open scan file: status, frames by kind, panel, orbit, geometries, markers, results.
+    A part that the file's damage makes unreadable (one that opening the file does not check) is left out and named
+    in ``damaged``; what calibration and reconstruction need is checked when the file opens."""
+    damage: list[str] = []
+    summary = _summary(f, damage)
+    summary["damaged"] = damage
+    return summary
+
+
+def _summary(f: "ScanFile", damage: list[str]) -> dict[str, Any]:
     panel = f.panel
     name, params = f.orbit
     orbit: dict[str, Any] = {"name": name, "params": params}
@@ -54,27 +77,30 @@ def scan_summary(f: "ScanFile") -> dict[str, Any]:
         orbit["tilt_deg"] = [float(tilt.min()), float(tilt.max())]
     calibration: dict[str, Any] = {}
     if f.has_geometry("calibrated"):
-        a = f.h5["geometry/calibrated"].attrs
-        calibration = {k: (_finite(a[k]) if k != "method" else str(a[k]))
-                       for k in ("method", "rpe_mean_mm", "rpe_median_mm", "rpe_std_mm", "reproj_rms_px") if k in a}
-    markers = f.markers()
-    truth = f.truth_markers_xyz()
-    ph = f.phantom
-    times = f.time_s
+        def calibrated() -> dict[str, Any]:
+            a = f.h5["geometry/calibrated"].attrs
+            return {k: (_finite(a[k]) if k != "method" else str(a[k]))
+                    for k in ("method", "rpe_mean_mm", "rpe_median_mm", "rpe_std_mm", "reproj_rms_px") if k in a}
+        calibration = _read(damage, "/geometry/calibrated's attributes", calibrated, {})
+    markers = _read(damage, "/markers", f.markers, {})
+    truth = _read(damage, "/truth/markers/xyz", f.truth_markers_xyz, None)
+    ph = _read(damage, "/truth@phantom_json", lambda: f.phantom, {})
+    times = _read(damage, "/frames/time_s", lambda: f.time_s, np.full(f.n_frames, np.nan))
+    live = _read(damage, "/acquisition@live_calibration", lambda: f.live_calibration, "")
     return {
         "status": f.status,
         "status_reason": f.status_reason,
         "n_frames": f.n_frames,
         "frames_without_pixels": f.frames_without_pixels,
         "frames_by_kind": f.count_by_kind(),
-        "taken_off_command": taken_off_command(f),
+        "taken_off_command": _read(damage, "/frames/encoders or /frames/commanded", lambda: taken_off_command(f), {}),
         "dtype": str(f.frames.dtype),
         "detector": {"rows": panel.rows, "cols": panel.cols, "pitch_mm": list(panel.pitch_mm)},
         "duration_s": float(np.nanmax(times)) if f.n_frames and np.isfinite(times).any() else None,
         "orbit": orbit,
         "geometries": [g for g in ("nominal", "calibrated", "truth") if f.has_geometry(g)],
         "calibration": calibration,
-        "live_calibration": {"outcome": f.live_calibration} if f.live_calibration else {},
+        "live_calibration": {"outcome": live} if live else {},
         "markers": {
             "diameter_mm": f.marker_diameter_mm,
             "detected": int(markers["uv"].shape[1]) if "uv" in markers else 0,
@@ -82,7 +108,9 @@ def scan_summary(f: "ScanFile") -> dict[str, Any]:
             "truth": int(truth.shape[0]) if truth is not None else 0,
         },
         "phantom": (f"{ph.get('name', '')}: {len(ph.get('primitives', []))} primitives" if ph else ""),
-        "recon": f.recon_names(),
-        "import_assumptions": list(f.attrs_json("provenance", "import_assumptions_json").get("assumed", [])),
+        "recon": _read(damage, "/recon", f.recon_names, []),
+        "import_assumptions": _read(damage, "/provenance@import_assumptions_json", lambda: list(
+            f.attrs_json("provenance", "import_assumptions_json").get("assumed", [])), []),
         "file_bytes": f.path.stat().st_size,
+        "ignored": list(f.warnings),
     }

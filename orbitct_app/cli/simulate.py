@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -92,17 +93,31 @@ def parse_params(items: tuple[str, ...] | list[str]) -> dict[str, object]:
 @click.argument("scan", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help="print the summary as JSON")
 def inspect(scan: Path, as_json: bool) -> None:
-    """Summarise a scan file: frames by kind, geometry, markers, status, orbit."""
+    """Summarise a scan file: frames by kind, geometry, markers, status, orbit; and whether it can be used.
+
+    Exit status 0 when orbitct calibrate or reconstruct can use the file, 1 (with the reasons) when neither can."""
     from orbitct.scanfile import ScanFile, ScanFileError, scan_summary
+    from orbitct.scanfile.reader import HDF5_ERRORS, damaged
 
     try:
         with ScanFile(scan) as f:
             summary = scan_summary(f)
+            unusable = f.unusable_because()
     except ScanFileError as exc:
         raise click.ClickException(str(exc)) from None
+    except HDF5_ERRORS as exc:  # damage past what opening the file checks (a result's group, an attribute's heap)
+        raise click.ClickException(str(damaged(scan, exc))) from None
+    summary["usable"], summary["unusable_because"] = not unusable, unusable
     if as_json:
         click.echo(json.dumps(summary, indent=2, default=str))
-        return
+    else:
+        _print_summary(scan, summary)
+    if unusable:  # a file the computations would refuse is never reported as fine
+        raise click.ClickException(f"{scan}: not usable by orbitct calibrate or reconstruct: {'; '.join(unusable)}")
+
+
+def _print_summary(scan: Path, summary: dict[str, Any]) -> None:
+    """The summary for a person."""
     click.echo(f"{scan}")
     click.echo(f"  status      {summary['status']}" + (f" ({summary['status_reason']})" if summary["status_reason"] else ""))
     d = summary["detector"]
@@ -129,6 +144,8 @@ def inspect(scan: Path, as_json: bool) -> None:
              if cal.get("rpe_mean_mm") is not None and cal.get("rpe_median_mm") is not None else ""}
     click.echo("  geometry    " + ", ".join(g + (f" ({notes[g]})" if notes.get(g) else "") for g in summary["geometries"])
                if summary["geometries"] else "  geometry    none")
+    if summary["live_calibration"]:
+        click.echo(f"  live        calibration during the scan: {summary['live_calibration']['outcome']}")
     m = summary["markers"]
     dia = f"{m['diameter_mm']} mm" if m["diameter_mm"] is not None else "diameter unknown"
 
@@ -141,3 +158,7 @@ def inspect(scan: Path, as_json: bool) -> None:
         click.echo(f"  phantom     {summary['phantom']}")
     if summary["recon"]:
         click.echo(f"  recon       {', '.join(summary['recon'])}")
+    for text in summary["ignored"]:
+        click.echo(f"  warning     {text}")
+    for text in summary["damaged"]:
+        click.echo(f"  warning     damaged: {text}; calibration and reconstruction do not read it")

@@ -19,8 +19,7 @@ from orbitct_app.cli.main import cli
 pytestmark = [pytest.mark.system, pytest.mark.timeout(120)]
 
 INSPECT, CALIBRATE, RECONSTRUCT = "inspect", "calibrate", "reconstruct"
-ALL = frozenset({INSPECT, CALIBRATE, RECONSTRUCT})
-USE = frozenset({CALIBRATE, RECONSTRUCT})  # damage the summary can show but the computations must refuse
+ALL = frozenset({INSPECT, CALIBRATE, RECONSTRUCT})  # inspect refuses what the computations would: "not usable"
 COMMANDS = {
     INSPECT: ["inspect"],
     CALIBRATE: ["calibrate", "--accept-poor"],  # garbage must be refused outright, not merely judged poor
@@ -146,14 +145,14 @@ CASES: list[tuple[str, Any, frozenset[str]]] = [
     ("frames-wrong-shape", _replace("frames/data", lambda a: a[:, :-3, :]), ALL),
     ("frames-int64", _replace("frames/data", lambda a: a.astype(np.int64)), ALL),
     ("frames-strings", _replace("frames/data", lambda a: np.full(a.shape[:1], b"pixels")), ALL),
-    ("frames-huge-declared", _huge_frames, USE),
+    ("frames-huge-declared", _huge_frames, ALL),
     ("image-key-missing", _del("frames/image_key"), ALL),
     ("image-key-unknown", _replace("frames/image_key", lambda k: np.where(np.arange(k.size) == 5, 7, k).astype("i1")), ALL),
     ("image-key-float", _replace("frames/image_key", lambda k: k.astype(np.float64) + 0.5), ALL),
     ("image-key-short", _replace("frames/image_key", lambda k: k[:-4]), ALL),
     ("time-short", _replace("frames/time_s", lambda t: t[:-4]), ALL),
     ("time-text", _replace("frames/time_s", lambda t: np.full(t.shape, b"soon")), ALL),
-    ("nominal-missing", _del("geometry/nominal"), USE),
+    ("nominal-missing", _del("geometry/nominal"), ALL),
     ("nominal-11-columns", _vectors(lambda v: v[:, :11]), ALL),
     ("nominal-short", _vectors(lambda v: v[:-5]), ALL),
     ("nominal-nan", _vectors(_on_projection(lambda r: r * np.nan)), ALL),
@@ -166,14 +165,11 @@ CASES: list[tuple[str, Any, frozenset[str]]] = [
     ("marker-diameter-nan", _set_attr("markers", "diameter_mm", np.nan), ALL),
     ("marker-diameter-negative", _set_attr("markers", "diameter_mm", -2.0), ALL),
     ("marker-diameter-text", _set_attr("markers", "diameter_mm", "2 mm"), ALL),
-    ("orbit-json-garbage", _set_attr("orbit", "params_json", "{not json"), ALL),
-    ("orbit-json-list", _set_attr("orbit", "params_json", "[1, 2]"), ALL),
-    ("phantom-json-garbage", _set_attr("truth", "phantom_json", "phantom?"), ALL),
-    ("frames-all-nan", _frames(lambda a: a * np.nan), USE),
-    ("frames-with-inf", _frames(lambda a: np.where(a > np.median(a), np.inf, a)), USE),
-    ("frames-all-zero", _frames(lambda a: a * 0, "uint16"), USE),
-    ("frames-saturated", _frames(lambda a: a * 0 + 65535, "uint16"), USE),
-    ("frames-negative", _frames(lambda a: -a), USE),
+    ("frames-all-nan", _frames(lambda a: a * np.nan), ALL),
+    ("frames-with-inf", _frames(lambda a: np.where(a > np.median(a), np.inf, a)), ALL),
+    ("frames-all-zero", _frames(lambda a: a * 0, "uint16"), ALL),
+    ("frames-saturated", _frames(lambda a: a * 0 + 65535, "uint16"), ALL),
+    ("frames-negative", _frames(lambda a: -a), ALL),
     ("frames-external-link", "external_link", ALL),
     ("frames-raw-external", "raw_external", ALL),
     ("frames-virtual", "virtual", ALL),
@@ -198,7 +194,7 @@ def valid_scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def _run(args: list[str], path: Path) -> tuple[int, str]:
     r = CliRunner().invoke(cli, [*args, str(path)])
     crashed = r.exception is not None and not isinstance(r.exception, SystemExit)
-    assert not crashed, (args[0], "".join(__import__("traceback").format_exception(r.exception)))
+    assert not crashed, (args[0], str(path), "".join(__import__("traceback").format_exception(r.exception)))
     return r.exit_code, r.output
 
 
@@ -253,3 +249,158 @@ def test_an_hdf5_file_that_is_not_a_scan_says_so(tmp_path: Path) -> None:
         f["entry/data"] = np.zeros(3)
     code, out = _run(["inspect"], path)
     assert code != 0 and "not an orbitct scan file" in out and "format tag is None" not in out, out
+
+
+IGNORED = [  # attributes no command needs, as other writers fill them: ignored with a warning, never refused
+    ("orbit-json-garbage", _set_attr("orbit", "params_json", "{not json"), "/orbit@params_json is not valid JSON"),
+    ("orbit-json-list", _set_attr("orbit", "params_json", "[1, 2]"), "/orbit@params_json is JSON a list"),
+    ("phantom-json-garbage", _set_attr("truth", "phantom_json", "phantom?"), "/truth@phantom_json is not valid JSON"),
+    ("phantom-json-list", _set_attr("truth", "phantom_json", '[{"kind": "sphere"}]'), "/truth@phantom_json is JSON a list"),
+    ("config-json-number", _set_attr("provenance", "config_json", "42"), "/provenance@config_json is JSON a number"),
+]
+
+
+@pytest.mark.parametrize("name,mutation,warning", IGNORED, ids=[c[0] for c in IGNORED])
+def test_an_attribute_no_command_needs_is_ignored_with_a_warning(valid_scan: Path, tmp_path: Path, name: str,
+                                                                mutation: Any, warning: str) -> None:
+    path = tmp_path / f"{name}.h5"
+    shutil.copyfile(valid_scan, path)
+    with h5py.File(path, "r+") as f:
+        mutation(f)
+    for command, args in COMMANDS.items():
+        code, out = _run(args, path)
+        assert code == 0 and warning in out and "it is ignored" in out, (command, out)
+
+
+
+def _damaged(data: bytes) -> dict[str, bytes]:
+    """Byte-level damage to a valid scan file: HDF5's own structures (local heaps, B-trees, symbol tables, object
+    headers, global heaps) overwritten where their signatures stand, bit flips in the metadata, truncations, a broken
+    superblock."""
+    out: dict[str, bytes] = {}
+    for sig in (b"HEAP", b"TREE", b"SNOD", b"OHDR", b"GCOL"):
+        at, found = data.find(sig), 0
+        while at >= 0 and found < 3:
+            b = bytearray(data)
+            b[at + 4: at + 40] = bytes(x ^ 0xFF for x in b[at + 4: at + 40])
+            out[f"{sig.decode().lower()}-{found}"] = bytes(b)
+            at, found = data.find(sig, at + 1), found + 1
+    rng = np.random.default_rng(7)
+    for seed in range(12):
+        b = bytearray(data)
+        for at in rng.integers(0, 8192, 16):
+            b[int(at)] ^= 1 << int(rng.integers(0, 8))
+        out[f"bit-flips-{seed}"] = bytes(b)
+    for seed in range(3):  # in the pixels: still a usable file, with odd values
+        b = bytearray(data)
+        for at in rng.integers(len(data) // 2, len(data), 64):
+            b[int(at)] ^= 1 << int(rng.integers(0, 8))
+        out[f"pixel-flips-{seed}"] = bytes(b)
+    for frac in (0.05, 0.25, 0.5, 0.75, 0.9, 0.999):
+        out[f"truncated-{frac}"] = data[: int(len(data) * frac)]
+    out["superblock-zeroed"] = bytes(64) + data[64:]
+    out["superblock-version"] = data[:8] + bytes([data[8] ^ 0x7F]) + data[9:]
+    return out
+
+
+def _self_link(f: h5py.File) -> None:
+    del f["frames/data"]
+    f["frames/data"] = h5py.SoftLink("/frames/data")
+
+
+def _soft_loop(f: h5py.File) -> None:
+    f["loop_a"], f["loop_b"] = h5py.SoftLink("/loop_b"), h5py.SoftLink("/loop_a")
+    del f["geometry/nominal"]
+    f["geometry/nominal"] = h5py.SoftLink("/loop_a")
+
+
+def _dangling(path: str) -> Mutation:
+    def go(f: h5py.File) -> None:
+        del f[path]
+        f[path] = h5py.SoftLink("/nowhere")
+    return go
+
+
+def _external_missing(f: h5py.File) -> None:
+    del f["frames/data"]
+    f["frames/data"] = h5py.ExternalLink("/nonexistent/scan.h5", "/frames/data")
+
+
+def _no_projections(f: h5py.File) -> None:
+    key = np.asarray(f["frames/image_key"])
+    del f["frames/image_key"]
+    f["frames/image_key"] = np.where(key == 0, 3, key).astype("i1")
+
+
+LINKS: dict[str, Mutation] = {
+    "link-to-itself": _self_link, "soft-link-loop": _soft_loop, "dangling-frames": _dangling("frames/data"),
+    "dangling-geometry": _dangling("geometry/nominal/vectors"), "dangling-markers": _dangling("truth/markers/xyz"),
+    "external-link-missing": _external_missing, "no-geometry": _del("geometry"), "no-projections": _no_projections,
+    "still-acquiring": _set_attr("/", "status", "acquiring"),
+    "hard-link-loop": lambda f: f.__setitem__("frames/again", f["frames"]),  # ordinary HDF5: usable
+}
+
+
+def _hostile_files(valid: Path, folder: Path) -> list[Path]:
+    files = []
+    for name, content in _damaged(valid.read_bytes()).items():
+        files.append(folder / f"{name}.h5")
+        files[-1].write_bytes(content)
+    for name, mutation in LINKS.items():
+        files.append(folder / f"{name}.h5")
+        shutil.copyfile(valid, files[-1])
+        with h5py.File(files[-1], "r+") as f:
+            mutation(f)
+    return files
+
+
+def test_damaged_files_are_refused_in_one_sentence_quickly_and_consistently(valid_scan: Path, tmp_path: Path) -> None:
+    """At least 40 hostile files: no traceback, each refusal within 2 s naming the file, and inspect agrees with the
+    computations (a file it calls usable is reconstructed; one it refuses is refused by calibrate and reconstruct)."""
+    import time
+
+    files = _hostile_files(valid_scan, tmp_path)
+    assert len(files) >= 40
+    refused = 0
+    for path in files:
+        codes = {}
+        for command, args in COMMANDS.items():
+            work = path.with_name(f"{path.stem}-{command}.h5")  # each command on its own copy (results go in)
+            shutil.copyfile(path, work)
+            t = time.monotonic()
+            code, out = _run(args, work)
+            seconds = time.monotonic() - t
+            assert "Traceback" not in out, (path.name, command, out)
+            if code != 0:
+                last = out.strip().splitlines()[-1]
+                assert work.name in last and seconds < 2.0, (path.name, command, round(seconds, 2), out)
+            codes[command] = code
+        if codes[INSPECT] == 0:
+            assert codes[RECONSTRUCT] == 0, (path.name, codes)
+        else:
+            refused += 1
+            assert codes[CALIBRATE] != 0 and codes[RECONSTRUCT] != 0, (path.name, codes)
+    assert refused >= 30, refused
+
+
+def test_a_file_with_only_the_published_contract_is_used(valid_scan: Path, tmp_path: Path) -> None:
+    """Another writer's file: only what the published format lists (shared/spec/scan-file.md; none of the
+    attributes orbitct added later), and the truth's phantom as a JSON list. Every command uses it."""
+    path = tmp_path / "foreign.h5"
+    with h5py.File(valid_scan, "r") as src, h5py.File(path, "w") as dst:
+        dst.attrs.update({"format": "orbitct.scan", "version": 1, "status": "complete", "status_reason": ""})
+        dst.create_group("detector").attrs.update({k: src["detector"].attrs[k] for k in ("rows", "cols", "pitch_mm")})
+        for name in ("frames/data", "frames/image_key", "frames/time_s", "geometry/nominal/vectors",
+                     "truth/geometry/vectors", "truth/markers/xyz"):
+            dst[name] = np.asarray(src[name])
+        for group in ("encoders", "commanded"):
+            for axis, ds in src[f"frames/{group}"].items():
+                dst[f"frames/{group}/{axis}"] = np.asarray(ds)
+                dst[f"frames/{group}/{axis}"].attrs["unit"] = ds.attrs.get("unit", "deg")
+        dst.create_group("orbit").attrs.update({"name": "sawtooth", "params_json": '{"amplitude_deg": 20}'})
+        dst["truth"].attrs["phantom_json"] = '[{"kind": "cylinder", "radius_mm": 80}]'
+        dst.create_group("markers").attrs["diameter_mm"] = src["markers"].attrs["diameter_mm"]
+    for command, args in COMMANDS.items():
+        code, out = _run(args, path)
+        assert code == 0 and "Traceback" not in out, (command, out)
+        assert "/truth@phantom_json is JSON a list, not an object; it is ignored" in out, (command, out)
