@@ -91,6 +91,16 @@ def _number(path: Path, where: Any, name: str) -> float:
         raise ScanFileError(f"{path}: {name} is {value!r}, expected a number") from None
 
 
+def _numbers(path: Path, where: Any, name: str) -> list[float]:
+    """A multi-valued number attribute as floats, or ScanFileError naming it."""
+    value = where.get(name) if where is not None else None
+    try:
+        return [float(v) for v in (value if isinstance(value, (list, tuple)) or hasattr(value, "__iter__") and
+                                   not isinstance(value, (str, bytes)) else [value])]
+    except (TypeError, ValueError):
+        raise ScanFileError(f"{path}: {name} is {value!r}, expected numbers") from None
+
+
 def _macro(ds: Any, frame: int, sequence: str) -> Any:
     """The item of functional group ``sequence`` for ``frame``: its own, else the shared one, else None."""
     own, shared = ds.get("PerFrameFunctionalGroupsSequence") or [], ds.get("SharedFunctionalGroupsSequence") or []
@@ -125,7 +135,7 @@ def _enhanced_geometry(path: Path, ds: Any, n: int) -> dict[str, Any]:
         pixels = _macro(ds, i, "FramePixelDataPropertiesSequence")
         if pixels is None or "ImagerPixelSpacing" not in pixels:
             raise ScanFileError(f"{path}: frame {i + 1}: missing ImagerPixelSpacing (FramePixelDataPropertiesSequence)")
-        spacing.add(tuple(float(v) for v in pixels.ImagerPixelSpacing))
+        spacing.add(tuple(_numbers(path, pixels, "ImagerPixelSpacing")))
         _linear(path, pixels)
         view = _macro(ds, i, "FieldOfViewSequence")
         rotation.add(float(view.get("FieldOfViewRotation", 0.0) or 0.0) if view is not None else 0.0)
@@ -161,7 +171,9 @@ def _linear(path: Path, where: Any) -> None:
 
 
 def _require(path: Path, ds: Any, names: Sequence[str]) -> None:
-    missing = [k for k in names if k not in ds or ds.get(k) in (None, "")]
+    missing = [k for k in names if k not in ds or (k != "PixelData" and ds.get(k) in (None, ""))]
+    if missing == ["PixelData"]:
+        raise ScanFileError(f"{path}: missing PixelData: the run holds no images")
     if missing:
         raise ScanFileError(f"{path}: missing {', '.join(missing)}: cannot build the geometry without "
                             f"{'them' if len(missing) > 1 else 'it'}")
@@ -173,42 +185,117 @@ def _classic_geometry(path: Path, ds: Any, n: int) -> dict[str, Any]:
     _linear(path, ds)
     incr = {}
     for name in ("PositionerPrimaryAngleIncrement", "PositionerSecondaryAngleIncrement"):
-        values = np.atleast_1d(np.asarray(ds.get(name, [0.0] * n), dtype=float))
-        if values.size == 1 and n > 1 and name not in ds:
-            values = np.zeros(n)
+        try:
+            values = np.atleast_1d(np.asarray(ds.get(name), dtype=float)) if name in ds else np.zeros(n)
+        except (TypeError, ValueError):
+            raise ScanFileError(f"{path}: {name} holds something other than numbers") from None
         if values.size != n:
             raise ScanFileError(f"{path}: {name} has {values.size} values for {n} frames")
         incr[name] = values
-    return {"primary": float(ds.PositionerPrimaryAngle) + incr["PositionerPrimaryAngleIncrement"],
-            "secondary": float(ds.PositionerSecondaryAngle) + incr["PositionerSecondaryAngleIncrement"],
-            "sad": float(ds.DistanceSourceToPatient), "sdd": float(ds.DistanceSourceToDetector),
-            "spacing": [float(v) for v in ds.ImagerPixelSpacing],
+    return {"primary": _number(path, ds, "PositionerPrimaryAngle") + incr["PositionerPrimaryAngleIncrement"],
+            "secondary": _number(path, ds, "PositionerSecondaryAngle") + incr["PositionerSecondaryAngleIncrement"],
+            "sad": _number(path, ds, "DistanceSourceToPatient"), "sdd": _number(path, ds, "DistanceSourceToDetector"),
+            "spacing": _numbers(path, ds, "ImagerPixelSpacing"),
             "rotation_deg": float(ds.get("FieldOfViewRotation", 0.0) or 0.0),
             "frame_time_s": float(ds.get("FrameTime", 0.0) or 0.0) / 1000.0}
 
 
-def _run(path: Path) -> dict[str, Any]:
-    """The geometry-relevant content of one XA/XRF run (classic or enhanced), or ScanFileError naming what is missing
-    or wrong."""
+#: the storage classes of X-ray runs that hold an orbit (classic and enhanced XA and XRF)
+XRAY_RUN_CLASSES = {"1.2.840.10008.5.1.4.1.1.12.1": "X-Ray Angiographic Image Storage",
+                    "1.2.840.10008.5.1.4.1.1.12.1.1": "Enhanced XA Image Storage",
+                    "1.2.840.10008.5.1.4.1.1.12.2": "X-Ray Radiofluoroscopic Image Storage",
+                    "1.2.840.10008.5.1.4.1.1.12.2.1": "Enhanced XRF Image Storage"}
+MAX_SIDE_PX = 16384  # rows or columns beyond this are no X-ray panel's
+
+
+def _count(path: Path, ds: Any, name: str, most: int) -> int:
+    """A whole-number attribute between 1 and ``most``, or ScanFileError saying what it holds."""
+    value = ds.get(name)
+    try:
+        number = int(value)
+        whole = float(value) == number
+    except (TypeError, ValueError, OverflowError):
+        whole = False
+    if not whole or not 1 <= number <= most:
+        raise ScanFileError(f"{path}: {name} is {value!r}; an X-ray run has 1 to {most} there")
+    return number
+
+
+def _header(path: Path) -> Any:
+    """The DICOM object at ``path`` read without its pixels, checked to be an X-ray run whose pixels can be read here:
+    its storage class, one monochrome sample per pixel, sizes that are possible and fit this machine, pixel data as
+    long as the sizes say. Nothing of the pixels is read before these checks."""
+    import psutil
     import pydicom
+    from pydicom.uid import UID
 
     try:
-        ds = pydicom.dcmread(path)
+        ds = pydicom.dcmread(path, defer_size=4096)  # large values (the pixels) are read when used, not now
     except Exception as exc:  # noqa: BLE001 - any unreadable file is named with the reason
-        raise ScanFileError(f"{path}: not a readable DICOM file ({type(exc).__name__}: {exc})") from None
+        why = str(exc).splitlines()[0][:200] if str(exc) else "its header cannot be parsed"
+        raise ScanFileError(f"{path}: not a readable DICOM file ({why})") from None
+    sop = str(ds.get("SOPClassUID", "") or "")
+    if sop and sop not in XRAY_RUN_CLASSES:
+        name = UID(sop).name if UID(sop).is_valid else sop
+        raise ScanFileError(f"{path}: a DICOM object of the class {name} ({sop}), not an X-ray angiography or "
+                            "fluoroscopy run (XA or XRF, classic or enhanced): it holds no orbit to import")
     if ds.get("Modality") not in ("XA", "RF"):
         raise ScanFileError(f"{path}: modality {ds.get('Modality')!r}, expected an XA (or XRF) run")
     _require(path, ds, REQUIRED)
+    n = _count(path, ds, "NumberOfFrames", 1_000_000)
+    rows, cols = _count(path, ds, "Rows", MAX_SIDE_PX), _count(path, ds, "Columns", MAX_SIDE_PX)
+    samples = ds.get("SamplesPerPixel", 1)
+    photometric = str(ds.get("PhotometricInterpretation", "MONOCHROME2") or "")
+    if samples != 1 or not photometric.startswith("MONOCHROME"):
+        raise ScanFileError(f"{path}: {photometric or 'colour'} pixels (SamplesPerPixel {samples}); an X-ray run is "
+                            "monochrome, one sample per pixel")
+    bits = int(ds.get("BitsAllocated", 16) or 0)
+    if bits not in (8, 16, 32):
+        raise ScanFileError(f"{path}: BitsAllocated is {bits}; an X-ray run stores 8, 16 or 32 bits a pixel")
+    need = n * rows * cols * 8  # the run as float64 while it is imported
+    available = psutil.virtual_memory().available
+    if need > available // 2:
+        raise ScanFileError(f"{path}: {n} frames of {rows} x {cols} pixels need about {need / 2**30:.1f} GiB to import "
+                            f"and {available / 2**30:.1f} GiB is available; import it in parts (orbitct export xa "
+                            "--frames on the writing side) or on a larger machine")
+    element = ds.get_item("PixelData", keep_deferred=True)  # its length, not its value
+    stored = getattr(element, "length", None)
+    expected = n * rows * cols * bits // 8
+    if not ds.file_meta.TransferSyntaxUID.is_compressed and stored is not None and 0 <= stored < expected:
+        raise ScanFileError(f"{path}: the pixel data hold {stored} bytes, {n} frames of {rows} x {cols} at {bits} bits "
+                            f"need {expected}: the file is cut short or its sizes are wrong")
+    return ds
+
+
+def _finite_numbers(path: Path, found: dict[str, Any]) -> None:
+    """Angles, distances and spacing are numbers (not NaN or infinite)."""
+    for key, name in (("primary", "the primary angles"), ("secondary", "the secondary angles"),
+                      ("sad", "the source-to-isocenter distance"), ("sdd", "DistanceSourceToDetector"),
+                      ("spacing", "ImagerPixelSpacing"), ("rotation_deg", "FieldOfViewRotation")):
+        if not np.isfinite(np.asarray(found[key], dtype=float)).all():
+            raise ScanFileError(f"{path}: {name}: a value is not a finite number (NaN or infinite)")
+
+
+def _run(path: Path) -> dict[str, Any]:
+    """The geometry-relevant content of one XA/XRF run (classic or enhanced), or ScanFileError naming what is missing
+    or wrong; the header is checked before a pixel is read."""
+    ds = _header(path)
     n = int(ds.NumberOfFrames)
     is_enhanced = "PerFrameFunctionalGroupsSequence" in ds or "SharedFunctionalGroupsSequence" in ds
     found = _enhanced_geometry(path, ds, n) if is_enhanced else _classic_geometry(path, ds, n)
+    _finite_numbers(path, found)
     sdd, sad, spacing = found["sdd"], found["sad"], found["spacing"]
     distance = "DistanceSourceToIsocenter" if is_enhanced else "DistanceSourceToPatient"
     if not sdd > sad > 0:
         raise ScanFileError(f"{path}: DistanceSourceToDetector ({sdd}) must exceed {distance} ({sad}) > 0")
     if len(spacing) != 2 or min(spacing) <= 0:
         raise ScanFileError(f"{path}: ImagerPixelSpacing must be two positive numbers, got {spacing}")
-    frames = ds.pixel_array.reshape(n, int(ds.Rows), int(ds.Columns))
+    try:
+        frames = np.asarray(ds.pixel_array).reshape(n, int(ds.Rows), int(ds.Columns))
+    except Exception as exc:  # noqa: BLE001 - a decoder's failure, or pixels that do not match the header
+        text = str(exc).splitlines()[0][:200].rstrip(":") if str(exc) else "they do not match the header"
+        syntax = ds.file_meta.TransferSyntaxUID
+        raise ScanFileError(f"{path}: its pixel data ({syntax.name}) cannot be read: {text}") from None
     return {"path": path, "frames": frames, "sad": sad, "sdd": sdd, "pitch": (spacing[1], spacing[0]),
             "primary": found["primary"], "secondary": found["secondary"], "eta": math.radians(found["rotation_deg"]),
             "when": str(ds.get("AcquisitionDateTime", "")) or str(ds.get("AcquisitionTime", "")),
