@@ -48,7 +48,7 @@ def parse_sse(text: str) -> list[dict[str, Any]]:
             fields[key] = value.strip()
         if fields:
             fields["data"] = json.loads(fields.get("data", "null"))
-            fields["id"] = int(fields["id"])
+            fields["id"] = int(fields["id"]) if "id" in fields else None  # a stream's opening state has none
             events.append(fields)
     return events
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import logging
+import re
 import sqlite3
 import uuid
 from typing import Any
@@ -83,6 +84,8 @@ class Unavailable(ApiError):
 
 
 ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
+    400: {"model": ErrorBody, "description": "the request body cannot be read (not UTF-8 JSON, or sent with a content "
+                                             "type the route does not take)"},
     401: {"model": ErrorBody, "description": "missing or unknown bearer token"},
     403: {"model": ErrorBody, "description": "the token's role may not do this"},
     404: {"model": ErrorBody, "description": "unknown id or file"},
@@ -140,15 +143,16 @@ def disk_full(exc: BaseException) -> bool:
 
 
 def _allowed_methods(app: FastAPI, request: Request) -> list[str]:
-    """Every method some route of the app answers on this request's path."""
-    from starlette.routing import Match
-
-    allowed = []
-    for method in ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE"):
-        scope = {**request.scope, "method": method}
-        if any(route.matches(scope)[0] == Match.FULL for route in app.router.routes):
-            allowed.append(method)
-    return allowed
+    """The methods the OpenAPI document lists for this request's path: the most specific path template that matches
+    it (``/orbits/preview``, not ``/orbits/{kind}`` as well), so that ``Allow`` says what the contract says."""
+    path = request.url.path
+    matching = [t for t in app.openapi().get("paths", {})
+                if re.fullmatch(re.sub(r"\\\{[^}]+\\\}", "[^/]+", re.escape(t)), path)]
+    if not matching:
+        return []
+    template = min(matching, key=lambda t: (t.count("{"), -len(t)))
+    operations = app.openapi()["paths"][template]
+    return [m.upper() for m in ("get", "head", "post", "put", "patch", "delete") if m in operations]
 
 
 def install_error_handlers(app: FastAPI) -> None:
@@ -174,6 +178,9 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
         code = _HTTP_CODES.get(exc.status_code, "error")
         message = exc.detail if isinstance(exc.detail, str) else code.replace("_", " ")
+        if exc.status_code == 400 and message == "There was an error parsing the body":  # FastAPI's own words
+            message = ("the request body cannot be read: send JSON, UTF-8, with Content-Type: application/json "
+                       "(GET /docs shows each route's body)")
         headers = dict(getattr(exc, "headers", None) or {})
         if exc.status_code == 405:  # every method of the path, not only those of the first route that matched it
             allowed = _allowed_methods(app, request)

@@ -163,13 +163,17 @@ def event_id_after(last_event_id: str | None) -> int:
     return int(last_event_id)
 
 
-def sse_response(bus: EventBus, topic: str, last_event_id: str | None) -> Any:
-    """A ``text/event-stream`` response replaying ``topic`` after ``Last-Event-ID`` and following it live."""
+def sse_response(bus: EventBus, topic: str, last_event_id: str | None,
+                 first: tuple[str, dict[str, Any]] | None = None) -> Any:
+    """A ``text/event-stream`` response replaying ``topic`` after ``Last-Event-ID`` and following it live; ``first``:
+    an event (kind, data) sent before them without an id, as the state the stream starts from."""
     from fastapi.responses import StreamingResponse
 
     after = event_id_after(last_event_id)
 
     async def _body() -> AsyncIterator[str]:
+        if first is not None:
+            yield f"event: {first[0]}\ndata: {json.dumps(first[1], separators=(',', ':'))}\n\n"
         async for item in bus.stream(topic, after):
             yield ": keep-alive\n\n" if item is None else sse_format(*item)
 

@@ -27,7 +27,7 @@ ScanId = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9
 class CalibrationRequest(BaseModel):
     """Calibrate a complete scan from the BBs on the object."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [{"scan_id": "a1b2c3d4e5f60718", "method": "bundle"}]})
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [{"scan_id": "a1b2c3d4e5f60718", "method": "bundle"}]})
 
     scan_id: ScanId
     method: Literal["bundle", "paper"] = Field("bundle", description="joint bundle adjustment, or the paper's alternation")
@@ -41,8 +41,9 @@ class CalibrationRequest(BaseModel):
     diameter_mm: float | None = Field(None, gt=0.1, le=50.0, description="BB diameter when the file does not say")
     scale_bar_mm: float | None = Field(None, gt=0.0, le=5000.0, description="known distance between two BBs (a scale "
                                        "bar measured on the bench): sets the metric scale")
-    scale_bar_bbs: tuple[Annotated[int, Field(ge=1)], Annotated[int, Field(ge=1)]] | None = Field(
-        None, description="which BBs span the scale bar (numbers as in the report); default: the one pair near its length")
+    scale_bar_bbs: list[Annotated[int, Field(ge=1)]] | None = Field(
+        None, min_length=2, max_length=2,
+        description="which two BBs span the scale bar (numbers as in the report); default: the one pair near its length")
 
 
 def check_scan_ready(service: Any, scan_id: str) -> dict[str, Any]:

@@ -60,7 +60,7 @@ class DeviceState(BaseModel):
 class MoveRequest(BaseModel):
     """Absolute targets per axis, in the axis unit (mm or deg); checked against the limits before moving."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [{"targets": {"X": 1.0, "U": 0.5}}]})
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [{"targets": {"X": 1.0, "U": 0.5}}]})
 
     targets: dict[Annotated[str, Field(pattern=r"^[A-Za-z0-9]{1,8}$")], Annotated[float, Field(ge=-1e5, le=1e5)]] = Field(
         min_length=1, max_length=6)

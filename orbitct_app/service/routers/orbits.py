@@ -35,7 +35,7 @@ class OrbitKindOut(BaseModel):
 class OrbitSpec(BaseModel):
     """An orbit kind and its parameters."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [
         {"kind": "sawtooth", "params": {"n_frames": 500, "amplitude_deg": 20, "cycles": 2}}
     ]})
 
@@ -50,9 +50,9 @@ class OrbitSummary(BaseModel):
     params: dict[str, Any]
     n_frames: int
     n_segments: int
-    rotation_deg: tuple[float, float]
-    tilt_deg: tuple[float, float]
-    step_deg: tuple[float, float] = Field(description="mean step per frame: rotation, tilt")
+    rotation_deg: list[float] = Field(min_length=2, max_length=2, description="smallest and largest rotation")
+    tilt_deg: list[float] = Field(min_length=2, max_length=2, description="smallest and largest tilt")
+    step_deg: list[float] = Field(min_length=2, max_length=2, description="mean step per frame: rotation, tilt")
 
 
 def _describe(kind: str) -> OrbitKindOut:

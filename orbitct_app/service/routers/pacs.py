@@ -52,7 +52,7 @@ class SeriesOut(BaseModel):
 class ImportRequest(BaseModel):
     """Fetch runs of one orbit (XA, in acquisition order) from a node and import them as a scan."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
     study_uid: Uid
     series_uids: list[Uid] = Field(min_length=1, max_length=16, description="the runs, in acquisition order")
     name: str = Field(default="imported", min_length=1, max_length=100)
@@ -69,7 +69,7 @@ class ImportOut(BaseModel):
 class SendRequest(BaseModel):
     """Send a succeeded reconstruction to a node as a DICOM CT series (or one Enhanced CT object)."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
     reconstruction_id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")
     water_mu_per_mm: float | None = Field(default=None, gt=0.0, le=10.0)
     patient_id: str = Field(default="", max_length=64, pattern=r"^[\w .-]*$")

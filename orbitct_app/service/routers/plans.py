@@ -20,6 +20,7 @@ from orbitct_app.bbplan import (
     load_surface,
     outline_from_volume,
 )
+from orbitct_app.service.core.schema_rules import at_most_one_of, schema_extra
 from orbitct_app.service.core.errors import (
     ERROR_RESPONSES,
     Conflict,
@@ -41,10 +42,11 @@ class KeepOutIn(BaseModel):
     """A patch of the object's surface without BBs: polar angles (deg, counterclockwise from +x; through 0 when
     ``angle_to_deg < angle_from_deg``; 0 to 360: the whole turn) between two heights (mm)."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
     angle_from_deg: float = Field(ge=0.0, lt=360.0)
-    angle_to_deg: float = Field(ge=0.0, le=360.0)
-    z_min_mm: float = Field(ge=-1000.0, le=1000.0)
+    angle_to_deg: float = Field(ge=0.0, le=360.0, description="not the same angle as angle_from_deg (only 0 to 360 "
+                                "makes the whole turn); checked by the service, 422 otherwise")
+    z_min_mm: float = Field(ge=-1000.0, le=1000.0, description="below z_max_mm (checked by the service, 422 otherwise)")
     z_max_mm: float = Field(ge=-1000.0, le=1000.0)
 
     @model_validator(mode="after")
@@ -61,9 +63,10 @@ class BBPlanIn(BaseModel):
     """What to plan: the object and default orbit of an experiment, the orbit, the panel, how many BBs (or the
     accuracy to reach with as few as possible), where not to put them, and the detection's centroid noise."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [
-        {"experiment": "A", "frames": 500, "bbs": 8, "keep_out": [
-            {"angle_from_deg": 300, "angle_to_deg": 60, "z_min_mm": -20, "z_max_mm": 10}]}]})
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra=schema_extra(
+        [{"experiment": "A", "frames": 500, "bbs": 8, "keep_out": [
+            {"angle_from_deg": 300, "angle_to_deg": 60, "z_min_mm": -20, "z_max_mm": 10}]}],
+        at_most_one_of("surface_id", "surface_reconstruction_id", "surface_shape")))
 
     experiment: Literal["A", "B", "C"]
     orbit: str | None = Field(default=None, max_length=40, pattern=r"^[a-z_-]+$")

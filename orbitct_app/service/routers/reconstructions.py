@@ -18,6 +18,7 @@ from orbitct_app.service.core.errors import (
     Conflict,
     ErrorBody,
     Invalid,
+    NotFound,
 )
 from orbitct_app.service.core.files import confined
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
@@ -31,7 +32,7 @@ MAX_VOXELS = 512**3
 class ReconstructionRequest(BaseModel):
     """Reconstruct a complete scan."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [
         {"scan_id": "a1b2c3d4e5f60718", "algorithm": "pwls", "geometry": "calibrated", "shape": [64, 64, 64], "iterations": 20}
     ]})
 
@@ -39,8 +40,8 @@ class ReconstructionRequest(BaseModel):
     algorithm: Literal["fdk", "pwls"] = "fdk"
     geometry: Literal["calibrated", "nominal", "truth"] = Field("calibrated", description="which geometry of the scan file")
     voxel_mm: float | None = Field(None, gt=0.005, le=20.0, description="isotropic voxel size; default fits the field of view")
-    shape: tuple[Annotated[int, Field(ge=4, le=1024)], Annotated[int, Field(ge=4, le=1024)], Annotated[int, Field(ge=4, le=1024)]] | None = Field(
-        None, description="(nz, ny, nx), centred on the isocenter; default: see fit")
+    shape: list[Annotated[int, Field(ge=4, le=1024)]] | None = Field(
+        None, min_length=3, max_length=3, description="[nz, ny, nx], centred on the isocenter; default: see fit")
     fit: Literal["object", "fov"] = Field("object", description="without shape: the grid fitted to the object (found in a "
                                           "coarse reconstruction) or the whole field of view")
     iterations: int = Field(50, ge=1, le=500, description="PWLS iterations (ignored by FDK)")
@@ -140,7 +141,7 @@ def get_slice(job_id: str, axis: Literal["axial", "coronal", "sagittal"], servic
     n = vol.shape[dim]
     i = n // 2 if index is None else index
     if i >= n:
-        raise Invalid(f"index {i} is outside 0..{n - 1} for {axis} slices")
+        raise NotFound(f"no {axis} slice {i}: this volume's {axis} slices are 0..{n - 1}")
     result = job["result"]
     grid = VolumeGrid(tuple(vol.shape), tuple(result["voxel_mm"]), tuple(result["origin_mm"]))
     png = slice_png(np.asarray(vol, dtype=np.float32), grid, axis, i, title=f"{result.get('name', job_id)}: ")

@@ -24,6 +24,7 @@ from orbitct_app.service.core.errors import (
     validation_details,
 )
 from orbitct_app.service.core.events import sse_response
+from orbitct_app.service.core.schema_rules import only_with, schema_extra
 from orbitct_app.service.core.files import confined
 from orbitct_app.service.deps import Reader, ScanOperator, ServiceDep
 from orbitct_app.service.schemas import scan_or_404
@@ -36,10 +37,10 @@ ScanState = Literal["queued", "running", "paused", "complete", "aborted", "faile
 class ScanCreate(BaseModel):
     """A scan to run on the bench: orbit, its parameters, injected errors (simulation), mode."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [
-        {"name": "experiment A", "orbit": "sawtooth", "params": {"amplitude_deg": 6, "cycles": 2}, "frames": 500,
-         "errors": "none", "seed": 0, "mode": "step"},
-    ]})
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra=schema_extra(
+        [{"name": "experiment A", "orbit": "sawtooth", "params": {"amplitude_deg": 6, "cycles": 2}, "frames": 500,
+          "errors": "none", "seed": 0, "mode": "step"}],
+        only_with("abort_on", "calibrate", "live")))
 
     name: str = Field("", max_length=100, pattern=r"^[\w .,:()+-]*$", description="free label")
     orbit: OrbitKind = Field(description="orbit kind; parameters in GET /orbits")
@@ -97,7 +98,7 @@ class ScanOut(BaseModel):
 class ScanAction(BaseModel):
     """Why (optional) for abort."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
     reason: str = Field("aborted by the operator", max_length=200)
 
 
@@ -220,8 +221,9 @@ class FrameOut(BaseModel):
     height: int
     scale: float = Field(description="picture pixels per detector pixel")
     pixels: str = Field(description="base64 of width x height bytes, row by row (1st to 99.5th percentile as 0 to 255)")
-    bbs: list[tuple[float, float]] | None = Field(None, description="BBs the live calibration found in this frame: "
-                                                  "(column, row) in detector pixels (none without calibrate: live)")
+    bbs: list[Annotated[list[float], Field(min_length=2, max_length=2)]] | None = Field(
+        None, description="BBs the live calibration found in this frame: [column, row] in detector pixels (none "
+        "without calibrate: live)")
 
 
 @router.get("/{scan_id}/frames/latest", response_model=FrameOut, summary="The newest frame of a running scan",

@@ -18,7 +18,7 @@ router = APIRouter(prefix="/session", tags=["session"], responses=ERROR_RESPONSE
 class SignIn(BaseModel):
     """The bearer token to sign in with (sent in the body, never in a URL)."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
     token: str = Field(min_length=1, max_length=512, description="from `orbitct token create --role R`")
 
 

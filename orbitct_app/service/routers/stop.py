@@ -16,6 +16,7 @@ from orbitct_app.service.core.events import sse_response
 from orbitct_app.service.deps import Reader, Resetter, ServiceDep, Stopper
 from orbitct_app.service.safety.estop import TOPIC
 from orbitct_app.service.safety.latch import NotLatchedError
+from orbitct_app.service.safety.request import stop_reason
 
 router = APIRouter(prefix="/stop", tags=["stop"], responses=ERROR_RESPONSES)
 
@@ -80,18 +81,24 @@ class LatchOut(BaseModel):
 class ResetRequest(BaseModel):
     """A note for the log (what was checked before resetting)."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
     note: str = Field("", max_length=500)
 
 
-@router.post("", response_model=StopOut, status_code=202, summary="Emergency stop")
-async def emergency_stop(request: Request, service: ServiceDep, who: Stopper, body: StopRequest | None = None) -> StopOut:
+@router.post("", response_model=StopOut, status_code=202, summary="Emergency stop",
+             openapi_extra={"requestBody": {"required": False, "content": {"application/json": {
+                 "schema": StopRequest.model_json_schema()}}}})
+async def emergency_stop(request: Request, service: ServiceDep, who: Stopper) -> StopOut:
     """Latch the stop, abort any scan, halt every axis and switch X-rays off, then read every device back.
 
     ``halted`` is true only when each device's stop was acknowledged and its read-back confirms it;
-    otherwise ``message`` and ``devices`` say what could not be verified. Any valid token may stop.
+    otherwise ``message`` and ``devices`` say what could not be verified. Any valid token may stop. The body is
+    optional, and a stop is never refused for it: a body that is not a ``StopRequest`` is noted in ``note``.
     """
-    reply = await service.estop.stop(who, (body or StopRequest()).reason[:500], request.headers.get("authorization"))
+    reason, problem = stop_reason(await request.body())
+    reply = await service.estop.stop(who, reason, request.headers.get("authorization"))
+    if problem:
+        reply["note"] = f"{problem}; the stop was taken"
     return StopOut(**reply)
 
 
@@ -112,8 +119,10 @@ async def reset(service: ServiceDep, who: Resetter, body: ResetRequest | None = 
 
 
 @router.get("/events", summary="Stops and resets (server-sent events)",
-            responses={200: {"content": {"text/event-stream": {"example": 'id: 3\nevent: stop\ndata: {"halted":true,"latched":true}\n\n'}}}})
+            responses={200: {"content": {"text/event-stream": {"example": 'event: latch\ndata: {"latched":false}\n\n'
+                                                                          'id: 3\nevent: stop\ndata: {"halted":true,"latched":true}\n\n'}}}})
 def stop_events(service: ServiceDep, _: Reader,
                 last_event_id: Annotated[str | None, Header(max_length=20)] = None):  # type: ignore[no-untyped-def]
-    """Events ``stop`` (with what was verified) and ``reset`` (who, when), in order; resumes after ``Last-Event-ID``."""
-    return sse_response(service.bus, TOPIC, last_event_id)
+    """First ``latch`` (the latch as ``GET /stop`` gives it, without an id), then the events ``stop`` (with what was
+    verified) and ``reset`` (who, when), in order; resumes after ``Last-Event-ID``. The stream stays open."""
+    return sse_response(service.bus, TOPIC, last_event_id, first=("latch", service.estop.state()))

@@ -32,6 +32,7 @@ from devices.halt import HaltCheck, halt_and_verify, summary
 from orbitct_app.service.core.auth import ON_BEHALF_HEADER, Principal, TokenRegistry
 from orbitct_app.service.core.settings import TokenHash
 from orbitct_app.service.safety.latch import StopLatch
+from orbitct_app.service.safety.request import stop_reason
 
 log = logging.getLogger("orbitct.service.guard")
 # what the guard connects to, with its own driver options: short time-outs, and watch-only connections where a
@@ -282,22 +283,6 @@ class StopHandler(BaseHTTPRequestHandler):
             return None
         return who
 
-    def _reason(self) -> tuple[str, str]:
-        """The stop's reason from the body, and what was wrong with the body (a stop is taken either way)."""
-        raw = self.raw_body
-        if not raw.strip():
-            return "", ""
-        if len(raw) > MAX_BODY_BYTES:
-            return "", f"the body was over {MAX_BODY_BYTES} bytes"
-        try:
-            body = json.loads(raw)
-        except ValueError:
-            return "", "the body was not JSON ({\"reason\": \"...\"} or nothing)"
-        reason = body.get("reason", "") if isinstance(body, dict) else None
-        if not isinstance(reason, str):
-            return "", "the reason was not text"
-        return reason[:500], "the reason was cut to 500 characters" if len(reason) > 500 else ""
-
     def do_POST(self) -> None:  # noqa: N802 - http.server's naming
         if self.path.split("?")[0] != "/stop":
             self._error(404, "not_found", "the stop listener serves POST /stop, GET /stop and GET /health")
@@ -305,7 +290,10 @@ class StopHandler(BaseHTTPRequestHandler):
         who = self._principal("stop")
         if who is None:
             return
-        reason, problem = self._reason()
+        too_long = len(self.raw_body) > MAX_BODY_BYTES
+        reason, problem = stop_reason(b"" if too_long else self.raw_body)
+        if too_long:
+            problem = f"the body was over {MAX_BODY_BYTES} bytes"
         if self.unread:
             problem = f"the body was {self.unread} and was not read"
         reply = self.guard.stop(who, reason)  # a malformed body never keeps a stop from being taken

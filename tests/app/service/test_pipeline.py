@@ -81,7 +81,7 @@ def test_scan_calibrate_reconstruct(api, tmp_path: Path) -> None:  # type: ignor
     assert rec["result"]["shape"] == [24, 32, 32]
     r = api.get(f"/reconstructions/{rec_id}/slices/axial")
     assert r.status_code == 200 and r.content[:4] == b"\x89PNG"
-    assert api.get(f"/reconstructions/{rec_id}/slices/axial", params={"index": 99}).status_code == 422
+    assert api.get(f"/reconstructions/{rec_id}/slices/axial", params={"index": 99}).status_code == 404  # no such slice
     r = api.get(f"/reconstructions/{rec_id}/volume", params={"format": "npy"})
     assert np.load(io.BytesIO(r.content)).shape == (24, 32, 32)
     r = api.get(f"/reconstructions/{rec_id}/volume")

@@ -60,7 +60,9 @@ def requests(
     kwargs: dict[str, Any] = {"params": params}
     if draw(st.booleans()):
         kwargs["headers"] = {"Last-Event-ID": draw(HEADER_VALUES).encode("utf-8")}  # raw bytes, as on the wire
-    if "requestBody" in op:
+    if "requestBody" in op and "application/json" not in op["requestBody"]["content"]:  # an upload: raw bytes
+        kwargs["content"] = draw(st.binary(max_size=64))
+    elif "requestBody" in op:
         ref = op["requestBody"]["content"]["application/json"]["schema"].get("$ref", "")
         model = schemas.get(ref.rsplit("/", 1)[-1], {})
         examples = model.get("examples", [])
