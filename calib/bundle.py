@@ -70,13 +70,17 @@ def bundle_adjust(
     gauge_xyz: NDArray[np.float64] | None = None,
     gauge_weights: NDArray[np.float64] | None = None,
     pose_prior: tuple[float, float] | None = None,
+    point_prior_mm: float | None = None,
     spread: NDArray[np.float64] | None = None,
     callback: Callable[[int, ViewState, NDArray[np.float64], float], None] | None = None,
 ) -> BundleResult:
     """Minimise the Huber reprojection cost over view corrections and BB centres (``uv`` NaN = not seen).
 
     The gauge is fixed by :func:`gauge_matrix` of ``gauge_xyz`` (default ``xyz0``) and ``gauge_weights``. ``spread``
-    ``(N, K)`` (default 1) is each detection's expected error relative to the others: its residual is divided by it."""
+    ``(N, K)`` (default 1) is each detection's expected error relative to the others: its residual is divided by it.
+    ``point_prior_mm``: a weak pull of every BB centre towards ``xyz0`` (its standard deviation), so that a centre the
+    views hold poorly cannot run away (rough solves of tracks that may be wrong; without it, last-bit differences of
+    the linear algebra sent such centres to 1e17 mm along different paths on different CPUs)."""
     n, k = uv.shape[:2]
     seen = np.isfinite(uv).all(-1)
     spread = np.ones((n, k)) if spread is None else np.where(seen, np.asarray(spread, dtype=float), 1.0)
@@ -88,6 +92,7 @@ def bundle_adjust(
     G = gauge_matrix(ref, gauge_weights)
     prior_w = np.zeros(p)
     prior_w[6:] = 1.0 / intrinsics_prior_mm**2
+    point_w = 0.0 if point_prior_mm is None else 1.0 / point_prior_mm**2
     if pose_prior is not None:  # (rad, mm): weak pull of every view towards its nominal pose
         prior_w[0:3] = 1.0 / pose_prior[0] ** 2
         prior_w[3:6] = 1.0 / pose_prior[1] ** 2
@@ -99,7 +104,8 @@ def bundle_adjust(
         r = model.project(st, X) - obs
         nr = np.where(seen, np.linalg.norm(r, axis=-1) / spread, 0.0)
         g = G @ (X - ref).ravel()
-        return _huber_cost(nr, loss_scale_px) + 0.5 * float((prior_w * prior_params(st) ** 2).sum()) + 0.5 * gauge_w * float(g @ g)
+        return (_huber_cost(nr, loss_scale_px) + 0.5 * float((prior_w * prior_params(st) ** 2).sum())
+                + 0.5 * gauge_w * float(g @ g) + 0.5 * point_w * float(((X - xyz0) ** 2).sum()))
 
     uv_p, Jv, Jp = model.project_jac(state, xyz)
     jpp = np.einsum("nkai,nkaj->kij", Jp * seen[..., None, None], Jp)
@@ -130,11 +136,11 @@ def bundle_adjust(
             B = Hvp.transpose(0, 2, 1, 3).reshape(n, p, 3 * k)  # (N,p,3K)
             S = np.zeros((3 * k, 3 * k))
             for j in range(k):
-                S[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] = Hpp[j] * (1.0 + mu)
+                S[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] = Hpp[j] * (1.0 + mu) + point_w * np.eye(3)
             S += Hg
             HiB = Hvv_inv @ B
             S -= B.reshape(n * p, 3 * k).T @ HiB.reshape(n * p, 3 * k)
-            rhs = -(gp + gg) + np.einsum("npi,np->i", HiB, gv)
+            rhs = -(gp + gg + point_w * (xyz - xyz0).ravel()) + np.einsum("npi,np->i", HiB, gv)
             try:
                 dp = np.linalg.solve(S, rhs)
             except np.linalg.LinAlgError:

@@ -29,6 +29,11 @@ def fill_states(state: ViewState, solved: NDArray[np.bool_], n: int) -> ViewStat
     return ViewState(state.R[nearest], state.t[nearest], state.k[nearest])
 
 
+#: a rough solve's pull of each BB centre towards its first triangulation (standard deviation): weak enough to leave
+#: every centre the views hold where they put it, strong enough that one they hold poorly cannot run away
+ROUGH_POINT_PRIOR_MM = 1000.0
+
+
 def rough_solve(
     model: ViewModel, uv: NDArray[np.float64], min_bbs: int = 3, iterations: int = 8, prior_scale: float = 1.0
 ) -> tuple[ViewState, NDArray[np.float64], NDArray[np.bool_]]:
@@ -44,7 +49,8 @@ def rough_solve(
         xyz0[bad] = 0.0
     # the weak pull towards the nominal poses holds parts of the orbit that share no BB track together
     res = bundle_adjust(sub, uvs, xyz0, loss_scale_px=2.0, max_iterations=iterations,
-                        pose_prior=(0.05 * prior_scale, 20.0 * prior_scale))
+                        pose_prior=(0.05 * prior_scale, 20.0 * prior_scale),
+                        point_prior_mm=ROUGH_POINT_PRIOR_MM)
     full = ViewState.identity(model.nominal.n_views, 0)
     full.R[ok_views], full.t[ok_views] = res.state.R, res.state.t
     return fill_states(full, ok_views, model.nominal.n_views), res.xyz, ok_views

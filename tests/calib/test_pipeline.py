@@ -163,15 +163,16 @@ def test_detections_over_rough_background_weigh_less_and_the_views_come_out_clos
     assert errors[True] < 0.9 * errors[False]
 
 
-def test_twice_the_bench_errors_are_recovered_by_tracking_with_larger_jumps(tmp_path: Path) -> None:
-    """Errors twice the published bench profile: the BBs are lost with the expected 3 mm jitter; tracking again
-    with larger allowed jumps recovers them, the calibration reaches the accuracy of the 1x case, and says so."""
+def test_three_times_the_bench_errors_are_recovered_by_tracking_with_larger_jumps(tmp_path: Path) -> None:
+    """Errors three times the published bench profile: the BBs are lost with the expected 3 mm jitter; tracking
+    again with larger allowed jumps recovers them, the calibration reaches the accuracy of the 1x case, and says so.
+    (Twice the profile no longer needs it: its rough solves hold the BB centres; 0.154 px with 3 mm.)"""
     from orbitct.errorprofiles import make_profile
     from orbitct.simulator.scan import simulate_scan
 
-    scan = tmp_path / "x2.h5"
+    scan = tmp_path / "x3.h5"
     simulate_scan("A", out=scan, n_frames=250, detector_px=256, seed=1, overwrite=True,
-                  errors=make_profile("bench", 1, angle_scale=2 * 250 / 500, shift_amplitude_mm=16.0, shift_noise_mm=4.0))
+                  errors=make_profile("bench", 1, angle_scale=3 * 250 / 500, shift_amplitude_mm=24.0, shift_noise_mm=6.0))
     first = calib.calibrate_scan(scan, out=tmp_path / "no.h5", recover=False)
     assert first.quality is not None and not first.quality.passed
     res = calib.calibrate_scan(scan, out=tmp_path / "o.h5")
@@ -306,10 +307,8 @@ _C_PLANNED = [[-68.2585129615815, 75.14687103558538, 49.34975071862464],
               [120.33873424902693, -9.504980847525989, -99.38718960823294]]
 
 
-def test_bbs_one_part_of_the_orbit_missed_are_found_through_the_merged_geometry(tmp_path: Path) -> None:
-    """Tracking broke for every BB where C's orbit jumps to its third arc; six BBs were identified in both parts
-    and made one, four in the first part only: those four are then found in the second part's views through the
-    merged geometry (before, they were left out of 92 of the 206 views, and those views calibrated from six BBs)."""
+def _c_scan(tmp_path: Path) -> Path:
+    """C's orbit (206 views at 512 px, bench errors) with the ten planned BBs."""
     from orbitct.errorprofiles import make_profile
     from orbitct.phantoms.experiments import experiment_phantom
     from orbitct.simulator import resolve_orbit
@@ -318,7 +317,47 @@ def test_bbs_one_part_of_the_orbit_missed_are_found_through_the_merged_geometry(
     scan = tmp_path / "c.h5"
     simulate_scan(experiment_phantom("C").with_markers(np.array(_C_PLANNED)), resolve_orbit("C", None, 206), out=scan,
                   detector_px=512, seed=0, errors=make_profile("bench", 0, angle_scale=206 / 500))
+    return scan
+
+
+def test_the_ten_planned_bbs_on_c_are_identified_at_the_orbits_own_jitter(tmp_path: Path) -> None:
+    """Every BB in nine views of ten, at the floor, without allowing larger jumps than the orbit's: the rough solves
+    that tie C's three arcs together hold each BB centre softly to its first triangulation (before, a few centres
+    ran off to 1e17 mm, along paths that depended on the CPU's linear algebra, and the BBs were followed only with
+    8 or 15 mm jumps, or identified twice)."""
+    scan = _c_scan(tmp_path)
     res = calib.calibrate_scan(scan, out=tmp_path / "o.h5")
+    assert not any("jumps" in w or "identified twice" in w for w in res.warnings), res.warnings
+    proj, _, truth = _truth(scan)
+    seen = np.isfinite(res.uv[proj]).all(-1).mean(0)
+    assert res.uv.shape[1] == 10 and seen.min() >= 0.9, seen
+    err, _ = similarity_aligned_error_px(res.geometry[proj], truth[proj], max_views=proj.size)
+    assert res.quality is not None and res.quality.passed and err < 0.06, err
+
+
+def test_bbs_one_part_of_the_orbit_missed_are_found_through_the_merged_geometry(tmp_path: Path,
+                                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """Tracking broken for every BB where C's orbit jumps to its third arc (done here to the identification's
+    answer): six BBs identified in both parts, each twice, and four in the first part only. The twins are made one,
+    and the four are then found in the second part's views through the merged geometry (before, they were left out
+    of 92 of the 206 views, and those views calibrated from six BBs)."""
+    import calib.pipeline
+
+    scan = _c_scan(tmp_path)
+    with ScanFile(scan) as sf:
+        source = sf.geometry("nominal")[sf.projection_indices].S
+    d = source / np.linalg.norm(source, axis=1, keepdims=True)
+    jump = int(np.argmax(np.linalg.norm(np.diff(d, axis=0), axis=1))) + 1  # the first view of the third arc
+    identified = calib.pipeline.identify
+
+    def broken_at_the_jump(*args, **kwargs):  # type: ignore[no-untyped-def]
+        uv, warnings = identified(*args, **kwargs)
+        first, second = uv.copy(), uv.copy()
+        first[jump:], second[:jump] = np.nan, np.nan
+        return np.concatenate([first, second[:, :6]], axis=1), warnings
+
+    monkeypatch.setattr(calib.pipeline, "identify", broken_at_the_jump)
+    res = calib.calibrate_scan(scan, out=tmp_path / "o.h5", recover=False)
     assert any("identified twice" in w for w in res.warnings), res.warnings
     proj, _, truth = _truth(scan)
     seen = np.isfinite(res.uv[proj]).all(-1).mean(0)
