@@ -19,3 +19,16 @@ def _stop_sim_twins() -> Iterator[None]:
 
     stop_twins()
     gc.collect()
+
+
+@pytest.fixture(autouse=True)
+def _bench_priority(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Tests marked ``realtime`` run at the bench's priority, as ``orbitct scan`` and the service's bench process
+    do: a continuous sweep does not wait for a process starved by other work on the machine."""
+    if request.node.get_closest_marker("realtime") is None:
+        yield
+        return
+    from acquire.priority import bench_priority
+
+    with bench_priority():
+        yield

@@ -73,6 +73,7 @@ def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int |
     if config_path is None or out is None:
         fail("orbitct scan needs --config FILE and --out FILE (see orbitct scan --help)")
     from acquire.errors import AcquireError
+    from acquire.priority import bench_priority
     from acquire.runner import SIGNAL_REASONS, ScanRequest, run_scan
 
     if data_dir is not None:
@@ -89,7 +90,7 @@ def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int |
         fail("--abort-on needs --calibrate live")
     live = None
     try:
-        with ProgressBar() as bar:
+        with ProgressBar() as bar, bench_priority():
             if calibrate_mode == "live":
                 live = _live_subscriber(req, out, bb_diameter_mm, abort_on, lost_frames, bar)
             res = run_scan(req, progress=bar, subscribers=[live] if live is not None else [])
