@@ -156,6 +156,11 @@ class XrayTwin:
             await self._server.shutdown()
             self._server = None
 
+    @property
+    def connections(self) -> int:
+        """How many clients are connected now (read it in the twin's loop)."""
+        return 0 if self._server is None else len(self._server.active_connections)
+
     def drop_connections(self) -> None:
         """Close every client connection now (as a pulled cable would)."""
         if self._server is None:

@@ -77,10 +77,18 @@ def test_a_lost_generator_is_connected_again(threads: dict[str, TwinThread], cap
     port = threads["xray"].port
     with caplog.at_level(logging.WARNING, logger="devices.twins.feed"):
         threads["xray"].stop()
-        time.sleep(0.5)
+        # Wait for the loss to be noticed while the generator is gone: a fixed pause raced the feed under load
+        # (a read that timed out rather than failed was retried once, by then against the restarted twin).
+        deadline = time.monotonic() + 20.0
+        while "lost the bench it images" not in caplog.text and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert "lost the bench it images" in caplog.text
         threads["xray"] = TwinThread(XrayTwin(get_world("feed-bench"), time_scale=25.0), port=port)
-        time.sleep(1.5)  # one retry
-    assert "lost the bench it images" in caplog.text
+    twin = threads["xray"]
+    deadline = time.monotonic() + 20.0  # the feed's monitor connects again (one retry, later under load)
+    while twin.run_sync(lambda: twin.twin.connections) < 1 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert twin.run_sync(lambda: twin.twin.connections) >= 1
 
     async def main() -> None:
         async with XrayGenerator("xray", threads["xray"].uri) as gen, \
