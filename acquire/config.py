@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated, Any, Literal, Self, Union
+from typing import Annotated, Any, Literal, Self
 
 import yaml
 from pydantic import (
@@ -82,7 +82,7 @@ class GeometryConfig(_Model):
     eta_deg: float = Field(0.0, ge=-10, le=10)
 
     @model_validator(mode="after")
-    def _sdd_beyond_sad(self) -> "GeometryConfig":
+    def _sdd_beyond_sad(self) -> GeometryConfig:
         if self.sdd_mm <= self.sad_mm:
             raise ValueError(f"sdd_mm ({self.sdd_mm}) must exceed sad_mm ({self.sad_mm}): the detector lies beyond the isocenter")
         return self
@@ -133,7 +133,7 @@ class BenchDevices(_Model):
     _uris = field_validator("hexapod", "rotation_stage", "xray", "detector")(classmethod(lambda cls, v: _check_uri(v)))
 
     @model_validator(mode="after")
-    def _simulated_panel_sees_its_source(self) -> "BenchDevices":
+    def _simulated_panel_sees_its_source(self) -> BenchDevices:
         panel = parse_uri(self.detector)
         if panel.scheme == "sim":  # a twin panel renders the exposures of its own world's X-ray twin, no other
             source = parse_uri(self.xray)
@@ -162,7 +162,7 @@ class HexapodLimits(_Model):
     w_deg: Range = (-30.0, 30.0)
 
     @model_validator(mode="after")
-    def _ranges(self) -> "HexapodLimits":
+    def _ranges(self) -> HexapodLimits:
         for name in type(self).model_fields:
             _check_range(name, getattr(self, name))
         return self
@@ -268,7 +268,7 @@ class CArmLimits(_Model):
     speed_deg_s: float = Field(30.0, gt=0, le=180)
 
     @model_validator(mode="after")
-    def _ranges(self) -> "CArmLimits":
+    def _ranges(self) -> CArmLimits:
         _check_range("primary_deg", self.primary_deg)
         _check_range("secondary_deg", self.secondary_deg)
         return self
@@ -297,7 +297,7 @@ class CArmConfig(_RigConfig):
 
 
 
-AnyConfig = Annotated[Union[BenchConfig, CArmConfig], Field(discriminator="kind")]
+AnyConfig = Annotated[BenchConfig | CArmConfig, Field(discriminator="kind")]
 _ADAPTER: TypeAdapter[BenchConfig | CArmConfig] = TypeAdapter(AnyConfig)
 
 

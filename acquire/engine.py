@@ -14,7 +14,7 @@ import logging
 import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -257,7 +257,7 @@ class ScanEngine:
             self._check_abort()
             start = ScanStart(
                 plan=self.plan, axes=dict(self.rig.axes), mode=self.mode,
-                started_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"), sim=self.rig.sim,
+                started_utc=datetime.now(UTC).isoformat(timespec="seconds"), sim=self.rig.sim,
                 extra=self.start_extra,
             )
             self._notify("on_start", start)
@@ -470,11 +470,11 @@ class ScanEngine:
                     last = cmd
                 nxt = frames[k + 1] if k + 1 < len(frames) else None
                 start_next: Callable[[], None] | None = None
-                if self.motion.overlap_readout and nxt is not None and f.image_key == ImageKey.PROJECTION:
-                    if nxt.targets != cmd:
-                        def start_next(nxt_cmd: dict[str, float] = nxt.targets) -> None:
-                            nonlocal ahead
-                            ahead = (nxt_cmd, asyncio.ensure_future(self.rig.move_to(nxt_cmd, timeout)))
+                if (self.motion.overlap_readout and nxt is not None and f.image_key == ImageKey.PROJECTION
+                        and nxt.targets != cmd):
+                    def start_next(nxt_cmd: dict[str, float] = nxt.targets) -> None:
+                        nonlocal ahead
+                        ahead = (nxt_cmd, asyncio.ensure_future(self.rig.move_to(nxt_cmd, timeout)))
                 await self._shoot(f, t0, after_exposure=start_next)
         finally:
             if ahead is not None:  # scan ending early: let the started move end (cleanup halts it anyway)

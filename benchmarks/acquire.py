@@ -26,13 +26,14 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from acquire.config import BenchConfig, load_config  # noqa: E402
-from acquire.errors import AcquireError  # noqa: E402
-from acquire.rigs.bench import open_bench  # noqa: E402
-from acquire.runner import ScanRequest, ScanRunner, run_scan  # noqa: E402
-from devices.sim import twin_of  # noqa: E402
-from orbitct.scanfile import ScanFile  # noqa: E402
-from machine_info import describe_machine as machine  # noqa: E402
+from machine_info import describe_machine as machine
+
+from acquire.config import BenchConfig, load_config
+from acquire.errors import AcquireError
+from acquire.rigs.bench import open_bench
+from acquire.runner import ScanRequest, ScanRunner, run_scan
+from devices.sim import twin_of
+from orbitct.scanfile import ScanFile
 
 TARGET_OVERHEAD_MS = 10.0
 TARGET_TOTAL_S = 60.0
@@ -123,7 +124,7 @@ def dose_policy(cfg: BenchConfig, frames: int, time_scale: float, tilt_deg: floa
     print(f"high voltage policy: {frames} projections at 64 x 64, twins at {time_scale:g}x, "
           f"preparation time {cfg.exposure.prep_ms:g} ms (bench seconds)")
     print(f"  {'policy':<34} {'scan s':>8} {'HV on s':>8} {'exposing s':>11} {'HV on, not exposing s':>22}")
-    for name, (run_s, hv, ex, n) in rows.items():
+    for name, (run_s, hv, ex, _n) in rows.items():
         print(f"  {name:<34} {run_s:8.1f} {hv:8.2f} {ex:11.2f} {hv - ex:22.2f}")
     (a_run, a_hv, a_ex, _), (b_run, b_hv, b_ex, _) = rows.values()
     print(f"  dose-free time: {(b_hv - b_ex) - (a_hv - a_ex):.1f} s less high voltage without exposure, "

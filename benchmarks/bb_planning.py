@@ -33,8 +33,8 @@ from typing import Any
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
 
-import numpy as np  # noqa: E402
-from machine_info import describe_machine  # noqa: E402
+import numpy as np
+from machine_info import describe_machine
 
 ORBITS = ("sawtooth", "dcarc")
 

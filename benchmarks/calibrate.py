@@ -18,11 +18,11 @@ acquisition) and with numba's compiled kernels loaded; the time is the calibrati
 from __future__ import annotations
 
 import argparse
-import sys
 import multiprocessing as mp
 import os
 import platform
 import shutil
+import sys
 import tempfile
 import time
 import tracemalloc
@@ -34,7 +34,7 @@ _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
 
 import numpy as np
-from machine_info import cpu_model  # noqa: E402
+from machine_info import cpu_model
 
 PAPER_FRAMES = {"A": 500, "B": 656, "C": 857}
 

@@ -24,8 +24,8 @@ from pathlib import Path
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
 
-import numpy as np  # noqa: E402
-from machine_info import describe_machine  # noqa: E402
+import numpy as np
+from machine_info import describe_machine
 
 #: network the 8- and 32-worker estimate assumes (10 GbE, about 1.1 GB/s of payload)
 NETWORK_BYTES_S = 1.1e9

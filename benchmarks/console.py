@@ -40,8 +40,8 @@ import httpx
 # this folder last on the import path (its scripts are named like modules of the project), the project first
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
-from machine_info import describe_machine  # noqa: E402
-from service import TOKEN, frame_rate, pct, scan_ended, scan_started, start_service  # noqa: E402
+from machine_info import describe_machine
+from service import TOKEN, frame_rate, pct, scan_ended, scan_started, start_service
 
 ASSETS = ("/static/console.css", "/static/console.js", "/static/favicon.svg")
 TIMING_PARTS = ("motion_s", "acquire_s", "readback_s", "record_s", "prepare_wait_s", "overhead_s")  # a scan's timing

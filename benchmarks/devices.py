@@ -19,9 +19,10 @@ from typing import Any
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
 
-from devices.hexapod import Hexapod  # noqa: E402
-from devices.twins.gcs import start_twin  # noqa: E402
-from machine_info import describe_machine as machine  # noqa: E402
+from machine_info import describe_machine as machine
+
+from devices.hexapod import Hexapod
+from devices.twins.gcs import start_twin
 
 
 async def _timed(n: int, fn: Callable[[], Awaitable[Any]]) -> list[float]:

@@ -27,9 +27,9 @@ from typing import Any
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
 
-import numpy as np  # noqa: E402
-import psutil  # noqa: E402
-from machine_info import describe_machine  # noqa: E402
+import numpy as np
+import psutil
+from machine_info import describe_machine
 
 METAL_MU = 0.1  # /mm: voxels of the phantom above this are metal, left out of the RMSE
 WITHIN = 1.01  # "reaches" = RMSE at most 1 % above the reference's

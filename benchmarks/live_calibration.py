@@ -24,7 +24,7 @@ from typing import Any
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
 
-from machine_info import describe_machine  # noqa: E402
+from machine_info import describe_machine
 
 
 def _scan(out: Path, size: int, frames: int, live: bool) -> dict[str, Any]:

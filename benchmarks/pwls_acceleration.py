@@ -24,7 +24,7 @@ import numpy as np
 
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
-from machine_info import describe_machine  # noqa: E402
+from machine_info import describe_machine
 
 PHOTONS = 1.0e4
 WITHIN = 1.01  # "reaches" = RMSE at most 1 % above the reference's

@@ -24,7 +24,7 @@ import psutil
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
 
-from machine_info import cpu_model as cpu_name  # noqa: E402
+from machine_info import cpu_model as cpu_name
 
 # Reference: RTK CPU filters on 2 cores, 128^3 voxels, 180 views of 128^2 (issue 6).
 RTK_REFERENCE_S = {"forward": 0.8, "back": 2.1, "fdk": 1.7}

@@ -39,7 +39,8 @@ import yaml
 # this folder last on the import path (its scripts are named like modules of the project), the project first
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
-from machine_info import describe_machine  # noqa: E402
+from machine_info import describe_machine
+
 ROOT = Path(__file__).resolve().parents[1]
 TOKEN = "oct_benchmark_dev_token_0123456789"
 ORBIT = {"orbit": "sawtooth", "params": {"amplitude_deg": 6.0, "cycles": 2}, "errors": "none"}
@@ -143,14 +144,15 @@ async def poller(base: str, path: str, stop: asyncio.Event, interval_s: float,
 async def follower(base: str, scan_id: str, seen: list[int]) -> None:
     """Follow the scan's event stream to its end, checking that ids arrive in order."""
     last = 0
-    async with httpx.AsyncClient(base_url=base, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=None) as client:
-        async with client.stream("GET", f"/scans/{scan_id}/events") as r:
-            async for line in r.aiter_lines():
-                if line.startswith("id:"):
-                    n = int(line[3:])
-                    if n != last + 1:
-                        raise AssertionError(f"event {n} after {last}")
-                    last = n
+    headers = {"Authorization": f"Bearer {TOKEN}"}
+    async with (httpx.AsyncClient(base_url=base, headers=headers, timeout=None) as client,
+                client.stream("GET", f"/scans/{scan_id}/events") as r):
+        async for line in r.aiter_lines():
+            if line.startswith("id:"):
+                n = int(line[3:])
+                if n != last + 1:
+                    raise AssertionError(f"event {n} after {last}")
+                last = n
     seen.append(last)
 
 

@@ -7,8 +7,8 @@ Target (issue 2): at least 25 frames/s on 2 cores. Smaller runs for a quick chec
 from __future__ import annotations
 
 import argparse
-import sys
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -19,10 +19,10 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(
 
 import numba
 import numpy as np
+from machine_info import cpu_model
 
 from orbitct.phantoms import experiment_phantom
 from orbitct.simulator import SimulatedBench, line_integrals, simulate_scan
-from machine_info import cpu_model  # noqa: E402
 
 
 def main() -> None:

@@ -31,7 +31,7 @@ from pathlib import Path
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
 
-from machine_info import cores_available, describe_machine  # noqa: E402
+from machine_info import cores_available, describe_machine
 
 ROOT = _HERE.parent
 MEASURES_ENV = "ORBITCT_TEST_MEASURES"  # tests/helpers/measured.py (benchmarks do not import the tests)

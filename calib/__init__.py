@@ -14,10 +14,10 @@ from calib.pipeline import METHODS, CalibrationOptions, CalibrationResult, Itera
 __all__ = [
     "METHODS",
     "BadFramesError",
-    "FrameTooLargeError",
     "CalibrationError",
     "CalibrationOptions",
     "CalibrationResult",
+    "FrameTooLargeError",
     "IterationStats",
     "NoMarkersError",
     "NoNominalGeometryError",

@@ -67,7 +67,7 @@ class ObjectBackground:
 
     @classmethod
     def of(cls, line_integral: LineIntegral, geometry: ViewGeometry, surface: TapeSurface, diameter_mm: float,
-           **options: float) -> "ObjectBackground":
+           **options: float) -> ObjectBackground:
         """The background of an object seen by ``geometry``, its reference and typical shift taken over BBs of
         ``diameter_mm`` spread over the tape ``surface`` (where BBs go), in about 60 of the views."""
         angle, z = np.meshgrid(np.linspace(0, 2 * np.pi, 16, endpoint=False),

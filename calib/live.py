@@ -738,5 +738,12 @@ class LiveCalibration:
         return result
 
 
-__all__ = ["ABORT_KINDS", "LiveCalibration", "LiveCalibrationError", "LiveSettings", "LiveWarning", "WARNING_KINDS",
-           "WARNING_MEANINGS"]
+__all__ = [
+    "ABORT_KINDS",
+    "WARNING_KINDS",
+    "WARNING_MEANINGS",
+    "LiveCalibration",
+    "LiveCalibrationError",
+    "LiveSettings",
+    "LiveWarning",
+]

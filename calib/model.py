@@ -42,15 +42,15 @@ class ViewState:
     k: NDArray[np.float64]
 
     @classmethod
-    def identity(cls, n: int, n_intrinsics: int) -> "ViewState":
+    def identity(cls, n: int, n_intrinsics: int) -> ViewState:
         """No correction."""
         return cls(np.repeat(np.eye(3)[None], n, 0), np.zeros((n, 3)), np.zeros((n, n_intrinsics)))
 
-    def copy(self) -> "ViewState":
+    def copy(self) -> ViewState:
         """Independent copy."""
         return ViewState(self.R.copy(), self.t.copy(), self.k.copy())
 
-    def stepped(self, delta: NDArray[np.float64]) -> "ViewState":
+    def stepped(self, delta: NDArray[np.float64]) -> ViewState:
         """State after a local step ``delta (N, 6+m)``: ``R exp([d_rot]), t + d_t, k + d_k``."""
         return ViewState(self.R @ rotvec_to_matrix(delta[:, 0:3]), self.t + delta[:, 3:6], self.k + delta[:, 6:])
 

@@ -121,7 +121,7 @@ class CalibrationResult:
     warnings: list[str] = field(default_factory=list)
     unsolved_views: list[int] = field(default_factory=list)
     true_corrections: dict[str, NDArray[np.float64]] | None = None  # simulated scans: the truth, same frame
-    quality: "Verdict | None" = None
+    quality: Verdict | None = None
     compile_s: float = 0.0  # numba compiling its kernels on first use (after installation); not in elapsed_s
     view_status: NDArray[np.int8] | None = None  # per frame: STATUS_CODES, -1 for non-projections
     predicted_px: NDArray[np.float64] | None = None  # per frame: predicted field-of-view error (px)
@@ -1037,5 +1037,13 @@ def _estimate(
     return model.nominal.with_vectors(vec), xyz, full_state, uv, history, n_iter, warnings, quality
 
 
-__all__ = ["CalibrationOptions", "CalibrationResult", "IterationStats", "METHODS", "calibrate_candidates", "calibrate_scan",
-           "fill_states", "projected_diameter_px"]
+__all__ = [
+    "METHODS",
+    "CalibrationOptions",
+    "CalibrationResult",
+    "IterationStats",
+    "calibrate_candidates",
+    "calibrate_scan",
+    "fill_states",
+    "projected_diameter_px",
+]

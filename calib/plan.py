@@ -181,7 +181,7 @@ class KeepOut:
     z_max_mm: float
 
     @classmethod
-    def parse(cls, text: str) -> "KeepOut":
+    def parse(cls, text: str) -> KeepOut:
         """``FROM:TO,ZMIN:ZMAX`` (degrees, mm), e.g. ``300:60,-20:10``; ValueError naming what is wrong."""
         try:
             (a0, a1), (z0, z1) = ([float(v) for v in part.split(":")] for part in text.split(","))
@@ -402,5 +402,21 @@ def suggest_bb_count(geometry: ViewGeometry, surface: TapeSurface, diameter_mm: 
     return CountSuggestion(target_px, None, tried)
 
 
-__all__ = ["EDGE_NOISE_FACTOR", "METAL_CHORD_MM", "OVERLAP_DIAMETERS", "CountSuggestion", "check_room", "KeepOut", "Placement", "PlanPrediction",
-           "edge_noise", "hand_spiral", "metal_of", "placement_score", "plan_placement", "predict_placement", "suggest_bb_count", "usable_bbs"]
+__all__ = [
+    "EDGE_NOISE_FACTOR",
+    "METAL_CHORD_MM",
+    "OVERLAP_DIAMETERS",
+    "CountSuggestion",
+    "KeepOut",
+    "Placement",
+    "PlanPrediction",
+    "check_room",
+    "edge_noise",
+    "hand_spiral",
+    "metal_of",
+    "placement_score",
+    "plan_placement",
+    "predict_placement",
+    "suggest_bb_count",
+    "usable_bbs",
+]

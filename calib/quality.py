@@ -440,4 +440,4 @@ def judge(quality: ViewQuality, frames: NDArray[np.intp], threshold_px: float, m
                    quality.noise_px, float(threshold_px))
 
 
-__all__ = ["Verdict", "judge", "BRIDGED", "FAILED", "MAX_VIEW_MISFIT", "MIN_OWN_BBS", "OWN", "STATUS_CODES", "ViewQuality", "assess_views", "centroid_noise_px", "fit_rigid_poses", "FIRST_LOSS_SCALE_PX", "huber_moments", "huber_threshold_px"]
+__all__ = ["BRIDGED", "FAILED", "FIRST_LOSS_SCALE_PX", "MAX_VIEW_MISFIT", "MIN_OWN_BBS", "OWN", "STATUS_CODES", "Verdict", "ViewQuality", "assess_views", "centroid_noise_px", "fit_rigid_poses", "huber_moments", "huber_threshold_px", "judge"]

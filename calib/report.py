@@ -36,7 +36,7 @@ TABLE_ROWS = (
 PAPER_ITERATION = 2  # the published Table 1 reports the alternation after two iterations
 
 
-def table1_row(result: "CalibrationResult", iteration: int | None = None) -> dict[str, float]:
+def table1_row(result: CalibrationResult, iteration: int | None = None) -> dict[str, float]:
     """The paper's Table 1 figures for one calibration: RPE after ``iteration`` (default: the last for the
     bundle method, the second for the paper method, as the published table)."""
     if iteration is None:
@@ -152,7 +152,7 @@ def corrections_plot(
     plt.close(fig)
 
 
-def _bb_table(result: "CalibrationResult") -> str:
+def _bb_table(result: CalibrationResult) -> str:
     """The BBs by number (as ``--scale-bar-bbs`` names them), with their positions and how often each was seen."""
     seen = np.isfinite(result.uv[..., 0]).sum(0)
     rows = "\n".join(f"| {k + 1} | {x:.2f} | {y:.2f} | {z:.2f} | {int(seen[k])} |" for k, (x, y, z) in enumerate(result.xyz))
@@ -160,7 +160,7 @@ def _bb_table(result: "CalibrationResult") -> str:
             "| ---: | ---: | ---: | ---: | ---: |\n" + rows + "\n")
 
 
-def write_report(result: "CalibrationResult", out_dir: Path, extra_columns: dict[str, dict[str, Any]] | None = None) -> list[Path]:
+def write_report(result: CalibrationResult, out_dir: Path, extra_columns: dict[str, dict[str, Any]] | None = None) -> list[Path]:
     """Write table1.md, table1.csv, rpe_violin.png and corrections.png into ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
     n_last = len(result.iterations) - 1

@@ -184,7 +184,7 @@ class Outline:
 
     @classmethod
     def from_points(cls, xyz: NDArray[np.float64], *, n_angles: int = 180, z_step_mm: float = 2.0,
-                    source: str = "") -> "Outline":
+                    source: str = "") -> Outline:
         """The outermost of many points on an object's surface (e.g. sampled from a mesh), per angle and height."""
         xyz = np.asarray(xyz, dtype=float)
         if xyz.ndim != 2 or xyz.shape[1] != 3 or len(xyz) < 100:
@@ -203,7 +203,7 @@ class Outline:
 
     @classmethod
     def from_mask(cls, mask: NDArray[np.bool_], voxel_mm: tuple[float, float, float], origin_mm: tuple[float, float, float],
-                  *, n_angles: int = 180, source: str = "") -> "Outline":
+                  *, n_angles: int = 180, source: str = "") -> Outline:
         """The outer surface of the voxels set in ``mask`` (nz, ny, nx) of a prior volume on its grid (voxel sizes
         and the first voxel's centre, x y z, in the object frame): per slice and angle, the farthest set voxel."""
         mask = np.asarray(mask, dtype=bool)

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import numba
+import numpy as np
 from numpy.typing import NDArray
 
 from calib.detect import CANDIDATE_FIELDS

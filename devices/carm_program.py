@@ -76,7 +76,7 @@ class CArmLimits:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "CArmLimits":
+    def from_json(cls, d: Mapping[str, Any]) -> CArmLimits:
         """Inverse of :meth:`to_json`."""
         return cls(**{k: tuple(v) if isinstance(v, list) else float(v) for k, v in d.items()})
 
@@ -100,7 +100,7 @@ class NavPoint:
                 f"{x:.4f}", f"{y:.4f}", f"{z:.4f}", f"{self.speed_deg_s:.4f}", str(int(self.acquire))]
 
     @classmethod
-    def from_fields(cls, fields: Sequence[str]) -> "NavPoint":
+    def from_fields(cls, fields: Sequence[str]) -> NavPoint:
         """Parse :data:`CSV_FIELDS`-ordered text fields (ValueError on bad input)."""
         if len(fields) != len(CSV_FIELDS):
             raise ValueError(f"expected {len(CSV_FIELDS)} fields ({', '.join(CSV_FIELDS)}), got {len(fields)}")
@@ -156,7 +156,7 @@ class NavProgram:
         return p
 
     @classmethod
-    def read(cls, path: str | Path) -> "NavProgram":
+    def read(cls, path: str | Path) -> NavProgram:
         """Read a CSV or JSON program written by :meth:`write` (or by hand in the same format)."""
         p = Path(path)
         try:
@@ -166,7 +166,7 @@ class NavProgram:
         return cls._from_json_text(p, text) if p.suffix.lower() == ".json" else cls._from_csv_text(p, text)
 
     @classmethod
-    def _from_csv_text(cls, p: Path, text: str) -> "NavProgram":
+    def _from_csv_text(cls, p: Path, text: str) -> NavProgram:
         meta: dict[str, Any] = {}
         rows: list[tuple[int, list[str]]] = []
         for n, line in enumerate(text.splitlines(), 1):
@@ -190,7 +190,7 @@ class NavProgram:
         return cls._checked(p, points, meta)
 
     @classmethod
-    def _from_json_text(cls, p: Path, text: str) -> "NavProgram":
+    def _from_json_text(cls, p: Path, text: str) -> NavProgram:
         try:
             doc = json.loads(text)
         except json.JSONDecodeError as exc:
@@ -207,7 +207,7 @@ class NavProgram:
         return cls._checked(p, points, doc)
 
     @classmethod
-    def _checked(cls, p: Path, points: list[NavPoint], meta: Mapping[str, Any]) -> "NavProgram":
+    def _checked(cls, p: Path, points: list[NavPoint], meta: Mapping[str, Any]) -> NavProgram:
         if [pt.index for pt in points] != list(range(len(points))):
             raise ProgramFileError(f"{p}: point indices must run 0, 1, 2, ... in order")
         try:

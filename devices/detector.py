@@ -53,7 +53,7 @@ class FrameLink:
         try:
             async with asyncio.timeout(self.timeout_s):  # unlike wait_for, never swallows a cancellation
                 self._reader, self._writer = await asyncio.open_connection(self.host, self.port)
-        except (OSError, asyncio.TimeoutError) as exc:
+        except (TimeoutError, OSError) as exc:
             raise NotConnectedError(f"{self.name}: cannot connect to {self.host}:{self.port} ({exc or 'timeout'})") from None
         self._opened = True
 
@@ -123,7 +123,7 @@ class FrameLink:
             await self._writer.drain()
             async with asyncio.timeout(self.timeout_s + wait_s):
                 raw = await self._reader.readline()
-        except asyncio.TimeoutError:
+        except TimeoutError:
             raise _ReplyTimeout(f"{self.name}: no reply to {line!r} within {self.timeout_s + wait_s:g} s") from None
         except (ConnectionError, OSError):
             raise NotConnectedError(f"{self.name}: connection lost during {line!r}") from None
@@ -153,7 +153,7 @@ class FrameLink:
                 body = await self._reader.readexactly(meta_len + data_len)
         except asyncio.IncompleteReadError:
             raise NotConnectedError(f"{self.name}: connection closed in the middle of frame {number}") from None
-        except asyncio.TimeoutError:
+        except TimeoutError:
             raise _ReplyTimeout(f"{self.name}: frame {number} data did not arrive within {self.timeout_s + 1:g} s") from None
         try:
             meta = json.loads(body[:meta_len].decode()) if meta_len else {}
@@ -170,7 +170,7 @@ class _ReplyTimeout(DeviceTimeoutError):
 class Detector(Driver):
     """Driver of a flat panel speaking the frame protocol (``tcp://host:port``)."""
 
-    OPTIONS = {"binning", "trigger", "timeout_s", "frame_timeout_s", "monitor"}
+    OPTIONS = frozenset({"binning", "trigger", "timeout_s", "frame_timeout_s", "monitor"})
     default_port = DETECTOR_PORT
     kind = "detector"
 
@@ -211,7 +211,7 @@ class Detector(Driver):
             self._link = None
         await self._release()
 
-    async def __aenter__(self) -> "Detector":
+    async def __aenter__(self) -> Detector:
         await self.connect()
         return self
 

@@ -49,7 +49,7 @@ def read_frame_file(path: Path, *, rows: int | None = None, cols: int | None = N
         raw = path.read_bytes()
     except ProtocolError:
         raise
-    except Exception as exc:  # tifffile raises many kinds
+    except Exception as exc:  # noqa: BLE001 - tifffile raises many kinds
         raise ProtocolError(f"{path}: cannot read frame ({exc})") from None
     if raw[:4] == RAW_MAGIC and len(raw) >= RAW_HEADER.size:
         _, _, hlen, r, c, number, _, exposure_ms = RAW_HEADER.unpack_from(raw)
@@ -67,7 +67,7 @@ def read_frame_file(path: Path, *, rows: int | None = None, cols: int | None = N
 class FolderWatchDetector(Driver):
     """Frames that a vendor tool writes into a folder (``folder:///path?pattern=*.tif``), delivered in order."""
 
-    OPTIONS = {"pattern", "poll_s", "timeout_s", "rows", "cols", "header_bytes", "pitch_mm", "settle_s"}
+    OPTIONS = frozenset({"pattern", "poll_s", "timeout_s", "rows", "cols", "header_bytes", "pitch_mm", "settle_s"})
 
     def __init__(self, name: str = "detector", uri: str = "folder:///tmp/frames", **options: Any) -> None:
         super().__init__(name, uri)

@@ -63,7 +63,7 @@ class SimTwin:
 
 _SHARED: dict[tuple[str, str], SimTwin] = {}
 _LOCK = threading.Lock()
-_OF_DEVICE: "weakref.WeakKeyDictionary[Any, SimTwin]" = weakref.WeakKeyDictionary()
+_OF_DEVICE: weakref.WeakKeyDictionary[Any, SimTwin] = weakref.WeakKeyDictionary()
 
 
 def _make(kind: str, world: str, options: dict[str, Any]) -> TwinThread:

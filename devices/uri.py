@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import parse_qsl, urlsplit
@@ -59,7 +60,7 @@ def parse_uri(uri: str, *, default_port: int | None = None) -> Endpoint:
     return Endpoint(scheme, path=path, params=params)
 
 
-def checked_options(params: dict[str, Any], allowed: set[str], what: str) -> dict[str, Any]:
+def checked_options(params: dict[str, Any], allowed: AbstractSet[str], what: str) -> dict[str, Any]:
     """``params`` (URI query and keyword options) if every name is allowed; UriError naming the allowed ones."""
     unknown = sorted(set(params) - allowed)
     if unknown:

@@ -125,7 +125,7 @@ class XrayGenerator(Driver):
         try:
             async with asyncio.timeout(self.timeout_s + 1.0):  # unlike wait_for, never swallows a cancellation
                 ok = await self._client.connect()
-        except asyncio.TimeoutError:
+        except TimeoutError:
             ok = False
         if not ok:
             raise NotConnectedError(f"{self.name}: cannot connect to X-ray generator at {self._host}:{self._port}")
@@ -147,7 +147,7 @@ class XrayGenerator(Driver):
             self._client = None
         await self._release()
 
-    async def __aenter__(self) -> "XrayGenerator":
+    async def __aenter__(self) -> XrayGenerator:
         await self.connect()
         return self
 
@@ -208,7 +208,7 @@ class XrayGenerator(Driver):
                 reply = await self._unless_garbled(call(client), garbled)
         except ConnectionException:
             raise NotConnectedError(f"{self.name}: connection to the X-ray generator lost ({what})") from None
-        except (ModbusException, asyncio.TimeoutError):
+        except (TimeoutError, ModbusException):
             if garbled.is_set():
                 client.close()  # the byte stream is out of step: start afresh on the next request
                 raise ProtocolError(f"{self.name}: garbled reply from the X-ray generator, or one to another request "

@@ -18,7 +18,7 @@ class CompileClock:
         """Compilation time so far."""
         return float(self._listener.duration) if self._listener.done else 0.0
 
-    def __enter__(self) -> "CompileClock":
+    def __enter__(self) -> CompileClock:
         event.register("numba:compile", self._listener)
         return self
 

@@ -27,13 +27,13 @@ from orbitct.orbits import Orbit
 from orbitct.rotations import rot_xyz, xyz_angles
 
 __all__ = [
+    "PROFILE_NAMES",
     "BenchProfile",
     "ComposedProfile",
     "CustomProfile",
     "ErrorProfile",
     "ErrorProfileError",
     "NoErrors",
-    "PROFILE_NAMES",
     "RigidErrors",
     "compose",
     "make_profile",
@@ -74,12 +74,12 @@ class RigidErrors:
             raise ErrorProfileError(f"angles {self.angles.shape} and shift_mm {self.shift_mm.shape} differ in length")
 
     @classmethod
-    def zeros(cls, n_frames: int) -> "RigidErrors":
+    def zeros(cls, n_frames: int) -> RigidErrors:
         """No error on ``n_frames`` frames."""
         return cls(np.zeros((n_frames, 3)), np.zeros((n_frames, 3)))
 
     @classmethod
-    def from_transforms(cls, R: ArrayLike, t: ArrayLike) -> "RigidErrors":
+    def from_transforms(cls, R: ArrayLike, t: ArrayLike) -> RigidErrors:
         """Errors from rotations ``(N, 3, 3)`` and shifts ``(N, 3)``."""
         return cls(xyz_angles(R), np.asarray(t, dtype=float))
 
@@ -111,7 +111,7 @@ class RigidErrors:
         """``R (N, 3, 3) = R_x(pitch) R_y(roll) R_z(yaw)`` and ``t (N, 3)`` (mm), lab frame about the isocenter."""
         return rot_xyz(self.pitch, self.roll, self.yaw), self.shift_mm.copy()
 
-    def then(self, other: "RigidErrors") -> "RigidErrors":
+    def then(self, other: RigidErrors) -> RigidErrors:
         """Errors of ``self`` followed by those of ``other``: ``E = E_other o E_self`` per frame."""
         if other.n_frames != self.n_frames:
             raise ErrorProfileError(f"cannot compose errors over {self.n_frames} and {other.n_frames} frames")
@@ -203,7 +203,7 @@ class ErrorProfile:
         """Name, seed and parameters."""
         return {"name": self.name, "seed": self.seed}
 
-    def __add__(self, other: "ErrorProfile") -> "ComposedProfile":
+    def __add__(self, other: ErrorProfile) -> ComposedProfile:
         return compose(self, other)
 
     def __repr__(self) -> str:

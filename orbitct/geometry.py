@@ -60,7 +60,7 @@ class Panel:
         """Pixel coordinate ``(col, row)`` of the detector centre ``D``."""
         return ((self.cols - 1) / 2.0, (self.rows - 1) / 2.0)
 
-    def binned(self, factor: int) -> "Panel":
+    def binned(self, factor: int) -> Panel:
         """Panel after ``factor x factor`` binning."""
         return Panel(self.rows // factor, self.cols // factor, self.pitch_col * factor, self.pitch_row * factor)
 
@@ -90,7 +90,7 @@ def ideal_bench_pose(theta: ArrayLike, phi: ArrayLike) -> NDArray[np.float64]:
 class ViewGeometry:
     """Immutable per-view geometry: ``(N, 12)`` vectors ``S, D, u, v`` and a panel."""
 
-    __slots__ = ("_vectors", "_panel", "_matrices")
+    __slots__ = ("_matrices", "_panel", "_vectors")
 
     def __init__(self, vectors: ArrayLike, panel: Panel) -> None:
         if not isinstance(panel, Panel):
@@ -179,7 +179,7 @@ class ViewGeometry:
         return self._matrices
 
     @classmethod
-    def from_matrices(cls, matrices: ArrayLike, panel: Panel) -> "ViewGeometry":
+    def from_matrices(cls, matrices: ArrayLike, panel: Panel) -> ViewGeometry:
         """Views from ``(N, 3, 4)`` projection matrices (any positive or negative scale)."""
         p = np.asarray(matrices, dtype=float)
         if p.ndim == 2 and p.shape == (3, 4):
@@ -202,7 +202,7 @@ class ViewGeometry:
         dv: ArrayLike = 0.0,
         eta: ArrayLike = 0.0,
         shift: ArrayLike = (0.0, 0.0, 0.0),
-    ) -> "ViewGeometry":
+    ) -> ViewGeometry:
         """Views from C-arm style parameters (radians, mm), broadcast over views."""
         theta_a = np.atleast_1d(np.asarray(theta, dtype=float))
         n = int(np.broadcast_shapes(theta_a.shape, np.atleast_1d(np.asarray(phi, dtype=float)).shape)[0])
@@ -225,7 +225,7 @@ class ViewGeometry:
         return cls(vec, panel)
 
     @classmethod
-    def from_object_poses(cls, lab_view: "ViewGeometry", R: ArrayLike, t: ArrayLike) -> "ViewGeometry":
+    def from_object_poses(cls, lab_view: ViewGeometry, R: ArrayLike, t: ArrayLike) -> ViewGeometry:
         """Bench views: fixed lab source/detector (one view) seen from objects at poses ``x_lab = R x + t``."""
         if lab_view.n_views != 1:
             raise GeometryError(f"lab_view: expected exactly 1 view, got {lab_view.n_views}")
@@ -249,34 +249,34 @@ class ViewGeometry:
         return cls(out, lab_view.panel)
 
     @classmethod
-    def empty_like(cls, n_views: int, panel: Panel) -> "ViewGeometry":
+    def empty_like(cls, n_views: int, panel: Panel) -> ViewGeometry:
         """``n_views`` views that are all NaN (frames that are not projections)."""
         return cls(np.full((n_views, 12), np.nan), panel)
 
     # ----------------------------------------------------------- operations
-    def __getitem__(self, index: Any) -> "ViewGeometry":
+    def __getitem__(self, index: Any) -> ViewGeometry:
         idx = np.arange(self.n_views)[index]
         return ViewGeometry(self._vectors[np.atleast_1d(idx)], self._panel)
 
-    def with_vectors(self, vectors: ArrayLike) -> "ViewGeometry":
+    def with_vectors(self, vectors: ArrayLike) -> ViewGeometry:
         """Same panel, new vectors."""
         return ViewGeometry(vectors, self._panel)
 
-    def with_panel(self, panel: Panel) -> "ViewGeometry":
+    def with_panel(self, panel: Panel) -> ViewGeometry:
         """Same views re-expressed for another sampling of the same panel plane."""
         vec = self._vectors.copy()
         vec[:, 6:9] *= panel.pitch_col / self._panel.pitch_col
         vec[:, 9:12] *= panel.pitch_row / self._panel.pitch_row
         return ViewGeometry(vec, panel)
 
-    def concatenate(self, *others: "ViewGeometry") -> "ViewGeometry":
+    def concatenate(self, *others: ViewGeometry) -> ViewGeometry:
         """Views of ``self`` followed by those of ``others`` (same panel required)."""
         for o in others:
             if o.panel != self._panel:
                 raise GeometryError(f"cannot concatenate geometries with panels {self._panel} and {o.panel}")
         return ViewGeometry(np.concatenate([self._vectors] + [o.vectors for o in others]), self._panel)
 
-    def transformed(self, R: ArrayLike, t: ArrayLike = (0.0, 0.0, 0.0)) -> "ViewGeometry":
+    def transformed(self, R: ArrayLike, t: ArrayLike = (0.0, 0.0, 0.0)) -> ViewGeometry:
         """Apply rigid transform(s) ``x -> R x + t`` (one, or one per view) to every view."""
         Rm = np.asarray(R, dtype=float)
         if Rm.shape == (3, 3):
@@ -289,7 +289,7 @@ class ViewGeometry:
         parts[1] = parts[1] + tv
         return ViewGeometry(np.concatenate(parts, axis=1), self._panel)
 
-    def scaled(self, s: float) -> "ViewGeometry":
+    def scaled(self, s: float) -> ViewGeometry:
         """Scale positions about the origin by ``s`` (pixel pitches unchanged)."""
         vec = self._vectors.copy()
         vec[:, 0:6] *= s
@@ -336,7 +336,7 @@ class ViewGeometry:
         return self.S[:, None, :], d
 
     # ------------------------------------------------------------ compare
-    def allclose(self, other: "ViewGeometry", atol_mm: float = 1e-6, rtol: float = 1e-9) -> bool:
+    def allclose(self, other: ViewGeometry, atol_mm: float = 1e-6, rtol: float = 1e-9) -> bool:
         """Same panel and vectors equal within tolerance (NaN equals NaN)."""
         if not isinstance(other, ViewGeometry) or other.panel != self._panel:
             return False
@@ -433,7 +433,7 @@ class VolumeGrid:
 
     @classmethod
     def centered(cls, shape: tuple[int, int, int], voxel_mm: float | tuple[float, float, float],
-                 center_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> "VolumeGrid":
+                 center_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> VolumeGrid:
         """Grid of ``shape`` whose centre sits at ``center_mm`` (default the isocenter)."""
         vox = np.broadcast_to(np.asarray(voxel_mm, dtype=float), (3,))
         n_xyz = np.array(shape[::-1], dtype=float)

@@ -110,7 +110,7 @@ class LiveCalibrationSubscriber:
         except CalibrationError as exc:
             self._error = exc
             log.error("live calibration of %s failed: %s", self.path, exc)
-        except Exception as exc:  # noqa: BLE001 - the scan is complete whatever the solve does; said, not raised
+        except Exception as exc:
             self._error = exc
             log.exception("live calibration of %s failed", self.path)
         self._record_outcome()

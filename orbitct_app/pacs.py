@@ -28,7 +28,7 @@ class PacsNode:
     port: int
 
     @classmethod
-    def parse(cls, uri: str) -> "PacsNode":
+    def parse(cls, uri: str) -> PacsNode:
         """``dicom://AE@host:port``; a one-line error naming what is wrong otherwise."""
         parts = urlsplit(uri)
         if parts.scheme != "dicom" or not parts.username or not parts.hostname or parts.port is None:

@@ -13,6 +13,7 @@ read-only work, so when a worker is lost Dask runs it again elsewhere (a part of
 
 from __future__ import annotations
 
+import itertools
 import logging
 import os
 import threading
@@ -110,7 +111,7 @@ def fdk_on_cluster(client: Any, path: str | os.PathLike[str], frames: NDArray[np
     key = f"orbitct-fdk-{uuid.uuid4().hex[:8]}"
     parts = [client.submit(_fdk_part, os.fspath(path), frames[a:b], grid, geometry[a:b], weights.part(slice(a, b)),
                            key=f"{key}-{i}", pure=False)
-             for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))]
+             for i, (a, b) in enumerate(itertools.pairwise(bounds))]
     sizes = dict(zip((p.key for p in parts), np.diff(bounds).tolist(), strict=True))
     count = [0]
 
@@ -209,7 +210,7 @@ class ClusterData:
         self.parts = [client.submit(ViewPart, os.fspath(path), frames[a:b], int(a), grid, geometry[a:b], subsets,
                                     chunk_views, key=f"{self._key}-part{i}", pure=False, workers=[workers[i]],
                                     allow_other_workers=True)
-                      for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:], strict=True))]
+                      for i, (a, b) in enumerate(itertools.pairwise(bounds))]
         self._bounds = [int(b) for b in bounds]
         self._held: list[set[str]] = [set() for _ in self.parts]  # the workers that held each part when last seen
         self._checked = 0.0
@@ -289,5 +290,12 @@ def pwls_on_cluster(client: Any, path: str | os.PathLike[str], frames: NDArray[n
                           momentum=momentum, progress=progress)
 
 
-__all__ = ["ClusterData", "ClusterError", "PARTS_PER_WORKER", "ViewPart", "check_pwls_memory", "fdk_on_cluster",
-           "pwls_on_cluster"]
+__all__ = [
+    "PARTS_PER_WORKER",
+    "ClusterData",
+    "ClusterError",
+    "ViewPart",
+    "check_pwls_memory",
+    "fdk_on_cluster",
+    "pwls_on_cluster",
+]

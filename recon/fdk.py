@@ -134,14 +134,14 @@ class FdkWeights:
     parker: NDArray[np.float64] | None
 
     @classmethod
-    def of(cls, geometry: ViewGeometry, window: str = "ram-lak", short_scan: str = "auto") -> "FdkWeights":
+    def of(cls, geometry: ViewGeometry, window: str = "ram-lak", short_scan: str = "auto") -> FdkWeights:
         """The weights of every view of ``geometry``."""
         if not geometry.valid.all():
             raise ReconError("FDK needs finite geometry for every view it is given")
         wv, parker, _ = redundancy_weights(geometry, short_scan)
         return cls(ramp_filter(geometry.panel.cols, window), wv * geometry.sod() ** 2, parker)
 
-    def part(self, views: slice | NDArray[np.intp]) -> "FdkWeights":
+    def part(self, views: slice | NDArray[np.intp]) -> FdkWeights:
         """The weights of some of the views."""
         return FdkWeights(self.H, self.weights[views], None if self.parker is None else self.parker[views])
 

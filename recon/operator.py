@@ -159,11 +159,11 @@ class Projector:
     __call__ = forward
 
     @property
-    def T(self) -> "_Adjoint":
+    def T(self) -> _Adjoint:
         """The adjoint operator."""
         return _Adjoint(self)
 
-    def subset(self, views: NDArray[np.intp]) -> "Projector":
+    def subset(self, views: NDArray[np.intp]) -> Projector:
         """Operator for a subset of the views."""
         return Projector(self.grid, self.geometry[np.asarray(views)])
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import ast
 import gc
-from functools import lru_cache
+from functools import cache, lru_cache
 from pathlib import Path
 
 import pytest
@@ -67,7 +67,7 @@ def _type_checking_nodes(tree: ast.Module) -> set[int]:
     return skip
 
 
-@lru_cache(maxsize=None)
+@cache
 def imports_of(module: str) -> frozenset[str]:
     """Project modules that ``module`` imports (a package import means its ``__init__``)."""
     path = _modules()[module]

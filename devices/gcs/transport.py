@@ -116,7 +116,7 @@ class TcpTransport(_StreamReplies):
             writer.close()
             try:
                 await asyncio.wait_for(writer.wait_closed(), 1.0)
-            except (OSError, asyncio.TimeoutError):
+            except (TimeoutError, OSError):
                 pass
 
 
@@ -162,7 +162,7 @@ class SerialTransport(_StreamReplies):
             raise NotConnectedError(f"{self.description}: not open")
         try:
             self._serial.write(data)
-        except Exception as exc:  # pyserial raises SerialException / SerialTimeoutException / OSError
+        except Exception as exc:  # noqa: BLE001 - pyserial raises SerialException / SerialTimeoutException / OSError
             raise NotConnectedError(f"{self.description}: write failed ({exc})") from None
 
     async def close(self) -> None:

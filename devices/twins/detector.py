@@ -167,7 +167,7 @@ class DetectorTwin(LineTwinServer):
     ) -> None:
         try:  # building the renderer (phantom, compiled kernels) may take a while: not in the serving loop
             data = await asyncio.get_running_loop().run_in_executor(None, lambda: self.renderer()(*args))
-        except Exception as exc:  # reported to the client at FRAME?, not lost in a background task
+        except Exception as exc:  # noqa: BLE001 - reported to the client at FRAME?, not lost in a background task
             data, failure = None, f"frame {number} could not be rendered: {exc}"
         if previous is not None:
             await asyncio.wait([previous])  # frames leave in the order they were taken

@@ -78,7 +78,7 @@ async def follow_bench(world: SimWorld, *, hexapod_uri: str, stage_uri: str, xra
     while True:
         try:
             await _follow_once(world, hexapod_uri, stage_uri, xray_uri, poll_s)
-        except Exception as exc:  # noqa: BLE001 - whatever broke the link: no trigger and no pose pass until it is back
+        except Exception as exc:
             task = asyncio.current_task()
             if task is not None and task.cancelling():  # a stop that a failing connect swallowed (3.11): honour it
                 raise asyncio.CancelledError from exc

@@ -105,7 +105,7 @@ class LineTwinServer:
         assert self.frames is not None
         try:
             frame = await asyncio.wait_for(self.frames.get(), timeout_ms / 1000.0) if timeout_ms else self.frames.get_nowait()
-        except (asyncio.TimeoutError, asyncio.QueueEmpty):
+        except (TimeoutError, asyncio.QueueEmpty):
             raise CommandError(ERR_NO_FRAME, f"no frame within {timeout_ms} ms") from None
         if isinstance(frame, str):
             raise CommandError(ERR_DEVICE, frame)

@@ -129,7 +129,7 @@ class TwinThread:
         asyncio.set_event_loop(self.loop)
         try:
             self.port = self.loop.run_until_complete(self.twin.start(self.host, port))
-        except BaseException as exc:  # reported to the starting thread
+        except BaseException as exc:  # noqa: BLE001 - reported to the starting thread
             self._error = exc
             self._ready.set()
             return

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Literal, Union
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -72,7 +72,7 @@ class DCArcParams(_Params):
         return _nonzero(v, "circle_range_deg")
 
     @model_validator(mode="after")
-    def _arc(self) -> "DCArcParams":
+    def _arc(self) -> DCArcParams:
         if self.arc_start_deg == self.arc_end_deg:
             raise ValueError("arc_start_deg and arc_end_deg must differ")
         return self
@@ -88,7 +88,7 @@ class RotationArc(BaseModel):
     end_deg: Rotation
 
     @model_validator(mode="after")
-    def _len(self) -> "RotationArc":
+    def _len(self) -> RotationArc:
         if self.start_deg == self.end_deg:
             raise ValueError("a rotation arc needs start_deg != end_deg")
         return self
@@ -104,13 +104,13 @@ class TiltArc(BaseModel):
     end_deg: Tilt
 
     @model_validator(mode="after")
-    def _len(self) -> "TiltArc":
+    def _len(self) -> TiltArc:
         if self.start_deg == self.end_deg:
             raise ValueError("a tilt arc needs start_deg != end_deg")
         return self
 
 
-Arc = Annotated[Union[RotationArc, TiltArc], Field(discriminator="kind")]
+Arc = Annotated[RotationArc | TiltArc, Field(discriminator="kind")]
 
 # The multi-arc orbit of the paper's Experiment C (Artis Pheno): two identical 120 deg arcs at
 # +10 deg tilt with the object turned ~90 deg between them (together 210 deg), a 120 deg arc at
@@ -133,7 +133,7 @@ class MultiArcParams(_Params):
     arcs: list[Arc] | None = Field(None, min_length=1, max_length=64)
 
     @model_validator(mode="after")
-    def _one_source(self) -> "MultiArcParams":
+    def _one_source(self) -> MultiArcParams:
         if (self.preset is None) == (self.arcs is None):
             raise ValueError("give exactly one of 'preset' (one of ['pheno']) or 'arcs'")
         if self.n_frames < 2 * len(self.resolved_arcs()):
@@ -157,7 +157,7 @@ class WaypointsParams(_Params):
     points: list[tuple[Rotation, Tilt]] | None = Field(None, min_length=2, description="[[rotation_deg, tilt_deg], ...]")
 
     @model_validator(mode="after")
-    def _source(self) -> "WaypointsParams":
+    def _source(self) -> WaypointsParams:
         if self.path is None and self.points is None:
             raise ValueError("give 'path' (CSV or YAML of rotation_deg, tilt_deg) or 'points'")
         return self

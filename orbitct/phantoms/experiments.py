@@ -13,7 +13,7 @@ import numpy as np
 
 from orbitct.phantoms.materials import mu_of
 from orbitct.phantoms.phantom import Phantom
-from orbitct.phantoms.primitives import Primitive, PhantomError, cylinder, ellipsoid, sphere
+from orbitct.phantoms.primitives import PhantomError, Primitive, cylinder, ellipsoid, sphere
 from orbitct.reference_bench import BB_DIAMETER_MM
 
 EXPERIMENTS = ("A", "B", "C")

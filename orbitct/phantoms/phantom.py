@@ -70,7 +70,7 @@ class Phantom:
         """Indices of metal primitives (BBs, screws, wires)."""
         return np.array([i for i, p in enumerate(self.primitives) if p.is_metal], dtype=np.intp)
 
-    def with_markers(self, xyz: ArrayLike, diameter_mm: float | None = None) -> "Phantom":
+    def with_markers(self, xyz: ArrayLike, diameter_mm: float | None = None) -> Phantom:
         """The same object with its BBs (primitives labelled ``bb<k>``) replaced by steel balls at ``xyz`` (K, 3)."""
         from orbitct.phantoms.primitives import sphere
 
@@ -82,13 +82,13 @@ class Phantom:
         bbs = tuple(sphere(c, d / 2, material="steel", label=f"bb{k}") for k, c in enumerate(centres))
         return Phantom(self.name, keep + bbs, centres, d, self.description)
 
-    def subset(self, keep: ArrayLike, name: str | None = None) -> "Phantom":
+    def subset(self, keep: ArrayLike, name: str | None = None) -> Phantom:
         """Phantom of the primitives selected by index or boolean mask (markers kept as they are)."""
         idx = np.arange(len(self.primitives))[np.asarray(keep)]
         return Phantom(name or self.name, tuple(self.primitives[i] for i in idx), self.markers_xyz,
                        self.marker_diameter_mm, self.description)
 
-    def without_metal(self) -> "Phantom":
+    def without_metal(self) -> Phantom:
         """The phantom with every metal primitive removed (reference for metal-artifact studies)."""
         return self.subset([not p.is_metal for p in self.primitives], f"{self.name}-nometal")
 
@@ -121,7 +121,7 @@ class Phantom:
         }
 
     @classmethod
-    def from_json(cls, data: dict[str, Any] | str) -> "Phantom":
+    def from_json(cls, data: dict[str, Any] | str) -> Phantom:
         """Inverse of :meth:`to_json` (accepts the dict or its JSON text)."""
         d = json.loads(data) if isinstance(data, str) else data
         if not isinstance(d, dict) or "primitives" not in d:

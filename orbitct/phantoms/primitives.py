@@ -114,7 +114,7 @@ class Primitive:
         }
 
     @classmethod
-    def from_json(cls, d: dict[str, Any]) -> "Primitive":
+    def from_json(cls, d: dict[str, Any]) -> Primitive:
         """Inverse of :meth:`to_json`."""
         try:
             return cls(

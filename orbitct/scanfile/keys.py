@@ -19,7 +19,7 @@ class ImageKey(IntEnum):
         return self.name.lower()
 
     @classmethod
-    def parse(cls, value: "int | str | ImageKey") -> "ImageKey":
+    def parse(cls, value: int | str | ImageKey) -> ImageKey:
         """An image key from its number or its label; ValueError naming the allowed ones."""
         try:
             return cls[value.upper()] if isinstance(value, str) else cls(int(value))

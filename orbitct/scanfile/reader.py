@@ -517,7 +517,7 @@ class ScanFile(ScanResults):
         """Close the file."""
         self._f.close()
 
-    def __enter__(self) -> "ScanFile":
+    def __enter__(self) -> ScanFile:
         return self
 
     def __exit__(self, *exc: Any) -> None:

@@ -18,7 +18,7 @@ def _finite(value: Any) -> float | None:
     return v if np.isfinite(v) else None
 
 
-def taken_off_command(f: "ScanFile") -> dict[str, dict[str, Any]]:
+def taken_off_command(f: ScanFile) -> dict[str, dict[str, Any]]:
     """Per axis, the projections read back further from their commanded position than one step of that axis between
     projections (the median of its steps): frames taken where their nominal geometry does not say (a sweep that ran
     ahead of its exposures). ``{axis: {"frames", "max", "step", "unit"}}``, only for axes with such frames."""
@@ -53,7 +53,7 @@ def _read(damage: list[str], what: str, read: Callable[[], T], default: T) -> T:
         return default
 
 
-def scan_summary(f: "ScanFile") -> dict[str, Any]:
+def scan_summary(f: ScanFile) -> dict[str, Any]:
     """JSON-ready summary of an open scan file: status, frames by kind, panel, orbit, geometries, markers, results.
     A part that the file's damage makes unreadable (one that opening the file does not check) is left out and named
     in ``damaged``; what calibration and reconstruction need is checked when the file opens."""
@@ -63,7 +63,7 @@ def scan_summary(f: "ScanFile") -> dict[str, Any]:
     return summary
 
 
-def _summary(f: "ScanFile", damage: list[str]) -> dict[str, Any]:
+def _summary(f: ScanFile, damage: list[str]) -> dict[str, Any]:
     panel = f.panel
     name, params = f.orbit
     orbit: dict[str, Any] = {"name": name, "params": params}

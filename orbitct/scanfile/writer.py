@@ -10,7 +10,7 @@ import json
 import os
 import socket
 from collections.abc import Mapping
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -132,7 +132,7 @@ class ScanWriter:
             {
                 "software_version": __version__,
                 "config_json": to_json(dict(config or {})),
-                "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
                 # who is writing: lets a repair tell a live acquisition from one that was killed
                 "writer_pid": os.getpid(),
                 "writer_host": socket.gethostname(),
@@ -296,7 +296,7 @@ class ScanWriter:
             except (OSError, RuntimeError):
                 pass
 
-    def __enter__(self) -> "ScanWriter":
+    def __enter__(self) -> ScanWriter:
         return self
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: Any) -> None:

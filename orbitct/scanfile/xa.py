@@ -95,8 +95,8 @@ def _numbers(path: Path, where: Any, name: str) -> list[float]:
     """A multi-valued number attribute as floats, or ScanFileError naming it."""
     value = where.get(name) if where is not None else None
     try:
-        return [float(v) for v in (value if isinstance(value, (list, tuple)) or hasattr(value, "__iter__") and
-                                   not isinstance(value, (str, bytes)) else [value])]
+        return [float(v) for v in (value if isinstance(value, (list, tuple)) or (hasattr(value, "__iter__") and
+                                   not isinstance(value, (str, bytes))) else [value])]
     except (TypeError, ValueError):
         raise ScanFileError(f"{path}: {name} is {value!r}, expected numbers") from None
 

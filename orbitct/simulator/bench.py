@@ -26,7 +26,7 @@ class SimulatedBench:
     model: DetectorModel = field(default_factory=DetectorModel)
 
     @classmethod
-    def with_panel(cls, size_px: int = PANEL_PX, pitch_mm: float | None = None, **kw: Any) -> "SimulatedBench":
+    def with_panel(cls, size_px: int = PANEL_PX, pitch_mm: float | None = None, **kw: Any) -> SimulatedBench:
         """Bench with the reference panel read out at ``size_px`` (see :func:`~orbitct.reference_bench.reference_panel`)."""
         return cls(panel=reference_panel(size_px, pitch_mm), **kw)
 

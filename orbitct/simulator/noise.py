@@ -78,9 +78,9 @@ def poisson(state: np.uint64, lam: float) -> tuple[np.uint64, float]:
         U -= 0.5
         us = 0.5 - abs(U)
         k = math.floor((2.0 * a / us + b) * U + lam + 0.43)
-        if us >= 0.07 and V <= vr:
+        if us >= 0.07 and vr >= V:
             return state, k
-        if k < 0.0 or (us < 0.013 and V > us):
+        if k < 0.0 or (us < 0.013 and us < V):
             continue
         if loglam < 0.0:
             loglam = math.log(lam)

@@ -18,8 +18,8 @@ from orbitct.orbits import Orbit, OrbitError, make_orbit
 from orbitct.phantoms.experiments import experiment_phantom
 from orbitct.phantoms.phantom import Phantom
 from orbitct.progress import ProgressCallback, report
-from orbitct.scanfile import ScanWriter
 from orbitct.reference_bench import reference_panel
+from orbitct.scanfile import ScanWriter
 from orbitct.simulator.bench import SimulatedBench
 from orbitct.simulator.projector import line_integrals
 
@@ -53,7 +53,7 @@ class _BackgroundAppender:
             args, kwargs = item
             try:
                 self._w.append(*args, **kwargs)
-            except BaseException as exc:  # re-raised on the calling thread
+            except BaseException as exc:  # noqa: BLE001 - re-raised on the calling thread
                 self._error = exc
 
     def append(self, *args: Any, **kwargs: Any) -> None:

@@ -120,7 +120,7 @@ def _live_subscriber(req: object, out: Path, bb_diameter_mm: float | None, abort
     from orbitct_app.live_calibration import LiveCalibrationSubscriber
 
     if bb_diameter_mm is None:
-        if not getattr(req, "sim"):
+        if not req.sim:
             fail("--calibrate live needs --bb-diameter-mm (the size of the BBs on the object)")
         bb_diameter_mm = req.resolved_config().sim.bb_diameter_mm  # type: ignore[attr-defined]
 
@@ -141,7 +141,7 @@ def _wait_for_live(live: object, out: Path) -> None:
 
     previous = {sig: signal.signal(sig, interrupted) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     try:
-        while not getattr(live, "wait")(0.2):
+        while not live.wait(0.2):
             pass
     finally:
         for sig, handler in previous.items():
@@ -151,12 +151,12 @@ def _wait_for_live(live: object, out: Path) -> None:
 def _report_live(live: object, out: Path) -> None:
     """The live calibration's outcome after a complete scan; exit 1 without a geometry, 3 when its check failed."""
     _wait_for_live(live, out)
-    err, res = getattr(live, "error"), getattr(live, "result")
+    err, res = live.error, live.result
     if err is not None or res is None:
         click.echo(f"no live geometry ({err}); the scan is complete in {out}: `orbitct calibrate {out}` makes its "
                    "geometry", err=True)
         sys.exit(1)
-    lc = getattr(live, "live")
+    lc = live.live
     kinds = Counter(w.kind for w in lc.warnings)
     named = f" ({', '.join(f'{k} {n}' for k, n in sorted(kinds.items()))})" if kinds else ""
     click.echo(f"calibrated during the scan: {res.n_bbs} BBs, geometry written {lc.last_frame_to_geometry_s:.2f} s "

@@ -17,7 +17,7 @@ if TYPE_CHECKING:
 _bearer = HTTPBearer(auto_error=False, description="token from `orbitct token create --role R`")
 
 
-async def get_service(request: Request) -> "Service":
+async def get_service(request: Request) -> Service:
     """The running service (settings, store, bench, jobs, events)."""
     return request.app.state.service  # type: ignore[no-any-return]
 

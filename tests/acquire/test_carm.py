@@ -12,8 +12,8 @@ from acquire.config import CArmConfig, StallConfig, parse_config
 from acquire.errors import PreflightError
 from acquire.rigs.carm import open_carm
 from acquire.runner import ScanRequest, ScanResult, ScanRunner, run_scan
-from devices.sim import twin_of
 from devices.carm_program import NavProgram
+from devices.sim import twin_of
 from orbitct.orbits import make_orbit
 from orbitct.scanfile import ScanFile
 

@@ -130,7 +130,7 @@ def test_continuous_mode_checks_each_sweeps_run_up_against_the_stage_range() -> 
     with pytest.raises(PreflightError, match=r"frame 5: axis rotation_stage.R \(run-up before the sweep's trigger "
                                              r"angle at 5 frames/s\) = 2.25 deg is outside the configured range"):
         asyncio.run(bench_preflight(plan, tight, mode="continuous", frame_rate_hz=5))  # 45 deg/s: 2.25 deg
-    assert 45.0 * SWEEP_RUN_UP_S == pytest.approx(2.25)
+    assert pytest.approx(2.25) == 45.0 * SWEEP_RUN_UP_S
     wide = CFG.model_copy(update={"limits": CFG.limits.model_copy(update={"rotation_stage_deg": (-352.0, 3.0)})})
     with pytest.raises(PreflightError, match="run-on past the sweep's trigger angle"):
         asyncio.run(bench_preflight(plan, wide, mode="continuous", frame_rate_hz=5))  # -351 - 2.25 < -352

@@ -68,7 +68,7 @@ def test_the_pose_of_one_frame_is_refitted_to_its_bbs_with_its_predicted_error()
 def test_a_curve_is_not_extrapolated_across_frames_without_a_pose() -> None:
     v = _series(500, noise_mm=0.05)
     watch = StepWatch()
-    for f in [*range(0, 120), *range(210, 300)]:  # 90 frames where too few BBs were followed for a pose
+    for f in [*range(120), *range(210, 300)]:  # 90 frames where too few BBs were followed for a pose
         assert watch.add(f, v[f]) is None, f
 
 

@@ -16,7 +16,7 @@ def _tracks(n: int, frames: list[range]) -> np.ndarray:
 
 def test_pieces_of_one_bb_never_seen_together_merge_into_the_one_seen_more() -> None:
     xyz = np.array([[0.0, 0.0, 0.0], [4.0, 0.0, 0.0], [60.0, 0.0, 0.0]])  # 4 mm apart: a 3 mm BB placed twice
-    uv = _tracks(100, [range(0, 70), range(70, 100), range(0, 100)])
+    uv = _tracks(100, [range(70), range(70, 100), range(100)])
     out = merge_duplicates(xyz, uv, diameter_mm=3.0)
     np.testing.assert_array_equal(out, xyz[[0, 2]])
 
@@ -32,7 +32,7 @@ def test_a_constellation_identified_twice_in_two_halves_of_the_orbit_is_found_as
     twin = 0.97 * xyz @ rot.T + [9.0, -14.0, 10.0]
     extra = rng.uniform(-80.0, 80.0, (2, 3))
     points = np.concatenate([xyz, twin, extra])
-    uv = _tracks(200, [range(0, 120)] * 8 + [range(120, 200)] * 8 + [range(0, 200)] * 2)
+    uv = _tracks(200, [range(120)] * 8 + [range(120, 200)] * 8 + [range(200)] * 2)
     uv[50, 9] = 7.0  # one blob of the first half taken for a BB of the second
     pairs = twin_constellation(points, uv)
     assert sorted(pairs) == [(k, k + 8) for k in range(8)]
@@ -42,13 +42,13 @@ def test_a_constellation_identified_twice_in_two_halves_of_the_orbit_is_found_as
 
 def test_two_bbs_4_mm_apart_seen_together_stay_two() -> None:
     xyz = np.array([[0.0, 0.0, 0.0], [4.0, 0.0, 0.0]])
-    uv = _tracks(100, [range(0, 100), range(10, 90)])
+    uv = _tracks(100, [range(100), range(10, 90)])
     np.testing.assert_array_equal(merge_duplicates(xyz, uv, diameter_mm=3.0), xyz)
 
 
 def test_centres_closer_than_a_bb_are_one_bb_even_if_seen_together() -> None:
     xyz = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
-    uv = _tracks(100, [range(0, 100), range(0, 40)])
+    uv = _tracks(100, [range(100), range(40)])
     np.testing.assert_array_equal(merge_duplicates(xyz, uv, diameter_mm=3.0), xyz[[0]])
 
 

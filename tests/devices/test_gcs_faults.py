@@ -10,6 +10,7 @@ import pytest
 
 from devices.errors import (
     ControllerError,
+    DeviceError,
     DeviceTimeoutError,
     NotConnectedError,
     OutOfLimitsError,
@@ -156,7 +157,7 @@ async def test_stop_reaches_the_controller_after_a_silent_disconnect(ready_hexap
     await ready_hexapod.stop()
     assert not hexapod_twin.twin.controller.is_moving()
     assert ready_hexapod.client.stats["reconnects"] >= 1
-    with pytest.raises(Exception):
+    with pytest.raises(DeviceError):
         await status
 
 
@@ -185,7 +186,7 @@ async def test_a_stop_while_a_query_reconnects_waits_for_the_new_connection(read
     await ready_hexapod.stop()
     assert not hexapod_twin.twin.controller.is_moving()
     await poll
-    with pytest.raises(Exception):
+    with pytest.raises(DeviceError):
         await status
 
 

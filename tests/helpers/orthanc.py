@@ -37,7 +37,7 @@ def orthanc(folder: Path) -> Iterator[PacsNode]:
                     break
             except OSError:
                 if proc.poll() is not None or time.monotonic() - t0 > 30:
-                    raise AssertionError("Orthanc did not start: " + (proc.stderr.read() or b"").decode()[-2000:])  # type: ignore[union-attr]
+                    raise AssertionError("Orthanc did not start: " + (proc.stderr.read() or b"").decode()[-2000:]) from None  # type: ignore[union-attr]
                 time.sleep(0.2)
         yield PacsNode("ORTHANC", "127.0.0.1", port)
     finally:

@@ -43,7 +43,7 @@ def _march(prim: Primitive, o: np.ndarray, d: np.ndarray, inside_t: float) -> fl
 
 def _random_primitives() -> list[Primitive]:
     out = []
-    for k in range(6):
+    for _k in range(6):
         R = rotvec_to_matrix(RNG.normal(size=3))
         c = RNG.uniform(-30, 30, 3)
         s = RNG.uniform(2, 25, 3)
@@ -118,7 +118,7 @@ def test_phantom_a_varies_with_seed_and_wire_in_b() -> None:
     a1, a2 = experiment_phantom("A", 1), experiment_phantom("A", 2)
     assert not np.allclose(a1.markers_xyz, a2.markers_xyz)
     assert np.array_equal(experiment_phantom("A", 1).markers_xyz, a1.markers_xyz)
-    wire = [q for q in experiment_phantom("B").primitives if q.label == "wire"][0]
+    wire = next(q for q in experiment_phantom("B").primitives if q.label == "wire")
     assert wire.material == "tungsten" and np.isclose(2 * wire.semi_axes[0], 0.13)
     with pytest.raises(PhantomError, match="known experiments are"):
         experiment_phantom("D")

@@ -55,9 +55,8 @@ def test_round_trip(tmp_path: Path) -> None:
 def test_results_written_back(tmp_path: Path) -> None:
     path = tmp_path / "s.h5"
     geom = _write(path)
-    with ScanFile(path) as f:
-        with pytest.raises(ScanFileError, match="opened read-only"):
-            f.set_status("aborted", "x")
+    with ScanFile(path) as f, pytest.raises(ScanFileError, match="opened read-only"):
+        f.set_status("aborted", "x")
     full = ViewGeometry.empty_like(2, DET).concatenate(geom)
     with ScanFile(path, mode="r+") as f:
         f.write_calibration(full, uv=np.zeros((7, 3, 2)), xyz=np.zeros((3, 3)), rpe_mm=np.r_[np.nan, np.nan, np.ones(5)],

@@ -16,8 +16,8 @@ from numpy.typing import NDArray
 
 from devices.gcs import errors as E
 from devices.gcs.framing import BUSY, READY, axis_lines, format_value
-from devices.twins.runtime import TwinFaults
 from devices.twins.gcs.motion import LinearMotion
+from devices.twins.runtime import TwinFaults
 
 
 class Session:

@@ -49,6 +49,7 @@ class GcsTwin:
         self._server: asyncio.AbstractServer | None = None
         self._writers: set[asyncio.StreamWriter] = set()
         self._ptys: list[tuple[int, int, str]] = []
+        self._answers: set[asyncio.Task[None]] = set()  # serial replies in flight (held until done)
         self._ticker: asyncio.Task[None] | None = None
 
     # ----- lifecycle -----
@@ -103,7 +104,9 @@ class GcsTwin:
                 return
             cmds, state["buf"] = split_commands(state["buf"] + data)
             for cmd in cmds:
-                asyncio.ensure_future(self._answer_serial(master, session, cmd))
+                answer = asyncio.ensure_future(self._answer_serial(master, session, cmd))
+                self._answers.add(answer)
+                answer.add_done_callback(self._answers.discard)
 
         self._ptys.append((master, slave, path))
         asyncio.get_running_loop().add_reader(master, on_readable)

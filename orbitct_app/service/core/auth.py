@@ -8,7 +8,7 @@ import json
 import secrets
 import threading
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Literal
 
@@ -74,7 +74,7 @@ def _write_token_file(path: Path, entries: list[TokenHash]) -> None:
     """Replace ``path`` atomically with ``entries`` (readable by its owner only)."""
     body = {
         "tokens": [e.model_dump() for e in entries],
-        "updated_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "updated_utc": datetime.now(UTC).isoformat(timespec="seconds"),
     }
     write_json_atomically(path, body, private=True)
 

@@ -10,7 +10,7 @@ import fcntl
 import json
 import os
 import socket
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -53,7 +53,7 @@ class DataDirLock:
                               f"{self.data_dir}; stop it first, or start this one with another --data-dir") from None
         self._fd = fd
         body = {"pid": os.getpid(), "host": socket.gethostname(),
-                "started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"), **about}
+                "started_utc": datetime.now(UTC).isoformat(timespec="seconds"), **about}
         with contextlib.suppress(OSError):  # a full disk keeps the lock, only not its description
             os.ftruncate(fd, 0)
             os.pwrite(fd, json.dumps(body).encode(), 0)

@@ -130,7 +130,7 @@ class EventBus:
                     return
                 try:
                     await asyncio.wait_for(wake.wait(), keepalive_s)
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     yield None
         finally:
             with self._lock:

@@ -75,7 +75,7 @@ class ServiceSettings(BaseSettings):
         return nodes
 
     @model_validator(mode="after")
-    def _dev_token_only_in_sim(self) -> "ServiceSettings":
+    def _dev_token_only_in_sim(self) -> ServiceSettings:
         if self.dev_token is not None and not self.sim:
             raise ValueError("dev_token is allowed only with sim: true (no default token on real hardware)")
         return self

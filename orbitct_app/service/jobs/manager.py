@@ -301,7 +301,7 @@ class JobManager:
                         if not lost:
                             self._start_queued()
                         self._poll_running(lost)
-                except Exception:  # noqa: BLE001 - the dispatcher must survive anything
+                except Exception:
                     log.exception("job dispatcher error")
                 self._wake.wait(0.05)
                 self._wake.clear()

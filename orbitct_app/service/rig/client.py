@@ -143,7 +143,7 @@ class RigClient:
                 break
             try:
                 self._dispatch(message)
-            except Exception:  # noqa: BLE001 - the reader must survive anything
+            except Exception:
                 log.exception("bench message %r", message[:2])
         self._bench_gone()
 
@@ -256,7 +256,7 @@ class RigClient:
         fut = self.submit(name, **args)
         try:
             return await asyncio.wait_for(asyncio.wrap_future(fut), timeout_s)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             raise Unavailable(f"the bench did not answer {name!r} within {timeout_s:g} s") from None
 
     # ------------------------------------------------------------ scans

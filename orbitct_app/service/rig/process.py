@@ -18,7 +18,7 @@ import queue
 import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine
 from dataclasses import asdict
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -123,6 +123,7 @@ class RigServer:
         self._sender = threading.Thread(target=self._send_out, name="bench-sender", daemon=True)
         self._sender.start()
         self._closing = asyncio.Event()
+        self._tasks: set[asyncio.Task[Any]] = set()  # commands, scans and halts in flight (held until done)
         self._close_reason = f"{SERVICE_STOPPED} (shut down)"
 
     def send(self, *message: Any) -> None:
@@ -189,6 +190,12 @@ class RigServer:
         self._close_reason = reason
         self._closing.set()
 
+    def _spawn(self, coro: Coroutine[Any, Any, Any]) -> None:
+        """Run ``coro`` as a task of the loop, held until it ends (the loop keeps only weak references)."""
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
     # ---------------------------------------------------------------- commands
     def _on_command(self, message: tuple[int, str, dict[str, Any]]) -> None:
         req_id, name, args = message
@@ -196,7 +203,7 @@ class RigServer:
             self._shutdown(str(args.get("reason", f"{SERVICE_STOPPED} (shut down)")))
             self.send("reply", req_id, True, None)
             return
-        asyncio.ensure_future(self._run_command(req_id, name, args))
+        self._spawn(self._run_command(req_id, name, args))
 
     async def _run_command(self, req_id: int, name: str, args: dict[str, Any]) -> None:
         try:
@@ -322,7 +329,7 @@ class RigServer:
         subscribers = [self.preview] + ([live] if live is not None else [])
         self.runner = ScanRunner(req, progress=lambda ev: self._progress(scan_id, ev), rig=self.rig,
                                  interlock=self._latched_reason, subscribers=subscribers)
-        asyncio.ensure_future(self._scan(scan_id, self.runner, Path(spec["out"])))
+        self._spawn(self._scan(scan_id, self.runner, Path(spec["out"])))
 
     def _live_calibration(self, scan_id: str, spec: dict[str, Any], req: Any) -> Any:
         """The live calibration subscriber a scan asked for (``calibrate: live``), its warnings sent as scan events."""
@@ -442,7 +449,7 @@ class RigServer:
         scan_id = self.scan_id
         if self.runner is not None:
             self.runner.abort(reason)
-        asyncio.ensure_future(self._halt(req_id, scan_id))
+        self._spawn(self._halt(req_id, scan_id))
 
     async def _halt(self, req_id: int, scan_id: str | None) -> None:
         """The fallback stop (no guard): halt every device over the rig's own links and read each back."""

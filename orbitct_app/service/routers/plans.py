@@ -20,7 +20,6 @@ from orbitct_app.bbplan import (
     load_surface,
     outline_from_volume,
 )
-from orbitct_app.service.core.schema_rules import at_most_one_of, schema_extra
 from orbitct_app.service.core.errors import (
     ERROR_RESPONSES,
     Conflict,
@@ -28,6 +27,7 @@ from orbitct_app.service.core.errors import (
     Invalid,
     NotFound,
 )
+from orbitct_app.service.core.schema_rules import at_most_one_of, schema_extra
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
 from orbitct_app.service.jobs.bbplans import PlanEnded, PlansBusy, plan_path
 from orbitct_app.service.routers.reconstructions import reconstruction_volume
@@ -50,7 +50,7 @@ class KeepOutIn(BaseModel):
     z_max_mm: float = Field(ge=-1000.0, le=1000.0)
 
     @model_validator(mode="after")
-    def _heights(self) -> "KeepOutIn":
+    def _heights(self) -> KeepOutIn:
         if not self.z_min_mm < self.z_max_mm:
             raise ValueError(f"z_min_mm ({self.z_min_mm:g}) must be below z_max_mm ({self.z_max_mm:g})")
         if self.angle_from_deg == self.angle_to_deg % 360.0 and self.angle_to_deg - self.angle_from_deg != 360.0:
@@ -94,7 +94,7 @@ class BBPlanIn(BaseModel):
                                       "cylinder:A,B,ZMIN:ZMAX or ellipsoid:A,B,C[,ZMIN:ZMAX]")
 
     @model_validator(mode="after")
-    def _one_surface(self) -> "BBPlanIn":
+    def _one_surface(self) -> BBPlanIn:
         given = [k for k in ("surface_id", "surface_reconstruction_id", "surface_shape") if getattr(self, k) is not None]
         if len(given) > 1:
             raise ValueError(f"give one of surface_id, surface_reconstruction_id and surface_shape, not {' and '.join(given)}")

@@ -17,7 +17,6 @@ from orbitct_app.service.core.errors import (
     NOT_SUCCEEDED,
     Conflict,
     ErrorBody,
-    Invalid,
     NotFound,
 )
 from orbitct_app.service.core.files import confined
@@ -59,7 +58,7 @@ class ReconstructionRequest(BaseModel):
                                       "reconstruction_max_minutes, 60)")
 
     @model_validator(mode="after")
-    def _size(self) -> "ReconstructionRequest":
+    def _size(self) -> ReconstructionRequest:
         if self.shape is not None and math.prod(self.shape) > MAX_VOXELS:
             raise ValueError(f"shape {list(self.shape)} has more than {MAX_VOXELS} voxels")
         return self

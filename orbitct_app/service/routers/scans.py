@@ -24,8 +24,8 @@ from orbitct_app.service.core.errors import (
     validation_details,
 )
 from orbitct_app.service.core.events import sse_response
-from orbitct_app.service.core.schema_rules import only_with, schema_extra
 from orbitct_app.service.core.files import confined
+from orbitct_app.service.core.schema_rules import only_with, schema_extra
 from orbitct_app.service.deps import Reader, ScanOperator, ServiceDep
 from orbitct_app.service.schemas import scan_or_404
 
@@ -61,7 +61,7 @@ class ScanCreate(BaseModel):
         description="live calibration warnings that stop the scan safely (axes halted, X-rays off, file aborted)")
 
     @model_validator(mode="after")
-    def _live_only(self) -> "ScanCreate":
+    def _live_only(self) -> ScanCreate:
         if self.abort_on and self.calibrate != "live":
             raise ValueError("abort_on needs calibrate: live")
         return self
@@ -124,7 +124,7 @@ def _check_params(service: Any, body: ScanCreate) -> dict[str, Any]:
     except ValidationError as exc:
         details = [FieldProblem(field="params." + d.field, reason=d.reason) for d in validation_details(list(exc.errors()))]
         raise Invalid("; ".join(f"{d.field}: {d.reason}" for d in details[:5]), details=details) from None
-    n = int(getattr(model, "n_frames"))
+    n = int(model.n_frames)
     limit = service.settings.max_scan_frames
     if n > limit:
         raise Invalid(f"{n} frames is more than this service allows ({limit})",

@@ -76,7 +76,7 @@ async def upload_surface(request: Request, service: ServiceDep, response: Respon
     except (BBPlanError, ValueError) as exc:
         path.unlink(missing_ok=True)
         raise Invalid(str(exc).replace(repr(str(path)), repr(name))) from None
-    except Exception:  # a file the mesh reader cannot parse at all
+    except Exception:  # noqa: BLE001 - a file the mesh reader cannot parse at all
         path.unlink(missing_ok=True)
         raise Invalid(f"surface {name!r}: not a readable mesh ({', '.join(MESH_SUFFIXES)})") from None
     described = dataclasses.replace(outline, source=name).describe()

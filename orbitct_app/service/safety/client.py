@@ -108,7 +108,7 @@ class GuardClient:
             elif kind == "stopped":
                 try:
                     self._on_stop(message[1])
-                except Exception:  # noqa: BLE001 - the reader must survive anything
+                except Exception:
                     log.exception("publishing a stop")
         self._ready.set()
         if self._closing:

@@ -69,7 +69,7 @@ class EmergencyStop:
                                f"{self.rig.connection_state}); the stop is latched: stop the bench by hand"}
         try:
             answer = await asyncio.wait_for(asyncio.wrap_future(future), RIG_CONFIRM_TIMEOUT_S)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             return {**base, "halted": False,
                     "message": f"NOT verified: halt sent to the rig process ({guard_why}), no confirmation within "
                                f"{RIG_CONFIRM_TIMEOUT_S:g} s"}

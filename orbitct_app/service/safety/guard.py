@@ -55,7 +55,7 @@ class DeviceGuard:
     def __init__(self, links: Mapping[str, DeviceLink]) -> None:
         self.links = {k: v for k, v in links.items() if k in GUARD_OPTIONS}
         self.devices: dict[str, Any] = {}
-        self.problems: dict[str, str] = {k: "not connected yet" for k in self.links}
+        self.problems: dict[str, str] = dict.fromkeys(self.links, "not connected yet")
         self.loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._main, name="guard-devices", daemon=True)
         self._connect_lock: asyncio.Lock | None = None
@@ -172,7 +172,7 @@ class StopHandler(BaseHTTPRequestHandler):
     raw_body = b""
     unread = ""  # why the body could not be read whole ('' when it was)
 
-    def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - the base class's name
+    def log_message(self, format: str, *args: Any) -> None:
         log.debug("%s " + format, self.address_string(), *args)
 
     def handle_one_request(self) -> None:
@@ -283,7 +283,7 @@ class StopHandler(BaseHTTPRequestHandler):
             return None
         return who
 
-    def do_POST(self) -> None:  # noqa: N802 - http.server's naming
+    def do_POST(self) -> None:
         if self.path.split("?")[0] != "/stop":
             self._error(404, "not_found", "the stop listener serves POST /stop, GET /stop and GET /health")
             return
@@ -301,7 +301,7 @@ class StopHandler(BaseHTTPRequestHandler):
             reply["note"] = f"{problem}; the stop was taken"
         self._reply(202, reply)
 
-    def do_GET(self) -> None:  # noqa: N802
+    def do_GET(self) -> None:
         path = self.path.split("?")[0]
         if path == "/health":
             self._reply(200, {"status": "ok", "latched": self.guard.latch.latched})
@@ -311,7 +311,7 @@ class StopHandler(BaseHTTPRequestHandler):
         else:
             self._error(404, "not_found", "the stop listener serves POST /stop, GET /stop and GET /health")
 
-    def do_OPTIONS(self) -> None:  # noqa: N802 - CORS pre-flight of a browser's stop button
+    def do_OPTIONS(self) -> None:
         self.send_response(204)
         self.send_header("Access-Control-Allow-Origin", "*")
         self.send_header("Access-Control-Allow-Methods", "GET, POST, OPTIONS")

@@ -17,7 +17,7 @@ import logging
 import multiprocessing as mp
 import threading
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -105,7 +105,7 @@ class NotLatchedError(Exception):
 
 
 def _now() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+    return datetime.now(UTC).isoformat(timespec="milliseconds")
 
 
 def _apply(data: dict[str, Any], event: dict[str, Any]) -> None:

@@ -92,12 +92,11 @@ def test_pwls_split_across_two_workers_equals_one_process(cluster: DaskCluster, 
 
 
 def test_pwls_that_would_not_fit_a_workers_memory_limit_is_refused_before_loading(sphere_scan: Path) -> None:
+    import dask
     from distributed import Client, LocalCluster
 
     import recon
     from recon.cluster import ClusterError
-
-    import dask
 
     grid = VolumeGrid.centered((32, 48, 48), 2.5)
     off = {f"distributed.worker.memory.{k}": False for k in ("target", "spill", "pause", "terminate")}

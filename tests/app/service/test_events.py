@@ -6,10 +6,10 @@ import asyncio
 import threading
 from pathlib import Path
 
-from orbitct_app.service.core.db import Store
 from hypothesis import given
 from hypothesis import strategies as st
 
+from orbitct_app.service.core.db import Store
 from orbitct_app.service.core.events import EventBus, event_id_after
 
 
