@@ -84,21 +84,35 @@ class GeometryConfig(_Model):
     @model_validator(mode="after")
     def _sdd_beyond_sad(self) -> GeometryConfig:
         if self.sdd_mm <= self.sad_mm:
-            raise ValueError(f"sdd_mm ({self.sdd_mm}) must exceed sad_mm ({self.sad_mm}): the detector lies beyond the isocenter")
+            raise ValueError(
+                f"sdd_mm ({self.sdd_mm}) must exceed sad_mm ({self.sad_mm}): the detector lies beyond the isocenter"
+            )
         return self
 
     def lab_view(self) -> ViewGeometry:
         """The fixed source/detector at the reference view (theta = phi = 0), lab frame."""
         return ViewGeometry.from_carm(
-            0.0, 0.0, self.sad_mm, self.sdd_mm, self.detector.panel(),
-            du=self.du_mm, dv=self.dv_mm, eta=math.radians(self.eta_deg),
+            0.0,
+            0.0,
+            self.sad_mm,
+            self.sdd_mm,
+            self.detector.panel(),
+            du=self.du_mm,
+            dv=self.dv_mm,
+            eta=math.radians(self.eta_deg),
         )
 
     def carm_views(self, theta_rad: Any, phi_rad: Any) -> ViewGeometry:
         """Nominal C-arm views for angles in radians."""
         return ViewGeometry.from_carm(
-            theta_rad, phi_rad, self.sad_mm, self.sdd_mm, self.detector.panel(),
-            du=self.du_mm, dv=self.dv_mm, eta=math.radians(self.eta_deg),
+            theta_rad,
+            phi_rad,
+            self.sad_mm,
+            self.sdd_mm,
+            self.detector.panel(),
+            du=self.du_mm,
+            dv=self.dv_mm,
+            eta=math.radians(self.eta_deg),
         )
 
 
@@ -109,8 +123,13 @@ class ExposureConfig(_Model):
     ma: float = Field(1.0, gt=0, le=1000)
     exposure_ms: float = Field(10.0, gt=0, le=10000)
     frame_rate_hz: float = Field(30.0, gt=0, le=1000)
-    prep_ms: float = Field(200.0, ge=0, le=60000, description="the generator's preparation time (PREP to READY); "
-                           "between exposures high voltage stays on only while the next one is due within it")
+    prep_ms: float = Field(
+        200.0,
+        ge=0,
+        le=60000,
+        description="the generator's preparation time (PREP to READY); "
+        "between exposures high voltage stays on only while the next one is due within it",
+    )
 
 
 class CalibrationFramesConfig(_Model):
@@ -138,9 +157,11 @@ class BenchDevices(_Model):
         if panel.scheme == "sim":  # a twin panel renders the exposures of its own world's X-ray twin, no other
             source = parse_uri(self.xray)
             if source.scheme != "sim" or source.host != panel.host:
-                raise ValueError(f"detector {self.detector} is a simulated panel: it takes frames only on exposures of "
-                                 f"the X-ray twin of its world (xray: sim://{panel.host}), not of xray {self.xray}; "
-                                 "make both sim:// or neither")
+                raise ValueError(
+                    f"detector {self.detector} is a simulated panel: it takes frames only on exposures of "
+                    f"the X-ray twin of its world (xray: sim://{panel.host}), not of xray {self.xray}; "
+                    "make both sim:// or neither"
+                )
         return self
 
 
@@ -187,8 +208,11 @@ class MotionConfig(_Model):
 
     settle_ms: float = Field(5.0, ge=0, le=10000)
     move_timeout_s: float = Field(30.0, gt=0, le=600)
-    overlap_readout: bool = Field(False, description="step mode: start the next move once the exposure is over, "
-                                  "while the panel reads out (a panel integrates only during the exposure)")
+    overlap_readout: bool = Field(
+        False,
+        description="step mode: start the next move once the exposure is over, "
+        "while the panel reads out (a panel integrates only during the exposure)",
+    )
 
 
 class StallConfig(_Model):
@@ -197,18 +221,33 @@ class StallConfig(_Model):
     The motion bound is ``motion.move_timeout_s`` (a move to the next frame on target).
     """
 
-    frame_s: float = Field(5.0, gt=0, le=600, description="detector: a frame must arrive within this long after its "
-                           "exposure (darks and flats: after the trigger, plus the exposure time)")
-    exposure_s: float = Field(2.0, gt=0, le=600, description="generator: an exposure must be over within this long "
-                              "beyond its exposure time and the preparation time")
+    frame_s: float = Field(
+        5.0,
+        gt=0,
+        le=600,
+        description="detector: a frame must arrive within this long after its "
+        "exposure (darks and flats: after the trigger, plus the exposure time)",
+    )
+    exposure_s: float = Field(
+        2.0,
+        gt=0,
+        le=600,
+        description="generator: an exposure must be over within this long "
+        "beyond its exposure time and the preparation time",
+    )
 
 
 class StorageConfig(_Model):
     """Disk space around a scan file: what must stay free on its filesystem."""
 
-    reserve_mb: float = Field(200.0, ge=0, le=1e6, description="a scan that would leave less than this free is "
-                              "refused before anything moves; a running scan stops cleanly when less than half of it "
-                              "(plus two frames) is left")
+    reserve_mb: float = Field(
+        200.0,
+        ge=0,
+        le=1e6,
+        description="a scan that would leave less than this free is "
+        "refused before anything moves; a running scan stops cleanly when less than half of it "
+        "(plus two frames) is left",
+    )
 
 
 class SimConfig(_Model):
@@ -253,10 +292,13 @@ class BenchConfig(_RigConfig):
         """The configured soft limits keyed like ``/frames/commanded`` (deg, mm)."""
         hl = self.limits.hexapod
         out = {"rotation_stage.R": self.limits.rotation_stage_deg}
-        out.update({f"hexapod.{a}": getattr(hl, f"{a.lower()}_{u}") for a, u in
-                    (("X", "mm"), ("Y", "mm"), ("Z", "mm"), ("U", "deg"), ("V", "deg"), ("W", "deg"))})
+        out.update(
+            {
+                f"hexapod.{a}": getattr(hl, f"{a.lower()}_{u}")
+                for a, u in (("X", "mm"), ("Y", "mm"), ("Z", "mm"), ("U", "deg"), ("V", "deg"), ("W", "deg"))
+            }
+        )
         return out
-
 
 
 class CArmLimits(_Model):
@@ -294,7 +336,6 @@ class CArmConfig(_RigConfig):
     exposure: ExposureConfig = ExposureConfig()
     calibration_frames: CalibrationFramesConfig = CalibrationFramesConfig()
     sim: SimConfig = SimConfig(phantom="C")
-
 
 
 AnyConfig = Annotated[BenchConfig | CArmConfig, Field(discriminator="kind")]

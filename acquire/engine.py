@@ -51,8 +51,9 @@ class Rig(Protocol):
     async def move_to(self, targets: Mapping[str, float], timeout_s: float) -> None:
         """Move every axis to a frame's targets and wait until all are there."""
 
-    async def acquire(self, image_key: int, after_exposure: Callable[[], None] | None = None, *,
-                      next_exposure_s: float | None = None) -> Frame:
+    async def acquire(
+        self, image_key: int, after_exposure: Callable[[], None] | None = None, *, next_exposure_s: float | None = None
+    ) -> Frame:
         """One frame: dark, flat or projection; ``after_exposure`` runs once X-rays are off again.
         ``next_exposure_s``: how soon the next exposure is due, where the engine knows it (a sweep)."""
 
@@ -124,8 +125,9 @@ class ScanOutcome:
     elapsed_s: float
 
 
-def _interpolated(before: Mapping[str, float], t_before: float, after: Mapping[str, float], t_after: float,
-                  t: float) -> dict[str, float]:
+def _interpolated(
+    before: Mapping[str, float], t_before: float, after: Mapping[str, float], t_after: float, t: float
+) -> dict[str, float]:
     """Each axis's read-back at time ``t``, linear between one ``before`` and one ``after`` (never beyond them)."""
     w = min(max((t - t_before) / (t_after - t_before), 0.0), 1.0) if t_after > t_before else 0.0
     return {k: float(v) + w * (float(after[k]) - float(v)) if k in after else float(v) for k, v in before.items()}
@@ -236,9 +238,16 @@ class ScanEngine:
         commanded moves and settling, and the rest (executor and recorder overhead), of which read-backs
         and recording (subscribers' ``on_frame``) and waiting, after a move, for the source's preparation."""
         rest = self._run_s - self._acquire_s - self._motion_s
-        return {"run_s": self._run_s, "acquire_s": self._acquire_s, "motion_s": self._motion_s, "overhead_s": rest,
-                "readback_s": self._readback_s, "record_s": self._record_s, "prepare_wait_s": self._prepare_s,
-                "late_restarts": self._late_restarts}
+        return {
+            "run_s": self._run_s,
+            "acquire_s": self._acquire_s,
+            "motion_s": self._motion_s,
+            "overhead_s": rest,
+            "readback_s": self._readback_s,
+            "record_s": self._record_s,
+            "prepare_wait_s": self._prepare_s,
+            "late_restarts": self._late_restarts,
+        }
 
     # ---------------------------------------------------------------- run
     async def run(self) -> ScanOutcome:
@@ -256,8 +265,11 @@ class ScanEngine:
             await self.rig.prepare(self.plan)
             self._check_abort()
             start = ScanStart(
-                plan=self.plan, axes=dict(self.rig.axes), mode=self.mode,
-                started_utc=datetime.now(UTC).isoformat(timespec="seconds"), sim=self.rig.sim,
+                plan=self.plan,
+                axes=dict(self.rig.axes),
+                mode=self.mode,
+                started_utc=datetime.now(UTC).isoformat(timespec="seconds"),
+                sim=self.rig.sim,
                 extra=self.start_extra,
             )
             self._notify("on_start", start)
@@ -284,14 +296,16 @@ class ScanEngine:
                 end = ScanEnd(status, reason, self.n_done, time.monotonic() - t0)
                 self._notify("on_finish", end, final=True)
             if status != "refused":
-                report(self.progress, "scan", self.n_done, self.plan.n_frames,
-                       f"{status}{': ' + reason if reason else ''}")
+                report(
+                    self.progress, "scan", self.n_done, self.plan.n_frames, f"{status}{': ' + reason if reason else ''}"
+                )
         if pending is not None:
             raise pending  # Ctrl-C or a cancellation from outside: propagate after cleanup
         return ScanOutcome(status, reason, self.n_done, self.plan.n_frames, time.monotonic() - t0)
 
     async def _cleanup(self, status: str, interrupted: bool) -> None:
         """Halt every axis (on abort) and switch X-rays off; never raises, never skipped by a second cancel."""
+
         async def _do() -> None:
             if self._stop_task is not None:
                 with contextlib.suppress(BaseException):
@@ -367,8 +381,15 @@ class ScanEngine:
         tv = frame.meta.get("truth_vectors") if self.rig.sim else None
         return None if tv is None else np.asarray(tv, dtype=float)
 
-    async def _shoot(self, f: FramePlan, t0: float, after_exposure: Callable[[], None] | None = None, *,
-                     sweeping: bool = False, next_exposure_s: float | None = None) -> None:
+    async def _shoot(
+        self,
+        f: FramePlan,
+        t0: float,
+        after_exposure: Callable[[], None] | None = None,
+        *,
+        sweeping: bool = False,
+        next_exposure_s: float | None = None,
+    ) -> None:
         """Read back, expose, record one frame. ``sweeping``: the axes move through the exposure, so they are read
         back again once it is over and each read-back is interpolated to the exposure's middle (read before it
         only, a sweep at 4 frames/s on the simulated bench recorded the stage 0.5 degrees short of where it was)."""
@@ -406,8 +427,15 @@ class ScanEngine:
                     await read_after
         truth = self._true_vector(frame) if f.image_key == ImageKey.PROJECTION else None
         rec = FrameRecord(
-            index=f.index, image_key=f.image_key, view=f.view, time_s=t_frame, frame=frame.data,
-            commanded=f.targets, encoders=encoders, nominal_vector=f.nominal_vector, true_vector=truth,
+            index=f.index,
+            image_key=f.image_key,
+            view=f.view,
+            time_s=t_frame,
+            frame=frame.data,
+            commanded=f.targets,
+            encoders=encoders,
+            nominal_vector=f.nominal_vector,
+            true_vector=truth,
         )
         t_r = time.monotonic()
         self._notify("on_frame", rec)
@@ -470,11 +498,17 @@ class ScanEngine:
                     last = cmd
                 nxt = frames[k + 1] if k + 1 < len(frames) else None
                 start_next: Callable[[], None] | None = None
-                if (self.motion.overlap_readout and nxt is not None and f.image_key == ImageKey.PROJECTION
-                        and nxt.targets != cmd):
+                if (
+                    self.motion.overlap_readout
+                    and nxt is not None
+                    and f.image_key == ImageKey.PROJECTION
+                    and nxt.targets != cmd
+                ):
+
                     def start_next(nxt_cmd: dict[str, float] = nxt.targets) -> None:
                         nonlocal ahead
                         ahead = (nxt_cmd, asyncio.ensure_future(self.rig.move_to(nxt_cmd, timeout)))
+
                 await self._shoot(f, t0, after_exposure=start_next)
         finally:
             if ahead is not None:  # scan ending early: let the started move end (cleanup halts it anyway)
@@ -565,24 +599,32 @@ class ScanEngine:
             await self._boundary()
             await self._shoot(plan.frame(i), t0)
 
-    async def _start_sweep_anew(self, rig: SweepRig, idx: int, past_deg: float, step_deg: float,
-                                late_at: int | None) -> None:
+    async def _start_sweep_anew(
+        self, rig: SweepRig, idx: int, past_deg: float, step_deg: float, late_at: int | None
+    ) -> None:
         """Frame ``idx`` is ready ``past_deg`` past its angle, more than half a step: stop the sweep so that it
         starts again from this frame (a frame exposed there would be recorded at the wrong angle). Late again right
         after the last such start (``late_at``): the exposures cannot keep up, and the scan ends."""
         if late_at is not None and 0 <= idx - late_at <= 1:
-            anew = ("again, after its sweep was started anew from it" if idx == late_at else
-                    f"right after its sweep was started anew at frame {late_at}, which had been late too")
+            anew = (
+                "again, after its sweep was started anew from it"
+                if idx == late_at
+                else f"right after its sweep was started anew at frame {late_at}, which had been late too"
+            )
             raise AcquireError(
                 f"continuous mode: frame {idx} was ready {past_deg:.2f} deg past its angle (at most half a step, "
                 f"{0.5 * step_deg:.2f} deg, is allowed) {anew}; the exposures cannot keep up at "
-                f"{self.frame_rate_hz:g} frames/s: a lower frame rate, or step mode")
+                f"{self.frame_rate_hz:g} frames/s: a lower frame rate, or step mode"
+            )
         self._late_restarts += 1
-        log.warning("continuous mode: frame %d ready %.2f deg past its angle; its sweep starts again from it", idx, past_deg)
+        log.warning(
+            "continuous mode: frame %d ready %.2f deg past its angle; its sweep starts again from it", idx, past_deg
+        )
         await rig.stop_all()
 
-    async def _ready_at_angle(self, rig: SweepRig, target: float, direction: float, velocity: float,
-                              timeout_s: float) -> float:
+    async def _ready_at_angle(
+        self, rig: SweepRig, target: float, direction: float, velocity: float, timeout_s: float
+    ) -> float:
         """Wait until the sweep reaches ``target`` with the X-ray source ready: a :class:`PreparingRig`'s
         preparation starts its preparation time (and a fifth more) before the angle and is renewed half a
         preparation before it, so the exposure is not late by a preparation while the stage turns on (a DCArc at
@@ -610,8 +652,9 @@ class ScanEngine:
                 with contextlib.suppress(BaseException):
                     await prep
 
-    async def _wait_for_angle(self, rig: SweepRig, target: float, direction: float, velocity: float,
-                              timeout_s: float) -> float:
+    async def _wait_for_angle(
+        self, rig: SweepRig, target: float, direction: float, velocity: float, timeout_s: float
+    ) -> float:
         """Wait until the sweep passes ``target``; how far past it (deg) it was when seen there."""
         deadline = time.monotonic() + timeout_s
         while True:

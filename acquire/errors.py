@@ -22,15 +22,19 @@ class NotReadyError(RefusedError):
 class PreflightError(RefusedError):
     """The orbit (errors included) cannot be run: names the first offending frame and axis."""
 
-    def __init__(self, frame: int, axis: str, value: float | None, allowed: str, unit: str = "", note: str = "") -> None:
+    def __init__(
+        self, frame: int, axis: str, value: float | None, allowed: str, unit: str = "", note: str = ""
+    ) -> None:
         self.frame = int(frame)
         self.axis = axis
         self.value = value
         self.allowed = allowed
         u = f" {unit}" if unit else ""
         what = f"axis {axis}" if value is None else f"axis {axis} = {value:.4g}{u}"
-        super().__init__(f"orbit infeasible at frame {self.frame}: {what} is outside {allowed}; nothing moved"
-                         + (f". {note}" if note else ""))
+        super().__init__(
+            f"orbit infeasible at frame {self.frame}: {what} is outside {allowed}; nothing moved"
+            + (f". {note}" if note else "")
+        )
 
 
 class ScanAborted(AcquireError):

@@ -53,8 +53,12 @@ def views_from_axes(
     stage: ArrayLike, hexapod: ArrayLike, lab_view: ViewGeometry, stack: StackConfig = StackConfig()
 ) -> ViewGeometry:
     """Forward kinematics: the views (object frame) that stage angles and hexapod poses produce."""
-    R, t = object_pose(np.atleast_1d(np.asarray(stage, float)), np.atleast_2d(np.asarray(hexapod, float)),
-                       order=stack.order, pivot=stack.pivot_mm)
+    R, t = object_pose(
+        np.atleast_1d(np.asarray(stage, float)),
+        np.atleast_2d(np.asarray(hexapod, float)),
+        order=stack.order,
+        pivot=stack.pivot_mm,
+    )
     return ViewGeometry.from_object_poses(lab_view, R, t)
 
 
@@ -64,8 +68,12 @@ def errors_from_axes(
     """Reverse of :func:`bench_axes`: the injected errors (N, 6) that axes realise for given nominal views."""
     from orbitct.rotations import xyz_angles
 
-    R, t = object_pose(np.atleast_1d(np.asarray(stage, float)), np.atleast_2d(np.asarray(hexapod, float)),
-                       order=stack.order, pivot=stack.pivot_mm)
+    R, t = object_pose(
+        np.atleast_1d(np.asarray(stage, float)),
+        np.atleast_2d(np.asarray(hexapod, float)),
+        order=stack.order,
+        pivot=stack.pivot_mm,
+    )
     Ri = ideal_bench_pose(np.atleast_1d(np.asarray(theta, float)), np.atleast_1d(np.asarray(phi, float)))
     Re = R @ np.swapaxes(Ri, -1, -2)
     return np.concatenate([xyz_angles(Re), t], axis=-1)

@@ -80,8 +80,12 @@ class ScanPlan:
     def frame(self, i: int) -> FramePlan:
         """Frame ``i`` as a record."""
         return FramePlan(
-            index=i, image_key=int(self.image_key[i]), view=int(self.view[i]),
-            theta_rad=float(self.theta_rad[i]), phi_rad=float(self.phi_rad[i]), error=self.errors[i],
+            index=i,
+            image_key=int(self.image_key[i]),
+            view=int(self.view[i]),
+            theta_rad=float(self.theta_rad[i]),
+            phi_rad=float(self.phi_rad[i]),
+            error=self.errors[i],
             targets={axis: float(values[i]) for axis, values in self.targets.items()},
             nominal_vector=self.nominal.vectors[i],
         )
@@ -93,11 +97,18 @@ class ScanPlan:
         return self.n_frames
 
 
-def frame_layout(n_views: int, frames: CalibrationFramesConfig) -> tuple[NDArray[np.int8], NDArray[np.int64], NDArray[np.int64]]:
+def frame_layout(
+    n_views: int, frames: CalibrationFramesConfig
+) -> tuple[NDArray[np.int8], NDArray[np.int64], NDArray[np.int64]]:
     """Image keys, orbit view per frame (-1 for darks/flats) and the view whose pose each frame uses."""
     before, after = frames.darks_before + frames.flats_before, frames.darks_after + frames.flats_after
-    keys = ([ImageKey.DARK] * frames.darks_before + [ImageKey.FLAT] * frames.flats_before + [ImageKey.PROJECTION] * n_views
-            + [ImageKey.DARK] * frames.darks_after + [ImageKey.FLAT] * frames.flats_after)
+    keys = (
+        [ImageKey.DARK] * frames.darks_before
+        + [ImageKey.FLAT] * frames.flats_before
+        + [ImageKey.PROJECTION] * n_views
+        + [ImageKey.DARK] * frames.darks_after
+        + [ImageKey.FLAT] * frames.flats_after
+    )
     view = [-1] * before + list(range(n_views)) + [-1] * after
     pose = [0] * before + list(range(n_views)) + [n_views - 1] * after
     return np.array(keys, np.int8), np.array(view, np.int64), np.array(pose, np.int64)
@@ -136,9 +147,17 @@ def plan_bench_scan(
         targets[f"hexapod.{axis}"] = hexapod[pose, i] if i < 3 else np.degrees(hexapod[pose, i])
     units = {STAGE_AXIS: "deg"} | {f"hexapod.{a}": u for a, u in zip(HEXAPOD_AXES, HEXAPOD_UNITS)}
     return ScanPlan(
-        image_key=keys, view=view, theta_rad=th[pose], phi_rad=ph[pose], errors=err[pose],
-        targets=targets, units=units, nominal=_nominal(keys, config.geometry.carm_views(th, ph)),
-        orbit_name=orbit_name, orbit_params=dict(orbit_params or {}), error_profile=error_profile,
+        image_key=keys,
+        view=view,
+        theta_rad=th[pose],
+        phi_rad=ph[pose],
+        errors=err[pose],
+        targets=targets,
+        units=units,
+        nominal=_nominal(keys, config.geometry.carm_views(th, ph)),
+        orbit_name=orbit_name,
+        orbit_params=dict(orbit_params or {}),
+        error_profile=error_profile,
         config=config.model_dump(mode="json"),
     )
 
@@ -149,9 +168,17 @@ def plan_carm_scan(config: CArmConfig, orbit: Orbit) -> ScanPlan:
     n = keys.size
     targets = {"carm.primary": orbit.theta_deg[pose], "carm.secondary": orbit.phi_deg[pose]}
     return ScanPlan(
-        image_key=keys, view=view, theta_rad=orbit.theta[pose], phi_rad=orbit.phi[pose], errors=np.zeros((n, 6)),
-        targets=targets, units=dict(CARM_AXES), nominal=_nominal(keys, config.geometry.carm_views(orbit.theta, orbit.phi)),
-        orbit_name=orbit.name, orbit_params=dict(orbit.params), error_profile=json.dumps({"name": "carm-systematic"}),
+        image_key=keys,
+        view=view,
+        theta_rad=orbit.theta[pose],
+        phi_rad=orbit.phi[pose],
+        errors=np.zeros((n, 6)),
+        targets=targets,
+        units=dict(CARM_AXES),
+        nominal=_nominal(keys, config.geometry.carm_views(orbit.theta, orbit.phi)),
+        orbit_name=orbit.name,
+        orbit_params=dict(orbit.params),
+        error_profile=json.dumps({"name": "carm-systematic"}),
         config=config.model_dump(mode="json"),
     )
 

@@ -68,15 +68,24 @@ def check_speeds(plan: ScanPlan, config: BenchConfig, frame_rate_hz: float) -> N
     xyz = np.stack([plan.targets[f"hexapod.{a}"] for a in HEXAPOD_AXES[:3]], axis=1)
     lin = np.where(swept, np.linalg.norm(np.diff(xyz, axis=0), axis=1) / dt, 0.0)
     j = _first_outside(lin, 0.0, config.limits.hexapod_velocity_mm_s)
-    candidates = [(k + 1, n, v, lim) for k, n, v, lim in (
-        (i, "rotation_stage velocity", stage_speed, config.limits.stage_velocity_deg_s),
-        (j, "hexapod linear velocity", lin, config.limits.hexapod_velocity_mm_s),
-    ) if k is not None]
+    candidates = [
+        (k + 1, n, v, lim)
+        for k, n, v, lim in (
+            (i, "rotation_stage velocity", stage_speed, config.limits.stage_velocity_deg_s),
+            (j, "hexapod linear velocity", lin, config.limits.hexapod_velocity_mm_s),
+        )
+        if k is not None
+    ]
     if candidates:
         k, name, v, lim = min(candidates, key=lambda c: c[0])
         unit = "deg/s" if "rotation" in name else "mm/s"
-        raise PreflightError(k, name, float(v[k - 1]), f"the allowed [0, {lim:g}] at {frame_rate_hz:g} frames/s "
-                             "(a lower frame rate, or step mode)", unit)
+        raise PreflightError(
+            k,
+            name,
+            float(v[k - 1]),
+            f"the allowed [0, {lim:g}] at {frame_rate_hz:g} frames/s (a lower frame rate, or step mode)",
+            unit,
+        )
 
 
 def check_run_ups(plan: ScanPlan, sources: Mapping[str, Mapping[str, Range]], frame_rate_hz: float) -> None:
@@ -84,16 +93,25 @@ def check_run_ups(plan: ScanPlan, sources: Mapping[str, Mapping[str, Range]], fr
     (:func:`acquire.plan.sweep_run_up_deg`), leaves a range of the sweep axis (the stage) of any source."""
     stage = plan.targets[STAGE_AXIS]
     for start, end in sweeps(plan):
-        run = float(np.sign(stage[end] - stage[start])) * sweep_run_up_deg(sweep_speed(stage, start, end, frame_rate_hz))
-        for frame, value, what in ((start, stage[start] - run, "run-up before"), (end, stage[end] + run, "run-on past")):
+        run = float(np.sign(stage[end] - stage[start])) * sweep_run_up_deg(
+            sweep_speed(stage, start, end, frame_rate_hz)
+        )
+        for frame, value, what in (
+            (start, stage[start] - run, "run-up before"),
+            (end, stage[end] + run, "run-on past"),
+        ):
             for label, limits in sources.items():
                 if STAGE_AXIS in limits:
                     lo, hi = limits[STAGE_AXIS]
                     if not lo <= value <= hi:
-                        raise PreflightError(frame, f"{STAGE_AXIS} ({what} the sweep's trigger angle at "
-                                             f"{frame_rate_hz:g} frames/s)", float(value),
-                                             f"the {label} range [{lo:g}, {hi:g}]", plan.units.get(STAGE_AXIS, ""),
-                                             "A lower frame rate shortens it, or step mode needs none")
+                        raise PreflightError(
+                            frame,
+                            f"{STAGE_AXIS} ({what} the sweep's trigger angle at {frame_rate_hz:g} frames/s)",
+                            float(value),
+                            f"the {label} range [{lo:g}, {hi:g}]",
+                            plan.units.get(STAGE_AXIS, ""),
+                            "A lower frame rate shortens it, or step mode needs none",
+                        )
 
 
 async def check_workspace(plan: ScanPlan, workspace_check: WorkspaceCheck) -> None:
@@ -104,8 +122,13 @@ async def check_workspace(plan: ScanPlan, workspace_check: WorkspaceCheck) -> No
     if i is not None:
         p = poses[i]
         pose_txt = ", ".join(f"{a}={p[a]:.3f}" for a in HEXAPOD_AXES)
-        raise PreflightError(i, "hexapod (coupled workspace)", None, f"the controller's workspace (VMO? refused pose {pose_txt})",
-                             note=errors_note(plan))
+        raise PreflightError(
+            i,
+            "hexapod (coupled workspace)",
+            None,
+            f"the controller's workspace (VMO? refused pose {pose_txt})",
+            note=errors_note(plan),
+        )
 
 
 async def bench_preflight(

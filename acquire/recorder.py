@@ -33,9 +33,16 @@ class ScanRecorder:
     With ``reserve_mb`` it watches the free space and stops the scan (raising) while the file can still be closed.
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, overwrite: bool = False, frame_dtype: str = "uint16",
-                 marker_diameter_mm: float | None = None, truth: SimulationTruth | None = None,
-                 reserve_mb: float | None = None) -> None:
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        overwrite: bool = False,
+        frame_dtype: str = "uint16",
+        marker_diameter_mm: float | None = None,
+        truth: SimulationTruth | None = None,
+        reserve_mb: float | None = None,
+    ) -> None:
         self.path = Path(path)
         self.reserve_mb = reserve_mb
         self.watch: SpaceWatch | None = None
@@ -49,22 +56,37 @@ class ScanRecorder:
         """Create the file with panel, axes, orbit, configuration provenance and (simulated) truth."""
         plan = start.plan
         if self.reserve_mb is not None:
-            self.watch = SpaceWatch(self.path.resolve().parent, frame_bytes(plan.panel, self.frame_dtype),
-                                    int(self.reserve_mb * MB))
+            self.watch = SpaceWatch(
+                self.path.resolve().parent, frame_bytes(plan.panel, self.frame_dtype), int(self.reserve_mb * MB)
+            )
             self.watch.check(0)
         self.writer = ScanWriter(
-            self.path, plan.panel, frame_dtype=self.frame_dtype, axes=dict(start.axes),
-            orbit_name=plan.orbit_name, orbit_params=dict(plan.orbit_params), config=dict(plan.config),
-            marker_diameter_mm=self.marker_diameter_mm, true_geometry=self.truth is not None, overwrite=self.overwrite,
+            self.path,
+            plan.panel,
+            frame_dtype=self.frame_dtype,
+            axes=dict(start.axes),
+            orbit_name=plan.orbit_name,
+            orbit_params=dict(plan.orbit_params),
+            config=dict(plan.config),
+            marker_diameter_mm=self.marker_diameter_mm,
+            true_geometry=self.truth is not None,
+            overwrite=self.overwrite,
         )
         self.writer.set_attrs(
-            "acquisition", mode=start.mode, error_profile=plan.error_profile, planned_frames=plan.n_frames,
-            planned_projections=plan.n_projections, started_utc=start.started_utc, simulated=bool(start.sim),
+            "acquisition",
+            mode=start.mode,
+            error_profile=plan.error_profile,
+            planned_frames=plan.n_frames,
+            planned_projections=plan.n_projections,
+            started_utc=start.started_utc,
+            simulated=bool(start.sim),
             **dict(start.extra),
         )
         # per-frame injected errors (pitch, roll, yaw rad; x, y, z mm), NaN rows for darks and flats
         errors = np.where((plan.image_key == ImageKey.PROJECTION)[:, None], plan.errors, np.nan)
-        self.writer.write_dataset("acquisition/injected_errors", errors, columns="pitch_rad roll_rad yaw_rad x_mm y_mm z_mm")
+        self.writer.write_dataset(
+            "acquisition/injected_errors", errors, columns="pitch_rad roll_rad yaw_rad x_mm y_mm z_mm"
+        )
         if self.truth is not None:
             self.writer.write_truth(markers_xyz=self.truth.markers_xyz, phantom=self.truth.phantom)
 
@@ -75,8 +97,12 @@ class ScanRecorder:
             self.watch.check(self.writer.n_frames)
         projection = record.image_key == ImageKey.PROJECTION
         self.writer.append(
-            record.frame, record.image_key, record.time_s, nominal_vector=record.nominal_vector if projection else None,
-            encoders=dict(record.encoders), commanded=dict(record.commanded),
+            record.frame,
+            record.image_key,
+            record.time_s,
+            nominal_vector=record.nominal_vector if projection else None,
+            encoders=dict(record.encoders),
+            commanded=dict(record.commanded),
             true_vector=record.true_vector if projection else None,
         )
 

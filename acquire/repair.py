@@ -31,7 +31,9 @@ class RepairReport:
     def summary(self) -> str:
         """One line for people."""
         if not self.changed:
-            return f"{self.path}: status is already {self.status_before!r} with {self.n_frames} frames; nothing to repair"
+            return (
+                f"{self.path}: status is already {self.status_before!r} with {self.n_frames} frames; nothing to repair"
+            )
         cut = f" (partial frame data cut from {self.truncated_from})" if self.truncated_from is not None else ""
         if self.status_before != "acquiring":
             return f"{self.path}: {self.status_before}; kept {self.n_frames} complete frames{cut}"
@@ -40,8 +42,13 @@ class RepairReport:
 
 def _per_frame_datasets(f: h5py.File) -> list[h5py.Dataset]:
     out: list[h5py.Dataset] = []
-    for name in ("frames/data", "frames/time_s", "geometry/nominal/vectors", "geometry/nominal/matrices",
-                 "truth/geometry/vectors"):
+    for name in (
+        "frames/data",
+        "frames/time_s",
+        "geometry/nominal/vectors",
+        "geometry/nominal/matrices",
+        "truth/geometry/vectors",
+    ):
         if name in f:
             out.append(f[name])
     for grp in ("frames/encoders", "frames/commanded"):
@@ -94,7 +101,9 @@ def repair_scan(path: str | os.PathLike[str], *, force: bool = False, quiet_s: f
     try:
         f = h5py.File(p, "r+")
     except OSError as exc:
-        raise RepairError(f"{p}: cannot open as HDF5 for writing ({exc}); is another process still writing it?") from None
+        raise RepairError(
+            f"{p}: cannot open as HDF5 for writing ({exc}); is another process still writing it?"
+        ) from None
     try:
         if f.attrs.get("format") != FORMAT:
             raise RepairError(f"{p}: not an orbitct scan file (format tag {f.attrs.get('format')!r})")

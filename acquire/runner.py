@@ -95,8 +95,15 @@ def build_plan(req: ScanRequest, cfg: BenchConfig | CArmConfig) -> ScanPlan:
         export_orbit(orbit, cfg)  # refuses an orbit outside the arm's ranges, naming the first bad frame
         return plan_carm_scan(cfg, orbit)
     orbit, errors, profile = make_orbit_and_errors(req)
-    return plan_bench_scan(cfg, orbit.theta, orbit.phi, errors, orbit_name=orbit.name,
-                           orbit_params=orbit.params, error_profile=json.dumps(profile, sort_keys=True))
+    return plan_bench_scan(
+        cfg,
+        orbit.theta,
+        orbit.phi,
+        errors,
+        orbit_name=orbit.name,
+        orbit_params=orbit.params,
+        error_profile=json.dumps(profile, sort_keys=True),
+    )
 
 
 def simulation_truth(cfg: BenchConfig | CArmConfig) -> SimulationTruth:
@@ -118,8 +125,15 @@ def start_extra(cfg: BenchConfig | CArmConfig, plan: ScanPlan, frame_rate_hz: fl
 class ScanRunner:
     """Runs one scan in the caller's loop (:meth:`run`) or in a background thread (:meth:`start`)."""
 
-    def __init__(self, request: ScanRequest, *, progress: ProgressCallback | None = None, rig: Rig | None = None,
-                 interlock: Callable[[], str | None] | None = None, subscribers: Sequence[Subscriber] = ()) -> None:
+    def __init__(
+        self,
+        request: ScanRequest,
+        *,
+        progress: ProgressCallback | None = None,
+        rig: Rig | None = None,
+        interlock: Callable[[], str | None] | None = None,
+        subscribers: Sequence[Subscriber] = (),
+    ) -> None:
         """``subscribers`` receive the scan's events after the recorder (live analysis: it sees each frame once it
         is written, and the complete file once closed)."""
         if request.mode not in MODES:
@@ -168,10 +182,13 @@ class ScanRunner:
                 out.parent.mkdir(parents=True, exist_ok=True)
                 program.write(out.with_suffix(".nav.json"))
                 program.write(out.with_suffix(".nav.csv"))
-            recorder = ScanRecorder(out, overwrite=req.overwrite,
-                                    marker_diameter_mm=cfg.sim.bb_diameter_mm if req.sim else None,
-                                    truth=simulation_truth(cfg) if req.sim else None,
-                                    reserve_mb=cfg.storage.reserve_mb)
+            recorder = ScanRecorder(
+                out,
+                overwrite=req.overwrite,
+                marker_diameter_mm=cfg.sim.bb_diameter_mm if req.sim else None,
+                truth=simulation_truth(cfg) if req.sim else None,
+                reserve_mb=cfg.storage.reserve_mb,
+            )
             if self._rig is not None:
                 self.result = await self._run_engine(self._rig, plan, cfg, recorder)
             else:
@@ -186,16 +203,32 @@ class ScanRunner:
         finally:
             self._done.set()
 
-    async def _run_engine(self, rig: Rig, plan: ScanPlan, cfg: BenchConfig | CArmConfig,
-                          recorder: ScanRecorder) -> ScanResult:
+    async def _run_engine(
+        self, rig: Rig, plan: ScanPlan, cfg: BenchConfig | CArmConfig, recorder: ScanRecorder
+    ) -> ScanResult:
         rate = float(self.request.frame_rate_hz or cfg.exposure.frame_rate_hz)
-        engine = ScanEngine(rig, plan, motion=cfg.motion, frame_rate_hz=rate, mode=self.request.mode,
-                            subscribers=[recorder, *self._subscribers], progress=self._progress, start_extra=start_extra(cfg, plan, rate),
-                            interlock=self._interlock)
+        engine = ScanEngine(
+            rig,
+            plan,
+            motion=cfg.motion,
+            frame_rate_hz=rate,
+            mode=self.request.mode,
+            subscribers=[recorder, *self._subscribers],
+            progress=self._progress,
+            start_extra=start_extra(cfg, plan, rate),
+            interlock=self._interlock,
+        )
         self._attach(engine)
         outcome = await engine.run()
-        return ScanResult(Path(self.request.out), outcome.status, outcome.reason, outcome.n_frames,
-                          outcome.n_planned, outcome.elapsed_s, engine.timing)
+        return ScanResult(
+            Path(self.request.out),
+            outcome.status,
+            outcome.reason,
+            outcome.n_frames,
+            outcome.n_planned,
+            outcome.elapsed_s,
+            engine.timing,
+        )
 
     def _attach(self, engine: ScanEngine) -> None:
         """Route pause/resume/abort to ``engine`` (and apply any that came before it existed)."""
@@ -264,8 +297,9 @@ class ScanRunner:
         self._call("abort", reason)
 
 
-def run_scan(request: ScanRequest, *, progress: ProgressCallback | None = None,
-             subscribers: Sequence[Subscriber] = ()) -> ScanResult:
+def run_scan(
+    request: ScanRequest, *, progress: ProgressCallback | None = None, subscribers: Sequence[Subscriber] = ()
+) -> ScanResult:
     """Run one scan to its end in a fresh event loop (blocking).
 
     In the main thread the first SIGINT (Ctrl-C), SIGTERM (``kill``, ``systemctl stop``, ``timeout``)

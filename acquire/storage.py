@@ -34,8 +34,9 @@ def scan_bytes(panel: Panel, n_frames: int, frame_dtype: str = "uint16") -> int:
     return int(n_frames) * frame_bytes(panel, frame_dtype) + _FIXED_BYTES
 
 
-def check_room(out: str | os.PathLike[str], panel: Panel, n_frames: int, reserve_mb: float,
-               frame_dtype: str = "uint16") -> int:
+def check_room(
+    out: str | os.PathLike[str], panel: Panel, n_frames: int, reserve_mb: float, frame_dtype: str = "uint16"
+) -> int:
     """Refuse a scan whose file would not fit with ``reserve_mb`` left; returns the estimated size in bytes."""
     need = scan_bytes(panel, n_frames, frame_dtype)
     reserve = int(reserve_mb * MB)

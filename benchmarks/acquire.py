@@ -44,27 +44,54 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=500, help="projections (default 500)")
     ap.add_argument("--size", type=int, default=768, help="detector pixels, square (default 768)")
     ap.add_argument("--mode", choices=["step", "continuous"], default="step")
-    ap.add_argument("--time-scale", type=float, default=50.0,
-                    help="twins move this many times faster than a real bench (default 50: mechanics out of the way)")
-    ap.add_argument("--tilt-deg", type=float, default=8.0, help="sawtooth tilt amplitude (the hexapod twin allows ~8 with errors)")
+    ap.add_argument(
+        "--time-scale",
+        type=float,
+        default=50.0,
+        help="twins move this many times faster than a real bench (default 50: mechanics out of the way)",
+    )
+    ap.add_argument(
+        "--tilt-deg", type=float, default=8.0, help="sawtooth tilt amplitude (the hexapod twin allows ~8 with errors)"
+    )
     ap.add_argument("--frame-rate", type=float, default=None, help="continuous mode: frames per second")
-    ap.add_argument("--overlap-readout", action="store_true",
-                    help="step mode: move to the next frame while the panel reads out (config motion.overlap_readout)")
+    ap.add_argument(
+        "--overlap-readout",
+        action="store_true",
+        help="step mode: move to the next frame while the panel reads out (config motion.overlap_readout)",
+    )
     ap.add_argument("--out", type=Path, default=None, help="keep the scan file here (default: a temporary folder)")
-    ap.add_argument("--dose-frames", type=int, default=100, help="projections of each high-voltage policy scan (0: skip)")
-    ap.add_argument("--dose-time-scale", type=float, default=10.0, help="twin speed-up of the high-voltage policy scans")
+    ap.add_argument(
+        "--dose-frames", type=int, default=100, help="projections of each high-voltage policy scan (0: skip)"
+    )
+    ap.add_argument(
+        "--dose-time-scale", type=float, default=10.0, help="twin speed-up of the high-voltage policy scans"
+    )
     args = ap.parse_args()
 
     cfg = load_config(ROOT / "config" / "bench.yaml")
     assert isinstance(cfg, BenchConfig)
     cfg = cfg.with_detector_size(args.size)
-    cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"time_scale": args.time_scale}),
-                                 "motion": cfg.motion.model_copy(update={"overlap_readout": args.overlap_readout})})
+    cfg = cfg.model_copy(
+        update={
+            "sim": cfg.sim.model_copy(update={"time_scale": args.time_scale}),
+            "motion": cfg.motion.model_copy(update={"overlap_readout": args.overlap_readout}),
+        }
+    )
     tmp = tempfile.TemporaryDirectory()
     out = args.out or Path(tmp.name) / "bench.h5"
-    req = ScanRequest(config=cfg, out=out, orbit="sawtooth", frames=args.frames,
-                      orbit_params={"amplitude_deg": args.tilt_deg}, errors="bench", seed=0, mode=args.mode,
-                      sim=True, frame_rate_hz=args.frame_rate, overwrite=True)
+    req = ScanRequest(
+        config=cfg,
+        out=out,
+        orbit="sawtooth",
+        frames=args.frames,
+        orbit_params={"amplitude_deg": args.tilt_deg},
+        errors="bench",
+        seed=0,
+        mode=args.mode,
+        sim=True,
+        frame_rate_hz=args.frame_rate,
+        overwrite=True,
+    )
     t0 = time.perf_counter()
     try:
         res = run_scan(req)
@@ -81,8 +108,11 @@ def main() -> None:
     rows = [
         ("frames (projections + darks/flats)", f"{n}", ""),
         ("detector", f"{args.size} x {args.size} uint16", ""),
-        ("mode / twin time scale", f"{args.mode}{' + overlapped readout' if args.overlap_readout else ''} / "
-                                   f"{args.time_scale:g}x", ""),
+        (
+            "mode / twin time scale",
+            f"{args.mode}{' + overlapped readout' if args.overlap_readout else ''} / {args.time_scale:g}x",
+            "",
+        ),
         ("whole run incl. connect + pre-flight (s)", f"{wall:.1f}", f"< {TARGET_TOTAL_S:g}"),
         ("frame loop (s)", f"{t['run_s']:.1f}", ""),
         ("acquisition: exposure + render + transfer (ms/frame)", f"{per['acquire_s']:.1f}", ""),
@@ -108,8 +138,15 @@ def dose_policy(cfg: BenchConfig, frames: int, time_scale: float, tilt_deg: floa
     cfg = cfg.with_detector_size(64).model_copy(update={"sim": cfg.sim.model_copy(update={"time_scale": time_scale})})
 
     async def scan(hold_on: bool) -> tuple[float, float, float, int]:
-        req = ScanRequest(config=cfg, out=folder / f"dose-{hold_on}.h5", orbit="sawtooth", frames=frames,
-                          orbit_params={"amplitude_deg": tilt_deg}, sim=True, overwrite=True)
+        req = ScanRequest(
+            config=cfg,
+            out=folder / f"dose-{hold_on}.h5",
+            orbit="sawtooth",
+            frames=frames,
+            orbit_params={"amplitude_deg": tilt_deg},
+            sim=True,
+            overwrite=True,
+        )
         async with open_bench(cfg, sim=True) as rig:
             if hold_on:  # the old behaviour: prepared once, held on until the scan ends
                 rig.xray.hold_s, rig.prep_s = None, float("inf")
@@ -119,16 +156,22 @@ def dose_policy(cfg: BenchConfig, frames: int, time_scale: float, tilt_deg: floa
             hv, ex = twin.dose_seconds()
         return res.timing["run_s"] * time_scale, (hv - hv0) * time_scale, (ex - ex0) * time_scale, res.n_frames
 
-    rows = {name: asyncio.run(scan(hold)) for name, hold in (("off between exposures (orbitct)", False),
-                                                             ("held on between exposures", True))}
-    print(f"high voltage policy: {frames} projections at 64 x 64, twins at {time_scale:g}x, "
-          f"preparation time {cfg.exposure.prep_ms:g} ms (bench seconds)")
+    rows = {
+        name: asyncio.run(scan(hold))
+        for name, hold in (("off between exposures (orbitct)", False), ("held on between exposures", True))
+    }
+    print(
+        f"high voltage policy: {frames} projections at 64 x 64, twins at {time_scale:g}x, "
+        f"preparation time {cfg.exposure.prep_ms:g} ms (bench seconds)"
+    )
     print(f"  {'policy':<34} {'scan s':>8} {'HV on s':>8} {'exposing s':>11} {'HV on, not exposing s':>22}")
     for name, (run_s, hv, ex, _n) in rows.items():
         print(f"  {name:<34} {run_s:8.1f} {hv:8.2f} {ex:11.2f} {hv - ex:22.2f}")
     (a_run, a_hv, a_ex, _), (b_run, b_hv, b_ex, _) = rows.values()
-    print(f"  dose-free time: {(b_hv - b_ex) - (a_hv - a_ex):.1f} s less high voltage without exposure, "
-          f"for {a_run - b_run:+.1f} s of scan time ({100 * (a_run - b_run) / b_run:+.0f} %)")
+    print(
+        f"  dose-free time: {(b_hv - b_ex) - (a_hv - a_ex):.1f} s less high voltage without exposure, "
+        f"for {a_run - b_run:+.1f} s of scan time ({100 * (a_run - b_run) / b_run:+.0f} %)"
+    )
 
 
 if __name__ == "__main__":

@@ -55,8 +55,9 @@ def _spearman(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.corrcoef(ra, rb)[0, 1])
 
 
-def _case(work: Path, key: str, orbit: str | None, frames: int, xyz: np.ndarray, size: int, seed: int,
-          layout_seed: int) -> dict[str, Any]:
+def _case(
+    work: Path, key: str, orbit: str | None, frames: int, xyz: np.ndarray, size: int, seed: int, layout_seed: int
+) -> dict[str, Any]:
     """Experiment ``key``'s object (layout ``layout_seed``) with BBs ``xyz``, simulated on ``orbit`` (None: the
     experiment's) with the bench errors and noise of ``seed``, calibrated and measured against the truth: the error
     over the views calibrated from their own BBs and over every calibrated view, the centroid noise, the views."""
@@ -70,8 +71,15 @@ def _case(work: Path, key: str, orbit: str | None, frames: int, xyz: np.ndarray,
 
     phantom = experiment_phantom(key, layout_seed).with_markers(xyz)
     path = work / f"{key}_{orbit}_{seed}.h5"
-    simulate_scan(phantom, resolve_orbit(key, orbit, frames), out=path, detector_px=size, seed=seed, overwrite=True,
-                  errors=make_profile("bench", seed, angle_scale=frames / 500.0))
+    simulate_scan(
+        phantom,
+        resolve_orbit(key, orbit, frames),
+        out=path,
+        detector_px=size,
+        seed=seed,
+        overwrite=True,
+        errors=make_profile("bench", seed, angle_scale=frames / 500.0),
+    )
     try:
         res = calib.calibrate_scan(path, diameter_mm=phantom.marker_diameter_mm)  # the default check, as a user runs it
     except calib.CalibrationError as exc:
@@ -93,9 +101,17 @@ def _case(work: Path, key: str, orbit: str | None, frames: int, xyz: np.ndarray,
     # the placement's geometry alone: the same BBs in the same views from their true projections plus one noise
     # for every case; and how far the detections themselves lie from the truth
     geometry_px, detection_px = truth_fed_error_px(res.uv[proj], truth, truth_xyz, nominal, GEOMETRY_NOISE_PX, seed)
-    return {"measured_px": error(own), "valid_px": error(valid), "noise_px": noise, "nominal": nominal, "own": own,
-            "geometry_px": geometry_px, "detection_px": detection_px,
-            "passed": res.quality is not None and res.quality.passed, "why": ""}
+    return {
+        "measured_px": error(own),
+        "valid_px": error(valid),
+        "noise_px": noise,
+        "nominal": nominal,
+        "own": own,
+        "geometry_px": geometry_px,
+        "detection_px": detection_px,
+        "passed": res.quality is not None and res.quality.passed,
+        "why": "",
+    }
 
 
 PAPER_FRAMES = {"A": 500, "B": 656, "C": 857}
@@ -116,9 +132,11 @@ def _planned_against_spiral(args: Any, noise: float | None) -> None:
     from orbitct.simulator import resolve_orbit
     from orbitct.simulator.bench import SimulatedBench
 
-    print("\n| experiment | placement | BBs | views | under-determined views (predicted, per seed) | predicted px (mean) | "
-          f"measured px ({args.seeds} seeds) | mean | detections vs truth, px per axis (mean) | geometry alone: true projections + "
-          f"{GEOMETRY_NOISE_PX:g} px (mean) |\n|---|---|---|---|---|---|---|---|---|---|")
+    print(
+        "\n| experiment | placement | BBs | views | under-determined views (predicted, per seed) | predicted px (mean) | "
+        f"measured px ({args.seeds} seeds) | mean | detections vs truth, px per axis (mean) | geometry alone: true projections + "
+        f"{GEOMETRY_NOISE_PX:g} px (mean) |\n|---|---|---|---|---|---|---|---|---|---|"
+    )
     changes = []
     for key in [k.strip().upper() for k in args.compare.split(",") if k.strip()]:
         ph = experiment_phantom(key)
@@ -128,15 +146,29 @@ def _planned_against_spiral(args: Any, noise: float | None) -> None:
         surface = EllipticCylinder(*BB_SURFACES[key])
         background = phantom_background(ph, g, surface) if args.background else None
         t0 = time.perf_counter()
-        planned = [plan_placement(g, surface, ph.n_markers, d, noise_px=noise or 0.1, metal=metal_of(ph), seed=seed,
-                                  background=background).xyz for seed in range(args.seeds)]
-        print(f"| {key} | (planning: {(time.perf_counter() - t0) / args.seeds:.0f} s per plan) | | | | | | | | |", flush=True)
-        placements = {"hand spiral": [hand_spiral(surface, ph.n_markers, d, seed=seed) for seed in range(args.seeds)],
-                      "planned": planned, "experiment's own": [ph.markers_xyz] * args.seeds}
+        planned = [
+            plan_placement(
+                g, surface, ph.n_markers, d, noise_px=noise or 0.1, metal=metal_of(ph), seed=seed, background=background
+            ).xyz
+            for seed in range(args.seeds)
+        ]
+        print(
+            f"| {key} | (planning: {(time.perf_counter() - t0) / args.seeds:.0f} s per plan) | | | | | | | | |",
+            flush=True,
+        )
+        placements = {
+            "hand spiral": [hand_spiral(surface, ph.n_markers, d, seed=seed) for seed in range(args.seeds)],
+            "planned": planned,
+            "experiment's own": [ph.markers_xyz] * args.seeds,
+        }
         means, alone = {}, {}
         for name, per_seed in placements.items():
-            preds = [predict_placement(g, xyz, d, noise_px=noise or 0.1, metal=metal_of(ph), surface=surface,
-                                       background=background) for xyz in per_seed]
+            preds = [
+                predict_placement(
+                    g, xyz, d, noise_px=noise or 0.1, metal=metal_of(ph), surface=surface, background=background
+                )
+                for xyz in per_seed
+            ]
             under = [p.under_determined.size for p in preds]
             predicted = np.mean([p.summary()["predicted_px_rms"] for p in preds])
             errs, marks, detection, geometry = [], [], [], []
@@ -148,16 +180,24 @@ def _planned_against_spiral(args: Any, noise: float | None) -> None:
                     detection.append(case.get("detection_px", float("nan")))
                     geometry.append(case.get("geometry_px", float("nan")))
             means[name], alone[name] = float(np.nanmean(errs)), float(np.nanmean(geometry))
-            print(f"| {key} | {name} | {ph.n_markers} | {frames} | {' / '.join(map(str, under))} | {predicted:.3f} | "
-                  f"{' / '.join(f'{e:.3f}{m}' for e, m in zip(errs, marks, strict=True))} | {means[name]:.3f} | "
-                  f"{np.nanmean(detection):.3f} | {alone[name]:.3f} |", flush=True)
+            print(
+                f"| {key} | {name} | {ph.n_markers} | {frames} | {' / '.join(map(str, under))} | {predicted:.3f} | "
+                f"{' / '.join(f'{e:.3f}{m}' for e, m in zip(errs, marks, strict=True))} | {means[name]:.3f} | "
+                f"{np.nanmean(detection):.3f} | {alone[name]:.3f} |",
+                flush=True,
+            )
         changes.append(100 * (means["planned"] / means["hand spiral"] - 1))
-        print(f"| {key} | planned vs hand spiral | | | | | | {changes[-1]:+.0f} % | | "
-              f"{100 * (alone['planned'] / alone['hand spiral'] - 1):+.0f} % |", flush=True)
+        print(
+            f"| {key} | planned vs hand spiral | | | | | | {changes[-1]:+.0f} % | | "
+            f"{100 * (alone['planned'] / alone['hand spiral'] - 1):+.0f} % |",
+            flush=True,
+        )
         own_change = 100 * (means["planned"] / means["experiment's own"] - 1)
         print(f"| {key} | planned vs the experiment's own | | | | | | {own_change:+.0f} % | | |", flush=True)
     if changes:
-        print(f"\nplanned vs hand spiral, mean over the experiments: {np.mean(changes):+.0f} % (target: -30 % or better)")
+        print(
+            f"\nplanned vs hand spiral, mean over the experiments: {np.mean(changes):+.0f} % (target: -30 % or better)"
+        )
 
 
 def main() -> None:
@@ -167,9 +207,13 @@ def main() -> None:
     ap.add_argument("--placements", type=int, default=10, help="random placements per orbit (0: skip the ranking)")
     ap.add_argument("--compare", default="A,B,C", help="experiments whose own placement is compared with a planned one")
     ap.add_argument("--seeds", type=int, default=3, help="seeds (placements, errors and noise) per compared placement")
-    ap.add_argument("--background", action=argparse.BooleanOptionalAction, default=True,
-                    help="plan and predict with the object's background (photons and structure under each BB; the "
-                         "experiment's phantom as the prior model of the object)")
+    ap.add_argument(
+        "--background",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="plan and predict with the object's background (photons and structure under each BB; the "
+        "experiment's phantom as the prior model of the object)",
+    )
     args = ap.parse_args()
     from calib.background import phantom_background
     from calib.plan import predict_placement
@@ -177,8 +221,10 @@ def main() -> None:
     from orbitct.phantoms.experiments import BB_SURFACES, experiment_phantom
 
     print(describe_machine())
-    print(f"experiment A's cylinder, {args.size} px, {args.frames} frames, bench errors; 1-min load at start "
-          f"{os.getloadavg()[0]:.2f}\n")
+    print(
+        f"experiment A's cylinder, {args.size} px, {args.frames} frames, bench errors; 1-min load at start "
+        f"{os.getloadavg()[0]:.2f}\n"
+    )
     d = float(experiment_phantom("A").marker_diameter_mm or 3.17)
     rng = np.random.default_rng(7)
     surface = EllipticCylinder(*BB_SURFACES["A"])
@@ -194,9 +240,14 @@ def main() -> None:
                     rows.append((orbit, k, float("nan"), float("nan"), f"refused: {case['why']}"))
                     continue
                 noise = noise if noise is not None else case["noise_px"]
-                background = (phantom_background(experiment_phantom("A", 100 + i), case["nominal"], surface)
-                              if args.background else None)
-                pred = predict_placement(case["nominal"], xyz, d, noise_px=noise, surface=surface, background=background)
+                background = (
+                    phantom_background(experiment_phantom("A", 100 + i), case["nominal"], surface)
+                    if args.background
+                    else None
+                )
+                pred = predict_placement(
+                    case["nominal"], xyz, d, noise_px=noise, surface=surface, background=background
+                )
                 p = pred.predicted_px[case["own"]]
                 predicted = float(np.sqrt(np.nanmean(p**2)))
                 rows.append((orbit, k, predicted, case["measured_px"], "" if case["passed"] else "(check failed)"))
@@ -209,8 +260,10 @@ def main() -> None:
         ok = [(pr, me) for _, _, pr, me, _ in rows if np.isfinite(pr) and np.isfinite(me)]
         pr_a, me_a = np.array([o[0] for o in ok]), np.array([o[1] for o in ok])
         within = float(np.mean((pr_a / me_a <= 1.5) & (me_a / pr_a <= 1.5))) if ok else float("nan")
-        print(f"\nSpearman rank correlation {_spearman(pr_a, me_a):.2f} over {len(ok)} cases (target >= 0.8); "
-              f"within a factor of 1.5: {100 * within:.0f} % (target >= 90 %)")
+        print(
+            f"\nSpearman rank correlation {_spearman(pr_a, me_a):.2f} over {len(ok)} cases (target >= 0.8); "
+            f"within a factor of 1.5: {100 * within:.0f} % (target >= 90 %)"
+        )
     _planned_against_spiral(args, noise)
     from orbitct.geometry import ViewGeometry
     from orbitct.reference_bench import reference_panel
@@ -229,8 +282,10 @@ def main() -> None:
     t1 = time.perf_counter()
     for _ in range(20):
         predict_placement(g, xyz, d, surface=surface, background=background)
-    print(f"with experiment A's background: {1e3 * (t1 - t0):.0f} ms the first time (a ray fan through the phantom per "
-          f"BB and view), {1e3 * (time.perf_counter() - t1) / 20:.1f} ms for the same BBs again")
+    print(
+        f"with experiment A's background: {1e3 * (t1 - t0):.0f} ms the first time (a ray fan through the phantom per "
+        f"BB and view), {1e3 * (time.perf_counter() - t1) / 20:.1f} ms for the same BBs again"
+    )
     print(f"1-min load at end {os.getloadavg()[0]:.2f}")
 
 

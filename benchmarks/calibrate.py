@@ -68,12 +68,19 @@ def _run(scan: str, method: str, work: str, queue: Any, trace: bool) -> None:
     from calib.detect import FrameDetector, settings_for
     from calib.track import _predict_from_rays, match_frame
 
-    FrameDetector(np.zeros((64, 64), np.float32), np.full((64, 64), 1e4, np.float32), settings_for(6.0, (64, 64))).candidates(
-        np.full((64, 64), 5000, np.uint16)
-    )
+    FrameDetector(
+        np.zeros((64, 64), np.float32), np.full((64, 64), 1e4, np.float32), settings_for(6.0, (64, 64))
+    ).candidates(np.full((64, 64), 5000, np.uint16))
     match_frame(np.arange(16.0).reshape(8, 2), np.arange(16.0).reshape(8, 2) + 0.1, 5.0, np.full(8, 2.0))
-    _predict_from_rays(np.ones((1, 8, 3)), np.ones((1, 8, 3)), np.ones(1, np.int64), np.zeros(1, np.int64), np.ones((3, 4)),
-                       np.zeros((1, 2)), np.ones((1, 3, 4)))
+    _predict_from_rays(
+        np.ones((1, 8, 3)),
+        np.ones((1, 8, 3)),
+        np.ones(1, np.int64),
+        np.zeros(1, np.int64),
+        np.ones((3, 4)),
+        np.zeros((1, 2)),
+        np.ones((1, 3, 4)),
+    )
     proc = psutil.Process()
     cpu0 = proc.cpu_times()
     load = os.getloadavg()[0]
@@ -159,8 +166,11 @@ def run_one(scan: Path, method: str, trace: bool = False) -> dict[str, Any]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--experiments", default="A,B,C")
-    ap.add_argument("--methods", default="bundle,paper",
-                    help="bundle, paper, bundle-equal (the bundle weighting every detection alike)")
+    ap.add_argument(
+        "--methods",
+        default="bundle,paper",
+        help="bundle, paper, bundle-equal (the bundle weighting every detection alike)",
+    )
     ap.add_argument("--size", type=int, default=768, help="detector size (px)")
     ap.add_argument("--frames-scale", type=float, default=1.0, help="fraction of the paper's frame counts")
     ap.add_argument("--seed", type=int, default=0)
@@ -185,9 +195,11 @@ def main() -> None:
             )
     print()
     print(f"# Calibration benchmark ({args.size} x {args.size} px; frames = {args.frames_scale:g} x the paper's)\n")
-    head = "| exp | method | frames | BBs | total s | ms/frame | ms/frame/BB | detect s | identify s | estimate s | " \
-           "RPE mean / median / std (mm) | initial RPE | reproj px | geom err px | ref err px | ratio | noise px | " \
-           "seen | peak traced MB | peak RSS MB | CPU ms/frame | load |"
+    head = (
+        "| exp | method | frames | BBs | total s | ms/frame | ms/frame/BB | detect s | identify s | estimate s | "
+        "RPE mean / median / std (mm) | initial RPE | reproj px | geom err px | ref err px | ratio | noise px | "
+        "seen | peak traced MB | peak RSS MB | CPU ms/frame | load |"
+    )
     print(head)
     print("|" + "---|" * (head.count("|") - 1))
     for exp, r in rows:
@@ -201,14 +213,20 @@ def main() -> None:
         )
     print("\nRPE mean per iteration (0 = nominal geometry):")
     for exp, r in rows:
-        print(f"  {exp} {r['method']:6s}: " + ", ".join(f"{v:.4f}" for v in r["rpe_iter"][:8]) + (" ..." if len(r["rpe_iter"]) > 8 else ""))
+        print(
+            f"  {exp} {r['method']:6s}: "
+            + ", ".join(f"{v:.4f}" for v in r["rpe_iter"][:8])
+            + (" ..." if len(r["rpe_iter"]) > 8 else "")
+        )
     print("\nPaper (Ma et al. 2022, Table 1, after 2 iterations, MATLAB on a laptop):")
     print("| exp | frames | BBs | elapsed s | RPE mean / median / std (mm) | s/frame | s/frame/BB |")
     print("|---|---|---|---|---|---|---|")
     for exp in args.experiments.split(","):
         p = PAPER_TABLE1[exp]
-        print(f"| {exp} | {p['frames']:.0f} | {p['bbs']:.0f} | {p['elapsed_s']:.0f} | {p['rpe_mean_mm']} / {p['rpe_median_mm']} / "
-              f"{p['rpe_std_mm']} | {p['s_per_frame']} | {p['s_per_frame_per_bb']} |")
+        print(
+            f"| {exp} | {p['frames']:.0f} | {p['bbs']:.0f} | {p['elapsed_s']:.0f} | {p['rpe_mean_mm']} / {p['rpe_median_mm']} / "
+            f"{p['rpe_std_mm']} | {p['s_per_frame']} | {p['s_per_frame_per_bb']} |"
+        )
     print("\nCPU ms/frame: user+system CPU time of the calibration process per frame (all threads); on a machine")
     print("shared with other work (load = 1-min load average at the start) wall time overstates the cost.")
     print("\nTargets for bundle: < 6 ms/frame, geometry error <= 2x reference, peak RSS < 1024 MB (857 frames).")

@@ -61,21 +61,34 @@ def _scan(cache: Path, case: dict[str, Any], size: int, frames: int) -> Path:
     size = int(case.get("size", size))
     m = float(case.get("error_x", 1.0))
     dose = float(case.get("dose", 1.0))
-    key = (f"{case['exp']}_{size}_{n}_x{m:g}_k{case.get('bbs', 'all')}_p{case.get('pitch_scale', 1)}_s{case['seed']}"
-           + (f"_pair{case['pair_mm']:g}" if "pair_mm" in case else "") + (f"_dose{dose:g}" if dose != 1.0 else "")
-           + (f"_placed{case['placement']}" if "placement" in case else ""))
+    key = (
+        f"{case['exp']}_{size}_{n}_x{m:g}_k{case.get('bbs', 'all')}_p{case.get('pitch_scale', 1)}_s{case['seed']}"
+        + (f"_pair{case['pair_mm']:g}" if "pair_mm" in case else "")
+        + (f"_dose{dose:g}" if dose != 1.0 else "")
+        + (f"_placed{case['placement']}" if "placement" in case else "")
+    )
     path = cache / f"{key}.h5"
     if not path.exists():
-        profile = make_profile("bench", case["seed"], angle_scale=m * n / 500.0, shift_amplitude_mm=8.0 * m,
-                               shift_noise_mm=2.0 * m)
+        profile = make_profile(
+            "bench", case["seed"], angle_scale=m * n / 500.0, shift_amplitude_mm=8.0 * m, shift_noise_mm=2.0 * m
+        )
         pitch = 427.0 / 768 * case.get("pitch_scale", 768 / size)
         panel = reference_panel(size, pitch)
         bench = SimulatedBench(panel=panel, model=DetectorModel(flat_counts=DetectorModel().flat_counts * dose))
         phantom = _phantom(case["exp"], case["seed"], case.get("bbs"), case.get("pair_mm"))
         if "xyz" in case:
             phantom = phantom.with_markers(np.asarray(case["xyz"]))
-        simulate_scan(phantom, out=path, n_frames=n,
-                      detector_px=size, pitch_mm=pitch, errors=profile, seed=case["seed"], overwrite=True, bench=bench)
+        simulate_scan(
+            phantom,
+            out=path,
+            n_frames=n,
+            detector_px=size,
+            pitch_mm=pitch,
+            errors=profile,
+            seed=case["seed"],
+            overwrite=True,
+            bench=bench,
+        )
     return path
 
 
@@ -125,8 +138,10 @@ def _owners(uv: Any, true_uv: Any) -> list[int] | None:
     """The true BB each found BB's detections mostly lie on; None if two share one or fewer than 3 were found."""
     d = np.linalg.norm(uv[:, :, None] - true_uv[:, None], axis=-1)
     d[~np.isfinite(d)] = np.inf
-    owner = [int(np.bincount(d[np.isfinite(uv[:, k, 0]), k].argmin(1), minlength=true_uv.shape[1]).argmax())
-             for k in range(uv.shape[1])]
+    owner = [
+        int(np.bincount(d[np.isfinite(uv[:, k, 0]), k].argmin(1), minlength=true_uv.shape[1]).argmax())
+        for k in range(uv.shape[1])
+    ]
     return None if len(set(owner)) < len(owner) or len(owner) < 3 else owner
 
 
@@ -168,7 +183,9 @@ def _run_case(cache: Path, case: dict[str, Any], size: int, frames: int, work: P
     try:
         res = calib.calibrate_scan(scan, out=work)
     except calib.CalibrationError as exc:
-        row.update(time_s=time.perf_counter() - t, outcome="refused", message=str(exc).split(": ", 1)[-1].split(". ")[0][:70])
+        row.update(
+            time_s=time.perf_counter() - t, outcome="refused", message=str(exc).split(": ", 1)[-1].split(". ")[0][:70]
+        )
         return row
     with ScanFile(scan) as sf:
         proj = sf.projection_indices
@@ -182,11 +199,26 @@ def _run_case(cache: Path, case: dict[str, Any], size: int, frames: int, work: P
     q = res.quality
     floor = _oracle_px(scan, res)
     m = r_px + 1.0  # views that show four or more whole BBs (the truth: found or not)
-    whole = (true_uv[..., 0] >= m) & (true_uv[..., 0] <= cols - 1 - m) & (true_uv[..., 1] >= m) & (true_uv[..., 1] <= rows - 1 - m)
+    whole = (
+        (true_uv[..., 0] >= m)
+        & (true_uv[..., 0] <= cols - 1 - m)
+        & (true_uv[..., 1] >= m)
+        & (true_uv[..., 1] <= rows - 1 - m)
+    )
     n_four = int((whole.sum(1) >= 4).sum())
-    row.update(time_s=res.elapsed_s, bbs=res.n_bbs, err_px=err, floor_px=floor, ratio=err / floor,
-               own=q.counts["own"], bridged=q.counts["bridged"], failed=q.counts["failed"], four=n_four,
-               predicted_max=q.predicted_px_max, outcome="passed" if q.passed else "FAILED check")
+    row.update(
+        time_s=res.elapsed_s,
+        bbs=res.n_bbs,
+        err_px=err,
+        floor_px=floor,
+        ratio=err / floor,
+        own=q.counts["own"],
+        bridged=q.counts["bridged"],
+        failed=q.counts["failed"],
+        four=n_four,
+        predicted_max=q.predicted_px_max,
+        outcome="passed" if q.passed else "FAILED check",
+    )
     row["within_2x"] = bool(err <= 2 * floor and q.counts["own"] >= 0.95 * n_four)  # (own views see 4 or more)
     row["honest"] = not (q.passed and err > 3 * floor)
     return row
@@ -195,13 +227,15 @@ def _run_case(cache: Path, case: dict[str, Any], size: int, frames: int, work: P
 CASES: list[dict[str, Any]] = (
     [{"name": f"A errors x{m} seed {s}", "exp": "A", "error_x": m, "seed": s} for m in (1, 2, 3, 4) for s in (0, 1, 2)]
     + [{"name": f"B {k} BBs", "exp": "B", "bbs": k, "seed": 0} for k in (4, 5, 6, 8, 16)]
-    + [{"name": "A truncating panel (768-px pitch: size/768 of the FOV)", "exp": "A", "seed": 0, "pitch_scale": 1.0},
-       {"name": "A two BBs 3 mm apart (surfaces)", "exp": "A", "seed": 0, "pair_mm": 3.0},
-       {"name": "A two BBs 4 mm apart (surfaces)", "exp": "A", "seed": 0, "pair_mm": 4.0},
-       {"name": "A low dose (1/8)", "exp": "A", "seed": 0, "dose": 0.125},
-       {"name": "C metal, 2 mm BBs", "exp": "C", "seed": 0},
-       {"name": "A 50 views", "exp": "A", "seed": 0, "frames": 50},
-       {"name": "A 800 views", "exp": "A", "seed": 0, "frames": 800}]
+    + [
+        {"name": "A truncating panel (768-px pitch: size/768 of the FOV)", "exp": "A", "seed": 0, "pitch_scale": 1.0},
+        {"name": "A two BBs 3 mm apart (surfaces)", "exp": "A", "seed": 0, "pair_mm": 3.0},
+        {"name": "A two BBs 4 mm apart (surfaces)", "exp": "A", "seed": 0, "pair_mm": 4.0},
+        {"name": "A low dose (1/8)", "exp": "A", "seed": 0, "dose": 0.125},
+        {"name": "C metal, 2 mm BBs", "exp": "C", "seed": 0},
+        {"name": "A 50 views", "exp": "A", "seed": 0, "frames": 50},
+        {"name": "A 800 views", "exp": "A", "seed": 0, "frames": 800},
+    ]
 )
 
 
@@ -220,8 +254,17 @@ def placement_cases(n: int, size: int = 512, frames: int = 206) -> list[dict[str
             xyz = surface.points(rng.uniform(0, 2 * np.pi, k), rng.uniform(surface.z_min_mm, surface.z_max_mm, k), d)
             if np.linalg.norm(xyz[:, None] - xyz[None], axis=-1)[np.triu_indices(k, 1)].min() >= 20.0:
                 break
-        cases.append({"name": f"C placement {i} ({k} BBs at random, {size} px)", "exp": "C", "seed": 300 + i,
-                      "xyz": xyz, "placement": i, "size": size, "frames": frames})
+        cases.append(
+            {
+                "name": f"C placement {i} ({k} BBs at random, {size} px)",
+                "exp": "C",
+                "seed": 300 + i,
+                "xyz": xyz,
+                "placement": i,
+                "size": size,
+                "frames": frames,
+            }
+        )
     return cases
 
 
@@ -231,27 +274,51 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=250, help="projections per scan (cases that set their own keep it)")
     ap.add_argument("--cache", type=Path, default=Path(os.environ.get("TMPDIR", "/tmp")) / "orbitct-robustness")
     ap.add_argument("--only", default="", help="run the cases whose name contains this text")
-    ap.add_argument("--placements", type=int, default=0,
-                    help="also this many random placements of 5-12 BBs on experiment C's torso at 512 px, 206 frames")
+    ap.add_argument(
+        "--placements",
+        type=int,
+        default=0,
+        help="also this many random placements of 5-12 BBs on experiment C's torso at 512 px, 206 frames",
+    )
     args = ap.parse_args()
     args.cache.mkdir(parents=True, exist_ok=True)
     print(describe_machine())
     print(f"{args.size} px, {args.frames} frames; 1-min load at start {os.getloadavg()[0]:.2f}\n")
-    head = ("case", "frames", "BBs found/true", "err px", "floor px", "ratio", "own/bridged/failed (of >=4 BBs)",
-            "pred. max px", "verdict", "<=2x floor", "honest", "scale %", "scale % (bar)", "s")
+    head = (
+        "case",
+        "frames",
+        "BBs found/true",
+        "err px",
+        "floor px",
+        "ratio",
+        "own/bridged/failed (of >=4 BBs)",
+        "pred. max px",
+        "verdict",
+        "<=2x floor",
+        "honest",
+        "scale %",
+        "scale % (bar)",
+        "s",
+    )
     print("| " + " | ".join(head) + " |\n|" + "---|" * len(head))
     for case in CASES + placement_cases(args.placements):
         if args.only not in case["name"]:
             continue
         r = run_case(args.cache, case, args.size, args.frames)
         if r["outcome"] == "refused":
-            print(f"| {r['case']} | {r['frames']} | -/{r['true_bbs']} | - | - | - | - | - | refused: {r['message']} | "
-                  f"no | yes | - | - | {r['time_s']:.1f} |", flush=True)
+            print(
+                f"| {r['case']} | {r['frames']} | -/{r['true_bbs']} | - | - | - | - | - | refused: {r['message']} | "
+                f"no | yes | - | - | {r['time_s']:.1f} |",
+                flush=True,
+            )
             continue
-        print(f"| {r['case']} | {r['frames']} | {r['bbs']}/{r['true_bbs']} | {r['err_px']:.3f} | {r['floor_px']:.3f} | "
-              f"{r['ratio']:.2f} | {r['own']}/{r['bridged']}/{r['failed']} ({r['four']}) | {r['predicted_max']:.2f} | "
-              f"{r['outcome']} | {'yes' if r['within_2x'] else 'NO'} | {'yes' if r['honest'] else 'NO'} | "
-              f"{r['scale_pct']:+.2f} | {r['scale_bar_pct']:+.3f} | {r['time_s']:.1f} |", flush=True)
+        print(
+            f"| {r['case']} | {r['frames']} | {r['bbs']}/{r['true_bbs']} | {r['err_px']:.3f} | {r['floor_px']:.3f} | "
+            f"{r['ratio']:.2f} | {r['own']}/{r['bridged']}/{r['failed']} ({r['four']}) | {r['predicted_max']:.2f} | "
+            f"{r['outcome']} | {'yes' if r['within_2x'] else 'NO'} | {'yes' if r['honest'] else 'NO'} | "
+            f"{r['scale_pct']:+.2f} | {r['scale_bar_pct']:+.3f} | {r['time_s']:.1f} |",
+            flush=True,
+        )
     print(f"\n1-min load at end {os.getloadavg()[0]:.2f}")
 
 

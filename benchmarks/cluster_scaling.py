@@ -45,8 +45,12 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=768, help="detector pixels per side")
     ap.add_argument("--frames", type=int, default=500, help="projections")
     ap.add_argument("--voxel-mm", type=float, default=0.5)
-    ap.add_argument("--algorithm", choices=["fdk", "pwls"], default="fdk",
-                    help="fdk, or pwls: FDK then --passes passes of ordered subsets with momentum")
+    ap.add_argument(
+        "--algorithm",
+        choices=["fdk", "pwls"],
+        default="fdk",
+        help="fdk, or pwls: FDK then --passes passes of ordered subsets with momentum",
+    )
     ap.add_argument("--passes", type=int, default=2, help="PWLS passes")
     ap.add_argument("--subsets", type=int, default=12, help="PWLS ordered subsets")
     ap.add_argument("--cache", type=Path, default=Path(os.environ.get("TMPDIR", "/tmp")) / "orbitct-cluster-bench")
@@ -58,11 +62,12 @@ def main() -> None:
     from recon.cluster import PARTS_PER_WORKER
 
     pwls = args.algorithm == "pwls"
-    what = (f"FDK, then PWLS: {args.passes} passes of {args.subsets} ordered subsets with momentum," if pwls
-            else "FDK")
+    what = f"FDK, then PWLS: {args.passes} passes of {args.subsets} ordered subsets with momentum," if pwls else "FDK"
     print(describe_machine())
-    print(f"experiment A, {args.size} px, {args.frames} frames, {what} at {args.voxel_mm:g} mm on the object-fitted "
-          f"grid (true geometry); 1-min load at start {os.getloadavg()[0]:.2f}\n")
+    print(
+        f"experiment A, {args.size} px, {args.frames} frames, {what} at {args.voxel_mm:g} mm on the object-fitted "
+        f"grid (true geometry); 1-min load at start {os.getloadavg()[0]:.2f}\n"
+    )
     scan = _scan(args.cache, args.size, args.frames)
     options: dict[str, object] = {"algorithm": args.algorithm, "geometry": "truth"}
     if pwls:
@@ -79,8 +84,17 @@ def main() -> None:
         padded_bytes = 4 * int(np.prod([n + 2 for n in grid.shape]))
         rows = [("one process, no Dask", 1, t_single, 0, 0.0)]
         for n in (1, 2):
-            with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address="127.0.0.1:0",
-                              host="127.0.0.1", memory_limit=0) as cluster, Client(cluster, set_as_default=False) as c:
+            with (
+                LocalCluster(
+                    n_workers=n,
+                    threads_per_worker=1,
+                    processes=True,
+                    dashboard_address="127.0.0.1:0",
+                    host="127.0.0.1",
+                    memory_limit=0,
+                ) as cluster,
+                Client(cluster, set_as_default=False) as c,
+            ):
                 c.wait_for_workers(n)
                 t = time.perf_counter()
                 res = recon.reconstruct_scan(copy, grid=grid, name=f"dask{n}", cluster=c, **options)
@@ -90,7 +104,9 @@ def main() -> None:
                 moved += (1 + (args.passes + 1) * args.subsets) * 2 * n * padded_bytes
             diff = float(np.abs(res.volume - single.volume).max() / np.abs(single.volume).max())
             rows.append((f"Dask, {n} worker process(es)", n, elapsed, moved, diff))
-    print(f"grid {grid.shape} voxels of {args.voxel_mm:g} mm ({vol_bytes / 1e6:.0f} MB float32): {first.params['grid_choice']}\n")
+    print(
+        f"grid {grid.shape} voxels of {args.voxel_mm:g} mm ({vol_bytes / 1e6:.0f} MB float32): {first.params['grid_choice']}\n"
+    )
     print("| run | workers | wall s | speed-up vs one process | volumes moved MB (counted) | max difference (rel.) |")
     print("|---|---|---|---|---|---|")
     for name, n, s, moved, diff in rows:
@@ -98,12 +114,16 @@ def main() -> None:
     per_view = t_single / args.frames  # one process uses every core of this machine (the projectors are threaded)
     overhead = max(rows[1][2] - t_single, 0.0)  # Dask's own cost: the parts' volumes, the transfer, the gather
     rounds = 1 + (args.passes + 1) * args.subsets if pwls else 0
-    print(f"\nper-view cost of this machine {1e3 * per_view:.0f} ms (one process, all cores); Dask's own cost with one "
-          f"worker {overhead:.1f} s" + (f" over {rounds} PWLS rounds" if pwls else ""))
-    print(f"\nEstimate (not measured): W workers on W machines like this one, {NETWORK_BYTES_S / 1e9:.1f} GB/s network, "
-          "partial volumes summed pairwise (each level's transfers side by side)"
-          + (", the iterate sent to each worker in turn every PWLS round" if pwls else "")
-          + ", Dask's own cost as measured:\n")
+    print(
+        f"\nper-view cost of this machine {1e3 * per_view:.0f} ms (one process, all cores); Dask's own cost with one "
+        f"worker {overhead:.1f} s" + (f" over {rounds} PWLS rounds" if pwls else "")
+    )
+    print(
+        f"\nEstimate (not measured): W workers on W machines like this one, {NETWORK_BYTES_S / 1e9:.1f} GB/s network, "
+        "partial volumes summed pairwise (each level's transfers side by side)"
+        + (", the iterate sent to each worker in turn every PWLS round" if pwls else "")
+        + ", Dask's own cost as measured:\n"
+    )
     print("| workers | views s | volumes moving s | time-to-image s |\n|---|---|---|---|")
     for w in (1, 2, 8, 32):
         levels = math.ceil(math.log2(max(2, 2 * w)))

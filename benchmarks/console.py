@@ -48,8 +48,15 @@ TIMING_PARTS = ("motion_s", "acquire_s", "readback_s", "record_s", "prepare_wait
 PROBE_RELOAD_S = 1.0  # the measuring viewer reloads every second (more samples; a heavier viewer than the others)
 
 
-async def client(base: str, scan_id: str, stop: asyncio.Event, reload_s: float, loads: list[float],
-                 previews: list[float], errors: list[str]) -> None:
+async def client(
+    base: str,
+    scan_id: str,
+    stop: asyncio.Event,
+    reload_s: float,
+    loads: list[float],
+    previews: list[float],
+    errors: list[str],
+) -> None:
     """One browser on the live scan page until ``stop``."""
     async with httpx.AsyncClient(base_url=base, timeout=30, limits=httpx.Limits(max_connections=6)) as http:
         signed = await http.post("/session", json={"token": TOKEN})
@@ -75,7 +82,10 @@ async def client(base: str, scan_id: str, stop: asyncio.Event, reload_s: float, 
                 if r.status_code not in (200, 304):
                     errors.append(f"{r.request.url.path} {r.status_code}")
             await asyncio.gather(http.get(f"/scans/{scan_id}"), http.get("/stop"))
-            streams = [asyncio.create_task(follow(http, f"/scans/{scan_id}/events")), asyncio.create_task(follow(http, "/stop/events"))]
+            streams = [
+                asyncio.create_task(follow(http, f"/scans/{scan_id}/events")),
+                asyncio.create_task(follow(http, "/stop/events")),
+            ]
             until = time.monotonic() + reload_s
             while time.monotonic() < until and not stop.is_set():
                 t = time.perf_counter()
@@ -106,7 +116,9 @@ def load_process(base: str, scan_id: str, clients: int, reload_s: float, nice: i
         loads: list[float] = []
         previews: list[float] = []
         errors: list[str] = []
-        tasks = [asyncio.create_task(client(base, scan_id, stop, reload_s, loads, previews, errors)) for _ in range(clients)]
+        tasks = [
+            asyncio.create_task(client(base, scan_id, stop, reload_s, loads, previews, errors)) for _ in range(clients)
+        ]
         conn.send("started")
         await asyncio.get_running_loop().run_in_executor(None, conn.recv)
         stop.set()
@@ -125,10 +137,19 @@ def main() -> None:
     ap.add_argument("--reload-s", type=float, default=3.0, help="each client reloads the page this often (default 3)")
     ap.add_argument("--time-scale", type=float, default=1.0, help="twin speed-up (default 1 = real time)")
     ap.add_argument("--max-s", type=float, default=600.0, help="give up a scan after this long (default 600)")
-    ap.add_argument("--clients-nice", type=int, default=0, help="run the clients at this niceness (19: they stand in "
-                    "for browsers on other machines and take CPU only when the service and the bench leave some)")
-    ap.add_argument("--prep-ms", type=float, default=100.0,
-                    help="the generator's preparation time (default 100; config/bench.yaml has 200, see below)")
+    ap.add_argument(
+        "--clients-nice",
+        type=int,
+        default=0,
+        help="run the clients at this niceness (19: they stand in "
+        "for browsers on other machines and take CPU only when the service and the bench leave some)",
+    )
+    ap.add_argument(
+        "--prep-ms",
+        type=float,
+        default=100.0,
+        help="the generator's preparation time (default 100; config/bench.yaml has 200, see below)",
+    )
     args = ap.parse_args()
     print(describe_machine())
     with tempfile.TemporaryDirectory(prefix="orbitct-console-bench-") as tmp:
@@ -141,8 +162,12 @@ def main() -> None:
                 crowd, crowd_end = mp.Pipe()  # all viewers but one, in one process
                 probe, probe_end = mp.Pipe()  # one viewer in a process of its own: its page loads are the measure
                 nice = args.clients_nice
-                loaders = [ctx.Process(target=load_process, args=(base, scan_id, args.clients - 1, args.reload_s, nice, crowd_end)),
-                           ctx.Process(target=load_process, args=(base, scan_id, 1, PROBE_RELOAD_S, nice, probe_end))]
+                loaders = [
+                    ctx.Process(
+                        target=load_process, args=(base, scan_id, args.clients - 1, args.reload_s, nice, crowd_end)
+                    ),
+                    ctx.Process(target=load_process, args=(base, scan_id, 1, PROBE_RELOAD_S, nice, probe_end)),
+                ]
                 for loader in loaders:
                     loader.start()
                 crowd.recv(), probe.recv()
@@ -159,8 +184,10 @@ def main() -> None:
             proc.terminate()
             proc.wait(30)
     drop = 100.0 * (1.0 - rate_loaded / rate_alone)
-    print(f"\n{args.clients} browser-equivalent clients on the live scan page (nice {args.clients_nice}), {args.frames} "
-          f"projections of {args.detector}^2 px, time scale {args.time_scale:g}\n")
+    print(
+        f"\n{args.clients} browser-equivalent clients on the live scan page (nice {args.clients_nice}), {args.frames} "
+        f"projections of {args.detector}^2 px, time scale {args.time_scale:g}\n"
+    )
     print("| measure | value | target |")
     print("| --- | --- | --- |")
     print(f"| frame rate alone | {rate_alone:.2f} frames/s | |")
@@ -171,13 +198,19 @@ def main() -> None:
         print(f"| ms per frame {label} | {parts} | |")
     print(f"| frame-rate drop | {drop:.1f} % | < 10 % |")
     if loads:
-        print(f"| page loads (HTML + CSS + JS + icon) of the viewer in its own process, {len(loads)} | "
-              f"p50 {pct(loads, 50):.0f} ms, p95 {pct(loads, 95):.0f} ms, max {pct(loads, 100):.0f} ms | p95 < 300 ms |")
+        print(
+            f"| page loads (HTML + CSS + JS + icon) of the viewer in its own process, {len(loads)} | "
+            f"p50 {pct(loads, 50):.0f} ms, p95 {pct(loads, 95):.0f} ms, max {pct(loads, 100):.0f} ms | p95 < 300 ms |"
+        )
     if crowd_loads:
-        print(f"| page loads of the other {args.clients - 1} viewers (one Python process: its own event loop adds to them), "
-              f"{len(crowd_loads)} | p50 {pct(crowd_loads, 50):.0f} ms, p95 {pct(crowd_loads, 95):.0f} ms | |")
+        print(
+            f"| page loads of the other {args.clients - 1} viewers (one Python process: its own event loop adds to them), "
+            f"{len(crowd_loads)} | p50 {pct(crowd_loads, 50):.0f} ms, p95 {pct(crowd_loads, 95):.0f} ms | |"
+        )
     if previews:
-        print(f"| latest-frame previews, {len(previews)} | p50 {pct(previews, 50):.0f} ms, p95 {pct(previews, 95):.0f} ms | |")
+        print(
+            f"| latest-frame previews, {len(previews)} | p50 {pct(previews, 50):.0f} ms, p95 {pct(previews, 95):.0f} ms | |"
+        )
     print(f"| errors | {len(errors)} {sorted(set(errors))[:5] if errors else ''} | none |")
     ok = drop < 10.0 and bool(loads) and pct(loads, 95) < 300.0 and not errors
     print("\n" + ("targets met" if ok else "TARGETS NOT MET"))

@@ -52,7 +52,11 @@ async def run(n: int, moves: int) -> list[str]:
         await dev.set_velocity(20.0)
         rows.append(_row("POS? (6 axes) over TCP", await _timed(n, dev.position), "target < 1 ms median"))
         rows.append(_row("#5 motion status (single char) TCP", await _timed(n, dev.moving)))
-        rows.append(_row("set command + ERR? (VLS) TCP", await _timed(n // 2, lambda: dev.set_velocity(20.0)), "two round trips"))
+        rows.append(
+            _row(
+                "set command + ERR? (VLS) TCP", await _timed(n // 2, lambda: dev.set_velocity(20.0)), "two round trips"
+            )
+        )
         step = {"i": 0}
 
         async def raw_mov() -> None:
@@ -65,11 +69,15 @@ async def run(n: int, moves: int) -> list[str]:
             step["i"] += 1
             await dev.move({"X": 0.001 * (step["i"] % 100), "U": 0.001 * (step["i"] % 7)})
 
-        rows.append(_row("move(): limits+VMO?+MOV+wait on target", await _timed(moves, full_move), "complete moves, travel ~0"))
+        rows.append(
+            _row("move(): limits+VMO?+MOV+wait on target", await _timed(moves, full_move), "complete moves, travel ~0")
+        )
         path = server.run_sync(server.twin.open_serial)
         sdev = Hexapod("hexapod", f"serial://{path}?baud=115200")
         await sdev.connect()
-        rows.append(_row("POS? (6 axes) over pty serial", await _timed(n // 2, sdev.position), "pseudo-terminal, no baud delay"))
+        rows.append(
+            _row("POS? (6 axes) over pty serial", await _timed(n // 2, sdev.position), "pseudo-terminal, no baud delay")
+        )
         await sdev.close()
         await dev.close()
         rows.append(_pipython_row(server, n // 2))
@@ -84,6 +92,7 @@ def _pipython_row(server: Any, n: int) -> str:
         from pipython.pidevice.interfaces.pisocket import PISocket
     except ImportError:
         return "| PIPython qPOS (not installed)"
+
     class Gateway(PISocket):  # PIPython closes its gateway again on delete; make that harmless
         def close(self) -> None:
             if self.connected:

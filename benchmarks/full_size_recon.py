@@ -65,8 +65,19 @@ def _scan(cache: Path, size: int, frames: int) -> Path:
     return path
 
 
-def _solve(A: Any, y: Any, w: Any, x0: np.ndarray, truth: np.ndarray, mask: np.ndarray, iterations: int,
-           subsets: int, momentum: bool, state: Path | None = None, key: dict[str, Any] | None = None) -> dict[str, Any]:
+def _solve(
+    A: Any,
+    y: Any,
+    w: Any,
+    x0: np.ndarray,
+    truth: np.ndarray,
+    mask: np.ndarray,
+    iterations: int,
+    subsets: int,
+    momentum: bool,
+    state: Path | None = None,
+    key: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     """One PWLS run from ``x0``: per pass the wall time (RMSE bookkeeping excluded), the RMSE; the costs.
 
     With ``state`` (plain SPS only: its iterate is all it carries from one iteration to the next) the iterate and the
@@ -88,8 +99,16 @@ def _solve(A: Any, y: Any, w: Any, x0: np.ndarray, truth: np.ndarray, mask: np.n
             sittings = int(saved["sittings"]) + 1
         print(f"    resumed after {len(rmses)} iterations (sitting {sittings})", flush=True)
     if len(rmses) >= iterations > 0:
-        return {"rmse": rmses, "times": times, "cost": [], "total_s": times[-1], "peak": None, "restarts": 0,
-                "final_rmse": rmses[iterations - 1], "sittings": sittings - 1}
+        return {
+            "rmse": rmses,
+            "times": times,
+            "cost": [],
+            "total_s": times[-1],
+            "peak": None,
+            "restarts": 0,
+            "final_rmse": rmses[iterations - 1],
+            "sittings": sittings - 1,
+        }
     base = times[-1] if times else 0.0
     aside = [0.0]
 
@@ -106,11 +125,27 @@ def _solve(A: Any, y: Any, w: Any, x0: np.ndarray, truth: np.ndarray, mask: np.n
 
     with PeakMemory() as mem:
         t0 = time.perf_counter()
-        res = pwls_sps(A, y, w, iterations=iterations - len(rmses), subsets=subsets, momentum=momentum,
-                       x0=x0.copy(), callback=record)
+        res = pwls_sps(
+            A,
+            y,
+            w,
+            iterations=iterations - len(rmses),
+            subsets=subsets,
+            momentum=momentum,
+            x0=x0.copy(),
+            callback=record,
+        )
         total = base + time.perf_counter() - t0 - aside[0]
-    return {"rmse": rmses, "times": times, "cost": res.cost, "total_s": total, "peak": mem.peak,
-            "restarts": res.restarts, "final_rmse": rmse(res.volume, truth, mask), "sittings": sittings}
+    return {
+        "rmse": rmses,
+        "times": times,
+        "cost": res.cost,
+        "total_s": total,
+        "peak": mem.peak,
+        "restarts": res.restarts,
+        "final_rmse": rmse(res.volume, truth, mask),
+        "sittings": sittings,
+    }
 
 
 def main() -> None:
@@ -120,11 +155,19 @@ def main() -> None:
     ap.add_argument("--voxel-mm", type=float, default=0.5)
     ap.add_argument("--subsets", type=int, default=12, help="ordered subsets of the accelerated PWLS")
     ap.add_argument("--passes", type=int, default=4, help="passes of the accelerated PWLS")
-    ap.add_argument("--reference-iterations", type=int, default=0,
-                    help="plain SPS iterations of the reference (50 in the published workflow; 0: estimated only)")
-    ap.add_argument("--reference-state", type=Path, default=None,
-                    help="file (.npz) where the reference saves its iterate after every iteration and resumes from "
-                         "(its hours can then run over several sittings, e.g. niced beside other work)")
+    ap.add_argument(
+        "--reference-iterations",
+        type=int,
+        default=0,
+        help="plain SPS iterations of the reference (50 in the published workflow; 0: estimated only)",
+    )
+    ap.add_argument(
+        "--reference-state",
+        type=Path,
+        default=None,
+        help="file (.npz) where the reference saves its iterate after every iteration and resumes from "
+        "(its hours can then run over several sittings, e.g. niced beside other work)",
+    )
     ap.add_argument("--cache", type=Path, default=Path(os.environ.get("TMPDIR", "/tmp")) / "orbitct-cluster-bench")
     args = ap.parse_args()
     args.cache.mkdir(parents=True, exist_ok=True)
@@ -138,8 +181,11 @@ def main() -> None:
     from recon.stack import FileLineIntegrals, FileWeights
 
     print(describe_machine())
-    print(f"experiment A, {args.size} px, {args.frames} frames, {args.voxel_mm:g} mm voxels on the object-fitted grid "
-          f"(calibration's truth geometry, so that the figures are the reconstruction's own)\n", flush=True)
+    print(
+        f"experiment A, {args.size} px, {args.frames} frames, {args.voxel_mm:g} mm voxels on the object-fitted grid "
+        f"(calibration's truth geometry, so that the figures are the reconstruction's own)\n",
+        flush=True,
+    )
     scan = _scan(args.cache, args.size, args.frames)
     rows: list[str] = []
     with tempfile.TemporaryDirectory(dir=args.cache) as work:
@@ -159,24 +205,33 @@ def main() -> None:
             w = FileWeights(sf, frames)[np.arange(frames.size)]
             t_load = time.perf_counter() - t
         fdk_rmse = recon.rmse(fdk.volume, truth, mask)
-        rows.append(f"| FDK (hann), grid fitting included | - | {fdk.elapsed_s:.1f} | {mem.peak / 2**30:.2f} | "
-                    f"{fdk_rmse:.5f} | - |")
-        print(f"FDK {fdk.elapsed_s:.1f} s, RMSE {fdk_rmse:.5f} /mm; projections and weights read in {t_load:.1f} s",
-              flush=True)
+        rows.append(
+            f"| FDK (hann), grid fitting included | - | {fdk.elapsed_s:.1f} | {mem.peak / 2**30:.2f} | "
+            f"{fdk_rmse:.5f} | - |"
+        )
+        print(
+            f"FDK {fdk.elapsed_s:.1f} s, RMSE {fdk_rmse:.5f} /mm; projections and weights read in {t_load:.1f} s",
+            flush=True,
+        )
         x0 = np.maximum(fdk.volume, 0.0).astype(np.float32)
         A = recon.projector(grid, geometry)
         A.forward_padded(np.zeros(A.padded_shape, np.float32), np.empty((1,) + A.proj_shape[1:], np.float32), 0)
         det = geometry.panel
         acc = None
         if args.passes:
-            print(f"\naccelerated PWLS: {args.subsets} subsets with momentum, {args.passes} passes (estimated "
-                  f"{describe_seconds(recon.reconstruction_seconds('pwls', grid, frames.size, det.rows, det.cols, args.passes))})",
-                  flush=True)
+            print(
+                f"\naccelerated PWLS: {args.subsets} subsets with momentum, {args.passes} passes (estimated "
+                f"{describe_seconds(recon.reconstruction_seconds('pwls', grid, frames.size, det.rows, det.cols, args.passes))})",
+                flush=True,
+            )
             acc = _solve(A, y, w, x0, truth, mask, args.passes, args.subsets, True)
         ref = None
         est = recon.reconstruction_seconds("pwls", grid, frames.size, det.rows, det.cols, 50)
         if args.reference_iterations:
-            print(f"\nplain SPS, {args.reference_iterations} iterations (50 estimated {describe_seconds(est)})", flush=True)
+            print(
+                f"\nplain SPS, {args.reference_iterations} iterations (50 estimated {describe_seconds(est)})",
+                flush=True,
+            )
             key = {"size": args.size, "frames": args.frames, "voxel_mm": args.voxel_mm, "shape": str(grid.shape)}
             ref = _solve(A, y, w, x0, truth, mask, args.reference_iterations, 1, False, args.reference_state, key)
     setup = fdk.elapsed_s + t_load
@@ -185,23 +240,31 @@ def main() -> None:
     if target is not None and acc:
         reach = next((k for k, e in enumerate(acc["rmse"]) if e <= WITHIN * target), None)
     if acc:
-        rows.append(f"| accelerated PWLS, {args.subsets} subsets + momentum | {args.passes} | {acc['total_s']:.1f} | "
-                    f"{acc['peak'] / 2**30:.2f} | {acc['final_rmse']:.5f} | {acc['restarts']} restarts |")
+        rows.append(
+            f"| accelerated PWLS, {args.subsets} subsets + momentum | {args.passes} | {acc['total_s']:.1f} | "
+            f"{acc['peak'] / 2**30:.2f} | {acc['final_rmse']:.5f} | {acc['restarts']} restarts |"
+        )
     if ref:
         notes = [f"over {ref['sittings']} sittings (solver time summed)"] if ref["sittings"] > 1 else []
         if ref["peak"] is None:
             notes.insert(0, f"read back from {args.reference_state.name}")
         note = "; ".join(notes) or "-"
         peak = "-" if ref["peak"] is None else f"{ref['peak'] / 2**30:.2f}"  # None: read back, not run now
-        rows.append(f"| plain SPS (reference) | {args.reference_iterations} | {ref['total_s']:.1f} | "
-                    f"{peak} | {ref['final_rmse']:.5f} | {note} |")
-    print(f"\ngrid {grid.shape} of {args.voxel_mm:g} mm, {frames.size} views of {det.rows} x {det.cols}; "
-          "peak = this process's resident memory during the stage (the projections and weights stay loaded)\n")
+        rows.append(
+            f"| plain SPS (reference) | {args.reference_iterations} | {ref['total_s']:.1f} | "
+            f"{peak} | {ref['final_rmse']:.5f} | {note} |"
+        )
+    print(
+        f"\ngrid {grid.shape} of {args.voxel_mm:g} mm, {frames.size} views of {det.rows} x {det.cols}; "
+        "peak = this process's resident memory during the stage (the projections and weights stay loaded)\n"
+    )
     print("| stage | passes | wall s | peak GiB | RMSE /mm (metal left out) | note |")
     print("| --- | --- | --- | --- | --- | --- |")
     print("\n".join(rows))
     if acc:
-        print("\naccelerated PWLS per pass (cost at the points each pass took its gradient; the last one at the result):")
+        print(
+            "\naccelerated PWLS per pass (cost at the points each pass took its gradient; the last one at the result):"
+        )
         print("| pass | wall s (solver) | time to image s (FDK, reading, solver) | cost | RMSE /mm |")
         print("| --- | --- | --- | --- | --- |")
         for k, (e, s) in enumerate(zip(acc["rmse"], acc["times"], strict=True)):
@@ -212,14 +275,20 @@ def main() -> None:
     if acc is None:
         print("accelerated PWLS: not run (--passes 0)")
     elif target is None:
-        print(f"accelerated PWLS against 50 plain SPS iterations: not measured (50 plain SPS iterations estimated "
-              f"{describe_seconds(est)}; run with --reference-iterations 50)")
+        print(
+            f"accelerated PWLS against 50 plain SPS iterations: not measured (50 plain SPS iterations estimated "
+            f"{describe_seconds(est)}; run with --reference-iterations 50)"
+        )
     elif reach is None:
-        print(f"accelerated PWLS did not reach the reference RMSE {target:.5f} (+1 %) in {args.passes} passes: TARGET NOT MET")
+        print(
+            f"accelerated PWLS did not reach the reference RMSE {target:.5f} (+1 %) in {args.passes} passes: TARGET NOT MET"
+        )
     else:
         s = setup + acc["times"][reach]
-        print(f"accelerated PWLS reaches the reference RMSE {target:.5f} (+1 %) after {reach + 1} passes, "
-              f"{s:.0f} s from the start (FDK and reading included), target < 600 s: {'met' if s < 600 else 'NOT MET'}")
+        print(
+            f"accelerated PWLS reaches the reference RMSE {target:.5f} (+1 %) after {reach + 1} passes, "
+            f"{s:.0f} s from the start (FDK and reading included), target < 600 s: {'met' if s < 600 else 'NOT MET'}"
+        )
     print(f"1-min load at end {os.getloadavg()[0]:.2f}")
 
 

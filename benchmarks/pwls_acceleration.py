@@ -50,8 +50,16 @@ def problem(size: int, views: int) -> tuple[Any, Any, np.ndarray, np.ndarray, np
     return grid, A, truth, (-np.log(counts / PHOTONS)).astype(np.float32), (counts / PHOTONS).astype(np.float32)
 
 
-def run(A: Any, y: np.ndarray, w: np.ndarray, truth: np.ndarray, iterations: int, subsets: int,
-        momentum: bool, x0: np.ndarray | None) -> dict[str, Any]:
+def run(
+    A: Any,
+    y: np.ndarray,
+    w: np.ndarray,
+    truth: np.ndarray,
+    iterations: int,
+    subsets: int,
+    momentum: bool,
+    x0: np.ndarray | None,
+) -> dict[str, Any]:
     """One solver from ``x0`` (None: zero): RMSE and wall time (RMSE bookkeeping excluded) after each pass, cost
     per pass. The time includes the solver's set-up (its surrogate's denominators), not the start image."""
     from recon import pwls_sps, rmse
@@ -86,8 +94,12 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=180, help="views of the sawtooth orbit (default 180)")
     ap.add_argument("--subsets", type=int, default=12, help="ordered subsets (default 12)")
     ap.add_argument("--iterations", type=int, default=50, help="passes per solver (default 50)")
-    ap.add_argument("--start", choices=["fdk", "zero"], default="fdk",
-                    help="start image of every solver: FDK (as orbitct reconstruct does; default) or zero")
+    ap.add_argument(
+        "--start",
+        choices=["fdk", "zero"],
+        default="fdk",
+        help="start image of every solver: FDK (as orbitct reconstruct does; default) or zero",
+    )
     args = ap.parse_args()
     print(describe_machine())
     grid, A, truth, y, w = problem(args.size, args.views)
@@ -97,22 +109,30 @@ def main() -> None:
         from recon import fdk
 
         x0 = np.maximum(fdk(y, grid, A.geometry, window="hann"), 0.0).astype(np.float32)
-    runs = {"SPS (reference)": run(A, y, w, truth, args.iterations, 1, False, x0),
-            f"OS-SPS, {args.subsets} subsets": run(A, y, w, truth, args.iterations, args.subsets, False, x0),
-            f"OS-SPS + momentum, {args.subsets} subsets": run(A, y, w, truth, args.iterations, args.subsets, True, x0)}
+    runs = {
+        "SPS (reference)": run(A, y, w, truth, args.iterations, 1, False, x0),
+        f"OS-SPS, {args.subsets} subsets": run(A, y, w, truth, args.iterations, args.subsets, False, x0),
+        f"OS-SPS + momentum, {args.subsets} subsets": run(A, y, w, truth, args.iterations, args.subsets, True, x0),
+    }
     ref = runs["SPS (reference)"]
     target = ref["rmse"][-1]
-    print(f"\n{args.size}^3 voxels of {grid.voxel_mm[0]:.2f} mm, {args.views} views of {args.size}^2 px, "
-          f"{PHOTONS:.0e} photons, start {args.start}; RMSE of {args.iterations} plain SPS iterations: {target:.5f} /mm\n")
-    print("| solver | passes | wall s | reaches the reference RMSE (+1 %) | speed-up | final RMSE /mm | final cost | restarts |")
+    print(
+        f"\n{args.size}^3 voxels of {grid.voxel_mm[0]:.2f} mm, {args.views} views of {args.size}^2 px, "
+        f"{PHOTONS:.0e} photons, start {args.start}; RMSE of {args.iterations} plain SPS iterations: {target:.5f} /mm\n"
+    )
+    print(
+        "| solver | passes | wall s | reaches the reference RMSE (+1 %) | speed-up | final RMSE /mm | final cost | restarts |"
+    )
     print("| --- | --- | --- | --- | --- | --- | --- | --- |")
     ok = False
     for name, r in runs.items():
         hit = first_reaching(r, target)
         when = f"after {hit[0]} passes, {hit[1]:.1f} s" if hit else "no"
         speed = f"{ref['total_s'] / hit[1]:.1f}x" if hit else "-"
-        print(f"| {name} | {args.iterations} | {r['total_s']:.1f} | {when} | {speed} | {r['rmse'][-1]:.5f} | "
-              f"{r['cost'][-1]:.6g} | {r['restarts']} |")
+        print(
+            f"| {name} | {args.iterations} | {r['total_s']:.1f} | {when} | {speed} | {r['rmse'][-1]:.5f} | "
+            f"{r['cost'][-1]:.6g} | {r['restarts']} |"
+        )
         if "momentum" in name and hit:
             ok = ref["total_s"] / hit[1] >= 5.0
     print("\ncost and RMSE per pass (cost at the points each pass took its gradient; the last one at the result):")
@@ -120,7 +140,11 @@ def main() -> None:
     print("| pass | " + " | ".join(f"{n}: cost / RMSE" for n in names) + " |")
     print("|" + " --- |" * (len(names) + 1))
     for k in range(args.iterations):
-        print(f"| {k + 1} | " + " | ".join(f"{runs[n]['cost'][k + 1]:.6g} / {runs[n]['rmse'][k]:.5f}" for n in names) + " |")
+        print(
+            f"| {k + 1} | "
+            + " | ".join(f"{runs[n]['cost'][k + 1]:.6g} / {runs[n]['rmse'][k]:.5f}" for n in names)
+            + " |"
+        )
     print("\n" + ("target met (momentum at least 5x faster)" if ok else "TARGET NOT MET"))
     sys.exit(0 if ok else 1)
 

@@ -58,9 +58,17 @@ def rtk_times(n: int, size: int, views: int, g, repeat: int) -> dict[str, float]
     params, layout = rtk_parameters(g)
     geo = rtk.ThreeDCircularProjectionGeometry.New()
     for p in params:
-        geo.AddProjection(p["SourceToIsocenterDistance"], p["SourceToDetectorDistance"], p["GantryAngle"],
-                          p["ProjectionOffsetX"], p["ProjectionOffsetY"], p["OutOfPlaneAngle"], p["InPlaneAngle"],
-                          p["SourceOffsetX"], p["SourceOffsetY"])
+        geo.AddProjection(
+            p["SourceToIsocenterDistance"],
+            p["SourceToDetectorDistance"],
+            p["GantryAngle"],
+            p["ProjectionOffsetX"],
+            p["ProjectionOffsetY"],
+            p["OutOfPlaneAngle"],
+            p["InPlaneAngle"],
+            p["SourceOffsetX"],
+            p["SourceOffsetY"],
+        )
     ImageType = itk.Image[itk.F, 3]
     vox = g.panel.pitch_col * float(np.median(g.sod() / g.sdd))
 
@@ -77,8 +85,11 @@ def rtk_times(n: int, size: int, views: int, g, repeat: int) -> dict[str, float]
         return src.GetOutput()
 
     vol = const([n] * 3, [vox] * 3, [-(n - 1) / 2 * vox] * 3)
-    proj = const([size, size, views], [g.panel.pitch_col, g.panel.pitch_row, 1.0],
-                 [layout["origin"][0], layout["origin"][1], 0.0])
+    proj = const(
+        [size, size, views],
+        [g.panel.pitch_col, g.panel.pitch_row, 1.0],
+        [layout["origin"][0], layout["origin"][1], 0.0],
+    )
     out = {}
     fp = rtk.JosephForwardProjectionImageFilter[ImageType, ImageType].New()
     fp.SetInput(0, proj)
@@ -127,12 +138,16 @@ def run_case(n: int, size: int, views: int, repeat: int, pwls_iterations: int) -
     t, c, m = measure(lambda: fdk(y, grid, g, window="hann"), repeat, warm)
     rows.append(("FDK (filter + voxel BP)", t, c, y.nbytes + m, "fdk"))
     rtk = rtk_times(n, size, views, g, repeat) if n == 128 else None
-    print(f"\ncase: {n}^3 voxels ({grid.nbytes / 2**20:.0f} MiB), {views} views of {size}^2 "
-          f"({y.nbytes / 2**20:.0f} MiB); memory budget 1.5 x {base / 2**20:.0f} MiB")
+    print(
+        f"\ncase: {n}^3 voxels ({grid.nbytes / 2**20:.0f} MiB), {views} views of {size}^2 "
+        f"({y.nbytes / 2**20:.0f} MiB); memory budget 1.5 x {base / 2**20:.0f} MiB"
+    )
     import numba
 
     threads = numba.get_num_threads()
-    print(f"{'step':26s} {'wall s':>8s} {'cpu s':>8s} {'RTK s':>8s} {'speed-up':>9s} {'cpu-based':>10s} {'peak MiB':>9s} {'/ (vol+proj)':>13s}")
+    print(
+        f"{'step':26s} {'wall s':>8s} {'cpu s':>8s} {'RTK s':>8s} {'speed-up':>9s} {'cpu-based':>10s} {'peak MiB':>9s} {'/ (vol+proj)':>13s}"
+    )
     for label, t, c, m, key in rows:
         ref = (rtk or {}).get(key, RTK_REFERENCE_S.get(key) if n == 128 else None)
         ratio = f"{ref / t:9.2f}" if ref else f"{'-':>9s}"
@@ -141,8 +156,12 @@ def run_case(n: int, size: int, views: int, repeat: int, pwls_iterations: int) -
         print(f"{label:26s} {t:8.3f} {c:8.3f} {reft} {ratio} {ideal} {m / 2**20:9.1f} {m / base:12.2f}x")
     print("speed-up = RTK s / wall s; cpu-based = RTK s / (cpu s / threads), the wall time on idle cores")
     if n == 128:
-        print("RTK column:", "measured in this run (itk-rtk)" if rtk else
-              "itk-rtk not installed; reference numbers from issue 6 (2 cores)")
+        print(
+            "RTK column:",
+            "measured in this run (itk-rtk)"
+            if rtk
+            else "itk-rtk not installed; reference numbers from issue 6 (2 cores)",
+        )
     if pwls_iterations:
         run_pwls(grid, g, y, pwls_iterations, base)
 
@@ -169,11 +188,13 @@ def run_pwls(grid, g, y: np.ndarray, iterations: int, base: int) -> None:
             tracemalloc.stop()
             el, cpu = time.perf_counter() - t0, time.process_time() - c0
     per_it, per_it_idle = el / iterations, cpu / numba.get_num_threads() / iterations
-    print(f"PWLS/SPS {iterations} iterations (projections streamed from HDF5, 8 views per chunk): wall {el:.1f} s "
-          f"({per_it:.2f} s/iteration, set-up and final cost included), cpu {cpu:.1f} s (idle-core estimate "
-          f"{per_it_idle:.2f} s/iteration); 50 iterations: wall {50 * per_it:.0f} s, idle-core estimate "
-          f"{50 * per_it_idle:.0f} s (target < 60 s); cost {res.cost[0]:.4g} -> {res.cost[-1]:.4g}; "
-          f"peak {peak / 2**20:.1f} MiB = {peak / base:.2f} x (vol+proj) (target <= 1.5 x)")
+    print(
+        f"PWLS/SPS {iterations} iterations (projections streamed from HDF5, 8 views per chunk): wall {el:.1f} s "
+        f"({per_it:.2f} s/iteration, set-up and final cost included), cpu {cpu:.1f} s (idle-core estimate "
+        f"{per_it_idle:.2f} s/iteration); 50 iterations: wall {50 * per_it:.0f} s, idle-core estimate "
+        f"{50 * per_it_idle:.0f} s (target < 60 s); cost {res.cost[0]:.4g} -> {res.cost[-1]:.4g}; "
+        f"peak {peak / 2**20:.1f} MiB = {peak / base:.2f} x (vol+proj) (target <= 1.5 x)"
+    )
 
 
 def main() -> None:
@@ -187,9 +208,11 @@ def main() -> None:
 
     if args.threads:
         numba.set_num_threads(args.threads)
-    print(f"machine: {cpu_name()}, {psutil.cpu_count(logical=False)} cores / {os.cpu_count()} threads, "
-          f"{psutil.virtual_memory().total / 2**30:.0f} GiB; numba threads {numba.get_num_threads()}; "
-          f"load average {os.getloadavg()[0]:.1f} at start (shared machines inflate wall times)")
+    print(
+        f"machine: {cpu_name()}, {psutil.cpu_count(logical=False)} cores / {os.cpu_count()} threads, "
+        f"{psutil.virtual_memory().total / 2**30:.0f} GiB; numba threads {numba.get_num_threads()}; "
+        f"load average {os.getloadavg()[0]:.1f} at start (shared machines inflate wall times)"
+    )
     run_case(128, 128, 180, args.repeat, args.pwls_iterations)
     if args.large:
         run_case(256, 384, 500, 1, 0)

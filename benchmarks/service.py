@@ -53,8 +53,9 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def start_service(folder: Path, detector: int, time_scale: float,
-                  prep_ms: float | None = None) -> tuple[subprocess.Popen[bytes], str]:
+def start_service(
+    folder: Path, detector: int, time_scale: float, prep_ms: float | None = None
+) -> tuple[subprocess.Popen[bytes], str]:
     """``orbitct serve --sim`` in a subprocess; returns it and its base URL once the bench is connected.
 
     ``prep_ms`` replaces the generator's preparation time of ``config/bench.yaml`` (None: keep it)."""
@@ -67,9 +68,26 @@ def start_service(folder: Path, detector: int, time_scale: float,
     port = free_port()
     env = {**os.environ, "ORBITCT_DEV_TOKEN": TOKEN, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "orbitct_app.cli.main", "serve", "--config", str(folder / "bench.yaml"), "--sim",
-         "--port", str(port), "--stop-port", "0", "--data-dir", str(folder / "data"), "--log-level", "warning"],
-        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        [
+            sys.executable,
+            "-m",
+            "orbitct_app.cli.main",
+            "serve",
+            "--config",
+            str(folder / "bench.yaml"),
+            "--sim",
+            "--port",
+            str(port),
+            "--stop-port",
+            "0",
+            "--data-dir",
+            str(folder / "data"),
+            "--log-level",
+            "warning",
+        ],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
     )
     base = f"http://127.0.0.1:{port}"
     t0 = time.monotonic()
@@ -115,7 +133,9 @@ class KeepAliveClient:
         head = await self.reader.readuntil(b"\r\n\r\n")
         lines = head.decode("latin-1").split("\r\n")
         status = int(lines[0].split()[1])
-        length = next(int(v) for k, _, v in (line.partition(":") for line in lines[1:]) if k.lower() == "content-length")
+        length = next(
+            int(v) for k, _, v in (line.partition(":") for line in lines[1:]) if k.lower() == "content-length"
+        )
         return status, await self.reader.readexactly(length)
 
     async def close(self) -> None:
@@ -125,8 +145,9 @@ class KeepAliveClient:
             await self.writer.wait_closed()
 
 
-async def poller(base: str, path: str, stop: asyncio.Event, interval_s: float,
-                 latencies: list[float], errors: list[int]) -> None:
+async def poller(
+    base: str, path: str, stop: asyncio.Event, interval_s: float, latencies: list[float], errors: list[int]
+) -> None:
     """GET ``path`` until ``stop``; latency of every answer."""
     client = KeepAliveClient(base)
     try:
@@ -145,8 +166,10 @@ async def follower(base: str, scan_id: str, seen: list[int]) -> None:
     """Follow the scan's event stream to its end, checking that ids arrive in order."""
     last = 0
     headers = {"Authorization": f"Bearer {TOKEN}"}
-    async with (httpx.AsyncClient(base_url=base, headers=headers, timeout=None) as client,
-                client.stream("GET", f"/scans/{scan_id}/events") as r):
+    async with (
+        httpx.AsyncClient(base_url=base, headers=headers, timeout=None) as client,
+        client.stream("GET", f"/scans/{scan_id}/events") as r,
+    ):
         async for line in r.aiter_lines():
             if line.startswith("id:"):
                 n = int(line[3:])
@@ -174,6 +197,7 @@ async def follower_of_running(base: str, stop: asyncio.Event, seen: list[int]) -
 def load_process(base: str, scan_id: str, clients: int, streams: int, interval_s: float, conn: Connection) -> None:
     """The pollers and followers, in a process of their own, until ``"stop"`` arrives; sends back what they saw.
     ``scan_id`` empty: the followers follow each running scan in turn."""
+
     async def run() -> dict[str, Any]:
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
@@ -182,10 +206,16 @@ def load_process(base: str, scan_id: str, clients: int, streams: int, interval_s
         errors: list[int] = []
         seen: list[int] = []
         t0 = time.monotonic()
-        tasks = [asyncio.create_task(poller(base, f"/scans/{scan_id}" if scan_id else "/scans?limit=5", stop,
-                                            interval_s, latencies, errors)) for _ in range(clients)]
-        followers = [asyncio.create_task(follower(base, scan_id, seen) if scan_id else
-                                         follower_of_running(base, stop, seen)) for _ in range(streams)]
+        tasks = [
+            asyncio.create_task(
+                poller(base, f"/scans/{scan_id}" if scan_id else "/scans?limit=5", stop, interval_s, latencies, errors)
+            )
+            for _ in range(clients)
+        ]
+        followers = [
+            asyncio.create_task(follower(base, scan_id, seen) if scan_id else follower_of_running(base, stop, seen))
+            for _ in range(streams)
+        ]
         conn.send("started")
         await stop.wait()
         await asyncio.gather(*tasks)
@@ -202,8 +232,9 @@ class Load:
 
     def __init__(self, base: str, scan_id: str, clients: int, streams: int, interval_s: float) -> None:
         self._conn, child = mp.get_context("spawn").Pipe()
-        self._proc = mp.get_context("spawn").Process(target=load_process, daemon=True,
-                                                     args=(base, scan_id, clients, streams, interval_s, child))
+        self._proc = mp.get_context("spawn").Process(
+            target=load_process, daemon=True, args=(base, scan_id, clients, streams, interval_s, child)
+        )
         self.result: dict[str, Any] = {}
 
     def __enter__(self) -> Load:
@@ -241,8 +272,9 @@ def scan_ended(client: httpx.Client, scan_id: str, max_s: float) -> dict[str, An
     raise SystemExit(f"scan did not end within {max_s} s")
 
 
-def stops_mid_scan(client: httpx.Client, stopper: httpx.Client, url: str, n: int, frames: int,
-                   max_s: float) -> tuple[list[float], bool]:
+def stops_mid_scan(
+    client: httpx.Client, stopper: httpx.Client, url: str, n: int, frames: int, max_s: float
+) -> tuple[list[float], bool]:
     """``n`` stops at ``url``, each one while a scan runs (started, stopped, ended, reset): their latencies (s) and
     whether every one proved halted. ``stopper`` keeps one keep-alive connection, as `orbitct stop` would."""
     times, halted = [], True
@@ -269,12 +301,21 @@ def under_load(base: str, clients: int, args: argparse.Namespace) -> dict[str, A
         stop_url = client.get("/stop").json()["stop_url"]
         with Load(base, "", clients, args.streams, args.poll_interval_s) as stop_load:
             time.sleep(1.0)
-            with httpx.Client(headers=headers, timeout=30) as guard, \
-                    httpx.Client(base_url=base, headers=headers, timeout=30) as rest:
+            with (
+                httpx.Client(headers=headers, timeout=30) as guard,
+                httpx.Client(base_url=base, headers=headers, timeout=30) as rest,
+            ):
                 guard_s, guard_halted = stops_mid_scan(client, guard, stop_url, args.stops, args.frames, args.max_s)
                 rest_s, rest_halted = stops_mid_scan(client, rest, "/stop", args.stops, args.frames, args.max_s)
-    return {"alone": alone, "loaded": loaded, "load": load.result, "stop_load": stop_load.result,
-            "guard_s": guard_s, "rest_s": rest_s, "halted": guard_halted and rest_halted}
+    return {
+        "alone": alone,
+        "loaded": loaded,
+        "load": load.result,
+        "stop_load": stop_load.result,
+        "guard_s": guard_s,
+        "rest_s": rest_s,
+        "halted": guard_halted and rest_halted,
+    }
 
 
 def pct(values: Any, q: float) -> float:
@@ -292,25 +333,38 @@ def main() -> None:
     ap.add_argument("--poll-interval-s", type=float, default=0.1, help="pause between one client's polls (default 0.1)")
     ap.add_argument("--time-scale", type=float, default=1.0, help="twin speed-up (default 1 = real time)")
     ap.add_argument("--max-s", type=float, default=600.0, help="give up a scan after this long (default 600)")
-    ap.add_argument("--prep-ms", type=float, default=100.0, help="the generator's preparation time (default 100; "
-                    "config/bench.yaml's 200 puts this scan on the generator's hold threshold: see benchmarks/console.py)")
+    ap.add_argument(
+        "--prep-ms",
+        type=float,
+        default=100.0,
+        help="the generator's preparation time (default 100; "
+        "config/bench.yaml's 200 puts this scan on the generator's hold threshold: see benchmarks/console.py)",
+    )
     args = ap.parse_args()
     clients = [int(c) for c in args.clients.split(",")]
-    if not (all(1 <= c <= 500 for c in clients) and 20 <= args.frames <= 5000 and 0 <= args.streams <= 50
-            and 2 <= args.stops <= 1000):
+    if not (
+        all(1 <= c <= 500 for c in clients)
+        and 20 <= args.frames <= 5000
+        and 0 <= args.streams <= 50
+        and 2 <= args.stops <= 1000
+    ):
         raise SystemExit("bounds: 1..500 clients, 20..5000 frames, 0..50 streams, 2..1000 stops")
 
     print(f"machine: {describe_machine()}")
-    print(f"scan: sawtooth, {args.frames} projections, {args.detector}^2 px, twins x{args.time_scale:g}; "
-          f"pollers every {args.poll_interval_s:g} s each + {args.streams} event streams; {args.stops} stops per path")
+    print(
+        f"scan: sawtooth, {args.frames} projections, {args.detector}^2 px, twins x{args.time_scale:g}; "
+        f"pollers every {args.poll_interval_s:g} s each + {args.streams} event streams; {args.stops} stops per path"
+    )
     with tempfile.TemporaryDirectory(prefix="orbitct-bench-") as tmp:
         proc, base = start_service(Path(tmp), args.detector, args.time_scale, args.prep_ms)
         try:
             with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=60) as client:
                 scan_ended(client, scan_started(client, 20), args.max_s)  # warm-up: numba caches, twin start
             results = {n: under_load(base, n, args) for n in clients}
-            rates = {n: (frame_rate(r["alone"], Path(tmp) / "data"), frame_rate(r["loaded"], Path(tmp) / "data"))
-                     for n, r in results.items()}
+            rates = {
+                n: (frame_rate(r["alone"], Path(tmp) / "data"), frame_rate(r["loaded"], Path(tmp) / "data"))
+                for n, r in results.items()
+            }
         finally:
             proc.send_signal(signal.SIGINT)
             try:
@@ -328,23 +382,52 @@ def main() -> None:
         rate = len(lat) / r["load"]["poll_s"]
         states = f"{r['alone']['state']} / {r['loaded']['state']}"
         rows += [
-            (f"{n} pollers: scans alone / loaded", states + "".join(f" ({s['reason']})" for s in (r["alone"], r["loaded"])
-                                                                   if s["state"] != "complete"), "complete / complete"),
-            (f"{n} pollers: frame rate alone / loaded", f"{fps0:.2f} / {fps1:.2f} fps (drop {drop:.1f} %)", "drop < 10 %"),
-            (f"{n} pollers: status requests", f"{len(lat)} ({rate:.0f}/s), errors {len(r['load']['errors'])}, "
-                                              f"streams {r['load']['streams']}/{args.streams}", ""),
-            (f"{n} pollers: status p50 / p95 / p99 / max",
-             f"{pct(lat, 50):.1f} / {pct(lat, 95):.1f} / {status_p99:.1f} / {pct(lat, 100):.1f} ms", "p99 < 50 ms"),
-            (f"{n} pollers: stops mid-scan, load streams", f"{len(r['guard_s'])} + {len(r['rest_s'])}, "
-             f"{r['stop_load']['streams']} streams followed to their end", ""),
-            (f"{n} pollers: stop via guard p50 / p99 / max",
-             f"{pct(r['guard_s'], 50):.1f} / {guard_p99:.1f} / {pct(r['guard_s'], 100):.1f} ms", "p99 < 100 ms"),
-            (f"{n} pollers: stop via POST /stop p50 / p99 / max",
-             f"{pct(r['rest_s'], 50):.1f} / {pct(r['rest_s'], 99):.1f} / {pct(r['rest_s'], 100):.1f} ms", ""),
+            (
+                f"{n} pollers: scans alone / loaded",
+                states + "".join(f" ({s['reason']})" for s in (r["alone"], r["loaded"]) if s["state"] != "complete"),
+                "complete / complete",
+            ),
+            (
+                f"{n} pollers: frame rate alone / loaded",
+                f"{fps0:.2f} / {fps1:.2f} fps (drop {drop:.1f} %)",
+                "drop < 10 %",
+            ),
+            (
+                f"{n} pollers: status requests",
+                f"{len(lat)} ({rate:.0f}/s), errors {len(r['load']['errors'])}, "
+                f"streams {r['load']['streams']}/{args.streams}",
+                "",
+            ),
+            (
+                f"{n} pollers: status p50 / p95 / p99 / max",
+                f"{pct(lat, 50):.1f} / {pct(lat, 95):.1f} / {status_p99:.1f} / {pct(lat, 100):.1f} ms",
+                "p99 < 50 ms",
+            ),
+            (
+                f"{n} pollers: stops mid-scan, load streams",
+                f"{len(r['guard_s'])} + {len(r['rest_s'])}, {r['stop_load']['streams']} streams followed to their end",
+                "",
+            ),
+            (
+                f"{n} pollers: stop via guard p50 / p99 / max",
+                f"{pct(r['guard_s'], 50):.1f} / {guard_p99:.1f} / {pct(r['guard_s'], 100):.1f} ms",
+                "p99 < 100 ms",
+            ),
+            (
+                f"{n} pollers: stop via POST /stop p50 / p99 / max",
+                f"{pct(r['rest_s'], 50):.1f} / {pct(r['rest_s'], 99):.1f} / {pct(r['rest_s'], 100):.1f} ms",
+                "",
+            ),
             (f"{n} pollers: every stop proven halted, its scan aborted", f"{r['halted']}", "True"),
         ]
-        ok = ok and drop < 10.0 and status_p99 < 50.0 and guard_p99 < 100.0 and r["halted"] \
+        ok = (
+            ok
+            and drop < 10.0
+            and status_p99 < 50.0
+            and guard_p99 < 100.0
+            and r["halted"]
             and states == "complete / complete"
+        )
     width = max(len(row[0]) for row in rows)
     print(f"\n{'measure':<{width}}  {'value':<58} target")
     for name, value, target in rows:

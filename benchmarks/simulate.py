@@ -59,8 +59,19 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         out = args.keep or Path(tmp) / "bench.h5"
         cpu0 = time.process_time()
-        res = simulate_scan(args.experiment, args.orbit, out=out, n_frames=args.frames, detector_px=args.detector_size,
-                            errors=args.errors, seed=0, n_dark=10, n_flat=10, bench=bench, overwrite=True)
+        res = simulate_scan(
+            args.experiment,
+            args.orbit,
+            out=out,
+            n_frames=args.frames,
+            detector_px=args.detector_size,
+            errors=args.errors,
+            seed=0,
+            n_dark=10,
+            n_flat=10,
+            bench=bench,
+            overwrite=True,
+        )
         cpu_s = time.process_time() - cpu0
         size_mb = os.path.getsize(out) / 1e6
 
@@ -77,13 +88,18 @@ def main() -> None:
         ("whole scan (incl. HDF5 write)", f"{res.elapsed_s:.2f} s"),
         ("frames per second (wall clock)", f"{fps:.1f}  (target >= 25 on 2 cores)"),
         ("CPU time per frame (all threads)", f"{cpu_per_frame * 1e3:.1f} ms"),
-        (f"frames/s if {cores} cores were free", f"{cores / cpu_per_frame:.1f}  (CPU time / cores; other load excluded)"),
+        (
+            f"frames/s if {cores} cores were free",
+            f"{cores / cpu_per_frame:.1f}  (CPU time / cores; other load excluded)",
+        ),
         ("file size", f"{size_mb:.0f} MB"),
     ]
     w = max(len(k) for k, _ in rows)
     print("orbitct simulate benchmark")
-    print(f"machine: {cpu_model()}, {os.cpu_count()} cores, numba threads {numba.get_num_threads()}, "
-          f"load avg {os.getloadavg()[0]:.1f}")
+    print(
+        f"machine: {cpu_model()}, {os.cpu_count()} cores, numba threads {numba.get_num_threads()}, "
+        f"load avg {os.getloadavg()[0]:.1f}"
+    )
     print("-" * (w + 40))
     for k, v in rows:
         print(f"{k:<{w}}  {v}")

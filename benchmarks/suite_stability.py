@@ -84,8 +84,17 @@ def run(condition: str, pytest_args: list[str], workers: int, hog: int) -> Outco
     with tempfile.TemporaryDirectory(prefix="orbitct-stability-") as tmp:
         measures, report = Path(tmp) / "measures.jsonl", Path(tmp) / "junit.xml"
         env = {**os.environ, **CONDITIONS[condition], MEASURES_ENV: str(measures)}
-        cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", f"--junitxml={report}",
-               *(["-n", str(workers), "--dist", "loadfile"] if workers > 1 else []), *pytest_args]
+        cmd = [
+            sys.executable,
+            "-m",
+            "pytest",
+            "-q",
+            "-p",
+            "no:cacheprovider",
+            f"--junitxml={report}",
+            *(["-n", str(workers), "--dist", "loadfile"] if workers > 1 else []),
+            *pytest_args,
+        ]
         hogs = _hog(hog) if condition == "hog" else []
         load0, t0 = os.getloadavg()[0], time.perf_counter()
         try:
@@ -107,8 +116,10 @@ def report(outcomes: list[Outcome], top: int) -> None:
     print(f"\n{'condition':<12} {'passed':>7} {'failed':>7} {'skipped':>8} {'time_s':>8}  load start -> end  env")
     for o in outcomes:
         env = " ".join(f"{k}={v}" for k, v in CONDITIONS[o.condition].items())
-        print(f"{o.condition:<12} {o.passed:>7} {len(o.failed):>7} {o.skipped:>8} {o.seconds:>8.0f}  "
-              f"{o.load[0]:>5.2f} -> {o.load[1]:<5.2f}   {env}")
+        print(
+            f"{o.condition:<12} {o.passed:>7} {len(o.failed):>7} {o.skipped:>8} {o.seconds:>8.0f}  "
+            f"{o.load[0]:>5.2f} -> {o.load[1]:<5.2f}   {env}"
+        )
     for o in outcomes:
         for name in o.failed:
             print(f"  FAILED under {o.condition}: {name}")
@@ -129,26 +140,41 @@ def report(outcomes: list[Outcome], top: int) -> None:
         rows.append((bounds[key] / hi if hi > 0 else float("inf"), key, lo, hi, worst))
     rows.sort(key=lambda r: r[0])
     conds = [o.condition for o in outcomes]
-    print(f"\nbounds, tightest first ({min(top, len(rows))} of {len(rows)}): the worst value per condition; "
-          "spread = max - min over conditions; margin = bound / max")
-    print(f"{'test':<70} {'measure':<22} {'bound':>8} " + " ".join(f"{c:>10}" for c in conds)
-          + f" {'spread':>8} {'margin':>7}")
+    print(
+        f"\nbounds, tightest first ({min(top, len(rows))} of {len(rows)}): the worst value per condition; "
+        "spread = max - min over conditions; margin = bound / max"
+    )
+    print(
+        f"{'test':<70} {'measure':<22} {'bound':>8} "
+        + " ".join(f"{c:>10}" for c in conds)
+        + f" {'spread':>8} {'margin':>7}"
+    )
     for margin, (test, name), lo, hi, worst in rows[:top]:
         short = test.split("::", 1)[-1][:70]
-        print(f"{short:<70} {name:<22} {bounds[(test, name)]:>8.4g} "
-              + " ".join(f"{worst[c]:>10.4g}" if c in worst else f"{'-':>10}" for c in conds)
-              + f" {hi - lo:>8.3g} {margin:>6.2f}x")
+        print(
+            f"{short:<70} {name:<22} {bounds[(test, name)]:>8.4g} "
+            + " ".join(f"{worst[c]:>10.4g}" if c in worst else f"{'-':>10}" for c in conds)
+            + f" {hi - lo:>8.3g} {margin:>6.2f}x"
+        )
 
 
 def main() -> None:
     """Parse the options, run every condition, print the tables."""
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 epilog="Arguments after -- go to pytest (default: the whole suite).")
-    ap.add_argument("--conditions", default="threads2,threads1,hog",
-                    help=f"comma-separated, of {', '.join(CONDITIONS)} (default: %(default)s)")
+    ap = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], epilog="Arguments after -- go to pytest (default: the whole suite)."
+    )
+    ap.add_argument(
+        "--conditions",
+        default="threads2,threads1,hog",
+        help=f"comma-separated, of {', '.join(CONDITIONS)} (default: %(default)s)",
+    )
     ap.add_argument("--workers", type=int, default=2, help="pytest-xdist processes, as make test (default: 2)")
-    ap.add_argument("--hog", type=int, default=2 * cores_available(),
-                    help="busy processes beside the suite in the hog condition (default: twice the cores)")
+    ap.add_argument(
+        "--hog",
+        type=int,
+        default=2 * cores_available(),
+        help="busy processes beside the suite in the hog condition (default: twice the cores)",
+    )
     ap.add_argument("--top", type=int, default=40, help="bounds to list (default: 40)")
     args, rest = ap.parse_known_args()
     conditions = [c.strip() for c in args.conditions.split(",") if c.strip()]

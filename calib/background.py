@@ -62,16 +62,25 @@ class ObjectBackground:
     reference: float
     typical: NDArray[np.float64] | None = None  # (M, 3): photon factor and computed shift of BBs spread on the surface
     bb_mu_per_mm: float = field(default_factory=lambda: mu_of("steel"))
-    _cache: dict[tuple[bytes, bytes, float], NDArray[np.float64]] = field(default_factory=dict, compare=False, repr=False)
+    _cache: dict[tuple[bytes, bytes, float], NDArray[np.float64]] = field(
+        default_factory=dict, compare=False, repr=False
+    )
     _random: dict[float, float] = field(default_factory=dict, compare=False, repr=False)
 
     @classmethod
-    def of(cls, line_integral: LineIntegral, geometry: ViewGeometry, surface: TapeSurface, diameter_mm: float,
-           **options: float) -> ObjectBackground:
+    def of(
+        cls,
+        line_integral: LineIntegral,
+        geometry: ViewGeometry,
+        surface: TapeSurface,
+        diameter_mm: float,
+        **options: float,
+    ) -> ObjectBackground:
         """The background of an object seen by ``geometry``, its reference and typical shift taken over BBs of
         ``diameter_mm`` spread over the tape ``surface`` (where BBs go), in about 60 of the views."""
-        angle, z = np.meshgrid(np.linspace(0, 2 * np.pi, 16, endpoint=False),
-                               np.linspace(surface.z_min_mm, surface.z_max_mm, 7))
+        angle, z = np.meshgrid(
+            np.linspace(0, 2 * np.pi, 16, endpoint=False), np.linspace(surface.z_min_mm, surface.z_max_mm, 7)
+        )
         keep = surface.covers(angle.ravel(), z.ravel())
         if not keep.any():  # a surface with holes at every sample: no typical BB to refer to
             return cls(line_integral, 0.0, None, **options)
@@ -116,17 +125,20 @@ class ObjectBackground:
             lo, hi = (mid, hi) if reported(mid) < noise_px else (lo, mid)
         return float(0.5 * (lo + hi))
 
-    def variance(self, geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: float, noise_px: float
-                 ) -> NDArray[np.float64]:
+    def variance(
+        self, geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: float, noise_px: float
+    ) -> NDArray[np.float64]:
         """Per view of ``geometry`` and BB ``xyz`` (K, 3), the detection's random covariance relative to
         ``noise_px**2`` ``(P, K, 2, 2)``: ``exp(L - reference)`` for the photons, plus :data:`SHIFT_SCATTER` times
         the computed centroid shift, squared."""
         photons, shift = self._computed(geometry, xyz, diameter_mm)
-        return ((photons + PHOTON_FLOOR)[..., None, None] / (1.0 + PHOTON_FLOOR) * np.eye(2)
-                + (SHIFT_SCATTER / noise_px) ** 2 * np.einsum("pka,pkb->pkab", shift, shift))
+        return (photons + PHOTON_FLOOR)[..., None, None] / (1.0 + PHOTON_FLOOR) * np.eye(2) + (
+            SHIFT_SCATTER / noise_px
+        ) ** 2 * np.einsum("pka,pkb->pkab", shift, shift)
 
-    def background_rms(self, geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: float, noise_px: float
-                       ) -> NDArray[np.float64]:
+    def background_rms(
+        self, geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: float, noise_px: float
+    ) -> NDArray[np.float64]:
         """Per view and BB, the RMS of the background plane's residual round the detection ``(P, K)`` (line
         integral), as the detector measures it (``background_rms``, which weights the detection in the bundle): the
         structure the plane leaves, and the pixel noise that makes a centroid scatter by ``noise_px`` (the
@@ -141,8 +153,9 @@ class ObjectBackground:
         times the computed shift."""
         return SHIFT_FACTOR * self._computed(geometry, xyz, diameter_mm)[1]
 
-    def _computed(self, geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: float
-                  ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def _computed(
+        self, geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: float
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Photon factors ``(P, K)`` and computed shifts ``(P, K, 2)``."""
         out = self._columns(geometry, xyz, diameter_mm)
         return out[..., 0], out[..., 1:3]
@@ -187,11 +200,13 @@ class ObjectBackground:
         in_disc = dist2 <= ((r + 0.75) ** 2)[:, None]
         ring = in_window & (dist2 >= ((r + 1.0) ** 2)[:, None]) & ((ox + oy) % 2 == 0)[None]
         origin, direction = geometry.backproject(pixels)
-        values = self.line_integral(np.broadcast_to(origin, direction.shape).reshape(-1, 3),
-                                    direction.reshape(-1, 3)).reshape(pixels.shape[:2])
+        values = self.line_integral(
+            np.broadcast_to(origin, direction.shape).reshape(-1, 3), direction.reshape(-1, 3)
+        ).reshape(pixels.shape[:2])
         design = np.concatenate([np.ones(rel.shape[:2] + (1,)), rel], -1) * ring[..., None]  # plane about the centre
-        coef = np.linalg.solve(np.einsum("pma,pmb->pab", design, design),
-                               np.einsum("pma,pm->pa", design, values)[..., None])[..., 0]
+        coef = np.linalg.solve(
+            np.einsum("pma,pmb->pab", design, design), np.einsum("pma,pm->pa", design, values)[..., None]
+        )[..., 0]
         residual = np.where(in_disc, values - (coef[:, None, 0] + np.einsum("pma,pa->pm", rel, coef[:, 1:])), 0.0)
         # the BB's own line integrals (its chords, averaged over 3 x 3 points of each pixel), then the detector's
         # weighted centroid over the disc of BB plus residual (only positive weights count) against the BB's alone
@@ -202,8 +217,10 @@ class ObjectBackground:
         weight = np.where(in_disc, np.maximum(ball + residual, 0.0), 0.0)
         total = weight.sum(1)
         with np.errstate(invalid="ignore", divide="ignore"):
-            shift = (np.einsum("pm,pma->pa", weight, rel) / total[:, None]
-                     - np.einsum("pm,pma->pa", ball, rel) / ball.sum(1)[:, None])
+            shift = (
+                np.einsum("pm,pma->pa", weight, rel) / total[:, None]
+                - np.einsum("pm,pma->pa", ball, rel) / ball.sum(1)[:, None]
+            )
         # a background falling away faster than the BB rises leaves it nothing to weigh: half a diameter off
         shift = np.where((total > 0)[:, None], shift, 0.5 * d_px[:, None])
         photons = np.exp(np.clip(coef[:, 0] - self.reference, -20.0, 20.0))
@@ -215,8 +232,9 @@ class ObjectBackground:
         return np.concatenate([photons[:, None], shift, structure[:, None], leverage[:, None]], 1)
 
 
-def phantom_background(phantom: object, geometry: ViewGeometry, surface: TapeSurface,
-                       diameter_mm: float | None = None) -> ObjectBackground:
+def phantom_background(
+    phantom: object, geometry: ViewGeometry, surface: TapeSurface, diameter_mm: float | None = None
+) -> ObjectBackground:
     """The background of a phantom (:class:`orbitct.phantoms.phantom.Phantom`) without its BBs, for BBs of
     ``diameter_mm`` (default: the phantom's)."""
     d = float(diameter_mm if diameter_mm is not None else phantom.marker_diameter_mm)  # type: ignore[attr-defined]
@@ -224,4 +242,12 @@ def phantom_background(phantom: object, geometry: ViewGeometry, surface: TapeSur
     return ObjectBackground.of(bare.line_integral, geometry, surface, d)
 
 
-__all__ = ["PHOTON_FLOOR", "PIXEL_NOISE_FACTOR", "SHIFT_FACTOR", "SHIFT_SCATTER", "LineIntegral", "ObjectBackground", "phantom_background"]
+__all__ = [
+    "PHOTON_FLOOR",
+    "PIXEL_NOISE_FACTOR",
+    "SHIFT_FACTOR",
+    "SHIFT_SCATTER",
+    "LineIntegral",
+    "ObjectBackground",
+    "phantom_background",
+]

@@ -104,8 +104,12 @@ def bundle_adjust(
         r = model.project(st, X) - obs
         nr = np.where(seen, np.linalg.norm(r, axis=-1) / spread, 0.0)
         g = G @ (X - ref).ravel()
-        return (_huber_cost(nr, loss_scale_px) + 0.5 * float((prior_w * prior_params(st) ** 2).sum())
-                + 0.5 * gauge_w * float(g @ g) + 0.5 * point_w * float(((X - xyz0) ** 2).sum()))
+        return (
+            _huber_cost(nr, loss_scale_px)
+            + 0.5 * float((prior_w * prior_params(st) ** 2).sum())
+            + 0.5 * gauge_w * float(g @ g)
+            + 0.5 * point_w * float(((X - xyz0) ** 2).sum())
+        )
 
     uv_p, Jv, Jp = model.project_jac(state, xyz)
     jpp = np.einsum("nkai,nkaj->kij", Jp * seen[..., None, None], Jp)
@@ -121,9 +125,13 @@ def bundle_adjust(
         Hvv = np.swapaxes(Jv_wf, 1, 2) @ Jv.reshape(n, 2 * k, p)
         Hvp = np.swapaxes(Jv_w, 2, 3) @ Jp  # (N,K,p,3)
         Jp_w = Jp * w[..., None, None]
-        Hpp = np.swapaxes(Jp_w, 0, 1).reshape(k, 2 * n, 3).transpose(0, 2, 1) @ np.swapaxes(Jp, 0, 1).reshape(k, 2 * n, 3)
+        Hpp = np.swapaxes(Jp_w, 0, 1).reshape(k, 2 * n, 3).transpose(0, 2, 1) @ np.swapaxes(Jp, 0, 1).reshape(
+            k, 2 * n, 3
+        )
         gv = (np.swapaxes(Jv_wf, 1, 2) @ r.reshape(n, 2 * k, 1))[..., 0]
-        gp = (np.swapaxes(Jp_w, 0, 1).reshape(k, 2 * n, 3).transpose(0, 2, 1) @ np.swapaxes(r, 0, 1).reshape(k, 2 * n, 1)).ravel()
+        gp = (
+            np.swapaxes(Jp_w, 0, 1).reshape(k, 2 * n, 3).transpose(0, 2, 1) @ np.swapaxes(r, 0, 1).reshape(k, 2 * n, 1)
+        ).ravel()
         Hvv += np.diag(prior_w)[None]
         gv += prior_w[None] * prior_params(state)
         gvec = G @ (xyz - ref).ravel()

@@ -16,7 +16,17 @@ import scipy.fft
 from numpy.typing import NDArray
 
 #: columns of a candidate record
-CANDIDATE_FIELDS = ("col", "row", "score", "amplitude", "radius_px", "elongation", "background_rms", "paper_col", "paper_row")
+CANDIDATE_FIELDS = (
+    "col",
+    "row",
+    "score",
+    "amplitude",
+    "radius_px",
+    "elongation",
+    "background_rms",
+    "paper_col",
+    "paper_row",
+)
 N_FIELDS = len(CANDIDATE_FIELDS)
 
 
@@ -84,9 +94,15 @@ def _solve3(a, y):  # type: ignore[no-untyped-def]
     c02 = a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]
     det = a[0, 0] * c00 + a[0, 1] * c01 + a[0, 2] * c02
     x = np.empty(3)
-    x[0] = (y[0] * c00 + a[0, 1] * (a[1, 2] * y[2] - y[1] * a[2, 2]) + a[0, 2] * (y[1] * a[2, 1] - a[1, 1] * y[2])) / det
-    x[1] = (a[0, 0] * (y[1] * a[2, 2] - a[1, 2] * y[2]) + y[0] * c01 + a[0, 2] * (a[1, 0] * y[2] - y[1] * a[2, 0])) / det
-    x[2] = (a[0, 0] * (a[1, 1] * y[2] - y[1] * a[2, 1]) + a[0, 1] * (y[1] * a[2, 0] - a[1, 0] * y[2]) + y[0] * c02) / det
+    x[0] = (
+        y[0] * c00 + a[0, 1] * (a[1, 2] * y[2] - y[1] * a[2, 2]) + a[0, 2] * (y[1] * a[2, 1] - a[1, 1] * y[2])
+    ) / det
+    x[1] = (
+        a[0, 0] * (y[1] * a[2, 2] - a[1, 2] * y[2]) + y[0] * c01 + a[0, 2] * (a[1, 0] * y[2] - y[1] * a[2, 0])
+    ) / det
+    x[2] = (
+        a[0, 0] * (a[1, 1] * y[2] - y[1] * a[2, 1]) + a[0, 1] * (y[1] * a[2, 0] - a[1, 0] * y[2]) + y[0] * c02
+    ) / det
     return x
 
 
@@ -378,8 +394,10 @@ class FrameDetector:
         # the correlation runs on the image padded with its edge values, so BBs near an edge are not blurred
         # with the opposite edge (a circular convolution wraps around)
         self.pad = int(np.ceil(2.0 * self.radius_b + 1.5)) + 1
-        self.padded = (scipy.fft.next_fast_len(rb + 2 * self.pad, real=True),
-                       scipy.fft.next_fast_len(cb + 2 * self.pad, real=True))
+        self.padded = (
+            scipy.fft.next_fast_len(rb + 2 * self.pad, real=True),
+            scipy.fft.next_fast_len(cb + 2 * self.pad, real=True),
+        )
         self._kernel = _disc_kernel_spectrum(self.padded, self.radius_b)
         self.border = int(np.ceil(self.radius_b))  # peaks searched wherever a whole BB fits on the panel
         self.noise_border = int(np.ceil(2 * self.radius_b + 2))
@@ -415,6 +433,8 @@ class FrameDetector:
         cap = max(s.max_candidates, resp.size // CANDIDATE_AREA_PX)
         peaks = _local_maxima(resp, s.k_sigma * self.noise, self.border, cap)
         peaks = peaks[np.argsort(-peaks[:, 2])]
-        out = _refine_all(raw, self.dark, self.den, peaks, s.binning, 0.5 * s.diameter_px, self.half, s.refine_passes, self.noise)
+        out = _refine_all(
+            raw, self.dark, self.den, peaks, s.binning, 0.5 * s.diameter_px, self.half, s.refine_passes, self.noise
+        )
         keep = np.isfinite(out[:, 0])
         return out[keep]

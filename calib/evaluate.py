@@ -98,8 +98,14 @@ def true_corrections(
     return out
 
 
-def truth_fed_error_px(uv: NDArray[np.float64], truth: ViewGeometry, truth_xyz: NDArray[np.float64],
-                       nominal: ViewGeometry, noise_px: float | None = None, seed: int = 0) -> tuple[float, float]:
+def truth_fed_error_px(
+    uv: NDArray[np.float64],
+    truth: ViewGeometry,
+    truth_xyz: NDArray[np.float64],
+    nominal: ViewGeometry,
+    noise_px: float | None = None,
+    seed: int = 0,
+) -> tuple[float, float]:
     """What the bundle adjustment reaches from the true projections of the BBs a calibration detected, in the
     views it detected them, plus independent Gaussian noise: the orbit's and placement's own limit, without what
     the object does to the detections. ``uv`` ``(P, K, 2)`` (NaN: not seen), each column taken for the true BB

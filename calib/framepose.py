@@ -45,8 +45,13 @@ class FramePose:
     motion_mm: NDArray[np.float64]  # how far the fit moved the isocenter's projection (:func:`isocenter_motion_mm`)
 
 
-def fit_frame_pose(view: ViewGeometry, xyz: NDArray[np.float64], uv: NDArray[np.float64], noise_px: float,
-                   start: ViewState | None = None) -> FramePose | None:
+def fit_frame_pose(
+    view: ViewGeometry,
+    xyz: NDArray[np.float64],
+    uv: NDArray[np.float64],
+    noise_px: float,
+    start: ViewState | None = None,
+) -> FramePose | None:
     """Pose of the single view ``view`` fitted to BBs ``xyz`` (K, 3) seen at ``uv`` (K, 2; NaN = not seen), from
     ``start`` (the previous frame's, or none); None with fewer than four BBs (no redundancy to judge by)."""
     seen = np.isfinite(uv).all(-1) & np.isfinite(xyz).all(-1)
@@ -61,8 +66,11 @@ def fit_frame_pose(view: ViewGeometry, xyz: NDArray[np.float64], uv: NDArray[np.
         geometry = model.geometry(st)
         residual = np.linalg.norm(geometry.project(xyz_s)[0] - uv_s[0], axis=1)
         worst = int(np.argmax(residual))
-        if (attempt == MAX_DROPPED or seen.sum() <= 4
-                or residual[worst] <= max(OUTLIER_NOISES * noise_px, OUTLIER_MIN_PX)):
+        if (
+            attempt == MAX_DROPPED
+            or seen.sum() <= 4
+            or residual[worst] <= max(OUTLIER_NOISES * noise_px, OUTLIER_MIN_PX)
+        ):
             break
         seen[np.flatnonzero(seen)[worst]] = False  # a blob taken for this BB that is another: fitted without it
     return FramePose(
@@ -86,8 +94,9 @@ def isocenter_motion_mm(nominal: ViewGeometry, corrected: ViewGeometry) -> NDArr
     return shift_px * np.array([panel.pitch_col, panel.pitch_row]) * (nominal.sod() / nominal.sdd)[:, None]
 
 
-def _curve(A: NDArray[np.float64], y: NDArray[np.float64]
-           ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+def _curve(
+    A: NDArray[np.float64], y: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Least-squares coefficients of ``y`` on the design ``A``, the residuals and their robust sigma per column
     (1.4826 MAD, at least 1e-3)."""
     coef, *_ = np.linalg.lstsq(A, y, rcond=None)
@@ -115,8 +124,14 @@ class StepWatch:
     the components together (root sum of squares), and the jump be at least ``min_mm``. After a jump the baseline
     starts again behind it."""
 
-    def __init__(self, baseline: int = 80, sigmas: float = 8.0, min_mm: float = 1.0, recent: tuple[int, ...] = (4, 8, 16),
-                 max_gap: int = 5) -> None:
+    def __init__(
+        self,
+        baseline: int = 80,
+        sigmas: float = 8.0,
+        min_mm: float = 1.0,
+        recent: tuple[int, ...] = (4, 8, 16),
+        max_gap: int = 5,
+    ) -> None:
         self.baseline, self.sigmas, self.min_mm, self.recent, self.max_gap = baseline, sigmas, min_mm, recent, max_gap
         self._frames: deque[int] = deque(maxlen=baseline + max(recent))
         self._values: deque[NDArray[np.float64]] = deque(maxlen=baseline + max(recent))

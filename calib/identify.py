@@ -48,9 +48,15 @@ def rough_solve(
         uvs[:, bad] = np.nan
         xyz0[bad] = 0.0
     # the weak pull towards the nominal poses holds parts of the orbit that share no BB track together
-    res = bundle_adjust(sub, uvs, xyz0, loss_scale_px=2.0, max_iterations=iterations,
-                        pose_prior=(0.05 * prior_scale, 20.0 * prior_scale),
-                        point_prior_mm=ROUGH_POINT_PRIOR_MM)
+    res = bundle_adjust(
+        sub,
+        uvs,
+        xyz0,
+        loss_scale_px=2.0,
+        max_iterations=iterations,
+        pose_prior=(0.05 * prior_scale, 20.0 * prior_scale),
+        point_prior_mm=ROUGH_POINT_PRIOR_MM,
+    )
     full = ViewState.identity(model.nominal.n_views, 0)
     full.R[ok_views], full.t[ok_views] = res.state.R, res.state.t
     return fill_states(full, ok_views, model.nominal.n_views), res.xyz, ok_views
@@ -189,8 +195,9 @@ def _seen_apart(uv: NDArray[np.float64]) -> NDArray[np.bool_]:
     return together < np.maximum(3, 0.1 * np.minimum(count[:, None], count[None]))
 
 
-def merge_duplicates(xyz: NDArray[np.float64], uv: NDArray[np.float64], diameter_mm: float,
-                     near_diameters: float = 2.0) -> NDArray[np.float64]:
+def merge_duplicates(
+    xyz: NDArray[np.float64], uv: NDArray[np.float64], diameter_mm: float, near_diameters: float = 2.0
+) -> NDArray[np.float64]:
     """3-D points ``(K,3)`` with duplicates of one BB removed, keeping the one seen in more frames of ``uv``.
 
     Two points are one BB when they lie closer than most of a BB diameter (two balls cannot overlap), or
@@ -212,8 +219,14 @@ def merge_duplicates(xyz: NDArray[np.float64], uv: NDArray[np.float64], diameter
     return xyz[alive]
 
 
-def twin_constellation(xyz: NDArray[np.float64], uv: NDArray[np.float64], tol_mm: float = 1.0, min_pairs: int = 4,
-                       tries: int = 300, seed: int = 0) -> list[tuple[int, int]]:
+def twin_constellation(
+    xyz: NDArray[np.float64],
+    uv: NDArray[np.float64],
+    tol_mm: float = 1.0,
+    min_pairs: int = 4,
+    tries: int = 300,
+    seed: int = 0,
+) -> list[tuple[int, int]]:
     """Pairs ``(a, b)`` of BB points ``xyz`` (K, 3) that are one BB each, identified twice in two parts of the orbit
     that the rest of the solution does not tie together (frames where tracking broke for every BB at once): each
     pair is (almost) never seen in the same frame of ``uv``, and one similarity maps every ``b`` onto its ``a``
@@ -239,8 +252,9 @@ def twin_constellation(xyz: NDArray[np.float64], uv: NDArray[np.float64], tol_mm
     best: list[tuple[int, int]] = []
     for i in rng.permutation(p.size)[:tries]:
         r = ratio[p[i], q[i]]
-        third = np.flatnonzero(fits[p[i]] & fits[q[i]] & (np.abs(ratio[p[i]] / r - 1) < 0.02)
-                               & (np.abs(ratio[q[i]] / r - 1) < 0.02))
+        third = np.flatnonzero(
+            fits[p[i]] & fits[q[i]] & (np.abs(ratio[p[i]] / r - 1) < 0.02) & (np.abs(ratio[q[i]] / r - 1) < 0.02)
+        )
         if third.size == 0:
             continue
         trio = np.array([p[i], q[i], third[0]])
@@ -259,18 +273,30 @@ def twin_constellation(xyz: NDArray[np.float64], uv: NDArray[np.float64], tol_mm
     return best if len(best) >= min_pairs else []
 
 
-def assign_visible(cands: list[NDArray[np.float64]], predicted: NDArray[np.float64], panel: Panel,
-                   settings: TrackingSettings) -> NDArray[np.float64]:
+def assign_visible(
+    cands: list[NDArray[np.float64]], predicted: NDArray[np.float64], panel: Panel, settings: TrackingSettings
+) -> NDArray[np.float64]:
     """Assign candidates to the predicted BB positions ``(P, K, 2)`` that lie wholly on the panel."""
     margin = 0.5 * settings.diameter_px + 1.0
-    inside = ((predicted[..., 0] >= margin) & (predicted[..., 0] <= panel.cols - 1 - margin)
-              & (predicted[..., 1] >= margin) & (predicted[..., 1] <= panel.rows - 1 - margin))
-    return assign_to_predictions(cands, np.where(inside[..., None], predicted, np.nan), settings,
-                                 gate_px=max(2.0, 0.5 * settings.diameter_px))
+    inside = (
+        (predicted[..., 0] >= margin)
+        & (predicted[..., 0] <= panel.cols - 1 - margin)
+        & (predicted[..., 1] >= margin)
+        & (predicted[..., 1] <= panel.rows - 1 - margin)
+    )
+    return assign_to_predictions(
+        cands, np.where(inside[..., None], predicted, np.nan), settings, gate_px=max(2.0, 0.5 * settings.diameter_px)
+    )
 
 
-def assign_by_pose(cands: list[NDArray[np.float64]], model: ViewModel, state: ViewState, xyz: NDArray[np.float64],
-                   settings: TrackingSettings, rounds: int = 3) -> NDArray[np.float64]:
+def assign_by_pose(
+    cands: list[NDArray[np.float64]],
+    model: ViewModel,
+    state: ViewState,
+    xyz: NDArray[np.float64],
+    settings: TrackingSettings,
+    rounds: int = 3,
+) -> NDArray[np.float64]:
     """Assign candidates to the BBs ``xyz`` predicted through ``state`` (a guess per view, such as its nearest
     calibrated neighbour), then, per view with four or more matches, fit the view's rigid pose to them and
     assign again through it. A pose follows the parallax of BBs at different depths that a 2-D shift and
@@ -300,8 +326,9 @@ def _stacked(cands: list[NDArray[np.float64]]) -> NDArray[np.float64]:
     return out
 
 
-def _nearest_candidates(table: NDArray[np.float64], predicted: NDArray[np.float64], gate_px: float
-                        ) -> NDArray[np.float64]:
+def _nearest_candidates(
+    table: NDArray[np.float64], predicted: NDArray[np.float64], gate_px: float
+) -> NDArray[np.float64]:
     """Per frame and BB, the candidate record of ``table`` (:func:`_stacked`) nearest to ``predicted``
     ``(P, K, 2)`` within ``gate_px``: ``(P, K, fields)`` (NaN: none). For BBs looked for one at a time: the frame
     shift that :func:`assign_visible` allows would let a lone BB take any blob nearby."""
@@ -318,9 +345,17 @@ def _nearest_candidates(table: NDArray[np.float64], predicted: NDArray[np.float6
     return out
 
 
-def recover_missed(cands: list[NDArray[np.float64]], geometry: ViewGeometry, xyz: NDArray[np.float64],
-                   frags: NDArray[np.float64], settings: TrackingSettings, min_observations: int,
-                   diameter_mm: float, min_found_share: float = 0.5, rounds: int = 25) -> NDArray[np.float64]:
+def recover_missed(
+    cands: list[NDArray[np.float64]],
+    geometry: ViewGeometry,
+    xyz: NDArray[np.float64],
+    frags: NDArray[np.float64],
+    settings: TrackingSettings,
+    min_observations: int,
+    diameter_mm: float,
+    min_found_share: float = 0.5,
+    rounds: int = 25,
+) -> NDArray[np.float64]:
     """Centres ``(M, 3)`` of BBs beside ``xyz`` that identification lost: a BB whose 2-D track broke into pieces
     too short to triangulate through the rough first poses (over bone edges and clutter, which blur the
     frame-to-frame links) is dropped as inconsistent and never looked for again. Each piece of track ``frags``

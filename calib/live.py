@@ -87,8 +87,13 @@ class LiveWarning:
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready."""
-        return {"kind": self.kind, "frame": self.frame, "since_frame": self.since_frame, "message": self.message,
-                "uv": None if self.uv is None else list(self.uv)}
+        return {
+            "kind": self.kind,
+            "frame": self.frame,
+            "since_frame": self.since_frame,
+            "message": self.message,
+            "uv": None if self.uv is None else list(self.uv),
+        }
 
 
 @dataclass
@@ -167,8 +172,15 @@ class _Follower:
     """What runs in the worker process: detection of every projection, frame-to-frame linking, watched BBs and
     the warnings (sent through ``emit``)."""
 
-    def __init__(self, nominal: ViewGeometry, image_key: NDArray[np.integer[Any]], diameter_mm: float,
-                 settings: LiveSettings, options: dict[str, Any], emit: Callable[[str, Any], None]) -> None:
+    def __init__(
+        self,
+        nominal: ViewGeometry,
+        image_key: NDArray[np.integer[Any]],
+        diameter_mm: float,
+        settings: LiveSettings,
+        options: dict[str, Any],
+        emit: Callable[[str, Any], None],
+    ) -> None:
         self.nominal = nominal
         self.image_key = np.asarray(image_key)
         self.diameter_mm = float(diameter_mm)
@@ -179,8 +191,11 @@ class _Follower:
         self._proj_index = proj
         self.n_projections = int(proj.size)
         self.d_px = projected_diameter_px(nominal[proj], self.diameter_mm) if proj.size else 1.0
-        self.tracking = TrackingSettings(diameter_px=self.d_px, motion_px=_motion_px(nominal[proj]) if proj.size else 0.0,
-                                         jitter_px=self.opt.jitter_mm * self.d_px / self.diameter_mm)
+        self.tracking = TrackingSettings(
+            diameter_px=self.d_px,
+            motion_px=_motion_px(nominal[proj]) if proj.size else 0.0,
+            jitter_px=self.opt.jitter_mm * self.d_px / self.diameter_mm,
+        )
         self.linker = FrameLinker(self.tracking)
         self.candidates: list[NDArray[np.float64] | None] = []
         self.bbs_per_frame: list[int] = []
@@ -194,7 +209,7 @@ class _Follower:
         self._watched: dict[int, _Watched] = {}  # by the track that found it
         self._tracks_seen: set[int] = set()  # tracks already considered as new BBs
         self._few_since: int | None = None
-        self._last_distorted = -10**9
+        self._last_distorted = -(10**9)
         self._behind_warned = False
         self._next_index = 0
         self._last_pose: ViewState | None = None
@@ -241,10 +256,18 @@ class _Follower:
             self.bbs_per_frame.append(-1)
             if not self._behind_warned:
                 self._behind_warned = True
-                why = ("no dark and flat frames came before the first projection" if self._dark_sum is None
-                       or self._flat_sum is None else f"more than {self.settings.max_pending} frames were waiting")
-                self._warn("fell_behind", index, index, f"live calibration is not following frame {index} on: {why}; "
-                           "those frames are detected from the file after the scan (the geometry comes later)")
+                why = (
+                    "no dark and flat frames came before the first projection"
+                    if self._dark_sum is None or self._flat_sum is None
+                    else f"more than {self.settings.max_pending} frames were waiting"
+                )
+                self._warn(
+                    "fell_behind",
+                    index,
+                    index,
+                    f"live calibration is not following frame {index} on: {why}; "
+                    "those frames are detected from the file after the scan (the geometry comes later)",
+                )
             return
         if self._detector is None:
             dark = (self._dark_sum / self._n_dark).astype(np.float32)
@@ -269,14 +292,21 @@ class _Follower:
         s = self.settings
         n_bbs = int(links.continued.size + links.started.size)
         self.bbs_per_frame.append(n_bbs)
-        self.emit("marks", (index, np.vstack([links.uv.reshape(-1, 2), links.started_uv.reshape(-1, 2)]).round(2).tolist()))
+        self.emit(
+            "marks", (index, np.vstack([links.uv.reshape(-1, 2), links.started_uv.reshape(-1, 2)]).round(2).tolist())
+        )
         metrics = {"bbs": float(n_bbs), "frame": float(index)}
         message = f"frame {index}: {n_bbs} BBs"
         if n_bbs < s.min_bbs:  # a view with too few BBs (once per run of such frames)
             if self._few_since is None:
                 self._few_since = index
-                self._warn("few_bbs", index, index, f"frame {index} shows {n_bbs} BB(s); a view needs {s.min_bbs} to be "
-                           "calibrated from its own (more BBs where this part of the orbit looks, or it is bridged)")
+                self._warn(
+                    "few_bbs",
+                    index,
+                    index,
+                    f"frame {index} shows {n_bbs} BB(s); a view needs {s.min_bbs} to be "
+                    "calibrated from its own (more BBs where this part of the orbit looks, or it is bridged)",
+                )
         else:
             self._few_since = None
         blobs = np.concatenate([links.uv, links.started_uv])
@@ -289,8 +319,9 @@ class _Follower:
             pred = view.project(points)[0]
             # searched around the last frame's shift: the points, triangulated through the nominal views, and the
             # orbit's errors put the BBs off their nominal projection by a shift that drifts along the orbit
-            idx, _ = match_frame(pred + self._shift, blobs, self.tracking.search_px, self.tracking.gate_px,
-                                 self.tracking.residual_px)
+            idx, _ = match_frame(
+                pred + self._shift, blobs, self.tracking.search_px, self.tracking.gate_px, self.tracking.residual_px
+            )
             hit = idx >= 0  # where a missing BB should be: its point through the view, moved by the frame's shift
             if hit.sum() >= 2:
                 self._shift = np.median(blobs[idx[hit]] - pred[hit], axis=0)
@@ -307,17 +338,27 @@ class _Follower:
                 watched[k].track = int(tracks[idx[k]])
             aligned = pred + self._shift
             origin, direction = view_rays(view, blobs) if len(blobs) else (None, None)
-            matched = (np.where((idx >= 0)[:, None], blobs[np.maximum(idx, 0)], np.nan) if len(blobs) else
-                       np.full((len(watched), 2), np.nan))
+            matched = (
+                np.where((idx >= 0)[:, None], blobs[np.maximum(idx, 0)], np.nan)
+                if len(blobs)
+                else np.full((len(watched), 2), np.nan)
+            )
             pose = self._frame_pose(index, view, points, matched)
             if pose is not None:
                 self.window.add(index, keys, matched, pose.state)
                 if self.window.due:
-                    self._refined.update(self.window.refine(self.nominal, dict(zip(keys, points)),
-                                                            loss_px=max(1.5 * self._noise_px(), 0.05)))
+                    self._refined.update(
+                        self.window.refine(
+                            self.nominal, dict(zip(keys, points)), loss_px=max(1.5 * self._noise_px(), 0.05)
+                        )
+                    )
                     self._motion_offset += self.window.moved_mm  # the jump watch's series carried across it
-                metrics.update(rpe_mm=pose.rpe_mm, rpe_mean_mm=float(np.mean(self.rpe_mm)), predicted_px=pose.predicted_px,
-                               misfit_px=pose.misfit_px)
+                metrics.update(
+                    rpe_mm=pose.rpe_mm,
+                    rpe_mean_mm=float(np.mean(self.rpe_mm)),
+                    predicted_px=pose.predicted_px,
+                    misfit_px=pose.misfit_px,
+                )
                 message += f", RPE {pose.rpe_mm:.3f} mm, predicted {pose.predicted_px:.2f} px"
             panel = view.panel
             margin = 0.5 * self.d_px + 1.0 + s.edge_margin_px
@@ -331,18 +372,32 @@ class _Follower:
                         scattered.append(t)  # its rays meet at no point: not one BB's
                         continue
                     if w.warned:
-                        self._warn("bb_found", index, w.missing_since or index, f"frame {index}: the BB lost since frame "
-                                   f"{w.missing_since} is found again at ({blobs[j, 0]:.0f}, {blobs[j, 1]:.0f}) px",
-                                   uv=(float(blobs[j, 0]), float(blobs[j, 1])))
+                        self._warn(
+                            "bb_found",
+                            index,
+                            w.missing_since or index,
+                            f"frame {index}: the BB lost since frame "
+                            f"{w.missing_since} is found again at ({blobs[j, 0]:.0f}, {blobs[j, 1]:.0f}) px",
+                            uv=(float(blobs[j, 0]), float(blobs[j, 1])),
+                        )
                     w.last_frame, w.last_uv = index, (float(blobs[j, 0]), float(blobs[j, 1]))
                     w.missing_since, w.warned, w.outside = None, False, False
                     continue
-                inside = bool(np.isfinite(uv).all() and margin <= uv[0] <= panel.cols - 1 - margin
-                              and margin <= uv[1] <= panel.rows - 1 - margin)
+                inside = bool(
+                    np.isfinite(uv).all()
+                    and margin <= uv[0] <= panel.cols - 1 - margin
+                    and margin <= uv[1] <= panel.rows - 1 - margin
+                )
                 if not inside:
                     if not w.outside and w.last_frame >= index - 2:
-                        self._warn("bb_left_fov", index, index, f"frame {index}: the BB last at ({w.last_uv[0]:.0f}, "
-                                   f"{w.last_uv[1]:.0f}) px left the field of view", uv=w.last_uv)
+                        self._warn(
+                            "bb_left_fov",
+                            index,
+                            index,
+                            f"frame {index}: the BB last at ({w.last_uv[0]:.0f}, "
+                            f"{w.last_uv[1]:.0f}) px left the field of view",
+                            uv=w.last_uv,
+                        )
                     w.outside, w.missing_since, w.warned = True, None, False
                     continue
                 w.outside = False
@@ -352,19 +407,30 @@ class _Follower:
                     self._distorted(index, w.missing_since, c, uv)
                 if not w.warned and index - w.missing_since + 1 > s.lost_frames:
                     w.warned = True
-                    self._warn("bb_lost", index, w.missing_since,
-                               f"frame {index}: the BB last seen at ({w.last_uv[0]:.0f}, {w.last_uv[1]:.0f}) px in frame "
-                               f"{w.last_frame} is missing since frame {w.missing_since} where it should be visible near "
-                               f"({uv[0]:.0f}, {uv[1]:.0f}) px (over metal, bone or another BB, or fallen off?)",
-                               uv=(float(uv[0]), float(uv[1])))
+                    self._warn(
+                        "bb_lost",
+                        index,
+                        w.missing_since,
+                        f"frame {index}: the BB last seen at ({w.last_uv[0]:.0f}, {w.last_uv[1]:.0f}) px in frame "
+                        f"{w.last_frame} is missing since frame {w.missing_since} where it should be visible near "
+                        f"({uv[0]:.0f}, {uv[1]:.0f}) px (over metal, bone or another BB, or fallen off?)",
+                        uv=(float(uv[0]), float(uv[1])),
+                    )
             for t in scattered:
                 del self._watched[t]
                 self._refined.pop(t, None)
         self._new_bbs(links, view, claimed[: links.continued.size])
         self.emit("progress", ("live-calibration", p + 1, self.n_projections, message, metrics))
 
-    def _through_pose(self, view: ViewGeometry, points: NDArray[np.float64], blobs: NDArray[np.float64],
-                      idx: NDArray[np.intp], c: NDArray[np.float64], looks: NDArray[np.float64]) -> None:
+    def _through_pose(
+        self,
+        view: ViewGeometry,
+        points: NDArray[np.float64],
+        blobs: NDArray[np.float64],
+        idx: NDArray[np.intp],
+        c: NDArray[np.float64],
+        looks: NDArray[np.float64],
+    ) -> None:
         """A second look for the watched BBs not found (``idx`` -1, filled in place): through this frame's pose, fitted
         to the BBs found, each is predicted with the rotation and magnification the frame's common shift leaves
         out (a BB far from the others in depth drifts off its shifted prediction by several pixels along the
@@ -387,8 +453,9 @@ class _Follower:
             if like_the_others(_record_at(c, blobs[j])[None], looks):
                 idx[k], free[j] = j, False
 
-    def _frame_pose(self, index: int, view: ViewGeometry, xyz: NDArray[np.float64], uv: NDArray[np.float64]
-                    ) -> FramePose | None:
+    def _frame_pose(
+        self, index: int, view: ViewGeometry, xyz: NDArray[np.float64], uv: NDArray[np.float64]
+    ) -> FramePose | None:
         """The frame's pose from its watched BBs (:func:`calib.framepose.fit_frame_pose`); feeds the running RPE,
         the centroid noise and the jump watch, which warns when the object moved."""
         noise_px = self._noise_px()
@@ -403,12 +470,16 @@ class _Follower:
             return pose
         step = self._steps.add(index, pose.motion_mm - self._motion_offset)
         if step is not None:
-            self._warn("object_moved", index, step.since_frame,
-                       f"frame {index}: where each frame's fitted pose puts the isocenter jumped by {step.size_mm:.1f} mm "
-                       f"at frame {step.since_frame} and stayed ({step.sigmas:.0f} sigma of its "
-                       "frame-to-frame noise): the object "
-                       "moved on the table? A move of the object with its BBs is calibrated away; if it moved against "
-                       "its BBs (loose tape, soft tissue), stop and scan again")
+            self._warn(
+                "object_moved",
+                index,
+                step.since_frame,
+                f"frame {index}: where each frame's fitted pose puts the isocenter jumped by {step.size_mm:.1f} mm "
+                f"at frame {step.since_frame} and stayed ({step.sigmas:.0f} sigma of its "
+                "frame-to-frame noise): the object "
+                "moved on the table? A move of the object with its BBs is calibrated away; if it moved against "
+                "its BBs (loose tape, soft tissue), stop and scan again",
+            )
         return pose
 
     def _noise_px(self) -> float:
@@ -451,7 +522,9 @@ class _Follower:
             if not self._one_point(w, self._scatter_reference_mm()):
                 continue  # its rays meet at no point: a track that followed two BBs, or a structure
             w.look = np.nanmedian(np.array(records), axis=0)
-            if len(self._watched) >= 3 and not like_the_others(w.look, np.array([v.look for v in self._watched.values()])):
+            if len(self._watched) >= 3 and not like_the_others(
+                w.look, np.array([v.look for v in self._watched.values()])
+            ):
                 continue  # round for a few frames, but not like the BBs: a structure of the object
             w.track = t
             self._watched[t] = w
@@ -466,7 +539,9 @@ class _Follower:
         """Whether the rays of ``w`` meet at one point as a BB's do: within :data:`WATCH_SCATTER_MM` and
         :data:`WATCH_SCATTER_RATIO` times the watched BBs' median scatter ``reference_mm``."""
         scatter = w.scatter_mm()
-        return scatter <= self._scatter_limit_mm and (reference_mm is None or scatter <= WATCH_SCATTER_RATIO * reference_mm)
+        return scatter <= self._scatter_limit_mm and (
+            reference_mm is None or scatter <= WATCH_SCATTER_RATIO * reference_mm
+        )
 
     def _distorted(self, index: int, since: int, c: NDArray[np.float64], uv: NDArray[np.float64]) -> None:
         """Warn (once per lost_frames frames) when a blob lies where a BB missing since frame ``since`` should be but
@@ -477,9 +552,15 @@ class _Follower:
         near = (d < 2.0 * self.tracking.gate_px) & ~ball_like(c, self.tracking)
         if near.any():
             self._last_distorted = index
-            self._warn("bb_distorted", index, since, f"frame {index}: the blob where a BB missing since frame {since} "
-                       f"should be, near ({uv[0]:.0f}, {uv[1]:.0f}) px, does not look like a BB (over metal or bone, or "
-                       "merged with another BB)", uv=(float(uv[0]), float(uv[1])))
+            self._warn(
+                "bb_distorted",
+                index,
+                since,
+                f"frame {index}: the blob where a BB missing since frame {since} "
+                f"should be, near ({uv[0]:.0f}, {uv[1]:.0f}) px, does not look like a BB (over metal or bone, or "
+                "merged with another BB)",
+                uv=(float(uv[0]), float(uv[1])),
+            )
 
     def _warn(self, kind: str, frame: int, since: int, message: str, uv: tuple[float, float] | None = None) -> None:
         self.emit("warning", LiveWarning(kind, int(frame), int(since), message, uv))
@@ -499,8 +580,15 @@ def _end_when_orphaned(parent: int) -> None:
     os._exit(0)
 
 
-def _worker(frames: Any, events: Any, nominal: ViewGeometry, image_key: NDArray[Any], diameter_mm: float,
-            settings: LiveSettings, options: dict[str, Any]) -> None:
+def _worker(
+    frames: Any,
+    events: Any,
+    nominal: ViewGeometry,
+    image_key: NDArray[Any],
+    diameter_mm: float,
+    settings: LiveSettings,
+    options: dict[str, Any],
+) -> None:
     """The worker process: frames ``(index, frame)`` in, events out; ``("end", n_frames)`` ends the scan (the
     candidates go back), ``"stop"`` ends it without them."""
     try:
@@ -513,9 +601,20 @@ def _worker(frames: Any, events: Any, nominal: ViewGeometry, image_key: NDArray[
             item = frames.get()
             if item[0] == "end":
                 follower.skip_to(item[1])
-                events.put(("done", (follower.candidates, follower._deferred, follower.detect_s,
-                                     follower.bbs_per_frame, follower.d_px, follower.linked(),
-                                     (follower.window.windows, follower.window.seconds, len(follower.rpe_mm)))))
+                events.put(
+                    (
+                        "done",
+                        (
+                            follower.candidates,
+                            follower._deferred,
+                            follower.detect_s,
+                            follower.bbs_per_frame,
+                            follower.d_px,
+                            follower.linked(),
+                            (follower.window.windows, follower.window.seconds, len(follower.rpe_mm)),
+                        ),
+                    )
+                )
                 return
             if isinstance(item, str) and item == "stop":
                 events.put(("stopped", None))
@@ -576,9 +675,12 @@ class LiveCalibration:
         # never wait at exit to flush frames into the pipe of a worker that is gone (the process would hang for good)
         self._frames.cancel_join_thread()
         self._events = ctx.Queue()
-        self._process = ctx.Process(target=_worker, name="orbitct-live-calibration", daemon=True,
-                                    args=(self._frames, self._events, nominal, self.image_key, self.diameter_mm,
-                                          self.settings, self.options))
+        self._process = ctx.Process(
+            target=_worker,
+            name="orbitct-live-calibration",
+            daemon=True,
+            args=(self._frames, self._events, nominal, self.image_key, self.diameter_mm, self.settings, self.options),
+        )
         self._process.start()
         self._listener = threading.Thread(target=self._listen, name="orbitct-live-events", daemon=True)
         self._listener.start()
@@ -640,8 +742,9 @@ class LiveCalibration:
         deadline = time.monotonic() + timeout_s
         while not self._ready.wait(0.05):
             if self._ended.is_set() or not self._process.is_alive() or time.monotonic() > deadline:
-                reason = self._failure or ("its process ended" if not self._process.is_alive() else
-                                           f"not within {timeout_s:g} s")
+                reason = self._failure or (
+                    "its process ended" if not self._process.is_alive() else f"not within {timeout_s:g} s"
+                )
                 raise LiveCalibrationError(f"the live calibration did not start: {reason}")
 
     # ------------------------------------------------------------------ feeding
@@ -711,8 +814,9 @@ class LiveCalibration:
         with ScanFile(self.path) as sf:
             proj = sf.projection_indices
             if proj.size != len(candidates):
-                raise LiveCalibrationError(f"{self.path}: {proj.size} projections in the file, {len(candidates)} "
-                                           "seen live")
+                raise LiveCalibrationError(
+                    f"{self.path}: {proj.size} projections in the file, {len(candidates)} seen live"
+                )
             if deferred:
                 t = time.perf_counter()
                 dark, flat = sf.dark_flat()
@@ -723,8 +827,15 @@ class LiveCalibration:
                 self.detect_s += time.perf_counter() - t
         cands = [np.zeros((0, N_FIELDS)) if c is None else c for c in candidates]
         t_solve = time.perf_counter()
-        result = calibrate_candidates(self.path, cands, diameter_mm=self.diameter_mm, progress=progress or self.progress,
-                                      detect_s=self.detect_s, linked=linked, **self.options)
+        result = calibrate_candidates(
+            self.path,
+            cands,
+            diameter_mm=self.diameter_mm,
+            progress=progress or self.progress,
+            detect_s=self.detect_s,
+            linked=linked,
+            **self.options,
+        )
         self.timing["solve_s"] = time.perf_counter() - t_solve
         if self.last_frame_s is not None:
             self.last_frame_to_geometry_s = time.perf_counter() - self.last_frame_s

@@ -127,4 +127,3 @@ class ViewModel:
             uv2 = self._project(self.base(k2).matrices, Y)[0]
             Jv[..., 6 + j] = (uv2 - uv) / _FD_STEP_MM
         return uv, Jv, Jp
-

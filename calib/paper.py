@@ -17,7 +17,9 @@ from calib.model import ViewModel, ViewState, skew
 from calib.rays import marker_rays, pairwise_midpoint_mean
 
 
-def _ray_frame(model: ViewModel, state: ViewState, uv: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def _ray_frame(
+    model: ViewModel, state: ViewState, uv: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Source and unit ray directions in the (intrinsics-changed) nominal view frame, which moves rigidly."""
     return marker_rays(model.base(state.k), uv)
 

@@ -81,11 +81,17 @@ class CalibrationOptions:
     outlier_px: float = 1.0  # bundle: detections off by more than max(this, 6 robust sigma) become NaN
     workers: int = 2  # detection threads
     seeds_uv: Any = None  # optional (K, 2) BB positions (col, row) in the first projection
-    jitter_mm: float = DEFAULT_JITTER_MM  # frame-to-frame jitter of the orbit around the nominal (object scale) for tracking
+    jitter_mm: float = (
+        DEFAULT_JITTER_MM  # frame-to-frame jitter of the orbit around the nominal (object scale) for tracking
+    )
     recover: bool = True  # track again allowing larger jumps (RECOVERY_JITTER_MM) when the first result fails
     scale_bar_mm: float | None = None  # known distance between two BBs (a scale bar): sets the metric scale
-    scale_bar_bbs: tuple[int, int] | None = None  # which BBs span it (1-based, as the report numbers them); default: the one pair near its length
-    weigh_detections: bool = True  # bundle: solve once more at the end, each detection weighted by how rough its background is
+    scale_bar_bbs: tuple[int, int] | None = (
+        None  # which BBs span it (1-based, as the report numbers them); default: the one pair near its length
+    )
+    weigh_detections: bool = (
+        True  # bundle: solve once more at the end, each detection weighted by how rough its background is
+    )
 
 
 @dataclass
@@ -161,9 +167,11 @@ class CalibrationResult:
             return self.scale_bar.describe()
         if self.method != "bundle":
             return "metric scale from the nominal geometry (the paper method fixes no gauge)"
-        return ("metric scale from the nominal geometry: distances in the calibrated frame can be off by about the "
-                "orbit's mean error along the beam over the source distance (1-2 % on the bench profile); a scale bar "
-                "fixes it (--scale-bar-mm)")
+        return (
+            "metric scale from the nominal geometry: distances in the calibrated frame can be off by about the "
+            "orbit's mean error along the beam over the source distance (1-2 % on the bench profile); a scale bar "
+            "fixes it (--scale-bar-mm)"
+        )
 
 
 def _options(method: str, options: dict[str, Any]) -> CalibrationOptions:
@@ -192,7 +200,9 @@ def _options(method: str, options: dict[str, Any]) -> CalibrationOptions:
 def _stats(index: int, rpe: NDArray[np.float64], resid_px: NDArray[np.float64]) -> IterationStats:
     st = rpe_statistics(rpe)
     r = resid_px[np.isfinite(resid_px)]
-    return IterationStats(index, st.mean_mm, st.median_mm, st.std_mm, float(np.sqrt(np.mean(r**2))) if r.size else float("nan"))
+    return IterationStats(
+        index, st.mean_mm, st.median_mm, st.std_mm, float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
+    )
 
 
 def _motion_px(nominal: ViewGeometry) -> float:
@@ -209,7 +219,11 @@ def _residual_px(geometry: ViewGeometry, uv: NDArray[np.float64], xyz: NDArray[n
 
 
 def _detect(
-    sf: ScanFile, proj: NDArray[np.intp], nominal: ViewGeometry, opt: CalibrationOptions, progress: ProgressCallback | None
+    sf: ScanFile,
+    proj: NDArray[np.intp],
+    nominal: ViewGeometry,
+    opt: CalibrationOptions,
+    progress: ProgressCallback | None,
 ) -> tuple[list[NDArray[np.float64]], float, float]:
     """Candidates of every projection, streamed frame by frame; also BB diameter (mm and px)."""
     det = sf.panel
@@ -258,14 +272,18 @@ def _detect(
         for m, fut in pending:
             take(m, fut.result())
     if problems:
-        raise BadFramesError(f"{sf.path}: {len(problems)} of {total} projections are unusable: "
-                             f"{describe_frame_problems(problems)}; a geometry fitted to them would be wrong, so none "
-                             "is stored")
+        raise BadFramesError(
+            f"{sf.path}: {len(problems)} of {total} projections are unusable: "
+            f"{describe_frame_problems(problems)}; a geometry fitted to them would be wrong, so none "
+            "is stored"
+        )
     report(progress, "detect", total, total, "")
     return cands, float(diameter_mm), d_px
 
 
-def frame_detector(dark: NDArray[np.float32], flat: NDArray[np.float32], d_px: float, opt: CalibrationOptions) -> FrameDetector:
+def frame_detector(
+    dark: NDArray[np.float32], flat: NDArray[np.float32], d_px: float, opt: CalibrationOptions
+) -> FrameDetector:
     """The detector every projection of a scan goes through (BB size in pixels, the options' threshold)."""
     settings = settings_for(d_px, dark.shape)
     settings.k_sigma, settings.max_candidates = opt.k_sigma, opt.max_candidates
@@ -317,7 +335,8 @@ def _check_frame_memory(sf: ScanFile, copies: int = FRAME_COPIES) -> None:
     if need > available // 2:
         raise FrameTooLargeError(
             f"{sf.path}: a frame of {sf.panel.rows} x {sf.panel.cols} pixels needs about {need / 2**30:.1f} GiB to "
-            f"process and {available / 2**30:.1f} GiB is available; refusing before allocating it")
+            f"process and {available / 2**30:.1f} GiB is available; refusing before allocating it"
+        )
 
 
 def calibrate_scan(
@@ -357,15 +376,22 @@ def _read_inputs(sf: ScanFile, target: Path, check_frames: bool = True) -> _Scan
         _check_frame_memory(sf)
         bad = sf.frame_problems(np.flatnonzero(np.isin(sf.image_key, (ImageKey.DARK, ImageKey.FLAT))))
         if bad:
-            raise BadFramesError(f"{target}: dark or flat frames are unusable: {describe_frame_problems(bad)}; every "
-                                 "projection is normalised with them")
+            raise BadFramesError(
+                f"{target}: dark or flat frames are unusable: {describe_frame_problems(bad)}; every "
+                "projection is normalised with them"
+            )
     proj = sf.projection_indices
     if proj.size == 0:
         raise NoProjectionsError(f"{target}: no projection frames (image_key 0); counts are {sf.count_by_kind()}")
     if not sf.has_geometry("nominal"):
         raise NoNominalGeometryError(f"{target}: no /geometry/nominal; calibration starts from the nominal geometry")
-    return _ScanInputs(target, proj, sf.geometry("nominal"), sf.geometry("truth") if sf.has_geometry("truth") else None,
-                       list(sf.warnings))
+    return _ScanInputs(
+        target,
+        proj,
+        sf.geometry("nominal"),
+        sf.geometry("truth") if sf.has_geometry("truth") else None,
+        list(sf.warnings),
+    )
 
 
 def projected_diameter_px(nominal: ViewGeometry, diameter_mm: float) -> float:
@@ -398,8 +424,9 @@ def calibrate_candidates(
             if len(candidates) != inputs.proj.size:
                 raise OptionError(f"{target}: {len(candidates)} candidate lists for {inputs.proj.size} projections")
             d_px = projected_diameter_px(inputs.nominal, diameter_mm)
-        return _solve_and_write(inputs, candidates, diameter_mm, d_px, method, opt, progress, clock, t0, detect_s,
-                                report_dir, linked)
+        return _solve_and_write(
+            inputs, candidates, diameter_mm, d_px, method, opt, progress, clock, t0, detect_s, report_dir, linked
+        )
 
 
 def _calibrate_scan(
@@ -459,12 +486,21 @@ def _solve_and_write(
     tracks: dict[float, tuple[TrackingSettings, NDArray[np.float64]]] = {}  # per allowance: settings, 2-D tracks
     for jitter_mm in levels:
         report(progress, "track", 0, 1, f"identifying BBs (jitter {jitter_mm:g} mm)")
-        tset = TrackingSettings(diameter_px=d_px, motion_px=_motion_px(nominal), jitter_px=jitter_mm * d_px / diameter_mm)
+        tset = TrackingSettings(
+            diameter_px=d_px, motion_px=_motion_px(nominal), jitter_px=jitter_mm * d_px / diameter_mm
+        )
         t_id = time.perf_counter()
         frags = linked if linked is not None and jitter_mm == opt.jitter_mm else link_fragments(cands, tset, nominal)
         tracks[jitter_mm] = (tset, frags)
-        uv, found_warnings = identify(cands, ViewModel(nominal, "fixed"), tset, diameter_mm, min_obs,
-                                      prior_scale=max(1.0, jitter_mm / DEFAULT_JITTER_MM), linked=frags)
+        uv, found_warnings = identify(
+            cands,
+            ViewModel(nominal, "fixed"),
+            tset,
+            diameter_mm,
+            min_obs,
+            prior_scale=max(1.0, jitter_mm / DEFAULT_JITTER_MM),
+            linked=frags,
+        )
         t_identify += time.perf_counter() - t_id
         report(progress, "track", 1, 1, f"{uv.shape[1]} BBs")
         if uv.shape[1] < 3:
@@ -473,7 +509,8 @@ def _solve_and_write(
                 f"Either the BBs could not be followed from frame to frame (motion errors far beyond the nominal "
                 f"orbit, even allowing {jitter_mm:g} mm jumps: check the nominal geometry), or they are not "
                 f"{diameter_mm:.2f} mm ({d_px:.1f} px) BBs (give the size: orbitct calibrate --diameter-mm, or "
-                "\"diameter_mm\" in POST /calibrations)")
+                '"diameter_mm" in POST /calibrations)'
+            )
             continue
         try:
             outcome = _estimate(method, model, uv, opt, progress)
@@ -496,29 +533,45 @@ def _solve_and_write(
     n_split = 0
     if method == "bundle":
         tset, frags = tracks[jitter_used]
-        outcome, verdict, n_found = _recover_missed(cands, model, tset, outcome, verdict, proj, diameter_mm, min_obs, opt,
-                                                    progress, frags)
+        outcome, verdict, n_found = _recover_missed(
+            cands, model, tset, outcome, verdict, proj, diameter_mm, min_obs, opt, progress, frags
+        )
         if n_found:
-            warnings = list(warnings) + [f"{n_found} BB(s) lost while identifying (their tracks broke into short pieces) "
-                                         "were found again through the calibrated views and calibrated with the rest"]
+            warnings = list(warnings) + [
+                f"{n_found} BB(s) lost while identifying (their tracks broke into short pieces) "
+                "were found again through the calibrated views and calibrated with the rest"
+            ]
         outcome, verdict, n_twins = _merge_twins(model, outcome, verdict, proj, opt, progress)
         if n_twins:
-            warnings = list(warnings) + [f"{n_twins} BBs were identified twice, in two parts of the orbit (tracking broke "
-                                         "for every BB at once); each pair was made one BB and calibrated again"]
+            warnings = list(warnings) + [
+                f"{n_twins} BBs were identified twice, in two parts of the orbit (tracking broke "
+                "for every BB at once); each pair was made one BB and calibrated again"
+            ]
             # BBs identified in one part only: the other part's views find them through the merged geometry
             outcome, verdict = _reassign(cands, model, tset, outcome, verdict, proj, opt, progress, must_improve=False)
-        outcome, verdict, n_sparse = _sparse_views_again(cands, model, tracks[opt.jitter_mm][0], outcome, verdict, proj,
-                                                         opt, progress)
+        outcome, verdict, n_sparse = _sparse_views_again(
+            cands, model, tracks[opt.jitter_mm][0], outcome, verdict, proj, opt, progress
+        )
         if n_sparse:
-            warnings = list(warnings) + [f"{n_sparse} view(s) that kept {MIN_OWN_BBS} BBs or fewer where the views around "
-                                         "them see more were assigned again through those views and calibrated with more BBs"]
+            warnings = list(warnings) + [
+                f"{n_sparse} view(s) that kept {MIN_OWN_BBS} BBs or fewer where the views around "
+                "them see more were assigned again through those views and calibrated with more BBs"
+            ]
         outcome, verdict, n_split = _split_merged(target, proj, model, outcome, verdict, d_px, opt, progress)
         if opt.weigh_detections:
             # identification and its checks weigh every detection alike (a wrong blob over a bone edge must keep
             # its pull to be found); the detections they kept are then solved once more, each weighted by how
             # rough its background is, and that solution replaces the first unless it judges worse
-            outcome, verdict, _ = _estimate_again(model, outcome[3], proj, opt, progress, outcome, verdict,
-                                                  polish=Polish(outcome, partial(detection_spread, cands)))
+            outcome, verdict, _ = _estimate_again(
+                model,
+                outcome[3],
+                proj,
+                opt,
+                progress,
+                outcome,
+                verdict,
+                polish=Polish(outcome, partial(detection_spread, cands)),
+            )
     geometry_p, xyz, state, uv, history, n_iter, more, quality = outcome
     warnings = list(warnings) + more
     bar = None
@@ -528,9 +581,11 @@ def _solve_and_write(
         state = ViewState(state.R, state.t + (bar.factor - 1.0) * geometry_p.S / bar.factor, state.k)
         history = [(rpe * bar.factor, resid) for rpe, resid in history]  # RPE is a distance: it scales, pixels do not
     if jitter_used != opt.jitter_mm:
-        warnings.append(f"the BBs were followed only when allowing {jitter_used:g} mm jumps between frames (the "
-                        f"orbit's expected jitter is {opt.jitter_mm:g} mm, option jitter_mm): the orbit is far "
-                        "from its nominal")
+        warnings.append(
+            f"the BBs were followed only when allowing {jitter_used:g} mm jumps between frames (the "
+            f"orbit's expected jitter is {opt.jitter_mm:g} mm, option jitter_mm): the orbit is far "
+            "from its nominal"
+        )
     t_est = time.perf_counter() - t1 - (clock.seconds - compiled_before) - t_identify  # identification apart
     solved = geometry_p.valid
     unsolved = proj[~solved]
@@ -567,11 +622,22 @@ def _solve_and_write(
                 "n_bbs": int(xyz.shape[0]),
                 "bb_diameter_mm": float(diameter_mm),
                 "intrinsics": opt.intrinsics,
-                "gauge": (bar.describe() if bar is not None else
-                          "BB constellation keeps centroid, orientation and RMS size of its nominal triangulation"
-                          if method == "bundle" else "none (paper method)"),
-                **({} if bar is None else {"scale_bar_mm": bar.length_mm, "scale_bar_bbs": [b + 1 for b in bar.bbs],
-                                           "scale_factor": bar.factor}),
+                "gauge": (
+                    bar.describe()
+                    if bar is not None
+                    else "BB constellation keeps centroid, orientation and RMS size of its nominal triangulation"
+                    if method == "bundle"
+                    else "none (paper method)"
+                ),
+                **(
+                    {}
+                    if bar is None
+                    else {
+                        "scale_bar_mm": bar.length_mm,
+                        "scale_bar_bbs": [b + 1 for b in bar.bbs],
+                        "scale_factor": bar.factor,
+                    }
+                ),
                 "warnings_json": list(warnings),
                 "split_blobs": n_split,
                 **verdict.attrs(),
@@ -616,8 +682,15 @@ def _solve_and_write(
 
 
 def _reassign(
-    cands: list[NDArray[np.float64]], model: ViewModel, tset: TrackingSettings, outcome: tuple[Any, ...],
-    verdict: Verdict, proj: NDArray[np.intp], opt: CalibrationOptions, progress: ProgressCallback | None, *,
+    cands: list[NDArray[np.float64]],
+    model: ViewModel,
+    tset: TrackingSettings,
+    outcome: tuple[Any, ...],
+    verdict: Verdict,
+    proj: NDArray[np.intp],
+    opt: CalibrationOptions,
+    progress: ProgressCallback | None,
+    *,
     must_improve: bool = True,
 ) -> tuple[tuple[Any, ...], Verdict]:
     """Assign the detections again, to every BB predicted through the calibrated geometry (views not calibrated
@@ -633,14 +706,24 @@ def _reassign(
     again = assign_by_pose(cands, model, filled, xyz, tset)
     if np.array_equal(again, uv, equal_nan=True):
         return outcome, verdict
-    outcome, verdict, _ = _estimate_again(model, again, proj, opt, progress, outcome, verdict, must_improve=must_improve)
+    outcome, verdict, _ = _estimate_again(
+        model, again, proj, opt, progress, outcome, verdict, must_improve=must_improve
+    )
     return outcome, verdict
 
 
-def _estimate_again(model: ViewModel, uv: NDArray[np.float64], proj: NDArray[np.intp], opt: CalibrationOptions,
-                    progress: ProgressCallback | None, outcome: tuple[Any, ...], verdict: Verdict, *,
-                    must_improve: bool = False, polish: Polish | None = None
-                    ) -> tuple[tuple[Any, ...], Verdict, bool]:
+def _estimate_again(
+    model: ViewModel,
+    uv: NDArray[np.float64],
+    proj: NDArray[np.intp],
+    opt: CalibrationOptions,
+    progress: ProgressCallback | None,
+    outcome: tuple[Any, ...],
+    verdict: Verdict,
+    *,
+    must_improve: bool = False,
+    polish: Polish | None = None,
+) -> tuple[tuple[Any, ...], Verdict, bool]:
     """Estimate again from detections ``uv`` (or, with ``polish``, solve once more from a previous outcome):
     that outcome and verdict (and True) unless it fails where the first passed or calibrates fewer views from their
     own BBs (or, ``must_improve``, does no better on both)."""
@@ -656,9 +739,17 @@ def _estimate_again(model: ViewModel, uv: NDArray[np.float64], proj: NDArray[np.
 
 
 def _recover_missed(
-    cands: list[NDArray[np.float64]], model: ViewModel, tset: TrackingSettings, outcome: tuple[Any, ...],
-    verdict: Verdict, proj: NDArray[np.intp], diameter_mm: float, min_obs: int, opt: CalibrationOptions,
-    progress: ProgressCallback | None, frags: NDArray[np.float64],
+    cands: list[NDArray[np.float64]],
+    model: ViewModel,
+    tset: TrackingSettings,
+    outcome: tuple[Any, ...],
+    verdict: Verdict,
+    proj: NDArray[np.intp],
+    diameter_mm: float,
+    min_obs: int,
+    opt: CalibrationOptions,
+    progress: ProgressCallback | None,
+    frags: NDArray[np.float64],
 ) -> tuple[tuple[Any, ...], Verdict, int]:
     """Look for BBs that identification lost (:func:`calib.identify.recover_missed`) among the 2-D tracks ``frags``
     it was given, through the calibrated views; with any found, assign and estimate again with them; kept unless it
@@ -676,8 +767,14 @@ def _recover_missed(
     return outcome, verdict, len(missed) if kept else 0
 
 
-def _merge_twins(model: ViewModel, outcome: tuple[Any, ...], verdict: Verdict, proj: NDArray[np.intp],
-                 opt: CalibrationOptions, progress: ProgressCallback | None) -> tuple[tuple[Any, ...], Verdict, int]:
+def _merge_twins(
+    model: ViewModel,
+    outcome: tuple[Any, ...],
+    verdict: Verdict,
+    proj: NDArray[np.intp],
+    opt: CalibrationOptions,
+    progress: ProgressCallback | None,
+) -> tuple[tuple[Any, ...], Verdict, int]:
     """BBs identified twice, once in each of two parts of the orbit that nothing else ties together
     (:func:`calib.identify.twin_constellation`; experiment C at 512 px: every track broke at one frame, and the
     second half calibrated as a constellation of its own, 8-22 px off, and passed). Each pair is made one BB (the
@@ -697,8 +794,10 @@ def _merge_twins(model: ViewModel, outcome: tuple[Any, ...], verdict: Verdict, p
     try:
         again = _estimate("bundle", model, merged, opt, progress)
     except NoMarkersError:
-        reason = (f"{len(pairs)} BBs were identified twice, in two parts of the orbit that nothing ties together "
-                  "(tracking broke for every BB at once): those parts' geometries can be far apart")
+        reason = (
+            f"{len(pairs)} BBs were identified twice, in two parts of the orbit that nothing ties together "
+            "(tracking broke for every BB at once): those parts' geometries can be far apart"
+        )
         return outcome, replace(verdict, passed=False, reasons=[*verdict.reasons, reason]), 0
     return again, judge(again[7], proj, opt.max_predicted_px, opt.bridge_max_views, "bundle"), len(pairs)
 
@@ -708,8 +807,14 @@ _AROUND = 3
 
 
 def _sparse_views_again(
-    cands: list[NDArray[np.float64]], model: ViewModel, tset: TrackingSettings, outcome: tuple[Any, ...],
-    verdict: Verdict, proj: NDArray[np.intp], opt: CalibrationOptions, progress: ProgressCallback | None,
+    cands: list[NDArray[np.float64]],
+    model: ViewModel,
+    tset: TrackingSettings,
+    outcome: tuple[Any, ...],
+    verdict: Verdict,
+    proj: NDArray[np.intp],
+    opt: CalibrationOptions,
+    progress: ProgressCallback | None,
 ) -> tuple[tuple[Any, ...], Verdict, int]:
     """Views left with :data:`MIN_OWN_BBS` BBs or fewer where the views around them (three either side) see at
     least two more: frames that jumped, where tracking kept few blobs, perhaps wrong ones that a pose with two
@@ -750,8 +855,14 @@ def _mild_misfits_only(quality: ViewQuality, verdict: Verdict) -> bool:
 
 
 def _split_merged(
-    target: Path, proj: NDArray[np.intp], model: ViewModel, outcome: tuple[Any, ...], verdict: Verdict, d_px: float,
-    opt: CalibrationOptions, progress: ProgressCallback | None,
+    target: Path,
+    proj: NDArray[np.intp],
+    model: ViewModel,
+    outcome: tuple[Any, ...],
+    verdict: Verdict,
+    d_px: float,
+    opt: CalibrationOptions,
+    progress: ProgressCallback | None,
 ) -> tuple[tuple[Any, ...], Verdict, int]:
     """Views where two BBs project onto one blob (both left out by the assignment): their two centroids fitted
     in the frame (:mod:`calib.split`), then the geometry estimated again; kept when the result is no worse.
@@ -819,7 +930,11 @@ def _leave_one_out_outliers(
 
 
 def _drop_single_misfits(
-    model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64], quality: ViewQuality,
+    model: ViewModel,
+    state: ViewState,
+    xyz: NDArray[np.float64],
+    uv: NDArray[np.float64],
+    quality: ViewQuality,
     min_own_bbs: int,
 ) -> tuple[ViewState, NDArray[np.float64], int]:
     """Views that failed only because one detection disagrees with the rest (a biased centroid, a BB taken for
@@ -847,7 +962,12 @@ def _drop_single_misfits(
 
 
 def _disagree_with_neighbour(
-    model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64], tol_px: float, max_bbs: int = 3
+    model: ViewModel,
+    state: ViewState,
+    xyz: NDArray[np.float64],
+    uv: NDArray[np.float64],
+    tol_px: float,
+    max_bbs: int = 3,
 ) -> NDArray[np.bool_]:
     """Detections in views seeing at most ``max_bbs`` BBs that lie more than ``tol_px`` from where the previous
     (or next) view's geometry puts them, after removing the common shift of the view. Views with exactly
@@ -894,9 +1014,17 @@ def _free_parameters(sub: ViewModel, xyz: NDArray[np.float64]) -> int:
     return sub.n_params * sub.nominal.n_views + 3 * xyz.shape[0] - 7
 
 
-def _polished(sub: ViewModel, uvs: NDArray[np.float64], start: tuple[Any, ...], ok: NDArray[np.bool_],
-              placed: NDArray[np.bool_], spread: NDArray[np.float64], opt: CalibrationOptions, iters: int,
-              record: Callable[[ViewState, NDArray[np.float64]], None]) -> tuple[ViewState, NDArray[np.float64]]:
+def _polished(
+    sub: ViewModel,
+    uvs: NDArray[np.float64],
+    start: tuple[Any, ...],
+    ok: NDArray[np.bool_],
+    placed: NDArray[np.bool_],
+    spread: NDArray[np.float64],
+    opt: CalibrationOptions,
+    iters: int,
+    record: Callable[[ViewState, NDArray[np.float64]], None],
+) -> tuple[ViewState, NDArray[np.float64]]:
     """One bundle solve of the views ``sub`` (rows ``ok`` of all views) from a previous outcome of
     :func:`_estimate` ``start`` (its failed views from their nominal pose), with the Huber threshold fitted to that
     estimate's residuals."""
@@ -913,7 +1041,11 @@ def _polished(sub: ViewModel, uvs: NDArray[np.float64], start: tuple[Any, ...], 
 
 
 def _estimate(
-    method: str, model: ViewModel, uv: NDArray[np.float64], opt: CalibrationOptions, progress: ProgressCallback | None,
+    method: str,
+    model: ViewModel,
+    uv: NDArray[np.float64],
+    opt: CalibrationOptions,
+    progress: ProgressCallback | None,
     polish: Polish | None = None,
 ) -> tuple[ViewGeometry, NDArray[np.float64], ViewState, NDArray[np.float64], History, int, list[str], ViewQuality]:
     """Geometry of the projection views (NaN where failed), BB centres, states, cleaned uv, history, quality.
@@ -928,12 +1060,16 @@ def _estimate(
     min_obs = _min_observations(opt, n)
     placed = np.isfinite(uv[ok]).all(-1).sum(0) >= min_obs
     if not placed.all():
-        warnings.append(f"{int((~placed).sum())} BB(s) seen in fewer than {min_obs} of the views to solve were left out "
-                        "(too few views to place them)")
+        warnings.append(
+            f"{int((~placed).sum())} BB(s) seen in fewer than {min_obs} of the views to solve were left out "
+            "(too few views to place them)"
+        )
         uv = uv[:, placed]
         ok = usable_views(uv, opt.min_bbs_per_view)
     if ok.sum() < 2:
-        raise NoMarkersError(f"only {int(ok.sum())} view(s) see {opt.min_bbs_per_view} or more BBs; nothing to calibrate")
+        raise NoMarkersError(
+            f"only {int(ok.sum())} view(s) see {opt.min_bbs_per_view} or more BBs; nothing to calibrate"
+        )
     sub = ViewModel(model.nominal[np.flatnonzero(ok)], model.intrinsics)
     uvs = uv[ok]
     history: History = []
@@ -963,8 +1099,12 @@ def _estimate(
         xyz0 = triangulate_least_squares(*marker_rays(sub.nominal, uvs))
         record(sub.identity(), xyz0)
         res = bundle_adjust(
-            sub, uvs, xyz0, loss_scale_px=opt.loss_scale_px or FIRST_LOSS_SCALE_PX, max_iterations=iters,
-            callback=lambda i, s, x, c: record(s, x)
+            sub,
+            uvs,
+            xyz0,
+            loss_scale_px=opt.loss_scale_px or FIRST_LOSS_SCALE_PX,
+            max_iterations=iters,
+            callback=lambda i, s, x, c: record(s, x),
         )
         # detections far off the solution are wrong blobs: drop them and refine once more
         r = _residual_px(sub.geometry(res.state), uvs, res.xyz)
@@ -977,12 +1117,17 @@ def _estimate(
         # a pose absorbs much of one wrong blob: test each detection against the pose fitted without it, and
         # views left with 4 BBs or fewer (too little redundancy to tell a wrong one) against the neighbouring
         # view: two wrong blobs among four can fit a wrong pose closely (experiment C at 512 px: 7 px off)
-        bad |= _leave_one_out_outliers(sub, res.state, res.xyz, np.where(bad[..., None], np.nan, uvs), 1.5 * opt.outlier_px)
-        bad |= _disagree_with_neighbour(sub, res.state, res.xyz, np.where(bad[..., None], np.nan, uvs),
-                                        3.0 * opt.outlier_px, max_bbs=MIN_OWN_BBS)
+        bad |= _leave_one_out_outliers(
+            sub, res.state, res.xyz, np.where(bad[..., None], np.nan, uvs), 1.5 * opt.outlier_px
+        )
+        bad |= _disagree_with_neighbour(
+            sub, res.state, res.xyz, np.where(bad[..., None], np.nan, uvs), 3.0 * opt.outlier_px, max_bbs=MIN_OWN_BBS
+        )
         if bad.sum() > n_bad:
-            warnings.append(f"{int(bad.sum()) - n_bad} detection(s) disagree with their view fitted without them (or, "
-                            f"with {MIN_OWN_BBS} BBs or fewer, with the neighbouring view); set to NaN")
+            warnings.append(
+                f"{int(bad.sum()) - n_bad} detection(s) disagree with their view fitted without them (or, "
+                f"with {MIN_OWN_BBS} BBs or fewer, with the neighbouring view); set to NaN"
+            )
         loss = opt.loss_scale_px
         if loss is None:  # the robust loss fitted to this scan's centroid noise, measured on the first solution
             clean = np.where(bad[..., None], np.nan, sub.geometry(res.state).project(res.xyz) - uvs)
@@ -993,9 +1138,7 @@ def _estimate(
             uvs[bad] = np.nan
             uv = uv.copy()
             uv[ok] = uvs
-            res = bundle_adjust(
-                sub, uvs, res.xyz, res.state, loss_scale_px=loss, max_iterations=iters, gauge_xyz=xyz0
-            )
+            res = bundle_adjust(sub, uvs, res.xyz, res.state, loss_scale_px=loss, max_iterations=iters, gauge_xyz=xyz0)
             record(res.state, res.xyz)
         state, xyz = res.state, res.xyz
         n_iter = len(history) - 1
@@ -1011,28 +1154,37 @@ def _estimate(
         off = (np.linalg.norm(guess - uv, axis=-1) > 3.0 * opt.outlier_px) & ~in_bundle[:, None]
         if off.any():
             uv[off] = np.nan
-            warnings.append(f"{int(off.sum())} detection(s) in views outside the adjustment disagree with their "
-                            "neighbours and were set to NaN")
+            warnings.append(
+                f"{int(off.sum())} detection(s) in views outside the adjustment disagree with their "
+                "neighbours and were set to NaN"
+            )
     resid_xy = sub.geometry(state).project(xyz) - uvs
     noise = centroid_noise_px(resid_xy, _free_parameters(sub, xyz))
     paper = method == "paper"
     min_own = opt.min_bbs_per_view if paper else max(MIN_OWN_BBS, opt.min_bbs_per_view)
     fitted_state = full_state
-    full_state, quality = assess_views(model, fitted_state, xyz, uv, noise_px=noise, min_own_bbs=min_own,
-                                       max_gap=0 if paper else opt.bridge_max_views)
+    full_state, quality = assess_views(
+        model, fitted_state, xyz, uv, noise_px=noise, min_own_bbs=min_own, max_gap=0 if paper else opt.bridge_max_views
+    )
     if not paper and quality.inconsistent.any():
         fitted_state, uv, n_mended = _drop_single_misfits(model, fitted_state, xyz, uv, quality, min_own)
         if n_mended:
-            warnings.append(f"{n_mended} view(s) fitted only without one detection that disagreed with the rest of "
-                            "the view; that detection was set to NaN")
-            full_state, quality = assess_views(model, fitted_state, xyz, uv, noise_px=noise, min_own_bbs=min_own,
-                                               max_gap=opt.bridge_max_views)
+            warnings.append(
+                f"{n_mended} view(s) fitted only without one detection that disagreed with the rest of "
+                "the view; that detection was set to NaN"
+            )
+            full_state, quality = assess_views(
+                model, fitted_state, xyz, uv, noise_px=noise, min_own_bbs=min_own, max_gap=opt.bridge_max_views
+            )
     if quality.counts()["own"] == 0:
         raise NoMarkersError(
             f"no view sees the {MIN_OWN_BBS if not paper else opt.min_bbs_per_view} BBs it needs to be calibrated (and "
             f"checked) on its own: at most {int(quality.n_bbs.max(initial=0))} BBs per view; a pose fitted to 3 BBs "
-            "has no redundancy and cannot be trusted. Tape more BBs on the object (6 to 10 are recommended).")
-    vec = model.geometry(ViewState(np.nan_to_num(full_state.R), np.nan_to_num(full_state.t), full_state.k)).vectors.copy()
+            "has no redundancy and cannot be trusted. Tape more BBs on the object (6 to 10 are recommended)."
+        )
+    vec = model.geometry(
+        ViewState(np.nan_to_num(full_state.R), np.nan_to_num(full_state.t), full_state.k)
+    ).vectors.copy()
     vec[quality.status == FAILED] = np.nan
     return model.nominal.with_vectors(vec), xyz, full_state, uv, history, n_iter, warnings, quality
 

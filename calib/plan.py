@@ -64,23 +64,33 @@ class PlanPrediction:
         """Counts and error figures (px) over the views."""
         ok = np.isfinite(self.predicted_px)
         p = self.predicted_px[ok]
-        return {"views": int(self.n_bbs.size), "under_determined": int(self.under_determined.size),
-                "bbs_min": int(self.n_bbs.min()) if self.n_bbs.size else 0, "bbs_median": float(np.median(self.n_bbs)) if self.n_bbs.size else 0.0,
-                "predicted_px_median": float(np.median(p)) if p.size else float("nan"),
-                "predicted_px_max": float(p.max()) if p.size else float("nan"),
-                "predicted_px_rms": float(np.sqrt(np.mean(p**2))) if p.size else float("nan")}
+        return {
+            "views": int(self.n_bbs.size),
+            "under_determined": int(self.under_determined.size),
+            "bbs_min": int(self.n_bbs.min()) if self.n_bbs.size else 0,
+            "bbs_median": float(np.median(self.n_bbs)) if self.n_bbs.size else 0.0,
+            "predicted_px_median": float(np.median(p)) if p.size else float("nan"),
+            "predicted_px_max": float(p.max()) if p.size else float("nan"),
+            "predicted_px_rms": float(np.sqrt(np.mean(p**2))) if p.size else float("nan"),
+        }
 
 
-def usable_bbs(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: float,
-               metal: list[Any] | None = None) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+def usable_bbs(
+    geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: float, metal: list[Any] | None = None
+) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
     """Per view, the BBs ``xyz`` (K, 3) that are wholly on the panel, clear of every other BB's projection and,
     with ``metal`` (primitives with ``chords``, such as a phantom's screws), not behind metal; and their pixels."""
     uv = geometry.project(xyz)  # (P, K, 2)
     det = geometry.panel
     d_px = geometry.projected_size_px(diameter_mm)
     margin = 0.5 * d_px[:, None] + 1.0
-    ok = (np.isfinite(uv).all(-1) & (uv[..., 0] >= margin) & (uv[..., 0] <= det.cols - 1 - margin)
-          & (uv[..., 1] >= margin) & (uv[..., 1] <= det.rows - 1 - margin))
+    ok = (
+        np.isfinite(uv).all(-1)
+        & (uv[..., 0] >= margin)
+        & (uv[..., 0] <= det.cols - 1 - margin)
+        & (uv[..., 1] >= margin)
+        & (uv[..., 1] <= det.rows - 1 - margin)
+    )
     dd = np.linalg.norm(uv[:, :, None] - uv[:, None], axis=-1)
     k = xyz.shape[0]
     dd[:, np.arange(k), np.arange(k)] = np.inf
@@ -94,8 +104,9 @@ def usable_bbs(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: fl
     return ok, uv
 
 
-def edge_noise(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: float, surface: TapeSurface
-               ) -> NDArray[np.float64]:
+def edge_noise(
+    geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: float, surface: TapeSurface
+) -> NDArray[np.float64]:
     """Per view and BB, the detection's noise covariance relative to the centroid noise ``(P, K, 2, 2)``: the
     identity, or :data:`EDGE_NOISE_FACTOR` squared across the silhouette edge of ``surface`` (its outline at the
     BB's height, projected) where that edge lies within the BB's detection window."""
@@ -126,9 +137,17 @@ def edge_noise(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: fl
     return var
 
 
-def predict_placement(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter_mm: float, *, noise_px: float = 0.1,
-                      metal: list[Any] | None = None, surface: TapeSurface | None = None,
-                      background: ObjectBackground | None = None, moved: Sequence[ViewGeometry] = ()) -> PlanPrediction:
+def predict_placement(
+    geometry: ViewGeometry,
+    xyz: NDArray[np.float64],
+    diameter_mm: float,
+    *,
+    noise_px: float = 0.1,
+    metal: list[Any] | None = None,
+    surface: TapeSurface | None = None,
+    background: ObjectBackground | None = None,
+    moved: Sequence[ViewGeometry] = (),
+) -> PlanPrediction:
     """The usable BBs of every view of ``geometry`` (nominal) and each view's predicted calibration error (px) at
     centroid noise ``noise_px`` (the calibrations of simulated scans measure 0.05-0.15 px); with the object's
     ``background`` (a model of what lies behind each BB), each detection's noise follows the photons and the
@@ -152,15 +171,26 @@ def predict_placement(geometry: ViewGeometry, xyz: NDArray[np.float64], diameter
             var = background.variance(geometry, xyz[placed], diameter_mm, random_px)[idx]
             bias = background.bias(geometry, xyz[placed], diameter_mm)[idx]
             rms = background.background_rms(geometry, xyz[placed], diameter_mm, random_px)[idx]
-            predicted[idx] = placement_predicted_px(ViewModel(geometry[idx]), xyz[placed], visible, random_px,
-                                                    var, huber_threshold_px(noise_px), bias,
-                                                    relative_spread(np.where(in_view, rms, np.nan)))
+            predicted[idx] = placement_predicted_px(
+                ViewModel(geometry[idx]),
+                xyz[placed],
+                visible,
+                random_px,
+                var,
+                huber_threshold_px(noise_px),
+                bias,
+                relative_spread(np.where(in_view, rms, np.nan)),
+            )
         else:
             var = None if surface is None else edge_noise(geometry[idx], xyz[placed], diameter_mm, surface)
-            spread = None if var is None else relative_spread(
-                np.where(in_view, np.sqrt(0.5 * np.trace(var, axis1=-2, axis2=-1)), np.nan))
-            predicted[idx] = placement_predicted_px(ViewModel(geometry[idx]), xyz[placed], visible, noise_px, var,
-                                                    spread=spread)
+            spread = (
+                None
+                if var is None
+                else relative_spread(np.where(in_view, np.sqrt(0.5 * np.trace(var, axis1=-2, axis2=-1)), np.nan))
+            )
+            predicted[idx] = placement_predicted_px(
+                ViewModel(geometry[idx]), xyz[placed], visible, noise_px, var, spread=spread
+            )
     return PlanPrediction(usable, n, predicted, float(noise_px))
 
 
@@ -186,7 +216,9 @@ class KeepOut:
         try:
             (a0, a1), (z0, z1) = ([float(v) for v in part.split(":")] for part in text.split(","))
         except ValueError:
-            raise ValueError(f"keep-out {text!r}: expected FROM_DEG:TO_DEG,ZMIN_MM:ZMAX_MM (e.g. 300:60,-20:10)") from None
+            raise ValueError(
+                f"keep-out {text!r}: expected FROM_DEG:TO_DEG,ZMIN_MM:ZMAX_MM (e.g. 300:60,-20:10)"
+            ) from None
         if not z0 < z1:
             raise ValueError(f"keep-out {text!r}: the lower height {z0:g} must be below the upper {z1:g}")
         if a1 - a0 >= 360.0:
@@ -198,7 +230,11 @@ class KeepOut:
     @property
     def span_deg(self) -> float:
         """How far the patch reaches round the object (degrees, up to 360)."""
-        return 360.0 if self.angle_to_deg - self.angle_from_deg >= 360.0 else (self.angle_to_deg - self.angle_from_deg) % 360.0
+        return (
+            360.0
+            if self.angle_to_deg - self.angle_from_deg >= 360.0
+            else (self.angle_to_deg - self.angle_from_deg) % 360.0
+        )
 
     def contains(self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64]) -> NDArray[np.bool_]:
         """Whether surface points (polar angle, height) lie in the patch."""
@@ -238,11 +274,24 @@ def check_room(surface: TapeSurface, keep_out: Sequence[KeepOut], rng: np.random
         raise ValueError("the keep-out zones cover the whole surface: no place is left for a BB")
 
 
-def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, diameter_mm: float, *, noise_px: float = 0.1,
-                   metal: list[Any] | None = None, keep_out: Sequence[KeepOut] = (), seed: int = 0, trials: int = 200,
-                   rounds: int = 5, moves: int = 12, min_spacing_mm: float = 25.0,
-                   background: ObjectBackground | None = None, moved: Sequence[ViewGeometry] = (),
-                   progress: ProgressCallback | None = None) -> Placement:
+def plan_placement(
+    geometry: ViewGeometry,
+    surface: TapeSurface,
+    n_bbs: int,
+    diameter_mm: float,
+    *,
+    noise_px: float = 0.1,
+    metal: list[Any] | None = None,
+    keep_out: Sequence[KeepOut] = (),
+    seed: int = 0,
+    trials: int = 200,
+    rounds: int = 5,
+    moves: int = 12,
+    min_spacing_mm: float = 25.0,
+    background: ObjectBackground | None = None,
+    moved: Sequence[ViewGeometry] = (),
+    progress: ProgressCallback | None = None,
+) -> Placement:
     """Search BB positions on ``surface`` outside the ``keep_out`` patches that minimise :func:`placement_score` for
     the views of ``geometry``: ``trials`` random placements (BBs at least ``min_spacing_mm`` apart, placed one at a
     time), then up to ``rounds`` rounds of moving each BB to the best of ``moves`` places, half anywhere and half near
@@ -278,19 +327,33 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
         while ang.size < n:
             a, h = draw(64)
             if ang.size:
-                far = np.linalg.norm(surface.points(a, h, diameter_mm)[:, None] - surface.points(ang, z, diameter_mm)[None],
-                                     axis=-1).min(1) >= min_spacing_mm
+                far = (
+                    np.linalg.norm(
+                        surface.points(a, h, diameter_mm)[:, None] - surface.points(ang, z, diameter_mm)[None], axis=-1
+                    ).min(1)
+                    >= min_spacing_mm
+                )
                 if not far.any():
                     return None
                 a, h = a[far], h[far]
             ang, z = np.append(ang, a[0]), np.append(z, h[0])
         return ang, z
 
-    def score(ang: NDArray[np.float64], z: NDArray[np.float64], object_background: ObjectBackground | None = background
-              ) -> float:
-        return placement_score(predict_placement(coarse, surface.points(ang, z, diameter_mm), diameter_mm, noise_px=noise_px,
-                                                 metal=metal, surface=surface, background=object_background,
-                                                 moved=coarse_moved))
+    def score(
+        ang: NDArray[np.float64], z: NDArray[np.float64], object_background: ObjectBackground | None = background
+    ) -> float:
+        return placement_score(
+            predict_placement(
+                coarse,
+                surface.points(ang, z, diameter_mm),
+                diameter_mm,
+                noise_px=noise_px,
+                metal=metal,
+                surface=surface,
+                background=object_background,
+                moved=coarse_moved,
+            )
+        )
 
     def near_or_anywhere(a0: float, z0: float, scale: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """``moves`` places for one BB: half anywhere on the surface, half near where it is (``scale`` times
@@ -311,7 +374,9 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
         if t % 10 == 9:
             report(progress, "plan", t + 1, steps, f"{n_bbs} BBs: random placements")
     if not ranked:
-        raise ValueError(f"{n_bbs} BBs {min_spacing_mm:g} mm apart do not fit on the surface; fewer BBs or less spacing")
+        raise ValueError(
+            f"{n_bbs} BBs {min_spacing_mm:g} mm apart do not fit on the surface; fewer BBs or less spacing"
+        )
     ranked.sort(key=lambda t: t[0])
     if background is not None:
         report(progress, "plan", trials, steps, f"{n_bbs} BBs: the best {_RERANKED} ranked with the object")
@@ -333,13 +398,15 @@ def plan_placement(geometry: ViewGeometry, surface: TapeSurface, n_bbs: int, dia
             break  # the round no longer pays
     report(progress, "plan", steps, steps, f"{n_bbs} BBs: predicted on every view")
     xyz = surface.points(ang, z, diameter_mm)
-    full = predict_placement(geometry, xyz, diameter_mm, noise_px=noise_px, metal=metal, surface=surface,
-                             background=background, moved=moved)
+    full = predict_placement(
+        geometry, xyz, diameter_mm, noise_px=noise_px, metal=metal, surface=surface, background=background, moved=moved
+    )
     return Placement(ang, z, xyz, full, placement_score(full))
 
 
-def hand_spiral(surface: TapeSurface, n_bbs: int, diameter_mm: float, *, seed: int = 0,
-                keep_out: Sequence[KeepOut] = ()) -> NDArray[np.float64]:
+def hand_spiral(
+    surface: TapeSurface, n_bbs: int, diameter_mm: float, *, seed: int = 0, keep_out: Sequence[KeepOut] = ()
+) -> NDArray[np.float64]:
     """BB centres as a person tapes them by hand in the published workflow: one turn round the object, an equal angle
     apart (from a random start), climbing evenly between a tenth of the height from either end, each off by up to
     10 degrees and 4 mm, or a quarter of the step (experiment A's own placement is such a spiral). ValueError where
@@ -358,8 +425,9 @@ def hand_spiral(surface: TapeSurface, n_bbs: int, diameter_mm: float, *, seed: i
     return surface.points(angle, z, diameter_mm)
 
 
-def _allowed(surface: TapeSurface, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64],
-             keep_out: Sequence[KeepOut]) -> NDArray[np.bool_]:
+def _allowed(
+    surface: TapeSurface, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64], keep_out: Sequence[KeepOut]
+) -> NDArray[np.bool_]:
     """Which addresses (angle, height) of ``surface`` lie outside every patch (patches are in polar angles)."""
     out = np.ones(np.shape(angle_rad), bool)
     if keep_out:
@@ -378,8 +446,16 @@ class CountSuggestion:
     tried: dict[int, dict[str, Any]]  # count -> the planned placement's prediction summary
 
 
-def suggest_bb_count(geometry: ViewGeometry, surface: TapeSurface, diameter_mm: float, target_px: float, *,
-                     n_min: int = MIN_OWN_BBS, n_max: int = 20, **plan_options: Any) -> CountSuggestion:
+def suggest_bb_count(
+    geometry: ViewGeometry,
+    surface: TapeSurface,
+    diameter_mm: float,
+    target_px: float,
+    *,
+    n_min: int = MIN_OWN_BBS,
+    n_max: int = 20,
+    **plan_options: Any,
+) -> CountSuggestion:
     """The fewest BBs (from ``n_min`` up to ``n_max``) whose planned placement leaves no view under-determined and
     predicts every view's error at or below ``target_px``; each count is planned with ``plan_options`` (a lighter
     search than a final plan's is enough to rank counts). ``progress`` hears stage ``count`` (counts tried) besides
@@ -395,8 +471,14 @@ def suggest_bb_count(geometry: ViewGeometry, surface: TapeSurface, diameter_mm: 
             break
         summary = placed.prediction.summary()
         tried[n] = summary
-        report(progress, "count", n - n_min + 1, n_max - n_min + 1, f"{n} BBs: worst view {summary['predicted_px_max']:.3g} px",
-               worst_px=float(summary["predicted_px_max"]))
+        report(
+            progress,
+            "count",
+            n - n_min + 1,
+            n_max - n_min + 1,
+            f"{n} BBs: worst view {summary['predicted_px_max']:.3g} px",
+            worst_px=float(summary["predicted_px_max"]),
+        )
         if summary["under_determined"] == 0 and summary["predicted_px_max"] <= target_px:
             return CountSuggestion(target_px, n, tried)
     return CountSuggestion(target_px, None, tried)

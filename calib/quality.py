@@ -66,8 +66,9 @@ def centroid_noise_px(residual_xy: NDArray[np.float64], n_params: int = 0) -> fl
     return float(np.sqrt((kept**2).sum() / dof))
 
 
-def rigid_pose_normal(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64]
-                  ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def rigid_pose_normal(
+    model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Gauss-Newton normal matrix ``J^T J`` ``(N,6,6)`` and gradient ``J^T r`` ``(N,6)`` of the rigid pose."""
     pred, Jv, _ = model.project_jac(state, xyz)
     seen = np.isfinite(uv).all(-1)
@@ -76,8 +77,9 @@ def rigid_pose_normal(model: ViewModel, state: ViewState, xyz: NDArray[np.float6
     return np.swapaxes(J, 1, 2) @ J, (np.swapaxes(J, 1, 2) @ r.reshape(len(pred), -1, 1))[..., 0]
 
 
-def fit_rigid_poses(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64],
-                    iterations: int = 5) -> ViewState:
+def fit_rigid_poses(
+    model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64], iterations: int = 5
+) -> ViewState:
     """Each view's rigid pose refitted to its detections ``uv`` (NaN = not used) of the BBs ``xyz``, all views at
     once (Gauss-Newton from ``state``; the BB centres and intrinsics stay)."""
     st = state
@@ -88,9 +90,15 @@ def fit_rigid_poses(model: ViewModel, state: ViewState, xyz: NDArray[np.float64]
     return st
 
 
-def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64],
-                              variance: NDArray[np.float64] | None = None, slope: NDArray[np.float64] | None = None,
-                              bias: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+def _marginal_pose_covariance(
+    model: ViewModel,
+    state: ViewState,
+    xyz: NDArray[np.float64],
+    uv: NDArray[np.float64],
+    variance: NDArray[np.float64] | None = None,
+    slope: NDArray[np.float64] | None = None,
+    bias: NDArray[np.float64] | None = None,
+) -> NDArray[np.float64]:
     """Per view, the rigid pose's covariance ``(N,6,6)`` for unit centroid noise, the BB centres' own
     uncertainty included: ``H_vv^-1 + H_vv^-1 H_vp C_p H_pv H_vv^-1``, where ``C_p`` inverts the Schur complement
     on the centres in the gauge that holds the constellation's centroid, orientation and size (a similarity of
@@ -108,8 +116,12 @@ def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[n
     n, k = seen.shape
     Jv = Jv[..., :6] * seen[..., None, None]
     Jp = Jp * seen[..., None, None]
-    if slope is not None and not slope[..., 0, 1].any() and not slope[..., 1, 0].any() \
-            and np.array_equal(slope[..., 0, 0], slope[..., 1, 1]):  # A = a I (weighted least squares): scale
+    if (
+        slope is not None
+        and not slope[..., 0, 1].any()
+        and not slope[..., 1, 0].any()
+        and np.array_equal(slope[..., 0, 0], slope[..., 1, 1])
+    ):  # A = a I (weighted least squares): scale
         root = np.sqrt(np.maximum(slope[..., 0, 0], 1e-9))
         Jv, Jp = Jv * root[..., None, None], Jp * root[..., None, None]
         base = np.broadcast_to(np.eye(2), slope.shape) if variance is None else variance
@@ -133,7 +145,7 @@ def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[n
     A = Hvv_inv @ Hvp  # (N, 6, 3K)
     S = -(np.swapaxes(Hvp, 1, 2) @ A).sum(0)
     for j in range(k):
-        S[3 * j:3 * j + 3, 3 * j:3 * j + 3] += Hpp[j]
+        S[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += Hpp[j]
     Nb = null_space(gauge_matrix(xyz))  # (3K, 3K-7): displacements that keep the gauge
     Cp = Nb @ np.linalg.pinv(Nb.T @ S @ Nb, hermitian=True) @ Nb.T
     shifted = 0.0
@@ -152,14 +164,13 @@ def _marginal_pose_covariance(model: ViewModel, state: ViewState, xyz: NDArray[n
     Mvp = np.einsum("nkai,nkaj->nikj", VJv, Jp).reshape(n, 6, 3 * k)
     Mpp = np.zeros((3 * k, 3 * k))
     for j, block in enumerate(np.einsum("nkai,nkaj->kij", Jp, np.matmul(variance, Jp))):
-        Mpp[3 * j:3 * j + 3, 3 * j:3 * j + 3] = block
+        Mpp[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] = block
     At = np.swapaxes(A, 1, 2)
     RMD = (At @ Mvv - np.swapaxes(Mvp, 1, 2)) @ Hvv_inv  # R M D_n^T, (N, 3K, 6)
     AtMvp = (At @ Mvp).sum(0)
     RMR = (At @ Mvv @ A).sum(0) - AtMvp - AtMvp.T + Mpp
     cross = A @ Cp @ RMD
-    return (Hvv_inv @ Mvv @ Hvv_inv + cross + np.swapaxes(cross, 1, 2)
-            + A @ (Cp @ RMR @ Cp) @ At + shifted)
+    return Hvv_inv @ Mvv @ Hvv_inv + cross + np.swapaxes(cross, 1, 2) + A @ (Cp @ RMR @ Cp) @ At + shifted
 
 
 #: the bundle's Huber threshold before the centroid noise is measured (px), and the most it ever is
@@ -172,7 +183,9 @@ def huber_threshold_px(noise_px: float) -> float:
     return float(np.clip(1.5 * noise_px, 0.02, FIRST_LOSS_SCALE_PX)) if np.isfinite(noise_px) else FIRST_LOSS_SCALE_PX
 
 
-def huber_moments(covariance: NDArray[np.float64], loss_scale_px: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def huber_moments(
+    covariance: NDArray[np.float64], loss_scale_px: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """For detections with Gaussian noise ``covariance`` ``(..., 2, 2)`` (px^2) fitted with the bundle's Huber loss on
     the residual's length (threshold ``loss_scale_px``): the expected derivative of the influence ``psi(r)``, which
     takes the place of the identity in the normal matrix, and ``E[psi psi^T]``, which takes the place of the noise
@@ -194,8 +207,13 @@ def huber_moments(covariance: NDArray[np.float64], loss_scale_px: float) -> tupl
     out = n > loss_scale_px
     u0, u1 = r0 / n, r1 / n
     s2 = scale**2
-    spread = np.stack([np.stack([(r0 * r0 * s2) @ wz, (r0 * r1 * s2) @ wz], -1),
-                       np.stack([(r0 * r1 * s2) @ wz, (r1 * r1 * s2) @ wz], -1)], -2)
+    spread = np.stack(
+        [
+            np.stack([(r0 * r0 * s2) @ wz, (r0 * r1 * s2) @ wz], -1),
+            np.stack([(r0 * r1 * s2) @ wz, (r1 * r1 * s2) @ wz], -1),
+        ],
+        -2,
+    )
     d00 = np.where(out, scale * (1.0 - u0 * u0), 1.0) @ wz
     d01 = np.where(out, -scale * u0 * u1, 0.0) @ wz
     d11 = np.where(out, scale * (1.0 - u1 * u1), 1.0) @ wz
@@ -212,10 +230,16 @@ def _predicted_px(model: ViewModel, state: ViewState, cov: NDArray[np.float64]) 
     return np.sqrt(np.maximum(var, 0.0))
 
 
-def placement_predicted_px(model: ViewModel, xyz: NDArray[np.float64], uv: NDArray[np.float64],
-                           noise_px: float, variance: NDArray[np.float64] | None = None,
-                           loss_scale_px: float | None = None, bias_px: NDArray[np.float64] | None = None,
-                           spread: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+def placement_predicted_px(
+    model: ViewModel,
+    xyz: NDArray[np.float64],
+    uv: NDArray[np.float64],
+    noise_px: float,
+    variance: NDArray[np.float64] | None = None,
+    loss_scale_px: float | None = None,
+    bias_px: NDArray[np.float64] | None = None,
+    spread: NDArray[np.float64] | None = None,
+) -> NDArray[np.float64]:
     """Per view, the predicted error (px, RMS over field-of-view points) of a calibration of BBs ``xyz`` seen at
     ``uv`` (NaN = not seen) with centroid noise ``noise_px`` (each detection's covariance ``noise_px**2`` times
     ``variance`` ``(N,K,2,2)``, when given) and known offsets ``bias_px`` ``(N,K,2)``, at the nominal views
@@ -229,19 +253,23 @@ def placement_predicted_px(model: ViewModel, xyz: NDArray[np.float64], uv: NDArr
         rel_bias = None if bias_px is None else bias_px / noise_px
         slope = None if spread is None else np.broadcast_to(np.eye(2), rel.shape) / s2
         base = variance if spread is None else rel / s2**2
-        return _predicted_px(model, state, noise_px**2 * _marginal_pose_covariance(model, state, xyz, uv, base, slope,
-                                                                                  rel_bias))
+        return _predicted_px(
+            model, state, noise_px**2 * _marginal_pose_covariance(model, state, xyz, uv, base, slope, rel_bias)
+        )
     total = noise_px**2 * rel
     if bias_px is not None:
         total = total + np.einsum("...a,...b->...ab", np.nan_to_num(bias_px), np.nan_to_num(bias_px))
     # the Huber loss acts on the residual over its spread: its moments there, the weights 1 / s^2 on the Jacobians
     slope, _ = huber_moments(total / s2, loss_scale_px)
     _, moment = huber_moments(noise_px**2 * rel / s2, loss_scale_px)
-    return _predicted_px(model, state, _marginal_pose_covariance(model, state, xyz, uv, moment / s2, slope / s2, bias_px))
+    return _predicted_px(
+        model, state, _marginal_pose_covariance(model, state, xyz, uv, moment / s2, slope / s2, bias_px)
+    )
 
 
-def pose_predicted_px(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64],
-                      noise_px: float) -> NDArray[np.float64]:
+def pose_predicted_px(
+    model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64], noise_px: float
+) -> NDArray[np.float64]:
     """Per view, the predicted error (px, RMS over field-of-view points) of a rigid pose fitted to ``uv`` with the
     BB centres ``xyz`` taken as known and centroid noise ``noise_px`` (while a scan runs: the centres come from many
     views, the pose from one)."""
@@ -250,8 +278,9 @@ def pose_predicted_px(model: ViewModel, state: ViewState, xyz: NDArray[np.float6
     return _predicted_px(model, state, cov)
 
 
-def view_misfit_px(model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64]
-                   ) -> NDArray[np.float64]:
+def view_misfit_px(
+    model: ViewModel, state: ViewState, xyz: NDArray[np.float64], uv: NDArray[np.float64]
+) -> NDArray[np.float64]:
     """Per view, the residual RMS corrected for the six pose parameters, ``sqrt(sum r^2 / (2n - 6))``: about the
     centroid noise when its detections fit its pose; large when one belongs to another BB or the object
     moved (NaN without redundancy)."""
@@ -263,8 +292,9 @@ def view_misfit_px(model: ViewModel, state: ViewState, xyz: NDArray[np.float64],
         return np.where(dof > 0, np.sqrt(ss.sum((1, 2)) / np.maximum(dof, 1)), np.nan)
 
 
-def _interpolated(state: ViewState, own: NDArray[np.bool_], max_gap: int
-                  ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+def _interpolated(
+    state: ViewState, own: NDArray[np.bool_], max_gap: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Correction ``(N,6)`` (rotation vector, shift) interpolated from own views, and each view's distance in
     views to the nearest own view (``inf`` where a gap is wider than ``max_gap``, or an end is farther)."""
     n = len(own)
@@ -312,8 +342,9 @@ def assess_views(
     misfit = np.full(n, np.nan)
     if own.any():
         o = np.flatnonzero(own)
-        misfit[o] = view_misfit_px(ViewModel(model.nominal[o], model.intrinsics),
-                                   ViewState(state.R[o], state.t[o], state.k[o]), xyz, uv[o])
+        misfit[o] = view_misfit_px(
+            ViewModel(model.nominal[o], model.intrinsics), ViewState(state.R[o], state.t[o], state.k[o]), xyz, uv[o]
+        )
     inconsistent = np.nan_to_num(misfit) > misfit_limit_px(noise_px)
     own &= ~inconsistent  # neither its own pose nor an anchor for its neighbours
     sigma2 = max(noise_px, 1e-3) ** 2
@@ -331,8 +362,9 @@ def assess_views(
     k = state.k.copy()
     cov = np.full((n, 6, 6), np.nan)
     if idx.size:
-        cov[idx] = sigma2 * _marginal_pose_covariance(ViewModel(model.nominal[idx], model.intrinsics),
-                                                      ViewState(R[idx], t[idx], k[idx]), xyz, uv[idx])
+        cov[idx] = sigma2 * _marginal_pose_covariance(
+            ViewModel(model.nominal[idx], model.intrinsics), ViewState(R[idx], t[idx], k[idx]), xyz, uv[idx]
+        )
     br = np.flatnonzero(status == BRIDGED)
     if br.size:
         R[br] = rotvec_to_matrix(prior_c[br, :3])
@@ -360,8 +392,9 @@ def assess_views(
     good = ~bad
     if good.any():
         g_idx = np.flatnonzero(good)
-        predicted[g_idx] = _predicted_px(ViewModel(model.nominal[g_idx], model.intrinsics),
-                                         ViewState(R[g_idx], t[g_idx], k[g_idx]), cov[g_idx])
+        predicted[g_idx] = _predicted_px(
+            ViewModel(model.nominal[g_idx], model.intrinsics), ViewState(R[g_idx], t[g_idx], k[g_idx]), cov[g_idx]
+        )
     return full, ViewQuality(status, n_bbs, predicted, float(noise_px), misfit)
 
 
@@ -387,24 +420,38 @@ class Verdict:
         """One line for people: the views by kind, the predicted error, the noise it assumes."""
         v = self.counts
         worst = f" (frame {self.worst_frame})" if self.worst_frame is not None else ""
-        return (f"views: {v[OWN]} from their own BBs, {v[BRIDGED]} bridged, {v[FAILED]} failed; predicted error "
-                f"median {self.predicted_px_median:.3f} px, max {self.predicted_px_max:.3f} px{worst}; centroid "
-                f"noise {self.noise_px:.3f} px")
+        return (
+            f"views: {v[OWN]} from their own BBs, {v[BRIDGED]} bridged, {v[FAILED]} failed; predicted error "
+            f"median {self.predicted_px_median:.3f} px, max {self.predicted_px_max:.3f} px{worst}; centroid "
+            f"noise {self.noise_px:.3f} px"
+        )
 
     def summary(self) -> dict[str, object]:
         """JSON-ready."""
-        return {"passed": self.passed, "reasons": list(self.reasons), "views": dict(self.counts),
-                "predicted_px_median": self.predicted_px_median, "predicted_px_max": self.predicted_px_max,
-                "worst_frame": self.worst_frame, "centroid_noise_px": self.noise_px,
-                "max_predicted_px": self.threshold_px}
+        return {
+            "passed": self.passed,
+            "reasons": list(self.reasons),
+            "views": dict(self.counts),
+            "predicted_px_median": self.predicted_px_median,
+            "predicted_px_max": self.predicted_px_max,
+            "worst_frame": self.worst_frame,
+            "centroid_noise_px": self.noise_px,
+            "max_predicted_px": self.threshold_px,
+        }
 
     def attrs(self) -> dict[str, object]:
         """Attributes of ``/geometry/calibrated``."""
-        return {"quality": "passed" if self.passed else "failed", "quality_reasons_json": list(self.reasons),
-                "n_views_own": self.counts[OWN], "n_views_bridged": self.counts[BRIDGED],
-                "n_views_failed": self.counts[FAILED], "predicted_px_median": self.predicted_px_median,
-                "predicted_px_max": self.predicted_px_max, "centroid_noise_px": self.noise_px,
-                "max_predicted_px": self.threshold_px}
+        return {
+            "quality": "passed" if self.passed else "failed",
+            "quality_reasons_json": list(self.reasons),
+            "n_views_own": self.counts[OWN],
+            "n_views_bridged": self.counts[BRIDGED],
+            "n_views_failed": self.counts[FAILED],
+            "predicted_px_median": self.predicted_px_median,
+            "predicted_px_max": self.predicted_px_max,
+            "centroid_noise_px": self.noise_px,
+            "max_predicted_px": self.threshold_px,
+        }
 
 
 def judge(quality: ViewQuality, frames: NDArray[np.intp], threshold_px: float, max_gap: int, method: str) -> Verdict:
@@ -414,17 +461,25 @@ def judge(quality: ViewQuality, frames: NDArray[np.intp], threshold_px: float, m
     warnings: list[str] = []
     odd = quality.inconsistent
     failed = frames[(quality.status == FAILED) & ~odd]
-    need = "BBs than its pose needs" if method == "paper" else f"than {MIN_OWN_BBS} BBs and lie more than {max_gap} views from a view that has them"
+    need = (
+        "BBs than its pose needs"
+        if method == "paper"
+        else f"than {MIN_OWN_BBS} BBs and lie more than {max_gap} views from a view that has them"
+    )
     if failed.size:
         reasons.append(f"{failed.size} of {frames.size} view(s) failed (fewer {need}; NaN geometry): {_frames(failed)}")
     if odd.any():
-        reasons.append(f"{int(odd.sum())} view(s) failed because their BBs disagree with their own pose (residual RMS up "
-                       f"to {float(np.nanmax(quality.misfit_px)):.2f} px, allowed {misfit_limit_px(quality.noise_px):.2f} px: "
-                       f"a BB taken for another, or the object moved): {_frames(frames[odd])}")
+        reasons.append(
+            f"{int(odd.sum())} view(s) failed because their BBs disagree with their own pose (residual RMS up "
+            f"to {float(np.nanmax(quality.misfit_px)):.2f} px, allowed {misfit_limit_px(quality.noise_px):.2f} px: "
+            f"a BB taken for another, or the object moved): {_frames(frames[odd])}"
+        )
     bridged = frames[quality.status == BRIDGED]
     if bridged.size:
-        warnings.append(f"{bridged.size} view(s) bridged from their neighbours (fewer than {MIN_OWN_BBS} BBs of their "
-                        f"own): {_frames(bridged)}")
+        warnings.append(
+            f"{bridged.size} view(s) bridged from their neighbours (fewer than {MIN_OWN_BBS} BBs of their "
+            f"own): {_frames(bridged)}"
+        )
     pred = quality.predicted_px
     fin = np.isfinite(pred)
     med = float(np.median(pred[fin])) if fin.any() else float("nan")
@@ -432,12 +487,39 @@ def judge(quality: ViewQuality, frames: NDArray[np.intp], threshold_px: float, m
     top = float(pred[worst]) if worst is not None else float("nan")
     if worst is not None and top > threshold_px:
         over = frames[fin & (pred > threshold_px)]
-        reasons.append(f"{over.size} view(s) have a predicted error above {threshold_px:g} px (max_predicted_px), "
-                       f"up to {top:.2f} px at frame {int(frames[worst])}: {_frames(over)}")
+        reasons.append(
+            f"{over.size} view(s) have a predicted error above {threshold_px:g} px (max_predicted_px), "
+            f"up to {top:.2f} px at frame {int(frames[worst])}: {_frames(over)}"
+        )
     if not np.isfinite(quality.noise_px):
         reasons.append("the centroid noise could not be measured (no residuals)")
-    return Verdict(not reasons, reasons, warnings, counts, med, top, None if worst is None else int(frames[worst]),
-                   quality.noise_px, float(threshold_px))
+    return Verdict(
+        not reasons,
+        reasons,
+        warnings,
+        counts,
+        med,
+        top,
+        None if worst is None else int(frames[worst]),
+        quality.noise_px,
+        float(threshold_px),
+    )
 
 
-__all__ = ["BRIDGED", "FAILED", "FIRST_LOSS_SCALE_PX", "MAX_VIEW_MISFIT", "MIN_OWN_BBS", "OWN", "STATUS_CODES", "Verdict", "ViewQuality", "assess_views", "centroid_noise_px", "fit_rigid_poses", "huber_moments", "huber_threshold_px", "judge"]
+__all__ = [
+    "BRIDGED",
+    "FAILED",
+    "FIRST_LOSS_SCALE_PX",
+    "MAX_VIEW_MISFIT",
+    "MIN_OWN_BBS",
+    "OWN",
+    "STATUS_CODES",
+    "Verdict",
+    "ViewQuality",
+    "assess_views",
+    "centroid_noise_px",
+    "fit_rigid_poses",
+    "huber_moments",
+    "huber_threshold_px",
+    "judge",
+]

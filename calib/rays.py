@@ -14,7 +14,9 @@ def marker_rays(geometry: ViewGeometry, uv: NDArray[np.float64]) -> tuple[NDArra
     return np.broadcast_to(origin, direction.shape), direction
 
 
-def point_ray_distance(points: NDArray[np.float64], origin: NDArray[np.float64], direction: NDArray[np.float64]) -> NDArray[np.float64]:
+def point_ray_distance(
+    points: NDArray[np.float64], origin: NDArray[np.float64], direction: NDArray[np.float64]
+) -> NDArray[np.float64]:
     """Distance (mm) from points ``(..., 3)`` to rays ``origin + s direction`` (unit directions)."""
     a = points - origin
     along = np.einsum("...i,...i->...", a, direction)
@@ -47,7 +49,9 @@ def triangulate_least_squares(origin: NDArray[np.float64], direction: NDArray[np
     return out
 
 
-def pairwise_midpoint_mean(origin: NDArray[np.float64], direction: NDArray[np.float64], chunk: int = 256) -> NDArray[np.float64]:
+def pairwise_midpoint_mean(
+    origin: NDArray[np.float64], direction: NDArray[np.float64], chunk: int = 256
+) -> NDArray[np.float64]:
     """Paper's BB centre: mean of the midpoints of the common perpendiculars of all ray pairs, per marker -> ``(K, 3)``."""
     n, k = direction.shape[:2]
     out = np.full((k, 3), np.nan)

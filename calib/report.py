@@ -13,12 +13,36 @@ if TYPE_CHECKING:
 
 #: the published results (Ma et al. 2022, Table 1), for side-by-side reports
 PAPER_TABLE1: dict[str, dict[str, float]] = {
-    "A": {"frames": 500, "bbs": 8, "elapsed_s": 60, "rpe_mean_mm": 0.065, "rpe_median_mm": 0.065, "rpe_std_mm": 0.0169,
-          "s_per_frame": 0.12, "s_per_frame_per_bb": 0.015},
-    "B": {"frames": 656, "bbs": 16, "elapsed_s": 91, "rpe_mean_mm": 0.210, "rpe_median_mm": 0.201, "rpe_std_mm": 0.0377,
-          "s_per_frame": 0.14, "s_per_frame_per_bb": 0.009},
-    "C": {"frames": 857, "bbs": 10, "elapsed_s": 208, "rpe_mean_mm": 0.490, "rpe_median_mm": 0.418, "rpe_std_mm": 0.370,
-          "s_per_frame": 0.24, "s_per_frame_per_bb": 0.024},
+    "A": {
+        "frames": 500,
+        "bbs": 8,
+        "elapsed_s": 60,
+        "rpe_mean_mm": 0.065,
+        "rpe_median_mm": 0.065,
+        "rpe_std_mm": 0.0169,
+        "s_per_frame": 0.12,
+        "s_per_frame_per_bb": 0.015,
+    },
+    "B": {
+        "frames": 656,
+        "bbs": 16,
+        "elapsed_s": 91,
+        "rpe_mean_mm": 0.210,
+        "rpe_median_mm": 0.201,
+        "rpe_std_mm": 0.0377,
+        "s_per_frame": 0.14,
+        "s_per_frame_per_bb": 0.009,
+    },
+    "C": {
+        "frames": 857,
+        "bbs": 10,
+        "elapsed_s": 208,
+        "rpe_mean_mm": 0.490,
+        "rpe_median_mm": 0.418,
+        "rpe_std_mm": 0.370,
+        "s_per_frame": 0.24,
+        "s_per_frame_per_bb": 0.024,
+    },
 }
 
 TABLE_ROWS = (
@@ -88,8 +112,11 @@ def violin_plot(path: Path, history: list[np.ndarray], title: str, max_iteration
     idx = list(range(len(history)))
     skipped = ""
     if len(idx) > max_iterations + 1:  # long LM runs: first few and the last, and the figure says so
-        skipped = f" (iterations {max_iterations}-{idx[-1] - 1} not shown)" if idx[-1] - 1 > max_iterations else \
-            f" (iteration {max_iterations} not shown)"
+        skipped = (
+            f" (iterations {max_iterations}-{idx[-1] - 1} not shown)"
+            if idx[-1] - 1 > max_iterations
+            else f" (iteration {max_iterations} not shown)"
+        )
         idx = idx[:max_iterations] + [idx[-1]]
     data = [history[i][np.isfinite(history[i])] for i in idx]
     labels = ["initial" if i == 0 else f"iter {i}" for i in idx]
@@ -104,10 +131,15 @@ def violin_plot(path: Path, history: list[np.ndarray], title: str, max_iteration
         ax.set_ylabel("RPE per frame (mm)")
     axes[0].set_title("initial geometry")
     axes[1].set_title(title + skipped, fontsize=10)
-    axes[1].legend(handles=[Line2D([], [], color="tab:red", label="mean"),
-                            Line2D([], [], color="tab:green", linestyle="--", label="median"),
-                            Line2D([], [], color="tab:blue", label="extremes")],
-                   loc="upper right", fontsize=8)
+    axes[1].legend(
+        handles=[
+            Line2D([], [], color="tab:red", label="mean"),
+            Line2D([], [], color="tab:green", linestyle="--", label="median"),
+            Line2D([], [], color="tab:blue", label="extremes"),
+        ],
+        loc="upper right",
+        fontsize=8,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -133,14 +165,33 @@ def corrections_plot(
         a2.plot(frame, shift[:, j], color=colors[j], label=f"shift {name}")
     if truth is not None:
         for j, name in enumerate("xyz"):
-            a1.plot(truth["frame"], np.degrees(truth["rotvec_rad"][:, j]), color=colors[j], linestyle="--",
-                    linewidth=1.0, alpha=0.8, label=f"true, about {name}")
-            a2.plot(truth["frame"], truth["shift_mm"][:, j], color=colors[j], linestyle="--", linewidth=1.0,
-                    alpha=0.8, label=f"true {name}")
+            a1.plot(
+                truth["frame"],
+                np.degrees(truth["rotvec_rad"][:, j]),
+                color=colors[j],
+                linestyle="--",
+                linewidth=1.0,
+                alpha=0.8,
+                label=f"true, about {name}",
+            )
+            a2.plot(
+                truth["frame"],
+                truth["shift_mm"][:, j],
+                color=colors[j],
+                linestyle="--",
+                linewidth=1.0,
+                alpha=0.8,
+                label=f"true {name}",
+            )
         title += " (dashed: simulation truth in the calibrated frame)"
-        fig.text(0.01, 0.005, "A shift along a view's beam only changes its magnification; the BBs determine it "
-                 "weakly, so judge the calibration by its pixel accuracy (table1), not by this component.",
-                 fontsize=7, color="0.3")
+        fig.text(
+            0.01,
+            0.005,
+            "A shift along a view's beam only changes its magnification; the BBs determine it "
+            "weakly, so judge the calibration by its pixel accuracy (table1), not by this component.",
+            fontsize=7,
+            color="0.3",
+        )
     a1.set_ylabel("deg")
     a2.set_ylabel("mm")
     a2.set_xlabel("frame index")
@@ -155,26 +206,36 @@ def corrections_plot(
 def _bb_table(result: CalibrationResult) -> str:
     """The BBs by number (as ``--scale-bar-bbs`` names them), with their positions and how often each was seen."""
     seen = np.isfinite(result.uv[..., 0]).sum(0)
-    rows = "\n".join(f"| {k + 1} | {x:.2f} | {y:.2f} | {z:.2f} | {int(seen[k])} |" for k, (x, y, z) in enumerate(result.xyz))
-    return (f"\n## BBs (object frame)\n\n{result.scale_line()}.\n\n| BB | x (mm) | y (mm) | z (mm) | frames |\n"
-            "| ---: | ---: | ---: | ---: | ---: |\n" + rows + "\n")
+    rows = "\n".join(
+        f"| {k + 1} | {x:.2f} | {y:.2f} | {z:.2f} | {int(seen[k])} |" for k, (x, y, z) in enumerate(result.xyz)
+    )
+    return (
+        f"\n## BBs (object frame)\n\n{result.scale_line()}.\n\n| BB | x (mm) | y (mm) | z (mm) | frames |\n"
+        "| ---: | ---: | ---: | ---: | ---: |\n" + rows + "\n"
+    )
 
 
-def write_report(result: CalibrationResult, out_dir: Path, extra_columns: dict[str, dict[str, Any]] | None = None) -> list[Path]:
+def write_report(
+    result: CalibrationResult, out_dir: Path, extra_columns: dict[str, dict[str, Any]] | None = None
+) -> list[Path]:
     """Write table1.md, table1.csv, rpe_violin.png and corrections.png into ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
     n_last = len(result.iterations) - 1
     if result.method == "paper" and n_last > PAPER_ITERATION:  # the published table's iteration, later ones beside it
-        columns = {f"this scan (paper, iteration {PAPER_ITERATION})": table1_row(result, PAPER_ITERATION),
-                   f"this scan (paper, iteration {n_last})": table1_row(result, n_last)}
+        columns = {
+            f"this scan (paper, iteration {PAPER_ITERATION})": table1_row(result, PAPER_ITERATION),
+            f"this scan (paper, iteration {n_last})": table1_row(result, n_last),
+        }
     else:
         columns = {f"this scan ({result.method})": table1_row(result)}
     columns.update(extra_columns or {})
     q = result.quality
     quality = ""
     if q is not None:
-        quality = (f"\n## Quality: {'passed' if q.passed else 'FAILED'}\n\n- {q.line()}; largest allowed "
-                   f"{q.threshold_px:g} px\n" + "".join(f"- {r}\n" for r in q.reasons))
+        quality = (
+            f"\n## Quality: {'passed' if q.passed else 'FAILED'}\n\n- {q.line()}; largest allowed "
+            f"{q.threshold_px:g} px\n" + "".join(f"- {r}\n" for r in q.reasons)
+        )
     md = out_dir / "table1.md"
     iters = "\n".join(
         f"| {s.index} | {s.rpe_mean_mm:.4f} | {s.rpe_median_mm:.4f} | {s.rpe_std_mm:.4f} | {s.reproj_rms_px:.4f} |"
@@ -184,7 +245,9 @@ def write_report(result: CalibrationResult, out_dir: Path, extra_columns: dict[s
         f"# Calibration of {result.path.name} ({result.method})\n\n"
         + markdown_table(columns)
         + "\n## RPE per iteration (0 = initial geometry)\n\n| iteration | mean (mm) | median (mm) | std (mm) | reproj. RMS (px) |\n"
-        "| ---: | ---: | ---: | ---: | ---: |\n" + iters + "\n"
+        "| ---: | ---: | ---: | ---: | ---: |\n"
+        + iters
+        + "\n"
         + quality
         + _bb_table(result)
         + ("\n## Warnings\n\n" + "\n".join(f"- {w}" for w in result.warnings) + "\n" if result.warnings else "")
@@ -194,6 +257,7 @@ def write_report(result: CalibrationResult, out_dir: Path, extra_columns: dict[s
     violin = out_dir / "rpe_violin.png"
     violin_plot(violin, result.rpe_history, f"{result.method}: after each iteration")
     corr = out_dir / "corrections.png"
-    corrections_plot(corr, result.corrections, f"{result.method}: estimated correction per view",
-                     truth=result.true_corrections)
+    corrections_plot(
+        corr, result.corrections, f"{result.method}: estimated correction per view", truth=result.true_corrections
+    )
     return [md, csv_path, violin, corr]

@@ -37,16 +37,19 @@ class ScaleBar:
     def describe(self) -> str:
         """One line for the file, the report and the terminal."""
         i, j = self.bbs
-        return (f"metric scale from a {self.length_mm:g} mm scale bar: BBs {i + 1} and {j + 1} were {self.found_mm:.3f} mm "
-                f"apart, so the frame was scaled by {self.factor:.5f}")
+        return (
+            f"metric scale from a {self.length_mm:g} mm scale bar: BBs {i + 1} and {j + 1} were {self.found_mm:.3f} mm "
+            f"apart, so the frame was scaled by {self.factor:.5f}"
+        )
 
 
 class ScaleBarError(OptionError):
     """The scale bar cannot be found among the BBs (no pair, or several pairs, near its length)."""
 
 
-def find_scale_bar(xyz: NDArray[np.float64], length_mm: float, bbs: tuple[int, int] | None = None,
-                   tolerance: float = DEFAULT_TOLERANCE) -> ScaleBar:
+def find_scale_bar(
+    xyz: NDArray[np.float64], length_mm: float, bbs: tuple[int, int] | None = None, tolerance: float = DEFAULT_TOLERANCE
+) -> ScaleBar:
     """The pair of BBs that spans a ``length_mm`` bar: ``bbs`` (1-based, as the report numbers them) when given,
     else the one pair whose distance is within ``tolerance`` of the length (an error names the pairs otherwise)."""
     if not np.isfinite(length_mm) or length_mm <= 0:
@@ -65,8 +68,10 @@ def find_scale_bar(xyz: NDArray[np.float64], length_mm: float, bbs: tuple[int, i
     closest = sorted(pairs, key=lambda p: abs(p[2] - length_mm))[:4]
     listed = ", ".join(f"{i + 1}-{j + 1} at {d:.1f} mm" for i, j, d in (near or closest))
     why = f"{len(near)} pairs of BBs are" if near else "no pair of BBs is"
-    raise ScaleBarError(f"scale bar of {length_mm:g} mm: {why} within {100 * tolerance:g} % of it ({listed}); "
-                        "name the pair with the BB numbers of the report (--scale-bar-bbs I,J)")
+    raise ScaleBarError(
+        f"scale bar of {length_mm:g} mm: {why} within {100 * tolerance:g} % of it ({listed}); "
+        "name the pair with the BB numbers of the report (--scale-bar-bbs I,J)"
+    )
 
 
 def rescaled_views(geometry: ViewGeometry, factor: float) -> ViewGeometry:

@@ -54,7 +54,8 @@ class PairFit:
         """Whether the fit pins both centres near where they were predicted."""
         lo, hi = s.amplitude_range
         return bool(
-            np.all(np.isfinite(self.uv)) and np.all(self.std_px <= s.max_std_px)
+            np.all(np.isfinite(self.uv))
+            and np.all(self.std_px <= s.max_std_px)
             and np.linalg.norm(self.uv[0] - self.uv[1]) >= s.min_separation_ratio * s.diameter_px
             and self.misfit_ratio <= s.max_misfit_ratio
             and np.all(np.linalg.norm(self.uv - guess, axis=1) <= s.max_shift_px)
@@ -113,11 +114,14 @@ def radial_profile(frame: FrameWindows, centres: NDArray[np.float64], radius_px:
     mids = 0.5 * (edges[:-1] + edges[1:])
     seen = count > 0
     prof = np.interp(mids, mids[seen], total[seen] / count[seen])
-    return np.stack([np.concatenate([[0.0], mids, [reach + PROFILE_STEP_PX]]),
-                     np.concatenate([[prof[0]], prof, [0.0]])])
+    return np.stack(
+        [np.concatenate([[0.0], mids, [reach + PROFILE_STEP_PX]]), np.concatenate([[prof[0]], prof, [0.0]])]
+    )
 
 
-def fit_pair(frame: FrameWindows, guess: NDArray[np.float64], profile: NDArray[np.float64], s: SplitSettings) -> PairFit | None:
+def fit_pair(
+    frame: FrameWindows, guess: NDArray[np.float64], profile: NDArray[np.float64], s: SplitSettings
+) -> PairFit | None:
     """Least-squares fit of two copies of ``profile`` (from :func:`radial_profile`) plus a background plane to
     the blob around the predicted centres ``guess`` (2, 2); None where the window leaves the panel."""
     reach = float(profile[0, -1])
@@ -140,8 +144,9 @@ def fit_pair(frame: FrameWindows, guess: NDArray[np.float64], profile: NDArray[n
         unit = d / np.maximum(r, 1e-9)[..., None]
         return np.column_stack([f, plane]), r, unit
 
-    def solved(p: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
-                                                 NDArray[np.float64]]:
+    def solved(
+        p: NDArray[np.float64],
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         a, r, unit = design(p)
         q, _ = np.linalg.qr(a)
         coef = np.linalg.lstsq(a, li, rcond=None)[0]  # also when the centres meet (two equal columns)
@@ -177,7 +182,9 @@ def fit_pair(frame: FrameWindows, guess: NDArray[np.float64], profile: NDArray[n
     return PairFit(uv=uv, std_px=std, misfit_ratio=misfit / allowed if allowed > 0 else np.inf, amplitudes=coef[:2])
 
 
-def merged_pairs(predicted: NDArray[np.float64], uv: NDArray[np.float64], within_px: float) -> list[tuple[int, int, int]]:
+def merged_pairs(
+    predicted: NDArray[np.float64], uv: NDArray[np.float64], within_px: float
+) -> list[tuple[int, int, int]]:
     """``(view, j, k)`` where BBs j and k are predicted closer than ``within_px`` with no third BB near them,
     and at least one of them has no detection."""
     out = []

@@ -25,7 +25,9 @@ class TapeSurface(Protocol):
     z_min_mm: float
     z_max_mm: float
 
-    def points(self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64], diameter_mm: float) -> NDArray[np.float64]:
+    def points(
+        self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64], diameter_mm: float
+    ) -> NDArray[np.float64]:
         """BB centres on the surface (a BB's radius outside it) at these addresses (angle, height)."""
         ...
 
@@ -48,7 +50,9 @@ class EllipticCylinder:
     z_min_mm: float
     z_max_mm: float
 
-    def points(self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64], diameter_mm: float) -> NDArray[np.float64]:
+    def points(
+        self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64], diameter_mm: float
+    ) -> NDArray[np.float64]:
         """BB centres on the surface (a BB's radius outside it) at these parameter angles and heights."""
         p = np.stack([self.a_mm * np.cos(angle_rad), self.b_mm * np.sin(angle_rad), np.zeros_like(angle_rad)], -1)
         normal = np.stack([np.cos(angle_rad) / self.a_mm, np.sin(angle_rad) / self.b_mm, np.zeros_like(angle_rad)], -1)
@@ -76,7 +80,9 @@ class Ellipsoid:
     z_min_mm: float
     z_max_mm: float
 
-    def points(self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64], diameter_mm: float) -> NDArray[np.float64]:
+    def points(
+        self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64], diameter_mm: float
+    ) -> NDArray[np.float64]:
         """BB centres a BB's radius outside the surface along its normal."""
         ang, z = np.asarray(angle_rad, dtype=float), np.asarray(z_mm, dtype=float)
         shrink = np.sqrt(np.clip(1.0 - (z / self.c_mm) ** 2, 0.0, None))
@@ -99,8 +105,10 @@ def shape_from_text(text: str) -> EllipticCylinder | Ellipsoid:
     y) or ``ellipsoid:A,B,C`` (semi-axes along x, y, z, about the isocentre; BBs within 0.9 C of its middle, or
     ``ellipsoid:A,B,C,ZMIN:ZMAX``). ValueError naming what is wrong."""
     kind, _, rest = text.partition(":")
-    usage = {"cylinder": "cylinder:R,ZMIN:ZMAX or cylinder:A,B,ZMIN:ZMAX", "ellipsoid": "ellipsoid:A,B,C or "
-             "ellipsoid:A,B,C,ZMIN:ZMAX"}
+    usage = {
+        "cylinder": "cylinder:R,ZMIN:ZMAX or cylinder:A,B,ZMIN:ZMAX",
+        "ellipsoid": "ellipsoid:A,B,C or ellipsoid:A,B,C,ZMIN:ZMAX",
+    }
     if kind not in usage:
         raise ValueError(f"shape {text!r}: expected {usage['cylinder']} or {usage['ellipsoid']} (mm)")
     parts = rest.split(",")
@@ -154,14 +162,18 @@ class Outline:
         k0 = np.clip(np.searchsorted(self.z_mm, z, side="right") - 1, 0, self.z_mm.size - 2)
         wz = np.clip((z - self.z_mm[k0]) / np.diff(self.z_mm)[k0], 0.0, 1.0)
         r = self.radius_mm
-        value = ((1 - wz) * ((1 - wa) * r[k0, a0] + wa * r[k0, a1]) + wz * ((1 - wa) * r[k0 + 1, a0] + wa * r[k0 + 1, a1]))
+        value = (1 - wz) * ((1 - wa) * r[k0, a0] + wa * r[k0, a1]) + wz * (
+            (1 - wa) * r[k0 + 1, a0] + wa * r[k0 + 1, a1]
+        )
         return np.where(inside, value, np.nan)
 
     def covers(self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64]) -> NDArray[np.bool_]:
         """Where the interpolated radius exists."""
         return np.isfinite(self._radius(angle_rad, z_mm))
 
-    def points(self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64], diameter_mm: float) -> NDArray[np.float64]:
+    def points(
+        self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64], diameter_mm: float
+    ) -> NDArray[np.float64]:
         """BB centres a BB's radius outside the surface along its normal (from the radius' slopes)."""
         ang, z = np.asarray(angle_rad, dtype=float), np.asarray(z_mm, dtype=float)
         r = self._radius(ang, z)
@@ -179,12 +191,19 @@ class Outline:
     def describe(self) -> dict[str, Any]:
         """Kind, source, heights and the range of radii."""
         r = self.radius_mm[np.isfinite(self.radius_mm)]
-        return {"kind": "outline", "source": self.source, "z_min_mm": self.z_min_mm, "z_max_mm": self.z_max_mm,
-                "radius_mm": [float(r.min()), float(r.max())] if r.size else None, "angles": int(self.radius_mm.shape[1])}
+        return {
+            "kind": "outline",
+            "source": self.source,
+            "z_min_mm": self.z_min_mm,
+            "z_max_mm": self.z_max_mm,
+            "radius_mm": [float(r.min()), float(r.max())] if r.size else None,
+            "angles": int(self.radius_mm.shape[1]),
+        }
 
     @classmethod
-    def from_points(cls, xyz: NDArray[np.float64], *, n_angles: int = 180, z_step_mm: float = 2.0,
-                    source: str = "") -> Outline:
+    def from_points(
+        cls, xyz: NDArray[np.float64], *, n_angles: int = 180, z_step_mm: float = 2.0, source: str = ""
+    ) -> Outline:
         """The outermost of many points on an object's surface (e.g. sampled from a mesh), per angle and height."""
         xyz = np.asarray(xyz, dtype=float)
         if xyz.ndim != 2 or xyz.shape[1] != 3 or len(xyz) < 100:
@@ -202,8 +221,15 @@ class Outline:
         return cls(0.5 * (z_edges[1:] + z_edges[:-1]), _fill_angles(radius), source)
 
     @classmethod
-    def from_mask(cls, mask: NDArray[np.bool_], voxel_mm: tuple[float, float, float], origin_mm: tuple[float, float, float],
-                  *, n_angles: int = 180, source: str = "") -> Outline:
+    def from_mask(
+        cls,
+        mask: NDArray[np.bool_],
+        voxel_mm: tuple[float, float, float],
+        origin_mm: tuple[float, float, float],
+        *,
+        n_angles: int = 180,
+        source: str = "",
+    ) -> Outline:
         """The outer surface of the voxels set in ``mask`` (nz, ny, nx) of a prior volume on its grid (voxel sizes
         and the first voxel's centre, x y z, in the object frame): per slice and angle, the farthest set voxel."""
         mask = np.asarray(mask, dtype=bool)

@@ -80,8 +80,10 @@ def like_the_others(records: NDArray[np.float64], others: NDArray[np.float64]) -
     radius within 20 % of theirs and a background at most 2.5 times as rough (not a bone edge, a screw head or
     a structure of the object that is round for a few frames)."""
     radius, rough = np.nanmedian(others[..., RADIUS]), np.nanmedian(others[..., BG_RMS])
-    return bool(abs(np.nanmedian(records[..., RADIUS]) / radius - 1.0) <= 0.2
-                and np.nanmedian(records[..., BG_RMS]) <= 2.5 * rough)
+    return bool(
+        abs(np.nanmedian(records[..., RADIUS]) / radius - 1.0) <= 0.2
+        and np.nanmedian(records[..., BG_RMS]) <= 2.5 * rough
+    )
 
 
 @numba.njit(cache=True)
@@ -314,7 +316,10 @@ def _match(pred, cand, search_px, gate, radius):  # type: ignore[no-untyped-def]
 
 
 def match_frame(
-    pred: NDArray[np.float64], cand: NDArray[np.float64], search_px: float, gate_px: NDArray[np.float64] | float,
+    pred: NDArray[np.float64],
+    cand: NDArray[np.float64],
+    search_px: float,
+    gate_px: NDArray[np.float64] | float,
     residual_px: float | None = None,
 ) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
     """Assign candidates ``(M,2)`` to predictions ``(T,2)`` (NaN = not expected) after removing the frame's
@@ -470,8 +475,9 @@ class FrameLinker:
         matched_t = np.zeros(len(active), bool)
         idx = np.full(len(active), -1)
         if len(active) and len(c):
-            pred_a = _predict_from_rays(store.ray_o, store.ray_d, store.count, active, view.matrices[0], store.last_uv,
-                                        store.last_P[active])
+            pred_a = _predict_from_rays(
+                store.ray_o, store.ray_d, store.count, active, view.matrices[0], store.last_uv, store.last_P[active]
+            )
             gates = s.gate_px * (1.0 + 0.5 * np.clip(p - store.last[active] - 1, 0, None))
             idx, aligned = match_frame(pred_a, uv_c, s.search_px, gates, s.residual_px)
             matched_t = idx >= 0
@@ -527,8 +533,13 @@ def assign_to_predictions(
         if not len(c) or not vis_all[p].any():
             continue
         # predictions through a 3-D geometry: what the frame's shift leaves grows with the allowed jitter only
-        idx, _ = _match(np.ascontiguousarray(pred_all[p]), np.ascontiguousarray(c[:, :2]), float(s.search_px), gate,
-                        max(1.5 * float(gate_px), 0.25 * (s.jitter_px + s.gate_px)))
+        idx, _ = _match(
+            np.ascontiguousarray(pred_all[p]),
+            np.ascontiguousarray(c[:, :2]),
+            float(s.search_px),
+            gate,
+            max(1.5 * float(gate_px), 0.25 * (s.jitter_px + s.gate_px)),
+        )
         rows = np.flatnonzero(idx >= 0)
         records[p, rows] = c[idx[rows]]
     uv = records[..., :2].copy()

@@ -63,8 +63,9 @@ class SlidingBundle:
         """Whether enough frames came since the last adjustment (and the window is full)."""
         return self._since >= self.every and len(self._recent) == self.size
 
-    def refine(self, nominal: ViewGeometry, points: dict[int, NDArray[np.float64]], loss_px: float
-               ) -> dict[int, NDArray[np.float64]]:
+    def refine(
+        self, nominal: ViewGeometry, points: dict[int, NDArray[np.float64]], loss_px: float
+    ) -> dict[int, NDArray[np.float64]]:
         """Adjust the window: the refined points of the BBs it saw in 3 or more frames (the others: none), and the
         window's poses updated in place; ``loss_px`` is the Huber scale (about the centroid noise). Nothing when
         fewer than four BBs were seen in :data:`MIN_SEEN` frames."""
@@ -89,15 +90,23 @@ class SlidingBundle:
         model = ViewModel(nominal[[f.view for f in frames]])
         pose = np.array([f.pose for f in frames])
         state0 = ViewState(rotvec_to_matrix(pose[:, :3]), pose[:, 3:].copy(), np.zeros((len(frames), 0)))
-        res = bundle_adjust(model, uv, xyz0, state0, loss_scale_px=loss_px, max_iterations=self.iterations,
-                            gauge_weights=anchor.astype(float))
+        res = bundle_adjust(
+            model,
+            uv,
+            xyz0,
+            state0,
+            loss_scale_px=loss_px,
+            max_iterations=self.iterations,
+            gauge_weights=anchor.astype(float),
+        )
         if not (np.isfinite(res.xyz).all() and np.isfinite(res.state.t).all()):
             return {}
         # the adjustment moves the poses with the points (their gauge is the anchors', not the nominal rays'): how far
         # it moved the isocenter's projection in the window's last frames (the neighbours of the frames to come), so
         # that a series of per-frame motions can be carried across it (the window's mean missed by up to 1 mm)
-        moved = (isocenter_motion_mm(model.nominal, model.geometry(res.state))
-                 - isocenter_motion_mm(model.nominal, model.geometry(state0)))
+        moved = isocenter_motion_mm(model.nominal, model.geometry(res.state)) - isocenter_motion_mm(
+            model.nominal, model.geometry(state0)
+        )
         self.moved_mm = np.mean(moved[-CARRY_FRAMES:], axis=0)
         refined = np.concatenate([res.state.rotvec, res.state.t], 1)
         for f, r in zip(frames, refined, strict=True):

@@ -45,7 +45,9 @@ class CArm(Detector):
         info = await super().describe()
         lim = self.limits_now
         axes = (AxisInfo("primary", "deg", *lim.primary_deg), AxisInfo("secondary", "deg", *lim.secondary_deg))
-        return DeviceInfo(info.name, info.model, info.serial, info.firmware, axes, info.uri, {**info.extra, "limits": lim.to_json()})
+        return DeviceInfo(
+            info.name, info.model, info.serial, info.firmware, axes, info.uri, {**info.extra, "limits": lim.to_json()}
+        )
 
     @property
     def limits_now(self) -> CArmLimits:
@@ -178,5 +180,9 @@ class CArm(Detector):
                         f"{self.name}: program ended with {len(frames)} of {n_frames} frames; frame(s) missing, not re-taken"
                     ) from None
             frames.append(frame)
-            report(fraction=len(frames) / n_frames, message=f"frame {len(frames)}/{n_frames}", current={"point": float(frame.meta.get("point", -1))})
+            report(
+                fraction=len(frames) / n_frames,
+                message=f"frame {len(frames)}/{n_frames}",
+                current={"point": float(frame.meta.get("point", -1))},
+            )
         return frames

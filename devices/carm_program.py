@@ -36,7 +36,17 @@ from typing import Any
 
 import numpy as np
 
-CSV_FIELDS = ("index", "segment", "primary_deg", "secondary_deg", "iso_x_mm", "iso_y_mm", "iso_z_mm", "speed_deg_s", "acquire")
+CSV_FIELDS = (
+    "index",
+    "segment",
+    "primary_deg",
+    "secondary_deg",
+    "iso_x_mm",
+    "iso_y_mm",
+    "iso_z_mm",
+    "speed_deg_s",
+    "acquire",
+)
 
 
 class InfeasibleOrbitError(ValueError):
@@ -96,8 +106,17 @@ class NavPoint:
     def csv_row(self) -> list[str]:
         """The point as CSV fields in :data:`CSV_FIELDS` order."""
         x, y, z = self.isocenter_mm
-        return [str(self.index), str(self.segment), f"{self.primary_deg:.6f}", f"{self.secondary_deg:.6f}",
-                f"{x:.4f}", f"{y:.4f}", f"{z:.4f}", f"{self.speed_deg_s:.4f}", str(int(self.acquire))]
+        return [
+            str(self.index),
+            str(self.segment),
+            f"{self.primary_deg:.6f}",
+            f"{self.secondary_deg:.6f}",
+            f"{x:.4f}",
+            f"{y:.4f}",
+            f"{z:.4f}",
+            f"{self.speed_deg_s:.4f}",
+            str(int(self.acquire)),
+        ]
 
     @classmethod
     def from_fields(cls, fields: Sequence[str]) -> NavPoint:
@@ -141,8 +160,17 @@ class NavProgram:
 
     def to_json(self) -> dict[str, Any]:
         """The documented JSON document."""
-        pts = [{**{k: v for k, v in asdict(p).items() if k != "isocenter_mm"}, "isocenter_mm": list(p.isocenter_mm)} for p in self.points]
-        return {"format": "orbitct-carm-navigation", "version": 1, "orbit": self.orbit, "limits": self.limits.to_json(), "points": pts}
+        pts = [
+            {**{k: v for k, v in asdict(p).items() if k != "isocenter_mm"}, "isocenter_mm": list(p.isocenter_mm)}
+            for p in self.points
+        ]
+        return {
+            "format": "orbitct-carm-navigation",
+            "version": 1,
+            "orbit": self.orbit,
+            "limits": self.limits.to_json(),
+            "points": pts,
+        }
 
     def write(self, path: str | Path) -> Path:
         """Write CSV (``.csv``) or JSON (``.json``) by suffix."""
@@ -201,7 +229,19 @@ class NavProgram:
         for i, d in enumerate(doc.get("points", [])):
             try:
                 iso = d["isocenter_mm"]
-                points.append(NavPoint.from_fields([d["index"], d["segment"], d["primary_deg"], d["secondary_deg"], *iso, d["speed_deg_s"], int(d["acquire"])]))
+                points.append(
+                    NavPoint.from_fields(
+                        [
+                            d["index"],
+                            d["segment"],
+                            d["primary_deg"],
+                            d["secondary_deg"],
+                            *iso,
+                            d["speed_deg_s"],
+                            int(d["acquire"]),
+                        ]
+                    )
+                )
             except (KeyError, TypeError, ValueError) as exc:
                 raise ProgramFileError(f"{p}: points[{i}]: {exc!s} (fields: {', '.join(CSV_FIELDS)})") from None
         return cls._checked(p, points, doc)
@@ -237,13 +277,19 @@ def export_program(orbit: Any, limits: CArmLimits = CArmLimits(), *, speed_deg_s
             step = max(abs(theta[i] - theta[i - 1]), abs(phi[i] - phi[i - 1]))
             if segment[i] == segment[i - 1] and step > limits.max_step_deg + 1e-9:
                 raise InfeasibleOrbitError(
-                    i, f"orbit frame {i}: step of {step:.3f} deg from frame {i - 1} exceeds the C-arm's maximum step {limits.max_step_deg:g} deg"
+                    i,
+                    f"orbit frame {i}: step of {step:.3f} deg from frame {i - 1} exceeds the C-arm's maximum step {limits.max_step_deg:g} deg",
                 )
             if segment[i] != segment[i - 1] and step > limits.max_step_deg:
                 n = int(math.ceil(step / limits.max_step_deg))
                 for k in range(1, n):  # bridge between segments, no frames
                     f = k / n
-                    add(theta[i - 1] + f * (theta[i] - theta[i - 1]), phi[i - 1] + f * (phi[i] - phi[i - 1]), int(segment[i]), False)
+                    add(
+                        theta[i - 1] + f * (theta[i] - theta[i - 1]),
+                        phi[i - 1] + f * (phi[i] - phi[i - 1]),
+                        int(segment[i]),
+                        False,
+                    )
         add(theta[i], phi[i], int(segment[i]), True)
     name = getattr(orbit, "name", "orbit")
     params = getattr(orbit, "params", {})

@@ -54,7 +54,9 @@ class FrameLink:
             async with asyncio.timeout(self.timeout_s):  # unlike wait_for, never swallows a cancellation
                 self._reader, self._writer = await asyncio.open_connection(self.host, self.port)
         except (TimeoutError, OSError) as exc:
-            raise NotConnectedError(f"{self.name}: cannot connect to {self.host}:{self.port} ({exc or 'timeout'})") from None
+            raise NotConnectedError(
+                f"{self.name}: cannot connect to {self.host}:{self.port} ({exc or 'timeout'})"
+            ) from None
         self._opened = True
 
     async def _drop(self) -> None:
@@ -154,7 +156,9 @@ class FrameLink:
         except asyncio.IncompleteReadError:
             raise NotConnectedError(f"{self.name}: connection closed in the middle of frame {number}") from None
         except TimeoutError:
-            raise _ReplyTimeout(f"{self.name}: frame {number} data did not arrive within {self.timeout_s + 1:g} s") from None
+            raise _ReplyTimeout(
+                f"{self.name}: frame {number} data did not arrive within {self.timeout_s + 1:g} s"
+            ) from None
         try:
             meta = json.loads(body[:meta_len].decode()) if meta_len else {}
         except (UnicodeDecodeError, json.JSONDecodeError):
@@ -196,7 +200,9 @@ class Detector(Driver):
     # ------------------------------------------------------------- connection
     async def connect(self) -> None:
         """Connect, and apply binning and trigger mode."""
-        self._link = FrameLink(self.name, self.endpoint.host, int(self.endpoint.port or self.default_port), self.timeout_s)
+        self._link = FrameLink(
+            self.name, self.endpoint.host, int(self.endpoint.port or self.default_port), self.timeout_s
+        )
         await self._link.open()
         if self.monitor:
             await self._read_shape()
@@ -241,8 +247,18 @@ class Detector(Driver):
         model, serial, firmware = (await self._l().command("IDN?")).split(",")[:3]
         g = self.geometry
         return DeviceInfo(
-            self.name, model, serial, firmware, uri=self.uri,
-            extra={"rows": g.rows, "cols": g.cols, "pitch_mm": g.pitch_mm, "binning": self.binning, "trigger": self.trigger_mode},
+            self.name,
+            model,
+            serial,
+            firmware,
+            uri=self.uri,
+            extra={
+                "rows": g.rows,
+                "cols": g.cols,
+                "pitch_mm": g.pitch_mm,
+                "binning": self.binning,
+                "trigger": self.trigger_mode,
+            },
         )
 
     async def read(self) -> dict[str, Any]:

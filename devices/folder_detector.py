@@ -25,17 +25,23 @@ from devices.uri import checked_options, option_number, parse_uri
 from orbitct.geometry import Panel
 
 RAW_MAGIC = b"ORBR"
-RAW_HEADER = struct.Struct("<4sHHHHIQd")  # magic, version, header_len, rows, cols, frame number, ns timestamp(unused), exposure ms
+RAW_HEADER = struct.Struct(
+    "<4sHHHHIQd"
+)  # magic, version, header_len, rows, cols, frame number, ns timestamp(unused), exposure ms
 
 
-def write_raw_frame(path: str | os.PathLike[str], data: NDArray[np.uint16], number: int, exposure_ms: float = 0.0) -> None:
+def write_raw_frame(
+    path: str | os.PathLike[str], data: NDArray[np.uint16], number: int, exposure_ms: float = 0.0
+) -> None:
     """Write a raw frame with the small 'ORBR' header (what :class:`FolderWatchDetector` reads)."""
     rows, cols = data.shape
     head = RAW_HEADER.pack(RAW_MAGIC, 1, RAW_HEADER.size, rows, cols, number, time.time_ns(), exposure_ms)
     Path(path).write_bytes(head + np.ascontiguousarray(data, "<u2").tobytes())
 
 
-def read_frame_file(path: Path, *, rows: int | None = None, cols: int | None = None, header_bytes: int = 0) -> tuple[NDArray[np.uint16], dict[str, Any]]:
+def read_frame_file(
+    path: Path, *, rows: int | None = None, cols: int | None = None, header_bytes: int = 0
+) -> tuple[NDArray[np.uint16], dict[str, Any]]:
     """Pixels and metadata of one TIFF or raw frame file; ProtocolError if it cannot be read."""
     suffix = path.suffix.lower()
     try:
@@ -60,7 +66,9 @@ def read_frame_file(path: Path, *, rows: int | None = None, cols: int | None = N
     else:
         raise ProtocolError(f"{path}: raw file without an 'ORBR' header; give rows=, cols= (and header_bytes=)")
     if len(raw) != header_bytes + 2 * r * c:
-        raise ProtocolError(f"{path}: {len(raw)} bytes, expected {header_bytes} header + {2 * r * c} pixel bytes ({r}x{c})")
+        raise ProtocolError(
+            f"{path}: {len(raw)} bytes, expected {header_bytes} header + {2 * r * c} pixel bytes ({r}x{c})"
+        )
     return np.frombuffer(raw, "<u2", offset=header_bytes).reshape(r, c).astype(np.uint16), meta
 
 
@@ -101,7 +109,13 @@ class FolderWatchDetector(Driver):
 
     async def describe(self) -> DeviceInfo:
         """Folder, pattern and (once known) frame shape."""
-        return DeviceInfo(self.name, "folder watch", str(self.folder), uri=self.uri, extra={"pattern": self.pattern, "shape": self._shape})
+        return DeviceInfo(
+            self.name,
+            "folder watch",
+            str(self.folder),
+            uri=self.uri,
+            extra={"pattern": self.pattern, "shape": self._shape},
+        )
 
     async def read(self) -> dict[str, Any]:
         """Frames delivered, files waiting, frame shape."""
@@ -168,7 +182,9 @@ class FolderWatchDetector(Driver):
                     return Frame(data, self._number, path.stat().st_mtime, kind, meta)
                 continue
             if time.monotonic() > deadline:
-                raise DeviceTimeoutError(f"{self.name}: no new {self.pattern} file in {self.folder} (frame {self._number + 1} missing)")
+                raise DeviceTimeoutError(
+                    f"{self.name}: no new {self.pattern} file in {self.folder} (frame {self._number + 1} missing)"
+                )
             await asyncio.sleep(self.poll_s)
 
     def trigger(self) -> Status[Frame]:

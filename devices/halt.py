@@ -55,8 +55,11 @@ async def read_back(device: Any) -> tuple[bool, str]:
     if hasattr(device, "xray_off"):
         state = await device.read()
         if state["hv_on"] or state["exposing"]:
-            return False, f"generator reports high voltage {'on' if state['hv_on'] else 'off'}, " \
-                          f"{'exposing' if state['exposing'] else 'not exposing'} (state {state['state']})"
+            return (
+                False,
+                f"generator reports high voltage {'on' if state['hv_on'] else 'off'}, "
+                f"{'exposing' if state['exposing'] else 'not exposing'} (state {state['state']})",
+            )
         return True, f"high voltage off, not exposing (state {state['state']})"
     if hasattr(device, "moving"):
         if await device.moving():

@@ -29,7 +29,9 @@ class Hexapod(GcsMotionDevice):
         super().__init__(name, uri, **options)
         self._velocity: float | None = None
 
-    async def check_pose(self, targets: Mapping[str, float], current: Mapping[str, float] | None = None) -> dict[str, float]:
+    async def check_pose(
+        self, targets: Mapping[str, float], current: Mapping[str, float] | None = None
+    ) -> dict[str, float]:
         """Check a (partial) target pose: soft limits per axis, then ``VMO?`` on the full pose.
 
         Axes not given keep their present targets (``current``, else read with ``MOV?``).

@@ -31,7 +31,8 @@ TWIN_OPTIONS: dict[str, set[str]] = {  # every twin also takes ``port`` (where i
     "rotation_stage": _MOTION | {"port"},
     "xray": {"prep_s", "time_scale", "port"},
     "detector": _PANEL | {"port"},
-    "carm": _PANEL | {"sag_deg", "drift_mm", "eta_deg", "primary_offset_deg", "noise_mm", "time_scale", "limits", "port"},
+    "carm": _PANEL
+    | {"sag_deg", "drift_mm", "eta_deg", "primary_offset_deg", "noise_mm", "time_scale", "limits", "port"},
 }
 SHARED_KINDS = ("hexapod", "rotation_stage")
 DEFAULT_WORLDS = {"carm": "carm"}
@@ -86,7 +87,9 @@ def _make(kind: str, world: str, options: dict[str, Any]) -> TwinThread:
     return TwinThread(CArmTwin(get_world(world), **options), port=port)
 
 
-def start_twin(kind: str, uri: str = "sim://bench", options: dict[str, Any] | None = None) -> tuple[SimTwin, dict[str, Any]]:
+def start_twin(
+    kind: str, uri: str = "sim://bench", options: dict[str, Any] | None = None
+) -> tuple[SimTwin, dict[str, Any]]:
     """The twin a ``sim://`` URI names (started now, or the world's running motion twin) and the driver's options.
 
     ``options`` holds keyword options for both; URI query values come as text and are read as numbers
@@ -140,4 +143,3 @@ def stop_twins() -> None:
         _SHARED.clear()
     for twin in running:
         twin.stop()
-

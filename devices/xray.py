@@ -47,7 +47,9 @@ def _options(uri_params: dict[str, str], options: dict[str, Any]) -> dict[str, f
     merged: dict[str, Any] = {**uri_params, **options}
     unknown = sorted(set(merged) - _OPTIONS)
     if unknown:
-        raise UriError(f"X-ray generator: unknown option(s) {', '.join(unknown)}; allowed: {', '.join(sorted(_OPTIONS))}")
+        raise UriError(
+            f"X-ray generator: unknown option(s) {', '.join(unknown)}; allowed: {', '.join(sorted(_OPTIONS))}"
+        )
     try:
         return {k: option_number(v) for k, v in merged.items()}
     except UriError as exc:
@@ -105,7 +107,9 @@ class XrayGenerator(Driver):
         self._opened = True
         if self.monitor:
             return
-        await self._request("set watchdog", lambda c: c.write_register(reg.WATCHDOG_MS, self.watchdog_ms, device_id=self.device_id))
+        await self._request(
+            "set watchdog", lambda c: c.write_register(reg.WATCHDOG_MS, self.watchdog_ms, device_id=self.device_id)
+        )
         if self.heartbeat_s > 0 and self._heartbeat_task is None:
             self._heartbeat_task = asyncio.ensure_future(self._heartbeat())
 
@@ -181,12 +185,15 @@ class XrayGenerator(Driver):
             fc, count = asked
             got = pdu.function_code & 0x7F
             short = not pdu.function_code & 0x80 and (
-                (fc in (1, 2) and len(pdu.bits) < count) or (fc in (3, 4) and len(pdu.registers) < count))
+                (fc in (1, 2) and len(pdu.bits) < count) or (fc in (3, 4) and len(pdu.registers) < count)
+            )
             if got != fc or short:
                 self._garbled.set()  # the stream is out of step: the request in flight fails and the link starts afresh
         return pdu
 
-    async def _request(self, what: str, call: Callable[[AsyncModbusTcpClient], Awaitable[Any]], *, retry: bool = True) -> Any:
+    async def _request(
+        self, what: str, call: Callable[[AsyncModbusTcpClient], Awaitable[Any]], *, retry: bool = True
+    ) -> Any:
         """Run one Modbus request; map failures to named errors; reconnect and repeat once if ``retry``."""
         for attempt in range(2 if retry else 1):
             last = attempt == (1 if retry else 0)
@@ -211,11 +218,14 @@ class XrayGenerator(Driver):
         except (TimeoutError, ModbusException):
             if garbled.is_set():
                 client.close()  # the byte stream is out of step: start afresh on the next request
-                raise ProtocolError(f"{self.name}: garbled reply from the X-ray generator, or one to another request "
-                                    f"({what})") from None
+                raise ProtocolError(
+                    f"{self.name}: garbled reply from the X-ray generator, or one to another request ({what})"
+                ) from None
             if not client.connected:
                 raise NotConnectedError(f"{self.name}: X-ray generator dropped the connection ({what})") from None
-            raise DeviceTimeoutError(f"{self.name}: no reply from the X-ray generator within {self.timeout_s:g} s ({what})") from None
+            raise DeviceTimeoutError(
+                f"{self.name}: no reply from the X-ray generator within {self.timeout_s:g} s ({what})"
+            ) from None
         task = asyncio.current_task()
         if task is not None and task.cancelling():
             raise asyncio.CancelledError  # pymodbus's inner wait_for can swallow a cancellation: honour it here
@@ -244,15 +254,23 @@ class XrayGenerator(Driver):
                     task.add_done_callback(_retrieve)
 
     async def _read_inputs(self) -> list[bool]:
-        r = await self._request("read inputs", lambda c: c.read_discrete_inputs(0, count=reg.N_INPUTS, device_id=self.device_id))
+        r = await self._request(
+            "read inputs", lambda c: c.read_discrete_inputs(0, count=reg.N_INPUTS, device_id=self.device_id)
+        )
         return list(r.bits[: reg.N_INPUTS])
 
     async def _read_input_registers(self) -> list[int]:
-        r = await self._request("read status", lambda c: c.read_input_registers(0, count=reg.N_INPUT_REGS, device_id=self.device_id))
+        r = await self._request(
+            "read status", lambda c: c.read_input_registers(0, count=reg.N_INPUT_REGS, device_id=self.device_id)
+        )
         return list(r.registers)
 
     async def _write_coil(self, coil: int, value: bool, *, retry: bool = True) -> None:
-        await self._request(f"write coil {coil}={int(value)}", lambda c: c.write_coil(coil, value, device_id=self.device_id), retry=retry)
+        await self._request(
+            f"write coil {coil}={int(value)}",
+            lambda c: c.write_coil(coil, value, device_id=self.device_id),
+            retry=retry,
+        )
 
     # -------------------------------------------------------------- heartbeat
     async def _heartbeat(self) -> None:
@@ -263,10 +281,14 @@ class XrayGenerator(Driver):
             self._hb_counter = (self._hb_counter + 1) & 0xFFFF
             try:
                 await self._request(
-                    "heartbeat", lambda c: c.write_register(reg.HEARTBEAT_IN, self._hb_counter, device_id=self.device_id), retry=False
+                    "heartbeat",
+                    lambda c: c.write_register(reg.HEARTBEAT_IN, self._hb_counter, device_id=self.device_id),
+                    retry=False,
                 )
                 r = await self._request(
-                    "heartbeat", lambda c: c.read_input_registers(reg.HEARTBEAT_OUT, count=1, device_id=self.device_id), retry=False
+                    "heartbeat",
+                    lambda c: c.read_input_registers(reg.HEARTBEAT_OUT, count=1, device_id=self.device_id),
+                    retry=False,
                 )
             except ProtocolError as exc:
                 # a garbled reply leaves the stream out of step, not the link down: start afresh at once, so the
@@ -330,11 +352,17 @@ class XrayGenerator(Driver):
         """State, settings, acknowledgements, interlock, fault code and frame counter as plain values."""
         ir = await self._read_input_registers()
         di = await self._read_inputs()
-        hr = (await self._request("read settings", lambda c: c.read_holding_registers(0, count=reg.N_HOLDING, device_id=self.device_id))).registers
+        hr = (
+            await self._request(
+                "read settings", lambda c: c.read_holding_registers(0, count=reg.N_HOLDING, device_id=self.device_id)
+            )
+        ).registers
         return {
             "state": GeneratorState(ir[reg.STATE]).name,
             "fault_code": int(ir[reg.FAULT_CODE]),
-            "fault": FaultCode(ir[reg.FAULT_CODE]).name if ir[reg.FAULT_CODE] in FaultCode._value2member_map_ else "UNKNOWN",
+            "fault": FaultCode(ir[reg.FAULT_CODE]).name
+            if ir[reg.FAULT_CODE] in FaultCode._value2member_map_
+            else "UNKNOWN",
             "refusal": Refusal(ir[reg.REFUSAL]).name if ir[reg.REFUSAL] in Refusal._value2member_map_ else "UNKNOWN",
             "door_closed": bool(di[reg.DOOR_CLOSED]),
             "ready": bool(di[reg.READY_ACK]),
@@ -352,13 +380,23 @@ class XrayGenerator(Driver):
 
     async def configure(self, kv: float, ma: float, exposure_ms: float) -> None:
         """Set tube voltage (kV), current (mA) and exposure time (ms); checked against the ranges first."""
-        checks = (("kv", kv, reg.KV_RANGE), ("ma", ma, reg.MA_RANGE), ("exposure_ms", exposure_ms, reg.EXPOSURE_MS_RANGE))
+        checks = (
+            ("kv", kv, reg.KV_RANGE),
+            ("ma", ma, reg.MA_RANGE),
+            ("exposure_ms", exposure_ms, reg.EXPOSURE_MS_RANGE),
+        )
         for what, value, (lo, hi) in checks:
             if not lo <= float(value) <= hi:
-                raise OutOfLimitsError(f"{self.name}: {what}={value:g} outside the allowed range {lo:g}..{hi:g}; nothing changed")
+                raise OutOfLimitsError(
+                    f"{self.name}: {what}={value:g} outside the allowed range {lo:g}..{hi:g}; nothing changed"
+                )
         values = [int(round(kv * reg.KV_SCALE)), int(round(ma * reg.MA_SCALE)), int(round(exposure_ms))]
         await self._request("configure", lambda c: c.write_registers(reg.KV_SET, values, device_id=self.device_id))
-        back = (await self._request("configure", lambda c: c.read_holding_registers(reg.KV_SET, count=3, device_id=self.device_id))).registers
+        back = (
+            await self._request(
+                "configure", lambda c: c.read_holding_registers(reg.KV_SET, count=3, device_id=self.device_id)
+            )
+        ).registers
         if list(back[:3]) != values:
             raise ProtocolError(f"{self.name}: settings read back as {list(back[:3])}, wrote {values}")
 
@@ -371,10 +409,14 @@ class XrayGenerator(Driver):
         ir = await self._read_input_registers()
         di = await self._read_inputs()
         if ir[reg.STATE] == GeneratorState.FAULT or di[reg.FAULT_ACTIVE]:
-            raise FaultActiveError(f"{self.name}: {self._fault_text(ir[reg.FAULT_CODE])} is active; X-rays are off; "
-                                   "reset the fault once its cause is gone")
+            raise FaultActiveError(
+                f"{self.name}: {self._fault_text(ir[reg.FAULT_CODE])} is active; X-rays are off; "
+                "reset the fault once its cause is gone"
+            )
         if not di[reg.DOOR_CLOSED]:
-            raise InterlockOpenError(f"{self.name}: door interlock is open; close the door before preparing or exposing")
+            raise InterlockOpenError(
+                f"{self.name}: door interlock is open; close the door before preparing or exposing"
+            )
         return ir, di
 
     async def _raise_for_state(self, ir: list[int], what: str) -> None:
@@ -406,7 +448,9 @@ class XrayGenerator(Driver):
                 await self._raise_for_state(ir, what)
                 raise DeviceError(f"{self.name}: generator returned to {GeneratorState(state).name} during {what}")
             if elapsed > timeout_s:
-                raise DeviceTimeoutError(f"{self.name}: {what} not finished within {timeout_s:g} s (state {GeneratorState(state).name})")
+                raise DeviceTimeoutError(
+                    f"{self.name}: {what} not finished within {timeout_s:g} s (state {GeneratorState(state).name})"
+                )
             await asyncio.sleep(self.poll_s)
 
     def prepare(self) -> Status[None]:
@@ -434,7 +478,9 @@ class XrayGenerator(Driver):
         preparation takes); otherwise it stays on for at most :attr:`hold_s`.
         """
         status: Status[int]
-        status = Status(f"{self.name}.expose", self._guarded(lambda: self._expose(status), 0.0 if release else self.hold_s))
+        status = Status(
+            f"{self.name}.expose", self._guarded(lambda: self._expose(status), 0.0 if release else self.hold_s)
+        )
         return status
 
     def trigger(self) -> Status[int]:
@@ -447,7 +493,9 @@ class XrayGenerator(Driver):
             await self._prepare(status)  # type: ignore[arg-type]
             ir, _ = await self._check_can_expose()
         before = (ir[reg.FRAME_COUNTER_HI] << 16) | ir[reg.FRAME_COUNTER_LO]
-        hr = await self._request("read settings", lambda c: c.read_holding_registers(0, count=reg.N_HOLDING, device_id=self.device_id))
+        hr = await self._request(
+            "read settings", lambda c: c.read_holding_registers(0, count=reg.N_HOLDING, device_id=self.device_id)
+        )
         exposure_s = hr.registers[reg.EXPOSURE_MS] / 1000.0
         try:
             await self._write_coil(reg.EXPOSE_REQ, False)  # the request acts on a rising edge: start from low
@@ -457,7 +505,9 @@ class XrayGenerator(Driver):
             t_sent = time.monotonic()
             await self._write_coil(reg.EXPOSE_REQ, True, retry=False)
             t_start = 0.5 * (t_sent + time.monotonic())
-            ir = await self._wait_state(status, {GeneratorState.DONE}, "exposure", exposure_s * 2 + self.timeout_s + 1.0)
+            ir = await self._wait_state(
+                status, {GeneratorState.DONE}, "exposure", exposure_s * 2 + self.timeout_s + 1.0
+            )
             self.last_exposure_s = (t_start, t_start + min(exposure_s, max(time.monotonic() - t_start, 0.0)))
         except DeviceError as exc:
             with contextlib.suppress(DeviceError):
@@ -500,7 +550,9 @@ class XrayGenerator(Driver):
         try:
             await self._request("xray off (nothing exposing)", self._xray_off_call)
         except DeviceError as exc:  # the generator's own watchdog still switches it off once the heartbeat stops
-            log.error("%s: could not switch high voltage off after %.3g s without an exposure: %s", self.name, hold_s, exc)
+            log.error(
+                "%s: could not switch high voltage off after %.3g s without an exposure: %s", self.name, hold_s, exc
+            )
         finally:
             self._hold_sending = False
 
@@ -531,7 +583,10 @@ class XrayGenerator(Driver):
         ir = await self._read_input_registers()
         if ir[reg.STATE] == GeneratorState.FAULT:
             di = await self._read_inputs()
-            cause = ("the door interlock is still open" if not di[reg.DOOR_CLOSED]
-                     else "its cause is still present (the generator's fault input is asserted)")
+            cause = (
+                "the door interlock is still open"
+                if not di[reg.DOOR_CLOSED]
+                else "its cause is still present (the generator's fault input is asserted)"
+            )
             raise FaultActiveError(f"{self.name}: {self._fault_text(ir[reg.FAULT_CODE])} was not reset: {cause}")
         self._link_fault = None

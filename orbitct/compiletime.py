@@ -22,7 +22,9 @@ class CompileClock:
         event.register("numba:compile", self._listener)
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         event.unregister("numba:compile", self._listener)
 
 

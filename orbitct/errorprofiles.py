@@ -157,8 +157,12 @@ class RigidErrors:
         a = np.degrees(np.abs(self.angles)).max(axis=0) if self.n_frames else np.zeros(3)
         s = np.abs(self.shift_mm).max(axis=0) if self.n_frames else np.zeros(3)
         return {
-            "pitch_deg": float(a[0]), "roll_deg": float(a[1]), "yaw_deg": float(a[2]),
-            "x_mm": float(s[0]), "y_mm": float(s[1]), "z_mm": float(s[2]),
+            "pitch_deg": float(a[0]),
+            "roll_deg": float(a[1]),
+            "yaw_deg": float(a[2]),
+            "x_mm": float(s[0]),
+            "y_mm": float(s[1]),
+            "z_mm": float(s[2]),
         }
 
 
@@ -334,7 +338,9 @@ def _validated(model: type[BaseModel], name: str, params: dict[str, Any]) -> Any
         return model(**params)
     except ValidationError as exc:
         msg = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
-        raise ErrorProfileError(f"error profile {name!r}: {msg} (parameters: {', '.join(model.model_fields)})") from None
+        raise ErrorProfileError(
+            f"error profile {name!r}: {msg} (parameters: {', '.join(model.model_fields)})"
+        ) from None
 
 
 def make_profile(name: Literal["bench", "none", "custom"] | str, seed: int = 0, **params: Any) -> ErrorProfile:

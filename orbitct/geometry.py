@@ -432,8 +432,12 @@ class VolumeGrid:
         object.__setattr__(self, "origin_mm", org)
 
     @classmethod
-    def centered(cls, shape: tuple[int, int, int], voxel_mm: float | tuple[float, float, float],
-                 center_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> VolumeGrid:
+    def centered(
+        cls,
+        shape: tuple[int, int, int],
+        voxel_mm: float | tuple[float, float, float],
+        center_mm: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ) -> VolumeGrid:
         """Grid of ``shape`` whose centre sits at ``center_mm`` (default the isocenter)."""
         vox = np.broadcast_to(np.asarray(voxel_mm, dtype=float), (3,))
         n_xyz = np.array(shape[::-1], dtype=float)

@@ -26,7 +26,9 @@ def _check_order(order: str) -> None:
         raise ValueError(f"stack order must be one of {STACK_ORDERS}, got {order!r}")
 
 
-def hexapod_transform(pose: ArrayLike, pivot: ArrayLike = (0.0, 0.0, 0.0)) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def hexapod_transform(
+    pose: ArrayLike, pivot: ArrayLike = (0.0, 0.0, 0.0)
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Rigid transform ``(R, t)`` of hexapod pose(s) ``(..., 6)`` = X, Y, Z (mm), U, V, W (rad)."""
     q = np.asarray(pose, dtype=float)
     p = np.asarray(pivot, dtype=float)
@@ -35,9 +37,7 @@ def hexapod_transform(pose: ArrayLike, pivot: ArrayLike = (0.0, 0.0, 0.0)) -> tu
     return R, t
 
 
-def hexapod_pose_from_transform(
-    R: ArrayLike, t: ArrayLike, pivot: ArrayLike = (0.0, 0.0, 0.0)
-) -> NDArray[np.float64]:
+def hexapod_pose_from_transform(R: ArrayLike, t: ArrayLike, pivot: ArrayLike = (0.0, 0.0, 0.0)) -> NDArray[np.float64]:
     """Inverse of :func:`hexapod_transform`: pose(s) ``(..., 6)`` (mm, rad)."""
     Rm = np.asarray(R, dtype=float)
     p = np.asarray(pivot, dtype=float)

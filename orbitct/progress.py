@@ -20,7 +20,9 @@ class ProgressEvent:
 ProgressCallback = Callable[[ProgressEvent], None]
 
 
-def report(callback: ProgressCallback | None, stage: str, done: int, total: int, message: str = "", **metrics: float) -> None:
+def report(
+    callback: ProgressCallback | None, stage: str, done: int, total: int, message: str = "", **metrics: float
+) -> None:
     """Send one event to ``callback`` if there is one."""
     if callback is not None:
         callback(ProgressEvent(stage, done, total, message, metrics))

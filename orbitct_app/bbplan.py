@@ -112,10 +112,20 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
     geometry = SimulatedBench.with_panel(req.detector_px).nominal_geometry(orbit)
     metal = metal_of(phantom)
     background = phantom_background(phantom, geometry, surface)  # what lies behind each BB: photons, bone edges
-    moved = [make_profile(req.errors, seed).sample(orbit).apply_to_geometry(geometry)
-             for seed in range(MOTION_SAMPLES)] if req.errors != "none" else []
-    options: dict[str, Any] = {"noise_px": req.noise_px, "metal": metal, "keep_out": req.keep_out, "seed": req.seed,
-                               "background": background, "moved": moved, "progress": progress}
+    moved = (
+        [make_profile(req.errors, seed).sample(orbit).apply_to_geometry(geometry) for seed in range(MOTION_SAMPLES)]
+        if req.errors != "none"
+        else []
+    )
+    options: dict[str, Any] = {
+        "noise_px": req.noise_px,
+        "metal": metal,
+        "keep_out": req.keep_out,
+        "seed": req.seed,
+        "background": background,
+        "moved": moved,
+        "progress": progress,
+    }
     warnings: list[str] = []
     n_bbs, suggestion = req.n_bbs, None
     try:
@@ -123,48 +133,93 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
             suggestion = suggest_bb_count(geometry, surface, d, req.target_px, n_max=req.max_bbs, **options)
             if suggestion.n_bbs is None:
                 n_bbs = max(suggestion.tried, default=req.n_bbs)
-                warnings.append(f"no placement of up to {req.max_bbs} BBs reaches {req.target_px:g} px in every view; "
-                                f"planned {n_bbs} BBs, the most that fit")
+                warnings.append(
+                    f"no placement of up to {req.max_bbs} BBs reaches {req.target_px:g} px in every view; "
+                    f"planned {n_bbs} BBs, the most that fit"
+                )
             else:
                 n_bbs = suggestion.n_bbs
         placed = plan_placement(geometry, surface, n_bbs, d, **options)
     except ValueError as exc:
         raise BBPlanError(str(exc)) from None
-    own = predict_placement(geometry, phantom.markers_xyz, d, noise_px=req.noise_px, metal=metal, surface=surface,
-                            background=background, moved=moved)
+    own = predict_placement(
+        geometry,
+        phantom.markers_xyz,
+        d,
+        noise_px=req.noise_px,
+        metal=metal,
+        surface=surface,
+        background=background,
+        moved=moved,
+    )
     try:
-        spiral: Any = predict_placement(geometry, hand_spiral(surface, n_bbs, d, seed=req.seed, keep_out=req.keep_out),
-                                        d, noise_px=req.noise_px, metal=metal, surface=surface, background=background,
-                                        moved=moved)
+        spiral: Any = predict_placement(
+            geometry,
+            hand_spiral(surface, n_bbs, d, seed=req.seed, keep_out=req.keep_out),
+            d,
+            noise_px=req.noise_px,
+            metal=metal,
+            surface=surface,
+            background=background,
+            moved=moved,
+        )
     except ValueError:  # the spiral leaves the surface or enters a keep-out zone: none to compare with
         spiral = None
     pred = placed.prediction
     polar_deg = np.degrees(polar_angle(surface, placed.angle_rad, placed.z_mm))  # where a person finds each BB
     if pred.under_determined.size:
-        warnings.append(f"{pred.under_determined.size} view(s) see fewer than 4 usable BBs (first: "
-                        f"{pred.under_determined[:8].tolist()}); more BBs, or another orbit")
+        warnings.append(
+            f"{pred.under_determined.size} view(s) see fewer than 4 usable BBs (first: "
+            f"{pred.under_determined[:8].tolist()}); more BBs, or another orbit"
+        )
     body: dict[str, Any] = {
-        "experiment": key, "orbit": orbit.name, "views": int(geometry.n_views), "detector_px": req.detector_px,
-        "bb_diameter_mm": d, "noise_px": req.noise_px,
+        "experiment": key,
+        "orbit": orbit.name,
+        "views": int(geometry.n_views),
+        "detector_px": req.detector_px,
+        "bb_diameter_mm": d,
+        "noise_px": req.noise_px,
         "motion_errors": {"profile": req.errors, "samples": len(moved)},
-        "noise_model": {"background": f"experiment {key}'s phantom", "photon_floor": PHOTON_FLOOR,
-                        "shift_factor": SHIFT_FACTOR, "shift_scatter": SHIFT_SCATTER, "huber_threshold_px": huber_threshold_px(req.noise_px)},
+        "noise_model": {
+            "background": f"experiment {key}'s phantom",
+            "photon_floor": PHOTON_FLOOR,
+            "shift_factor": SHIFT_FACTOR,
+            "shift_scatter": SHIFT_SCATTER,
+            "huber_threshold_px": huber_threshold_px(req.noise_px),
+        },
         "surface": surface.describe(),
         "keep_out": [vars(z) for z in req.keep_out],
-        "bbs": [{"number": k + 1, "xyz_mm": [round(float(v), 2) for v in placed.xyz[k]],
-                 "angle_deg": round(float(polar_deg[k]) % 360.0, 1),
-                 "height_mm": round(float(placed.z_mm[k]), 1)} for k in range(n_bbs)],
-        "predicted": pred.summary(), "score": placed.score,
-        "experiment_placement": {"bbs": int(phantom.n_markers), "predicted": own.summary(), "score": placement_score(own)},
-        "hand_spiral": None if spiral is None else {"bbs": n_bbs, "predicted": spiral.summary(),
-                                                    "score": placement_score(spiral)},
-        "per_view": {"n_bbs": pred.n_bbs.tolist(),
-                     "predicted_px": [None if not np.isfinite(v) else round(float(v), 4) for v in pred.predicted_px]},
+        "bbs": [
+            {
+                "number": k + 1,
+                "xyz_mm": [round(float(v), 2) for v in placed.xyz[k]],
+                "angle_deg": round(float(polar_deg[k]) % 360.0, 1),
+                "height_mm": round(float(placed.z_mm[k]), 1),
+            }
+            for k in range(n_bbs)
+        ],
+        "predicted": pred.summary(),
+        "score": placed.score,
+        "experiment_placement": {
+            "bbs": int(phantom.n_markers),
+            "predicted": own.summary(),
+            "score": placement_score(own),
+        },
+        "hand_spiral": None
+        if spiral is None
+        else {"bbs": n_bbs, "predicted": spiral.summary(), "score": placement_score(spiral)},
+        "per_view": {
+            "n_bbs": pred.n_bbs.tolist(),
+            "predicted_px": [None if not np.isfinite(v) else round(float(v), 4) for v in pred.predicted_px],
+        },
         "warnings": warnings,
     }
     if suggestion is not None:
-        body["count_suggestion"] = {"target_px": suggestion.target_px, "n_bbs": suggestion.n_bbs,
-                                    "tried": {str(n): s for n, s in suggestion.tried.items()}}
+        body["count_suggestion"] = {
+            "target_px": suggestion.target_px,
+            "n_bbs": suggestion.n_bbs,
+            "tried": {str(n): s for n, s in suggestion.tried.items()},
+        }
     return BBPlan(_json_ready(body), placed, own, surface, warnings, spiral)
 
 
@@ -201,8 +256,10 @@ def load_surface(source: str, threshold_per_mm: float | None = None) -> Any:
     path = Path(path_text)
     name = path.name.lower()
     if not path.is_file():
-        raise BBPlanError(f"surface {source!r}: no such file (a shape is cylinder:R,ZMIN:ZMAX, cylinder:A,B,ZMIN:ZMAX "
-                          "or ellipsoid:A,B,C[,ZMIN:ZMAX], mm)")
+        raise BBPlanError(
+            f"surface {source!r}: no such file (a shape is cylinder:R,ZMIN:ZMAX, cylinder:A,B,ZMIN:ZMAX "
+            "or ellipsoid:A,B,C[,ZMIN:ZMAX], mm)"
+        )
     try:
         if name.endswith(MESH_SUFFIXES):
             import trimesh
@@ -218,8 +275,10 @@ def load_surface(source: str, threshold_per_mm: float | None = None) -> Any:
             img = nib.load(str(path))
             affine = np.asarray(img.affine)
             if not np.allclose(affine[:3, :3], np.diag(np.diag(affine[:3, :3]))) or (np.diag(affine)[:3] <= 0).any():
-                raise BBPlanError(f"surface {source!r}: the volume's axes must be the object frame's x, y, z (a diagonal, "
-                                  "positive affine, as orbitct writes it)")
+                raise BBPlanError(
+                    f"surface {source!r}: the volume's axes must be the object frame's x, y, z (a diagonal, "
+                    "positive affine, as orbitct writes it)"
+                )
             volume = np.transpose(np.asarray(img.dataobj, dtype=np.float32), (2, 1, 0))
             voxel, origin = tuple(np.diag(affine)[:3]), tuple(affine[:3, 3])
         elif name.endswith((".h5", ".hdf5")) and recon:
@@ -232,17 +291,26 @@ def load_surface(source: str, threshold_per_mm: float | None = None) -> Any:
                 raise BBPlanError(f"surface {source!r}: {exc}") from None
             voxel, origin = tuple(attrs["voxel_mm"]), tuple(attrs["origin_mm"])
         else:
-            raise BBPlanError(f"surface {source!r}: expected a mesh ({', '.join(MESH_SUFFIXES)}), a NIfTI volume "
-                              "(.nii, .nii.gz) or SCAN.h5#RECONSTRUCTION")
-        return outline_from_volume(volume, voxel, origin, threshold_per_mm, f"{path.name}{'#' + recon if recon else ''}")
+            raise BBPlanError(
+                f"surface {source!r}: expected a mesh ({', '.join(MESH_SUFFIXES)}), a NIfTI volume "
+                "(.nii, .nii.gz) or SCAN.h5#RECONSTRUCTION"
+            )
+        return outline_from_volume(
+            volume, voxel, origin, threshold_per_mm, f"{path.name}{'#' + recon if recon else ''}"
+        )
     except BBPlanError:
         raise
     except ValueError as exc:
         raise BBPlanError(f"surface {source!r}: {exc}") from None
 
 
-def outline_from_volume(volume: np.ndarray, voxel_mm: tuple[float, ...], origin_mm: tuple[float, ...],
-                        threshold_per_mm: float | None, source: str) -> Any:
+def outline_from_volume(
+    volume: np.ndarray,
+    voxel_mm: tuple[float, ...],
+    origin_mm: tuple[float, ...],
+    threshold_per_mm: float | None,
+    source: str,
+) -> Any:
     """The outer surface of the voxels of a prior volume (nz, ny, nx; 1/mm) above ``threshold_per_mm`` (default:
     Otsu's threshold); BBPlanError when nothing is above it."""
     from calib.surfaces import Outline
@@ -288,7 +356,9 @@ def read_bb_plan(path: Path) -> tuple[str | None, np.ndarray, float]:
     try:
         body = json.loads(Path(path).read_text())
     except (OSError, UnicodeDecodeError) as exc:
-        raise BBPlanError(f"{path}: cannot read it ({exc.strerror if isinstance(exc, OSError) else 'not text'})") from None
+        raise BBPlanError(
+            f"{path}: cannot read it ({exc.strerror if isinstance(exc, OSError) else 'not text'})"
+        ) from None
     except ValueError as exc:
         raise BBPlanError(f"{path}: not JSON ({exc}); {why}") from None
     if not isinstance(body, dict) or not isinstance(body.get("bbs"), list):
@@ -301,20 +371,27 @@ def read_bb_plan(path: Path) -> tuple[str | None, np.ndarray, float]:
     xyz = np.empty((len(body["bbs"]), 3))
     for k, bb in enumerate(body["bbs"]):
         v = bb.get("xyz_mm") if isinstance(bb, dict) else None
-        if (not isinstance(v, list) or len(v) != 3
-                or not all(isinstance(c, int | float) and not isinstance(c, bool) for c in v)):
+        if (
+            not isinstance(v, list)
+            or len(v) != 3
+            or not all(isinstance(c, int | float) and not isinstance(c, bool) for c in v)
+        ):
             raise BBPlanError(f"{path}: BB {k + 1} needs xyz_mm as three numbers (mm), got {v!r}")
         xyz[k] = v
     reach = np.where(np.isfinite(xyz).all(1), np.linalg.norm(xyz, axis=1), np.inf)
     far = np.flatnonzero(reach > PLAN_REACH_MM)
     if far.size:
-        raise BBPlanError(f"{path}: BB {far[0] + 1} at {xyz[far[0]].tolist()} mm is not within {PLAN_REACH_MM:g} mm of "
-                          "the isocentre (finite numbers, in mm)")
+        raise BBPlanError(
+            f"{path}: BB {far[0] + 1} at {xyz[far[0]].tolist()} mm is not within {PLAN_REACH_MM:g} mm of "
+            "the isocentre (finite numbers, in mm)"
+        )
     gap = np.linalg.norm(xyz[:, None] - xyz[None], axis=-1) + np.diag(np.full(len(xyz), np.inf))
     if (gap < d).any():
         i, j = np.unravel_index(np.argmin(gap), gap.shape)
-        raise BBPlanError(f"{path}: BBs {min(i, j) + 1} and {max(i, j) + 1} are {gap[i, j]:.1f} mm apart: BBs of {d:g} mm "
-                          "cannot overlap")
+        raise BBPlanError(
+            f"{path}: BBs {min(i, j) + 1} and {max(i, j) + 1} are {gap[i, j]:.1f} mm apart: BBs of {d:g} mm "
+            "cannot overlap"
+        )
     experiment = body.get("experiment")
     return (str(experiment) if experiment is not None else None), xyz, float(d)
 
@@ -323,25 +400,34 @@ def plan_lines(plan: BBPlan) -> list[str]:
     """The plan as a person reads it at the table: the BBs, then the prediction beside a hand-made spiral's and the
     experiment's own."""
     b = plan.body
-    lines = [f"{b['experiment']}, orbit {b['orbit']} ({b['views']} views), {len(b['bbs'])} BBs of {b['bb_diameter_mm']:g} "
-             f"mm, centroid noise {b['noise_px']:g} px, motion errors {b['motion_errors']['profile']}"]
+    lines = [
+        f"{b['experiment']}, orbit {b['orbit']} ({b['views']} views), {len(b['bbs'])} BBs of {b['bb_diameter_mm']:g} "
+        f"mm, centroid noise {b['noise_px']:g} px, motion errors {b['motion_errors']['profile']}"
+    ]
     if "count_suggestion" in b:
         c = b["count_suggestion"]
-        lines.append(f"  fewest BBs for {c['target_px']:g} px in every view: {c['n_bbs'] if c['n_bbs'] else 'not reached'} "
-                     f"(worst view by count: " + ", ".join(f"{n}: {s['predicted_px_max']:.3f}" for n, s in c["tried"].items())
-                     + ")")
+        lines.append(
+            f"  fewest BBs for {c['target_px']:g} px in every view: {c['n_bbs'] if c['n_bbs'] else 'not reached'} "
+            f"(worst view by count: "
+            + ", ".join(f"{n}: {s['predicted_px_max']:.3f}" for n, s in c["tried"].items())
+            + ")"
+        )
     lines.append("  BB  angle deg  height mm   x mm    y mm    z mm")
     for bb in b["bbs"]:
         x, y, z = bb["xyz_mm"]
-        lines.append(f"  {bb['number']:>2}  {bb['angle_deg']:9.1f}  {bb['height_mm']:9.1f}  {x:6.1f}  {y:6.1f}  {z:6.1f}")
+        lines.append(
+            f"  {bb['number']:>2}  {bb['angle_deg']:9.1f}  {bb['height_mm']:9.1f}  {x:6.1f}  {y:6.1f}  {z:6.1f}"
+        )
     compared = [("planned", b["predicted"], len(b["bbs"]))]
     if b.get("hand_spiral"):
         compared.append(("a hand-made spiral", b["hand_spiral"]["predicted"], b["hand_spiral"]["bbs"]))
     compared.append(("the experiment's own", b["experiment_placement"]["predicted"], b["experiment_placement"]["bbs"]))
     for name, s, n in compared:
-        lines.append(f"  {name} ({n} BBs): predicted error median {s['predicted_px_median']:.3f} px, worst "
-                     f"{s['predicted_px_max']:.3f} px; usable BBs per view at least {s['bbs_min']}, median "
-                     f"{s['bbs_median']:g}; {s['under_determined']} view(s) under-determined")
+        lines.append(
+            f"  {name} ({n} BBs): predicted error median {s['predicted_px_median']:.3f} px, worst "
+            f"{s['predicted_px_max']:.3f} px; usable BBs per view at least {s['bbs_min']}, median "
+            f"{s['bbs_median']:g}; {s['under_determined']} view(s) under-determined"
+        )
     return lines
 
 
@@ -363,14 +449,27 @@ def _picture(path: Path, plan: BBPlan) -> None:
         a0, a1 = zone["angle_from_deg"], zone["angle_to_deg"]
         spans = [(a0, a1)] if a1 > a0 else [(a0, 360.0), (0.0, a1)]
         for lo, hi in spans:
-            ax0.add_patch(Rectangle((lo, zone["z_min_mm"]), hi - lo, zone["z_max_mm"] - zone["z_min_mm"],
-                                    color="grey", alpha=0.3, label=None))
+            ax0.add_patch(
+                Rectangle(
+                    (lo, zone["z_min_mm"]),
+                    hi - lo,
+                    zone["z_max_mm"] - zone["z_min_mm"],
+                    color="grey",
+                    alpha=0.3,
+                    label=None,
+                )
+            )
     polar_deg = [bb["angle_deg"] for bb in plan.body["bbs"]]
     ax0.scatter(polar_deg, placed.z_mm, s=60, c="tab:red")
     for k, (a, z) in enumerate(zip(polar_deg, placed.z_mm, strict=True)):
         ax0.annotate(str(k + 1), (a, z), textcoords="offset points", xytext=(5, 5))
-    ax0.set(xlim=(0, 360), ylim=(surface.z_min_mm - 5, surface.z_max_mm + 5), xlabel="angle on the object (deg, from +x)",
-            ylabel="height (mm)", title="unrolled" + (" (grey: keep out)" if plan.body["keep_out"] else ""))
+    ax0.set(
+        xlim=(0, 360),
+        ylim=(surface.z_min_mm - 5, surface.z_max_mm + 5),
+        xlabel="angle on the object (deg, from +x)",
+        ylabel="height (mm)",
+        title="unrolled" + (" (grey: keep out)" if plan.body["keep_out"] else ""),
+    )
     ax0.xaxis.set_major_locator(plt.MultipleLocator(45))
     ax0.grid(alpha=0.3)
     views = np.arange(placed.prediction.n_bbs.size)
@@ -389,8 +488,10 @@ def _picture(path: Path, plan: BBPlan) -> None:
         ax1b.set_yticks(np.arange(lo, hi + 1, max(1, -(-(hi - lo) // 6))))
     ax1.legend(loc="upper left", fontsize=8)
     b = plan.body
-    fig.suptitle(f"experiment {b['experiment']}: {len(b['bbs'])} BBs of {b['bb_diameter_mm']:g} mm, orbit {b['orbit']} "
-                 f"({b['views']} views)")
+    fig.suptitle(
+        f"experiment {b['experiment']}: {len(b['bbs'])} BBs of {b['bb_diameter_mm']:g} mm, orbit {b['orbit']} "
+        f"({b['views']} views)"
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -412,7 +513,9 @@ def _object_3d(ax: Any, surface: Any, xyz: np.ndarray, keep_out: list[dict[str, 
         z0, z1 = max(zone["z_min_mm"], z_lo), min(zone["z_max_mm"], z_hi)
         side = np.linspace(z0, z1, 20)
         edges = [(address_angle(surface, arc, z), np.full(arc.size, z)) for z in (z0, z1)]
-        edges += [(np.array([address_angle(surface, np.array([a]), z)[0] for z in side]), side) for a in (a0, a0 + span)]
+        edges += [
+            (np.array([address_angle(surface, np.array([a]), z)[0] for z in side]), side) for a in (a0, a0 + span)
+        ]
         for a, z in edges:
             ax.plot(*surface.points(a, z, 0.0).T, color="black", lw=1.2, alpha=0.6)
     turn = np.radians(np.arange(0.0, 361.0, 4.0))
@@ -437,8 +540,12 @@ def _object_3d(ax: Any, surface: Any, xyz: np.ndarray, keep_out: list[dict[str, 
     ax.text(reach, 0, z_lo, "+x (0 deg)", color="tab:blue", fontsize=8)
     ax.quiver(0, 0, z_hi, 0, 0, 0.3 * (z_hi - z_lo), color="tab:blue", arrow_length_ratio=0.2)
     ax.text(0, 0, z_hi + 0.35 * (z_hi - z_lo), "+z", color="tab:blue", fontsize=8)
-    ax.set(xlabel="x (mm)", ylabel="y (mm)", zlabel="z (mm)", title="where to tape the BBs"
-           + (" (pale: behind; black: keep out)" if keep_out else " (pale: behind)"))
+    ax.set(
+        xlabel="x (mm)",
+        ylabel="y (mm)",
+        zlabel="z (mm)",
+        title="where to tape the BBs" + (" (pale: behind; black: keep out)" if keep_out else " (pale: behind)"),
+    )
     for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
         axis.set_major_locator(MaxNLocator(4))
     ax.set_box_aspect((1.0, 1.0, max(0.4, (z_hi - z_lo) / (2 * reach / 1.3))))

@@ -35,9 +35,17 @@ class LiveWarningAbort(AcquireError):
 class LiveCalibrationSubscriber:
     """Calibrates the scan being recorded to ``path`` while it runs (see the module's description)."""
 
-    def __init__(self, path: str | Path, diameter_mm: float, *, abort_on: Iterable[str] = (), lost_frames: int = 10,
-                 progress: ProgressCallback | None = None, on_warning: Callable[[LiveWarning], None] | None = None,
-                 **options: Any) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        diameter_mm: float,
+        *,
+        abort_on: Iterable[str] = (),
+        lost_frames: int = 10,
+        progress: ProgressCallback | None = None,
+        on_warning: Callable[[LiveWarning], None] | None = None,
+        **options: Any,
+    ) -> None:
         unknown = sorted(set(abort_on) - set(WARNING_KINDS))
         if unknown:
             raise CalibrationError(f"abort_on: unknown warning kind(s) {unknown}; allowed are {list(WARNING_KINDS)}")
@@ -67,9 +75,16 @@ class LiveCalibrationSubscriber:
 
     def on_start(self, start: ScanStart) -> None:
         """Before the first frame: the plan gives every frame's nominal geometry and kind; starts the worker."""
-        self.live = LiveCalibration(self.path, start.plan.nominal, start.plan.image_key, self.diameter_mm,
-                                    settings=self.settings, progress=self.progress, on_warning=self._warned,
-                                    **self.options)
+        self.live = LiveCalibration(
+            self.path,
+            start.plan.nominal,
+            start.plan.image_key,
+            self.diameter_mm,
+            settings=self.settings,
+            progress=self.progress,
+            on_warning=self._warned,
+            **self.options,
+        )
 
     async def ready(self) -> None:
         """Awaited by the engine before the first frame: returns once the worker follows frames (it starts in a

@@ -32,7 +32,9 @@ class PacsNode:
         """``dicom://AE@host:port``; a one-line error naming what is wrong otherwise."""
         parts = urlsplit(uri)
         if parts.scheme != "dicom" or not parts.username or not parts.hostname or parts.port is None:
-            raise PacsError(f"PACS node {uri!r}: expected dicom://AE_TITLE@host:port (e.g. dicom://ORTHANC@127.0.0.1:4242)")
+            raise PacsError(
+                f"PACS node {uri!r}: expected dicom://AE_TITLE@host:port (e.g. dicom://ORTHANC@127.0.0.1:4242)"
+            )
         if not 1 <= len(parts.username) <= 16:
             raise PacsError(f"PACS node {uri!r}: an AE title has 1 to 16 characters")
         return cls(parts.username, parts.hostname, int(parts.port))
@@ -72,11 +74,22 @@ def send(files: Sequence[Path], node: PacsNode, calling: str = CALLING_AET) -> i
     return len(datasets)
 
 
-RETRIEVED_CLASSES = ("1.2.840.10008.5.1.4.1.1.2", "1.2.840.10008.5.1.4.1.1.2.1",  # CT, Enhanced CT
-                     "1.2.840.10008.5.1.4.1.1.12.1", "1.2.840.10008.5.1.4.1.1.12.1.1",  # XA, Enhanced XA
-                     "1.2.840.10008.5.1.4.1.1.12.2", "1.2.840.10008.5.1.4.1.1.12.2.1")  # XRF, Enhanced XRF
-SERIES_KEYS = ("StudyInstanceUID", "SeriesInstanceUID", "Modality", "SeriesDescription", "PatientID",
-               "NumberOfSeriesRelatedInstances")
+RETRIEVED_CLASSES = (
+    "1.2.840.10008.5.1.4.1.1.2",
+    "1.2.840.10008.5.1.4.1.1.2.1",  # CT, Enhanced CT
+    "1.2.840.10008.5.1.4.1.1.12.1",
+    "1.2.840.10008.5.1.4.1.1.12.1.1",  # XA, Enhanced XA
+    "1.2.840.10008.5.1.4.1.1.12.2",
+    "1.2.840.10008.5.1.4.1.1.12.2.1",
+)  # XRF, Enhanced XRF
+SERIES_KEYS = (
+    "StudyInstanceUID",
+    "SeriesInstanceUID",
+    "Modality",
+    "SeriesDescription",
+    "PatientID",
+    "NumberOfSeriesRelatedInstances",
+)
 
 
 def find_series(node: PacsNode, calling: str = CALLING_AET, **match: str) -> list[dict[str, str]]:
@@ -103,8 +116,14 @@ def find_series(node: PacsNode, calling: str = CALLING_AET, **match: str) -> lis
     return found
 
 
-def get_series(node: PacsNode, study_uid: str, series_uid: str, out_dir: Path, calling: str = CALLING_AET,
-               sop_classes: Sequence[str] = ()) -> list[Path]:
+def get_series(
+    node: PacsNode,
+    study_uid: str,
+    series_uid: str,
+    out_dir: Path,
+    calling: str = CALLING_AET,
+    sop_classes: Sequence[str] = (),
+) -> list[Path]:
     """C-GET one series into ``out_dir`` (the node sends it back on the same association); the files written."""
     from pydicom.dataset import Dataset
     from pynetdicom import build_role, evt
@@ -125,8 +144,13 @@ def get_series(node: PacsNode, study_uid: str, series_uid: str, out_dir: Path, c
     query = Dataset()
     query.QueryRetrieveLevel = "SERIES"
     query.StudyInstanceUID, query.SeriesInstanceUID = study_uid, series_uid
-    assoc = _associate(node, [StudyRootQueryRetrieveInformationModelGet, *classes], calling,
-                       ext_neg=[build_role(c, scp_role=True) for c in classes], evt_handlers=[(evt.EVT_C_STORE, on_store)])
+    assoc = _associate(
+        node,
+        [StudyRootQueryRetrieveInformationModelGet, *classes],
+        calling,
+        ext_neg=[build_role(c, scp_role=True) for c in classes],
+        evt_handlers=[(evt.EVT_C_STORE, on_store)],
+    )
     try:
         for status, _ in assoc.send_c_get(query, StudyRootQueryRetrieveInformationModelGet):
             if status and int(status.Status) not in (0x0000, 0xFF00, 0xB000):

@@ -44,8 +44,9 @@ class ClusterError(ReconError):
     """The cluster cannot be reached, has no workers, or lost the work."""
 
 
-def _fdk_part(path: str, frames: NDArray[np.intp], grid: VolumeGrid, geometry: ViewGeometry,
-              weights: FdkWeights) -> NDArray[np.float32]:
+def _fdk_part(
+    path: str, frames: NDArray[np.intp], grid: VolumeGrid, geometry: ViewGeometry, weights: FdkWeights
+) -> NDArray[np.float32]:
     """On a worker: the back-projection of some views, read from the scan file."""
     with ScanFile(path) as scan:
         return fdk_views(FileLineIntegrals(scan, frames), grid, geometry, weights)
@@ -65,12 +66,15 @@ def _connected_workers(client: Any, timeout_s: float) -> list[str]:
         client.wait_for_workers(1, timeout=timeout_s)
         return sorted(client.scheduler_info()["workers"])
     except Exception as exc:  # noqa: BLE001 - any failure to find a worker is the same answer
-        raise ClusterError(f"no Dask worker joined the scheduler {client.scheduler.address} within "
-                           f"{timeout_s:g} s ({type(exc).__name__})") from None
+        raise ClusterError(
+            f"no Dask worker joined the scheduler {client.scheduler.address} within "
+            f"{timeout_s:g} s ({type(exc).__name__})"
+        ) from None
 
 
-def _sum_on_workers(client: Any, parts: list[Any], what: str, key: str,
-                    done: Callable[[Any], None] | None = None) -> Any:
+def _sum_on_workers(
+    client: Any, parts: list[Any], what: str, key: str, done: Callable[[Any], None] | None = None
+) -> Any:
     """The sum of the results of ``parts``, added pairwise on the workers as they finish; only the sum is fetched.
     ``done(future)`` is called as each part finishes. A part that fails, or a scheduler that goes away, raises
     :class:`ClusterError` naming ``what`` rather than waiting."""
@@ -84,8 +88,10 @@ def _sum_on_workers(client: Any, parts: list[Any], what: str, key: str,
         for f in finished:
             if f.status != "finished":
                 why = f"{type(f.exception()).__name__}: {f.exception()}" if f.status == "error" else f.status
-                raise ClusterError(f"the cluster lost {what} ({why}); the scheduler {client.scheduler.address} "
-                                   "went away or a part failed")
+                raise ClusterError(
+                    f"the cluster lost {what} ({why}); the scheduler {client.scheduler.address} "
+                    "went away or a part failed"
+                )
             pending.remove(f)
             ready.append(f)
             if done is not None and f.key in first:
@@ -100,18 +106,36 @@ def _sum_on_workers(client: Any, parts: list[Any], what: str, key: str,
         raise ClusterError(f"the cluster lost {what}: {type(exc).__name__}: {exc}") from None
 
 
-def fdk_on_cluster(client: Any, path: str | os.PathLike[str], frames: NDArray[np.intp], grid: VolumeGrid,
-                   geometry: ViewGeometry, *, window: str = "ram-lak", progress: ProgressCallback | None = None,
-                   workers_timeout_s: float = 30.0) -> NDArray[np.float32]:
+def fdk_on_cluster(
+    client: Any,
+    path: str | os.PathLike[str],
+    frames: NDArray[np.intp],
+    grid: VolumeGrid,
+    geometry: ViewGeometry,
+    *,
+    window: str = "ram-lak",
+    progress: ProgressCallback | None = None,
+    workers_timeout_s: float = 30.0,
+) -> NDArray[np.float32]:
     """FDK of the projections ``frames`` of the scan at ``path`` (their ``geometry``) on the workers of ``client``."""
     n_workers = len(_connected_workers(client, workers_timeout_s))
     weights = FdkWeights.of(geometry, window)
     n_parts = int(min(frames.size, PARTS_PER_WORKER * n_workers))
     bounds = np.linspace(0, frames.size, n_parts + 1).astype(int)
     key = f"orbitct-fdk-{uuid.uuid4().hex[:8]}"
-    parts = [client.submit(_fdk_part, os.fspath(path), frames[a:b], grid, geometry[a:b], weights.part(slice(a, b)),
-                           key=f"{key}-{i}", pure=False)
-             for i, (a, b) in enumerate(itertools.pairwise(bounds))]
+    parts = [
+        client.submit(
+            _fdk_part,
+            os.fspath(path),
+            frames[a:b],
+            grid,
+            geometry[a:b],
+            weights.part(slice(a, b)),
+            key=f"{key}-{i}",
+            pure=False,
+        )
+        for i, (a, b) in enumerate(itertools.pairwise(bounds))
+    ]
     sizes = dict(zip((p.key for p in parts), np.diff(bounds).tolist(), strict=True))
     count = [0]
 
@@ -130,15 +154,28 @@ class ViewPart:
     Pickled as the recipe, not the data: moved or spilled, it reads its views from the file again.
     """
 
-    def __init__(self, path: str, frames: NDArray[np.intp], offset: int, grid: VolumeGrid, geometry: ViewGeometry,
-                 subsets: int, chunk_views: int = 8) -> None:
+    def __init__(
+        self,
+        path: str,
+        frames: NDArray[np.intp],
+        offset: int,
+        grid: VolumeGrid,
+        geometry: ViewGeometry,
+        subsets: int,
+        chunk_views: int = 8,
+    ) -> None:
         self._recipe = (path, frames, offset, grid, geometry, subsets, chunk_views)
         with ScanFile(path) as scan:
             every = np.arange(frames.size)
             y, w = FileLineIntegrals(scan, frames)[every], FileWeights(scan, frames)[every]
         index = offset + np.arange(frames.size)
-        self.data = ViewsData(projector(grid, geometry), y, w, chunk_views=chunk_views,
-                              subset_views=[np.flatnonzero(index % subsets == m) for m in range(subsets)])
+        self.data = ViewsData(
+            projector(grid, geometry),
+            y,
+            w,
+            chunk_views=chunk_views,
+            subset_views=[np.flatnonzero(index % subsets == m) for m in range(subsets)],
+        )
         self._lock = threading.Lock()  # one projector: one task at a time on it
         self._nbytes = y.nbytes + w.nbytes
 
@@ -184,19 +221,30 @@ def check_pwls_memory(client: Any, n_views: int, geometry: ViewGeometry, grid: V
     limits = [int(info[w].get("memory_limit") or 0) for w in workers]
     tight = [lim for lim in limits if 0 < lim < needed / 0.8]  # Dask pauses a worker at 80 % of its limit
     if tight:
-        raise ClusterError(f"PWLS on the cluster needs about {needed / 2**30:.2f} GiB on each of {len(workers)} "
-                           f"worker(s) ({views} views of {panel.rows} x {panel.cols} pixels and two volumes), more "
-                           f"than 80 % of a worker's memory limit ({min(tight) / 2**30:.2f} GiB); add workers, give them "
-                           "more memory (dask worker --memory-limit), or use a larger voxel size")
+        raise ClusterError(
+            f"PWLS on the cluster needs about {needed / 2**30:.2f} GiB on each of {len(workers)} "
+            f"worker(s) ({views} views of {panel.rows} x {panel.cols} pixels and two volumes), more "
+            f"than 80 % of a worker's memory limit ({min(tight) / 2**30:.2f} GiB); add workers, give them "
+            "more memory (dask worker --memory-limit), or use a larger voxel size"
+        )
 
 
 class ClusterData:
     """The PWLS data term (:class:`recon.pwls.DataTerm`) of a scan's views spread over a cluster's workers, one
     :class:`ViewPart` each. Close it (or use it as a context manager) to free the workers' memory."""
 
-    def __init__(self, client: Any, path: str | os.PathLike[str], frames: NDArray[np.intp], grid: VolumeGrid,
-                 geometry: ViewGeometry, *, subsets: int = 1, chunk_views: int = 8,
-                 workers_timeout_s: float = 30.0) -> None:
+    def __init__(
+        self,
+        client: Any,
+        path: str | os.PathLike[str],
+        frames: NDArray[np.intp],
+        grid: VolumeGrid,
+        geometry: ViewGeometry,
+        *,
+        subsets: int = 1,
+        chunk_views: int = 8,
+        workers_timeout_s: float = 30.0,
+    ) -> None:
         if subsets < 1:
             raise ReconError(f"need subsets >= 1, got {subsets}")
         workers = _connected_workers(client, workers_timeout_s)
@@ -207,10 +255,23 @@ class ClusterData:
         self._calls = 0
         bounds = np.linspace(0, frames.size, int(min(frames.size, len(workers))) + 1).astype(int)
         check_pwls_memory(client, int(frames.size), geometry, grid)
-        self.parts = [client.submit(ViewPart, os.fspath(path), frames[a:b], int(a), grid, geometry[a:b], subsets,
-                                    chunk_views, key=f"{self._key}-part{i}", pure=False, workers=[workers[i]],
-                                    allow_other_workers=True)
-                      for i, (a, b) in enumerate(itertools.pairwise(bounds))]
+        self.parts = [
+            client.submit(
+                ViewPart,
+                os.fspath(path),
+                frames[a:b],
+                int(a),
+                grid,
+                geometry[a:b],
+                subsets,
+                chunk_views,
+                key=f"{self._key}-part{i}",
+                pure=False,
+                workers=[workers[i]],
+                allow_other_workers=True,
+            )
+            for i, (a, b) in enumerate(itertools.pairwise(bounds))
+        ]
         self._bounds = [int(b) for b in bounds]
         self._held: list[set[str]] = [set() for _ in self.parts]  # the workers that held each part when last seen
         self._checked = 0.0
@@ -238,11 +299,15 @@ class ClusterData:
             return
         now_at = [set(holders.get(p.key) or ()) for p in self.parts]
         # lost: none of the workers that held it holds it now (it is being read again, or was, elsewhere)
-        lost = [i for i, (before, now_) in enumerate(zip(self._held, now_at, strict=True)) if before and not before & now_]
+        lost = [
+            i for i, (before, now_) in enumerate(zip(self._held, now_at, strict=True)) if before and not before & now_
+        ]
         self._held = [now_ or before for before, now_ in zip(self._held, now_at, strict=True)]
         if lost:
-            log.warning("a Dask worker holding %s died (killed, or out of memory); those views are read again on a "
-                        "live worker", ", ".join(f"views {self._bounds[i]}-{self._bounds[i + 1] - 1}" for i in lost))
+            log.warning(
+                "a Dask worker holding %s died (killed, or out of memory); those views are read again on a live worker",
+                ", ".join(f"views {self._bounds[i]}-{self._bounds[i + 1] - 1}" for i in lost),
+            )
 
     def gradient(self, xp: NDArray[np.float32], subset: int, out: NDArray[np.float32] | None) -> float:
         """Subset ``subset``'s data term at ``xp`` summed over the parts; its gradient added into ``out``."""
@@ -251,11 +316,14 @@ class ClusterData:
         try:
             x = self.client.scatter(xp, broadcast=True, hash=False, timeout=60)
         except Exception as exc:  # noqa: BLE001 - a scheduler or workers gone: say so rather than wait
-            raise ClusterError(f"the cluster lost {self.what}: cannot send the iterate to the workers "
-                               f"({type(exc).__name__}: {exc})") from None
+            raise ClusterError(
+                f"the cluster lost {self.what}: cannot send the iterate to the workers ({type(exc).__name__}: {exc})"
+            ) from None
         try:
-            parts = [self.client.submit(_part_gradient, p, x, subset, out is not None, key=f"{key}-{i}", pure=False)
-                     for i, p in enumerate(self.parts)]
+            parts = [
+                self.client.submit(_part_gradient, p, x, subset, out is not None, key=f"{key}-{i}", pure=False)
+                for i, p in enumerate(self.parts)
+            ]
             total = _sum_on_workers(self.client, parts, self.what, key)
         finally:
             del x  # the workers may drop the iterate
@@ -278,16 +346,36 @@ class ClusterData:
         self.close()
 
 
-def pwls_on_cluster(client: Any, path: str | os.PathLike[str], frames: NDArray[np.intp], grid: VolumeGrid,
-                    geometry: ViewGeometry, *, x0: NDArray[np.float32] | None = None, subsets: int = 1,
-                    beta: float = DEFAULT_BETA, iterations: int = 50, neighbourhood: int = 1, momentum: bool = False,
-                    progress: ProgressCallback | None = None, workers_timeout_s: float = 30.0) -> PwlsResult:
+def pwls_on_cluster(
+    client: Any,
+    path: str | os.PathLike[str],
+    frames: NDArray[np.intp],
+    grid: VolumeGrid,
+    geometry: ViewGeometry,
+    *,
+    x0: NDArray[np.float32] | None = None,
+    subsets: int = 1,
+    beta: float = DEFAULT_BETA,
+    iterations: int = 50,
+    neighbourhood: int = 1,
+    momentum: bool = False,
+    progress: ProgressCallback | None = None,
+    workers_timeout_s: float = 30.0,
+) -> PwlsResult:
     """PWLS (:func:`recon.pwls.pwls_sps`) of the projections ``frames`` of the scan at ``path`` with the views
     spread over the workers of ``client``; ``x0`` as there (padded: updated in place)."""
-    with ClusterData(client, path, frames, grid, geometry, subsets=subsets,
-                     workers_timeout_s=workers_timeout_s) as data:
-        return pwls_solve(data, beta=beta, iterations=iterations, x0=x0, neighbourhood=neighbourhood,
-                          momentum=momentum, progress=progress)
+    with ClusterData(
+        client, path, frames, grid, geometry, subsets=subsets, workers_timeout_s=workers_timeout_s
+    ) as data:
+        return pwls_solve(
+            data,
+            beta=beta,
+            iterations=iterations,
+            x0=x0,
+            neighbourhood=neighbourhood,
+            momentum=momentum,
+            progress=progress,
+        )
 
 
 __all__ = [

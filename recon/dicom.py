@@ -66,7 +66,9 @@ def _header(ds: Any, info: SeriesInfo, uids: tuple[str, str, str], now: dt.datet
         ds.ImageComments = info.comments[:10240]
 
 
-def export_dicom_ct(volume: NDArray[np.floating], grid: VolumeGrid, out_dir: Path, info: SeriesInfo = SeriesInfo()) -> list[Path]:
+def export_dicom_ct(
+    volume: NDArray[np.floating], grid: VolumeGrid, out_dir: Path, info: SeriesInfo = SeriesInfo()
+) -> list[Path]:
     """Write ``volume`` (nz, ny, nx; 1/mm) on ``grid`` as a CT series into ``out_dir`` (``CT000001.dcm``, ...)."""
     from pydicom.uid import CTImageStorage, generate_uid
 
@@ -106,7 +108,9 @@ def export_dicom_ct(volume: NDArray[np.floating], grid: VolumeGrid, out_dir: Pat
     return paths
 
 
-def export_enhanced_ct(volume: NDArray[np.floating], grid: VolumeGrid, out: Path, info: SeriesInfo = SeriesInfo()) -> Path:
+def export_enhanced_ct(
+    volume: NDArray[np.floating], grid: VolumeGrid, out: Path, info: SeriesInfo = SeriesInfo()
+) -> Path:
     """Write ``volume`` (nz, ny, nx; 1/mm) on ``grid`` as one Enhanced CT object ``out``: one frame per axial slice,
     spacing, orientation and rescale shared, each frame's position in its own functional group."""
     from pydicom.sequence import Sequence
@@ -138,28 +142,65 @@ def export_enhanced_ct(volume: NDArray[np.floating], grid: VolumeGrid, out: Path
     dim_uid = generate_uid()
     ds.DimensionOrganizationSequence = Sequence([sequence_item(DimensionOrganizationUID=dim_uid)])
     ds.DimensionOrganizationType = "3D"
-    ds.DimensionIndexSequence = Sequence([sequence_item(DimensionOrganizationUID=dim_uid, DimensionIndexPointer=0x00200032,
-                                                FunctionalGroupPointer=0x00209113,
-                                                DimensionDescriptionLabel="Image position")])
+    ds.DimensionIndexSequence = Sequence(
+        [
+            sequence_item(
+                DimensionOrganizationUID=dim_uid,
+                DimensionIndexPointer=0x00200032,
+                FunctionalGroupPointer=0x00209113,
+                DimensionDescriptionLabel="Image position",
+            )
+        ]
+    )
     centre = float(np.median(hu)) if hu.size else 0.0
-    ds.SharedFunctionalGroupsSequence = Sequence([sequence_item(
-        PixelMeasuresSequence=Sequence([sequence_item(PixelSpacing=[f"{vy:.6g}", f"{vx:.6g}"], SliceThickness=f"{vz:.6g}",
-                                              SpacingBetweenSlices=f"{vz:.6g}")]),
-        PlaneOrientationSequence=Sequence([sequence_item(ImageOrientationPatient=[1, 0, 0, 0, 1, 0])]),
-        PixelValueTransformationSequence=Sequence([sequence_item(RescaleIntercept=0, RescaleSlope=1, RescaleType="HU")]),
-        FrameVOILUTSequence=Sequence([sequence_item(WindowCenter=f"{centre:.0f}", WindowWidth="2000")]),
-        FrameAnatomySequence=Sequence([sequence_item(FrameLaterality="U", AnatomicRegionSequence=Sequence([sequence_item(**ENTIRE_BODY)]))]),
-        IrradiationEventIdentificationSequence=Sequence([sequence_item(IrradiationEventUID=generate_uid())]),
-        CTImageFrameTypeSequence=Sequence([sequence_item(FrameType=["DERIVED", "PRIMARY", "VOLUME", "NONE"],
-                                                 PixelPresentation="MONOCHROME", VolumetricProperties="VOLUME",
-                                                 VolumeBasedCalculationTechnique="NONE")]),
-    )])
+    ds.SharedFunctionalGroupsSequence = Sequence(
+        [
+            sequence_item(
+                PixelMeasuresSequence=Sequence(
+                    [
+                        sequence_item(
+                            PixelSpacing=[f"{vy:.6g}", f"{vx:.6g}"],
+                            SliceThickness=f"{vz:.6g}",
+                            SpacingBetweenSlices=f"{vz:.6g}",
+                        )
+                    ]
+                ),
+                PlaneOrientationSequence=Sequence([sequence_item(ImageOrientationPatient=[1, 0, 0, 0, 1, 0])]),
+                PixelValueTransformationSequence=Sequence(
+                    [sequence_item(RescaleIntercept=0, RescaleSlope=1, RescaleType="HU")]
+                ),
+                FrameVOILUTSequence=Sequence([sequence_item(WindowCenter=f"{centre:.0f}", WindowWidth="2000")]),
+                FrameAnatomySequence=Sequence(
+                    [
+                        sequence_item(
+                            FrameLaterality="U", AnatomicRegionSequence=Sequence([sequence_item(**ENTIRE_BODY)])
+                        )
+                    ]
+                ),
+                IrradiationEventIdentificationSequence=Sequence([sequence_item(IrradiationEventUID=generate_uid())]),
+                CTImageFrameTypeSequence=Sequence(
+                    [
+                        sequence_item(
+                            FrameType=["DERIVED", "PRIMARY", "VOLUME", "NONE"],
+                            PixelPresentation="MONOCHROME",
+                            VolumetricProperties="VOLUME",
+                            VolumeBasedCalculationTechnique="NONE",
+                        )
+                    ]
+                ),
+            )
+        ]
+    )
     frames = []
     for k in range(hu.shape[0]):
-        frames.append(sequence_item(
-            FrameContentSequence=Sequence([sequence_item(DimensionIndexValues=[k + 1], FrameAcquisitionNumber=1)]),
-            PlanePositionSequence=Sequence([sequence_item(ImagePositionPatient=[f"{x0:.6g}", f"{y0:.6g}", f"{z0 + k * vz:.6g}"])]),
-        ))
+        frames.append(
+            sequence_item(
+                FrameContentSequence=Sequence([sequence_item(DimensionIndexValues=[k + 1], FrameAcquisitionNumber=1)]),
+                PlanePositionSequence=Sequence(
+                    [sequence_item(ImagePositionPatient=[f"{x0:.6g}", f"{y0:.6g}", f"{z0 + k * vz:.6g}"])]
+                ),
+            )
+        )
     ds.PerFrameFunctionalGroupsSequence = Sequence(frames)
     ds.PixelData = np.ascontiguousarray(hu).tobytes()
     out = Path(out)

@@ -40,5 +40,7 @@ class BadFramesError(ReconError):
 
     def __init__(self, path: object, problems: dict[int, str], n_used: int) -> None:
         self.problems = dict(problems)
-        super().__init__(f"{path}: {len(problems)} of the {n_used} frames needed are unusable: "
-                         f"{describe_frame_problems(problems)}; a volume made from them would be wrong, so none is stored")
+        super().__init__(
+            f"{path}: {len(problems)} of the {n_used} frames needed are unusable: "
+            f"{describe_frame_problems(problems)}; a volume made from them would be wrong, so none is stored"
+        )

@@ -26,7 +26,9 @@ def rates() -> tuple[float, float, float]:
     from recon.operator import projector
 
     panel = reference_panel(_PROBE, PANEL_MM / _PROBE)
-    geometry = ViewGeometry.from_carm(np.linspace(0.0, 2 * np.pi, _PROBE_VIEWS, endpoint=False), 0.0, SAD_MM, SDD_MM, panel)
+    geometry = ViewGeometry.from_carm(
+        np.linspace(0.0, 2 * np.pi, _PROBE_VIEWS, endpoint=False), 0.0, SAD_MM, SDD_MM, panel
+    )
     grid = VolumeGrid.centered((_PROBE,) * 3, panel.pitch_col * SAD_MM / SDD_MM)
     A = projector(grid, geometry)
     x = np.ones(grid.shape, np.float32)
@@ -42,12 +44,16 @@ def rates() -> tuple[float, float, float]:
         return min(times)
 
     steps = _PROBE_VIEWS * _PROBE * _PROBE * _PROBE
-    return (best(lambda: A(x)) / steps, best(lambda: A.T(y)) / steps,
-            best(lambda: fdk(y, grid, geometry)) / (_PROBE_VIEWS * _PROBE**3))
+    return (
+        best(lambda: A(x)) / steps,
+        best(lambda: A.T(y)) / steps,
+        best(lambda: fdk(y, grid, geometry)) / (_PROBE_VIEWS * _PROBE**3),
+    )
 
 
-def reconstruction_seconds(algorithm: str, grid: VolumeGrid, n_views: int, rows: int, cols: int,
-                           iterations: int = 0) -> float:
+def reconstruction_seconds(
+    algorithm: str, grid: VolumeGrid, n_views: int, rows: int, cols: int, iterations: int = 0
+) -> float:
     """Estimated wall time of FDK, or of PWLS (its FDK start, the surrogate's set-up, ``iterations`` passes and the
     final cost) on this machine now."""
     forward, back, per_voxel_view = rates()

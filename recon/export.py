@@ -45,8 +45,11 @@ def export_tiff(volume: NDArray[np.float32], grid: VolumeGrid, path: Path) -> Pa
 
     vx, vy, vz = grid.voxel_mm
     tifffile.imwrite(
-        str(path), np.asarray(volume, dtype=np.float32), imagej=True,
-        resolution=(1.0 / vx, 1.0 / vy), metadata={"spacing": vz, "unit": "mm", "axes": "ZYX"},
+        str(path),
+        np.asarray(volume, dtype=np.float32),
+        imagej=True,
+        resolution=(1.0 / vx, 1.0 / vy),
+        metadata={"spacing": vz, "unit": "mm", "axes": "ZYX"},
     )
     return path
 
@@ -73,8 +76,9 @@ def display_window(volume: NDArray[np.float32], metal_mu: float = 0.1) -> tuple[
     return lo, max(hi, lo + 1e-9), note
 
 
-def slice_views(volume: NDArray[np.float32], grid: VolumeGrid,
-                index: dict[str, int] | None = None) -> dict[str, tuple[NDArray[np.float32], tuple[float, ...], str, str]]:
+def slice_views(
+    volume: NDArray[np.float32], grid: VolumeGrid, index: dict[str, int] | None = None
+) -> dict[str, tuple[NDArray[np.float32], tuple[float, ...], str, str]]:
     """Axial, coronal and sagittal slices (the middle ones unless ``index`` says) with extents (mm) and axis labels."""
     nz, ny, nx = volume.shape
     at = {"axial": nz // 2, "coronal": ny // 2, "sagittal": nx // 2, **(index or {})}
@@ -86,14 +90,31 @@ def slice_views(volume: NDArray[np.float32], grid: VolumeGrid,
     }
 
 
-def _draw_slice(ax: Any, img: NDArray[np.float32], extent: tuple[float, ...], window: tuple[float, float],
-                xlabel: str, ylabel: str, title: str) -> None:
+def _draw_slice(
+    ax: Any,
+    img: NDArray[np.float32],
+    extent: tuple[float, ...],
+    window: tuple[float, float],
+    xlabel: str,
+    ylabel: str,
+    title: str,
+) -> None:
     from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
     ax.imshow(img, cmap="gray", vmin=window[0], vmax=window[1], extent=extent, origin="lower", interpolation="nearest")
     bar = _scale_bar_mm(extent[1] - extent[0])
-    ax.add_artist(AnchoredSizeBar(ax.transData, bar, f"{bar:g} mm", "lower right", pad=0.4, color="yellow",
-                                  frameon=False, size_vertical=(extent[3] - extent[2]) / 150))
+    ax.add_artist(
+        AnchoredSizeBar(
+            ax.transData,
+            bar,
+            f"{bar:g} mm",
+            "lower right",
+            pad=0.4,
+            color="yellow",
+            frameon=False,
+            size_vertical=(extent[3] - extent[2]) / 150,
+        )
+    )
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.set_title(title, fontsize=9)
@@ -108,8 +129,9 @@ def _pyplot() -> Any:
     return plt
 
 
-def export_png(volume: NDArray[np.float32], grid: VolumeGrid, stem: Path,
-               window: tuple[float, float] | None = None) -> list[Path]:
+def export_png(
+    volume: NDArray[np.float32], grid: VolumeGrid, stem: Path, window: tuple[float, float] | None = None
+) -> list[Path]:
     """Central axial, coronal and sagittal slices as PNGs with axes in mm and a scale bar."""
     plt = _pyplot()
     lo, hi, note = (*window, "") if window is not None else display_window(volume)
@@ -130,16 +152,18 @@ def slice_png(volume: NDArray[np.float32], grid: VolumeGrid, axis: str, index: i
     lo, hi, note = display_window(volume)
     img, extent, xl, yl = slice_views(volume, grid, {axis: index})[axis]
     fig, ax = plt.subplots(figsize=(5, 5 * (extent[3] - extent[2]) / max(extent[1] - extent[0], 1e-9) + 0.5))
-    _draw_slice(ax, img, extent, (lo, hi), xl, yl,
-                f"{title}{axis} slice {index} (1/mm, window {lo:.3g}..{hi:.3g}{note})")
+    _draw_slice(
+        ax, img, extent, (lo, hi), xl, yl, f"{title}{axis} slice {index} (1/mm, window {lo:.3g}..{hi:.3g}{note})"
+    )
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
     plt.close(fig)
     return buf.getvalue()
 
 
-def export_comparison(volumes: Sequence[tuple[str, NDArray[np.float32]]], grid: VolumeGrid, path: Path,
-                      title: str) -> Path:
+def export_comparison(
+    volumes: Sequence[tuple[str, NDArray[np.float32]]], grid: VolumeGrid, path: Path, title: str
+) -> Path:
     """One figure, a row per volume (e.g. calibrated and nominal geometry), central slices in one shared grey
     window (that of the first volume), each row titled with its label, the figure with ``title``."""
     plt = _pyplot()
@@ -239,16 +263,26 @@ def rtk_parameters(geometry: ViewGeometry) -> tuple[list[dict[str, float]], dict
         R = np.stack([rx, ry, rz])
         s, d = R @ S, R @ D
         g, oop, ip = _rtk_euler(R)
-        params.append({
-            "GantryAngle": g, "OutOfPlaneAngle": oop, "InPlaneAngle": ip,
-            "SourceToIsocenterDistance": float(s[2]), "SourceToDetectorDistance": float(s[2] - d[2]),
-            "SourceOffsetX": float(s[0]), "SourceOffsetY": float(s[1]),
-            "ProjectionOffsetX": float(d[0]), "ProjectionOffsetY": float(d[1]),
-        })
+        params.append(
+            {
+                "GantryAngle": g,
+                "OutOfPlaneAngle": oop,
+                "InPlaneAngle": ip,
+                "SourceToIsocenterDistance": float(s[2]),
+                "SourceToDetectorDistance": float(s[2] - d[2]),
+                "SourceOffsetX": float(s[0]),
+                "SourceOffsetY": float(s[1]),
+                "ProjectionOffsetX": float(d[0]),
+                "ProjectionOffsetY": float(d[1]),
+            }
+        )
     c0, r0 = det.center
     layout = {
-        "size": (det.cols, det.rows), "spacing": (det.pitch_col, det.pitch_row),
-        "origin": (-c0 * det.pitch_col, -r0 * det.pitch_row), "rows_flipped": True, "max_skew": max_skew,
+        "size": (det.cols, det.rows),
+        "spacing": (det.pitch_col, det.pitch_row),
+        "origin": (-c0 * det.pitch_col, -r0 * det.pitch_row),
+        "rows_flipped": True,
+        "max_skew": max_skew,
         "rtk_from_object": Q.tolist(),
     }
     return params, layout
@@ -273,18 +307,48 @@ def write_rtk_geometry(geometry: ViewGeometry, path: Path) -> dict[str, Any]:
 def read_rtk_geometry(path: Path, detector: Panel) -> ViewGeometry:
     """Our views from an RTK XML file written by :func:`write_rtk_geometry` (same detector layout)."""
     root = ET.parse(str(path)).getroot()
-    keys = ("GantryAngle", "OutOfPlaneAngle", "InPlaneAngle", "SourceToIsocenterDistance", "SourceToDetectorDistance",
-            "SourceOffsetX", "SourceOffsetY", "ProjectionOffsetX", "ProjectionOffsetY")
+    keys = (
+        "GantryAngle",
+        "OutOfPlaneAngle",
+        "InPlaneAngle",
+        "SourceToIsocenterDistance",
+        "SourceToDetectorDistance",
+        "SourceOffsetX",
+        "SourceOffsetY",
+        "ProjectionOffsetX",
+        "ProjectionOffsetY",
+    )
     glob = {k: float(root.findtext(k)) for k in keys if root.find(k) is not None}
     rows = []
     for proj in root.findall("Projection"):
-        p = {"OutOfPlaneAngle": 0.0, "InPlaneAngle": 0.0, "SourceOffsetX": 0.0, "SourceOffsetY": 0.0,
-             "ProjectionOffsetX": 0.0, "ProjectionOffsetY": 0.0, **glob}
+        p = {
+            "OutOfPlaneAngle": 0.0,
+            "InPlaneAngle": 0.0,
+            "SourceOffsetX": 0.0,
+            "SourceOffsetY": 0.0,
+            "ProjectionOffsetX": 0.0,
+            "ProjectionOffsetY": 0.0,
+            **glob,
+        }
         p.update({k: float(proj.findtext(k)) for k in keys if proj.find(k) is not None})
         R = _rtk_rotation(p["GantryAngle"], p["OutOfPlaneAngle"], p["InPlaneAngle"])
         s = np.array([p["SourceOffsetX"], p["SourceOffsetY"], p["SourceToIsocenterDistance"]])
-        d = np.array([p["ProjectionOffsetX"], p["ProjectionOffsetY"], p["SourceToIsocenterDistance"] - p["SourceToDetectorDistance"]])
+        d = np.array(
+            [
+                p["ProjectionOffsetX"],
+                p["ProjectionOffsetY"],
+                p["SourceToIsocenterDistance"] - p["SourceToDetectorDistance"],
+            ]
+        )
         back = RTK_FROM_OBJECT.T @ R.T
-        rows.append(np.concatenate([back @ s, back @ d, back @ np.array([detector.pitch_col, 0, 0]),
-                                    back @ np.array([0, -detector.pitch_row, 0])]))
+        rows.append(
+            np.concatenate(
+                [
+                    back @ s,
+                    back @ d,
+                    back @ np.array([detector.pitch_col, 0, 0]),
+                    back @ np.array([0, -detector.pitch_row, 0]),
+                ]
+            )
+        )
     return ViewGeometry(np.array(rows), detector)

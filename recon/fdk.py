@@ -60,7 +60,9 @@ def fan_angles(geometry: ViewGeometry, center: NDArray[np.float64]) -> NDArray[n
     return np.arctan2(cross, dot)
 
 
-def redundancy_weights(geometry: ViewGeometry, short_scan: str = "auto") -> tuple[NDArray[np.float64], NDArray[np.float64] | None, str]:
+def redundancy_weights(
+    geometry: ViewGeometry, short_scan: str = "auto"
+) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, str]:
     """Per-view angular weights, optional Parker weights per (view, column), and the scheme used.
 
     Views are weighted by their azimuth increment about the rotation axis so that the
@@ -100,8 +102,13 @@ def redundancy_weights(geometry: ViewGeometry, short_scan: str = "auto") -> tupl
     return dbeta, w, "parker"
 
 
-def filter_views(proj: NDArray[np.float32], geometry: ViewGeometry, H: NDArray[np.float64],
-                 parker: NDArray[np.float64] | None, out: NDArray[np.float32]) -> None:
+def filter_views(
+    proj: NDArray[np.float32],
+    geometry: ViewGeometry,
+    H: NDArray[np.float64],
+    parker: NDArray[np.float64] | None,
+    out: NDArray[np.float32],
+) -> None:
     """Cosine-weight and ramp-filter ``proj`` row by row into the interior of the padded ``out``."""
     det = geometry.panel
     c0, r0 = det.center
@@ -113,8 +120,14 @@ def filter_views(proj: NDArray[np.float32], geometry: ViewGeometry, H: NDArray[n
     for n in range(geometry.n_views):
         # |pixel - source|^2 is a quadratic form in (col, row): no (rows, cols, 3) temporaries
         d, u, v = geometry.D[n] - geometry.S[n], geometry.u[n], geometry.v[n]
-        dist2 = (d @ d + 2 * (d @ u) * cc[None, :] + 2 * (d @ v) * rr[:, None] + (u @ u) * cc[None, :] ** 2
-                 + (v @ v) * rr[:, None] ** 2 + 2 * (u @ v) * cc[None, :] * rr[:, None])
+        dist2 = (
+            d @ d
+            + 2 * (d @ u) * cc[None, :]
+            + 2 * (d @ v) * rr[:, None]
+            + (u @ u) * cc[None, :] ** 2
+            + (v @ v) * rr[:, None] ** 2
+            + 2 * (u @ v) * cc[None, :] * rr[:, None]
+        )
         g = np.asarray(proj[n], dtype=np.float32) * (geometry.sdd[n] / np.sqrt(dist2)).astype(np.float32)
         if parker is not None:
             g *= parker[n][None, :].astype(np.float32)
@@ -146,9 +159,17 @@ class FdkWeights:
         return FdkWeights(self.H, self.weights[views], None if self.parker is None else self.parker[views])
 
 
-def fdk(projections: NDArray[np.float32] | ProjectionStack, grid: VolumeGrid, geometry: ViewGeometry, *,
-        window: str = "ram-lak", short_scan: str = "auto", chunk: int = 8,
-        out: NDArray[np.float32] | None = None, progress: ProgressCallback | None = None) -> NDArray[np.float32]:
+def fdk(
+    projections: NDArray[np.float32] | ProjectionStack,
+    grid: VolumeGrid,
+    geometry: ViewGeometry,
+    *,
+    window: str = "ram-lak",
+    short_scan: str = "auto",
+    chunk: int = 8,
+    out: NDArray[np.float32] | None = None,
+    progress: ProgressCallback | None = None,
+) -> NDArray[np.float32]:
     """FDK volume (1/mm) from line integrals ``(views, rows, cols)`` of ``geometry`` (exact for circles).
 
     ``out`` (float32, the grid's shape, may be a view such as a padded volume's interior)
@@ -158,13 +179,27 @@ def fdk(projections: NDArray[np.float32] | ProjectionStack, grid: VolumeGrid, ge
     n = geometry.n_views
     if tuple(projections.shape) != (n, det.rows, det.cols):
         raise ReconError(f"projections: expected shape {(n, det.rows, det.cols)}, got {tuple(projections.shape)}")
-    return fdk_views(projections, grid, geometry, FdkWeights.of(geometry, window, short_scan), chunk=chunk, out=out,
-                     progress=progress)
+    return fdk_views(
+        projections,
+        grid,
+        geometry,
+        FdkWeights.of(geometry, window, short_scan),
+        chunk=chunk,
+        out=out,
+        progress=progress,
+    )
 
 
-def fdk_views(projections: NDArray[np.float32] | ProjectionStack, grid: VolumeGrid, geometry: ViewGeometry,
-              weights: FdkWeights, *, chunk: int = 8, out: NDArray[np.float32] | None = None,
-              progress: ProgressCallback | None = None) -> NDArray[np.float32]:
+def fdk_views(
+    projections: NDArray[np.float32] | ProjectionStack,
+    grid: VolumeGrid,
+    geometry: ViewGeometry,
+    weights: FdkWeights,
+    *,
+    chunk: int = 8,
+    out: NDArray[np.float32] | None = None,
+    progress: ProgressCallback | None = None,
+) -> NDArray[np.float32]:
     """The back-projection of some views (their ``geometry``, ``weights`` and line integrals); FDK is its sum
     over all views."""
     det = geometry.panel
@@ -185,4 +220,3 @@ def fdk_views(projections: NDArray[np.float32] | ProjectionStack, grid: VolumeGr
         backproject_padded(part, grid, g, weights.weights[i0:i1], vol)
         report(progress, "fdk", i1, n, "views")
     return vol
-

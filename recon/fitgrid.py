@@ -34,8 +34,15 @@ def _otsu(values: NDArray[np.float32], bins: int = 256) -> float:
     return float(centres[int(np.argmax(w0 * w1 * (mean0 - mean1) ** 2))])
 
 
-def object_grid(stack: Any, geometry: ViewGeometry, fov: VolumeGrid, *, margin_mm: float = OBJECT_MARGIN_MM,
-                min_part: float = 0.05, chunk: int = 16) -> tuple[VolumeGrid, str]:
+def object_grid(
+    stack: Any,
+    geometry: ViewGeometry,
+    fov: VolumeGrid,
+    *,
+    margin_mm: float = OBJECT_MARGIN_MM,
+    min_part: float = 0.05,
+    chunk: int = 16,
+) -> tuple[VolumeGrid, str]:
     """The part of the field-of-view grid ``fov`` that holds the object (same voxel size), and a line saying so.
 
     A coarse FDK (panel binned to about COARSE_PX pixels, voxels as coarse), inside the cylinder every view sees,
@@ -51,8 +58,8 @@ def object_grid(stack: Any, geometry: ViewGeometry, fov: VolumeGrid, *, margin_m
     n = stack.shape[0]
     binned = np.empty((n, rows, cols), np.float32)
     for i in range(0, n, chunk):
-        part = np.asarray(stack[i:i + chunk], dtype=np.float32)
-        binned[i:i + part.shape[0]] = part.reshape(part.shape[0], rows, b, cols, b).mean(axis=(2, 4))
+        part = np.asarray(stack[i : i + chunk], dtype=np.float32)
+        binned[i : i + part.shape[0]] = part.reshape(part.shape[0], rows, b, cols, b).mean(axis=(2, 4))
     voxel = fov.voxel_mm[0]
     coarse_voxel = voxel * b
     ext = fov.extent_mm  # rows x, y, z: (low, high)
@@ -62,8 +69,11 @@ def object_grid(stack: Any, geometry: ViewGeometry, fov: VolumeGrid, *, margin_m
     z, y, x = coarse.coords_mm()
     radius, height, center = fov_radius_height(geometry)
     # only the cylinder every view sees: outside it a reconstruction is streaks, not object
-    seen = (((x[None, None, :] - center[0]) ** 2 + (y[None, :, None] - center[1]) ** 2 <= (radius - coarse_voxel) ** 2)
-            & (np.abs(z[:, None, None] - center[2]) <= 0.5 * height - coarse_voxel) & np.isfinite(volume))
+    seen = (
+        ((x[None, None, :] - center[0]) ** 2 + (y[None, :, None] - center[1]) ** 2 <= (radius - coarse_voxel) ** 2)
+        & (np.abs(z[:, None, None] - center[2]) <= 0.5 * height - coarse_voxel)
+        & np.isfinite(volume)
+    )
     keep_all = (fov, f"the whole field of view ({_describe(fov)}): no object stands out in a coarse reconstruction")
     if seen.sum() < 64:
         return keep_all
@@ -78,15 +88,21 @@ def object_grid(stack: Any, geometry: ViewGeometry, fov: VolumeGrid, *, margin_m
     lo = np.array([x[idx[0][0]], y[idx[1][0]], z[idx[2][0]]]) - pad
     hi = np.array([x[idx[0][-1]], y[idx[1][-1]], z[idx[2][-1]]]) + pad
     lo, hi = np.maximum(lo, ext[:, 0]), np.minimum(hi, ext[:, 1])
-    shape = tuple(max(4, min(int(np.ceil((hi[k] - lo[k]) / voxel)), s)) for k, s in zip((2, 1, 0), fov.shape, strict=True))
+    shape = tuple(
+        max(4, min(int(np.ceil((hi[k] - lo[k]) / voxel)), s)) for k, s in zip((2, 1, 0), fov.shape, strict=True)
+    )
     grid = VolumeGrid.centered(shape, voxel, tuple(float(c) for c in 0.5 * (lo + hi)))
     share = 100.0 * np.prod(grid.shape) / np.prod(fov.shape)
-    return grid, (f"fitted to the object: {_describe(grid)}, {share:.0f} % of the field of view's voxels (from a coarse "
-                  f"reconstruction at {coarse_voxel:.1f} mm; --grid fov for the whole field of view, --shape for your own)")
+    return grid, (
+        f"fitted to the object: {_describe(grid)}, {share:.0f} % of the field of view's voxels (from a coarse "
+        f"reconstruction at {coarse_voxel:.1f} mm; --grid fov for the whole field of view, --shape for your own)"
+    )
 
 
 def _describe(grid: VolumeGrid) -> str:
     ext = grid.extent_mm
     nz, ny, nx = grid.shape
-    return (f"{nz}x{ny}x{nx} voxels of {grid.voxel_mm[0]:g} mm, x {ext[0, 0]:.0f}..{ext[0, 1]:.0f}, "
-            f"y {ext[1, 0]:.0f}..{ext[1, 1]:.0f}, z {ext[2, 0]:.0f}..{ext[2, 1]:.0f} mm")
+    return (
+        f"{nz}x{ny}x{nx} voxels of {grid.voxel_mm[0]:g} mm, x {ext[0, 0]:.0f}..{ext[0, 1]:.0f}, "
+        f"y {ext[1, 0]:.0f}..{ext[1, 1]:.0f}, z {ext[2, 0]:.0f}..{ext[2, 1]:.0f} mm"
+    )

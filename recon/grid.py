@@ -32,9 +32,13 @@ def fov_radius_height(geometry: ViewGeometry) -> tuple[float, float, tuple[float
     return radius, height, (float(center[0]), float(center[1]), float(center[2]))
 
 
-def grid_for_geometry(geometry: ViewGeometry, *, voxel_mm: float | None = None,
-                      shape: tuple[int, int, int] | None = None,
-                      center_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> VolumeGrid:
+def grid_for_geometry(
+    geometry: ViewGeometry,
+    *,
+    voxel_mm: float | None = None,
+    shape: tuple[int, int, int] | None = None,
+    center_mm: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> VolumeGrid:
     """A grid centred on ``center_mm`` (default the nominal isocenter) covering the views' common field of view."""
     radius, height, _ = fov_radius_height(geometry)
     if voxel_mm is None and shape is None:
@@ -63,14 +67,19 @@ def check_fov(grid: VolumeGrid, geometry: ViewGeometry, min_fraction: float = 0.
         raise FieldOfViewError("the geometry has no valid (finite) views")
     uv, w = g.project_with_depth(pts)
     det = g.panel
-    inside = (w > 0) & (uv[..., 0] > -0.5) & (uv[..., 0] < det.cols - 0.5) & (uv[..., 1] > -0.5) & (uv[..., 1] < det.rows - 0.5)
+    inside = (
+        (w > 0)
+        & (uv[..., 0] > -0.5)
+        & (uv[..., 0] < det.cols - 0.5)
+        & (uv[..., 1] > -0.5)
+        & (uv[..., 1] < det.rows - 0.5)
+    )
     frac = float((inside.mean(axis=0) >= 0.9).mean())  # samples seen by at least 90 % of the views
     if frac < min_fraction:
         ext = grid.extent_mm
         raise FieldOfViewError(
-            f"the volume grid (x {ext[0,0]:.1f}..{ext[0,1]:.1f}, y {ext[1,0]:.1f}..{ext[1,1]:.1f}, "
-            f"z {ext[2,0]:.1f}..{ext[2,1]:.1f} mm) misses the field of view: only {100*frac:.1f}% of its "
-            f"samples are seen by 90% of the views (need >= {100*min_fraction:.0f}%); move or shrink the grid"
+            f"the volume grid (x {ext[0, 0]:.1f}..{ext[0, 1]:.1f}, y {ext[1, 0]:.1f}..{ext[1, 1]:.1f}, "
+            f"z {ext[2, 0]:.1f}..{ext[2, 1]:.1f} mm) misses the field of view: only {100 * frac:.1f}% of its "
+            f"samples are seen by 90% of the views (need >= {100 * min_fraction:.0f}%); move or shrink the grid"
         )
     return frac
-

@@ -21,7 +21,9 @@ def metal_in_volume(volume: NDArray[np.float32], metal_mu: float, dilate: int = 
     return mask
 
 
-def traces_by_threshold(li: NDArray[np.float32], threshold: float, size_px: int = 9, dilate: int = 1) -> NDArray[np.bool_]:
+def traces_by_threshold(
+    li: NDArray[np.float32], threshold: float, size_px: int = 9, dilate: int = 1
+) -> NDArray[np.bool_]:
     """Metal traces: line integrals that exceed their local background (grey opening) by ``threshold``."""
     out = np.zeros(li.shape, dtype=bool)
     for n in range(li.shape[0]):
@@ -69,7 +71,9 @@ def fill_traces(li: NDArray[np.float32], mask: NDArray[np.bool_]) -> NDArray[np.
     return out
 
 
-def add_metal_back(corrected: NDArray[np.float32], first: NDArray[np.float32], metal: NDArray[np.bool_]) -> NDArray[np.float32]:
+def add_metal_back(
+    corrected: NDArray[np.float32], first: NDArray[np.float32], metal: NDArray[np.bool_]
+) -> NDArray[np.float32]:
     """Corrected volume with the first reconstruction's values restored inside the metal voxels."""
     out = corrected.copy()
     out[metal] = np.maximum(first[metal], corrected[metal])
@@ -85,7 +89,9 @@ def tissue_prior(first: NDArray[np.float32], metal: NDArray[np.bool_]) -> NDArra
     return prior
 
 
-def fill_traces_normalized(li: NDArray[np.float32], mask: NDArray[np.bool_], prior_li: NDArray[np.float32]) -> NDArray[np.float32]:
+def fill_traces_normalized(
+    li: NDArray[np.float32], mask: NDArray[np.bool_], prior_li: NDArray[np.float32]
+) -> NDArray[np.float32]:
     """Interpolate in ``li / prior_li`` (normalized MAR) so structures the prior knows survive in the traces."""
     eps = np.float32(max(float(np.percentile(prior_li, 99)) * 1e-3, 1e-6))
     norm = li / (prior_li + eps)

@@ -106,13 +106,17 @@ class Projector:
         out += acc[1:-1, 1:-1, 1:-1]
         return out
 
-    def forward_padded(self, x_padded: NDArray[np.float32], out: NDArray[np.float32], start: int = 0) -> NDArray[np.float32]:
+    def forward_padded(
+        self, x_padded: NDArray[np.float32], out: NDArray[np.float32], start: int = 0
+    ) -> NDArray[np.float32]:
         """Views ``start .. start + len(out)`` of the forward projection of a zero-bordered volume, into ``out``."""
         rays = self._view_rays(start, out, "out")
         joseph_forward(_as_padded(x_padded, self.padded_shape), rays, self._vox, out)
         return out
 
-    def back_padded(self, y: NDArray[np.float32], acc_padded: NDArray[np.float32], start: int = 0) -> NDArray[np.float32]:
+    def back_padded(
+        self, y: NDArray[np.float32], acc_padded: NDArray[np.float32], start: int = 0
+    ) -> NDArray[np.float32]:
         """Add the adjoint of views ``start .. start + len(y)`` into a padded accumulator (its border is scratch)."""
         y = np.ascontiguousarray(y, dtype=np.float32)
         rays = self._view_rays(start, y, "projections")
@@ -185,8 +189,13 @@ def projector(grid: VolumeGrid, geometry: ViewGeometry) -> Projector:
     return Projector(grid, geometry)
 
 
-def backproject_voxels(proj: NDArray[np.float32], grid: VolumeGrid, geometry: ViewGeometry,
-                       weights: NDArray[np.float64], out: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
+def backproject_voxels(
+    proj: NDArray[np.float32],
+    grid: VolumeGrid,
+    geometry: ViewGeometry,
+    weights: NDArray[np.float64],
+    out: NDArray[np.float32] | None = None,
+) -> NDArray[np.float32]:
     """Voxel-driven back-projection with per-view ``weights`` divided by depth squared (FDK)."""
     d = geometry.panel
     proj = _as_f32(proj, (geometry.n_views, d.rows, d.cols), "projections")
@@ -197,8 +206,13 @@ def backproject_voxels(proj: NDArray[np.float32], grid: VolumeGrid, geometry: Vi
     return backproject_padded(padded, grid, geometry, weights, out)
 
 
-def backproject_padded(padded: NDArray[np.float32], grid: VolumeGrid, geometry: ViewGeometry,
-                       weights: NDArray[np.float64], out: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
+def backproject_padded(
+    padded: NDArray[np.float32],
+    grid: VolumeGrid,
+    geometry: ViewGeometry,
+    weights: NDArray[np.float64],
+    out: NDArray[np.float32] | None = None,
+) -> NDArray[np.float32]:
     """:func:`backproject_voxels` for projections that already carry a one-pixel zero border."""
     if out is None:
         out = np.zeros(grid.shape, dtype=np.float32)

@@ -73,8 +73,9 @@ class ReconResult:
         return VolumeGrid(self.volume_shape, self.voxel_mm, self.origin_mm)
 
 
-def estimate_bytes(algorithm: str, grid: VolumeGrid, n_views: int, rows: int, cols: int, mar: bool,
-                   stream: str = "memory") -> int:
+def estimate_bytes(
+    algorithm: str, grid: VolumeGrid, n_views: int, rows: int, cols: int, mar: bool, stream: str = "memory"
+) -> int:
     """Peak working memory (bytes) a reconstruction needs, before anything is allocated.
 
     ``stream`` 'file' is PWLS reading projections and weights from the scan file each iteration;
@@ -100,8 +101,7 @@ def estimate_bytes(algorithm: str, grid: VolumeGrid, n_views: int, rows: int, co
     return int(total * 1.1)
 
 
-def choose_stream(stream: str, algorithm: str, grid: VolumeGrid, n_views: int, rows: int, cols: int,
-                  mar: bool) -> str:
+def choose_stream(stream: str, algorithm: str, grid: VolumeGrid, n_views: int, rows: int, cols: int, mar: bool) -> str:
     """'memory' or 'file' for a PWLS run: 'auto' keeps the projections in memory while they fit in half the free memory."""
     if stream not in STREAM_MODES:
         raise ReconError(f"stream must be one of {STREAM_MODES}, got {stream!r}")
@@ -109,8 +109,10 @@ def choose_stream(stream: str, algorithm: str, grid: VolumeGrid, n_views: int, r
         return "memory"
     if mar:
         if stream == "file":
-            raise ReconError("metal artifact reduction needs the corrected projections in memory; "
-                             "use stream 'auto' or 'memory' with mar")
+            raise ReconError(
+                "metal artifact reduction needs the corrected projections in memory; "
+                "use stream 'auto' or 'memory' with mar"
+            )
         return "memory"
     if stream != "auto":
         return stream
@@ -156,12 +158,16 @@ def _geometry_warnings(scan: ScanFile, geometry: str) -> list[str]:
         reasons = json.loads(str(attrs.get("quality_reasons_json", "[]")))
     except ValueError:
         reasons = []
-    return ["the calibrated geometry failed its quality check" + (f" ({'; '.join(map(str, reasons))})" if reasons else "")
-            + "; the volume inherits those views' errors"]
+    return [
+        "the calibrated geometry failed its quality check"
+        + (f" ({'; '.join(map(str, reasons))})" if reasons else "")
+        + "; the volume inherits those views' errors"
+    ]
 
 
-def _load(scan: ScanFile, frames: NDArray[np.intp], with_weights: bool,
-          progress: ProgressCallback | None) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
+def _load(
+    scan: ScanFile, frames: NDArray[np.intp], with_weights: bool, progress: ProgressCallback | None
+) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
     det = scan.panel
     li = np.empty((frames.size,) + det.shape, np.float32)
     w = np.empty_like(li) if with_weights else None
@@ -175,26 +181,63 @@ def _load(scan: ScanFile, frames: NDArray[np.intp], with_weights: bool,
     return li, w
 
 
-def _pwls(li: Any, w: Any, grid: VolumeGrid, geom: ViewGeometry, window: str, beta: float, iterations: int,
-          neighbourhood: int, subsets: int, progress: ProgressCallback | None,
-          momentum: bool = False) -> tuple[NDArray[np.float32], list[float], float]:
+def _pwls(
+    li: Any,
+    w: Any,
+    grid: VolumeGrid,
+    geom: ViewGeometry,
+    window: str,
+    beta: float,
+    iterations: int,
+    neighbourhood: int,
+    subsets: int,
+    progress: ProgressCallback | None,
+    momentum: bool = False,
+) -> tuple[NDArray[np.float32], list[float], float]:
     """FDK into the interior of a padded volume, then PWLS updating that volume in place."""
     A = projector(grid, geom)
     xp = np.zeros(A.padded_shape, np.float32)
     fdk(li, grid, geom, window=window, out=xp[1:-1, 1:-1, 1:-1], progress=progress)
-    res = pwls_sps(A, li, w, beta=beta, iterations=iterations, x0=xp, neighbourhood=neighbourhood,
-                   subsets=subsets, momentum=momentum, progress=progress)
+    res = pwls_sps(
+        A,
+        li,
+        w,
+        beta=beta,
+        iterations=iterations,
+        x0=xp,
+        neighbourhood=neighbourhood,
+        subsets=subsets,
+        momentum=momentum,
+        progress=progress,
+    )
     return res.volume, res.cost, res.beta_abs
 
 
 def reconstruct_scan(
-    path: str | os.PathLike[str], *, algorithm: str = "pwls", geometry: str = "calibrated",
-    voxel_mm: float | None = None, shape: tuple[int, int, int] | None = None, iterations: int = 50,
-    beta: float = DEFAULT_BETA, mar: bool | str = False, name: str | None = None,
-    export: str | list[str] | None = None, out_dir: str | os.PathLike[str] | None = None,
-    progress: ProgressCallback | None = None, window: str = "hann", subsets: int = 1, neighbourhood: int = 1,
-    metal_mu: float = 0.1, mar_threshold: float = 0.5, stream: str = "auto", overwrite: bool = False,
-    momentum: bool = False, max_seconds: float | None = None, fit: str = "object", grid: VolumeGrid | None = None,
+    path: str | os.PathLike[str],
+    *,
+    algorithm: str = "pwls",
+    geometry: str = "calibrated",
+    voxel_mm: float | None = None,
+    shape: tuple[int, int, int] | None = None,
+    iterations: int = 50,
+    beta: float = DEFAULT_BETA,
+    mar: bool | str = False,
+    name: str | None = None,
+    export: str | list[str] | None = None,
+    out_dir: str | os.PathLike[str] | None = None,
+    progress: ProgressCallback | None = None,
+    window: str = "hann",
+    subsets: int = 1,
+    neighbourhood: int = 1,
+    metal_mu: float = 0.1,
+    mar_threshold: float = 0.5,
+    stream: str = "auto",
+    overwrite: bool = False,
+    momentum: bool = False,
+    max_seconds: float | None = None,
+    fit: str = "object",
+    grid: VolumeGrid | None = None,
     cluster: Any | None = None,
 ) -> ReconResult:
     """Reconstruct ``path`` with FDK or PWLS and store it as ``/recon/<name>`` in the scan file.
@@ -240,11 +283,16 @@ def reconstruct_scan(
         grid = grid if grid is not None else grid_for_geometry(geom, voxel_mm=voxel_mm, shape=shape)
         fov_fraction = check_fov(grid, geom)
         det = geom.panel
-        mode = ("cluster" if cluster is not None and algorithm == "pwls" and not mar_method
-                else choose_stream(stream, algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method)))
-        check_memory(estimate_bytes(algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method), mode),
-                     f"{scan.path}: {algorithm} of {frames.size} views of {det.rows} x {det.cols} pixels onto "
-                     f"{grid.shape} voxels")
+        mode = (
+            "cluster"
+            if cluster is not None and algorithm == "pwls" and not mar_method
+            else choose_stream(stream, algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method))
+        )
+        check_memory(
+            estimate_bytes(algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method), mode),
+            f"{scan.path}: {algorithm} of {frames.size} views of {det.rows} x {det.cols} pixels onto "
+            f"{grid.shape} voxels",
+        )
         needed = np.union1d(frames, np.flatnonzero(np.isin(scan.image_key, (ImageKey.DARK, ImageKey.FLAT))))
         problems = scan.frame_problems(needed)  # after the memory check: it reads every frame it needs
         if problems:
@@ -253,14 +301,17 @@ def reconstruct_scan(
             report(progress, "grid", 0, 1, "finding the object")
             grid, grid_note = object_grid(FileLineIntegrals(scan, frames), geom, grid)
             report(progress, "grid", 1, 1, grid_note)
-        estimated_s = reconstruction_seconds(algorithm, grid, int(frames.size), det.rows, det.cols,
-                                             iterations if algorithm == "pwls" else 0)
+        estimated_s = reconstruction_seconds(
+            algorithm, grid, int(frames.size), det.rows, det.cols, iterations if algorithm == "pwls" else 0
+        )
         if max_seconds is not None and estimated_s > max_seconds:
             raise TooLongError(
                 f"{scan.path}: {algorithm} of {frames.size} views of {det.rows} x {det.cols} pixels onto {grid.shape} "
                 f"voxels of {grid.voxel_mm[0]:g} mm is estimated to take {describe_seconds(estimated_s)} on this "
                 f"machine now, more than the limit of {describe_seconds(max_seconds)}; a larger voxel size, a smaller "
-                "shape or (PWLS) ordered subsets with momentum and fewer iterations are faster", estimated_s)
+                "shape or (PWLS) ordered subsets with momentum and fewer iterations are faster",
+                estimated_s,
+            )
         cost: list[float] = []
         extra: dict[str, Any] = {}
         if not mar_method and cluster is not None:
@@ -271,16 +322,38 @@ def reconstruct_scan(
             vol = fdk_on_cluster(cluster, scan.path, frames, grid, geom, window=window, progress=progress)
             extra.update(cluster_workers=len(cluster.scheduler_info()["workers"]))
             if algorithm == "pwls":
-                res = pwls_on_cluster(cluster, scan.path, frames, grid, geom, x0=pad_volume(vol), subsets=subsets,
-                                      beta=beta, iterations=iterations, neighbourhood=neighbourhood,
-                                      momentum=momentum, progress=progress)
+                res = pwls_on_cluster(
+                    cluster,
+                    scan.path,
+                    frames,
+                    grid,
+                    geom,
+                    x0=pad_volume(vol),
+                    subsets=subsets,
+                    beta=beta,
+                    iterations=iterations,
+                    neighbourhood=neighbourhood,
+                    momentum=momentum,
+                    progress=progress,
+                )
                 vol, cost = res.volume, res.cost
                 extra.update(beta_abs=res.beta_abs, stream="cluster")
         elif algorithm == "fdk" and not mar_method:
             vol = fdk(FileLineIntegrals(scan, frames), grid, geom, window=window, progress=progress)
         elif mode == "file":
-            vol, cost, beta_abs = _pwls(FileLineIntegrals(scan, frames), FileWeights(scan, frames), grid, geom,
-                                        window, beta, iterations, neighbourhood, subsets, progress, momentum)
+            vol, cost, beta_abs = _pwls(
+                FileLineIntegrals(scan, frames),
+                FileWeights(scan, frames),
+                grid,
+                geom,
+                window,
+                beta,
+                iterations,
+                neighbourhood,
+                subsets,
+                progress,
+                momentum,
+            )
             extra.update(beta_abs=beta_abs, stream="file")
         else:
             li, w = _load(scan, frames, algorithm == "pwls", progress)
@@ -289,16 +362,20 @@ def reconstruct_scan(
                 first = fdk(li, grid, geom, window=window)
                 metal = metal_in_volume(first, metal_mu)
                 A = projector(grid, geom)
-                traces = (traces_by_threshold(li, mar_threshold) if mar_method == "threshold"
-                          else traces_by_reprojection(A, metal))
+                traces = (
+                    traces_by_threshold(li, mar_threshold)
+                    if mar_method == "threshold"
+                    else traces_by_reprojection(A, metal)
+                )
                 li = fill_traces_normalized(li, traces, A(tissue_prior(first, metal)))
                 if w is not None:
                     w = np.where(traces, np.exp(-li), w).astype(np.float32)
                 extra.update(mar_method=mar_method, metal_voxels=int(metal.sum()), trace_fraction=float(traces.mean()))
                 report(progress, "mar", 1, 1, f"{int(metal.sum())} metal voxels")
             if algorithm == "pwls":
-                vol, cost, beta_abs = _pwls(li, w, grid, geom, window, beta, iterations, neighbourhood, subsets,
-                                            progress, momentum)
+                vol, cost, beta_abs = _pwls(
+                    li, w, grid, geom, window, beta, iterations, neighbourhood, subsets, progress, momentum
+                )
                 extra.update(beta_abs=beta_abs, stream="memory")
             else:
                 vol = fdk(li, grid, geom, window=window, progress=progress)
@@ -306,23 +383,50 @@ def reconstruct_scan(
                 vol = add_metal_back(vol, first, metal)
         elapsed = time.perf_counter() - t0
         params = {
-            "window": window, "views": int(frames.size), "views_dropped_nonfinite": dropped,
-            "fov_fraction": fov_fraction, "grid": grid.to_json(), "grid_choice": grid_note, "estimated_s": estimated_s,
+            "window": window,
+            "views": int(frames.size),
+            "views_dropped_nonfinite": dropped,
+            "fov_fraction": fov_fraction,
+            "grid": grid.to_json(),
+            "grid_choice": grid_note,
+            "estimated_s": estimated_s,
             **extra,
         }
         if algorithm == "pwls":
             params.update(beta=beta, neighbourhood=neighbourhood, subsets=subsets, momentum=momentum, cost=cost)
         scan_path = scan.path
     with ScanFile(scan_path, "r+") as out:
-        out.write_recon(name, vol, voxel_mm=grid.voxel_mm, origin_mm=grid.origin_mm, algorithm=algorithm,
-                        geometry=geometry, iterations=iterations if algorithm == "pwls" else 0,
-                        elapsed_s=elapsed, params=params, overwrite=overwrite)
+        out.write_recon(
+            name,
+            vol,
+            voxel_mm=grid.voxel_mm,
+            origin_mm=grid.origin_mm,
+            algorithm=algorithm,
+            geometry=geometry,
+            iterations=iterations if algorithm == "pwls" else 0,
+            elapsed_s=elapsed,
+            params=params,
+            overwrite=overwrite,
+        )
     exported: list[Path] = []
     if formats:
         base = Path(out_dir) if out_dir is not None else scan_path.parent
         exported = export_volume(vol, grid, formats, base / f"{scan_path.stem}_{name}")
-    return ReconResult(name, scan_path, algorithm, geometry, grid.shape, grid.voxel_mm, grid.origin_mm, cost,
-                       elapsed, exported, params, vol, warnings)
+    return ReconResult(
+        name,
+        scan_path,
+        algorithm,
+        geometry,
+        grid.shape,
+        grid.voxel_mm,
+        grid.origin_mm,
+        cost,
+        elapsed,
+        exported,
+        params,
+        vol,
+        warnings,
+    )
 
 
 def compare_reconstructions(path: str | os.PathLike[str], names: Sequence[str], out: str | os.PathLike[str]) -> Path:
@@ -338,8 +442,10 @@ def compare_reconstructions(path: str | os.PathLike[str], names: Sequence[str], 
             vol, attrs = scan.read_recon(name)
             g = VolumeGrid(vol.shape, tuple(attrs["voxel_mm"]), tuple(attrs["origin_mm"]))
             if grid is not None and g != grid:
-                raise ReconError(f"{scan.path}: /recon/{name} is on another grid than /recon/{names[0]}; "
-                                 "compare reconstructions made with the same --shape and --voxel-mm")
+                raise ReconError(
+                    f"{scan.path}: /recon/{name} is on another grid than /recon/{names[0]}; "
+                    "compare reconstructions made with the same --shape and --voxel-mm"
+                )
             grid = g
             rows.append((f"{attrs['algorithm'].upper()}, {attrs['geometry']} geometry", vol))
         title = f"{scan.path.name}: {orbit or 'orbit unknown'}, {int(scan.projection_indices.size)} projections"

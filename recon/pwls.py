@@ -218,9 +218,16 @@ class ViewsData:
     offset); a subset may be empty.
     """
 
-    def __init__(self, A: Projector, y: NDArray[np.float32] | ProjectionStack,
-                 weights: NDArray[np.float32] | ProjectionStack | None, *, subsets: int = 1, chunk_views: int = 8,
-                 subset_views: list[NDArray[np.intp]] | None = None) -> None:
+    def __init__(
+        self,
+        A: Projector,
+        y: NDArray[np.float32] | ProjectionStack,
+        weights: NDArray[np.float32] | ProjectionStack | None,
+        *,
+        subsets: int = 1,
+        chunk_views: int = 8,
+        subset_views: list[NDArray[np.intp]] | None = None,
+    ) -> None:
         if tuple(y.shape) != A.proj_shape:
             raise ReconError(f"projections: expected shape {A.proj_shape}, got {tuple(y.shape)}")
         if weights is not None and tuple(weights.shape) != A.proj_shape:
@@ -253,19 +260,30 @@ class ViewsData:
         value = 0.0
         for j0, j1 in ps.chunks:
             r = ps.op.forward_padded(xp, self._buf[: j1 - j0], j0)
-            value += _residual(r, ps.read(self.y, j0, j1),
-                               ps.read(self.weights, j0, j1) if weighted else self._no_w, weighted)
+            value += _residual(
+                r, ps.read(self.y, j0, j1), ps.read(self.weights, j0, j1) if weighted else self._no_w, weighted
+            )
             if out is not None:
                 ps.op.back_padded(r, out, j0)
         return value
 
 
-def pwls_sps(A: Projector, y: NDArray[np.float32] | ProjectionStack,
-             weights: NDArray[np.float32] | ProjectionStack | None = None, *,
-             beta: float = DEFAULT_BETA, iterations: int = 50, x0: NDArray[np.float32] | None = None,
-             neighbourhood: int = 1, subsets: int = 1, nonneg: bool = True, chunk_views: int = 8,
-             momentum: bool = False, progress: ProgressCallback | None = None,
-             callback: Callable[[int, NDArray[np.float32]], None] | None = None) -> PwlsResult:
+def pwls_sps(
+    A: Projector,
+    y: NDArray[np.float32] | ProjectionStack,
+    weights: NDArray[np.float32] | ProjectionStack | None = None,
+    *,
+    beta: float = DEFAULT_BETA,
+    iterations: int = 50,
+    x0: NDArray[np.float32] | None = None,
+    neighbourhood: int = 1,
+    subsets: int = 1,
+    nonneg: bool = True,
+    chunk_views: int = 8,
+    momentum: bool = False,
+    progress: ProgressCallback | None = None,
+    callback: Callable[[int, NDArray[np.float32]], None] | None = None,
+) -> PwlsResult:
     """Minimise the PWLS cost by (ordered-subset) SPS; the cost is monotone without subsets and momentum.
 
     ``momentum`` adds Nesterov's momentum to the subset steps (one more volume in memory; see the module).
@@ -279,14 +297,31 @@ def pwls_sps(A: Projector, y: NDArray[np.float32] | ProjectionStack,
     if subsets < 1 or chunk_views < 1:
         raise ReconError(f"need subsets >= 1 and chunk_views >= 1; got {subsets}, {chunk_views}")
     data = ViewsData(A, y, weights, subsets=subsets, chunk_views=chunk_views)
-    return pwls_solve(data, beta=beta, iterations=iterations, x0=x0, neighbourhood=neighbourhood, nonneg=nonneg,
-                      momentum=momentum, progress=progress, callback=callback)
+    return pwls_solve(
+        data,
+        beta=beta,
+        iterations=iterations,
+        x0=x0,
+        neighbourhood=neighbourhood,
+        nonneg=nonneg,
+        momentum=momentum,
+        progress=progress,
+        callback=callback,
+    )
 
 
-def pwls_solve(data: DataTerm, *, beta: float = DEFAULT_BETA, iterations: int = 50,
-               x0: NDArray[np.float32] | None = None, neighbourhood: int = 1, nonneg: bool = True,
-               momentum: bool = False, progress: ProgressCallback | None = None,
-               callback: Callable[[int, NDArray[np.float32]], None] | None = None) -> PwlsResult:
+def pwls_solve(
+    data: DataTerm,
+    *,
+    beta: float = DEFAULT_BETA,
+    iterations: int = 50,
+    x0: NDArray[np.float32] | None = None,
+    neighbourhood: int = 1,
+    nonneg: bool = True,
+    momentum: bool = False,
+    progress: ProgressCallback | None = None,
+    callback: Callable[[int, NDArray[np.float32]], None] | None = None,
+) -> PwlsResult:
     """:func:`pwls_sps` on any :class:`DataTerm` (projections held here, or spread over a cluster's workers)."""
     t0 = time.perf_counter()
     if iterations < 0 or beta < 0:
@@ -354,8 +389,15 @@ def pwls_solve(data: DataTerm, *, beta: float = DEFAULT_BETA, iterations: int = 
             callback(it + 1, xp[1:-1, 1:-1, 1:-1] if x_prev is None else x_prev)
         if it < iterations:
             el = time.perf_counter() - t0
-            report(progress, "pwls", it + 1, iterations, "iterations", cost=cost[-1],
-                   time_left_s=el / (it + 1) * (iterations - it - 1))
+            report(
+                progress,
+                "pwls",
+                it + 1,
+                iterations,
+                "iterations",
+                cost=cost[-1],
+                time_left_s=el / (it + 1) * (iterations - it - 1),
+            )
     del gp, denom, x_prev
     x = xp[1:-1, 1:-1, 1:-1] if in_place else np.ascontiguousarray(xp[1:-1, 1:-1, 1:-1])
     return PwlsResult(x, cost, iterations, time.perf_counter() - t0, beta_abs, restarts)

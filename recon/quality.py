@@ -18,7 +18,9 @@ def reference_volume(phantom: Any, grid: VolumeGrid, supersample: int = 3) -> ND
 
     if isinstance(phantom, dict):
         phantom = Phantom.from_json(phantom)
-    return voxelize(phantom, shape=grid.shape, voxel_mm=grid.voxel_mm, origin_mm=grid.origin_mm, supersample=supersample)
+    return voxelize(
+        phantom, shape=grid.shape, voxel_mm=grid.voxel_mm, origin_mm=grid.origin_mm, supersample=supersample
+    )
 
 
 def rmse(volume: NDArray, reference: NDArray, mask: NDArray[np.bool_] | None = None) -> float:
@@ -59,8 +61,16 @@ def _half_max_width(profile: NDArray[np.float64], step: float) -> float:
     return float((right - left) * step)
 
 
-def wire_fwhm(volume: NDArray, grid: VolumeGrid, *, axis: str = "z", center_mm: tuple[float, float] | None = None,
-              search_mm: float = 10.0, slices: slice | None = None, upsample: int = 10) -> dict[str, float]:
+def wire_fwhm(
+    volume: NDArray,
+    grid: VolumeGrid,
+    *,
+    axis: str = "z",
+    center_mm: tuple[float, float] | None = None,
+    search_mm: float = 10.0,
+    slices: slice | None = None,
+    upsample: int = 10,
+) -> dict[str, float]:
     """FWHM (mm) of a thin wire's in-plane PSF; the wire runs along ``axis`` ('z', 'y' or 'x').
 
     Slices across the wire are averaged, the peak is searched within ``search_mm`` of
@@ -88,5 +98,10 @@ def wire_fwhm(volume: NDArray, grid: VolumeGrid, *, axis: str = "z", center_mm: 
     prof_b = ndimage.map_coordinates(img, [np.full_like(t, pa), pb + t], order=3, mode="nearest")
     fa = _half_max_width(prof_a, steps[0] / upsample)
     fb = _half_max_width(prof_b, steps[1] / upsample)
-    return {"fwhm_mm": float(np.mean([fa, fb])), "fwhm_a_mm": fa, "fwhm_b_mm": fb,
-            "peak_a_mm": float(in_plane[0][pa]), "peak_b_mm": float(in_plane[1][pb])}
+    return {
+        "fwhm_mm": float(np.mean([fa, fb])),
+        "fwhm_a_mm": fa,
+        "fwhm_b_mm": fb,
+        "peak_a_mm": float(in_plane[0][pa]),
+        "peak_b_mm": float(in_plane[1][pb]),
+    }

@@ -84,7 +84,9 @@ def imports_of(module: str) -> frozenset[str]:
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
-                base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else []))
+                base = ".".join(
+                    package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else [])
+                )
             names = [base] + [f"{base}.{a.name}" for a in node.names]
         else:
             continue
@@ -105,7 +107,9 @@ def test_every_package_imports_only_what_its_layer_allows() -> None:
         for target in imports_of(module):
             top, other = _top(module), _top(target)
             if other != top and other not in MAY_IMPORT[top]:
-                bad.append(f"{module} imports {target} ({top} may import {sorted(MAY_IMPORT[top]) or 'nothing of ours'})")
+                bad.append(
+                    f"{module} imports {target} ({top} may import {sorted(MAY_IMPORT[top]) or 'nothing of ours'})"
+                )
     assert not bad, "imports against the layers:\n" + "\n".join(bad)
 
 
@@ -151,7 +155,7 @@ def test_the_module_import_graph_has_no_cycles() -> None:
         path.append(node)
         for nxt in sorted(graph[node]):
             if state.get(nxt) == 1:
-                cycles.append(path[path.index(nxt):] + [nxt])
+                cycles.append(path[path.index(nxt) :] + [nxt])
             elif nxt not in state:
                 visit(nxt, path)
         path.pop()

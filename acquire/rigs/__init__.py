@@ -20,8 +20,9 @@ def rig_links(config: BenchConfig | CArmConfig, *, sim: bool) -> dict[str, Devic
 
 
 @contextlib.asynccontextmanager
-async def open_rig(config: BenchConfig | CArmConfig, *, sim: bool = False,
-                   links: Mapping[str, DeviceLink] | None = None) -> AsyncIterator[Rig]:
+async def open_rig(
+    config: BenchConfig | CArmConfig, *, sim: bool = False, links: Mapping[str, DeviceLink] | None = None
+) -> AsyncIterator[Rig]:
     """Connect the rig a configuration names (its twins in-process when ``sim``, or at ``links``); closed on exit."""
     if isinstance(config, CArmConfig):
         async with open_carm(config, sim=sim, links=links) as carm:
@@ -61,5 +62,14 @@ def sim_twins(config: BenchConfig | CArmConfig, ports: Mapping[str, int] | None 
             twin.stop()
 
 
-__all__ = ["BenchRig", "CArmRig", "DeviceLink", "RunningTwins", "open_bench", "open_carm", "open_rig", "rig_links",
-           "sim_twins"]
+__all__ = [
+    "BenchRig",
+    "CArmRig",
+    "DeviceLink",
+    "RunningTwins",
+    "open_bench",
+    "open_carm",
+    "open_rig",
+    "rig_links",
+    "sim_twins",
+]

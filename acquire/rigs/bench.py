@@ -47,14 +47,16 @@ class Hexapod(Referencing, Protocol):
     async def set_pivot(self, r_mm: float, s_mm: float, t_mm: float) -> None:
         """Set the pivot point (only while U, V, W are 0)."""
 
-    async def check_pose(self, targets: Mapping[str, float], current: Mapping[str, float] | None = None) -> dict[str, float]:
+    async def check_pose(
+        self, targets: Mapping[str, float], current: Mapping[str, float] | None = None
+    ) -> dict[str, float]:
         """Refuse a pose outside the soft limits or the coupled workspace (``OutOfLimitsError``)."""
 
 
 def _device_axes(targets: Mapping[str, float], device: str) -> dict[str, float]:
     """``{'hexapod.X': 1.0, ...}`` -> ``{'X': 1.0, ...}`` for one device."""
     prefix = device + "."
-    return {k[len(prefix):]: float(v) for k, v in targets.items() if k.startswith(prefix)}
+    return {k[len(prefix) :]: float(v) for k, v in targets.items() if k.startswith(prefix)}
 
 
 class BenchRig:
@@ -62,8 +64,16 @@ class BenchRig:
 
     sweep_axis = STAGE_AXIS
 
-    def __init__(self, config: BenchConfig, hexapod: Hexapod, stage: Referencing, xray: XraySource, detector: FrameSource,
-                 *, sim: bool) -> None:
+    def __init__(
+        self,
+        config: BenchConfig,
+        hexapod: Hexapod,
+        stage: Referencing,
+        xray: XraySource,
+        detector: FrameSource,
+        *,
+        sim: bool,
+    ) -> None:
         self.config = config
         self.hexapod, self.stage, self.xray, self.detector = hexapod, stage, xray, detector
         self.sim = sim
@@ -115,11 +125,19 @@ class BenchRig:
         panel = (await self.detector.describe()).extra
         want = (plan.panel.rows, plan.panel.cols)
         if panel.get("rows") and panel.get("cols") and (panel["rows"], panel["cols"]) != want:
-            raise RefusedError(f"{self.detector.name} delivers {panel['rows']} x {panel['cols']} px frames, the plan records "
-                              f"{want[0]} x {want[1]} (geometry.detector rows and cols of the configuration, or "
-                              "--detector-size); nothing moved")
-        await bench_preflight(plan, self.config, device_limits=await self.device_limits(),
-                              workspace_check=self.check_workspace, mode=mode, frame_rate_hz=frame_rate_hz)
+            raise RefusedError(
+                f"{self.detector.name} delivers {panel['rows']} x {panel['cols']} px frames, the plan records "
+                f"{want[0]} x {want[1]} (geometry.detector rows and cols of the configuration, or "
+                "--detector-size); nothing moved"
+            )
+        await bench_preflight(
+            plan,
+            self.config,
+            device_limits=await self.device_limits(),
+            workspace_check=self.check_workspace,
+            mode=mode,
+            frame_rate_hz=frame_rate_hz,
+        )
 
     # ------------------------------------------------------------ set-up
     async def prepare(self, plan: ScanPlan) -> None:
@@ -148,9 +166,11 @@ class BenchRig:
         missing = ", ".join(a for a, ok in (await dev.referenced()).items() if not ok)
         if not missing:
             return ""
-        return (f"{dev.name}: axes {missing} are not referenced; reference them first (orbitct reference {dev.name} "
-                f"--config CONFIG, or POST /devices/{dev.name}/reference over REST); a scan never references real axes "
-                "on its own")
+        return (
+            f"{dev.name}: axes {missing} are not referenced; reference them first (orbitct reference {dev.name} "
+            f"--config CONFIG, or POST /devices/{dev.name}/reference over REST); a scan never references real axes "
+            "on its own"
+        )
 
     async def _set_pivot(self, pivot_mm: Sequence[float], timeout_s: float) -> None:
         current = await self.hexapod.pivot()
@@ -167,7 +187,10 @@ class BenchRig:
         self._raise_background()
         self._supersede("stage")
         self._supersede("hexapod")
-        moves = [self.stage.move(_device_axes(targets, "rotation_stage")), self.hexapod.move(_device_axes(targets, "hexapod"))]
+        moves = [
+            self.stage.move(_device_axes(targets, "rotation_stage")),
+            self.hexapod.move(_device_axes(targets, "hexapod")),
+        ]
         waits = [asyncio.ensure_future(_await(m)) for m in moves]
         for w in waits:
             w.add_done_callback(_retrieve)  # outcomes are read even if this call is cancelled
@@ -247,8 +270,9 @@ class BenchRig:
                 st.exception()  # retrieved: no "exception never retrieved" warnings
 
     # --------------------------------------------------------- exposures
-    async def acquire(self, image_key: int, after_exposure: Callable[[], None] | None = None, *,
-                      next_exposure_s: float | None = None) -> Frame:
+    async def acquire(
+        self, image_key: int, after_exposure: Callable[[], None] | None = None, *, next_exposure_s: float | None = None
+    ) -> Frame:
         """One frame: dark (no X-rays), flat (open beam) or projection (X-ray exposure -> detector).
 
         ``after_exposure`` is called once the X-ray exposure is over, before the frame is read out.
@@ -275,12 +299,15 @@ class BenchRig:
         else:
             release = self._gap_s is not None and self._gap_s > self.prep_s
         bound = stall.exposure_s + (ex.exposure_ms + ex.prep_ms) / 1000.0
-        await within(bound, self.xray.name, "did not finish the exposure", "stall.exposure_s", self.xray.expose(release=release))
+        await within(
+            bound, self.xray.name, "did not finish the exposure", "stall.exposure_s", self.xray.expose(release=release)
+        )
         self._last_exposure = time.monotonic()
         if after_exposure is not None:
             after_exposure()
-        return await within(stall.frame_s, det, "delivered no frame after the exposure", "stall.frame_s",
-                            self.detector.read_frame())
+        return await within(
+            stall.frame_s, det, "delivered no frame after the exposure", "stall.frame_s", self.detector.read_frame()
+        )
 
     def last_exposure_s(self) -> tuple[float, float] | None:
         """When the generator's last exposure began and ended (``time.monotonic()``); None while unknown."""
@@ -291,8 +318,9 @@ class BenchRig:
         if the exposure comes later than the preparation time after READY, the generator's hold drops it again."""
         stall, ex = self.config.stall, self.config.exposure
         bound = stall.exposure_s + ex.prep_ms / 1000.0
-        await within(bound, self.xray.name, "did not get ready for the exposure", "stall.exposure_s",
-                     self.xray.prepare())
+        await within(
+            bound, self.xray.name, "did not get ready for the exposure", "stall.exposure_s", self.xray.prepare()
+        )
 
     def _resynchronise(self) -> None:
         """After a cancelled exchange a reply may still be in flight: the GCS links reconnect before the next one."""
@@ -343,15 +371,22 @@ def sim_options(config: BenchConfig) -> dict[str, dict[str, Any]]:
         "hexapod": {"time_scale": scale, "timeout_s": SIM_REPLY_TIMEOUT_S, "stack_order": config.stack.order},
         "rotation_stage": {"time_scale": scale, "timeout_s": SIM_REPLY_TIMEOUT_S},
         "xray": {"time_scale": scale, "prep_s": prep_s, "hold_s": prep_s / scale, "timeout_s": SIM_REPLY_TIMEOUT_S},
-        "detector": {"rows": det.rows, "cols": det.cols, "sad_mm": config.geometry.sad_mm,
-                     "sdd_mm": config.geometry.sdd_mm, "phantom": config.sim.phantom, "seed": config.sim.seed,
-                     "timeout_s": SIM_FRAME_TIMEOUT_S},
+        "detector": {
+            "rows": det.rows,
+            "cols": det.cols,
+            "sad_mm": config.geometry.sad_mm,
+            "sdd_mm": config.geometry.sdd_mm,
+            "phantom": config.sim.phantom,
+            "seed": config.sim.seed,
+            "timeout_s": SIM_FRAME_TIMEOUT_S,
+        },
     }
 
 
 @contextlib.asynccontextmanager
-async def open_bench(config: BenchConfig, *, sim: bool = False,
-                     links: Mapping[str, DeviceLink] | None = None) -> AsyncIterator[BenchRig]:
+async def open_bench(
+    config: BenchConfig, *, sim: bool = False, links: Mapping[str, DeviceLink] | None = None
+) -> AsyncIterator[BenchRig]:
     """Connect every device of ``config`` (in-process twins when ``sim``); stops and closes them on exit.
 
     ``links`` overrides where each device is reached (twins already running elsewhere, with ``sim``).
@@ -360,9 +395,12 @@ async def open_bench(config: BenchConfig, *, sim: bool = False,
         links = bench_links(config, sim=sim)
     real_axes = [k for k in ("hexapod", "rotation_stage") if not links[k].uri.startswith("sim://")]
     if links["detector"].uri.startswith("sim://") and real_axes:
-        log.warning("the panel is simulated (%s) but %s not: its frames show the simulated object, unmoved by the "
-                    "real axes; a rehearsal of the motion, not a scan to calibrate or reconstruct",
-                    links["detector"].uri, " and ".join(real_axes) + (" are" if len(real_axes) > 1 else " is"))
+        log.warning(
+            "the panel is simulated (%s) but %s not: its frames show the simulated object, unmoved by the "
+            "real axes; a rehearsal of the motion, not a scan to calibrate or reconstruct",
+            links["detector"].uri,
+            " and ".join(real_axes) + (" are" if len(real_axes) > 1 else " is"),
+        )
     opened: dict[str, Any] = {}
     try:
         for kind in BENCH_KINDS:
@@ -387,5 +425,7 @@ def bench_links(config: BenchConfig, *, sim: bool) -> dict[str, DeviceLink]:
     # a sim:// twin in a real bench's configuration: the configuration's panel, distances, phantom, preparation
     # time and stack, at real speed (its time scale and the in-process reply time-outs are --sim's)
     twin_keys = {"rows", "cols", "sad_mm", "sdd_mm", "phantom", "seed", "prep_s", "stack_order"}
-    return {kind: configured_link(uris[kind], opts, {k: v for k, v in twins[kind].items() if k in twin_keys})
-            for kind, opts in device_options(config).items()}
+    return {
+        kind: configured_link(uris[kind], opts, {k: v for k, v in twins[kind].items() if k in twin_keys})
+        for kind, opts in device_options(config).items()
+    }

@@ -35,8 +35,12 @@ ANGLE_TOL_DEG = 1e-6
 def carm_limits(cfg: CArmConfig) -> CArmLimits:
     """The exporter's limits from a C-arm configuration."""
     lim = cfg.limits
-    return CArmLimits(primary_deg=tuple(lim.primary_deg), secondary_deg=tuple(lim.secondary_deg),
-                      max_step_deg=lim.max_step_deg, max_speed_deg_s=lim.speed_deg_s)
+    return CArmLimits(
+        primary_deg=tuple(lim.primary_deg),
+        secondary_deg=tuple(lim.secondary_deg),
+        max_step_deg=lim.max_step_deg,
+        max_speed_deg_s=lim.speed_deg_s,
+    )
 
 
 def export_orbit(orbit: Orbit, cfg: CArmConfig) -> NavProgram:
@@ -96,21 +100,33 @@ class CArmRig:
         points = self.program.points
         for target in range(self._point + 1, len(points)):
             pt = points[target]
-            if pt.acquire and abs(pt.primary_deg - want[0]) <= ANGLE_TOL_DEG and abs(pt.secondary_deg - want[1]) <= ANGLE_TOL_DEG:
+            if (
+                pt.acquire
+                and abs(pt.primary_deg - want[0]) <= ANGLE_TOL_DEG
+                and abs(pt.secondary_deg - want[1]) <= ANGLE_TOL_DEG
+            ):
                 break
         else:
-            raise AcquireError(f"no program point after {self._point} takes a frame at primary {want[0]:.3f} deg, "
-                               f"secondary {want[1]:.3f} deg")
+            raise AcquireError(
+                f"no program point after {self._point} takes a frame at primary {want[0]:.3f} deg, "
+                f"secondary {want[1]:.3f} deg"
+            )
         mark = self._stops
         for p in range(self._point + 1, target + 1):  # bridge points (no frame), then the frame's point
             if self._stops != mark:
                 raise AcquireError(f"the C-arm was stopped on its way to program point {target}; it stays where it is")
-            await within(timeout_s, self.carm.name, f"did not reach program point {p}", "motion.move_timeout_s",
-                         self.carm.goto(p))
+            await within(
+                timeout_s,
+                self.carm.name,
+                f"did not reach program point {p}",
+                "motion.move_timeout_s",
+                self.carm.goto(p),
+            )
             self._point = p
 
-    async def acquire(self, image_key: int, after_exposure: Callable[[], None] | None = None, *,
-                      next_exposure_s: float | None = None) -> Frame:
+    async def acquire(
+        self, image_key: int, after_exposure: Callable[[], None] | None = None, *, next_exposure_s: float | None = None
+    ) -> Frame:
         """A dark, flat or projection frame (the C-arm exposes and reads out in one action; it keeps its own source
         ready, whatever ``next_exposure_s`` says)."""
         stall, ex = self.config.stall, self.config.exposure
@@ -119,8 +135,13 @@ class CArmRig:
             take = self.carm.acquire_dark if image_key == ImageKey.DARK else self.carm.acquire_flat
             what = f"delivered no {'dark' if image_key == ImageKey.DARK else 'flat'} frame"
             return (await within(bound, self.carm.name, what, "stall.frame_s", take(1)))[0]
-        frame = await within(bound, self.carm.name, "delivered no frame for its exposure", "stall.frame_s + stall.exposure_s",
-                             self.carm.expose())
+        frame = await within(
+            bound,
+            self.carm.name,
+            "delivered no frame for its exposure",
+            "stall.frame_s + stall.exposure_s",
+            self.carm.expose(),
+        )
         if after_exposure is not None:
             after_exposure()
         return frame
@@ -147,7 +168,9 @@ class CArmRig:
 
 
 @contextlib.asynccontextmanager
-async def open_carm(cfg: CArmConfig, *, sim: bool, links: Mapping[str, DeviceLink] | None = None) -> AsyncIterator[CArmRig]:
+async def open_carm(
+    cfg: CArmConfig, *, sim: bool, links: Mapping[str, DeviceLink] | None = None
+) -> AsyncIterator[CArmRig]:
     """Connect the C-arm of ``cfg`` (its twin in-process when ``sim``; ``links`` overrides where it is reached)."""
     link = (links or carm_links(cfg, sim=sim))["carm"]
     rig = CArmRig(cfg, await open_device("carm", "carm", link.uri, **link.options), sim=sim)
@@ -160,8 +183,14 @@ async def open_carm(cfg: CArmConfig, *, sim: bool, links: Mapping[str, DeviceLin
 def carm_links(cfg: CArmConfig, *, sim: bool) -> dict[str, DeviceLink]:
     """Where the C-arm is reached: its configured URI, or ``sim://carm`` with the twin's options."""
     det = cfg.geometry.detector
-    twin = {"rows": det.rows, "cols": det.cols, "sad_mm": cfg.geometry.sad_mm, "sdd_mm": cfg.geometry.sdd_mm,
-            "seed": cfg.sim.seed, "phantom": cfg.sim.phantom}
+    twin = {
+        "rows": det.rows,
+        "cols": det.cols,
+        "sad_mm": cfg.geometry.sad_mm,
+        "sdd_mm": cfg.geometry.sdd_mm,
+        "seed": cfg.sim.seed,
+        "phantom": cfg.sim.phantom,
+    }
     if not sim:  # a sim:// twin configured here runs at real speed
         return {"carm": configured_link(cfg.devices.carm, {}, twin)}
     return {"carm": DeviceLink(f"sim://{SIM_WORLD}", {**twin, "time_scale": cfg.sim.time_scale})}

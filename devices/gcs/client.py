@@ -121,7 +121,9 @@ class GcsClient:
             code = int(lines[0].strip())
         except (ValueError, IndexError):
             self._stale = True
-            raise ProtocolError(f"{self.endpoint}: unreadable ERR? reply after {command!r}; it may or may not have run") from None
+            raise ProtocolError(
+                f"{self.endpoint}: unreadable ERR? reply after {command!r}; it may or may not have run"
+            ) from None
         except DeviceError as exc:
             raise type(exc)(f"{exc}; {command!r} may or may not have run (not repeated)") from None
         if code:

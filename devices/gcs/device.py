@@ -49,12 +49,23 @@ class GcsMotionDevice(Driver):
     units: ClassVar[dict[str, str]] = {}  # user name -> 'mm' | 'deg'
     reference_timeout_s: ClassVar[float] = 120.0
 
-    def __init__(self, name: str, uri: str, *, timeout_s: float = 2.0, poll_s: float = 0.005,
-                 move_timeout_s: float | None = None, query_retries: int = 1, **unknown: Any) -> None:
+    def __init__(
+        self,
+        name: str,
+        uri: str,
+        *,
+        timeout_s: float = 2.0,
+        poll_s: float = 0.005,
+        move_timeout_s: float | None = None,
+        query_retries: int = 1,
+        **unknown: Any,
+    ) -> None:
         super().__init__(name, uri)
         if unknown:
-            raise DeviceError(f"{name}: unknown option(s) {', '.join(sorted(unknown))}; driver options are timeout_s, "
-                              "poll_s, move_timeout_s, query_retries")
+            raise DeviceError(
+                f"{name}: unknown option(s) {', '.join(sorted(unknown))}; driver options are timeout_s, "
+                "poll_s, move_timeout_s, query_retries"
+            )
         self.endpoint: Endpoint = parse_uri(uri, default_port=DEFAULT_PORT)
         if self.endpoint.scheme not in ("tcp", "serial"):
             raise DeviceError(f"{name}: GCS devices connect by tcp://host:port or serial://path, not {uri!r}")
@@ -141,6 +152,7 @@ class GcsMotionDevice(Driver):
 
     async def moving(self) -> bool:
         """Whether any axis moves (``#5``)."""
+
         def parse(lines: list[str]) -> int:
             try:
                 return int(lines[0].strip(), 16)
@@ -151,6 +163,7 @@ class GcsMotionDevice(Driver):
 
     async def ready(self) -> bool:
         """Whether the controller is ready (``#7``; busy while referencing)."""
+
         def parse(lines: list[str]) -> bool:
             if lines and lines[0] in (READY, BUSY):
                 return lines[0] == READY
@@ -189,7 +202,9 @@ class GcsMotionDevice(Driver):
         """A velocity to send: a positive finite number, else :class:`OutOfLimitsError` (nothing sent)."""
         v = float(value)
         if not (math.isfinite(v) and v > 0.0):
-            raise OutOfLimitsError(f"{self.name}: velocity {value} {unit} must be a positive finite number; nothing changed")
+            raise OutOfLimitsError(
+                f"{self.name}: velocity {value} {unit} must be a positive finite number; nothing changed"
+            )
         return v
 
     def check_limits(self, targets: Mapping[str, float]) -> dict[str, float]:
@@ -212,7 +227,9 @@ class GcsMotionDevice(Driver):
             out[axis] = v
         return out
 
-    async def check_pose(self, targets: Mapping[str, float], current: Mapping[str, float] | None = None) -> dict[str, float]:
+    async def check_pose(
+        self, targets: Mapping[str, float], current: Mapping[str, float] | None = None
+    ) -> dict[str, float]:
         """Check a target against the limits (and, on coupled machines, the workspace) before moving.
 
         ``current``: the present targets (``MOV?``), if the caller already has them.
@@ -226,12 +243,15 @@ class GcsMotionDevice(Driver):
         servo, ref = await self.servo_on(), await self.referenced()
         off = [k for k, v in servo.items() if not v]
         if off:
-            return ServoOffError(f"{self.name}: servo off on {', '.join(off)}; switch it on with servo(True); nothing moved",
-                                 tuple(off))
+            return ServoOffError(
+                f"{self.name}: servo off on {', '.join(off)}; switch it on with servo(True); nothing moved", tuple(off)
+            )
         unref = [k for k, v in ref.items() if not v]
         if not unref:
             return exc  # the controller's own reason (servo and reference look fine from here)
-        return NotReferencedError(f"{self.name}: axes {', '.join(unref)} not referenced; run reference() first; nothing moved")
+        return NotReferencedError(
+            f"{self.name}: axes {', '.join(unref)} not referenced; run reference() first; nothing moved"
+        )
 
     # ----- actions -----
     async def servo(self, on: bool = True) -> None:
@@ -284,8 +304,9 @@ class GcsMotionDevice(Driver):
         """Upper bound for a move's travel time (subclasses know the velocity)."""
         return 60.0
 
-    async def _wait_on_target(self, targets: dict[str, float], start: dict[str, float], marks: tuple[int, int],
-                              status: Status[None] | None) -> None:
+    async def _wait_on_target(
+        self, targets: dict[str, float], start: dict[str, float], marks: tuple[int, int], status: Status[None] | None
+    ) -> None:
         limit = self.move_timeout_s or (2.0 * self._estimate_s(start, targets) + 2.0)
         t0 = time.monotonic()
         polls = 0
@@ -293,9 +314,12 @@ class GcsMotionDevice(Driver):
             if self._stopped != marks[0]:
                 raise ControllerError(E.STOPPED, E.error_text(E.STOPPED), "MOV")
             retargeted = [k for k in targets if self._last_move_of.get(k) != marks[1]]
-            if retargeted:  # a later move owns these axes now: this one ends here and never halts them at its time limit
-                raise ControllerError(E.STOPPED, f"move superseded by a later move on {', '.join(retargeted)} before it "
-                                                 "arrived", "MOV")
+            if (
+                retargeted
+            ):  # a later move owns these axes now: this one ends here and never halts them at its time limit
+                raise ControllerError(
+                    E.STOPPED, f"move superseded by a later move on {', '.join(retargeted)} before it arrived", "MOV"
+                )
             ont = await self._axis_query("ONT?")
             if all(v != 0 for v in ont.values()):
                 await self._check_arrived(targets, marks)
@@ -344,13 +368,17 @@ class GcsMotionDevice(Driver):
         while not await self.ready():
             if time.monotonic() - t0 > self.reference_timeout_s:
                 await self.halt()
-                raise DeviceTimeoutError(f"{self.name}: referencing not done within {self.reference_timeout_s:g} s; halted")
+                raise DeviceTimeoutError(
+                    f"{self.name}: referencing not done within {self.reference_timeout_s:g} s; halted"
+                )
             if status is not None:
                 status.report(message="referencing")
             await asyncio.sleep(max(self.poll_s, 0.02))
         ref = await self.referenced()
         if not all(ref.values()):
-            raise NotReferencedError(f"{self.name}: referencing failed for {', '.join(k for k, v in ref.items() if not v)}")
+            raise NotReferencedError(
+                f"{self.name}: referencing failed for {', '.join(k for k, v in ref.items() if not v)}"
+            )
         if status is not None:
             status.report(message="referenced", fraction=1.0)
 

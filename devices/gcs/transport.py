@@ -180,9 +180,13 @@ def transport_for(endpoint: Endpoint) -> Transport:
     """The transport for a ``tcp://`` or ``serial://`` endpoint."""
     if endpoint.scheme == "tcp":
         assert endpoint.port is not None
-        return TcpTransport(endpoint.host, endpoint.port, connect_timeout_s=option_number(endpoint.params.get("connect_timeout", 3.0)))
+        return TcpTransport(
+            endpoint.host, endpoint.port, connect_timeout_s=option_number(endpoint.params.get("connect_timeout", 3.0))
+        )
     if endpoint.scheme == "serial":
         return SerialTransport(endpoint.path, baud=int(endpoint.params.get("baud", 115200)))
     from devices.errors import UriError
 
-    raise UriError(f"GCS controllers connect over tcp://host:port or serial:///dev/ttyX?baud=N, not {endpoint.scheme}://")
+    raise UriError(
+        f"GCS controllers connect over tcp://host:port or serial:///dev/ttyX?baud=N, not {endpoint.scheme}://"
+    )

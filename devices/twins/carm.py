@@ -79,7 +79,9 @@ class CArmTwin(DetectorTwin):
         theta = th_c + self.primary_offset
         phi = ph_c - self.sag * math.cos(th_c) * math.cos(ph_c)
         shift = self.drift_mm * np.array([math.sin(th_c), 0.5 * math.sin(2 * th_c), 0.5 * (1 - math.cos(th_c))])
-        shift = shift + np.asarray(self.limits.isocenter_mm) + self.rng.normal(0.0, self.noise_mm, 3) * (self.noise_mm > 0)
+        shift = (
+            shift + np.asarray(self.limits.isocenter_mm) + self.rng.normal(0.0, self.noise_mm, 3) * (self.noise_mm > 0)
+        )
         view = ViewGeometry.from_carm(theta, phi, self.sad_mm, self.sdd_mm, self.geometry, eta=self.eta, shift=shift)
         self.truth.append(view.vectors[0].copy())
         return view

@@ -52,7 +52,9 @@ def simulator_renderer(phantom: Any, model: Any = None) -> Renderer:
             models[key] = type(base)(**{**base.model_dump(), "flat_counts": counts})  # fresh cached maps
         return models[key]
 
-    def render(kind: str, view: ViewGeometry, kv: float, ma: float, exposure_ms: float, rng: np.random.Generator) -> NDArray[np.uint16]:
+    def render(
+        kind: str, view: ViewGeometry, kv: float, ma: float, exposure_ms: float, rng: np.random.Generator
+    ) -> NDArray[np.uint16]:
         shape = view.panel.shape
         if kind == "dark":
             return base.dark(rng, shape)
@@ -112,7 +114,9 @@ class DetectorTwin(LineTwinServer):
         self._seen_exposures = 0
         self._rendering: asyncio.Task[Any] | None = None
         self.rendering = 0  # frames taken whose pixels are still being rendered
-        self.readout_s = float(readout_s)  # hazard on request: a slow panel delivers each frame this long after taking it
+        self.readout_s = float(
+            readout_s
+        )  # hazard on request: a slow panel delivers each frame this long after taking it
 
     # ------------------------------------------------------------- rendering
     def set_phantom(self, phantom: Any) -> None:
@@ -193,8 +197,14 @@ class DetectorTwin(LineTwinServer):
         """Build the renderer and compile its kernels before serving (the first frame is then as fast as any)."""
         await asyncio.get_running_loop().run_in_executor(None, self.warm_up)
         if self.follow is not None:
-            self.spawn(follow_bench(self.world, hexapod_uri=self.follow["hexapod"],
-                                    stage_uri=self.follow["rotation_stage"], xray_uri=self.follow["xray"]))
+            self.spawn(
+                follow_bench(
+                    self.world,
+                    hexapod_uri=self.follow["hexapod"],
+                    stage_uri=self.follow["rotation_stage"],
+                    xray_uri=self.follow["xray"],
+                )
+            )
         self.spawn(self._watch_generator())
 
     def warm_up(self) -> None:
@@ -267,7 +277,10 @@ class DetectorTwin(LineTwinServer):
     def cmd_trig(self, args: list[str]) -> str:
         """``TRIG``: software trigger; answers the frame number."""
         if not self.armed or self.mode != "SOFTWARE":
-            raise CommandError(ERR_NOT_ARMED, f"software trigger needs an armed panel in SOFTWARE mode (armed={int(self.armed)}, mode={self.mode})")
+            raise CommandError(
+                ERR_NOT_ARMED,
+                f"software trigger needs an armed panel in SOFTWARE mode (armed={int(self.armed)}, mode={self.mode})",
+            )
         return str(self.start_frame("projection", *self._settings()))
 
     def cmd_dark(self, args: list[str]) -> str:

@@ -43,9 +43,11 @@ async def _read_pose(world: SimWorld, hexapod: Hexapod, stage: RotationStage) ->
 
 
 async def _follow_once(world: SimWorld, hexapod_uri: str, stage_uri: str, xray_uri: str, poll_s: float) -> None:
-    async with Hexapod("followed hexapod", hexapod_uri) as hexapod, \
-            RotationStage("followed rotation stage", stage_uri) as stage, \
-            XrayGenerator("followed generator", xray_uri, monitor=True) as generator:
+    async with (
+        Hexapod("followed hexapod", hexapod_uri) as hexapod,
+        RotationStage("followed rotation stage", stage_uri) as stage,
+        XrayGenerator("followed generator", xray_uri, monitor=True) as generator,
+    ):
         await _read_pose(world, hexapod, stage)
         last = int((await generator.read())["frame_counter"])
         posed_at, posed_this_exposure = time.monotonic(), False
@@ -70,8 +72,9 @@ async def _follow_once(world: SimWorld, hexapod_uri: str, stage_uri: str, xray_u
             await asyncio.sleep(poll_s)
 
 
-async def follow_bench(world: SimWorld, *, hexapod_uri: str, stage_uri: str, xray_uri: str,
-                       poll_s: float = POLL_S) -> None:
+async def follow_bench(
+    world: SimWorld, *, hexapod_uri: str, stage_uri: str, xray_uri: str, poll_s: float = POLL_S
+) -> None:
     """Keep ``world`` fed from the hexapod, rotation stage and generator at these URIs until cancelled; a lost link
     is logged and connected again after :data:`RETRY_S` (meanwhile the panel sees no exposure: it takes no frame
     at a stale pose)."""
@@ -82,6 +85,10 @@ async def follow_bench(world: SimWorld, *, hexapod_uri: str, stage_uri: str, xra
             task = asyncio.current_task()
             if task is not None and task.cancelling():  # a stop that a failing connect swallowed (3.11): honour it
                 raise asyncio.CancelledError from exc
-            log.warning("panel twin: lost the bench it images (%s: %s); connecting again in %g s",
-                        type(exc).__name__, exc, RETRY_S)
+            log.warning(
+                "panel twin: lost the bench it images (%s: %s); connecting again in %g s",
+                type(exc).__name__,
+                exc,
+                RETRY_S,
+            )
             await asyncio.sleep(RETRY_S)

@@ -86,12 +86,16 @@ class LineTwinServer:
         self.frame_number += 1
         return self.frame_number
 
-    def push_frame(self, number: int, data: NDArray[np.uint16], kind: str, meta: dict[str, Any], timestamp: float | None = None) -> None:
+    def push_frame(
+        self, number: int, data: NDArray[np.uint16], kind: str, meta: dict[str, Any], timestamp: float | None = None
+    ) -> None:
         """Queue frame ``number`` taken at ``timestamp`` (default now), unless a missing-frame fault swallows it."""
         if self.faults.take("missing_frame", f"frame {number};"):
             return
         assert self.frames is not None
-        self.frames.put_nowait(Frame(np.asarray(data, np.uint16), number, time.time() if timestamp is None else timestamp, kind, meta))
+        self.frames.put_nowait(
+            Frame(np.asarray(data, np.uint16), number, time.time() if timestamp is None else timestamp, kind, meta)
+        )
 
     def clear_frames(self) -> None:
         """Discard queued frames."""
@@ -104,7 +108,11 @@ class LineTwinServer:
         timeout_ms = int_arg(args, 0, default=0)
         assert self.frames is not None
         try:
-            frame = await asyncio.wait_for(self.frames.get(), timeout_ms / 1000.0) if timeout_ms else self.frames.get_nowait()
+            frame = (
+                await asyncio.wait_for(self.frames.get(), timeout_ms / 1000.0)
+                if timeout_ms
+                else self.frames.get_nowait()
+            )
         except (TimeoutError, asyncio.QueueEmpty):
             raise CommandError(ERR_NO_FRAME, f"no frame within {timeout_ms} ms") from None
         if isinstance(frame, str):

@@ -102,7 +102,9 @@ class TwinThread:
         self._ready = threading.Event()
         self._error: BaseException | None = None
         self.port = 0
-        self._thread = threading.Thread(target=self._main, args=(port,), name=f"twin-{type(twin).__name__}", daemon=True)
+        self._thread = threading.Thread(
+            target=self._main, args=(port,), name=f"twin-{type(twin).__name__}", daemon=True
+        )
         self._thread.start()
         self._ready.wait(START_TIMEOUT_S)
         if self._error is not None:

@@ -35,7 +35,9 @@ class SimWorld:
     def object_pose(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """True object pose ``(R, t)`` in the lab frame now."""
         with self.lock:
-            return object_pose(self.stage_true_rad, self.hexapod_true.copy(), order=self.stack_order, pivot=self.pivot_mm)
+            return object_pose(
+                self.stage_true_rad, self.hexapod_true.copy(), order=self.stack_order, pivot=self.pivot_mm
+            )
 
 
 _WORLDS: dict[str, SimWorld] = {}

@@ -25,6 +25,8 @@ except ImportError:  # pymodbus < 3.11 names no exception codes: same numbers, o
         ILLEGAL_VALUE = 3
         DEVICE_FAILURE = 4
         DEVICE_BUSY = 6
+
+
 from pymodbus.pdu import ExceptionResponse, ModbusPDU
 from pymodbus.server import ModbusTcpServer
 
@@ -51,7 +53,8 @@ class _GeneratorServer(ModbusTcpServer):  # type: ignore[misc]
     def callback_new_connection(self) -> Any:
         handler = super().callback_new_connection()
         if hasattr(ModbusPDU, "datastore_update") and all(
-                hasattr(handler, name) for name in ("handle_request", "last_pdu", "last_addr", "server_send")):
+            hasattr(handler, name) for name in ("handle_request", "last_pdu", "last_addr", "server_send")
+        ):
             handler.handle_request = functools.partial(_answer_in_order, handler, asyncio.Lock())
         return handler
 
@@ -114,7 +117,9 @@ class XrayTwin:
         self.requests = 0
         self.request_log: deque[str] = deque(maxlen=1000)  # "fc<code>:<address>[=<values>]" of recent requests
         self.heartbeat_frozen = False  # hazard on request: the generator's own heartbeat stops
-        self.fault_input = False  # hazard on request: the fault input stays asserted (overtemperature): no reset clears it
+        self.fault_input = (
+            False  # hazard on request: the fault input stays asserted (overtemperature): no reset clears it
+        )
 
     # ------------------------------------------------------------ dose bookkeeping
     @property
@@ -173,7 +178,9 @@ class XrayTwin:
         if sending and self.faults.take("garble"):
             return garble(data, len(data) // 2)  # the second half: the header still names the transaction
         if sending and len(data) > 7 and data[7] in (3, 4) and self.faults.take("misanswer"):
-            return data[:7] + bytes([7 - data[7]]) + data[8:]  # function 3 <-> 4: a well-formed reply to another request
+            return (
+                data[:7] + bytes([7 - data[7]]) + data[8:]
+            )  # function 3 <-> 4: a well-formed reply to another request
         return data
 
     # ------------------------------------------------------- hazards on request
@@ -307,7 +314,11 @@ class XrayTwin:
             await asyncio.sleep(HEARTBEAT_PERIOD_S)
             if not self.heartbeat_frozen:
                 self.heartbeat_out = (self.heartbeat_out + 1) & 0xFFFF
-            if self.state in HV_STATES and self.watchdog_ms and time.monotonic() - self._last_hb > self.watchdog_ms / 1000.0:
+            if (
+                self.state in HV_STATES
+                and self.watchdog_ms
+                and time.monotonic() - self._last_hb > self.watchdog_ms / 1000.0
+            ):
                 self._enter_fault(FaultCode.WATCHDOG)
 
     # ------------------------------------------------------------ registers
@@ -317,7 +328,13 @@ class XrayTwin:
     def _inputs(self) -> list[bool]:
         s = self.state
         hv = s in (GeneratorState.PREP, GeneratorState.READY, GeneratorState.EXPOSING)
-        return [self.door_closed, s == GeneratorState.READY, s == GeneratorState.EXPOSING, s == GeneratorState.FAULT, hv]
+        return [
+            self.door_closed,
+            s == GeneratorState.READY,
+            s == GeneratorState.EXPOSING,
+            s == GeneratorState.FAULT,
+            hv,
+        ]
 
     def _holding(self) -> list[int]:
         return [
@@ -388,7 +405,9 @@ class XrayTwin:
             return self._holding()
         return self._input_registers()
 
-    async def _request(self, function_code: int, address: int, values: list[int] | list[bool] | None) -> ExcCodes | None:
+    async def _request(
+        self, function_code: int, address: int, values: list[int] | list[bool] | None
+    ) -> ExcCodes | None:
         """Faults first, then a write's effect; an exception code refuses the request."""
         self.requests += 1
         request = f"fc{function_code}:{address}" + ("" if values is None else f"={[int(v) for v in values]}")

@@ -154,7 +154,9 @@ class WaypointsParams(_Params):
     """A polyline through ``(rotation_deg, tilt_deg)`` points, from a CSV/YAML file or given inline."""
 
     path: str | None = Field(None, description="CSV (columns rotation_deg,tilt_deg) or YAML file")
-    points: list[tuple[Rotation, Tilt]] | None = Field(None, min_length=2, description="[[rotation_deg, tilt_deg], ...]")
+    points: list[tuple[Rotation, Tilt]] | None = Field(
+        None, min_length=2, description="[[rotation_deg, tilt_deg], ...]"
+    )
 
     @model_validator(mode="after")
     def _source(self) -> WaypointsParams:

@@ -94,17 +94,29 @@ def _weighted_chord_sum(kind, center, rotation, semi_axes, mu, radius, o, d):  #
             a0 = (w0 * rotation[p, 0, 0] + w1 * rotation[p, 1, 0] + w2 * rotation[p, 2, 0]) / semi_axes[p, 0]
             a1 = (w0 * rotation[p, 0, 1] + w1 * rotation[p, 1, 1] + w2 * rotation[p, 2, 1]) / semi_axes[p, 1]
             a2 = (w0 * rotation[p, 0, 2] + w1 * rotation[p, 1, 2] + w2 * rotation[p, 2, 2]) / semi_axes[p, 2]
-            b0 = (d[k, 0] * rotation[p, 0, 0] + d[k, 1] * rotation[p, 1, 0] + d[k, 2] * rotation[p, 2, 0]) / semi_axes[p, 0]
-            b1 = (d[k, 0] * rotation[p, 0, 1] + d[k, 1] * rotation[p, 1, 1] + d[k, 2] * rotation[p, 2, 1]) / semi_axes[p, 1]
-            b2 = (d[k, 0] * rotation[p, 0, 2] + d[k, 1] * rotation[p, 1, 2] + d[k, 2] * rotation[p, 2, 2]) / semi_axes[p, 2]
+            b0 = (d[k, 0] * rotation[p, 0, 0] + d[k, 1] * rotation[p, 1, 0] + d[k, 2] * rotation[p, 2, 0]) / semi_axes[
+                p, 0
+            ]
+            b1 = (d[k, 0] * rotation[p, 0, 1] + d[k, 1] * rotation[p, 1, 1] + d[k, 2] * rotation[p, 2, 1]) / semi_axes[
+                p, 1
+            ]
+            b2 = (d[k, 0] * rotation[p, 0, 2] + d[k, 1] * rotation[p, 1, 2] + d[k, 2] * rotation[p, 2, 2]) / semi_axes[
+                p, 2
+            ]
             acc += mu[p] * chord_dt(kind[p], a0, a1, a2, b0, b1, b2) * dn
         out[k] = acc
     return out
 
 
-def weighted_chord_sum(kind: NDArray[np.int64], center: NDArray[np.float64], rotation: NDArray[np.float64],
-                       semi_axes: NDArray[np.float64], mu: NDArray[np.float64], origins: ArrayLike,
-                       directions: ArrayLike) -> NDArray[np.float64]:
+def weighted_chord_sum(
+    kind: NDArray[np.int64],
+    center: NDArray[np.float64],
+    rotation: NDArray[np.float64],
+    semi_axes: NDArray[np.float64],
+    mu: NDArray[np.float64],
+    origins: ArrayLike,
+    directions: ArrayLike,
+) -> NDArray[np.float64]:
     """Line integrals ``sum mu * chord`` of lines ``(K, 3)`` through many primitives (arrays over primitives, as
     in :class:`~orbitct.phantoms.phantom.PackedPrimitives`), each primitive skipped where the line misses its
     bounding sphere."""
@@ -113,9 +125,16 @@ def weighted_chord_sum(kind: NDArray[np.int64], center: NDArray[np.float64], rot
     o, d = np.broadcast_arrays(o, d)
     s = np.asarray(semi_axes, float)
     radius = np.where(np.asarray(kind) == ELLIPSOID, s.max(1), np.hypot(s[:, :2].max(1), s[:, 2])) * (1 + 1e-9)
-    return _weighted_chord_sum(np.asarray(kind, np.int64), np.ascontiguousarray(center, float),
-                               np.ascontiguousarray(rotation, float), np.ascontiguousarray(s), np.asarray(mu, float),
-                               radius, np.ascontiguousarray(o), np.ascontiguousarray(d))
+    return _weighted_chord_sum(
+        np.asarray(kind, np.int64),
+        np.ascontiguousarray(center, float),
+        np.ascontiguousarray(rotation, float),
+        np.ascontiguousarray(s),
+        np.asarray(mu, float),
+        radius,
+        np.ascontiguousarray(o),
+        np.ascontiguousarray(d),
+    )
 
 
 def local_frame(center: ArrayLike, rotation: ArrayLike, semi_axes: ArrayLike) -> tuple[NDArray[np.float64], ...]:

@@ -29,8 +29,13 @@ def _bbs(centers: np.ndarray, diameter_mm: float, mu: float | None = None) -> li
 
 
 def _pack_spheres(
-    rng: np.random.Generator, n: int, r_range: tuple[float, float], cyl_radius: float, z_range: tuple[float, float],
-    keep_out: tuple[float, float, float], batch: int = 256,
+    rng: np.random.Generator,
+    n: int,
+    r_range: tuple[float, float],
+    cyl_radius: float,
+    z_range: tuple[float, float],
+    keep_out: tuple[float, float, float],
+    batch: int = 256,
 ) -> list[tuple[np.ndarray, float]]:
     """Up to ``n`` non-overlapping spheres (largest first) in a z-cylinder, away from the column ``keep_out = (x, y, r)``."""
     radii = np.sort(rng.uniform(*r_range, n))[::-1]
@@ -84,9 +89,14 @@ def phantom_a(seed: int = 0) -> Phantom:
     rr = 75.0 + d / 2
     bbs = np.stack([rr * np.cos(az), rr * np.sin(az), z], axis=1)
     prims += _bbs(bbs, d)
-    return Phantom("A", tuple(prims), bbs, d,
-                   "bench phantom: acrylic cylinder (150 mm) filled with polystyrene spheres around a printed cervical spine, "
-                   "eight 3.17 mm steel BBs taped on the side in a rough spiral")
+    return Phantom(
+        "A",
+        tuple(prims),
+        bbs,
+        d,
+        "bench phantom: acrylic cylinder (150 mm) filled with polystyrene spheres around a printed cervical spine, "
+        "eight 3.17 mm steel BBs taped on the side in a rough spiral",
+    )
 
 
 def phantom_b(seed: int = 0) -> Phantom:
@@ -106,9 +116,14 @@ def phantom_b(seed: int = 0) -> Phantom:
     bbs = np.concatenate(centers)
     prims += _bbs(bbs, d, mu=mu_of("steel") - acr)
     prims.append(cylinder((0, 0, 0), Z, 0.065, 130.0, material="tungsten", label="wire"))
-    return Phantom("B", tuple(prims), bbs, d,
-                   "Cho-style calibration cylinder (120 mm acrylic tube) with 16 steel BBs in two rings "
-                   "and a 0.13 mm tungsten wire along the axis")
+    return Phantom(
+        "B",
+        tuple(prims),
+        bbs,
+        d,
+        "Cho-style calibration cylinder (120 mm acrylic tube) with 16 steel BBs in two rings "
+        "and a 0.13 mm tungsten wire along the axis",
+    )
 
 
 def _lumbar_spine(tissue: float) -> list[Primitive]:
@@ -116,13 +131,38 @@ def _lumbar_spine(tissue: float) -> list[Primitive]:
     out: list[Primitive] = []
     for k, z in enumerate((76.0, 38.0, 0.0, -38.0, -76.0)):
         n = f"L{k + 1}"
-        out.append(cylinder((0, 10, z), Z, 24.0, 26.0, radius_b_mm=17.0, material="cortical", mu=cort, label=f"{n} body"))
-        out.append(cylinder((0, 10, z), Z, 22.5, 23.0, radius_b_mm=15.5, material="trabecular", mu=trab - cort,
-                            label=f"{n} body core"))
+        out.append(
+            cylinder((0, 10, z), Z, 24.0, 26.0, radius_b_mm=17.0, material="cortical", mu=cort, label=f"{n} body")
+        )
+        out.append(
+            cylinder(
+                (0, 10, z),
+                Z,
+                22.5,
+                23.0,
+                radius_b_mm=15.5,
+                material="trabecular",
+                mu=trab - cort,
+                label=f"{n} body core",
+            )
+        )
         for s in (-1, 1):
-            out.append(cylinder((s * 14.0, 36, z), (0, 1, 0), 4.5, 20.0, radius_b_mm=7.0, ref=(1, 0, 0),
-                                material="cortical", mu=cort, label=f"{n} pedicle"))
-            out.append(ellipsoid((s * 27.0, 40, z), (12.0, 4.0, 5.0), material="cortical", mu=cort, label=f"{n} transverse"))
+            out.append(
+                cylinder(
+                    (s * 14.0, 36, z),
+                    (0, 1, 0),
+                    4.5,
+                    20.0,
+                    radius_b_mm=7.0,
+                    ref=(1, 0, 0),
+                    material="cortical",
+                    mu=cort,
+                    label=f"{n} pedicle",
+                )
+            )
+            out.append(
+                ellipsoid((s * 27.0, 40, z), (12.0, 4.0, 5.0), material="cortical", mu=cort, label=f"{n} transverse")
+            )
         out.append(ellipsoid((0, 50, z), (17.0, 5.0, 9.0), material="cortical", mu=cort, label=f"{n} lamina"))
         out.append(ellipsoid((0, 63, z - 4), (4.0, 11.0, 8.0), material="cortical", mu=cort, label=f"{n} spinous"))
     return out
@@ -136,10 +176,28 @@ def _screws(tissue: float) -> list[Primitive]:
         entry = np.array([side * 17.0, 50.0, z])
         a = np.radians(15.0)
         direction = np.array([-side * np.sin(a), -np.cos(a), 0.0])  # forward and towards the midline
-        out.append(cylinder(entry + 22.5 * direction, direction, 3.25, 45.0, material="titanium",
-                            mu=ti - mu_of("trabecular"), label=f"{vert} screw"))
-        out.append(cylinder(entry - 7.0 * direction, direction, 5.5, 12.0, material="titanium",
-                            mu=ti - tissue, label=f"{vert} screw head"))
+        out.append(
+            cylinder(
+                entry + 22.5 * direction,
+                direction,
+                3.25,
+                45.0,
+                material="titanium",
+                mu=ti - mu_of("trabecular"),
+                label=f"{vert} screw",
+            )
+        )
+        out.append(
+            cylinder(
+                entry - 7.0 * direction,
+                direction,
+                5.5,
+                12.0,
+                material="titanium",
+                mu=ti - tissue,
+                label=f"{vert} screw head",
+            )
+        )
     return out
 
 
@@ -150,9 +208,14 @@ def phantom_c(seed: int = 0) -> Phantom:
     a, b = 120.0, 90.0
     prims = [cylinder((0, 0, 0), Z, a, 220.0, radius_b_mm=b, ref=(1, 0, 0), material="tissue", label="torso")]
     for s in (-1, 1):
-        prims.append(ellipsoid((s * 55.0, -5.0, 75.0), (38.0, 45.0, 30.0), material="lung",
-                               mu=mu_of("lung") - tissue, label="lung"))
-        prims.append(ellipsoid((s * 45.0, 25.0, -30.0), (22.0, 14.0, 32.0), material="tissue", mu=0.002, label="kidney"))
+        prims.append(
+            ellipsoid(
+                (s * 55.0, -5.0, 75.0), (38.0, 45.0, 30.0), material="lung", mu=mu_of("lung") - tissue, label="lung"
+            )
+        )
+        prims.append(
+            ellipsoid((s * 45.0, 25.0, -30.0), (22.0, 14.0, 32.0), material="tissue", mu=0.002, label="kidney")
+        )
     prims += _lumbar_spine(tissue)
     prims += _screws(tissue)
     d = 2.0
@@ -169,9 +232,14 @@ def phantom_c(seed: int = 0) -> Phantom:
             continue
         bbs = np.vstack([bbs, c])
     prims += _bbs(bbs, d)
-    return Phantom("C", tuple(prims), bbs, d,
-                   "torso (240 x 180 mm) with a lumbar spine, four titanium pedicle screws in L2-L4 "
-                   "and ten 2 mm steel BBs taped to the skin")
+    return Phantom(
+        "C",
+        tuple(prims),
+        bbs,
+        d,
+        "torso (240 x 180 mm) with a lumbar spine, four titanium pedicle screws in L2-L4 "
+        "and ten 2 mm steel BBs taped to the skin",
+    )
 
 
 def experiment_phantom(name: str, seed: int = 0) -> Phantom:

@@ -85,8 +85,13 @@ class Phantom:
     def subset(self, keep: ArrayLike, name: str | None = None) -> Phantom:
         """Phantom of the primitives selected by index or boolean mask (markers kept as they are)."""
         idx = np.arange(len(self.primitives))[np.asarray(keep)]
-        return Phantom(name or self.name, tuple(self.primitives[i] for i in idx), self.markers_xyz,
-                       self.marker_diameter_mm, self.description)
+        return Phantom(
+            name or self.name,
+            tuple(self.primitives[i] for i in idx),
+            self.markers_xyz,
+            self.marker_diameter_mm,
+            self.description,
+        )
 
     def without_metal(self) -> Phantom:
         """The phantom with every metal primitive removed (reference for metal-artifact studies)."""
@@ -137,5 +142,7 @@ class Phantom:
     def __repr__(self) -> str:
         lo, hi = self.bounding_box()
         size = " x ".join(f"{x:.0f}" for x in hi - lo)
-        return (f"Phantom({self.name!r}, {len(self.primitives)} primitives, {self.n_markers} markers, "
-                f"{len(self.metal_indices)} metal, extent {size} mm)")
+        return (
+            f"Phantom({self.name!r}, {len(self.primitives)} primitives, {self.n_markers} markers, "
+            f"{len(self.metal_indices)} metal, extent {size} mm)"
+        )

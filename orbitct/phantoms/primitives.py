@@ -33,7 +33,11 @@ def frame_from_axis(axis: ArrayLike, ref: ArrayLike | None = None) -> NDArray[np
     if n == 0:
         raise PhantomError("axis must be a non-zero vector")
     w = w / n
-    r = np.asarray(ref, float) if ref is not None else (np.array([1.0, 0, 0]) if abs(w[0]) < 0.9 else np.array([0, 1.0, 0]))
+    r = (
+        np.asarray(ref, float)
+        if ref is not None
+        else (np.array([1.0, 0, 0]) if abs(w[0]) < 0.9 else np.array([0, 1.0, 0]))
+    )
     u = r - w * (r @ w)
     if np.linalg.norm(u) < 1e-9:
         raise PhantomError("ref must not be parallel to axis")
@@ -118,8 +122,13 @@ class Primitive:
         """Inverse of :meth:`to_json`."""
         try:
             return cls(
-                d["kind"], d["center_mm"], d["semi_axes_mm"], d["rotation"], d["mu_per_mm"],
-                d.get("material", ""), d.get("label", ""),
+                d["kind"],
+                d["center_mm"],
+                d["semi_axes_mm"],
+                d["rotation"],
+                d["mu_per_mm"],
+                d.get("material", ""),
+                d.get("label", ""),
             )
         except KeyError as exc:
             raise PhantomError(f"primitive description lacks {exc.args[0]!r}: {d}") from None
@@ -129,7 +138,9 @@ def _mu(mu: float | None, material: str) -> float:
     return mu_of(material) if mu is None else float(mu)
 
 
-def sphere(center: ArrayLike, radius_mm: float, *, material: str = "water", mu: float | None = None, label: str = "") -> Primitive:
+def sphere(
+    center: ArrayLike, radius_mm: float, *, material: str = "water", mu: float | None = None, label: str = ""
+) -> Primitive:
     """A sphere; ``mu`` defaults to the material's attenuation."""
     return Primitive("ellipsoid", center, (radius_mm,) * 3, np.eye(3), _mu(mu, material), material, label)
 

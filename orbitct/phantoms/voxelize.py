@@ -15,8 +15,17 @@ _MAX_THIN_SUPERSAMPLE = 24
 
 @nb.njit(parallel=True, cache=True, nogil=True)
 def _add_primitive(
-    vol: NDArray[np.float32], kind: int, M: NDArray[np.float64], c: NDArray[np.float64], origin: NDArray[np.float64],
-    vox: NDArray[np.float64], lo: NDArray[np.int64], hi: NDArray[np.int64], mu: float, ss: int, thin: bool,
+    vol: NDArray[np.float32],
+    kind: int,
+    M: NDArray[np.float64],
+    c: NDArray[np.float64],
+    origin: NDArray[np.float64],
+    vox: NDArray[np.float64],
+    lo: NDArray[np.int64],
+    hi: NDArray[np.int64],
+    mu: float,
+    ss: int,
+    thin: bool,
 ) -> None:
     nz, ny, nx = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, hi[2] - lo[2] + 1
     lat = np.zeros((nz + 1, ny + 1, nx + 1), dtype=np.uint8)
@@ -34,8 +43,16 @@ def _add_primitive(
     for a in nb.prange(nz):
         for b in range(ny):
             for e in range(nx):
-                n = (lat[a, b, e] + lat[a, b, e + 1] + lat[a, b + 1, e] + lat[a, b + 1, e + 1]
-                     + lat[a + 1, b, e] + lat[a + 1, b, e + 1] + lat[a + 1, b + 1, e] + lat[a + 1, b + 1, e + 1])
+                n = (
+                    lat[a, b, e]
+                    + lat[a, b, e + 1]
+                    + lat[a, b + 1, e]
+                    + lat[a, b + 1, e + 1]
+                    + lat[a + 1, b, e]
+                    + lat[a + 1, b, e + 1]
+                    + lat[a + 1, b + 1, e]
+                    + lat[a + 1, b + 1, e + 1]
+                )
                 if n == 8:
                     vol[lo[0] + a, lo[1] + b, lo[2] + e] += mu
                     continue
@@ -59,8 +76,14 @@ def _add_primitive(
 
 @nb.njit(parallel=True, cache=True, nogil=True)
 def _add_segment(
-    vol: NDArray[np.float32], p0: NDArray[np.float64], p1: NDArray[np.float64], origin: NDArray[np.float64],
-    vox: NDArray[np.float64], lo: NDArray[np.int64], hi: NDArray[np.int64], density: float,
+    vol: NDArray[np.float32],
+    p0: NDArray[np.float64],
+    p1: NDArray[np.float64],
+    origin: NDArray[np.float64],
+    vox: NDArray[np.float64],
+    lo: NDArray[np.int64],
+    hi: NDArray[np.int64],
+    density: float,
 ) -> None:
     """Add ``density * (length of segment p0-p1 inside the voxel)`` to every voxel of the box ``lo..hi``."""
     d0, d1, d2 = p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]

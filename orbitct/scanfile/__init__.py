@@ -7,4 +7,15 @@ from orbitct.scanfile.reader import ScanFile, describe_frame_problems, frame_pro
 from orbitct.scanfile.summary import scan_summary
 from orbitct.scanfile.writer import FORMAT, VERSION, ScanWriter
 
-__all__ = ["FORMAT", "VERSION", "DiskFullError", "ImageKey", "ScanFile", "ScanFileError", "ScanWriter", "describe_frame_problems", "frame_problem", "scan_summary"]
+__all__ = [
+    "FORMAT",
+    "VERSION",
+    "DiskFullError",
+    "ImageKey",
+    "ScanFile",
+    "ScanFileError",
+    "ScanWriter",
+    "describe_frame_problems",
+    "frame_problem",
+    "scan_summary",
+]

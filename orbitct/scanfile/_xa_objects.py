@@ -112,8 +112,10 @@ def enhanced(run: Run, start: dt.datetime) -> Any:
     ds.AcquisitionContextSequence = Sequence()
     # XA/XRF acquisition: the technique is mandatory here
     if run.kv is None or run.ma is None or run.exposure_ms is None:
-        raise ScanFileError("Enhanced XA needs the X-ray technique (kV, mA, exposure time); the scan records none: "
-                            "export it as classic XA")
+        raise ScanFileError(
+            "Enhanced XA needs the X-ray technique (kV, mA, exposure time); the scan records none: "
+            "export it as classic XA"
+        )
     ds.RadiationSetting, ds.RadiationMode, ds.KVP = "GR", "PULSED", _num(run.kv)
     ds.XRayTubeCurrentInmA, ds.ExposureTimeInms = float(run.ma), float(run.exposure_ms)  # (not mAs as well)
     ds.AveragePulseWidth = float(run.exposure_ms)
@@ -123,42 +125,105 @@ def enhanced(run: Run, start: dt.datetime) -> Any:
     # the dimensions: frames in acquisition order
     dim_uid = generate_uid()
     ds.DimensionOrganizationSequence = Sequence([sequence_item(DimensionOrganizationUID=dim_uid)])
-    ds.DimensionIndexSequence = Sequence([sequence_item(DimensionOrganizationUID=dim_uid, DimensionIndexPointer=0x00209128,
-                                                FunctionalGroupPointer=0x00209111,
-                                                DimensionDescriptionLabel="Temporal position")])
+    ds.DimensionIndexSequence = Sequence(
+        [
+            sequence_item(
+                DimensionOrganizationUID=dim_uid,
+                DimensionIndexPointer=0x00209128,
+                FunctionalGroupPointer=0x00209111,
+                DimensionDescriptionLabel="Temporal position",
+            )
+        ]
+    )
     shared = sequence_item(
-        XRayGeometrySequence=Sequence([sequence_item(DistanceSourceToIsocenter=run.sad_mm, DistanceSourceToDetector=run.sdd_mm)]),
-        FramePixelDataPropertiesSequence=Sequence([sequence_item(
-            FrameType=["ORIGINAL", "PRIMARY", "SINGLE PLANE", "NONE"],
-            ImagerPixelSpacing=[run.pitch_row_mm, run.pitch_col_mm], PixelIntensityRelationship="LIN",
-            PixelIntensityRelationshipSign=1, GeometricalProperties="UNIFORM", ImageProcessingApplied="NONE")]),
-        FieldOfViewSequence=Sequence([sequence_item(
-            FieldOfViewShape="RECTANGLE", FieldOfViewDimensionsInFloat=[run.pitch_row_mm * ds.Rows, run.pitch_col_mm * ds.Columns],
-            FieldOfViewOrigin=[0.0, 0.0], FieldOfViewRotation="0", FieldOfViewHorizontalFlip="NO")]),
-        FrameVOILUTSequence=Sequence([sequence_item(WindowCenter=float(np.percentile(run.frames, 50)),
-                                            WindowWidth=max(1.0, float(np.ptp(run.frames))))]),
-        TablePositionSequence=Sequence([sequence_item(  # the twin has no table: at its reference position
-            TableTopVerticalPosition=0.0, TableTopLongitudinalPosition=0.0, TableTopLateralPosition=0.0,
-            TableHorizontalRotationAngle=0.0, TableHeadTiltAngle=0.0, TableCradleTiltAngle=0.0)]),
-        CollimatorShapeSequence=Sequence([sequence_item(  # open: the whole panel
-            CollimatorShape="RECTANGULAR", CollimatorLeftVerticalEdge=0, CollimatorRightVerticalEdge=int(ds.Columns),
-            CollimatorUpperHorizontalEdge=0, CollimatorLowerHorizontalEdge=int(ds.Rows))]),
+        XRayGeometrySequence=Sequence(
+            [sequence_item(DistanceSourceToIsocenter=run.sad_mm, DistanceSourceToDetector=run.sdd_mm)]
+        ),
+        FramePixelDataPropertiesSequence=Sequence(
+            [
+                sequence_item(
+                    FrameType=["ORIGINAL", "PRIMARY", "SINGLE PLANE", "NONE"],
+                    ImagerPixelSpacing=[run.pitch_row_mm, run.pitch_col_mm],
+                    PixelIntensityRelationship="LIN",
+                    PixelIntensityRelationshipSign=1,
+                    GeometricalProperties="UNIFORM",
+                    ImageProcessingApplied="NONE",
+                )
+            ]
+        ),
+        FieldOfViewSequence=Sequence(
+            [
+                sequence_item(
+                    FieldOfViewShape="RECTANGLE",
+                    FieldOfViewDimensionsInFloat=[run.pitch_row_mm * ds.Rows, run.pitch_col_mm * ds.Columns],
+                    FieldOfViewOrigin=[0.0, 0.0],
+                    FieldOfViewRotation="0",
+                    FieldOfViewHorizontalFlip="NO",
+                )
+            ]
+        ),
+        FrameVOILUTSequence=Sequence(
+            [
+                sequence_item(
+                    WindowCenter=float(np.percentile(run.frames, 50)), WindowWidth=max(1.0, float(np.ptp(run.frames)))
+                )
+            ]
+        ),
+        TablePositionSequence=Sequence(
+            [
+                sequence_item(  # the twin has no table: at its reference position
+                    TableTopVerticalPosition=0.0,
+                    TableTopLongitudinalPosition=0.0,
+                    TableTopLateralPosition=0.0,
+                    TableHorizontalRotationAngle=0.0,
+                    TableHeadTiltAngle=0.0,
+                    TableCradleTiltAngle=0.0,
+                )
+            ]
+        ),
+        CollimatorShapeSequence=Sequence(
+            [
+                sequence_item(  # open: the whole panel
+                    CollimatorShape="RECTANGULAR",
+                    CollimatorLeftVerticalEdge=0,
+                    CollimatorRightVerticalEdge=int(ds.Columns),
+                    CollimatorUpperHorizontalEdge=0,
+                    CollimatorLowerHorizontalEdge=int(ds.Rows),
+                )
+            ]
+        ),
         FrameAcquisitionSequence=Sequence([sequence_item(KVP=_num(run.kv), XRayTubeCurrentInmA=float(run.ma))]),
         IrradiationEventIdentificationSequence=Sequence([sequence_item(IrradiationEventUID=generate_uid())]),
-        FrameAnatomySequence=Sequence([sequence_item(FrameLaterality="U", AnatomicRegionSequence=Sequence(
-            [sequence_item(**ENTIRE_BODY)]))]),
+        FrameAnatomySequence=Sequence(
+            [sequence_item(FrameLaterality="U", AnatomicRegionSequence=Sequence([sequence_item(**ENTIRE_BODY)]))]
+        ),
     )
     ds.SharedFunctionalGroupsSequence = Sequence([shared])
     frames = []
     for i in range(n):
         when = start + dt.timedelta(seconds=float(run.times_s[i] - run.times_s[0]))
-        frames.append(sequence_item(
-            FrameContentSequence=Sequence([sequence_item(FrameAcquisitionDateTime=when.strftime("%Y%m%d%H%M%S.%f"),
-                                                 FrameReferenceDateTime=when.strftime("%Y%m%d%H%M%S.%f"),
-                                                 FrameAcquisitionDuration=float(run.exposure_ms), TemporalPositionIndex=i + 1,
-                                                 DimensionIndexValues=[i + 1])]),
-            PositionerPositionSequence=Sequence([sequence_item(PositionerPrimaryAngle=float(run.primary_deg[i]),
-                                                       PositionerSecondaryAngle=float(run.secondary_deg[i]))]),
-        ))
+        frames.append(
+            sequence_item(
+                FrameContentSequence=Sequence(
+                    [
+                        sequence_item(
+                            FrameAcquisitionDateTime=when.strftime("%Y%m%d%H%M%S.%f"),
+                            FrameReferenceDateTime=when.strftime("%Y%m%d%H%M%S.%f"),
+                            FrameAcquisitionDuration=float(run.exposure_ms),
+                            TemporalPositionIndex=i + 1,
+                            DimensionIndexValues=[i + 1],
+                        )
+                    ]
+                ),
+                PositionerPositionSequence=Sequence(
+                    [
+                        sequence_item(
+                            PositionerPrimaryAngle=float(run.primary_deg[i]),
+                            PositionerSecondaryAngle=float(run.secondary_deg[i]),
+                        )
+                    ]
+                ),
+            )
+        )
     ds.PerFrameFunctionalGroupsSequence = Sequence(frames)
     return ds

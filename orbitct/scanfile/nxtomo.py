@@ -88,7 +88,9 @@ def export_nxtomo(scan: str | Path, out: str | Path, *, overwrite: bool = False)
     return out
 
 
-def _add_transformations(sample: h5py.Group, axes: dict[str, np.ndarray], rotation: tuple[str, np.ndarray] | None) -> None:
+def _add_transformations(
+    sample: h5py.Group, axes: dict[str, np.ndarray], rotation: tuple[str, np.ndarray] | None
+) -> None:
     """NXtransformations of the sample per frame: translations, then tilt about x, then rotation about z."""
     g = sample.require_group("transformations")
     g.attrs["NX_class"] = "NXtransformations"
@@ -105,20 +107,38 @@ def _add_transformations(sample: h5py.Group, axes: dict[str, np.ndarray], rotati
         if name in g:
             del g[name]
         ds = g.create_dataset(name, data=np.asarray(values, dtype=np.float64))
-        ds.attrs.update({"transformation_type": kind, "vector": np.asarray(vector), "units": unit,
-                         "depends_on": chain[i + 1][0] if i + 1 < len(chain) else "."})
+        ds.attrs.update(
+            {
+                "transformation_type": kind,
+                "vector": np.asarray(vector),
+                "units": unit,
+                "depends_on": chain[i + 1][0] if i + 1 < len(chain) else ".",
+            }
+        )
     if chain:
         sample.attrs["depends_on"] = f"transformations/{chain[0][0]}"
 
 
-def _add_geometry(entry: h5py.Group, geometries: dict[str, Any], times: np.ndarray, shape: tuple[int, int],
-                  pitch: tuple[float, float], source: str) -> None:
+def _add_geometry(
+    entry: h5py.Group,
+    geometries: dict[str, Any],
+    times: np.ndarray,
+    shape: tuple[int, int],
+    pitch: tuple[float, float],
+    source: str,
+) -> None:
     """The per-view cone-beam geometry of every geometry in the scan file, as ``orbitct`` NXcollection."""
     g = entry.require_group("orbitct")
-    g.attrs.update({"NX_class": "NXcollection", "source_file": source, "detector_rows_cols": np.asarray(shape),
-                    "pitch_mm": np.asarray(pitch),
-                    "description": "per-view geometry: S, D, u, v (ASTRA cone_vec order) in the object frame, mm; "
-                                   "NaN for frames that are not projections (see orbitct's geometry.md)"})
+    g.attrs.update(
+        {
+            "NX_class": "NXcollection",
+            "source_file": source,
+            "detector_rows_cols": np.asarray(shape),
+            "pitch_mm": np.asarray(pitch),
+            "description": "per-view geometry: S, D, u, v (ASTRA cone_vec order) in the object frame, mm; "
+            "NaN for frames that are not projections (see orbitct's geometry.md)",
+        }
+    )
     for name, vectors in geometries.items():
         ds = g.create_dataset(f"{name}_vectors", data=np.asarray(vectors, dtype=np.float64))
         ds.attrs["units"] = "mm"

@@ -31,14 +31,16 @@ HDF5_ERRORS = (OSError, RuntimeError, KeyError, ValueError, TypeError, SystemErr
 def _hdf5_text(exc: BaseException) -> str:
     """HDF5's own words for a failure, without h5py's prefixes and the call chain."""
     text = str(exc.args[0] if isinstance(exc, KeyError) and exc.args else exc).splitlines()[0] if str(exc) else ""
-    inner = text[text.find("(") + 1: text.rfind(")")] if "(" in text and text.endswith(")") else text
+    inner = text[text.find("(") + 1 : text.rfind(")")] if "(" in text and text.endswith(")") else text
     return (inner or type(exc).__name__)[:160]
 
 
 def damaged(path: Path, exc: BaseException) -> ScanFileError:
     """The one sentence for a file HDF5 cannot read further: damaged, where HDF5 says."""
-    return ScanFileError(f"{path}: the file is damaged and cannot be read ({_hdf5_text(exc)}); an intact copy, or "
-                         "`orbitct scan repair` for a scan whose acquisition was cut short, may help")
+    return ScanFileError(
+        f"{path}: the file is damaged and cannot be read ({_hdf5_text(exc)}); an intact copy, or "
+        "`orbitct scan repair` for a scan whose acquisition was cut short, may help"
+    )
 
 
 def describe_frame_problems(problems: dict[int, str], shown: int = 5) -> str:
@@ -166,8 +168,10 @@ class ScanFile(ScanResults):
                 try:
                     target = self._f.get(name)
                 except HDF5_ERRORS as exc:
-                    problems.append(f"/{name} is a soft link to {link.path} that goes round in a loop or cannot be "
-                                    f"followed ({_hdf5_text(exc)})")
+                    problems.append(
+                        f"/{name} is a soft link to {link.path} that goes round in a loop or cannot be "
+                        f"followed ({_hdf5_text(exc)})"
+                    )
                     return
                 if target is None:
                     problems.append(f"/{name} is a soft link to {link.path}, which does not exist")
@@ -204,8 +208,10 @@ class ScanFile(ScanResults):
             pitch = np.asarray(da["pitch_mm"], dtype=float).ravel()
             rows, cols = _integer(da["rows"]), _integer(da["cols"])
         except (TypeError, ValueError):
-            raise self._fail(f"/detector@rows, cols and pitch_mm must be numbers, got {_shown(da['rows'])}, "
-                             f"{_shown(da['cols'])}, {_shown(da['pitch_mm'])}") from None
+            raise self._fail(
+                f"/detector@rows, cols and pitch_mm must be numbers, got {_shown(da['rows'])}, "
+                f"{_shown(da['cols'])}, {_shown(da['pitch_mm'])}"
+            ) from None
         if pitch.shape != (2,):
             raise self._fail(f"/detector@pitch_mm must hold 2 numbers [col, row], got {pitch.tolist()}")
         try:
@@ -216,9 +222,7 @@ class ScanFile(ScanResults):
             self._dataset(ds)
         data, key = f["frames/data"], f["frames/image_key"]
         if data.ndim != 3 or data.shape[1:] != self.panel.shape:
-            raise self._fail(
-                f"/frames/data has shape {data.shape}, expected (N, {self.panel.rows}, {self.panel.cols})"
-            )
+            raise self._fail(f"/frames/data has shape {data.shape}, expected (N, {self.panel.rows}, {self.panel.cols})")
         if data.dtype not in (np.uint16, np.float32):
             raise self._fail(f"/frames/data has dtype {data.dtype}, expected uint16 or float32")
         if key.ndim != 1 or key.dtype.kind not in "iu":
@@ -242,8 +246,10 @@ class ScanFile(ScanResults):
         keys = key[: self.n_frames]
         bad = set(np.unique(keys).tolist()) - {int(k) for k in ImageKey}
         if bad:
-            raise self._fail(f"/frames/image_key holds {sorted(bad)}, allowed are {', '.join(str(k.value) for k in ImageKey)} "
-                             f"({', '.join(k.label for k in ImageKey)})")
+            raise self._fail(
+                f"/frames/image_key holds {sorted(bad)}, allowed are {', '.join(str(k.value) for k in ImageKey)} "
+                f"({', '.join(k.label for k in ImageKey)})"
+            )
         self.image_key: NDArray[np.int8] = np.asarray(keys, dtype=np.int8)
         for name in ("nominal", "calibrated"):
             if f"geometry/{name}" in f:
@@ -270,15 +276,19 @@ class ScanFile(ScanResults):
             if link is None:
                 raise self._fail(f"missing dataset /{path}")
             if isinstance(link, h5py.ExternalLink) and not self.allow_external:
-                raise self._fail(f"/{sub} is a link into another file ({link.filename}); a scan file must hold its "
-                                 "own data (Python: ScanFile(..., allow_external=True) if that is intended)")
+                raise self._fail(
+                    f"/{sub} is a link into another file ({link.filename}); a scan file must hold its "
+                    "own data (Python: ScanFile(..., allow_external=True) if that is intended)"
+                )
         ds = self._f[path]
         if not isinstance(ds, h5py.Dataset):
             raise self._fail(f"/{path} must be a dataset, found a {type(ds).__name__.lower()}")
         if not self.allow_external and (ds.external or ds.is_virtual):
             where = "raw external files" if ds.external else "other files (a virtual dataset)"
-            raise self._fail(f"/{path} is stored in {where}; a scan file must hold its own data "
-                             "(Python: ScanFile(..., allow_external=True) if that is intended)")
+            raise self._fail(
+                f"/{path} is stored in {where}; a scan file must hold its own data "
+                "(Python: ScanFile(..., allow_external=True) if that is intended)"
+            )
         return ds
 
     def _check_geometry(self, group: str) -> None:
@@ -287,8 +297,9 @@ class ScanFile(ScanResults):
             raise self._fail(f"/{group} must be a group")
         vec = self._dataset(f"{group}/vectors")
         if vec.ndim != 2 or vec.shape[1] != 12 or vec.shape[0] < self.n_frames or vec.dtype.kind not in "fiu":
-            raise self._fail(f"/{group}/vectors has shape {vec.shape} of {vec.dtype}, expected ({self.n_frames}, 12) "
-                             "numbers")
+            raise self._fail(
+                f"/{group}/vectors has shape {vec.shape} of {vec.dtype}, expected ({self.n_frames}, 12) numbers"
+            )
         if "matrices" in g and (g["matrices"].shape[1:] != (3, 4) or g["matrices"].shape[0] < self.n_frames):
             raise self._fail(f"/{group}/matrices has shape {g['matrices'].shape}, expected ({self.n_frames}, 3, 4)")
         if group == "geometry/calibrated":
@@ -302,8 +313,10 @@ class ScanFile(ScanResults):
                 + (" ..." if bad.size > 5 else "")
             )
         for why, frames in _degenerate_views(v, proj).items():
-            raise self._fail(f"/{group}/vectors: {why} on projection frames {frames[:5].tolist()}"
-                             + (" ..." if frames.size > 5 else ""))
+            raise self._fail(
+                f"/{group}/vectors: {why} on projection frames {frames[:5].tolist()}"
+                + (" ..." if frames.size > 5 else "")
+            )
 
     # ------------------------------------------------------------- metadata
     @property
@@ -360,14 +373,17 @@ class ScanFile(ScanResults):
             return {}
         if not isinstance(value, dict):
             kind = {list: "a list", str: "text", int: "a number", float: "a number", bool: "true or false"}.get(
-                type(value), "null")
+                type(value), "null"
+            )
             self._ignore(f"/{group}@{key}", f"is JSON {kind}, not an object")
             return {}
         return value
 
     def _ignore(self, where: str, why: str) -> None:
         """Say once that ``where`` is ignored (:attr:`warnings`, and the log once per process and file)."""
-        text = f"{self.path.name}: {where} {why}; it is ignored (nothing that orbitct calibrates or reconstructs needs it)"
+        text = (
+            f"{self.path.name}: {where} {why}; it is ignored (nothing that orbitct calibrates or reconstructs needs it)"
+        )
         if text not in self.warnings:
             self.warnings.append(text)
         if (str(self.path), text) not in _WARNED:
@@ -403,7 +419,9 @@ class ScanFile(ScanResults):
         """Per-frame geometry (all N frames; non-projection rows are NaN)."""
         group = self._geometry_group(name)
         if group not in self._f:
-            raise self._fail(f"has no /{group} (geometries present: {[g for g in GEOMETRY_NAMES if self.has_geometry(g)]})")
+            raise self._fail(
+                f"has no /{group} (geometries present: {[g for g in GEOMETRY_NAMES if self.has_geometry(g)]})"
+            )
         return ViewGeometry(self._f[group]["vectors"][: self.n_frames], self.panel)
 
     # ---------------------------------------------------------------- pixels
@@ -466,23 +484,29 @@ class ScanFile(ScanResults):
         frame once) frames with NaN, infinite or no signal."""
         reasons = []
         if self.status == "acquiring":
-            reasons.append("its status is 'acquiring' (still being written, or left by an acquisition that died): "
-                           "`orbitct scan repair` marks it aborted, keeping its frames")
+            reasons.append(
+                "its status is 'acquiring' (still being written, or left by an acquisition that died): "
+                "`orbitct scan repair` marks it aborted, keeping its frames"
+            )
         proj = self.projection_indices
         if proj.size == 0:
             counts = ", ".join(f"{n} {k}" for k, n in self.count_by_kind().items() if n) or "none"
             reasons.append(f"it has no projection frames (image_key 0; frames: {counts})")
         if not (self.has_geometry("nominal") or self.has_geometry("calibrated")):
-            reasons.append("it has no geometry (neither /geometry/nominal nor /geometry/calibrated) to reconstruct "
-                           "or calibrate from")
+            reasons.append(
+                "it has no geometry (neither /geometry/nominal nor /geometry/calibrated) to reconstruct "
+                "or calibrate from"
+            )
         import psutil
 
         frame_bytes = self.panel.rows * self.panel.cols * 8
         available = psutil.virtual_memory().available
         if frame_bytes * FRAME_COPIES > available // 2:
-            reasons.append(f"a frame of {self.panel.rows} x {self.panel.cols} pixels needs about "
-                           f"{frame_bytes * FRAME_COPIES / 2**30:.1f} GiB to process and {available / 2**30:.1f} GiB "
-                           "is available")
+            reasons.append(
+                f"a frame of {self.panel.rows} x {self.panel.cols} pixels needs about "
+                f"{frame_bytes * FRAME_COPIES / 2**30:.1f} GiB to process and {available / 2**30:.1f} GiB "
+                "is available"
+            )
         elif check_pixels and not reasons:
             needed = np.union1d(proj, np.flatnonzero(np.isin(self.image_key, (ImageKey.DARK, ImageKey.FLAT))))
             problems = self.frame_problems(needed)

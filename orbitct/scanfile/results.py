@@ -38,9 +38,11 @@ class ScanResults:
     def refuse_if_acquiring(self) -> None:
         """Results go only into a finished scan: one still ``acquiring`` is being written, or was cut off."""
         if str(self._f.attrs.get("status", "complete")) == "acquiring":
-            raise self._fail("is still marked 'acquiring': its acquisition is running or was killed; results are "
-                             "added once it has ended (a file left by a killed acquisition: `orbitct scan repair` "
-                             "marks it aborted, keeping every frame)")
+            raise self._fail(
+                "is still marked 'acquiring': its acquisition is running or was killed; results are "
+                "added once it has ended (a file left by a killed acquisition: `orbitct scan repair` "
+                "marks it aborted, keeping every frame)"
+            )
 
     def _replace(self, path: str, data: ArrayLike) -> h5py.Dataset:
         if path in self._f:
@@ -168,4 +170,3 @@ class ScanResults:
         group = self._f.get("acquisition")
         value = group.attrs.get("live_calibration", "") if isinstance(group, h5py.Group) else ""
         return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value)
-

@@ -77,10 +77,15 @@ def _summary(f: ScanFile, damage: list[str]) -> dict[str, Any]:
         orbit["tilt_deg"] = [float(tilt.min()), float(tilt.max())]
     calibration: dict[str, Any] = {}
     if f.has_geometry("calibrated"):
+
         def calibrated() -> dict[str, Any]:
             a = f.h5["geometry/calibrated"].attrs
-            return {k: (_finite(a[k]) if k != "method" else str(a[k]))
-                    for k in ("method", "rpe_mean_mm", "rpe_median_mm", "rpe_std_mm", "reproj_rms_px") if k in a}
+            return {
+                k: (_finite(a[k]) if k != "method" else str(a[k]))
+                for k in ("method", "rpe_mean_mm", "rpe_median_mm", "rpe_std_mm", "reproj_rms_px")
+                if k in a
+            }
+
         calibration = _read(damage, "/geometry/calibrated's attributes", calibrated, {})
     markers = _read(damage, "/markers", f.markers, {})
     truth = _read(damage, "/truth/markers/xyz", f.truth_markers_xyz, None)
@@ -109,8 +114,12 @@ def _summary(f: ScanFile, damage: list[str]) -> dict[str, Any]:
         },
         "phantom": (f"{ph.get('name', '')}: {len(ph.get('primitives', []))} primitives" if ph else ""),
         "recon": _read(damage, "/recon", f.recon_names, []),
-        "import_assumptions": _read(damage, "/provenance@import_assumptions_json", lambda: list(
-            f.attrs_json("provenance", "import_assumptions_json").get("assumed", [])), []),
+        "import_assumptions": _read(
+            damage,
+            "/provenance@import_assumptions_json",
+            lambda: list(f.attrs_json("provenance", "import_assumptions_json").get("assumed", [])),
+            [],
+        ),
         "file_bytes": f.path.stat().st_size,
         "ignored": list(f.warnings),
     }

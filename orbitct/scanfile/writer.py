@@ -97,7 +97,11 @@ class ScanWriter:
         fr = f.create_group("frames")
         r, c = panel.shape
         fr.create_dataset(
-            "data", shape=(0, r, c), maxshape=(None, r, c), dtype=frame_dtype, chunks=(1, r, c),
+            "data",
+            shape=(0, r, c),
+            maxshape=(None, r, c),
+            dtype=frame_dtype,
+            chunks=(1, r, c),
             compression=compression,
         )
         fr.create_dataset("image_key", shape=(0,), maxshape=(None,), dtype="i1", chunks=(_GEOM_CHUNK,))
@@ -109,17 +113,22 @@ class ScanWriter:
                 ds.attrs["unit"] = unit
         nom = f.create_group("geometry/nominal")
         nom.create_dataset("vectors", shape=(0, 12), maxshape=(None, 12), dtype="f8", chunks=(_GEOM_CHUNK, 12))
-        nom.create_dataset(
-            "matrices", shape=(0, 3, 4), maxshape=(None, 3, 4), dtype="f8", chunks=(_GEOM_CHUNK, 3, 4)
-        )
+        nom.create_dataset("matrices", shape=(0, 3, 4), maxshape=(None, 3, 4), dtype="f8", chunks=(_GEOM_CHUNK, 3, 4))
         if true_geometry:  # simulated acquisitions: the view each frame was rendered at, written with the frame
-            f.create_dataset("truth/geometry/vectors", shape=(0, 12), maxshape=(None, 12), dtype="f8",
-                             chunks=(_GEOM_CHUNK, 12))
+            f.create_dataset(
+                "truth/geometry/vectors", shape=(0, 12), maxshape=(None, 12), dtype="f8", chunks=(_GEOM_CHUNK, 12)
+            )
         # handles of every per-frame dataset, looked up once (append runs once per frame)
         self._per_frame = {
             name: f[name]
-            for name in ["frames/data", "frames/image_key", "frames/time_s", "geometry/nominal/vectors",
-                         "geometry/nominal/matrices"] + (["truth/geometry/vectors"] if true_geometry else [])
+            for name in [
+                "frames/data",
+                "frames/image_key",
+                "frames/time_s",
+                "geometry/nominal/vectors",
+                "geometry/nominal/matrices",
+            ]
+            + (["truth/geometry/vectors"] if true_geometry else [])
             + [f"frames/{grp}/{axis}" for grp in ("encoders", "commanded") for axis in self._axes]
         }
         mk = f.create_group("markers")
@@ -181,9 +190,11 @@ class ScanWriter:
         if self._min_free > 0:
             free = free_bytes(self.path.parent)
             if free < self._min_free:
-                raise DiskFullError(f"{self.path}: frame {i} not written: {format_bytes(free)} free, "
-                                    f"{format_bytes(self._min_free)} needed to write it and close the file cleanly; "
-                                    f"the {i} frames before it are kept")
+                raise DiskFullError(
+                    f"{self.path}: frame {i} not written: {format_bytes(free)} free, "
+                    f"{format_bytes(self._min_free)} needed to write it and close the file cleanly; "
+                    f"the {i} frames before it are kept"
+                )
         if ds["frames/data"].dtype == np.uint16:
             arr = np.clip(np.rint(arr), 0, 65535).astype(np.uint16) if arr.dtype != np.uint16 else arr
         try:
@@ -218,12 +229,19 @@ class ScanWriter:
         self._detach()
         text = str(exc)
         full = "errno = 28" in text or "No space left" in text
-        causes = {"errno = 30": "the filesystem turned read-only", "errno = 5,": "the disk reported an I/O error",
-                  "errno = 122": "the disk quota is used up"}
-        why = "the disk is full" if full else next((c for k, c in causes.items() if k in text),
-                                                   text.splitlines()[0][:200])
+        causes = {
+            "errno = 30": "the filesystem turned read-only",
+            "errno = 5,": "the disk reported an I/O error",
+            "errno = 122": "the disk quota is used up",
+        }
+        why = (
+            "the disk is full"
+            if full
+            else next((c for k, c in causes.items() if k in text), text.splitlines()[0][:200])
+        )
         raise (DiskFullError if full else ScanFileError)(
-            f"{self.path}: frame {i} could not be written ({why}); the {i} frames before it are kept") from None
+            f"{self.path}: frame {i} could not be written ({why}); the {i} frames before it are kept"
+        ) from None
 
     def _detach(self) -> None:
         """After a write the disk refused (full, read-only, an I/O error), point HDF5's file descriptor at the null

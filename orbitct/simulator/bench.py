@@ -60,7 +60,11 @@ class SimulatedBench:
         return line_integrals(phantom, self.view(R, t), 0, supersample=supersample)
 
     def render(
-        self, phantom: Phantom, R: ArrayLike, t: ArrayLike = (0.0, 0.0, 0.0), rng: np.random.Generator | int | None = None
+        self,
+        phantom: Phantom,
+        R: ArrayLike,
+        t: ArrayLike = (0.0, 0.0, 0.0),
+        rng: np.random.Generator | int | None = None,
     ) -> NDArray[np.uint16]:
         """A raw uint16 projection frame of ``phantom`` at object pose ``(R, t)`` (what the panel reads out)."""
         return self.model.expose(self.line_integrals(phantom, R, t), np.random.default_rng(rng))

@@ -50,8 +50,13 @@ def _blur_cols(img: NDArray[np.float32], k: NDArray[np.float32]) -> NDArray[np.f
 
 @nb.njit(parallel=True, cache=True, nogil=True)
 def _readout(
-    rows_blurred: NDArray[np.float32], k: NDArray[np.float32], gain: float, dark: NDArray[np.float32],
-    read_noise: float, sat: float, seed: np.uint64,
+    rows_blurred: NDArray[np.float32],
+    k: NDArray[np.float32],
+    gain: float,
+    dark: NDArray[np.float32],
+    read_noise: float,
+    sat: float,
+    seed: np.uint64,
 ) -> NDArray[np.uint16]:
     """Column blur, then Poisson quanta (mean signal / gain) times gain, plus dark and read noise, clipped."""
     rows, cols = rows_blurred.shape
@@ -133,8 +138,9 @@ class DetectorModel(BaseModel):
         flat, dark = self.maps(li.shape)
         k = blur_kernel(self.blur_sigma_px)
         rows = _signal_rows(np.ascontiguousarray(li, dtype=np.float32), flat, k)
-        return _readout(rows, k, float(self.gain_adu), dark, float(self.read_noise_adu), float(self.saturation_adu),
-                        seed_from(rng))
+        return _readout(
+            rows, k, float(self.gain_adu), dark, float(self.read_noise_adu), float(self.saturation_adu), seed_from(rng)
+        )
 
     def flat(self, rng: np.random.Generator, shape: tuple[int, int]) -> NDArray[np.uint16]:
         """One open-field (flat) frame."""
@@ -143,5 +149,12 @@ class DetectorModel(BaseModel):
     def dark(self, rng: np.random.Generator, shape: tuple[int, int]) -> NDArray[np.uint16]:
         """One dark frame (X-rays off)."""
         _, dark = self.maps(tuple(shape))  # type: ignore[arg-type]
-        return _readout(np.zeros(shape, np.float32), np.ones(1, np.float32), float(self.gain_adu), dark,
-                        float(self.read_noise_adu), float(self.saturation_adu), seed_from(rng))
+        return _readout(
+            np.zeros(shape, np.float32),
+            np.ones(1, np.float32),
+            float(self.gain_adu),
+            dark,
+            float(self.read_noise_adu),
+            float(self.saturation_adu),
+            seed_from(rng),
+        )

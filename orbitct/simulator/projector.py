@@ -57,9 +57,20 @@ def _render(
 
 @nb.njit(cache=True, nogil=True)
 def _deposit_segment(
-    out: NDArray[np.float32], p0: NDArray[np.float64], p1: NDArray[np.float64], n: int, P: NDArray[np.float64],
-    S: NDArray[np.float64], P00: NDArray[np.float64], u: NDArray[np.float64], v: NDArray[np.float64],
-    sdd: float, mass_per_mm: float, pixel_area: float, radius: float, pitch: float,
+    out: NDArray[np.float32],
+    p0: NDArray[np.float64],
+    p1: NDArray[np.float64],
+    n: int,
+    P: NDArray[np.float64],
+    S: NDArray[np.float64],
+    P00: NDArray[np.float64],
+    u: NDArray[np.float64],
+    v: NDArray[np.float64],
+    sdd: float,
+    mass_per_mm: float,
+    pixel_area: float,
+    radius: float,
+    pitch: float,
 ) -> None:
     """Pixel-averaged line integrals of a thin wire: its mass per mm spread along ``p0 -> p1`` onto the pixels."""
     rows, cols = out.shape
@@ -161,13 +172,37 @@ def line_integrals(
             if (hp[:, 2] <= 0).any():
                 continue
             span_px = float(np.hypot(*(hp[1, :2] / hp[1, 2] - hp[0, :2] / hp[0, 2])))
-            _deposit_segment(out, ends[0], ends[1], max(16, int(np.ceil(50 * span_px))), P, S, P00, u, v,
-                             float(geometry.sdd[index]), float(pk.mu[k] * np.pi * s[k, 0] * s[k, 1]),
-                             det.pitch_col * det.pitch_row, float(s[k, :2].mean()),
-                             float(np.sqrt(det.pitch_col * det.pitch_row)))
+            _deposit_segment(
+                out,
+                ends[0],
+                ends[1],
+                max(16, int(np.ceil(50 * span_px))),
+                P,
+                S,
+                P00,
+                u,
+                v,
+                float(geometry.sdd[index]),
+                float(pk.mu[k] * np.pi * s[k, 0] * s[k, 1]),
+                det.pitch_col * det.pitch_row,
+                float(s[k, :2].mean()),
+                float(np.sqrt(det.pitch_col * det.pitch_row)),
+            )
         fp[wire] = (1, 0, 1, 0)  # nothing left for the chord kernel
-    _render(out, pk.kind, np.ascontiguousarray(a), np.ascontiguousarray(b00), np.ascontiguousarray(bu),
-            np.ascontiguousarray(bv), pk.mu, fp, ss, P00 - S, u.copy(), v.copy())
+    _render(
+        out,
+        pk.kind,
+        np.ascontiguousarray(a),
+        np.ascontiguousarray(b00),
+        np.ascontiguousarray(bu),
+        np.ascontiguousarray(bv),
+        pk.mu,
+        fp,
+        ss,
+        P00 - S,
+        u.copy(),
+        v.copy(),
+    )
     return out
 
 

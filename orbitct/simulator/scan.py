@@ -118,8 +118,10 @@ def _write_true_errors(path: Path, rigid: RigidErrors, n_cal: int) -> None:
     pad = np.full((n_cal, 3), np.nan)
     with ScanFile(path, mode="r+") as f:
         g = f.h5.require_group("truth/errors")
-        g.attrs["convention"] = ("lab frame about the nominal isocenter, applied after the nominal pose; "
-                                 "angles = pitch (x), roll (y), yaw (z); R = R_x(pitch) R_y(roll) R_z(yaw)")
+        g.attrs["convention"] = (
+            "lab frame about the nominal isocenter, applied after the nominal pose; "
+            "angles = pitch (x), roll (y), yaw (z); R = R_x(pitch) R_y(roll) R_z(yaw)"
+        )
         for name, data in (("angles_rad", rigid.angles), ("shift_mm", rigid.shift_mm)):
             if name in g:
                 del g[name]
@@ -168,14 +170,26 @@ def simulate_scan(
     rng = np.random.default_rng([seed, 99])
     config = {**bench.config(), "simulation": {"experiment": exp_name, "seed": seed, "errors": profile.to_json()}}
     with ScanWriter(
-        out, det, axes=AXES, orbit_name=orb.name, orbit_params=orb.params, config=config,
-        marker_diameter_mm=phantom.marker_diameter_mm, overwrite=overwrite,
+        out,
+        det,
+        axes=AXES,
+        orbit_name=orb.name,
+        orbit_params=orb.params,
+        config=config,
+        marker_diameter_mm=phantom.marker_diameter_mm,
+        overwrite=overwrite,
     ) as w:
         w.write_truth(
             np.concatenate([np.full((n_cal, 12), np.nan), true_geom.vectors]), phantom.markers_xyz, phantom.to_json()
         )
-        w.set_attrs("simulation", experiment=exp_name, seed=int(seed), errors=profile.to_json(),
-                    errors_peak=rigid.summary(), frame_interval_s=frame_interval_s)
+        w.set_attrs(
+            "simulation",
+            experiment=exp_name,
+            seed=int(seed),
+            errors=profile.to_json(),
+            errors_peak=rigid.summary(),
+            frame_interval_s=frame_interval_s,
+        )
         bg = _BackgroundAppender(w)
         done = 0
         try:
@@ -191,8 +205,14 @@ def simulate_scan(
                 li = line_integrals(phantom, true_geom, i)
                 cmd = {"orbit.rotation": float(th[i]), "orbit.tilt": float(ph[i])}
                 last = i == orb.n_frames - 1
-                bg.append(bench.model.expose(li, rng), "projection", done * frame_interval_s,
-                          nominal_vector=nominal.vectors[i], commanded=cmd, flush=last or i % _FLUSH_EVERY == 0)
+                bg.append(
+                    bench.model.expose(li, rng),
+                    "projection",
+                    done * frame_interval_s,
+                    nominal_vector=nominal.vectors[i],
+                    commanded=cmd,
+                    flush=last or i % _FLUSH_EVERY == 0,
+                )
                 done += 1
                 if progress is not None and (i % 5 == 4 or last):
                     el = time.perf_counter() - t0

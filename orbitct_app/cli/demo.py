@@ -33,16 +33,31 @@ def _truth_error(scan_path: Path) -> None:
         truth = sf.geometry("truth")[proj]
         nominal = error_px(sf.geometry("nominal")[proj], truth)[0]
         calibrated = error_px(sf.geometry("calibrated")[proj], truth)[0]
-    click.echo(f"   geometry error against the twins' truth: nominal {nominal:.2f} px -> calibrated {calibrated:.3f} px RMS")
+    click.echo(
+        f"   geometry error against the twins' truth: nominal {nominal:.2f} px -> calibrated {calibrated:.3f} px RMS"
+    )
 
 
-def _reconstruct(scan_path: Path, out_dir: Path, algorithm: str, geometry: str, iterations: int, voxels: int,
-                 voxel_mm: float | None = None) -> Any:
+def _reconstruct(
+    scan_path: Path,
+    out_dir: Path,
+    algorithm: str,
+    geometry: str,
+    iterations: int,
+    voxels: int,
+    voxel_mm: float | None = None,
+) -> Any:
     """One reconstruction with PNG slices (a failure is reported and the demo goes on); its result or None."""
     from recon import ReconError, reconstruct_scan
 
-    kwargs: dict[str, Any] = dict(algorithm=algorithm, geometry=geometry, shape=(voxels, voxels, voxels),
-                                  voxel_mm=voxel_mm, export="png", out_dir=out_dir / "recon")
+    kwargs: dict[str, Any] = dict(
+        algorithm=algorithm,
+        geometry=geometry,
+        shape=(voxels, voxels, voxels),
+        voxel_mm=voxel_mm,
+        export="png",
+        out_dir=out_dir / "recon",
+    )
     if iterations:
         kwargs["iterations"] = iterations
     try:
@@ -51,29 +66,69 @@ def _reconstruct(scan_path: Path, out_dir: Path, algorithm: str, geometry: str, 
     except ReconError as exc:
         click.echo(f"   {algorithm} / {geometry} failed: {exc}")
         return None
-    click.echo(f"   {algorithm} / {geometry}: {rr.volume_shape} in {rr.elapsed_s:.1f} s -> /recon/{rr.name}; "
-               f"slices: {', '.join(str(p) for p in rr.exported[:3])}")
+    click.echo(
+        f"   {algorithm} / {geometry}: {rr.volume_shape} in {rr.elapsed_s:.1f} s -> /recon/{rr.name}; "
+        f"slices: {', '.join(str(p) for p in rr.exported[:3])}"
+    )
     return rr
 
 
 @click.command()
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=Path("demo-output"),
-              show_default=True, help="Folder for the scan file, calibration report and reconstruction slices.")
-@click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Bench configuration (default: config/bench.yaml if present, else built-in defaults).")
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=Path("demo-output"),
+    show_default=True,
+    help="Folder for the scan file, calibration report and reconstruction slices.",
+)
+@click.option(
+    "--config",
+    "config_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Bench configuration (default: config/bench.yaml if present, else built-in defaults).",
+)
 @click.option("--frames", type=click.IntRange(10, 2000), default=240, show_default=True, help="Projections.")
 @click.option("--size", type=click.IntRange(32, 1024), default=256, show_default=True, help="Detector pixels (square).")
-@click.option("--voxels", type=click.IntRange(16, 512), default=96, show_default=True, help="Reconstruction grid (cube).")
+@click.option(
+    "--voxels", type=click.IntRange(16, 512), default=96, show_default=True, help="Reconstruction grid (cube)."
+)
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the bench error profile.")
-@click.option("--tilt-deg", type=FiniteFloat(1, 25), default=20.0, show_default=True,
-              help="Sawtooth tilt amplitude (the paper's experiment A: 20).")
-@click.option("--pwls-iterations", type=click.IntRange(0, 200), default=0, show_default=True,
-              help="Also run PWLS with this many iterations (0: FDK only, faster).")
-@click.option("--time-scale", type=FiniteFloat(1, 1000), default=25.0, show_default=True,
-              help="The twins move this many times faster than the real bench (1 = real time).")
+@click.option(
+    "--tilt-deg",
+    type=FiniteFloat(1, 25),
+    default=20.0,
+    show_default=True,
+    help="Sawtooth tilt amplitude (the paper's experiment A: 20).",
+)
+@click.option(
+    "--pwls-iterations",
+    type=click.IntRange(0, 200),
+    default=0,
+    show_default=True,
+    help="Also run PWLS with this many iterations (0: FDK only, faster).",
+)
+@click.option(
+    "--time-scale",
+    type=FiniteFloat(1, 1000),
+    default=25.0,
+    show_default=True,
+    help="The twins move this many times faster than the real bench (1 = real time).",
+)
 @click.option("--skip-calibration", is_flag=True, help="Stop after the scan.")
-def demo(out_dir: Path, config_path: Path | None, frames: int, size: int, voxels: int, seed: int, tilt_deg: float,
-         pwls_iterations: int, time_scale: float, skip_calibration: bool) -> None:
+def demo(
+    out_dir: Path,
+    config_path: Path | None,
+    frames: int,
+    size: int,
+    voxels: int,
+    seed: int,
+    tilt_deg: float,
+    pwls_iterations: int,
+    time_scale: float,
+    skip_calibration: bool,
+) -> None:
     """Experiment A on the simulated bench: twins, sawtooth scan with the bench errors, calibration, reconstruction."""
     from acquire.config import BenchConfig, load_config
     from acquire.errors import AcquireError
@@ -92,11 +147,23 @@ def demo(out_dir: Path, config_path: Path | None, frames: int, size: int, voxels
         fail(f"{config_path} is a {config.kind} configuration; the demo needs a bench")
     config = config.model_copy(update={"sim": config.sim.model_copy(update={"time_scale": time_scale})})
 
-    _step(f"1/3 scan: sawtooth +-{tilt_deg:g} deg, {frames} frames at {size}x{size} px, bench error profile "
-          f"(seed {seed}), twins in-process")
-    req = ScanRequest(config=config, out=scan_path, orbit="sawtooth", frames=frames, orbit_params={"amplitude_deg": tilt_deg},
-                      errors="bench", seed=seed,
-                      mode="step", sim=True, detector_size=size, overwrite=True)
+    _step(
+        f"1/3 scan: sawtooth +-{tilt_deg:g} deg, {frames} frames at {size}x{size} px, bench error profile "
+        f"(seed {seed}), twins in-process"
+    )
+    req = ScanRequest(
+        config=config,
+        out=scan_path,
+        orbit="sawtooth",
+        frames=frames,
+        orbit_params={"amplitude_deg": tilt_deg},
+        errors="bench",
+        seed=seed,
+        mode="step",
+        sim=True,
+        detector_size=size,
+        overwrite=True,
+    )
     try:
         with ProgressBar() as bar:
             res = run_scan(req, progress=bar)
@@ -123,8 +190,10 @@ def demo(out_dir: Path, config_path: Path | None, frames: int, size: int, voxels
         last = cal.iterations[-1] if cal.iterations else None
         click.echo(f"   {cal.n_bbs} BBs in {cal.n_frames} frames, {cal.elapsed_s:.1f} s")
         if cal.iterations:
-            click.echo(f"   RPE: nominal {cal.iterations[0].rpe_mean_mm:.3f} mm -> calibrated {last.rpe_mean_mm:.3f} mm "
-                       f"(reprojection RMS {cal.reproj_rms_px:.3f} px)")
+            click.echo(
+                f"   RPE: nominal {cal.iterations[0].rpe_mean_mm:.3f} mm -> calibrated {last.rpe_mean_mm:.3f} mm "
+                f"(reprojection RMS {cal.reproj_rms_px:.3f} px)"
+            )
         q = cal.quality
         if q is not None:
             click.echo(f"   {q.line()}")
@@ -148,18 +217,23 @@ def demo(out_dir: Path, config_path: Path | None, frames: int, size: int, voxels
         from recon import ReconError, compare_reconstructions
 
         try:
-            figure = compare_reconstructions(scan_path, ["fdk_calibrated", "fdk_nominal"],
-                                             out_dir / "recon" / "comparison.png")
+            figure = compare_reconstructions(
+                scan_path, ["fdk_calibrated", "fdk_nominal"], out_dir / "recon" / "comparison.png"
+            )
             click.echo(f"   calibrated next to nominal, one grey window: {figure}")
         except ReconError as exc:
             click.echo(f"   no comparison figure: {exc}")
 
-    click.echo(f"\ndone in {time.monotonic() - t_start:.0f} s. Scan file (frames, geometry, calibration, volumes): {scan_path}")
+    click.echo(
+        f"\ndone in {time.monotonic() - t_start:.0f} s. Scan file (frames, geometry, calibration, volumes): {scan_path}"
+    )
     cmd = _orbitct_command()
     click.echo(f"inspect it with: {cmd} inspect {scan_path}")
     if cmd != "orbitct":
-        click.echo(f"(orbitct is not on your PATH: run `source {Path(cmd).parent}/activate` once per terminal "
-                   f"to type plain `orbitct`, or call {cmd})")
+        click.echo(
+            f"(orbitct is not on your PATH: run `source {Path(cmd).parent}/activate` once per terminal "
+            f"to type plain `orbitct`, or call {cmd})"
+        )
 
 
 def _orbitct_command() -> str:

@@ -18,18 +18,38 @@ def export() -> None:
 @export.command("dicom")
 @click.argument("scan", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option("--recon", "name", required=True, help="Name of the reconstruction under /recon (see `orbitct inspect`).")
-@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
-              help="Folder for the series (one CT000001.dcm ... per axial slice); created if needed, must be empty.")
-@click.option("--water-mu-per-mm", type=FiniteFloat(min=1e-6, max=10.0), default=None,
-              help="Attenuation of water at the scan's effective energy (HU = 1000 (mu - water) / water; default "
-                   "0.0206 1/mm, the simulator's water).")
+@click.option(
+    "--out",
+    "out_dir",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Folder for the series (one CT000001.dcm ... per axial slice); created if needed, must be empty.",
+)
+@click.option(
+    "--water-mu-per-mm",
+    type=FiniteFloat(min=1e-6, max=10.0),
+    default=None,
+    help="Attenuation of water at the scan's effective energy (HU = 1000 (mu - water) / water; default "
+    "0.0206 1/mm, the simulator's water).",
+)
 @click.option("--patient-name", default="", help="DICOM Patient's Name (default empty).")
 @click.option("--patient-id", default="", help="DICOM Patient ID (default: the scan file's name).")
 @click.option("--study-description", default="", help="DICOM Study Description.")
-@click.option("--enhanced", is_flag=True, help="One multi-frame Enhanced CT object (OUT/CT_ENHANCED.dcm) instead of "
-              "one CT image per slice.")
-def dicom(scan: Path, name: str, out_dir: Path, water_mu_per_mm: float | None, patient_name: str, patient_id: str,
-          study_description: str, enhanced: bool) -> None:
+@click.option(
+    "--enhanced",
+    is_flag=True,
+    help="One multi-frame Enhanced CT object (OUT/CT_ENHANCED.dcm) instead of one CT image per slice.",
+)
+def dicom(
+    scan: Path,
+    name: str,
+    out_dir: Path,
+    water_mu_per_mm: float | None,
+    patient_name: str,
+    patient_id: str,
+    study_description: str,
+    enhanced: bool,
+) -> None:
     """Export reconstruction NAME of SCAN as a CT series (or one Enhanced CT object) in Hounsfield units (the object
     frame as patient frame)."""
     from orbitct.geometry import VolumeGrid
@@ -57,9 +77,14 @@ def dicom(scan: Path, name: str, out_dir: Path, water_mu_per_mm: float | None, p
     provenance = f"{str(attrs.get('algorithm', '?')).upper()} {geometry} geometry"
     if geometry == "calibrated" and calibrated:
         provenance += " (BB calibration)"
-    info = SeriesInfo(description=f"orbitct {name}: {provenance}", patient_name=patient_name,
-                      patient_id=patient_id or scan.stem[:64], study_description=study_description,
-                      water_mu_per_mm=water_mu_per_mm or WATER_MU_PER_MM, comments=caveat)
+    info = SeriesInfo(
+        description=f"orbitct {name}: {provenance}",
+        patient_name=patient_name,
+        patient_id=patient_id or scan.stem[:64],
+        study_description=study_description,
+        water_mu_per_mm=water_mu_per_mm or WATER_MU_PER_MM,
+        comments=caveat,
+    )
     if caveat:
         click.echo(f"warning: {caveat} (in every image's ImageComments)", err=True)
     try:
@@ -73,13 +98,17 @@ def dicom(scan: Path, name: str, out_dir: Path, water_mu_per_mm: float | None, p
     if enhanced:
         click.echo(f"wrote {path}: one Enhanced CT object of {nz} frames of {nx}x{ny} px: {info.description}")
         return
-    click.echo(f"wrote {len(files)} CT slices of {nx}x{ny} px ({grid.voxel_mm[0]:g} x {grid.voxel_mm[1]:g} mm, "
-               f"{grid.voxel_mm[2]:g} mm apart) to {out_dir}: {info.description}")
+    click.echo(
+        f"wrote {len(files)} CT slices of {nx}x{ny} px ({grid.voxel_mm[0]:g} x {grid.voxel_mm[1]:g} mm, "
+        f"{grid.voxel_mm[2]:g} mm apart) to {out_dir}: {info.description}"
+    )
 
 
 @export.command("nxtomo")
 @click.argument("scan", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="The NXtomo file to write (.nx).")
+@click.option(
+    "--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="The NXtomo file to write (.nx)."
+)
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 def nxtomo(scan: Path, out: Path, overwrite: bool) -> None:
     """Export SCAN as NXtomo (NeXus): frames, image keys, angles, distances, per-frame transformations, and the full
@@ -96,11 +125,22 @@ def nxtomo(scan: Path, out: Path, overwrite: bool) -> None:
 
 @export.command("xa")
 @click.argument("scan", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="The XA file to write (.dcm).")
-@click.option("--frames", "part", default=None, help="Only projections FIRST:LAST (0-based, LAST excluded): one run of "
-              "an orbit acquired as several.")
-@click.option("--kind", type=click.Choice(["xa", "xrf", "enhanced-xa"]), default="xa", show_default=True,
-              help="Classic XA, XRF, or Enhanced XA (per-frame functional groups).")
+@click.option(
+    "--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="The XA file to write (.dcm)."
+)
+@click.option(
+    "--frames",
+    "part",
+    default=None,
+    help="Only projections FIRST:LAST (0-based, LAST excluded): one run of an orbit acquired as several.",
+)
+@click.option(
+    "--kind",
+    type=click.Choice(["xa", "xrf", "enhanced-xa"]),
+    default="xa",
+    show_default=True,
+    help="Classic XA, XRF, or Enhanced XA (per-frame functional groups).",
+)
 def xa(scan: Path, out: Path, part: str | None, kind: str) -> None:
     """Write the projections of a C-arm scan as one multi-frame DICOM run (positioner angles per frame, distances,
     pixel spacing), as a C-arm's own export does; `orbitct import dicom` reads it back."""

@@ -56,15 +56,19 @@ def find_cmd(on: str, patient_id: str, modality: str, calling_aet: str) -> None:
     except PacsError as exc:
         raise click.ClickException(str(exc)) from None
     for s in found:
-        click.echo(f"{s['SeriesInstanceUID']}  {s['Modality']}  {s['NumberOfSeriesRelatedInstances'] or '?'} instance(s)  "
-                   f"{s['PatientID']}  {s['SeriesDescription']}")
+        click.echo(
+            f"{s['SeriesInstanceUID']}  {s['Modality']}  {s['NumberOfSeriesRelatedInstances'] or '?'} instance(s)  "
+            f"{s['PatientID']}  {s['SeriesDescription']}"
+        )
     click.echo(f"{len(found)} series on {node}")
 
 
 @pacs.command("get")
 @click.argument("series_uid")
 @click.option("--from", "source", required=True, help="The node: dicom://AE_TITLE@host:port.")
-@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Folder for the files.")
+@click.option(
+    "--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Folder for the files."
+)
 @click.option("--calling-aet", default="ORBITCT", show_default=True)
 def get_cmd(series_uid: str, source: str, out_dir: Path, calling_aet: str) -> None:
     """Fetch series SERIES_UID (C-GET) into OUT; an XA run then imports with `orbitct import dicom OUT`."""

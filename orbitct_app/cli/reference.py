@@ -20,10 +20,20 @@ MOTION_DEVICES = ("hexapod", "rotation_stage")
 
 @click.command()
 @click.argument("device", type=click.Choice([*MOTION_DEVICES, "all"]))
-@click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), required=True,
-              help="The bench configuration naming where the device is reached (config/bench.yaml).")
-@click.option("--data-dir", type=click.Path(file_okay=False, path_type=Path), envvar="ORBITCT_DATA_DIR", default=None,
-              help="The service's data directory (or ORBITCT_DATA_DIR): refuse while its emergency stop is latched.")
+@click.option(
+    "--config",
+    "config_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    required=True,
+    help="The bench configuration naming where the device is reached (config/bench.yaml).",
+)
+@click.option(
+    "--data-dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    envvar="ORBITCT_DATA_DIR",
+    default=None,
+    help="The service's data directory (or ORBITCT_DATA_DIR): refuse while its emergency stop is latched.",
+)
 @click.option("--yes", is_flag=True, help="Do not ask: the axes' travel to their reference switches is clear.")
 def reference(device: str, config_path: Path, data_dir: Path | None, yes: bool) -> None:
     """Servo on and reference DEVICE's axes (hexapod, rotation_stage or all), moving each to its reference switch.
@@ -40,8 +50,10 @@ def reference(device: str, config_path: Path, data_dir: Path | None, yes: bool) 
     except ConfigError as exc:
         fail(str(exc))
     if not isinstance(config, BenchConfig):
-        fail(f"{config_path}: a C-arm configuration; a C-arm has no axes to reference from here (the arm's own "
-             "console does that)")
+        fail(
+            f"{config_path}: a C-arm configuration; a C-arm has no axes to reference from here (the arm's own "
+            "console does that)"
+        )
     if data_dir is not None:
         from orbitct_app.service.safety.latch import StopLatch
 
@@ -54,19 +66,27 @@ def reference(device: str, config_path: Path, data_dir: Path | None, yes: bool) 
     names = list(MOTION_DEVICES) if device == "all" else [device]
     for name in names:
         if links[name].uri.startswith("sim://"):
-            fail(f"{config_path}: {name} is {links[name].uri}, the in-process twins, which are referenced when a "
-                 "scan opens them; reference a real controller (tcp:// or serial://)")
+            fail(
+                f"{config_path}: {name} is {links[name].uri}, the in-process twins, which are referenced when a "
+                "scan opens them; reference a real controller (tcp:// or serial://)"
+            )
     if not yes:
         where = ", ".join(f"{n} ({links[n].uri})" for n in names)
-        click.confirm(f"Referencing moves every axis of {where} to its reference switch. Is the travel clear?",
-                      abort=True, err=True)
+        click.confirm(
+            f"Referencing moves every axis of {where} to its reference switch. Is the travel clear?",
+            abort=True,
+            err=True,
+        )
     received: list[signal.Signals] = []
     try:
         asyncio.run(_reference_all(names, links, received))
     except (KeyboardInterrupt, asyncio.CancelledError):
         sig = received[0] if received else signal.SIGINT
-        click.echo(f"interrupted ({'Ctrl-C' if sig == signal.SIGINT else sig.name}): the axes were halted; they may "
-                   "be unreferenced", err=True)
+        click.echo(
+            f"interrupted ({'Ctrl-C' if sig == signal.SIGINT else sig.name}): the axes were halted; they may "
+            "be unreferenced",
+            err=True,
+        )
         sys.exit(128 + int(sig))
 
 

@@ -26,10 +26,19 @@ def _default_stop_url(url: str) -> str:
 
 
 def _connection(fn: Any) -> Any:
-    fn = click.option("--token", envvar="ORBITCT_TOKEN", required=True,
-                      help="Bearer token (or ORBITCT_TOKEN); `orbitct token create --role operator|viewer`.")(fn)
-    fn = click.option("--url", envvar="ORBITCT_URL", default="http://127.0.0.1:8000", show_default=True,
-                      help="The service (or ORBITCT_URL).")(fn)
+    fn = click.option(
+        "--token",
+        envvar="ORBITCT_TOKEN",
+        required=True,
+        help="Bearer token (or ORBITCT_TOKEN); `orbitct token create --role operator|viewer`.",
+    )(fn)
+    fn = click.option(
+        "--url",
+        envvar="ORBITCT_URL",
+        default="http://127.0.0.1:8000",
+        show_default=True,
+        help="The service (or ORBITCT_URL).",
+    )(fn)
     return fn
 
 
@@ -49,8 +58,12 @@ def _check(r: httpx.Response, ok: tuple[int, ...]) -> dict[str, Any]:
 
 @click.command()
 @_connection
-@click.option("--stop-url", envvar="ORBITCT_STOP_URL", default=None,
-              help="The guard's stop listener (default: the service's port + 1, /stop; or ORBITCT_STOP_URL).")
+@click.option(
+    "--stop-url",
+    envvar="ORBITCT_STOP_URL",
+    default=None,
+    help="The guard's stop listener (default: the service's port + 1, /stop; or ORBITCT_STOP_URL).",
+)
 @click.option("--reason", default="", help="Why the bench is stopped (logged and kept with the latch).")
 def stop(url: str, token: str, stop_url: str | None, reason: str) -> None:
     """Emergency stop: halt every axis, X-rays off, abort the scan; latched until an operator resets it.

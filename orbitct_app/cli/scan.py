@@ -30,43 +30,111 @@ def _parse_params(items: tuple[str, ...]) -> dict[str, object]:
 
 
 @click.group(invoke_without_command=True)
-@click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Bench or C-arm configuration (config/bench.yaml).")
+@click.option(
+    "--config",
+    "config_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Bench or C-arm configuration (config/bench.yaml).",
+)
 @click.option("--orbit", default="sawtooth", show_default=True, help="Orbit name (sawtooth, dcarc, circular, ...).")
 @click.option("--frames", type=click.IntRange(1, 100000), default=None, help="Projections (default: the orbit's).")
-@click.option("--param", "-p", "params", multiple=True, metavar="KEY=VALUE",
-              help="Orbit parameter, repeatable (e.g. -p amplitude_deg=8 -p start_deg=-180); see orbitct orbit.")
-@click.option("--errors", default="none", show_default=True,
-              help="Motion errors injected on top of the orbit: none, or bench (the paper's profile; for studies "
-                   "on the twins, never on by default).")
+@click.option(
+    "--param",
+    "-p",
+    "params",
+    multiple=True,
+    metavar="KEY=VALUE",
+    help="Orbit parameter, repeatable (e.g. -p amplitude_deg=8 -p start_deg=-180); see orbitct orbit.",
+)
+@click.option(
+    "--errors",
+    default="none",
+    show_default=True,
+    help="Motion errors injected on top of the orbit: none, or bench (the paper's profile; for studies "
+    "on the twins, never on by default).",
+)
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the error profile's noise.")
-@click.option("--mode", type=click.Choice(["step", "continuous"]), default="step", show_default=True,
-              help="step: move, settle, expose; continuous: constant rotation, exposures triggered at angles.")
+@click.option(
+    "--mode",
+    type=click.Choice(["step", "continuous"]),
+    default="step",
+    show_default=True,
+    help="step: move, settle, expose; continuous: constant rotation, exposures triggered at angles.",
+)
 @click.option("--sim", is_flag=True, help="Start the device twins in-process (nothing else needs to run).")
-@click.option("--detector-size", type=click.IntRange(16, 4096), default=None,
-              help="Square detector of this many pixels on the same panel (default: the config's).")
-@click.option("--frame-rate", "frame_rate_hz", type=FiniteFloat(0.01, 1000), default=None,
-              help="Frames per second in continuous mode (default: the config's).")
+@click.option(
+    "--detector-size",
+    type=click.IntRange(16, 4096),
+    default=None,
+    help="Square detector of this many pixels on the same panel (default: the config's).",
+)
+@click.option(
+    "--frame-rate",
+    "frame_rate_hz",
+    type=FiniteFloat(0.01, 1000),
+    default=None,
+    help="Frames per second in continuous mode (default: the config's).",
+)
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Scan file to write (.h5).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
-@click.option("--data-dir", type=click.Path(file_okay=False, path_type=Path), envvar="ORBITCT_DATA_DIR", default=None,
-              help="The service's data directory (or ORBITCT_DATA_DIR): refuse to scan while its emergency stop is latched.")
-@click.option("--calibrate", "calibrate_mode", type=click.Choice(["none", "live"]), default="none", show_default=True,
-              help="live: detect and follow the BBs while the frames arrive, warn during the scan, and write the "
-                   "calibrated geometry as soon as the last frame is in (as orbitct calibrate would).")
-@click.option("--bb-diameter-mm", type=FiniteFloat(0.1, 20), default=None,
-              help="BB diameter for --calibrate live (default with --sim: the twins' BBs).")
-@click.option("--abort-on", "abort_on", multiple=True,
-              type=click.Choice(ABORT_KINDS),
-              help="Stop the scan safely on this live calibration warning (repeatable).")
-@click.option("--lost-frames", type=click.IntRange(1, 10000), default=10, show_default=True,
-              help="--calibrate live: warn when a followed BB is missing for more than this many frames.")
+@click.option(
+    "--data-dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    envvar="ORBITCT_DATA_DIR",
+    default=None,
+    help="The service's data directory (or ORBITCT_DATA_DIR): refuse to scan while its emergency stop is latched.",
+)
+@click.option(
+    "--calibrate",
+    "calibrate_mode",
+    type=click.Choice(["none", "live"]),
+    default="none",
+    show_default=True,
+    help="live: detect and follow the BBs while the frames arrive, warn during the scan, and write the "
+    "calibrated geometry as soon as the last frame is in (as orbitct calibrate would).",
+)
+@click.option(
+    "--bb-diameter-mm",
+    type=FiniteFloat(0.1, 20),
+    default=None,
+    help="BB diameter for --calibrate live (default with --sim: the twins' BBs).",
+)
+@click.option(
+    "--abort-on",
+    "abort_on",
+    multiple=True,
+    type=click.Choice(ABORT_KINDS),
+    help="Stop the scan safely on this live calibration warning (repeatable).",
+)
+@click.option(
+    "--lost-frames",
+    type=click.IntRange(1, 10000),
+    default=10,
+    show_default=True,
+    help="--calibrate live: warn when a followed BB is missing for more than this many frames.",
+)
 @click.pass_context
-def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int | None, params: tuple[str, ...],
-         errors: str, seed: int,
-         mode: str, sim: bool, detector_size: int | None, frame_rate_hz: float | None, out: Path | None,
-         overwrite: bool, data_dir: Path | None, calibrate_mode: str, bb_diameter_mm: float | None,
-         abort_on: tuple[str, ...], lost_frames: int) -> None:
+def scan(
+    ctx: click.Context,
+    config_path: Path | None,
+    orbit: str,
+    frames: int | None,
+    params: tuple[str, ...],
+    errors: str,
+    seed: int,
+    mode: str,
+    sim: bool,
+    detector_size: int | None,
+    frame_rate_hz: float | None,
+    out: Path | None,
+    overwrite: bool,
+    data_dir: Path | None,
+    calibrate_mode: str,
+    bb_diameter_mm: float | None,
+    abort_on: tuple[str, ...],
+    lost_frames: int,
+) -> None:
     """Acquire a scan: orbitct scan --config config/bench.yaml --orbit sawtooth --sim --out scan.h5"""
     if ctx.invoked_subcommand is not None:
         return
@@ -83,9 +151,20 @@ def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int |
         if refused:
             fail(refused)
 
-    req = ScanRequest(config=config_path, out=out, orbit=orbit, frames=frames, orbit_params=_parse_params(params),
-                      errors=errors, seed=seed, mode=mode,
-                      sim=sim, detector_size=detector_size, frame_rate_hz=frame_rate_hz, overwrite=overwrite)
+    req = ScanRequest(
+        config=config_path,
+        out=out,
+        orbit=orbit,
+        frames=frames,
+        orbit_params=_parse_params(params),
+        errors=errors,
+        seed=seed,
+        mode=mode,
+        sim=sim,
+        detector_size=detector_size,
+        frame_rate_hz=frame_rate_hz,
+        overwrite=overwrite,
+    )
     if abort_on and calibrate_mode != "live":
         fail("--abort-on needs --calibrate live")
     live = None
@@ -102,7 +181,9 @@ def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int |
     rate = res.n_frames / res.elapsed_s if res.elapsed_s > 0 else 0.0
     signals = {reason: 128 + int(sig) for sig, reason in SIGNAL_REASONS.items()}
     try:  # after SIGHUP the terminal may be gone: the file already says how the scan ended
-        click.echo(f"{res.status}: {res.n_frames}/{res.n_planned} frames in {res.elapsed_s:.1f} s ({rate:.1f} frames/s) -> {res.path}")
+        click.echo(
+            f"{res.status}: {res.n_frames}/{res.n_planned} frames in {res.elapsed_s:.1f} s ({rate:.1f} frames/s) -> {res.path}"
+        )
         if res.status != "complete":
             click.echo(f"reason: {res.reason}", err=True)
     except OSError:
@@ -113,8 +194,9 @@ def scan(ctx: click.Context, config_path: Path | None, orbit: str, frames: int |
         _report_live(live, out)
 
 
-def _live_subscriber(req: object, out: Path, bb_diameter_mm: float | None, abort_on: tuple[str, ...], lost_frames: int,
-                     bar: ProgressBar) -> object:
+def _live_subscriber(
+    req: object, out: Path, bb_diameter_mm: float | None, abort_on: tuple[str, ...], lost_frames: int, bar: ProgressBar
+) -> object:
     """The live calibration subscriber, with the BB size from the option or, on the twins, their BBs."""
     from calib.errors import CalibrationError
     from orbitct_app.live_calibration import LiveCalibrationSubscriber
@@ -133,10 +215,14 @@ def _live_subscriber(req: object, out: Path, bb_diameter_mm: float | None, abort
 def _wait_for_live(live: object, out: Path) -> None:
     """Wait for the live calibration's final solve; a signal meanwhile ends the command at once (the scan is complete
     and recorded; its geometry can be made from the file)."""
+
     def interrupted(signum: int, frame: object) -> None:
         name = signal.Signals(signum).name
-        click.echo(f"live calibration interrupted by {name}: the scan is complete in {out}; `orbitct calibrate "
-                   f"{out}` makes its geometry", err=True)
+        click.echo(
+            f"live calibration interrupted by {name}: the scan is complete in {out}; `orbitct calibrate "
+            f"{out}` makes its geometry",
+            err=True,
+        )
         sys.exit(128 + signum)
 
     previous = {sig: signal.signal(sig, interrupted) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
@@ -153,18 +239,22 @@ def _report_live(live: object, out: Path) -> None:
     _wait_for_live(live, out)
     err, res = live.error, live.result
     if err is not None or res is None:
-        click.echo(f"no live geometry ({err}); the scan is complete in {out}: `orbitct calibrate {out}` makes its "
-                   "geometry", err=True)
+        click.echo(
+            f"no live geometry ({err}); the scan is complete in {out}: `orbitct calibrate {out}` makes its geometry",
+            err=True,
+        )
         sys.exit(1)
     lc = live.live
     kinds = Counter(w.kind for w in lc.warnings)
     named = f" ({', '.join(f'{k} {n}' for k, n in sorted(kinds.items()))})" if kinds else ""
-    click.echo(f"calibrated during the scan: {res.n_bbs} BBs, geometry written {lc.last_frame_to_geometry_s:.2f} s "
-               f"after the last frame (catching up {lc.timing.get('catch_up_s', 0.0):.2f} s, final solve "
-               f"{lc.timing.get('solve_s', 0.0):.2f} s); {len(lc.warnings)} warning(s) during the scan{named}; "
-               f"{int(lc.timing.get('windows', 0))} sliding bundle adjustment(s) in the worker "
-               f"({lc.timing.get('window_s', 0.0):.2f} s); live poses for {int(lc.timing.get('posed', 0))} of "
-               f"{lc.n_projections} projections")
+    click.echo(
+        f"calibrated during the scan: {res.n_bbs} BBs, geometry written {lc.last_frame_to_geometry_s:.2f} s "
+        f"after the last frame (catching up {lc.timing.get('catch_up_s', 0.0):.2f} s, final solve "
+        f"{lc.timing.get('solve_s', 0.0):.2f} s); {len(lc.warnings)} warning(s) during the scan{named}; "
+        f"{int(lc.timing.get('windows', 0))} sliding bundle adjustment(s) in the worker "
+        f"({lc.timing.get('window_s', 0.0):.2f} s); live poses for {int(lc.timing.get('posed', 0))} of "
+        f"{lc.n_projections} projections"
+    )
     click.echo(res.quality.line())
     if not res.quality.passed:
         click.echo("QUALITY CHECK FAILED: " + "; ".join(res.quality.reasons), err=True)
@@ -173,8 +263,12 @@ def _report_live(live: object, out: Path) -> None:
 
 @scan.command("repair")
 @click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--force", is_flag=True, help="Repair even if an acquisition seems to be writing the file still "
-              "(its process alive on this machine, or the file changed in the last 30 s).")
+@click.option(
+    "--force",
+    is_flag=True,
+    help="Repair even if an acquisition seems to be writing the file still "
+    "(its process alive on this machine, or the file changed in the last 30 s).",
+)
 def repair(file: Path, force: bool) -> None:
     """Mark a scan file left by a killed acquisition as aborted ("interrupted"), keeping every complete frame."""
     from acquire.errors import RepairError

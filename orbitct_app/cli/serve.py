@@ -62,30 +62,65 @@ def _check_port(host: str, port: int, option: str) -> None:
         try:
             probe.bind((host, port))
         except OSError as exc:
-            raise click.ClickException(f"cannot listen on {host}:{port} ({exc.strerror}); another program (another "
-                                       f"orbitct serve?) uses it: choose another {option}") from None
+            raise click.ClickException(
+                f"cannot listen on {host}:{port} ({exc.strerror}); another program (another "
+                f"orbitct serve?) uses it: choose another {option}"
+            ) from None
 
 
 @click.command()
-@click.option("--config", "bench_config", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="bench configuration (YAML), e.g. config/bench.yaml")
+@click.option(
+    "--config",
+    "bench_config",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="bench configuration (YAML), e.g. config/bench.yaml",
+)
 @click.option("--sim", is_flag=True, default=None, help="start in-process device twins; prints a development token")
 @click.option("--host", default=None, help="address to listen on (default 127.0.0.1)")
 @click.option("--port", type=int, default=None, help="port (default 8000)")
-@click.option("--stop-port", type=int, default=None,
-              help="port of the emergency-stop listener, a process of its own (default: port + 1; 0: any free port)")
-@click.option("--data-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
-              help="scan files, job outputs, database and tokens (default ./orbitct-data)")
-@click.option("--settings", "settings_file", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
-              help="service settings (YAML); environment ORBITCT_* and these options override it")
+@click.option(
+    "--stop-port",
+    type=int,
+    default=None,
+    help="port of the emergency-stop listener, a process of its own (default: port + 1; 0: any free port)",
+)
+@click.option(
+    "--data-dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=None,
+    help="scan files, job outputs, database and tokens (default ./orbitct-data)",
+)
+@click.option(
+    "--settings",
+    "settings_file",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="service settings (YAML); environment ORBITCT_* and these options override it",
+)
 @click.option("--log-level", type=click.Choice(["debug", "info", "warning", "error"]), default="info")
-def serve(bench_config: Path | None, sim: bool | None, host: str | None, port: int | None, stop_port: int | None,
-          data_dir: Path | None, settings_file: Path | None, log_level: str) -> None:
+def serve(
+    bench_config: Path | None,
+    sim: bool | None,
+    host: str | None,
+    port: int | None,
+    stop_port: int | None,
+    data_dir: Path | None,
+    settings_file: Path | None,
+    log_level: str,
+) -> None:
     """Run the REST service (scans, calibration, reconstruction, emergency stop) with uvicorn."""
     from orbitct_app.service.app import create_app
 
-    settings = _settings(settings_file=settings_file, bench_config=bench_config, sim=sim, host=host, port=port,
-                         stop_port=stop_port, data_dir=data_dir)
+    settings = _settings(
+        settings_file=settings_file,
+        bench_config=bench_config,
+        sim=sim,
+        host=host,
+        port=port,
+        stop_port=stop_port,
+        data_dir=data_dir,
+    )
     if not settings.bench_config.is_file():
         raise click.UsageError(f"bench configuration {settings.bench_config} does not exist")
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -106,9 +141,11 @@ def serve(bench_config: Path | None, sim: bool | None, host: str | None, port: i
             raise
         from orbitct.diskspace import format_bytes, free_bytes
 
-        raise click.ClickException(f"cannot start: the disk of the data directory {settings.data_dir} is full "
-                                   f"({format_bytes(free_bytes(settings.data_dir))} free) and the service cannot create "
-                                   "its database there; free some space or choose another --data-dir") from None
+        raise click.ClickException(
+            f"cannot start: the disk of the data directory {settings.data_dir} is full "
+            f"({format_bytes(free_bytes(settings.data_dir))} free) and the service cannot create "
+            "its database there; free some space or choose another --data-dir"
+        ) from None
     service = app.state.service
     if service.dev_token is not None:
         click.echo(f"--sim development token (all roles, valid until the service stops):\n  {service.dev_token}")
@@ -126,15 +163,27 @@ def token() -> None:
 
 
 def _token_file_options(fn):  # type: ignore[no-untyped-def]
-    fn = click.option("--tokens-file", type=click.Path(dir_okay=False, path_type=Path), default=None,
-                      help="tokens file (default <data-dir>/tokens.json)")(fn)
-    return click.option("--data-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
-                        help="service data directory holding tokens.json (default ./orbitct-data)")(fn)
+    fn = click.option(
+        "--tokens-file",
+        type=click.Path(dir_okay=False, path_type=Path),
+        default=None,
+        help="tokens file (default <data-dir>/tokens.json)",
+    )(fn)
+    return click.option(
+        "--data-dir",
+        type=click.Path(file_okay=False, path_type=Path),
+        default=None,
+        help="service data directory holding tokens.json (default ./orbitct-data)",
+    )(fn)
 
 
 @token.command("create")
-@click.option("--role", type=click.Choice(["operator", "analyst", "viewer"]), required=True,
-              help="operator: motion, X-rays, scans; analyst: calibration, reconstruction; viewer: read only")
+@click.option(
+    "--role",
+    type=click.Choice(["operator", "analyst", "viewer"]),
+    required=True,
+    help="operator: motion, X-rays, scans; analyst: calibration, reconstruction; viewer: read only",
+)
 @click.option("--name", default="", help="a unique name, shown in logs and by `token list` (default <role>-<n>)")
 @_token_file_options
 def create(role: str, name: str, data_dir: Path | None, tokens_file: Path | None) -> None:
@@ -168,7 +217,9 @@ def list_tokens(data_dir: Path | None, tokens_file: Path | None) -> None:
     click.echo(f"{'name':<{width}}  {'role':<8}  hash")
     for e in entries:
         click.echo(f"{e.name:<{width}}  {e.role:<8}  {e.sha256[:12]}")
-    click.echo(f"({len(entries)} in {settings.tokens_path}; tokens in the service settings file are not listed)", err=True)
+    click.echo(
+        f"({len(entries)} in {settings.tokens_path}; tokens in the service settings file are not listed)", err=True
+    )
 
 
 @token.command("revoke")

@@ -13,28 +13,69 @@ from orbitct_app.cli.values import SEED, FiniteFloat
 
 
 @click.command()
-@click.option("--experiment", "-e", type=click.Choice(["A", "B", "C"], case_sensitive=False), required=True,
-              help="phantom of the paper's experiment A (bench), B (Cho cylinder + wire) or C (torso + screws)")
-@click.option("--orbit", "orbit_name", default=None, metavar="NAME",
-              help="orbit kind (default per experiment: A sawtooth, B dcarc, C multiarc preset pheno)")
+@click.option(
+    "--experiment",
+    "-e",
+    type=click.Choice(["A", "B", "C"], case_sensitive=False),
+    required=True,
+    help="phantom of the paper's experiment A (bench), B (Cho cylinder + wire) or C (torso + screws)",
+)
+@click.option(
+    "--orbit",
+    "orbit_name",
+    default=None,
+    metavar="NAME",
+    help="orbit kind (default per experiment: A sawtooth, B dcarc, C multiarc preset pheno)",
+)
 @click.option("--param", "-p", "params", multiple=True, metavar="KEY=VALUE", help="orbit parameter (repeatable)")
 @click.option("--frames", type=click.IntRange(min=2), default=None, help="projection frames (default: the orbit's)")
-@click.option("--detector-size", type=click.IntRange(min=8, max=4096), default=768, show_default=True,
-              help="detector rows = cols (pixels); the 427 mm panel keeps its size")
-@click.option("--pitch-mm", type=FiniteFloat(min=0, min_open=True), default=None,
-              help="pixel pitch (default 427 mm / detector size)")
-@click.option("--errors", type=click.Choice(["bench", "none"]), default="bench", show_default=True,
-              help="motion errors added to the orbit")
+@click.option(
+    "--detector-size",
+    type=click.IntRange(min=8, max=4096),
+    default=768,
+    show_default=True,
+    help="detector rows = cols (pixels); the 427 mm panel keeps its size",
+)
+@click.option(
+    "--pitch-mm",
+    type=FiniteFloat(min=0, min_open=True),
+    default=None,
+    help="pixel pitch (default 427 mm / detector size)",
+)
+@click.option(
+    "--errors",
+    type=click.Choice(["bench", "none"]),
+    default="bench",
+    show_default=True,
+    help="motion errors added to the orbit",
+)
 @click.option("--seed", type=SEED, default=0, show_default=True, help="phantom layout, errors and noise")
 @click.option("--darks", type=click.IntRange(min=0), default=10, show_default=True, help="dark frames")
 @click.option("--flats", type=click.IntRange(min=0), default=10, show_default=True, help="flat frames")
 @click.option("--out", "-o", type=click.Path(dir_okay=False, path_type=Path), required=True, help="scan file to write")
 @click.option("--overwrite", is_flag=True, help="replace --out if it exists")
-@click.option("--bbs-from", "bbs_from", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
-              help="place the BBs as in this plan (orbitct plan bbs --out PLAN.json)")
-def simulate(experiment: str, orbit_name: str | None, params: tuple[str, ...], frames: int | None, detector_size: int,
-             pitch_mm: float | None, errors: str, seed: int, darks: int, flats: int, out: Path, overwrite: bool,
-             bbs_from: Path | None) -> None:
+@click.option(
+    "--bbs-from",
+    "bbs_from",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="place the BBs as in this plan (orbitct plan bbs --out PLAN.json)",
+)
+def simulate(
+    experiment: str,
+    orbit_name: str | None,
+    params: tuple[str, ...],
+    frames: int | None,
+    detector_size: int,
+    pitch_mm: float | None,
+    errors: str,
+    seed: int,
+    darks: int,
+    flats: int,
+    out: Path,
+    overwrite: bool,
+    bbs_from: Path | None,
+) -> None:
     """Simulate a scan of an experiment phantom and write it as a scan file."""
     from orbitct.orbits import OrbitError
     from orbitct.simulator import resolve_orbit, simulate_scan
@@ -49,11 +90,24 @@ def simulate(experiment: str, orbit_name: str | None, params: tuple[str, ...], f
     if bbs_from is not None:
         phantom = _planned_phantom(experiment.upper(), seed, bbs_from)
     with ProgressBar() as bar:
-        res = simulate_scan(phantom, orbit, out=out, detector_px=detector_size, pitch_mm=pitch_mm,
-                            errors=errors, seed=seed, n_dark=darks, n_flat=flats, overwrite=overwrite, progress=bar)
-    click.echo(f"wrote {res.path}: {res.n_projections} projections + {darks} darks + {flats} flats, "
-               f"orbit {res.orbit.name}, {res.phantom.n_markers} markers, {res.elapsed_s:.1f} s "
-               f"({res.frames_per_s:.1f} frames/s)")
+        res = simulate_scan(
+            phantom,
+            orbit,
+            out=out,
+            detector_px=detector_size,
+            pitch_mm=pitch_mm,
+            errors=errors,
+            seed=seed,
+            n_dark=darks,
+            n_flat=flats,
+            overwrite=overwrite,
+            progress=bar,
+        )
+    click.echo(
+        f"wrote {res.path}: {res.n_projections} projections + {darks} darks + {flats} flats, "
+        f"orbit {res.orbit.name}, {res.phantom.n_markers} markers, {res.elapsed_s:.1f} s "
+        f"({res.frames_per_s:.1f} frames/s)"
+    )
 
 
 def _planned_phantom(experiment: str, seed: int, plan: Path) -> object:
@@ -66,8 +120,9 @@ def _planned_phantom(experiment: str, seed: int, plan: Path) -> object:
     except BBPlanError as exc:
         raise click.BadParameter(str(exc), param_hint="--bbs-from") from None
     if planned_for not in (None, experiment):
-        raise click.BadParameter(f"{plan} was planned for experiment {planned_for}, not {experiment}",
-                                 param_hint="--bbs-from")
+        raise click.BadParameter(
+            f"{plan} was planned for experiment {planned_for}, not {experiment}", param_hint="--bbs-from"
+        )
     return experiment_phantom(experiment, seed).with_markers(xyz, diameter)
 
 
@@ -119,31 +174,48 @@ def inspect(scan: Path, as_json: bool) -> None:
 def _print_summary(scan: Path, summary: dict[str, Any]) -> None:
     """The summary for a person."""
     click.echo(f"{scan}")
-    click.echo(f"  status      {summary['status']}" + (f" ({summary['status_reason']})" if summary["status_reason"] else ""))
+    click.echo(
+        f"  status      {summary['status']}" + (f" ({summary['status_reason']})" if summary["status_reason"] else "")
+    )
     d = summary["detector"]
     click.echo(f"  detector    {d['rows']} x {d['cols']} px @ {d['pitch_mm'][0]:.4g} x {d['pitch_mm'][1]:.4g} mm")
-    click.echo("  frames      " + ", ".join(f"{v} {k}" for k, v in summary["frames_by_kind"].items() if v) +
-               f" ({summary['n_frames']} total, {summary['dtype']})")
+    click.echo(
+        "  frames      "
+        + ", ".join(f"{v} {k}" for k, v in summary["frames_by_kind"].items() if v)
+        + f" ({summary['n_frames']} total, {summary['dtype']})"
+    )
     if summary["frames_without_pixels"]:
-        click.echo(f"  warning     {summary['frames_without_pixels']} more frame(s) at the end have no pixels in the file "
-                   "(the disk filled up while they were written) and are left out; orbitct scan repair trims them")
+        click.echo(
+            f"  warning     {summary['frames_without_pixels']} more frame(s) at the end have no pixels in the file "
+            "(the disk filled up while they were written) and are left out; orbitct scan repair trims them"
+        )
     for axis, off in summary["taken_off_command"].items():
         unit = f" {off['unit']}" if off["unit"] else ""
-        click.echo(f"  warning     {off['frames']} projection(s) read back further from their command than a step of "
-                   f"{axis} ({off['step']:.3g}{unit}), up to {off['max']:.3g}{unit}: their nominal geometry is not where "
-                   "they were taken; calibrate from the BBs, or scan again")
+        click.echo(
+            f"  warning     {off['frames']} projection(s) read back further from their command than a step of "
+            f"{axis} ({off['step']:.3g}{unit}), up to {off['max']:.3g}{unit}: their nominal geometry is not where "
+            "they were taken; calibrate from the BBs, or scan again"
+        )
     if summary["duration_s"] is not None:
         click.echo(f"  duration    {summary['duration_s']:.1f} s")
     click.echo(f"  orbit       {summary['orbit']['name'] or '-'} {json.dumps(summary['orbit']['params'])}")
     if "rotation_deg" in summary["orbit"]:
         o = summary["orbit"]
-        click.echo(f"              nominal source rotation {o['rotation_deg'][0]:.1f}..{o['rotation_deg'][1]:.1f} deg, "
-                   f"tilt {o['tilt_deg'][0]:.1f}..{o['tilt_deg'][1]:.1f} deg")
+        click.echo(
+            f"              nominal source rotation {o['rotation_deg'][0]:.1f}..{o['rotation_deg'][1]:.1f} deg, "
+            f"tilt {o['tilt_deg'][0]:.1f}..{o['tilt_deg'][1]:.1f} deg"
+        )
     cal = summary["calibration"]
-    notes = {"calibrated": f"RPE mean {cal['rpe_mean_mm']:.3f} mm, median {cal['rpe_median_mm']:.3f} mm"
-             if cal.get("rpe_mean_mm") is not None and cal.get("rpe_median_mm") is not None else ""}
-    click.echo("  geometry    " + ", ".join(g + (f" ({notes[g]})" if notes.get(g) else "") for g in summary["geometries"])
-               if summary["geometries"] else "  geometry    none")
+    notes = {
+        "calibrated": f"RPE mean {cal['rpe_mean_mm']:.3f} mm, median {cal['rpe_median_mm']:.3f} mm"
+        if cal.get("rpe_mean_mm") is not None and cal.get("rpe_median_mm") is not None
+        else ""
+    }
+    click.echo(
+        "  geometry    " + ", ".join(g + (f" ({notes[g]})" if notes.get(g) else "") for g in summary["geometries"])
+        if summary["geometries"]
+        else "  geometry    none"
+    )
     if summary["live_calibration"]:
         click.echo(f"  live        calibration during the scan: {summary['live_calibration']['outcome']}")
     m = summary["markers"]
@@ -152,8 +224,10 @@ def _print_summary(scan: Path, summary: dict[str, Any]) -> None:
     def count(n: int) -> str:
         return f"{n} markers" if n else "no"
 
-    click.echo(f"  markers     {dia}; detected uv: {count(m['detected'])}; estimated xyz: {count(m['estimated'])}; "
-               f"truth: {count(m['truth'])}")
+    click.echo(
+        f"  markers     {dia}; detected uv: {count(m['detected'])}; estimated xyz: {count(m['estimated'])}; "
+        f"truth: {count(m['truth'])}"
+    )
     if summary["phantom"]:
         click.echo(f"  phantom     {summary['phantom']}")
     if summary["recon"]:

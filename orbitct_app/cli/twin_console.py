@@ -10,9 +10,7 @@ from typing import Any
 
 import click
 
-CONSOLE_HELP = (
-    "console: 'latency MS', 'drop [N]', 'garble [N]', 'error [N]', 'missing [N]', 'match TEXT|-'"
-)
+CONSOLE_HELP = "console: 'latency MS', 'drop [N]', 'garble [N]', 'error [N]', 'missing [N]', 'match TEXT|-'"
 
 
 def fault_command(faults: Any, words: list[str]) -> str | None:

@@ -10,13 +10,25 @@ from orbitct_app.cli.values import FiniteFloat
 
 @click.command("xray")
 @click.option("--host", default="127.0.0.1", show_default=True, help="Interface to listen on.")
-@click.option("--port", type=click.IntRange(0, 65535), default=5020, show_default=True, help="TCP port (0 = any free port).")
-@click.option("--prep-ms", type=click.IntRange(0, 60000), default=200, show_default=True, help="Time from PREP to READY.")
+@click.option(
+    "--port", type=click.IntRange(0, 65535), default=5020, show_default=True, help="TCP port (0 = any free port)."
+)
+@click.option(
+    "--prep-ms", type=click.IntRange(0, 60000), default=200, show_default=True, help="Time from PREP to READY."
+)
 @click.option("--door-open", is_flag=True, help="Start with the door interlock open.")
-@click.option("--fault", type=click.IntRange(0, 4), default=0, help="Start in FAULT with this fault code (3 = generator).")
+@click.option(
+    "--fault", type=click.IntRange(0, 4), default=0, help="Start in FAULT with this fault code (3 = generator)."
+)
 @click.option("--latency-ms", type=FiniteFloat(0), default=0.0, help="Delay added before every reply.")
-@click.option("--console/--no-console", default=None, help="Read hazard/fault commands from stdin (default: when stdin is a terminal).")
-def xray(host: str, port: int, prep_ms: int, door_open: bool, fault: int, latency_ms: float, console: bool | None) -> None:
+@click.option(
+    "--console/--no-console",
+    default=None,
+    help="Read hazard/fault commands from stdin (default: when stdin is a terminal).",
+)
+def xray(
+    host: str, port: int, prep_ms: int, door_open: bool, fault: int, latency_ms: float, console: bool | None
+) -> None:
     """Serve the simulated X-ray generator's register map over Modbus TCP.
 
     Console commands (one a line): door open|closed, fault CODE, heartbeat freeze|run, misanswer [N]
@@ -37,7 +49,12 @@ def xray(host: str, port: int, prep_ms: int, door_open: bool, fault: int, latenc
         if words[:1] == ["door"] and words[1:2] in (["open"], ["closed"]):
             twin.set_door(words[1] == "closed")
             return f"door {words[1]}"
-        if words[:1] == ["fault"] and len(words) == 2 and words[1].isdigit() and int(words[1]) in FaultCode._value2member_map_:
+        if (
+            words[:1] == ["fault"]
+            and len(words) == 2
+            and words[1].isdigit()
+            and int(words[1]) in FaultCode._value2member_map_
+        ):
             twin.raise_fault(FaultCode(int(words[1])))
             return f"fault {FaultCode(int(words[1])).name}"
         if words[:1] == ["heartbeat"] and words[1:2] in (["freeze"], ["run"]):

@@ -28,6 +28,13 @@ def warmup() -> None:
         simulate_scan("A", out=scan, n_frames=60, detector_px=128, errors=make_profile("bench", 0, angle_scale=0.12))
         calib.calibrate_scan(scan, bridge_max_views=60, max_predicted_px=100.0)
         recon.reconstruct_scan(scan, algorithm="fdk", geometry="calibrated", shape=(16, 16, 16), voxel_mm=8.0)
-        recon.reconstruct_scan(scan, algorithm="pwls", geometry="calibrated", shape=(16, 16, 16), voxel_mm=8.0,
-                               iterations=2, name="warmup_pwls")
+        recon.reconstruct_scan(
+            scan,
+            algorithm="pwls",
+            geometry="calibrated",
+            shape=(16, 16, 16),
+            voxel_mm=8.0,
+            iterations=2,
+            name="warmup_pwls",
+        )
     click.echo(f"numerical kernels ready: {clock.seconds:.1f} s compiling, {time.perf_counter() - t0:.1f} s in all")

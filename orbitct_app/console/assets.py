@@ -16,8 +16,14 @@ from pathlib import Path
 
 VENDOR = Path(__file__).resolve().parent / "static" / "vendor"
 # (npm tarball, member, where it goes, its SHA-256)
-FETCHED = [("https://registry.npmjs.org/@niivue/niivue/-/niivue-0.69.0.tgz", "package/dist/niivue.umd.js",
-            VENDOR / "niivue-0.69.0" / "niivue.umd.js", "47b896b77ec4a5be3ef1949c33ad393b6f45629921f326c279000bcf51bdb4af")]
+FETCHED = [
+    (
+        "https://registry.npmjs.org/@niivue/niivue/-/niivue-0.69.0.tgz",
+        "package/dist/niivue.umd.js",
+        VENDOR / "niivue-0.69.0" / "niivue.umd.js",
+        "47b896b77ec4a5be3ef1949c33ad393b6f45629921f326c279000bcf51bdb4af",
+    )
+]
 
 
 def fetch(timeout_s: float = 120.0) -> list[Path]:
@@ -33,7 +39,9 @@ def fetch(timeout_s: float = 120.0) -> list[Path]:
                 extracted = tar.extractfile(member)
                 content = extracted.read() if extracted is not None else b""
         except (OSError, tarfile.TarError) as exc:
-            raise RuntimeError(f"{target.name}: cannot fetch {url} ({exc}); copy the file to {target} by hand") from None
+            raise RuntimeError(
+                f"{target.name}: cannot fetch {url} ({exc}); copy the file to {target} by hand"
+            ) from None
         if hashlib.sha256(content).hexdigest() != sha:
             raise RuntimeError(f"{target.name} from {url} does not have the pinned SHA-256 {sha}; not installed")
         target.parent.mkdir(parents=True, exist_ok=True)

@@ -30,15 +30,24 @@ VENDOR = "/static/vendor"
 SWAGGER = f"{VENDOR}/swagger-ui-5.35.0"
 REDOC = f"{VENDOR}/redoc-2.5.4"
 # Pages load only what orbitct serves; the 3-D viewer needs blob: workers and WebAssembly (NIfTI decompression).
-CSP = ("default-src 'self'; img-src 'self' data: blob:; style-src 'self' 'unsafe-inline'; script-src 'self' "
-       "'wasm-unsafe-eval'; worker-src 'self' blob:; connect-src 'self' blob: data:; font-src 'self'; "
-       "frame-ancestors 'none'; base-uri 'none'; form-action 'self'")
+CSP = (
+    "default-src 'self'; img-src 'self' data: blob:; style-src 'self' 'unsafe-inline'; script-src 'self' "
+    "'wasm-unsafe-eval'; worker-src 'self' blob:; connect-src 'self' blob: data:; font-src 'self'; "
+    "frame-ancestors 'none'; base-uri 'none'; form-action 'self'"
+)
 # The API docs pages keep FastAPI's inline start-up script; nothing outside orbitct may load (ReDoc's footer logo
 # would come from its CDN: blocked, the logo hides itself).
-DOCS_CSP = ("default-src 'self'; script-src 'self' 'unsafe-inline'; style-src 'self' 'unsafe-inline'; img-src 'self' data: "
-            "blob:; worker-src 'self' blob:; connect-src 'self'; font-src 'self' data:; frame-ancestors 'none'")
-NAV = [("bench", "Bench", "/console/bench"), ("scan-new", "New scan", "/console/scans/new"),
-       ("scans", "Scans", "/console/scans"), ("jobs", "Jobs", "/console/jobs"), ("plans", "BB plans", "/console/plans")]
+DOCS_CSP = (
+    "default-src 'self'; script-src 'self' 'unsafe-inline'; style-src 'self' 'unsafe-inline'; img-src 'self' data: "
+    "blob:; worker-src 'self' blob:; connect-src 'self'; font-src 'self' data:; frame-ancestors 'none'"
+)
+NAV = [
+    ("bench", "Bench", "/console/bench"),
+    ("scan-new", "New scan", "/console/scans/new"),
+    ("scans", "Scans", "/console/scans"),
+    ("jobs", "Jobs", "/console/jobs"),
+    ("plans", "BB plans", "/console/plans"),
+]
 
 templates = Jinja2Templates(directory=str(HERE / "templates"))
 router = APIRouter(include_in_schema=False)
@@ -52,9 +61,20 @@ def _render(request: Request, template: str, page: str, title: str, **context: A
         return RedirectResponse(f"/sign-in?next={quote(request.url.path)}", status_code=303)
     session, principal = signed_in
     may = {p: principal.may(p) for p in sorted(set().union(*PERMISSIONS.values()))}
-    response = templates.TemplateResponse(request, template, {
-        "page": page, "title": title, "user": principal, "may": may, "csrf": session.csrf, "nav": NAV,
-        "version": __version__, **context})
+    response = templates.TemplateResponse(
+        request,
+        template,
+        {
+            "page": page,
+            "title": title,
+            "user": principal,
+            "may": may,
+            "csrf": session.csrf,
+            "nav": NAV,
+            "version": __version__,
+            **context,
+        },
+    )
     _secure(response)
     return response
 
@@ -76,8 +96,9 @@ def home() -> Response:
 def sign_in(request: Request, next: str = "/console/bench") -> Response:
     """Sign in with a token (posted to ``/session`` by the page's script, never in a URL)."""
     target = next if next.startswith("/console/") and len(next) < 200 else "/console/bench"
-    response = templates.TemplateResponse(request, "sign_in.html", {"title": "Sign in", "next": target,
-                                                                     "version": __version__})
+    response = templates.TemplateResponse(
+        request, "sign_in.html", {"title": "Sign in", "next": target, "version": __version__}
+    )
     _secure(response)
     return response
 
@@ -91,8 +112,13 @@ def bench(request: Request) -> Response:
 @router.get("/console/scans/new", response_class=HTMLResponse)
 def scan_new(request: Request) -> Response:
     """Orbit, parameters, preview and pre-flight, then start."""
-    return _render(request, "scan_new.html", "scan-new", "New scan",
-                   abort_kinds=[(kind, WARNING_MEANINGS[kind]) for kind in ABORT_KINDS])
+    return _render(
+        request,
+        "scan_new.html",
+        "scan-new",
+        "New scan",
+        abort_kinds=[(kind, WARNING_MEANINGS[kind]) for kind in ABORT_KINDS],
+    )
 
 
 @router.get("/console/scans", response_class=HTMLResponse)
@@ -114,7 +140,9 @@ def calibration(request: Request, job_id: Id) -> Response:
 
 
 @router.get("/console/reconstructions/{job_id}", response_class=HTMLResponse)
-def viewer(request: Request, job_id: Id, compare: Annotated[str, Query(pattern=r"^[A-Za-z0-9_-]{0,64}$")] = "") -> Response:
+def viewer(
+    request: Request, job_id: Id, compare: Annotated[str, Query(pattern=r"^[A-Za-z0-9_-]{0,64}$")] = ""
+) -> Response:
     """Slices and 3-D of a reconstruction, beside another of the same scan with the same window."""
     return _render(request, "viewer.html", "viewer", "Volume viewer", job_id=job_id, compare=compare)
 
@@ -139,15 +167,25 @@ def install_console(app: FastAPI) -> None:
 
     @app.get("/docs", include_in_schema=False)
     def swagger() -> HTMLResponse:
-        page = get_swagger_ui_html(openapi_url=openapi_url, title=f"{app.title} API", swagger_js_url=f"{SWAGGER}/swagger-ui-bundle.js",
-                                   swagger_css_url=f"{SWAGGER}/swagger-ui.css", swagger_favicon_url="/static/favicon.svg",
-                                   swagger_ui_parameters={"validatorUrl": None})
+        page = get_swagger_ui_html(
+            openapi_url=openapi_url,
+            title=f"{app.title} API",
+            swagger_js_url=f"{SWAGGER}/swagger-ui-bundle.js",
+            swagger_css_url=f"{SWAGGER}/swagger-ui.css",
+            swagger_favicon_url="/static/favicon.svg",
+            swagger_ui_parameters={"validatorUrl": None},
+        )
         page.headers["Content-Security-Policy"] = DOCS_CSP
         return page
 
     @app.get("/redoc", include_in_schema=False)
     def redoc() -> HTMLResponse:
-        page = get_redoc_html(openapi_url=openapi_url, title=f"{app.title} API", redoc_js_url=f"{REDOC}/redoc.standalone.js",
-                              redoc_favicon_url="/static/favicon.svg", with_google_fonts=False)
+        page = get_redoc_html(
+            openapi_url=openapi_url,
+            title=f"{app.title} API",
+            redoc_js_url=f"{REDOC}/redoc.standalone.js",
+            redoc_favicon_url="/static/favicon.svg",
+            with_google_fonts=False,
+        )
         page.headers["Content-Security-Policy"] = DOCS_CSP
         return page

@@ -35,9 +35,18 @@ TAGS = [
     {"name": "calibrations", "description": "Geometric calibration from BBs (analyst)."},
     {"name": "reconstructions", "description": "FDK and PWLS reconstruction (analyst)."},
     {"name": "jobs", "description": "State, progress, log and cancellation of calibration and reconstruction jobs."},
-    {"name": "pacs", "description": "The DICOM nodes of the settings: find series, import C-arm runs, send volumes (analyst)."},
-    {"name": "plans", "description": "BB plans: where to tape the BBs for an object and orbit, with the predicted accuracy per view, and the objects' surfaces uploaded as meshes to plan on (analyst creates)."},
-    {"name": "session", "description": "The web console's sign-in: a token exchanged for a session cookie (CSRF-protected)."},
+    {
+        "name": "pacs",
+        "description": "The DICOM nodes of the settings: find series, import C-arm runs, send volumes (analyst).",
+    },
+    {
+        "name": "plans",
+        "description": "BB plans: where to tape the BBs for an object and orbit, with the predicted accuracy per view, and the objects' surfaces uploaded as meshes to plan on (analyst creates).",
+    },
+    {
+        "name": "session",
+        "description": "The web console's sign-in: a token exchanged for a session cookie (CSRF-protected).",
+    },
     {"name": "health", "description": "Liveness, no token needed."},
 ]
 
@@ -73,11 +82,23 @@ def create_app(settings: ServiceSettings, *, service: Service | None = None) -> 
     )
     app.state.service = svc
     install_error_handlers(app)
-    app.add_middleware(ContentLengthLimit, max_bytes=settings.max_body_bytes,
-                       larger={"/surfaces": settings.max_upload_bytes})
-    for module in (health, session, stop, devices, orbits, scans, calibrations, reconstructions, jobs, pacs, plans,
-                   surfaces):
+    app.add_middleware(
+        ContentLengthLimit, max_bytes=settings.max_body_bytes, larger={"/surfaces": settings.max_upload_bytes}
+    )
+    for module in (
+        health,
+        session,
+        stop,
+        devices,
+        orbits,
+        scans,
+        calibrations,
+        reconstructions,
+        jobs,
+        pacs,
+        plans,
+        surfaces,
+    ):
         app.include_router(module.router)
     install_console(app)
     return app
-

@@ -25,19 +25,25 @@ async def get_service(request: Request) -> Service:
 ServiceDep = Annotated["Service", Depends(get_service)]
 
 
-async def get_principal(request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> Principal:
+async def get_principal(
+    request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
+) -> Principal:
     """Who calls: from the bearer token, else from the console's session cookie (state-changing requests made with
     the cookie need its CSRF token in ``X-CSRF-Token``); 401 if neither, 403 on a missing or wrong CSRF token."""
     challenge = {"WWW-Authenticate": "Bearer"}
     if credentials is None:
         signed_in = request.app.state.service.sessions.lookup(request.cookies.get(COOKIE, ""))
         if signed_in is None:
-            raise HTTPException(401, "a bearer token is required (Authorization: Bearer <token>), or sign in at /sign-in",
-                                headers=challenge)
+            raise HTTPException(
+                401,
+                "a bearer token is required (Authorization: Bearer <token>), or sign in at /sign-in",
+                headers=challenge,
+            )
         session, principal = signed_in
         if request.method not in SAFE_METHODS and not csrf_ok(session, request.headers.get(CSRF_HEADER)):
-            raise HTTPException(403, f"this request came with the session cookie but without its {CSRF_HEADER} header; "
-                                     "reload the page")
+            raise HTTPException(
+                403, f"this request came with the session cookie but without its {CSRF_HEADER} header; reload the page"
+            )
         return principal
     if credentials.scheme.lower() != "bearer" or not credentials.credentials:
         raise HTTPException(401, "a bearer token is required (Authorization: Bearer <token>)", headers=challenge)

@@ -36,21 +36,45 @@ class JobOut(BaseModel):
     finished_utc: str | None = None
     links: dict[str, str] = Field(default_factory=dict)
 
-    model_config = {"json_schema_extra": {"examples": [{
-        "id": "3f2a9c0d1b2e4f56", "kind": "calibration", "scan_id": "a1b2c3d4e5f60718", "state": "running",
-        "reason": "", "params": {"method": "bundle"},
-        "progress": {"stage": "estimate", "done": 2, "total": 5, "message": "", "metrics": {"rpe_mean_mm": 0.08}},
-        "result": {}, "owner": "analyst-1", "created_utc": "2026-11-23T15:00:00.000+00:00",
-        "started_utc": "2026-11-23T15:00:01.000+00:00", "finished_utc": None,
-        "links": {"self": "/jobs/3f2a9c0d1b2e4f56", "events": "/jobs/3f2a9c0d1b2e4f56/events"},
-    }]}}
+    model_config = {
+        "json_schema_extra": {
+            "examples": [
+                {
+                    "id": "3f2a9c0d1b2e4f56",
+                    "kind": "calibration",
+                    "scan_id": "a1b2c3d4e5f60718",
+                    "state": "running",
+                    "reason": "",
+                    "params": {"method": "bundle"},
+                    "progress": {
+                        "stage": "estimate",
+                        "done": 2,
+                        "total": 5,
+                        "message": "",
+                        "metrics": {"rpe_mean_mm": 0.08},
+                    },
+                    "result": {},
+                    "owner": "analyst-1",
+                    "created_utc": "2026-11-23T15:00:00.000+00:00",
+                    "started_utc": "2026-11-23T15:00:01.000+00:00",
+                    "finished_utc": None,
+                    "links": {"self": "/jobs/3f2a9c0d1b2e4f56", "events": "/jobs/3f2a9c0d1b2e4f56/events"},
+                }
+            ]
+        }
+    }
 
 
 def job_out(job: dict[str, Any]) -> JobOut:
     """API view of a job row."""
     base = "/calibrations" if job["kind"] == "calibration" else "/reconstructions"
-    links = {"self": f"{base}/{job['id']}", "job": f"/jobs/{job['id']}", "events": f"/jobs/{job['id']}/events",
-             "log": f"/jobs/{job['id']}/log", "scan": f"/scans/{job['scan_id']}"}
+    links = {
+        "self": f"{base}/{job['id']}",
+        "job": f"/jobs/{job['id']}",
+        "events": f"/jobs/{job['id']}/events",
+        "log": f"/jobs/{job['id']}/log",
+        "scan": f"/scans/{job['scan_id']}",
+    }
     return JobOut(**{k: job[k] for k in JobOut.model_fields if k in job and k != "links"}, links=links)
 
 

@@ -48,14 +48,29 @@ class Service:
         self.bus = EventBus(self.store)
         self.latch = StopLatch(settings.data_dir, SharedFlag(mp.get_context("spawn")))
         self.sim_bench = SimBench(settings.bench_config, nice=settings.bench_nice) if settings.sim else None
-        self.rig = RigClient(settings.bench_config, sim=settings.sim, store=self.store, bus=self.bus,
-                             data_dir=settings.data_dir, status_interval_s=settings.status_interval_s,
-                             nice=settings.bench_nice, latch_flag=self.latch.flag)
-        self.guard = GuardClient(settings, self.latch.flag, self.dev_token, on_stop=lambda reply: self.estop.published(reply))
+        self.rig = RigClient(
+            settings.bench_config,
+            sim=settings.sim,
+            store=self.store,
+            bus=self.bus,
+            data_dir=settings.data_dir,
+            status_interval_s=settings.status_interval_s,
+            nice=settings.bench_nice,
+            latch_flag=self.latch.flag,
+        )
+        self.guard = GuardClient(
+            settings, self.latch.flag, self.dev_token, on_stop=lambda reply: self.estop.published(reply)
+        )
         self.estop = EmergencyStop(self.latch, self.guard, self.rig, self.bus)
-        self.jobs = JobManager(self.store, self.bus, settings.data_dir, workers=settings.job_workers,
-                               cancel_grace_s=settings.cancel_grace_s, scan_busy=lambda s: self.rig.busy == s,
-                               scheduler=settings.dask_scheduler)
+        self.jobs = JobManager(
+            self.store,
+            self.bus,
+            settings.data_dir,
+            workers=settings.job_workers,
+            cancel_grace_s=settings.cancel_grace_s,
+            scan_busy=lambda s: self.rig.busy == s,
+            scheduler=settings.dask_scheduler,
+        )
         self.plans = PlanQueue(settings.data_dir / "plans")
 
     @property
@@ -95,14 +110,18 @@ class Service:
             if isinstance(summary.get("n_frames"), int):
                 fields["frames_done"] = summary["n_frames"]  # the record follows the file
             ended = str(summary.get("status_reason") or "")
-            if summary.get("status") == "complete" or (summary.get("status") == "aborted" and ended != INTERRUPTED
-                                                       and not ended.startswith(SERVICE_STOPPED)):
+            if summary.get("status") == "complete" or (
+                summary.get("status") == "aborted" and ended != INTERRUPTED and not ended.startswith(SERVICE_STOPPED)
+            ):
                 # the scan had ended on its own, but its record could not be written before the service stopped
                 # (a full disk, a read-only data directory): the record follows the file, with its true reason
                 fields.update(state=summary["status"], reason=ended)
             self.store.update_scan(scan_id, **fields)
-            self.bus.publish(f"scan:{scan_id}", "end", {"state": fields.get("state", "interrupted"),
-                                                        "reason": fields.get("reason", RESTART_REASON)})
+            self.bus.publish(
+                f"scan:{scan_id}",
+                "end",
+                {"state": fields.get("state", "interrupted"), "reason": fields.get("reason", RESTART_REASON)},
+            )
         for job_id in job_ids:
             self.bus.publish(f"job:{job_id}", "end", {"state": "interrupted", "reason": RESTART_REASON})
         if scan_ids or job_ids:
@@ -147,17 +166,25 @@ class Service:
         """Recover, start the simulated bench (sim), the guard and the rig process, then the job workers."""
         self.recover()
         if not self.settings.sim and len(self.tokens) == 0:
-            log.warning("no tokens configured: every request will get 401; create one with "
-                        "`orbitct token create --role operator --data-dir %s`", self.settings.data_dir)
+            log.warning(
+                "no tokens configured: every request will get 401; create one with "
+                "`orbitct token create --role operator --data-dir %s`",
+                self.settings.data_dir,
+            )
         if self.latch.latched:
             log.warning("%s", self.latch.refusal("scans, moves and referencing"))
         disk, free = self.disk()
         if disk != "ok":
             from orbitct.diskspace import format_bytes
 
-            log.warning("the data directory's disk is %s: %s free in %s, the bench keeps %s free "
-                        "(storage.reserve_mb); scans are refused until there is room", disk, format_bytes(free),
-                        self.settings.data_dir, format_bytes(self.reserve_mb * 2**20))
+            log.warning(
+                "the data directory's disk is %s: %s free in %s, the bench keeps %s free "
+                "(storage.reserve_mb); scans are refused until there is room",
+                disk,
+                format_bytes(free),
+                self.settings.data_dir,
+                format_bytes(self.reserve_mb * 2**20),
+            )
         links = self._device_links()
         if links:
             self.guard.start(links)

@@ -21,9 +21,14 @@ pytestmark = [pytest.mark.timeout(120), pytest.mark.system]
 
 
 def _config() -> CArmConfig:
-    cfg = parse_config({"kind": "carm", "geometry": {"detector": {"rows": 64, "cols": 64}},
-                        "calibration_frames": {"darks_before": 1, "flats_before": 1, "darks_after": 1, "flats_after": 1},
-                        "sim": {"time_scale": 25.0}})
+    cfg = parse_config(
+        {
+            "kind": "carm",
+            "geometry": {"detector": {"rows": 64, "cols": 64}},
+            "calibration_frames": {"darks_before": 1, "flats_before": 1, "darks_after": 1, "flats_after": 1},
+            "sim": {"time_scale": 25.0},
+        }
+    )
     assert isinstance(cfg, CArmConfig)
     return cfg
 
@@ -58,8 +63,14 @@ def test_carm_orbit_outside_the_arm_range_is_refused(tmp_path: Path) -> None:
 def test_carm_that_stops_delivering_frames_ends_the_scan_as_a_stall(tmp_path: Path) -> None:
     cfg = _config().model_copy(update={"stall": StallConfig(frame_s=1.0, exposure_s=0.5)})
     out = tmp_path / "stall.h5"
-    req = ScanRequest(config=cfg, out=out, orbit="sawtooth", frames=80,
-                      orbit_params={"start_deg": -180.0, "amplitude_deg": 10.0}, sim=True)
+    req = ScanRequest(
+        config=cfg,
+        out=out,
+        orbit="sawtooth",
+        frames=80,
+        orbit_params={"start_deg": -180.0, "amplitude_deg": 10.0},
+        sim=True,
+    )
 
     async def main() -> ScanResult:
         async with open_carm(cfg, sim=True) as rig:

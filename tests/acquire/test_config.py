@@ -72,9 +72,18 @@ def test_a_twin_in_a_real_bench_takes_the_configuration() -> None:
     and phantom, where its URI leaves them open; real speed; real devices get only driver options."""
     from acquire.rigs.bench import bench_links
 
-    cfg = parse_config({"devices": {"hexapod": "tcp://10.0.0.7:50000", "rotation_stage": "tcp://10.0.0.8:50000",
-                                    "detector": "sim://bench?rows=64"},
-                        "geometry": {"detector": {"rows": 128, "cols": 96}}, "sim": {"phantom": "B"}}, "t.yaml")
+    cfg = parse_config(
+        {
+            "devices": {
+                "hexapod": "tcp://10.0.0.7:50000",
+                "rotation_stage": "tcp://10.0.0.8:50000",
+                "detector": "sim://bench?rows=64",
+            },
+            "geometry": {"detector": {"rows": 128, "cols": 96}},
+            "sim": {"phantom": "B"},
+        },
+        "t.yaml",
+    )
     links = bench_links(cfg, sim=False)
     det = links["detector"].options
     assert det["cols"] == 96 and "rows" not in det  # the URI's rows=64 stays the URI's

@@ -43,6 +43,7 @@ def _run_with_bench(req: ScanRequest, scenario: Any) -> Any:
             task = asyncio.ensure_future(runner.run())
             out = await scenario(runner, task, bench, events)
             return out
+
     return asyncio.run(main())
 
 
@@ -109,6 +110,7 @@ def test_abort_from_another_thread(request_factory) -> None:
     runner.start()
     t_end = asyncio.get_event_loop_policy().new_event_loop().time() + 60
     import time
+
     while (runner._engine is None or runner._engine.n_done < 8) and time.monotonic() < t_end:
         time.sleep(0.01)
     runner.abort("emergency stop")
@@ -118,12 +120,25 @@ def test_abort_from_another_thread(request_factory) -> None:
         assert sf.status == "aborted"
 
 
-@pytest.mark.parametrize("fault", [pytest.param("stuck_axis", marks=pytest.mark.slow), "controller_error", "interlock",
-                                   "dropped_detector", "slow_detector"])
+@pytest.mark.parametrize(
+    "fault",
+    [
+        pytest.param("stuck_axis", marks=pytest.mark.slow),
+        "controller_error",
+        "interlock",
+        "dropped_detector",
+        "slow_detector",
+    ],
+)
 def test_device_fault_ends_scan_safely_with_clear_reason(request_factory, fault: str) -> None:
     req = request_factory(f"{fault}.h5", frames=30)
-    expected = {"stuck_axis": "X", "controller_error": "controller error", "interlock": "interlock",
-                "dropped_detector": "detector", "slow_detector": "stall: detector delivered no frame"}[fault]
+    expected = {
+        "stuck_axis": "X",
+        "controller_error": "controller error",
+        "interlock": "interlock",
+        "dropped_detector": "detector",
+        "slow_detector": "stall: detector delivered no frame",
+    }[fault]
 
     async def scenario(runner: ScanRunner, task: asyncio.Task, bench: BenchRig, events: list) -> None:
         await _until(lambda: runner._engine is not None and runner._engine.n_done >= 8)
@@ -170,6 +185,7 @@ def test_the_source_prepares_during_the_move_not_after_it(request_factory) -> No
                     bench.prepare_exposure = None  # type: ignore[assignment]  # a rig that cannot
                 res = await ScanRunner(request_factory(config=cfg, frames=12), rig=bench).run()
                 return res.status, res.timing["acquire_s"] / 12
+
         return asyncio.run(main())
 
     status, ahead = acquire_s_per_projection(True)

@@ -16,8 +16,11 @@ from acquire.kinematics import (
 )
 from orbitct.geometry import ViewGeometry
 
-STACKS = [StackConfig(), StackConfig(pivot_mm=(0.0, 0.0, 40.0)),
-          StackConfig(order="hexapod_on_stage", pivot_mm=(5.0, -3.0, 20.0))]
+STACKS = [
+    StackConfig(),
+    StackConfig(pivot_mm=(0.0, 0.0, 40.0)),
+    StackConfig(order="hexapod_on_stage", pivot_mm=(5.0, -3.0, 20.0)),
+]
 
 
 def _orbit(n: int = 25) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -13,8 +13,12 @@ from acquire.plan import plan_bench_scan
 from acquire.preflight import bench_preflight
 from orbitct.scanfile.keys import ImageKey
 
-CFG = parse_config({"geometry": {"detector": {"rows": 64, "cols": 64}},
-                    "calibration_frames": {"darks_before": 2, "flats_before": 3, "darks_after": 1, "flats_after": 1}})
+CFG = parse_config(
+    {
+        "geometry": {"detector": {"rows": 64, "cols": 64}},
+        "calibration_frames": {"darks_before": 2, "flats_before": 3, "darks_after": 1, "flats_after": 1},
+    }
+)
 
 
 def _sawtooth(n: int = 40, tilt_deg: float = 20.0) -> tuple[np.ndarray, np.ndarray]:
@@ -122,13 +126,16 @@ def test_continuous_mode_checks_each_sweeps_run_up_against_the_stage_range() -> 
     theta, phi = _sawtooth(n=40)
     plan = plan_bench_scan(CFG, theta, phi)
     stage = plan.targets["rotation_stage.R"]  # the stage turns -theta: 0 down to -351 deg
-    (start, end), = sweeps(plan)
+    ((start, end),) = sweeps(plan)
     assert stage[start] == 0.0 and stage[end] == pytest.approx(-351.0)
     tight = CFG.model_copy(update={"limits": CFG.limits.model_copy(update={"rotation_stage_deg": (-352.0, 0.5)})})
     asyncio.run(bench_preflight(plan, tight, mode="step"))  # every trigger angle is inside
     asyncio.run(bench_preflight(plan, tight, mode="continuous", frame_rate_hz=0.5))  # runs up 0.2 deg: inside
-    with pytest.raises(PreflightError, match=r"frame 5: axis rotation_stage.R \(run-up before the sweep's trigger "
-                                             r"angle at 5 frames/s\) = 2.25 deg is outside the configured range"):
+    with pytest.raises(
+        PreflightError,
+        match=r"frame 5: axis rotation_stage.R \(run-up before the sweep's trigger "
+        r"angle at 5 frames/s\) = 2.25 deg is outside the configured range",
+    ):
         asyncio.run(bench_preflight(plan, tight, mode="continuous", frame_rate_hz=5))  # 45 deg/s: 2.25 deg
     assert pytest.approx(2.25) == 45.0 * SWEEP_RUN_UP_S
     wide = CFG.model_copy(update={"limits": CFG.limits.model_copy(update={"rotation_stage_deg": (-352.0, 3.0)})})

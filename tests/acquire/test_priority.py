@@ -44,11 +44,23 @@ def test_every_thread_runs_at_the_bench_priority_and_returns_to_its_own() -> Non
 def test_without_the_permission_the_scan_runs_at_normal_priority() -> None:
     """As a user without CAP_SYS_NICE (root drops to nobody first): nothing raised, nothing changed, no error."""
     drop = "os.setuid(65534)" if os.geteuid() == 0 else "pass"  # after the import: nobody cannot read the venv
-    code = "\n".join(["import os", "from acquire.priority import bench_priority", drop,
-                      "own = os.getpriority(os.PRIO_PROCESS, 0)",
-                      "with bench_priority() as raised:",
-                      "    assert raised is False and os.getpriority(os.PRIO_PROCESS, 0) == own",
-                      "print('normal')"])
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
-                         cwd=os.getcwd(), env={**os.environ, "PYTHONPATH": os.getcwd()})
+    code = "\n".join(
+        [
+            "import os",
+            "from acquire.priority import bench_priority",
+            drop,
+            "own = os.getpriority(os.PRIO_PROCESS, 0)",
+            "with bench_priority() as raised:",
+            "    assert raised is False and os.getpriority(os.PRIO_PROCESS, 0) == own",
+            "print('normal')",
+        ]
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=os.getcwd(),
+        env={**os.environ, "PYTHONPATH": os.getcwd()},
+    )
     assert out.returncode == 0 and out.stdout.strip() == "normal", out.stderr

@@ -84,14 +84,17 @@ def _writer_process(path: Path, body: str) -> subprocess.Popen[str]:
 
 def test_writer_killed_with_sigkill_leaves_repairable_file(tmp_path: Path) -> None:
     p = tmp_path / "killed.h5"
-    proc = _writer_process(p, """
+    proc = _writer_process(
+        p,
+        """
         i = 0
         while True:
             w.append(np.full(det.shape, i), 0, float(i), nominal_vector=vec)
             print(i, flush=True)
             i += 1
             time.sleep(0.01)
-    """)
+    """,
+    )
     reported = -1
     assert proc.stdout is not None
     while reported < 5:
@@ -111,12 +114,15 @@ def test_writer_killed_with_sigkill_leaves_repairable_file(tmp_path: Path) -> No
 
 def test_repair_refuses_a_file_its_acquisition_still_writes(tmp_path: Path) -> None:
     p = tmp_path / "live.h5"
-    proc = _writer_process(p, """
+    proc = _writer_process(
+        p,
+        """
         w.append(np.zeros(det.shape), 0, 0.0, nominal_vector=vec)
         w._f.close()  # as on a file system without HDF5 locks: nothing stops a second opener
         print("written", flush=True)
         time.sleep(60)
-    """)
+    """,
+    )
     try:
         assert proc.stdout is not None and proc.stdout.readline().strip() == "written"
         result = CliRunner().invoke(cli, ["scan", "repair", str(p)])

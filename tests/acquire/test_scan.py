@@ -41,8 +41,11 @@ def test_step_scan_writes_a_complete_valid_file(request_factory, overlap: bool) 
         assert sf.geometry("nominal")[proj].allclose(cfg.geometry.carm_views(orbit.theta, orbit.phi), atol_mm=1e-9)
         # axes recorded: commanded and read back, every axis
         enc, cmd = sf.axes("encoders"), sf.axes("commanded")
-        assert set(enc) == set(cmd) == {"rotation_stage.R", "hexapod.X", "hexapod.Y", "hexapod.Z",
-                                        "hexapod.U", "hexapod.V", "hexapod.W"}
+        assert (
+            set(enc)
+            == set(cmd)
+            == {"rotation_stage.R", "hexapod.X", "hexapod.Y", "hexapod.Z", "hexapod.U", "hexapod.V", "hexapod.W"}
+        )
         assert sf.h5["frames/encoders/hexapod.U"].attrs["unit"] == "deg"
         np.testing.assert_allclose(cmd["rotation_stage.R"][proj], -orbit.theta_deg, atol=1e-9)
         for name in enc:  # read-back close to commanded (twin imperfections are small)
@@ -138,8 +141,16 @@ def test_continuous_second_sweep_keeps_the_source_ready(request_factory) -> None
     the next), each exposure came a preparation late, and the second turn was exposed up to 210 degrees from its
     angles (300 frames at 10 frames/s on the sim bench) while the scan reported complete."""
     cfg = small_config(size=32, time_scale=1.0, exposure={"exposure_ms": 2.0, "prep_ms": 200.0, "frame_rate_hz": 10.0})
-    req = request_factory(frames=100, orbit="dcarc", orbit_params={}, mode="continuous", frame_rate_hz=10.0,
-                          config=cfg, errors="none", error_params={})
+    req = request_factory(
+        frames=100,
+        orbit="dcarc",
+        orbit_params={},
+        mode="continuous",
+        frame_rate_hz=10.0,
+        config=cfg,
+        errors="none",
+        error_params={},
+    )
     res = run_scan(req)
     assert res.status == "complete", res.reason
     assert res.timing["late_restarts"] == 0
@@ -151,14 +162,24 @@ def test_continuous_second_sweep_keeps_the_source_ready(request_factory) -> None
 
 @pytest.mark.slow
 @pytest.mark.realtime
-def test_continuous_frame_late_starts_its_sweep_anew_and_a_rig_that_cannot_keep_up_ends_the_scan(request_factory) -> None:
+def test_continuous_frame_late_starts_its_sweep_anew_and_a_rig_that_cannot_keep_up_ends_the_scan(
+    request_factory,
+) -> None:
     """A frame whose source is ready only when the sweep is more than half a step past its angle is not exposed
     there: the sweep starts again from it. Late again right after, the scan ends, naming why."""
     cfg = small_config(size=32, time_scale=1.0, exposure={"exposure_ms": 2.0, "prep_ms": 20.0, "frame_rate_hz": 8.0})
 
     def run(slow: Callable[[int], bool]) -> tuple[Any, np.ndarray]:
-        req = request_factory(frames=48, mode="continuous", frame_rate_hz=8.0, config=cfg, errors="none",
-                              error_params={}, orbit="circular", orbit_params={})
+        req = request_factory(
+            frames=48,
+            mode="continuous",
+            frame_rate_hz=8.0,
+            config=cfg,
+            errors="none",
+            error_params={},
+            orbit="circular",
+            orbit_params={},
+        )
         calls = itertools.count()
 
         async def main() -> Any:
@@ -195,8 +216,15 @@ def test_continuous_scan_of_an_orbit_of_several_sweeps(request_factory, orbit: s
     """DCArc (two turns, the stage rewound between them, then a tilt-only arc) and the multi-arc pheno preset in
     continuous mode: pre-flight had refused them (the rewind counted as a step at the frame rate) and the move to
     the next sweep had ended the scan (it retargeted the running sweep, whose ending was taken for an error)."""
-    req = request_factory(frames=36, orbit=orbit, orbit_params=params, mode="continuous", frame_rate_hz=3.0,
-                          errors="none", error_params={})  # pheno tilts to 30 deg: the hexapod's limit
+    req = request_factory(
+        frames=36,
+        orbit=orbit,
+        orbit_params=params,
+        mode="continuous",
+        frame_rate_hz=3.0,
+        errors="none",
+        error_params={},
+    )  # pheno tilts to 30 deg: the hexapod's limit
     res = run_scan(req)
     assert res.status == "complete", res.reason
     with ScanFile(req.out) as sf:

@@ -34,8 +34,7 @@ def test_sigkill_mid_scan_then_repair(tmp_path: Path) -> None:
                 print(event.done, flush=True)   # reported only after the recorder flushed the frame
         run_scan(small_request({str(out)!r}, frames=200), progress=progress)
     """)
-    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True,
-                            cwd=ROOT)
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=ROOT)
     assert proc.stdout is not None
     reported = 0
     while reported < 12:

@@ -29,8 +29,17 @@ def tcp_config() -> Iterator[BenchConfig]:
 
 
 def _request(cfg: BenchConfig, out: Path) -> ScanRequest:
-    return ScanRequest(config=cfg, out=out, orbit="sawtooth", frames=10, orbit_params={"amplitude_deg": 5.0},
-                       errors="custom", error_params=SMALL_ERRORS, seed=2, sim=False)
+    return ScanRequest(
+        config=cfg,
+        out=out,
+        orbit="sawtooth",
+        frames=10,
+        orbit_params={"amplitude_deg": 5.0},
+        errors="custom",
+        error_params=SMALL_ERRORS,
+        seed=2,
+        sim=False,
+    )
 
 
 def test_unreferenced_real_axes_are_not_referenced_by_a_scan(tcp_config: BenchConfig, tmp_path: Path) -> None:
@@ -65,11 +74,13 @@ def test_scan_over_configured_uris(tcp_config: BenchConfig, tmp_path: Path) -> N
         assert set(sf.axes("encoders")) >= {"rotation_stage.R", "hexapod.U"}
 
 
-def test_rehearsal_with_a_simulated_source_and_panel_warns(tcp_config: BenchConfig, tmp_path: Path,
-                                                           caplog: pytest.LogCaptureFixture) -> None:
+def test_rehearsal_with_a_simulated_source_and_panel_warns(
+    tcp_config: BenchConfig, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     """Real axes with a twin generator and panel: the motion runs, and the frames are said to be no scan's."""
-    cfg = tcp_config.model_copy(update={"devices": tcp_config.devices.model_copy(
-        update={"xray": "sim://bench", "detector": "sim://bench"})})
+    cfg = tcp_config.model_copy(
+        update={"devices": tcp_config.devices.model_copy(update={"xray": "sim://bench", "detector": "sim://bench"})}
+    )
 
     async def main() -> None:
         async with open_bench(cfg, sim=False) as bench:

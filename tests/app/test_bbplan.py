@@ -28,7 +28,9 @@ def test_load_surface_reads_a_mesh_a_nifti_volume_and_a_scan_files_reconstructio
     assert np.allclose(r, 60.0, atol=0.6), r
 
     mask, voxel, origin = _cylinder_mask()
-    volume = np.where(mask, 0.02, 0.0).astype(np.float32) + np.random.default_rng(1).normal(0, 0.001, mask.shape).astype(np.float32)
+    volume = np.where(mask, 0.02, 0.0).astype(np.float32) + np.random.default_rng(1).normal(
+        0, 0.001, mask.shape
+    ).astype(np.float32)
     grid = VolumeGrid(mask.shape, voxel, origin)
     export_nifti(volume, grid, tmp_path / "prior.nii.gz")
     from_volume = load_surface(str(tmp_path / "prior.nii.gz"))  # Otsu's threshold between air and object
@@ -37,12 +39,24 @@ def test_load_surface_reads_a_mesh_a_nifti_volume_and_a_scan_files_reconstructio
 
     scan = write_small_scan(tmp_path / "scan.h5")
     with ScanFile(scan, "r+") as sf:
-        sf.write_recon("prior", volume, voxel_mm=voxel, origin_mm=origin, algorithm="fdk", geometry="nominal",
-                       iterations=0, elapsed_s=0.1, params={})
+        sf.write_recon(
+            "prior",
+            volume,
+            voxel_mm=voxel,
+            origin_mm=origin,
+            algorithm="fdk",
+            geometry="nominal",
+            iterations=0,
+            elapsed_s=0.1,
+            params={},
+        )
     from_scan = load_surface(f"{scan}#prior", threshold_per_mm=0.01)
     assert from_scan.radius_mm.shape == from_volume.radius_mm.shape
-    for bad, message in ((str(tmp_path / "none.stl"), "no such file"), (str(scan), "expected a mesh"),
-                         (f"{scan}#nosuch", "no reconstruction 'nosuch'")):
+    for bad, message in (
+        (str(tmp_path / "none.stl"), "no such file"),
+        (str(scan), "expected a mesh"),
+        (f"{scan}#nosuch", "no reconstruction 'nosuch'"),
+    ):
         with pytest.raises(BBPlanError, match=message):
             load_surface(bad)
     with pytest.raises(BBPlanError, match="no voxel above the threshold"):
@@ -59,8 +73,25 @@ def test_the_cli_plans_on_a_mesh(tmp_path: Path) -> None:
 
     trimesh.creation.cylinder(radius=70.0, height=120.0, sections=96).export(tmp_path / "leg.stl")
     out = tmp_path / "plan.json"
-    r = CliRunner().invoke(cli, ["plan", "bbs", "-e", "A", "--frames", "60", "--detector-size", "192", "--bbs", "6",
-                                 "--surface", str(tmp_path / "leg.stl"), "--out", str(out)])
+    r = CliRunner().invoke(
+        cli,
+        [
+            "plan",
+            "bbs",
+            "-e",
+            "A",
+            "--frames",
+            "60",
+            "--detector-size",
+            "192",
+            "--bbs",
+            "6",
+            "--surface",
+            str(tmp_path / "leg.stl"),
+            "--out",
+            str(out),
+        ],
+    )
     assert r.exit_code == 0, r.output
     body = json.loads(out.read_text())
     assert body["surface"]["kind"] == "outline" and body["surface"]["source"] == "leg.stl"
@@ -71,8 +102,23 @@ def test_the_cli_plans_on_a_mesh(tmp_path: Path) -> None:
     bad = CliRunner().invoke(cli, ["plan", "bbs", "-e", "A", "--surface", "ellipsoid:70,60", "--out", str(out)])
     assert bad.exit_code == 1 and "expected ellipsoid:A,B,C" in bad.output and "Traceback" not in bad.output
     for zone, message in (("0:360,-500:500", "cover the whole surface"), ("30:30,-5:5", "no patch")):  # never a plan
-        bad = CliRunner().invoke(cli, ["plan", "bbs", "-e", "A", "--frames", "20", "--detector-size", "64", "--keep-out",
-                                       zone, "--out", str(tmp_path / "k.json")])
+        bad = CliRunner().invoke(
+            cli,
+            [
+                "plan",
+                "bbs",
+                "-e",
+                "A",
+                "--frames",
+                "20",
+                "--detector-size",
+                "64",
+                "--keep-out",
+                zone,
+                "--out",
+                str(tmp_path / "k.json"),
+            ],
+        )
         assert bad.exit_code != 0 and message in bad.output and "Traceback" not in bad.output, bad.output
 
 
@@ -86,8 +132,25 @@ def test_a_plan_on_an_elliptic_object_gives_the_polar_angles_a_person_measures(t
     from orbitct_app.cli.main import cli
 
     out = tmp_path / "plan.json"
-    r = CliRunner().invoke(cli, ["plan", "bbs", "-e", "C", "--frames", "40", "--detector-size", "128", "--bbs", "8",
-                                 "--keep-out", "20:70,-100:100", "--out", str(out)])
+    r = CliRunner().invoke(
+        cli,
+        [
+            "plan",
+            "bbs",
+            "-e",
+            "C",
+            "--frames",
+            "40",
+            "--detector-size",
+            "128",
+            "--bbs",
+            "8",
+            "--keep-out",
+            "20:70,-100:100",
+            "--out",
+            str(out),
+        ],
+    )
     assert r.exit_code == 0, r.output
     bbs = json.loads(out.read_text())["bbs"]
     polar = np.array([np.degrees(np.arctan2(b["xyz_mm"][1], b["xyz_mm"][0])) % 360.0 for b in bbs])
@@ -95,19 +158,25 @@ def test_a_plan_on_an_elliptic_object_gives_the_polar_angles_a_person_measures(t
     assert not ((polar >= 20.0) & (polar <= 70.0)).any(), polar
 
 
-@pytest.mark.parametrize(("body", "needle"), [
-    ("not json", "not JSON"),
-    ("[1, 2]", "not a BB plan"),
-    ('{"bbs": [{"xyz_mm": [70, 0, 0]}]}', "bb_diameter_mm must be a number"),
-    ('{"bb_diameter_mm": -3, "bbs": [{"xyz_mm": [70, 0, 0]}]}', "bb_diameter_mm must be a number"),
-    ('{"bb_diameter_mm": 3, "bbs": []}', "1 to 40 BBs"),
-    ('{"bb_diameter_mm": 3, "bbs": [{"xyz_mm": [1, 2]}]}', "BB 1 needs xyz_mm as three numbers"),
-    ('{"bb_diameter_mm": 3, "bbs": [{"xyz_mm": [70, 0, 0]}, {"xyz_mm": ["a", 0, 0]}]}', "BB 2 needs xyz_mm"),
-    ('{"bb_diameter_mm": 3, "bbs": [{"xyz_mm": [NaN, 0, 0]}]}', "not within 500 mm"),
-    ('{"bb_diameter_mm": 3, "bbs": [{"xyz_mm": [1e9, 0, 0]}]}', "not within 500 mm"),
-    ('{"bb_diameter_mm": 3, "bbs": [{"xyz_mm": [70, 0, 0]}, {"xyz_mm": [71, 0, 0]}]}', "cannot overlap"),
-    ('{"experiment": "C", "bb_diameter_mm": 3, "bbs": [{"xyz_mm": [70, 0, 0]}]}', "planned for experiment C, not A"),
-])
+@pytest.mark.parametrize(
+    ("body", "needle"),
+    [
+        ("not json", "not JSON"),
+        ("[1, 2]", "not a BB plan"),
+        ('{"bbs": [{"xyz_mm": [70, 0, 0]}]}', "bb_diameter_mm must be a number"),
+        ('{"bb_diameter_mm": -3, "bbs": [{"xyz_mm": [70, 0, 0]}]}', "bb_diameter_mm must be a number"),
+        ('{"bb_diameter_mm": 3, "bbs": []}', "1 to 40 BBs"),
+        ('{"bb_diameter_mm": 3, "bbs": [{"xyz_mm": [1, 2]}]}', "BB 1 needs xyz_mm as three numbers"),
+        ('{"bb_diameter_mm": 3, "bbs": [{"xyz_mm": [70, 0, 0]}, {"xyz_mm": ["a", 0, 0]}]}', "BB 2 needs xyz_mm"),
+        ('{"bb_diameter_mm": 3, "bbs": [{"xyz_mm": [NaN, 0, 0]}]}', "not within 500 mm"),
+        ('{"bb_diameter_mm": 3, "bbs": [{"xyz_mm": [1e9, 0, 0]}]}', "not within 500 mm"),
+        ('{"bb_diameter_mm": 3, "bbs": [{"xyz_mm": [70, 0, 0]}, {"xyz_mm": [71, 0, 0]}]}', "cannot overlap"),
+        (
+            '{"experiment": "C", "bb_diameter_mm": 3, "bbs": [{"xyz_mm": [70, 0, 0]}]}',
+            "planned for experiment C, not A",
+        ),
+    ],
+)
 def test_simulate_refuses_a_plan_file_that_is_not_one_in_one_line(tmp_path: Path, body: str, needle: str) -> None:
     """``orbitct simulate --bbs-from``: a plan written by hand or damaged is refused naming what is wrong, before
     anything is imaged; never a traceback, never a scan of BBs the file did not mean."""
@@ -117,7 +186,9 @@ def test_simulate_refuses_a_plan_file_that_is_not_one_in_one_line(tmp_path: Path
 
     plan, out = tmp_path / "plan.json", tmp_path / "x.h5"
     plan.write_text(body)
-    r = CliRunner().invoke(cli, ["simulate", "-e", "A", "--frames", "10", "--detector-size", "32", "--bbs-from", str(plan),
-                                 "--out", str(out)])
+    r = CliRunner().invoke(
+        cli,
+        ["simulate", "-e", "A", "--frames", "10", "--detector-size", "32", "--bbs-from", str(plan), "--out", str(out)],
+    )
     assert r.exit_code == 2 and needle in r.output and "Traceback" not in r.output, r.output
     assert not out.exists()

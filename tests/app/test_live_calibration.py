@@ -36,8 +36,9 @@ def test_a_scan_calibrated_live_has_the_offline_geometry_when_it_ends(tmp_path: 
     """Darks and flats only before the projections: live detection normalises exactly as offline does, so the
     geometry is the same (with darks and flats after the projections too, offline uses them and live cannot)."""
     out = tmp_path / "live.h5"
-    cfg = small_config(size=192, calibration_frames={"darks_before": 2, "flats_before": 2, "darks_after": 0,
-                                                     "flats_after": 0})
+    cfg = small_config(
+        size=192, calibration_frames={"darks_before": 2, "flats_before": 2, "darks_after": 0, "flats_after": 0}
+    )
     sub = LiveCalibrationSubscriber(out, cfg.sim.bb_diameter_mm)
     res = asyncio.run(ScanRunner(small_request(out, frames=60, config=cfg), subscribers=[sub]).run())
     assert res.status == "complete" and sub.error is None and sub.result is not None
@@ -82,18 +83,36 @@ def test_cli_scan_calibrate_live_reports_the_geometry_and_refuses_without_a_bb_s
     out = tmp_path / "cli.h5"
     config = tmp_path / "bench.yaml"
     config.write_text(yaml.safe_dump(small_config(size=192).model_dump(mode="json")))
-    r = CliRunner().invoke(cli, ["scan", "--config", str(config), "--orbit", "sawtooth", "--frames", "60", "--sim",
-                                 "--out", str(out), "--calibrate", "live",
-                                 "-p", "amplitude_deg=6"])
+    r = CliRunner().invoke(
+        cli,
+        [
+            "scan",
+            "--config",
+            str(config),
+            "--orbit",
+            "sawtooth",
+            "--frames",
+            "60",
+            "--sim",
+            "--out",
+            str(out),
+            "--calibrate",
+            "live",
+            "-p",
+            "amplitude_deg=6",
+        ],
+    )
     assert r.exit_code in (0, 3), r.output
     assert "calibrated during the scan" in r.output and "geometry written" in r.output
     with ScanFile(out) as sf:
         assert sf.has_geometry("calibrated")
-    r = CliRunner().invoke(cli, ["scan", "--config", str(config), "--out", str(tmp_path / "x.h5"), "--calibrate",
-                                 "live"])
+    r = CliRunner().invoke(
+        cli, ["scan", "--config", str(config), "--out", str(tmp_path / "x.h5"), "--calibrate", "live"]
+    )
     assert r.exit_code == 2 and "--bb-diameter-mm" in r.output
-    r = CliRunner().invoke(cli, ["scan", "--config", str(config), "--sim", "--out", str(tmp_path / "y.h5"),
-                                 "--abort-on", "bb_lost"])
+    r = CliRunner().invoke(
+        cli, ["scan", "--config", str(config), "--sim", "--out", str(tmp_path / "y.h5"), "--abort-on", "bb_lost"]
+    )
     assert r.exit_code == 2 and "--abort-on needs --calibrate live" in r.output
 
 
@@ -159,8 +178,11 @@ class _NudgeObject:
             from dataclasses import replace
 
             ph = self.phantom
-            moved = replace(ph, markers_xyz=ph.markers_xyz + self.shift,
-                            primitives=tuple(replace(p, center=p.center + self.shift) for p in ph.primitives))
+            moved = replace(
+                ph,
+                markers_xyz=ph.markers_xyz + self.shift,
+                primitives=tuple(replace(p, center=p.center + self.shift) for p in ph.primitives),
+            )
             self.twin.set_phantom(moved)
 
     def on_finish(self, end: Any) -> None:
@@ -171,8 +193,9 @@ def test_an_object_moved_by_2_mm_mid_scan_is_reported_within_a_few_frames(tmp_pa
     """Each frame's pose is fitted to the BBs while the scan runs (running RPE and predicted error in the progress
     events); the object moved by 2 mm after frame 84 raises one 'object_moved' naming frame 85, a few frames on."""
     out = tmp_path / "moved.h5"
-    cfg = small_config(size=192, calibration_frames={"darks_before": 2, "flats_before": 2, "darks_after": 0,
-                                                     "flats_after": 0})
+    cfg = small_config(
+        size=192, calibration_frames={"darks_before": 2, "flats_before": 2, "darks_after": 0, "flats_after": 0}
+    )
     events: list[Any] = []
     sub = LiveCalibrationSubscriber(out, cfg.sim.bb_diameter_mm, progress=events.append)
     at = 84
@@ -180,8 +203,9 @@ def test_an_object_moved_by_2_mm_mid_scan_is_reported_within_a_few_frames(tmp_pa
     async def main() -> Any:
         async with open_bench(cfg, sim=True) as bench:
             nudge = _NudgeObject(bench, at, (0.0, 0.0, -2.0))  # it settles by 2 mm on the stage
-            return await ScanRunner(small_request(out, frames=130, config=cfg), rig=bench,
-                                    subscribers=[sub, nudge]).run()
+            return await ScanRunner(
+                small_request(out, frames=130, config=cfg), rig=bench, subscribers=[sub, nudge]
+            ).run()
 
     res = asyncio.run(main())
     assert res.status == "complete" and sub.error is None and sub.live is not None
@@ -201,15 +225,17 @@ def test_a_scan_set_to_stop_when_the_object_moves_stops_there_safely(tmp_path: P
     the engine's own path (axes halted, X-rays off, the file aborted with the warning as its reason). The plan runs
     well past the move: the live worker runs at a lower priority and may be some frames behind."""
     out = tmp_path / "moved-stop.h5"
-    cfg = small_config(size=192, calibration_frames={"darks_before": 2, "flats_before": 2, "darks_after": 0,
-                                                     "flats_after": 0})
+    cfg = small_config(
+        size=192, calibration_frames={"darks_before": 2, "flats_before": 2, "darks_after": 0, "flats_after": 0}
+    )
     sub = LiveCalibrationSubscriber(out, cfg.sim.bb_diameter_mm, abort_on=["object_moved"])
 
     async def main() -> Any:
         async with open_bench(cfg, sim=True) as bench:
             nudge = _NudgeObject(bench, 84, (0.0, 0.0, -2.0))
-            res = await ScanRunner(small_request(out, frames=200, config=cfg), rig=bench,
-                                   subscribers=[sub, nudge]).run()
+            res = await ScanRunner(
+                small_request(out, frames=200, config=cfg), rig=bench, subscribers=[sub, nudge]
+            ).run()
             assert not await bench.hexapod.moving() and not await bench.stage.moving()
             state = await bench.xray.read()
             assert not state["hv_on"] and not state["exposing"]
@@ -232,9 +258,29 @@ def _scan_with_live_worker(tmp_path: Path, out: Path, frames: int = 300) -> tupl
 
     config = tmp_path / "bench.yaml"
     config.write_text(yaml.safe_dump(small_config(size=128).model_dump(mode="json")))
-    proc = subprocess.Popen([sys.executable, "-m", "orbitct_app.cli.main", "scan", "--config", str(config), "--sim",
-                             "--frames", str(frames), "--out", str(out), "--calibrate", "live", "-p", "amplitude_deg=6"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "orbitct_app.cli.main",
+            "scan",
+            "--config",
+            str(config),
+            "--sim",
+            "--frames",
+            str(frames),
+            "--out",
+            str(out),
+            "--calibrate",
+            "live",
+            "-p",
+            "amplitude_deg=6",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
         workers = [c for c in psutil.Process(proc.pid).children() if "resource_tracker" not in " ".join(c.cmdline())]

@@ -71,12 +71,23 @@ def _carm_scan(path: Path, n: int = 12) -> Path:
     primary, secondary = np.linspace(-20.0, 20.0, n), np.linspace(-5.0, 5.0, n)
     views = ViewGeometry.from_carm(np.radians(primary), np.radians(secondary), 785.0, 1200.0, panel)
     rng = np.random.default_rng(0)
-    with ScanWriter(path, panel, axes={"carm.primary": "deg", "carm.secondary": "deg"}, orbit_name="test",
-                    config={"exposure": {"kv": 90.0, "ma": 1.0, "exposure_ms": 10.0}}) as w:
+    with ScanWriter(
+        path,
+        panel,
+        axes={"carm.primary": "deg", "carm.secondary": "deg"},
+        orbit_name="test",
+        config={"exposure": {"kv": 90.0, "ma": 1.0, "exposure_ms": 10.0}},
+    ) as w:
         for i in range(n):
             angles = {"carm.primary": float(primary[i]), "carm.secondary": float(secondary[i])}
-            w.append(rng.integers(1000, 4000, (24, 32)).astype(np.uint16), "projection", 0.1 * i,
-                     nominal_vector=views.vectors[i], encoders=angles, commanded=angles)
+            w.append(
+                rng.integers(1000, 4000, (24, 32)).astype(np.uint16),
+                "projection",
+                0.1 * i,
+                nominal_vector=views.vectors[i],
+                encoders=angles,
+                commanded=angles,
+            )
     return path
 
 
@@ -109,12 +120,25 @@ def test_the_clinical_path_end_to_end(tmp_path: Path) -> None:
     from orbitct.scanfile import ScanFile
     from orbitct.scanfile.xa import import_xa, write_xa_run
 
-    cfg = parse_config({"kind": "carm", "geometry": {"detector": {"rows": 192, "cols": 192}},
-                        "calibration_frames": {"darks_before": 1, "flats_before": 1, "darks_after": 0, "flats_after": 0},
-                        "sim": {"time_scale": 25.0}})
+    cfg = parse_config(
+        {
+            "kind": "carm",
+            "geometry": {"detector": {"rows": 192, "cols": 192}},
+            "calibration_frames": {"darks_before": 1, "flats_before": 1, "darks_after": 0, "flats_after": 0},
+            "sim": {"time_scale": 25.0},
+        }
+    )
     twin = tmp_path / "twin.h5"
-    done = run_scan(ScanRequest(config=cfg, out=twin, orbit="sawtooth", frames=120, sim=True,
-                                orbit_params={"start_deg": -180.0, "amplitude_deg": 10.0}))
+    done = run_scan(
+        ScanRequest(
+            config=cfg,
+            out=twin,
+            orbit="sawtooth",
+            frames=120,
+            sim=True,
+            orbit_params={"start_deg": -180.0, "amplitude_deg": 10.0},
+        )
+    )
     assert done.status == "complete", done.reason
     run = write_xa_run(twin, tmp_path / "export" / "run.dcm", patient_id="E2E")
     with orthanc(tmp_path / "orthanc") as node:
@@ -133,7 +157,13 @@ def test_the_clinical_path_end_to_end(tmp_path: Path) -> None:
         with ScanFile(scan) as sf:
             volume, attrs = sf.read_recon(rec.name)
         grid = VolumeGrid(volume.shape, tuple(attrs["voxel_mm"]), tuple(attrs["origin_mm"]))
-        series = export_dicom_ct(volume, grid, tmp_path / "ct", SeriesInfo(description="e2e calibrated", patient_id="E2E"))
+        series = export_dicom_ct(
+            volume, grid, tmp_path / "ct", SeriesInfo(description="e2e calibrated", patient_id="E2E")
+        )
         send(series, node)
         ct = find_series(node, PatientID="E2E", Modality="CT")
-    assert len(ct) == 1 and ct[0]["SeriesDescription"] == "e2e calibrated" and ct[0]["NumberOfSeriesRelatedInstances"] == "24"
+    assert (
+        len(ct) == 1
+        and ct[0]["SeriesDescription"] == "e2e calibrated"
+        and ct[0]["NumberOfSeriesRelatedInstances"] == "24"
+    )

@@ -51,8 +51,14 @@ def test_the_readme_tour_runs_as_written(tmp_path: Path) -> None:
         argv = shlex.split(command)
         if argv[1] == "serve":  # runs until stopped: it must come up healthy, then stop cleanly
             port = free_port()
-            proc = subprocess.Popen([*argv, "--port", str(port), "--data-dir", str(tmp_path / "data")], cwd=tmp_path,
-                                    env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            proc = subprocess.Popen(
+                [*argv, "--port", str(port), "--data-dir", str(tmp_path / "data")],
+                cwd=tmp_path,
+                env=env,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+            )
             try:
                 t0 = time.monotonic()
                 while True:

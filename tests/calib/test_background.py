@@ -19,8 +19,13 @@ D_MM = 3.17
 
 
 def _body(radius_mm: float = 60.0) -> Phantom:
-    return Phantom("body", (cylinder((0, 0, 0), (0, 0, 1), radius_mm, 300.0, material="tissue", label="body"),),
-                   np.zeros((0, 3)), D_MM, "")
+    return Phantom(
+        "body",
+        (cylinder((0, 0, 0), (0, 0, 1), radius_mm, 300.0, material="tissue", label="body"),),
+        np.zeros((0, 3)),
+        D_MM,
+        "",
+    )
 
 
 def _shift(background: ObjectBackground, geometry: ViewGeometry, xyz: np.ndarray) -> np.ndarray:
@@ -136,15 +141,19 @@ def test_the_random_noise_is_what_a_reported_noise_leaves_after_the_typical_shif
     g = sawtooth(40, 256)
     surface = EllipticCylinder(70.0, 70.0, -40.0, 40.0)
     body = cylinder((0, 0, 0), (0, 0, 1), 70.0, 300.0, material="tissue", label="body")
-    rods = tuple(cylinder((60.0 * np.cos(a), 60.0 * np.sin(a), 0.0), (0, 0, 1), 6.0, 300.0, material="cortical",
-                          label=f"rod{i}") for i, a in enumerate(np.linspace(0, 2 * np.pi, 8, endpoint=False)))
+    rods = tuple(
+        cylinder((60.0 * np.cos(a), 60.0 * np.sin(a), 0.0), (0, 0, 1), 6.0, 300.0, material="cortical", label=f"rod{i}")
+        for i, a in enumerate(np.linspace(0, 2 * np.pi, 8, endpoint=False))
+    )
     soft = phantom_background(Phantom("soft", (body,), np.zeros((0, 3)), D_MM, ""), g, surface)
     bony = phantom_background(Phantom("bony", (body,) + rods, np.zeros((0, 3)), D_MM, ""), g, surface)
     assert 0.7 * 0.1 < soft.random_noise_px(0.1) <= 0.1
     assert 0.025 <= bony.random_noise_px(0.1) < soft.random_noise_px(0.1)
 
 
-def test_the_background_is_cached_by_the_views_content_and_the_cache_is_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_the_background_is_cached_by_the_views_content_and_the_cache_is_bounded(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """A second geometry object with the same views finds what the first computed; other views do not; the oldest
     BBs make way once :data:`calib.background.CACHED_BBS` are kept (nothing holds the geometries alive)."""
     import calib.background as background

@@ -23,7 +23,9 @@ from tests.helpers.calib_scans import (
 @pytest.fixture(scope="module")
 def small_scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
     nominal = sawtooth(6, 256)
-    return write_scan(tmp_path_factory.mktemp("det") / "s.h5", nominal, perturbed(nominal), spiral_markers(8), diameter_attr=False)
+    return write_scan(
+        tmp_path_factory.mktemp("det") / "s.h5", nominal, perturbed(nominal), spiral_markers(8), diameter_attr=False
+    )
 
 
 def _errors(path: Path) -> tuple[np.ndarray, np.ndarray, int]:
@@ -98,12 +100,18 @@ def test_detection_spread_is_each_detections_background_rms_over_the_typical_one
             rec[i, 0], rec[i, 1], rec[i, CANDIDATE_FIELDS.index("background_rms")] = c, r, rms
         return rec
 
-    cands = [records([(10.5, 20.25, 0.1), (40.0, 41.0, 0.3), (70.0, 7.0, 9.0)]),
-             records([(11.0, 21.0, 0.1), (41.0, 42.0, 0.01)]),
-             records([])]
-    uv = np.array([[[10.5, 20.25], [40.0, 41.0], [70.0, 7.0]],
-                   [[11.0, 21.0], [41.0, 42.0], [np.nan, np.nan]],
-                   [[12.0, 22.0], [np.nan, np.nan], [50.0, 50.0]]])
+    cands = [
+        records([(10.5, 20.25, 0.1), (40.0, 41.0, 0.3), (70.0, 7.0, 9.0)]),
+        records([(11.0, 21.0, 0.1), (41.0, 42.0, 0.01)]),
+        records([]),
+    ]
+    uv = np.array(
+        [
+            [[10.5, 20.25], [40.0, 41.0], [70.0, 7.0]],
+            [[11.0, 21.0], [41.0, 42.0], [np.nan, np.nan]],
+            [[12.0, 22.0], [np.nan, np.nan], [50.0, 50.0]],
+        ]
+    )
     spread = detection_spread(cands, uv)
     typical = 0.1  # the median of the five detections found: 0.01, 0.1, 0.1, 0.3, 9.0
     assert spread[0, 0] == pytest.approx(1.0) and spread[0, 1] == pytest.approx(0.3 / typical)

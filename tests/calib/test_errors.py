@@ -137,8 +137,10 @@ def few_bb_scans(tmp_path_factory: pytest.TempPathFactory) -> dict[int, tuple[Pa
     root = tmp_path_factory.mktemp("few")
     nominal = sawtooth(120, 256)
     truth = perturbed(nominal, shift_mm=4.0)
-    return {k: (write_scan(root / f"k{k}.h5", nominal, truth, spiral_markers(k, radius=60.0, height=60.0)), truth)
-            for k in (3, 4)}
+    return {
+        k: (write_scan(root / f"k{k}.h5", nominal, truth, spiral_markers(k, radius=60.0, height=60.0)), truth)
+        for k in (3, 4)
+    }
 
 
 def test_three_bbs_cannot_be_trusted_and_say_so(few_bb_scans: dict[int, tuple[Path, object]], tmp_path: Path) -> None:

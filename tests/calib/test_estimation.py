@@ -87,7 +87,12 @@ def test_paper_method_converges_like_the_paper() -> None:
     nominal, truth, _, uv = _problem(n=150)
     model = ViewModel(nominal)
     means: list[float] = []
-    paper_calibrate(model, uv, iterations=3, callback=lambda i, s, x: means.append(float(np.nanmean(rpe_per_frame(model.geometry(s), uv, x)))))
+    paper_calibrate(
+        model,
+        uv,
+        iterations=3,
+        callback=lambda i, s, x: means.append(float(np.nanmean(rpe_per_frame(model.geometry(s), uv, x)))),
+    )
     assert len(means) == 4
     assert means[1] < 0.05 * means[0]  # large drop after the first iteration
     assert abs(means[2] - means[1]) < 0.5 * means[1]  # little change after the second
@@ -123,7 +128,9 @@ def test_a_detection_with_a_larger_spread_pulls_the_bundle_less() -> None:
     spread = np.ones(uv.shape[:2])
     spread[:, 3] = 5.0
     alike = similarity_aligned_error_px(model.geometry(bundle_adjust(model, off, xyz0).state), truth)[0]
-    weighted = similarity_aligned_error_px(model.geometry(bundle_adjust(model, off, xyz0, spread=spread).state), truth)[0]
+    weighted = similarity_aligned_error_px(model.geometry(bundle_adjust(model, off, xyz0, spread=spread).state), truth)[
+        0
+    ]
     assert weighted < 0.5 * alike
     # a spread alike for every detection is no weighting at all: the same solution
     same = bundle_adjust(model, uv, xyz0, spread=np.full(uv.shape[:2], 1.0))

@@ -51,7 +51,9 @@ def test_a_move_hidden_in_large_frame_noise_takes_more_frames() -> None:
 def test_the_pose_of_one_frame_is_refitted_to_its_bbs_with_its_predicted_error() -> None:
     nominal = sawtooth(10, 256)[3:4]
     xyz = spiral_markers(8)
-    truth = nominal.transformed(rot_xyz(np.array([0.01]), np.array([-0.005]), np.array([0.008])), np.array([[2.0, -1.5, 3.0]]))
+    truth = nominal.transformed(
+        rot_xyz(np.array([0.01]), np.array([-0.005]), np.array([0.008])), np.array([[2.0, -1.5, 3.0]])
+    )
     rng = np.random.default_rng(0)
     uv = truth.project(xyz)[0] + rng.normal(0.0, 0.1, (8, 2))
     uv[2] = np.nan  # one BB not seen
@@ -77,7 +79,9 @@ def test_the_motion_watched_does_not_jump_when_a_bb_is_hidden() -> None:
     noise (the BBs' mean projection would move by how much that BB differs from the others)."""
     nominal = sawtooth(10, 256)[3:4]
     xyz = spiral_markers(8)
-    truth = nominal.transformed(rot_xyz(np.array([0.02]), np.array([-0.01]), np.array([0.015])), np.array([[4.0, -3.0, 2.0]]))
+    truth = nominal.transformed(
+        rot_xyz(np.array([0.02]), np.array([-0.01]), np.array([0.015])), np.array([[4.0, -3.0, 2.0]])
+    )
     uv = truth.project(xyz)[0]
     every = fit_frame_pose(nominal, xyz, uv, noise_px=0.1)
     for hidden in range(8):

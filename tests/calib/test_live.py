@@ -20,7 +20,12 @@ pytestmark = pytest.mark.slow
 def _feed(path: Path, **settings: int) -> tuple[LiveCalibration, calib.CalibrationResult]:
     """Every frame of the file, in order, as an acquisition would hand them over; then finish."""
     with ScanFile(path) as sf:
-        nominal, keys, frames, diameter = sf.geometry("nominal"), np.asarray(sf.image_key), sf.frames[:], sf.marker_diameter_mm
+        nominal, keys, frames, diameter = (
+            sf.geometry("nominal"),
+            np.asarray(sf.image_key),
+            sf.frames[:],
+            sf.marker_diameter_mm,
+        )
     live = LiveCalibration(path, nominal, keys, diameter, settings=LiveSettings(**settings))
     for i, (key, frame) in enumerate(zip(keys, frames)):
         live.add_frame(i, int(key), frame)
@@ -83,8 +88,14 @@ def test_a_bb_far_in_depth_and_a_round_structure_of_the_object_raise_no_false_wa
     from orbitct.simulator.scan import simulate_scan
 
     path = tmp_path / "head.h5"
-    simulate_scan(experiment_phantom("A"), resolve_orbit("A", None, 200), out=path, detector_px=256, seed=3,
-                  errors=make_profile("bench", 3, angle_scale=200 / 500))
+    simulate_scan(
+        experiment_phantom("A"),
+        resolve_orbit("A", None, 200),
+        out=path,
+        detector_px=256,
+        seed=3,
+        errors=make_profile("bench", 3, angle_scale=200 / 500),
+    )
     live, res = _feed(path)
     assert res.quality is not None and res.quality.passed
     # nor 'distorted' where a BB crossing a bone edge of the phantom is missed in a frame or two (it had been 1-5 a scan)
@@ -102,12 +113,22 @@ def test_bbs_2_px_across_are_never_reported_lost_where_no_bb_is(tmp_path: Path) 
     from orbitct.simulator import resolve_orbit
     from orbitct.simulator.scan import simulate_scan
 
-    small = {"angle_amplitude_deg": (0.4, 0.3, 0.5), "angle_noise_deg": (0.05, 0.05, 0.05),
-             "shift_amplitude_mm": (2.0, 1.5, 1.0), "shift_noise_mm": (0.3, 0.3, 0.3)}
+    small = {
+        "angle_amplitude_deg": (0.4, 0.3, 0.5),
+        "angle_noise_deg": (0.05, 0.05, 0.05),
+        "shift_amplitude_mm": (2.0, 1.5, 1.0),
+        "shift_noise_mm": (0.3, 0.3, 0.3),
+    }
     for seed in (0, 3):
         path = tmp_path / f"small-bbs-{seed}.h5"
-        simulate_scan(experiment_phantom("A", seed), resolve_orbit("A", "sawtooth", 120, amplitude_deg=6.0), out=path,
-                      detector_px=192, seed=seed, errors=make_profile("custom", seed, **small))
+        simulate_scan(
+            experiment_phantom("A", seed),
+            resolve_orbit("A", "sawtooth", 120, amplitude_deg=6.0),
+            out=path,
+            detector_px=192,
+            seed=seed,
+            errors=make_profile("custom", seed, **small),
+        )
         live, _ = _feed(path)
         tuv = _truth_uv(path)
         assert "object_moved" not in [w.kind for w in live.warnings], [w.message for w in live.warnings]
@@ -141,7 +162,10 @@ def test_a_bb_hidden_behind_metal_for_40_frames_is_reported_then_found_again(sca
     assert len(lost) == 1, [w.message for w in live.warnings]
     # the dense disc where the BB should be, once it has been missing DISTORTED_FRAMES frames; never before
     assert distorted and first + 1 <= distorted[0].frame <= first + 4, [w.message for w in live.warnings]
-    assert distorted[0].since_frame == distorted[0].frame - 2 and f"missing since frame {distorted[0].since_frame}" in distorted[0].message
+    assert (
+        distorted[0].since_frame == distorted[0].frame - 2
+        and f"missing since frame {distorted[0].since_frame}" in distorted[0].message
+    )
     assert all(first <= w.frame <= last for w in distorted), [w.message for w in live.warnings]
     w = lost[0]
     assert first <= w.since_frame <= first + 2 and w.frame == w.since_frame + 10

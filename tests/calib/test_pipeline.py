@@ -41,7 +41,9 @@ def _identity(uv: np.ndarray, truth_uv: np.ndarray) -> tuple[np.ndarray, float, 
 
 
 @pytest.mark.parametrize("experiment, n_bbs", [("A", 8), ("B", 16)])
-def test_every_bb_found_once_with_its_identity(simulated_scan: Callable[..., Path], tmp_path: Path, experiment: str, n_bbs: int) -> None:
+def test_every_bb_found_once_with_its_identity(
+    simulated_scan: Callable[..., Path], tmp_path: Path, experiment: str, n_bbs: int
+) -> None:
     scan = simulated_scan(experiment)
     res = calib.calibrate_scan(scan, out=tmp_path / "out.h5")
     proj, truth_uv, truth = _truth(scan)
@@ -132,8 +134,9 @@ def test_cli_calibrates_in_place_and_reports(simulated_scan: Callable[..., Path]
     assert r.exit_code != 0
 
 
-def test_the_predicted_error_tracks_the_true_one_and_fails_the_poor_views(simulated_scan: Callable[..., Path],
-                                                                          tmp_path: Path) -> None:
+def test_the_predicted_error_tracks_the_true_one_and_fails_the_poor_views(
+    simulated_scan: Callable[..., Path], tmp_path: Path
+) -> None:
     """96 views at 192 px: a few views see only 4 BBs in a poor layout, or are bridged; the prediction says
     which, the verdict fails on them (max_predicted_px 0.5), and they are the truly poor ones."""
     scan = simulated_scan("A", 192, 96)
@@ -151,7 +154,8 @@ def test_the_predicted_error_tracks_the_true_one_and_fails_the_poor_views(simula
 
 
 def test_detections_over_rough_background_weigh_less_and_the_views_come_out_closer(
-        simulated_scan: Callable[..., Path], tmp_path: Path) -> None:
+    simulated_scan: Callable[..., Path], tmp_path: Path
+) -> None:
     """Experiment A at 512 px: its BBs cross the object's outline twice a turn and sit over clutter, where the
     centroids are off by 2-3 times the typical error. Weighting each detection by its background's RMS
     (``weigh_detections``, the default) calibrates the views measurably closer than weighting all alike."""
@@ -173,8 +177,15 @@ def test_three_times_the_bench_errors_are_recovered_by_tracking_with_larger_jump
     from orbitct.simulator.scan import simulate_scan
 
     scan = tmp_path / "x3.h5"
-    simulate_scan("A", out=scan, n_frames=250, detector_px=256, seed=1, overwrite=True,
-                  errors=make_profile("bench", 1, angle_scale=3 * 250 / 500, shift_amplitude_mm=24.0, shift_noise_mm=6.0))
+    simulate_scan(
+        "A",
+        out=scan,
+        n_frames=250,
+        detector_px=256,
+        seed=1,
+        overwrite=True,
+        errors=make_profile("bench", 1, angle_scale=3 * 250 / 500, shift_amplitude_mm=24.0, shift_noise_mm=6.0),
+    )
     first = calib.calibrate_scan(scan, out=tmp_path / "no.h5", recover=False)
     assert first.quality is not None and not first.quality.passed
     res = calib.calibrate_scan(scan, out=tmp_path / "o.h5")
@@ -192,8 +203,15 @@ def test_four_times_the_bench_errors_calibrate_to_the_floor(tmp_path: Path) -> N
     from orbitct.simulator.scan import simulate_scan
 
     scan = tmp_path / "x4.h5"
-    simulate_scan("A", out=scan, n_frames=250, detector_px=256, seed=1, overwrite=True,
-                  errors=make_profile("bench", 1, angle_scale=4 * 250 / 500, shift_amplitude_mm=32.0, shift_noise_mm=8.0))
+    simulate_scan(
+        "A",
+        out=scan,
+        n_frames=250,
+        detector_px=256,
+        seed=1,
+        overwrite=True,
+        errors=make_profile("bench", 1, angle_scale=4 * 250 / 500, shift_amplitude_mm=32.0, shift_noise_mm=8.0),
+    )
     res = calib.calibrate_scan(scan, out=tmp_path / "o.h5")
     proj, truth_uv, truth = _truth(scan)
     owner, purity, worst = _identity(res.uv[proj], truth_uv[proj])
@@ -216,8 +234,14 @@ def test_a_torso_seen_from_the_side_keeps_its_bbs_and_no_view_passes_wrong(tmp_p
     from orbitct.simulator.scan import simulate_scan
 
     scan = tmp_path / "c.h5"
-    simulate_scan(experiment_phantom("C"), resolve_orbit("C", None, 206), out=scan, detector_px=512, seed=seed,
-                  errors=make_profile("bench", seed, angle_scale=206 / 500))
+    simulate_scan(
+        experiment_phantom("C"),
+        resolve_orbit("C", None, 206),
+        out=scan,
+        detector_px=512,
+        seed=seed,
+        errors=make_profile("bench", seed, angle_scale=206 / 500),
+    )
     res = calib.calibrate_scan(scan, out=tmp_path / "o.h5")
     proj, _, truth = _truth(scan)
     err, per = similarity_aligned_error_px(res.geometry[proj], truth[proj], max_views=proj.size)
@@ -233,7 +257,8 @@ def test_a_torso_seen_from_the_side_keeps_its_bbs_and_no_view_passes_wrong(tmp_p
 #: bridged neighbour (214); twelve at random whose tracks all broke at one frame, the second half identified as
 #: twelve BBs of its own and calibrated 8-22 px off (212)
 _C_PLACEMENTS = {
-    3: [[120.05948988962109, -11.329020439182212, 69.9011687431861],
+    3: [
+        [120.05948988962109, -11.329020439182212, 69.9011687431861],
         [-0.568691102489449, -90.99899561689885, -50.383932249053125],
         [-99.93146517168375, -51.324284764441856, 66.97319974328602],
         [4.089940431635846, 90.9480360244122, -63.33477621143817],
@@ -242,37 +267,44 @@ _C_PLACEMENTS = {
         [116.92110625361391, 23.438137355792644, -57.24749483138615],
         [41.28503473087094, 85.54269412145524, -35.84735122257413],
         [-91.05199954560604, -59.94571816613904, -49.28421149782866],
-        [-41.78662005647902, 85.40490781955016, 66.02006658144748]],
-    219: [[40.56788174868866, 85.73643051786001, -27.192979658104775],
-          [-110.82299617749739, -36.54268266287364, -19.745252375386706],
-          [-110.90203239566522, -36.4067362752743, -48.12021517965556],
-          [120.0496473205991, -11.387912433446246, -68.83328587634298],
-          [119.7772495265129, -12.909931606538908, 49.51049868208504],
-          [-103.1825622480541, -47.545592775716145, 30.387991841572983],
-          [6.7233315923444295, -90.85950875251498, 35.30797970052946],
-          [-39.17958874046033, -86.10063731363024, -29.676111343691773],
-          [81.0809801955325, 67.5589909353319, -11.565044624672502],
-          [-96.76393191860478, -54.65023535146976, -45.34563801618989]],
-    212: [[-51.01639138203747, -82.52140104859996, -12.230972193847691],
-          [109.24919156563205, 39.132678544073926, 60.85516666870416],
-          [88.12660071045524, -62.36959995665912, 30.97540478583811],
-          [-1.7877690361224607, -90.9900736247822, 34.52483602856991],
-          [-50.702208840933935, -82.63079644449489, 42.60777389357183],
-          [-120.07666678304292, 11.225492455564197, 46.85942695845273],
-          [30.13257653935441, -88.13501806940647, 25.581506835820505],
-          [54.76783838974461, -81.15066533697157, 69.31141195678842],
-          [-26.872581238917924, 88.72894515758708, 40.717218737044476],
-          [9.875463040022524, 90.69662127564342, 45.85780969782799],
-          [120.33797999161297, -9.510385187369165, 46.34437572780264],
-          [-120.44087851059295, 8.74195672738742, -63.50035733897916]],
-    214: [[0.724460384152773, 90.99837003863811, 56.662425791815124],
-          [115.97326798325541, 25.9671426906386, -24.621512557739543],
-          [-105.97928607450687, -43.92725099496318, -9.559369900178744],
-          [-120.33038344610141, -9.564643160234713, 11.777055587748606],
-          [120.99321769173613, 0.9639243038402808, -13.684461356519932],
-          [75.58608727235583, 71.07069803334495, -65.59871290530799],
-          [118.46883642755381, -18.523641850010016, -4.2270289574071],
-          [1.0904138217477841, -90.99630737118731, 23.27075921443806]],
+        [-41.78662005647902, 85.40490781955016, 66.02006658144748],
+    ],
+    219: [
+        [40.56788174868866, 85.73643051786001, -27.192979658104775],
+        [-110.82299617749739, -36.54268266287364, -19.745252375386706],
+        [-110.90203239566522, -36.4067362752743, -48.12021517965556],
+        [120.0496473205991, -11.387912433446246, -68.83328587634298],
+        [119.7772495265129, -12.909931606538908, 49.51049868208504],
+        [-103.1825622480541, -47.545592775716145, 30.387991841572983],
+        [6.7233315923444295, -90.85950875251498, 35.30797970052946],
+        [-39.17958874046033, -86.10063731363024, -29.676111343691773],
+        [81.0809801955325, 67.5589909353319, -11.565044624672502],
+        [-96.76393191860478, -54.65023535146976, -45.34563801618989],
+    ],
+    212: [
+        [-51.01639138203747, -82.52140104859996, -12.230972193847691],
+        [109.24919156563205, 39.132678544073926, 60.85516666870416],
+        [88.12660071045524, -62.36959995665912, 30.97540478583811],
+        [-1.7877690361224607, -90.9900736247822, 34.52483602856991],
+        [-50.702208840933935, -82.63079644449489, 42.60777389357183],
+        [-120.07666678304292, 11.225492455564197, 46.85942695845273],
+        [30.13257653935441, -88.13501806940647, 25.581506835820505],
+        [54.76783838974461, -81.15066533697157, 69.31141195678842],
+        [-26.872581238917924, 88.72894515758708, 40.717218737044476],
+        [9.875463040022524, 90.69662127564342, 45.85780969782799],
+        [120.33797999161297, -9.510385187369165, 46.34437572780264],
+        [-120.44087851059295, 8.74195672738742, -63.50035733897916],
+    ],
+    214: [
+        [0.724460384152773, 90.99837003863811, 56.662425791815124],
+        [115.97326798325541, 25.9671426906386, -24.621512557739543],
+        [-105.97928607450687, -43.92725099496318, -9.559369900178744],
+        [-120.33038344610141, -9.564643160234713, 11.777055587748606],
+        [120.99321769173613, 0.9639243038402808, -13.684461356519932],
+        [75.58608727235583, 71.07069803334495, -65.59871290530799],
+        [118.46883642755381, -18.523641850010016, -4.2270289574071],
+        [1.0904138217477841, -90.99630737118731, 23.27075921443806],
+    ],
 }
 
 
@@ -288,8 +320,14 @@ def test_jumped_frames_on_a_torso_do_not_pass_wrong(tmp_path: Path, seed: int) -
 
     scan = tmp_path / "c.h5"
     phantom = experiment_phantom("C").with_markers(np.array(_C_PLACEMENTS[seed]))
-    simulate_scan(phantom, resolve_orbit("C", None, 206), out=scan, detector_px=512, seed=seed,
-                  errors=make_profile("bench", seed, angle_scale=206 / 500))
+    simulate_scan(
+        phantom,
+        resolve_orbit("C", None, 206),
+        out=scan,
+        detector_px=512,
+        seed=seed,
+        errors=make_profile("bench", seed, angle_scale=206 / 500),
+    )
     res = calib.calibrate_scan(scan, out=tmp_path / "o.h5")
     proj, _, truth = _truth(scan)
     err, per = similarity_aligned_error_px(res.geometry[proj], truth[proj], max_views=proj.size)
@@ -300,16 +338,18 @@ def test_jumped_frames_on_a_torso_do_not_pass_wrong(tmp_path: Path, seed: int) -
 
 #: ten BBs planned on C's torso for 206 views at 512 px (``calib.plan.plan_placement`` with the phantom's background,
 #: seed 0), up to 100 mm from its middle
-_C_PLANNED = [[-68.2585129615815, 75.14687103558538, 49.34975071862464],
-              [100.16704431447579, 51.06381910867867, 88.62180167883189],
-              [-59.825749701869775, -79.1059081278152, 69.81830034070651],
-              [95.3249581105242, -56.06256559658245, 86.39914647224208],
-              [-40.96413419783178, -85.62985830330678, 90.38785483478065],
-              [26.07199998817345, 88.8638536420026, -89.64537907451404],
-              [52.35681224503901, 82.04539670893742, 99.04169637145083],
-              [-79.42580443200987, 68.661910647414, -99.85591695207067],
-              [9.246575094059175, -90.73408535195676, -97.60891958458329],
-              [120.33873424902693, -9.504980847525989, -99.38718960823294]]
+_C_PLANNED = [
+    [-68.2585129615815, 75.14687103558538, 49.34975071862464],
+    [100.16704431447579, 51.06381910867867, 88.62180167883189],
+    [-59.825749701869775, -79.1059081278152, 69.81830034070651],
+    [95.3249581105242, -56.06256559658245, 86.39914647224208],
+    [-40.96413419783178, -85.62985830330678, 90.38785483478065],
+    [26.07199998817345, 88.8638536420026, -89.64537907451404],
+    [52.35681224503901, 82.04539670893742, 99.04169637145083],
+    [-79.42580443200987, 68.661910647414, -99.85591695207067],
+    [9.246575094059175, -90.73408535195676, -97.60891958458329],
+    [120.33873424902693, -9.504980847525989, -99.38718960823294],
+]
 
 
 def _c_scan(tmp_path: Path) -> Path:
@@ -320,8 +360,14 @@ def _c_scan(tmp_path: Path) -> Path:
     from orbitct.simulator.scan import simulate_scan
 
     scan = tmp_path / "c.h5"
-    simulate_scan(experiment_phantom("C").with_markers(np.array(_C_PLANNED)), resolve_orbit("C", None, 206), out=scan,
-                  detector_px=512, seed=0, errors=make_profile("bench", 0, angle_scale=206 / 500))
+    simulate_scan(
+        experiment_phantom("C").with_markers(np.array(_C_PLANNED)),
+        resolve_orbit("C", None, 206),
+        out=scan,
+        detector_px=512,
+        seed=0,
+        errors=make_profile("bench", 0, angle_scale=206 / 500),
+    )
     return scan
 
 
@@ -341,8 +387,9 @@ def test_the_ten_planned_bbs_on_c_are_identified_at_the_orbits_own_jitter(tmp_pa
     below("aligned_error_px", err, 0.06)
 
 
-def test_bbs_one_part_of_the_orbit_missed_are_found_through_the_merged_geometry(tmp_path: Path,
-                                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+def test_bbs_one_part_of_the_orbit_missed_are_found_through_the_merged_geometry(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Tracking broken for every BB where C's orbit jumps to its third arc (done here to the identification's
     answer): six BBs identified in both parts, each twice, and four in the first part only. The twins are made one,
     and the four are then found in the second part's views through the merged geometry (before, they were left out
@@ -381,8 +428,16 @@ def test_a_truncating_panel_uses_bbs_up_to_its_edge_and_flags_what_it_cannot_see
     from orbitct.simulator.scan import simulate_scan
 
     scan = tmp_path / "cut.h5"
-    simulate_scan("A", out=scan, n_frames=120, detector_px=384, pitch_mm=427.0 / 768, seed=0, overwrite=True,
-                  errors=make_profile("bench", 0, angle_scale=120 / 500))
+    simulate_scan(
+        "A",
+        out=scan,
+        n_frames=120,
+        detector_px=384,
+        pitch_mm=427.0 / 768,
+        seed=0,
+        overwrite=True,
+        errors=make_profile("bench", 0, angle_scale=120 / 500),
+    )
     res = calib.calibrate_scan(scan, out=tmp_path / "o.h5")
     proj, truth_uv, truth = _truth(scan)
     g = truth[proj]

@@ -62,7 +62,8 @@ def test_more_bbs_predict_a_smaller_error_and_three_leave_every_view_under_deter
     few, many = predict_placement(g, xyz[:5], D_MM), predict_placement(g, xyz, D_MM)
     assert np.nanmedian(many.predicted_px) < np.nanmedian(few.predicted_px)
     assert predict_placement(g, xyz, D_MM, noise_px=0.2).summary()["predicted_px_median"] == pytest.approx(
-        2 * many.summary()["predicted_px_median"])  # linear in the centroid noise
+        2 * many.summary()["predicted_px_median"]
+    )  # linear in the centroid noise
     three = predict_placement(g, xyz[:3], D_MM)
     assert three.under_determined.size == g.n_views and np.isnan(three.predicted_px).all()
 
@@ -88,8 +89,14 @@ def test_the_prediction_matches_a_calibration_of_the_same_placement(tmp_path: Pa
     own = np.flatnonzero(res.view_status[proj] == 0)
     measured = similarity_aligned_error_px(res.geometry[proj][own], truth[own])[0]
     assert res.quality is not None
-    pred = predict_placement(nominal, ph.markers_xyz, ph.marker_diameter_mm, noise_px=res.quality.attrs()["centroid_noise_px"],
-                             metal=metal_of(ph), surface=EllipticCylinder(*BB_SURFACES["A"]))
+    pred = predict_placement(
+        nominal,
+        ph.markers_xyz,
+        ph.marker_diameter_mm,
+        noise_px=res.quality.attrs()["centroid_noise_px"],
+        metal=metal_of(ph),
+        surface=EllipticCylinder(*BB_SURFACES["A"]),
+    )
     predicted = float(np.sqrt(np.nanmean(pred.predicted_px[own] ** 2)))
     print(f"predicted {predicted:.4f} px, measured {measured:.4f} px")
     assert 1 / 1.5 <= predicted / measured <= 1.5, (predicted, measured)
@@ -104,8 +111,9 @@ def test_cli_plans_bbs_writes_the_plan_and_its_picture_and_the_simulator_uses_it
     from orbitct_app.cli.main import cli
 
     plan = tmp_path / "plan.json"
-    r = CliRunner().invoke(cli, ["plan", "bbs", "-e", "A", "--frames", "60", "--detector-size", "192", "--bbs", "6",
-                                 "--out", str(plan)])
+    r = CliRunner().invoke(
+        cli, ["plan", "bbs", "-e", "A", "--frames", "60", "--detector-size", "192", "--bbs", "6", "--out", str(plan)]
+    )
     assert r.exit_code == 0, r.output
     body = json.loads(plan.read_text())
     assert len(body["bbs"]) == 6 and body["predicted"]["under_determined"] == 0
@@ -114,14 +122,35 @@ def test_cli_plans_bbs_writes_the_plan_and_its_picture_and_the_simulator_uses_it
     assert "a hand-made spiral (6 BBs)" in r.output and body["hand_spiral"]["bbs"] == 6
     assert body["noise_px"] == 0.1 and body["noise_model"]["shift_factor"] == 1.65  # what the prediction assumed
     scan = tmp_path / "planned.h5"
-    r = CliRunner().invoke(cli, ["simulate", "-e", "A", "--frames", "20", "--detector-size", "64", "--bbs-from", str(plan),
-                                 "--out", str(scan)])
+    r = CliRunner().invoke(
+        cli,
+        ["simulate", "-e", "A", "--frames", "20", "--detector-size", "64", "--bbs-from", str(plan), "--out", str(scan)],
+    )
     assert r.exit_code == 0, r.output
     with ScanFile(scan) as sf:
         np.testing.assert_allclose(sf.truth_markers_xyz(), [b["xyz_mm"] for b in body["bbs"]])
     counted = tmp_path / "counted.json"
-    r = CliRunner().invoke(cli, ["plan", "bbs", "-e", "A", "--frames", "60", "--detector-size", "192", "--target-px", "0.3",
-                                 "--max-bbs", "8", "--keep-out", "0:90,-80:80", "--out", str(counted)])
+    r = CliRunner().invoke(
+        cli,
+        [
+            "plan",
+            "bbs",
+            "-e",
+            "A",
+            "--frames",
+            "60",
+            "--detector-size",
+            "192",
+            "--target-px",
+            "0.3",
+            "--max-bbs",
+            "8",
+            "--keep-out",
+            "0:90,-80:80",
+            "--out",
+            str(counted),
+        ],
+    )
     assert r.exit_code == 0, r.output
     body = json.loads(counted.read_text())
     suggestion = body["count_suggestion"]
@@ -133,8 +162,22 @@ def test_cli_plans_bbs_writes_the_plan_and_its_picture_and_the_simulator_uses_it
     r = CliRunner().invoke(cli, ["plan", "bbs", "-e", "A", "--keep-out", "0:90", "--out", str(tmp_path / "k.json")])
     assert r.exit_code == 2 and "FROM_DEG:TO_DEG,ZMIN_MM:ZMAX_MM" in r.output and "Traceback" not in r.output
     plan.write_text("{}")
-    r = CliRunner().invoke(cli, ["simulate", "-e", "A", "--frames", "20", "--detector-size", "64", "--bbs-from", str(plan),
-                                 "--out", str(tmp_path / "x.h5")])
+    r = CliRunner().invoke(
+        cli,
+        [
+            "simulate",
+            "-e",
+            "A",
+            "--frames",
+            "20",
+            "--detector-size",
+            "64",
+            "--bbs-from",
+            str(plan),
+            "--out",
+            str(tmp_path / "x.h5"),
+        ],
+    )
     assert r.exit_code == 2 and "not a BB plan" in r.output and "Traceback" not in r.output
 
 
@@ -156,8 +199,13 @@ def test_keep_out_zones_are_parsed_wrap_through_zero_and_stay_free_of_bbs() -> N
     assert zone == KeepOut(300.0, 60.0, -20.0, 10.0)
     inside = zone.contains(np.radians([330.0, 10.0, 59.0, 90.0, 10.0]), np.array([0.0, 0.0, 0.0, 0.0, 30.0]))
     assert inside.tolist() == [True, True, True, False, False]
-    for bad, message in (("300:60", "expected FROM_DEG"), ("a:b,1:2", "expected FROM_DEG"), ("0:90,10:5", "must be below"),
-                         ("30:30,0:1", "no patch"), ("0:720,0:1", None)):
+    for bad, message in (
+        ("300:60", "expected FROM_DEG"),
+        ("a:b,1:2", "expected FROM_DEG"),
+        ("0:90,10:5", "must be below"),
+        ("30:30,0:1", "no patch"),
+        ("0:720,0:1", None),
+    ):
         if message is None:  # more than a turn: the whole turn
             assert KeepOut.parse(bad) == KeepOut(0.0, 360.0, 0.0, 1.0)
             continue
@@ -172,7 +220,9 @@ def test_keep_out_zones_are_parsed_wrap_through_zero_and_stay_free_of_bbs() -> N
     placed = plan_placement(g, surface, 5, D_MM, keep_out=zones, trials=30, rounds=1, min_spacing_mm=10.0)
     assert not any(z.contains(placed.angle_rad, placed.z_mm).any() for z in zones)
     with pytest.raises(ValueError, match="cover the whole surface"):
-        plan_placement(g, surface, 5, D_MM, keep_out=(KeepOut(0.0, 180.0, -50.0, 50.0), KeepOut(180.0, 0.0, -50.0, 50.0)))
+        plan_placement(
+            g, surface, 5, D_MM, keep_out=(KeepOut(0.0, 180.0, -50.0, 50.0), KeepOut(180.0, 0.0, -50.0, 50.0))
+        )
     with pytest.raises(ValueError, match="cover the whole surface"):
         plan_placement(g, surface, 5, D_MM, keep_out=(KeepOut.parse("0:360,-50:50"),))
 
@@ -233,8 +283,10 @@ def test_the_search_beats_hand_spirals_and_ends_when_a_round_no_longer_pays() ->
     placed = plan_placement(g, surface, 6, D_MM, trials=30, rounds=40, min_spacing_mm=15.0, progress=events.append)
     moves = {e.done for e in events if e.stage == "plan" and "moving BB" in e.message}
     assert 6 <= len(moves) < 40 * 6, len(moves)  # at least one round, far from all of them
-    spirals = [placement_score(predict_placement(g, hand_spiral(surface, 6, D_MM, seed=s), D_MM, surface=surface))
-               for s in range(3)]
+    spirals = [
+        placement_score(predict_placement(g, hand_spiral(surface, 6, D_MM, seed=s), D_MM, surface=surface))
+        for s in range(3)
+    ]
     assert placed.score < 0.85 * min(spirals), (placed.score, spirals)
 
 
@@ -249,7 +301,9 @@ def test_a_bb_at_the_objects_silhouette_is_counted_noisier_across_the_edge() -> 
     var = edge_noise(g, xyz, D_MM, surface)
     eig = np.linalg.eigvalsh(var)
     exposed = eig[..., 1] > 1.5
-    np.testing.assert_allclose(eig[exposed], np.broadcast_to([1.0, EDGE_NOISE_FACTOR**2], eig[exposed].shape), rtol=1e-9)
+    np.testing.assert_allclose(
+        eig[exposed], np.broadcast_to([1.0, EDGE_NOISE_FACTOR**2], eig[exposed].shape), rtol=1e-9
+    )
     np.testing.assert_allclose(eig[~exposed], 1.0)
     ray = xyz[None] - g.S[:, None]
     ray /= np.linalg.norm(ray, axis=-1, keepdims=True)

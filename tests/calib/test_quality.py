@@ -16,8 +16,11 @@ def _setup(noise_px: float = 0.1, seed: int = 0) -> tuple[ViewModel, ViewState, 
     rng = np.random.default_rng(seed)
     model = ViewModel(sawtooth(40, 256))
     xyz = spiral_markers(6, radius=50.0, height=50.0)
-    state = ViewState(rotvec_to_matrix(np.cumsum(rng.normal(0, 1e-3, (40, 3)), 0)),
-                      np.cumsum(rng.normal(0, 0.3, (40, 3)), 0), np.zeros((40, 0)))
+    state = ViewState(
+        rotvec_to_matrix(np.cumsum(rng.normal(0, 1e-3, (40, 3)), 0)),
+        np.cumsum(rng.normal(0, 0.3, (40, 3)), 0),
+        np.zeros((40, 0)),
+    )
     uv = model.project(state, xyz) + rng.normal(0.0, noise_px, (40, 6, 2))
     return model, state, xyz, uv
 
@@ -29,7 +32,9 @@ def test_views_with_four_bbs_are_own_with_three_bridged_and_too_far_failed() -> 
     uv[32:, 3:] = np.nan  # the last 8 views: those within max_gap / 2 of the last own view are bridged
     state, q = assess_views(model, truth, xyz, uv, noise_px=0.1, max_gap=10)
     assert q.status[0] == OWN and q.status[10] == BRIDGED
-    assert (q.status[14:26] == FAILED).all() and np.isnan(state.t[14:26]).all() and np.isnan(q.predicted_px[14:26]).all()
+    assert (
+        (q.status[14:26] == FAILED).all() and np.isnan(state.t[14:26]).all() and np.isnan(q.predicted_px[14:26]).all()
+    )
     assert (q.status[32:37] == BRIDGED).all() and (q.status[37:] == FAILED).all()
     assert q.predicted_px[36] > q.predicted_px[33] > 0  # the farther from a view with its own BBs, the less certain
 
@@ -61,8 +66,11 @@ def test_a_view_failed_by_one_detection_is_mended_without_it_and_only_then() -> 
     rng = np.random.default_rng(3)
     model = ViewModel(sawtooth(40, 256))
     xyz = spiral_markers(8, radius=50.0, height=50.0)
-    truth = ViewState(rotvec_to_matrix(np.cumsum(rng.normal(0, 1e-3, (40, 3)), 0)),
-                      np.cumsum(rng.normal(0, 0.3, (40, 3)), 0), np.zeros((40, 0)))
+    truth = ViewState(
+        rotvec_to_matrix(np.cumsum(rng.normal(0, 1e-3, (40, 3)), 0)),
+        np.cumsum(rng.normal(0, 0.3, (40, 3)), 0),
+        np.zeros((40, 0)),
+    )
     uv = model.project(truth, xyz) + rng.normal(0.0, 0.05, (40, 8, 2))
     uv[12, 5] += np.array([1.2, 0.0])  # one biased detection: mended
     uv[20, 1] += np.array([1.2, 0.0])  # two: the view stays failed
@@ -73,7 +81,9 @@ def test_a_view_failed_by_one_detection_is_mended_without_it_and_only_then() -> 
     assert set(np.flatnonzero(q.inconsistent)) == {12, 20, 25}
     state, mended_uv, n = _drop_single_misfits(model, truth, xyz, uv, q, min_own_bbs=4)
     assert n == 1 and np.isnan(mended_uv[12, 5]).all() and np.isfinite(mended_uv[12, [0, 1, 2, 3, 4, 6, 7]]).all()
-    assert np.array_equal(mended_uv[20], uv[20], equal_nan=True) and np.array_equal(mended_uv[25], uv[25], equal_nan=True)
+    assert np.array_equal(mended_uv[20], uv[20], equal_nan=True) and np.array_equal(
+        mended_uv[25], uv[25], equal_nan=True
+    )
     _, q2 = assess_views(model, state, xyz, mended_uv, noise_px=0.05)
     assert q2.status[12] == OWN and q2.status[20] == FAILED and q2.status[25] == FAILED
     moved = np.abs(model.project(state, xyz)[12] - model.project(truth, xyz)[12]).max()
@@ -104,14 +114,14 @@ def test_unequal_centroid_noise_enters_the_predicted_pose_covariance_as_the_sand
     seen = np.isfinite(uv).all(-1)
     J = np.zeros((n, k, 2, 6 * n + 3 * k))
     for i in range(n):
-        J[i, :, :, 6 * i:6 * i + 6] = Jv[i, :, :, :6]
+        J[i, :, :, 6 * i : 6 * i + 6] = Jv[i, :, :, :6]
     for j in range(k):
-        J[:, j, :, 6 * n + 3 * j:6 * n + 3 * j + 3] = Jp[:, j]
+        J[:, j, :, 6 * n + 3 * j : 6 * n + 3 * j + 3] = Jp[:, j]
     basis = block_diag(np.eye(6 * n), null_space(gauge_matrix(xyz)))
     JB = J[seen].reshape(-1, 6 * n + 3 * k) @ basis
     Hi = np.linalg.inv(JB.T @ JB)
     dense = Hi @ JB.T @ block_diag(*variance[seen]) @ JB @ Hi
-    want = np.stack([dense[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(n)])
+    want = np.stack([dense[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] for i in range(n)])
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7 * np.abs(want).max())
 
 
@@ -149,19 +159,19 @@ def test_a_weighted_normal_matrix_enters_the_sandwich_as_the_dense_computation_d
     n, k = uv.shape[:2]
     J = np.zeros((n, k, 2, 6 * n + 3 * k))
     for i in range(n):
-        J[i, :, :, 6 * i:6 * i + 6] = Jv[i, :, :, :6]
+        J[i, :, :, 6 * i : 6 * i + 6] = Jv[i, :, :, :6]
     for j in range(k):
-        J[:, j, :, 6 * n + 3 * j:6 * n + 3 * j + 3] = Jp[:, j]
+        J[:, j, :, 6 * n + 3 * j : 6 * n + 3 * j + 3] = Jp[:, j]
     JB = J.reshape(-1, 6 * n + 3 * k) @ block_diag(np.eye(6 * n), null_space(gauge_matrix(xyz)))
     Hi = np.linalg.inv(JB.T @ block_diag(*slope.reshape(-1, 2, 2)) @ JB)
     dense = Hi @ JB.T @ block_diag(*spread.reshape(-1, 2, 2)) @ JB @ Hi
-    want = np.stack([dense[6 * i:6 * i + 6, 6 * i:6 * i + 6] for i in range(n)])
+    want = np.stack([dense[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] for i in range(n)])
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7 * np.abs(want).max())
     # a known offset of every detection: the pose error it causes, through the same normal equations
     bias = rng.normal(size=uv.shape[:2] + (2,))
     with_bias = _marginal_pose_covariance(model, state, xyz, uv, spread, slope, bias)
     delta = Hi @ JB.T @ block_diag(*slope.reshape(-1, 2, 2)) @ bias.reshape(-1)
-    shift = np.stack([np.outer(delta[6 * i:6 * i + 6], delta[6 * i:6 * i + 6]) for i in range(n)])
+    shift = np.stack([np.outer(delta[6 * i : 6 * i + 6], delta[6 * i : 6 * i + 6]) for i in range(n)])
     np.testing.assert_allclose(with_bias - got, shift, rtol=1e-5, atol=1e-7 * np.abs(shift).max())
 
 
@@ -185,7 +195,9 @@ def test_views_resting_on_bbs_that_only_a_few_views_see_are_not_calibrated_as_an
         shift = 0 if p == 40 else 1  # each island BB takes one real BB's blob in view 40, the next one's elsewhere
         uv[p, 8:] = real[p, np.roll(np.arange(8), -shift)]
         uv[p, :8] = np.nan
-    geometry, kept_xyz, _, kept_uv, _, _, _, quality = _estimate("bundle", ViewModel(nominal), uv, CalibrationOptions(), None, None)
+    geometry, kept_xyz, _, kept_uv, _, _, _, quality = _estimate(
+        "bundle", ViewModel(nominal), uv, CalibrationOptions(), None, None
+    )
     assert kept_xyz.shape[0] == 8 and kept_uv.shape[1] == 8
     assert all(quality.status[p] != OWN for p in island)
     own = np.flatnonzero(quality.status == OWN)
@@ -201,11 +213,17 @@ def test_a_prediction_weighted_by_the_detections_spread_is_the_bundles() -> None
 
     model, _, xyz, uv = _setup()
     plain = placement_predicted_px(model, xyz, uv, 0.1)
-    np.testing.assert_allclose(placement_predicted_px(model, xyz, uv, 0.1, spread=np.full(uv.shape[:2], 3.0)), plain,
-                               rtol=1e-6)
+    np.testing.assert_allclose(
+        placement_predicted_px(model, xyz, uv, 0.1, spread=np.full(uv.shape[:2], 3.0)), plain, rtol=1e-6
+    )
     huber = placement_predicted_px(model, xyz, uv, 0.1, loss_scale_px=huber_threshold_px(0.1))
-    np.testing.assert_allclose(placement_predicted_px(model, xyz, uv, 0.1, loss_scale_px=huber_threshold_px(0.1),
-                                                      spread=np.ones(uv.shape[:2])), huber, rtol=1e-9)
+    np.testing.assert_allclose(
+        placement_predicted_px(
+            model, xyz, uv, 0.1, loss_scale_px=huber_threshold_px(0.1), spread=np.ones(uv.shape[:2])
+        ),
+        huber,
+        rtol=1e-9,
+    )
     s = np.exp(np.random.default_rng(2).uniform(np.log(0.5), np.log(5.0), uv.shape[:2]))  # rough backgrounds
     variance = s[..., None, None] ** 2 * np.eye(2)
     alike = placement_predicted_px(model, xyz, uv, 0.1, variance)

@@ -43,8 +43,10 @@ def test_rescaled_views_move_no_pixel_of_a_scaled_point() -> None:
     before = views.project(points)
     after = rescaled_views(views, 1.05).project(1.05 * points)
     assert np.allclose(before, after, atol=1e-9)
-    assert np.allclose(np.linalg.norm(rescaled_views(views, 1.05).S - rescaled_views(views, 1.05).D, axis=1),
-                       np.linalg.norm(views.S - views.D, axis=1))  # the source-detector assembly is unchanged
+    assert np.allclose(
+        np.linalg.norm(rescaled_views(views, 1.05).S - rescaled_views(views, 1.05).D, axis=1),
+        np.linalg.norm(views.S - views.D, axis=1),
+    )  # the source-detector assembly is unchanged
 
 
 def test_the_bar_is_the_one_pair_near_its_length_or_an_error_that_names_the_pairs() -> None:
@@ -93,8 +95,19 @@ def test_cli_takes_the_bar_and_names_a_pair_it_cannot_find(far_scan: Path, tmp_p
     assert ok.exit_code == 0, ok.output
     found = re.search(r"metric scale from a 114.4 mm scale bar: BBs (\d+) and (\d+) were ([\d.]+) mm apart", ok.output)
     assert found is not None, ok.output
-    named = runner.invoke(cli, ["calibrate", str(far_scan), "--out", str(tmp_path / "named.h5"), "--scale-bar-mm", "114.4",
-                                "--scale-bar-bbs", f"{found[1]},{found[2]}"])
+    named = runner.invoke(
+        cli,
+        [
+            "calibrate",
+            str(far_scan),
+            "--out",
+            str(tmp_path / "named.h5"),
+            "--scale-bar-mm",
+            "114.4",
+            "--scale-bar-bbs",
+            f"{found[1]},{found[2]}",
+        ],
+    )
     assert named.exit_code == 0 and f"BBs {found[1]} and {found[2]} were {found[3]} mm apart" in named.output
     bad = runner.invoke(cli, ["calibrate", str(far_scan), "--out", str(tmp_path / "bad.h5"), "--scale-bar-mm", "72.6"])
     assert bad.exit_code == 1 and "pairs of BBs are within 3 %" in bad.output and "Traceback" not in bad.output

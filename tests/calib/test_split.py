@@ -71,9 +71,13 @@ def test_a_blob_that_is_not_two_bbs_is_not_split() -> None:
 
 
 def test_pairs_are_the_close_predictions_with_a_missing_detection() -> None:
-    pred = np.array([[[10.0, 10.0], [14.0, 10.0], [80.0, 80.0]],
-                     [[10.0, 10.0], [30.0, 10.0], [80.0, 80.0]],
-                     [[10.0, 10.0], [14.0, 10.0], [12.0, 12.0]]])  # a third BB close: not a pair
+    pred = np.array(
+        [
+            [[10.0, 10.0], [14.0, 10.0], [80.0, 80.0]],
+            [[10.0, 10.0], [30.0, 10.0], [80.0, 80.0]],
+            [[10.0, 10.0], [14.0, 10.0], [12.0, 12.0]],
+        ]
+    )  # a third BB close: not a pair
     uv = np.full_like(pred, np.nan)
     uv[:, 2] = pred[:, 2]
     assert merged_pairs(pred, uv, within_px=7.5) == [(0, 0, 1)]
@@ -91,8 +95,11 @@ def pair_scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
     xyz = ph.markers_xyz.copy()
     tangent = np.array([-xyz[0, 1], xyz[0, 0], 0.0]) / np.hypot(xyz[0, 0], xyz[0, 1])
     xyz[1] = xyz[0] + (ph.marker_diameter_mm + 3.0) * tangent
-    ph = replace(ph, markers_xyz=xyz,
-                 primitives=tuple(replace(p, center=xyz[1]) if p.label == "bb1" else p for p in ph.primitives))
+    ph = replace(
+        ph,
+        markers_xyz=xyz,
+        primitives=tuple(replace(p, center=xyz[1]) if p.label == "bb1" else p for p in ph.primitives),
+    )
     path = tmp_path_factory.mktemp("pair") / "pair.h5"
     simulate_scan(ph, out=path, n_frames=120, detector_px=384, errors=make_profile("bench", 0, angle_scale=120 / 500))
     return path

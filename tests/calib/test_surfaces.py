@@ -32,7 +32,9 @@ def test_an_outline_from_a_volume_mask_is_the_cylinder_it_came_from() -> None:
     ang = np.linspace(0, 2 * np.pi, 50, endpoint=False)
     z = np.full(50, 10.0)
     xyz = outline.points(ang, z, D_MM)
-    assert np.allclose(np.hypot(xyz[:, 0], xyz[:, 1]), 60.0 + D_MM / 2, atol=1.0) and np.allclose(xyz[:, 2], 10.0, atol=0.1)
+    assert np.allclose(np.hypot(xyz[:, 0], xyz[:, 1]), 60.0 + D_MM / 2, atol=1.0) and np.allclose(
+        xyz[:, 2], 10.0, atol=0.1
+    )
     assert outline.covers(ang, z).all() and not outline.covers(ang[:3], np.full(3, 55.0)).any()
     assert outline.describe()["kind"] == "outline"
     with pytest.raises(ValueError, match="no voxel above the threshold"):
@@ -54,7 +56,13 @@ def test_an_outline_follows_a_slanted_surface_along_its_normal() -> None:
 def test_an_elliptic_cylinder_covers_only_its_heights() -> None:
     s = EllipticCylinder(50.0, 30.0, -10.0, 10.0)
     assert s.covers(np.zeros(3), np.array([-10.0, 0.0, 11.0])).tolist() == [True, True, False]
-    assert s.describe() == {"kind": "elliptic cylinder", "a_mm": 50.0, "b_mm": 30.0, "z_min_mm": -10.0, "z_max_mm": 10.0}
+    assert s.describe() == {
+        "kind": "elliptic cylinder",
+        "a_mm": 50.0,
+        "b_mm": 30.0,
+        "z_min_mm": -10.0,
+        "z_max_mm": 10.0,
+    }
 
 
 def test_shapes_by_parameters_are_read_and_an_ellipsoid_holds_its_bbs_along_the_normal() -> None:
@@ -62,11 +70,19 @@ def test_shapes_by_parameters_are_read_and_an_ellipsoid_holds_its_bbs_along_the_
     assert shape_from_text("cylinder:120,90,-70:70") == EllipticCylinder(120.0, 90.0, -70.0, 70.0)
     assert shape_from_text("ellipsoid:70,60,90") == Ellipsoid(70.0, 60.0, 90.0, -81.0, 81.0)
     s = shape_from_text("ellipsoid:70,60,90,-30:60")
-    assert (s.z_min_mm, s.z_max_mm) == (-30.0, 60.0) and s.covers(np.zeros(2), np.array([-31.0, 0.0])).tolist() == [False, True]
-    for bad, needle in (("ellipsoid:70,60", "expected ellipsoid"), ("cylinder:60", "expected cylinder"),
-                        ("cylinder:60,x:3", "numbers"), ("ellipsoid:70,60,90,50:10", "the lower first"),
-                        ("ellipsoid:70,60,90,-100:0", "within the ellipsoid"), ("ellipsoid:70,nan,90", "semi-axes"),
-                        ("sphere:3", "expected cylinder")):
+    assert (s.z_min_mm, s.z_max_mm) == (-30.0, 60.0) and s.covers(np.zeros(2), np.array([-31.0, 0.0])).tolist() == [
+        False,
+        True,
+    ]
+    for bad, needle in (
+        ("ellipsoid:70,60", "expected ellipsoid"),
+        ("cylinder:60", "expected cylinder"),
+        ("cylinder:60,x:3", "numbers"),
+        ("ellipsoid:70,60,90,50:10", "the lower first"),
+        ("ellipsoid:70,60,90,-100:0", "within the ellipsoid"),
+        ("ellipsoid:70,nan,90", "semi-axes"),
+        ("sphere:3", "expected cylinder"),
+    ):
         with pytest.raises(ValueError, match=needle):
             shape_from_text(bad)
     ang, z = np.radians(np.arange(0.0, 360.0, 15.0)), np.linspace(-80.0, 80.0, 24)

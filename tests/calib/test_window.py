@@ -16,8 +16,11 @@ def test_a_window_refines_the_points_and_the_poses_it_covers() -> None:
     nominal = sawtooth(80, 256)
     model = ViewModel(nominal)
     xyz = spiral_markers(8, radius=50.0, height=50.0)
-    truth = ViewState(rotvec_to_matrix(np.cumsum(rng.normal(0, 2e-3, (80, 3)), 0)),
-                      np.cumsum(rng.normal(0, 0.4, (80, 3)), 0), np.zeros((80, 0)))
+    truth = ViewState(
+        rotvec_to_matrix(np.cumsum(rng.normal(0, 2e-3, (80, 3)), 0)),
+        np.cumsum(rng.normal(0, 0.4, (80, 3)), 0),
+        np.zeros((80, 0)),
+    )
     uv = model.project(truth, xyz) + rng.normal(0, 0.05, (80, 8, 2))
     uv[:, 7] = np.nan  # one BB never seen: not in any window
     keys = tuple(range(100, 108))

@@ -81,12 +81,16 @@ def test_program_files_round_trip(tmp_path: Path, suffix: str) -> None:
     assert back.limits == prog.limits and back.orbit == prog.orbit and len(back) == len(prog)
     for a, b in zip(prog.points, back.points):
         assert a.index == b.index and a.acquire == b.acquire and a.segment == b.segment
-        assert math.isclose(a.primary_deg, b.primary_deg, abs_tol=1e-6) and a.isocenter_mm == pytest.approx(b.isocenter_mm)
+        assert math.isclose(a.primary_deg, b.primary_deg, abs_tol=1e-6) and a.isocenter_mm == pytest.approx(
+            b.isocenter_mm
+        )
 
 
 def test_bad_program_files(tmp_path: Path) -> None:
     bad = tmp_path / "bad.csv"
-    bad.write_text("index,segment,primary_deg,secondary_deg,iso_x_mm,iso_y_mm,iso_z_mm,speed_deg_s,acquire\n0,0,1,2,0,0,0,10,maybe\n")
+    bad.write_text(
+        "index,segment,primary_deg,secondary_deg,iso_x_mm,iso_y_mm,iso_z_mm,speed_deg_s,acquire\n0,0,1,2,0,0,0,10,maybe\n"
+    )
     with pytest.raises(ProgramFileError, match="bad.csv:2"):
         NavProgram.read(bad)
     bad.write_text("a,b\n")
@@ -136,8 +140,15 @@ def test_play_program_frames_carry_true_geometry_with_errors() -> None:
     # the true geometry follows the documented error model exactly (noise off)
     th, ph = np.radians(np.linspace(-10, 10, 5)), np.radians(np.linspace(0, 8, 5))
     shift = 3.0 * np.stack([np.sin(th), 0.5 * np.sin(2 * th), 0.5 * (1 - np.cos(th))], 1)
-    expected = ViewGeometry.from_carm(th + np.radians(0.4), ph - np.radians(1.0) * np.cos(th) * np.cos(ph), 785.0, 1200.0,
-                                      nominal.panel, eta=np.radians(0.7), shift=shift)
+    expected = ViewGeometry.from_carm(
+        th + np.radians(0.4),
+        ph - np.radians(1.0) * np.cos(th) * np.cos(ph),
+        785.0,
+        1200.0,
+        nominal.panel,
+        eta=np.radians(0.7),
+        shift=shift,
+    )
     np.testing.assert_allclose(truth, expected.vectors, atol=1e-9)
     assert np.abs(truth - nominal.vectors).max() > 1.0  # the errors are real
     # the source really moves between frames (object fixed)
@@ -196,7 +207,9 @@ def test_faults_on_the_carm_link() -> None:
         twin_of(arm).stuck = True
         with pytest.raises(DeviceTimeoutError, match="stuck at primary"):
             await arm.move({"primary": 30.0})
-        assert sum(c.startswith("MOVE") for c in twin_of(arm).commands_seen) == 2 and "STOP" in twin_of(arm).commands_seen
+        assert (
+            sum(c.startswith("MOVE") for c in twin_of(arm).commands_seen) == 2 and "STOP" in twin_of(arm).commands_seen
+        )
         twin_of(arm).stuck = False
         await arm.move({"primary": 1.0})
         assert (await arm.position())["primary"] == pytest.approx(1.0)

@@ -118,8 +118,10 @@ def test_generator_exposure_triggers_frame() -> None:
     reset_world(world)
 
     async def main() -> None:
-        async with opened("detector", "det", f"sim://{world}", rows=64, trigger="xray") as det, opened("xray", "xray", f"sim://{world}", prep_s=0.01, heartbeat_s=0
-        ) as gen:
+        async with (
+            opened("detector", "det", f"sim://{world}", rows=64, trigger="xray") as det,
+            opened("xray", "xray", f"sim://{world}", prep_s=0.01, heartbeat_s=0) as gen,
+        ):
             await det.arm()
             with pytest.raises(ControllerError) as err:  # no software trigger in XRAY mode
                 await det.trigger()

@@ -24,8 +24,10 @@ def test_exposure_frames_follow_the_true_stage_angle() -> None:
     async def main() -> None:
         stage = await open_device("rotation_stage", "stage", "sim://detbench", time_scale=100)
         try:
-            async with opened("detector", "det", "sim://detbench", rows=32, trigger="xray") as det, opened("xray", "xray", "sim://detbench", prep_s=0.01, heartbeat_s=0
-            ) as gen:
+            async with (
+                opened("detector", "det", "sim://detbench", rows=32, trigger="xray") as det,
+                opened("xray", "xray", "sim://detbench", prep_s=0.01, heartbeat_s=0) as gen,
+            ):
                 await stage.reference()
                 await det.arm()
                 truths = []

@@ -48,7 +48,10 @@ async def test_open_by_uri(hexapod_twin: TwinThread, stage_twin: TwinThread) -> 
         await open_device("hexapod", "hexapod", hexapod_twin.uri, timeout=1.0)
     with pytest.raises(DeviceError, match="speed"):
         await open_device("hexapod", "hexapod", "sim://factory-test?speed=9")
-    for uri in ("tcp://127.0.0.1:1?connect_timeout=nan", "modbus://127.0.0.1:1?timeout_s=inf"):  # refused before connecting
+    for uri in (
+        "tcp://127.0.0.1:1?connect_timeout=nan",
+        "modbus://127.0.0.1:1?timeout_s=inf",
+    ):  # refused before connecting
         with pytest.raises(UriError, match="is not a finite number"):
             await open_device("xray" if uri.startswith("modbus") else "hexapod", "x", uri)
     with pytest.raises(DeviceError, match="cannot connect"):

@@ -148,7 +148,9 @@ async def test_serial_faults_and_refusals(stage_twin: TwinThread) -> None:
         await dev.close()
 
 
-async def test_stop_reaches_the_controller_after_a_silent_disconnect(ready_hexapod: Hexapod, hexapod_twin: TwinThread) -> None:
+async def test_stop_reaches_the_controller_after_a_silent_disconnect(
+    ready_hexapod: Hexapod, hexapod_twin: TwinThread
+) -> None:
     await ready_hexapod.set_velocity(0.5)
     status = ready_hexapod.move({"Z": 20.0})
     await asyncio.sleep(0.1)
@@ -161,8 +163,9 @@ async def test_stop_reaches_the_controller_after_a_silent_disconnect(ready_hexap
         await status
 
 
-async def test_a_stop_while_a_query_reconnects_waits_for_the_new_connection(ready_hexapod: Hexapod,
-                                                                             hexapod_twin: TwinThread) -> None:
+async def test_a_stop_while_a_query_reconnects_waits_for_the_new_connection(
+    ready_hexapod: Hexapod, hexapod_twin: TwinThread
+) -> None:
     """A poll finds the connection dropped and opens a new one (slowly: a loaded machine, a slow network); a stop in
     that moment is sent over the new connection, never refused as 'not connected'."""
     client = ready_hexapod.client

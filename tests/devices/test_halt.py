@@ -27,8 +27,9 @@ async def xray(world: SimWorld):  # type: ignore[no-untyped-def]
     twin.stop()
 
 
-async def test_halt_stops_moving_axes_and_high_voltage_and_proves_it(ready_hexapod: Hexapod, stage: RotationStage,
-                                                                   xray) -> None:  # type: ignore[no-untyped-def]
+async def test_halt_stops_moving_axes_and_high_voltage_and_proves_it(
+    ready_hexapod: Hexapod, stage: RotationStage, xray
+) -> None:  # type: ignore[no-untyped-def]
     gen, twin = xray
     await stage.reference()
     await gen.prepare()
@@ -54,7 +55,9 @@ async def _settled(status) -> None:  # type: ignore[no-untyped-def]
 
 async def test_garbled_or_missing_confirmation_is_not_halted(xray) -> None:  # type: ignore[no-untyped-def]
     gen, twin = xray
-    twin.twin.faults.garble_next = 1  # one garbled reply: the driver repeats the (idempotent) X-rays-off on a fresh link
+    twin.twin.faults.garble_next = (
+        1  # one garbled reply: the driver repeats the (idempotent) X-rays-off on a fresh link
+    )
     (check,) = await halt_and_verify([gen], timeout_s=1.0)
     assert check.halted, check
     twin.twin.faults.garble_next = 3  # the repeat garbled too: not proven
@@ -94,4 +97,6 @@ async def test_high_voltage_switched_on_again_after_the_stop_is_stopped_again_an
     (check,) = await halt_and_verify([_Regenerating(on_after_stop=1)], timeout_s=1.0)
     assert check.halted and "stopped 1 more time(s)" in check.verified and "high voltage on" in check.verified, check
     (stuck,) = await halt_and_verify([_Regenerating(on_after_stop=10**6)], timeout_s=0.3)
-    assert not stuck.halted and "high voltage on" in stuck.problem and "more stop(s) within 0.3 s" in stuck.problem, stuck
+    assert not stuck.halted and "high voltage on" in stuck.problem and "more stop(s) within 0.3 s" in stuck.problem, (
+        stuck
+    )

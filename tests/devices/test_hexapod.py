@@ -32,7 +32,14 @@ async def test_describe_and_read(hexapod: Hexapod) -> None:
     state = await hexapod.read()
     assert set(state) == {"position", "target", "on_target", "referenced", "servo", "moving"}
     assert not any(state["referenced"].values()) and not any(state["servo"].values())
-    assert await hexapod.limits() == {"X": (-50, 50), "Y": (-50, 50), "Z": (-25, 25), "U": (-30, 30), "V": (-30, 30), "W": (-30, 30)}
+    assert await hexapod.limits() == {
+        "X": (-50, 50),
+        "Y": (-50, 50),
+        "Z": (-25, 25),
+        "U": (-30, 30),
+        "V": (-30, 30),
+        "W": (-30, 30),
+    }
 
 
 async def test_refuses_to_move_with_servo_off_then_unreferenced(hexapod: Hexapod, hexapod_twin: TwinThread) -> None:

@@ -28,11 +28,14 @@ pytestmark = pytest.mark.timeout(120)
 def threads() -> Iterator[dict[str, TwinThread]]:
     """Hexapod, stage and generator twins in one world; a panel twin in a world of its own that follows them."""
     bench = reset_world("feed-bench")
-    out = {"hexapod": start_twin("hexapod", world="feed-bench", time_scale=25.0),
-           "rotation_stage": start_twin("rotation_stage", world="feed-bench", time_scale=25.0),
-           "xray": TwinThread(XrayTwin(bench, time_scale=25.0))}
-    out["panel"] = TwinThread(DetectorTwin(reset_world("feed-panel"), rows=16,
-                                           follow={k: t.uri for k, t in out.items()}))
+    out = {
+        "hexapod": start_twin("hexapod", world="feed-bench", time_scale=25.0),
+        "rotation_stage": start_twin("rotation_stage", world="feed-bench", time_scale=25.0),
+        "xray": TwinThread(XrayTwin(bench, time_scale=25.0)),
+    }
+    out["panel"] = TwinThread(
+        DetectorTwin(reset_world("feed-panel"), rows=16, follow={k: t.uri for k, t in out.items()})
+    )
     try:
         yield out
     finally:
@@ -47,12 +50,17 @@ def bench_and_panel(threads: dict[str, TwinThread]) -> tuple[dict[str, str], Sim
 
 
 def test_the_panel_images_the_followed_pose_on_the_followed_generators_exposure(
-        bench_and_panel: tuple[dict[str, str], SimWorld, str]) -> None:
+    bench_and_panel: tuple[dict[str, str], SimWorld, str],
+) -> None:
     uris, panel_world, panel_uri = bench_and_panel
 
     async def main() -> None:
-        async with Hexapod("hexapod", uris["hexapod"]) as hexa, RotationStage("stage", uris["rotation_stage"]) as stage, \
-                XrayGenerator("xray", uris["xray"]) as gen, Detector("panel", panel_uri, timeout_s=10.0) as panel:
+        async with (
+            Hexapod("hexapod", uris["hexapod"]) as hexa,
+            RotationStage("stage", uris["rotation_stage"]) as stage,
+            XrayGenerator("xray", uris["xray"]) as gen,
+            Detector("panel", panel_uri, timeout_s=10.0) as panel,
+        ):
             await asyncio.gather(hexa.reference(), stage.reference())
             await asyncio.gather(hexa.move({"X": 2.0, "U": 3.0}), stage.move({"R": -90.0}))
             await panel.set_trigger("xray")
@@ -65,7 +73,9 @@ def test_the_panel_images_the_followed_pose_on_the_followed_generators_exposure(
             with panel_world.lock:  # the pose it imaged: the read-backs of the axes elsewhere (each with its noise)
                 assert math.degrees(panel_world.stage_true_rad) == pytest.approx(turn["R"], abs=1e-3)
                 np.testing.assert_allclose(panel_world.hexapod_true[:3], [pose[a] for a in "XYZ"], atol=1e-3)
-                np.testing.assert_allclose(np.degrees(panel_world.hexapod_true[3:]), [pose[a] for a in "UVW"], atol=1e-3)
+                np.testing.assert_allclose(
+                    np.degrees(panel_world.hexapod_true[3:]), [pose[a] for a in "UVW"], atol=1e-3
+                )
                 assert panel_world.xray_kv == 80.0 and panel_world.xray_frame_counter == 1
 
     asyncio.run(main())
@@ -91,8 +101,10 @@ def test_a_lost_generator_is_connected_again(threads: dict[str, TwinThread], cap
     assert twin.run_sync(lambda: twin.twin.connections) >= 1
 
     async def main() -> None:
-        async with XrayGenerator("xray", threads["xray"].uri) as gen, \
-                Detector("panel", threads["panel"].uri, timeout_s=10.0) as panel:
+        async with (
+            XrayGenerator("xray", threads["xray"].uri) as gen,
+            Detector("panel", threads["panel"].uri, timeout_s=10.0) as panel,
+        ):
             await panel.set_trigger("xray")
             await panel.arm()
             await gen.expose(release=True)
@@ -115,8 +127,13 @@ def test_a_panel_following_a_bench_that_is_gone_stops_at_once(monkeypatch: pytes
         s.bind(("127.0.0.1", 0))
         gone = f"127.0.0.1:{s.getsockname()[1]}"
     for _ in range(5):
-        panel = TwinThread(DetectorTwin(reset_world("feed-gone"), rows=8, follow={
-            "hexapod": f"tcp://{gone}", "rotation_stage": f"tcp://{gone}", "xray": f"modbus://{gone}"}))
+        panel = TwinThread(
+            DetectorTwin(
+                reset_world("feed-gone"),
+                rows=8,
+                follow={"hexapod": f"tcp://{gone}", "rotation_stage": f"tcp://{gone}", "xray": f"modbus://{gone}"},
+            )
+        )
         time.sleep(0.2)
         t = time.monotonic()
         panel.stop()

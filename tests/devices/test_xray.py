@@ -417,7 +417,8 @@ def test_high_voltage_goes_off_when_nothing_exposes(twin: tuple[XrayTwin, TwinTh
 
 
 def test_an_exposure_right_after_the_hold_fired_waits_for_its_request_not_its_time_out(
-        twin: tuple[XrayTwin, TwinThread]) -> None:
+    twin: tuple[XrayTwin, TwinThread],
+) -> None:
     """The hold's X-rays-off request, once on the wire, runs to its reply: cutting it short used to leave the next
     exposure waiting for a reply that never came (found under load by the exposure's stall bound)."""
     tw, _ = twin
@@ -436,8 +437,9 @@ def test_an_exposure_right_after_the_hold_fired_waits_for_its_request_not_its_ti
     run(twin, body, hold_s=0.05, timeout_s=2.0)
 
 
-def test_a_late_reply_to_a_read_cut_short_is_skipped_and_nothing_is_printed(twin: tuple[XrayTwin, TwinThread],
-                                                                           caplog: pytest.LogCaptureFixture) -> None:
+def test_a_late_reply_to_a_read_cut_short_is_skipped_and_nothing_is_printed(
+    twin: tuple[XrayTwin, TwinThread], caplog: pytest.LogCaptureFixture
+) -> None:
     """A read cut short, and the next one sent while the generator still works on it: its late reply is skipped by
     its transaction id and the next read gets its own. pymodbus's ERROR line for the skip, with a dump of the last
     frames, reached the terminal in the middle of ``make demo``; the driver names every failure itself."""

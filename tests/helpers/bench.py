@@ -9,8 +9,12 @@ from acquire.config import BenchConfig, parse_config
 from acquire.runner import ScanRequest
 
 # small errors that the hexapod twin's workspace can always realise
-SMALL_ERRORS = {"angle_amplitude_deg": (0.4, 0.3, 0.5), "angle_noise_deg": (0.05, 0.05, 0.05),
-                "shift_amplitude_mm": (2.0, 1.5, 1.0), "shift_noise_mm": (0.3, 0.3, 0.3)}
+SMALL_ERRORS = {
+    "angle_amplitude_deg": (0.4, 0.3, 0.5),
+    "angle_noise_deg": (0.05, 0.05, 0.05),
+    "shift_amplitude_mm": (2.0, 1.5, 1.0),
+    "shift_noise_mm": (0.3, 0.3, 0.3),
+}
 
 
 def small_config(size: int = 64, time_scale: float = 25.0, **overrides: Any) -> BenchConfig:
@@ -30,9 +34,17 @@ def small_config(size: int = 64, time_scale: float = 25.0, **overrides: Any) -> 
 
 def small_request(out: Path, frames: int = 16, **kw: Any) -> ScanRequest:
     """A short sawtooth on the in-process twins with small injected errors."""
-    args: dict[str, Any] = dict(config=small_config(), out=out, orbit="sawtooth", frames=frames,
-                                orbit_params={"amplitude_deg": 6.0}, errors="custom", error_params=SMALL_ERRORS,
-                                seed=1, sim=True, overwrite=True)
+    args: dict[str, Any] = dict(
+        config=small_config(),
+        out=out,
+        orbit="sawtooth",
+        frames=frames,
+        orbit_params={"amplitude_deg": 6.0},
+        errors="custom",
+        error_params=SMALL_ERRORS,
+        seed=1,
+        sim=True,
+        overwrite=True,
+    )
     args.update(kw)
     return ScanRequest(**args)
-

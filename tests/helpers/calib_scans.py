@@ -31,7 +31,9 @@ def perturbed(nominal: ViewGeometry, seed: int = 0, angle_deg: float = 0.7, shif
     rng = np.random.default_rng(seed)
     n = nominal.n_views
     s = np.linspace(0, 2 * np.pi, n)
-    ang = np.deg2rad(angle_deg) * np.stack([np.sin(3 * s), np.cos(2 * s), np.sin(s + 1)], 1) + rng.normal(0, 0.001, (n, 3))
+    ang = np.deg2rad(angle_deg) * np.stack([np.sin(3 * s), np.cos(2 * s), np.sin(s + 1)], 1) + rng.normal(
+        0, 0.001, (n, 3)
+    )
     shift = shift_mm * np.stack([np.sin(s), np.cos(2 * s), 0.5 * np.sin(4 * s)], 1) + rng.uniform(-2, 2, (n, 3))
     R = rot_xyz(ang[:, 0], ang[:, 1], ang[:, 2])
     return nominal.transformed(R, shift)

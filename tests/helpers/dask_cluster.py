@@ -23,22 +23,53 @@ class DaskCluster:
         self.folder = folder
         self.file = folder / "scheduler.json"
         self.env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-        self.scheduler = self._start([DASK, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                                      "--scheduler-file", str(self.file)], "scheduler")
+        self.scheduler = self._start(
+            [
+                DASK,
+                "scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                "0",
+                "--no-dashboard",
+                "--scheduler-file",
+                str(self.file),
+            ],
+            "scheduler",
+        )
         deadline = time.monotonic() + 60.0
         while not self.file.exists():
             if time.monotonic() > deadline or self.scheduler.poll() is not None:
                 raise RuntimeError(f"dask scheduler did not start: {self._log('scheduler')}")
             time.sleep(0.1)
         self.address = str(json.loads(self.file.read_text())["address"])
-        self.workers = [self._start([DASK, "worker", "--scheduler-file", str(self.file), "--nthreads", "1",
-                                     "--no-dashboard", "--host", "127.0.0.1", "--memory-limit", "0",
-                                     "--name", f"w{i}"], f"worker{i}") for i in range(n_workers)]
+        self.workers = [
+            self._start(
+                [
+                    DASK,
+                    "worker",
+                    "--scheduler-file",
+                    str(self.file),
+                    "--nthreads",
+                    "1",
+                    "--no-dashboard",
+                    "--host",
+                    "127.0.0.1",
+                    "--memory-limit",
+                    "0",
+                    "--name",
+                    f"w{i}",
+                ],
+                f"worker{i}",
+            )
+            for i in range(n_workers)
+        ]
 
     def _start(self, cmd: list[str], name: str) -> subprocess.Popen[bytes]:
         log = open(self.folder / f"{name}.log", "wb")  # noqa: SIM115 - closed with the process
-        return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, cwd=ROOT,
-                                start_new_session=True)
+        return subprocess.Popen(
+            cmd, stdout=log, stderr=subprocess.STDOUT, env=self.env, cwd=ROOT, start_new_session=True
+        )
 
     def _log(self, name: str) -> str:
         path = self.folder / f"{name}.log"

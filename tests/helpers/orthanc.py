@@ -20,11 +20,23 @@ def orthanc(folder: Path) -> Iterator[PacsNode]:
     """Orthanc listening on a free DICOM port; fails in CI (``.ci/run`` installs it) and skips elsewhere if missing."""
     exe = require_tool("Orthanc", "orthanc")
     port = free_port()
-    config = {"Name": "orbitct-tests", "StorageDirectory": str(folder / "storage"), "IndexDirectory": str(folder / "index"),
-              "DicomAet": "ORTHANC", "DicomPort": port, "HttpPort": free_port(), "RemoteAccessAllowed": False,
-              "AuthenticationEnabled": False, "DicomCheckCalledAet": False, "DicomAlwaysAllowStore": True,
-              "DicomAlwaysAllowFind": True, "DicomAlwaysAllowGet": True, "DicomAlwaysAllowMove": True,
-              "DicomModalities": {"orbitct": ["ORBITCT", "127.0.0.1", 11112]}, "Plugins": []}
+    config = {
+        "Name": "orbitct-tests",
+        "StorageDirectory": str(folder / "storage"),
+        "IndexDirectory": str(folder / "index"),
+        "DicomAet": "ORTHANC",
+        "DicomPort": port,
+        "HttpPort": free_port(),
+        "RemoteAccessAllowed": False,
+        "AuthenticationEnabled": False,
+        "DicomCheckCalledAet": False,
+        "DicomAlwaysAllowStore": True,
+        "DicomAlwaysAllowFind": True,
+        "DicomAlwaysAllowGet": True,
+        "DicomAlwaysAllowMove": True,
+        "DicomModalities": {"orbitct": ["ORBITCT", "127.0.0.1", 11112]},
+        "Plugins": [],
+    }
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / "orthanc.json"
     path.write_text(json.dumps(config))
@@ -37,7 +49,9 @@ def orthanc(folder: Path) -> Iterator[PacsNode]:
                     break
             except OSError:
                 if proc.poll() is not None or time.monotonic() - t0 > 30:
-                    raise AssertionError("Orthanc did not start: " + (proc.stderr.read() or b"").decode()[-2000:]) from None  # type: ignore[union-attr]
+                    raise AssertionError(
+                        "Orthanc did not start: " + (proc.stderr.read() or b"").decode()[-2000:]
+                    ) from None  # type: ignore[union-attr]
                 time.sleep(0.2)
         yield PacsNode("ORTHANC", "127.0.0.1", port)
     finally:

@@ -49,8 +49,17 @@ def bench_detector(size: int) -> Panel:
     return Panel(size, size, 427.0 / size, 427.0 / size)
 
 
-def write_sphere_scan(path, geometry: ViewGeometry, *, truth: ViewGeometry | None = None, i0: float = 2e4,
-                      spheres=SPHERES, seed: int = 0, n_flat: int = 2, n_dark: int = 2) -> None:
+def write_sphere_scan(
+    path,
+    geometry: ViewGeometry,
+    *,
+    truth: ViewGeometry | None = None,
+    i0: float = 2e4,
+    spheres=SPHERES,
+    seed: int = 0,
+    n_flat: int = 2,
+    n_dark: int = 2,
+) -> None:
     """A small scan file of analytic spheres: darks, flats, Poisson projections, nominal (+ truth) geometry."""
     from orbitct.scanfile import ScanWriter
 
@@ -72,5 +81,8 @@ def write_sphere_scan(path, geometry: ViewGeometry, *, truth: ViewGeometry | Non
             t += 0.1
         if truth is not None:
             nan = np.full((n_dark + n_flat, 12), np.nan)
-            w.write_truth(np.concatenate([nan, truth.vectors]), phantom={"spheres": [list(map(float, (*c, r, m))) for c, r, m in spheres]})
+            w.write_truth(
+                np.concatenate([nan, truth.vectors]),
+                phantom={"spheres": [list(map(float, (*c, r, m))) for c, r, m in spheres]},
+            )
         w.finish("complete")

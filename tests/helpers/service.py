@@ -53,7 +53,9 @@ def parse_sse(text: str) -> list[dict[str, Any]]:
     return events
 
 
-def wait_for(api: Any, path: str, done: Callable[[dict[str, Any]], bool], timeout_s: float = 120.0, poll_s: float = 0.05) -> dict[str, Any]:
+def wait_for(
+    api: Any, path: str, done: Callable[[dict[str, Any]], bool], timeout_s: float = 120.0, poll_s: float = 0.05
+) -> dict[str, Any]:
     """GET ``path`` until ``done(body)``; the last body."""
     t0 = time.monotonic()
     body: dict[str, Any] = {}
@@ -105,14 +107,33 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def serve_subprocess(config: Path, data: Path, dev_token: str, timeout_s: float = 90.0) -> tuple[subprocess.Popen[bytes], str, dict[str, str]]:
+def serve_subprocess(
+    config: Path, data: Path, dev_token: str, timeout_s: float = 90.0
+) -> tuple[subprocess.Popen[bytes], str, dict[str, str]]:
     """``orbitct serve --sim`` in a subprocess, once its rig is connected: the process, base URL and auth header."""
     port = free_port()
     env = {**os.environ, "ORBITCT_DEV_TOKEN": dev_token, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "orbitct_app.cli.main", "serve", "--config", str(config), "--sim",
-         "--port", str(port), "--stop-port", "0", "--data-dir", str(data), "--log-level", "warning"],
-        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        [
+            sys.executable,
+            "-m",
+            "orbitct_app.cli.main",
+            "serve",
+            "--config",
+            str(config),
+            "--sim",
+            "--port",
+            str(port),
+            "--stop-port",
+            "0",
+            "--data-dir",
+            str(data),
+            "--log-level",
+            "warning",
+        ],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
     )
     base = f"http://127.0.0.1:{port}"
     t0 = time.monotonic()

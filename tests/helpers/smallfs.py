@@ -17,8 +17,9 @@ import pytest
 def small_filesystem(path: Path, size_mb: int) -> Iterator[Path]:
     """Mount a ``size_mb`` tmpfs at ``path`` for the block; skips only where mounting is impossible (never in CI)."""
     path.mkdir(parents=True, exist_ok=True)
-    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_mb}m,mode=0755", "tmpfs", str(path)],
-                             capture_output=True, text=True)
+    mounted = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={size_mb}m,mode=0755", "tmpfs", str(path)], capture_output=True, text=True
+    )
     if mounted.returncode != 0:
         why = f"cannot mount a {size_mb} MB tmpfs at {path}: {mounted.stderr.strip() or 'mount failed'}"
         if os.environ.get("CI"):
@@ -72,8 +73,9 @@ class FailingFilesystem:
         subprocess.run(["umount", "-l", str(self.path)], check=True)
         subprocess.run(["e2fsck", "-fy", str(self.image)], capture_output=True)  # exit 1: it fixed something
         # a loop device of its own: `mount -o loop` would reuse the old one, whose filesystem stays read-only
-        device = subprocess.run(["losetup", "--find", "--show", str(self.image)], capture_output=True, text=True,
-                                check=True).stdout.strip()
+        device = subprocess.run(
+            ["losetup", "--find", "--show", str(self.image)], capture_output=True, text=True, check=True
+        ).stdout.strip()
         subprocess.run(["mount", "-o", "errors=remount-ro", device, str(self.path)], check=True)
         self.devices.append(device)
 
@@ -87,8 +89,13 @@ def failing_filesystem(path: Path, size_mb: int) -> Iterator[FailingFilesystem]:
     with open(image, "wb") as fh:
         fh.truncate(size_mb << 20)
     made = subprocess.run(["mkfs.ext4", "-q", "-F", str(image)], capture_output=True, text=True)
-    mounted = made.returncode == 0 and subprocess.run(
-        ["mount", "-o", "loop,errors=remount-ro", str(image), str(path)], capture_output=True, text=True).returncode == 0
+    mounted = (
+        made.returncode == 0
+        and subprocess.run(
+            ["mount", "-o", "loop,errors=remount-ro", str(image), str(path)], capture_output=True, text=True
+        ).returncode
+        == 0
+    )
     if not mounted:
         why = f"cannot make and loop-mount an ext4 image at {path}: {made.stderr.strip() or 'mount failed'}"
         if os.environ.get("CI"):

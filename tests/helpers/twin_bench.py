@@ -31,8 +31,10 @@ class TwinBench:
         """The operator's step before a scan on real axes: servo on and reference both controllers."""
 
         async def main() -> None:
-            async with opened("hexapod", "hexapod", self.hexapod.uri) as hexa, \
-                    opened("rotation_stage", "stage", self.stage.uri) as stage:
+            async with (
+                opened("hexapod", "hexapod", self.hexapod.uri) as hexa,
+                opened("rotation_stage", "stage", self.stage.uri) as stage,
+            ):
                 await asyncio.gather(hexa.reference(), stage.reference())
 
         asyncio.run(main())

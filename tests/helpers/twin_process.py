@@ -12,7 +12,16 @@ from contextlib import contextmanager
 @contextmanager
 def twin_process(*args: str) -> Iterator[tuple[int, subprocess.Popen[str]]]:
     """Start ``orbitct twin ARGS --port 0 --console``; yield the port it printed and the process."""
-    cmd = [sys.executable, "-c", "from orbitct_app.cli.main import main; main()", "twin", *args, "--port", "0", "--console"]
+    cmd = [
+        sys.executable,
+        "-c",
+        "from orbitct_app.cli.main import main; main()",
+        "twin",
+        *args,
+        "--port",
+        "0",
+        "--console",
+    ]
     proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stderr is not None

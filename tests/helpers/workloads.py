@@ -13,7 +13,9 @@ from orbitct.progress import ProgressEvent, report
 from orbitct.scanfile import ScanFile
 
 
-def frame_means(scan_path: Path, params: dict[str, Any], out_dir: Path, progress: Callable[[ProgressEvent], None]) -> dict[str, Any]:
+def frame_means(
+    scan_path: Path, params: dict[str, Any], out_dir: Path, progress: Callable[[ProgressEvent], None]
+) -> dict[str, Any]:
     """Mean of every frame of the scan, one progress event per frame, optionally slowed down."""
     delay = float(params.get("delay_s", 0.0))
     with ScanFile(scan_path) as sf:

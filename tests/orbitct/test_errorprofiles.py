@@ -62,8 +62,9 @@ def test_none_and_custom() -> None:
     o = make_orbit("circular", n_frames=2000)
     z = make_profile("none").sample(o)
     assert not z.angles.any() and not z.shift_mm.any()
-    c = make_profile("custom", seed=3, angle_amplitude_deg=(0.5, 0, 0), angle_cycles=3,
-                     shift_noise_mm=(0, 0, 1.5)).sample(o)
+    c = make_profile(
+        "custom", seed=3, angle_amplitude_deg=(0.5, 0, 0), angle_cycles=3, shift_noise_mm=(0, 0, 1.5)
+    ).sample(o)
     s = 2 * np.pi * 3 * np.arange(2000) / 2000
     amp, res = _sine_fit(s, c.pitch)
     assert amp == pytest.approx(np.radians(0.5), rel=1e-9) and np.abs(res).max() < 1e-12
@@ -82,8 +83,10 @@ def test_transform_convention() -> None:
 
 def test_composition_is_transform_product() -> None:
     o = make_orbit("sawtooth", n_frames=50)
-    a, b = make_profile("bench", seed=1), make_profile("custom", seed=2, angle_amplitude_deg=(1, 2, 3),
-                                                      shift_amplitude_mm=(1, 1, 1))
+    a, b = (
+        make_profile("bench", seed=1),
+        make_profile("custom", seed=2, angle_amplitude_deg=(1, 2, 3), shift_amplitude_mm=(1, 1, 1)),
+    )
     ea, eb = a.sample(o), b.sample(o)
     ec = (a + b).sample(o)
     Ra, ta = ea.transforms()
@@ -118,7 +121,9 @@ def test_profile_errors() -> None:
 
 def test_json_rebuilds_profiles() -> None:
     o = make_orbit("sawtooth", n_frames=40)
-    prof = make_profile("bench", seed=7, shift_amplitude_mm=4) + make_profile("custom", seed=1, angle_noise_deg=(1, 0, 0))
+    prof = make_profile("bench", seed=7, shift_amplitude_mm=4) + make_profile(
+        "custom", seed=1, angle_noise_deg=(1, 0, 0)
+    )
     again = profile_from_json(prof.to_json())
     assert np.array_equal(again.sample(o).angles, prof.sample(o).angles)
     assert "BenchProfile" not in repr(prof) and "composed" in repr(prof)

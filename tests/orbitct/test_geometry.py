@@ -12,8 +12,14 @@ DET = Panel(96, 128, 0.8, 0.7)
 def random_views(n: int = 25, seed: int = 0) -> ViewGeometry:
     rng = np.random.default_rng(seed)
     return ViewGeometry.from_carm(
-        rng.uniform(-np.pi, np.pi, n), rng.uniform(-0.6, 0.6, n), rng.uniform(600, 900, n), rng.uniform(1100, 1400, n),
-        DET, du=rng.uniform(-20, 20, n), dv=rng.uniform(-20, 20, n), eta=rng.uniform(-0.1, 0.1, n),
+        rng.uniform(-np.pi, np.pi, n),
+        rng.uniform(-0.6, 0.6, n),
+        rng.uniform(600, 900, n),
+        rng.uniform(1100, 1400, n),
+        DET,
+        du=rng.uniform(-20, 20, n),
+        dv=rng.uniform(-20, 20, n),
+        eta=rng.uniform(-0.1, 0.1, n),
         shift=rng.uniform(-10, 10, (n, 3)),
     )
 

@@ -16,8 +16,9 @@ from orbitct.simulator import simulate_scan
 
 
 def test_a_simulated_scan_reads_back_through_nxtomo(tmp_path: Path) -> None:
-    scan = simulate_scan("A", out=tmp_path / "s.h5", n_frames=12, detector_px=48, n_dark=1, n_flat=2, seed=2,
-                         errors="bench").path
+    scan = simulate_scan(
+        "A", out=tmp_path / "s.h5", n_frames=12, detector_px=48, n_dark=1, n_flat=2, seed=2, errors="bench"
+    ).path
     out = export_nxtomo(scan, tmp_path / "s.nx")
     nx = NXtomo().load(str(out), data_path=ENTRY)
     with ScanFile(scan) as sf:
@@ -37,7 +38,11 @@ def test_a_simulated_scan_reads_back_through_nxtomo(tmp_path: Path) -> None:
         t = f[f"{ENTRY}/sample/transformations"]
         assert f[f"{ENTRY}/sample"].attrs["depends_on"] == "transformations/rotation"
         assert t["rotation"].attrs["depends_on"] == "tilt" and t["tilt"].attrs["depends_on"] == "."
-        assert np.allclose(t["tilt"][()], axes["orbit.tilt"], equal_nan=True) and list(t["tilt"].attrs["vector"]) == [1.0, 0.0, 0.0]
+        assert np.allclose(t["tilt"][()], axes["orbit.tilt"], equal_nan=True) and list(t["tilt"].attrs["vector"]) == [
+            1.0,
+            0.0,
+            0.0,
+        ]
         vectors = f[f"{ENTRY}/orbitct/nominal_vectors"][()]
         assert np.allclose(vectors, nominal.vectors, equal_nan=True)
         assert "truth_vectors" in f[f"{ENTRY}/orbitct"]  # a simulated file has its true geometry too

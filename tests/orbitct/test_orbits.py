@@ -66,8 +66,10 @@ def test_multiarc_pheno_preset() -> None:
 
 
 def test_multiarc_custom_arcs() -> None:
-    arcs = [{"kind": "rotation", "tilt_deg": 5, "start_deg": 0, "end_deg": 90},
-            {"kind": "tilt", "rotation_deg": 45, "start_deg": -30, "end_deg": 0}]
+    arcs = [
+        {"kind": "rotation", "tilt_deg": 5, "start_deg": 0, "end_deg": 90},
+        {"kind": "tilt", "rotation_deg": 45, "start_deg": -30, "end_deg": 0},
+    ]
     o = make_orbit("multiarc", n_frames=120, arcs=arcs)
     assert np.bincount(o.segment).tolist() == [90, 30]
 

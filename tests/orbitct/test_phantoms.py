@@ -95,7 +95,9 @@ def test_json_round_trip() -> None:
         Phantom.from_json({"name": "x"})
 
 
-@pytest.mark.parametrize("name, n_bb, diameter, n_metal_extra", [("A", 8, 3.17, 0), ("B", 16, 3.17, 1), ("C", 10, 2.0, 8)])
+@pytest.mark.parametrize(
+    "name, n_bb, diameter, n_metal_extra", [("A", 8, 3.17, 0), ("B", 16, 3.17, 1), ("C", 10, 2.0, 8)]
+)
 def test_experiment_phantoms(name: str, n_bb: int, diameter: float, n_metal_extra: int) -> None:
     p = experiment_phantom(name, seed=1)
     assert p.n_markers == n_bb and p.marker_diameter_mm == diameter

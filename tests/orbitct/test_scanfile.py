@@ -16,14 +16,27 @@ DET = Panel(8, 10, 1.5, 1.25)
 def _write(path: Path, n_proj: int = 5, finish: bool = True) -> ViewGeometry:
     th = np.linspace(0, 1, n_proj)
     geom = ViewGeometry.from_carm(th, 0.1, 785.0, 1200.0, DET)
-    w = ScanWriter(path, DET, axes={"stage.angle": "deg"}, orbit_name="circular", orbit_params={"n_frames": n_proj},
-                   config={"sad_mm": 785.0}, marker_diameter_mm=3.17)
+    w = ScanWriter(
+        path,
+        DET,
+        axes={"stage.angle": "deg"},
+        orbit_name="circular",
+        orbit_params={"n_frames": n_proj},
+        config={"sad_mm": 785.0},
+        marker_diameter_mm=3.17,
+    )
     rng = np.random.default_rng(0)
     w.append(np.full(DET.shape, 100, np.uint16), "dark", 0.0)
     w.append(np.full(DET.shape, 16000, np.uint16), "flat", 0.1)
     for i in range(n_proj):
-        w.append(rng.integers(1000, 9000, DET.shape), "projection", 0.2 + i, nominal_vector=geom.vectors[i],
-                 encoders={"stage.angle": float(i)}, commanded={"stage.angle": float(i)})
+        w.append(
+            rng.integers(1000, 9000, DET.shape),
+            "projection",
+            0.2 + i,
+            nominal_vector=geom.vectors[i],
+            encoders={"stage.angle": float(i)},
+            commanded={"stage.angle": float(i)},
+        )
     w.write_truth(np.concatenate([np.full((2, 12), np.nan), geom.vectors]), np.zeros((3, 3)), {"name": "x"})
     if finish:
         w.finish()
@@ -59,10 +72,27 @@ def test_results_written_back(tmp_path: Path) -> None:
         f.set_status("aborted", "x")
     full = ViewGeometry.empty_like(2, DET).concatenate(geom)
     with ScanFile(path, mode="r+") as f:
-        f.write_calibration(full, uv=np.zeros((7, 3, 2)), xyz=np.zeros((3, 3)), rpe_mm=np.r_[np.nan, np.nan, np.ones(5)],
-                            method="bb", iterations=2, elapsed_s=1.0, reproj_rms_px=0.1)
-        f.write_recon("fdk", np.ones((2, 3, 4)), voxel_mm=(1, 1, 1), origin_mm=(0, 0, 0), algorithm="fdk",
-                      geometry="calibrated", iterations=0, elapsed_s=0.5, params={"filter": "ramp"})
+        f.write_calibration(
+            full,
+            uv=np.zeros((7, 3, 2)),
+            xyz=np.zeros((3, 3)),
+            rpe_mm=np.r_[np.nan, np.nan, np.ones(5)],
+            method="bb",
+            iterations=2,
+            elapsed_s=1.0,
+            reproj_rms_px=0.1,
+        )
+        f.write_recon(
+            "fdk",
+            np.ones((2, 3, 4)),
+            voxel_mm=(1, 1, 1),
+            origin_mm=(0, 0, 0),
+            algorithm="fdk",
+            geometry="calibrated",
+            iterations=0,
+            elapsed_s=0.5,
+            params={"filter": "ramp"},
+        )
     with ScanFile(path) as f:
         assert f.geometry("calibrated")[2:].allclose(geom)
         assert f.h5["geometry/calibrated"].attrs["rpe_mean_mm"] == 1.0
@@ -185,8 +215,6 @@ def test_writer_rejects_bad_input(tmp_path: Path) -> None:
         ScanWriter(path, DET)
     with pytest.raises(ScanFileError, match="must look like 'device.axis'"):
         ScanWriter(tmp_path / "x.h5", DET, axes={"angle": "deg"})
-
-
 
 
 def test_summary_names_projections_taken_away_from_their_command(tmp_path: Path) -> None:

@@ -15,8 +15,16 @@ from orbitct.simulator import SimulatedBench, simulate_scan
 @pytest.mark.parametrize("experiment, orbit", [("A", "sawtooth"), ("B", "dcarc"), ("C", "multiarc")])
 def test_every_experiment_makes_a_complete_scan(tmp_path: Path, experiment: str, orbit: str) -> None:
     events: list[ProgressEvent] = []
-    res = simulate_scan(experiment, out=tmp_path / "s.h5", n_frames=8, detector_px=48, n_dark=1, n_flat=2, seed=2,
-                        progress=events.append)
+    res = simulate_scan(
+        experiment,
+        out=tmp_path / "s.h5",
+        n_frames=8,
+        detector_px=48,
+        n_dark=1,
+        n_flat=2,
+        seed=2,
+        progress=events.append,
+    )
     assert res.orbit.name == orbit and res.n_frames == 11 and res.frames_per_s > 0
     assert events[-1].done == events[-1].total == 11
     with ScanFile(res.path) as f:

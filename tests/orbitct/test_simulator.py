@@ -77,7 +77,7 @@ def test_bb_clearly_visible_over_clutter_in_raw_frames() -> None:
     li = -np.log(np.maximum(raw - dark, 0.5) / flat)
     uv = bench.view(R, t).project(p.markers_xyz)[0]
     seen = 0
-    for (c, r) in uv:
+    for c, r in uv:
         ic, ir = int(round(c)), int(round(r))
         if not (16 <= ic < 752 and 16 <= ir < 752):
             continue
@@ -147,7 +147,9 @@ def test_bench_renders_object_pose() -> None:
 
 def test_line_integral_stack_skips_non_projection_views() -> None:
     p = experiment_phantom("B")
-    g = ViewGeometry.empty_like(2, DET).concatenate(make_orbit("circular", n_frames=3).nominal_geometry(785.0, 1200.0, DET))
+    g = ViewGeometry.empty_like(2, DET).concatenate(
+        make_orbit("circular", n_frames=3).nominal_geometry(785.0, 1200.0, DET)
+    )
     stack = line_integral_stack(p, g)
     assert stack.shape == (3,) + DET.shape
     assert np.array_equal(stack[1], line_integrals(p, g, 3))

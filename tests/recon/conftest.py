@@ -15,6 +15,13 @@ def random_geometry() -> ViewGeometry:
     n = 9
     det = Panel(30, 36, 1.3, 1.1)
     return ViewGeometry.from_carm(
-        rng.uniform(0, 2 * np.pi, n), rng.uniform(-0.7, 0.7, n), rng.uniform(250, 320, n), 520.0, det,
-        du=rng.normal(0, 4, n), dv=rng.normal(0, 4, n), eta=rng.normal(0, 0.3, n), shift=rng.normal(0, 3, (n, 3)),
+        rng.uniform(0, 2 * np.pi, n),
+        rng.uniform(-0.7, 0.7, n),
+        rng.uniform(250, 320, n),
+        520.0,
+        det,
+        du=rng.normal(0, 4, n),
+        dv=rng.normal(0, 4, n),
+        eta=rng.normal(0, 0.3, n),
+        shift=rng.normal(0, 3, (n, 3)),
     )

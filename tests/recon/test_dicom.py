@@ -18,8 +18,14 @@ from tests.helpers.tools import require_tool
 def _sphere() -> tuple[VolumeGrid, np.ndarray, np.ndarray]:
     grid = VolumeGrid((20, 24, 28), (0.8, 0.8, 1.25), (-10.8, -9.2, -12.5))  # anisotropic, off-centre, nx != ny
     z, y, x = np.meshgrid(*(np.arange(n) for n in grid.shape), indexing="ij")
-    pos = np.stack([grid.origin_mm[0] + x * grid.voxel_mm[0], grid.origin_mm[1] + y * grid.voxel_mm[1],
-                    grid.origin_mm[2] + z * grid.voxel_mm[2]], axis=-1)
+    pos = np.stack(
+        [
+            grid.origin_mm[0] + x * grid.voxel_mm[0],
+            grid.origin_mm[1] + y * grid.voxel_mm[1],
+            grid.origin_mm[2] + z * grid.voxel_mm[2],
+        ],
+        axis=-1,
+    )
     centre = np.array([3.1, -4.0, 6.2])  # a bone-like sphere off the axes, in the object frame (mm)
     volume = np.full(grid.shape, 0.0206, np.float32)
     volume[np.linalg.norm(pos - centre, axis=-1) < 2.5] = 0.06
@@ -49,15 +55,23 @@ def test_the_series_puts_a_known_sphere_where_the_object_frame_has_it(tmp_path: 
     slices = [pydicom.dcmread(f) for f in files]
     assert len(slices) == grid.shape[0] and len({s.SeriesInstanceUID for s in slices}) == 1
     assert len({s.SOPInstanceUID for s in slices}) == len(slices) and slices[0].Modality == "CT"
-    images = [(s.pixel_array.astype(float) * float(s.RescaleSlope) + float(s.RescaleIntercept),
-               np.array(s.ImagePositionPatient, float), np.array(s.ImageOrientationPatient, float),
-               [float(v) for v in s.PixelSpacing]) for s in slices]
+    images = [
+        (
+            s.pixel_array.astype(float) * float(s.RescaleSlope) + float(s.RescaleIntercept),
+            np.array(s.ImagePositionPatient, float),
+            np.array(s.ImageOrientationPatient, float),
+            [float(v) for v in s.PixelSpacing],
+        )
+        for s in slices
+    ]
     assert images[0][0].shape == (grid.shape[1], grid.shape[2])
     found = _bright_centre(images)
     assert np.all(np.abs(found - centre) < 0.5 * np.array(grid.voxel_mm)), (found, centre)
     water = slices[0].pixel_array.astype(float) * float(slices[0].RescaleSlope) + float(slices[0].RescaleIntercept)
     assert np.all(water == 0)  # water is 0 HU
-    assert float(slices[0].SliceThickness) == pytest.approx(1.25) and float(slices[1].ImagePositionPatient[2]) == pytest.approx(-11.25)
+    assert float(slices[0].SliceThickness) == pytest.approx(1.25) and float(
+        slices[1].ImagePositionPatient[2]
+    ) == pytest.approx(-11.25)
 
 
 def test_hounsfield_units_are_clipped_and_bad_input_is_refused(tmp_path: Path) -> None:
@@ -81,7 +95,9 @@ def test_every_object_passes_dciodvfy(tmp_path: Path) -> None:
 def test_one_enhanced_ct_object_holds_the_same_volume_in_the_same_place(tmp_path: Path) -> None:
     grid, volume, centre = _sphere()
     path = export_enhanced_ct(volume, grid, tmp_path / "ct.dcm", SeriesInfo(description="test", patient_id="P1"))
-    res = subprocess.run([require_tool("dciodvfy", "dicom3tools"), str(path)], capture_output=True, text=True, timeout=60)
+    res = subprocess.run(
+        [require_tool("dciodvfy", "dicom3tools"), str(path)], capture_output=True, text=True, timeout=60
+    )
     assert not [x for x in (res.stdout + res.stderr).splitlines() if x.startswith("Error")], res.stderr
     ds = pydicom.dcmread(path)
     assert ds.SOPClassUID == "1.2.840.10008.5.1.4.1.1.2.1" and int(ds.NumberOfFrames) == grid.shape[0]
@@ -90,8 +106,10 @@ def test_one_enhanced_ct_object_holds_the_same_volume_in_the_same_place(tmp_path
     iop = np.array(shared.PlaneOrientationSequence[0].ImageOrientationPatient, float)
     spacing = [float(v) for v in shared.PixelMeasuresSequence[0].PixelSpacing]
     hu = ds.pixel_array.astype(float) * float(rescale.RescaleSlope) + float(rescale.RescaleIntercept)
-    images = [(hu[k], np.array(f.PlanePositionSequence[0].ImagePositionPatient, float), iop, spacing)
-              for k, f in enumerate(ds.PerFrameFunctionalGroupsSequence)]
+    images = [
+        (hu[k], np.array(f.PlanePositionSequence[0].ImagePositionPatient, float), iop, spacing)
+        for k, f in enumerate(ds.PerFrameFunctionalGroupsSequence)
+    ]
     found = _bright_centre(images)
     assert np.all(np.abs(found - centre) < 0.5 * np.array(grid.voxel_mm)), (found, centre)
     np.testing.assert_array_equal(hu, to_hounsfield(volume, 0.0206))  # the series' values, frame k = slice k

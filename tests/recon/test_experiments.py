@@ -17,7 +17,9 @@ from recon.quality import fov_mask
 
 def _reference(name: str, seed: int, grid: VolumeGrid, metal: bool = True) -> np.ndarray:
     ph = experiment_phantom(name, seed=seed)
-    return voxelize(ph if metal else ph.without_metal(), shape=grid.shape, voxel_mm=grid.voxel_mm, origin_mm=grid.origin_mm)
+    return voxelize(
+        ph if metal else ph.without_metal(), shape=grid.shape, voxel_mm=grid.voxel_mm, origin_mm=grid.origin_mm
+    )
 
 
 @pytest.mark.slow
@@ -40,7 +42,9 @@ def test_experiment_a_true_geometry_beats_nominal_and_pwls_beats_fdk(tmp_path: P
 @pytest.mark.slow
 def test_experiment_c_mar_reduces_streaks_around_screws(tmp_path: Path) -> None:
     path = tmp_path / "c.h5"
-    simulate_scan("C", orbit="circular", out=path, n_frames=90, detector_px=128, errors="none", seed=1, n_dark=2, n_flat=2)
+    simulate_scan(
+        "C", orbit="circular", out=path, n_frames=90, detector_px=128, errors="none", seed=1, n_dark=2, n_flat=2
+    )
     grid = VolumeGrid.centered((24, 128, 128), 2.0)
     truth = _reference("C", 1, grid)
     metal = _reference("C", 1, grid) - _reference("C", 1, grid, metal=False) > 0.05
@@ -58,7 +62,9 @@ def test_experiment_c_mar_reduces_streaks_around_screws(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_experiment_b_wire_fwhm_sharp_with_true_geometry(tmp_path: Path) -> None:
     path = tmp_path / "b.h5"
-    simulate_scan("B", orbit="circular", out=path, n_frames=120, detector_px=256, errors="bench", seed=1, n_dark=2, n_flat=2)
+    simulate_scan(
+        "B", orbit="circular", out=path, n_frames=120, detector_px=256, errors="bench", seed=1, n_dark=2, n_flat=2
+    )
     kw = dict(algorithm="fdk", voxel_mm=0.2, shape=(6, 40, 40), window="ram-lak")
     sharp = reconstruct_scan(path, geometry="truth", **kw)
     blurred = reconstruct_scan(path, geometry="nominal", **kw)

@@ -91,8 +91,12 @@ def test_pwls_streams_projections_from_an_hdf5_file(sawtooth_data, tmp_path) -> 
             np.testing.assert_allclose(res.cost, ref.cost, rtol=1e-4)
             np.testing.assert_allclose(res.volume, ref.volume, rtol=1e-4, atol=1e-5 * float(ref.volume.max()))
         sub = pwls_sps(A, f["y"], f["w"], iterations=2, x0=x0, subsets=4, chunk_views=3)
-        np.testing.assert_allclose(sub.volume, pwls_sps(A, y, w, iterations=2, x0=x0, subsets=4).volume,
-                                   rtol=1e-4, atol=1e-5 * float(ref.volume.max()))
+        np.testing.assert_allclose(
+            sub.volume,
+            pwls_sps(A, y, w, iterations=2, x0=x0, subsets=4).volume,
+            rtol=1e-4,
+            atol=1e-5 * float(ref.volume.max()),
+        )
     with pytest.raises(ReconError, match="chunk_views"):
         pwls_sps(A, y, w, iterations=1, chunk_views=0)
     with pytest.raises(ReconError, match="x0"):

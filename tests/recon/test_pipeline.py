@@ -75,10 +75,25 @@ def test_true_geometry_pwls_beats_fdk_and_nominal_is_worse(scan_a: Path, tmp_pat
 
 def test_exports_and_progress(scan_a: Path, tmp_path: Path) -> None:
     events = []
-    res = reconstruct_scan(scan_a, algorithm="fdk", geometry="nominal", voxel_mm=VOXEL, shape=SHAPE, name="quick",
-                           export=["nifti", "tiff", "png"], out_dir=tmp_path, progress=events.append)
+    res = reconstruct_scan(
+        scan_a,
+        algorithm="fdk",
+        geometry="nominal",
+        voxel_mm=VOXEL,
+        shape=SHAPE,
+        name="quick",
+        export=["nifti", "tiff", "png"],
+        out_dir=tmp_path,
+        progress=events.append,
+    )
     names = sorted(p.name for p in res.exported)
-    assert names == ["a_quick.nii.gz", "a_quick.tif", "a_quick_axial.png", "a_quick_coronal.png", "a_quick_sagittal.png"]
+    assert names == [
+        "a_quick.nii.gz",
+        "a_quick.tif",
+        "a_quick_axial.png",
+        "a_quick_coronal.png",
+        "a_quick_sagittal.png",
+    ]
     img = nib.load(str(tmp_path / "a_quick.nii.gz"))
     assert img.shape == SHAPE[::-1]
     assert np.allclose(img.affine[:3, 3], res.origin_mm)
@@ -146,12 +161,15 @@ def test_an_existing_reconstruction_is_replaced_only_when_asked(scan_a: Path, tm
     assert reconstruct_scan(path, **{**kw, "shape": (8, 8, 8)}, overwrite=True).volume_shape == (8, 8, 8)
 
 
-@pytest.mark.parametrize("damage,why", [
-    (lambda a: np.full_like(a, np.nan), "pixels NaN or infinite"),
-    (lambda a: np.where(np.arange(a.size).reshape(a.shape) % 7 == 0, np.inf, a), "pixels NaN or infinite"),
-    (lambda a: np.zeros_like(a), "all zero"),
-    (lambda a: np.full_like(a, 65535), "saturated"),
-])
+@pytest.mark.parametrize(
+    "damage,why",
+    [
+        (lambda a: np.full_like(a, np.nan), "pixels NaN or infinite"),
+        (lambda a: np.where(np.arange(a.size).reshape(a.shape) % 7 == 0, np.inf, a), "pixels NaN or infinite"),
+        (lambda a: np.zeros_like(a), "all zero"),
+        (lambda a: np.full_like(a, 65535), "saturated"),
+    ],
+)
 def test_unusable_frames_are_named_and_no_volume_is_stored(tmp_path: Path, damage, why: str) -> None:  # type: ignore[no-untyped-def]
     import h5py
 
@@ -196,8 +214,12 @@ def test_the_default_grid_is_fitted_to_the_object_and_says_so(tmp_path: Path) ->
     assert (ext[:, 0] >= -60.0 - 25.0).all() and (ext[:, 1] <= 60.0 + 25.0).all()  # and not much more
     truth = voxelized_spheres(obj.grid)
     err = lambda v: float(np.sqrt(np.mean((v - truth) ** 2)))  # noqa: E731
-    on_fov = fov.volume[tuple(slice(int(round((obj.grid.origin_mm[a] - fov.grid.origin_mm[a]) / fov.voxel_mm[a])), None)
-                              for a in (2, 1, 0))][: obj.volume_shape[0], : obj.volume_shape[1], : obj.volume_shape[2]]
+    on_fov = fov.volume[
+        tuple(
+            slice(int(round((obj.grid.origin_mm[a] - fov.grid.origin_mm[a]) / fov.voxel_mm[a])), None)
+            for a in (2, 1, 0)
+        )
+    ][: obj.volume_shape[0], : obj.volume_shape[1], : obj.volume_shape[2]]
     assert on_fov.shape == obj.volume.shape
     assert err(obj.volume) < 1.05 * err(on_fov)  # the same image where the object is
 
@@ -215,7 +237,10 @@ def test_the_fitted_grid_holds_all_of_the_phantom(tmp_path: Path, experiment: st
     phantom = reference_volume(experiment_phantom(experiment, 0), fov.grid, supersample=1)
     z, y, x = fov.grid.coords_mm()
     ext = obj.grid.extent_mm
-    inside = (((x >= ext[0, 0]) & (x <= ext[0, 1]))[None, None, :] & ((y >= ext[1, 0]) & (y <= ext[1, 1]))[None, :, None]
-              & ((z >= ext[2, 0]) & (z <= ext[2, 1]))[:, None, None])
+    inside = (
+        ((x >= ext[0, 0]) & (x <= ext[0, 1]))[None, None, :]
+        & ((y >= ext[1, 0]) & (y <= ext[1, 1]))[None, :, None]
+        & ((z >= ext[2, 0]) & (z <= ext[2, 1]))[:, None, None]
+    )
     assert phantom[~inside].sum() <= 1e-3 * phantom.sum()  # nothing of the object (BBs included) left outside
     assert obj.volume.size < fov.volume.size

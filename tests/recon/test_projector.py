@@ -99,8 +99,14 @@ def test_operator_results_do_not_depend_on_threads_or_reused_buffers(random_geom
 
 def _steep_and_random_views(random_geometry: ViewGeometry) -> ViewGeometry:
     """The random views plus views looking nearly along z (rays whose main axis is z)."""
-    steep = ViewGeometry.from_carm(np.array([0.3, 2.0, 4.1]), np.array([1.45, -1.5, 1.2]), 280.0, 520.0,
-                                   random_geometry.panel, shift=np.array([[0.0, 0.0, 2.0]] * 3))
+    steep = ViewGeometry.from_carm(
+        np.array([0.3, 2.0, 4.1]),
+        np.array([1.45, -1.5, 1.2]),
+        280.0,
+        520.0,
+        random_geometry.panel,
+        shift=np.array([[0.0, 0.0, 2.0]] * 3),
+    )
     return random_geometry.concatenate(steep)
 
 

@@ -23,7 +23,9 @@ def make_controller(kind: str, world: str | None = "bench", **options: Any) -> G
     return cls(get_world(world) if world else None, **options)  # type: ignore[call-arg]
 
 
-def start_twin(kind: str, host: str = "127.0.0.1", port: int = 0, world: str | None = "bench", **options: Any) -> TwinThread:
+def start_twin(
+    kind: str, host: str = "127.0.0.1", port: int = 0, world: str | None = "bench", **options: Any
+) -> TwinThread:
     """Start a twin of ``kind`` on ``host:port`` (0 = a free port) in a background thread."""
     return TwinThread(GcsTwin(make_controller(kind, world, **options)), host, port)
 

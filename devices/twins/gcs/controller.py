@@ -51,12 +51,40 @@ class GcsController:
     idn = "(c)2026 orbitct twin, GCS controller, 0, 0.0.0"
     reference_pose: tuple[float, ...] = ()
     command_names: tuple[str, ...] = (
-        "*IDN?", "CSV?", "ERR?", "HLP?", "SAI?", "SVO", "SVO?", "FRF", "FRF?", "MOV", "MOV?", "MVR", "POS?",
-        "ONT?", "HLT", "STP", "TMN?", "TMX?", "#5", "#7", "#24",
+        "*IDN?",
+        "CSV?",
+        "ERR?",
+        "HLP?",
+        "SAI?",
+        "SVO",
+        "SVO?",
+        "FRF",
+        "FRF?",
+        "MOV",
+        "MOV?",
+        "MVR",
+        "POS?",
+        "ONT?",
+        "HLT",
+        "STP",
+        "TMN?",
+        "TMX?",
+        "#5",
+        "#7",
+        "#24",
     )
 
-    def __init__(self, axes: Sequence[str], units: Sequence[str], low: Sequence[float], high: Sequence[float],
-                 start: Sequence[float], *, time_scale: float = 1.0, faults: TwinFaults | None = None) -> None:
+    def __init__(
+        self,
+        axes: Sequence[str],
+        units: Sequence[str],
+        low: Sequence[float],
+        high: Sequence[float],
+        start: Sequence[float],
+        *,
+        time_scale: float = 1.0,
+        faults: TwinFaults | None = None,
+    ) -> None:
         self.axes = tuple(axes)
         self.units = tuple(units)
         self.low = np.asarray(low, dtype=float)

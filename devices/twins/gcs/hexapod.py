@@ -65,8 +65,16 @@ class HexapodController(GcsController):
     command_names = GcsController.command_names + ("VLS", "VLS?", "SPI", "SPI?", "VMO?")
     max_velocity = 20.0  # mm/s (and deg/s for U, V, W)
 
-    def __init__(self, world: SimWorld | None = None, *, time_scale: float = 1.0, imperfect: bool = True,
-                 seed: int = 7, faults: TwinFaults | None = None, velocity: float = 10.0) -> None:
+    def __init__(
+        self,
+        world: SimWorld | None = None,
+        *,
+        time_scale: float = 1.0,
+        imperfect: bool = True,
+        seed: int = 7,
+        faults: TwinFaults | None = None,
+        velocity: float = 10.0,
+    ) -> None:
         start = (0.31, -0.22, -1.05, 0.04, -0.03, 0.12)  # where the platform happens to be at power-on
         super().__init__(AXES, UNITS, LOW, HIGH, start, time_scale=time_scale, faults=faults)
         self.world = world

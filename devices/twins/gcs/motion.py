@@ -46,8 +46,9 @@ def profile_fraction(t: float, distance: float, v_max: float, accel: float) -> t
 class LinearMotion:
     """Controller-side (commanded/encoder) positions of a group of axes moving on straight lines."""
 
-    def __init__(self, axes: Sequence[str], start: Sequence[float], *, time_scale: float = 1.0,
-                 clock: object = time.monotonic) -> None:
+    def __init__(
+        self, axes: Sequence[str], start: Sequence[float], *, time_scale: float = 1.0, clock: object = time.monotonic
+    ) -> None:
         self.axes = tuple(axes)
         self.time_scale = float(time_scale)
         self._clock = clock
@@ -110,4 +111,3 @@ class LinearMotion:
         """Stop where the axes are now (the real controller decelerates; ours stops at once)."""
         pos = self.position()
         self._start, self.target, self._duration = pos.copy(), pos.copy(), 0.0
-

@@ -25,9 +25,18 @@ class RotationStageController(GcsController):
     command_names = GcsController.command_names + ("VEL", "VEL?")
     max_velocity = 360.0  # deg/s
 
-    def __init__(self, world: SimWorld | None = None, *, time_scale: float = 1.0, imperfect: bool = True,
-                 seed: int = 11, faults: TwinFaults | None = None, velocity: float = 30.0,
-                 low_deg: float = -370.0, high_deg: float = 370.0) -> None:
+    def __init__(
+        self,
+        world: SimWorld | None = None,
+        *,
+        time_scale: float = 1.0,
+        imperfect: bool = True,
+        seed: int = 11,
+        faults: TwinFaults | None = None,
+        velocity: float = 30.0,
+        low_deg: float = -370.0,
+        high_deg: float = 370.0,
+    ) -> None:
         super().__init__(("1",), ("deg",), (low_deg,), (high_deg,), (17.3,), time_scale=time_scale, faults=faults)
         self.world = world
         self.velocity = float(velocity)
@@ -49,8 +58,12 @@ class RotationStageController(GcsController):
     def true_angle_deg(self) -> float:
         """Mechanical angle (deg) including the hidden errors."""
         enc = float(self.motion.position()[0])
-        return (enc + self.zero_offset_deg - 0.5 * self.backlash_deg * float(self.motion.last_direction[0])
-                + self.eccentricity_deg * math.sin(math.radians(enc) + self.eccentricity_phase))
+        return (
+            enc
+            + self.zero_offset_deg
+            - 0.5 * self.backlash_deg * float(self.motion.last_direction[0])
+            + self.eccentricity_deg * math.sin(math.radians(enc) + self.eccentricity_phase)
+        )
 
     def readback(self) -> NDArray[np.float64]:
         return self.motion.position() + self._rng.normal(0.0, self.noise, 1) * self.referenced

@@ -103,8 +103,9 @@ def revoke_token(path: Path, key: str) -> TokenHash:
         known = ", ".join(e.name for e in entries) or "none"
         raise TokenFileError(f"no token named {key!r} (or with a hash starting so) in {path}; tokens: {known}")
     if len(hits) > 1:
-        raise TokenFileError(f"{key!r} matches {len(hits)} tokens ({', '.join(e.sha256[:12] for e in hits)}); "
-                             "give more of the hash")
+        raise TokenFileError(
+            f"{key!r} matches {len(hits)} tokens ({', '.join(e.sha256[:12] for e in hits)}); give more of the hash"
+        )
     _write_token_file(path, [e for e in entries if e is not hits[0]])
     return hits[0]
 

@@ -49,11 +49,17 @@ class DataDirLock:
             os.close(fd)
             who = self.holder()
             desc = ", ".join(f"{k} {who[k]}" for k in ("pid", "host", "port", "started_utc") if k in who)
-            raise DataDirBusy(f"another orbitct service ({desc or 'details unknown'}) uses the data directory "
-                              f"{self.data_dir}; stop it first, or start this one with another --data-dir") from None
+            raise DataDirBusy(
+                f"another orbitct service ({desc or 'details unknown'}) uses the data directory "
+                f"{self.data_dir}; stop it first, or start this one with another --data-dir"
+            ) from None
         self._fd = fd
-        body = {"pid": os.getpid(), "host": socket.gethostname(),
-                "started_utc": datetime.now(UTC).isoformat(timespec="seconds"), **about}
+        body = {
+            "pid": os.getpid(),
+            "host": socket.gethostname(),
+            "started_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+            **about,
+        }
         with contextlib.suppress(OSError):  # a full disk keeps the lock, only not its description
             os.ftruncate(fd, 0)
             os.pwrite(fd, json.dumps(body).encode(), 0)

@@ -77,16 +77,24 @@ def _unavailable(path: Path, exc: sqlite3.Error) -> StoreUnavailable:
     """The sentence for a database write that failed for a cause outside the service."""
     text = str(exc).lower()
     if "disk is full" in text or getattr(exc, "sqlite_errorcode", None) == 13:
-        return StoreUnavailable(f"the service's database ({path.name}) cannot be written: the data directory's disk "
-                                "is full; free some space and try again", disk_full=True)
+        return StoreUnavailable(
+            f"the service's database ({path.name}) cannot be written: the data directory's disk "
+            "is full; free some space and try again",
+            disk_full=True,
+        )
     if "readonly" in text or "read-only" in text:
-        return StoreUnavailable(f"the service's database ({path.name}) cannot be written: the data directory is "
-                                "read-only; make it writable again and try again")
+        return StoreUnavailable(
+            f"the service's database ({path.name}) cannot be written: the data directory is "
+            "read-only; make it writable again and try again"
+        )
     if "locked" in text or "busy" in text:
-        return StoreUnavailable(f"the service's database ({path.name}) is locked by another program; close it "
-                                "(or end its transaction) and try again")
-    return StoreUnavailable(f"the service's database ({path.name}) cannot be written ({exc}); check the data "
-                            "directory's disk and try again")
+        return StoreUnavailable(
+            f"the service's database ({path.name}) is locked by another program; close it "
+            "(or end its transaction) and try again"
+        )
+    return StoreUnavailable(
+        f"the service's database ({path.name}) cannot be written ({exc}); check the data directory's disk and try again"
+    )
 
 
 def _is_outside_cause(exc: BaseException) -> bool:
@@ -163,7 +171,9 @@ class Store:
         with self._write_lock:
             current = self.version()
             if current > SCHEMA_VERSION:
-                raise StoreError(f"{self.path}: schema version {current} is newer than this software ({SCHEMA_VERSION})")
+                raise StoreError(
+                    f"{self.path}: schema version {current} is newer than this software ({SCHEMA_VERSION})"
+                )
             conn = self._conn()
             for version in range(current, min(target, SCHEMA_VERSION)):
                 try:
@@ -188,7 +198,9 @@ class Store:
             raise
 
     # ---------------------------------------------------------------- scans
-    def add_scan(self, scan_id: str, *, name: str, orbit: str, request: dict[str, Any], file: str, owner: str, frames_total: int) -> None:
+    def add_scan(
+        self, scan_id: str, *, name: str, orbit: str, request: dict[str, Any], file: str, owner: str, frames_total: int
+    ) -> None:
         """Record a new scan in state ``queued``."""
         self._write(
             "INSERT INTO scans (id, name, state, orbit, request_json, file, owner, created_utc, frames_total) "
@@ -202,11 +214,15 @@ class Store:
 
     def delete_scan(self, scan_id: str) -> None:
         """Forget a scan that never started (and has no jobs)."""
-        self._write("DELETE FROM scans WHERE id = ? AND NOT EXISTS (SELECT 1 FROM jobs WHERE scan_id = ?)", (scan_id, scan_id))
+        self._write(
+            "DELETE FROM scans WHERE id = ? AND NOT EXISTS (SELECT 1 FROM jobs WHERE scan_id = ?)", (scan_id, scan_id)
+        )
 
     def get_scan(self, scan_id: str) -> dict[str, Any] | None:
         """One scan, or None."""
-        return self._overlaid("scans", _row(self._conn().execute("SELECT * FROM scans WHERE id = ?", (scan_id,)).fetchone()))
+        return self._overlaid(
+            "scans", _row(self._conn().execute("SELECT * FROM scans WHERE id = ?", (scan_id,)).fetchone())
+        )
 
     def list_scans(self, *, state: str | None = None, limit: int = 100, offset: int = 0) -> list[dict[str, Any]]:
         """Scans, newest first."""
@@ -231,10 +247,19 @@ class Store:
 
     def get_job(self, job_id: str) -> dict[str, Any] | None:
         """One job, or None."""
-        return self._overlaid("jobs", _row(self._conn().execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()))
+        return self._overlaid(
+            "jobs", _row(self._conn().execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone())
+        )
 
-    def list_jobs(self, *, kind: str | None = None, scan_id: str | None = None, state: str | None = None,
-                  limit: int = 100, offset: int = 0) -> list[dict[str, Any]]:
+    def list_jobs(
+        self,
+        *,
+        kind: str | None = None,
+        scan_id: str | None = None,
+        state: str | None = None,
+        limit: int = 100,
+        offset: int = 0,
+    ) -> list[dict[str, Any]]:
         """Jobs, newest first, filtered."""
         where, args = [], []
         for column, value in (("kind", kind), ("scan_id", scan_id), ("state", state)):
@@ -277,8 +302,10 @@ class Store:
             start = int(row[0])
             conn.execute("BEGIN IMMEDIATE")
             try:
-                conn.executemany("INSERT INTO job_log (job_id, seq, time_utc, line) VALUES (?, ?, ?, ?)",
-                                 [(job_id, start + i + 1, time_utc, line) for i, line in enumerate(lines)])
+                conn.executemany(
+                    "INSERT INTO job_log (job_id, seq, time_utc, line) VALUES (?, ?, ?, ?)",
+                    [(job_id, start + i + 1, time_utc, line) for i, line in enumerate(lines)],
+                )
                 conn.execute("COMMIT")
             except BaseException:
                 conn.execute("ROLLBACK")
@@ -287,7 +314,8 @@ class Store:
     def job_log(self, job_id: str, *, after: int = 0, limit: int = 1000) -> list[dict[str, Any]]:
         """Log lines of a job after sequence number ``after``."""
         rows = self._conn().execute(
-            "SELECT seq, time_utc, line FROM job_log WHERE job_id = ? AND seq > ? ORDER BY seq LIMIT ?", (job_id, after, limit)
+            "SELECT seq, time_utc, line FROM job_log WHERE job_id = ? AND seq > ? ORDER BY seq LIMIT ?",
+            (job_id, after, limit),
         )
         return [dict(r) for r in rows.fetchall()]
 
@@ -303,7 +331,8 @@ class Store:
     def events(self, topic: str, *, after: int = 0, limit: int = 10_000) -> list[tuple[int, str, dict[str, Any]]]:
         """Stored events of ``topic`` after ``after``, in order."""
         rows = self._conn().execute(
-            "SELECT seq, kind, data_json FROM events WHERE topic = ? AND seq > ? ORDER BY seq LIMIT ?", (topic, after, limit)
+            "SELECT seq, kind, data_json FROM events WHERE topic = ? AND seq > ? ORDER BY seq LIMIT ?",
+            (topic, after, limit),
         )
         return [(int(s), k, json.loads(d)) for s, k, d in rows.fetchall()]
 
@@ -321,9 +350,14 @@ class Store:
             scans = [r[0] for r in conn.execute(f"SELECT id FROM scans WHERE state IN ({q})", RUNNING_SCAN_STATES)]
             jobs = [r[0] for r in conn.execute("SELECT id FROM jobs WHERE state = 'running'")]
             now = utc_now()
-            conn.execute(f"UPDATE scans SET state = 'interrupted', reason = ?, finished_utc = ? WHERE state IN ({q})",
-                         (reason, now, *RUNNING_SCAN_STATES))
-            conn.execute("UPDATE jobs SET state = 'interrupted', reason = ?, finished_utc = ? WHERE state = 'running'", (reason, now))
+            conn.execute(
+                f"UPDATE scans SET state = 'interrupted', reason = ?, finished_utc = ? WHERE state IN ({q})",
+                (reason, now, *RUNNING_SCAN_STATES),
+            )
+            conn.execute(
+                "UPDATE jobs SET state = 'interrupted', reason = ?, finished_utc = ? WHERE state = 'running'",
+                (reason, now),
+            )
         return scans, jobs
 
     def _update(self, table: str, row_id: str, fields: dict[str, Any]) -> None:
@@ -380,8 +414,9 @@ class Store:
                         self._kept_log.remove(entry)
             except (StoreUnavailable, sqlite3.Error, OSError) as exc:
                 with self._kept_lock:
-                    self.write_problem = str(exc) if isinstance(exc, StoreUnavailable) else str(
-                        _unavailable(self.path, exc))  # type: ignore[arg-type]
+                    self.write_problem = (
+                        str(exc) if isinstance(exc, StoreUnavailable) else str(_unavailable(self.path, exc))
+                    )  # type: ignore[arg-type]
                 continue
             with self._kept_lock:
                 if self._kept or self._kept_log:

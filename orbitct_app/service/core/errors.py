@@ -84,22 +84,33 @@ class Unavailable(ApiError):
 
 
 ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
-    400: {"model": ErrorBody, "description": "the request body cannot be read (not UTF-8 JSON, or sent with a content "
-                                             "type the route does not take)"},
+    400: {
+        "model": ErrorBody,
+        "description": "the request body cannot be read (not UTF-8 JSON, or sent with a content "
+        "type the route does not take)",
+    },
     401: {"model": ErrorBody, "description": "missing or unknown bearer token"},
     403: {"model": ErrorBody, "description": "the token's role may not do this"},
     404: {"model": ErrorBody, "description": "unknown id or file"},
-    413: {"model": ErrorBody, "description": "the request body is larger than the service's max_body_bytes "
-                                            "(max_upload_bytes for uploads)"},
+    413: {
+        "model": ErrorBody,
+        "description": "the request body is larger than the service's max_body_bytes (max_upload_bytes for uploads)",
+    },
     422: {"model": ErrorBody, "description": "invalid parameters: field and reason in `details`"},
 }
 NOT_SUCCEEDED: dict[int | str, dict[str, Any]] = {
-    409: {"model": ErrorBody, "description": "the job has not succeeded (queued, running, failed or cancelled); its "
-                                             "results exist once it has"}}
+    409: {
+        "model": ErrorBody,
+        "description": "the job has not succeeded (queued, running, failed or cancelled); its "
+        "results exist once it has",
+    }
+}
 BENCH_UNAVAILABLE: dict[int | str, dict[str, Any]] = {
-    503: {"model": ErrorBody, "description": "the bench process is not connected or did not answer in time"}}
+    503: {"model": ErrorBody, "description": "the bench process is not connected or did not answer in time"}
+}
 DISK_FULL: dict[int | str, dict[str, Any]] = {
-    507: {"model": ErrorBody, "description": "the data directory's disk is full (GET /health shows the disk state)"}}
+    507: {"model": ErrorBody, "description": "the data directory's disk is full (GET /health shows the disk state)"}
+}
 
 
 def _field_name(loc: tuple[Any, ...] | list[Any]) -> str:
@@ -121,15 +132,32 @@ def validation_details(errors: list[dict[str, Any]]) -> list[FieldProblem]:
     return [_problem(e) for e in errors]
 
 
-def _json(status: int, code: str, message: str, details: list[FieldProblem] | None = None, headers: dict[str, str] | None = None) -> JSONResponse:
+def _json(
+    status: int,
+    code: str,
+    message: str,
+    details: list[FieldProblem] | None = None,
+    headers: dict[str, str] | None = None,
+) -> JSONResponse:
     body = ErrorBody(error=code, message=message, details=details or [])
     return JSONResponse(body.model_dump(), status_code=status, headers=headers)
 
 
 _HTTP_CODES = {
-    400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found", 405: "method_not_allowed",
-    406: "not_acceptable", 409: "conflict", 413: "request_too_large", 415: "unsupported_media_type",
-    422: "invalid_parameters", 429: "too_many_requests", 502: "bad_gateway", 503: "unavailable", 507: "insufficient_storage",
+    400: "bad_request",
+    401: "unauthorized",
+    403: "forbidden",
+    404: "not_found",
+    405: "method_not_allowed",
+    406: "not_acceptable",
+    409: "conflict",
+    413: "request_too_large",
+    415: "unsupported_media_type",
+    422: "invalid_parameters",
+    429: "too_many_requests",
+    502: "bad_gateway",
+    503: "unavailable",
+    507: "insufficient_storage",
 }
 
 
@@ -146,8 +174,9 @@ def _allowed_methods(app: FastAPI, request: Request) -> list[str]:
     """The methods the OpenAPI document lists for this request's path: the most specific path template that matches
     it (``/orbits/preview``, not ``/orbits/{kind}`` as well), so that ``Allow`` says what the contract says."""
     path = request.url.path
-    matching = [t for t in app.openapi().get("paths", {})
-                if re.fullmatch(re.sub(r"\\\{[^}]+\\\}", "[^/]+", re.escape(t)), path)]
+    matching = [
+        t for t in app.openapi().get("paths", {}) if re.fullmatch(re.sub(r"\\\{[^}]+\\\}", "[^/]+", re.escape(t)), path)
+    ]
     if not matching:
         return []
     template = min(matching, key=lambda t: (t.count("{"), -len(t)))
@@ -179,8 +208,10 @@ def install_error_handlers(app: FastAPI) -> None:
         code = _HTTP_CODES.get(exc.status_code, "error")
         message = exc.detail if isinstance(exc.detail, str) else code.replace("_", " ")
         if exc.status_code == 400 and message == "There was an error parsing the body":  # FastAPI's own words
-            message = ("the request body cannot be read: send JSON, UTF-8, with Content-Type: application/json "
-                       "(GET /docs shows each route's body)")
+            message = (
+                "the request body cannot be read: send JSON, UTF-8, with Content-Type: application/json "
+                "(GET /docs shows each route's body)"
+            )
         headers = dict(getattr(exc, "headers", None) or {})
         if exc.status_code == 405:  # every method of the path, not only those of the first route that matched it
             allowed = _allowed_methods(app, request)
@@ -195,8 +226,11 @@ def install_error_handlers(app: FastAPI) -> None:
             return _json(503, "unavailable", str(exc))
         if disk_full(exc):
             log.error("disk full on %s %s: %s", request.method, request.url.path, exc)
-            return _json(507, "insufficient_storage", "the data directory's disk is full; free some space and try "
-                         "again (GET /health shows the disk state)")
+            return _json(
+                507,
+                "insufficient_storage",
+                "the data directory's disk is full; free some space and try again (GET /health shows the disk state)",
+            )
         incident = uuid.uuid4().hex[:12]
         log.exception("internal error %s on %s %s", incident, request.method, request.url.path)
         return _json(500, "internal_error", f"internal error (incident {incident}); the details are in the service log")

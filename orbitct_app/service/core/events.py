@@ -112,7 +112,9 @@ class EventBus:
             for ev in flushes:
                 ev.set()
 
-    async def stream(self, topic: str, after: int = 0, keepalive_s: float = 15.0) -> AsyncIterator[tuple[int, str, dict[str, Any]] | None]:
+    async def stream(
+        self, topic: str, after: int = 0, keepalive_s: float = 15.0
+    ) -> AsyncIterator[tuple[int, str, dict[str, Any]] | None]:
         """Yield the topic's events in order from ``after`` on, and None as a keep-alive; ends after ``end``."""
         loop = asyncio.get_running_loop()
         wake = asyncio.Event()
@@ -163,8 +165,9 @@ def event_id_after(last_event_id: str | None) -> int:
     return int(last_event_id)
 
 
-def sse_response(bus: EventBus, topic: str, last_event_id: str | None,
-                 first: tuple[str, dict[str, Any]] | None = None) -> Any:
+def sse_response(
+    bus: EventBus, topic: str, last_event_id: str | None, first: tuple[str, dict[str, Any]] | None = None
+) -> Any:
     """A ``text/event-stream`` response replaying ``topic`` after ``Last-Event-ID`` and following it live; ``first``:
     an event (kind, data) sent before them without an id, as the state the stream starts from."""
     from fastapi.responses import StreamingResponse
@@ -177,5 +180,6 @@ def sse_response(bus: EventBus, topic: str, last_event_id: str | None,
         async for item in bus.stream(topic, after):
             yield ": keep-alive\n\n" if item is None else sse_format(*item)
 
-    return StreamingResponse(_body(), media_type="text/event-stream",
-                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+    return StreamingResponse(
+        _body(), media_type="text/event-stream", headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}
+    )

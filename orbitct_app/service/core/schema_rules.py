@@ -13,19 +13,27 @@ from typing import Any
 
 def at_most_one_of(*fields: str) -> dict[str, Any]:
     """At most one of ``fields`` is given (absent or null counts as not given)."""
-    return {"anyOf": [{"properties": {other: {"type": "null"} for other in fields if other != keep}} for keep in fields]}
+    return {
+        "anyOf": [{"properties": {other: {"type": "null"} for other in fields if other != keep}} for keep in fields]
+    }
 
 
 def only_with(field: str, other: str, value: Any) -> dict[str, Any]:
     """A non-empty ``field`` (a list) only when ``other`` is ``value``."""
-    return {"anyOf": [{"properties": {field: {"anyOf": [{"type": "null"}, {"type": "array", "maxItems": 0}]}}},
-                      {"required": [other], "properties": {other: {"const": value}}}]}
+    return {
+        "anyOf": [
+            {"properties": {field: {"anyOf": [{"type": "null"}, {"type": "array", "maxItems": 0}]}}},
+            {"required": [other], "properties": {other: {"const": value}}},
+        ]
+    }
 
 
 def schema_extra(examples: list[dict[str, Any]], *rules: dict[str, Any]) -> Callable[[dict[str, Any]], None]:
     """A model's ``json_schema_extra``: its examples, and its cross-field rules (all of them must hold)."""
+
     def extra(schema: dict[str, Any]) -> None:
         schema["examples"] = examples
         if rules:
             schema["allOf"] = [*schema.get("allOf", []), *rules]
+
     return extra

@@ -35,30 +35,63 @@ class ServiceSettings(BaseSettings):
     sim: bool = Field(default=False, description="start in-process device twins instead of real hardware")
     host: str = Field(default="127.0.0.1", max_length=255)
     port: int = Field(default=8000, ge=1, le=65535)
-    stop_port: int | None = Field(default=None, ge=0, le=65535,
-                                  description="the guard's own stop listener (default: port + 1; 0: any free port)")
+    stop_port: int | None = Field(
+        default=None, ge=0, le=65535, description="the guard's own stop listener (default: port + 1; 0: any free port)"
+    )
     data_dir: Path = Field(default=Path("orbitct-data"), description="scan files, job outputs, database")
     tokens_file: Path | None = Field(default=None, description="token hashes (JSON); default <data_dir>/tokens.json")
     tokens: list[TokenHash] = Field(default_factory=list, description="token hashes configured inline")
-    dev_token: str | None = Field(default=None, min_length=16, max_length=200, description="--sim only: a fixed dev token")
+    dev_token: str | None = Field(
+        default=None, min_length=16, max_length=200, description="--sim only: a fixed dev token"
+    )
     max_body_bytes: int = Field(default=64 * 1024, ge=1024, le=16 * 1024 * 1024)
-    max_upload_bytes: int = Field(default=32 * 1024 * 1024, ge=1024, le=1024 * 1024 * 1024,
-                                  description="largest file an upload may send (a surface mesh: POST /surfaces)")
-    job_workers: int = Field(default=1, ge=1, le=64, description="calibration/reconstruction jobs at once (and the "
-                             "embedded Dask cluster's worker processes)")
-    dask_scheduler: str | None = Field(default=None, pattern=r"^(tcp|tls)://[^\s/:]+:\d{1,5}$",
-                                       description="an existing Dask scheduler that runs the jobs (tcp://host:8786); "
-                                       "default: an embedded local cluster")
-    cancel_grace_s: float = Field(default=5.0, ge=0.1, le=120.0, description="time a cancelled job gets before it is killed")
-    reconstruction_max_minutes: float = Field(default=60.0, gt=0.0, le=10080.0, description="a reconstruction job estimated "
-                                              "to take longer fails at once, before any work (a request may raise it)")
-    pacs_nodes: dict[str, str] = Field(default_factory=dict, description="DICOM nodes the service may query, fetch "
-                                       "runs from and send series to: name -> dicom://AE_TITLE@host:port")
-    pacs_calling_aet: str = Field(default="ORBITCT", min_length=1, max_length=16, pattern=r"^[ -~]*[!-~][ -~]*$",
-                                  description="the AE title orbitct calls the nodes with")
+    max_upload_bytes: int = Field(
+        default=32 * 1024 * 1024,
+        ge=1024,
+        le=1024 * 1024 * 1024,
+        description="largest file an upload may send (a surface mesh: POST /surfaces)",
+    )
+    job_workers: int = Field(
+        default=1,
+        ge=1,
+        le=64,
+        description="calibration/reconstruction jobs at once (and the embedded Dask cluster's worker processes)",
+    )
+    dask_scheduler: str | None = Field(
+        default=None,
+        pattern=r"^(tcp|tls)://[^\s/:]+:\d{1,5}$",
+        description="an existing Dask scheduler that runs the jobs (tcp://host:8786); "
+        "default: an embedded local cluster",
+    )
+    cancel_grace_s: float = Field(
+        default=5.0, ge=0.1, le=120.0, description="time a cancelled job gets before it is killed"
+    )
+    reconstruction_max_minutes: float = Field(
+        default=60.0,
+        gt=0.0,
+        le=10080.0,
+        description="a reconstruction job estimated "
+        "to take longer fails at once, before any work (a request may raise it)",
+    )
+    pacs_nodes: dict[str, str] = Field(
+        default_factory=dict,
+        description="DICOM nodes the service may query, fetch "
+        "runs from and send series to: name -> dicom://AE_TITLE@host:port",
+    )
+    pacs_calling_aet: str = Field(
+        default="ORBITCT",
+        min_length=1,
+        max_length=16,
+        pattern=r"^[ -~]*[!-~][ -~]*$",
+        description="the AE title orbitct calls the nodes with",
+    )
     max_scan_frames: int = Field(default=5000, ge=1, le=100_000)
-    bench_nice: int = Field(default=-5, ge=-20, le=0, description="priority asked for the bench process (needs root or CAP_SYS_NICE)")
-    status_interval_s: float = Field(default=0.25, ge=0.01, le=10.0, description="how often scan progress goes to the DB")
+    bench_nice: int = Field(
+        default=-5, ge=-20, le=0, description="priority asked for the bench process (needs root or CAP_SYS_NICE)"
+    )
+    status_interval_s: float = Field(
+        default=0.25, ge=0.01, le=10.0, description="how often scan progress goes to the DB"
+    )
 
     @field_validator("pacs_nodes")
     @classmethod

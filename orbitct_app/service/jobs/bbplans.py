@@ -65,8 +65,9 @@ def _make_plan(request: BBPlanRequest, folder: str, plan_id: str, parent_pid: in
     def progress(event: ProgressEvent) -> None:
         if time.monotonic() - sent[0] >= PROGRESS_EVERY_S:
             sent[0] = time.monotonic()
-            conn.send(("progress", {"stage": event.stage, "done": event.done, "total": event.total,
-                                    "message": event.message}))
+            conn.send(
+                ("progress", {"stage": event.stage, "done": event.done, "total": event.total, "message": event.message})
+            )
 
     work = Path(folder) / f".{plan_id}.partial"
     try:
@@ -149,8 +150,10 @@ class PlanQueue:
                 raise PlansBusy("the service is stopping")
             being_made = self._running is not None and not plan_path(self.folder, self._running[0]).exists()
             if len(self._waiting) + being_made >= self.max_waiting:
-                raise PlansBusy(f"{self.max_waiting} plans are already waiting or being made (one at a time); try "
-                                "again when one has ended")
+                raise PlansBusy(
+                    f"{self.max_waiting} plans are already waiting or being made (one at a time); try "
+                    "again when one has ended"
+                )
             plan_id = uuid.uuid4().hex[:12]
             state = {"id": plan_id, "state": PLANNING, "owner": owner, "created": utc_now(), **asked}
             self.folder.mkdir(parents=True, exist_ok=True)  # the data directory may have been tidied by hand
@@ -208,8 +211,12 @@ class PlanQueue:
                     return
                 plan_id, request = self._waiting.popleft()
                 receive, send = self._ctx.Pipe(duplex=False)
-                process = self._ctx.Process(target=_make_plan, name=f"orbitct-plan-{plan_id}", daemon=True,
-                                            args=(request, str(self.folder), plan_id, os.getpid(), send))
+                process = self._ctx.Process(
+                    target=_make_plan,
+                    name=f"orbitct-plan-{plan_id}",
+                    daemon=True,
+                    args=(request, str(self.folder), plan_id, os.getpid(), send),
+                )
                 try:
                     process.start()
                 except OSError as exc:  # no process to be had (limits, memory): this plan fails, the queue goes on
@@ -245,4 +252,14 @@ class PlanQueue:
             process.join()
 
 
-__all__ = ["CANCELLED", "DONE", "FAILED", "MAX_PLANS_WAITING", "PLANNING", "PlanEnded", "PlanQueue", "PlansBusy", "plan_path"]
+__all__ = [
+    "CANCELLED",
+    "DONE",
+    "FAILED",
+    "MAX_PLANS_WAITING",
+    "PLANNING",
+    "PlanEnded",
+    "PlanQueue",
+    "PlansBusy",
+    "plan_path",
+]

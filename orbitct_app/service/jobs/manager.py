@@ -67,8 +67,14 @@ def _exit_with(owner_pid: int) -> None:
     os._exit(1)
 
 
-def run_job(func: Callable[..., dict[str, Any]], job_id: str, scan_path: str, params: dict[str, Any],
-            out_dir: str, owner_pid: int | None = None) -> dict[str, Any]:
+def run_job(
+    func: Callable[..., dict[str, Any]],
+    job_id: str,
+    scan_path: str,
+    params: dict[str, Any],
+    out_dir: str,
+    owner_pid: int | None = None,
+) -> dict[str, Any]:
     """What a Dask worker runs for one job: ``func`` with a progress callback that reports on :data:`TOPIC` and
     raises :class:`JobCancelled` once the job's cancel event is set. Returns the result, or the outcome
     ``{"cancelled": reason}`` / ``{"error": message}``, with ``events``, the number of events sent before it.
@@ -103,8 +109,16 @@ def run_job(func: Callable[..., dict[str, Any]], job_id: str, scan_path: str, pa
             checked[0] = now
             if cancel.is_set():
                 raise JobCancelled("cancelled on request")
-        send("progress", {"stage": event.stage, "done": int(event.done), "total": int(event.total),
-                          "message": event.message, "metrics": {k: float(v) for k, v in dict(event.metrics).items()}})
+        send(
+            "progress",
+            {
+                "stage": event.stage,
+                "done": int(event.done),
+                "total": int(event.total),
+                "message": event.message,
+                "metrics": {k: float(v) for k, v in dict(event.metrics).items()},
+            },
+        )
         if event.stage != last_stage[0]:
             last_stage[0] = event.stage
             send("log", f"stage {event.stage}: {event.message}".rstrip(": "))
@@ -158,9 +172,18 @@ class JobManager:
     cluster of ``workers`` worker processes starts with the service. The workers must see the data directory at
     the same path."""
 
-    def __init__(self, store: Store, bus: EventBus, data_dir: Path, *, workers: int = 1, cancel_grace_s: float = 5.0,
-                 scan_busy: Callable[[str], bool] | None = None, scheduler: str | None = None,
-                 scheduler_timeout_s: float = 10.0) -> None:
+    def __init__(
+        self,
+        store: Store,
+        bus: EventBus,
+        data_dir: Path,
+        *,
+        workers: int = 1,
+        cancel_grace_s: float = 5.0,
+        scan_busy: Callable[[str], bool] | None = None,
+        scheduler: str | None = None,
+        scheduler_timeout_s: float = 10.0,
+    ) -> None:
         """``scheduler_timeout_s``: how long connecting to ``scheduler`` may take."""
         self._store, self._bus = store, bus
         self._data_dir = Path(data_dir).resolve()
@@ -253,9 +276,15 @@ class JobManager:
             if self._scheduler:
                 self._client = Client(self._scheduler, timeout=self._scheduler_timeout, set_as_default=False)
             else:
-                self._cluster = LocalCluster(n_workers=self._workers, threads_per_worker=1, processes=True,
-                                             dashboard_address="127.0.0.1:0", host="127.0.0.1", memory_limit=0,
-                                             silence_logs=logging.WARNING)
+                self._cluster = LocalCluster(
+                    n_workers=self._workers,
+                    threads_per_worker=1,
+                    processes=True,
+                    dashboard_address="127.0.0.1:0",
+                    host="127.0.0.1",
+                    memory_limit=0,
+                    silence_logs=logging.WARNING,
+                )
                 self._client = Client(self._cluster, set_as_default=False)
             self._client.subscribe_topic(TOPIC, lambda event: self._events.put(event[1]))
         except Exception as exc:  # noqa: BLE001 - the service runs on, jobs stay queued and say why
@@ -340,9 +369,17 @@ class JobManager:
         job_id = job["id"]
         cancel = Event(f"orbitct-cancel-{job_id}", client=self._client)
         cancel.clear()
-        future = self._client.submit(run_job, JOB_TARGETS[job["kind"]], job_id, str(scan_path), job["params"],
-                                     str(self.job_dir(job_id)), None if self._scheduler else os.getpid(),
-                                     key=f"orbitct-job-{job_id}", pure=False)
+        future = self._client.submit(
+            run_job,
+            JOB_TARGETS[job["kind"]],
+            job_id,
+            str(scan_path),
+            job["params"],
+            str(self.job_dir(job_id)),
+            None if self._scheduler else os.getpid(),
+            key=f"orbitct-job-{job_id}",
+            pure=False,
+        )
         self._store.update_job(job_id, state="running", started_utc=utc_now())
         self._bus.publish(f"job:{job_id}", "state", {"state": "running", "reason": ""})
         with self._lock:
@@ -384,8 +421,11 @@ class JobManager:
         """A worker started the job: again, when the one before it died (said in its log and events)."""
         r.attempts += 1
         if r.attempts > 1 and not r.worker_gone:  # not said yet by _watch_workers
-            self._tell(r, f"the Dask worker {r.worker} running it died; Dask runs the job again from its start on "
-                          f"the worker {worker} (attempt {r.attempts})")
+            self._tell(
+                r,
+                f"the Dask worker {r.worker} running it died; Dask runs the job again from its start on "
+                f"the worker {worker} (attempt {r.attempts})",
+            )
         elif r.attempts > 1:
             self._tell(r, f"Dask runs the job again from its start on the worker {worker} (attempt {r.attempts})")
         r.worker, r.worker_gone = worker, False
@@ -409,8 +449,11 @@ class JobManager:
         for r in watched:
             if r.worker not in alive:
                 r.worker_gone = True  # said once; a second start says it again with the new worker
-                self._tell(r, f"the Dask worker {r.worker} running it died (killed, or out of memory); Dask runs the "
-                              "job again on a live worker from its start, or fails it if its workers keep dying")
+                self._tell(
+                    r,
+                    f"the Dask worker {r.worker} running it died (killed, or out of memory); Dask runs the "
+                    "job again on a live worker from its start, or fails it if its workers keep dying",
+                )
 
     def _poll_running(self, lost: bool) -> None:
         with self._lock:
@@ -428,8 +471,11 @@ class JobManager:
             if r.outcome is None:
                 continue
             # the events a job sent before its result travel apart from it: wait for them (a little)
-            if (r.events_expected is not None and r.events_seen < r.events_expected
-                    and time.monotonic() - (r.done_at or 0.0) < 2.0):
+            if (
+                r.events_expected is not None
+                and r.events_seen < r.events_expected
+                and time.monotonic() - (r.done_at or 0.0) < 2.0
+            ):
                 continue
             with self._lock:
                 self._running.pop(r.job_id, None)
@@ -453,8 +499,10 @@ class JobManager:
             exc = r.future.exception()
             name = type(exc).__name__
             if name == "KilledWorker":
-                why = (f"the Dask worker running it died, also when the job was run again ({exc}); too little memory, "
-                       "or the worker was killed")
+                why = (
+                    f"the Dask worker running it died, also when the job was run again ({exc}); too little memory, "
+                    "or the worker was killed"
+                )
             else:
                 why = f"{name}: {exc}"
             return "failed", self._scrub(why)[:1000], {}
@@ -462,8 +510,11 @@ class JobManager:
             if r.cancel_at is not None:
                 return "cancelled", "cancelled on request", {}
             client_status = getattr(self._client, "status", "closed")
-            why = (f"{self.where} went away (client {client_status})" if client_status != "running"
-                   else f"{self.where} dropped the job (its future is {status})")
+            why = (
+                f"{self.where} went away (client {client_status})"
+                if client_status != "running"
+                else f"{self.where} dropped the job (its future is {status})"
+            )
             return "failed", f"{why}; the job's work there is lost: submit it again", {}
         return None
 
@@ -481,8 +532,13 @@ class JobManager:
         return text.replace(str(self._data_dir) + os.sep, "").replace(str(self._data_dir), "<data>")
 
     def _finish(self, job_id: str, state: str, reason: str, result: dict[str, Any]) -> None:
-        self._store.update_job(job_id, state=state, reason=reason, result=json.loads(json.dumps(result, default=str)),
-                               finished_utc=utc_now())
+        self._store.update_job(
+            job_id,
+            state=state,
+            reason=reason,
+            result=json.loads(json.dumps(result, default=str)),
+            finished_utc=utc_now(),
+        )
         self._store.add_log(job_id, [f"{state}" + (f": {reason}" if reason else "")])
         self._bus.publish(f"job:{job_id}", "state", {"state": state, "reason": reason})
         self._bus.publish(f"job:{job_id}", "end", {"state": state, "reason": reason})

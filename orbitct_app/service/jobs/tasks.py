@@ -28,16 +28,18 @@ def _quality(verdict: Any) -> dict[str, Any] | None:
     return out
 
 
-def run_calibration(scan_path: Path, params: dict[str, Any], out_dir: Path,
-                    progress: Callable[[ProgressEvent], None]) -> dict[str, Any]:
+def run_calibration(
+    scan_path: Path, params: dict[str, Any], out_dir: Path, progress: Callable[[ProgressEvent], None]
+) -> dict[str, Any]:
     """Calibrate the scan in place; report plots and the RPE table go to ``out_dir``."""
     import calib
 
     options = {k: v for k, v in params.items() if k != "method" and v is not None}
     if "scale_bar_bbs" in options:
         options["scale_bar_bbs"] = tuple(options["scale_bar_bbs"])
-    res = calib.calibrate_scan(scan_path, method=params.get("method", "bundle"), out=None,
-                               report_dir=out_dir, progress=progress, **options)
+    res = calib.calibrate_scan(
+        scan_path, method=params.get("method", "bundle"), out=None, report_dir=out_dir, progress=progress, **options
+    )
     rpe = np.asarray(res.rpe_mm, dtype=float)
     with open(out_dir / "rpe_per_frame.csv", "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
@@ -46,29 +48,42 @@ def run_calibration(scan_path: Path, params: dict[str, Any], out_dir: Path,
             if math.isfinite(value):
                 w.writerow([i, f"{value:.6f}"])
     iterations = [
-        {"index": it.index, "rpe_mean_mm": _finite(it.rpe_mean_mm), "rpe_median_mm": _finite(it.rpe_median_mm),
-         "rpe_std_mm": _finite(it.rpe_std_mm), "reproj_rms_px": _finite(it.reproj_rms_px)}
+        {
+            "index": it.index,
+            "rpe_mean_mm": _finite(it.rpe_mean_mm),
+            "rpe_median_mm": _finite(it.rpe_median_mm),
+            "rpe_std_mm": _finite(it.rpe_std_mm),
+            "reproj_rms_px": _finite(it.reproj_rms_px),
+        }
         for it in res.iterations
     ]
     final = res.iterations[-1]
     table = {
-        "frames": int(res.n_frames), "bbs": int(res.n_bbs), "elapsed_s": float(res.elapsed_s),
-        "rpe_mean_mm": _finite(final.rpe_mean_mm), "rpe_median_mm": _finite(final.rpe_median_mm),
+        "frames": int(res.n_frames),
+        "bbs": int(res.n_bbs),
+        "elapsed_s": float(res.elapsed_s),
+        "rpe_mean_mm": _finite(final.rpe_mean_mm),
+        "rpe_median_mm": _finite(final.rpe_median_mm),
         "rpe_std_mm": _finite(final.rpe_std_mm),
         "time_per_frame_s": float(res.elapsed_s) / max(int(res.n_frames), 1),
         "time_per_frame_per_bb_s": float(res.elapsed_s) / max(int(res.n_frames) * int(res.n_bbs), 1),
     }
     return {
-        "method": res.method, "table": table, "iterations": iterations,
-        "reproj_rms_px": _finite(res.reproj_rms_px), "warnings": [str(w) for w in res.warnings][:200],
+        "method": res.method,
+        "table": table,
+        "iterations": iterations,
+        "reproj_rms_px": _finite(res.reproj_rms_px),
+        "warnings": [str(w) for w in res.warnings][:200],
         "unsolved_views": [int(v) for v in res.unsolved_views][:10_000],
-        "quality": _quality(res.quality), "scale": res.scale_line(),
+        "quality": _quality(res.quality),
+        "scale": res.scale_line(),
         "files": sorted(p.name for p in out_dir.iterdir() if p.is_file()),
     }
 
 
-def run_reconstruction(scan_path: Path, params: dict[str, Any], out_dir: Path,
-                       progress: Callable[[ProgressEvent], None]) -> dict[str, Any]:
+def run_reconstruction(
+    scan_path: Path, params: dict[str, Any], out_dir: Path, progress: Callable[[ProgressEvent], None]
+) -> dict[str, Any]:
     """Reconstruct the scan into ``/recon/<name>``; slices, NIfTI and a raw copy of the volume go to ``out_dir``."""
     import recon
 
@@ -85,12 +100,18 @@ def run_reconstruction(scan_path: Path, params: dict[str, Any], out_dir: Path,
     volume = np.asarray(res.volume, dtype=np.float32)
     np.save(out_dir / "volume.npy", volume)
     return {
-        "name": res.name, "shape": [int(n) for n in res.volume_shape],
-        "voxel_mm": [float(v) for v in res.voxel_mm], "origin_mm": [float(v) for v in res.origin_mm],
-        "cost": [_finite(c) for c in res.cost], "elapsed_s": float(res.elapsed_s),
+        "name": res.name,
+        "shape": [int(n) for n in res.volume_shape],
+        "voxel_mm": [float(v) for v in res.voxel_mm],
+        "origin_mm": [float(v) for v in res.origin_mm],
+        "cost": [_finite(c) for c in res.cost],
+        "elapsed_s": float(res.elapsed_s),
         "estimated_s": _finite(res.params.get("estimated_s", float("nan"))),
-        "min": _finite(volume.min()), "max": _finite(volume.max()), "mean": _finite(volume.mean()),
-        "warnings": [str(w) for w in res.warnings], "workers": int(res.params.get("cluster_workers", 1)),
+        "min": _finite(volume.min()),
+        "max": _finite(volume.max()),
+        "mean": _finite(volume.mean()),
+        "warnings": [str(w) for w in res.warnings],
+        "workers": int(res.params.get("cluster_workers", 1)),
         "files": sorted(p.name for p in out_dir.iterdir() if p.is_file()),
     }
 

@@ -37,9 +37,14 @@ from orbitct_app.service.rig import SERVICE_STOPPED
 
 log = logging.getLogger("orbitct.service.rig")
 _CTX = mp.get_context("spawn")
-ERROR_KINDS: dict[str, type[ApiError]] = {"invalid": Invalid, "conflict": Conflict, "not_found": NotFound,
-                                          "unavailable": Unavailable, "error": Unavailable,
-                                          "insufficient_storage": InsufficientStorage}
+ERROR_KINDS: dict[str, type[ApiError]] = {
+    "invalid": Invalid,
+    "conflict": Conflict,
+    "not_found": NotFound,
+    "unavailable": Unavailable,
+    "error": Unavailable,
+    "insufficient_storage": InsufficientStorage,
+}
 
 
 @dataclass
@@ -57,8 +62,18 @@ class ActiveScan:
 class RigClient:
     """Starts the rig process and relays commands, progress and the emergency stop."""
 
-    def __init__(self, config_path: Path, *, sim: bool, store: Store, bus: EventBus, data_dir: Path,
-                 status_interval_s: float = 0.25, nice: int = 0, latch_flag: Any = None) -> None:
+    def __init__(
+        self,
+        config_path: Path,
+        *,
+        sim: bool,
+        store: Store,
+        bus: EventBus,
+        data_dir: Path,
+        status_interval_s: float = 0.25,
+        nice: int = 0,
+        latch_flag: Any = None,
+    ) -> None:
         self.config_path = Path(config_path)
         self.sim, self.nice = sim, nice
         self.latch_flag = latch_flag
@@ -100,9 +115,22 @@ class RigClient:
         events_parent, events_child = _CTX.Pipe(duplex=False)
         self._cmd, self._stop, self._events = cmd_parent, stop_parent, events_parent
         self.connection_state = "connecting"
-        self._process = _CTX.Process(target=rig_main, name="orbitct-rig", daemon=True,
-                                     args=(str(self.config_path), self.sim, cmd_child, stop_child, events_child, self.nice,
-                                           self.links, str(self._data_dir), self.latch_flag))
+        self._process = _CTX.Process(
+            target=rig_main,
+            name="orbitct-rig",
+            daemon=True,
+            args=(
+                str(self.config_path),
+                self.sim,
+                cmd_child,
+                stop_child,
+                events_child,
+                self.nice,
+                self.links,
+                str(self._data_dir),
+                self.latch_flag,
+            ),
+        )
         self._process.start()
         self._started_at = time.monotonic()
         for conn in (cmd_child, stop_child, events_child):
@@ -303,15 +331,22 @@ class RigClient:
         now = time.monotonic()
         if now - active.last_db >= self._interval:
             active.last_db = now
-            self._db.submit(self._store.update_scan, scan_id, frames_done=data["done"], frames_total=data["total"],
-                            progress=data)
+            self._db.submit(
+                self._store.update_scan, scan_id, frames_done=data["done"], frames_total=data["total"], progress=data
+            )
 
     def _on_scan_end(self, scan_id: str, state: str, reason: str, summary: dict[str, Any]) -> None:
         reason = reason.replace(str(self._data_dir.resolve()) + "/", "").replace(str(self._data_dir) + "/", "")
         active = self.current
         progress = active.progress if active is not None and active.scan_id == scan_id else {}
-        fields: dict[str, Any] = dict(state=state, reason=reason[:2000], finished_utc=utc_now(), summary=summary,
-                                      progress=progress, frames_done=int(summary.get("n_frames", progress.get("done", 0))))
+        fields: dict[str, Any] = dict(
+            state=state,
+            reason=reason[:2000],
+            finished_utc=utc_now(),
+            summary=summary,
+            progress=progress,
+            frames_done=int(summary.get("n_frames", progress.get("done", 0))),
+        )
         if progress.get("total"):
             fields["frames_total"] = int(progress["total"])
         try:  # a record that cannot be written now is kept by the store and written later; never a reason to hang

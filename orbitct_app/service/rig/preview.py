@@ -58,8 +58,14 @@ class LatestFrame:
         small = frame[:rows, :cols].reshape(rows // step, step, cols // step, step).mean(axis=(1, 3))
         lo, hi = np.percentile(small, [1.0, 99.5])
         grey = np.clip((small - lo) / max(float(hi - lo), 1e-6) * 255.0, 0, 255).astype(np.uint8)
-        snapshot = {"index": int(record.index), "kind": IMAGE_KINDS.get(int(record.image_key), "frame"),
-                    "width": int(grey.shape[1]), "height": int(grey.shape[0]), "scale": 1.0 / step,
-                    "pixels": base64.b64encode(grey.tobytes()).decode("ascii"), "bbs": bbs}
+        snapshot = {
+            "index": int(record.index),
+            "kind": IMAGE_KINDS.get(int(record.image_key), "frame"),
+            "width": int(grey.shape[1]),
+            "height": int(grey.shape[0]),
+            "scale": 1.0 / step,
+            "pixels": base64.b64encode(grey.tobytes()).decode("ascii"),
+            "bbs": bbs,
+        }
         self._last = (key, snapshot)
         return snapshot

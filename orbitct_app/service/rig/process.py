@@ -61,11 +61,16 @@ def _live_outcome(live: Any) -> dict[str, Any]:
     lc, res = live.live, live.result
     out: dict[str, Any] = {"warnings": len(live.warnings)}
     if res is None:
-        out["outcome"] = f"failed: {live.error}" if live.error is not None else "not finished (the scan did not complete)"
+        out["outcome"] = (
+            f"failed: {live.error}" if live.error is not None else "not finished (the scan did not complete)"
+        )
         return out
-    out.update(outcome="passed" if res.quality.passed else "QUALITY CHECK FAILED: " + "; ".join(res.quality.reasons),
-               bbs=int(res.n_bbs), quality=res.quality.line(),
-               geometry_after_last_frame_s=round(float(lc.last_frame_to_geometry_s or 0.0), 3))
+    out.update(
+        outcome="passed" if res.quality.passed else "QUALITY CHECK FAILED: " + "; ".join(res.quality.reasons),
+        bbs=int(res.n_bbs),
+        quality=res.quality.line(),
+        geometry_after_last_frame_s=round(float(lc.last_frame_to_geometry_s or 0.0), 3),
+    )
     return out
 
 
@@ -107,8 +112,15 @@ def classify(exc: BaseException) -> tuple[str, str]:
 class RigServer:
     """Runs in the bench process: executes commands on the bench loop, reports scan progress."""
 
-    def __init__(self, config_path: Path, sim: bool, events: Connection, *, links: dict[str, Any] | None = None,
-                 latch: Any = None) -> None:
+    def __init__(
+        self,
+        config_path: Path,
+        sim: bool,
+        events: Connection,
+        *,
+        links: dict[str, Any] | None = None,
+        latch: Any = None,
+    ) -> None:
         self.config_path, self.sim, self._events = Path(config_path), sim, events
         self.links = links  # where the devices are (twins of the simulated bench included); None: from the config
         self.latch = latch
@@ -162,7 +174,9 @@ class RigServer:
             except Exception as exc:  # noqa: BLE001 - reported to the web server, which stays up degraded
                 self.send("connect_failed", classify(exc)[1])
                 return
-            threading.Thread(target=self._read, args=(commands, self._on_command), name="bench-commands", daemon=True).start()
+            threading.Thread(
+                target=self._read, args=(commands, self._on_command), name="bench-commands", daemon=True
+            ).start()
             threading.Thread(target=self._read, args=(stops, self._on_stop), name="bench-stop", daemon=True).start()
             if self.latch is not None:
                 threading.Thread(target=self._watch_latch, name="bench-latch", daemon=True).start()
@@ -271,15 +285,20 @@ class RigServer:
             await dev.move(targets)
         except ServoOffError as exc:  # the driver speaks Python; the fix over REST is the reference route
             off = ", ".join(exc.axes)
-            raise CommandError("conflict", f"{name}: servo is off on {off}; POST /devices/{name}/reference switches "
-                                           "it on and references the axes; nothing moved") from None
+            raise CommandError(
+                "conflict",
+                f"{name}: servo is off on {off}; POST /devices/{name}/reference switches "
+                "it on and references the axes; nothing moved",
+            ) from None
         return await self._state(dev)
 
     async def cmd_reset_fault(self, name: str) -> dict[str, Any]:
         """Clear a generator fault whose cause is gone (refused, naming the cause, while it persists); it switches
         nothing on, so it is allowed while an emergency stop is latched."""
         if self.scan_id is not None:
-            raise CommandError("conflict", f"the bench is running scan {self.scan_id}; a fault reset waits until it ends")
+            raise CommandError(
+                "conflict", f"the bench is running scan {self.scan_id}; a fault reset waits until it ends"
+            )
         dev = self._device(name)
         if not hasattr(dev, "reset_fault"):
             raise CommandError("invalid", f"device {name} has no fault to reset (only an X-ray generator has)")
@@ -298,9 +317,17 @@ class RigServer:
     def _request(self, spec: dict[str, Any]) -> Any:
         from acquire.runner import ScanRequest
 
-        return ScanRequest(config=self.config, out=Path(spec["out"]), orbit=spec["orbit"], orbit_params=spec["params"],
-                           errors=spec["errors"], seed=spec["seed"], mode=spec["mode"], sim=self.sim,
-                           frame_rate_hz=spec.get("frame_rate_hz"))
+        return ScanRequest(
+            config=self.config,
+            out=Path(spec["out"]),
+            orbit=spec["orbit"],
+            orbit_params=spec["params"],
+            errors=spec["errors"],
+            seed=spec["seed"],
+            mode=spec["mode"],
+            sim=self.sim,
+            frame_rate_hz=spec.get("frame_rate_hz"),
+        )
 
     async def cmd_preflight(self, spec: dict[str, Any]) -> None:
         """Plan the scan and check it against every limit; nothing moves."""
@@ -325,10 +352,17 @@ class RigServer:
         req = self._request(spec)
         self.scan_id = scan_id
         live = self.live = self._live_calibration(scan_id, spec, req)
-        self.preview = LatestFrame(marks=None if live is None else lambda: live.live.latest_marks if live.live else None)
+        self.preview = LatestFrame(
+            marks=None if live is None else lambda: live.live.latest_marks if live.live else None
+        )
         subscribers = [self.preview] + ([live] if live is not None else [])
-        self.runner = ScanRunner(req, progress=lambda ev: self._progress(scan_id, ev), rig=self.rig,
-                                 interlock=self._latched_reason, subscribers=subscribers)
+        self.runner = ScanRunner(
+            req,
+            progress=lambda ev: self._progress(scan_id, ev),
+            rig=self.rig,
+            interlock=self._latched_reason,
+            subscribers=subscribers,
+        )
         self._spawn(self._scan(scan_id, self.runner, Path(spec["out"])))
 
     def _live_calibration(self, scan_id: str, spec: dict[str, Any], req: Any) -> Any:
@@ -342,9 +376,13 @@ class RigServer:
         if not diameter:
             raise CommandError("invalid", "live calibration needs bb_diameter_mm (the size of the BBs on the object)")
         try:
-            return LiveCalibrationSubscriber(spec["out"], float(diameter), abort_on=spec.get("abort_on", ()),
-                                             on_warning=lambda w: self.send("scan_warning", scan_id, w.as_dict()),
-                                             progress=self._calibration_events(scan_id))
+            return LiveCalibrationSubscriber(
+                spec["out"],
+                float(diameter),
+                abort_on=spec.get("abort_on", ()),
+                on_warning=lambda w: self.send("scan_warning", scan_id, w.as_dict()),
+                progress=self._calibration_events(scan_id),
+            )
         except CalibrationError as exc:
             raise CommandError("invalid", str(exc)) from None
 
@@ -386,15 +424,31 @@ class RigServer:
             if event.stage != "live-calibration" or now - last[0] < every_s:
                 return
             last[0] = now
-            self.send("scan_calibration", scan_id, {"done": int(event.done), "total": int(event.total),
-                                                    "message": event.message,
-                                                    "metrics": {k: float(v) for k, v in dict(event.metrics).items()}})
+            self.send(
+                "scan_calibration",
+                scan_id,
+                {
+                    "done": int(event.done),
+                    "total": int(event.total),
+                    "message": event.message,
+                    "metrics": {k: float(v) for k, v in dict(event.metrics).items()},
+                },
+            )
+
         return send
 
     def _progress(self, scan_id: str, event: ProgressEvent) -> None:
-        self.send("progress", scan_id, {"stage": event.stage, "done": int(event.done), "total": int(event.total),
-                                        "message": event.message,
-                                        "metrics": {k: float(v) for k, v in dict(event.metrics).items()}})
+        self.send(
+            "progress",
+            scan_id,
+            {
+                "stage": event.stage,
+                "done": int(event.done),
+                "total": int(event.total),
+                "message": event.message,
+                "metrics": {k: float(v) for k, v in dict(event.metrics).items()},
+            },
+        )
 
     async def cmd_latest_frame(self, scan_id: str) -> dict[str, Any] | None:
         """The running scan's newest frame, small and 8-bit (None before its first frame)."""
@@ -460,12 +514,25 @@ class RigServer:
             return
         checks = await halt_and_verify(self.rig.devices, timeout_s=1.0)
         halted, message = summary(checks)
-        self.send("reply", req_id, True, {"halted": halted, "message": message, "scan_aborted": scan_id,
-                                          "devices": [c.to_json() for c in checks]})
+        self.send(
+            "reply",
+            req_id,
+            True,
+            {"halted": halted, "message": message, "scan_aborted": scan_id, "devices": [c.to_json() for c in checks]},
+        )
 
 
-def rig_main(config_path: str, sim: bool, commands: Connection, stops: Connection, events: Connection,
-             nice: int = 0, links: dict[str, Any] | None = None, data_dir: str | None = None, flag: Any = None) -> None:
+def rig_main(
+    config_path: str,
+    sim: bool,
+    commands: Connection,
+    stops: Connection,
+    events: Connection,
+    nice: int = 0,
+    links: dict[str, Any] | None = None,
+    data_dir: str | None = None,
+    flag: Any = None,
+) -> None:
     """Entry point of the bench process (asks for priority ``nice`` over the web server where allowed)."""
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s bench: %(message)s")
     # The web server starts this process as a daemon (it dies with the server); here it may start its own

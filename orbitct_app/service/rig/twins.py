@@ -113,8 +113,12 @@ class SimBench:
         parent, child = _CTX.Pipe()
         self._ready.clear()
         self.state = "starting"
-        self._process = _CTX.Process(target=twins_main, name="orbitct-twins", daemon=True,
-                                     args=(str(self.config_path), self._ports, child, self.nice))
+        self._process = _CTX.Process(
+            target=twins_main,
+            name="orbitct-twins",
+            daemon=True,
+            args=(str(self.config_path), self._ports, child, self.nice),
+        )
         self._process.start()
         child.close()
         self._conn = parent

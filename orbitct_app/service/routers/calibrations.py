@@ -27,23 +27,47 @@ ScanId = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9
 class CalibrationRequest(BaseModel):
     """Calibrate a complete scan from the BBs on the object."""
 
-    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [{"scan_id": "a1b2c3d4e5f60718", "method": "bundle"}]})
+    model_config = ConfigDict(
+        extra="forbid",
+        strict=True,
+        allow_inf_nan=False,
+        json_schema_extra={"examples": [{"scan_id": "a1b2c3d4e5f60718", "method": "bundle"}]},
+    )
 
     scan_id: ScanId
-    method: Literal["bundle", "paper"] = Field("bundle", description="joint bundle adjustment, or the paper's alternation")
+    method: Literal["bundle", "paper"] = Field(
+        "bundle", description="joint bundle adjustment, or the paper's alternation"
+    )
     iterations: int | None = Field(None, ge=1, le=100, description="estimation iterations (default: the method's)")
-    intrinsics: Literal["fixed", "sdd", "sdd+pp"] | None = Field(None, description="per-view parameters besides the pose")
+    intrinsics: Literal["fixed", "sdd", "sdd+pp"] | None = Field(
+        None, description="per-view parameters besides the pose"
+    )
     min_bbs_per_view: int | None = Field(None, ge=3, le=100, description="fewer BBs: a view is never fitted on its own")
-    max_predicted_px: float | None = Field(None, gt=0.0, le=100.0, description="quality check: the largest predicted "
-                                           "field-of-view error a view may have (default 0.5 px)")
-    bridge_max_views: int | None = Field(None, ge=0, le=1000, description="bundle: the widest run of views with fewer "
-                                         "than 4 BBs bridged from its neighbours (default 10)")
+    max_predicted_px: float | None = Field(
+        None,
+        gt=0.0,
+        le=100.0,
+        description="quality check: the largest predicted field-of-view error a view may have (default 0.5 px)",
+    )
+    bridge_max_views: int | None = Field(
+        None,
+        ge=0,
+        le=1000,
+        description="bundle: the widest run of views with fewer than 4 BBs bridged from its neighbours (default 10)",
+    )
     diameter_mm: float | None = Field(None, gt=0.1, le=50.0, description="BB diameter when the file does not say")
-    scale_bar_mm: float | None = Field(None, gt=0.0, le=5000.0, description="known distance between two BBs (a scale "
-                                       "bar measured on the bench): sets the metric scale")
+    scale_bar_mm: float | None = Field(
+        None,
+        gt=0.0,
+        le=5000.0,
+        description="known distance between two BBs (a scale bar measured on the bench): sets the metric scale",
+    )
     scale_bar_bbs: list[Annotated[int, Field(ge=1)]] | None = Field(
-        None, min_length=2, max_length=2,
-        description="which two BBs span the scale bar (numbers as in the report); default: the one pair near its length")
+        None,
+        min_length=2,
+        max_length=2,
+        description="which two BBs span the scale bar (numbers as in the report); default: the one pair near its length",
+    )
 
 
 def check_scan_ready(service: Any, scan_id: str) -> dict[str, Any]:
@@ -66,9 +90,16 @@ def submit(service: Any, kind: str, request: BaseModel, owner: str, response: Re
     return out
 
 
-@router.post("", response_model=JobOut, status_code=202, summary="Start a calibration job",
-             responses={409: {"model": ErrorBody, "description": "the scan is not complete (running, aborted, interrupted)"},
-                        **DISK_FULL})
+@router.post(
+    "",
+    response_model=JobOut,
+    status_code=202,
+    summary="Start a calibration job",
+    responses={
+        409: {"model": ErrorBody, "description": "the scan is not complete (running, aborted, interrupted)"},
+        **DISK_FULL,
+    },
+)
 def start_calibration(body: CalibrationRequest, service: ServiceDep, who: Analyst, response: Response) -> JobOut:
     """Queue a calibration of the scan; progress on ``/jobs/{id}/events``."""
     check_scan_ready(service, body.scan_id)
@@ -76,8 +107,12 @@ def start_calibration(body: CalibrationRequest, service: ServiceDep, who: Analys
 
 
 @router.get("", response_model=list[JobOut], summary="List calibration jobs")
-def list_calibrations(service: ServiceDep, _: Reader, scan_id: Annotated[str | None, Query(max_length=64)] = None,
-                      limit: Annotated[int, Query(ge=1, le=500)] = 100) -> list[JobOut]:
+def list_calibrations(
+    service: ServiceDep,
+    _: Reader,
+    scan_id: Annotated[str | None, Query(max_length=64)] = None,
+    limit: Annotated[int, Query(ge=1, le=500)] = 100,
+) -> list[JobOut]:
     """Calibration jobs, newest first."""
     return [job_out(j) for j in service.store.list_jobs(kind="calibration", scan_id=scan_id, limit=limit)]
 
@@ -96,7 +131,9 @@ class RpeTable(BaseModel):
     per_frame_mm: dict[str, float]
 
 
-@router.get("/{job_id}/rpe", response_model=RpeTable, summary="RPE table of a finished calibration", responses=NOT_SUCCEEDED)
+@router.get(
+    "/{job_id}/rpe", response_model=RpeTable, summary="RPE table of a finished calibration", responses=NOT_SUCCEEDED
+)
 def get_rpe(job_id: str, service: ServiceDep, _: Reader) -> RpeTable:
     """Table-1 figures, RPE statistics per iteration, and the RPE of every projection frame (mm)."""
     job = _finished(service, job_id)
@@ -105,17 +142,25 @@ def get_rpe(job_id: str, service: ServiceDep, _: Reader) -> RpeTable:
     for line in path.read_text(encoding="utf-8").splitlines()[1:]:
         frame, value = line.split(",")
         per_frame[frame] = float(value)
-    return RpeTable(table=job["result"].get("table", {}), iterations=job["result"].get("iterations", []), per_frame_mm=per_frame)
+    return RpeTable(
+        table=job["result"].get("table", {}), iterations=job["result"].get("iterations", []), per_frame_mm=per_frame
+    )
 
 
-@router.get("/{job_id}/files", response_model=list[str], summary="Report files (plots, tables)", responses=NOT_SUCCEEDED)
+@router.get(
+    "/{job_id}/files", response_model=list[str], summary="Report files (plots, tables)", responses=NOT_SUCCEEDED
+)
 def list_files(job_id: str, service: ServiceDep, _: Reader) -> list[str]:
     """Names of the report files: violin plots, per-view corrections, Table 1 (Markdown, CSV)."""
     return list(_finished(service, job_id)["result"].get("files", []))
 
 
-@router.get("/{job_id}/files/{name}", response_class=FileResponse, summary="One report file",
-            responses={200: {"content": {"image/png": {}, "text/csv": {}, "text/markdown": {}}}, **NOT_SUCCEEDED})
+@router.get(
+    "/{job_id}/files/{name}",
+    response_class=FileResponse,
+    summary="One report file",
+    responses={200: {"content": {"image/png": {}, "text/csv": {}, "text/markdown": {}}}, **NOT_SUCCEEDED},
+)
 def get_file(job_id: str, name: str, service: ServiceDep, _: Reader) -> FileResponse:
     """A plot (PNG) or table of the report; names come from ``/files``."""
     _finished(service, job_id)

@@ -37,9 +37,20 @@ class AxisOut(BaseModel):
 class DeviceOut(BaseModel):
     """A connected device."""
 
-    model_config = ConfigDict(json_schema_extra={"examples": [{
-        "name": "hexapod", "model": "C-887 (twin)", "serial": "SIM-0001", "firmware": "1.0", "uri": "sim://bench",
-        "axes": [{"name": "X", "unit": "mm", "low": -50, "high": 50}]}]})
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "name": "hexapod",
+                    "model": "C-887 (twin)",
+                    "serial": "SIM-0001",
+                    "firmware": "1.0",
+                    "uri": "sim://bench",
+                    "axes": [{"name": "X", "unit": "mm", "low": -50, "high": 50}],
+                }
+            ]
+        }
+    )
 
     name: str
     model: str
@@ -60,10 +71,16 @@ class DeviceState(BaseModel):
 class MoveRequest(BaseModel):
     """Absolute targets per axis, in the axis unit (mm or deg); checked against the limits before moving."""
 
-    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [{"targets": {"X": 1.0, "U": 0.5}}]})
+    model_config = ConfigDict(
+        extra="forbid",
+        strict=True,
+        allow_inf_nan=False,
+        json_schema_extra={"examples": [{"targets": {"X": 1.0, "U": 0.5}}]},
+    )
 
-    targets: dict[Annotated[str, Field(pattern=r"^[A-Za-z0-9]{1,8}$")], Annotated[float, Field(ge=-1e5, le=1e5)]] = Field(
-        min_length=1, max_length=6)
+    targets: dict[Annotated[str, Field(pattern=r"^[A-Za-z0-9]{1,8}$")], Annotated[float, Field(ge=-1e5, le=1e5)]] = (
+        Field(min_length=1, max_length=6)
+    )
 
     @field_validator("targets")
     @classmethod
@@ -98,17 +115,29 @@ async def get_device(name: DeviceName, service: ServiceDep, _: Reader) -> Device
     return _state(service, await service.rig.run("device_state", name=name))
 
 
-@router.post("/{name}/reference", response_model=DeviceState, summary="Reference a motion device",
-             responses={409: {"model": ErrorBody, "description": "a scan is running, or an emergency stop is latched"}})
+@router.post(
+    "/{name}/reference",
+    response_model=DeviceState,
+    summary="Reference a motion device",
+    responses={409: {"model": ErrorBody, "description": "a scan is running, or an emergency stop is latched"}},
+)
 async def reference(name: DeviceName, service: ServiceDep, _: Operator) -> DeviceState:
     """Servo on and reference every axis; returns when done."""
     _idle(service, "referencing")
     return _state(service, await service.rig.run("reference", timeout_s=MOVE_TIMEOUT_S, name=name))
 
 
-@router.post("/{name}/move", response_model=DeviceState, summary="Maintenance move",
-             responses={409: {"model": ErrorBody, "description": "a scan is running, the device is not referenced, or an emergency stop is "
-                                             "latched"}})
+@router.post(
+    "/{name}/move",
+    response_model=DeviceState,
+    summary="Maintenance move",
+    responses={
+        409: {
+            "model": ErrorBody,
+            "description": "a scan is running, the device is not referenced, or an emergency stop is latched",
+        }
+    },
+)
 async def move(name: DeviceName, body: MoveRequest, service: ServiceDep, _: Operator) -> DeviceState:
     """Absolute move of some axes; limits (and the hexapod workspace) are checked before anything moves."""
     _idle(service, "moves")
@@ -124,8 +153,17 @@ async def stop_device(name: DeviceName, service: ServiceDep, _: Operator) -> Dev
     return _state(service, await service.rig.run("stop_device", name=name))
 
 
-@router.post("/{name}/reset-fault", response_model=DeviceState, summary="Reset a generator fault",
-             responses={409: {"model": ErrorBody, "description": "the fault's cause persists (door open, fault input), or a scan is running"}})
+@router.post(
+    "/{name}/reset-fault",
+    response_model=DeviceState,
+    summary="Reset a generator fault",
+    responses={
+        409: {
+            "model": ErrorBody,
+            "description": "the fault's cause persists (door open, fault input), or a scan is running",
+        }
+    },
+)
 async def reset_fault(name: DeviceName, service: ServiceDep, who: Operator) -> DeviceState:
     """Clear the X-ray generator's latched fault once its cause is gone; refused, naming the cause, while it persists.
 

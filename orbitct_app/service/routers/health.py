@@ -19,10 +19,14 @@ class Health(BaseModel):
     bench: str
     guard: str = Field(description="the stop listener: listening, starting, restarting or failed")
     estop: str = Field(description="latched (no motion or X-rays until an operator resets it) or clear")
-    jobs: str = Field(description="the Dask cluster jobs run on: starting, connected, failed (could not be started or "
-                      "reached) or lost (went away; running jobs failed, queued ones wait)")
-    disk: str = Field(description="the data directory's disk: ok, low (less free than the bench's storage.reserve_mb: "
-                      "scans are refused) or full (under 4 MB: nothing can be recorded)")
+    jobs: str = Field(
+        description="the Dask cluster jobs run on: starting, connected, failed (could not be started or "
+        "reached) or lost (went away; running jobs failed, queued ones wait)"
+    )
+    disk: str = Field(
+        description="the data directory's disk: ok, low (less free than the bench's storage.reserve_mb: "
+        "scans are refused) or full (under 4 MB: nothing can be recorded)"
+    )
 
 
 @router.get("/health", response_model=Health, summary="Liveness, bench connection and emergency-stop latch")
@@ -34,5 +38,12 @@ async def health(service: ServiceDep) -> Health:
     latched = service.latch.latched
     disk, _ = service.disk()
     ok = bench == "connected" and guard == "listening" and not latched and disk == "ok"
-    return Health(status="ok" if ok else "degraded", version=__version__, bench=bench, guard=guard,
-                  estop="latched" if latched else "clear", disk=disk, jobs=service.jobs.engine_state.split(":")[0])
+    return Health(
+        status="ok" if ok else "degraded",
+        version=__version__,
+        bench=bench,
+        guard=guard,
+        estop="latched" if latched else "clear",
+        disk=disk,
+        jobs=service.jobs.engine_state.split(":")[0],
+    )

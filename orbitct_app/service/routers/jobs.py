@@ -37,11 +37,19 @@ class CancelOut(BaseModel):
 
 
 @router.get("", response_model=list[JobOut], summary="List jobs")
-def list_jobs(service: ServiceDep, _: Reader, kind: Literal["calibration", "reconstruction"] | None = None,
-              scan_id: Annotated[str | None, Query(max_length=64)] = None, state: JobState | None = None,
-              limit: Annotated[int, Query(ge=1, le=500)] = 100, offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0) -> list[JobOut]:
+def list_jobs(
+    service: ServiceDep,
+    _: Reader,
+    kind: Literal["calibration", "reconstruction"] | None = None,
+    scan_id: Annotated[str | None, Query(max_length=64)] = None,
+    state: JobState | None = None,
+    limit: Annotated[int, Query(ge=1, le=500)] = 100,
+    offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0,
+) -> list[JobOut]:
     """Jobs, newest first."""
-    return [job_out(j) for j in service.store.list_jobs(kind=kind, scan_id=scan_id, state=state, limit=limit, offset=offset)]
+    return [
+        job_out(j) for j in service.store.list_jobs(kind=kind, scan_id=scan_id, state=state, limit=limit, offset=offset)
+    ]
 
 
 @router.get("/{job_id}", response_model=JobOut, summary="State and progress of a job")
@@ -51,24 +59,46 @@ def get_job(job_id: str, service: ServiceDep, _: Reader) -> JobOut:
 
 
 @router.get("/{job_id}/log", response_model=list[LogLine], summary="Log of a job")
-def get_log(job_id: str, service: ServiceDep, _: Reader, after: Annotated[int, Query(ge=0, le=10**9)] = 0,
-            limit: Annotated[int, Query(ge=1, le=5000)] = 1000) -> list[LogLine]:
+def get_log(
+    job_id: str,
+    service: ServiceDep,
+    _: Reader,
+    after: Annotated[int, Query(ge=0, le=10**9)] = 0,
+    limit: Annotated[int, Query(ge=1, le=5000)] = 1000,
+) -> list[LogLine]:
     """Log lines after sequence number ``after``."""
     job_or_404(service, job_id)
     return [LogLine(**row) for row in service.store.job_log(job_id, after=after, limit=limit)]
 
 
-@router.get("/{job_id}/events", summary="Live progress (server-sent events)",
-            responses={200: {"content": {"text/event-stream": {"example": 'id: 3\nevent: progress\ndata: {"stage":"pwls","done":3,"total":50,"metrics":{"cost":12.5}}\n\n'}}}})
-def job_events(job_id: str, service: ServiceDep, _: Reader,
-               last_event_id: Annotated[str | None, Header(max_length=20)] = None):  # type: ignore[no-untyped-def]
+@router.get(
+    "/{job_id}/events",
+    summary="Live progress (server-sent events)",
+    responses={
+        200: {
+            "content": {
+                "text/event-stream": {
+                    "example": 'id: 3\nevent: progress\ndata: {"stage":"pwls","done":3,"total":50,"metrics":{"cost":12.5}}\n\n'
+                }
+            }
+        }
+    },
+)
+def job_events(
+    job_id: str, service: ServiceDep, _: Reader, last_event_id: Annotated[str | None, Header(max_length=20)] = None
+):  # type: ignore[no-untyped-def]
     """Events ``state``, ``progress`` and a final ``end``, in order; resumes after ``Last-Event-ID``."""
     job_or_404(service, job_id)
     return sse_response(service.bus, f"job:{job_id}", last_event_id)
 
 
-@router.post("/{job_id}/cancel", response_model=CancelOut, status_code=202, summary="Cancel a job",
-             responses={409: {"model": ErrorBody, "description": "the job has already ended"}, **DISK_FULL})
+@router.post(
+    "/{job_id}/cancel",
+    response_model=CancelOut,
+    status_code=202,
+    summary="Cancel a job",
+    responses={409: {"model": ErrorBody, "description": "the job has already ended"}, **DISK_FULL},
+)
 def cancel_job(job_id: str, service: ServiceDep, _: Analyst) -> CancelOut:
     """Cancel a queued or running job (a running worker gets a grace period, then is killed)."""
     job = job_or_404(service, job_id)

@@ -35,9 +35,14 @@ class OrbitKindOut(BaseModel):
 class OrbitSpec(BaseModel):
     """An orbit kind and its parameters."""
 
-    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [
-        {"kind": "sawtooth", "params": {"n_frames": 500, "amplitude_deg": 20, "cycles": 2}}
-    ]})
+    model_config = ConfigDict(
+        extra="forbid",
+        strict=True,
+        allow_inf_nan=False,
+        json_schema_extra={
+            "examples": [{"kind": "sawtooth", "params": {"n_frames": 500, "amplitude_deg": 20, "cycles": 2}}]
+        },
+    )
 
     kind: OrbitKind
     params: dict[str, Any] = Field(default_factory=dict)
@@ -65,15 +70,21 @@ def _describe(kind: str) -> OrbitKindOut:
 def build(spec: OrbitSpec) -> Any:
     """The orbit of ``spec``, or 422 with the offending parameter."""
     if spec.params.get("path") is not None:
-        raise Invalid("server file paths are not accepted over the API",
-                      details=[FieldProblem(field="params.path", reason="give 'points' instead")])
+        raise Invalid(
+            "server file paths are not accepted over the API",
+            details=[FieldProblem(field="params.path", reason="give 'points' instead")],
+        )
     try:
         model = ORBIT_KINDS[spec.kind].model_validate(spec.params)
     except ValidationError as exc:
-        details = [FieldProblem(field="params." + d.field, reason=d.reason) for d in validation_details(list(exc.errors()))]
+        details = [
+            FieldProblem(field="params." + d.field, reason=d.reason) for d in validation_details(list(exc.errors()))
+        ]
         raise Invalid("; ".join(f"{d.field}: {d.reason}" for d in details[:5]), details=details) from None
     if int(model.n_frames) > PREVIEW_MAX_FRAMES:
-        raise Invalid("too many frames", details=[FieldProblem(field="params.n_frames", reason=f"at most {PREVIEW_MAX_FRAMES}")])
+        raise Invalid(
+            "too many frames", details=[FieldProblem(field="params.n_frames", reason=f"at most {PREVIEW_MAX_FRAMES}")]
+        )
     try:
         return make_orbit(spec.kind, **model.model_dump(exclude_none=True))
     except OrbitError as exc:
@@ -100,13 +111,23 @@ def validate(spec: OrbitSpec, _: Reader) -> OrbitSummary:
     orbit = build(spec)
     th, ph = orbit.theta_deg, orbit.phi_deg
     steps = orbit.step_sizes()
-    return OrbitSummary(kind=spec.kind, params=orbit.params, n_frames=orbit.n_frames, n_segments=orbit.n_segments,
-                        rotation_deg=(float(th.min()), float(th.max())), tilt_deg=(float(ph.min()), float(ph.max())),
-                        step_deg=(float(np.degrees(steps[0])), float(np.degrees(steps[1]))))
+    return OrbitSummary(
+        kind=spec.kind,
+        params=orbit.params,
+        n_frames=orbit.n_frames,
+        n_segments=orbit.n_segments,
+        rotation_deg=(float(th.min()), float(th.max())),
+        tilt_deg=(float(ph.min()), float(ph.max())),
+        step_deg=(float(np.degrees(steps[0])), float(np.degrees(steps[1]))),
+    )
 
 
-@router.post("/preview", summary="Preview an orbit (PNG)", response_class=Response,
-             responses={200: {"content": {"image/png": {}}, "description": "tilt against rotation, and both against frame"}})
+@router.post(
+    "/preview",
+    summary="Preview an orbit (PNG)",
+    response_class=Response,
+    responses={200: {"content": {"image/png": {}}, "description": "tilt against rotation, and both against frame"}},
+)
 def preview(spec: OrbitSpec, _: Reader) -> Response:
     """A PNG plot: tilt against rotation (the orbit's path), and both angles against frame index."""
     import matplotlib

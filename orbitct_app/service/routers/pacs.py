@@ -24,8 +24,14 @@ from orbitct_app.service.core.files import summarize_scan
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
 from orbitct_app.service.routers.reconstructions import dicom_series
 
-router = APIRouter(prefix="/pacs", tags=["pacs"], responses={
-    **ERROR_RESPONSES, 502: {"model": ErrorBody, "description": "the PACS node could not be reached or refused"}})
+router = APIRouter(
+    prefix="/pacs",
+    tags=["pacs"],
+    responses={
+        **ERROR_RESPONSES,
+        502: {"model": ErrorBody, "description": "the PACS node could not be reached or refused"},
+    },
+)
 Uid = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[0-9]+(\.[0-9]+)*$")]
 
 
@@ -102,22 +108,39 @@ def list_nodes(service: ServiceDep, _: Reader) -> list[NodeOut]:
 
 
 @router.get("/{node}/series", response_model=list[SeriesOut], summary="Find series on a node (C-FIND)")
-def find(node: str, service: ServiceDep, _: Reader,
-         modality: Annotated[str, Query(max_length=16, pattern=r"^[A-Z]*$")] = "",
-         patient_id: Annotated[str, Query(max_length=64, pattern=r"^[\w .*?-]*$")] = "") -> list[SeriesOut]:
+def find(
+    node: str,
+    service: ServiceDep,
+    _: Reader,
+    modality: Annotated[str, Query(max_length=16, pattern=r"^[A-Z]*$")] = "",
+    patient_id: Annotated[str, Query(max_length=64, pattern=r"^[\w .*?-]*$")] = "",
+) -> list[SeriesOut]:
     """Series of the node matching the modality and patient id (both optional; DICOM wildcards allowed)."""
     target = _node(service, node)
     try:
         found = find_series(target, service.settings.pacs_calling_aet, Modality=modality, PatientID=patient_id)
     except PacsError as exc:
         raise Upstream(str(exc)) from None
-    return [SeriesOut(study_uid=f["StudyInstanceUID"], series_uid=f["SeriesInstanceUID"], modality=f["Modality"],
-                      description=f["SeriesDescription"], patient_id=f["PatientID"],
-                      instances=f["NumberOfSeriesRelatedInstances"]) for f in found]
+    return [
+        SeriesOut(
+            study_uid=f["StudyInstanceUID"],
+            series_uid=f["SeriesInstanceUID"],
+            modality=f["Modality"],
+            description=f["SeriesDescription"],
+            patient_id=f["PatientID"],
+            instances=f["NumberOfSeriesRelatedInstances"],
+        )
+        for f in found
+    ]
 
 
-@router.post("/{node}/import", response_model=ImportOut, status_code=201, summary="Import runs from a node as a scan",
-             responses=DISK_FULL)
+@router.post(
+    "/{node}/import",
+    response_model=ImportOut,
+    status_code=201,
+    summary="Import runs from a node as a scan",
+    responses=DISK_FULL,
+)
 def import_runs(node: str, body: ImportRequest, service: ServiceDep, who: Analyst, response: Response) -> ImportOut:
     """C-GET each run, then import them in the order given (``orbitct import dicom``): a complete scan with the
     nominal geometry from the runs' positioner angles and distances, ready to calibrate and reconstruct."""
@@ -132,8 +155,9 @@ def import_runs(node: str, body: ImportRequest, service: ServiceDep, who: Analys
         files: list[Path] = []
         try:
             for k, series in enumerate(body.series_uids):
-                files += sorted(get_series(target, body.study_uid, series, Path(tmp) / f"run{k}",
-                                           service.settings.pacs_calling_aet))
+                files += sorted(
+                    get_series(target, body.study_uid, series, Path(tmp) / f"run{k}", service.settings.pacs_calling_aet)
+                )
         except PacsError as exc:
             raise Upstream(str(exc)) from None
         try:
@@ -144,9 +168,15 @@ def import_runs(node: str, body: ImportRequest, service: ServiceDep, who: Analys
         except ScanFileError as exc:
             path.unlink(missing_ok=True)
             raise Invalid(str(exc).replace(str(Path(tmp)), "<fetched runs>")) from None
-    service.store.add_scan(scan_id, name=body.name, orbit="imported", owner=who.name, file=rel, frames_total=frames,
-                           request={"imported_from": {"node": node, "study_uid": body.study_uid,
-                                                      "series_uids": body.series_uids}})
+    service.store.add_scan(
+        scan_id,
+        name=body.name,
+        orbit="imported",
+        owner=who.name,
+        file=rel,
+        frames_total=frames,
+        request={"imported_from": {"node": node, "study_uid": body.study_uid, "series_uids": body.series_uids}},
+    )
     service.store.update_scan(scan_id, state="complete", frames_done=frames, summary=summarize_scan(path))
     response.headers["Location"] = f"/scans/{scan_id}"
     return ImportOut(id=scan_id, frames=frames, assumed=assumed)
@@ -158,8 +188,9 @@ def store(node: str, body: SendRequest, service: ServiceDep, _: Analyst) -> Send
     stored on the node."""
     target = _node(service, node)
     with tempfile.TemporaryDirectory(dir=service.settings.data_dir) as tmp:
-        files = dicom_series(service, body.reconstruction_id, Path(tmp) / "series", body.water_mu_per_mm,
-                             body.patient_id, body.enhanced)
+        files = dicom_series(
+            service, body.reconstruction_id, Path(tmp) / "series", body.water_mu_per_mm, body.patient_id, body.enhanced
+        )
         try:
             stored = send(files, target, service.settings.pacs_calling_aet)
         except PacsError as exc:

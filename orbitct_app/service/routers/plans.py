@@ -44,8 +44,12 @@ class KeepOutIn(BaseModel):
 
     model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
     angle_from_deg: float = Field(ge=0.0, lt=360.0)
-    angle_to_deg: float = Field(ge=0.0, le=360.0, description="not the same angle as angle_from_deg (only 0 to 360 "
-                                "makes the whole turn); checked by the service, 422 otherwise")
+    angle_to_deg: float = Field(
+        ge=0.0,
+        le=360.0,
+        description="not the same angle as angle_from_deg (only 0 to 360 "
+        "makes the whole turn); checked by the service, 422 otherwise",
+    )
     z_min_mm: float = Field(ge=-1000.0, le=1000.0, description="below z_max_mm (checked by the service, 422 otherwise)")
     z_max_mm: float = Field(ge=-1000.0, le=1000.0)
 
@@ -54,8 +58,9 @@ class KeepOutIn(BaseModel):
         if not self.z_min_mm < self.z_max_mm:
             raise ValueError(f"z_min_mm ({self.z_min_mm:g}) must be below z_max_mm ({self.z_max_mm:g})")
         if self.angle_from_deg == self.angle_to_deg % 360.0 and self.angle_to_deg - self.angle_from_deg != 360.0:
-            raise ValueError(f"angle_from_deg and angle_to_deg ({self.angle_from_deg:g}) make no patch; the whole turn is "
-                             "0 to 360")
+            raise ValueError(
+                f"angle_from_deg and angle_to_deg ({self.angle_from_deg:g}) make no patch; the whole turn is 0 to 360"
+            )
         return self
 
 
@@ -63,41 +68,71 @@ class BBPlanIn(BaseModel):
     """What to plan: the object and default orbit of an experiment, the orbit, the panel, how many BBs (or the
     accuracy to reach with as few as possible), where not to put them, and the detection's centroid noise."""
 
-    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra=schema_extra(
-        [{"experiment": "A", "frames": 500, "bbs": 8, "keep_out": [
-            {"angle_from_deg": 300, "angle_to_deg": 60, "z_min_mm": -20, "z_max_mm": 10}]}],
-        at_most_one_of("surface_id", "surface_reconstruction_id", "surface_shape")))
+    model_config = ConfigDict(
+        extra="forbid",
+        strict=True,
+        allow_inf_nan=False,
+        json_schema_extra=schema_extra(
+            [
+                {
+                    "experiment": "A",
+                    "frames": 500,
+                    "bbs": 8,
+                    "keep_out": [{"angle_from_deg": 300, "angle_to_deg": 60, "z_min_mm": -20, "z_max_mm": 10}],
+                }
+            ],
+            at_most_one_of("surface_id", "surface_reconstruction_id", "surface_shape"),
+        ),
+    )
 
     experiment: Literal["A", "B", "C"]
     orbit: str | None = Field(default=None, max_length=40, pattern=r"^[a-z_-]+$")
     frames: int | None = Field(default=None, ge=2, le=5000)
     bbs: int = Field(default=8, ge=4, le=MAX_BBS)
-    target_px: float | None = Field(default=None, gt=0.0, le=10.0,
-                                    description="plan the fewest BBs whose every view is predicted within this (px)")
+    target_px: float | None = Field(
+        default=None, gt=0.0, le=10.0, description="plan the fewest BBs whose every view is predicted within this (px)"
+    )
     max_bbs: int = Field(default=20, ge=4, le=MAX_BBS)
     keep_out: list[KeepOutIn] = Field(default_factory=list, max_length=20)
     detector_px: int = Field(default=768, ge=8, le=4096)
-    errors: Literal["none", "bench"] = Field(default="none", description="the orbit's expected motion errors (an "
-                                             "error profile): a BB counts in a view only where it stays usable in "
-                                             "three samples of it")
+    errors: Literal["none", "bench"] = Field(
+        default="none",
+        description="the orbit's expected motion errors (an "
+        "error profile): a BB counts in a view only where it stays usable in "
+        "three samples of it",
+    )
     noise_px: float = Field(default=0.1, gt=0.0, le=5.0)
     seed: int = Field(default=0, ge=0, le=2**31)
     surface_reconstruction_id: str | None = Field(
-        default=None, min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$",
-        description="plan on the object's real outer surface: a succeeded reconstruction of it (a prior volume)")
-    surface_threshold_per_mm: float | None = Field(default=None, gt=0.0, le=10.0,
-                                                   description="its object/air threshold (default: Otsu's)")
-    surface_id: str | None = Field(default=None, pattern=r"^[0-9a-f]{12}$",
-                                   description="plan on an uploaded surface mesh (POST /surfaces)")
-    surface_shape: str | None = Field(default=None, max_length=80, pattern=r"^(cylinder|ellipsoid):[-+0-9.eE,:]+$",
-                                      description="plan on a shape by parameters (mm): cylinder:R,ZMIN:ZMAX, "
-                                      "cylinder:A,B,ZMIN:ZMAX or ellipsoid:A,B,C[,ZMIN:ZMAX]")
+        default=None,
+        min_length=1,
+        max_length=64,
+        pattern=r"^[A-Za-z0-9_-]+$",
+        description="plan on the object's real outer surface: a succeeded reconstruction of it (a prior volume)",
+    )
+    surface_threshold_per_mm: float | None = Field(
+        default=None, gt=0.0, le=10.0, description="its object/air threshold (default: Otsu's)"
+    )
+    surface_id: str | None = Field(
+        default=None, pattern=r"^[0-9a-f]{12}$", description="plan on an uploaded surface mesh (POST /surfaces)"
+    )
+    surface_shape: str | None = Field(
+        default=None,
+        max_length=80,
+        pattern=r"^(cylinder|ellipsoid):[-+0-9.eE,:]+$",
+        description="plan on a shape by parameters (mm): cylinder:R,ZMIN:ZMAX, "
+        "cylinder:A,B,ZMIN:ZMAX or ellipsoid:A,B,C[,ZMIN:ZMAX]",
+    )
 
     @model_validator(mode="after")
     def _one_surface(self) -> BBPlanIn:
-        given = [k for k in ("surface_id", "surface_reconstruction_id", "surface_shape") if getattr(self, k) is not None]
+        given = [
+            k for k in ("surface_id", "surface_reconstruction_id", "surface_shape") if getattr(self, k) is not None
+        ]
         if len(given) > 1:
-            raise ValueError(f"give one of surface_id, surface_reconstruction_id and surface_shape, not {' and '.join(given)}")
+            raise ValueError(
+                f"give one of surface_id, surface_reconstruction_id and surface_shape, not {' and '.join(given)}"
+            )
         return self
 
 
@@ -131,19 +166,31 @@ class PlanStateOut(BaseModel):
     target_px: float | None = None
     ended: str | None = None
     reason: str | None = None
-    progress: dict[str, Any] | None = Field(None, description="how far the search got: stage (count, plan), done, "
-                                             "total, message")
+    progress: dict[str, Any] | None = Field(
+        None, description="how far the search got: stage (count, plan), done, total, message"
+    )
 
 
 def _summary(plan_id: str, body: dict[str, Any]) -> BBPlanSummary:
-    return BBPlanSummary(id=plan_id, state="done", experiment=body["experiment"], orbit=body["orbit"],
-                         views=body["views"], bbs=len(body["bbs"]),
-                         predicted_px_max=body["predicted"]["predicted_px_max"],
-                         under_determined=body["predicted"]["under_determined"])
+    return BBPlanSummary(
+        id=plan_id,
+        state="done",
+        experiment=body["experiment"],
+        orbit=body["orbit"],
+        views=body["views"],
+        bbs=len(body["bbs"]),
+        predicted_px_max=body["predicted"]["predicted_px_max"],
+        under_determined=body["predicted"]["under_determined"],
+    )
 
 
-@router.post("", status_code=202, response_model=PlanStateOut, summary="Plan the BBs for an experiment's object and orbit",
-             responses={409: {"model": ErrorBody, "description": "as many plans as allowed are already waiting"}})
+@router.post(
+    "",
+    status_code=202,
+    response_model=PlanStateOut,
+    summary="Plan the BBs for an experiment's object and orbit",
+    responses={409: {"model": ErrorBody, "description": "as many plans as allowed are already waiting"}},
+)
 def create_plan(body: BBPlanIn, service: ServiceDep, response: Response, who: Analyst) -> PlanStateOut:
     """Check the request and queue the plan (202, ``Location: /plans/bbs/{id}``): plans are made one at a time in
     the background (seconds; with ``target_px``, minutes). Poll ``GET /plans/bbs/{id}`` until its ``state`` is
@@ -156,8 +203,13 @@ def create_plan(body: BBPlanIn, service: ServiceDep, response: Response, who: An
         job = job_or_404(service, body.surface_reconstruction_id, "reconstruction")
         volume = reconstruction_volume(service, body.surface_reconstruction_id)
         try:
-            surface = outline_from_volume(volume, job["result"]["voxel_mm"], job["result"]["origin_mm"],
-                                          body.surface_threshold_per_mm, f"reconstruction {job['id']}")
+            surface = outline_from_volume(
+                volume,
+                job["result"]["voxel_mm"],
+                job["result"]["origin_mm"],
+                body.surface_threshold_per_mm,
+                f"reconstruction {job['id']}",
+            )
         except BBPlanError as exc:
             raise Invalid(str(exc)) from None
     elif body.surface_id is not None:
@@ -170,10 +222,20 @@ def create_plan(body: BBPlanIn, service: ServiceDep, response: Response, who: An
             surface = load_surface(body.surface_shape)
         except BBPlanError as exc:
             raise Invalid(str(exc)) from None
-    request = BBPlanRequest(experiment=body.experiment, orbit=body.orbit, frames=body.frames, n_bbs=body.bbs,
-                            detector_px=body.detector_px, noise_px=body.noise_px, seed=body.seed,
-                            keep_out=tuple(KeepOut(**z.model_dump()) for z in body.keep_out), target_px=body.target_px,
-                            max_bbs=body.max_bbs, surface=surface, errors=body.errors)
+    request = BBPlanRequest(
+        experiment=body.experiment,
+        orbit=body.orbit,
+        frames=body.frames,
+        n_bbs=body.bbs,
+        detector_px=body.detector_px,
+        noise_px=body.noise_px,
+        seed=body.seed,
+        keep_out=tuple(KeepOut(**z.model_dump()) for z in body.keep_out),
+        target_px=body.target_px,
+        max_bbs=body.max_bbs,
+        surface=surface,
+        errors=body.errors,
+    )
     try:
         asked = check_bb_plan_request(request)
     except BBPlanError as exc:
@@ -192,8 +254,11 @@ def list_plans(service: ServiceDep, _: Reader) -> list[BBPlanSummary]:
     """Every plan: those done with their experiment, orbit, BB count and worst predicted view; those waiting, being
     made, failed or cancelled with their state."""
     folder = service.plans.folder
-    listed = [(f.stat().st_mtime, _summary(f.stem, json.loads(f.read_text()))) for f in folder.glob("*.json")
-              if _PLAN_ID.fullmatch(f.stem)]
+    listed = [
+        (f.stat().st_mtime, _summary(f.stem, json.loads(f.read_text())))
+        for f in folder.glob("*.json")
+        if _PLAN_ID.fullmatch(f.stem)
+    ]
     done = {s.id for _, s in listed}
     for changed, state in service.plans.states():
         if state["id"] not in done:
@@ -223,8 +288,12 @@ def get_plan(plan_id: str, service: ServiceDep, _: Reader) -> dict[str, Any]:
     return state if path is None else {"id": plan_id, "state": "done", **json.loads(path.read_text())}
 
 
-@router.get("/{plan_id}/picture", response_class=FileResponse, summary="The plan's picture (PNG)",
-            responses={200: {"content": {"image/png": {}}}, 409: {"model": ErrorBody, "description": "not made (yet)"}})
+@router.get(
+    "/{plan_id}/picture",
+    response_class=FileResponse,
+    summary="The plan's picture (PNG)",
+    responses={200: {"content": {"image/png": {}}}, 409: {"model": ErrorBody, "description": "not made (yet)"}},
+)
 def get_picture(plan_id: str, service: ServiceDep, _: Reader) -> FileResponse:
     """The object with the numbered BBs, the BBs on the unrolled surface (keep-out zones grey), and BBs and
     predicted error per view along the orbit."""
@@ -235,8 +304,13 @@ def get_picture(plan_id: str, service: ServiceDep, _: Reader) -> FileResponse:
     return FileResponse(path.with_suffix(".png"), media_type="image/png")
 
 
-@router.post("/{plan_id}/cancel", status_code=202, response_model=PlanStateOut, summary="Cancel a plan",
-             responses={409: {"model": ErrorBody, "description": "the plan has already ended"}})
+@router.post(
+    "/{plan_id}/cancel",
+    status_code=202,
+    response_model=PlanStateOut,
+    summary="Cancel a plan",
+    responses={409: {"model": ErrorBody, "description": "the plan has already ended"}},
+)
 def cancel_plan(plan_id: str, service: ServiceDep, who: Analyst) -> PlanStateOut:
     """Stop a plan waiting or being made; it ends ``cancelled``."""
     path, _ = _plan_or_state(service, plan_id)

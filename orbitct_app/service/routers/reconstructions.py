@@ -31,31 +31,62 @@ MAX_VOXELS = 512**3
 class ReconstructionRequest(BaseModel):
     """Reconstruct a complete scan."""
 
-    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra={"examples": [
-        {"scan_id": "a1b2c3d4e5f60718", "algorithm": "pwls", "geometry": "calibrated", "shape": [64, 64, 64], "iterations": 20}
-    ]})
+    model_config = ConfigDict(
+        extra="forbid",
+        strict=True,
+        allow_inf_nan=False,
+        json_schema_extra={
+            "examples": [
+                {
+                    "scan_id": "a1b2c3d4e5f60718",
+                    "algorithm": "pwls",
+                    "geometry": "calibrated",
+                    "shape": [64, 64, 64],
+                    "iterations": 20,
+                }
+            ]
+        },
+    )
 
     scan_id: ScanId
     algorithm: Literal["fdk", "pwls"] = "fdk"
-    geometry: Literal["calibrated", "nominal", "truth"] = Field("calibrated", description="which geometry of the scan file")
-    voxel_mm: float | None = Field(None, gt=0.005, le=20.0, description="isotropic voxel size; default fits the field of view")
+    geometry: Literal["calibrated", "nominal", "truth"] = Field(
+        "calibrated", description="which geometry of the scan file"
+    )
+    voxel_mm: float | None = Field(
+        None, gt=0.005, le=20.0, description="isotropic voxel size; default fits the field of view"
+    )
     shape: list[Annotated[int, Field(ge=4, le=1024)]] | None = Field(
-        None, min_length=3, max_length=3, description="[nz, ny, nx], centred on the isocenter; default: see fit")
-    fit: Literal["object", "fov"] = Field("object", description="without shape: the grid fitted to the object (found in a "
-                                          "coarse reconstruction) or the whole field of view")
+        None, min_length=3, max_length=3, description="[nz, ny, nx], centred on the isocenter; default: see fit"
+    )
+    fit: Literal["object", "fov"] = Field(
+        "object",
+        description="without shape: the grid fitted to the object (found in a "
+        "coarse reconstruction) or the whole field of view",
+    )
     iterations: int = Field(50, ge=1, le=500, description="PWLS iterations (ignored by FDK)")
     subsets: int = Field(1, ge=1, le=64, description="PWLS ordered subsets")
     momentum: bool = Field(False, description="PWLS: ordered subsets with Nesterov's momentum (with subsets, e.g. 12)")
     beta: float | None = Field(None, ge=0.0, le=1e6, description="relative penalty strength")
     mar: bool = Field(False, description="metal artifact reduction")
     stream: Literal["auto", "memory", "file"] = Field(
-        "auto", description="PWLS data held in memory or re-read from the scan file each iteration (auto: memory while it fits)")
-    name: str | None = Field(None, pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$",
-                             description="name under /recon in the scan file (default ALGORITHM_GEOMETRY[_mar])")
+        "auto",
+        description="PWLS data held in memory or re-read from the scan file each iteration (auto: memory while it fits)",
+    )
+    name: str | None = Field(
+        None,
+        pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$",
+        description="name under /recon in the scan file (default ALGORITHM_GEOMETRY[_mar])",
+    )
     overwrite: bool = Field(False, description="replace a reconstruction of that name already in the scan file")
-    max_minutes: float | None = Field(None, gt=0.0, le=10080.0, description="the job fails at once, before any work, "
-                                      "when it is estimated to take longer (default: the service's "
-                                      "reconstruction_max_minutes, 60)")
+    max_minutes: float | None = Field(
+        None,
+        gt=0.0,
+        le=10080.0,
+        description="the job fails at once, before any work, "
+        "when it is estimated to take longer (default: the service's "
+        "reconstruction_max_minutes, 60)",
+    )
 
     @model_validator(mode="after")
     def _size(self) -> ReconstructionRequest:
@@ -85,9 +116,20 @@ def _has_geometry(service: Any, scan: dict[str, Any], name: str, in_file: list[s
     return False
 
 
-@router.post("", response_model=JobOut, status_code=202, summary="Start a reconstruction job",
-             responses={409: {"model": ErrorBody, "description": "the scan is not complete, lacks the requested "
-                              "geometry, or already has a reconstruction of that name (without overwrite)"}, **DISK_FULL})
+@router.post(
+    "",
+    response_model=JobOut,
+    status_code=202,
+    summary="Start a reconstruction job",
+    responses={
+        409: {
+            "model": ErrorBody,
+            "description": "the scan is not complete, lacks the requested "
+            "geometry, or already has a reconstruction of that name (without overwrite)",
+        },
+        **DISK_FULL,
+    },
+)
 def start_reconstruction(body: ReconstructionRequest, service: ServiceDep, who: Analyst, response: Response) -> JobOut:
     """Queue a reconstruction; progress (iteration, cost) on ``/jobs/{id}/events``."""
     scan = check_scan_ready(service, body.scan_id)
@@ -97,16 +139,22 @@ def start_reconstruction(body: ReconstructionRequest, service: ServiceDep, who: 
         raise Conflict(f"scan {body.scan_id} has no {body.geometry} geometry{hint}")
     name = body.name or f"{body.algorithm}_{body.geometry}" + ("_mar" if body.mar else "")
     if name in recons and not body.overwrite:
-        raise Conflict(f"scan {body.scan_id} already has a reconstruction named {name!r}; send \"overwrite\": true "
-                       "to replace it, or another \"name\"")
+        raise Conflict(
+            f'scan {body.scan_id} already has a reconstruction named {name!r}; send "overwrite": true '
+            'to replace it, or another "name"'
+        )
     if body.max_minutes is None:
         body = body.model_copy(update={"max_minutes": service.settings.reconstruction_max_minutes})
     return submit(service, "reconstruction", body, who.name, response)
 
 
 @router.get("", response_model=list[JobOut], summary="List reconstruction jobs")
-def list_reconstructions(service: ServiceDep, _: Reader, scan_id: Annotated[str | None, Query(max_length=64)] = None,
-                         limit: Annotated[int, Query(ge=1, le=500)] = 100) -> list[JobOut]:
+def list_reconstructions(
+    service: ServiceDep,
+    _: Reader,
+    scan_id: Annotated[str | None, Query(max_length=64)] = None,
+    limit: Annotated[int, Query(ge=1, le=500)] = 100,
+) -> list[JobOut]:
     """Reconstruction jobs, newest first."""
     return [job_out(j) for j in service.store.list_jobs(kind="reconstruction", scan_id=scan_id, limit=limit)]
 
@@ -125,10 +173,19 @@ def reconstruction_volume(service: Any, job_id: str) -> np.ndarray:
     return np.load(confined(service.jobs.job_dir(job_id), "volume.npy"), mmap_mode="r")
 
 
-@router.get("/{job_id}/slices/{axis}", summary="One slice as PNG", response_class=Response,
-            responses={200: {"content": {"image/png": {}}}, **NOT_SUCCEEDED})
-def get_slice(job_id: str, axis: Literal["axial", "coronal", "sagittal"], service: ServiceDep, _: Reader,
-              index: Annotated[int | None, Query(ge=0, le=4096, description="slice index (default: the middle)")] = None) -> Response:
+@router.get(
+    "/{job_id}/slices/{axis}",
+    summary="One slice as PNG",
+    response_class=Response,
+    responses={200: {"content": {"image/png": {}}}, **NOT_SUCCEEDED},
+)
+def get_slice(
+    job_id: str,
+    axis: Literal["axial", "coronal", "sagittal"],
+    service: ServiceDep,
+    _: Reader,
+    index: Annotated[int | None, Query(ge=0, le=4096, description="slice index (default: the middle)")] = None,
+) -> Response:
     """Axial (z), coronal (y) or sagittal (x) slice with axes in millimetres and a scale bar; grey levels from
     the volume's 1st to 99.5th percentile, of the voxels below 0.1/mm when metal is present (the title says so)."""
     from orbitct.geometry import VolumeGrid
@@ -147,9 +204,15 @@ def get_slice(job_id: str, axis: Literal["axial", "coronal", "sagittal"], servic
     return Response(png, media_type="image/png")
 
 
-@router.get("/{job_id}/volume", response_class=FileResponse, summary="Download the volume",
-            responses={200: {"content": {"application/octet-stream": {}}},
-                       409: {"model": ErrorBody, "description": "the job has not succeeded, or has no export in that format"}})
+@router.get(
+    "/{job_id}/volume",
+    response_class=FileResponse,
+    summary="Download the volume",
+    responses={
+        200: {"content": {"application/octet-stream": {}}},
+        409: {"model": ErrorBody, "description": "the job has not succeeded, or has no export in that format"},
+    },
+)
 def get_volume(job_id: str, service: ServiceDep, _: Reader, format: Literal["nifti", "npy"] = "nifti") -> FileResponse:
     """The volume as NIfTI (``.nii.gz``, millimetres) or a NumPy float32 array (z, y, x)."""
     reconstruction_volume(service, job_id)
@@ -162,15 +225,27 @@ def get_volume(job_id: str, service: ServiceDep, _: Reader, format: Literal["nif
     return FileResponse(confined(folder, sorted(names)[0]), filename=sorted(names)[0])
 
 
-@router.get("/{job_id}/dicom", response_class=FileResponse, summary="The volume as a DICOM CT series or one Enhanced "
-            "CT object (zip)",
-            responses={200: {"content": {"application/zip": {}}}, **NOT_SUCCEEDED})
-def get_dicom(job_id: str, service: ServiceDep, _: Reader,
-              water_mu_per_mm: Annotated[float | None, Query(gt=0.0, le=10.0, description="attenuation of water (1/mm) "
-                                                             "for Hounsfield units (default 0.0206, the simulator's)")] = None,
-              patient_id: Annotated[str, Query(max_length=64, pattern=r"^[\w .-]*$")] = "",
-              enhanced: Annotated[bool, Query(description="one Enhanced CT object instead of one CT image per "
-                                                          "slice")] = False) -> FileResponse:
+@router.get(
+    "/{job_id}/dicom",
+    response_class=FileResponse,
+    summary="The volume as a DICOM CT series or one Enhanced CT object (zip)",
+    responses={200: {"content": {"application/zip": {}}}, **NOT_SUCCEEDED},
+)
+def get_dicom(
+    job_id: str,
+    service: ServiceDep,
+    _: Reader,
+    water_mu_per_mm: Annotated[
+        float | None,
+        Query(
+            gt=0.0,
+            le=10.0,
+            description="attenuation of water (1/mm) for Hounsfield units (default 0.0206, the simulator's)",
+        ),
+    ] = None,
+    patient_id: Annotated[str, Query(max_length=64, pattern=r"^[\w .-]*$")] = "",
+    enhanced: Annotated[bool, Query(description="one Enhanced CT object instead of one CT image per slice")] = False,
+) -> FileResponse:
     """One CT image per axial slice (or one multi-frame Enhanced CT object) in Hounsfield units, the object frame as
     the patient frame, fresh UIDs, the algorithm and geometry in the series description; zipped (written once per
     water value)."""
@@ -182,8 +257,9 @@ def get_dicom(job_id: str, service: ServiceDep, _: Reader,
     reconstruction_volume(service, job_id)  # 404 or 409 before anything is written
     water = water_mu_per_mm or WATER_MU_PER_MM
     folder = service.jobs.job_dir(job_id)
-    name = (f"dicom-{job_id}-{water:g}{'-' + patient_id if patient_id else ''}{'-enhanced' if enhanced else ''}"
-            ".zip").replace(" ", "_")
+    name = (
+        f"dicom-{job_id}-{water:g}{'-' + patient_id if patient_id else ''}{'-enhanced' if enhanced else ''}.zip"
+    ).replace(" ", "_")
     target = folder / name
     if not target.exists():
         with tempfile.TemporaryDirectory(dir=folder) as tmp:
@@ -199,8 +275,14 @@ def get_dicom(job_id: str, service: ServiceDep, _: Reader,
 ENHANCED_CT_NAME = "CT_ENHANCED.dcm"
 
 
-def dicom_series(service: Any, job_id: str, out_dir: Path, water_mu_per_mm: float | None = None,
-                 patient_id: str = "", enhanced: bool = False) -> list[Path]:
+def dicom_series(
+    service: Any,
+    job_id: str,
+    out_dir: Path,
+    water_mu_per_mm: float | None = None,
+    patient_id: str = "",
+    enhanced: bool = False,
+) -> list[Path]:
     """Write a succeeded reconstruction as a DICOM CT series (or one Enhanced CT object) into ``out_dir``; the
     files."""
     from orbitct.geometry import VolumeGrid
@@ -216,11 +298,15 @@ def dicom_series(service: Any, job_id: str, out_dir: Path, water_mu_per_mm: floa
     job = job_or_404(service, job_id, "reconstruction")
     result, params = job["result"], job["params"]
     grid = VolumeGrid(tuple(vol.shape), tuple(result["voxel_mm"]), tuple(result["origin_mm"]))
-    info = SeriesInfo(description=f"orbitct {result.get('name', job_id)}: {params.get('algorithm', '?').upper()} "
-                                  f"{params.get('geometry', '?')} geometry", patient_id=patient_id or job["scan_id"],
-                      water_mu_per_mm=water_mu_per_mm or WATER_MU_PER_MM,
-                      comments=patient_sides_caveat(((service.store.get_scan(job["scan_id"]) or {}).get("summary") or {})
-                                                    .get("import_assumptions", [])))
+    info = SeriesInfo(
+        description=f"orbitct {result.get('name', job_id)}: {params.get('algorithm', '?').upper()} "
+        f"{params.get('geometry', '?')} geometry",
+        patient_id=patient_id or job["scan_id"],
+        water_mu_per_mm=water_mu_per_mm or WATER_MU_PER_MM,
+        comments=patient_sides_caveat(
+            ((service.store.get_scan(job["scan_id"]) or {}).get("summary") or {}).get("import_assumptions", [])
+        ),
+    )
     if enhanced:
         return [export_enhanced_ct(np.asarray(vol, dtype=np.float32), grid, out_dir / ENHANCED_CT_NAME, info)]
     return export_dicom_ct(np.asarray(vol, dtype=np.float32), grid, out_dir, info)

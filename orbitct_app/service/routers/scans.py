@@ -37,28 +37,56 @@ ScanState = Literal["queued", "running", "paused", "complete", "aborted", "faile
 class ScanCreate(BaseModel):
     """A scan to run on the bench: orbit, its parameters, injected errors (simulation), mode."""
 
-    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, json_schema_extra=schema_extra(
-        [{"name": "experiment A", "orbit": "sawtooth", "params": {"amplitude_deg": 6, "cycles": 2}, "frames": 500,
-          "errors": "none", "seed": 0, "mode": "step"}],
-        only_with("abort_on", "calibrate", "live")))
+    model_config = ConfigDict(
+        extra="forbid",
+        strict=True,
+        allow_inf_nan=False,
+        json_schema_extra=schema_extra(
+            [
+                {
+                    "name": "experiment A",
+                    "orbit": "sawtooth",
+                    "params": {"amplitude_deg": 6, "cycles": 2},
+                    "frames": 500,
+                    "errors": "none",
+                    "seed": 0,
+                    "mode": "step",
+                }
+            ],
+            only_with("abort_on", "calibrate", "live"),
+        ),
+    )
 
     name: str = Field("", max_length=100, pattern=r"^[\w .,:()+-]*$", description="free label")
     orbit: OrbitKind = Field(description="orbit kind; parameters in GET /orbits")
-    params: dict[str, Any] = Field(default_factory=dict, description="orbit parameters (degrees), see GET /orbits/{kind}")
+    params: dict[str, Any] = Field(
+        default_factory=dict, description="orbit parameters (degrees), see GET /orbits/{kind}"
+    )
     frames: int | None = Field(None, ge=2, le=100_000, description="projection frames (default: the orbit's n_frames)")
     errors: Literal["bench", "none"] = Field("none", description="error profile injected into the commanded poses")
     seed: int = Field(0, ge=0, le=2**31 - 1)
     mode: Literal["step", "continuous"] = "step"
-    frame_rate_hz: float | None = Field(None, gt=0.0, le=1000.0, description="detector frame rate (default: the bench "
-                                        "configuration's exposure.frame_rate_hz); the pre-flight checks the motion keeps up")
-    calibrate: Literal["none", "live"] = Field("none", description="live: detect and follow the BBs while the frames "
-                                               "arrive (warnings on the event stream, BBs on the latest frame) and write "
-                                               "the calibrated geometry right after the last frame")
-    bb_diameter_mm: float | None = Field(None, gt=0.1, le=50.0, description="BB diameter for live calibration "
-                                         "(default on the simulated bench: its BBs)")
+    frame_rate_hz: float | None = Field(
+        None,
+        gt=0.0,
+        le=1000.0,
+        description="detector frame rate (default: the bench "
+        "configuration's exposure.frame_rate_hz); the pre-flight checks the motion keeps up",
+    )
+    calibrate: Literal["none", "live"] = Field(
+        "none",
+        description="live: detect and follow the BBs while the frames "
+        "arrive (warnings on the event stream, BBs on the latest frame) and write "
+        "the calibrated geometry right after the last frame",
+    )
+    bb_diameter_mm: float | None = Field(
+        None, gt=0.1, le=50.0, description="BB diameter for live calibration (default on the simulated bench: its BBs)"
+    )
     abort_on: list[Literal[tuple(WARNING_KINDS)]] = Field(  # type: ignore[valid-type]
-        default_factory=list, max_length=len(WARNING_KINDS),
-        description="live calibration warnings that stop the scan safely (axes halted, X-rays off, file aborted)")
+        default_factory=list,
+        max_length=len(WARNING_KINDS),
+        description="live calibration warnings that stop the scan safely (axes halted, X-rays off, file aborted)",
+    )
 
     @model_validator(mode="after")
     def _live_only(self) -> ScanCreate:
@@ -70,13 +98,35 @@ class ScanCreate(BaseModel):
 class ScanOut(BaseModel):
     """A scan: state, progress (live while it runs), summary of the file (once ended)."""
 
-    model_config = ConfigDict(json_schema_extra={"examples": [{
-        "id": "a1b2c3d4e5f60718", "name": "experiment A", "state": "running", "reason": "", "orbit": "sawtooth",
-        "request": {"orbit": "sawtooth", "frames": 500}, "owner": "operator-1", "created_utc": "2026-11-23T15:00:00.000+00:00",
-        "started_utc": "2026-11-23T15:00:00.100+00:00", "finished_utc": None, "frames_done": 120, "frames_total": 500,
-        "progress": {"stage": "scan", "done": 120, "total": 500, "message": "", "metrics": {"rate_fps": 28.5, "time_left_s": 13.3}},
-        "summary": {}, "links": {"self": "/scans/a1b2c3d4e5f60718", "events": "/scans/a1b2c3d4e5f60718/events"},
-    }]})
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "id": "a1b2c3d4e5f60718",
+                    "name": "experiment A",
+                    "state": "running",
+                    "reason": "",
+                    "orbit": "sawtooth",
+                    "request": {"orbit": "sawtooth", "frames": 500},
+                    "owner": "operator-1",
+                    "created_utc": "2026-11-23T15:00:00.000+00:00",
+                    "started_utc": "2026-11-23T15:00:00.100+00:00",
+                    "finished_utc": None,
+                    "frames_done": 120,
+                    "frames_total": 500,
+                    "progress": {
+                        "stage": "scan",
+                        "done": 120,
+                        "total": 500,
+                        "message": "",
+                        "metrics": {"rate_fps": 28.5, "time_left_s": 13.3},
+                    },
+                    "summary": {},
+                    "links": {"self": "/scans/a1b2c3d4e5f60718", "events": "/scans/a1b2c3d4e5f60718/events"},
+                }
+            ]
+        }
+    )
 
     id: str
     name: str
@@ -106,10 +156,19 @@ def _out(service: Any, row: dict[str, Any]) -> ScanOut:
     active = service.rig.current
     if active is not None and active.scan_id == row["id"] and row["state"] not in ("complete", "aborted", "failed"):
         progress = active.progress
-        row = {**row, "state": active.state, "progress": progress, "frames_done": progress.get("done", row["frames_done"]),
-               "frames_total": progress.get("total", row["frames_total"])}
-    links = {"self": f"/scans/{row['id']}", "events": f"/scans/{row['id']}/events", "file": f"/scans/{row['id']}/file",
-             "jobs": f"/jobs?scan_id={row['id']}"}
+        row = {
+            **row,
+            "state": active.state,
+            "progress": progress,
+            "frames_done": progress.get("done", row["frames_done"]),
+            "frames_total": progress.get("total", row["frames_total"]),
+        }
+    links = {
+        "self": f"/scans/{row['id']}",
+        "events": f"/scans/{row['id']}/events",
+        "file": f"/scans/{row['id']}/file",
+        "jobs": f"/jobs?scan_id={row['id']}",
+    }
     return ScanOut(**{k: row[k] for k in ScanOut.model_fields if k != "links"}, links=links)
 
 
@@ -118,25 +177,45 @@ def _check_params(service: Any, body: ScanCreate) -> dict[str, Any]:
     if body.frames is not None:
         params["n_frames"] = body.frames
     if body.orbit == "waypoints" and params.get("path") is not None:
-        raise Invalid("orbit parameters", details=[FieldProblem(field="params.path", reason="server file paths are not accepted over the API; give 'points'")])
+        raise Invalid(
+            "orbit parameters",
+            details=[
+                FieldProblem(
+                    field="params.path", reason="server file paths are not accepted over the API; give 'points'"
+                )
+            ],
+        )
     try:
         model = ORBIT_KINDS[body.orbit].model_validate(params)
     except ValidationError as exc:
-        details = [FieldProblem(field="params." + d.field, reason=d.reason) for d in validation_details(list(exc.errors()))]
+        details = [
+            FieldProblem(field="params." + d.field, reason=d.reason) for d in validation_details(list(exc.errors()))
+        ]
         raise Invalid("; ".join(f"{d.field}: {d.reason}" for d in details[:5]), details=details) from None
     n = int(model.n_frames)
     limit = service.settings.max_scan_frames
     if n > limit:
-        raise Invalid(f"{n} frames is more than this service allows ({limit})",
-                      details=[FieldProblem(field="frames", reason=f"at most {limit}")])
+        raise Invalid(
+            f"{n} frames is more than this service allows ({limit})",
+            details=[FieldProblem(field="frames", reason=f"at most {limit}")],
+        )
     return model.model_dump(mode="json", exclude_none=True)
 
 
 def _preflight(service: Any, body: ScanCreate, params: dict[str, Any], rel: str) -> dict[str, Any]:
     """The bench's pre-flight of the scan (every frame against every axis limit, room on the disk); its spec."""
-    spec = {"out": str(service.settings.data_dir / rel), "orbit": body.orbit, "params": params, "errors": body.errors,
-            "seed": body.seed, "mode": body.mode, "frame_rate_hz": body.frame_rate_hz, "calibrate": body.calibrate,
-            "bb_diameter_mm": body.bb_diameter_mm, "abort_on": list(body.abort_on)}
+    spec = {
+        "out": str(service.settings.data_dir / rel),
+        "orbit": body.orbit,
+        "params": params,
+        "errors": body.errors,
+        "seed": body.seed,
+        "mode": body.mode,
+        "frame_rate_hz": body.frame_rate_hz,
+        "calibrate": body.calibrate,
+        "bb_diameter_mm": body.bb_diameter_mm,
+        "abort_on": list(body.abort_on),
+    }
     try:
         service.rig.preflight(spec)
     except Invalid as exc:
@@ -151,23 +230,42 @@ class PreflightOut(BaseModel):
     message: str
 
 
-@router.post("/preflight", response_model=PreflightOut, summary="Check a scan before anything moves",
-             responses={**BENCH_UNAVAILABLE, 507: {"model": ErrorBody, "description": "the scan would not fit on the disk"}})
+@router.post(
+    "/preflight",
+    response_model=PreflightOut,
+    summary="Check a scan before anything moves",
+    responses={**BENCH_UNAVAILABLE, 507: {"model": ErrorBody, "description": "the scan would not fit on the disk"}},
+)
 def preflight_scan(body: ScanCreate, service: ServiceDep, _: Reader) -> PreflightOut:
     """Plan the scan and check every frame against every axis limit and the disk's room, as starting it would; 422
     names the first infeasible frame and axis. Nothing moves, and a later start checks again."""
     params = _check_params(service, body)
     _preflight(service, body, params, f"scans/preflight-{uuid.uuid4().hex[:8]}.h5")
     n = int(params["n_frames"])
-    return PreflightOut(frames=n, message=f"all {n} frames are within the limits of every axis, and the scan fits on the disk")
+    return PreflightOut(
+        frames=n, message=f"all {n} frames are within the limits of every axis, and the scan fits on the disk"
+    )
 
 
-@router.post("", response_model=ScanOut, status_code=202, summary="Start a scan",
-             responses={409: {"model": ErrorBody, "description": "the bench is busy with another scan, or an emergency stop is latched"},
-                        **BENCH_UNAVAILABLE,
-                        507: {"model": ErrorBody, "description": "the scan would not fit on the data directory's disk with the reserve "
-                                             "(storage.reserve_mb) left: the message gives the numbers"},
-                        202: {"headers": {"Location": {"description": "URL of the new scan", "schema": {"type": "string"}}}}})
+@router.post(
+    "",
+    response_model=ScanOut,
+    status_code=202,
+    summary="Start a scan",
+    responses={
+        409: {
+            "model": ErrorBody,
+            "description": "the bench is busy with another scan, or an emergency stop is latched",
+        },
+        **BENCH_UNAVAILABLE,
+        507: {
+            "model": ErrorBody,
+            "description": "the scan would not fit on the data directory's disk with the reserve "
+            "(storage.reserve_mb) left: the message gives the numbers",
+        },
+        202: {"headers": {"Location": {"description": "URL of the new scan", "schema": {"type": "string"}}}},
+    },
+)
 def start_scan(body: ScanCreate, service: ServiceDep, who: ScanOperator, response: Response) -> ScanOut:
     """Check the orbit against every limit, then start it; returns at once (progress on ``/scans/{id}/events``)."""
     params = _check_params(service, body)
@@ -179,8 +277,15 @@ def start_scan(body: ScanCreate, service: ServiceDep, who: ScanOperator, respons
     scan_id = uuid.uuid4().hex[:16]
     rel = f"scans/{scan_id}.h5"
     spec = _preflight(service, body, params, rel)
-    service.store.add_scan(scan_id, name=body.name, orbit=body.orbit, request=body.model_dump(mode="json") | {"params": params},
-                           file=rel, owner=who.name, frames_total=int(params["n_frames"]))
+    service.store.add_scan(
+        scan_id,
+        name=body.name,
+        orbit=body.orbit,
+        request=body.model_dump(mode="json") | {"params": params},
+        file=rel,
+        owner=who.name,
+        frames_total=int(params["n_frames"]),
+    )
     try:
         service.rig.start_scan(scan_id, spec)
     except Exception:
@@ -191,8 +296,13 @@ def start_scan(body: ScanCreate, service: ServiceDep, who: ScanOperator, respons
 
 
 @router.get("", response_model=list[ScanOut], summary="List scans")
-def list_scans(service: ServiceDep, _: Reader, state: ScanState | None = None,
-               limit: Annotated[int, Query(ge=1, le=500)] = 100, offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0) -> list[ScanOut]:
+def list_scans(
+    service: ServiceDep,
+    _: Reader,
+    state: ScanState | None = None,
+    limit: Annotated[int, Query(ge=1, le=500)] = 100,
+    offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0,
+) -> list[ScanOut]:
     """Scans, newest first."""
     return [_out(service, r) for r in service.store.list_scans(state=state, limit=limit, offset=offset)]
 
@@ -203,10 +313,22 @@ async def get_scan(scan_id: str, service: ServiceDep, _: Reader) -> ScanOut:
     return _out(service, scan_or_404(service, scan_id))
 
 
-@router.get("/{scan_id}/events", summary="Live progress (server-sent events)",
-            responses={200: {"content": {"text/event-stream": {"example": 'id: 7\nevent: progress\ndata: {"stage":"scan","done":5,"total":500,"metrics":{"rate_fps":29.8,"time_left_s":16.6}}\n\n'}}}})
-def scan_events(scan_id: str, service: ServiceDep, _: Reader,
-                last_event_id: Annotated[str | None, Header(max_length=20)] = None):  # type: ignore[no-untyped-def]
+@router.get(
+    "/{scan_id}/events",
+    summary="Live progress (server-sent events)",
+    responses={
+        200: {
+            "content": {
+                "text/event-stream": {
+                    "example": 'id: 7\nevent: progress\ndata: {"stage":"scan","done":5,"total":500,"metrics":{"rate_fps":29.8,"time_left_s":16.6}}\n\n'
+                }
+            }
+        }
+    },
+)
+def scan_events(
+    scan_id: str, service: ServiceDep, _: Reader, last_event_id: Annotated[str | None, Header(max_length=20)] = None
+):  # type: ignore[no-untyped-def]
     """Events ``state``, ``progress`` (one per frame) and a final ``end``, in order; resumes after ``Last-Event-ID``."""
     scan_or_404(service, scan_id)
     return sse_response(service.bus, f"scan:{scan_id}", last_event_id)
@@ -222,13 +344,22 @@ class FrameOut(BaseModel):
     scale: float = Field(description="picture pixels per detector pixel")
     pixels: str = Field(description="base64 of width x height bytes, row by row (1st to 99.5th percentile as 0 to 255)")
     bbs: list[Annotated[list[float], Field(min_length=2, max_length=2)]] | None = Field(
-        None, description="BBs the live calibration found in this frame: [column, row] in detector pixels (none "
-        "without calibrate: live)")
+        None,
+        description="BBs the live calibration found in this frame: [column, row] in detector pixels (none "
+        "without calibrate: live)",
+    )
 
 
-@router.get("/{scan_id}/frames/latest", response_model=FrameOut, summary="The newest frame of a running scan",
-            responses={204: {"description": "no frame yet"}, 409: {"model": ErrorBody, "description": "the scan is not running"},
-                       **BENCH_UNAVAILABLE})
+@router.get(
+    "/{scan_id}/frames/latest",
+    response_model=FrameOut,
+    summary="The newest frame of a running scan",
+    responses={
+        204: {"description": "no frame yet"},
+        409: {"model": ErrorBody, "description": "the scan is not running"},
+        **BENCH_UNAVAILABLE,
+    },
+)
 async def latest_frame(scan_id: str, service: ServiceDep, _: Reader) -> Any:
     """A preview of the frame acquired last (the file has every frame at full depth)."""
     row = scan_or_404(service, scan_id)
@@ -251,8 +382,13 @@ async def _latest_frame(service: Any, scan_id: str) -> Any:
     return await asyncio.shield(cached[1])
 
 
-@router.post("/{scan_id}/abort", response_model=ScanOut, status_code=202, summary="Abort a running scan",
-             responses={409: {"model": ErrorBody, "description": "the scan is not running"}, **BENCH_UNAVAILABLE, **DISK_FULL})
+@router.post(
+    "/{scan_id}/abort",
+    response_model=ScanOut,
+    status_code=202,
+    summary="Abort a running scan",
+    responses={409: {"model": ErrorBody, "description": "the scan is not running"}, **BENCH_UNAVAILABLE, **DISK_FULL},
+)
 def abort_scan(scan_id: str, service: ServiceDep, _: ScanOperator, body: ScanAction | None = None) -> ScanOut:
     """Halt every axis, X-rays off, file marked aborted with the reason."""
     row = scan_or_404(service, scan_id)
@@ -262,8 +398,13 @@ def abort_scan(scan_id: str, service: ServiceDep, _: ScanOperator, body: ScanAct
     return _out(service, service.store.get_scan(scan_id))
 
 
-@router.post("/{scan_id}/pause", response_model=ScanOut, status_code=202, summary="Pause at the next frame",
-             responses={409: {"model": ErrorBody, "description": "the scan is not running"}, **BENCH_UNAVAILABLE, **DISK_FULL})
+@router.post(
+    "/{scan_id}/pause",
+    response_model=ScanOut,
+    status_code=202,
+    summary="Pause at the next frame",
+    responses={409: {"model": ErrorBody, "description": "the scan is not running"}, **BENCH_UNAVAILABLE, **DISK_FULL},
+)
 def pause_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
     """The current frame completes; X-rays stay off while paused."""
     scan_or_404(service, scan_id)
@@ -271,8 +412,13 @@ def pause_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
     return _out(service, service.store.get_scan(scan_id))
 
 
-@router.post("/{scan_id}/resume", response_model=ScanOut, status_code=202, summary="Resume a paused scan",
-             responses={409: {"model": ErrorBody, "description": "the scan is not running"}, **BENCH_UNAVAILABLE, **DISK_FULL})
+@router.post(
+    "/{scan_id}/resume",
+    response_model=ScanOut,
+    status_code=202,
+    summary="Resume a paused scan",
+    responses={409: {"model": ErrorBody, "description": "the scan is not running"}, **BENCH_UNAVAILABLE, **DISK_FULL},
+)
 def resume_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
     """Continue from the next frame; refused while an emergency stop is latched or the scan is being aborted."""
     scan_or_404(service, scan_id)
@@ -283,9 +429,15 @@ def resume_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
     return _out(service, service.store.get_scan(scan_id))
 
 
-@router.get("/{scan_id}/file", response_class=FileResponse, summary="Download the scan file (HDF5)",
-            responses={200: {"content": {"application/x-hdf5": {}}},
-                       409: {"model": ErrorBody, "description": "still acquiring or being written by a job"}})
+@router.get(
+    "/{scan_id}/file",
+    response_class=FileResponse,
+    summary="Download the scan file (HDF5)",
+    responses={
+        200: {"content": {"application/x-hdf5": {}}},
+        409: {"model": ErrorBody, "description": "still acquiring or being written by a job"},
+    },
+)
 def download_scan(scan_id: str, service: ServiceDep, _: Reader) -> FileResponse:
     """The scan file (``scan-file.md``), once the scan has ended and no job writes to it."""
     row = scan_or_404(service, scan_id)

@@ -39,8 +39,12 @@ class Unauthorized(ApiError):
 
 
 def _out(principal: Principal, csrf: str) -> SessionOut:
-    return SessionOut(name=principal.name, role=principal.role, permissions=sorted(PERMISSIONS.get(principal.role, ())),
-                      csrf_token=csrf)
+    return SessionOut(
+        name=principal.name,
+        role=principal.role,
+        permissions=sorted(PERMISSIONS.get(principal.role, ())),
+        csrf_token=csrf,
+    )
 
 
 @router.post("", response_model=SessionOut, summary="Sign in (sets the session cookie)")
@@ -50,8 +54,15 @@ def sign_in(body: SignIn, service: ServiceDep, request: Request, response: Respo
     if opened is None:
         raise Unauthorized("unknown token: ask an operator for one (`orbitct token create --role R`)")
     session_id, session, principal = opened
-    response.set_cookie(COOKIE, session_id, max_age=int(service.sessions.max_age_s), httponly=True, samesite="strict",
-                        secure=request.url.scheme == "https", path="/")
+    response.set_cookie(
+        COOKIE,
+        session_id,
+        max_age=int(service.sessions.max_age_s),
+        httponly=True,
+        samesite="strict",
+        secure=request.url.scheme == "https",
+        path="/",
+    )
     return _out(principal, session.csrf)
 
 

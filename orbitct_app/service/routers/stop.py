@@ -41,13 +41,31 @@ class HaltCheckOut(BaseModel):
 class StopOut(BaseModel):
     """What the emergency stop did and what it proved."""
 
-    model_config = {"json_schema_extra": {"examples": [{
-        "accepted": True, "halted": True, "latched": True, "via": "guard", "scan_aborted": "a1b2c3d4e5f60718",
-        "by": "alice (viewer)", "reason": "emergency stop by alice",
-        "message": "halted and verified: hexapod axes not moving; rotation_stage axes not moving; xray high voltage off, "
-                   "not exposing (state IDLE)",
-        "devices": [{"device": "xray", "halted": True, "verified": "high voltage off, not exposing (state IDLE)",
-                     "problem": ""}]}]}}
+    model_config = {
+        "json_schema_extra": {
+            "examples": [
+                {
+                    "accepted": True,
+                    "halted": True,
+                    "latched": True,
+                    "via": "guard",
+                    "scan_aborted": "a1b2c3d4e5f60718",
+                    "by": "alice (viewer)",
+                    "reason": "emergency stop by alice",
+                    "message": "halted and verified: hexapod axes not moving; rotation_stage axes not moving; xray high voltage off, "
+                    "not exposing (state IDLE)",
+                    "devices": [
+                        {
+                            "device": "xray",
+                            "halted": True,
+                            "verified": "high voltage off, not exposing (state IDLE)",
+                            "problem": "",
+                        }
+                    ],
+                }
+            ]
+        }
+    }
 
     accepted: bool = True
     halted: bool = Field(description="every device was read back halted: axes not moving, high voltage off")
@@ -58,8 +76,11 @@ class StopOut(BaseModel):
     reason: str = ""
     message: str
     devices: list[HaltCheckOut] = []
-    latch_recorded: bool = Field(True, description="the latch is written to the data directory (it survives a "
-                                                   "restart); false while it holds in memory only")
+    latch_recorded: bool = Field(
+        True,
+        description="the latch is written to the data directory (it survives a "
+        "restart); false while it holds in memory only",
+    )
     latch_problem: str | None = Field(None, description="why the latch could not be written yet (retried)")
     note: str | None = Field(None, description="what was wrong with the request; the stop was taken all the same")
 
@@ -85,9 +106,15 @@ class ResetRequest(BaseModel):
     note: str = Field("", max_length=500)
 
 
-@router.post("", response_model=StopOut, status_code=202, summary="Emergency stop",
-             openapi_extra={"requestBody": {"required": False, "content": {"application/json": {
-                 "schema": StopRequest.model_json_schema()}}}})
+@router.post(
+    "",
+    response_model=StopOut,
+    status_code=202,
+    summary="Emergency stop",
+    openapi_extra={
+        "requestBody": {"required": False, "content": {"application/json": {"schema": StopRequest.model_json_schema()}}}
+    },
+)
 async def emergency_stop(request: Request, service: ServiceDep, who: Stopper) -> StopOut:
     """Latch the stop, abort any scan, halt every axis and switch X-rays off, then read every device back.
 
@@ -108,8 +135,12 @@ async def latch_state(service: ServiceDep, _: Reader) -> LatchOut:
     return LatchOut(**service.estop.state())
 
 
-@router.post("/reset", response_model=LatchOut, summary="Reset the emergency stop (operator)",
-             responses={409: {"model": ErrorBody, "description": "no stop is latched"}})
+@router.post(
+    "/reset",
+    response_model=LatchOut,
+    summary="Reset the emergency stop (operator)",
+    responses={409: {"model": ErrorBody, "description": "no stop is latched"}},
+)
 async def reset(service: ServiceDep, who: Resetter, body: ResetRequest | None = None) -> LatchOut:
     """Clear the latch after checking the bench; logged with who and when. Nothing moves and X-rays stay off."""
     try:
@@ -118,11 +149,21 @@ async def reset(service: ServiceDep, who: Resetter, body: ResetRequest | None = 
         raise Conflict(str(exc)) from None
 
 
-@router.get("/events", summary="Stops and resets (server-sent events)",
-            responses={200: {"content": {"text/event-stream": {"example": 'event: latch\ndata: {"latched":false}\n\n'
-                                                                          'id: 3\nevent: stop\ndata: {"halted":true,"latched":true}\n\n'}}}})
-def stop_events(service: ServiceDep, _: Reader,
-                last_event_id: Annotated[str | None, Header(max_length=20)] = None):  # type: ignore[no-untyped-def]
+@router.get(
+    "/events",
+    summary="Stops and resets (server-sent events)",
+    responses={
+        200: {
+            "content": {
+                "text/event-stream": {
+                    "example": 'event: latch\ndata: {"latched":false}\n\n'
+                    'id: 3\nevent: stop\ndata: {"halted":true,"latched":true}\n\n'
+                }
+            }
+        }
+    },
+)
+def stop_events(service: ServiceDep, _: Reader, last_event_id: Annotated[str | None, Header(max_length=20)] = None):  # type: ignore[no-untyped-def]
     """First ``latch`` (the latch as ``GET /stop`` gives it, without an id), then the events ``stop`` (with what was
     verified) and ``reset`` (who, when), in order; resumes after ``Last-Event-ID``. The stream stays open."""
     return sse_response(service.bus, TOPIC, last_event_id, first=("latch", service.estop.state()))

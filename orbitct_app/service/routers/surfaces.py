@@ -51,14 +51,33 @@ def load_kept_surface(service: Any, surface_id: str) -> Any:
     return dataclasses.replace(load_surface(str(path)), source=name)
 
 
-@router.post("", status_code=201, response_model=SurfaceOut, summary="Upload an object's surface mesh",
-             openapi_extra={"requestBody": {"required": True, "description": "the mesh file itself (its content is "
-                                            "checked by the service: 422 when it is no mesh or holds no triangles)",
-                                            "content": {"application/octet-stream": {"schema": {
-                                                "type": "string", "format": "binary", "minLength": 1}}}}})
-async def upload_surface(request: Request, service: ServiceDep, response: Response, _: Analyst,
-                         name: Annotated[str, Query(pattern=_NAME, description="the file's name, with its suffix: "
-                                                    + ", ".join(MESH_SUFFIXES) + " (422 otherwise)")]) -> SurfaceOut:
+@router.post(
+    "",
+    status_code=201,
+    response_model=SurfaceOut,
+    summary="Upload an object's surface mesh",
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "description": "the mesh file itself (its content is "
+            "checked by the service: 422 when it is no mesh or holds no triangles)",
+            "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary", "minLength": 1}}},
+        }
+    },
+)
+async def upload_surface(
+    request: Request,
+    service: ServiceDep,
+    response: Response,
+    _: Analyst,
+    name: Annotated[
+        str,
+        Query(
+            pattern=_NAME,
+            description="the file's name, with its suffix: " + ", ".join(MESH_SUFFIXES) + " (422 otherwise)",
+        ),
+    ],
+) -> SurfaceOut:
     """The mesh file is the request body (mm, in the object frame: z along the rotation axis, as the scan's
     reconstructions); it is read at once and refused in one line when it is no mesh or holds no triangles. 201 with
     the outline made of it (``Location: /surfaces/{id}``)."""

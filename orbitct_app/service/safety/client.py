@@ -30,8 +30,9 @@ class GuardUnavailable(Exception):
 class GuardClient:
     """Starts the guard process (its own stop listener), keeps it running, and forwards stops to it."""
 
-    def __init__(self, settings: ServiceSettings, flag: Any, dev_token: str | None,
-                 on_stop: Callable[[dict[str, Any]], None]) -> None:
+    def __init__(
+        self, settings: ServiceSettings, flag: Any, dev_token: str | None, on_stop: Callable[[dict[str, Any]], None]
+    ) -> None:
         self.settings, self.flag, self.dev_token, self._on_stop = settings, flag, dev_token, on_stop
         self._forward_secret = secrets.token_urlsafe(32)  # stops of signed-in console users (no token of theirs here)
         self.state = "not started"
@@ -77,10 +78,22 @@ class GuardClient:
         self.state = "starting"
         s = self.settings
         self._process = _CTX.Process(
-            target=guard_main, name="orbitct-guard", daemon=True,
-            args=(self._links, str(s.data_dir), self.flag, s.host, port, [t.model_dump() for t in s.tokens],
-                  str(s.tokens_path), self.dev_token, child, s.bench_nice - 1 if s.bench_nice < 0 else 0,
-                  self._forward_secret),
+            target=guard_main,
+            name="orbitct-guard",
+            daemon=True,
+            args=(
+                self._links,
+                str(s.data_dir),
+                self.flag,
+                s.host,
+                port,
+                [t.model_dump() for t in s.tokens],
+                str(s.tokens_path),
+                self.dev_token,
+                child,
+                s.bench_nice - 1 if s.bench_nice < 0 else 0,
+                self._forward_secret,
+            ),
         )
         self._process.start()
         child.close()
@@ -126,8 +139,11 @@ class GuardClient:
         service's forwarding secret on behalf of ``who``; the guard's verified reply."""
         if not self.alive or self.url is None:
             raise GuardUnavailable(f"the guard is not listening ({self.state})")
-        headers = {"Authorization": authorization} if authorization else {
-            "Authorization": f"Bearer {self._forward_secret}", ON_BEHALF_HEADER: f"{who.name}|{who.role}"}
+        headers = (
+            {"Authorization": authorization}
+            if authorization
+            else {"Authorization": f"Bearer {self._forward_secret}", ON_BEHALF_HEADER: f"{who.name}|{who.role}"}
+        )
         try:
             async with httpx.AsyncClient(timeout=FORWARD_TIMEOUT_S) as client:
                 r = await client.post(f"{self.url}/stop", json={"reason": reason}, headers=headers)

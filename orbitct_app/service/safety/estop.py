@@ -53,8 +53,14 @@ class EmergencyStop:
         """Latch in memory, halt over the rig process's links, then record the latch (the guard's order)."""
         by = f"{who.name} ({who.role})"
         self.latch.latch(by, reason, via="REST (guard unavailable)")
-        base: dict[str, Any] = {"accepted": True, "latched": True, "by": by, "reason": reason, "via": "rig",
-                                "devices": []}
+        base: dict[str, Any] = {
+            "accepted": True,
+            "latched": True,
+            "by": by,
+            "reason": reason,
+            "via": "rig",
+            "devices": [],
+        }
         reply = await self._rig_halt(base, guard_why)
         reply["latch_recorded"] = await asyncio.to_thread(self.latch.record)
         if not reply["latch_recorded"]:
@@ -64,19 +70,34 @@ class EmergencyStop:
     async def _rig_halt(self, base: dict[str, Any], guard_why: str) -> dict[str, Any]:
         _, future = self.rig.emergency_stop(base["reason"])
         if future is None:
-            return {**base, "via": "none", "halted": False,
-                    "message": f"NOT verified: no process can reach the devices ({guard_why}; the rig process is "
-                               f"{self.rig.connection_state}); the stop is latched: stop the bench by hand"}
+            return {
+                **base,
+                "via": "none",
+                "halted": False,
+                "message": f"NOT verified: no process can reach the devices ({guard_why}; the rig process is "
+                f"{self.rig.connection_state}); the stop is latched: stop the bench by hand",
+            }
         try:
             answer = await asyncio.wait_for(asyncio.wrap_future(future), RIG_CONFIRM_TIMEOUT_S)
         except TimeoutError:
-            return {**base, "halted": False,
-                    "message": f"NOT verified: halt sent to the rig process ({guard_why}), no confirmation within "
-                               f"{RIG_CONFIRM_TIMEOUT_S:g} s"}
+            return {
+                **base,
+                "halted": False,
+                "message": f"NOT verified: halt sent to the rig process ({guard_why}), no confirmation within "
+                f"{RIG_CONFIRM_TIMEOUT_S:g} s",
+            }
         except Exception as exc:  # noqa: BLE001 - the stop is still latched; say what the rig answered
-            return {**base, "halted": False, "message": f"NOT verified: halt sent to the rig process, which reported: {exc}"}
-        return {**base, "halted": bool(answer["halted"]), "devices": answer["devices"],
-                "message": f"{answer['message']} (through the rig process: {guard_why})"}
+            return {
+                **base,
+                "halted": False,
+                "message": f"NOT verified: halt sent to the rig process, which reported: {exc}",
+            }
+        return {
+            **base,
+            "halted": bool(answer["halted"]),
+            "devices": answer["devices"],
+            "message": f"{answer['message']} (through the rig process: {guard_why})",
+        }
 
     def reset(self, who: Principal, note: str = "") -> dict[str, Any]:
         """Clear the latch (raises :class:`~orbitct_app.service.safety.latch.NotLatchedError` if clear); one event."""
@@ -88,8 +109,11 @@ class EmergencyStop:
 
     def state(self, state: dict[str, Any] | None = None) -> dict[str, Any]:
         """The latch, and where the stop listener is."""
-        return {**(state or self.latch.state()), "stop_url": f"{self.guard.url}/stop" if self.guard.url else None,
-                "guard": self.guard.state}
+        return {
+            **(state or self.latch.state()),
+            "stop_url": f"{self.guard.url}/stop" if self.guard.url else None,
+            "guard": self.guard.state,
+        }
 
     def refusal(self, action: str) -> str | None:
         """Why ``action`` is refused now (None when no stop is latched)."""

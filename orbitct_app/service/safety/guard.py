@@ -97,8 +97,11 @@ class DeviceGuard:
         if missing:  # one more try, within the stop's bound
             await asyncio.gather(*(self._connect(k) for k in missing))
         checks = await halt_and_verify([self.devices[k] for k in self.links if k in self.devices], HALT_TIMEOUT_S)
-        checks += [HaltCheck(k, False, problem=self.problems.get(k, "not connected")) for k in self.links
-                   if k not in self.devices]
+        checks += [
+            HaltCheck(k, False, problem=self.problems.get(k, "not connected"))
+            for k in self.links
+            if k not in self.devices
+        ]
         return checks
 
     def halt(self) -> list[HaltCheck]:
@@ -107,6 +110,7 @@ class DeviceGuard:
 
     def close(self) -> None:
         """Close the connections (the devices stay as they are) and end the thread."""
+
         async def _close() -> None:
             self._keeper.cancel()
             for dev in self.devices.values():
@@ -123,8 +127,14 @@ class DeviceGuard:
 class Guard:
     """The stop itself: latch first, then halt and verify; tells the web server what happened."""
 
-    def __init__(self, devices: DeviceGuard, latch: StopLatch, tokens: TokenRegistry, events: Connection | None,
-                 forward_secret: str = "") -> None:
+    def __init__(
+        self,
+        devices: DeviceGuard,
+        latch: StopLatch,
+        tokens: TokenRegistry,
+        events: Connection | None,
+        forward_secret: str = "",
+    ) -> None:
         self.devices, self.latch, self.tokens, self._events = devices, latch, tokens, events
         self.forward_secret = forward_secret
         self._send_lock = threading.Lock()
@@ -138,8 +148,16 @@ class Guard:
         checks = self.devices.halt()
         halted, message = summary(checks)
         recorded = self.latch.record()
-        reply = {"accepted": True, "halted": halted, "latched": True, "message": message,
-                 "devices": [c.to_json() for c in checks], "by": by, "reason": why, "latch_recorded": recorded}
+        reply = {
+            "accepted": True,
+            "halted": halted,
+            "latched": True,
+            "message": message,
+            "devices": [c.to_json() for c in checks],
+            "by": by,
+            "reason": why,
+            "latch_recorded": recorded,
+        }
         if not recorded:
             reply["latch_problem"] = f"{self.latch.record_problem}; the stop holds in memory until it is recorded"
         with contextlib.suppress(Exception):
@@ -193,15 +211,24 @@ class StopHandler(BaseHTTPRequestHandler):
             if unread:  # not read whole: the connection closes after this answer; a stop is still taken
                 self.close_connection = True
                 if not (self.command == "POST" and self.path.split("?")[0] == "/stop"):
-                    self._error(400 if unread == "malformed" else 413, "bad_request",
-                                f"the request body was {unread}: it was not read, and the connection is closed",
-                                close=True)
+                    self._error(
+                        400 if unread == "malformed" else 413,
+                        "bad_request",
+                        f"the request body was {unread}: it was not read, and the connection is closed",
+                        close=True,
+                    )
                     return
-            handler = {"GET": self.do_GET, "HEAD": self.do_GET, "POST": self.do_POST,
-                       "OPTIONS": self.do_OPTIONS}.get(self.command)
+            handler = {"GET": self.do_GET, "HEAD": self.do_GET, "POST": self.do_POST, "OPTIONS": self.do_OPTIONS}.get(
+                self.command
+            )
             if handler is None:
-                self._error(405, "method_not_allowed", f"the stop listener does not serve {self.command[:20]!r}: "
-                            "it serves POST /stop, GET /stop and GET /health", allow="GET, HEAD, POST, OPTIONS")
+                self._error(
+                    405,
+                    "method_not_allowed",
+                    f"the stop listener does not serve {self.command[:20]!r}: "
+                    "it serves POST /stop, GET /stop and GET /health",
+                    allow="GET, HEAD, POST, OPTIONS",
+                )
             else:
                 handler()
             self.wfile.flush()
@@ -271,8 +298,12 @@ class StopHandler(BaseHTTPRequestHandler):
             return None
         who = self.guard.tokens.authenticate(token.strip())
         behalf = self.headers.get(ON_BEHALF_HEADER, "")
-        if who is None and behalf and self.guard.forward_secret and hmac.compare_digest(
-                token.strip().encode(), self.guard.forward_secret.encode()):
+        if (
+            who is None
+            and behalf
+            and self.guard.forward_secret
+            and hmac.compare_digest(token.strip().encode(), self.guard.forward_secret.encode())
+        ):
             name, _, role = behalf.partition("|")  # the web server checked this signed-in user's session
             who = Principal(name=name[:100], role=role[:20])
         if who is None:
@@ -326,16 +357,27 @@ class _Server(ThreadingHTTPServer):
     request_queue_size = 128
 
 
-def guard_main(links: dict[str, tuple[str, dict[str, Any]]], data_dir: str, flag: Any, host: str, port: int,
-               tokens: list[dict[str, Any]], tokens_path: str | None, dev_token: str | None, conn: Connection,
-               nice: int = 0, forward_secret: str = "") -> None:
+def guard_main(
+    links: dict[str, tuple[str, dict[str, Any]]],
+    data_dir: str,
+    flag: Any,
+    host: str,
+    port: int,
+    tokens: list[dict[str, Any]],
+    tokens_path: str | None,
+    dev_token: str | None,
+    conn: Connection,
+    nice: int = 0,
+    forward_secret: str = "",
+) -> None:
     """Entry point of the guard process: listen on ``host:port`` (0: any free port), report the port, serve."""
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s guard: %(message)s")
     if nice < 0:
         with contextlib.suppress(OSError):
             os.setpriority(os.PRIO_PROCESS, 0, nice)
-    registry = TokenRegistry([TokenHash.model_validate(t) for t in tokens], Path(tokens_path) if tokens_path else None,
-                             dev_token)
+    registry = TokenRegistry(
+        [TokenHash.model_validate(t) for t in tokens], Path(tokens_path) if tokens_path else None, dev_token
+    )
     devices = DeviceGuard({k: DeviceLink(*v) for k, v in links.items()})
     guard = Guard(devices, StopLatch(Path(data_dir), flag), registry, conn, forward_secret)
     handler = type("BoundStopHandler", (StopHandler,), {"guard": guard})

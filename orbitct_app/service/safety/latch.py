@@ -249,8 +249,10 @@ class StopLatch:
             data = {**data, **{k: v for k, v in note.items() if v}}
         data["latched"] = latched
         if problem is None and bool(on_disk.get("latched")) != latched:
-            problem = (f"{self.path} does not record the {'stop' if latched else 'reset'} yet (the process that took "
-                       "it keeps trying)")
+            problem = (
+                f"{self.path} does not record the {'stop' if latched else 'reset'} yet (the process that took "
+                "it keeps trying)"
+            )
         return {**self._public(data), "recorded": problem is None, "record_problem": problem}
 
     @staticmethod
@@ -271,5 +273,7 @@ class StopLatch:
         st = self.state()
         who = f" by {st['by']}" if st.get("by") else ""
         when = f" at {st['since_utc']}" if st.get("since_utc") else ""
-        return (f"emergency stop latched{who}{when}: {action} refused until an operator resets it "
-                "(POST /stop/reset or `orbitct reset`)")
+        return (
+            f"emergency stop latched{who}{when}: {action} refused until an operator resets it "
+            "(POST /stop/reset or `orbitct reset`)"
+        )

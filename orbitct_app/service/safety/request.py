@@ -15,7 +15,7 @@ def stop_reason(raw: bytes) -> tuple[str, str]:
     try:
         body = json.loads(raw)
     except ValueError:
-        return "", "the body was not JSON ({\"reason\": \"...\"} or nothing)"
+        return "", 'the body was not JSON ({"reason": "..."} or nothing)'
     reason = body.get("reason", "") if isinstance(body, dict) else None
     if not isinstance(reason, str):
         return "", "the reason was not text"

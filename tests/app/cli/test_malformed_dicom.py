@@ -26,6 +26,7 @@ def _set(**values: Any) -> Callable[[Any], None]:
     def edit(ds: Any) -> None:
         for name, value in values.items():
             setattr(ds, name, value)
+
     return edit
 
 
@@ -65,10 +66,12 @@ EDITS: dict[str, Callable[[Any], None]] = {
     "detector-inside-source": _set(DistanceSourceToDetector=500, DistanceSourceToPatient=800),
     "angle-nan": _set(PositionerPrimaryAngle="nan"),
     "angle-text": lambda ds: ds.add_new(ds.data_element("PositionerPrimaryAngle").tag, "LO", "LAO"),
-    "increments-short": lambda ds: setattr(ds, "PositionerPrimaryAngleIncrement",
-                                           list(ds.PositionerPrimaryAngleIncrement)[:-3]),
-    "increments-infinite": lambda ds: setattr(ds, "PositionerSecondaryAngleIncrement",
-                                              ["inf"] * int(ds.NumberOfFrames)),
+    "increments-short": lambda ds: setattr(
+        ds, "PositionerPrimaryAngleIncrement", list(ds.PositionerPrimaryAngleIncrement)[:-3]
+    ),
+    "increments-infinite": lambda ds: setattr(
+        ds, "PositionerSecondaryAngleIncrement", ["inf"] * int(ds.NumberOfFrames)
+    ),
     "log-pixels": _set(PixelIntensityRelationship="LOG"),
     "no-pixel-data": _delete("PixelData"),
     "jpeg2000-undecodable": _undecodable_jpeg2000,
@@ -90,8 +93,12 @@ def test_every_malformed_dicom_object_is_refused_in_one_sentence(carm_scan: Path
     assert r.exit_code == 0, r.output
     files = [_write(valid, tmp_path, name, edit) for name, edit in EDITS.items()]
     data = valid.read_bytes()
-    for name, content in {"truncated-half": data[: len(data) // 2], "header-only": data[:600], "empty": b"",
-                          "text": b"not a DICOM object\n" * 20}.items():
+    for name, content in {
+        "truncated-half": data[: len(data) // 2],
+        "header-only": data[:600],
+        "empty": b"",
+        "text": b"not a DICOM object\n" * 20,
+    }.items():
         files.append(tmp_path / f"{name}.dcm")
         files[-1].write_bytes(content)
     assert len(files) >= 20

@@ -45,6 +45,7 @@ def _replace(path: str, make: Callable[[np.ndarray], Any]) -> Mutation:
         old = np.asarray(f[path])
         del f[path]
         f[path] = make(old)
+
     return go
 
 
@@ -57,6 +58,7 @@ def _vectors(change: Callable[[np.ndarray], np.ndarray], group: str = "geometry/
         _replace(f"{group}/vectors", change)(f)
         if f"{group}/matrices" in f:
             del f[f"{group}/matrices"]
+
     return go
 
 
@@ -66,6 +68,7 @@ def _on_projection(values: Callable[[np.ndarray], np.ndarray]) -> Callable[[np.n
         k = int(np.flatnonzero(np.isfinite(v).all(axis=1))[3])
         v[k] = values(v[k])
         return v
+
     return change
 
 
@@ -88,6 +91,7 @@ def _external_link(tmp: Path) -> Mutation:
             g["data"] = np.asarray(f["frames/data"])
         del f["frames/data"]
         f["frames/data"] = h5py.ExternalLink(str(other), "/data")
+
     return go
 
 
@@ -98,6 +102,7 @@ def _raw_external(tmp: Path) -> Mutation:
         raw.write_bytes(arr.tobytes())
         del f["frames/data"]
         f["frames"].create_dataset("data", shape=arr.shape, dtype=arr.dtype, external=[(str(raw), 0, arr.nbytes)])
+
     return go
 
 
@@ -111,6 +116,7 @@ def _virtual(tmp: Path) -> Mutation:
         layout[:] = h5py.VirtualSource(str(src), "data", shape=arr.shape)
         del f["frames/data"]
         f["frames"].create_virtual_dataset("data", layout)
+
     return go
 
 
@@ -147,7 +153,11 @@ CASES: list[tuple[str, Any, frozenset[str]]] = [
     ("frames-strings", _replace("frames/data", lambda a: np.full(a.shape[:1], b"pixels")), ALL),
     ("frames-huge-declared", _huge_frames, ALL),
     ("image-key-missing", _del("frames/image_key"), ALL),
-    ("image-key-unknown", _replace("frames/image_key", lambda k: np.where(np.arange(k.size) == 5, 7, k).astype("i1")), ALL),
+    (
+        "image-key-unknown",
+        _replace("frames/image_key", lambda k: np.where(np.arange(k.size) == 5, 7, k).astype("i1")),
+        ALL,
+    ),
     ("image-key-float", _replace("frames/image_key", lambda k: k.astype(np.float64) + 0.5), ALL),
     ("image-key-short", _replace("frames/image_key", lambda k: k[:-4]), ALL),
     ("time-short", _replace("frames/time_s", lambda t: t[:-4]), ALL),
@@ -180,8 +190,9 @@ CASES: list[tuple[str, Any, frozenset[str]]] = [
 @pytest.fixture(scope="module")
 def valid_scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("valid") / "valid.h5"
-    r = CliRunner().invoke(cli, ["simulate", "--experiment", "A", "--frames", "48", "--detector-size", "192",
-                                 "--out", str(path)])
+    r = CliRunner().invoke(
+        cli, ["simulate", "--experiment", "A", "--frames", "48", "--detector-size", "192", "--out", str(path)]
+    )
     assert r.exit_code == 0, r.output
     check = path.with_name("check.h5")  # the valid file passes every command (run on a copy: results go in)
     shutil.copyfile(path, check)
@@ -203,7 +214,9 @@ def test_malformed_file(valid_scan: Path, tmp_path: Path, name: str, mutation: A
     path = tmp_path / f"{name}.h5"
     shutil.copyfile(valid_scan, path)
     if isinstance(mutation, str):
-        mutation = {"external_link": _external_link, "raw_external": _raw_external, "virtual": _virtual}[mutation](tmp_path)
+        mutation = {"external_link": _external_link, "raw_external": _raw_external, "virtual": _virtual}[mutation](
+            tmp_path
+        )
     with h5py.File(path, "r+") as f:
         mutation(f)
     for command, args in COMMANDS.items():
@@ -217,10 +230,14 @@ def test_malformed_file(valid_scan: Path, tmp_path: Path, name: str, mutation: A
             assert code == 0, (command, out)
 
 
-@pytest.mark.parametrize("content,why", [
-    (b"", "not a readable HDF5 file"),
-    (b"just text, no HDF5 here\n" * 10, "not a readable HDF5 file"),
-], ids=["empty", "text"])
+@pytest.mark.parametrize(
+    "content,why",
+    [
+        (b"", "not a readable HDF5 file"),
+        (b"just text, no HDF5 here\n" * 10, "not a readable HDF5 file"),
+    ],
+    ids=["empty", "text"],
+)
 def test_files_that_are_not_hdf5(tmp_path: Path, content: bytes, why: str) -> None:
     path = tmp_path / "scan.h5"
     path.write_bytes(content)
@@ -255,14 +272,19 @@ IGNORED = [  # attributes no command needs, as other writers fill them: ignored 
     ("orbit-json-garbage", _set_attr("orbit", "params_json", "{not json"), "/orbit@params_json is not valid JSON"),
     ("orbit-json-list", _set_attr("orbit", "params_json", "[1, 2]"), "/orbit@params_json is JSON a list"),
     ("phantom-json-garbage", _set_attr("truth", "phantom_json", "phantom?"), "/truth@phantom_json is not valid JSON"),
-    ("phantom-json-list", _set_attr("truth", "phantom_json", '[{"kind": "sphere"}]'), "/truth@phantom_json is JSON a list"),
+    (
+        "phantom-json-list",
+        _set_attr("truth", "phantom_json", '[{"kind": "sphere"}]'),
+        "/truth@phantom_json is JSON a list",
+    ),
     ("config-json-number", _set_attr("provenance", "config_json", "42"), "/provenance@config_json is JSON a number"),
 ]
 
 
 @pytest.mark.parametrize("name,mutation,warning", IGNORED, ids=[c[0] for c in IGNORED])
-def test_an_attribute_no_command_needs_is_ignored_with_a_warning(valid_scan: Path, tmp_path: Path, name: str,
-                                                                mutation: Any, warning: str) -> None:
+def test_an_attribute_no_command_needs_is_ignored_with_a_warning(
+    valid_scan: Path, tmp_path: Path, name: str, mutation: Any, warning: str
+) -> None:
     path = tmp_path / f"{name}.h5"
     shutil.copyfile(valid_scan, path)
     with h5py.File(path, "r+") as f:
@@ -270,7 +292,6 @@ def test_an_attribute_no_command_needs_is_ignored_with_a_warning(valid_scan: Pat
     for command, args in COMMANDS.items():
         code, out = _run(args, path)
         assert code == 0 and warning in out and "it is ignored" in out, (command, out)
-
 
 
 def _damaged(data: bytes) -> dict[str, bytes]:
@@ -282,7 +303,7 @@ def _damaged(data: bytes) -> dict[str, bytes]:
         at, found = data.find(sig), 0
         while at >= 0 and found < 3:
             b = bytearray(data)
-            b[at + 4: at + 40] = bytes(x ^ 0xFF for x in b[at + 4: at + 40])
+            b[at + 4 : at + 40] = bytes(x ^ 0xFF for x in b[at + 4 : at + 40])
             out[f"{sig.decode().lower()}-{found}"] = bytes(b)
             at, found = data.find(sig, at + 1), found + 1
     rng = np.random.default_rng(7)
@@ -318,6 +339,7 @@ def _dangling(path: str) -> Mutation:
     def go(f: h5py.File) -> None:
         del f[path]
         f[path] = h5py.SoftLink("/nowhere")
+
     return go
 
 
@@ -333,9 +355,14 @@ def _no_projections(f: h5py.File) -> None:
 
 
 LINKS: dict[str, Mutation] = {
-    "link-to-itself": _self_link, "soft-link-loop": _soft_loop, "dangling-frames": _dangling("frames/data"),
-    "dangling-geometry": _dangling("geometry/nominal/vectors"), "dangling-markers": _dangling("truth/markers/xyz"),
-    "external-link-missing": _external_missing, "no-geometry": _del("geometry"), "no-projections": _no_projections,
+    "link-to-itself": _self_link,
+    "soft-link-loop": _soft_loop,
+    "dangling-frames": _dangling("frames/data"),
+    "dangling-geometry": _dangling("geometry/nominal/vectors"),
+    "dangling-markers": _dangling("truth/markers/xyz"),
+    "external-link-missing": _external_missing,
+    "no-geometry": _del("geometry"),
+    "no-projections": _no_projections,
     "still-acquiring": _set_attr("/", "status", "acquiring"),
     "hard-link-loop": lambda f: f.__setitem__("frames/again", f["frames"]),  # ordinary HDF5: usable
 }
@@ -390,8 +417,14 @@ def test_a_file_with_only_the_published_contract_is_used(valid_scan: Path, tmp_p
     with h5py.File(valid_scan, "r") as src, h5py.File(path, "w") as dst:
         dst.attrs.update({"format": "orbitct.scan", "version": 1, "status": "complete", "status_reason": ""})
         dst.create_group("detector").attrs.update({k: src["detector"].attrs[k] for k in ("rows", "cols", "pitch_mm")})
-        for name in ("frames/data", "frames/image_key", "frames/time_s", "geometry/nominal/vectors",
-                     "truth/geometry/vectors", "truth/markers/xyz"):
+        for name in (
+            "frames/data",
+            "frames/image_key",
+            "frames/time_s",
+            "geometry/nominal/vectors",
+            "truth/geometry/vectors",
+            "truth/markers/xyz",
+        ):
             dst[name] = np.asarray(src[name])
         for group in ("encoders", "commanded"):
             for axis, ds in src[f"frames/{group}"].items():

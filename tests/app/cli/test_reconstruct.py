@@ -18,9 +18,29 @@ def test_cli_reconstructs_and_reports_errors(tmp_path: Path) -> None:
     path = tmp_path / "s.h5"
     write_sphere_scan(path, g)
     runner = CliRunner()
-    res = runner.invoke(cli, ["reconstruct", str(path), "--algorithm", "pwls", "--geometry", "nominal", "--shape",
-                              "24,40,40", "--voxel-mm", "3", "--iterations", "3", "--export", "png", "--name", "cli",
-                              "--stream", "file"])
+    res = runner.invoke(
+        cli,
+        [
+            "reconstruct",
+            str(path),
+            "--algorithm",
+            "pwls",
+            "--geometry",
+            "nominal",
+            "--shape",
+            "24,40,40",
+            "--voxel-mm",
+            "3",
+            "--iterations",
+            "3",
+            "--export",
+            "png",
+            "--name",
+            "cli",
+            "--stream",
+            "file",
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert "/recon/cli" in res.output and "cost" in res.output and "s_cli_axial.png" in res.output
     with ScanFile(path) as sf:
@@ -38,8 +58,20 @@ def test_compare_puts_two_geometries_side_by_side_in_one_window(tmp_path: Path) 
     truth = g.transformed(np.eye(3), (3.0, 0.0, 0.0))
     path = tmp_path / "s.h5"
     write_sphere_scan(path, g, truth=truth)
-    args = ["reconstruct", str(path), "--algorithm", "fdk", "--geometry", "truth", "--shape", "16,24,24",
-            "--voxel-mm", "4", "--compare", "nominal"]
+    args = [
+        "reconstruct",
+        str(path),
+        "--algorithm",
+        "fdk",
+        "--geometry",
+        "truth",
+        "--shape",
+        "16,24,24",
+        "--voxel-mm",
+        "4",
+        "--compare",
+        "nominal",
+    ]
     res = CliRunner().invoke(cli, args)
     assert res.exit_code == 0, res.output
     figure = tmp_path / "s_fdk_truth_vs_nominal.png"
@@ -58,8 +90,22 @@ def test_a_reconstruction_estimated_above_the_limit_is_refused_off_a_terminal_un
     g = ViewGeometry.from_carm(np.linspace(0, 2 * np.pi, 40, endpoint=False), 0.0, 785.0, 1200.0, bench_detector(48))
     path = tmp_path / "s.h5"
     write_sphere_scan(path, g)
-    args = ["reconstruct", str(path), "--algorithm", "pwls", "--geometry", "nominal", "--shape", "24,40,40",
-            "--voxel-mm", "3", "--iterations", "20", "--max-minutes", "0.0005"]
+    args = [
+        "reconstruct",
+        str(path),
+        "--algorithm",
+        "pwls",
+        "--geometry",
+        "nominal",
+        "--shape",
+        "24,40,40",
+        "--voxel-mm",
+        "3",
+        "--iterations",
+        "20",
+        "--max-minutes",
+        "0.0005",
+    ]
     refused = CliRunner().invoke(cli, args)
     assert refused.exit_code == 1, refused.output
     assert "is estimated to take" in refused.output and "more than the limit of 0 s" in refused.output
@@ -79,4 +125,6 @@ def test_the_time_estimate_follows_the_work() -> None:
     small, big = VolumeGrid.centered((32, 32, 32), 2.0), VolumeGrid.centered((64, 64, 64), 2.0)
     fdk_s = reconstruction_seconds("fdk", small, 100, 64, 64)
     assert 0 < fdk_s < reconstruction_seconds("fdk", big, 100, 64, 64)
-    assert reconstruction_seconds("pwls", small, 100, 64, 64, 10) < reconstruction_seconds("pwls", small, 100, 64, 64, 50)
+    assert reconstruction_seconds("pwls", small, 100, 64, 64, 10) < reconstruction_seconds(
+        "pwls", small, 100, 64, 64, 50
+    )

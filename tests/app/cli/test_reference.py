@@ -53,20 +53,25 @@ def test_references_every_axis_once_the_operator_confirms(tmp_path: Path, twins:
     assert r.exit_code == 0 and "already referenced; nothing moved" in r.output, r.output
 
 
-def test_refused_while_the_stop_is_latched_and_for_twins_or_a_carm(tmp_path: Path, twins: tuple[TwinThread, TwinThread]
-                                                                    ) -> None:
+def test_refused_while_the_stop_is_latched_and_for_twins_or_a_carm(
+    tmp_path: Path, twins: tuple[TwinThread, TwinThread]
+) -> None:
     from orbitct_app.service.safety.latch import StopLatch
 
     hexapod, stage = twins
     config = str(_config(tmp_path, hexapod.uri, stage.uri))
     StopLatch(tmp_path / "data").engage("tester", "the door was open", "test")
-    r = CliRunner().invoke(cli, ["reference", "hexapod", "--config", config, "--yes", "--data-dir", str(tmp_path / "data")])
+    r = CliRunner().invoke(
+        cli, ["reference", "hexapod", "--config", config, "--yes", "--data-dir", str(tmp_path / "data")]
+    )
     assert r.exit_code == 2 and "tester" in r.output and not _referenced(hexapod), r.output
     r = CliRunner().invoke(cli, ["reference", "hexapod", "--config", str(ROOT / "config" / "bench.yaml"), "--yes"])
     assert r.exit_code == 2 and "sim://bench" in r.output and "in-process twins" in r.output, r.output
     r = CliRunner().invoke(cli, ["reference", "all", "--config", str(ROOT / "config" / "carm-zeego.yaml"), "--yes"])
     assert r.exit_code == 2 and "C-arm" in r.output, r.output
-    r = CliRunner().invoke(cli, ["reference", "all", "--config", str(_config(tmp_path, "tcp://127.0.0.1:9", stage.uri)), "--yes"])
+    r = CliRunner().invoke(
+        cli, ["reference", "all", "--config", str(_config(tmp_path, "tcp://127.0.0.1:9", stage.uri)), "--yes"]
+    )
     assert r.exit_code == 1 and r.output.startswith("error: hexapod:") and "Traceback" not in r.output, r.output
 
 
@@ -78,8 +83,16 @@ def test_sigterm_while_referencing_halts_the_axes(tmp_path: Path) -> None:
     hexapod = start_twin("hexapod", world=f"ref-{uuid.uuid4().hex[:8]}", time_scale=0.05)  # referencing takes minutes
     try:
         config = str(_config(tmp_path, hexapod.uri, "tcp://127.0.0.1:9"))
-        cmd = [sys.executable, "-c", "from orbitct_app.cli.main import main; main()", "reference", "hexapod", "--config",
-               config, "--yes"]
+        cmd = [
+            sys.executable,
+            "-c",
+            "from orbitct_app.cli.main import main; main()",
+            "reference",
+            "hexapod",
+            "--config",
+            config,
+            "--yes",
+        ]
         proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
         assert proc.stderr is not None
         assert "referencing X Y Z U V W" in proc.stderr.readline()

@@ -41,13 +41,24 @@ def _run(*args: str) -> tuple[int, str]:
 
 def test_stop_latches_scan_refuses_and_only_an_operator_resets(service: dict) -> None:  # type: ignore[type-arg]
     base, tokens = service["base"], service["tokens"]
-    code, out = _run("stop", "--url", base, "--stop-url", service["stop_url"], "--token", tokens["viewer"],
-                     "--reason", "drill")
+    code, out = _run(
+        "stop", "--url", base, "--stop-url", service["stop_url"], "--token", tokens["viewer"], "--reason", "drill"
+    )
     assert code == 0 and out.startswith("HALTED (latched; halted and verified"), out
     assert "xray: ok - high voltage off" in out
 
-    scan = ["scan", "--config", str(service["config"]), "--sim", "--out", str(service["folder"] / "s.h5"),
-            "--frames", "4", "--data-dir", str(service["data"])]
+    scan = [
+        "scan",
+        "--config",
+        str(service["config"]),
+        "--sim",
+        "--out",
+        str(service["folder"] / "s.h5"),
+        "--frames",
+        "4",
+        "--data-dir",
+        str(service["data"]),
+    ]
     code, out = _run(*scan)
     assert code == 2 and "emergency stop latched by cli-viewer (viewer)" in out and "scans refused" in out, out
     assert not (service["folder"] / "s.h5").exists()
@@ -62,7 +73,9 @@ def test_stop_latches_scan_refuses_and_only_an_operator_resets(service: dict) ->
 
 def test_stop_falls_back_to_the_service_when_the_listener_is_not_there(service: dict) -> None:  # type: ignore[type-arg]
     base, tokens = service["base"], service["tokens"]
-    code, out = _run("stop", "--url", base, "--stop-url", f"http://127.0.0.1:{free_port()}/stop", "--token", tokens["viewer"])
+    code, out = _run(
+        "stop", "--url", base, "--stop-url", f"http://127.0.0.1:{free_port()}/stop", "--token", tokens["viewer"]
+    )
     assert code == 0 and "not reachable" in out and "HALTED" in out, out
     assert _run("reset", "--url", base, "--token", tokens["operator"])[0] == 0
 

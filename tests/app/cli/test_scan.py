@@ -26,8 +26,20 @@ def _config_file(tmp_path: Path, *, tilt_limit_deg: float | None = None) -> Path
 
 def test_scan_command_writes_a_file(tmp_path: Path) -> None:
     out = tmp_path / "scan.h5"
-    args = ["scan", "--config", str(_config_file(tmp_path)), "--orbit", "circular", "--frames", "12",
-            "--errors", "none", "--sim", "--out", str(out)]
+    args = [
+        "scan",
+        "--config",
+        str(_config_file(tmp_path)),
+        "--orbit",
+        "circular",
+        "--frames",
+        "12",
+        "--errors",
+        "none",
+        "--sim",
+        "--out",
+        str(out),
+    ]
     result = CliRunner().invoke(cli, args)
     assert result.exit_code == 0, result.output
     assert "complete: 18/18 frames" in result.output
@@ -40,21 +52,40 @@ def test_scan_command_writes_a_file(tmp_path: Path) -> None:
 def test_infeasible_orbit_is_refused_before_anything_moves(tmp_path: Path) -> None:
     out = tmp_path / "never.h5"
     config = _config_file(tmp_path, tilt_limit_deg=15.0)
-    result = CliRunner().invoke(cli, ["scan", "--config", str(config), "--orbit", "sawtooth",
-                                      "--frames", "40", "--errors", "none", "--sim", "--out", str(out)])
+    result = CliRunner().invoke(
+        cli,
+        [
+            "scan",
+            "--config",
+            str(config),
+            "--orbit",
+            "sawtooth",
+            "--frames",
+            "40",
+            "--errors",
+            "none",
+            "--sim",
+            "--out",
+            str(out),
+        ],
+    )
     # this bench's hexapod tilts +-15 deg at most; the paper's sawtooth needs +-20 deg
     assert result.exit_code == 2
     assert "orbit infeasible at frame" in result.output and "hexapod.U" in result.output
     assert "nothing moved" in result.output and not out.exists()
 
 
-@pytest.mark.parametrize("args,message", [
-    (["--orbit", "zigzag"], "unknown orbit"),
-    (["--errors", "gremlins"], "unknown error profile"),
-])
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["--orbit", "zigzag"], "unknown orbit"),
+        (["--errors", "gremlins"], "unknown error profile"),
+    ],
+)
 def test_bad_names_are_refused(tmp_path: Path, args: list[str], message: str) -> None:
-    result = CliRunner().invoke(cli, ["scan", "--config", str(_config_file(tmp_path)), "--sim",
-                                      "--out", str(tmp_path / "x.h5"), *args])
+    result = CliRunner().invoke(
+        cli, ["scan", "--config", str(_config_file(tmp_path)), "--sim", "--out", str(tmp_path / "x.h5"), *args]
+    )
     assert result.exit_code == 2 and message in result.output
 
 
@@ -67,12 +98,41 @@ def test_invalid_config_file_is_refused(tmp_path: Path) -> None:
 
 def test_orbit_parameters_from_the_command_line(tmp_path: Path) -> None:
     out = tmp_path / "p.h5"
-    result = CliRunner().invoke(cli, ["scan", "--config", str(_config_file(tmp_path)), "--orbit", "sawtooth",
-                                      "--frames", "12", "-p", "amplitude_deg=5", "-p", "cycles=1", "--errors", "none",
-                                      "--sim", "--out", str(out)])
+    result = CliRunner().invoke(
+        cli,
+        [
+            "scan",
+            "--config",
+            str(_config_file(tmp_path)),
+            "--orbit",
+            "sawtooth",
+            "--frames",
+            "12",
+            "-p",
+            "amplitude_deg=5",
+            "-p",
+            "cycles=1",
+            "--errors",
+            "none",
+            "--sim",
+            "--out",
+            str(out),
+        ],
+    )
     assert result.exit_code == 0, result.output
     with ScanFile(out) as sf:
         assert sf.orbit[1]["amplitude_deg"] == 5 and sf.orbit[1]["cycles"] == 1
-    bad = CliRunner().invoke(cli, ["scan", "--config", str(_config_file(tmp_path)), "-p", "amplitude_deg",
-                                   "--sim", "--out", str(tmp_path / "q.h5")])
+    bad = CliRunner().invoke(
+        cli,
+        [
+            "scan",
+            "--config",
+            str(_config_file(tmp_path)),
+            "-p",
+            "amplitude_deg",
+            "--sim",
+            "--out",
+            str(tmp_path / "q.h5"),
+        ],
+    )
     assert bad.exit_code == 2 and "expected KEY=VALUE" in bad.output

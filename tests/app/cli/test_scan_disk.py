@@ -35,8 +35,21 @@ def _config(tmp_path: Path, reserve_mb: float) -> Path:
 def test_a_scan_that_cannot_fit_is_refused_before_anything_moves(tmp_path: Path) -> None:
     with small_filesystem(tmp_path / "disk", 8) as disk:
         out = disk / "scan.h5"
-        result = CliRunner().invoke(cli, ["scan", "--config", str(_config(tmp_path, 1.0)), "--orbit", "circular",
-                                          "--frames", "120", "--sim", "--out", str(out)])
+        result = CliRunner().invoke(
+            cli,
+            [
+                "scan",
+                "--config",
+                str(_config(tmp_path, 1.0)),
+                "--orbit",
+                "circular",
+                "--frames",
+                "120",
+                "--sim",
+                "--out",
+                str(out),
+            ],
+        )
         assert result.exit_code == 2, result.output
         assert "not enough disk space" in result.output and "126 frames of 256x256" in result.output
         assert "storage.reserve_mb" in result.output and "nothing moved" in result.output
@@ -46,10 +59,29 @@ def test_a_scan_that_cannot_fit_is_refused_before_anything_moves(tmp_path: Path)
 def test_a_disk_filling_up_mid_scan_stops_it_cleanly_with_every_frame_kept(tmp_path: Path) -> None:
     with small_filesystem(tmp_path / "disk", 24) as disk:
         out = disk / "scan.h5"
-        cmd = [sys.executable, "-m", "orbitct_app.cli.main", "scan", "--config", str(_config(tmp_path, 2.0)),
-               "--orbit", "circular", "--frames", "120", "--sim", "--out", str(out)]
-        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                env={**os.environ, "PYTHONPATH": str(ROOT)})
+        cmd = [
+            sys.executable,
+            "-m",
+            "orbitct_app.cli.main",
+            "scan",
+            "--config",
+            str(_config(tmp_path, 2.0)),
+            "--orbit",
+            "circular",
+            "--frames",
+            "120",
+            "--sim",
+            "--out",
+            str(out),
+        ]
+        proc = subprocess.Popen(
+            cmd,
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+        )
         t0 = time.monotonic()
         while not out.exists() or out.stat().st_size < 4 * MB:  # the file exists and holds some frames
             assert proc.poll() is None, proc.communicate()
@@ -70,8 +102,21 @@ def test_a_disk_filling_up_mid_scan_stops_it_cleanly_with_every_frame_kept(tmp_p
         repaired = CliRunner().invoke(cli, ["scan", "repair", str(out)])
         assert repaired.exit_code == 0, repaired.output
         filler.unlink()
-        again = CliRunner().invoke(cli, ["scan", "--config", str(_config(tmp_path, 2.0)), "--orbit", "circular",
-                                         "--frames", "20", "--sim", "--out", str(disk / "after.h5")])
+        again = CliRunner().invoke(
+            cli,
+            [
+                "scan",
+                "--config",
+                str(_config(tmp_path, 2.0)),
+                "--orbit",
+                "circular",
+                "--frames",
+                "20",
+                "--sim",
+                "--out",
+                str(disk / "after.h5"),
+            ],
+        )
         assert again.exit_code == 0, again.output
 
 
@@ -100,8 +145,9 @@ def test_a_disk_that_fills_up_leaves_a_file_whose_every_counted_frame_has_its_pi
     with small_filesystem(tmp_path / "disk", 8) as disk:
         out = disk / "s.h5"
         guard = str(2 * 256 * 256 * 2 + (1 << 20)) if min_free_bytes is None else "0"
-        run = subprocess.run([sys.executable, "-c", ENOSPC_WRITER, str(out), guard], capture_output=True, text=True,
-                             timeout=120)
+        run = subprocess.run(
+            [sys.executable, "-c", ENOSPC_WRITER, str(out), guard], capture_output=True, text=True, timeout=120
+        )
         assert "could not be written" in run.stdout or "not written" in run.stdout, run.stdout + run.stderr
         if min_free_bytes is None:  # stopped before HDF5 saw a failed write: a clean exit
             assert run.returncode == 0 and "needed to write it and close the file cleanly" in run.stdout, run.stderr

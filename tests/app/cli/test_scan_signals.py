@@ -29,10 +29,30 @@ def test_signal_aborts_the_scan_cleanly(tmp_path: Path, sig: signal.Signals) -> 
         config = tmp_path / "bench.yaml"
         config.write_text(yaml.safe_dump(bench.config.model_dump(mode="json")))
         out = tmp_path / "scan.h5"
-        cmd = [sys.executable, "-m", "orbitct_app.cli.main", "scan", "--config", str(config), "--orbit", "sawtooth",
-               "--frames", "300", "-p", "amplitude_deg=10", "--out", str(out)]
-        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                env={**os.environ, "PYTHONPATH": str(ROOT)})
+        cmd = [
+            sys.executable,
+            "-m",
+            "orbitct_app.cli.main",
+            "scan",
+            "--config",
+            str(config),
+            "--orbit",
+            "sawtooth",
+            "--frames",
+            "300",
+            "-p",
+            "amplitude_deg=10",
+            "--out",
+            str(out),
+        ]
+        proc = subprocess.Popen(
+            cmd,
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+        )
         xray, hexapod, stage = bench.xray.twin, bench.hexapod.twin.controller, bench.stage.twin.controller
         t0 = time.monotonic()
         while xray.frame_counter < 5:  # the scan is exposing projections

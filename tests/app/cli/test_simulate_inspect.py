@@ -12,8 +12,26 @@ from orbitct_app.cli.main import cli
 
 def test_simulate_then_inspect(tmp_path: Path) -> None:
     out = tmp_path / "scan.h5"
-    r = CliRunner().invoke(cli, ["simulate", "--experiment", "a", "--frames", "6", "--detector-size", "48",
-                                 "--darks", "2", "--flats", "3", "--seed", "4", "--out", str(out)])
+    r = CliRunner().invoke(
+        cli,
+        [
+            "simulate",
+            "--experiment",
+            "a",
+            "--frames",
+            "6",
+            "--detector-size",
+            "48",
+            "--darks",
+            "2",
+            "--flats",
+            "3",
+            "--seed",
+            "4",
+            "--out",
+            str(out),
+        ],
+    )
     assert r.exit_code == 0, r.output
     assert "6 projections + 2 darks + 3 flats" in r.output
     with ScanFile(out) as f:
@@ -25,8 +43,15 @@ def test_simulate_then_inspect(tmp_path: Path) -> None:
         assert not nominal.allclose(truth, atol_mm=0.5)  # bench errors were applied
     r = CliRunner().invoke(cli, ["inspect", str(out)])
     assert r.exit_code == 0, r.output
-    for text in ("complete", "6 projection, 3 flat, 2 dark", "sawtooth", "nominal, truth", "3.17 mm", "8 markers",
-                 "rotation 0.0..300.0 deg"):
+    for text in (
+        "complete",
+        "6 projection, 3 flat, 2 dark",
+        "sawtooth",
+        "nominal, truth",
+        "3.17 mm",
+        "8 markers",
+        "rotation 0.0..300.0 deg",
+    ):
         assert text in r.output
     assert "warning" not in r.output
     r = CliRunner().invoke(cli, ["inspect", str(out), "--json"])
@@ -39,15 +64,38 @@ def test_inspect_warns_of_projections_taken_away_from_their_command(tmp_path: Pa
     write_sweep_ahead_scan(tmp_path / "ahead.h5")
     r = CliRunner().invoke(cli, ["inspect", str(tmp_path / "ahead.h5")])
     assert r.exit_code == 0, r.output
-    assert ("warning     2 projection(s) read back further from their command than a step of stage.angle (2 deg), "
-            "up to 9.5 deg: their nominal geometry is not where they were taken") in r.output
+    assert (
+        "warning     2 projection(s) read back further from their command than a step of stage.angle (2 deg), "
+        "up to 9.5 deg: their nominal geometry is not where they were taken"
+    ) in r.output
 
 
 def test_simulate_orbit_params_and_no_errors(tmp_path: Path) -> None:
     out = tmp_path / "c.h5"
-    r = CliRunner().invoke(cli, ["simulate", "-e", "C", "--orbit", "circular", "-p", "tilt_deg=10", "--frames", "4",
-                                 "--detector-size", "32", "--errors", "none", "--darks", "0", "--flats", "1",
-                                 "--out", str(out)])
+    r = CliRunner().invoke(
+        cli,
+        [
+            "simulate",
+            "-e",
+            "C",
+            "--orbit",
+            "circular",
+            "-p",
+            "tilt_deg=10",
+            "--frames",
+            "4",
+            "--detector-size",
+            "32",
+            "--errors",
+            "none",
+            "--darks",
+            "0",
+            "--flats",
+            "1",
+            "--out",
+            str(out),
+        ],
+    )
     assert r.exit_code == 0, r.output
     with ScanFile(out) as f:
         assert f.orbit == ("circular", {"n_frames": 4, "range_deg": 360.0, "start_deg": 0.0, "tilt_deg": 10.0})

@@ -64,7 +64,18 @@ def test_xray_twin_command() -> None:
 
 def test_carm_twin_rejects_bad_range() -> None:
     out = subprocess.run(
-        [sys.executable, "-c", "from orbitct_app.cli.main import main; main()", "twin", "carm", "--primary-range-deg", "5", "1"],
-        capture_output=True, text=True, timeout=60,
+        [
+            sys.executable,
+            "-c",
+            "from orbitct_app.cli.main import main; main()",
+            "twin",
+            "carm",
+            "--primary-range-deg",
+            "5",
+            "1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert out.returncode == 2 and "low (5) must be below high (1)" in out.stderr

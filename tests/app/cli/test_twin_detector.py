@@ -27,8 +27,12 @@ pytestmark = [pytest.mark.timeout(180), pytest.mark.system]
 
 
 def _run(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-c", "from orbitct_app.cli.main import main; main()", "twin", "detector",
-                           *args], capture_output=True, text=True, timeout=60)
+    return subprocess.run(
+        [sys.executable, "-c", "from orbitct_app.cli.main import main; main()", "twin", "detector", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
 
 
 def test_a_configuration_whose_bench_lives_in_this_process_is_refused(tmp_path: Path) -> None:
@@ -43,13 +47,20 @@ def test_a_scan_of_twins_in_other_processes_images_the_object_where_the_axes_wer
     """Motion and generator twins elsewhere (threads here, on their own sockets), the panel twin a process of its
     own: a scan on the real-bench path (no --sim) records frames that turn with the stage."""
     bench = reset_world("cli-feed")
-    threads = [start_twin("hexapod", world="cli-feed", time_scale=25.0),
-               start_twin("rotation_stage", world="cli-feed", time_scale=25.0), TwinThread(XrayTwin(bench, time_scale=25.0))]
+    threads = [
+        start_twin("hexapod", world="cli-feed", time_scale=25.0),
+        start_twin("rotation_stage", world="cli-feed", time_scale=25.0),
+        TwinThread(XrayTwin(bench, time_scale=25.0)),
+    ]
     try:
         path = small_bench_config(tmp_path, size=48)
         data = yaml.safe_load(path.read_text())
-        data["devices"] = {"hexapod": threads[0].uri, "rotation_stage": threads[1].uri, "xray": threads[2].uri,
-                           "detector": "tcp://127.0.0.1:1"}  # the panel's own entry: set once it listens
+        data["devices"] = {
+            "hexapod": threads[0].uri,
+            "rotation_stage": threads[1].uri,
+            "xray": threads[2].uri,
+            "detector": "tcp://127.0.0.1:1",
+        }  # the panel's own entry: set once it listens
         path.write_text(yaml.safe_dump(data))
         with twin_process("detector", "--config", str(path)) as (port, _):
             data["devices"]["detector"] = f"tcp://127.0.0.1:{port}"
@@ -60,9 +71,18 @@ def test_a_scan_of_twins_in_other_processes_images_the_object_where_the_axes_wer
             async def main() -> None:
                 async with open_bench(cfg, sim=False) as rig:
                     await asyncio.gather(rig.hexapod.reference(), rig.stage.reference())
-                    res = await ScanRunner(ScanRequest(config=cfg, out=out, orbit="sawtooth", frames=4, errors="none",
-                                                       orbit_params={"amplitude_deg": 20.0},
-                                                       sim=False), rig=rig).run()
+                    res = await ScanRunner(
+                        ScanRequest(
+                            config=cfg,
+                            out=out,
+                            orbit="sawtooth",
+                            frames=4,
+                            errors="none",
+                            orbit_params={"amplitude_deg": 20.0},
+                            sim=False,
+                        ),
+                        rig=rig,
+                    ).run()
                     assert res.status == "complete", res.reason
 
             asyncio.run(main())
@@ -82,8 +102,11 @@ def test_a_scan_of_twins_in_other_processes_images_the_object_where_the_axes_wer
         pose = np.array([encoders[f"hexapod.{a}"][k] for a in "XYZUVW"])
         world.hexapod_true = np.concatenate([pose[:3], np.radians(pose[3:])])
         ex = cfg.exposure
-        expected.append(twin.renderer()("projection", twin.true_view(), ex.kv, ex.ma, ex.exposure_ms,
-                                        np.random.default_rng(k)).astype(float))
+        expected.append(
+            twin.renderer()(
+                "projection", twin.true_view(), ex.kv, ex.ma, ex.exposure_ms, np.random.default_rng(k)
+            ).astype(float)
+        )
 
     def coarse(image: np.ndarray) -> np.ndarray:  # 8 x 8 px blocks of line integrals: the shadow, not the noise
         return -np.log(image / flat).reshape(6, 8, 6, 8).mean(axis=(1, 3))

@@ -17,8 +17,9 @@ pytestmark = [pytest.mark.anyio, pytest.mark.system]
 
 def _start(*args: str) -> tuple[subprocess.Popen[str], str]:
     cmd = [sys.executable, "-m", "orbitct_app.cli.main", "twin", *args, "--host", "127.0.0.1", "--port", "0"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"}
+    )
     assert proc.stdout is not None
     line = proc.stdout.readline()
     assert "listening on tcp://" in line, line

@@ -29,15 +29,18 @@ class Console:
         self.outside: list[str] = []  # every request a page made to anything but orbitct
 
     def api(self, method: str, path: str, role: str = "operator", **kwargs: Any) -> httpx.Response:
-        return httpx.request(method, self.base + path, headers={"Authorization": f"Bearer {self.tokens[role]}"},
-                             timeout=30, **kwargs)
+        return httpx.request(
+            method, self.base + path, headers={"Authorization": f"Bearer {self.tokens[role]}"}, timeout=30, **kwargs
+        )
 
     def sign_in(self, role: str, viewport: tuple[int, int] = (1280, 800)) -> Any:
         """A new browser context (its own cookies) signed in as ``role``; on the bench page."""
         context = self.browser.new_context(viewport={"width": viewport[0], "height": viewport[1]})
         page = context.new_page()
         page.set_default_timeout(30_000)
-        page.on("request", lambda r: None if r.url.startswith((self.base, "data:", "blob:")) else self.outside.append(r.url))
+        page.on(
+            "request", lambda r: None if r.url.startswith((self.base, "data:", "blob:")) else self.outside.append(r.url)
+        )
         page.goto(self.base + "/")
         assert "/sign-in" in page.url, page.url
         page.fill("#token", self.tokens[role])
@@ -65,7 +68,9 @@ def console(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Console]:
     folder = tmp_path_factory.mktemp("console")
     data = folder / "data"
     data.mkdir()
-    tokens = {role: create_token(data / "tokens.json", role, f"tech-{role}") for role in ("operator", "analyst", "viewer")}  # type: ignore[arg-type]
+    tokens = {
+        role: create_token(data / "tokens.json", role, f"tech-{role}") for role in ("operator", "analyst", "viewer")
+    }  # type: ignore[arg-type]
     proc, base, _ = serve_subprocess(small_bench_config(folder), data, "oct_dev_console_tests_only")
     try:
         with chromium() as browser:
@@ -109,8 +114,12 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
     scan_id = _scan(page, console, 40)
     expect(page.locator("#scan-progress-text")).to_contain_text("frame", timeout=TIMEOUT_MS)
     expect(page.locator("#scan-state")).to_have_text("complete", timeout=TIMEOUT_MS)
-    expect(page.locator("#scan-progress-text")).to_contain_text("of 46")  # 40 projections, 4 darks and flats before, 2 after
-    assert console.api("GET", f"/scans/{scan_id}").json().get("state") == "complete", console.api("GET", f"/scans/{scan_id}").text
+    expect(page.locator("#scan-progress-text")).to_contain_text(
+        "of 46"
+    )  # 40 projections, 4 darks and flats before, 2 after
+    assert console.api("GET", f"/scans/{scan_id}").json().get("state") == "complete", console.api(
+        "GET", f"/scans/{scan_id}"
+    ).text
     shot(page, "scan-complete")
     # the twins read back what was commanded: the summary says no projection was taken off command, not a blank
     expect(page.locator("#scan-summary dt:has-text('taken off command') + dd")).to_have_text("none")
@@ -144,13 +153,20 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
     until(page, "() => Array.from(document.images).every((i) => i.complete && i.naturalWidth > 0)")
     shot(page, "calibration-report")
     page.go_back()
-    calibrated = next(j for j in console.api("GET", f"/reconstructions?scan_id={scan_id}").json() if j["params"]["geometry"] == "calibrated")
+    calibrated = next(
+        j
+        for j in console.api("GET", f"/reconstructions?scan_id={scan_id}").json()
+        if j["params"]["geometry"] == "calibrated"
+    )
     page.goto(f"{console.base}/console/reconstructions/{calibrated['id']}")
     page.wait_for_selector("body[data-viewer-ready]", timeout=60_000)
     assert page.get_attribute("body", "data-viewer-ready") == "yes", "WebGL2 (SwiftShader) runs the 3-D viewer"
     assert page.is_visible("#pane-b") and "nominal geometry" in page.inner_text("#caption-b")
     nifti = page.get_attribute("#download-nifti", "href")
-    assert httpx.get(console.base + nifti, headers={"Authorization": f"Bearer {console.tokens['viewer']}"}).content[:2] == b"\x1f\x8b"
+    assert (
+        httpx.get(console.base + nifti, headers={"Authorization": f"Bearer {console.tokens['viewer']}"}).content[:2]
+        == b"\x1f\x8b"
+    )
     page.fill("#wmin", "0")
     page.fill("#wmax", "0.03")
     page.dispatch_event("#wmax", "change")
@@ -282,7 +298,10 @@ def test_an_analyst_plans_bbs_and_a_viewer_reads_the_plan(console: Console) -> N
     page.wait_for_selector("body[data-plan]", timeout=60_000)
     plan_id = page.evaluate("document.body.dataset.plan")
     assert page.locator("#plan-bbs-table tbody tr").count() == 6
-    until(page, "() => document.getElementById('plan-picture').complete && document.getElementById('plan-picture').naturalWidth > 0")
+    until(
+        page,
+        "() => document.getElementById('plan-picture').complete && document.getElementById('plan-picture').naturalWidth > 0",
+    )
     angles = [float(page.inner_text(f"#plan-bbs-table tbody tr:nth-child({k}) td:nth-child(2)")) for k in range(1, 7)]
     assert all(60.0 < a < 300.0 for a in angles), angles  # outside the keep-out patch
     assert "the experiment's own placement" in page.inner_text("#plan-facts")
@@ -296,20 +315,28 @@ def test_an_analyst_plans_bbs_and_a_viewer_reads_the_plan(console: Console) -> N
     page.click("#plan-make")
     page.wait_for_selector("#plan-progress:not([hidden])", timeout=30_000)
     long_id = page.inner_text("#plan-progress .id")
-    until(page, f"() => [...document.querySelectorAll('#plan-table tr')].some((r) => r.textContent.includes('{long_id}') "
-                "&& r.textContent.includes('planning'))")
+    until(
+        page,
+        f"() => [...document.querySelectorAll('#plan-table tr')].some((r) => r.textContent.includes('{long_id}') "
+        "&& r.textContent.includes('planning'))",
+    )
     until(page, "() => /of \\d+ \\(/.test(document.getElementById('plan-step').textContent)")  # how far it got
     shot(page, "bb-plan-planning")
     page.click("#plan-cancel")
     until(page, "() => document.querySelector('#plan-form .error').textContent.includes('cancelled by')")
     assert page.is_hidden("#plan-progress")
-    until(page, f"() => [...document.querySelectorAll('#plan-table tr')].some((r) => r.textContent.includes('{long_id}') "
-                "&& r.textContent.includes('cancelled'))")
+    until(
+        page,
+        f"() => [...document.querySelectorAll('#plan-table tr')].some((r) => r.textContent.includes('{long_id}') "
+        "&& r.textContent.includes('cancelled'))",
+    )
     page.context.close()
     viewer = console.sign_in("viewer")
     viewer.goto(console.base + f"/console/plans?plan={plan_id}")
     viewer.wait_for_selector("body[data-plan]")
-    assert viewer.locator("#plan-form").count() == 0 and "may look at plans but not make them" in viewer.inner_text("main")
+    assert viewer.locator("#plan-form").count() == 0 and "may look at plans but not make them" in viewer.inner_text(
+        "main"
+    )
     assert viewer.locator("#plan-bbs-table tbody tr").count() == 6
     viewer.context.close()
     assert not console.outside, console.outside
@@ -324,8 +351,12 @@ def test_an_analyst_plans_bbs_on_a_reconstructions_surface_on_an_uploaded_mesh_a
     scan_id = _scan(page, console, 20)
     expect(page.locator("#scan-state")).to_have_text("complete", timeout=TIMEOUT_MS)
     page.context.close()
-    job = console.api("POST", "/reconstructions", role="analyst", json={
-        "scan_id": scan_id, "algorithm": "fdk", "geometry": "nominal", "shape": [48, 48, 48]}).json()
+    job = console.api(
+        "POST",
+        "/reconstructions",
+        role="analyst",
+        json={"scan_id": scan_id, "algorithm": "fdk", "geometry": "nominal", "shape": [48, 48, 48]},
+    ).json()
     deadline = time.monotonic() + TIMEOUT_MS / 1000
     while console.api("GET", f"/reconstructions/{job['id']}").json()["state"] != "succeeded":
         assert time.monotonic() < deadline, console.api("GET", f"/reconstructions/{job['id']}").json()
@@ -338,8 +369,11 @@ def test_an_analyst_plans_bbs_on_a_reconstructions_surface_on_an_uploaded_mesh_a
     page.fill("#plan-bbs", "6")
     page.fill("#plan-detector", "192")
     page.click("#plan-make")
-    until(page, f"() => document.querySelector('#plan-facts').textContent.includes('outline of reconstruction {job['id']}')",
-          timeout_s=60.0)
+    until(
+        page,
+        f"() => document.querySelector('#plan-facts').textContent.includes('outline of reconstruction {job['id']}')",
+        timeout_s=60.0,
+    )
     plan_id = page.evaluate("document.body.dataset.plan")
     plan = console.api("GET", f"/plans/bbs/{plan_id}").json()
     assert plan["surface"]["kind"] == "outline" and len(plan["bbs"]) == 6
@@ -353,16 +387,25 @@ def test_an_analyst_plans_bbs_on_a_reconstructions_surface_on_an_uploaded_mesh_a
     page.set_input_files("#plan-mesh", files=[{"name": "leg.stl", "mimeType": "model/stl", "buffer": stl}])
     until(page, "() => document.getElementById('plan-surface').value.startsWith('mesh:')")
     page.click("#plan-make")
-    until(page, "() => document.querySelector('#plan-facts').textContent.includes('outline of leg.stl')", timeout_s=60.0)
+    until(
+        page, "() => document.querySelector('#plan-facts').textContent.includes('outline of leg.stl')", timeout_s=60.0
+    )
     plan = console.api("GET", f"/plans/bbs/{page.evaluate('document.body.dataset.plan')}").json()
     assert plan["surface"]["source"] == "leg.stl" and len(plan["bbs"]) == 6
 
     # a shape by parameters: with a mesh still chosen, one line says to give one surface; alone, it is planned on
     page.fill("#plan-shape", "ellipsoid:70,60,90")
     page.click("#plan-make")
-    until(page, "() => document.querySelector('#plan-form .error').textContent.includes('not surface_id and surface_shape')")
+    until(
+        page,
+        "() => document.querySelector('#plan-form .error').textContent.includes('not surface_id and surface_shape')",
+    )
     page.select_option("#plan-surface", "")
     page.click("#plan-make")
-    until(page, "() => document.querySelector('#plan-facts').textContent.includes('ellipsoid 70 × 60 × 90 mm')", timeout_s=60.0)
+    until(
+        page,
+        "() => document.querySelector('#plan-facts').textContent.includes('ellipsoid 70 × 60 × 90 mm')",
+        timeout_s=60.0,
+    )
     page.context.close()
     assert not console.outside, console.outside

@@ -10,8 +10,16 @@ import pytest
 from orbitct_app.service.core.sessions import CSRF_HEADER
 from tests.helpers.service import SMALL_SAWTOOTH, ended, wait_for
 
-PAGES = ["/console/bench", "/console/scans/new", "/console/scans", "/console/jobs", "/console/plans", "/console/scans/abc",
-         "/console/calibrations/abc", "/console/reconstructions/abc"]
+PAGES = [
+    "/console/bench",
+    "/console/scans/new",
+    "/console/scans",
+    "/console/jobs",
+    "/console/plans",
+    "/console/scans/abc",
+    "/console/calibrations/abc",
+    "/console/reconstructions/abc",
+]
 
 
 def _sign_in(api, role: str) -> str:  # type: ignore[no-untyped-def]
@@ -44,7 +52,11 @@ def test_every_page_renders_for_every_role_without_the_token_and_with_a_strict_p
         assert api.tokens[role] not in r.text and api.tokens[role] not in str(r.headers)
         assert f'content="{csrf}"' in r.text  # the CSRF token, for the page's script
         policy = r.headers["content-security-policy"]
-        assert "default-src 'self'" in policy and "script-src 'self'" in policy and "unsafe-inline" not in policy.split("script-src")[1].split(";")[0]
+        assert (
+            "default-src 'self'" in policy
+            and "script-src 'self'" in policy
+            and "unsafe-inline" not in policy.split("script-src")[1].split(";")[0]
+        )
         assert 'id="estop"' in r.text, "the emergency stop is on every page"
         assert not re.search(r'(src|href)="(https?:)?//', r.text), "nothing from outside orbitct"
     api.client.cookies.clear()
@@ -53,9 +65,17 @@ def test_every_page_renders_for_every_role_without_the_token_and_with_a_strict_p
 def test_pages_render_only_the_controls_of_the_role(shared_api) -> None:  # type: ignore[no-untyped-def]
     api = shared_api
     expect = {  # page -> marker of a control -> roles that see it
-        "/console/bench": {'class="reference"': {"operator"}, 'class="move"': {"operator"}, 'id="reset-stop"': {"operator"}},
+        "/console/bench": {
+            'class="reference"': {"operator"},
+            'class="move"': {"operator"},
+            'id="reset-stop"': {"operator"},
+        },
         "/console/scans/new": {'id="start"': {"operator"}},
-        "/console/scans/abc": {'id="abort"': {"operator"}, 'id="calibrate-form"': {"analyst"}, 'id="reconstruct-form"': {"analyst"}},
+        "/console/scans/abc": {
+            'id="abort"': {"operator"},
+            'id="calibrate-form"': {"analyst"},
+            'id="reconstruct-form"': {"analyst"},
+        },
     }
     for role in ("operator", "analyst", "viewer"):
         _sign_in(api, role)
@@ -94,7 +114,9 @@ def test_the_api_docs_use_orbitcts_own_copies_of_swagger_ui_and_redoc(shared_api
 def test_preflight_names_the_first_infeasible_frame_and_the_live_frame_follows_the_scan(api) -> None:  # type: ignore[no-untyped-def]
     ok = api.post("/scans/preflight", role="viewer", json={**SMALL_SAWTOOTH, "frames": 20})
     assert ok.status_code == 200 and ok.json()["frames"] == 20 and "within the limits" in ok.json()["message"]
-    fast = api.post("/scans/preflight", json={**SMALL_SAWTOOTH, "frames": 500, "frame_rate_hz": 1000.0, "mode": "continuous"})
+    fast = api.post(
+        "/scans/preflight", json={**SMALL_SAWTOOTH, "frames": 500, "frame_rate_hz": 1000.0, "mode": "continuous"}
+    )
     assert fast.status_code == 422 and "at 1000 frames/s" in fast.json()["message"], fast.text  # too fast for the stage
     assert api.post("/scans/preflight", json={**SMALL_SAWTOOTH, "frame_rate_hz": 0}).status_code == 422
     too_far = api.post("/scans/preflight", json={"orbit": "sawtooth", "params": {"amplitude_deg": 40.0}, "frames": 50})
@@ -106,7 +128,11 @@ def test_preflight_names_the_first_infeasible_frame_and_the_live_frame_follows_t
     frame = api.get(f"/scans/{scan_id}/frames/latest")
     assert frame.status_code == 200, frame.text
     body = frame.json()
-    assert body["width"] == body["height"] == 192 and body["scale"] == 1.0 and body["kind"] in ("projection", "flat", "dark")
+    assert (
+        body["width"] == body["height"] == 192
+        and body["scale"] == 1.0
+        and body["kind"] in ("projection", "flat", "dark")
+    )
     import base64
 
     assert len(base64.b64decode(body["pixels"])) == 192 * 192
@@ -119,9 +145,11 @@ def test_preflight_names_the_first_infeasible_frame_and_the_live_frame_follows_t
 def test_a_viewer_session_is_refused_what_its_page_does_not_offer(shared_api) -> None:  # type: ignore[no-untyped-def]
     api = shared_api
     csrf = _sign_in(api, "viewer")
-    for method, path, body in (("POST", "/scans", {**SMALL_SAWTOOTH, "frames": 4}),
-                               ("POST", "/devices/hexapod/reference", None),
-                               ("POST", "/calibrations", {"scan_id": "abc"})):
+    for method, path, body in (
+        ("POST", "/scans", {**SMALL_SAWTOOTH, "frames": 4}),
+        ("POST", "/devices/hexapod/reference", None),
+        ("POST", "/calibrations", {"scan_id": "abc"}),
+    ):
         r = api.client.request(method, path, json=body, headers={CSRF_HEADER: csrf})
         assert r.status_code == 403 and "viewer" in r.json()["message"], (path, r.text)
     api.client.cookies.clear()

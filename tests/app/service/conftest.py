@@ -42,8 +42,17 @@ def _open(folder: Path, data: Path, opened: list[TestClient], **overrides: Any) 
         tokens = {role: create_token(tokens_file, role, f"test-{role}") for role in ("operator", "analyst", "viewer")}  # type: ignore[arg-type]
         (data / "test-tokens.yaml").write_text(yaml.safe_dump(tokens))
     tokens = yaml.safe_load((data / "test-tokens.yaml").read_text())
-    settings = load_settings(None, **{"bench_config": small_bench_config(folder), "sim": True, "data_dir": data,
-                                      "dev_token": "oct_dev_token_for_tests_only", "stop_port": 0, **overrides})
+    settings = load_settings(
+        None,
+        **{
+            "bench_config": small_bench_config(folder),
+            "sim": True,
+            "data_dir": data,
+            "dev_token": "oct_dev_token_for_tests_only",
+            "stop_port": 0,
+            **overrides,
+        },
+    )
     tokens["dev"] = settings.dev_token
     client = TestClient(create_app(settings), raise_server_exceptions=False)
     client.__enter__()

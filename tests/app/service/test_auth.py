@@ -36,7 +36,17 @@ MUTATING = [
     ("POST", "/reconstructions", {"scan_id": "nope"}, "analysis"),
     ("POST", "/jobs/nope/cancel", None, "analysis"),
 ]
-READS = ["/stop", "/devices", "/orbits", "/scans", "/jobs", "/calibrations", "/reconstructions", "/scans/nope", "/jobs/nope"]
+READS = [
+    "/stop",
+    "/devices",
+    "/orbits",
+    "/scans",
+    "/jobs",
+    "/calibrations",
+    "/reconstructions",
+    "/scans/nope",
+    "/jobs/nope",
+]
 
 
 def test_token_file_holds_only_hashes(tmp_path: Path) -> None:
@@ -106,7 +116,9 @@ def test_reads_need_a_token(shared_api, path: str) -> None:  # type: ignore[no-u
 
 
 @pytest.mark.parametrize(("method", "path", "body", "permission"), MUTATING)
-def test_roles_on_every_mutating_endpoint(shared_api, method: str, path: str, body: dict | None, permission: str) -> None:  # type: ignore[no-untyped-def]
+def test_roles_on_every_mutating_endpoint(
+    shared_api, method: str, path: str, body: dict | None, permission: str
+) -> None:  # type: ignore[no-untyped-def]
     r = shared_api.request(method, path, role=None, json=body)
     assert r.status_code == 401, r.text
     for role in ("operator", "analyst", "viewer"):

@@ -29,12 +29,17 @@ def _resources(base: str) -> dict[str, str]:
         while client.get(f"/scans/{scan_id}").json()["state"] in ("queued", "running"):
             time.sleep(0.2)
         cal = client.post("/calibrations", json={"scan_id": scan_id}).json()["id"]
-        rec = client.post("/reconstructions", json={"scan_id": scan_id, "geometry": "nominal",
-                                                    "shape": [16, 16, 16]}).json()["id"]
+        rec = client.post(
+            "/reconstructions", json={"scan_id": scan_id, "geometry": "nominal", "shape": [16, 16, 16]}
+        ).json()["id"]
         for job_id in (cal, rec):
             while client.get(f"/jobs/{job_id}").json()["state"] in ("queued", "running"):
                 time.sleep(0.2)
-    return {"ORBITCT_CONTRACT_SCAN": scan_id, "ORBITCT_CONTRACT_CALIBRATION": cal, "ORBITCT_CONTRACT_RECONSTRUCTION": rec}
+    return {
+        "ORBITCT_CONTRACT_SCAN": scan_id,
+        "ORBITCT_CONTRACT_CALIBRATION": cal,
+        "ORBITCT_CONTRACT_RECONSTRUCTION": rec,
+    }
 
 
 def test_the_api_keeps_its_openapi_contract(tmp_path: Path) -> None:
@@ -43,11 +48,33 @@ def test_the_api_keeps_its_openapi_contract(tmp_path: Path) -> None:
     try:
         env = {**os.environ, "ORBITCT_CONTRACT_TOKEN": TOKEN, **_resources(base)}
         run = subprocess.run(
-            [str(Path(sys.executable).with_name("schemathesis")), "--config-file", str(CONFIG), "run",
-             f"{base}/openapi.json", "--phases", "examples,coverage,fuzzing", "--max-examples", "15",
-             "--workers", "1", "--seed", "1", "--report", "json", "--report-json-path", str(report),
-             "--no-color", "--output-truncate", "false"],
-            capture_output=True, text=True, timeout=840, env=env)
+            [
+                str(Path(sys.executable).with_name("schemathesis")),
+                "--config-file",
+                str(CONFIG),
+                "run",
+                f"{base}/openapi.json",
+                "--phases",
+                "examples,coverage,fuzzing",
+                "--max-examples",
+                "15",
+                "--workers",
+                "1",
+                "--seed",
+                "1",
+                "--report",
+                "json",
+                "--report-json-path",
+                str(report),
+                "--no-color",
+                "--output-truncate",
+                "false",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=840,
+            env=env,
+        )
     finally:
         proc.terminate()
         proc.wait(60)

@@ -42,7 +42,9 @@ def sphere_scan(tmp_path: Path) -> Path:
     return path
 
 
-def test_fdk_split_across_two_workers_equals_one_process(cluster: DaskCluster, sphere_scan: Path, tmp_path: Path) -> None:
+def test_fdk_split_across_two_workers_equals_one_process(
+    cluster: DaskCluster, sphere_scan: Path, tmp_path: Path
+) -> None:
     from distributed import get_task_stream
 
     import recon
@@ -64,8 +66,9 @@ def test_fdk_split_across_two_workers_equals_one_process(cluster: DaskCluster, s
     np.testing.assert_allclose(split.volume, single.volume, rtol=0, atol=1e-5 * scale)  # float32 round-off
 
 
-def test_pwls_split_across_two_workers_equals_one_process(cluster: DaskCluster, sphere_scan: Path,
-                                                         tmp_path: Path) -> None:
+def test_pwls_split_across_two_workers_equals_one_process(
+    cluster: DaskCluster, sphere_scan: Path, tmp_path: Path
+) -> None:
     from distributed import get_task_stream
 
     import recon
@@ -100,16 +103,23 @@ def test_pwls_that_would_not_fit_a_workers_memory_limit_is_refused_before_loadin
 
     grid = VolumeGrid.centered((32, 48, 48), 2.5)
     off = {f"distributed.worker.memory.{k}": False for k in ("target", "spill", "pause", "terminate")}
-    with dask.config.set(off), LocalCluster(n_workers=1, threads_per_worker=1, processes=False, memory_limit="1MB",
-                                            dashboard_address=None) as local, Client(local, set_as_default=False) as client:
+    with (
+        dask.config.set(off),
+        LocalCluster(
+            n_workers=1, threads_per_worker=1, processes=False, memory_limit="1MB", dashboard_address=None
+        ) as local,
+        Client(local, set_as_default=False) as client,
+    ):
         with pytest.raises(ClusterError, match=r"needs about .* GiB on each of 1 worker.*memory limit"):
-            recon.reconstruct_scan(sphere_scan, algorithm="pwls", geometry="nominal", grid=grid, iterations=1,
-                                   cluster=client)
+            recon.reconstruct_scan(
+                sphere_scan, algorithm="pwls", geometry="nominal", grid=grid, iterations=1, cluster=client
+            )
         assert not client.has_what()[next(iter(client.scheduler_info()["workers"]))]  # nothing was loaded
 
 
-def test_a_worker_killed_mid_pwls_ends_in_the_same_image_or_a_clear_failure(cluster: DaskCluster,
-                                                                           sphere_scan: Path, tmp_path: Path) -> None:
+def test_a_worker_killed_mid_pwls_ends_in_the_same_image_or_a_clear_failure(
+    cluster: DaskCluster, sphere_scan: Path, tmp_path: Path
+) -> None:
     import threading
 
     import recon
@@ -145,19 +155,33 @@ def test_a_worker_killed_mid_pwls_ends_in_the_same_image_or_a_clear_failure(clus
     np.testing.assert_allclose(outcome["result"].volume, single.volume, rtol=0, atol=1e-4 * scale)
 
 
-def test_calibration_and_reconstruction_jobs_run_on_the_cluster_with_progress(make_api: Any,
-                                                                              cluster: DaskCluster) -> None:
+def test_calibration_and_reconstruction_jobs_run_on_the_cluster_with_progress(
+    make_api: Any, cluster: DaskCluster
+) -> None:
     api = make_api(dask_scheduler=cluster.address)
     r = api.post("/scans", json={**SMALL_SAWTOOTH, "frames": 40})
     assert r.status_code == 202, r.text
     scan_id = r.json()["id"]
     assert wait_for(api, f"/scans/{scan_id}", ended)["state"] == "complete"
     cal = api.post("/calibrations", role="analyst", json={"scan_id": scan_id}).json()["id"]
-    rec = api.post("/reconstructions", role="analyst",
-                   json={"scan_id": scan_id, "algorithm": "fdk", "geometry": "calibrated", "shape": [24, 32, 32]}).json()["id"]
-    pwls = api.post("/reconstructions", role="analyst",
-                    json={"scan_id": scan_id, "algorithm": "pwls", "geometry": "calibrated", "shape": [24, 32, 32],
-                          "iterations": 2, "subsets": 2, "momentum": True}).json()["id"]
+    rec = api.post(
+        "/reconstructions",
+        role="analyst",
+        json={"scan_id": scan_id, "algorithm": "fdk", "geometry": "calibrated", "shape": [24, 32, 32]},
+    ).json()["id"]
+    pwls = api.post(
+        "/reconstructions",
+        role="analyst",
+        json={
+            "scan_id": scan_id,
+            "algorithm": "pwls",
+            "geometry": "calibrated",
+            "shape": [24, 32, 32],
+            "iterations": 2,
+            "subsets": 2,
+            "momentum": True,
+        },
+    ).json()["id"]
     workers = set(cluster.client().scheduler_info()["workers"])
     for job_id in (cal, rec, pwls):
         job = _wait(api, job_id, timeout_s=180.0)
@@ -184,7 +208,9 @@ def _worker_running(client: Any, key_part: str, timeout_s: float = 60.0) -> str:
     raise AssertionError(f"no worker is running {key_part}")
 
 
-def _slow_job(make_api: Any, cluster: DaskCluster, monkeypatch: pytest.MonkeyPatch, frames: int) -> tuple[Any, str, str]:
+def _slow_job(
+    make_api: Any, cluster: DaskCluster, monkeypatch: pytest.MonkeyPatch, frames: int
+) -> tuple[Any, str, str]:
     """A service on the cluster running the frame-means workload (0.1 s a frame) on a scan of ``frames`` frames:
     the service, the scan and the job."""
     from orbitct_app.service.jobs import manager as jobs_module
@@ -196,8 +222,9 @@ def _slow_job(make_api: Any, cluster: DaskCluster, monkeypatch: pytest.MonkeyPat
     return api, scan_id, api.service.jobs.submit("calibration", scan_id, {"delay_s": 0.1}, "t")
 
 
-def test_a_worker_killed_mid_job_ends_in_a_completed_job_or_a_clear_failure(make_api: Any, cluster: DaskCluster,
-                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_worker_killed_mid_job_ends_in_a_completed_job_or_a_clear_failure(
+    make_api: Any, cluster: DaskCluster, monkeypatch: pytest.MonkeyPatch
+) -> None:
     api, _, job_id = _slow_job(make_api, cluster, monkeypatch, 40)
     client = cluster.client()
     try:
@@ -215,8 +242,9 @@ def test_a_worker_killed_mid_job_ends_in_a_completed_job_or_a_clear_failure(make
         assert job["result"]["n"] == 42
 
 
-def test_a_scheduler_that_goes_away_fails_running_jobs_with_the_reason(make_api: Any, cluster: DaskCluster,
-                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_scheduler_that_goes_away_fails_running_jobs_with_the_reason(
+    make_api: Any, cluster: DaskCluster, monkeypatch: pytest.MonkeyPatch
+) -> None:
     api, scan_id, job_id = _slow_job(make_api, cluster, monkeypatch, 200)
     _wait(api, job_id, ("running",))
     time.sleep(1.0)
@@ -256,23 +284,36 @@ def test_cli_reconstructs_on_the_cluster_and_refuses_what_it_cannot(cluster: Das
 
 
 @pytest.mark.parametrize("whose", ["the job's own worker", "a worker holding views"])
-def test_a_worker_killed_mid_pwls_job_ends_the_job_within_a_minute(make_api: Any, cluster: DaskCluster,
-                                                                   whose: str) -> None:
+def test_a_worker_killed_mid_pwls_job_ends_the_job_within_a_minute(
+    make_api: Any, cluster: DaskCluster, whose: str
+) -> None:
     """A PWLS reconstruction job splits its views over both workers; one of them is killed mid-run: the job
     succeeds on the restarted worker or fails with a sentence naming what was lost, within a minute."""
     api = make_api(dask_scheduler=cluster.address)
     scan_id = _complete_scan(api, n=60)
-    r = api.post("/reconstructions", role="analyst",
-                 json={"scan_id": scan_id, "algorithm": "pwls", "geometry": "nominal", "shape": [32, 48, 48],
-                       "iterations": 60, "subsets": 4})
+    r = api.post(
+        "/reconstructions",
+        role="analyst",
+        json={
+            "scan_id": scan_id,
+            "algorithm": "pwls",
+            "geometry": "nominal",
+            "shape": [32, 48, 48],
+            "iterations": 60,
+            "subsets": 4,
+        },
+    )
     assert r.status_code == 202, r.text
     job_id = r.json()["id"]
     client = cluster.client()
     try:
         subset_worker = _worker_running(client, "subset", timeout_s=120.0)  # PWLS under way on the cluster
         job_worker = _worker_running(client, job_id)
-        victim = job_worker if whose == "the job's own worker" else \
-            next(w for w in client.scheduler_info()["workers"] if w != job_worker)
+        victim = (
+            job_worker
+            if whose == "the job's own worker"
+            else next(w for w in client.scheduler_info()["workers"] if w != job_worker)
+        )
         assert subset_worker
         pid = client.run(os.getpid, workers=[victim])[victim]
         os.kill(pid, signal.SIGKILL)

@@ -22,8 +22,21 @@ def test_a_second_service_on_the_same_data_directory_is_refused(make_api, tmp_pa
     scan_id = r.json()["id"]
     with pytest.raises(DataDirBusy, match=r"another orbitct service \(pid \d+.*uses the data directory"):
         make_api()  # same data directory
-    result = CliRunner().invoke(cli, ["serve", "--config", str(small_bench_config(tmp_path)), "--sim",
-                                      "--data-dir", str(api.data_dir), "--port", str(free_port()), "--stop-port", "0"])
+    result = CliRunner().invoke(
+        cli,
+        [
+            "serve",
+            "--config",
+            str(small_bench_config(tmp_path)),
+            "--sim",
+            "--data-dir",
+            str(api.data_dir),
+            "--port",
+            str(free_port()),
+            "--stop-port",
+            "0",
+        ],
+    )
     assert result.exit_code == 1 and "another orbitct service" in result.output and "--data-dir" in result.output
     assert "Traceback" not in result.output
     scan = wait_for(api, f"/scans/{scan_id}", ended)
@@ -35,8 +48,19 @@ def test_serve_refuses_a_port_in_use_before_announcing_itself(tmp_path: Path) ->
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        result = CliRunner().invoke(cli, ["serve", "--config", str(small_bench_config(tmp_path)), "--sim",
-                                          "--data-dir", str(tmp_path / "data"), "--port", str(port)])
+        result = CliRunner().invoke(
+            cli,
+            [
+                "serve",
+                "--config",
+                str(small_bench_config(tmp_path)),
+                "--sim",
+                "--data-dir",
+                str(tmp_path / "data"),
+                "--port",
+                str(port),
+            ],
+        )
     assert result.exit_code == 1, result.output
     assert f"cannot listen on 127.0.0.1:{port}" in result.output and "choose another --port" in result.output
     assert "orbitct service on" not in result.output and "token" not in result.output

@@ -57,8 +57,11 @@ def test_the_service_rides_out_a_full_disk(make_api, tmp_path: Path) -> None:  #
         assert refused.status_code == 507, refused.text
         assert "not enough disk space" in refused.json()["message"] and api.service.rig.busy is None
         more = fill(disk, leave_bytes=0, name="filler2.bin")  # not a byte left: the database cannot write either
-        for method, path, body in [("POST", "/calibrations", {"scan_id": complete_id}), ("POST", "/scans", {**SMALL_SAWTOOTH, "frames": 20}),
-                                   ("POST", "/plans/bbs", {"experiment": "A", "frames": 20, "detector_px": 64, "bbs": 4})]:
+        for method, path, body in [
+            ("POST", "/calibrations", {"scan_id": complete_id}),
+            ("POST", "/scans", {**SMALL_SAWTOOTH, "frames": 20}),
+            ("POST", "/plans/bbs", {"experiment": "A", "frames": 20, "detector_px": 64, "bbs": 4}),
+        ]:
             r = api.request(method, path, role="dev", json=body)
             assert r.status_code == 507, (path, r.status_code, r.text)
             assert "disk" in r.json()["message"]
@@ -96,9 +99,21 @@ def test_serve_on_a_fresh_data_directory_of_a_full_disk_says_so_in_one_line(tmp_
 
     with small_filesystem(tmp_path / "disk", 4) as disk:
         fill(disk, leave_bytes=0)
-        result = CliRunner().invoke(cli, ["serve", "--config", str(_config(tmp_path / "config", 4.0)), "--sim",
-                                          "--data-dir", str(disk / "data"), "--port", str(free_port()),
-                                          "--stop-port", "0"])  # port + 1 may be taken (CI: Dask's listeners)
+        result = CliRunner().invoke(
+            cli,
+            [
+                "serve",
+                "--config",
+                str(_config(tmp_path / "config", 4.0)),
+                "--sim",
+                "--data-dir",
+                str(disk / "data"),
+                "--port",
+                str(free_port()),
+                "--stop-port",
+                "0",
+            ],
+        )  # port + 1 may be taken (CI: Dask's listeners)
         assert result.exit_code == 1, result.output
         assert "cannot start: the disk of the data directory" in result.output and "is full" in result.output
         assert "Traceback" not in result.output

@@ -14,8 +14,19 @@ def _is_error(r, status: int) -> dict:  # type: ignore[no-untyped-def]
     return body
 
 
-@pytest.mark.parametrize("path", ["/scans/0123456789abcdef", "/jobs/0123456789abcdef", "/calibrations/x",
-                                  "/reconstructions/x", "/scans/x/file", "/jobs/x/log", "/nowhere", "/orbits/spiral"])
+@pytest.mark.parametrize(
+    "path",
+    [
+        "/scans/0123456789abcdef",
+        "/jobs/0123456789abcdef",
+        "/calibrations/x",
+        "/reconstructions/x",
+        "/scans/x/file",
+        "/jobs/x/log",
+        "/nowhere",
+        "/orbits/spiral",
+    ],
+)
 def test_unknown_ids_are_404(shared_api, path: str) -> None:  # type: ignore[no-untyped-def]
     assert _is_error(shared_api.get(path), 404)["error"] == "not_found"
 
@@ -27,7 +38,9 @@ def test_invalid_parameters_name_field_and_reason(shared_api) -> None:  # type: 
     assert body["details"][0]["field"] == "orbit"
     body = _is_error(shared_api.post("/reconstructions", role="analyst", json={"scan_id": "x", "iterations": 0}), 422)
     assert body["details"][0]["field"] == "iterations"
-    body = _is_error(shared_api.post("/reconstructions", role="analyst", json={"scan_id": "x", "shape": [1024, 1024, 1024]}), 422)
+    body = _is_error(
+        shared_api.post("/reconstructions", role="analyst", json={"scan_id": "x", "shape": [1024, 1024, 1024]}), 422
+    )
     assert "voxels" in body["message"]
     body = _is_error(shared_api.post("/reconstructions", role="analyst", json={"scan_id": "x", "stream": "disk"}), 422)
     assert body["details"][0]["field"] == "stream" and "file" in body["details"][0]["reason"]
@@ -35,8 +48,15 @@ def test_invalid_parameters_name_field_and_reason(shared_api) -> None:  # type: 
     assert body["details"][0]["field"] == "frames"
     body = _is_error(shared_api.post("/scans", json={"orbit": "waypoints", "params": {"path": "/etc/passwd"}}), 422)
     assert body["details"][0]["field"] == "params.path"
-    body = _is_error(shared_api.post("/calibrations", role="analyst", content=b'{"scan_id": "x",, }',
-                                     headers={"Content-Type": "application/json"}), 422)
+    body = _is_error(
+        shared_api.post(
+            "/calibrations",
+            role="analyst",
+            content=b'{"scan_id": "x",, }',
+            headers={"Content-Type": "application/json"},
+        ),
+        422,
+    )
     assert body["details"][0]["field"] == "body" and "not valid JSON at character" in body["details"][0]["reason"]
     _is_error(shared_api.get("/jobs", params={"limit": -1}), 422)
 

@@ -22,6 +22,7 @@ def test_any_last_event_id_header_parses_to_a_sequence_number(header: str) -> No
 
 def test_events_from_many_threads_keep_one_order(tmp_path: Path) -> None:
     bus = EventBus(Store(tmp_path / "e.sqlite"))
+
     def pub(k: int) -> None:
         for i in range(200):
             bus.publish("scan:x", "progress", {"thread": k, "i": i})

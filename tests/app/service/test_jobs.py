@@ -23,8 +23,12 @@ def _complete_scan(api: Any, scan_id: str = "s0000000000000001", n: int = 6) -> 
     return scan_id
 
 
-def _wait(api: Any, job_id: str, states: tuple[str, ...] = ("succeeded", "failed", "cancelled", "interrupted"),
-          timeout_s: float = 60.0) -> dict[str, Any]:
+def _wait(
+    api: Any,
+    job_id: str,
+    states: tuple[str, ...] = ("succeeded", "failed", "cancelled", "interrupted"),
+    timeout_s: float = 60.0,
+) -> dict[str, Any]:
     t0 = time.monotonic()
     while time.monotonic() - t0 < timeout_s:
         job = api.get(f"/jobs/{job_id}").json()
@@ -122,13 +126,30 @@ def test_restart_marks_running_job_interrupted(make_api, workload) -> None:  # t
 
 def test_a_reconstruction_estimated_above_the_limit_fails_at_once_with_the_estimate(api) -> None:  # type: ignore[no-untyped-def]
     scan_id = _complete_scan(api)
-    r = api.post("/reconstructions", role="analyst", json={"scan_id": scan_id, "geometry": "nominal", "algorithm": "pwls",
-                                                           "shape": [16, 24, 24], "iterations": 50, "max_minutes": 1e-6})
+    r = api.post(
+        "/reconstructions",
+        role="analyst",
+        json={
+            "scan_id": scan_id,
+            "geometry": "nominal",
+            "algorithm": "pwls",
+            "shape": [16, 24, 24],
+            "iterations": 50,
+            "max_minutes": 1e-6,
+        },
+    )
     assert r.status_code == 202, r.text
     job = _wait(api, r.json()["id"])
-    assert job["state"] == "failed" and "is estimated to take" in job["reason"] and "more than the limit" in job["reason"], job
+    assert (
+        job["state"] == "failed" and "is estimated to take" in job["reason"] and "more than the limit" in job["reason"]
+    ), job
     assert job["params"]["max_minutes"] == 1e-6
-    r = api.post("/reconstructions", role="analyst", json={"scan_id": scan_id, "geometry": "nominal", "algorithm": "fdk",
-                                                           "shape": [16, 24, 24]})
+    r = api.post(
+        "/reconstructions",
+        role="analyst",
+        json={"scan_id": scan_id, "geometry": "nominal", "algorithm": "fdk", "shape": [16, 24, 24]},
+    )
     job = _wait(api, r.json()["id"])  # the service's limit (60 min by default) lets it through
-    assert job["state"] == "succeeded" and job["params"]["max_minutes"] == 60.0 and job["result"]["estimated_s"] > 0, job
+    assert job["state"] == "succeeded" and job["params"]["max_minutes"] == 60.0 and job["result"]["estimated_s"] > 0, (
+        job
+    )

@@ -17,11 +17,15 @@ def test_kinds_with_parameter_schemas(shared_api) -> None:  # type: ignore[no-un
 
 
 def test_validate(shared_api) -> None:  # type: ignore[no-untyped-def]
-    r = shared_api.post("/orbits/validate", role="viewer", json={"kind": "sawtooth", "params": {"n_frames": 100, "amplitude_deg": 10}})
+    r = shared_api.post(
+        "/orbits/validate", role="viewer", json={"kind": "sawtooth", "params": {"n_frames": 100, "amplitude_deg": 10}}
+    )
     assert r.status_code == 200, r.text
     body = r.json()
     assert body["n_frames"] == 100 and body["tilt_deg"][1] <= 10.0 + 1e-9
-    r = shared_api.post("/orbits/validate", role="viewer", json={"kind": "dcarc", "params": {"arc_start_deg": 5, "arc_end_deg": 5}})
+    r = shared_api.post(
+        "/orbits/validate", role="viewer", json={"kind": "dcarc", "params": {"arc_start_deg": 5, "arc_end_deg": 5}}
+    )
     assert r.status_code == 422 and "differ" in r.json()["message"]
 
 

@@ -24,8 +24,10 @@ def test_runs_come_in_as_scans_and_volumes_go_out_through_the_configured_node(ma
     down = free_port()  # nothing listens there
     with orthanc(tmp_path / "orthanc") as node:
         api = make_api(pacs_nodes={"lab": str(node), "down": f"dicom://NOBODY@127.0.0.1:{down}"})
-        assert api.get("/pacs").json() == [{"name": "down", "ae_title": "NOBODY", "host": "127.0.0.1", "port": down},
-                                           {"name": "lab", "ae_title": "ORTHANC", "host": "127.0.0.1", "port": node.port}]
+        assert api.get("/pacs").json() == [
+            {"name": "down", "ae_title": "NOBODY", "host": "127.0.0.1", "port": down},
+            {"name": "lab", "ae_title": "ORTHANC", "host": "127.0.0.1", "port": node.port},
+        ]
         send([run], node)
         found = api.get("/pacs/lab/series", params={"modality": "XA", "patient_id": "REST-1"}).json()
         assert len(found) == 1 and found[0]["modality"] == "XA"
@@ -41,8 +43,11 @@ def test_runs_come_in_as_scans_and_volumes_go_out_through_the_configured_node(ma
         assert scan["state"] == "complete" and scan["name"] == "from the PACS"
         assert "nominal" in scan["summary"]["geometries"]
 
-        r = api.post("/reconstructions", role="analyst",
-                     json={"scan_id": scan_id, "algorithm": "fdk", "geometry": "nominal", "shape": [8, 16, 16]})
+        r = api.post(
+            "/reconstructions",
+            role="analyst",
+            json={"scan_id": scan_id, "algorithm": "fdk", "geometry": "nominal", "shape": [8, 16, 16]},
+        )
         assert r.status_code == 202, r.text
         rec = r.json()["id"]
         assert _wait(api, rec, timeout_s=120.0)["state"] == "succeeded"
@@ -51,8 +56,9 @@ def test_runs_come_in_as_scans_and_volumes_go_out_through_the_configured_node(ma
         assert r.json() == {"node": "lab", "stored": 8}
         ct = find_series(node, PatientID="REST-1", Modality="CT")
         assert len(ct) == 1 and ct[0]["NumberOfSeriesRelatedInstances"] == "8"
-        r = api.post("/pacs/lab/store", role="analyst", json={"reconstruction_id": rec, "patient_id": "REST-2",
-                                                               "enhanced": True})
+        r = api.post(
+            "/pacs/lab/store", role="analyst", json={"reconstruction_id": rec, "patient_id": "REST-2", "enhanced": True}
+        )
         assert r.json() == {"node": "lab", "stored": 1}, r.text
         ect = find_series(node, PatientID="REST-2", Modality="CT")
         pulled = get_series(node, ect[0]["StudyInstanceUID"], ect[0]["SeriesInstanceUID"], tmp_path / "ect")

@@ -48,13 +48,18 @@ def test_scan_calibrate_reconstruct(api, tmp_path: Path) -> None:  # type: ignor
     # recon on calibrated geometry before any calibration: 409
     assert api.post("/reconstructions", role="analyst", json={"scan_id": scan_id}).status_code == 409
 
-    r = api.post("/calibrations", role="analyst", json={"scan_id": scan_id, "scale_bar_mm": 50.0, "scale_bar_bbs": [0, 2]})
+    r = api.post(
+        "/calibrations", role="analyst", json={"scan_id": scan_id, "scale_bar_mm": 50.0, "scale_bar_bbs": [0, 2]}
+    )
     assert r.status_code == 422 and "scale_bar_bbs" in r.text  # BBs are numbered from 1
     r = api.post("/calibrations", role="analyst", json={"scan_id": scan_id, "method": "bundle"})
     assert r.status_code == 202, r.text
     cal_id = r.json()["id"]
-    r = api.post("/reconstructions", role="analyst",
-                 json={"scan_id": scan_id, "algorithm": "fdk", "geometry": "calibrated", "shape": [24, 32, 32]})
+    r = api.post(
+        "/reconstructions",
+        role="analyst",
+        json={"scan_id": scan_id, "algorithm": "fdk", "geometry": "calibrated", "shape": [24, 32, 32]},
+    )
     assert r.status_code == 202, r.text  # queued behind the calibration of the same scan
     rec_id = r.json()["id"]
 

@@ -40,8 +40,13 @@ def make_plan(api: Any, body: dict[str, Any]) -> dict[str, Any]:
 
 def test_a_plan_is_made_kept_and_read_back(shared_api: Any) -> None:
     api = shared_api
-    body = {"experiment": "A", "frames": 60, "detector_px": 192, "bbs": 6,
-            "keep_out": [{"angle_from_deg": 300, "angle_to_deg": 60, "z_min_mm": -80, "z_max_mm": 80}]}
+    body = {
+        "experiment": "A",
+        "frames": 60,
+        "detector_px": 192,
+        "bbs": 6,
+        "keep_out": [{"angle_from_deg": 300, "angle_to_deg": 60, "z_min_mm": -80, "z_max_mm": 80}],
+    }
     assert api.post("/plans/bbs", role="viewer", json=body).status_code == 403
     plan = make_plan(api, body)
     assert len(plan["bbs"]) == 6 and plan["views"] == 60 and plan["predicted"]["under_determined"] == 0
@@ -64,21 +69,43 @@ def test_a_plan_is_made_kept_and_read_back(shared_api: Any) -> None:
 
 
 def test_a_plan_on_a_shape_by_parameters(shared_api: Any) -> None:
-    plan = make_plan(shared_api, {"experiment": "A", "frames": 40, "detector_px": 128, "bbs": 6,
-                                  "surface_shape": "ellipsoid:70,60,90", "errors": "bench"})
+    plan = make_plan(
+        shared_api,
+        {
+            "experiment": "A",
+            "frames": 40,
+            "detector_px": 128,
+            "bbs": 6,
+            "surface_shape": "ellipsoid:70,60,90",
+            "errors": "bench",
+        },
+    )
     assert plan["motion_errors"] == {"profile": "bench", "samples": 3}
-    assert plan["surface"] == {"kind": "ellipsoid", "a_mm": 70.0, "b_mm": 60.0, "c_mm": 90.0, "z_min_mm": -81.0,
-                               "z_max_mm": 81.0}
+    assert plan["surface"] == {
+        "kind": "ellipsoid",
+        "a_mm": 70.0,
+        "b_mm": 60.0,
+        "c_mm": 90.0,
+        "z_min_mm": -81.0,
+        "z_max_mm": 81.0,
+    }
     for bb in plan["bbs"]:  # on the ellipsoid, a BB's radius outside it
         x, y, z = bb["xyz_mm"]
         assert (x / 70.0) ** 2 + (y / 60.0) ** 2 + (z / 90.0) ** 2 > 1.0 and abs(bb["height_mm"]) <= 81.0
-    for shape, needle in (("ellipsoid:70,60", "expected ellipsoid:A,B,C"), ("cylinder:50,-5:5,3", "expected cylinder"),
-                          ("ellipsoid:70,60,90,0:200", "within the ellipsoid"), ("/etc/passwd", "surface_shape"),
-                          ("cylinder:0,-5:5", "semi-axes must be in (0, 1000] mm")):
+    for shape, needle in (
+        ("ellipsoid:70,60", "expected ellipsoid:A,B,C"),
+        ("cylinder:50,-5:5,3", "expected cylinder"),
+        ("ellipsoid:70,60,90,0:200", "within the ellipsoid"),
+        ("/etc/passwd", "surface_shape"),
+        ("cylinder:0,-5:5", "semi-axes must be in (0, 1000] mm"),
+    ):
         r = shared_api.post("/plans/bbs", role="analyst", json={"experiment": "A", "surface_shape": shape})
         assert r.status_code == 422 and needle in r.text, (shape, r.text)
-    r = shared_api.post("/plans/bbs", role="analyst", json={"experiment": "A", "surface_shape": "cylinder:50,-5:5",
-                                                            "surface_id": "0123456789ab"})
+    r = shared_api.post(
+        "/plans/bbs",
+        role="analyst",
+        json={"experiment": "A", "surface_shape": "cylinder:50,-5:5", "surface_id": "0123456789ab"},
+    )
     assert r.status_code == 422 and "not surface_id and surface_shape" in r.text, r.text
 
 
@@ -125,9 +152,17 @@ def test_plans_wait_their_turn_and_a_full_queue_is_refused(shared_api: Any) -> N
 
 
 def test_a_plan_that_cannot_be_made_fails_with_the_reason(shared_api: Any) -> None:
-    r = shared_api.post("/plans/bbs", role="analyst", json={
-        "experiment": "A", "frames": 20, "detector_px": 64, "bbs": 40,
-        "keep_out": [{"angle_from_deg": 0, "angle_to_deg": 270, "z_min_mm": -500, "z_max_mm": 500}]})
+    r = shared_api.post(
+        "/plans/bbs",
+        role="analyst",
+        json={
+            "experiment": "A",
+            "frames": 20,
+            "detector_px": 64,
+            "bbs": 40,
+            "keep_out": [{"angle_from_deg": 0, "angle_to_deg": 270, "z_min_mm": -500, "z_max_mm": 500}],
+        },
+    )
     assert r.status_code == 202, r.text
     plan = wait_for_plan(shared_api, r.json()["id"])
     assert plan["state"] == "failed" and "40 BBs 25 mm apart do not fit on the surface" in plan["reason"], plan
@@ -141,9 +176,20 @@ def test_a_plan_the_service_stopped_is_failed_after_the_restart(make_api: Any) -
     api.client.__exit__(None, None, None)  # the service stops while the plan is being made
     assert not any(p.name.startswith("orbitct-plan-") for p in __import__("multiprocessing").active_children())
     # a service killed outright leaves its plan's record planning (and maybe half a plan): the next one says so
-    (api.data_dir / "plans" / "0123456789ab.state").write_text(json.dumps(
-        {"id": "0123456789ab", "state": "planning", "owner": "t", "created": "2026-01-01T00:00:00.000+00:00",
-         "experiment": "A", "orbit": "sawtooth", "views": 20, "bbs": 4}))
+    (api.data_dir / "plans" / "0123456789ab.state").write_text(
+        json.dumps(
+            {
+                "id": "0123456789ab",
+                "state": "planning",
+                "owner": "t",
+                "created": "2026-01-01T00:00:00.000+00:00",
+                "experiment": "A",
+                "orbit": "sawtooth",
+                "views": 20,
+                "bbs": 4,
+            }
+        )
+    )
     (api.data_dir / "plans" / ".0123456789ab.partial").mkdir()
     again = make_api(api.data_dir)
     for stopped in (plan_id, "0123456789ab"):
@@ -152,33 +198,68 @@ def test_a_plan_the_service_stopped_is_failed_after_the_restart(make_api: Any) -
     assert not list((api.data_dir / "plans").glob(".*.partial"))
 
 
-@pytest.mark.parametrize(("body", "status", "needle"), [
-    ({"experiment": "D"}, 422, "experiment"),
-    ({"experiment": "A", "bbs": 3}, 422, "bbs"),
-    ({"experiment": "A", "errors": "wobbly"}, 422, "errors"),
-    ({"experiment": "A", "keep_out": [{"angle_from_deg": 0, "angle_to_deg": 90, "z_min_mm": 5, "z_max_mm": 1}]}, 422,
-     "must be below"),
-    ({"experiment": "A", "orbit": "nosuch", "frames": 20}, 422, "nosuch"),
-    ({"experiment": "A", "frames": 20, "detector_px": 64,
-      "keep_out": [{"angle_from_deg": 0, "angle_to_deg": 180, "z_min_mm": -500, "z_max_mm": 500},
-                   {"angle_from_deg": 180, "angle_to_deg": 0, "z_min_mm": -500, "z_max_mm": 500}]}, 422,
-     "cover the whole surface"),
-    ({"experiment": "A", "frames": 20, "detector_px": 64,  # the whole turn, written 0 to 360
-      "keep_out": [{"angle_from_deg": 0, "angle_to_deg": 360, "z_min_mm": -500, "z_max_mm": 500}]}, 422,
-     "cover the whole surface"),
-    ({"experiment": "A", "keep_out": [{"angle_from_deg": 30, "angle_to_deg": 30, "z_min_mm": -5, "z_max_mm": 5}]}, 422,
-     "make no patch"),
-])
-def test_bad_plan_requests_are_refused_in_one_line(shared_api: Any, body: dict[str, Any], status: int, needle: str) -> None:
+@pytest.mark.parametrize(
+    ("body", "status", "needle"),
+    [
+        ({"experiment": "D"}, 422, "experiment"),
+        ({"experiment": "A", "bbs": 3}, 422, "bbs"),
+        ({"experiment": "A", "errors": "wobbly"}, 422, "errors"),
+        (
+            {"experiment": "A", "keep_out": [{"angle_from_deg": 0, "angle_to_deg": 90, "z_min_mm": 5, "z_max_mm": 1}]},
+            422,
+            "must be below",
+        ),
+        ({"experiment": "A", "orbit": "nosuch", "frames": 20}, 422, "nosuch"),
+        (
+            {
+                "experiment": "A",
+                "frames": 20,
+                "detector_px": 64,
+                "keep_out": [
+                    {"angle_from_deg": 0, "angle_to_deg": 180, "z_min_mm": -500, "z_max_mm": 500},
+                    {"angle_from_deg": 180, "angle_to_deg": 0, "z_min_mm": -500, "z_max_mm": 500},
+                ],
+            },
+            422,
+            "cover the whole surface",
+        ),
+        (
+            {
+                "experiment": "A",
+                "frames": 20,
+                "detector_px": 64,  # the whole turn, written 0 to 360
+                "keep_out": [{"angle_from_deg": 0, "angle_to_deg": 360, "z_min_mm": -500, "z_max_mm": 500}],
+            },
+            422,
+            "cover the whole surface",
+        ),
+        (
+            {
+                "experiment": "A",
+                "keep_out": [{"angle_from_deg": 30, "angle_to_deg": 30, "z_min_mm": -5, "z_max_mm": 5}],
+            },
+            422,
+            "make no patch",
+        ),
+    ],
+)
+def test_bad_plan_requests_are_refused_in_one_line(
+    shared_api: Any, body: dict[str, Any], status: int, needle: str
+) -> None:
     r = shared_api.post("/plans/bbs", role="analyst", json=body)
     assert r.status_code == status and needle in r.text, r.text
 
 
 def test_numbers_that_are_not_finite_are_refused_by_name(shared_api: Any) -> None:
     """Python's JSON (and so many clients) writes NaN and Infinity; every request model refuses them by name."""
-    for body, needle in (('{"experiment": "A", "noise_px": NaN}', "noise_px: Input should be a finite number"),
-                         ('{"experiment": "A", "keep_out": [{"angle_from_deg": Infinity, "angle_to_deg": 10, '
-                          '"z_min_mm": 0, "z_max_mm": 1}]}', "keep_out.0.angle_from_deg: Input should be a finite number")):
+    for body, needle in (
+        ('{"experiment": "A", "noise_px": NaN}', "noise_px: Input should be a finite number"),
+        (
+            '{"experiment": "A", "keep_out": [{"angle_from_deg": Infinity, "angle_to_deg": 10, '
+            '"z_min_mm": 0, "z_max_mm": 1}]}',
+            "keep_out.0.angle_from_deg: Input should be a finite number",
+        ),
+    ):
         r = shared_api.post("/plans/bbs", role="analyst", content=body, headers={"Content-Type": "application/json"})
         assert r.status_code == 422 and needle in r.text, r.text
 
@@ -198,14 +279,16 @@ def test_a_plan_on_a_prior_reconstructions_surface(make_api: Any) -> None:
     scan_id = _complete_scan(api)
     job_id = "r000000000000001"
     api.service.store.add_job(job_id, kind="reconstruction", scan_id=scan_id, params={"algorithm": "fdk"}, owner="t")
-    z, y, x = np.meshgrid(np.arange(-70.0, 71.0, 2.0), np.arange(-80.0, 81.0, 2.0), np.arange(-80.0, 81.0, 2.0),
-                          indexing="ij")
+    z, y, x = np.meshgrid(
+        np.arange(-70.0, 71.0, 2.0), np.arange(-80.0, 81.0, 2.0), np.arange(-80.0, 81.0, 2.0), indexing="ij"
+    )
     volume = np.where((np.hypot(x, y) <= 62.0) & (np.abs(z) <= 60.0), 0.0228, 0.0).astype(np.float32)
     folder = api.service.jobs.job_dir(job_id)
     folder.mkdir(parents=True, exist_ok=True)
     np.save(folder / "volume.npy", volume)
-    api.service.store.update_job(job_id, state="succeeded", result={"voxel_mm": [2.0, 2.0, 2.0],
-                                                                    "origin_mm": [-80.0, -80.0, -70.0]})
+    api.service.store.update_job(
+        job_id, state="succeeded", result={"voxel_mm": [2.0, 2.0, 2.0], "origin_mm": [-80.0, -80.0, -70.0]}
+    )
     body = {"experiment": "A", "frames": 60, "detector_px": 192, "bbs": 6, "surface_reconstruction_id": job_id}
     plan = make_plan(api, body)
     assert plan["surface"]["kind"] == "outline" and plan["surface"]["source"].startswith(f"reconstruction {job_id} >")

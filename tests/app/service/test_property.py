@@ -16,13 +16,34 @@ from tests.helpers.service import SMALL_SAWTOOTH, ended, wait_for
 pytestmark = pytest.mark.system
 
 JSON = st.recursive(
-    st.none() | st.booleans() | st.integers(-10**12, 10**12) | st.floats(allow_nan=False, allow_infinity=False)
+    st.none()
+    | st.booleans()
+    | st.integers(-(10**12), 10**12)
+    | st.floats(allow_nan=False, allow_infinity=False)
     | st.text(max_size=20),
     lambda children: st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=12), children, max_size=4),
     max_leaves=12,
 )
-IDS = st.sampled_from(["", "x", "..", "%2e%2e", "0123456789abcdef", "a" * 70, "hexapod", "xray", "axial", "sawtooth",
-                       "table1.csv", "../tokens.json", "%00", "ünï", "-1", "1e9"]) | st.text(max_size=30)
+IDS = st.sampled_from(
+    [
+        "",
+        "x",
+        "..",
+        "%2e%2e",
+        "0123456789abcdef",
+        "a" * 70,
+        "hexapod",
+        "xray",
+        "axial",
+        "sawtooth",
+        "table1.csv",
+        "../tokens.json",
+        "%00",
+        "ünï",
+        "-1",
+        "1e9",
+    ]
+) | st.text(max_size=30)
 # side effects the fuzzer must not cause: real scans and moves are tested elsewhere
 SKIP = {("post", "/stop"), ("post", "/devices/{name}/reference")}
 ENDLESS = {"/stop/events"}  # the stop stream stays open for as long as the client listens
@@ -41,8 +62,12 @@ def _operations(app: Any) -> list[tuple[str, str, dict[str, Any]]]:
 def _value_for(schema: dict[str, Any], draw: Any) -> Any:
     if "enum" in schema:
         return draw(st.sampled_from(schema["enum"]) | JSON)
-    kinds = {"integer": st.integers(-10**6, 10**6), "number": st.floats(-1e6, 1e6), "boolean": st.booleans(),
-             "string": st.text(max_size=20)}
+    kinds = {
+        "integer": st.integers(-(10**6), 10**6),
+        "number": st.floats(-1e6, 1e6),
+        "boolean": st.booleans(),
+        "string": st.text(max_size=20),
+    }
     return draw(kinds.get(schema.get("type", ""), JSON) | JSON)
 
 
@@ -84,8 +109,12 @@ def _existing_ids(api: Any) -> list[str]:
     assert r.status_code == 202, r.text
     scan_id = r.json()["id"]
     assert wait_for(api, f"/scans/{scan_id}", ended)["state"] == "complete"
-    jobs = [api.post("/reconstructions", role="analyst", json={"scan_id": scan_id, "geometry": "nominal", "shape": [8, 8, 8]}),
-            api.post("/calibrations", role="analyst", json={"scan_id": scan_id})]  # six frames: this one fails, which is fine
+    jobs = [
+        api.post(
+            "/reconstructions", role="analyst", json={"scan_id": scan_id, "geometry": "nominal", "shape": [8, 8, 8]}
+        ),
+        api.post("/calibrations", role="analyst", json={"scan_id": scan_id}),
+    ]  # six frames: this one fails, which is fine
     known = [scan_id, "x", "y", "z", "table1.csv", "volume.nii.gz"]
     for r in jobs:
         assert r.status_code == 202, r.text
@@ -119,4 +148,3 @@ def test_no_5xx_for_any_request(shared_api) -> None:  # type: ignore[no-untyped-
             assert str(r.status_code) in documented[(method, path)], (method, path, r.status_code, r.text[:300])
 
     check()
-

@@ -28,7 +28,9 @@ def _scan_running(base: str, headers: dict[str, str], frames_done: int = 10) -> 
     r = httpx.post(f"{base}/scans", json={**SMALL_SAWTOOTH, "frames": 300}, headers=headers, timeout=30)
     assert r.status_code == 202, r.text
     scan_id = r.json()["id"]
-    while httpx.get(f"{base}/scans/{scan_id}", headers=headers, timeout=5).json()["progress"].get("done", 0) < frames_done:
+    while (
+        httpx.get(f"{base}/scans/{scan_id}", headers=headers, timeout=5).json()["progress"].get("done", 0) < frames_done
+    ):
         time.sleep(0.05)
     return str(scan_id)
 
@@ -98,9 +100,18 @@ def test_a_killed_service_leaves_no_worker_and_records_that_agree_with_the_file(
         scan_id = r.json()["id"]
         while httpx.get(f"{base}/scans/{scan_id}", headers=headers, timeout=5).json()["state"] != "complete":
             time.sleep(0.1)
-        r = httpx.post(f"{base}/reconstructions", headers=headers, timeout=30,
-                       json={"scan_id": scan_id, "algorithm": "pwls", "geometry": "nominal", "shape": [48, 64, 64],
-                             "iterations": 500})
+        r = httpx.post(
+            f"{base}/reconstructions",
+            headers=headers,
+            timeout=30,
+            json={
+                "scan_id": scan_id,
+                "algorithm": "pwls",
+                "geometry": "nominal",
+                "shape": [48, 64, 64],
+                "iterations": 500,
+            },
+        )
         assert r.status_code == 202, r.text
         job_id = r.json()["id"]
         pid = None

@@ -35,8 +35,11 @@ def test_a_session_reads_with_the_cookie_and_changes_state_only_with_the_csrf_to
     assert allowed.status_code == 409 and "not latched" in allowed.json()["message"]
     # roles hold as with the bearer token
     _sign_in(api, "viewer")
-    forbidden = api.client.post("/scans", json={**SMALL_SAWTOOTH, "frames": 4},
-                                headers={CSRF_HEADER: api.client.get("/session").json()["csrf_token"]})
+    forbidden = api.client.post(
+        "/scans",
+        json={**SMALL_SAWTOOTH, "frames": 4},
+        headers={CSRF_HEADER: api.client.get("/session").json()["csrf_token"]},
+    )
     assert forbidden.status_code == 403 and "viewer" in forbidden.json()["message"]
     api.client.cookies.clear()
 

@@ -33,9 +33,11 @@ def test_bad_values_name_the_field(tmp_path: Path) -> None:
     f.write_text("colour: blue\n")
     with pytest.raises(ValidationError, match="colour"):
         load_settings(f)
-    for text, match in (("dask_scheduler: localhost:8786", "dask_scheduler"),  # an address needs its protocol
-                        ("pacs_nodes: {lab: 'http://pacs:104'}", "dicom://AE_TITLE@host:port"),
-                        ("pacs_nodes: {'bad name!': 'dicom://PACS@pacs:104'}", "PACS node name")):
+    for text, match in (
+        ("dask_scheduler: localhost:8786", "dask_scheduler"),  # an address needs its protocol
+        ("pacs_nodes: {lab: 'http://pacs:104'}", "dicom://AE_TITLE@host:port"),
+        ("pacs_nodes: {'bad name!': 'dicom://PACS@pacs:104'}", "PACS node name"),
+    ):
         f.write_text(text + "\n")
         with pytest.raises(ValidationError, match=match):
             load_settings(f)

@@ -52,9 +52,11 @@ def test_emergency_stop_halts_proves_and_latches_until_an_operator_resets(api) -
         assert sf.status == "aborted" and "emergency stop" in sf.status_reason and sf.n_frames >= 8
 
     # latched: nothing moves, nothing exposes, until an operator resets it
-    for attempt in (lambda: api.post("/scans", json={**SMALL_SAWTOOTH, "frames": 4}),
-                    lambda: api.post("/devices/rotation_stage/move", json={"targets": {"R": 1.0}}),
-                    lambda: api.post("/devices/hexapod/reference")):
+    for attempt in (
+        lambda: api.post("/scans", json={**SMALL_SAWTOOTH, "frames": 4}),
+        lambda: api.post("/devices/rotation_stage/move", json={"targets": {"R": 1.0}}),
+        lambda: api.post("/devices/hexapod/reference"),
+    ):
         refused = attempt()
         assert refused.status_code == 409 and "emergency stop latched by test-viewer" in refused.json()["message"]
     state = api.get("/stop").json()
@@ -70,7 +72,9 @@ def test_emergency_stop_halts_proves_and_latches_until_an_operator_resets(api) -
     assert api.post("/stop/reset", role="analyst").status_code == 403
     r = api.post("/stop/reset", json={"note": "tube checked"})
     assert r.status_code == 200 and r.json()["latched"] is False
-    assert r.json()["last_reset"]["by"] == "test-operator (operator)" and r.json()["last_reset"]["note"] == "tube checked"
+    assert (
+        r.json()["last_reset"]["by"] == "test-operator (operator)" and r.json()["last_reset"]["note"] == "tube checked"
+    )
     assert api.post("/stop/reset").status_code == 409  # nothing latched any more
     assert api.get("/health", role=None).json()["estop"] == "clear"
     assert api.post("/devices/rotation_stage/move", json={"targets": {"R": 1.0}}).status_code == 200
@@ -251,8 +255,10 @@ def test_nothing_on_a_keep_alive_connection_swallows_the_stop_that_follows(api) 
     url = urlsplit(api.get("/stop").json()["stop_url"])
     token = api.tokens["viewer"]
     reason = b'{"reason": "keep-alive"}'
-    stop = (f"POST /stop HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\nContent-Type: application/json\r\n"
-            f"Content-Length: {len(reason)}\r\n\r\n").encode() + reason
+    stop = (
+        f"POST /stop HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\nContent-Type: application/json\r\n"
+        f"Content-Length: {len(reason)}\r\n\r\n"
+    ).encode() + reason
     body = b'{"some": "thing", "else": [1, 2, 3]}'
     first_requests = [
         b"POST /not-a-route HTTP/1.1\r\nHost: x\r\nContent-Length: %d\r\n\r\n" % len(body) + body,  # unknown route

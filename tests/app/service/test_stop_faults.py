@@ -57,8 +57,20 @@ def _guard_stop(api: Any, reason: str) -> dict[str, Any]:
 
 def _cli_stop(api: Any) -> tuple[int, str]:
     base = "http://127.0.0.1:1"  # the service's own port is a test client's: the CLI goes to the guard's listener
-    result = CliRunner().invoke(cli, ["stop", "--url", base, "--token", api.tokens["viewer"],
-                                      "--stop-url", api.service.guard.url + "/stop", "--reason", "cli drill"])
+    result = CliRunner().invoke(
+        cli,
+        [
+            "stop",
+            "--url",
+            base,
+            "--token",
+            api.tokens["viewer"],
+            "--stop-url",
+            api.service.guard.url + "/stop",
+            "--reason",
+            "cli drill",
+        ],
+    )
     return result.exit_code, result.output
 
 

@@ -42,13 +42,18 @@ def test_a_mesh_is_uploaded_listed_and_planned_on(shared_api: Any) -> None:
     assert api.post("/plans/bbs", role="analyst", json={**body, "surface_id": "0123456789ab"}).status_code == 404
 
 
-@pytest.mark.parametrize(("name", "content", "status", "needle"), [
-    ("leg.txt", b"solid x", 422, "expected a mesh file"),
-    ("leg.stl", b"", 422, "empty request body"),
-    ("leg.stl", b"\x00\x01 this is no mesh at all \xff" * 8, 422, "leg.stl"),
-    ("../leg.stl", b"solid x", 422, "name"),
-])
-def test_bad_uploads_are_refused_in_one_line(shared_api: Any, name: str, content: bytes, status: int, needle: str) -> None:
+@pytest.mark.parametrize(
+    ("name", "content", "status", "needle"),
+    [
+        ("leg.txt", b"solid x", 422, "expected a mesh file"),
+        ("leg.stl", b"", 422, "empty request body"),
+        ("leg.stl", b"\x00\x01 this is no mesh at all \xff" * 8, 422, "leg.stl"),
+        ("../leg.stl", b"solid x", 422, "name"),
+    ],
+)
+def test_bad_uploads_are_refused_in_one_line(
+    shared_api: Any, name: str, content: bytes, status: int, needle: str
+) -> None:
     r = shared_api.post(f"/surfaces?name={name}", role="analyst", content=content)
     assert r.status_code == status and needle in r.text, r.text
     assert "/tmp" not in r.text and "surfaces/" not in r.text  # the service's own paths stay inside
@@ -58,6 +63,13 @@ def test_an_upload_over_the_limit_is_refused_before_it_is_read(make_api: Any) ->
     api = make_api(max_upload_bytes=4096, max_body_bytes=1024)
     r = api.post("/surfaces?name=leg.stl", role="analyst", content=b"x" * 5000)
     assert r.status_code == 413 and "4096" in r.text
-    assert api.post("/plans/bbs", role="analyst", content=b"{" + b" " * 2000 + b"}",
-                    headers={"Content-Type": "application/json"}).status_code == 413  # other routes keep theirs
+    assert (
+        api.post(
+            "/plans/bbs",
+            role="analyst",
+            content=b"{" + b" " * 2000 + b"}",
+            headers={"Content-Type": "application/json"},
+        ).status_code
+        == 413
+    )  # other routes keep theirs
     assert api.get("/surfaces/0123456789ab").status_code == 404 and api.get("/surfaces/..%2Fx").status_code == 404
