@@ -9,7 +9,9 @@ from calib.errors import (
     NoProjectionsError,
     OptionError,
 )
-from calib.pipeline import METHODS, CalibrationOptions, CalibrationResult, IterationStats, calibrate_scan
+from calib.options import METHODS, CalibrationOptions
+from calib.pipeline import calibrate_scan
+from calib.result import CalibrationResult, IterationStats
 
 __all__ = [
     "METHODS",

@@ -33,14 +33,9 @@ from calib.detect import N_FIELDS, FrameDetector
 from calib.errors import CalibrationError
 from calib.framepose import FramePose, StepWatch, fit_frame_pose
 from calib.model import ViewModel, ViewState
-from calib.pipeline import (
-    CalibrationResult,
-    _motion_px,
-    _options,
-    calibrate_candidates,
-    frame_detector,
-    projected_diameter_px,
-)
+from calib.options import checked_options
+from calib.pipeline import calibrate_candidates, frame_detector, motion_px, projected_diameter_px
+from calib.result import CalibrationResult
 from calib.track import (
     FrameLinker,
     FrameLinks,
@@ -185,7 +180,7 @@ class _Follower:
         self.image_key = np.asarray(image_key)
         self.diameter_mm = float(diameter_mm)
         self.settings = settings
-        self.opt = _options("bundle", {**options, "diameter_mm": diameter_mm})
+        self.opt = checked_options("bundle", {**options, "diameter_mm": diameter_mm})
         self.emit = emit
         proj = np.flatnonzero(self.image_key == ImageKey.PROJECTION)
         self._proj_index = proj
@@ -193,7 +188,7 @@ class _Follower:
         self.d_px = projected_diameter_px(nominal[proj], self.diameter_mm) if proj.size else 1.0
         self.tracking = TrackingSettings(
             diameter_px=self.d_px,
-            motion_px=_motion_px(nominal[proj]) if proj.size else 0.0,
+            motion_px=motion_px(nominal[proj]) if proj.size else 0.0,
             jitter_px=self.opt.jitter_mm * self.d_px / self.diameter_mm,
         )
         self.linker = FrameLinker(self.tracking)
@@ -646,7 +641,7 @@ class LiveCalibration:
     ) -> None:
         if not diameter_mm or not diameter_mm > 0:
             raise LiveCalibrationError(f"live calibration needs the BB diameter in mm (> 0), got {diameter_mm!r}")
-        _options("bundle", {**options, "diameter_mm": diameter_mm})  # refuse bad options here, not in the worker
+        checked_options("bundle", {**options, "diameter_mm": diameter_mm})  # refuse bad options here, not in the worker
         self.path = Path(path)
         self.options = dict(options)
         self.settings = settings or LiveSettings()
@@ -810,7 +805,7 @@ class LiveCalibration:
         candidates, deferred, self.detect_s, self.bbs_per_frame, d_px, linked, windows = self._outcome
         self.timing["windows"], self.timing["window_s"], self.timing["posed"] = (float(w) for w in windows)
         self.frames_detected_after_scan = len(deferred)
-        opt = _options("bundle", {**self.options, "diameter_mm": self.diameter_mm})
+        opt = checked_options("bundle", {**self.options, "diameter_mm": self.diameter_mm})
         with ScanFile(self.path) as sf:
             proj = sf.projection_indices
             if proj.size != len(candidates):

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from calib.pipeline import CalibrationResult
+    from calib.result import CalibrationResult
 
 #: the published results (Ma et al. 2022, Table 1), for side-by-side reports
 PAPER_TABLE1: dict[str, dict[str, float]] = {

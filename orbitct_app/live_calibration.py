@@ -21,7 +21,7 @@ from acquire.errors import AcquireError
 from acquire.records import FrameRecord, ScanEnd, ScanStart
 from calib.errors import CalibrationError
 from calib.live import WARNING_KINDS, LiveCalibration, LiveSettings, LiveWarning
-from calib.pipeline import CalibrationResult
+from calib.result import CalibrationResult
 from orbitct.progress import ProgressCallback
 from orbitct.scanfile import ScanFile
 

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from calib.detect import FrameDetector, settings_for
-from calib.pipeline import CalibrationOptions, _estimate_diameter_mm
+from calib.options import CalibrationOptions
+from calib.pipeline import _estimate_diameter_mm
 from orbitct.scanfile import ScanFile
 from tests.helpers.calib_scans import (
     SAD,

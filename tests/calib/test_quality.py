@@ -61,7 +61,7 @@ def test_centroid_biases_of_a_few_tenths_of_a_pixel_do_not_fail_a_view() -> None
 def test_a_view_failed_by_one_detection_is_mended_without_it_and_only_then() -> None:
     """The calibration drops the one detection that keeps a view from fitting (a biased centroid a pixel off)
     when the view still sees 5 or more BBs and then fits; two disagreeing detections, or too few BBs, stay failed."""
-    from calib.pipeline import _drop_single_misfits
+    from calib.refine import _drop_single_misfits
 
     rng = np.random.default_rng(3)
     model = ViewModel(sawtooth(40, 256))
@@ -181,7 +181,8 @@ def test_views_resting_on_bbs_that_only_a_few_views_see_are_not_calibrated_as_an
     passed. A BB seen in fewer views than identification asks for (5 % of them, at least 8) is now left out, and
     the views that rested on it are not calibrated from their own BBs."""
     from calib.evaluate import similarity_aligned_error_px
-    from calib.pipeline import CalibrationOptions, _estimate
+    from calib.options import CalibrationOptions
+    from calib.refine import estimate
     from tests.helpers.calib_scans import perturbed
 
     rng = np.random.default_rng(2)
@@ -195,7 +196,7 @@ def test_views_resting_on_bbs_that_only_a_few_views_see_are_not_calibrated_as_an
         shift = 0 if p == 40 else 1  # each island BB takes one real BB's blob in view 40, the next one's elsewhere
         uv[p, 8:] = real[p, np.roll(np.arange(8), -shift)]
         uv[p, :8] = np.nan
-    geometry, kept_xyz, _, kept_uv, _, _, _, quality = _estimate(
+    geometry, kept_xyz, _, kept_uv, _, _, _, quality = estimate(
         "bundle", ViewModel(nominal), uv, CalibrationOptions(), None, None
     )
     assert kept_xyz.shape[0] == 8 and kept_uv.shape[1] == 8
