@@ -1,4 +1,4 @@
-"""The architecture, checked on the source: a ground, walls and a roof, and no import cycles.
+"""The architecture, checked on the source: a ground, walls and a roof, no import cycles, modules of a readable size.
 
 Every import counts, also one inside a function (it runs when the function does); only imports
 under ``if TYPE_CHECKING:`` are left out (they never run).
@@ -68,11 +68,12 @@ def _type_checking_nodes(tree: ast.Module) -> set[int]:
 
 
 @cache
-def imports_of(module: str) -> frozenset[str]:
-    """Project modules that ``module`` imports (a package import means its ``__init__``)."""
+def imports_of(module: str, *, for_types: bool = False) -> frozenset[str]:
+    """Project modules that ``module`` imports (a package import means its ``__init__``); with ``for_types`` also
+    those imported only for type checking (a design dependency, though it never runs)."""
     path = _modules()[module]
     tree = _parse(path)
-    skip = _type_checking_nodes(tree)
+    skip = set() if for_types else _type_checking_nodes(tree)
     package = module if path.name == "__init__.py" else module.rpartition(".")[0]
     known = _modules()
     found: set[str] = set()
@@ -145,8 +146,7 @@ def test_module_rules(prefix: str, forbidden: str, allowed: set[str]) -> None:
     assert not bad, f"modules of {prefix} importing {forbidden}:\n" + "\n".join(bad)
 
 
-def test_the_module_import_graph_has_no_cycles() -> None:
-    graph = {m: imports_of(m) for m in _modules()}
+def _cycles(graph: dict[str, frozenset[str]]) -> list[list[str]]:
     state: dict[str, int] = {}  # 1 on the current path, 2 done
     cycles: list[list[str]] = []
 
@@ -164,7 +164,38 @@ def test_the_module_import_graph_has_no_cycles() -> None:
     for module in sorted(graph):
         if module not in state:
             visit(module, [])
+    return cycles
+
+
+def test_the_module_import_graph_has_no_cycles() -> None:
+    cycles = _cycles({m: imports_of(m) for m in _modules()})
     assert not cycles, "import cycles:\n" + "\n".join(" -> ".join(c) for c in cycles[:20])
+
+
+def _package_of(module: str) -> str:
+    return module if _modules()[module].name == "__init__.py" else module.rpartition(".")[0]
+
+
+def test_no_cycles_inside_a_package_even_through_type_hints() -> None:
+    """Inside one package the modules form a hierarchy: no two import each other, not even for their type hints
+    (a package's ``__init__``, which gathers its public names, is left out: it imports its modules by design)."""
+    inner = {m for m in _modules() if _modules()[m].name != "__init__.py"}
+    graph = {
+        m: frozenset(t for t in imports_of(m, for_types=True) if t in inner and _package_of(t) == _package_of(m))
+        for m in inner
+    }
+    cycles = _cycles(graph)
+    assert not cycles, "import cycles inside a package:\n" + "\n".join(" -> ".join(c) for c in cycles[:20])
+
+
+#: the most lines a module may have (as formatted by ruff); a module that grows past it has more than one job
+MAX_MODULE_LINES = 900
+
+
+def test_no_module_is_over_the_size_limit() -> None:
+    sizes = {m: len(p.read_text(encoding="utf-8").splitlines()) for m, p in _modules().items()}
+    big = sorted((n, m) for m, n in sizes.items() if n > MAX_MODULE_LINES)
+    assert not big, f"modules over {MAX_MODULE_LINES} lines: " + ", ".join(f"{m} ({n})" for n, m in big[::-1])
 
 
 def test_the_rules_cover_every_package() -> None:
