@@ -143,7 +143,7 @@ class ViewGeometry:
     @property
     def valid(self) -> NDArray[np.bool_]:
         """Views whose 12 numbers are all finite."""
-        return np.isfinite(self._vectors).all(axis=1)
+        return np.asarray(np.isfinite(self._vectors).all(axis=1))
 
     @property
     def normal(self) -> NDArray[np.float64]:
@@ -442,7 +442,8 @@ class VolumeGrid:
         vox = np.broadcast_to(np.asarray(voxel_mm, dtype=float), (3,))
         n_xyz = np.array(shape[::-1], dtype=float)
         origin = np.asarray(center_mm, dtype=float) - (n_xyz - 1) / 2 * vox
-        return cls(tuple(shape), tuple(vox), tuple(origin))
+        nz, ny, nx = (int(n) for n in shape)
+        return cls((nz, ny, nx), tuple(vox), tuple(origin))
 
     @property
     def size(self) -> int:

@@ -25,7 +25,7 @@ class Orbit:
     params: dict[str, Any]
     theta: NDArray[np.float64]
     phi: NDArray[np.float64]
-    segment: NDArray[np.int64] = field(default=None)  # type: ignore[assignment]
+    segment: NDArray[np.int64] = field(default=None)  # type: ignore[arg-type]
 
     def __post_init__(self) -> None:
         th, ph = _frozen(self.theta), _frozen(self.phi)

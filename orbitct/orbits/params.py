@@ -146,7 +146,7 @@ class MultiArcParams(_Params):
             return list(self.arcs)
         out: list[RotationArc | TiltArc] = []
         for a in PRESETS[str(self.preset)]:
-            out.append(RotationArc(**a) if a["kind"] == "rotation" else TiltArc(**a))  # type: ignore[arg-type]
+            out.append(RotationArc(**a) if a["kind"] == "rotation" else TiltArc(**a))
         return out
 
 

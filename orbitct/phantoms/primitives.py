@@ -134,6 +134,10 @@ class Primitive:
             raise PhantomError(f"primitive description lacks {exc.args[0]!r}: {d}") from None
 
 
+def _vec(values: ArrayLike) -> NDArray[np.float64]:
+    return np.asarray(values, dtype=np.float64)
+
+
 def _mu(mu: float | None, material: str) -> float:
     return mu_of(material) if mu is None else float(mu)
 
@@ -142,7 +146,9 @@ def sphere(
     center: ArrayLike, radius_mm: float, *, material: str = "water", mu: float | None = None, label: str = ""
 ) -> Primitive:
     """A sphere; ``mu`` defaults to the material's attenuation."""
-    return Primitive("ellipsoid", center, (radius_mm,) * 3, np.eye(3), _mu(mu, material), material, label)
+    return Primitive(
+        "ellipsoid", _vec(center), np.full(3, float(radius_mm)), np.eye(3), _mu(mu, material), material, label
+    )
 
 
 def ellipsoid(
@@ -156,7 +162,9 @@ def ellipsoid(
 ) -> Primitive:
     """An ellipsoid with semi-axes along the columns of ``rotation`` (identity: x, y, z)."""
     R = np.eye(3) if rotation is None else rotation
-    return Primitive("ellipsoid", center, semi_axes_mm, R, _mu(mu, material), material, label)
+    return Primitive(
+        "ellipsoid", _vec(center), _vec(semi_axes_mm), np.asarray(R, dtype=float), _mu(mu, material), material, label
+    )
 
 
 def cylinder(
@@ -174,4 +182,12 @@ def cylinder(
     """A finite cylinder along ``axis``; elliptic when ``radius_b_mm`` is given (``radius_mm`` towards ``ref``)."""
     rb = radius_mm if radius_b_mm is None else radius_b_mm
     R = frame_from_axis(axis, ref)
-    return Primitive("cylinder", center, (radius_mm, rb, length_mm / 2.0), R, _mu(mu, material), material, label)
+    return Primitive(
+        "cylinder",
+        _vec(center),
+        np.array([radius_mm, rb, length_mm / 2.0], dtype=float),
+        R,
+        _mu(mu, material),
+        material,
+        label,
+    )

@@ -509,7 +509,7 @@ class ScanFile(ScanResults):
             )
         elif check_pixels and not reasons:
             needed = np.union1d(proj, np.flatnonzero(np.isin(self.image_key, (ImageKey.DARK, ImageKey.FLAT))))
-            problems = self.frame_problems(needed)
+            problems = self.frame_problems(needed.tolist())
             if problems:
                 reasons.append(f"frames are unusable: {describe_frame_problems(problems)}")
         return reasons

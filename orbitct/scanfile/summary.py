@@ -87,9 +87,9 @@ def _summary(f: ScanFile, damage: list[str]) -> dict[str, Any]:
             }
 
         calibration = _read(damage, "/geometry/calibrated's attributes", calibrated, {})
-    markers = _read(damage, "/markers", f.markers, {})
+    markers: dict[str, Any] = _read(damage, "/markers", f.markers, {})
     truth = _read(damage, "/truth/markers/xyz", f.truth_markers_xyz, None)
-    ph = _read(damage, "/truth@phantom_json", lambda: f.phantom, {})
+    ph: dict[str, Any] = _read(damage, "/truth@phantom_json", lambda: f.phantom, {})
     times = _read(damage, "/frames/time_s", lambda: f.time_s, np.full(f.n_frames, np.nan))
     live = _read(damage, "/acquisition@live_calibration", lambda: f.live_calibration, "")
     return {
@@ -98,7 +98,9 @@ def _summary(f: ScanFile, damage: list[str]) -> dict[str, Any]:
         "n_frames": f.n_frames,
         "frames_without_pixels": f.frames_without_pixels,
         "frames_by_kind": f.count_by_kind(),
-        "taken_off_command": _read(damage, "/frames/encoders or /frames/commanded", lambda: taken_off_command(f), {}),
+        "taken_off_command": _read(
+            damage, "/frames/encoders or /frames/commanded", lambda: taken_off_command(f), dict[str, dict[str, Any]]()
+        ),
         "dtype": str(f.frames.dtype),
         "detector": {"rows": panel.rows, "cols": panel.cols, "pitch_mm": list(panel.pitch_mm)},
         "duration_s": float(np.nanmax(times)) if f.n_frames and np.isfinite(times).any() else None,
@@ -113,7 +115,7 @@ def _summary(f: ScanFile, damage: list[str]) -> dict[str, Any]:
             "truth": int(truth.shape[0]) if truth is not None else 0,
         },
         "phantom": (f"{ph.get('name', '')}: {len(ph.get('primitives', []))} primitives" if ph else ""),
-        "recon": _read(damage, "/recon", f.recon_names, []),
+        "recon": _read(damage, "/recon", f.recon_names, list[str]()),
         "import_assumptions": _read(
             damage,
             "/provenance@import_assumptions_json",

@@ -74,11 +74,12 @@ def write_xa_run(
         angles = {}
         for axis in AXES:
             read, cmd = sf.axes("encoders").get(axis), sf.axes("commanded").get(axis)
-            if read is None and cmd is None:
-                raise ScanFileError(f"{scan}: no {axis} positions: XA export is for C-arm scans")
-            value = read if read is not None else cmd
-            if cmd is not None:
-                value = np.where(np.isfinite(value), value, cmd)
+            if read is None:
+                if cmd is None:
+                    raise ScanFileError(f"{scan}: no {axis} positions: XA export is for C-arm scans")
+                value = cmd
+            else:
+                value = read if cmd is None else np.where(np.isfinite(read), read, cmd)
             angles[axis] = value[proj]
         nominal = sf.geometry("nominal")[proj]
         frames = np.asarray(sf.frames[proj.tolist()], dtype=np.uint16)
@@ -109,7 +110,7 @@ def write_xa_run(
 
 def _number(path: Path, where: Any, name: str) -> float:
     """Attribute ``name`` of dataset ``where`` as a float, or ScanFileError naming it."""
-    value = where.get(name) if where is not None else None
+    value: Any = where.get(name) if where is not None else None
     if value is None or value == "":
         raise ScanFileError(f"{path}: missing {name}: cannot build the geometry without it")
     try:
@@ -120,7 +121,7 @@ def _number(path: Path, where: Any, name: str) -> float:
 
 def _numbers(path: Path, where: Any, name: str) -> list[float]:
     """A multi-valued number attribute as floats, or ScanFileError naming it."""
-    value = where.get(name) if where is not None else None
+    value: Any = where.get(name) if where is not None else None
     try:
         return [
             float(v)
@@ -191,7 +192,8 @@ def _enhanced_geometry(path: Path, ds: Any, n: int) -> dict[str, Any]:
                 "moving detector or changing distances is not supported"
             )
     seconds = [_seconds(t) for t in times]
-    frame_time_s = float(np.median(np.diff(seconds))) if n > 1 and None not in seconds else 0.0
+    known = [s for s in seconds if s is not None]
+    frame_time_s = float(np.median(np.diff(known))) if n > 1 and len(known) == len(seconds) else 0.0
     return {
         "primary": np.array(primary),
         "secondary": np.array(secondary),
