@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import json
 import signal
 import threading
 from collections.abc import Callable, Mapping, Sequence
@@ -17,11 +16,11 @@ import numpy as np
 from acquire.config import BenchConfig, CArmConfig, load_config
 from acquire.engine import MODES, Rig, ScanEngine
 from acquire.errors import AcquireError, ScanStateError
-from acquire.plan import ScanPlan, plan_bench_scan, plan_carm_scan
+from acquire.plan import ScanPlan
 from acquire.recorder import ScanRecorder, SimulationTruth
 from acquire.records import Subscriber
 from acquire.rigs import open_rig
-from acquire.rigs.carm import export_orbit
+from acquire.rigs.kinds import rig_kind
 from acquire.storage import check_room
 from orbitct.errorprofiles import ErrorProfileError, make_profile
 from orbitct.orbits import Orbit, OrbitError, make_orbit
@@ -88,22 +87,14 @@ def make_orbit_and_errors(req: ScanRequest) -> tuple[Orbit, np.ndarray, dict[str
 
 def build_plan(req: ScanRequest, cfg: BenchConfig | CArmConfig) -> ScanPlan:
     """The plan of a request on the rig ``cfg`` describes (a C-arm injects no errors: its own are what is measured)."""
-    if isinstance(cfg, CArmConfig):
-        if req.mode != "step":
-            raise AcquireError("the C-arm runs navigation points step by step; use mode 'step'")
-        orbit, _, _ = make_orbit_and_errors(dataclasses.replace(req, errors="none", error_params={}))
-        export_orbit(orbit, cfg)  # refuses an orbit outside the arm's ranges, naming the first bad frame
-        return plan_carm_scan(cfg, orbit)
+    kind = rig_kind(cfg)
+    if req.mode not in kind.modes:
+        modes = " or ".join(repr(m) for m in kind.modes)
+        raise AcquireError(f"the {kind.name} runs scans in mode {modes}, not {req.mode!r}; choose one of those")
+    if not kind.injects_errors:
+        req = dataclasses.replace(req, errors="none", error_params={})
     orbit, errors, profile = make_orbit_and_errors(req)
-    return plan_bench_scan(
-        cfg,
-        orbit.theta,
-        orbit.phi,
-        errors,
-        orbit_name=orbit.name,
-        orbit_params=orbit.params,
-        error_profile=json.dumps(profile, sort_keys=True),
-    )
+    return kind.plan(cfg, orbit, errors, profile)
 
 
 def simulation_truth(cfg: BenchConfig | CArmConfig) -> SimulationTruth:
@@ -116,10 +107,7 @@ def simulation_truth(cfg: BenchConfig | CArmConfig) -> SimulationTruth:
 
 def start_extra(cfg: BenchConfig | CArmConfig, plan: ScanPlan, frame_rate_hz: float) -> dict[str, Any]:
     """What a scan records about its rig in ``/acquisition`` besides mode and errors."""
-    if isinstance(cfg, CArmConfig):
-        program = export_orbit(make_orbit(plan.orbit_name, **dict(plan.orbit_params)), cfg)
-        return {"navigation_points": len(program.points), "speed_deg_s": cfg.limits.speed_deg_s}
-    return {"frame_rate_hz": frame_rate_hz, "settle_ms": cfg.motion.settle_ms, "stack_order": cfg.stack.order}
+    return rig_kind(cfg).recorded(cfg, plan, frame_rate_hz)
 
 
 class ScanRunner:
@@ -177,11 +165,7 @@ class ScanRunner:
             if out.exists() and not req.overwrite:
                 raise AcquireError(f"{out}: already exists (orbitct scan --overwrite replaces it)")
             check_room(out, plan.panel, plan.n_frames, cfg.storage.reserve_mb)
-            if isinstance(cfg, CArmConfig):  # the navigation program, as the C-arm plays it
-                program = export_orbit(make_orbit(plan.orbit_name, **dict(plan.orbit_params)), cfg)
-                out.parent.mkdir(parents=True, exist_ok=True)
-                program.write(out.with_suffix(".nav.json"))
-                program.write(out.with_suffix(".nav.csv"))
+            rig_kind(cfg).write_program(cfg, plan, out)
             recorder = ScanRecorder(
                 out,
                 overwrite=req.overwrite,

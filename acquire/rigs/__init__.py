@@ -9,14 +9,15 @@ from typing import Any
 
 from acquire.config import BenchConfig, CArmConfig
 from acquire.engine import Rig
-from acquire.rigs.bench import BenchRig, bench_links, open_bench
-from acquire.rigs.carm import CArmRig, carm_links, open_carm
+from acquire.rigs.bench import BenchRig, open_bench
+from acquire.rigs.carm import CArmRig, open_carm
+from acquire.rigs.kinds import RigKind, rig_kind
 from acquire.rigs.links import DeviceLink
 
 
 def rig_links(config: BenchConfig | CArmConfig, *, sim: bool) -> dict[str, DeviceLink]:
     """Where each device of the rig is reached (``sim``: ``sim://`` URIs carrying twin and driver options)."""
-    return carm_links(config, sim=sim) if isinstance(config, CArmConfig) else bench_links(config, sim=sim)
+    return rig_kind(config).links(config, sim=sim)
 
 
 @contextlib.asynccontextmanager
@@ -24,12 +25,8 @@ async def open_rig(
     config: BenchConfig | CArmConfig, *, sim: bool = False, links: Mapping[str, DeviceLink] | None = None
 ) -> AsyncIterator[Rig]:
     """Connect the rig a configuration names (its twins in-process when ``sim``, or at ``links``); closed on exit."""
-    if isinstance(config, CArmConfig):
-        async with open_carm(config, sim=sim, links=links) as carm:
-            yield carm
-    else:
-        async with open_bench(config, sim=sim, links=links) as bench:
-            yield bench
+    async with rig_kind(config).open(config, sim=sim, links=links) as rig:
+        yield rig
 
 
 @dataclass
@@ -66,10 +63,12 @@ __all__ = [
     "BenchRig",
     "CArmRig",
     "DeviceLink",
+    "RigKind",
     "RunningTwins",
     "open_bench",
     "open_carm",
     "open_rig",
+    "rig_kind",
     "rig_links",
     "sim_twins",
 ]

@@ -60,6 +60,28 @@ def test_carm_orbit_outside_the_arm_range_is_refused(tmp_path: Path) -> None:
     assert not out.exists()
 
 
+def test_carm_asks_its_rig_kind_for_modes_and_refuses_injected_errors(tmp_path: Path) -> None:
+    """What differs from the bench comes from the rig's kind: step scans only, its own errors are what is measured."""
+    from acquire.errors import AcquireError
+    from acquire.rigs import rig_kind
+    from acquire.runner import build_plan
+
+    cfg = _config()
+    kind = rig_kind(cfg)
+    assert kind.name == "C-arm" and kind.modes == ("step",) and not kind.injects_errors
+    request = ScanRequest(config=cfg, out=tmp_path / "never.h5", orbit="sawtooth", frames=40, mode="continuous")
+    with pytest.raises(AcquireError, match="the C-arm runs scans in mode 'step', not 'continuous'"):
+        build_plan(request, cfg)
+    params = {"start_deg": -180.0, "amplitude_deg": 10.0}
+    plan = build_plan(
+        ScanRequest(
+            config=cfg, out="unused.h5", orbit="sawtooth", frames=80, orbit_params=params, errors="bench", seed=3
+        ),
+        cfg,
+    )
+    assert not plan.errors.any()  # asked-for errors are not injected into a C-arm
+
+
 def test_carm_that_stops_delivering_frames_ends_the_scan_as_a_stall(tmp_path: Path) -> None:
     cfg = _config().model_copy(update={"stall": StallConfig(frame_s=1.0, exposure_s=0.5)})
     out = tmp_path / "stall.h5"
