@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 from acquire.config import MotionConfig
 from acquire.errors import AcquireError, RefusedError, ScanAborted, ScanStateError
 from acquire.plan import FramePlan, ScanPlan, sweep_end, sweep_run_up_deg, sweep_speed
+from acquire.reasons import abort_reason, is_expected
 from acquire.records import FrameRecord, ScanEnd, ScanStart, Subscriber
 from devices.frame_protocol import Frame
 from orbitct.progress import ProgressCallback, report
@@ -133,15 +134,6 @@ def _interpolated(
     return {k: float(v) + w * (float(after[k]) - float(v)) if k in after else float(v) for k, v in before.items()}
 
 
-def _reason(exc: BaseException) -> str:
-    if isinstance(exc, KeyboardInterrupt):
-        return "interrupted by the user (Ctrl-C)"
-    if isinstance(exc, asyncio.CancelledError):
-        return "cancelled"
-    text = str(exc) or type(exc).__name__
-    return text if isinstance(exc, AcquireError) else f"{type(exc).__name__}: {text}"
-
-
 class ScanEngine:
     """Runs one :class:`ScanPlan` on a :class:`Rig` and feeds subscribers; use :meth:`run` once."""
 
@@ -225,7 +217,7 @@ class ScanEngine:
         refusing because the stop switched it off)."""
         if self._abort_reason is None and self.interlock is not None:
             self._abort_reason = self.interlock()
-        return self._abort_reason or _reason(exc)
+        return self._abort_reason or abort_reason(exc)
 
     @property
     def paused(self) -> bool:
@@ -286,9 +278,9 @@ class ScanEngine:
             raise
         except (KeyboardInterrupt, asyncio.CancelledError) as exc:
             status, reason, pending, interrupted = "aborted", self._why(exc), exc, True
-        except Exception as exc:  # noqa: BLE001 - a device or recorder error ends the scan safely
+        except Exception as exc:  # a device or recorder error ends the scan safely
             status, reason = "aborted", self._why(exc)
-            log.error("scan aborted: %s", reason)
+            log.error("scan aborted: %s", reason, exc_info=not is_expected(exc))  # orbitct's own fault: its trace
         finally:
             await self._cleanup(status, interrupted)
             self.state = "aborted" if status == "refused" else status
