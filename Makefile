@@ -23,9 +23,11 @@ demo: $(STAMP)
 
 # Two test processes (one per core of the target machines); a file's tests stay in one process (their fixtures).
 TEST_WORKERS ?= 2
+# More pytest options (.ci/run adds coverage).
+PYTEST_ARGS ?=
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
 
 bench: $(STAMP)
 	for b in benchmarks/*.py; do $(BIN)/python $$b || exit 1; done
