@@ -13,9 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib.bundle import bundle_adjust
-from calib.errors import (
-    NoMarkersError,
-)
+from calib.errors import NoMarkersError
 from calib.identify import assign_by_pose, fill_states, recover_missed, twin_constellation, usable_views
 from calib.model import ViewModel, ViewState
 from calib.options import CalibrationOptions

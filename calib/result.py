@@ -9,9 +9,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from calib.quality import (
-    Verdict,
-)
+from calib.quality import Verdict
 from calib.scale import ScaleBar
 from orbitct.geometry import ViewGeometry
 from orbitct.statistics import rpe_statistics

@@ -10,7 +10,7 @@ volume geometry with the projection geometry).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -442,8 +442,7 @@ class VolumeGrid:
         vox = np.broadcast_to(np.asarray(voxel_mm, dtype=float), (3,))
         n_xyz = np.array(shape[::-1], dtype=float)
         origin = np.asarray(center_mm, dtype=float) - (n_xyz - 1) / 2 * vox
-        nz, ny, nx = (int(n) for n in shape)
-        return cls((nz, ny, nx), tuple(vox), tuple(origin))
+        return cls(cast(tuple[int, int, int], tuple(shape)), tuple(vox), tuple(origin))  # checked there
 
     @property
     def size(self) -> int:
