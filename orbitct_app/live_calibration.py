@@ -125,7 +125,7 @@ class LiveCalibrationSubscriber:
         except CalibrationError as exc:
             self._error = exc
             log.error("live calibration of %s failed: %s", self.path, exc)
-        except Exception as exc:
+        except Exception as exc:  # the scan is complete whatever the solve does; said, not raised
             self._error = exc
             log.exception("live calibration of %s failed", self.path)
         self._record_outcome()

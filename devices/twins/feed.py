@@ -81,7 +81,7 @@ async def follow_bench(
     while True:
         try:
             await _follow_once(world, hexapod_uri, stage_uri, xray_uri, poll_s)
-        except Exception as exc:
+        except Exception as exc:  # whatever broke the link: no trigger and no pose pass until it is back
             task = asyncio.current_task()
             if task is not None and task.cancelling():  # a stop that a failing connect swallowed (3.11): honour it
                 raise asyncio.CancelledError from exc

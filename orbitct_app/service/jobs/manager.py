@@ -330,7 +330,7 @@ class JobManager:
                         if not lost:
                             self._start_queued()
                         self._poll_running(lost)
-                except Exception:
+                except Exception:  # the dispatcher must survive anything
                     log.exception("job dispatcher error")
                 self._wake.wait(0.05)
                 self._wake.clear()

@@ -171,7 +171,7 @@ class RigClient:
                 break
             try:
                 self._dispatch(message)
-            except Exception:
+            except Exception:  # the reader must survive anything
                 log.exception("bench message %r", message[:2])
         self._bench_gone()
 

@@ -121,7 +121,7 @@ class GuardClient:
             elif kind == "stopped":
                 try:
                     self._on_stop(message[1])
-                except Exception:
+                except Exception:  # the reader must survive anything
                     log.exception("publishing a stop")
         self._ready.set()
         if self._closing:

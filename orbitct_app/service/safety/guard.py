@@ -190,7 +190,7 @@ class StopHandler(BaseHTTPRequestHandler):
     raw_body = b""
     unread = ""  # why the body could not be read whole ('' when it was)
 
-    def log_message(self, format: str, *args: Any) -> None:
+    def log_message(self, format: str, *args: Any) -> None:  # the base class's name
         log.debug("%s " + format, self.address_string(), *args)
 
     def handle_one_request(self) -> None:
@@ -314,7 +314,7 @@ class StopHandler(BaseHTTPRequestHandler):
             return None
         return who
 
-    def do_POST(self) -> None:
+    def do_POST(self) -> None:  # http.server's naming
         if self.path.split("?")[0] != "/stop":
             self._error(404, "not_found", "the stop listener serves POST /stop, GET /stop and GET /health")
             return
@@ -342,7 +342,7 @@ class StopHandler(BaseHTTPRequestHandler):
         else:
             self._error(404, "not_found", "the stop listener serves POST /stop, GET /stop and GET /health")
 
-    def do_OPTIONS(self) -> None:
+    def do_OPTIONS(self) -> None:  # CORS pre-flight of a browser's stop button
         self.send_response(204)
         self.send_header("Access-Control-Allow-Origin", "*")
         self.send_header("Access-Control-Allow-Methods", "GET, POST, OPTIONS")
