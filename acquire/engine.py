@@ -351,7 +351,10 @@ class ScanEngine:
             finally:
                 if not task.done():
                     task.cancel()
-            task.result()
+            try:
+                task.result()
+            except Exception as exc:  # a helper that could not start: its own sentence is the reason
+                raise AcquireError(str(exc) or "a subscriber of the scan could not start") from exc
 
     async def _boundary(self) -> None:
         """Frame boundary: honour abort and pause (X-rays stay off while paused)."""

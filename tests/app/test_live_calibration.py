@@ -284,8 +284,18 @@ def _scan_with_live_worker(tmp_path: Path, out: Path, frames: int = 300) -> tupl
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
         workers = [c for c in psutil.Process(proc.pid).children() if "resource_tracker" not in " ".join(c.cmdline())]
-        if workers:
-            time.sleep(2.0)  # a few dozen frames followed live
+        if (
+            workers
+        ):  # then frames being written: the worker is ready and follows them (a fixed pause raced a slow start)
+            first = out.stat().st_size if out.exists() else None
+            while time.monotonic() < deadline and proc.poll() is None:
+                size = out.stat().st_size if out.exists() else None
+                if first is None:
+                    first = size
+                elif size is not None and size >= first + 10 * 128 * 128 * 2:  # ten frames of 128 x 128
+                    break
+                time.sleep(0.1)
+            time.sleep(0.5)
             assert proc.poll() is None, proc.communicate()
             return proc, workers[0]
         assert proc.poll() is None, proc.communicate()
