@@ -149,8 +149,9 @@ def calibrate(
     if q is not None and not q.passed:
         click.echo("QUALITY CHECK FAILED: " + "; ".join(q.reasons), err=True)
         click.echo(
-            "The geometry is stored, marked quality=failed. What to do: README, 'When a calibration fails its "
-            "quality check'." + ("" if accept_poor else " (--accept-poor exits 0 anyway.)"),
+            "The geometry is stored, marked quality=failed. What to do: the documentation's Calibration page, "
+            "'When a calibration fails its quality check' (docs/explanation/calibration.md)."
+            + ("" if accept_poor else " (--accept-poor exits 0 anyway.)"),
             err=True,
         )
         if not accept_poor:
