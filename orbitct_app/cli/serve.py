@@ -68,6 +68,23 @@ def _check_port(host: str, port: int, option: str) -> None:
             ) from None
 
 
+def _default_sim_config(data_dir: Path) -> Path:
+    """The built-in bench's configuration, written to the data directory for a simulated bench given none."""
+    import yaml
+
+    from acquire.config import BenchConfig
+
+    path = data_dir / "bench-defaults.yaml"
+    data_dir.mkdir(parents=True, exist_ok=True)
+    path.write_text(
+        "# The built-in simulated bench (orbitct serve --sim without --config); rewritten at every start.\n"
+        + yaml.safe_dump(BenchConfig().model_dump(mode="json"), sort_keys=False),
+        encoding="utf-8",
+    )
+    click.echo(f"no bench configuration given: the built-in simulated bench ({path})", err=True)
+    return path
+
+
 @click.command()
 @click.option(
     "--config",
@@ -121,9 +138,12 @@ def serve(
         stop_port=stop_port,
         data_dir=data_dir,
     )
+    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    default_config = type(settings).model_fields["bench_config"].default
+    if settings.sim and settings.bench_config == default_config and not settings.bench_config.is_file():
+        settings = settings.model_copy(update={"bench_config": _default_sim_config(settings.data_dir)})
     if not settings.bench_config.is_file():
         raise click.UsageError(f"bench configuration {settings.bench_config} does not exist")
-    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     _check_port(settings.host, settings.port, "--port")
     stop_port = settings.port + 1 if settings.stop_port is None else settings.stop_port
     if stop_port:

@@ -64,3 +64,20 @@ def test_serve_refuses_a_port_in_use_before_announcing_itself(tmp_path: Path) ->
     assert result.exit_code == 1, result.output
     assert f"cannot listen on 127.0.0.1:{port}" in result.output and "choose another --port" in result.output
     assert "orbitct service on" not in result.output and "token" not in result.output
+
+
+def test_serve_sim_without_a_configuration_runs_the_built_in_bench(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from acquire.config import BenchConfig, load_config
+
+    monkeypatch.chdir(tmp_path)  # no config/bench.yaml here, as after `pip install orbitct`
+    with socket.socket() as taken:  # the command stops at the port check, after choosing its configuration
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        sim = CliRunner().invoke(cli, ["serve", "--sim", "--data-dir", "data", "--port", str(port)])
+        real = CliRunner().invoke(cli, ["serve", "--data-dir", "data", "--port", str(port)])
+    assert "the built-in simulated bench (data/bench-defaults.yaml)" in sim.output, sim.output
+    assert load_config(tmp_path / "data" / "bench-defaults.yaml") == BenchConfig()
+    assert real.exit_code == 2 and "bench configuration config/bench.yaml does not exist" in real.output
