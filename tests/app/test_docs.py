@@ -4,6 +4,7 @@ miss nothing, pages that render offline in a real browser, and the REST example 
 from __future__ import annotations
 
 import html
+import json
 import os
 import re
 import subprocess
@@ -159,3 +160,14 @@ def test_the_rest_example_of_the_ci_tutorial_runs(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stdout + done.stderr[-3000:]
     assert "quality passed: True" in done.stdout
     assert (tmp_path / "axial.png").stat().st_size > 1000
+
+
+@pytest.mark.system
+def test_the_performance_page_shows_every_recorded_benchmark(site: Path) -> None:
+    text = page_text(site, "explanation/performance.html")
+    recorded = sorted((ROOT / "benchmarks" / "results").glob("*.json"))
+    assert recorded, "no benchmark output is recorded in benchmarks/results/"
+    for path in recorded:
+        result = json.loads(path.read_text(encoding="utf-8"))
+        assert result["command"] in text, path.name
+        assert result["output"].splitlines()[-1].strip() in text, path.name
