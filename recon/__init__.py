@@ -14,6 +14,7 @@ from recon.estimate import reconstruction_seconds
 from recon.fdk import fdk
 from recon.grid import check_fov, grid_for_geometry
 from recon.operator import Projector, backproject_voxels, projector
+from recon.options import ReconstructionOptions
 from recon.pipeline import ReconResult, compare_reconstructions, reconstruct_scan
 from recon.pwls import DEFAULT_BETA, PwlsResult, pwls_sps
 from recon.quality import reference_volume, rmse, wire_fwhm
@@ -29,6 +30,7 @@ __all__ = [
     "ReconError",
     "ReconExistsError",
     "ReconResult",
+    "ReconstructionOptions",
     "TooLongError",
     "VolumeGrid",
     "backproject_voxels",

@@ -8,11 +8,12 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
 import numpy as np
 import psutil
 from numpy.typing import NDArray
+from pydantic import ValidationError
 
 from orbitct.geometry import ViewGeometry, VolumeGrid
 from orbitct.progress import ProgressCallback, report
@@ -27,11 +28,10 @@ from recon.errors import (
 )
 from recon.estimate import describe_seconds, reconstruction_seconds
 from recon.export import FORMATS, export_volume
-from recon.fdk import WINDOWS, fdk
+from recon.fdk import fdk
 from recon.fitgrid import object_grid
 from recon.grid import check_fov, grid_for_geometry
 from recon.mar import (
-    METHODS,
     add_metal_back,
     fill_traces_normalized,
     metal_in_volume,
@@ -40,13 +40,12 @@ from recon.mar import (
     traces_by_threshold,
 )
 from recon.operator import pad_volume, projector
-from recon.pwls import DEFAULT_BETA, pwls_sps, statistical_weights
+from recon.options import GeometryName, ReconstructionOptions, StreamMode
+from recon.pwls import pwls_sps, statistical_weights
 from recon.stack import FileLineIntegrals, FileWeights
 
-ALGORITHMS = ("fdk", "pwls")
-GEOMETRIES = ("calibrated", "nominal", "truth")
-STREAM_MODES = ("auto", "memory", "file")
-FITS = ("object", "fov")  # the default grid: fitted to the object, or the whole field of view
+GEOMETRIES: tuple[str, ...] = get_args(GeometryName)
+STREAM_MODES: tuple[str, ...] = get_args(StreamMode)
 
 
 @dataclass
@@ -213,80 +212,67 @@ def _pwls(
     return res.volume, res.cost, res.beta_abs
 
 
+def checked_options(options: ReconstructionOptions | None, values: dict[str, Any]) -> ReconstructionOptions:
+    """``options`` with ``values`` laid over them, validated; a :class:`ReconError` naming each bad option."""
+    merged = {**(options.model_dump() if options is not None else {}), **values}
+    try:
+        return ReconstructionOptions.model_validate(merged)
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'options'}: {e['msg']}" for e in exc.errors())
+        raise ReconError(f"invalid reconstruction options: {problems}") from None
+
+
 def reconstruct_scan(
     path: str | os.PathLike[str],
+    options: ReconstructionOptions | None = None,
     *,
-    algorithm: str = "pwls",
-    geometry: str = "calibrated",
-    voxel_mm: float | None = None,
-    shape: tuple[int, int, int] | None = None,
-    iterations: int = 50,
-    beta: float = DEFAULT_BETA,
-    mar: bool | str = False,
-    name: str | None = None,
     export: str | list[str] | None = None,
     out_dir: str | os.PathLike[str] | None = None,
     progress: ProgressCallback | None = None,
-    window: str = "hann",
-    subsets: int = 1,
-    neighbourhood: int = 1,
-    metal_mu: float = 0.1,
-    mar_threshold: float = 0.5,
-    stream: str = "auto",
-    overwrite: bool = False,
-    momentum: bool = False,
-    max_seconds: float | None = None,
-    fit: str = "object",
     grid: VolumeGrid | None = None,
     cluster: Any | None = None,
+    **values: Any,
 ) -> ReconResult:
-    """Reconstruct ``path`` with FDK or PWLS and store it as ``/recon/<name>`` in the scan file.
+    """Reconstruct ``path`` as ``options`` say (:class:`~recon.options.ReconstructionOptions`; keyword ``values``
+    are laid over them) and store it as ``/recon/<name>`` in the scan file.
 
-    ``stream`` (PWLS): 'memory' loads projections and weights once, 'file' recomputes them from
-    the scan file chunk by chunk every iteration (three volumes of memory, slower), 'auto'
-    picks 'memory' while it fits in half the free memory. A reconstruction of the same name is replaced only with
-    ``overwrite`` (:class:`ReconExistsError` otherwise, before any work). One estimated to take longer than
-    ``max_seconds`` (:mod:`recon.estimate`) raises :class:`TooLongError` before anything large is allocated.
-    Without ``shape`` the grid is fitted to the object (``fit='object'``, :func:`recon.grid.object_grid`) or covers
-    the whole field of view (``fit='fov'``); ``grid`` gives the grid itself (another reconstruction's, to compare).
-    ``cluster``: a ``dask.distributed.Client`` whose workers share the views of FDK and of PWLS (:mod:`recon.cluster`;
-    they read the scan file at the same path; ``stream`` does not apply); metal artefact reduction runs here.
+    PWLS data stream (``stream``): 'memory' loads projections and weights once, 'file' recomputes them from the
+    scan file chunk by chunk every iteration (three volumes of memory, slower), 'auto' picks 'memory' while it fits
+    in half the free memory. A reconstruction of the same name is replaced only with ``overwrite``
+    (:class:`ReconExistsError` otherwise, before any work). One estimated to take longer than ``max_minutes``
+    (:mod:`recon.estimate`) raises :class:`TooLongError` before anything large is allocated. Without ``shape`` the
+    grid is fitted to the object (``fit='object'``, :func:`recon.fitgrid.object_grid`) or covers the whole field of
+    view (``fit='fov'``); ``grid`` gives the grid itself (another reconstruction's, to compare). ``export``: formats
+    among :data:`recon.export.FORMATS`, written to ``out_dir`` (default: beside the scan). ``cluster``: a
+    ``dask.distributed.Client`` whose workers share the views of FDK and of PWLS (:mod:`recon.cluster`; they read the
+    scan file at the same path; ``stream`` does not apply); metal artefact reduction runs here.
     """
     t0 = time.perf_counter()
-    if algorithm not in ALGORITHMS:
-        raise ReconError(f"algorithm must be one of {ALGORITHMS}, got {algorithm!r}")
-    if window not in WINDOWS:
-        raise ReconError(f"window must be one of {WINDOWS}, got {window!r}")
-    mar_method = ("reprojection" if mar is True else mar) if mar else None
-    if mar_method is not None and mar_method not in METHODS:
-        raise ReconError(f"mar must be False, True or one of {METHODS}, got {mar!r}")
+    opts = checked_options(options, values)
+    algorithm, geometry, iterations, beta = opts.algorithm, opts.geometry, opts.iterations, opts.beta
+    window, subsets, neighbourhood, momentum = opts.window, opts.subsets, opts.neighbourhood, opts.momentum
+    metal_mu, mar_threshold = opts.metal_mu_per_mm, opts.mar_threshold
+    mar_method = opts.mar_method if opts.mar else None
     formats = [export] if isinstance(export, str) else list(export or [])
     if any(f not in FORMATS for f in formats):
         raise ReconError(f"export formats must be among {FORMATS}, got {formats}")
-    if algorithm == "pwls" and iterations < 1:
-        raise ReconError(f"iterations must be >= 1 for pwls, got {iterations}")
-    if voxel_mm is not None and not voxel_mm > 0:
-        raise ReconError(f"voxel_mm must be > 0, got {voxel_mm}")
-    if stream not in STREAM_MODES:
-        raise ReconError(f"stream must be one of {STREAM_MODES}, got {stream!r}")
-    if fit not in FITS:
-        raise ReconError(f"fit must be one of {FITS}, got {fit!r}")
-    name = name or f"{algorithm}_{geometry}" + ("_mar" if mar_method else "")
+    shape = tuple(opts.shape) if opts.shape is not None else None
+    name = opts.recon_name
     with ScanFile(path, "r") as scan:  # read-only while computing: other readers may hold the file
         scan.refuse_if_acquiring()  # before any work: the result could not be stored
-        if name in scan.recon_names() and not overwrite:
+        if name in scan.recon_names() and not opts.overwrite:
             raise ReconExistsError(scan.path, name)
         frames, geom, dropped = _views(scan, geometry)
         warnings = [*scan.warnings, *_geometry_warnings(scan, geometry)]
-        fitted = grid is None and shape is None and fit == "object"
+        fitted = grid is None and shape is None and opts.fit == "object"
         grid_note = "as given" if grid is not None or shape is not None else "the whole field of view"
-        grid = grid if grid is not None else grid_for_geometry(geom, voxel_mm=voxel_mm, shape=shape)
+        grid = grid if grid is not None else grid_for_geometry(geom, voxel_mm=opts.voxel_mm, shape=shape)
         fov_fraction = check_fov(grid, geom)
         det = geom.panel
         mode = (
             "cluster"
             if cluster is not None and algorithm == "pwls" and not mar_method
-            else choose_stream(stream, algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method))
+            else choose_stream(opts.stream, algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method))
         )
         check_memory(
             estimate_bytes(algorithm, grid, frames.size, det.rows, det.cols, bool(mar_method), mode),
@@ -304,6 +290,7 @@ def reconstruct_scan(
         estimated_s = reconstruction_seconds(
             algorithm, grid, int(frames.size), det.rows, det.cols, iterations if algorithm == "pwls" else 0
         )
+        max_seconds = opts.max_seconds
         if max_seconds is not None and estimated_s > max_seconds:
             raise TooLongError(
                 f"{scan.path}: {algorithm} of {frames.size} views of {det.rows} x {det.cols} pixels onto {grid.shape} "
@@ -406,7 +393,7 @@ def reconstruct_scan(
             iterations=iterations if algorithm == "pwls" else 0,
             elapsed_s=elapsed,
             params=params,
-            overwrite=overwrite,
+            overwrite=opts.overwrite,
         )
     exported: list[Path] = []
     if formats:

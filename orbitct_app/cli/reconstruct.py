@@ -3,100 +3,30 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, get_args
 
 import click
 
+from orbitct_app.cli.model_options import model_from, options_from
 from orbitct_app.cli.progress import ProgressBar
 from orbitct_app.cli.values import FiniteFloat
+from recon.export import FORMATS
+from recon.options import GeometryName, ReconstructionOptions
 
 if TYPE_CHECKING:
     from recon import ReconResult
 
 
-def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tuple[int, int, int] | None:
-    if value is None:
-        return None
-    try:
-        parts = tuple(int(p) for p in value.replace("x", ",").split(","))
-    except ValueError:
-        parts = ()
-    if len(parts) != 3 or min(parts) < 1:
-        raise click.BadParameter(f"expected three positive integers NZ,NY,NX (e.g. 128,256,256), got {value!r}")
-    return parts  # type: ignore[return-value]
+FLAGS = {"fit": "--grid"}  # the option's name where it is not the field's
 
 
 @click.command()
 @click.argument("scan", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option("--algorithm", type=click.Choice(["fdk", "pwls"]), default="pwls", show_default=True)
-@click.option(
-    "--geometry",
-    type=click.Choice(["calibrated", "nominal", "truth"]),
-    default="calibrated",
-    show_default=True,
-    help="Which per-view geometry of the scan to use (truth exists only in simulated scans).",
-)
-@click.option(
-    "--voxel-mm",
-    type=FiniteFloat(),
-    default=None,
-    help="Isotropic voxel size in mm (default: detector pitch at the isocenter).",
-)
-@click.option(
-    "--shape",
-    callback=_shape,
-    default=None,
-    help="Volume shape NZ,NY,NX, centred on the isocenter (default: see --grid).",
-)
-@click.option(
-    "--grid",
-    "fit",
-    type=click.Choice(["object", "fov"]),
-    default="object",
-    show_default=True,
-    help="Without --shape: fit the grid to the object (found in a coarse reconstruction) or cover the whole "
-    "field of view.",
-)
-@click.option("--iterations", type=click.IntRange(min=1), default=50, show_default=True, help="PWLS iterations.")
-@click.option(
-    "--beta", type=FiniteFloat(min=0), default=None, help="Relative penalty strength (default 0.01; larger = smoother)."
-)
-@click.option("--subsets", type=click.IntRange(min=1), default=1, show_default=True, help="Ordered subsets for PWLS.")
-@click.option(
-    "--momentum",
-    is_flag=True,
-    help="PWLS: ordered subsets with Nesterov's momentum (use with --subsets, "
-    "e.g. 12; a fraction of the iterations reaches the plain solver's image).",
-)
-@click.option(
-    "--window",
-    type=click.Choice(["ram-lak", "shepp-logan", "cosine", "hann"]),
-    default="hann",
-    show_default=True,
-    help="Ramp filter window for FDK (and the PWLS initial image).",
-)
-@click.option("--mar", is_flag=True, help="Metal artifact reduction (screws, BBs).")
-@click.option(
-    "--mar-method",
-    type=click.Choice(["reprojection", "threshold"]),
-    default="reprojection",
-    show_default=True,
-    help="Segment metal by thresholding line integrals or by reprojecting a thresholded first volume.",
-)
-@click.option(
-    "--stream",
-    type=click.Choice(["auto", "memory", "file"]),
-    default="auto",
-    show_default=True,
-    help="PWLS data: hold projections and weights in memory, or re-read them from the scan file every "
-    "iteration (three volumes of memory, slower); auto keeps them in memory while they fit.",
-)
-@click.option("--name", default=None, help="Name under /recon (default ALGORITHM_GEOMETRY[_mar]).")
-@click.option("--overwrite", is_flag=True, help="Replace a reconstruction of the same name already in the file.")
+@options_from(ReconstructionOptions, flags=FLAGS, metavars={"shape": "NZ,NY,NX"}, exclude={"max_minutes"})
 @click.option(
     "--compare",
     "compare_geometry",
-    type=click.Choice(["calibrated", "nominal", "truth"]),
+    type=click.Choice(get_args(GeometryName)),
     default=None,
     help="Also reconstruct with this geometry on the same grid and write both side by side in one grey "
     "window (<scan>_<name>_vs_<geometry>.png).",
@@ -104,7 +34,7 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
 @click.option(
     "--export",
     "export",
-    type=click.Choice(["nifti", "tiff", "png"]),
+    type=click.Choice(FORMATS),
     multiple=True,
     help="Also write the volume as NIfTI, TIFF stack or PNG slices (repeatable).",
 )
@@ -116,7 +46,7 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
 )
 @click.option(
     "--max-minutes",
-    type=FiniteFloat(min=0.0, min_open=True),
+    type=FiniteFloat(),
     default=10.0,
     show_default=True,
     envvar="ORBITCT_MAX_MINUTES",
@@ -132,27 +62,13 @@ def _shape(ctx: click.Context, param: click.Parameter, value: str | None) -> tup
 )
 def reconstruct(
     scan: Path,
-    algorithm: str,
-    geometry: str,
-    voxel_mm: float | None,
-    shape: tuple[int, int, int] | None,
-    fit: str,
-    iterations: int,
-    beta: float | None,
-    subsets: int,
-    momentum: bool,
-    window: str,
-    mar: bool,
-    mar_method: str,
-    stream: str,
-    name: str | None,
-    overwrite: bool,
     compare_geometry: str | None,
     export: tuple[str, ...],
     out_dir: Path | None,
     max_minutes: float,
     yes: bool,
     scheduler: str | None,
+    **values: Any,
 ) -> None:
     """Reconstruct SCAN (an orbitct scan file) and store the volume in it.
 
@@ -161,49 +77,25 @@ def reconstruct(
     import sys
 
     from orbitct.scanfile import ScanFileError
-    from recon import (
-        DEFAULT_BETA,
-        ReconError,
-        ReconExistsError,
-        TooLongError,
-        compare_reconstructions,
-        reconstruct_scan,
+    from recon import ReconError, ReconExistsError, TooLongError, compare_reconstructions, reconstruct_scan
+
+    options = model_from(
+        ReconstructionOptions, {**values, "max_minutes": None if yes else max_minutes}, flags={**FLAGS}
     )
+    algorithm, geometry = options.algorithm, options.geometry
+    cluster = _cluster(scheduler, options.mar)
 
-    cluster = _cluster(scheduler, mar)
-
-    def run(limit_s: float | None) -> ReconResult:
+    def run(opts: ReconstructionOptions) -> ReconResult:
         with ProgressBar() as bar:
-            return reconstruct_scan(
-                scan,
-                algorithm=algorithm,
-                geometry=geometry,
-                voxel_mm=voxel_mm,
-                shape=shape,
-                iterations=iterations,
-                beta=DEFAULT_BETA if beta is None else beta,
-                mar=mar_method if mar else False,
-                name=name,
-                export=list(export),
-                out_dir=out_dir,
-                progress=bar,
-                window=window,
-                subsets=subsets,
-                stream=stream,
-                overwrite=overwrite,
-                momentum=momentum,
-                max_seconds=limit_s,
-                fit=fit,
-                cluster=cluster,
-            )
+            return reconstruct_scan(scan, opts, export=list(export), out_dir=out_dir, progress=bar, cluster=cluster)
 
     try:
         try:
-            res = run(None if yes else 60.0 * max_minutes)
+            res = run(options)
         except TooLongError as exc:
             if not (sys.stdin.isatty() and click.confirm(f"{exc}. Start it anyway?", default=False, err=True)):
                 raise click.ClickException(f"{exc}; --yes starts it anyway, --max-minutes M sets the limit") from None
-            res = run(None)
+            res = run(options.model_copy(update={"max_minutes": None}))
     except ReconExistsError as exc:
         raise click.ClickException(f"{exc}; --overwrite replaces it, --name NAME keeps both") from None
     except (ReconError, ScanFileError) as exc:
@@ -232,19 +124,12 @@ def reconstruct(
         with ProgressBar() as bar:
             other = reconstruct_scan(
                 scan,
-                algorithm=algorithm,
+                options,
                 geometry=compare_geometry,
-                grid=res.grid,
-                iterations=iterations,
-                beta=DEFAULT_BETA if beta is None else beta,
-                mar=mar_method if mar else False,
                 name=f"{res.name}_vs_{compare_geometry}",
+                max_minutes=None,
+                grid=res.grid,
                 progress=bar,
-                window=window,
-                subsets=subsets,
-                stream=stream,
-                overwrite=overwrite,
-                momentum=momentum,
                 cluster=cluster,
             )
         base = out_dir if out_dir is not None else res.path.parent

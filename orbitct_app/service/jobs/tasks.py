@@ -87,16 +87,12 @@ def run_reconstruction(
     """Reconstruct the scan into ``/recon/<name>``; slices, NIfTI and a raw copy of the volume go to ``out_dir``."""
     import recon
 
-    kwargs = {k: v for k, v in params.items() if v is not None}
-    if "max_minutes" in kwargs:
-        kwargs["max_seconds"] = 60.0 * float(kwargs.pop("max_minutes"))
-    if "shape" in kwargs:
-        kwargs["shape"] = tuple(kwargs["shape"])
-    split = not kwargs.get("mar")  # the views of FDK and PWLS across the workers; MAR runs on the job's worker
+    options = recon.ReconstructionOptions.model_validate(params)  # the request's options, as it was accepted
+    split = not options.mar  # the views of FDK and PWLS across the workers; MAR runs on the job's worker
     with _cluster_client() if split else contextlib.nullcontext() as cluster:
-        if cluster is not None:
-            kwargs["cluster"] = cluster
-        res = recon.reconstruct_scan(scan_path, export=["nifti", "png"], out_dir=out_dir, progress=progress, **kwargs)
+        res = recon.reconstruct_scan(
+            scan_path, options, export=["nifti", "png"], out_dir=out_dir, progress=progress, cluster=cluster
+        )
     volume = np.asarray(res.volume, dtype=np.float32)
     np.save(out_dir / "volume.npy", volume)
     return {

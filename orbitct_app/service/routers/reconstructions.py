@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
 from fastapi import APIRouter, Query, Response
 from fastapi.responses import FileResponse
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict
 
 from orbitct_app.service.core.errors import (
     DISK_FULL,
@@ -23,18 +22,19 @@ from orbitct_app.service.core.files import confined
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
 from orbitct_app.service.routers.calibrations import ScanId, check_scan_ready, submit
 from orbitct_app.service.schemas import JobOut, job_or_404, job_out
+from recon.options import ReconstructionOptions
 
 router = APIRouter(prefix="/reconstructions", tags=["reconstructions"], responses=ERROR_RESPONSES)
-MAX_VOXELS = 512**3
 
 
-class ReconstructionRequest(BaseModel):
-    """Reconstruct a complete scan."""
+class ReconstructionRequest(ReconstructionOptions):
+    """Reconstruct a complete scan: the scan, and the options ``orbitct reconstruct`` and Python take.
+
+    Without ``max_minutes`` the service's ``reconstruction_max_minutes`` applies: a job estimated to take longer
+    fails at once, before any work."""
 
     model_config = ConfigDict(
-        extra="forbid",
         strict=True,
-        allow_inf_nan=False,
         json_schema_extra={
             "examples": [
                 {
@@ -49,50 +49,6 @@ class ReconstructionRequest(BaseModel):
     )
 
     scan_id: ScanId
-    algorithm: Literal["fdk", "pwls"] = "fdk"
-    geometry: Literal["calibrated", "nominal", "truth"] = Field(
-        "calibrated", description="which geometry of the scan file"
-    )
-    voxel_mm: float | None = Field(
-        None, gt=0.005, le=20.0, description="isotropic voxel size; default fits the field of view"
-    )
-    shape: list[Annotated[int, Field(ge=4, le=1024)]] | None = Field(
-        None, min_length=3, max_length=3, description="[nz, ny, nx], centred on the isocenter; default: see fit"
-    )
-    fit: Literal["object", "fov"] = Field(
-        "object",
-        description="without shape: the grid fitted to the object (found in a "
-        "coarse reconstruction) or the whole field of view",
-    )
-    iterations: int = Field(50, ge=1, le=500, description="PWLS iterations (ignored by FDK)")
-    subsets: int = Field(1, ge=1, le=64, description="PWLS ordered subsets")
-    momentum: bool = Field(False, description="PWLS: ordered subsets with Nesterov's momentum (with subsets, e.g. 12)")
-    beta: float | None = Field(None, ge=0.0, le=1e6, description="relative penalty strength")
-    mar: bool = Field(False, description="metal artifact reduction")
-    stream: Literal["auto", "memory", "file"] = Field(
-        "auto",
-        description="PWLS data held in memory or re-read from the scan file each iteration (auto: memory while it fits)",
-    )
-    name: str | None = Field(
-        None,
-        pattern=r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$",
-        description="name under /recon in the scan file (default ALGORITHM_GEOMETRY[_mar])",
-    )
-    overwrite: bool = Field(False, description="replace a reconstruction of that name already in the scan file")
-    max_minutes: float | None = Field(
-        None,
-        gt=0.0,
-        le=10080.0,
-        description="the job fails at once, before any work, "
-        "when it is estimated to take longer (default: the service's "
-        "reconstruction_max_minutes, 60)",
-    )
-
-    @model_validator(mode="after")
-    def _size(self) -> ReconstructionRequest:
-        if self.shape is not None and math.prod(self.shape) > MAX_VOXELS:
-            raise ValueError(f"shape {list(self.shape)} has more than {MAX_VOXELS} voxels")
-        return self
 
 
 def _file_facts(service: Any, scan: dict[str, Any]) -> tuple[list[str], list[str]]:
@@ -137,7 +93,7 @@ def start_reconstruction(body: ReconstructionRequest, service: ServiceDep, who: 
     if not _has_geometry(service, scan, body.geometry, geometries):
         hint = " (run a calibration first)" if body.geometry == "calibrated" else ""
         raise Conflict(f"scan {body.scan_id} has no {body.geometry} geometry{hint}")
-    name = body.name or f"{body.algorithm}_{body.geometry}" + ("_mar" if body.mar else "")
+    name = body.recon_name
     if name in recons and not body.overwrite:
         raise Conflict(
             f'scan {body.scan_id} already has a reconstruction named {name!r}; send "overwrite": true '

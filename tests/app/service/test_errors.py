@@ -39,7 +39,7 @@ def test_invalid_parameters_name_field_and_reason(shared_api) -> None:  # type: 
     body = _is_error(shared_api.post("/reconstructions", role="analyst", json={"scan_id": "x", "iterations": 0}), 422)
     assert body["details"][0]["field"] == "iterations"
     body = _is_error(
-        shared_api.post("/reconstructions", role="analyst", json={"scan_id": "x", "shape": [1024, 1024, 1024]}), 422
+        shared_api.post("/reconstructions", role="analyst", json={"scan_id": "x", "shape": [2048, 2048, 512]}), 422
     )
     assert "voxels" in body["message"]
     body = _is_error(shared_api.post("/reconstructions", role="analyst", json={"scan_id": "x", "stream": "disk"}), 422)
