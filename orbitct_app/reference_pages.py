@@ -16,11 +16,12 @@ import typing
 from collections.abc import Iterator
 from typing import Any
 
-import annotated_types
 import click
 from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 from pydantic_core import PydanticUndefined
+
+from orbitct_app.cli.model_options import field_limits
 
 PAGES = {
     "reference/cli.md": "cli_page",
@@ -215,19 +216,6 @@ def _type_name(annotation: Any) -> str:
     return getattr(annotation, "__name__", str(annotation))
 
 
-def _limits(info: FieldInfo) -> str:
-    found = []
-    for item in info.metadata:
-        for attr, word in (("ge", "≥"), ("gt", ">"), ("le", "≤"), ("lt", "<")):
-            if getattr(item, attr, None) is not None:
-                found.append(f"{word} {getattr(item, attr)}")
-        if isinstance(item, annotated_types.MinLen):
-            found.append(f"length ≥ {item.min_length}")
-        if isinstance(item, annotated_types.MaxLen):
-            found.append(f"length ≤ {item.max_length}")
-    return ", ".join(found)
-
-
 def _default(info: FieldInfo) -> str:
     if info.default_factory is not None:
         value = info.default_factory()  # type: ignore[call-arg]
@@ -279,7 +267,9 @@ def _config_table(title: str, intro: str, model: type[BaseModel]) -> list[str]:
     for key, info, section in config_keys(model):
         kind = f"section ({section.__name__})" if section is not None else _cell(_type_name(info.annotation))
         description = info.description or (_first_line(section.__doc__) if section is not None else "")
-        lines.append(f"| `{key}` | {kind} | {_cell(_default(info))} | {_limits(info)} | {_cell(description)} |")
+        lines.append(
+            f"| `{key}` | {kind} | {_cell(_default(info))} | {', '.join(field_limits(info, ascii_only=False))} | {_cell(description)} |"
+        )
     return [*lines, ""]
 
 

@@ -214,6 +214,8 @@ def _pwls(
 
 def checked_options(options: ReconstructionOptions | None, values: dict[str, Any]) -> ReconstructionOptions:
     """``options`` with ``values`` laid over them, validated; a :class:`ReconError` naming each bad option."""
+    if options is not None and not values:
+        return options  # validated when it was made (the model is frozen)
     merged = {**(options.model_dump() if options is not None else {}), **values}
     try:
         return ReconstructionOptions.model_validate(merged)

@@ -37,12 +37,19 @@ def _plain(annotation: Any) -> tuple[Any, bool]:
     return annotation, False
 
 
-def _limits(info: FieldInfo) -> list[str]:
+def field_limits(info: FieldInfo, *, ascii_only: bool = True) -> list[str]:
+    """A field's bounds and length limits in words (``>=0.1``, ``length <=3``; ``≥`` and ``≤`` when not
+    ``ascii_only``)."""
+    ge, le = (">=", "<=") if ascii_only else ("≥", "≤")
     words = []
     for item in info.metadata:
-        for attr, word in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<")):
+        for attr, word in (("ge", ge), ("gt", ">"), ("le", le), ("lt", "<")):
             if getattr(item, attr, None) is not None:
                 words.append(f"{word}{getattr(item, attr)}")
+        if isinstance(item, annotated_types.MinLen):
+            words.append(f"length {ge}{item.min_length}")
+        if isinstance(item, annotated_types.MaxLen):
+            words.append(f"length {le}{item.max_length}")
     return words
 
 
@@ -72,7 +79,7 @@ def _option(name: str, info: FieldInfo, flag: str, metavar: str | None) -> Calla
         notes.append("one of " + ", ".join(map(str, values)))
     elif typing.get_origin(kind) is list:
         inner = typing.get_args(kind)[0]
-        limits = _limits(typing.get_args(inner)[1]) if typing.get_origin(inner) is typing.Annotated else []
+        limits = field_limits(typing.get_args(inner)[1]) if typing.get_origin(inner) is typing.Annotated else []
         size = next((m.min_length for m in info.metadata if isinstance(m, annotated_types.MinLen)), None)
         metavar = metavar or (",".join(["N"] * size) if size else "N,N,...")
         notes.extend(f"each {w}" for w in limits)
@@ -80,7 +87,7 @@ def _option(name: str, info: FieldInfo, flag: str, metavar: str | None) -> Calla
         return click.option(
             flag, name, callback=_parse_ints, default=None, metavar=metavar, help=help_text + notes_text
         )
-    notes.extend(_limits(info))
+    notes.extend(w for w in field_limits(info) if not w.startswith("length"))
     notes_text = f" [{'; '.join(notes)}]" if notes else ""
     click_type: Any = {int: click.INT, float: FiniteFloat(), str: click.STRING}.get(kind, click.STRING)
     return click.option(flag, name, type=click_type, default=None, help=help_text + notes_text)
