@@ -309,16 +309,28 @@ class ClusterData:
                 ", ".join(f"views {self._bounds[i]}-{self._bounds[i + 1] - 1}" for i in lost),
             )
 
+    def _send_iterate(self, xp: NDArray[np.float32], tries: int = 3) -> Any:
+        """The iterate on every worker. A worker dying while it is sent leaves Dask with a stale list of workers
+        (it fails with a ValueError), so the send is tried again on the workers left; a cluster that stays out of
+        reach fails with a sentence."""
+        for _ in range(tries - 1):
+            try:
+                return self.client.scatter(xp, broadcast=True, hash=False, timeout=60)
+            except Exception as exc:  # noqa: BLE001 - a worker gone mid-send: the workers left may take it
+                log.warning("sending the iterate to the workers failed (%s); trying again", exc)
+                time.sleep(1.0)
+        try:
+            return self.client.scatter(xp, broadcast=True, hash=False, timeout=60)
+        except Exception as exc:  # noqa: BLE001 - a scheduler or workers gone: say so rather than wait
+            raise ClusterError(
+                f"the cluster lost {self.what}: cannot send the iterate to the workers ({exc})"
+            ) from None
+
     def gradient(self, xp: NDArray[np.float32], subset: int, out: NDArray[np.float32] | None) -> float:
         """Subset ``subset``'s data term at ``xp`` summed over the parts; its gradient added into ``out``."""
         self._check_parts()
         key = self._next_key(f"subset{subset}-")
-        try:
-            x = self.client.scatter(xp, broadcast=True, hash=False, timeout=60)
-        except Exception as exc:  # noqa: BLE001 - a scheduler or workers gone: say so rather than wait
-            raise ClusterError(
-                f"the cluster lost {self.what}: cannot send the iterate to the workers ({type(exc).__name__}: {exc})"
-            ) from None
+        x = self._send_iterate(xp)
         try:
             parts = [
                 self.client.submit(_part_gradient, p, x, subset, out is not None, key=f"{key}-{i}", pure=False)
