@@ -34,14 +34,19 @@ from recon.operator import projector
 from recon.pwls import DEFAULT_BETA, PwlsResult, ViewsData, pwls_solve
 from recon.stack import FileLineIntegrals, FileWeights
 
-#: FDK's parts per worker: a part that finishes late on a slow worker then holds up less
 log = logging.getLogger(__name__)
 LOSS_CHECK_S = 1.0  # how often a PWLS on a cluster looks whether the workers holding its views are still there
+#: FDK's parts per worker: a part that finishes late on a slow worker then holds up less
 PARTS_PER_WORKER = 2
+STEP_TRIES = 3  # how often a PWLS step whose work died with a worker is run again on the workers left
 
 
 class ClusterError(ReconError):
     """The cluster cannot be reached, has no workers, or lost the work."""
+
+
+class WorkLostError(ClusterError):
+    """Work came back cancelled or lost: a worker died holding it, or holding data it needed."""
 
 
 def _fdk_part(
@@ -86,11 +91,12 @@ def _sum_on_workers(
             time.sleep(0.005)
             continue
         for f in finished:
+            if f.status == "error":
+                raise ClusterError(f"a part of {what} failed on its Dask worker: {_sentence(f.exception())}")
             if f.status != "finished":
-                why = f"{type(f.exception()).__name__}: {f.exception()}" if f.status == "error" else f.status
-                raise ClusterError(
-                    f"the cluster lost {what} ({why}); the scheduler {client.scheduler.address} "
-                    "went away or a part failed"
+                raise WorkLostError(
+                    f"the cluster lost {what} ({f.status}): a worker died holding it, or the scheduler "
+                    f"{client.scheduler.address} went away"
                 )
             pending.remove(f)
             ready.append(f)
@@ -103,7 +109,13 @@ def _sum_on_workers(
     try:
         return ready[0].result()
     except Exception as exc:  # noqa: BLE001 - reported with what was lost
-        raise ClusterError(f"the cluster lost {what}: {type(exc).__name__}: {exc}") from None
+        raise ClusterError(f"the cluster lost {what}: {_sentence(exc)}") from None
+
+
+def _sentence(exc: BaseException | None) -> str:
+    """What ``exc`` says, for a person: its message, or what kind of failure it was when it has none."""
+    text = str(exc or "").strip()
+    return text or "the worker gave no reason (see its log)"
 
 
 def fdk_on_cluster(
@@ -282,9 +294,36 @@ class ClusterData:
 
     def curvature(self, out: NDArray[np.float32]) -> None:
         """Add ``A^T (w * A 1)`` of every part into the padded ``out``."""
-        key = self._next_key("curvature")
-        parts = [self.client.submit(_part_curvature, p, key=f"{key}-{i}", pure=False) for i, p in enumerate(self.parts)]
-        out += _sum_on_workers(self.client, parts, self.what, key)
+
+        def submit(key: str) -> list[Any]:
+            return [
+                self.client.submit(_part_curvature, p, key=f"{key}-{i}", pure=False) for i, p in enumerate(self.parts)
+            ]
+
+        out += self._run_step("curvature", submit)
+
+    def _run_step(self, what: str, submit: Callable[[str], list[Any]]) -> Any:
+        """The sum of the tasks ``submit(key)`` makes. When a worker dies with work of the step (a part's views, the
+        iterate), the step runs again on the workers left (Dask reads lost views again) up to :data:`STEP_TRIES`
+        times; a scheduler gone or a part that fails ends it with :class:`ClusterError`."""
+        for attempt in range(1, STEP_TRIES + 1):
+            key = self._next_key(what)
+            try:
+                return _sum_on_workers(self.client, submit(key), self.what, key)
+            except WorkLostError:
+                if attempt == STEP_TRIES or not self._scheduler_answers():
+                    raise
+                self._checked = 0.0
+                self._check_parts()
+                log.warning("a Dask worker died during a PWLS step; the step runs again on the workers left")
+        raise AssertionError("unreachable")  # pragma: no cover - the loop returns or raises
+
+    def _scheduler_answers(self) -> bool:
+        """Whether the scheduler still answers (a worker died, not the cluster)."""
+        try:
+            return bool(self.client.ncores())
+        except Exception:  # noqa: BLE001 - any failure to reach it is the same answer
+            return False
 
     def _check_parts(self) -> None:
         """Say (once per loss, at most once a second) when a worker holding views has died: Dask reads those views
@@ -329,16 +368,19 @@ class ClusterData:
     def gradient(self, xp: NDArray[np.float32], subset: int, out: NDArray[np.float32] | None) -> float:
         """Subset ``subset``'s data term at ``xp`` summed over the parts; its gradient added into ``out``."""
         self._check_parts()
-        key = self._next_key(f"subset{subset}-")
-        x = self._send_iterate(xp)
-        try:
-            parts = [
-                self.client.submit(_part_gradient, p, x, subset, out is not None, key=f"{key}-{i}", pure=False)
+        sent: list[Any] = []  # the iterate on the workers, dropped when the step ends
+
+        def submit(key: str) -> list[Any]:
+            sent[:] = [self._send_iterate(xp)]  # again each try: a dead worker may have held the only copy
+            return [
+                self.client.submit(_part_gradient, p, sent[0], subset, out is not None, key=f"{key}-{i}", pure=False)
                 for i, p in enumerate(self.parts)
             ]
-            total = _sum_on_workers(self.client, parts, self.what, key)
+
+        try:
+            total = self._run_step(f"subset{subset}-", submit)
         finally:
-            del x  # the workers may drop the iterate
+            sent.clear()  # the workers may drop the iterate
         if out is not None:
             out += total[0]
         return float(total[-1])
@@ -395,6 +437,7 @@ __all__ = [
     "ClusterData",
     "ClusterError",
     "ViewPart",
+    "WorkLostError",
     "check_pwls_memory",
     "fdk_on_cluster",
     "pwls_on_cluster",
