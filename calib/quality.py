@@ -10,7 +10,7 @@ views combined with the prior) propagated to points filling the field of view.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,6 +20,7 @@ from calib.bundle import gauge_matrix
 from calib.evaluate import fov_points
 from calib.model import ViewModel, ViewState
 from orbitct.rotations import matrix_to_rotvec, rotvec_to_matrix
+from orbitct.verdict import Verdict
 
 OWN, BRIDGED, FAILED = "own", "bridged", "failed"
 STATUS_CODES = {OWN: 0, BRIDGED: 1, FAILED: 2}  # /geometry/calibrated/view_status (-1: not a projection)
@@ -403,18 +404,15 @@ def _frames(frames: NDArray[np.intp]) -> str:
 
 
 @dataclass(frozen=True)
-class Verdict:
-    """Whether a calibration can be trusted, and why not: the summary a user reads first."""
+class CalibrationVerdict(Verdict):
+    """The quality check of a calibration: its :class:`~orbitct.verdict.Verdict` and the figures behind it."""
 
-    passed: bool
-    reasons: list[str]
-    warnings: list[str]
-    counts: dict[str, int]
-    predicted_px_median: float
-    predicted_px_max: float
-    worst_frame: int | None
-    noise_px: float
-    threshold_px: float
+    counts: dict[str, int] = field(default_factory=dict)
+    predicted_px_median: float = float("nan")
+    predicted_px_max: float = float("nan")
+    worst_frame: int | None = None
+    noise_px: float = float("nan")
+    threshold_px: float = float("nan")
 
     def line(self) -> str:
         """One line for people: the views by kind, the predicted error, the noise it assumes."""
@@ -429,8 +427,8 @@ class Verdict:
     def summary(self) -> dict[str, object]:
         """JSON-ready."""
         return {
+            **super().summary(),
             "passed": self.passed,
-            "reasons": list(self.reasons),
             "views": dict(self.counts),
             "predicted_px_median": self.predicted_px_median,
             "predicted_px_max": self.predicted_px_max,
@@ -442,6 +440,7 @@ class Verdict:
     def attrs(self) -> dict[str, object]:
         """Attributes of ``/geometry/calibrated``."""
         return {
+            **super().attrs(),
             "quality": "passed" if self.passed else "failed",
             "quality_reasons_json": list(self.reasons),
             "n_views_own": self.counts[OWN],
@@ -454,7 +453,9 @@ class Verdict:
         }
 
 
-def judge(quality: ViewQuality, frames: NDArray[np.intp], threshold_px: float, max_gap: int, method: str) -> Verdict:
+def judge(
+    quality: ViewQuality, frames: NDArray[np.intp], threshold_px: float, max_gap: int, method: str
+) -> CalibrationVerdict:
     """The verdict on a calibration's views: failed views, or a predicted error above ``threshold_px``, fail it."""
     counts = quality.counts()
     reasons: list[str] = []
@@ -493,16 +494,15 @@ def judge(quality: ViewQuality, frames: NDArray[np.intp], threshold_px: float, m
         )
     if not np.isfinite(quality.noise_px):
         reasons.append("the centroid noise could not be measured (no residuals)")
-    return Verdict(
-        not reasons,
-        reasons,
-        warnings,
-        counts,
-        med,
-        top,
-        None if worst is None else int(frames[worst]),
-        quality.noise_px,
-        float(threshold_px),
+    return CalibrationVerdict(
+        reasons=tuple(reasons),
+        warnings=tuple(warnings),
+        counts=counts,
+        predicted_px_median=med,
+        predicted_px_max=top,
+        worst_frame=None if worst is None else int(frames[worst]),
+        noise_px=float(quality.noise_px),
+        threshold_px=float(threshold_px),
     )
 
 
@@ -514,7 +514,7 @@ __all__ = [
     "MIN_OWN_BBS",
     "OWN",
     "STATUS_CODES",
-    "Verdict",
+    "CalibrationVerdict",
     "ViewQuality",
     "assess_views",
     "centroid_noise_px",

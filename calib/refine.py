@@ -23,7 +23,7 @@ from calib.quality import (
     FIRST_LOSS_SCALE_PX,
     MIN_OWN_BBS,
     OWN,
-    Verdict,
+    CalibrationVerdict,
     ViewQuality,
     assess_views,
     centroid_noise_px,
@@ -52,13 +52,13 @@ def reassign(
     model: ViewModel,
     tset: TrackingSettings,
     outcome: tuple[Any, ...],
-    verdict: Verdict,
+    verdict: CalibrationVerdict,
     proj: NDArray[np.intp],
     opt: CalibrationOptions,
     progress: ProgressCallback | None,
     *,
     must_improve: bool = True,
-) -> tuple[tuple[Any, ...], Verdict]:
+) -> tuple[tuple[Any, ...], CalibrationVerdict]:
     """Assign the detections again, to every BB predicted through the calibrated geometry (views not calibrated
     from their own BBs: through their nearest view that is), and estimate again; kept when it passes where the
     first did not, or calibrates more views from their own BBs (not ``must_improve``: unless it fails where the
@@ -83,11 +83,11 @@ def estimate_again(
     opt: CalibrationOptions,
     progress: ProgressCallback | None,
     outcome: tuple[Any, ...],
-    verdict: Verdict,
+    verdict: CalibrationVerdict,
     *,
     must_improve: bool = False,
     polish: Polish | None = None,
-) -> tuple[tuple[Any, ...], Verdict, bool]:
+) -> tuple[tuple[Any, ...], CalibrationVerdict, bool]:
     """Estimate again from detections ``uv`` (or, with ``polish``, solve once more from a previous outcome):
     that outcome and verdict (and True) unless it fails where the first passed or calibrates fewer views from their
     own BBs (or, ``must_improve``, does no better on both)."""
@@ -107,14 +107,14 @@ def recover_missed_bbs(
     model: ViewModel,
     tset: TrackingSettings,
     outcome: tuple[Any, ...],
-    verdict: Verdict,
+    verdict: CalibrationVerdict,
     proj: NDArray[np.intp],
     diameter_mm: float,
     min_obs: int,
     opt: CalibrationOptions,
     progress: ProgressCallback | None,
     frags: NDArray[np.float64],
-) -> tuple[tuple[Any, ...], Verdict, int]:
+) -> tuple[tuple[Any, ...], CalibrationVerdict, int]:
     """Look for BBs that identification lost (:func:`calib.identify.recover_missed`) among the 2-D tracks ``frags``
     it was given, through the calibrated views; with any found, assign and estimate again with them; kept unless it
     fails where the first passed or calibrates fewer views from their own BBs. Also the number found."""
@@ -134,11 +134,11 @@ def recover_missed_bbs(
 def merge_twins(
     model: ViewModel,
     outcome: tuple[Any, ...],
-    verdict: Verdict,
+    verdict: CalibrationVerdict,
     proj: NDArray[np.intp],
     opt: CalibrationOptions,
     progress: ProgressCallback | None,
-) -> tuple[tuple[Any, ...], Verdict, int]:
+) -> tuple[tuple[Any, ...], CalibrationVerdict, int]:
     """BBs identified twice, once in each of two parts of the orbit that nothing else ties together
     (:func:`calib.identify.twin_constellation`; experiment C at 512 px: every track broke at one frame, and the
     second half calibrated as a constellation of its own, 8-22 px off, and passed). Each pair is made one BB (the
@@ -175,11 +175,11 @@ def sparse_views_again(
     model: ViewModel,
     tset: TrackingSettings,
     outcome: tuple[Any, ...],
-    verdict: Verdict,
+    verdict: CalibrationVerdict,
     proj: NDArray[np.intp],
     opt: CalibrationOptions,
     progress: ProgressCallback | None,
-) -> tuple[tuple[Any, ...], Verdict, int]:
+) -> tuple[tuple[Any, ...], CalibrationVerdict, int]:
     """Views left with :data:`MIN_OWN_BBS` BBs or fewer where the views around them (three either side) see at
     least two more: frames that jumped, where tracking kept few blobs, perhaps wrong ones that a pose with two
     measurements to spare absorbs (experiment C at 512 px: two of four blobs wrong, views 5.8 and 7 px off and
@@ -208,7 +208,7 @@ def sparse_views_again(
     return outcome, verdict, int(gain.sum()) if kept else 0
 
 
-def mild_misfits_only(quality: ViewQuality, verdict: Verdict) -> bool:
+def mild_misfits_only(quality: ViewQuality, verdict: CalibrationVerdict) -> bool:
     """Whether the only reason a result failed is a few views with enough BBs whose residual exceeds the misfit
     limit by less than half again (centroid biases, not a BB taken for another, which leaves pixels): tracking
     again with larger jumps cannot change that, so the recovery stops (the verdict still fails)."""
@@ -223,11 +223,11 @@ def split_merged(
     proj: NDArray[np.intp],
     model: ViewModel,
     outcome: tuple[Any, ...],
-    verdict: Verdict,
+    verdict: CalibrationVerdict,
     d_px: float,
     opt: CalibrationOptions,
     progress: ProgressCallback | None,
-) -> tuple[tuple[Any, ...], Verdict, int]:
+) -> tuple[tuple[Any, ...], CalibrationVerdict, int]:
     """Views where two BBs project onto one blob (both left out by the assignment): their two centroids fitted
     in the frame (:mod:`calib.split`), then the geometry estimated again; kept when the result is no worse.
     Also the number of blobs split. Only when such blobs are at least :data:`SPLIT_MIN_SHARE` of the detections:

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from calib.quality import Verdict
+from calib.quality import CalibrationVerdict
 from calib.scale import ScaleBar
 from orbitct.geometry import ViewGeometry
 from orbitct.statistics import rpe_statistics
@@ -48,7 +48,7 @@ class CalibrationResult:
     warnings: list[str] = field(default_factory=list)
     unsolved_views: list[int] = field(default_factory=list)
     true_corrections: dict[str, NDArray[np.float64]] | None = None  # simulated scans: the truth, same frame
-    quality: Verdict | None = None
+    quality: CalibrationVerdict | None = None
     compile_s: float = 0.0  # numba compiling its kernels on first use (after installation); not in elapsed_s
     view_status: NDArray[np.int8] | None = None  # per frame: STATUS_CODES, -1 for non-projections
     predicted_px: NDArray[np.float64] | None = None  # per frame: predicted field-of-view error (px)

@@ -3,6 +3,7 @@
 from orbitct.geometry import VolumeGrid
 from recon.errors import (
     BadFramesError,
+    FailedGeometryError,
     FieldOfViewError,
     GeometryMissingError,
     MemoryBudgetError,
@@ -22,6 +23,7 @@ from recon.quality import reference_volume, rmse, wire_fwhm
 __all__ = [
     "DEFAULT_BETA",
     "BadFramesError",
+    "FailedGeometryError",
     "FieldOfViewError",
     "GeometryMissingError",
     "MemoryBudgetError",

@@ -11,6 +11,23 @@ class GeometryMissingError(ReconError):
     """The scan file lacks the requested geometry group."""
 
 
+class FailedGeometryError(ReconError):
+    """The calibrated geometry failed its quality check and using it anyway was not asked for."""
+
+    def __init__(self, name: str, reasons: list[str], how: str = "set accept_failed_geometry") -> None:
+        self.name, self.reasons = name, reasons
+        super().__init__(self.sentence(how))
+
+    def sentence(self, how: str) -> str:
+        """What happened and what to do, ``how`` naming the override in the caller's terms."""
+        why = f" ({'; '.join(self.reasons)})" if self.reasons else ""
+        return (
+            f"{self.name}: its calibrated geometry failed its quality check{why}. Calibrate it again (see 'When a "
+            f"calibration fails its quality check' in the documentation), reconstruct from the nominal geometry, "
+            f"or {how} to use it anyway (recorded with the volume)"
+        )
+
+
 class FieldOfViewError(ReconError):
     """The volume grid does not overlap the field of view of the views."""
 

@@ -72,6 +72,11 @@ class ReconstructionOptions(BaseModel):
         description="name under /recon in the scan file (default ALGORITHM_GEOMETRY[_mar])",
     )
     overwrite: bool = Field(False, description="replace a reconstruction of that name already in the scan file")
+    accept_failed_geometry: bool = Field(
+        False,
+        description="reconstruct from a calibrated geometry that failed its quality check (refused otherwise); "
+        "recorded with the volume and shown wherever it is shown",
+    )
     max_minutes: float | None = Field(
         None,
         gt=0.0,

@@ -18,8 +18,10 @@ from pydantic import ValidationError
 from orbitct.geometry import ViewGeometry, VolumeGrid
 from orbitct.progress import ProgressCallback, report
 from orbitct.scanfile import ImageKey, ScanFile
+from orbitct.verdict import Verdict
 from recon.errors import (
     BadFramesError,
+    FailedGeometryError,
     GeometryMissingError,
     MemoryBudgetError,
     ReconError,
@@ -65,6 +67,11 @@ class ReconResult:
     params: dict[str, Any] = field(default_factory=dict)
     volume: NDArray[np.float32] | None = field(default=None, repr=False)
     warnings: list[str] = field(default_factory=list)
+
+    @property
+    def verdict(self) -> Verdict:
+        """Its quality verdict: passed, or passed with its warnings (a failure raises instead)."""
+        return Verdict(warnings=tuple(self.warnings))
 
     @property
     def grid(self) -> VolumeGrid:
@@ -146,21 +153,30 @@ def _views(scan: ScanFile, geometry: str) -> tuple[NDArray[np.intp], ViewGeometr
     return frames[ok], g[np.flatnonzero(ok)], int((~ok).sum())
 
 
-def _geometry_warnings(scan: ScanFile, geometry: str) -> list[str]:
-    """A calibrated geometry that failed its quality check is used as asked, but never silently."""
-    if geometry != "calibrated":
-        return []
+def failed_geometry_reasons(scan: ScanFile, geometry: str) -> list[str] | None:
+    """Why the scan's calibrated geometry failed its quality check, or None when it did not (or is not used)."""
+    if geometry != "calibrated" or "geometry/calibrated" not in scan.h5:
+        return None
     attrs = scan.h5["geometry/calibrated"].attrs
     if str(attrs.get("quality", "")) != "failed":
-        return []
+        return None
     try:
-        reasons = json.loads(str(attrs.get("quality_reasons_json", "[]")))
+        return [str(r) for r in json.loads(str(attrs.get("quality_reasons_json", "[]")))]
     except ValueError:
-        reasons = []
+        return []
+
+
+def _geometry_verdict(scan: ScanFile, geometry: str, accepted: bool) -> list[str]:
+    """The warning a volume from a failed calibrated geometry carries; that geometry refused unless ``accepted``."""
+    reasons = failed_geometry_reasons(scan, geometry)
+    if reasons is None:
+        return []
+    if not accepted:
+        raise FailedGeometryError(scan.path.name, reasons)
+    why = f" ({'; '.join(reasons)})" if reasons else ""
     return [
-        "the calibrated geometry failed its quality check"
-        + (f" ({'; '.join(map(str, reasons))})" if reasons else "")
-        + "; the volume inherits those views' errors"
+        f"made from a calibrated geometry that failed its quality check, by explicit override{why}; the volume "
+        "inherits those views' errors"
     ]
 
 
@@ -265,7 +281,9 @@ def reconstruct_scan(
         if name in scan.recon_names() and not opts.overwrite:
             raise ReconExistsError(scan.path, name)
         frames, geom, dropped = _views(scan, geometry)
-        warnings = [*scan.warnings, *_geometry_warnings(scan, geometry)]
+        warnings = [*scan.warnings, *_geometry_verdict(scan, geometry, opts.accept_failed_geometry)]
+        if dropped:
+            warnings.append(f"{dropped} view(s) without a finite {geometry} geometry were left out")
         fitted = grid is None and shape is None and opts.fit == "object"
         grid_note = "as given" if grid is not None or shape is not None else "the whole field of view"
         grid = grid if grid is not None else grid_for_geometry(geom, voxel_mm=opts.voxel_mm, shape=shape)
@@ -379,6 +397,7 @@ def reconstruct_scan(
             "grid": grid.to_json(),
             "grid_choice": grid_note,
             "estimated_s": estimated_s,
+            "geometry_override": bool(failed_geometry_reasons(scan, geometry) is not None),
             **extra,
         }
         if algorithm == "pwls":
@@ -396,6 +415,7 @@ def reconstruct_scan(
             elapsed_s=elapsed,
             params=params,
             overwrite=opts.overwrite,
+            verdict=Verdict(warnings=tuple(warnings)),
         )
     exported: list[Path] = []
     if formats:

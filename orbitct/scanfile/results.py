@@ -14,6 +14,7 @@ from orbitct.geometry import ViewGeometry
 from orbitct.scanfile.errors import ScanFileError
 from orbitct.scanfile.writer import STATUSES, to_json
 from orbitct.statistics import rpe_statistics
+from orbitct.verdict import Verdict
 
 
 class ScanResults:
@@ -107,8 +108,10 @@ class ScanResults:
         elapsed_s: float,
         params: dict[str, Any],
         overwrite: bool = False,
+        verdict: Verdict | None = None,
     ) -> None:
-        """Store a reconstruction as ``/recon/<name>`` (replacing one of that name only with ``overwrite``)."""
+        """Store a reconstruction as ``/recon/<name>`` (replacing one of that name only with ``overwrite``), with
+        its quality ``verdict`` (:meth:`orbitct.verdict.Verdict.attrs`)."""
         self._accepts_results()
         if not name or "/" in name:
             raise self._fail(f"reconstruction name {name!r} must be non-empty and contain no '/'")
@@ -131,6 +134,7 @@ class ScanResults:
                 "iterations": int(iterations),
                 "elapsed_s": float(elapsed_s),
                 "params_json": to_json(params),
+                **(verdict.attrs() if verdict is not None else {}),
             }
         )
         self._f.flush()

@@ -7,6 +7,8 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
+from orbitct.verdict import Verdict
+
 if TYPE_CHECKING:
     from orbitct.scanfile.reader import ScanFile
 
@@ -80,11 +82,17 @@ def _summary(f: ScanFile, damage: list[str]) -> dict[str, Any]:
 
         def calibrated() -> dict[str, Any]:
             a = f.h5["geometry/calibrated"].attrs
-            return {
+            out: dict[str, Any] = {
                 k: (_finite(a[k]) if k != "method" else str(a[k]))
                 for k in ("method", "rpe_mean_mm", "rpe_median_mm", "rpe_std_mm", "reproj_rms_px")
                 if k in a
             }
+            verdict = Verdict.from_attrs(a)
+            if verdict is None and "quality" in a:  # written before verdicts: passed or failed, its reasons
+                verdict = Verdict(reasons=("quality check failed",) if str(a["quality"]) == "failed" else ())
+            if verdict is not None:
+                out["verdict"] = verdict.summary()
+            return out
 
         calibration = _read(damage, "/geometry/calibrated's attributes", calibrated, {})
     markers: dict[str, Any] = _read(damage, "/markers", f.markers, {})

@@ -141,6 +141,7 @@ def calibrate(
     q = res.quality
     if q is not None:
         click.echo(q.line())
+        click.echo(f"verdict: {q.label}" + (" (warnings below)" if q.passed and q.warnings else ""))
     click.echo(res.scale_line())
     for w in res.warnings:
         click.echo(f"warning: {w}", err=True)

@@ -197,13 +197,17 @@ def demo(
         q = cal.quality
         if q is not None:
             click.echo(f"   {q.line()}")
-            if not q.passed:
-                click.echo("   QUALITY CHECK FAILED: " + "; ".join(q.reasons))
+            click.echo(f"   verdict: {q.label}")
         for w in cal.warnings[:5]:
             click.echo(f"   warning: {w}")
         _truth_error(scan_path)
         click.echo(f"   report (table, violin plots): {out_dir / 'calibration'}")
-        geometry = "calibrated"
+        if q is not None and not q.passed:
+            click.echo(
+                "   QUALITY CHECK FAILED: " + "; ".join(q.reasons) + "; reconstructing with the nominal geometry"
+            )
+        else:
+            geometry = "calibrated"
 
     _step(f"3/3 reconstruction ({voxels}^3 voxels) with the {geometry} and the nominal geometry")
     runs = [("fdk", geometry, 0), ("fdk", "nominal", 0)] if geometry != "nominal" else [("fdk", "nominal", 0)]

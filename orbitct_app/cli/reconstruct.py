@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING, Any, get_args
 
 import click
 
+from orbitct_app.cli.failure import fail
 from orbitct_app.cli.model_options import model_from, options_from
 from orbitct_app.cli.progress import ProgressBar
 from orbitct_app.cli.values import FiniteFloat
@@ -73,11 +74,20 @@ def reconstruct(
     """Reconstruct SCAN (an orbitct scan file) and store the volume in it.
 
     The time it will take is estimated before anything large is allocated (from the projectors' speed on this
-    machine now); above --max-minutes it asks on a terminal and refuses elsewhere, unless --yes."""
+    machine now); above --max-minutes it asks on a terminal and refuses elsewhere, unless --yes. A calibrated
+    geometry that failed its quality check is refused (exit 2) unless --accept-failed-geometry, which the volume
+    then records; the verdict (passed, or passed with warnings) is printed last."""
     import sys
 
     from orbitct.scanfile import ScanFileError
-    from recon import ReconError, ReconExistsError, TooLongError, compare_reconstructions, reconstruct_scan
+    from recon import (
+        FailedGeometryError,
+        ReconError,
+        ReconExistsError,
+        TooLongError,
+        compare_reconstructions,
+        reconstruct_scan,
+    )
 
     options = model_from(
         ReconstructionOptions, {**values, "max_minutes": None if yes else max_minutes}, flags={**FLAGS}
@@ -98,6 +108,8 @@ def reconstruct(
             res = run(options.model_copy(update={"max_minutes": None}))
     except ReconExistsError as exc:
         raise click.ClickException(f"{exc}; --overwrite replaces it, --name NAME keeps both") from None
+    except FailedGeometryError as exc:
+        fail(exc.sentence("pass --accept-failed-geometry"))
     except (ReconError, ScanFileError) as exc:
         raise click.ClickException(str(exc)) from None
     nz, ny, nx = res.volume_shape
@@ -112,6 +124,7 @@ def reconstruct(
         click.echo(f"  cost {res.cost[0]:.6g} -> {res.cost[-1]:.6g} over {len(res.cost) - 1} iterations")
     for p in res.exported:
         click.echo(f"  wrote {p}")
+    click.echo(f"  verdict: {res.verdict.label}" + (" (warnings below)" if res.verdict.warnings else ""))
     for w in res.warnings:
         click.echo(f"warning: {w}", err=True)
     if compare_geometry is None:
@@ -139,11 +152,16 @@ def reconstruct(
         )
     except ReconExistsError as exc:
         raise click.ClickException(f"{exc}; --overwrite replaces it") from None
+    except FailedGeometryError as exc:
+        fail(exc.sentence("pass --accept-failed-geometry"))
     except (ReconError, ScanFileError) as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(
         f"  /recon/{other.name} with {compare_geometry} geometry, {other.elapsed_s:.1f} s; side by side: {figure}"
     )
+    click.echo(f"  verdict: {other.verdict.label}" + (" (warnings below)" if other.verdict.warnings else ""))
+    for w in other.warnings:
+        click.echo(f"warning: {w}", err=True)
 
 
 def _cluster(address: str | None, mar: bool) -> object | None:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
@@ -19,6 +19,15 @@ class Progress(BaseModel):
     metrics: dict[str, float | None] = Field(default_factory=dict)
 
 
+class VerdictOut(BaseModel):
+    """The quality verdict of a calibration or reconstruction: a failed one ends its job as failed."""
+
+    status: Literal["passed", "passed_with_warnings", "failed"]
+    label: str = Field(description="the status as a person reads it")
+    reasons: list[str] = Field(default_factory=list, description="why it failed")
+    warnings: list[str] = Field(default_factory=list, description="what to read before using it")
+
+
 class JobOut(BaseModel):
     """A calibration or reconstruction job."""
 
@@ -30,6 +39,9 @@ class JobOut(BaseModel):
     params: dict[str, Any]
     progress: dict[str, Any]
     result: dict[str, Any]
+    verdict: VerdictOut | None = Field(
+        None, description="the result's quality verdict, once it has one (also when the job failed because of it)"
+    )
     owner: str
     created_utc: str
     started_utc: str | None = None
@@ -75,7 +87,12 @@ def job_out(job: dict[str, Any]) -> JobOut:
         "log": f"/jobs/{job['id']}/log",
         "scan": f"/scans/{job['scan_id']}",
     }
-    return JobOut(**{k: job[k] for k in JobOut.model_fields if k in job and k != "links"}, links=links)
+    verdict = (job.get("result") or {}).get("verdict")
+    return JobOut(
+        **{k: job[k] for k in JobOut.model_fields if k in job and k not in ("links", "verdict")},
+        verdict=VerdictOut.model_validate(verdict) if verdict else None,
+        links=links,
+    )
 
 
 def job_or_404(service: Any, job_id: str, kind: str | None = None) -> dict[str, Any]:

@@ -11,6 +11,7 @@ import pytest
 
 import calib
 from orbitct.scanfile import ScanFile, ScanWriter
+from orbitct.verdict import Verdict
 from tests.helpers.calib_scans import (
     detector,
     perturbed,
@@ -114,6 +115,8 @@ def test_a_long_run_of_views_without_bbs_fails_loudly(fov_scan: Path, tmp_path: 
     with ScanFile(res.path) as sf:
         attrs = sf.h5["geometry/calibrated"].attrs
         assert attrs["quality"] == "failed" and attrs["n_views_failed"] == 20
+        stored = Verdict.from_attrs(attrs)
+    assert stored is not None and stored.status == "failed" and stored.reasons == res.quality.reasons
 
 
 @pytest.mark.slow
@@ -169,10 +172,22 @@ def test_four_bbs_keep_their_correct_detections(few_bb_scans: dict[int, tuple[Pa
     assert np.percentile(per, 95) < 3.0 * pred.max()
 
 
-def test_a_reconstruction_from_a_failed_calibration_says_so(fov_scan: Path, tmp_path: Path) -> None:
+def test_a_reconstruction_from_a_failed_calibration_is_refused_unless_overridden(
+    fov_scan: Path, tmp_path: Path
+) -> None:
+    """Refused with what to do; asked for anyway, the volume carries the override in its verdict and its file."""
     import recon
 
     res = calib.calibrate_scan(_blank(fov_scan, tmp_path, range(40, 60)))
     assert res.quality is not None and not res.quality.passed
-    rr = recon.reconstruct_scan(res.path, algorithm="fdk", geometry="calibrated", shape=(8, 16, 16), voxel_mm=8.0)
-    assert rr.warnings and "failed its quality check" in rr.warnings[0] and "20 of" in rr.warnings[0]
+    small = {"algorithm": "fdk", "geometry": "calibrated", "shape": (8, 16, 16), "voxel_mm": 8.0}
+    with pytest.raises(recon.FailedGeometryError, match=r"failed its quality check \(20 of.*Calibrate it again"):
+        recon.reconstruct_scan(res.path, **small)
+    rr = recon.reconstruct_scan(res.path, **small, accept_failed_geometry=True)
+    assert rr.verdict.status == "passed_with_warnings" and rr.params["geometry_override"] is True
+    assert "by explicit override" in rr.verdict.warnings[0] and "20 of" in rr.verdict.warnings[0]
+    with ScanFile(res.path) as sf:
+        _, attrs = sf.read_recon(rr.name)
+    assert Verdict.from_attrs(attrs) == rr.verdict
+    nominal = recon.reconstruct_scan(res.path, **{**small, "geometry": "nominal"})
+    assert nominal.verdict.status == "passed" and nominal.params["geometry_override"] is False

@@ -69,6 +69,18 @@ function facts(dl, entries) {
 }
 
 function badge(node, state) { node.textContent = state; node.className = 'badge ' + state; }
+// a result's quality verdict: passed (green), passed with warnings (amber), failed (red); never green when failed
+function verdictBadge(v) {
+  if (!v) return null;
+  const said = (v.reasons && v.reasons.length ? v.reasons : v.warnings || []).join('; ');
+  return el('span', { class: 'badge verdict ' + v.status, text: v.label, title: said, 'data-verdict': v.status });
+}
+function stateCell(j) {
+  // a job's state, its verdict beside it when the verdict says more than the state does
+  const cell = el('td', {}, el('span', { class: 'badge ' + j.state, text: j.state }));
+  if (j.verdict && !(j.state === 'succeeded' && j.verdict.status === 'passed')) cell.append(' ', verdictBadge(j.verdict));
+  return cell;
+}
 
 /** The error slot next to where an action was taken. */
 function errorSlot(node) {
@@ -323,6 +335,14 @@ function paramInput(name, p, required) {
 }
 
 // ---------------------------------------------------------------- scans
+function calibrationCell(c) {
+  // a scan's latest calibration: its verdict once it has one, else the job's state; links to its report
+  if (!c) return el('td', { class: 'muted', text: 'none' });
+  const mark = c.verdict ? verdictBadge(c.verdict) : el('span', { class: 'badge ' + c.state, text: c.state });
+  return el('td', { class: 'calibration' }, c.job_id ? el('a', { href: `/console/calibrations/${c.job_id}`, title: 'the calibration report' }, mark) : mark,
+    c.state === 'live' ? el('span', { class: 'muted', text: ' (live)' }) : null);
+}
+
 function pageScans() {
   const load = async () => {
     const state = $('#state').value;
@@ -332,8 +352,9 @@ function pageScans() {
       $('#scan-table tbody').replaceChildren(...rows.filter((s) => !text || (s.name + ' ' + s.id).toLowerCase().includes(text)).map((s) => el('tr', {},
         el('td', {}, el('a', { href: `/console/scans/${s.id}`, text: s.name || '(no name)' })), el('td', {}, el('code', { text: s.id })),
         el('td', { text: s.orbit }), el('td', {}, el('span', { class: 'badge ' + s.state, text: s.state })),
-        el('td', { text: `${s.frames_done} / ${s.frames_total}` }), el('td', { text: s.owner }), el('td', { text: s.created_utc.slice(0, 19).replace('T', ' ') }))));
-      if (!$('#scan-table tbody').children.length) $('#scan-table tbody').append(el('tr', {}, el('td', { colspan: 7, class: 'muted', text: 'No scans match.' })));
+        el('td', { text: `${s.frames_done} / ${s.frames_total}` }), calibrationCell(s.calibration),
+        el('td', { text: s.owner }), el('td', { text: s.created_utc.slice(0, 19).replace('T', ' ') }))));
+      if (!$('#scan-table tbody').children.length) $('#scan-table tbody').append(el('tr', {}, el('td', { colspan: 8, class: 'muted', text: 'No scans match.' })));
       $('main > .error').textContent = '';
     } catch (exc) { $('main > .error').textContent = exc.message; }
   };
@@ -361,8 +382,21 @@ async function pageScan() {
     buttons(s.state);
     if (!live) ended(s);
   };
-  const scanFacts = (s) => facts($('#scan-facts'), [['id', s.id], ['orbit', s.orbit], ['owner', s.owner], ['created_utc', s.created_utc],
-    ['started_utc', s.started_utc], ['finished_utc', s.finished_utc], ['frames', `${s.frames_done} of ${s.frames_total}`]]);
+  const scanFacts = (s) => {
+    facts($('#scan-facts'), [['id', s.id], ['orbit', s.orbit], ['owner', s.owner], ['created_utc', s.created_utc],
+      ['started_utc', s.started_utc], ['finished_utc', s.finished_utc], ['frames', `${s.frames_done} of ${s.frames_total}`]]);
+    if (s.calibration) $('#scan-facts').append(el('dt', { text: 'calibration' }), el('dd', { id: 'scan-calibration' }, ...calibrationCell(s.calibration).childNodes));
+    calibrationNotice(s.calibration);
+  };
+  const calibrationNotice = (c) => {
+    // a failed calibrated geometry: say so where a reconstruction is started, and ask for the override explicitly
+    const note = $('#rec-failed-geometry');
+    if (!note) return;
+    const failed = Boolean(c && c.verdict && c.verdict.status === 'failed');
+    note.hidden = !failed;
+    if (failed) $('#rec-failed-reasons').textContent = (c.verdict.reasons || []).join('; ');
+    if (!failed) $('#rec-accept-failed').checked = false;
+  };
   const progress = (p) => {
     if (scan && p.total) { scan.frames_done = p.done; scan.frames_total = p.total; scanFacts(scan); }
     const bar = $('#scan-progress');
@@ -437,8 +471,10 @@ async function pageScan() {
 
   async function jobs() {
     const list = await api('GET', `/jobs?scan_id=${id}`);
+    const latest = list.find((j) => j.kind === 'calibration');
+    if (latest) { scan.calibration = { job_id: latest.id, state: latest.state, verdict: latest.verdict }; scanFacts(scan); }
     $('#scan-jobs tbody').replaceChildren(...list.map((j) => el('tr', {},
-      el('td', { text: j.kind }), el('td', {}, el('code', { text: j.id })), el('td', {}, el('span', { class: 'badge ' + j.state, text: j.state })),
+      el('td', { text: j.kind }), el('td', {}, el('code', { text: j.id })), stateCell(j),
       el('td', { text: j.progress && j.progress.total ? `${j.progress.stage} ${j.progress.done}/${j.progress.total}` : '' }),
       el('td', { text: fmt(j.params) }),
       el('td', {}, j.kind === 'calibration' ? el('a', { href: `/console/calibrations/${j.id}`, text: 'report' })
@@ -461,6 +497,7 @@ async function pageScan() {
       act($('#reconstruct'), async () => {
         const algorithm = $('#rec-algorithm').value;
         const body = { scan_id: id, algorithm, geometry: $('#rec-geometry').value, mar: $('#rec-mar').checked, overwrite: $('#rec-overwrite').checked };
+        if ($('#rec-accept-failed').checked && body.geometry === 'calibrated') body.accept_failed_geometry = true;
         const n = $('#rec-shape').value;
         if (n) body.shape = [Number(n), Number(n), Number(n)];
         if (algorithm === 'pwls') body.iterations = Number($('#rec-iterations').value);
@@ -489,15 +526,17 @@ async function pageCalibration() {
       });
       return;
     }
-    if (job.state !== 'succeeded') return;
+    if (job.state !== 'succeeded' && !job.verdict) return;  // a report exists once it succeeded or failed its check
     const result = job.result || {};
     const quality = result.quality || {};
+    const v = job.verdict || { status: 'failed', label: 'failed', reasons: ['this calibration has no quality verdict'], warnings: [] };
     $('#verdict').hidden = false;
-    const text = quality.passed === undefined ? 'NO QUALITY VERDICT: this calibration cannot be trusted without one'
-      : quality.passed ? `Passed: predicted field-of-view error ${fmt(quality.predicted_px_median)} px (median), ${fmt(quality.predicted_px_max)} px (worst view, frame ${quality.worst_frame}); limit ${fmt(quality.max_predicted_px)} px; centroid noise ${fmt(quality.centroid_noise_px)} px.`
-        : `FAILED: ${(quality.reasons || []).join('; ')}. Do not use this geometry.`;
-    $('#verdict-text').textContent = text + (quality.views ? ` Views: ${fmt(quality.views)}.` : '');
-    $('#verdict-text').className = quality.passed ? 'yes' : 'no';
+    $('#verdict-badge').replaceChildren(verdictBadge(v));
+    const figures = quality.predicted_px_median === undefined ? '' : ` Predicted field-of-view error ${fmt(quality.predicted_px_median)} px (median), ${fmt(quality.predicted_px_max)} px (worst view, frame ${quality.worst_frame}); limit ${fmt(quality.max_predicted_px)} px; centroid noise ${fmt(quality.centroid_noise_px)} px.`;
+    const text = v.status === 'failed' ? `Failed: ${v.reasons.join('; ')}. Do not use this geometry: calibrate again, or reconstruct from the nominal geometry.`
+      : v.status === 'passed_with_warnings' ? `Passed with warnings: read them below before using this geometry.` : 'Passed.';
+    $('#verdict-text').textContent = text + figures + (quality.views ? ` Views: ${fmt(quality.views)}.` : '');
+    $('#verdict-text').className = { passed: 'yes', passed_with_warnings: 'warn', failed: 'no' }[v.status];
     $('#cal-warnings').replaceChildren(...(result.warnings || []).map((w) => el('li', { text: w })));
     const rpe = await api('GET', `/calibrations/${id}/rpe`);
     $('#table1').hidden = false;
@@ -521,7 +560,7 @@ function pageJobs() {
       const list = await api('GET', '/jobs?limit=200');
       $('#job-table tbody').replaceChildren(...list.map((j) => el('tr', {},
         el('td', { text: j.kind }), el('td', {}, el('code', { text: j.id })), el('td', {}, el('a', { href: `/console/scans/${j.scan_id}`, text: j.scan_id })),
-        el('td', {}, el('span', { class: 'badge ' + j.state, text: j.state }), j.reason ? el('div', { class: 'muted', text: j.reason }) : null),
+        (() => { const cell = stateCell(j); if (j.reason) cell.append(el('div', { class: 'muted', text: j.reason })); return cell; })(),
         el('td', { text: j.progress && j.progress.total ? `${j.progress.stage} ${j.progress.done}/${j.progress.total}` : '' }),
         el('td', { text: j.owner }), el('td', { text: j.created_utc.slice(0, 19).replace('T', ' ') }),
         el('td', {},
@@ -682,6 +721,7 @@ async function pageViewer() {
   compare.value = wanted;
   const caption = (j) => `${j.result.name || j.id}: ${j.params.algorithm.toUpperCase()}, ${j.params.geometry} geometry, ${fmt(j.result.shape)} voxels of ${fmt(j.result.voxel_mm)} mm`;
   $('#caption-a').textContent = caption(job);
+  verdictNote(job, $('#verdict-a'));
   const gl = document.createElement('canvas').getContext('webgl2');
   if (!window.niivue || !gl) { fallback(job, others.find((j) => j.id === compare.value)); return; }
 
@@ -718,6 +758,7 @@ async function pageViewer() {
     if (!other) { b = null; a.broadcastTo([]); return; }
     if (!b) b = await make($('#gl-b'));
     $('#caption-b').textContent = caption(other);
+    verdictNote(other, $('#verdict-b'));
     await load(b, other);
     a.broadcastTo(b, { '2d': true, '3d': true });
     b.broadcastTo(a, { '2d': true, '3d': true });
@@ -737,14 +778,28 @@ async function pageViewer() {
   document.body.dataset.viewerReady = 'yes';
 }
 
+function verdictNote(j, node) {
+  // beside each volume: its verdict, and the override when it was made from a failed geometry
+  const v = j.verdict;
+  node.hidden = !v || v.status === 'passed';
+  if (node.hidden) return;
+  node.replaceChildren(verdictBadge(v), ' ', (v.reasons.length ? v.reasons : v.warnings).join('; '));
+  // made from a failed geometry by override: drawn as a failure would be, whatever else it says
+  node.className = 'notice verdict-note ' + (j.result.geometry_override ? 'failed' : v.status);
+}
+
 function fallback(job, other) {
   const note = $('#viewer-fallback');
   note.hidden = false;
   note.textContent = (window.niivue ? 'This browser has no WebGL2, so the 3-D viewer cannot run'
     : 'The 3-D viewer\'s library is not installed on this server (python -m orbitct_app.console.assets)')
     + '; the middle slices are shown as pictures (window: 1st to 99.5th percentile of each volume).';
-  const pictures = (j, fig) => fig.replaceChildren(el('figcaption', { text: j.result.name || j.id }),
-    ...['axial', 'coronal', 'sagittal'].map((axis) => el('img', { src: `/reconstructions/${j.id}/slices/${axis}`, alt: `${axis} slice of ${j.id}` })));
+  const pictures = (j, fig) => {
+    const verdict = $('p[role=status]', fig);  // the volume's verdict stays with its pictures
+    fig.replaceChildren(el('figcaption', { text: j.result.name || j.id }), verdict,
+      ...['axial', 'coronal', 'sagittal'].map((axis) => el('img', { src: `/reconstructions/${j.id}/slices/${axis}`, alt: `${axis} slice of ${j.id}` })));
+    verdictNote(j, verdict);
+  };
   pictures(job, $('#gl-a').closest('figure'));
   if (other) { $('#pane-b').hidden = false; pictures(other, $('#pane-b')); }
   document.body.dataset.viewerReady = 'fallback';

@@ -59,6 +59,13 @@ class Conflict(ApiError):
     status, code = 409, "conflict"
 
 
+class FailedCheck(ApiError):
+    """The result asked for would be made from one that failed its quality check (a calibrated geometry); the
+    request must say explicitly that it is to be used anyway."""
+
+    status, code = 409, "failed_quality_check"
+
+
 class Invalid(ApiError):
     """Parameters that are well-formed but not acceptable."""
 

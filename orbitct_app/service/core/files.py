@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from orbitct_app.service.core.errors import NotFound
+from orbitct_app.service.core.failures import failure_sentence
 
 _SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 
@@ -36,4 +37,4 @@ def summarize_scan(path: Path) -> dict[str, Any]:
     except ScanFileError as exc:
         return {"error": f"scan file unreadable: {exc}".replace(str(path), path.name)}
     except Exception as exc:  # noqa: BLE001 - a damaged file must not cost the scan's record
-        return {"error": f"scan file unreadable: {type(exc).__name__}: {exc}".replace(str(path), path.name)}
+        return {"error": f"scan file unreadable: {failure_sentence(exc)}".replace(str(path), path.name)}

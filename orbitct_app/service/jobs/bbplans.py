@@ -26,6 +26,7 @@ from orbitct.progress import ProgressEvent
 from orbitct_app.bbplan import BBPlanError, BBPlanRequest, make_bb_plan, write_bb_plan
 from orbitct_app.service.core.children import die_with_parent
 from orbitct_app.service.core.db import utc_now
+from orbitct_app.service.core.failures import failure_sentence
 from orbitct_app.service.core.jsonfile import write_json_atomically
 from orbitct_app.service.jobs.manager import JOB_NICE
 
@@ -84,7 +85,7 @@ def _make_plan(request: BBPlanRequest, folder: str, plan_id: str, parent_pid: in
         reason = f"cannot write the plan: {exc.strerror or exc} ({exc.filename or folder})"
     except Exception as exc:  # noqa: BLE001 - a bug must end the plan with its reason, not leave it planning
         traceback.print_exc()
-        reason = f"planning failed: {type(exc).__name__}: {exc}"
+        reason = f"planning failed: {failure_sentence(exc)}"
     shutil.rmtree(work, ignore_errors=True)
     conn.send(("end", reason))
     conn.close()

@@ -21,6 +21,7 @@ from typing import Any
 from orbitct.progress import ProgressEvent
 from orbitct_app.service.core.db import Store, utc_now
 from orbitct_app.service.core.events import EventBus
+from orbitct_app.service.core.failures import failure_sentence
 from orbitct_app.service.jobs.tasks import run_calibration, run_reconstruction
 
 log = logging.getLogger("orbitct.service.jobs")
@@ -51,6 +52,8 @@ class _EventLogHandler(logging.Handler):
         self._send = send
 
     def emit(self, record: logging.LogRecord) -> None:
+        if not getattr(record, "job_log", True):  # for the worker's own log only (a traceback)
+            return
         try:
             self._send("log", f"{record.levelname.lower()}: {record.getMessage()}")
         except Exception:  # noqa: BLE001 - a log line must never break the job
@@ -138,12 +141,27 @@ def run_job(
         return {"result": result, "events": sent[0]}
     except JobCancelled as exc:
         return {"cancelled": str(exc), "events": sent[0]}
-    except Exception as exc:  # noqa: BLE001 - every failure becomes the job's reason
-        text = f"{type(exc).__name__}: {exc}"
+    except Exception as exc:  # every failure becomes the job's reason
+        log.error("job %s failed", job_id, exc_info=True, extra={"job_log": False})  # details for the worker's log
+        text = failure_sentence(exc)
         send("log", "error: " + text)
         return {"error": text, "events": sent[0]}
     finally:
         root.removeHandler(handler)
+
+
+def _judged(result: dict[str, Any]) -> tuple[str, str, dict[str, Any]]:
+    """A finished job's state by its result's verdict: a failed quality check fails the job, result kept."""
+    verdict = result.get("verdict") or {}
+    if verdict.get("status") != "failed":
+        return "succeeded", "", result
+    reasons = "; ".join(verdict.get("reasons") or ["no reason given"])
+    return (
+        "failed",
+        f"the quality check failed: {reasons}. The result is kept, marked failed; see 'When a calibration fails its "
+        "quality check' in the documentation",
+        result,
+    )
 
 
 # ------------------------------------------------------------------ service side
@@ -481,6 +499,7 @@ class JobManager:
                 self._running.pop(r.job_id, None)
             self._dispatch_events()
             state, reason, result = r.outcome
+            self._refresh_summary(r.scan_id)  # before the job says it ended: the scan's record shows its result
             self._finish(r.job_id, state, reason, result)
             self._wake.set()
 
@@ -491,7 +510,7 @@ class JobManager:
             out = r.future.result()
             r.events_expected = int(out.get("events", 0))
             if "result" in out:
-                return "succeeded", "", out["result"]
+                return _judged(out["result"])
             if "cancelled" in out:
                 return "cancelled", str(out["cancelled"]), {}
             return "failed", self._scrub(str(out.get("error", "unknown error")))[:1000], {}
@@ -504,7 +523,7 @@ class JobManager:
                     "or the worker was killed"
                 )
             else:
-                why = f"{name}: {exc}"
+                why = failure_sentence(exc)
             return "failed", self._scrub(why)[:1000], {}
         if lost or status in ("cancelled", "lost"):
             if r.cancel_at is not None:
@@ -530,6 +549,17 @@ class JobManager:
     def _scrub(self, text: str) -> str:
         """Hide the service's own paths in messages shown to clients."""
         return text.replace(str(self._data_dir) + os.sep, "").replace(str(self._data_dir), "<data>")
+
+    def _refresh_summary(self, scan_id: str) -> None:
+        """Summarize the scan file again: a job has written its geometry or volume into it."""
+        from orbitct_app.service.core.files import summarize_scan
+
+        with _quiet():
+            scan = self._store.get_scan(scan_id)
+            if scan is not None:
+                summary = summarize_scan(self._data_dir / scan["file"])
+                if "error" not in summary:
+                    self._store.update_scan(scan_id, summary=summary)
 
     def _finish(self, job_id: str, state: str, reason: str, result: dict[str, Any]) -> None:
         self._store.update_job(

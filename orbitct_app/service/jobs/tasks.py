@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from orbitct.progress import ProgressEvent
+from orbitct.verdict import Verdict
 
 
 def _finite(x: float) -> float | None:
@@ -76,6 +77,11 @@ def run_calibration(
         "warnings": [str(w) for w in res.warnings][:200],
         "unsolved_views": [int(v) for v in res.unsolved_views][:10_000],
         "quality": _quality(res.quality),
+        "verdict": (
+            Verdict.summary(res.quality)
+            if res.quality is not None
+            else Verdict(reasons=("the calibration made no quality check",)).summary()
+        ),
         "scale": res.scale_line(),
         "files": sorted(p.name for p in out_dir.iterdir() if p.is_file()),
     }
@@ -107,6 +113,8 @@ def run_reconstruction(
         "max": _finite(volume.max()),
         "mean": _finite(volume.mean()),
         "warnings": [str(w) for w in res.warnings],
+        "verdict": res.verdict.summary(),
+        "geometry_override": bool(res.params.get("geometry_override", False)),
         "workers": int(res.params.get("cluster_workers", 1)),
         "files": sorted(p.name for p in out_dir.iterdir() if p.is_file()),
     }

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from orbitct.progress import ProgressEvent
+from orbitct_app.service.core.failures import failure_sentence
 from orbitct_app.service.rig import SERVICE_STOPPED
 from orbitct_app.service.rig.preview import LatestFrame
 
@@ -104,9 +105,11 @@ def classify(exc: BaseException) -> tuple[str, str]:
         return "unavailable", text
     if isinstance(exc, DeviceError):
         return "conflict", text
-    if isinstance(exc, (ValueError, TypeError, KeyError)):
-        return "invalid", f"{type(exc).__name__}: {text}"
-    return "error", f"{type(exc).__name__}: {text}"
+    if isinstance(exc, ValueError):
+        return "invalid", text
+    if isinstance(exc, (TypeError, KeyError)):
+        return "invalid", f"the command has a value of the wrong kind or lacks one ({text}); check its parameters"
+    return "error", failure_sentence(exc)
 
 
 class RigServer:
@@ -406,7 +409,7 @@ class RigServer:
                 if path.exists():
                     summary = await asyncio.get_running_loop().run_in_executor(None, summarize_scan, path)
             except Exception as exc:  # noqa: BLE001
-                summary = {"error": f"scan file unreadable: {type(exc).__name__}: {exc}".replace(str(path), path.name)}
+                summary = {"error": f"scan file unreadable: {failure_sentence(exc)}".replace(str(path), path.name)}
             if timing:
                 summary["timing"], summary["elapsed_s"] = timing, elapsed
             if self.live is not None:

@@ -168,9 +168,14 @@ def get_file(job_id: str, name: str, service: ServiceDep, _: Reader) -> FileResp
 
 
 def _finished(service: Any, job_id: str) -> dict[str, Any]:
+    """The job, once it has a report: succeeded, or failed by its quality check (the report says why)."""
     job = job_or_404(service, job_id, "calibration")
-    if job["state"] != "succeeded":
-        raise Conflict(f"calibration {job_id} is {job['state']}; results exist once it has succeeded")
+    judged = job["state"] == "failed" and bool((job.get("result") or {}).get("verdict"))
+    if job["state"] != "succeeded" and not judged:
+        raise Conflict(
+            f"calibration {job_id} is {job['state']}; its report exists once it has finished (succeeded, or failed "
+            "its quality check)"
+        )
     if not isinstance(job["result"], dict):
         raise NotFound(f"calibration {job_id} has no result")
     return job

@@ -16,6 +16,7 @@ from orbitct_app.service.core.errors import (
     NOT_SUCCEEDED,
     Conflict,
     ErrorBody,
+    FailedCheck,
     NotFound,
 )
 from orbitct_app.service.core.files import confined
@@ -63,6 +64,22 @@ def _file_facts(service: Any, scan: dict[str, Any]) -> tuple[list[str], list[str
         return list(scan["summary"].get("geometries", [])), list(scan["summary"].get("recon", []))
 
 
+def _failed_calibration(service: Any, scan: dict[str, Any]) -> list[str] | None:
+    """Why the scan file's calibrated geometry failed its quality check; None when it passed, or when a calibration
+    queued or running will replace it (that job's result decides, in the worker)."""
+    from orbitct.scanfile import ScanFile
+    from recon.pipeline import failed_geometry_reasons
+
+    jobs = service.store.list_jobs(kind="calibration", scan_id=scan["id"], limit=500)
+    if any(j["state"] in ("queued", "running") for j in jobs):
+        return None
+    try:
+        with ScanFile(service.settings.data_dir / scan["file"]) as sf:
+            return failed_geometry_reasons(sf, "calibrated")
+    except Exception:  # noqa: BLE001 - a file being written: the job checks again when it runs
+        return None
+
+
 def _has_geometry(service: Any, scan: dict[str, Any], name: str, in_file: list[str]) -> bool:
     if name in in_file:
         return True
@@ -80,8 +97,9 @@ def _has_geometry(service: Any, scan: dict[str, Any], name: str, in_file: list[s
     responses={
         409: {
             "model": ErrorBody,
-            "description": "the scan is not complete, lacks the requested "
-            "geometry, or already has a reconstruction of that name (without overwrite)",
+            "description": "the scan is not complete, lacks the requested geometry, already has a "
+            "reconstruction of that name (without overwrite), or (`failed_quality_check`) its calibrated geometry "
+            'failed its quality check and `"accept_failed_geometry": true` was not sent',
         },
         **DISK_FULL,
     },
@@ -93,6 +111,13 @@ def start_reconstruction(body: ReconstructionRequest, service: ServiceDep, who: 
     if not _has_geometry(service, scan, body.geometry, geometries):
         hint = " (run a calibration first)" if body.geometry == "calibrated" else ""
         raise Conflict(f"scan {body.scan_id} has no {body.geometry} geometry{hint}")
+    if body.geometry == "calibrated" and not body.accept_failed_geometry:
+        reasons = _failed_calibration(service, scan)
+        if reasons is not None:
+            from recon import FailedGeometryError
+
+            refused = FailedGeometryError(f"scan {body.scan_id}", reasons)
+            raise FailedCheck(refused.sentence('send "accept_failed_geometry": true'))
     name = body.recon_name
     if name in recons and not body.overwrite:
         raise Conflict(

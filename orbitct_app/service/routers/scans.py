@@ -27,7 +27,7 @@ from orbitct_app.service.core.events import sse_response
 from orbitct_app.service.core.files import confined
 from orbitct_app.service.core.schema_rules import only_with, schema_extra
 from orbitct_app.service.deps import Reader, ScanOperator, ServiceDep
-from orbitct_app.service.schemas import scan_or_404
+from orbitct_app.service.schemas import VerdictOut, scan_or_404
 
 router = APIRouter(prefix="/scans", tags=["scans"], responses=ERROR_RESPONSES)
 OrbitKind = Literal[tuple(ORBIT_KINDS)]  # type: ignore[valid-type]
@@ -95,6 +95,14 @@ class ScanCreate(BaseModel):
         return self
 
 
+class ScanCalibration(BaseModel):
+    """A scan's latest calibration: the job that made it (none for a live calibration), its state and verdict."""
+
+    job_id: str | None = None
+    state: str = Field(description="the job's state, or 'live' for a calibration made during the scan")
+    verdict: VerdictOut | None = None
+
+
 class ScanOut(BaseModel):
     """A scan: state, progress (live while it runs), summary of the file (once ended)."""
 
@@ -142,6 +150,9 @@ class ScanOut(BaseModel):
     frames_total: int = Field(description="frames planned (projections, darks and flats once the scan has started)")
     progress: dict[str, Any]
     summary: dict[str, Any]
+    calibration: ScanCalibration | None = Field(
+        None, description="its latest calibration (a job, or the live one of the scan) and that one's verdict"
+    )
     links: dict[str, str]
 
 
@@ -152,7 +163,25 @@ class ScanAction(BaseModel):
     reason: str = Field("aborted by the operator", max_length=200)
 
 
-def _out(service: Any, row: dict[str, Any]) -> ScanOut:
+def _latest_calibration(service: Any, scan_id: str) -> dict[str, Any] | None:
+    jobs = service.store.list_jobs(kind="calibration", scan_id=scan_id, limit=1)
+    return jobs[0] if jobs else None
+
+
+def _calibration(row: dict[str, Any], job: dict[str, Any] | None) -> ScanCalibration | None:
+    """The scan's latest calibration job, or else the live calibration its file holds."""
+    if job is not None:
+        verdict = (job.get("result") or {}).get("verdict")
+        return ScanCalibration(
+            job_id=job["id"], state=job["state"], verdict=VerdictOut.model_validate(verdict) if verdict else None
+        )
+    live = (row.get("summary") or {}).get("calibration") or {}
+    if live.get("verdict"):
+        return ScanCalibration(state="live", verdict=VerdictOut.model_validate(live["verdict"]))
+    return None
+
+
+def _out(service: Any, row: dict[str, Any], calibration_job: dict[str, Any] | None = None) -> ScanOut:
     active = service.rig.current
     if active is not None and active.scan_id == row["id"] and row["state"] not in ("complete", "aborted", "failed"):
         progress = active.progress
@@ -169,7 +198,11 @@ def _out(service: Any, row: dict[str, Any]) -> ScanOut:
         "file": f"/scans/{row['id']}/file",
         "jobs": f"/jobs?scan_id={row['id']}",
     }
-    return ScanOut(**{k: row[k] for k in ScanOut.model_fields if k != "links"}, links=links)
+    return ScanOut(
+        **{k: row[k] for k in ScanOut.model_fields if k not in ("links", "calibration")},
+        calibration=_calibration(row, calibration_job),
+        links=links,
+    )
 
 
 def _check_params(service: Any, body: ScanCreate) -> dict[str, Any]:
@@ -304,13 +337,16 @@ def list_scans(
     offset: Annotated[int, Query(ge=0, le=1_000_000)] = 0,
 ) -> list[ScanOut]:
     """Scans, newest first."""
-    return [_out(service, r) for r in service.store.list_scans(state=state, limit=limit, offset=offset)]
+    return [
+        _out(service, r, _latest_calibration(service, r["id"]))
+        for r in service.store.list_scans(state=state, limit=limit, offset=offset)
+    ]
 
 
 @router.get("/{scan_id}", response_model=ScanOut, summary="Status and summary of a scan")
 async def get_scan(scan_id: str, service: ServiceDep, _: Reader) -> ScanOut:
     """State, live progress (frame n of N, rate, time left) and, once ended, the file summary."""
-    return _out(service, scan_or_404(service, scan_id))
+    return _out(service, scan_or_404(service, scan_id), _latest_calibration(service, scan_id))
 
 
 @router.get(

@@ -128,3 +128,26 @@ def test_the_time_estimate_follows_the_work() -> None:
     assert reconstruction_seconds("pwls", small, 100, 64, 64, 10) < reconstruction_seconds(
         "pwls", small, 100, 64, 64, 50
     )
+
+
+def test_a_failed_calibrated_geometry_is_refused_until_accepted_and_the_volume_says_so(tmp_path: Path) -> None:
+    import h5py
+
+    g = ViewGeometry.from_carm(np.linspace(0, 2 * np.pi, 40, endpoint=False), 0.0, 785.0, 1200.0, bench_detector(48))
+    path = tmp_path / "s.h5"
+    write_sphere_scan(path, g)
+    with h5py.File(path, "r+") as f:  # what a calibration that failed its check leaves in the file
+        f.copy("geometry/nominal", "geometry/calibrated")
+        f["geometry/calibrated"].attrs.update(
+            {"quality": "failed", "quality_reasons_json": '["5 of 40 view(s) failed"]', "verdict": "failed"}
+        )
+    args = ["reconstruct", str(path), "--shape", "16,24,24", "--voxel-mm", "4"]
+    refused = CliRunner().invoke(cli, args)
+    assert refused.exit_code == 2, refused.output
+    assert "failed its quality check (5 of 40 view(s) failed)" in refused.output
+    assert "--accept-failed-geometry" in refused.output and "Traceback" not in refused.output
+    accepted = CliRunner().invoke(cli, [*args, "--accept-failed-geometry"])
+    assert accepted.exit_code == 0, accepted.output
+    assert "verdict: passed with warnings" in accepted.output and "by explicit override" in accepted.output
+    nominal = CliRunner().invoke(cli, [*args, "--geometry", "nominal"])
+    assert nominal.exit_code == 0 and "verdict: passed" in nominal.output, nominal.output

@@ -14,7 +14,7 @@ import pytest
 
 from orbitct_app.service.core.auth import create_token
 from tests.helpers.browser import chromium
-from tests.helpers.service import ROOT, ended, serve_subprocess, small_bench_config
+from tests.helpers.service import ROOT, SMALL_SAWTOOTH, ended, serve_subprocess, small_bench_config
 
 pytestmark = [pytest.mark.system, pytest.mark.slow]
 SHOTS = ROOT / "test-artefacts" / "console"
@@ -220,6 +220,90 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
     shot(page, "scans")
     page.context.close()
     assert not console.outside, f"pages fetched from outside orbitct: {console.outside}"
+
+
+def _ended(console: Console, path: str, timeout_s: float = 180.0) -> dict[str, Any]:
+    t0 = time.monotonic()
+    while not ended(body := console.api("GET", path).json()):
+        assert time.monotonic() - t0 < timeout_s, body
+        time.sleep(0.2)
+    return body
+
+
+def _not_green(page: Any, selector: str) -> None:
+    """The element says failed and is drawn red, not in the console's green."""
+    element = page.locator(selector).first
+    assert "failed" in element.inner_text(), element.inner_text()
+    colours = element.evaluate("(e) => [getComputedStyle(e).color, getComputedStyle(e).backgroundColor]")
+    assert not any(c in ("rgb(27, 122, 58)", "rgb(220, 242, 227)") for c in colours), colours
+
+
+def test_a_failed_calibration_shows_failed_everywhere_and_blocks_reconstruction_until_overridden(
+    console: Console,
+) -> None:
+    """A calibration whose quality check fails (here: a limit no geometry meets) is failed on the scan list, the
+    scan page, the report, the jobs page; reconstructing from it is refused until asked for explicitly, and the
+    volume then carries the override in the viewer."""
+    from playwright.sync_api import expect
+
+    r = console.api("POST", "/scans", json={**SMALL_SAWTOOTH, "frames": 40, "name": "failed check"})
+    assert r.status_code == 202, r.text
+    scan_id = r.json()["id"]
+    assert _ended(console, f"/scans/{scan_id}")["state"] == "complete"
+    r = console.api("POST", "/calibrations", role="analyst", json={"scan_id": scan_id, "max_predicted_px": 0.0001})
+    cal = _ended(console, f"/calibrations/{r.json()['id']}")
+    assert cal["state"] == "failed" and cal["verdict"]["status"] == "failed", cal
+    assert "quality check failed" in cal["reason"] and "predicted error above 0.0001 px" in cal["reason"]
+    refused = console.api("POST", "/reconstructions", role="analyst", json={"scan_id": scan_id, "shape": [32] * 3})
+    assert refused.status_code == 409 and refused.json()["error"] == "failed_quality_check", refused.text
+    assert '"accept_failed_geometry": true' in refused.json()["message"]
+
+    page = console.sign_in("analyst")
+    page.goto(console.base + "/console/scans")
+    row = page.locator("#scan-table tbody tr", has_text=scan_id)
+    expect(row.locator("[data-verdict]")).to_have_attribute("data-verdict", "failed", timeout=30_000)
+    _not_green(page, f"#scan-table tbody tr:has-text('{scan_id}') [data-verdict]")
+    shot(page, "failed-calibration-scans")
+
+    page.goto(f"{console.base}/console/scans/{scan_id}")
+    expect(page.locator("#scan-calibration [data-verdict]")).to_have_attribute("data-verdict", "failed")
+    # the file's summary agrees: it was read again when the calibration ended
+    expect(page.locator("#scan-summary dt:text-is('calibration') + dd")).to_contain_text("failed")
+    expect(page.locator("#rec-failed-geometry")).to_be_visible()
+    rows = page.locator("#scan-jobs tbody tr")
+    expect(rows).to_have_count(1)
+    _not_green(page, "#scan-jobs tbody tr [data-verdict]")
+    page.fill("#rec-shape", "32")
+    page.click("#reconstruct")  # refused: the failed geometry was not accepted
+    expect(page.locator("#reconstruct-form .error")).to_contain_text("failed its quality check")
+    expect(rows).to_have_count(1)
+    shot(page, "failed-calibration-refused")
+    page.check("#rec-accept-failed")
+    page.click("#reconstruct")
+    expect(rows).to_have_count(2)
+    expect(rows.first).to_contain_text("succeeded", timeout=TIMEOUT_MS)
+    expect(rows.first.locator("[data-verdict]")).to_have_attribute("data-verdict", "passed_with_warnings")
+    shot(page, "failed-calibration-overridden")
+
+    page.goto(f"{console.base}/console/calibrations/{cal['id']}")
+    expect(page.locator("#verdict-badge [data-verdict]")).to_have_attribute("data-verdict", "failed")
+    _not_green(page, "#job-state")
+    expect(page.locator("#verdict-text")).to_contain_text("Do not use this geometry")
+    expect(page.locator("#table1")).to_be_visible()  # the report is there to read why
+    shot(page, "failed-calibration-report")
+
+    page.goto(console.base + "/console/jobs")
+    _not_green(page, f"#job-table tbody tr:has-text('{cal['id']}') [data-verdict]")
+
+    volume = next(j for j in console.api("GET", f"/reconstructions?scan_id={scan_id}").json())
+    assert volume["result"]["geometry_override"] is True and volume["verdict"]["status"] == "passed_with_warnings"
+    page.goto(f"{console.base}/console/reconstructions/{volume['id']}")
+    page.wait_for_selector("body[data-viewer-ready]", timeout=60_000)
+    expect(page.locator("#verdict-a")).to_be_visible()
+    expect(page.locator("#verdict-a")).to_contain_text("failed its quality check, by explicit override")
+    _not_green(page, "#verdict-a")
+    shot(page, "failed-calibration-viewer")
+    page.context.close()
 
 
 def test_a_viewer_finds_no_controls_that_change_the_bench_and_the_api_refuses_them(console: Console) -> None:

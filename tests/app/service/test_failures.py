@@ -1,0 +1,28 @@
+"""How failures read to a person: a sentence with what to do, never a Python class name."""
+
+from __future__ import annotations
+
+import errno
+import re
+
+import pytest
+
+from orbitct_app.service.core.failures import failure_sentence
+from recon.errors import ReconError
+
+CLASS_NAME = re.compile(r"\b[A-Z][a-z]+(?:[A-Z][a-z]+)*(?:Error|Exception|Warning)\b")
+
+
+@pytest.mark.parametrize(
+    ("exc", "said"),
+    [
+        (ReconError("scan.h5: has no projection frames"), "scan.h5: has no projection frames"),
+        (MemoryError(), "ran out of memory: make the work smaller"),
+        (OSError(errno.ENOSPC, "No space left on device", "/data/x.h5"), "(/data/x.h5): No space left on device"),
+        (KeyError("vectors"), "an unexpected error stopped it ('vectors'); try again"),
+        (RuntimeError(), "an unexpected error stopped it (no message)"),
+    ],
+)
+def test_a_failure_is_a_sentence_without_a_class_name(exc: BaseException, said: str) -> None:
+    text = failure_sentence(exc)
+    assert said in text and not CLASS_NAME.search(text), text
