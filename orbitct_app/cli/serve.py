@@ -200,23 +200,30 @@ def _token_file_options(fn):  # type: ignore[no-untyped-def]
 @token.command("create")
 @click.option(
     "--role",
+    "roles",
     type=click.Choice(["operator", "analyst", "viewer"]),
     required=True,
-    help="operator: motion, X-rays, scans; analyst: calibration, reconstruction; viewer: read only",
+    multiple=True,
+    help="operator: motion, X-rays, scans, people; analyst: calibration, reconstruction, BB plans; viewer: read "
+    "only. Repeat it for a person with several roles (--role operator --role analyst).",
 )
-@click.option("--name", default="", help="a unique name, shown in logs and by `token list` (default <role>-<n>)")
+@click.option("--name", default="", help="a unique name, shown in logs and by `token list` (default <roles>-<n>)")
 @_token_file_options
-def create(role: str, name: str, data_dir: Path | None, tokens_file: Path | None) -> None:
-    """Create a token for ROLE, store its hash, print the token once."""
+def create(roles: tuple[str, ...], name: str, data_dir: Path | None, tokens_file: Path | None) -> None:
+    """Create a person's token with their ROLEs, store its hash, print the token once."""
     from orbitct_app.service.core.auth import TokenFileError, create_token
 
     settings = _settings(data_dir=data_dir, tokens_file=tokens_file)
     try:
-        value = create_token(settings.tokens_path, role, name)  # type: ignore[arg-type]
+        value = create_token(settings.tokens_path, list(roles), name)  # type: ignore[arg-type]
     except TokenFileError as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(value)
-    click.echo(f"(role {role}; hash stored in {settings.tokens_path}; this token is not shown again)", err=True)
+    click.echo(
+        f"(roles {', '.join(dict.fromkeys(roles))}; hash stored in {settings.tokens_path}; this token is not shown "
+        "again)",
+        err=True,
+    )
 
 
 @token.command("list")
@@ -234,9 +241,10 @@ def list_tokens(data_dir: Path | None, tokens_file: Path | None) -> None:
         click.echo(f"no tokens in {settings.tokens_path}; make one with `orbitct token create --role operator`")
         return
     width = max(len(e.name) for e in entries)
-    click.echo(f"{'name':<{width}}  {'role':<8}  hash")
+    roles = max(len(e.role) for e in entries)
+    click.echo(f"{'name':<{width}}  {'roles':<{roles}}  hash")
     for e in entries:
-        click.echo(f"{e.name:<{width}}  {e.role:<8}  {e.sha256[:12]}")
+        click.echo(f"{e.name:<{width}}  {e.role:<{roles}}  {e.sha256[:12]}")
     click.echo(
         f"({len(entries)} in {settings.tokens_path}; tokens in the service settings file are not listed)", err=True
     )

@@ -21,7 +21,7 @@ from fastapi.templating import Jinja2Templates
 
 from calib.live import ABORT_KINDS, WARNING_MEANINGS
 from orbitct import __version__
-from orbitct_app.service.core.auth import PERMISSIONS
+from orbitct_app.service.core.auth import PERMISSIONS, ROLE_WORDS
 from orbitct_app.service.core.sessions import COOKIE
 
 HERE = Path(__file__).resolve().parent
@@ -145,6 +145,12 @@ def viewer(
 ) -> Response:
     """Slices and 3-D of a reconstruction, beside another of the same scan with the same window."""
     return _render(request, "viewer.html", "viewer", "Volume viewer", job_id=job_id, compare=compare)
+
+
+@router.get("/console/people", response_class=HTMLResponse)
+def people(request: Request) -> Response:
+    """Operators: who may sign in, with which roles; add and remove people."""
+    return _render(request, "people.html", "people", "People", roles=ROLE_WORDS)
 
 
 @router.get("/console/jobs", response_class=HTMLResponse)

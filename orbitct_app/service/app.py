@@ -18,6 +18,7 @@ from orbitct_app.service.routers import (
     jobs,
     orbits,
     pacs,
+    people,
     plans,
     reconstructions,
     scans,
@@ -47,6 +48,7 @@ TAGS = [
         "name": "session",
         "description": "The web console's sign-in: a token exchanged for a session cookie (CSRF-protected).",
     },
+    {"name": "people", "description": "Who may sign in, with which roles (operator manages)."},
     {"name": "health", "description": "Liveness, no token needed."},
 ]
 
@@ -98,6 +100,7 @@ def create_app(settings: ServiceSettings, *, service: Service | None = None) -> 
         pacs,
         plans,
         surfaces,
+        people,
     ):
         app.include_router(module.router)
     install_console(app)

@@ -60,7 +60,7 @@ def require(permission: str) -> Callable[..., Principal]:
 
     async def _check(principal: Annotated[Principal, Depends(get_principal)]) -> Principal:
         if not principal.may(permission):
-            raise HTTPException(403, f"role {principal.role!r} may not do this (needs the {permission!r} permission)")
+            raise HTTPException(403, principal.refusal(permission))
         return principal
 
     _check.__name__ = f"require_{permission}"
@@ -73,3 +73,4 @@ ScanOperator = Annotated[Principal, Depends(require("scan"))]
 Analyst = Annotated[Principal, Depends(require("analysis"))]
 Stopper = Annotated[Principal, Depends(require("stop"))]
 Resetter = Annotated[Principal, Depends(require("reset"))]
+PeopleManager = Annotated[Principal, Depends(require("people"))]

@@ -153,7 +153,14 @@ def test_the_clinical_path_end_to_end(tmp_path: Path) -> None:
             calibrated_px, _ = similarity_aligned_error_px(sf.geometry("calibrated")[sf.projection_indices], true_views)
             nominal_px, _ = similarity_aligned_error_px(sf.geometry("nominal")[sf.projection_indices], true_views)
         assert calibrated_px < 0.6 and calibrated_px < 0.6 * nominal_px, (calibrated_px, nominal_px)  # 0.37 vs 0.99 px
-        rec = recon.reconstruct_scan(scan, algorithm="fdk", geometry="calibrated", shape=(24, 48, 48))
+        # the twin's own run fails its check the same way (2 of 120 views keep only 4 BBs, predicted 0.64 px):
+        # the import loses nothing, and reconstructing from that geometry needs the recorded override
+        assert result.quality.status == "failed" and result.quality.counts == {"own": 120, "bridged": 0, "failed": 0}
+        with pytest.raises(recon.FailedGeometryError):
+            recon.reconstruct_scan(scan, algorithm="fdk", geometry="calibrated", shape=(24, 48, 48))
+        rec = recon.reconstruct_scan(
+            scan, algorithm="fdk", geometry="calibrated", shape=(24, 48, 48), accept_failed_geometry=True
+        )
         with ScanFile(scan) as sf:
             volume, attrs = sf.read_recon(rec.name)
         grid = VolumeGrid(volume.shape, tuple(attrs["voxel_mm"]), tuple(attrs["origin_mm"]))

@@ -148,6 +148,7 @@ async function refreshLatch() {
     $('#latch').hidden = !s.latched;
     $('#latch-text').textContent = s.latched ? `Since ${s.since_utc} by ${s.by}: ${s.reason}. No motion or X-rays until it is reset.` : '';
     document.body.classList.toggle('latched', s.latched);
+    document.dispatchEvent(new Event('latch'));
   } catch (_) { /* the next event or page load tries again */ }
 }
 
@@ -205,6 +206,23 @@ async function pageBench() {
     const card = $(`[data-device="${dev.name}"]`, box);
     try { render(card, await api('GET', `/devices/${dev.name}`)); } catch (exc) { $('.error', card).textContent = exc.message; }
   }));
+  // the controls that move or switch something are off, with the reason, while the stop is latched or a scan runs
+  let busy = null;
+  const gate = () => {
+    const why = document.body.classList.contains('latched') ? 'the emergency stop is latched: an operator resets it in the red banner first'
+      : busy ? `scan "${busy.name || busy.id}" is ${busy.state}: wait for it to end, or abort it on its page` : '';
+    $('#bench-gate').hidden = !why;
+    $('#bench-gate').textContent = why ? 'Controls are off because ' + why + '.' : '';
+    for (const control of $$('.device .reference, .device .reset-fault, .device form.move button, .device form.move input')) {
+      control.disabled = Boolean(why);
+      control.title = why ? 'Off: ' + why : '';
+    }
+  };
+  document.addEventListener('latch', gate);
+  every(2000, async () => {
+    try { busy = (await api('GET', '/scans?limit=5')).find((s) => ['queued', 'running', 'paused'].includes(s.state)) || null; } catch (_) { busy = null; }
+    gate();
+  });
 
   function render(card, reading) {
     // red: a state that moves, exposes or is faulted; green: a good state that is on; the rest plain
@@ -805,9 +823,43 @@ function fallback(job, other) {
   document.body.dataset.viewerReady = 'fallback';
 }
 
+// ---------------------------------------------------------------- people (operators)
+function pagePeople() {
+  const me = document.body.dataset.user;
+  const load = async () => {
+    try {
+      const list = await api('GET', '/people');
+      $('#people-table tbody').replaceChildren(...list.map((p) => el('tr', { 'data-person': p.name },
+        el('td', { text: p.name }), el('td', { text: p.roles.join(', ') }), el('td', {}, el('code', { text: p.hash_prefix })),
+        el('td', {}, p.name === me ? el('span', { class: 'muted', text: 'you' }) : el('button', { type: 'button', class: 'danger', text: 'Remove',
+          onclick: (ev) => act(ev.currentTarget, async () => {
+            if (!confirm(`Remove ${p.name}? Their token stops working at once.`)) return;
+            await api('DELETE', `/people/${encodeURIComponent(p.name)}`);
+            await load();
+          }) })))));
+      if (!list.length) $('#people-table tbody').append(el('tr', {}, el('td', { colspan: 4, class: 'muted', text: 'Nobody in the tokens file yet.' })));
+      $('main > .error').textContent = '';
+    } catch (exc) { $('main > .error').textContent = exc.message; }
+  };
+  $('#person-form').addEventListener('submit', (ev) => {
+    ev.preventDefault();
+    act($('#add-person'), async () => {
+      const roles = Array.from(document.querySelectorAll('#person-form input[name=role]:checked')).map((i) => i.value);
+      if (!roles.length) throw new ApiError('choose at least one role', 0);
+      const made = await api('POST', '/people', { name: $('#person-name').value, roles });
+      $('#new-token').hidden = false;
+      $('#new-token .name').textContent = `${made.name} (${made.roles.join(', ')})`;
+      $('#new-token .token').textContent = made.token;
+      $('#person-form').reset();
+      await load();
+    });
+  });
+  load();
+}
+
 // ---------------------------------------------------------------- start
 const PAGES = { 'sign-in': pageSignIn, bench: pageBench, 'scan-new': pageScanNew, scans: pageScans, scan: pageScan,
-  calibration: pageCalibration, jobs: pageJobs, viewer: pageViewer, plans: pagePlans };
+  calibration: pageCalibration, jobs: pageJobs, viewer: pageViewer, plans: pagePlans, people: pagePeople };
 document.addEventListener('DOMContentLoaded', () => {
   const page = document.body.dataset.page;
   if (page !== 'sign-in') initFrame();

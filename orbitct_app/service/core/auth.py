@@ -1,4 +1,5 @@
-"""Bearer tokens stored only as SHA-256 hashes, with roles operator, analyst and viewer."""
+"""Bearer tokens (one per person) stored only as SHA-256 hashes, each with one or more of the roles operator,
+analyst and viewer."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import hmac
 import json
 import secrets
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -15,18 +17,24 @@ from typing import Literal
 from orbitct_app.service.core.jsonfile import write_json_atomically
 from orbitct_app.service.core.settings import Role, TokenHash
 
-Permission = Literal["read", "motion", "scan", "analysis", "stop", "reset"]
+Permission = Literal["read", "motion", "scan", "analysis", "stop", "reset", "people"]
 
 ROLES: tuple[str, ...] = ("operator", "analyst", "viewer")
 # Everyone who may see the bench may press the emergency stop; only an operator may reset it; the rest is split by role.
 PERMISSIONS: dict[str, frozenset[str]] = {
-    "operator": frozenset({"read", "motion", "scan", "stop", "reset"}),
+    "operator": frozenset({"read", "motion", "scan", "stop", "reset", "people"}),
     "analyst": frozenset({"read", "analysis", "stop"}),
     "viewer": frozenset({"read", "stop"}),
 }
 # The generated token of a --sim service may do everything (it never exists on real hardware).
 SIM_DEV_ROLE = "sim-dev"
 PERMISSIONS[SIM_DEV_ROLE] = PERMISSIONS["operator"] | PERMISSIONS["analyst"]
+#: what each role is for, as the console and the refusals say it
+ROLE_WORDS = {
+    "operator": "moves the bench, runs scans, resets the stop, manages people",
+    "analyst": "calibrates, reconstructs, plans BBs",
+    "viewer": "reads only",
+}
 TOKEN_PREFIX = "oct_"
 # A stop the web server forwards to the guard for a signed-in console user: the service's forwarding secret as the
 # token, "name|role" of the user in this header
@@ -39,14 +47,38 @@ class TokenFileError(ValueError):
 
 @dataclass(frozen=True)
 class Principal:
-    """Who is calling: the token's name and role."""
+    """Who is calling: the name of their sign-in (token) and the roles it carries (one or several)."""
 
     name: str
-    role: str
+    roles: tuple[str, ...]
+
+    @property
+    def role(self) -> str:
+        """The roles as the console shows them: ``operator, analyst``."""
+        return ", ".join(self.roles)
+
+    @classmethod
+    def from_label(cls, name: str, label: str) -> Principal:
+        """The principal whose :attr:`role` is ``label``."""
+        return cls(name=name, roles=tuple(r.strip() for r in label.split(",") if r.strip()))
+
+    @property
+    def permissions(self) -> frozenset[str]:
+        """Everything its roles grant together."""
+        return frozenset().union(*(PERMISSIONS.get(r, frozenset()) for r in self.roles))
 
     def may(self, permission: str) -> bool:
-        """Whether the role grants ``permission``."""
-        return permission in PERMISSIONS.get(self.role, frozenset())
+        """Whether one of its roles grants ``permission``."""
+        return permission in self.permissions
+
+    def refusal(self, permission: str) -> str:
+        """Why it may not do something that needs ``permission``, in the console's words, and what to do."""
+        needed = [r for r in ROLES if permission in PERMISSIONS[r]]
+        return (
+            f"{self.name} is signed in as {self.role}; this needs the {' or '.join(needed)} role ("
+            f"{ROLE_WORDS[needed[0]]}). Ask an operator for a sign-in with that role as well (the console's People "
+            f"page, or `orbitct token create --role ... --role {needed[0]}`)"
+        )
 
 
 def hash_token(token: str) -> str:
@@ -79,16 +111,18 @@ def _write_token_file(path: Path, entries: list[TokenHash]) -> None:
     write_json_atomically(path, body, private=True)
 
 
-def create_token(path: Path, role: Role, name: str = "") -> str:
-    """Make a token for ``role``, append its hash to ``path`` and return the token (shown once)."""
-    if role not in ROLES:
-        raise TokenFileError(f"role must be one of {', '.join(ROLES)}, got {role!r}")
+def create_token(path: Path, roles: Role | Sequence[Role], name: str = "") -> str:
+    """Make a token (one person's sign-in) with ``roles``, append its hash to ``path`` and return the token (shown
+    once)."""
+    wanted = [roles] if isinstance(roles, str) else list(dict.fromkeys(roles))
+    if not wanted or any(r not in ROLES for r in wanted):
+        raise TokenFileError(f"roles must be among {', '.join(ROLES)}, got {', '.join(map(str, wanted)) or 'none'}")
     token = new_token()
     entries = read_token_file(path)
-    name = name or f"{role}-{len(entries) + 1}"
+    name = name or f"{'-'.join(wanted)}-{len(entries) + 1}"
     if any(e.name == name for e in entries):
         raise TokenFileError(f"a token named {name!r} exists already in {path}; choose another name")
-    entries.append(TokenHash(sha256=hash_token(token), role=role, name=name))
+    entries.append(TokenHash(sha256=hash_token(token), roles=wanted, name=name))
     _write_token_file(path, entries)
     return token
 
@@ -144,8 +178,8 @@ class TokenRegistry:
         """The principal of the token whose SHA-256 is ``digest`` (a signed-in session re-checks it on each request)."""
         found: Principal | None = None
         if self._dev_hash is not None and hmac.compare_digest(self._dev_hash, digest):
-            found = Principal(name="sim-dev", role=SIM_DEV_ROLE)
+            found = Principal(name="sim-dev", roles=(SIM_DEV_ROLE,))
         for entry in self._entries():
             if hmac.compare_digest(entry.sha256, digest):
-                found = Principal(name=entry.name, role=entry.role)
+                found = Principal(name=entry.name, roles=tuple(entry.roles))
         return found

@@ -18,11 +18,25 @@ Role = Literal["operator", "analyst", "viewer"]
 
 
 class TokenHash(BaseModel):
-    """A configured token: its SHA-256 hex digest, role and a name for the logs."""
+    """A person's sign-in: its token's SHA-256 hex digest, their roles and a name for the logs. ``role: R`` (one
+    role, as files before several roles per token said it) is read as ``roles: [R]``."""
 
     sha256: str = Field(pattern=r"^[0-9a-f]{64}$")
-    role: Role
+    roles: list[Role] = Field(min_length=1, max_length=3)
     name: str = Field(default="", max_length=100)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _one_role(cls, value: Any) -> Any:
+        if isinstance(value, dict) and "role" in value and "roles" not in value:
+            value = {**value, "roles": [value["role"]]}
+            value.pop("role")
+        return value
+
+    @property
+    def role(self) -> str:
+        """The roles as the console shows them: ``operator, analyst``."""
+        return ", ".join(self.roles)
 
 
 class ServiceSettings(BaseSettings):

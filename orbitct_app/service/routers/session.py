@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Request, Response
 from pydantic import BaseModel, ConfigDict, Field
 
-from orbitct_app.service.core.auth import PERMISSIONS, Principal
+from orbitct_app.service.core.auth import Principal
 from orbitct_app.service.core.errors import ERROR_RESPONSES, ApiError
 from orbitct_app.service.core.sessions import COOKIE, CSRF_HEADER
 from orbitct_app.service.deps import ServiceDep, get_principal
@@ -23,10 +23,12 @@ class SignIn(BaseModel):
 
 
 class SessionOut(BaseModel):
-    """Who is signed in, what the role may do, and the CSRF token state-changing requests must send."""
+    """Who is signed in, their roles and what those let them do, and the CSRF token state-changing requests must
+    send."""
 
     name: str
-    role: str
+    role: str = Field(description="the roles as the console shows them, e.g. 'operator, analyst'")
+    roles: list[str]
     permissions: list[str]
     csrf_token: str = Field(description=f"send it as the {CSRF_HEADER} header with every POST made with the cookie")
 
@@ -42,7 +44,8 @@ def _out(principal: Principal, csrf: str) -> SessionOut:
     return SessionOut(
         name=principal.name,
         role=principal.role,
-        permissions=sorted(PERMISSIONS.get(principal.role, ())),
+        roles=list(principal.roles),
+        permissions=sorted(principal.permissions),
         csrf_token=csrf,
     )
 

@@ -304,13 +304,13 @@ class StopHandler(BaseHTTPRequestHandler):
             and self.guard.forward_secret
             and hmac.compare_digest(token.strip().encode(), self.guard.forward_secret.encode())
         ):
-            name, _, role = behalf.partition("|")  # the web server checked this signed-in user's session
-            who = Principal(name=name[:100], role=role[:20])
+            name, _, roles = behalf.partition("|")  # the web server checked this signed-in user's session
+            who = Principal.from_label(name[:100], roles[:60])
         if who is None:
             self._error(401, "unauthorized", "unknown token")
             return None
         if not who.may(permission):
-            self._error(403, "forbidden", f"role {who.role!r} may not do this (needs the {permission!r} permission)")
+            self._error(403, "forbidden", who.refusal(permission))
             return None
         return who
 

@@ -33,8 +33,8 @@ class Console:
             method, self.base + path, headers={"Authorization": f"Bearer {self.tokens[role]}"}, timeout=30, **kwargs
         )
 
-    def sign_in(self, role: str, viewport: tuple[int, int] = (1280, 800)) -> Any:
-        """A new browser context (its own cookies) signed in as ``role``; on the bench page."""
+    def sign_in(self, role: str, viewport: tuple[int, int] = (1280, 800), token: str | None = None) -> Any:
+        """A new browser context (its own cookies) signed in as ``role`` (or with ``token``); on the bench page."""
         context = self.browser.new_context(viewport={"width": viewport[0], "height": viewport[1]})
         page = context.new_page()
         page.set_default_timeout(30_000)
@@ -43,7 +43,7 @@ class Console:
         )
         page.goto(self.base + "/")
         assert "/sign-in" in page.url, page.url
-        page.fill("#token", self.tokens[role])
+        page.fill("#token", token or self.tokens[role])
         page.click("#sign-in-form button[type=submit]")
         page.wait_for_url("**/console/bench")
         page.wait_for_selector("[data-device]")
@@ -303,6 +303,66 @@ def test_a_failed_calibration_shows_failed_everywhere_and_blocks_reconstruction_
     expect(page.locator("#verdict-a")).to_contain_text("failed its quality check, by explicit override")
     _not_green(page, "#verdict-a")
     shot(page, "failed-calibration-viewer")
+    page.context.close()
+
+
+def test_an_operator_adds_a_technician_who_scans_calibrates_and_reconstructs_with_one_sign_in(
+    console: Console,
+) -> None:
+    """People page: the operator adds a technician with the operator and analyst roles; with that one token the
+    technician scans, calibrates and reconstructs; an analyst-only sign-in is told which role the bench needs."""
+    from playwright.sync_api import expect
+
+    page = console.sign_in("operator")
+    page.click("header nav >> text=People")
+    page.wait_for_url("**/console/people")
+    page.fill("#person-name", "technician")
+    page.check("#person-form input[value=operator]")
+    page.check("#person-form input[value=analyst]")
+    page.click("#add-person")
+    expect(page.locator("#new-token .token")).to_have_text(re.compile(r"^oct_"))
+    token = page.inner_text("#new-token .token")
+    expect(page.locator("tr[data-person=technician]")).to_contain_text("operator, analyst")
+    shot(page, "people")
+    page.context.close()
+
+    page = console.sign_in("operator", token=token)
+    assert page.inner_text(".who .role") == "(operator, analyst)"
+    scan_id = _scan(page, console, 30)
+    expect(page.locator("#scan-state")).to_have_text("complete", timeout=TIMEOUT_MS)
+    page.click("#calibrate")
+    rows = page.locator("#scan-jobs tbody tr")
+    expect(rows.first).to_contain_text("succeeded", timeout=TIMEOUT_MS)
+    page.fill("#rec-shape", "32")
+    page.click("#reconstruct")
+    expect(rows).to_have_count(2)
+    expect(rows.first).to_contain_text("succeeded", timeout=TIMEOUT_MS)
+    shot(page, "technician-one-sign-in")
+    assert page.locator("header nav >> text=People").count() == 1  # an operator, so may manage people
+    page.context.close()
+
+    refused = console.api("POST", "/scans", role="analyst", json={**SMALL_SAWTOOTH, "frames": 10}).json()
+    assert refused["error"] == "forbidden" and "needs the operator role" in refused["message"], refused
+    assert "tech-analyst is signed in as analyst" in refused["message"] and "scan" not in refused["message"][:40]
+    assert console.api("DELETE", "/people/technician").status_code == 204
+    assert console.api("GET", f"/scans/{scan_id}", role="viewer").status_code == 200
+
+
+def test_the_bench_page_turns_its_controls_off_with_the_reason_while_the_stop_is_latched(console: Console) -> None:
+    from playwright.sync_api import expect
+
+    page = console.sign_in("operator")
+    controls = page.locator(".device .reference:visible, .device form.move:visible button")
+    expect(controls.first).to_be_enabled()
+    assert console.api("POST", "/stop", json={"reason": "test of the bench page"}).status_code == 202
+    expect(page.locator("#bench-gate")).to_contain_text("the emergency stop is latched", timeout=10_000)
+    for i in range(controls.count()):
+        expect(controls.nth(i)).to_be_disabled()
+        assert "latched" in (controls.nth(i).get_attribute("title") or "")
+    shot(page, "bench-latched")
+    assert console.api("POST", "/stop/reset", json={"note": "bench page test"}).status_code == 200
+    expect(page.locator("#bench-gate")).to_be_hidden(timeout=10_000)
+    expect(controls.first).to_be_enabled()
     page.context.close()
 
 

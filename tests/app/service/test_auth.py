@@ -35,6 +35,8 @@ MUTATING = [
     ("POST", "/calibrations", {"scan_id": "nope"}, "analysis"),
     ("POST", "/reconstructions", {"scan_id": "nope"}, "analysis"),
     ("POST", "/jobs/nope/cancel", None, "analysis"),
+    ("POST", "/people", {"name": "someone-new", "roles": ["viewer"]}, "people"),
+    ("DELETE", "/people/nobody", None, "people"),
 ]
 READS = [
     "/stop",
@@ -67,7 +69,7 @@ def test_cli_token_create_prints_once_and_stores_hash(tmp_path: Path) -> None:
     assert result.exit_code == 0, result.output
     printed = result.stdout.strip().splitlines()[0]
     stored = json.loads((tmp_path / "tokens.json").read_text())["tokens"]
-    assert stored == [{"sha256": hash_token(printed), "role": "viewer", "name": "bob"}]
+    assert stored == [{"sha256": hash_token(printed), "roles": ["viewer"], "name": "bob"}]
     bad = CliRunner().invoke(token, ["create", "--role", "admin", "--data-dir", str(tmp_path)])
     assert bad.exit_code != 0
 
@@ -90,6 +92,34 @@ def test_cli_token_list_and_revoke(tmp_path: Path, shared_api) -> None:  # type:
     missing = cli("revoke", "nobody")
     assert missing.exit_code == 1 and "no token named 'nobody'" in missing.output and "carol" in missing.output
     assert cli("revoke", "carol").exit_code == 0 and "carol" not in cli("list").stdout
+
+
+def test_one_sign_in_carries_several_roles_and_old_files_still_read(tmp_path: Path, shared_api) -> None:  # type: ignore[no-untyped-def]
+    """A technician who scans and calibrates needs one token, not two; a tokens file of one role per token (as
+    written before) still signs its people in."""
+    tokens_file = shared_api.data_dir / "tokens.json"
+    made = CliRunner().invoke(
+        token,
+        ["create", "--role", "operator", "--role", "analyst", "--name", "tech", "--tokens-file", str(tokens_file)],
+    )
+    assert made.exit_code == 0 and "roles operator, analyst" in made.output, made.output
+    tok = made.stdout.strip().splitlines()[0]
+    as_tech = {"Authorization": f"Bearer {tok}"}
+    try:
+        who = shared_api.post("/session", role=None, json={"token": tok}).json()
+    finally:
+        shared_api.client.cookies.clear()  # the shared client stays signed out for the other tests
+    assert who["roles"] == ["operator", "analyst"] and who["role"] == "operator, analyst"
+    assert {"scan", "analysis", "reset"} <= set(who["permissions"])
+    # one token passes the checks of both roles (a 4xx past the permission check is the route's own answer)
+    for method, path, body in (("POST", "/scans", {"orbit": "nope"}), ("POST", "/calibrations", {"scan_id": "x"})):
+        r = shared_api.request(method, path, role=None, json=body, headers=as_tech)
+        assert r.status_code not in (401, 403), r.text
+    listed = CliRunner().invoke(token, ["list", "--tokens-file", str(tokens_file)])
+    assert "operator, analyst" in listed.stdout
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps({"tokens": [{"sha256": hash_token("oct_old"), "role": "viewer", "name": "v"}]}))
+    assert TokenRegistry([], old).authenticate("oct_old").roles == ("viewer",)
 
 
 def test_no_default_token_outside_sim() -> None:
@@ -127,4 +157,7 @@ def test_roles_on_every_mutating_endpoint(
             assert r.status_code not in (401, 403), (role, r.text)
         else:
             assert r.status_code == 403, (role, r.text)
-            assert r.json()["error"] == "forbidden" and permission in r.json()["message"]
+            needed = [k for k in ("operator", "analyst", "viewer") if permission in PERMISSIONS[k]]
+            said = r.json()["message"]
+            assert r.json()["error"] == "forbidden" and f"needs the {' or '.join(needed)} role" in said, said
+            assert f"signed in as {role};" in said and permission not in said.split(";")[0], said
