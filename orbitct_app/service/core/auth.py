@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Literal
 
 from orbitct_app.service.core.jsonfile import write_json_atomically
-from orbitct_app.service.core.settings import Role, TokenHash
+from orbitct_app.service.core.settings import Role, TokenHash, role_label
 
 Permission = Literal["read", "motion", "scan", "analysis", "stop", "reset", "people"]
 
@@ -55,7 +55,7 @@ class Principal:
     @property
     def role(self) -> str:
         """The roles as the console shows them: ``operator, analyst``."""
-        return ", ".join(self.roles)
+        return role_label(self.roles)
 
     @classmethod
     def from_label(cls, name: str, label: str) -> Principal:

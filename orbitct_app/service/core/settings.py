@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
@@ -36,7 +37,12 @@ class TokenHash(BaseModel):
     @property
     def role(self) -> str:
         """The roles as the console shows them: ``operator, analyst``."""
-        return ", ".join(self.roles)
+        return role_label(self.roles)
+
+
+def role_label(roles: Sequence[str]) -> str:
+    """Roles as the console shows them, in one line: ``operator, analyst``."""
+    return ", ".join(roles)
 
 
 class ServiceSettings(BaseSettings):

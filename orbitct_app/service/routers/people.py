@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter, Path, Response
 from pydantic import BaseModel, ConfigDict, Field
 
-from orbitct_app.service.core.auth import TokenFileError, create_token, read_token_file, revoke_token
+from orbitct_app.service.core.auth import TokenFileError, create_token, hash_token, read_token_file, revoke_token
 from orbitct_app.service.core.errors import ERROR_RESPONSES, Conflict, ErrorBody, NotFound
 from orbitct_app.service.core.settings import Role
 from orbitct_app.service.deps import PeopleManager, ServiceDep
@@ -65,8 +65,8 @@ def add_person(body: PersonCreate, service: ServiceDep, who: PeopleManager) -> P
         token = create_token(service.settings.tokens_path, body.roles, body.name)
     except TokenFileError as exc:
         raise Conflict(str(exc).replace(str(service.settings.tokens_path), "the tokens file")) from None
-    entry = next(e for e in read_token_file(service.settings.tokens_path) if e.name == body.name)
-    return PersonCreated(name=entry.name, roles=list(entry.roles), hash_prefix=entry.sha256[:12], token=token)
+    roles = list(dict.fromkeys(body.roles))  # as create_token stored them
+    return PersonCreated(name=body.name, roles=roles, hash_prefix=hash_token(token)[:12], token=token)
 
 
 @router.delete(
