@@ -110,31 +110,36 @@ def free_port() -> int:
 def serve_subprocess(
     config: Path, data: Path, dev_token: str, timeout_s: float = 90.0
 ) -> tuple[subprocess.Popen[bytes], str, dict[str, str]]:
-    """``orbitct serve --sim`` in a subprocess, once its rig is connected: the process, base URL and auth header."""
+    """``orbitct serve --sim`` in a subprocess, once its rig is connected: the process, base URL and auth header.
+    Its log goes to ``<data>-serve.log`` beside the data directory (a pipe nobody reads would stop the service once
+    it had logged 64 kB)."""
     port = free_port()
     env = {**os.environ, "ORBITCT_DEV_TOKEN": dev_token, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "orbitct_app.cli.main",
-            "serve",
-            "--config",
-            str(config),
-            "--sim",
-            "--port",
-            str(port),
-            "--stop-port",
-            "0",
-            "--data-dir",
-            str(data),
-            "--log-level",
-            "warning",
-        ],
-        env=env,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-    )
+    log_path = data.parent / f"{data.name}-serve.log"
+    data.parent.mkdir(parents=True, exist_ok=True)
+    with open(log_path, "ab") as log:
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "orbitct_app.cli.main",
+                "serve",
+                "--config",
+                str(config),
+                "--sim",
+                "--port",
+                str(port),
+                "--stop-port",
+                "0",
+                "--data-dir",
+                str(data),
+                "--log-level",
+                "warning",
+            ],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=log,
+        )
     base = f"http://127.0.0.1:{port}"
     t0 = time.monotonic()
     while True:
@@ -145,5 +150,5 @@ def serve_subprocess(
             pass
         if proc.poll() is not None or time.monotonic() - t0 > timeout_s:
             proc.kill()
-            raise AssertionError("service did not start: " + proc.stderr.read().decode()[-2000:])  # type: ignore[union-attr]
+            raise AssertionError("service did not start: " + log_path.read_text(errors="replace")[-2000:])
         time.sleep(0.2)
