@@ -43,10 +43,9 @@ def check_room(
     free = free_bytes(Path(out).parent)
     if free < need + reserve:
         raise DiskSpaceError(
-            f"not enough disk space for {Path(out).name}: the scan needs about {format_bytes(need)} "
+            f"not enough disk space for {Path(out).name}, so nothing moved: the scan needs about {format_bytes(need)} "
             f"({n_frames} frames of {panel.rows}x{panel.cols} {frame_dtype}) and {format_bytes(reserve)} must stay free "
-            f"(storage.reserve_mb), but only {format_bytes(free)} is free in {Path(out).parent}; "
-            "free some space or write the scan elsewhere; nothing moved"
+            f"(storage.reserve_mb), but only {format_bytes(free)} is free in {Path(out).parent}"
         )
     return need
 

@@ -616,7 +616,7 @@ def _worker(
                 return
             follower.take(*item)
     except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it from finish()
-        events.put(("error", f"{type(exc).__name__}: {exc}"))
+        events.put(("error", str(exc) or ("it ran out of memory" if isinstance(exc, MemoryError) else "it stopped")))
 
 
 class LiveCalibration:

@@ -309,33 +309,39 @@ def configuration_page() -> str:
 
 
 def errors_page() -> str:
-    """Every error code of the API and what an operator does after each kind of device failure."""
+    """The error catalogue (every code of the CLI and the API) and what an operator does after each kind of device
+    failure."""
     from acquire.reasons import ADVICE
     from devices.errors import DeviceError
-    from orbitct_app.service.core import errors
+    from orbitct_app.error_codes import CATALOGUE
 
     lines = [
         "# Errors",
         "",
-        "Every error reaches a person as one sentence: what happened and what to do next. Scripts read the stable "
-        "code. Generated from the code that raises them.",
+        "Every error reaches a person as one sentence: what happened, then what to do next. Scripts read the stable "
+        "code, which does not change between versions. Generated from the catalogue the CLI and the service use "
+        "(`orbitct_app/error_codes.py`).",
         "",
-        "## REST API error codes",
+        "* **Command line**: one line on stderr, `error [CODE]: what happened; what to do`, and the exit status "
+        "below (a command stopped by a signal exits 128 + the signal's number, 130 for Ctrl-C). Warnings are "
+        "lines `warning: ...`; `ORBITCT_DEBUG=1` shows the traceback of an unexpected error.",
+        '* **REST API**: the HTTP status below and the JSON body `{"error": CODE, "message": "what happened; what '
+        'to do", "advice": "what to do", "details": [{"field", "reason"}]}` (`details` for invalid fields).',
+        "* **Jobs** (calibrations, reconstructions, BB plans) that fail say why in their `reason`, in the same "
+        "words, and a job's log ends with `error [CODE]: ...`; a calibration that failed its quality check has the "
+        "verdict and its reasons.",
         "",
-        'Every error response is JSON `{"error": CODE, "message": SENTENCE, "details": [{"field", "reason"}]}`.',
+        "## The catalogue",
         "",
-        "| HTTP status | `error` | when |",
-        "| --- | --- | --- |",
+        "| code | exit status | HTTP status | when | what to do (unless the message says more precisely) |",
+        "| --- | --- | --- | --- | --- |",
     ]
-    classes: list[type[errors.ApiError]] = [errors.ApiError, *errors.ApiError.__subclasses__()]
-    for cls in classes:
-        when = errors.ERROR_RESPONSES[400]["description"] if cls is errors.ApiError else (cls.__doc__ or "").strip()
-        lines.append(f"| {cls.status} | `{cls.code}` | {_cell(when)} |")
-    for status, spec in sorted(errors.ERROR_RESPONSES.items(), key=lambda item: str(item[0])):
-        if not any(cls.status == status for cls in classes):
-            lines.append(
-                f"| {status} | `{errors._HTTP_CODES.get(int(status), 'error')}` | {_cell(spec['description'])} |"
-            )
+    for kind in CATALOGUE.values():
+        exit_status = str(kind.exit_status) if kind.exit_status is not None else "-"
+        http_status = str(kind.http_status) if kind.http_status is not None else "-"
+        lines.append(
+            f"| `{kind.code}` | {exit_status} | {http_status} | {_cell(kind.meaning)} | {_cell(kind.advice)} |"
+        )
     lines += [
         "",
         "## Why a scan ended",

@@ -73,7 +73,7 @@ def _connected_workers(client: Any, timeout_s: float) -> list[str]:
     except Exception as exc:  # noqa: BLE001 - any failure to find a worker is the same answer
         raise ClusterError(
             f"no Dask worker joined the scheduler {client.scheduler.address} within "
-            f"{timeout_s:g} s ({type(exc).__name__})"
+            f"{timeout_s:g} s ({exc or 'no answer'}); start a worker (dask worker {client.scheduler.address})"
         ) from None
 
 

@@ -18,14 +18,22 @@ class FailedGeometryError(ReconError):
         self.name, self.reasons = name, reasons
         super().__init__(self.sentence(how))
 
-    def sentence(self, how: str) -> str:
-        """What happened and what to do, ``how`` naming the override in the caller's terms."""
+    @property
+    def what(self) -> str:
+        """What happened: the geometry failed its check, with the check's reasons."""
         why = f" ({'; '.join(self.reasons)})" if self.reasons else ""
+        return f"{self.name}: its calibrated geometry failed its quality check{why}"
+
+    def advice(self, how: str) -> str:
+        """What to do, ``how`` naming the override in the caller's terms."""
         return (
-            f"{self.name}: its calibrated geometry failed its quality check{why}. Calibrate it again (see 'When a "
-            f"calibration fails its quality check' in the documentation), reconstruct from the nominal geometry, "
-            f"or {how} to use it anyway (recorded with the volume)"
+            "calibrate it again (see 'When a calibration fails its quality check' in the documentation), reconstruct "
+            f"from the nominal geometry, or {how} to use it anyway (recorded with the volume)"
         )
+
+    def sentence(self, how: str) -> str:
+        """What happened and what to do, in one sentence."""
+        return f"{self.what}; {self.advice(how)}"
 
 
 class FieldOfViewError(ReconError):

@@ -321,4 +321,5 @@ class ScanWriter:
         if exc is None:
             self.finish("complete")
         else:
-            self.finish("aborted", f"{type(exc).__name__}: {exc}")
+            said = str(exc) or ("interrupted (Ctrl-C)" if isinstance(exc, KeyboardInterrupt) else "stopped by an error")
+            self.finish("aborted", said)

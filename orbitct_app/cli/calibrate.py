@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from orbitct_app.cli.failure import fail
 from orbitct_app.cli.progress import ProgressBar
 from orbitct_app.cli.values import FiniteFloat
 
@@ -148,15 +149,15 @@ def calibrate(
     if report_dir is not None:
         click.echo(f"report written to {report_dir}")
     if q is not None and not q.passed:
-        click.echo("QUALITY CHECK FAILED: " + "; ".join(q.reasons), err=True)
-        click.echo(
-            "The geometry is stored, marked quality=failed. What to do: the documentation's Calibration page, "
-            "'When a calibration fails its quality check' (docs/explanation/calibration.md)."
-            + ("" if accept_poor else " (--accept-poor exits 0 anyway.)"),
-            err=True,
+        what = "QUALITY CHECK FAILED: " + "; ".join(q.reasons)
+        advice = (
+            "the geometry is stored, marked quality=failed; read 'When a calibration fails its quality check' in the "
+            "documentation (docs/explanation/calibration.md) and calibrate again"
         )
-        if not accept_poor:
-            raise SystemExit(3)
+        if accept_poor:
+            click.echo(f"warning: {what} (--accept-poor: exit 0 anyway); {advice}", err=True)
+        else:
+            fail(what, "failed_quality_check", advice + " (--accept-poor exits 0 anyway)")
 
 
 def _bb_pair(text: str) -> tuple[int, int]:

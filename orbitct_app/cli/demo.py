@@ -144,7 +144,7 @@ def demo(
     except AcquireError as exc:
         fail(str(exc))
     if not isinstance(config, BenchConfig):
-        fail(f"{config_path} is a {config.kind} configuration; the demo needs a bench")
+        fail(f"{config_path} is a {config.kind} configuration", advice="give the demo a bench configuration")
     config = config.model_copy(update={"sim": config.sim.model_copy(update={"time_scale": time_scale})})
 
     _step(
@@ -168,11 +168,10 @@ def demo(
         with ProgressBar() as bar:
             res = run_scan(req, progress=bar)
     except AcquireError as exc:
-        fail(f"scan refused: {exc}", 1)
+        fail(f"scan refused: {exc}", "action_failed")
     click.echo(f"   {res.status}: {res.n_frames} frames in {res.elapsed_s:.1f} s -> {res.path}")
     if res.status != "complete":
-        click.echo(f"   reason: {res.reason}", err=True)
-        sys.exit(1)
+        fail(f"the demo's scan is {res.status}: {res.reason}", "action_failed")
     if skip_calibration:
         return
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from orbitct_app.cli.failure import Failure
 from orbitct_app.cli.values import FiniteFloat
 
 
@@ -64,7 +65,7 @@ def dicom(
     from recon.errors import ReconError
 
     if out_dir.exists() and any(out_dir.iterdir()):
-        raise click.ClickException(f"{out_dir} is not empty: give a new or empty folder for the series")
+        raise Failure(f"{out_dir} is not empty", "conflict", "give a new or empty folder for the series")
     try:
         with ScanFile(scan) as sf:
             volume, attrs = sf.read_recon(name)
@@ -155,7 +156,7 @@ def xa(scan: Path, out: Path, part: str | None, kind: str) -> None:
             raise click.BadParameter(f"expected FIRST:LAST (e.g. 0:100), got {part!r}", param_hint="--frames") from None
         span = (first, last)
     if out.exists():
-        raise click.ClickException(f"{out} exists; choose another name")
+        raise Failure(f"{out} exists", "conflict", "choose another name")
     try:
         path = write_xa_run(scan, out, part=span, kind=kind)  # type: ignore[arg-type]
     except ScanFileError as exc:

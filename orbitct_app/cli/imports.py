@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+from orbitct_app.cli.failure import Failure
+
 
 @click.group("import")
 def import_group() -> None:
@@ -23,7 +25,9 @@ def dicom(inputs: tuple[Path, ...], out: Path, overwrite: bool) -> None:
 
     files = [p for i in inputs for p in (sorted(i.glob("*.dcm")) if i.is_dir() else [i])]
     if not files:
-        raise click.ClickException(f"no .dcm files in {', '.join(map(str, inputs))}")
+        raise Failure(
+            f"no .dcm files in {', '.join(map(str, inputs))}", "not_found", "give the files or folders the series is in"
+        )
     try:
         path = import_xa(files, out, overwrite=overwrite)
         with ScanFile(path) as sf:

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 
 import click
+
+from orbitct_app.cli.failure import as_failure
 
 # command name -> "module:attribute" of a click command or group
 COMMANDS: dict[str, str] = {
@@ -42,14 +45,26 @@ class _LazyGroup(click.Group):
         module, attr = target.split(":")
         return getattr(importlib.import_module(module), attr)
 
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        """``orbitct``'s own options; a wrong one reads as the commands' errors do."""
+        try:
+            return super().parse_args(ctx, args)
+        except click.exceptions.NoArgsIsHelpError:
+            raise
+        except click.UsageError as exc:
+            raise as_failure(exc, ctx) from None
+
     def invoke(self, ctx: click.Context) -> object:
-        """Every command; a file that cannot be read or written (a missing folder, no permission, a full disk)
-        ends it with one line naming the file, never a traceback."""
+        """Every command; whatever ends it in error (a usage error, a file that cannot be read or written, a full
+        disk, anything unexpected) ends it with one ``error [code]: ...`` line, never a traceback."""
         try:
             return super().invoke(ctx)
-        except OSError as exc:
-            where = f"{exc.filename}: " if exc.filename else ""
-            raise click.ClickException(f"{where}{exc.strerror or exc}") from None
+        except (click.exceptions.Exit, SystemExit):
+            raise
+        except (Exception, KeyboardInterrupt) as exc:
+            if os.environ.get("ORBITCT_DEBUG") and not isinstance(exc, click.ClickException):
+                raise
+            raise as_failure(exc, ctx) from None
 
 
 @click.group(cls=_LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+from orbitct_app.cli.failure import Failure
+
 
 def _node(uri: str):  # type: ignore[no-untyped-def]
     from orbitct_app.pacs import PacsError, PacsNode
@@ -32,11 +34,13 @@ def send_cmd(inputs: tuple[Path, ...], to: str, calling_aet: str) -> None:
     node = _node(to)
     files = [p for i in inputs for p in (sorted(i.glob("*.dcm")) if i.is_dir() else [i])]
     if not files:
-        raise click.ClickException(f"no .dcm files in {', '.join(map(str, inputs))}")
+        raise Failure(
+            f"no .dcm files in {', '.join(map(str, inputs))}", "not_found", "give the files or folders the series is in"
+        )
     try:
         n = send(files, node, calling_aet)
     except PacsError as exc:
-        raise click.ClickException(str(exc)) from None
+        raise Failure(str(exc), "bad_gateway") from None
     click.echo(f"stored {n} object(s) on {node}")
 
 
@@ -54,7 +58,7 @@ def find_cmd(on: str, patient_id: str, modality: str, calling_aet: str) -> None:
     try:
         found = find_series(node, calling_aet, **match)
     except PacsError as exc:
-        raise click.ClickException(str(exc)) from None
+        raise Failure(str(exc), "bad_gateway") from None
     for s in found:
         click.echo(
             f"{s['SeriesInstanceUID']}  {s['Modality']}  {s['NumberOfSeriesRelatedInstances'] or '?'} instance(s)  "
@@ -81,5 +85,5 @@ def get_cmd(series_uid: str, source: str, out_dir: Path, calling_aet: str) -> No
             raise PacsError(f"{node} has no series {series_uid}")
         files = get_series(node, hits[0]["StudyInstanceUID"], series_uid, out_dir, calling_aet)
     except PacsError as exc:
-        raise click.ClickException(str(exc)) from None
+        raise Failure(str(exc), "bad_gateway") from None
     click.echo(f"fetched {len(files)} file(s) of series {series_uid} into {out_dir}")

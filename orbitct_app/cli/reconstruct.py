@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Any, get_args
 
 import click
 
-from orbitct_app.cli.failure import fail
+from orbitct_app.cli.failure import Failure, fail
 from orbitct_app.cli.model_options import model_from, options_from
 from orbitct_app.cli.progress import ProgressBar
 from orbitct_app.cli.values import FiniteFloat
@@ -104,12 +104,14 @@ def reconstruct(
             res = run(options)
         except TooLongError as exc:
             if not (sys.stdin.isatty() and click.confirm(f"{exc}. Start it anyway?", default=False, err=True)):
-                raise click.ClickException(f"{exc}; --yes starts it anyway, --max-minutes M sets the limit") from None
+                raise Failure(
+                    str(exc), "invalid_parameters", "--yes starts it anyway, --max-minutes M sets the limit"
+                ) from None
             res = run(options.model_copy(update={"max_minutes": None}))
     except ReconExistsError as exc:
-        raise click.ClickException(f"{exc}; --overwrite replaces it, --name NAME keeps both") from None
+        raise Failure(str(exc), "conflict", "--overwrite replaces it, --name NAME keeps both") from None
     except FailedGeometryError as exc:
-        fail(exc.sentence("pass --accept-failed-geometry"))
+        fail(exc.what, "failed_quality_check", exc.advice("pass --accept-failed-geometry"))
     except (ReconError, ScanFileError) as exc:
         raise click.ClickException(str(exc)) from None
     nz, ny, nx = res.volume_shape
@@ -151,9 +153,9 @@ def reconstruct(
             res.path, [res.name, other.name], base / f"{res.path.stem}_{res.name}_vs_{compare_geometry}.png"
         )
     except ReconExistsError as exc:
-        raise click.ClickException(f"{exc}; --overwrite replaces it") from None
+        raise Failure(str(exc), "conflict", "--overwrite replaces it") from None
     except FailedGeometryError as exc:
-        fail(exc.sentence("pass --accept-failed-geometry"))
+        fail(exc.what, "failed_quality_check", exc.advice("pass --accept-failed-geometry"))
     except (ReconError, ScanFileError) as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(
@@ -184,15 +186,19 @@ def _cluster(address: str | None, mar: bool) -> object | None:
     try:
         client = Client(address, timeout=10, set_as_default=False)
     except Exception as exc:  # noqa: BLE001 - any failure to connect is the same answer
-        raise click.ClickException(
-            f"cannot reach the Dask scheduler at {address}: {type(exc).__name__}: {exc}"
+        raise Failure(
+            f"cannot reach the Dask scheduler at {address} ({exc or 'no answer'})",
+            "unavailable",
+            "start it (dask scheduler), or give the address of a running one to --scheduler",
         ) from None
     if not client.scheduler_info()["workers"]:
         try:
             client.wait_for_workers(1, timeout=30)
         except Exception:  # noqa: BLE001
             client.close()
-            raise click.ClickException(
-                f"the Dask scheduler at {address} has no workers (none joined within 30 s)"
+            raise Failure(
+                f"the Dask scheduler at {address} has no workers (none joined within 30 s)",
+                "unavailable",
+                f"start one (dask worker {address}) and run it again",
             ) from None
     return client

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import signal
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -51,15 +50,15 @@ def reference(device: str, config_path: Path, data_dir: Path | None, yes: bool) 
         fail(str(exc))
     if not isinstance(config, BenchConfig):
         fail(
-            f"{config_path}: a C-arm configuration; a C-arm has no axes to reference from here (the arm's own "
-            "console does that)"
+            f"{config_path}: a C-arm configuration; a C-arm has no axes to reference from here",
+            advice="reference the arm from its own console",
         )
     if data_dir is not None:
         from orbitct_app.service.safety.latch import StopLatch
 
         refused = StopLatch(data_dir).refusal("referencing")
         if refused:
-            fail(refused)
+            fail(refused, "stop_latched")
     from acquire.rigs.bench import bench_links
 
     links = bench_links(config, sim=False)
@@ -68,26 +67,27 @@ def reference(device: str, config_path: Path, data_dir: Path | None, yes: bool) 
         if links[name].uri.startswith("sim://"):
             fail(
                 f"{config_path}: {name} is {links[name].uri}, the in-process twins, which are referenced when a "
-                "scan opens them; reference a real controller (tcp:// or serial://)"
+                "scan opens them",
+                advice="reference a real controller (tcp:// or serial://)",
             )
     if not yes:
         where = ", ".join(f"{n} ({links[n].uri})" for n in names)
-        click.confirm(
-            f"Referencing moves every axis of {where} to its reference switch. Is the travel clear?",
-            abort=True,
-            err=True,
-        )
+        if not click.confirm(
+            f"Referencing moves every axis of {where} to its reference switch. Is the travel clear?", err=True
+        ):
+            fail("not confirmed: nothing moved", "action_failed", "clear the travel, then run it again (or --yes)")
     received: list[signal.Signals] = []
     try:
         asyncio.run(_reference_all(names, links, received))
     except (KeyboardInterrupt, asyncio.CancelledError):
         sig = received[0] if received else signal.SIGINT
-        click.echo(
-            f"interrupted ({'Ctrl-C' if sig == signal.SIGINT else sig.name}): the axes were halted; they may "
-            "be unreferenced",
-            err=True,
+        fail(
+            f"interrupted ({'Ctrl-C' if sig == signal.SIGINT else sig.name}): the axes were halted; they may be "
+            "unreferenced",
+            "interrupted",
+            "reference them again when ready",
+            exit_status=128 + int(sig),
         )
-        sys.exit(128 + int(sig))
 
 
 async def _reference_all(names: list[str], links: dict[str, Any], received: list[signal.Signals]) -> None:
@@ -106,7 +106,7 @@ async def _reference_all(names: list[str], links: dict[str, Any], received: list
         try:
             dev = await open_device(name, name, links[name].uri, **links[name].options)
         except DeviceError as exc:
-            fail(f"{name}: {exc}", 1)
+            fail(f"{name}: {exc}", "unavailable")
         try:
             before = await dev.referenced()
             if all(before.values()):
@@ -119,6 +119,6 @@ async def _reference_all(names: list[str], links: dict[str, Any], received: list
             where = ", ".join(f"{a} {v:.4g}" for a, v in (await dev.position()).items())
             click.echo(f"{name}: referenced; at {where}")
         except DeviceError as exc:
-            fail(f"{name}: {exc}", 1)
+            fail(f"{name}: {exc}", "action_failed")
         finally:
             await dev.close()

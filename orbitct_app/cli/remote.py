@@ -15,6 +15,7 @@ import click
 import httpx
 
 from orbitct_app.cli.failure import fail
+from orbitct_app.error_codes import CATALOGUE, code_for_http
 
 TIMEOUT_S = 15.0
 
@@ -52,7 +53,9 @@ def _check(r: httpx.Response, ok: tuple[int, ...]) -> dict[str, Any]:
     except ValueError:
         body = {"message": r.text[:300]}
     if r.status_code not in ok:
-        fail(f"{r.status_code}: {body.get('message') or body.get('detail') or body}")
+        code = body.get("error") if body.get("error") in CATALOGUE else code_for_http(r.status_code)
+        said = body.get("message") or body.get("detail") or body
+        fail(f"the service answered {r.status_code}: {said}", code, "" if body.get("advice") else None)
     return dict(body)
 
 
@@ -75,11 +78,16 @@ def stop(url: str, token: str, stop_url: str | None, reason: str) -> None:
     try:
         r = _post(target, token, {"reason": reason})
     except httpx.HTTPError as exc:
-        click.echo(f"stop listener {target} not reachable ({type(exc).__name__}); trying {url}/stop", err=True)
+        click.echo(f"stop listener {target} not reachable ({exc}); trying {url}/stop", err=True)
         try:
             r = _post(f"{url.rstrip('/')}/stop", token, {"reason": reason})
         except httpx.HTTPError as exc2:
-            fail(f"no stop delivered: neither {target} nor {url} answered ({exc2}); stop the bench by hand")
+            fail(
+                f"no stop delivered: neither {target} nor {url} answered ({exc2})",
+                "unavailable",
+                "stop the bench by hand (its emergency stop button), then check the service",
+                exit_status=2,
+            )
     body = _check(r, (202,))
     click.echo(("HALTED" if body["halted"] else "NOT VERIFIED") + f" (latched; {body['message']})")
     for device in body.get("devices", []):
@@ -100,7 +108,7 @@ def reset(url: str, token: str, note: str) -> None:
     try:
         r = _post(f"{url.rstrip('/')}/stop/reset", token, {"note": note})
     except httpx.HTTPError as exc:
-        fail(f"the service at {url} did not answer ({exc})")
+        fail(f"the service at {url} did not answer ({exc})", "unavailable")
     body = _check(r, (200,))
     last = body.get("last_reset") or {}
     click.echo(f"emergency stop reset by {last.get('by')} at {last.get('utc')}")
@@ -114,7 +122,7 @@ def reset_fault(url: str, token: str, device: str) -> None:
     try:
         r = _post(f"{url.rstrip('/')}/devices/{device}/reset-fault", token)
     except httpx.HTTPError as exc:
-        fail(f"the service at {url} did not answer ({exc})")
+        fail(f"the service at {url} did not answer ({exc})", "unavailable")
     body = _check(r, (200,))
     state = body["state"]
     click.echo(f"{device}: fault reset; state {state.get('state')}, fault {state.get('fault')}")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import signal
-import sys
 from collections import Counter
 from pathlib import Path
 
@@ -24,7 +23,7 @@ def _parse_params(items: tuple[str, ...]) -> dict[str, object]:
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
-            fail(f"--param {item!r}: expected KEY=VALUE, e.g. amplitude_deg=8")
+            fail(f"--param {item!r} is not KEY=VALUE", advice="write it as KEY=VALUE, e.g. amplitude_deg=8")
         out[key.strip()] = yaml.safe_load(value)
     return out
 
@@ -139,8 +138,8 @@ def scan(
     if ctx.invoked_subcommand is not None:
         return
     if config_path is None or out is None:
-        fail("orbitct scan needs --config FILE and --out FILE (see orbitct scan --help)")
-    from acquire.errors import AcquireError
+        fail("orbitct scan needs --config FILE and --out FILE", advice="see 'orbitct scan --help'")
+    from acquire.errors import AcquireError, DiskSpaceError
     from acquire.priority import bench_priority
     from acquire.runner import SIGNAL_REASONS, ScanRequest, run_scan
 
@@ -149,7 +148,7 @@ def scan(
 
         refused = StopLatch(data_dir).refusal("scans")
         if refused:
-            fail(refused)
+            fail(refused, "stop_latched")
 
     req = ScanRequest(
         config=config_path,
@@ -166,30 +165,35 @@ def scan(
         overwrite=overwrite,
     )
     if abort_on and calibrate_mode != "live":
-        fail("--abort-on needs --calibrate live")
+        fail("--abort-on needs --calibrate live", advice="add --calibrate live, or leave out --abort-on")
     live = None
     try:
         with ProgressBar() as bar, bench_priority():
             if calibrate_mode == "live":
                 live = _live_subscriber(req, out, bb_diameter_mm, abort_on, lost_frames, bar)
             res = run_scan(req, progress=bar, subscribers=[live] if live is not None else [])
+    except DiskSpaceError as exc:  # refused before anything moved
+        fail(str(exc), "insufficient_storage", "free some space or write the scan elsewhere", exit_status=2)
     except AcquireError as exc:
         fail(str(exc))
     except KeyboardInterrupt:
-        click.echo(f"scan interrupted (Ctrl-C): axes halted, X-rays off; partial file {out} marked aborted", err=True)
-        sys.exit(130)
+        fail(
+            "scan interrupted (Ctrl-C): axes halted, X-rays off",
+            "interrupted",
+            f"the partial file {out} is kept, marked aborted; scan again when ready",
+        )
     rate = res.n_frames / res.elapsed_s if res.elapsed_s > 0 else 0.0
     signals = {reason: 128 + int(sig) for sig, reason in SIGNAL_REASONS.items()}
     try:  # after SIGHUP the terminal may be gone: the file already says how the scan ended
         click.echo(
             f"{res.status}: {res.n_frames}/{res.n_planned} frames in {res.elapsed_s:.1f} s ({rate:.1f} frames/s) -> {res.path}"
         )
-        if res.status != "complete":
-            click.echo(f"reason: {res.reason}", err=True)
     except OSError:
         pass
     if res.status != "complete":
-        sys.exit(signals.get(res.reason, 1))
+        if res.reason in signals:
+            fail(f"scan {res.status}: {res.reason}", "interrupted", exit_status=signals[res.reason])
+        fail(f"scan {res.status}: {res.reason}", "action_failed", "fix what the reason names and scan again")
     if live is not None:
         _report_live(live, out)
 
@@ -203,7 +207,10 @@ def _live_subscriber(
 
     if bb_diameter_mm is None:
         if not req.sim:
-            fail("--calibrate live needs --bb-diameter-mm (the size of the BBs on the object)")
+            fail(
+                "--calibrate live needs the size of the BBs on the object",
+                advice="add --bb-diameter-mm, e.g. --bb-diameter-mm 3.17",
+            )
         bb_diameter_mm = req.resolved_config().sim.bb_diameter_mm  # type: ignore[attr-defined]
 
     try:
@@ -218,12 +225,12 @@ def _wait_for_live(live: object, out: Path) -> None:
 
     def interrupted(signum: int, frame: object) -> None:
         name = signal.Signals(signum).name
-        click.echo(
-            f"live calibration interrupted by {name}: the scan is complete in {out}; `orbitct calibrate "
-            f"{out}` makes its geometry",
-            err=True,
+        fail(
+            f"live calibration interrupted by {name}: the scan is complete in {out}",
+            "interrupted",
+            f"`orbitct calibrate {out}` makes its geometry",
+            exit_status=128 + signum,
         )
-        sys.exit(128 + signum)
 
     previous = {sig: signal.signal(sig, interrupted) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     try:
@@ -239,11 +246,11 @@ def _report_live(live: object, out: Path) -> None:
     _wait_for_live(live, out)
     err, res = live.error, live.result
     if err is not None or res is None:
-        click.echo(
-            f"no live geometry ({err}); the scan is complete in {out}: `orbitct calibrate {out}` makes its geometry",
-            err=True,
+        fail(
+            f"no live geometry ({err}); the scan is complete in {out}",
+            "action_failed",
+            f"`orbitct calibrate {out}` makes its geometry",
         )
-        sys.exit(1)
     lc = live.live
     kinds = Counter(w.kind for w in lc.warnings)
     named = f" ({', '.join(f'{k} {n}' for k, n in sorted(kinds.items()))})" if kinds else ""
@@ -257,8 +264,12 @@ def _report_live(live: object, out: Path) -> None:
     )
     click.echo(res.quality.line())
     if not res.quality.passed:
-        click.echo("QUALITY CHECK FAILED: " + "; ".join(res.quality.reasons), err=True)
-        sys.exit(3)
+        fail(
+            "QUALITY CHECK FAILED: " + "; ".join(res.quality.reasons),
+            "failed_quality_check",
+            f"the geometry is stored, marked quality=failed; read 'When a calibration fails its quality check' in the "
+            f"documentation and run `orbitct calibrate {out}` again",
+        )
 
 
 @scan.command("repair")

@@ -14,6 +14,8 @@ import click
 import uvicorn
 from pydantic import ValidationError
 
+from orbitct_app.cli.failure import Failure
+
 
 class SignalAwareServer(uvicorn.Server):
     """uvicorn's server that also shuts down gracefully on SIGHUP and tells the service which signal stopped it."""
@@ -62,9 +64,10 @@ def _check_port(host: str, port: int, option: str) -> None:
         try:
             probe.bind((host, port))
         except OSError as exc:
-            raise click.ClickException(
-                f"cannot listen on {host}:{port} ({exc.strerror}); another program (another "
-                f"orbitct serve?) uses it: choose another {option}"
+            raise Failure(
+                f"cannot listen on {host}:{port} ({exc.strerror})",
+                "unavailable",
+                f"another program (another orbitct serve?) uses it: choose another {option}",
             ) from None
 
 
@@ -161,10 +164,11 @@ def serve(
             raise
         from orbitct.diskspace import format_bytes, free_bytes
 
-        raise click.ClickException(
+        raise Failure(
             f"cannot start: the disk of the data directory {settings.data_dir} is full "
-            f"({format_bytes(free_bytes(settings.data_dir))} free) and the service cannot create "
-            "its database there; free some space or choose another --data-dir"
+            f"({format_bytes(free_bytes(settings.data_dir))} free) and the service cannot create its database there",
+            "insufficient_storage",
+            "free some space or choose another --data-dir",
         ) from None
     service = app.state.service
     if service.dev_token is not None:

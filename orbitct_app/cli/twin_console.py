@@ -10,6 +10,8 @@ from typing import Any
 
 import click
 
+from orbitct_app.cli.failure import Failure
+
 CONSOLE_HELP = "console: 'latency MS', 'drop [N]', 'garble [N]', 'error [N]', 'missing [N]', 'match TEXT|-'"
 
 
@@ -63,7 +65,11 @@ def serve_twin(
         try:
             bound = await twin.start(host, port)
         except OSError as exc:
-            raise click.ClickException(f"cannot listen on {host}:{port}: {exc}") from None
+            raise Failure(
+                f"cannot listen on {host}:{port} ({exc.strerror or exc})",
+                "unavailable",
+                "choose another --port, or stop the program that listens there",
+            ) from None
         click.echo(banner(bound) + "; Ctrl-C stops", err=True)
         if after_start is not None:
             line = after_start()

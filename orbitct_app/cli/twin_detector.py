@@ -53,13 +53,14 @@ def detector(host: str, port: int, config_path: Path | None, console: bool | Non
         except ConfigError as exc:
             fail(str(exc))
         if not isinstance(cfg, BenchConfig):
-            fail(f"{config_path}: a C-arm configuration; the C-arm twin has its own panel (orbitct twin carm)")
+            fail(f"{config_path}: a C-arm configuration", advice="the C-arm twin has its own panel (orbitct twin carm)")
         uris = cfg.devices.model_dump()
         local = [f"{k} {uris[k]}" for k in _FOLLOWED if uris[k].startswith("sim://")]
         if local:
             fail(
-                f"{config_path}: {', '.join(local)} live inside another process; a panel of its own follows "
-                "tcp:// and modbus:// endpoints only (start them with orbitct twin hexapod|rotation-stage|xray)"
+                f"{config_path}: {', '.join(local)} live inside another process",
+                advice="a panel of its own follows tcp:// and modbus:// endpoints only (start them with orbitct twin "
+                "hexapod|rotation-stage|xray)",
             )
         world = reset_world("standalone panel")
         world.stack_order = cfg.stack.order

@@ -9,6 +9,7 @@ from fastapi import Depends, HTTPException, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from orbitct_app.service.core.auth import Principal
+from orbitct_app.service.core.errors import Forbidden
 from orbitct_app.service.core.sessions import COOKIE, CSRF_HEADER, SAFE_METHODS, csrf_ok
 
 if TYPE_CHECKING:
@@ -34,19 +35,16 @@ async def get_principal(
     if credentials is None:
         signed_in = request.app.state.service.sessions.lookup(request.cookies.get(COOKIE, ""))
         if signed_in is None:
-            raise HTTPException(
-                401,
-                "a bearer token is required (Authorization: Bearer <token>), or sign in at /sign-in",
-                headers=challenge,
-            )
+            raise HTTPException(401, "no bearer token and no console sign-in came with the request", headers=challenge)
         session, principal = signed_in
         if request.method not in SAFE_METHODS and not csrf_ok(session, request.headers.get(CSRF_HEADER)):
-            raise HTTPException(
-                403, f"this request came with the session cookie but without its {CSRF_HEADER} header; reload the page"
+            raise Forbidden(
+                f"this request came with the console's session cookie but without its {CSRF_HEADER} header",
+                advice="reload the page (the console sends the header; scripts use a bearer token instead)",
             )
         return principal
     if credentials.scheme.lower() != "bearer" or not credentials.credentials:
-        raise HTTPException(401, "a bearer token is required (Authorization: Bearer <token>)", headers=challenge)
+        raise HTTPException(401, "no bearer token came with the request", headers=challenge)
     if len(credentials.credentials) > 512:
         raise HTTPException(401, "unknown token", headers=challenge)
     principal = request.app.state.service.tokens.authenticate(credentials.credentials)
@@ -60,7 +58,7 @@ def require(permission: str) -> Callable[..., Principal]:
 
     async def _check(principal: Annotated[Principal, Depends(get_principal)]) -> Principal:
         if not principal.may(permission):
-            raise HTTPException(403, principal.refusal(permission))
+            raise Forbidden(principal.refusal(permission), advice=principal.refusal_advice(permission))
         return principal
 
     _check.__name__ = f"require_{permission}"

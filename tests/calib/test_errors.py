@@ -181,7 +181,7 @@ def test_a_reconstruction_from_a_failed_calibration_is_refused_unless_overridden
     res = calib.calibrate_scan(_blank(fov_scan, tmp_path, range(40, 60)))
     assert res.quality is not None and not res.quality.passed
     small = {"algorithm": "fdk", "geometry": "calibrated", "shape": (8, 16, 16), "voxel_mm": 8.0}
-    with pytest.raises(recon.FailedGeometryError, match=r"failed its quality check \(20 of.*Calibrate it again"):
+    with pytest.raises(recon.FailedGeometryError, match=r"failed its quality check \(20 of.*; calibrate it again"):
         recon.reconstruct_scan(res.path, **small)
     rr = recon.reconstruct_scan(res.path, **small, accept_failed_geometry=True)
     assert rr.verdict.status == "passed_with_warnings" and rr.params["geometry_override"] is True

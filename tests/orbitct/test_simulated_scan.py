@@ -70,7 +70,7 @@ def test_interrupted_simulation_is_marked_aborted(tmp_path: Path) -> None:
     with pytest.raises(KeyboardInterrupt):
         simulate_scan("A", out=path, n_frames=20, detector_px=32, n_dark=1, n_flat=1, progress=stop)
     with ScanFile(path) as f:
-        assert f.status == "aborted" and "KeyboardInterrupt" in f.status_reason
+        assert f.status == "aborted" and f.status_reason == "interrupted (Ctrl-C)"
         assert 2 <= f.n_frames < 22
 
 

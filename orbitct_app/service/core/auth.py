@@ -72,12 +72,20 @@ class Principal:
         return permission in self.permissions
 
     def refusal(self, permission: str) -> str:
-        """Why it may not do something that needs ``permission``, in the console's words, and what to do."""
+        """Why it may not do something that needs ``permission``, in the console's words."""
         needed = [r for r in ROLES if permission in PERMISSIONS[r]]
         return (
-            f"{self.name} is signed in as {self.role}; this needs the {' or '.join(needed)} role ("
-            f"{ROLE_WORDS[needed[0]]}). Ask an operator for a sign-in with that role as well (the console's People "
-            f"page, or `orbitct token create --role ... --role {needed[0]}`)"
+            f"{self.name} is signed in as {self.role}; this needs the {' or '.join(needed)} role "
+            f"({ROLE_WORDS[needed[0]]})"
+        )
+
+    @staticmethod
+    def refusal_advice(permission: str) -> str:
+        """What to do about a refusal of ``permission``: who gives the role, and where."""
+        needed = next(r for r in ROLES if permission in PERMISSIONS[r])
+        return (
+            "ask an operator to add that role to your sign-in (the console's People page, or "
+            f"`orbitct token create --role ... --role {needed}`)"
         )
 
 

@@ -1,4 +1,5 @@
-"""JSON errors for the API: a stable ``error`` code, a clear ``message``, never internals."""
+"""JSON errors for the API: a stable ``error`` code from the catalogue (:mod:`orbitct_app.error_codes`), one sentence
+``message`` of what happened and what to do, the ``advice`` part apart; never internals."""
 
 from __future__ import annotations
 
@@ -15,9 +16,11 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from orbitct_app.error_codes import code_for_http, error_kind, sentence
 from orbitct_app.service.core.db import StoreUnavailable
 
 log = logging.getLogger("orbitct.service")
+FIELD_ADVICE = "correct the field named and send it again (GET /docs lists each route's fields)"
 
 
 class FieldProblem(BaseModel):
@@ -30,21 +33,30 @@ class FieldProblem(BaseModel):
 class ErrorBody(BaseModel):
     """Every error response of the API."""
 
-    error: str
-    message: str
+    error: str  # the stable code (the documentation's error catalogue lists them)
+    message: str  # what happened; what to do
+    advice: str = ""  # what to do (the end of the message)
     details: list[FieldProblem] = []
 
 
 class ApiError(Exception):
-    """An error the API reports as is: HTTP status, code and message."""
+    """An error the API reports as is: HTTP status, code, what happened and what to do (``advice``; the catalogue's
+    for the code when not given)."""
 
     status = 400
     code = "bad_request"
 
-    def __init__(self, message: str, *, details: list[FieldProblem] | None = None) -> None:
+    def __init__(self, message: str, *, advice: str | None = None, details: list[FieldProblem] | None = None) -> None:
         super().__init__(message)
         self.message = message
+        self.advice = error_kind(self.code).advice if advice is None else advice
         self.details = details or []
+
+
+class Forbidden(ApiError):
+    """The person signed in may not do this (a role is missing, or the console's CSRF header)."""
+
+    status, code = 403, "forbidden"
 
 
 class NotFound(ApiError):
@@ -57,6 +69,12 @@ class Conflict(ApiError):
     """The request clashes with the current state (busy bench, aborted scan, ...)."""
 
     status, code = 409, "conflict"
+
+
+class StopLatched(ApiError):
+    """The emergency stop is latched: nothing may move or expose until an operator resets it."""
+
+    status, code = 409, "stop_latched"
 
 
 class FailedCheck(ApiError):
@@ -145,27 +163,11 @@ def _json(
     message: str,
     details: list[FieldProblem] | None = None,
     headers: dict[str, str] | None = None,
+    advice: str | None = None,
 ) -> JSONResponse:
-    body = ErrorBody(error=code, message=message, details=details or [])
+    advice = error_kind(code).advice if advice is None else advice
+    body = ErrorBody(error=code, message=sentence(message, advice), advice=advice, details=details or [])
     return JSONResponse(body.model_dump(), status_code=status, headers=headers)
-
-
-_HTTP_CODES = {
-    400: "bad_request",
-    401: "unauthorized",
-    403: "forbidden",
-    404: "not_found",
-    405: "method_not_allowed",
-    406: "not_acceptable",
-    409: "conflict",
-    413: "request_too_large",
-    415: "unsupported_media_type",
-    422: "invalid_parameters",
-    429: "too_many_requests",
-    502: "bad_gateway",
-    503: "unavailable",
-    507: "insufficient_storage",
-}
 
 
 def disk_full(exc: BaseException) -> bool:
@@ -196,35 +198,34 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
-        return _json(exc.status, exc.code, exc.message, exc.details)
+        return _json(exc.status, exc.code, exc.message, exc.details, advice=exc.advice)
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
         details = validation_details(list(exc.errors()))
         msg = "; ".join(f"{d.field}: {d.reason}" for d in details[:5]) or "invalid request"
-        return _json(422, "invalid_parameters", msg, details)
+        return _json(422, "invalid_parameters", msg, details, advice=FIELD_ADVICE)
 
     @app.exception_handler(ValidationError)
     async def _model_validation(request: Request, exc: ValidationError) -> JSONResponse:
         details = validation_details(list(exc.errors()))
         msg = "; ".join(f"{d.field}: {d.reason}" for d in details[:5]) or "invalid parameters"
-        return _json(422, "invalid_parameters", msg, details)
+        return _json(422, "invalid_parameters", msg, details, advice=FIELD_ADVICE)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-        code = _HTTP_CODES.get(exc.status_code, "error")
+        code = code_for_http(exc.status_code)
         message = exc.detail if isinstance(exc.detail, str) else code.replace("_", " ")
+        advice = None
         if exc.status_code == 400 and message == "There was an error parsing the body":  # FastAPI's own words
-            message = (
-                "the request body cannot be read: send JSON, UTF-8, with Content-Type: application/json "
-                "(GET /docs shows each route's body)"
-            )
+            message = "the request body cannot be read"
         headers = dict(getattr(exc, "headers", None) or {})
         if exc.status_code == 405:  # every method of the path, not only those of the first route that matched it
             allowed = _allowed_methods(app, request)
             headers["Allow"] = ", ".join(allowed)
-            message = f"{request.method} is not allowed on {request.url.path}; allowed: {', '.join(allowed)}"
-        return _json(exc.status_code, code, message, headers=headers or None)
+            message = f"{request.method} is not allowed on {request.url.path}"
+            advice = f"use {' or '.join(allowed)}" if allowed else None
+        return _json(exc.status_code, code, message, headers=headers or None, advice=advice)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
@@ -233,14 +234,10 @@ def install_error_handlers(app: FastAPI) -> None:
             return _json(503, "unavailable", str(exc))
         if disk_full(exc):
             log.error("disk full on %s %s: %s", request.method, request.url.path, exc)
-            return _json(
-                507,
-                "insufficient_storage",
-                "the data directory's disk is full; free some space and try again (GET /health shows the disk state)",
-            )
+            return _json(507, "insufficient_storage", "the data directory's disk is full")
         incident = uuid.uuid4().hex[:12]
         log.exception("internal error %s on %s %s", incident, request.method, request.url.path)
-        return _json(500, "internal_error", f"internal error (incident {incident}); the details are in the service log")
+        return _json(500, "internal_error", f"an internal error stopped the request (incident {incident})")
 
 
 class ContentLengthLimit:
@@ -251,7 +248,7 @@ class ContentLengthLimit:
         self.app, self.max_bytes, self.larger = app, max_bytes, dict(larger or {})
 
     async def _refuse(self, scope: Any, receive: Any, send: Any, limit: int) -> None:
-        response = _json(413, "request_too_large", f"request body larger than {limit} bytes")
+        response = _json(413, "request_too_large", f"the request body is larger than {limit} bytes")
         await response(scope, receive, send)
 
     async def __call__(self, scope: Any, receive: Any, send: Any) -> None:

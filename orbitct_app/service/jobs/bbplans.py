@@ -151,10 +151,7 @@ class PlanQueue:
                 raise PlansBusy("the service is stopping")
             being_made = self._running is not None and not plan_path(self.folder, self._running[0]).exists()
             if len(self._waiting) + being_made >= self.max_waiting:
-                raise PlansBusy(
-                    f"{self.max_waiting} plans are already waiting or being made (one at a time); try "
-                    "again when one has ended"
-                )
+                raise PlansBusy(f"{self.max_waiting} plans are already waiting or being made (one at a time)")
             plan_id = uuid.uuid4().hex[:12]
             state = {"id": plan_id, "state": PLANNING, "owner": owner, "created": utc_now(), **asked}
             self.folder.mkdir(parents=True, exist_ok=True)  # the data directory may have been tidied by hand

@@ -21,7 +21,7 @@ from typing import Any
 from orbitct.progress import ProgressEvent
 from orbitct_app.service.core.db import Store, utc_now
 from orbitct_app.service.core.events import EventBus
-from orbitct_app.service.core.failures import failure_sentence
+from orbitct_app.service.core.failures import failure_code, failure_sentence
 from orbitct_app.service.jobs.tasks import run_calibration, run_reconstruction
 
 log = logging.getLogger("orbitct.service.jobs")
@@ -144,7 +144,7 @@ def run_job(
     except Exception as exc:  # every failure becomes the job's reason
         log.error("job %s failed", job_id, exc_info=True, extra={"job_log": False})  # details for the worker's log
         text = failure_sentence(exc)
-        send("log", "error: " + text)
+        send("log", f"error [{failure_code(exc)}]: {text}")
         return {"error": text, "events": sent[0]}
     finally:
         root.removeHandler(handler)
@@ -306,7 +306,7 @@ class JobManager:
                 self._client = Client(self._cluster, set_as_default=False)
             self._client.subscribe_topic(TOPIC, lambda event: self._events.put(event[1]))
         except Exception as exc:  # noqa: BLE001 - the service runs on, jobs stay queued and say why
-            self.engine_state = f"failed: {self.where} could not be reached ({type(exc).__name__}: {exc})"
+            self.engine_state = f"failed: {self.where} could not be reached ({exc or 'no answer'})"
             log.error("job engine: %s", self.engine_state)
             self._close_client()
             return

@@ -29,6 +29,7 @@ from orbitct_app.service.core.errors import (
     InsufficientStorage,
     Invalid,
     NotFound,
+    StopLatched,
     Unavailable,
 )
 from orbitct_app.service.core.events import EventBus
@@ -40,6 +41,7 @@ _CTX = mp.get_context("spawn")
 ERROR_KINDS: dict[str, type[ApiError]] = {
     "invalid": Invalid,
     "conflict": Conflict,
+    "stop_latched": StopLatched,
     "not_found": NotFound,
     "unavailable": Unavailable,
     "error": Unavailable,
@@ -302,7 +304,9 @@ class RigClient:
         """Start a scan; 409 if one is running."""
         with self._start_lock:
             if self.current is not None:
-                raise Conflict(f"the bench is busy with scan {self.current.scan_id}; one scan at a time")
+                raise Conflict(
+                    f"the bench is busy with scan {self.current.scan_id}", advice="start this one when it has ended"
+                )
             active = ActiveScan(scan_id, Path(spec["out"]))
             self.current = active
         try:

@@ -33,7 +33,8 @@ log = logging.getLogger("orbitct.service.rig.process")
 
 
 class CommandError(Exception):
-    """A command refused with a kind (``invalid``, ``conflict``, ``not_found``, ``unavailable``) and a message."""
+    """A command refused with a kind (``invalid``, ``conflict``, ``stop_latched``, ``not_found``, ``unavailable``)
+    and a message."""
 
     def __init__(self, kind: str, message: str) -> None:
         super().__init__(message)
@@ -88,7 +89,7 @@ def classify(exc: BaseException) -> tuple[str, str]:
         OutOfLimitsError,
     )
 
-    text = str(exc) or type(exc).__name__
+    text = str(exc) or "no message"
     if isinstance(exc, CommandError):
         return exc.kind, text
     if isinstance(exc, (ScanStateError, NotReadyError)):
@@ -248,7 +249,7 @@ class RigServer:
     def _unlatched(self, action: str) -> None:
         why = self.latch.refusal(action) if self.latch is not None else None
         if why:
-            raise CommandError("conflict", why)
+            raise CommandError("stop_latched", why)
 
     async def _state(self, dev: Any) -> dict[str, Any]:
         return {"device": _plain(asdict(await dev.describe())), "state": _plain(await dev.read())}

@@ -74,10 +74,13 @@ def check_scan_ready(service: Any, scan_id: str) -> dict[str, Any]:
     """The scan, if jobs may run on it: 404 when unknown, 409 unless it is complete."""
     scan = scan_or_404(service, scan_id)
     if scan["state"] in ("queued", "running", "paused"):
-        raise Conflict(f"scan {scan_id} is still {scan['state']}; jobs need a complete scan")
+        raise Conflict(f"scan {scan_id} is still {scan['state']}", advice="start the job when the scan is complete")
     if scan["state"] != "complete":
         reason = f" ({scan['reason']})" if scan["reason"] else ""
-        raise Conflict(f"scan {scan_id} is {scan['state']}{reason}; jobs need a complete scan")
+        raise Conflict(
+            f"scan {scan_id} is {scan['state']}{reason}",
+            advice="jobs need a complete scan: resume it if it is paused, or scan again",
+        )
     return scan
 
 
@@ -173,8 +176,8 @@ def _finished(service: Any, job_id: str) -> dict[str, Any]:
     judged = job["state"] == "failed" and bool((job.get("result") or {}).get("verdict"))
     if job["state"] != "succeeded" and not judged:
         raise Conflict(
-            f"calibration {job_id} is {job['state']}; its report exists once it has finished (succeeded, or failed "
-            "its quality check)"
+            f"calibration {job_id} is {job['state']}",
+            advice="ask again once it has finished (succeeded, or failed its quality check); then it has a report",
         )
     if not isinstance(job["result"], dict):
         raise NotFound(f"calibration {job_id} has no result")

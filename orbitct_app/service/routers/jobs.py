@@ -103,5 +103,5 @@ def cancel_job(job_id: str, service: ServiceDep, _: Analyst) -> CancelOut:
     """Cancel a queued or running job (a running worker gets a grace period, then is killed)."""
     job = job_or_404(service, job_id)
     if job["state"] not in ("queued", "running"):
-        raise Conflict(f"job {job_id} is already {job['state']}")
+        raise Conflict(f"job {job_id} has already ended ({job['state']})", advice="there is nothing to cancel")
     return CancelOut(id=job_id, state=service.jobs.cancel(job_id))

@@ -72,6 +72,7 @@ def build(spec: OrbitSpec) -> Any:
     if spec.params.get("path") is not None:
         raise Invalid(
             "server file paths are not accepted over the API",
+            advice="give the waypoints as 'points' instead",
             details=[FieldProblem(field="params.path", reason="give 'points' instead")],
         )
     try:
@@ -83,7 +84,9 @@ def build(spec: OrbitSpec) -> Any:
         raise Invalid("; ".join(f"{d.field}: {d.reason}" for d in details[:5]), details=details) from None
     if int(model.n_frames) > PREVIEW_MAX_FRAMES:
         raise Invalid(
-            "too many frames", details=[FieldProblem(field="params.n_frames", reason=f"at most {PREVIEW_MAX_FRAMES}")]
+            f"too many frames for a preview (at most {PREVIEW_MAX_FRAMES})",
+            advice=f"preview at most {PREVIEW_MAX_FRAMES} frames",
+            details=[FieldProblem(field="params.n_frames", reason=f"at most {PREVIEW_MAX_FRAMES}")],
         )
     try:
         return make_orbit(spec.kind, **model.model_dump(exclude_none=True))
@@ -101,7 +104,7 @@ def list_kinds(_: Reader) -> list[OrbitKindOut]:
 def get_kind(kind: str, _: Reader) -> OrbitKindOut:
     """The parameter schema of one orbit kind."""
     if kind not in ORBIT_KINDS:
-        raise NotFound(f"no orbit kind {kind[:40]!r}; known: {', '.join(ORBIT_KINDS)}")
+        raise NotFound(f"no orbit kind {kind[:40]!r}", advice=f"use one of {', '.join(ORBIT_KINDS)}")
     return _describe(kind)
 
 

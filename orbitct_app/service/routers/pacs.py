@@ -93,7 +93,10 @@ def _node(service: Any, name: str) -> PacsNode:
     nodes = service.settings.pacs_nodes
     if name not in nodes:
         known = ", ".join(sorted(nodes)) or "none"
-        raise NotFound(f"no PACS node {name!r} in the service settings (pacs_nodes; configured: {known})")
+        raise NotFound(
+            f"no PACS node {name!r} in the service settings",
+            advice=f"use a configured node ({known}), or add it to the settings' pacs_nodes",
+        )
     return PacsNode.parse(nodes[name])
 
 

@@ -79,7 +79,7 @@ def add_person(body: PersonCreate, service: ServiceDep, who: PeopleManager) -> P
 def remove_person(name: Annotated[str, Path(pattern=NAME)], service: ServiceDep, who: PeopleManager) -> Response:
     """Remove a sign-in: its token is refused from the next request on. Nobody removes their own."""
     if name == who.name:
-        raise Conflict("you cannot remove your own sign-in; another operator can")
+        raise Conflict("you cannot remove your own sign-in", advice="ask another operator to remove it")
     if not any(p.name == name for p in _people(service)):
         raise NotFound(f"nobody named {name!r} may sign in here")
     revoke_token(service.settings.tokens_path, name)

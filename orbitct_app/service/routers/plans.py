@@ -300,7 +300,10 @@ def get_picture(plan_id: str, service: ServiceDep, _: Reader) -> FileResponse:
     path, state = _plan_or_state(service, plan_id)
     if path is None:
         reason = f": {state['reason']}" if state.get("reason") else ""  # type: ignore[union-attr]
-        raise Conflict(f"plan {plan_id} is {state['state']}{reason}")  # type: ignore[index]
+        raise Conflict(
+            f"plan {plan_id} is {state['state']}{reason}",  # type: ignore[index]
+            advice="its picture exists once it is done (GET /plans/bbs/{id})",
+        )
     return FileResponse(path.with_suffix(".png"), media_type="image/png")
 
 
@@ -315,9 +318,9 @@ def cancel_plan(plan_id: str, service: ServiceDep, who: Analyst) -> PlanStateOut
     """Stop a plan waiting or being made; it ends ``cancelled``."""
     path, _ = _plan_or_state(service, plan_id)
     if path is not None:
-        raise Conflict(f"plan {plan_id} is already done")
+        raise Conflict(f"plan {plan_id} is already done", advice="there is nothing to cancel")
     try:
         service.plans.cancel(plan_id, who.name)
     except PlanEnded as exc:
-        raise Conflict(str(exc)) from None
+        raise Conflict(str(exc), advice="there is nothing to cancel") from None
     return PlanStateOut(**service.plans.state(plan_id))

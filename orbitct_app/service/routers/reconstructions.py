@@ -109,20 +109,22 @@ def start_reconstruction(body: ReconstructionRequest, service: ServiceDep, who: 
     scan = check_scan_ready(service, body.scan_id)
     geometries, recons = _file_facts(service, scan)
     if not _has_geometry(service, scan, body.geometry, geometries):
-        hint = " (run a calibration first)" if body.geometry == "calibrated" else ""
-        raise Conflict(f"scan {body.scan_id} has no {body.geometry} geometry{hint}")
+        advice = (
+            "calibrate it first (POST /calibrations)" if body.geometry == "calibrated" else "choose another geometry"
+        )
+        raise Conflict(f"scan {body.scan_id} has no {body.geometry} geometry", advice=advice)
     if body.geometry == "calibrated" and not body.accept_failed_geometry:
         reasons = _failed_calibration(service, scan)
         if reasons is not None:
             from recon import FailedGeometryError
 
             refused = FailedGeometryError(f"scan {body.scan_id}", reasons)
-            raise FailedCheck(refused.sentence('send "accept_failed_geometry": true'))
+            raise FailedCheck(refused.what, advice=refused.advice('send "accept_failed_geometry": true'))
     name = body.recon_name
     if name in recons and not body.overwrite:
         raise Conflict(
-            f'scan {body.scan_id} already has a reconstruction named {name!r}; send "overwrite": true '
-            'to replace it, or another "name"'
+            f"scan {body.scan_id} already has a reconstruction named {name!r}",
+            advice='send "overwrite": true to replace it, or another "name"',
         )
     if body.max_minutes is None:
         body = body.model_copy(update={"max_minutes": service.settings.reconstruction_max_minutes})
@@ -150,7 +152,9 @@ def reconstruction_volume(service: Any, job_id: str) -> np.ndarray:
     """A succeeded reconstruction's volume (nz, ny, nx; 1/mm), memory-mapped; 404 or 409 otherwise."""
     job = job_or_404(service, job_id, "reconstruction")
     if job["state"] != "succeeded":
-        raise Conflict(f"reconstruction {job_id} is {job['state']}; results exist once it has succeeded")
+        raise Conflict(
+            f"reconstruction {job_id} is {job['state']}", advice="ask again once it has succeeded (GET /jobs/{id})"
+        )
     return np.load(confined(service.jobs.job_dir(job_id), "volume.npy"), mmap_mode="r")
 
 
@@ -178,7 +182,7 @@ def get_slice(
     n = vol.shape[dim]
     i = n // 2 if index is None else index
     if i >= n:
-        raise NotFound(f"no {axis} slice {i}: this volume's {axis} slices are 0..{n - 1}")
+        raise NotFound(f"no {axis} slice {i} in this volume", advice=f"ask for one of its {axis} slices 0..{n - 1}")
     result = job["result"]
     grid = VolumeGrid(tuple(vol.shape), tuple(result["voxel_mm"]), tuple(result["origin_mm"]))
     png = slice_png(np.asarray(vol, dtype=np.float32), grid, axis, i, title=f"{result.get('name', job_id)}: ")
@@ -202,7 +206,7 @@ def get_volume(job_id: str, service: ServiceDep, _: Reader, format: Literal["nif
         return FileResponse(confined(folder, "volume.npy"), filename=f"{job_id}.npy")
     names = [p.name for p in folder.iterdir() if p.name.endswith((".nii", ".nii.gz"))]
     if not names:
-        raise Conflict("this reconstruction has no NIfTI export")
+        raise Conflict("this reconstruction has no NIfTI export", advice="download it as NumPy instead (?format=npy)")
     return FileResponse(confined(folder, sorted(names)[0]), filename=sorted(names)[0])
 
 

@@ -21,6 +21,7 @@ from orbitct_app.service.core.errors import (
     ErrorBody,
     FieldProblem,
     Invalid,
+    StopLatched,
     validation_details,
 )
 from orbitct_app.service.core.events import sse_response
@@ -230,6 +231,7 @@ def _check_params(service: Any, body: ScanCreate) -> dict[str, Any]:
     if n > limit:
         raise Invalid(
             f"{n} frames is more than this service allows ({limit})",
+            advice=f"ask for at most {limit} frames (the service setting max_scan_frames sets the limit)",
             details=[FieldProblem(field="frames", reason=f"at most {limit}")],
         )
     return model.model_dump(mode="json", exclude_none=True)
@@ -304,9 +306,11 @@ def start_scan(body: ScanCreate, service: ServiceDep, who: ScanOperator, respons
     params = _check_params(service, body)
     refused = service.estop.refusal("scans")
     if refused:
-        raise Conflict(refused)
+        raise StopLatched(refused)
     if service.rig.busy is not None:
-        raise Conflict(f"the bench is busy with scan {service.rig.busy}; one scan at a time")
+        raise Conflict(
+            f"the bench is busy with scan {service.rig.busy}", advice="start this one when it has ended (one at a time)"
+        )
     scan_id = uuid.uuid4().hex[:16]
     rel = f"scans/{scan_id}.h5"
     spec = _preflight(service, body, params, rel)
@@ -400,7 +404,10 @@ async def latest_frame(scan_id: str, service: ServiceDep, _: Reader) -> Any:
     """A preview of the frame acquired last (the file has every frame at full depth)."""
     row = scan_or_404(service, scan_id)
     if service.rig.busy != scan_id:
-        raise Conflict(f"scan {scan_id} is {row['state']}, not running; its frames are in the scan file")
+        raise Conflict(
+            f"scan {scan_id} is {row['state']}, not running",
+            advice="its frames are in the scan file (GET /scans/{id}/file)",
+        )
     frame = await _latest_frame(service, scan_id)
     return Response(status_code=204) if frame is None else FrameOut(**frame)
 
@@ -429,7 +436,7 @@ def abort_scan(scan_id: str, service: ServiceDep, _: ScanOperator, body: ScanAct
     """Halt every axis, X-rays off, file marked aborted with the reason."""
     row = scan_or_404(service, scan_id)
     if service.rig.busy != scan_id:
-        raise Conflict(f"scan {scan_id} is {row['state']}, not running")
+        raise Conflict(f"scan {scan_id} is {row['state']}, not running", advice="there is nothing to abort")
     service.rig.abort(scan_id, (body or ScanAction()).reason)
     return _out(service, service.store.get_scan(scan_id))
 
@@ -460,7 +467,7 @@ def resume_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
     scan_or_404(service, scan_id)
     refused = service.estop.refusal("resuming a scan")
     if refused:
-        raise Conflict(refused)
+        raise StopLatched(refused)
     service.rig.resume(scan_id)
     return _out(service, service.store.get_scan(scan_id))
 
@@ -478,9 +485,9 @@ def download_scan(scan_id: str, service: ServiceDep, _: Reader) -> FileResponse:
     """The scan file (``scan-file.md``), once the scan has ended and no job writes to it."""
     row = scan_or_404(service, scan_id)
     if row["state"] in ("queued", "running", "paused") or service.rig.busy == scan_id:
-        raise Conflict(f"scan {scan_id} is still {row['state']}; download it when it has ended")
+        raise Conflict(f"scan {scan_id} is still {row['state']}", advice="download it when it has ended")
     if scan_id in service.jobs.busy_scans():
-        raise Conflict(f"a job is writing to scan {scan_id}; download it when the job has ended")
+        raise Conflict(f"a job is writing to scan {scan_id}", advice="download it when the job has ended")
     folder, name = row["file"].split("/")
     path = confined(service.settings.data_dir / folder, name)
     return FileResponse(path, media_type="application/x-hdf5", filename=f"{scan_id}.h5")

@@ -146,7 +146,7 @@ async def reset(service: ServiceDep, who: Resetter, body: ResetRequest | None = 
     try:
         return LatchOut(**service.estop.reset(who, (body or ResetRequest()).note))
     except NotLatchedError as exc:
-        raise Conflict(str(exc)) from None
+        raise Conflict(str(exc), advice="there is nothing to reset") from None
 
 
 @router.get(

@@ -83,10 +83,10 @@ async def upload_surface(
     the outline made of it (``Location: /surfaces/{id}``)."""
     suffix = Path(name).suffix.lower()
     if suffix not in MESH_SUFFIXES:
-        raise Invalid(f"surface {name!r}: expected a mesh file ({', '.join(MESH_SUFFIXES)})")
+        raise Invalid(f"surface {name!r} is not a mesh file", advice=f"upload a {', '.join(MESH_SUFFIXES)} file")
     data = await request.body()
     if not data:
-        raise Invalid("empty request body: send the mesh file itself as the body")
+        raise Invalid("the request body is empty", advice="send the mesh file itself as the body")
     surface_id = uuid.uuid4().hex[:12]
     path = _folder(service) / f"{surface_id}{suffix}"
     path.write_bytes(data)
@@ -97,7 +97,9 @@ async def upload_surface(
         raise Invalid(str(exc).replace(repr(str(path)), repr(name))) from None
     except Exception:  # noqa: BLE001 - a file the mesh reader cannot parse at all
         path.unlink(missing_ok=True)
-        raise Invalid(f"surface {name!r}: not a readable mesh ({', '.join(MESH_SUFFIXES)})") from None
+        raise Invalid(
+            f"surface {name!r} is not a readable mesh", advice=f"export it again as {', '.join(MESH_SUFFIXES)}"
+        ) from None
     described = dataclasses.replace(outline, source=name).describe()
     (_folder(service) / f"{surface_id}.json").write_text(json.dumps({"name": name, "surface": described}))
     response.headers["Location"] = f"/surfaces/{surface_id}"

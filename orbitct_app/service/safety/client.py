@@ -148,7 +148,7 @@ class GuardClient:
             async with httpx.AsyncClient(timeout=FORWARD_TIMEOUT_S) as client:
                 r = await client.post(f"{self.url}/stop", json={"reason": reason}, headers=headers)
         except httpx.HTTPError as exc:
-            raise GuardUnavailable(f"the guard did not answer ({type(exc).__name__}: {exc})") from None
+            raise GuardUnavailable(f"the guard did not answer ({exc or 'no answer'})") from None
         if r.status_code != 202:
             raise GuardUnavailable(f"the guard refused the stop ({r.status_code}: {r.text[:200]})")
         return dict(r.json())

@@ -29,11 +29,13 @@ from typing import Any
 
 from acquire.rigs.links import DeviceLink
 from devices.halt import HaltCheck, halt_and_verify, summary
+from orbitct_app.error_codes import error_kind, sentence
 from orbitct_app.service.core.auth import ON_BEHALF_HEADER, Principal, TokenRegistry
 from orbitct_app.service.core.settings import TokenHash
 from orbitct_app.service.safety.latch import StopLatch
 from orbitct_app.service.safety.request import stop_reason
 
+LISTENER_ROUTES = "use POST /stop, GET /stop or GET /health (all the stop listener serves)"
 log = logging.getLogger("orbitct.service.guard")
 # what the guard connects to, with its own driver options: short time-outs, and watch-only connections where a
 # second connection must not reconfigure the device (no watchdog or heartbeat on the generator, no re-arming a panel)
@@ -213,8 +215,9 @@ class StopHandler(BaseHTTPRequestHandler):
                 if not (self.command == "POST" and self.path.split("?")[0] == "/stop"):
                     self._error(
                         400 if unread == "malformed" else 413,
-                        "bad_request",
+                        "bad_request" if unread == "malformed" else "request_too_large",
                         f"the request body was {unread}: it was not read, and the connection is closed",
+                        "send a small JSON body (or none) in one piece",
                         close=True,
                     )
                     return
@@ -225,8 +228,8 @@ class StopHandler(BaseHTTPRequestHandler):
                 self._error(
                     405,
                     "method_not_allowed",
-                    f"the stop listener does not serve {self.command[:20]!r}: "
-                    "it serves POST /stop, GET /stop and GET /health",
+                    f"the stop listener does not serve {self.command[:20]!r}",
+                    LISTENER_ROUTES,
                     allow="GET, HEAD, POST, OPTIONS",
                 )
             else:
@@ -287,14 +290,17 @@ class StopHandler(BaseHTTPRequestHandler):
         if self.command != "HEAD":
             self.wfile.write(data)
 
-    def _error(self, status: int, error: str, message: str, **kw: Any) -> None:
-        self._reply(status, {"error": error, "message": message, "details": []}, **kw)
+    def _error(self, status: int, error: str, message: str, advice: str | None = None, **kw: Any) -> None:
+        advice = error_kind(error).advice if advice is None else advice
+        self._reply(
+            status, {"error": error, "message": sentence(message, advice), "advice": advice, "details": []}, **kw
+        )
 
     def _principal(self, permission: str) -> Principal | None:
         header = self.headers.get("Authorization", "")
         scheme, _, token = header.partition(" ")
         if scheme.lower() != "bearer" or not token or len(token) > 512:
-            self._error(401, "unauthorized", "a bearer token is required (Authorization: Bearer <token>)")
+            self._error(401, "unauthorized", "no bearer token came with the request")
             return None
         who = self.guard.tokens.authenticate(token.strip())
         behalf = self.headers.get(ON_BEHALF_HEADER, "")
@@ -310,13 +316,13 @@ class StopHandler(BaseHTTPRequestHandler):
             self._error(401, "unauthorized", "unknown token")
             return None
         if not who.may(permission):
-            self._error(403, "forbidden", who.refusal(permission))
+            self._error(403, "forbidden", who.refusal(permission), who.refusal_advice(permission))
             return None
         return who
 
     def do_POST(self) -> None:  # http.server's naming
         if self.path.split("?")[0] != "/stop":
-            self._error(404, "not_found", "the stop listener serves POST /stop, GET /stop and GET /health")
+            self._error(404, "not_found", f"the stop listener has no {self.path[:60]!r}", LISTENER_ROUTES)
             return
         who = self._principal("stop")
         if who is None:
@@ -340,7 +346,7 @@ class StopHandler(BaseHTTPRequestHandler):
             if self._principal("read") is not None:
                 self._reply(200, self.guard.latch.state())
         else:
-            self._error(404, "not_found", "the stop listener serves POST /stop, GET /stop and GET /health")
+            self._error(404, "not_found", f"the stop listener has no {self.path[:60]!r}", LISTENER_ROUTES)
 
     def do_OPTIONS(self) -> None:  # CORS pre-flight of a browser's stop button
         self.send_response(204)

@@ -229,7 +229,7 @@ class StopLatch:
         event = {"event": "reset", "utc": _now(), "by": by, "reason": note, "via": "reset"}
         with self._lock:
             if not (self.flag.is_set() or self._read().get("latched")):
-                raise NotLatchedError("the emergency stop is not latched; there is nothing to reset")
+                raise NotLatchedError("the emergency stop is not latched")
             _apply(self._memory, event)
             self._pending.append(event)
             self.flag.clear()
@@ -273,7 +273,4 @@ class StopLatch:
         st = self.state()
         who = f" by {st['by']}" if st.get("by") else ""
         when = f" at {st['since_utc']}" if st.get("since_utc") else ""
-        return (
-            f"emergency stop latched{who}{when}: {action} refused until an operator resets it "
-            "(POST /stop/reset or `orbitct reset`)"
-        )
+        return f"emergency stop latched{who}{when}: {action} refused until an operator resets it"

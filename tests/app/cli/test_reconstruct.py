@@ -80,7 +80,8 @@ def test_compare_puts_two_geometries_side_by_side_in_one_window(tmp_path: Path) 
         assert sorted(sf.recon_names()) == ["fdk_truth", "fdk_truth_vs_nominal"]
         assert sf.read_recon("fdk_truth_vs_nominal")[1]["geometry"] == "nominal"
     again = CliRunner().invoke(cli, args)
-    assert again.exit_code == 1 and "already has a reconstruction named 'fdk_truth'" in again.output
+    assert again.exit_code == 2 and "already has a reconstruction named 'fdk_truth'" in again.output
+    assert again.output.startswith("error [conflict]: ") and "--overwrite replaces it" in again.output
     assert CliRunner().invoke(cli, [*args, "--overwrite"]).exit_code == 0
     same = CliRunner().invoke(cli, [*args[:-1], "truth", "--overwrite"])
     assert same.exit_code == 2 and "already reconstructed" in same.output
@@ -107,7 +108,7 @@ def test_a_reconstruction_estimated_above_the_limit_is_refused_off_a_terminal_un
         "0.0005",
     ]
     refused = CliRunner().invoke(cli, args)
-    assert refused.exit_code == 1, refused.output
+    assert refused.exit_code == 2 and refused.output.startswith("error [invalid_parameters]: "), refused.output
     assert "is estimated to take" in refused.output and "more than the limit of 0 s" in refused.output
     assert "--yes starts it anyway" in refused.output and "Traceback" not in refused.output
     with ScanFile(path) as sf:
@@ -143,7 +144,7 @@ def test_a_failed_calibrated_geometry_is_refused_until_accepted_and_the_volume_s
         )
     args = ["reconstruct", str(path), "--shape", "16,24,24", "--voxel-mm", "4"]
     refused = CliRunner().invoke(cli, args)
-    assert refused.exit_code == 2, refused.output
+    assert refused.exit_code == 3 and refused.output.startswith("error [failed_quality_check]: "), refused.output
     assert "failed its quality check (5 of 40 view(s) failed)" in refused.output
     assert "--accept-failed-geometry" in refused.output and "Traceback" not in refused.output
     accepted = CliRunner().invoke(cli, [*args, "--accept-failed-geometry"])

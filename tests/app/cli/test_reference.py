@@ -72,7 +72,9 @@ def test_refused_while_the_stop_is_latched_and_for_twins_or_a_carm(
     r = CliRunner().invoke(
         cli, ["reference", "all", "--config", str(_config(tmp_path, "tcp://127.0.0.1:9", stage.uri)), "--yes"]
     )
-    assert r.exit_code == 1 and r.output.startswith("error: hexapod:") and "Traceback" not in r.output, r.output
+    assert r.exit_code == 1 and r.output.startswith("error [unavailable]: hexapod:") and "Traceback" not in r.output, (
+        r.output
+    )
 
 
 def test_sigterm_while_referencing_halts_the_axes(tmp_path: Path) -> None:

@@ -135,4 +135,4 @@ def test_orbit_parameters_from_the_command_line(tmp_path: Path) -> None:
             str(tmp_path / "q.h5"),
         ],
     )
-    assert bad.exit_code == 2 and "expected KEY=VALUE" in bad.output
+    assert bad.exit_code == 2 and "is not KEY=VALUE; write it as KEY=VALUE" in bad.output

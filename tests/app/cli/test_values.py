@@ -40,7 +40,7 @@ def test_an_output_file_that_cannot_be_written_ends_the_command_in_one_line(tmp_
     blocker.write_text("not a folder")
     for args, out in ((SIM, blocker / "x.h5"), (PLAN + ["--bbs", "4"], blocker / "plan.json")):
         r = CliRunner().invoke(cli, [*args, "--out", str(out)])
-        assert r.exit_code == 1 and r.output.startswith("Error: ") and str(blocker) in r.output, (
+        assert r.exit_code == 1 and r.output.startswith("error [file_error]: ") and str(blocker) in r.output, (
             r.output
         )  # it or its folder
         assert r.output.count("\n") == 1 and "Traceback" not in r.output, r.output

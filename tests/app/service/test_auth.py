@@ -161,3 +161,4 @@ def test_roles_on_every_mutating_endpoint(
             said = r.json()["message"]
             assert r.json()["error"] == "forbidden" and f"needs the {' or '.join(needed)} role" in said, said
             assert f"signed in as {role};" in said and permission not in said.split(";")[0], said
+            assert r.json()["advice"].startswith("ask an operator to add that role"), said

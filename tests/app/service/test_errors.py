@@ -10,7 +10,7 @@ pytestmark = pytest.mark.system
 def _is_error(r, status: int) -> dict:  # type: ignore[no-untyped-def]
     assert r.status_code == status, r.text
     body = r.json()
-    assert set(body) == {"error", "message", "details"} and body["message"]
+    assert set(body) == {"error", "message", "advice", "details"} and body["message"].endswith(body["advice"])
     return body
 
 
@@ -84,7 +84,7 @@ def test_downloads_stay_in_the_data_dir(shared_api) -> None:  # type: ignore[no-
 def test_wrong_method_is_json(shared_api) -> None:  # type: ignore[no-untyped-def]
     r = shared_api.request("DELETE", "/scans")
     assert _is_error(r, 405)["error"] == "method_not_allowed"
-    assert r.headers["allow"] == "GET, POST" and "allowed: GET, POST" in r.json()["message"]
+    assert r.headers["allow"] == "GET, POST" and r.json()["advice"] == "use GET or POST"
 
 
 def test_the_openapi_document_is_valid_openapi_3_1(shared_api) -> None:  # type: ignore[no-untyped-def]

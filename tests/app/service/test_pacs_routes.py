@@ -66,7 +66,7 @@ def test_runs_come_in_as_scans_and_volumes_go_out_through_the_configured_node(ma
         assert int(enhanced_ct.NumberOfFrames) == 8 and "left and right" in enhanced_ct.ImageComments  # the caveat
 
         r = api.get("/pacs/nowhere/series")
-        assert r.status_code == 404 and "configured: down, lab" in r.json()["message"]
+        assert r.status_code == 404 and "a configured node (down, lab)" in r.json()["message"]
         r = api.get("/pacs/down/series")
         assert r.status_code == 502 and "NOBODY" in r.json()["message"] and r.json()["error"] == "bad_gateway"
         r = api.post("/pacs/lab/import", role="analyst", json={**body, "series_uids": ["1.2.3.4"]})

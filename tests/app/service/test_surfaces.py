@@ -45,8 +45,8 @@ def test_a_mesh_is_uploaded_listed_and_planned_on(shared_api: Any) -> None:
 @pytest.mark.parametrize(
     ("name", "content", "status", "needle"),
     [
-        ("leg.txt", b"solid x", 422, "expected a mesh file"),
-        ("leg.stl", b"", 422, "empty request body"),
+        ("leg.txt", b"solid x", 422, "is not a mesh file; upload a"),
+        ("leg.stl", b"", 422, "the request body is empty; send the mesh file"),
         ("leg.stl", b"\x00\x01 this is no mesh at all \xff" * 8, 422, "leg.stl"),
         ("../leg.stl", b"solid x", 422, "name"),
     ],
