@@ -225,17 +225,23 @@ async function pageBench() {
   });
 
   function render(card, reading) {
-    // red: a state that moves, exposes or is faulted; green: a good state that is on; the rest plain
-    const alarming = (k) => /fault|moving|exposing|hv_on|high_voltage/.test(k);
-    const rounded = (v) => (typeof v === 'number' && !Number.isInteger(v) ? Number(v.toFixed(4))
-      : v && typeof v === 'object' && !Array.isArray(v) ? Object.fromEntries(Object.entries(v).map(([a, x]) => [a, rounded(x)])) : v);
-    const rows = Object.entries(reading.state).map(([k, v]) => {
-      const cls = typeof v !== 'boolean' ? '' : alarming(k) ? (v ? 'no' : '') : (v ? 'yes' : '');
-      return el('tr', {}, el('th', { text: label(k) }), el('td', { class: cls, text: fmt(rounded(v), 6) }));
-    });
-    $('table.state tbody', card).replaceChildren(...rows);
+    // the named state (red: latched, fault, moving, exposing; green: on target, referenced, ready), then each axis
+    // with its unit and soft limits, then the other readings with their units
+    const status = $('.status', card);
+    status.textContent = reading.status;
+    status.className = `status tone-${reading.tone}`;
+    $('.why', card).textContent = reading.why;
+    const mark = (ok) => el('td', { class: ok ? 'yes' : 'no', text: ok ? '✔' : '✘' });
+    const axes = $('table.axes', card);
+    axes.hidden = !reading.axes.length;
+    card.classList.toggle('has-axes', reading.axes.length > 0);
+    $('tbody', axes).replaceChildren(...reading.axes.map((a) => el('tr', {},
+      el('th', { text: a.axis }), el('td', { text: a.position }), el('td', { text: a.target }), el('td', { text: a.limits }),
+      mark(a.referenced), mark(a.on_target))));
+    $('table.state tbody', card).replaceChildren(...reading.readings.map((r) =>
+      el('tr', {}, el('th', { text: r.label }), el('td', { text: r.value }))));
     const fault = $('.reset-fault', card);
-    if (fault) fault.hidden = !Object.entries(reading.state).some(([k, v]) => k.includes('fault') && v && v !== 'none');
+    if (fault) fault.hidden = reading.status !== 'fault';
   }
 }
 

@@ -16,8 +16,10 @@ from orbitct_app.service.core.errors import (
     ErrorBody,
     FieldProblem,
     Invalid,
+    StopLatched,
 )
 from orbitct_app.service.deps import Operator, Reader, ServiceDep
+from orbitct_app.service.rig.status import device_status
 
 log = logging.getLogger("orbitct.service.devices")
 router = APIRouter(prefix="/devices", tags=["devices"], responses={**ERROR_RESPONSES, **BENCH_UNAVAILABLE})
@@ -60,10 +62,40 @@ class DeviceOut(BaseModel):
     axes: list[AxisOut] = []
 
 
+class AxisStatus(BaseModel):
+    """One axis in the operator's terms: position, target and soft limits with the axis unit."""
+
+    axis: str
+    unit: str
+    position: str = Field(description="e.g. '1.250 mm'; '—' when not read")
+    target: str
+    limits: str = Field(description="soft limits, e.g. '-50 … 50 mm'")
+    referenced: bool
+    on_target: bool
+    moving: bool
+
+
+class Reading(BaseModel):
+    """A labelled reading with its unit (kV, mA, ms, pixels, degrees)."""
+
+    label: str
+    value: str
+
+
 class DeviceState(BaseModel):
-    """A device and what it reads now (positions, on target, referenced; X-ray state), and the emergency-stop latch."""
+    """A device and what it reads now (positions, on target, referenced; X-ray state), and the emergency-stop latch.
+
+    ``status`` names the state in the operator's terms (``latched``, ``fault``, ``moving``, ``exposing``, ``high
+    voltage on``, ``not referenced``, ``servo off``, ``on target``, ``referenced``, ``ready``, ``armed``, ``door
+    open``, ``standby``), ``why`` says why, ``tone`` is how the console colours it; ``state`` is the raw read-back.
+    """
 
     device: DeviceOut
+    status: str = ""
+    tone: str = Field("idle", description="alarm (red), ok (green) or idle (plain)")
+    why: str = ""
+    axes: list[AxisStatus] = []
+    readings: list[Reading] = []
     state: dict[str, Any]
     estop_latched: bool = Field(False, description="an emergency stop is latched: no motion or X-rays until reset")
 
@@ -92,15 +124,17 @@ class MoveRequest(BaseModel):
 
 
 def _state(service: Any, result: dict[str, Any]) -> DeviceState:
-    return DeviceState(device=DeviceOut(**result["device"]), state=result["state"], estop_latched=service.latch.latched)
+    latched = service.latch.latched
+    named = device_status(result["device"], result["state"], latched)
+    return DeviceState(device=DeviceOut(**result["device"]), state=result["state"], estop_latched=latched, **named)
 
 
 def _idle(service: Any, action: str) -> None:
     refused = service.estop.refusal(action)
     if refused:
-        raise Conflict(refused)
+        raise StopLatched(refused)
     if service.rig.busy is not None:
-        raise Conflict(f"the bench is running scan {service.rig.busy}; maintenance moves wait until it ends")
+        raise Conflict(f"the bench is running scan {service.rig.busy}", advice=f"wait until it ends for {action}")
 
 
 @router.get("", response_model=list[DeviceOut], summary="List devices")
@@ -170,7 +204,7 @@ async def reset_fault(name: DeviceName, service: ServiceDep, who: Operator) -> D
     Allowed while an emergency stop is latched: it switches nothing on.
     """
     if service.rig.busy is not None:
-        raise Conflict(f"the bench is running scan {service.rig.busy}; a fault reset waits until it ends")
+        raise Conflict(f"the bench is running scan {service.rig.busy}", advice="reset the fault when it has ended")
     result = _state(service, await service.rig.run("reset_fault", name=name))
     log.warning("generator fault on %s reset by %s (%s)", name, who.name, who.role)
     return result

@@ -354,8 +354,20 @@ def test_the_bench_page_turns_its_controls_off_with_the_reason_while_the_stop_is
     page = console.sign_in("operator")
     controls = page.locator(".device .reference:visible, .device form.move:visible button")
     expect(controls.first).to_be_enabled()
+    # in the operator's terms: a named state per device, each axis with its unit and soft limits, no register values
+    hexapod = page.locator('.device[data-device="hexapod"]')
+    expect(hexapod.locator(".status")).to_have_text(re.compile(r"^(on target|referenced|not referenced)$"))
+    expect(hexapod.locator("table.axes tbody tr")).to_have_count(6)
+    expect(hexapod.locator("table.axes tbody tr").first).to_contain_text(" mm")
+    expect(hexapod.locator("table.axes tbody tr").first).to_contain_text(re.compile(r"-?\d+ … -?\d+ mm"))
+    xray = page.locator('.device[data-device="xray"]')
+    expect(xray.locator(".status")).to_have_text(re.compile(r"^(standby|ready|door open)$"))
+    expect(xray.locator("table.state")).to_contain_text("kV")
+    expect(xray.locator("table.state")).not_to_contain_text("fault_code")
     assert console.api("POST", "/stop", json={"reason": "test of the bench page"}).status_code == 202
     expect(page.locator("#bench-gate")).to_contain_text("the emergency stop is latched", timeout=10_000)
+    expect(hexapod.locator(".status")).to_have_text("latched", timeout=10_000)
+    expect(xray.locator(".status")).to_have_text("latched")
     for i in range(controls.count()):
         expect(controls.nth(i)).to_be_disabled()
         assert "latched" in (controls.nth(i).get_attribute("title") or "")
