@@ -22,8 +22,11 @@ class Failure(click.ClickException):
         self.exit_code = kind.exit_status if kind.exit_status is not None else 1
 
     def show(self, file: IO[Any] | None = None) -> None:
-        """Print ``error [code]: message`` to stderr."""
-        click.echo(f"error [{self.code}]: {self.message}", err=True)
+        """Print ``error [code]: message`` to stderr (after SIGHUP the terminal may be gone: the exit status stays)."""
+        try:
+            click.echo(f"error [{self.code}]: {self.message}", err=True)
+        except OSError:
+            pass
 
 
 def fail(
