@@ -339,7 +339,7 @@ def _solve_and_write(
         tset = TrackingSettings(
             diameter_px=d_px, motion_px=motion_px(nominal), jitter_px=jitter_mm * d_px / diameter_mm
         )
-        t_id = time.perf_counter()
+        t_id, compiled_at_id = time.perf_counter(), clock.seconds
         frags = linked if linked is not None and jitter_mm == opt.jitter_mm else link_fragments(cands, tset, nominal)
         tracks[jitter_mm] = (tset, frags)
         uv, found_warnings = identify(
@@ -351,7 +351,7 @@ def _solve_and_write(
             prior_scale=max(1.0, jitter_mm / DEFAULT_JITTER_MM),
             linked=frags,
         )
-        t_identify += time.perf_counter() - t_id
+        t_identify += time.perf_counter() - t_id - (clock.seconds - compiled_at_id)  # compiling counted once
         report(progress, "track", 1, 1, f"{uv.shape[1]} BBs")
         if uv.shape[1] < 3:
             failure = NoMarkersError(

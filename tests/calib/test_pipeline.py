@@ -453,3 +453,26 @@ def test_a_truncating_panel_uses_bbs_up_to_its_edge_and_flags_what_it_cannot_see
     off = np.isfinite(per) & (per > 1.0)
     assert (res.predicted_px[proj][off] > 0.5).all()
     assert off.any() and res.quality is not None and not res.quality.passed  # and the verdict says so
+
+
+def test_timings_leave_compiling_out_once_and_are_never_negative(
+    simulated_scan: Callable[..., Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Kernels compiled during identification (the first calibration after installation) were taken off the
+    estimation time twice, which then read negative."""
+    import numba
+
+    import calib.pipeline
+
+    real = calib.pipeline.identify
+
+    def compiling_identify(*args: object, **kwargs: object) -> object:
+        for k in range(6):  # new functions: numba compiles each, as on first use after installation
+            numba.njit(lambda x, k=k: x * 2.0 + k)(1.0)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(calib.pipeline, "identify", compiling_identify)
+    res = calib.calibrate_scan(simulated_scan("A"), out=tmp_path / "t.h5")
+    assert res.compile_s > 0.0, "the test compiled nothing"
+    assert res.detect_s >= 0.0 and res.estimate_s >= 0.0, (res.detect_s, res.estimate_s, res.compile_s)
+    assert res.detect_s + res.estimate_s <= res.elapsed_s + 1e-6, (res.detect_s, res.estimate_s, res.elapsed_s)
