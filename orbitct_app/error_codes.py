@@ -8,6 +8,7 @@ code's exit status. The documentation's error page is made from this table.
 
 from __future__ import annotations
 
+import errno
 from dataclasses import dataclass
 
 
@@ -156,6 +157,18 @@ def sentence(what: str, advice: str) -> str:
     """``what; advice``: one sentence of what happened and what to do."""
     what, advice = what.strip().rstrip(".;"), advice.strip().rstrip(".")
     return f"{what}; {advice}" if advice else what
+
+
+def code_for_exception(exc: BaseException) -> str:
+    """The code of a failure that ended a command, a job or a plan: a full disk, another file problem, orbitct's own
+    errors (``ValueError``s that say what was wrong) and running out of memory, else unexpected."""
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return "insufficient_storage"
+    if isinstance(exc, OSError) and not isinstance(exc, TimeoutError | ConnectionError):
+        return "file_error"
+    if isinstance(exc, MemoryError | ValueError):
+        return "action_failed"
+    return "internal_error"
 
 
 def code_for_http(status: int) -> str:

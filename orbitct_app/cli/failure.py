@@ -8,7 +8,7 @@ from typing import IO, Any, NoReturn
 
 import click
 
-from orbitct_app.error_codes import error_kind, sentence
+from orbitct_app.error_codes import code_for_exception, error_kind, sentence
 
 
 class Failure(click.ClickException):
@@ -55,16 +55,15 @@ def as_failure(exc: BaseException, ctx: click.Context | None = None) -> Failure:
         return Failure("stopped by Ctrl-C", "interrupted")
     if isinstance(exc, click.Abort):  # a question answered with Ctrl-C or end of input
         return Failure("not confirmed: nothing was done", "action_failed", "run it again and answer the question")
+    code = code_for_exception(exc)
     if isinstance(exc, MemoryError):
-        return Failure("it ran out of memory", "action_failed", "make the work smaller or use a machine with more")
-    if isinstance(exc, OSError) and not isinstance(exc, TimeoutError | ConnectionError):
+        return Failure("it ran out of memory", code, "make the work smaller or use a machine with more")
+    if isinstance(exc, OSError) and code != "internal_error":
         where = f"{exc.filename}: " if exc.filename else ""
-        if getattr(exc, "errno", None) in (28, 122):  # ENOSPC, EDQUOT
-            return Failure(f"{where}{exc.strerror or exc}", "insufficient_storage")
-        return Failure(f"{where}{exc.strerror or exc}", "file_error")
+        return Failure(f"{where}{exc.strerror or exc}", code)
     text = str(exc).strip() or "no message"
-    if isinstance(exc, ValueError):  # orbitct's own errors (ScanFileError, CalibrationError, ...) say what was wrong
-        return Failure(text, "action_failed")
+    if code != "internal_error":  # orbitct's own errors (ScanFileError, CalibrationError, ...) say what was wrong
+        return Failure(text, code)
     return Failure(
         f"an unexpected error stopped the command ({text})",
         "internal_error",

@@ -2,19 +2,6 @@
 
 from __future__ import annotations
 
-import errno
-
-
-def failure_code(exc: BaseException) -> str:
-    """The catalogue code (:mod:`orbitct_app.error_codes`) of a failure that ended a job, a plan or a command."""
-    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
-        return "insufficient_storage"
-    if isinstance(exc, OSError) and not isinstance(exc, TimeoutError | ConnectionError):
-        return "file_error"
-    if isinstance(exc, MemoryError | ValueError):
-        return "action_failed"
-    return "internal_error"
-
 
 def failure_sentence(exc: BaseException) -> str:
     """What a failure says to a person (a job's reason, a plan's, a bench command's): orbitct's own errors in their

@@ -19,9 +19,10 @@ from pathlib import Path
 from typing import Any
 
 from orbitct.progress import ProgressEvent
+from orbitct_app.error_codes import code_for_exception
 from orbitct_app.service.core.db import Store, utc_now
 from orbitct_app.service.core.events import EventBus
-from orbitct_app.service.core.failures import failure_code, failure_sentence
+from orbitct_app.service.core.failures import failure_sentence
 from orbitct_app.service.jobs.tasks import run_calibration, run_reconstruction
 
 log = logging.getLogger("orbitct.service.jobs")
@@ -144,7 +145,7 @@ def run_job(
     except Exception as exc:  # every failure becomes the job's reason
         log.error("job %s failed", job_id, exc_info=True, extra={"job_log": False})  # details for the worker's log
         text = failure_sentence(exc)
-        send("log", f"error [{failure_code(exc)}]: {text}")
+        send("log", f"error [{code_for_exception(exc)}]: {text}")
         return {"error": text, "events": sent[0]}
     finally:
         root.removeHandler(handler)

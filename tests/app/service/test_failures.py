@@ -7,8 +7,8 @@ import re
 
 import pytest
 
-from orbitct_app.error_codes import CATALOGUE
-from orbitct_app.service.core.failures import failure_code, failure_sentence
+from orbitct_app.error_codes import CATALOGUE, code_for_exception
+from orbitct_app.service.core.failures import failure_sentence
 from recon.errors import ReconError
 
 CLASS_NAME = re.compile(r"\b[A-Z][a-z]+(?:[A-Z][a-z]+)*(?:Error|Exception|Warning)\b")
@@ -32,4 +32,4 @@ CLASS_NAME = re.compile(r"\b[A-Z][a-z]+(?:[A-Z][a-z]+)*(?:Error|Exception|Warnin
 def test_a_failure_is_a_sentence_without_a_class_name(exc: BaseException, said: str, code: str) -> None:
     text = failure_sentence(exc)
     assert said in text and not CLASS_NAME.search(text), text
-    assert failure_code(exc) == code and code in CATALOGUE
+    assert code_for_exception(exc) == code and code in CATALOGUE
