@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from orbitct.geometry import Panel, ViewGeometry
+from orbitct.scanfile._xa_angles import ANGLE_INCREMENTS, AngleIncrements, AngleReadingError, frame_angles
 from orbitct.scanfile._xa_objects import RUN_KINDS, Run, RunKind, classic, enhanced
 from orbitct.scanfile.errors import ScanFileError
 from orbitct.scanfile.keys import ImageKey
@@ -41,6 +42,8 @@ def patient_sides_caveat(assumptions: Sequence[str]) -> str:
         else ""
     )
 
+
+__all__ = ["ANGLE_INCREMENTS", "AngleIncrements", "import_xa", "patient_sides_caveat", "write_xa_run"]
 
 AXES = {"carm.primary": "deg", "carm.secondary": "deg"}
 REQUIRED = ("NumberOfFrames", "Rows", "Columns", "PixelData")
@@ -236,22 +239,29 @@ def _require(path: Path, ds: Any, names: Sequence[str]) -> None:
         )
 
 
-def _classic_geometry(path: Path, ds: Any, n: int) -> dict[str, Any]:
-    """Angles (first frame plus increments), distances and pixel spacing of a classic XA or XRF object."""
+def _classic_geometry(path: Path, ds: Any, n: int, choice: AngleIncrements) -> dict[str, Any]:
+    """Angles (first frame plus increments, read as ``choice``), distances and pixel spacing of a classic XA or XRF
+    object."""
     _require(path, ds, CLASSIC_REQUIRED)
     _linear(path, ds)
-    incr = {}
+    incr = []
     for name in ("PositionerPrimaryAngleIncrement", "PositionerSecondaryAngleIncrement"):
         try:
-            values = np.atleast_1d(np.asarray(ds.get(name), dtype=float)) if name in ds else np.zeros(n)
+            values = np.atleast_1d(np.asarray(ds.get(name), dtype=float)) if name in ds else np.zeros(1)
         except (TypeError, ValueError):
             raise ScanFileError(f"{path}: {name} holds something other than numbers") from None
-        if values.size != n:
-            raise ScanFileError(f"{path}: {name} has {values.size} values for {n} frames")
-        incr[name] = values
+        if values.size not in (1, n):
+            raise ScanFileError(f"{path}: {name} has {values.size} values for {n} frames (DICOM allows 1 or {n})")
+        incr.append(values)
+    start = (_number(path, ds, "PositionerPrimaryAngle"), _number(path, ds, "PositionerSecondaryAngle"))
+    try:
+        angles = frame_angles(start, (incr[0], incr[1]), n, choice)
+    except AngleReadingError as exc:
+        raise ScanFileError(f"{path}: {exc}") from None
     return {
-        "primary": _number(path, ds, "PositionerPrimaryAngle") + incr["PositionerPrimaryAngleIncrement"],
-        "secondary": _number(path, ds, "PositionerSecondaryAngle") + incr["PositionerSecondaryAngleIncrement"],
+        "primary": angles.primary_deg,
+        "secondary": angles.secondary_deg,
+        "increments": f"{path.name}: PositionerPrimary/SecondaryAngleIncrement {angles.why}",
         "sad": _number(path, ds, "DistanceSourceToPatient"),
         "sdd": _number(path, ds, "DistanceSourceToDetector"),
         "spacing": _numbers(path, ds, "ImagerPixelSpacing"),
@@ -351,14 +361,15 @@ def _finite_numbers(path: Path, found: dict[str, Any]) -> None:
             raise ScanFileError(f"{path}: {name}: a value is not a finite number (NaN or infinite)")
 
 
-def _run(path: Path) -> dict[str, Any]:
+def _run(path: Path, choice: AngleIncrements) -> dict[str, Any]:
     """The geometry-relevant content of one XA/XRF run (classic or enhanced), or ScanFileError naming what is missing
     or wrong; the header is checked before a pixel is read."""
     ds = _header(path)
     n = int(ds.NumberOfFrames)
     is_enhanced = "PerFrameFunctionalGroupsSequence" in ds or "SharedFunctionalGroupsSequence" in ds
-    found = _enhanced_geometry(path, ds, n) if is_enhanced else _classic_geometry(path, ds, n)
+    found = _enhanced_geometry(path, ds, n) if is_enhanced else _classic_geometry(path, ds, n, choice)
     _finite_numbers(path, found)
+    _moves_if_dynamic(path, ds, found, n)
     sdd, sad, spacing = found["sdd"], found["sad"], found["spacing"]
     distance = "DistanceSourceToIsocenter" if is_enhanced else "DistanceSourceToPatient"
     if not sdd > sad > 0:
@@ -383,15 +394,38 @@ def _run(path: Path) -> dict[str, Any]:
         "when": str(ds.get("AcquisitionDateTime", "")) or str(ds.get("AcquisitionTime", "")),
         "frame_time_s": found["frame_time_s"],
         "kind": "Enhanced XA" if is_enhanced else ("XRF" if ds.Modality == "RF" else "XA"),
+        "increments": found.get("increments", ""),
     }
 
 
-def import_xa(files: Sequence[str | Path], out: str | Path, *, overwrite: bool = False) -> Path:
-    """One or more XA runs of one orbit (ordered by acquisition time) as the scan file ``out``."""
+STILL_DEG = 0.5  # frames within this of one angle stand still
+STILL_SHARE = 0.9  # a DYNAMIC run with this share of its frames standing still did not move
+
+
+def _moves_if_dynamic(path: Path, ds: Any, found: dict[str, Any], n: int) -> None:
+    """Refuse a run that says the C-arm moved (PositionerMotion DYNAMIC) whose frames nearly all stand at one angle."""
+    if str(ds.get("PositionerMotion", "") or "") != "DYNAMIC" or n < 2:
+        return
+    angles = np.stack([found["primary"], found["secondary"]], axis=1)
+    centre = np.median(angles, axis=0)
+    still = int(np.sum(np.linalg.norm(angles - centre, axis=1) <= STILL_DEG))
+    if still >= STILL_SHARE * n:
+        raise ScanFileError(
+            f"{path}: PositionerMotion is DYNAMIC but {still} of its {n} frames stand within {STILL_DEG} deg of "
+            f"({centre[0]:.4g}, {centre[1]:.4g}) deg: the per-frame angles are missing or were read wrongly; for a "
+            "classic run choose how its angle increments are stored (--angle-increments offsets, steps or absolute)"
+        )
+
+
+def import_xa(
+    files: Sequence[str | Path], out: str | Path, *, overwrite: bool = False, angle_increments: AngleIncrements = "auto"
+) -> Path:
+    """One or more XA runs of one orbit (ordered by acquisition time) as the scan file ``out``; a classic run's angle
+    increments read as ``angle_increments`` (offsets, steps or absolute angles) or, with "auto", as their values show."""
     paths = [Path(p) for p in files]
     if not paths:
         raise ScanFileError("no DICOM files given")
-    runs = sorted((_run(p) for p in paths), key=lambda r: r["when"])
+    runs = sorted((_run(p, angle_increments) for p in paths), key=lambda r: r["when"])
     first = runs[0]
     for r in runs[1:]:
         for key in ("sad", "sdd", "pitch", "eta"):
@@ -430,9 +464,10 @@ def import_xa(files: Sequence[str | Path], out: str | Path, *, overwrite: bool =
         )
     if {"XA", "XRF"} & set(kinds):
         assumptions.append(
-            "classic XA/XRF: per-frame angles are the first frame's plus its increments; "
+            "classic XA/XRF: per-frame angles from the first frame's angles and the increments; "
             "DistanceSourceToPatient is the source-to-isocenter distance"
         )
+        assumptions += [r["increments"] for r in runs if r["increments"]]
     dtype = "uint16" if frames.dtype.kind == "u" and frames.dtype.itemsize <= 2 else "float32"
     with ScanWriter(
         out,

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from orbitct.scanfile.xa import ANGLE_INCREMENTS, AngleIncrements
 from orbitct_app.cli.failure import Failure
 
 
@@ -18,7 +19,15 @@ def import_group() -> None:
 @click.argument("inputs", nargs=-1, required=True, type=click.Path(exists=True, path_type=Path))
 @click.option("--out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="The scan file to write.")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
-def dicom(inputs: tuple[Path, ...], out: Path, overwrite: bool) -> None:
+@click.option(
+    "--angle-increments",
+    type=click.Choice(ANGLE_INCREMENTS),
+    default="auto",
+    show_default=True,
+    help="How a classic run stores its per-frame angle increments: offsets from the first frame, steps from the "
+    "previous frame, absolute angles, or auto (read from the values; the choice is printed).",
+)
+def dicom(inputs: tuple[Path, ...], out: Path, overwrite: bool, angle_increments: AngleIncrements) -> None:
     """Import the XA runs in INPUTS (files, or folders of .dcm files) of one orbit, in acquisition order."""
     from orbitct.scanfile import ScanFile, ScanFileError
     from orbitct.scanfile.xa import import_xa
@@ -29,7 +38,7 @@ def dicom(inputs: tuple[Path, ...], out: Path, overwrite: bool) -> None:
             f"no .dcm files in {', '.join(map(str, inputs))}", "not_found", "give the files or folders the series is in"
         )
     try:
-        path = import_xa(files, out, overwrite=overwrite)
+        path = import_xa(files, out, overwrite=overwrite, angle_increments=angle_increments)
         with ScanFile(path) as sf:
             n = sf.count_by_kind()["projection"]
             assumed = sf.attrs_json("provenance", "import_assumptions_json")["assumed"]

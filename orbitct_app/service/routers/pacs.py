@@ -11,6 +11,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query, Response
 from pydantic import BaseModel, ConfigDict, Field
 
+from orbitct.scanfile.xa import AngleIncrements
 from orbitct_app.pacs import PacsError, PacsNode, find_series, get_series, send
 from orbitct_app.service.core.errors import (
     DISK_FULL,
@@ -62,6 +63,11 @@ class ImportRequest(BaseModel):
     study_uid: Uid
     series_uids: list[Uid] = Field(min_length=1, max_length=16, description="the runs, in acquisition order")
     name: str = Field(default="imported", min_length=1, max_length=100)
+    angle_increments: AngleIncrements = Field(
+        default="auto",
+        description="how a classic run stores its per-frame angle increments: offsets from the first frame, steps "
+        "from the previous frame, absolute angles, or auto (read from the values; the choice is among `assumed`)",
+    )
 
 
 class ImportOut(BaseModel):
@@ -164,7 +170,7 @@ def import_runs(node: str, body: ImportRequest, service: ServiceDep, who: Analys
         except PacsError as exc:
             raise Upstream(str(exc)) from None
         try:
-            import_xa(files, path)
+            import_xa(files, path, angle_increments=body.angle_increments)
             with ScanFile(path) as sf:
                 frames = int(sf.count_by_kind()["projection"])
                 assumed = list(sf.attrs_json("provenance", "import_assumptions_json")["assumed"])

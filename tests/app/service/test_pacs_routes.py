@@ -39,6 +39,10 @@ def test_runs_come_in_as_scans_and_volumes_go_out_through_the_configured_node(ma
         assert r.status_code == 201, r.text
         scan_id = r.json()["id"]
         assert r.headers["location"] == f"/scans/{scan_id}" and r.json()["frames"] == 12 and r.json()["assumed"]
+        assert any("read as offsets from the first frame" in line for line in r.json()["assumed"]), r.json()
+        wrong = api.post("/pacs/lab/import", role="analyst", json={**body, "angle_increments": "absolute"})
+        assert wrong.status_code == 422 and "the increments are not absolute; try auto" in wrong.json()["message"]
+        assert api.post("/pacs/lab/import", role="analyst", json={**body, "angle_increments": "x"}).status_code == 422
         scan = api.get(f"/scans/{scan_id}").json()
         assert scan["state"] == "complete" and scan["name"] == "from the PACS"
         assert "nominal" in scan["summary"]["geometries"]
