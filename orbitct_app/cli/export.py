@@ -1,5 +1,6 @@
 """``orbitct export dicom`` (a reconstruction as a DICOM CT image series), ``orbitct export xa`` (a C-arm scan's run as
-DICOM XA, as the C-arm exports it) and ``orbitct export nxtomo`` (a scan as NXtomo)."""
+DICOM XA, as the C-arm exports it), ``orbitct export nxtomo`` (a scan as NXtomo) and, from ``export_toolkit``, the
+geometry for other reconstruction toolkits."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from pathlib import Path
 
 import click
 
+from orbitct_app.cli.export_toolkit import TOOLKIT_COMMANDS
 from orbitct_app.cli.failure import Failure
 from orbitct_app.cli.values import FiniteFloat
 
@@ -14,6 +16,10 @@ from orbitct_app.cli.values import FiniteFloat
 @click.group()
 def export() -> None:
     """Write what a scan file holds in formats other tools read."""
+
+
+for _command in TOOLKIT_COMMANDS:
+    export.add_command(_command)
 
 
 @export.command("dicom")

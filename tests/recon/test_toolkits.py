@@ -1,0 +1,186 @@
+"""Geometry for other toolkits: each export, read back through the toolkit's own documented projection formula
+(written out here from its documentation, not from orbitct's code), puts the scan's BB truth where orbitct projects
+it (within 0.05 px); what a toolkit cannot hold is measured and said; failed and incomplete geometries are refused.
+
+The toolkits are not installed for these tests (ASTRA's and tomosipo's cone-beam projectors, TIGRE, LEAP and diffct
+need a GPU or a source build): the formulas are their documented conventions."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from numpy.typing import NDArray
+
+from orbitct.geometry import ViewGeometry
+from orbitct.scanfile import ScanFile, ScanWriter
+from orbitct_app.cli.main import cli
+from recon.toolkits import toolkit_geometry
+from tests.helpers.calib_scans import perturbed, sawtooth, spiral_markers
+
+WITHIN_PX = 0.05
+
+
+def _scan(path: Path, truth: ViewGeometry, markers: NDArray[np.float64]) -> Path:
+    """A scan file (frames blank: only its geometries matter here) with nominal views and the truth."""
+    nominal = sawtooth(truth.n_views, truth.panel.rows)
+    with ScanWriter(path, truth.panel) as w:
+        w.append(np.zeros(truth.panel.shape), "dark", 0.0)
+        w.append(np.full(truth.panel.shape, 1000.0), "flat", 0.0)
+        for n in range(truth.n_views):
+            w.append(np.full(truth.panel.shape, 500.0), "projection", float(n), nominal_vector=nominal.vectors[n])
+        w.write_truth(np.concatenate([np.full((2, 12), np.nan), truth.vectors]), markers)
+    return path
+
+
+@pytest.fixture(scope="module")
+def bench_scan(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, ViewGeometry, NDArray[np.float64]]:
+    truth = perturbed(sawtooth(24, 64), seed=3)
+    markers = spiral_markers(12)
+    return _scan(tmp_path_factory.mktemp("toolkits") / "scan.h5", truth, markers), truth, markers
+
+
+def _export(scan: Path, toolkit: str, out: Path, *extra: str) -> tuple[dict[str, Any], Any]:
+    res = CliRunner().invoke(cli, ["export", toolkit, str(scan), "--out", str(out), *extra])
+    assert res.exit_code == 0, res.output
+    return json.loads(out.read_text()), res
+
+
+def _plane_hit(
+    src: NDArray[np.float64], centre: NDArray[np.float64], normal: NDArray[np.float64], x: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    t = ((centre - src) @ normal) / ((x - src) @ normal)
+    return src + t * (x - src)
+
+
+def _astra(a: dict[str, Any], x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """ASTRA cone_vec: (src, d, u, v); pixel (r, c) at d + (c - (cols-1)/2) u + (r - (rows-1)/2) v."""
+    out = []
+    for row in np.asarray(a["Vectors"]):
+        s, d, u, v = row[:3], row[3:6], row[6:9], row[9:]
+        hit = _plane_hit(s, d, np.cross(u, v), x) - d
+        c, r = np.linalg.lstsq(np.stack([u, v], 1), hit, rcond=None)[0]
+        out.append((c + (a["DetectorColCount"] - 1) / 2, r + (a["DetectorRowCount"] - 1) / 2))
+    return np.array(out)
+
+
+def _tomosipo(a: dict[str, Any], x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """tomosipo cone_vec (z, y, x vectors): project_point's intersection, then dot(hit, det_u) / |det_u|^2."""
+    rows, cols = a["shape"]
+    p = x[::-1]
+    out = []
+    for s, d, v, u in zip(*(np.asarray(a[k]) for k in ("src_pos", "det_pos", "det_v", "det_u")), strict=True):
+        hit = _plane_hit(s, d, np.cross(v, u), p) - d
+        out.append((hit @ u / (u @ u) + (cols - 1) / 2, hit @ v / (v @ v) + (rows - 1) / 2))
+    return np.array(out)
+
+
+def _leap(a: dict[str, Any], x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """LEAP modular beam: s = <c-y,n>/<x-y,n> <x-y,u> - <c-y,u> (t with v), n = u x v; index = s / pitch + (N-1)/2."""
+    out = []
+    for y, c, v, u in zip(
+        *(np.asarray(a[k]) for k in ("sourcePositions", "moduleCenters", "rowVectors", "colVectors")), strict=True
+    ):
+        n = np.cross(u, v)
+        scale = ((c - y) @ n) / ((x - y) @ n)
+        s, t = scale * ((x - y) @ u) - (c - y) @ u, scale * ((x - y) @ v) - (c - y) @ v
+        out.append((s / a["pixelWidth"] + (a["numCols"] - 1) / 2, t / a["pixelHeight"] + (a["numRows"] - 1) / 2))
+    return np.array(out)
+
+
+def _diffct(a: dict[str, Any], x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """diffct cone kernel: pixel (iu, iv) at det_center + (iu + 1/2 - n_u/2) du u + (iv + 1/2 - n_v/2) dv v."""
+    out = []
+    for s, d, u, v in zip(
+        *(np.asarray(a[k]) for k in ("src_pos", "det_center", "det_u_vec", "det_v_vec")), strict=True
+    ):
+        hit = _plane_hit(s, d, np.cross(u, v), x) - d
+        pu, pv = np.linalg.lstsq(np.stack([u * a["du"], v * a["dv"]], 1), hit, rcond=None)[0]
+        out.append((pu - 0.5 + a["det_u"] / 2, pv - 0.5 + a["det_v"] / 2))  # (col, row): det_u runs along columns
+    return np.array(out)
+
+
+FORMULAS = {"astra": _astra, "tomosipo": _tomosipo, "leap": _leap, "diffct": _diffct}
+
+
+@pytest.mark.parametrize("toolkit", FORMULAS)
+def test_each_export_puts_the_bb_truth_where_orbitct_projects_it(
+    bench_scan: tuple[Path, ViewGeometry, NDArray[np.float64]], tmp_path: Path, toolkit: str
+) -> None:
+    scan, truth, markers = bench_scan
+    document, res = _export(scan, toolkit, tmp_path / f"{toolkit}.json", "--geometry", "truth")
+    assert document["toolkit"] == toolkit and document["views"] == truth.n_views and document["units"] == "mm"
+    assert document["orbitct"] == {"scan": "scan.h5", "geometry": "truth"} and "(exact)" in res.output
+    expected = truth.project(markers)  # (views, markers, 2)
+    got = np.stack([FORMULAS[toolkit](document["arguments"], m) for m in markers], axis=1)
+    assert np.abs(got - expected).max() < WITHIN_PX, np.abs(got - expected).max()
+
+
+def test_leap_says_how_far_a_skewed_detector_lands(tmp_path: Path) -> None:
+    """LEAP's detector axes are orthogonal: a panel skewed by 10 mrad is exported with its error measured and said."""
+    truth = perturbed(sawtooth(12, 64), seed=1)
+    vectors = truth.vectors.copy()
+    vectors[:, 9:12] += 0.01 * vectors[:, 6:9]
+    skewed = truth.with_vectors(vectors)
+    markers = spiral_markers(8)
+    scan = _scan(tmp_path / "skewed.h5", skewed, markers)
+    document, res = _export(scan, "leap", tmp_path / "leap.json", "--geometry", "truth")
+    off = np.abs(np.stack([_leap(document["arguments"], m) for m in markers], 1) - skewed.project(markers)).max()
+    assert 0.05 < off <= document["approximation_px"] + 1e-9
+    assert "warning: LEAP cannot hold this geometry exactly" in res.output
+    diffct, res = _export(scan, "diffct", tmp_path / "diffct.json", "--geometry", "truth")  # diffct holds the skew
+    assert diffct["approximation_px"] < 1e-6 and "warning" not in res.output
+
+
+def test_the_default_is_the_calibrated_geometry_and_a_failed_one_is_refused(
+    bench_scan: tuple[Path, ViewGeometry, NDArray[np.float64]], tmp_path: Path
+) -> None:
+    scan, truth, markers = bench_scan
+    copy = tmp_path / "calibrated.h5"
+    copy.write_bytes(scan.read_bytes())
+    vectors = np.concatenate([np.full((2, 12), np.nan), truth.vectors])
+    with ScanFile(copy, "r+") as sf:
+        sf.write_calibration(
+            ViewGeometry(vectors, truth.panel),
+            uv=np.zeros((1, 2)),
+            xyz=markers,
+            rpe_mm=np.zeros(1),
+            method="test",
+            iterations=1,
+            elapsed_s=0.0,
+            reproj_rms_px=0.0,
+        )
+    document, res = _export(copy, "astra", tmp_path / "a.json")
+    assert document["orbitct"]["geometry"] == "calibrated" and "of the calibrated geometry" in res.output
+    with h5py.File(copy, "r+") as f:
+        f["geometry/calibrated"].attrs["quality"] = "failed"
+        f["geometry/calibrated"].attrs["quality_reasons_json"] = '["view 3 predicted 0.9 px"]'
+    res = CliRunner().invoke(cli, ["export", "leap", str(copy), "--out", str(tmp_path / "l.json")])
+    assert res.exit_code != 0 and "failed its quality check (view 3 predicted 0.9 px)" in res.output
+    assert "--accept-failed-geometry" in res.output and "Traceback" not in res.output
+    _export(copy, "leap", tmp_path / "l2.json", "--accept-failed-geometry")
+    with h5py.File(copy, "r+") as f:
+        f["geometry/calibrated/vectors"][5] = np.nan  # a view the calibration could not solve
+    res = CliRunner().invoke(
+        cli, ["export", "diffct", str(copy), "--out", str(tmp_path / "d.json"), "--accept-failed-geometry"]
+    )
+    assert res.exit_code != 0 and "1 of 24 views have no geometry" in res.output
+
+
+def test_rtk_and_an_existing_file(bench_scan: tuple[Path, ViewGeometry, NDArray[np.float64]], tmp_path: Path) -> None:
+    scan, truth, _ = bench_scan
+    res = CliRunner().invoke(cli, ["export", "rtk", str(scan), "--out", str(tmp_path / "g.xml"), "--geometry", "truth"])
+    assert res.exit_code == 0 and "24 views of the truth geometry for RTK" in res.output, res.output
+    assert (tmp_path / "g.xml").read_text().count("<Projection>") == truth.n_views
+    again = CliRunner().invoke(cli, ["export", "rtk", str(scan), "--out", str(tmp_path / "g.xml")])
+    assert again.exit_code != 0 and "exists" in again.output
+
+
+def test_an_unknown_toolkit_is_named() -> None:
+    with pytest.raises(ValueError, match="choose one of astra, tomosipo, leap, diffct"):
+        toolkit_geometry(sawtooth(3, 16), "tigre")  # type: ignore[arg-type]
