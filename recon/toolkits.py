@@ -1,10 +1,10 @@
-"""A scan's per-view geometry in the terms of other reconstruction toolkits: ASTRA, tomosipo, LEAP and diffct.
+"""A scan's per-view geometry in the terms of other reconstruction toolkits: ASTRA, tomosipo, LEAP, diffct and TIGRE.
 
 Each export is a JSON document: the toolkit call it feeds, its arguments (arrays as nested lists, in the toolkit's
 axis order and units: millimetres everywhere), how orbitct's frames map onto the toolkit's projection array, the
 volume convention, and ``approximation_px``: how far (in pixels) a point in the field of view lands from where
-orbitct projects it, when the toolkit's model cannot hold the geometry exactly (LEAP's detector axes are
-orthogonal; 0 where the export is exact). Conventions come from each toolkit's documentation (see the how-to).
+orbitct projects it, when the toolkit's model cannot hold the geometry exactly (LEAP's and TIGRE's detector axes are
+orthogonal, TIGRE has one pixel size; 0 where the export is exact). Conventions come from each toolkit's documentation (see the how-to).
 """
 
 from __future__ import annotations
@@ -15,10 +15,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from orbitct.geometry import ViewGeometry
+from orbitct.rotations import rot_x, rot_y, rot_z
 from recon.errors import ReconError
 
-Toolkit = Literal["astra", "tomosipo", "leap", "diffct"]
-TOOLKITS: tuple[Toolkit, ...] = ("astra", "tomosipo", "leap", "diffct")
+Toolkit = Literal["astra", "tomosipo", "leap", "diffct", "tigre"]
+TOOLKITS: tuple[Toolkit, ...] = ("astra", "tomosipo", "leap", "diffct", "tigre")
 FIELD_OF_VIEW_POINTS = 5  # per axis: the points whose projections measure an export's approximation
 
 
@@ -78,6 +79,70 @@ def _leap(geometry: ViewGeometry) -> tuple[dict[str, Any], ViewGeometry]:
     return arguments, modelled
 
 
+def _zyz_angles(R: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``(alpha, theta, psi)`` with ``R = Rz(alpha) Ry(theta) Rz(psi)`` (TIGRE's ``eulerZYZ``), per view."""
+    theta = np.arctan2(np.hypot(R[:, 2, 0], R[:, 2, 1]), R[:, 2, 2])
+    locked = np.sin(theta) < 1e-9  # theta = 0 (or pi): only alpha + psi is defined; psi = 0
+    alpha = np.where(locked, np.arctan2(R[:, 1, 0], R[:, 0, 0]), np.arctan2(R[:, 1, 2], R[:, 0, 2]))
+    psi = np.where(locked, 0.0, np.arctan2(R[:, 2, 1], -R[:, 2, 0]))
+    return np.stack([alpha, theta, psi], axis=1)
+
+
+def tigre_vectors(arguments: dict[str, Any]) -> NDArray[np.float64]:
+    """orbitct's ``(N, 12)`` vectors of the views a TIGRE geometry (as :func:`toolkit_geometry` writes it) describes."""
+    angles = np.asarray(arguments["angles"], dtype=float)
+    R = rot_z(angles[:, 0]) @ rot_y(angles[:, 1]) @ rot_z(angles[:, 2])
+    yaw, pitch, roll = np.asarray(arguments["rotDetector"], dtype=float).T
+    detector = R @ rot_z(roll) @ rot_y(pitch) @ rot_x(yaw)
+    dso, dsd = np.asarray(arguments["DSO"], dtype=float), np.asarray(arguments["DSD"], dtype=float)
+    off_v, off_u = np.asarray(arguments["offDetector"], dtype=float).T
+    origin = np.asarray(arguments["offOrigin"], dtype=float)[:, ::-1]  # TIGRE's Python order is (z, y, x)
+    d_v, d_u = arguments["dDetector"]
+    source = np.einsum("nij,nj->ni", R, np.stack([dso, 0 * dso, 0 * dso], 1)) - origin
+    centre = np.einsum("nij,nj->ni", R, np.stack([dso - dsd, off_u, off_v], 1)) - origin
+    return np.hstack([source, centre, d_u * detector[:, :, 1], -d_v * detector[:, :, 2]])
+
+
+def _tigre(geometry: ViewGeometry) -> tuple[dict[str, Any], ViewGeometry]:
+    """TIGRE's cone geometry: per view the source on the rotated x axis at DSO, the detector at DSD with its offsets and
+    roll/pitch/yaw, the ZYZ angles; the image at the origin (offOrigin 0)."""
+    dso = np.linalg.norm(geometry.S, axis=1)
+    x = geometry.S / dso[:, None]
+    u = _unit(geometry.u)
+    y = _unit(u - np.sum(u * x, axis=1, keepdims=True) * x)
+    R = np.stack([x, y, np.cross(x, y)], axis=2)  # columns: TIGRE's rotated axes in orbitct's frame
+    local = np.einsum("nji,nj->ni", R, geometry.D)
+    dsd = dso - local[:, 0]
+    if np.any(dsd <= dso):
+        raise ReconError("TIGRE needs the detector beyond the origin from the source in every view; this one is not")
+    along_u = np.einsum("nji,nj->ni", R, u)
+    along_v = np.einsum("nji,nj->ni", R, _unit(geometry.v))
+    up = -along_v + np.sum(along_v * along_u, axis=1, keepdims=True) * along_u  # TIGRE's rows run down its z axis
+    detector = np.stack([np.cross(along_u, _unit(up)), along_u, _unit(up)], axis=2)
+    pitch = -np.arcsin(np.clip(detector[:, 2, 0], -1.0, 1.0))
+    yaw = np.arctan2(detector[:, 2, 1], detector[:, 2, 2])
+    roll = np.arctan2(detector[:, 1, 0], detector[:, 0, 0])
+    panel = geometry.panel
+    d_u, d_v = (
+        float(np.median(np.linalg.norm(geometry.u, axis=1))),
+        float(np.median(np.linalg.norm(geometry.v, axis=1))),
+    )
+    arguments = {
+        "mode": "cone",
+        "DSO": dso,
+        "DSD": dsd,
+        "nDetector": [panel.rows, panel.cols],
+        "dDetector": [d_v, d_u],
+        "sDetector": [panel.rows * d_v, panel.cols * d_u],
+        "offDetector": np.stack([local[:, 2], local[:, 1]], axis=1),
+        "rotDetector": np.stack([yaw, pitch, roll], axis=1),
+        "offOrigin": np.zeros((geometry.n_views, 3)),
+        "COR": np.zeros(geometry.n_views),
+        "angles": _zyz_angles(R),
+    }
+    return arguments, geometry.with_vectors(tigre_vectors(arguments))
+
+
 def toolkit_geometry(geometry: ViewGeometry, toolkit: Toolkit) -> dict[str, Any]:
     """The JSON-ready export of ``geometry`` (all its views finite) for ``toolkit``."""
     if toolkit not in TOOLKITS:
@@ -118,6 +183,17 @@ def toolkit_geometry(geometry: ViewGeometry, toolkit: Toolkit) -> dict[str, Any]
         volume = (
             "volume data (z, y, x) in the same frame: leapct.set_volume(numX, numY, numZ, voxelWidth, voxelHeight, "
             "offsetX, offsetY, offsetZ) with the offsets at the grid's centre in mm"
+        )
+    elif toolkit == "tigre":
+        call = (
+            "geo = tigre.geometry(); set geo.<name> = arguments[name] (arrays as numpy float32, one row per view); "
+            "tigre.Ax(image, geo, arguments['angles'])"
+        )
+        arguments, exact = _tigre(g)
+        projections = "TIGRE's projections are (views, nDetector[0], nDetector[1]): orbitct's frames as they are"
+        volume = (
+            "TIGRE's image is (z, y, x) in the same frame, centred on offOrigin (Python order (z, y, x), mm): set each "
+            "view's offOrigin to the grid's centre, reversed, to reconstruct a grid centred elsewhere"
         )
     else:
         call = (

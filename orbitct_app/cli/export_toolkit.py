@@ -1,4 +1,4 @@
-"""``orbitct export astra | tomosipo | leap | diffct | rtk``: a scan's per-view geometry for another toolkit."""
+"""``orbitct export astra | tomosipo | leap | diffct | tigre | rtk``: a scan's per-view geometry for another toolkit."""
 
 from __future__ import annotations
 
@@ -14,7 +14,14 @@ if TYPE_CHECKING:
     from orbitct.geometry import ViewGeometry
 
 APPROXIMATION_WARN_PX = 0.05  # an export that moves a projected point further than this says so
-TOOLKIT_NAMES = {"astra": "ASTRA", "tomosipo": "tomosipo", "leap": "LEAP", "diffct": "diffct", "rtk": "RTK"}
+TOOLKIT_NAMES = {
+    "astra": "ASTRA",
+    "tomosipo": "tomosipo",
+    "leap": "LEAP",
+    "diffct": "diffct",
+    "tigre": "TIGRE",
+    "rtk": "RTK",
+}
 
 
 def _geometry(scan: Path, name: str | None, accept_failed: bool) -> tuple[ViewGeometry, str]:
@@ -88,7 +95,7 @@ def _command(toolkit: str) -> click.Command:
         click.echo(f"wrote {out}: {document['views']} views of the {chosen} geometry for {label} ({how})")
         if off > APPROXIMATION_WARN_PX:
             click.echo(
-                f"warning: {label} cannot hold this geometry exactly (its detector axes are orthogonal): points "
+                f"warning: {label} cannot hold this geometry exactly (orthogonal detector axes, one pixel size): points "
                 f"land up to {off:.3g} px from where orbitct projects them",
                 err=True,
             )

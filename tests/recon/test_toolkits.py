@@ -3,7 +3,7 @@
 it (within 0.05 px); what a toolkit cannot hold is measured and said; failed and incomplete geometries are refused.
 
 The toolkits are not installed for these tests (ASTRA's and tomosipo's cone-beam projectors, TIGRE, LEAP and diffct
-need a GPU or a source build): the formulas are their documented conventions."""
+need a GPU or a source build): the formulas are their documented conventions (TIGRE's from its projector's source)."""
 
 from __future__ import annotations
 
@@ -105,7 +105,48 @@ def _diffct(a: dict[str, Any], x: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.array(out)
 
 
-FORMULAS = {"astra": _astra, "tomosipo": _tomosipo, "leap": _leap, "diffct": _diffct}
+def _tigre(a: dict[str, Any], x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """TIGRE (computeDeltas_Siddon): pixel (0,0) and its two neighbours at x = 0, y = dU (iu - nU/2 + 1/2),
+    z = dV (nV/2 - 1/2 - iv), turned by roll/pitch/yaw, moved to x = -(DSD - DSO) and by the detector offsets, turned
+    by the ZYZ angles with the source at (DSO, 0, 0), less the image offset; Python arrays hold (z, y, x), (V, U) and
+    (yaw, pitch, roll)."""
+    n_v, n_u = a["nDetector"]
+    d_v, d_u = a["dDetector"]
+    out = []
+    for i, (alpha, theta, psi) in enumerate(a["angles"]):
+        yaw, pitch, roll = a["rotDetector"][i]
+        off_v, off_u = a["offDetector"][i]
+        oz, oy, ox = a["offOrigin"][i]
+        dso, dsd = a["DSO"][i], a["DSD"][i]
+        cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
+        rpy = np.array(
+            [
+                [cr * cp, cr * sp * sy - sr * cy, cr * sp * cy + sr * sy],
+                [sr * cp, sr * sp * sy + cr * cy, sr * sp * cy - cr * sy],
+                [-sp, cp * sy, cp * cy],
+            ]
+        )
+        ca, sa, ct, st, cs, ss = np.cos(alpha), np.sin(alpha), np.cos(theta), np.sin(theta), np.cos(psi), np.sin(psi)
+        zyz = np.array(
+            [
+                [ca * ct * cs - sa * ss, -ca * ct * ss - sa * cs, ca * st],
+                [sa * ct * cs + ca * ss, -sa * ct * ss + ca * cs, sa * st],
+                [-st * cs, st * ss, ct],
+            ]
+        )
+        corners = []
+        for iu, iv in ((0, 0), (1, 0), (0, 1)):
+            p = rpy @ np.array([0.0, d_u * (iu - n_u / 2 + 0.5), d_v * (n_v / 2 - 0.5 - iv)])
+            p += np.array([-(dsd - dso), off_u, off_v])
+            corners.append(zyz @ p - np.array([ox, oy, oz]))
+        src = zyz @ np.array([dso, 0.0, 0.0]) - np.array([ox, oy, oz])
+        p0, step_u, step_v = corners[0], corners[1] - corners[0], corners[2] - corners[0]
+        hit = _plane_hit(src, p0, np.cross(step_u, step_v), x) - p0
+        out.append(np.linalg.lstsq(np.stack([step_u, step_v], 1), hit, rcond=None)[0])  # (iu, iv) = (col, row)
+    return np.array(out)
+
+
+FORMULAS = {"astra": _astra, "tomosipo": _tomosipo, "leap": _leap, "diffct": _diffct, "tigre": _tigre}
 
 
 @pytest.mark.parametrize("toolkit", FORMULAS)
@@ -121,8 +162,8 @@ def test_each_export_puts_the_bb_truth_where_orbitct_projects_it(
     assert np.abs(got - expected).max() < WITHIN_PX, np.abs(got - expected).max()
 
 
-def test_leap_says_how_far_a_skewed_detector_lands(tmp_path: Path) -> None:
-    """LEAP's detector axes are orthogonal: a panel skewed by 10 mrad is exported with its error measured and said."""
+def test_leap_and_tigre_say_how_far_a_skewed_detector_lands(tmp_path: Path) -> None:
+    """LEAP's and TIGRE's detector axes are orthogonal: a panel skewed by 10 mrad is exported with its error measured and said."""
     truth = perturbed(sawtooth(12, 64), seed=1)
     vectors = truth.vectors.copy()
     vectors[:, 9:12] += 0.01 * vectors[:, 6:9]
@@ -133,6 +174,9 @@ def test_leap_says_how_far_a_skewed_detector_lands(tmp_path: Path) -> None:
     off = np.abs(np.stack([_leap(document["arguments"], m) for m in markers], 1) - skewed.project(markers)).max()
     assert 0.05 < off <= document["approximation_px"] + 1e-9
     assert "warning: LEAP cannot hold this geometry exactly" in res.output
+    tigre, res = _export(scan, "tigre", tmp_path / "tigre.json", "--geometry", "truth")  # TIGRE's axes are orthogonal
+    off = np.abs(np.stack([_tigre(tigre["arguments"], m) for m in markers], 1) - skewed.project(markers)).max()
+    assert 0.05 < off <= tigre["approximation_px"] + 1e-9 and "warning: TIGRE cannot hold" in res.output
     diffct, res = _export(scan, "diffct", tmp_path / "diffct.json", "--geometry", "truth")  # diffct holds the skew
     assert diffct["approximation_px"] < 1e-6 and "warning" not in res.output
 
@@ -182,5 +226,5 @@ def test_rtk_and_an_existing_file(bench_scan: tuple[Path, ViewGeometry, NDArray[
 
 
 def test_an_unknown_toolkit_is_named() -> None:
-    with pytest.raises(ValueError, match="choose one of astra, tomosipo, leap, diffct"):
-        toolkit_geometry(sawtooth(3, 16), "tigre")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="choose one of astra, tomosipo, leap, diffct, tigre"):
+        toolkit_geometry(sawtooth(3, 16), "cil")  # type: ignore[arg-type]
