@@ -285,7 +285,9 @@ class ClusterData:
             for i, (a, b) in enumerate(itertools.pairwise(bounds))
         ]
         self._bounds = [int(b) for b in bounds]
-        self._held: list[set[str]] = [set() for _ in self.parts]  # the workers that held each part when last seen
+        # the workers that held each part when last seen; before the first look, the worker each was sent to (a part
+        # not yet read when that worker dies is read elsewhere, and said so, as one already read is)
+        self._held: list[set[str]] = [{str(workers[i])} for i in range(len(self.parts))]
         self._checked = 0.0
 
     def _next_key(self, what: str) -> str:
@@ -413,11 +415,14 @@ def pwls_on_cluster(
     iterations: int = 50,
     neighbourhood: int = 1,
     momentum: bool = False,
+    final_cost: bool = False,
+    curvature: dict[str, Any] | None = None,
     progress: ProgressCallback | None = None,
     workers_timeout_s: float = 30.0,
 ) -> PwlsResult:
     """PWLS (:func:`recon.pwls.pwls_sps`) of the projections ``frames`` of the scan at ``path`` with the views
-    spread over the workers of ``client``; ``x0`` as there (padded: updated in place)."""
+    spread over the workers of ``client``; ``x0`` as there (padded: updated in place); ``curvature``: the
+    ``data_curvature`` / ``keep_data_curvature`` arguments of :func:`recon.pwls.pwls_solve`."""
     with ClusterData(
         client, path, frames, grid, geometry, subsets=subsets, workers_timeout_s=workers_timeout_s
     ) as data:
@@ -428,7 +433,9 @@ def pwls_on_cluster(
             x0=x0,
             neighbourhood=neighbourhood,
             momentum=momentum,
+            final_cost=final_cost,
             progress=progress,
+            **(curvature or {}),
         )
 
 

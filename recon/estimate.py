@@ -52,17 +52,23 @@ def rates() -> tuple[float, float, float]:
 
 
 def reconstruction_seconds(
-    algorithm: str, grid: VolumeGrid, n_views: int, rows: int, cols: int, iterations: int = 0
+    algorithm: str,
+    grid: VolumeGrid,
+    n_views: int,
+    rows: int,
+    cols: int,
+    iterations: int = 0,
+    final_cost: bool = False,
 ) -> float:
-    """Estimated wall time of FDK, or of PWLS (its FDK start, the surrogate's set-up, ``iterations`` passes and the
-    final cost) on this machine now."""
+    """Estimated wall time of FDK, or of PWLS (its FDK start, the surrogate's set-up, ``iterations`` passes and, when
+    asked for, the final cost) on this machine now."""
     forward, back, per_voxel_view = rates()
     nz, ny, nx = grid.shape
     fdk_s = per_voxel_view * n_views * nz * ny * nx
     if algorithm == "fdk":
         return fdk_s
     steps = n_views * rows * cols * 0.5 * (nx + ny)  # a ray steps along its main axis, mostly x or y on C-arm orbits
-    return fdk_s + steps * ((forward + back) * (iterations + 1) + forward)
+    return fdk_s + steps * ((forward + back) * (iterations + 1) + (forward if final_cost else 0.0))
 
 
 def describe_seconds(seconds: float) -> str:

@@ -44,6 +44,11 @@ class ReconstructionOptions(BaseModel):
     iterations: int = Field(50, ge=1, le=500, description="PWLS iterations (passes over the subsets)")
     subsets: int = Field(1, ge=1, le=64, description="PWLS ordered subsets (faster convergence)")
     momentum: bool = Field(False, description="PWLS: ordered subsets with Nesterov's momentum (with subsets, e.g. 12)")
+    final_cost: bool = Field(
+        False,
+        description="PWLS: also compute the cost at the result (one more forward projection of every view); without "
+        "it the last cost reported is the one before the last iteration",
+    )
     beta: float = Field(DEFAULT_BETA, ge=0.0, le=1e6, description="PWLS relative penalty strength (larger: smoother)")
     neighbourhood: Literal[1, 2] = Field(1, description="PWLS penalty neighbourhood: 1 (6 neighbours) or 2 (26)")
     window: Literal["ram-lak", "shepp-logan", "cosine", "hann"] = Field(

@@ -19,6 +19,9 @@ from orbitct.geometry import ViewGeometry, VolumeGrid
 from orbitct.progress import ProgressCallback, report
 from orbitct.scanfile import ImageKey, ScanFile
 from orbitct.verdict import Verdict
+from recon.curvature import curvature_key
+from recon.curvature import load as load_curvature
+from recon.curvature import save as save_curvature
 from recon.errors import (
     BadFramesError,
     FailedGeometryError,
@@ -196,34 +199,46 @@ def _load(
     return li, w
 
 
+def _curvature(
+    scan: ScanFile, frames: NDArray[np.intp], geom: ViewGeometry, grid: VolumeGrid, extra: dict[str, Any]
+) -> dict[str, Any]:
+    """PWLS's arguments for the data curvature: the cached one for these views, geometry, grid and weights, or a
+    callback that caches the one computed; ``extra['curvature']`` says which."""
+    key = curvature_key(scan, frames, geom, grid)
+    cached = load_curvature(key, grid.shape)
+    extra["curvature"] = "reused" if cached is not None else "computed"
+    if cached is not None:
+        return {"data_curvature": cached}
+    return {"keep_data_curvature": lambda d: save_curvature(key, d)}
+
+
 def _pwls(
     li: Any,
     w: Any,
     grid: VolumeGrid,
     geom: ViewGeometry,
-    window: str,
-    beta: float,
-    iterations: int,
-    neighbourhood: int,
-    subsets: int,
+    opts: ReconstructionOptions,
     progress: ProgressCallback | None,
-    momentum: bool = False,
+    curvature: dict[str, Any] | None,
 ) -> tuple[NDArray[np.float32], list[float], float]:
-    """FDK into the interior of a padded volume, then PWLS updating that volume in place."""
+    """FDK into the interior of a padded volume, then PWLS as ``opts`` say updating that volume in place
+    (``curvature``: the data curvature's arguments, from :func:`_curvature`)."""
     A = projector(grid, geom)
     xp = np.zeros(A.padded_shape, np.float32)
-    fdk(li, grid, geom, window=window, out=xp[1:-1, 1:-1, 1:-1], progress=progress)
+    fdk(li, grid, geom, window=opts.window, out=xp[1:-1, 1:-1, 1:-1], progress=progress)
     res = pwls_sps(
         A,
         li,
         w,
-        beta=beta,
-        iterations=iterations,
+        beta=opts.beta,
+        iterations=opts.iterations,
         x0=xp,
-        neighbourhood=neighbourhood,
-        subsets=subsets,
-        momentum=momentum,
+        neighbourhood=opts.neighbourhood,
+        subsets=opts.subsets,
+        momentum=opts.momentum,
+        final_cost=opts.final_cost,
         progress=progress,
+        **(curvature or {}),
     )
     return res.volume, res.cost, res.beta_abs
 
@@ -308,7 +323,13 @@ def reconstruct_scan(
             grid, grid_note = object_grid(FileLineIntegrals(scan, frames), geom, grid)
             report(progress, "grid", 1, 1, grid_note)
         estimated_s = reconstruction_seconds(
-            algorithm, grid, int(frames.size), det.rows, det.cols, iterations if algorithm == "pwls" else 0
+            algorithm,
+            grid,
+            int(frames.size),
+            det.rows,
+            det.cols,
+            iterations if algorithm == "pwls" else 0,
+            opts.final_cost,
         )
         max_seconds = opts.max_seconds
         if max_seconds is not None and estimated_s > max_seconds:
@@ -341,6 +362,8 @@ def reconstruct_scan(
                     iterations=iterations,
                     neighbourhood=neighbourhood,
                     momentum=momentum,
+                    final_cost=opts.final_cost,
+                    curvature=_curvature(scan, frames, geom, grid, extra),
                     progress=progress,
                 )
                 vol, cost = res.volume, res.cost
@@ -353,13 +376,9 @@ def reconstruct_scan(
                 FileWeights(scan, frames),
                 grid,
                 geom,
-                window,
-                beta,
-                iterations,
-                neighbourhood,
-                subsets,
+                opts,
                 progress,
-                momentum,
+                _curvature(scan, frames, geom, grid, extra),
             )
             extra.update(beta_abs=beta_abs, stream="file")
         else:
@@ -380,9 +399,8 @@ def reconstruct_scan(
                 extra.update(mar_method=mar_method, metal_voxels=int(metal.sum()), trace_fraction=float(traces.mean()))
                 report(progress, "mar", 1, 1, f"{int(metal.sum())} metal voxels")
             if algorithm == "pwls":
-                vol, cost, beta_abs = _pwls(
-                    li, w, grid, geom, window, beta, iterations, neighbourhood, subsets, progress, momentum
-                )
+                curvature = None if metal is not None else _curvature(scan, frames, geom, grid, extra)
+                vol, cost, beta_abs = _pwls(li, w, grid, geom, opts, progress, curvature)
                 extra.update(beta_abs=beta_abs, stream="memory")
             else:
                 vol = fdk(li, grid, geom, window=window, progress=progress)
@@ -401,7 +419,14 @@ def reconstruct_scan(
             **extra,
         }
         if algorithm == "pwls":
-            params.update(beta=beta, neighbourhood=neighbourhood, subsets=subsets, momentum=momentum, cost=cost)
+            params.update(
+                beta=beta,
+                neighbourhood=neighbourhood,
+                subsets=subsets,
+                momentum=momentum,
+                cost=cost,
+                final_cost=opts.final_cost,
+            )
         scan_path = scan.path
     with ScanFile(scan_path, "r+") as out:
         out.write_recon(

@@ -31,10 +31,13 @@ DEFAULT_BETA = 0.01
 
 @dataclass
 class PwlsResult:
-    """Volume, cost per iteration (index 0 = start) and timing of a PWLS run."""
+    """Volume, cost per iteration and timing of a PWLS run: ``cost[k]`` is the cost at iterate ``k`` (0 = the start),
+    up to the result's when ``final_cost`` was asked for, else up to the last iterate before it."""
 
     volume: NDArray[np.float32]
     cost: list[float] = field(default_factory=list)
+    final_cost: bool = False  # whether cost[-1] is the result's
+    curvature_reused: bool = False  # whether the data curvature was given (from a cache), not computed
     iterations: int = 0
     elapsed_s: float = 0.0
     beta_abs: float = 0.0
@@ -281,12 +284,18 @@ def pwls_sps(
     nonneg: bool = True,
     chunk_views: int = 8,
     momentum: bool = False,
+    final_cost: bool = False,
+    data_curvature: NDArray[np.float32] | None = None,
+    keep_data_curvature: Callable[[NDArray[np.float32]], None] | None = None,
     progress: ProgressCallback | None = None,
     callback: Callable[[int, NDArray[np.float32]], None] | None = None,
 ) -> PwlsResult:
     """Minimise the PWLS cost by (ordered-subset) SPS; the cost is monotone without subsets and momentum.
 
     ``momentum`` adds Nesterov's momentum to the subset steps (one more volume in memory; see the module).
+    ``final_cost`` also computes the cost at the result: one more forward projection of every view, made only when
+    asked for (the costs of the earlier iterates come with their gradients). ``data_curvature`` and
+    ``keep_data_curvature``: as in :func:`pwls_solve`.
     ``callback(iteration, image)`` sees the iterate after each iteration (a view: copy what you keep).
     ``y`` and ``weights`` may be arrays or anything sliceable along views (an HDF5 dataset):
     they are read ``chunk_views`` views at a time, so only the volume-sized state (iterate,
@@ -305,6 +314,9 @@ def pwls_sps(
         neighbourhood=neighbourhood,
         nonneg=nonneg,
         momentum=momentum,
+        final_cost=final_cost,
+        data_curvature=data_curvature,
+        keep_data_curvature=keep_data_curvature,
         progress=progress,
         callback=callback,
     )
@@ -319,10 +331,17 @@ def pwls_solve(
     neighbourhood: int = 1,
     nonneg: bool = True,
     momentum: bool = False,
+    final_cost: bool = False,
+    data_curvature: NDArray[np.float32] | None = None,
+    keep_data_curvature: Callable[[NDArray[np.float32]], None] | None = None,
     progress: ProgressCallback | None = None,
     callback: Callable[[int, NDArray[np.float32]], None] | None = None,
 ) -> PwlsResult:
-    """:func:`pwls_sps` on any :class:`DataTerm` (projections held here, or spread over a cluster's workers)."""
+    """:func:`pwls_sps` on any :class:`DataTerm` (projections held here, or spread over a cluster's workers).
+
+    ``data_curvature``: ``A^T (w * A 1)`` of these views and weights, computed before (:mod:`recon.curvature`); it
+    becomes the surrogate's denominator array (updated in place) and saves a forward and a back projection of every
+    view. ``keep_data_curvature`` is called with it once computed, before the penalty's share is added."""
     t0 = time.perf_counter()
     if iterations < 0 or beta < 0:
         raise ReconError(f"need iterations >= 0 and beta >= 0; got {iterations}, {beta}")
@@ -335,11 +354,18 @@ def pwls_solve(
         raise ReconError(f"x0: expected shape {vol_shape} (or padded {padded}), got {np.shape(x0)}")
     offs, omega = neighbour_offsets(neighbourhood)
     subsets = data.subsets
-    # data curvature d = A^T (w * A 1), computed once into a volume of its own
-    denom_p = np.zeros(padded, np.float32)
-    data.curvature(denom_p)
-    denom = denom_p[1:-1, 1:-1, 1:-1]
-    del denom_p
+    # data curvature d = A^T (w * A 1), computed once into a volume of its own (or given)
+    if data_curvature is not None:
+        if data_curvature.shape != vol_shape or data_curvature.dtype != np.float32:
+            raise ReconError(f"data_curvature: expected float32 of shape {vol_shape}, got {data_curvature.shape}")
+        denom = data_curvature
+    else:
+        denom_p = np.zeros(padded, np.float32)
+        data.curvature(denom_p)
+        denom = denom_p[1:-1, 1:-1, 1:-1]
+        del denom_p
+        if keep_data_curvature is not None:
+            keep_data_curvature(denom)
     sample = denom[::2, ::2, ::2]  # the median of a sub-lattice sets the scale; no volume-sized copy
     pos = sample[sample > 0]
     beta_abs = float(beta * (np.median(pos) if pos.size else 0.0) / (2 * omega.sum()))
@@ -358,7 +384,7 @@ def pwls_solve(
     x_prev = np.array(xp[1:-1, 1:-1, 1:-1]) if momentum else None  # the last iterate; xp holds the extrapolation
     t_k, restarts = 1.0, 0
     cost: list[float] = []
-    for it in range(iterations + 1):
+    for it in range(iterations + (1 if final_cost else 0)):
         final = it == iterations
         if final and x_prev is not None:
             xp[1:-1, 1:-1, 1:-1] = x_prev  # the result is the iterate, not the extrapolated point
@@ -398,6 +424,10 @@ def pwls_solve(
                 cost=cost[-1],
                 time_left_s=el / (it + 1) * (iterations - it - 1),
             )
+    if x_prev is not None and not final_cost:
+        xp[1:-1, 1:-1, 1:-1] = x_prev  # the result is the iterate, not the extrapolated point
     del gp, denom, x_prev
     x = xp[1:-1, 1:-1, 1:-1] if in_place else np.ascontiguousarray(xp[1:-1, 1:-1, 1:-1])
-    return PwlsResult(x, cost, iterations, time.perf_counter() - t0, beta_abs, restarts)
+    return PwlsResult(
+        x, cost, final_cost, data_curvature is not None, iterations, time.perf_counter() - t0, beta_abs, restarts
+    )

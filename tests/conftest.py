@@ -3,9 +3,22 @@
 from __future__ import annotations
 
 import gc
+import os
 from collections.abc import Iterator
 
 import pytest
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _cache_of_the_session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """Caches (PWLS's data curvature) go to a folder of this session, not the user's ``~/.cache``."""
+    before = os.environ.get("ORBITCT_CACHE_DIR")
+    os.environ["ORBITCT_CACHE_DIR"] = str(tmp_path_factory.mktemp("cache"))
+    yield
+    if before is None:
+        os.environ.pop("ORBITCT_CACHE_DIR", None)
+    else:
+        os.environ["ORBITCT_CACHE_DIR"] = before
 
 
 @pytest.fixture(scope="module", autouse=True)

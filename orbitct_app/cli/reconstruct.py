@@ -123,7 +123,9 @@ def reconstruct(
     if cluster is not None:
         click.echo(f"  views split across {res.params['cluster_workers']} Dask workers at {scheduler}")
     if res.cost:
-        click.echo(f"  cost {res.cost[0]:.6g} -> {res.cost[-1]:.6g} over {len(res.cost) - 1} iterations")
+        final = bool(res.params.get("final_cost"))
+        last = "at the result" if final else "before the last iteration (--final-cost for the result's)"
+        click.echo(f"  cost {res.cost[0]:.6g} at the start -> {res.cost[-1]:.6g} {last}")
     for p in res.exported:
         click.echo(f"  wrote {p}")
     click.echo(f"  verdict: {res.verdict.label}" + (" (warnings below)" if res.verdict.warnings else ""))

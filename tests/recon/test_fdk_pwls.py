@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -57,20 +59,56 @@ def sawtooth_data():
 def test_pwls_cost_decreases_monotonically_and_beats_fdk(sawtooth_data, truth: np.ndarray) -> None:
     g, y, w = sawtooth_data
     x0 = fdk(y, GRID, g, window="hann")
-    res = pwls_sps(projector(GRID, g), y, w, iterations=12, x0=x0)
+    res = pwls_sps(projector(GRID, g), y, w, iterations=12, x0=x0, final_cost=True)
     cost = np.asarray(res.cost)
-    assert cost.size == 13
+    assert cost.size == 13 and res.final_cost
     assert np.all(np.diff(cost) <= 1e-6 * cost[0])
     assert cost[-1] < 0.9 * cost[0]
     assert res.volume.min() >= 0
     assert _rmse(res.volume, truth) < _rmse(x0, truth)
 
 
+def test_the_final_cost_is_one_more_pass_that_changes_nothing_else(sawtooth_data) -> None:
+    """Without ``final_cost`` the run skips the forward projection made only to report the result's cost: the same
+    image (also with momentum, whose result is the iterate, not the extrapolated point) and the same earlier costs."""
+    g, y, w = sawtooth_data
+    A = projector(GRID, g)
+    counted = _CountingProjector(A)
+    for kwargs in ({}, {"subsets": 4, "momentum": True}):
+        with_final = pwls_sps(A, y, w, iterations=3, final_cost=True, **kwargs)
+        counted.views = 0
+        without = pwls_sps(counted, y, w, iterations=3, **kwargs)  # type: ignore[arg-type]
+        np.testing.assert_array_equal(without.volume, with_final.volume)
+        np.testing.assert_array_equal(without.cost, with_final.cost[:-1])
+        n_views = A.proj_shape[0]
+        assert counted.views == (1 + 3) * n_views  # the curvature's pass and one per iteration, no final pass
+
+
+class _CountingProjector:
+    """A projector that counts the views it forward-projects (everything else is the projector's)."""
+
+    def __init__(self, A: Any) -> None:
+        self._A, self.views = A, 0
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._A, name)
+
+    def subset(self, views: Any) -> Any:
+        counted = _CountingProjector(self._A.subset(views))
+        counted._parent = self  # type: ignore[attr-defined]
+        return counted
+
+    def forward_padded(self, xp: Any, out: Any, j0: int) -> Any:
+        parent = getattr(self, "_parent", self)
+        parent.views += out.shape[0]
+        return self._A.forward_padded(xp, out, j0)
+
+
 def test_pwls_second_order_and_ordered_subsets(sawtooth_data) -> None:
     g, y, w = sawtooth_data
     A = projector(GRID, g)
     res = pwls_sps(A, y, w, iterations=3, neighbourhood=2, subsets=5)
-    assert len(res.cost) == 4 and res.cost[-1] < res.cost[0]
+    assert len(res.cost) == 3 and res.cost[-1] < res.cost[0] and not res.final_cost  # the iterates before the result
     with pytest.raises(ReconError, match="neighbourhood"):
         pwls_sps(A, y, w, iterations=1, neighbourhood=3)
 
@@ -128,13 +166,15 @@ def test_os_momentum_gets_further_in_few_passes_and_agrees_with_the_minimiser(sa
     g, y, w = sawtooth_data
     A = projector(GRID, g)
     seen: list[int] = []
-    mom = pwls_sps(A, y, w, iterations=8, subsets=6, momentum=True, callback=lambda k, x: seen.append(k))
-    plain_os = pwls_sps(A, y, w, iterations=8, subsets=6)
-    sps = pwls_sps(A, y, w, iterations=8)
+    mom = pwls_sps(
+        A, y, w, iterations=8, subsets=6, momentum=True, final_cost=True, callback=lambda k, x: seen.append(k)
+    )
+    plain_os = pwls_sps(A, y, w, iterations=8, subsets=6, final_cost=True)
+    sps = pwls_sps(A, y, w, iterations=8, final_cost=True)
     assert seen == list(range(1, 9))
     assert mom.cost[-1] < plain_os.cost[-1] < sps.cost[-1]  # the final cost is exact, at each result
     assert mom.volume.min() >= 0  # the result is the iterate, not the extrapolated point
     # the same minimiser: many SPS iterations from the momentum result change little, and cost no less
-    polished = pwls_sps(A, y, w, iterations=40, x0=mom.volume)
+    polished = pwls_sps(A, y, w, iterations=40, x0=mom.volume, final_cost=True)
     assert polished.cost[-1] <= mom.cost[-1]
     assert (mom.cost[-1] - polished.cost[-1]) < 0.02 * (sps.cost[0] - polished.cost[-1])
