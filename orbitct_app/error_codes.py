@@ -133,7 +133,8 @@ CATALOGUE: dict[str, ErrorKind] = {
         ),
         ErrorKind(
             "interrupted",
-            "the command was stopped by Ctrl-C or a signal (a scan halts every axis and switches the X-rays off)",
+            "the command was stopped by Ctrl-C or a signal (a scan halts every axis and switches the X-rays off); "
+            "for a job (its `error`), the service stopped while it ran",
             "run it again when ready (an interrupted scan keeps its file, marked aborted)",
             exit_status=130,
         ),

@@ -36,6 +36,11 @@ class JobOut(BaseModel):
     scan_id: str
     state: str = Field(description="queued, running, succeeded, failed, cancelled or interrupted")
     reason: str = ""
+    error: str = Field(
+        "",
+        description="for a failed or interrupted job, its code in the error catalogue (failed_quality_check, "
+        "action_failed, unavailable, conflict, interrupted, ...); empty otherwise",
+    )
     params: dict[str, Any]
     progress: dict[str, Any]
     result: dict[str, Any]

@@ -52,6 +52,13 @@ MIGRATIONS: tuple[str, ...] = (
     """
     ALTER TABLE scans ADD COLUMN progress_json TEXT NOT NULL DEFAULT '{}';
     """,
+    """
+    ALTER TABLE jobs ADD COLUMN error TEXT NOT NULL DEFAULT '';
+    UPDATE jobs SET error = 'failed_quality_check'
+        WHERE state = 'failed' AND json_extract(result_json, '$.verdict.status') = 'failed';
+    UPDATE jobs SET error = 'action_failed' WHERE state = 'failed' AND error = '';
+    UPDATE jobs SET error = 'interrupted' WHERE state = 'interrupted';
+    """,
 )
 SCHEMA_VERSION = len(MIGRATIONS)
 RUNNING_SCAN_STATES = ("queued", "running", "paused")
@@ -355,7 +362,8 @@ class Store:
                 (reason, now, *RUNNING_SCAN_STATES),
             )
             conn.execute(
-                "UPDATE jobs SET state = 'interrupted', reason = ?, finished_utc = ? WHERE state = 'running'",
+                "UPDATE jobs SET state = 'interrupted', error = 'interrupted', reason = ?, finished_utc = ? "
+                "WHERE state = 'running'",
                 (reason, now),
             )
         return scans, jobs

@@ -145,8 +145,9 @@ def run_job(
     except Exception as exc:  # every failure becomes the job's reason
         log.error("job %s failed", job_id, exc_info=True, extra={"job_log": False})  # details for the worker's log
         text = failure_sentence(exc)
-        send("log", f"error [{code_for_exception(exc)}]: {text}")
-        return {"error": text, "events": sent[0]}
+        code = code_for_exception(exc)
+        send("log", f"error [{code}]: {text}")
+        return {"error": text, "code": code, "events": sent[0]}
     finally:
         root.removeHandler(handler)
 
@@ -173,6 +174,7 @@ class _Running:
     future: Any
     cancel: Any  # distributed.Event
     cancel_at: float | None = None
+    error_code: str | None = None  # the catalogue's code of a failure, when the outcome knows it
     outcome: tuple[str, str, dict[str, Any]] | None = None
     events_expected: int | None = None
     events_seen: int = 0
@@ -376,7 +378,9 @@ class JobManager:
             scan = self._store.get_scan(job["scan_id"])
             if scan is None or scan["state"] != "complete":
                 state = scan["state"] if scan else "missing"
-                self._finish(job["id"], "failed", f"scan {job['scan_id']} is {state}, jobs need a complete scan", {})
+                self._finish(
+                    job["id"], "failed", f"scan {job['scan_id']} is {state}, jobs need a complete scan", {}, "conflict"
+                )
                 continue
             self._launch(job, self._data_dir / scan["file"])
             busy.add(job["scan_id"])
@@ -501,7 +505,7 @@ class JobManager:
             self._dispatch_events()
             state, reason, result = r.outcome
             self._refresh_summary(r.scan_id)  # before the job says it ended: the scan's record shows its result
-            self._finish(r.job_id, state, reason, result)
+            self._finish(r.job_id, state, reason, result, r.error_code)
             self._wake.set()
 
     def _outcome(self, r: _Running, lost: bool) -> tuple[str, str, dict[str, Any]] | None:
@@ -514,6 +518,7 @@ class JobManager:
                 return _judged(out["result"])
             if "cancelled" in out:
                 return "cancelled", str(out["cancelled"]), {}
+            r.error_code = str(out.get("code") or "action_failed")
             return "failed", self._scrub(str(out.get("error", "unknown error")))[:1000], {}
         if status == "error":
             exc = r.future.exception()
@@ -529,6 +534,7 @@ class JobManager:
         if lost or status in ("cancelled", "lost"):
             if r.cancel_at is not None:
                 return "cancelled", "cancelled on request", {}
+            r.error_code = "unavailable"
             client_status = getattr(self._client, "status", "closed")
             why = (
                 f"{self.where} went away (client {client_status})"
@@ -562,10 +568,19 @@ class JobManager:
                 if "error" not in summary:
                     self._store.update_scan(scan_id, summary=summary)
 
-    def _finish(self, job_id: str, state: str, reason: str, result: dict[str, Any]) -> None:
+    def _finish(self, job_id: str, state: str, reason: str, result: dict[str, Any], error: str | None = None) -> None:
+        """Record the job's end: its state, reason, result and, for a failure or an interruption, the catalogue's
+        code (``error``, else the state's: a failed quality check, a failed action, an interruption)."""
+        if error is None:
+            quality_failed = ((result.get("verdict") or {}).get("status")) == "failed"
+            error = {
+                "failed": "failed_quality_check" if quality_failed else "action_failed",
+                "interrupted": "interrupted",
+            }.get(state, "")
         self._store.update_job(
             job_id,
             state=state,
+            error=error if state in ("failed", "interrupted") else "",
             reason=reason,
             result=json.loads(json.dumps(result, default=str)),
             finished_utc=utc_now(),

@@ -256,6 +256,7 @@ def test_a_failed_calibration_shows_failed_everywhere_and_blocks_reconstruction_
     cal = _ended(console, f"/calibrations/{r.json()['id']}")
     assert cal["state"] == "failed" and cal["verdict"]["status"] == "failed", cal
     assert "quality check failed" in cal["reason"] and "predicted error above 0.0001 px" in cal["reason"]
+    assert cal["error"] == "failed_quality_check", cal
     refused = console.api("POST", "/reconstructions", role="analyst", json={"scan_id": scan_id, "shape": [32] * 3})
     assert refused.status_code == 409 and refused.json()["error"] == "failed_quality_check", refused.text
     assert '"accept_failed_geometry": true' in refused.json()["message"]

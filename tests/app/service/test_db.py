@@ -63,3 +63,40 @@ def test_mark_interrupted(tmp_path: Path) -> None:
     assert store.get_scan("s1")["state"] == "interrupted" and store.get_scan("s1")["reason"] == "service restarted"
     assert store.get_scan("s2")["state"] == "complete"
     assert store.get_job("j1")["state"] == "interrupted" and store.get_job("j2")["state"] == "queued"
+    assert store.get_job("j1")["error"] == "interrupted" and store.get_job("j2")["error"] == ""
+
+
+def test_jobs_that_ended_before_error_codes_get_theirs(tmp_path: Path) -> None:
+    """A database of schema version 3 (jobs without error codes): its failed and interrupted jobs get the codes."""
+    path = tmp_path / "v3.sqlite"
+    s3 = Store.__new__(Store)
+    s3.path = path
+    import threading
+
+    s3._local, s3._write_lock = threading.local(), threading.Lock()
+    assert s3.migrate(target=3) == 3
+    conn = s3._conn()
+    conn.execute(
+        "INSERT INTO scans (id, name, state, orbit, request_json, file, owner, created_utc) "
+        "VALUES ('s1', 'old', 'complete', 'circular', '{}', 'scans/s1.h5', 'me', '2026-01-01')"
+    )
+    for job, state, result in (
+        ("quality", "failed", '{"verdict": {"status": "failed"}}'),
+        ("crashed", "failed", "{}"),
+        ("stopped", "interrupted", "{}"),
+        ("fine", "succeeded", '{"verdict": {"status": "passed"}}'),
+    ):
+        conn.execute(
+            "INSERT INTO jobs (id, kind, scan_id, state, params_json, owner, created_utc, result_json) "
+            "VALUES (?, 'calibration', 's1', ?, '{}', 'me', '2026-01-01', ?)",
+            (job, state, result),
+        )
+    s3.close()
+    store = Store(path)
+    codes = {job: store.get_job(job)["error"] for job in ("quality", "crashed", "stopped", "fine")}
+    assert codes == {
+        "quality": "failed_quality_check",
+        "crashed": "action_failed",
+        "stopped": "interrupted",
+        "fine": "",
+    }

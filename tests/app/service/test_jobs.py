@@ -77,6 +77,7 @@ def test_job_failure_is_reported_without_internals(api, workload, monkeypatch) -
     job_id = api.service.jobs.submit("calibration", scan_id, {"fail": True}, "t")
     job = _wait(api, job_id)
     assert job["state"] == "failed" and "asked to fail" in job["reason"]
+    assert job["error"] == "action_failed", job  # the catalogue's code, for scripts
     assert str(api.data_dir.resolve()) not in job["reason"]
     assert "Traceback" not in " ".join(line["line"] for line in api.get(f"/jobs/{job_id}/log").json())
 
