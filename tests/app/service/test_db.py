@@ -16,15 +16,20 @@ def test_fresh_database_is_at_latest_version(tmp_path: Path) -> None:
     assert store.migrate() == SCHEMA_VERSION  # idempotent
 
 
-def test_old_database_migrates_and_keeps_its_rows(tmp_path: Path) -> None:
-    path = tmp_path / "old.sqlite"
-    # a database of schema version 1, as the first release wrote it
-    s1 = Store.__new__(Store)
-    s1.path = path
+def _store_at_version(path: Path, version: int) -> Store:
+    """A store at ``path`` migrated only up to schema ``version``, as an older release left it."""
     import threading
 
-    s1._local, s1._write_lock = threading.local(), threading.Lock()
-    assert s1.migrate(target=1) == 1
+    store = Store.__new__(Store)
+    store.path = path
+    store._local, store._write_lock = threading.local(), threading.Lock()
+    assert store.migrate(target=version) == version
+    return store
+
+
+def test_old_database_migrates_and_keeps_its_rows(tmp_path: Path) -> None:
+    path = tmp_path / "old.sqlite"
+    s1 = _store_at_version(path, 1)  # a database of schema version 1, as the first release wrote it
     s1._conn().execute(
         "INSERT INTO scans (id, name, state, orbit, request_json, file, owner, created_utc) "
         "VALUES ('s1', 'old', 'complete', 'circular', '{}', 'scans/s1.h5', 'me', '2026-01-01')"
@@ -69,12 +74,7 @@ def test_mark_interrupted(tmp_path: Path) -> None:
 def test_jobs_that_ended_before_error_codes_get_theirs(tmp_path: Path) -> None:
     """A database of schema version 3 (jobs without error codes): its failed and interrupted jobs get the codes."""
     path = tmp_path / "v3.sqlite"
-    s3 = Store.__new__(Store)
-    s3.path = path
-    import threading
-
-    s3._local, s3._write_lock = threading.local(), threading.Lock()
-    assert s3.migrate(target=3) == 3
+    s3 = _store_at_version(path, 3)
     conn = s3._conn()
     conn.execute(
         "INSERT INTO scans (id, name, state, orbit, request_json, file, owner, created_utc) "
