@@ -1,10 +1,11 @@
-"""A scan's per-view geometry in the terms of other reconstruction toolkits: ASTRA, tomosipo, LEAP, diffct and TIGRE.
+"""A scan's per-view geometry in the terms of other reconstruction toolkits: ASTRA, tomosipo, LEAP, diffct, TIGRE and
+CIL.
 
 Each export is a JSON document: the toolkit call it feeds, its arguments (arrays as nested lists, in the toolkit's
 axis order and units: millimetres everywhere), how orbitct's frames map onto the toolkit's projection array, the
 volume convention, and ``approximation_px``: how far (in pixels) a point in the field of view lands from where
-orbitct projects it, when the toolkit's model cannot hold the geometry exactly (LEAP's and TIGRE's detector axes are
-orthogonal, TIGRE has one pixel size; 0 where the export is exact). Conventions come from each toolkit's documentation (see the how-to).
+orbitct projects it, when the toolkit's model cannot hold the geometry exactly (LEAP's, TIGRE's and CIL's detector axes
+are orthogonal, with one pixel size for every view; 0 where the export is exact). Conventions come from each toolkit's documentation (see the how-to).
 """
 
 from __future__ import annotations
@@ -18,8 +19,8 @@ from orbitct.geometry import ViewGeometry
 from orbitct.rotations import rot_x, rot_y, rot_z
 from recon.errors import ReconError
 
-Toolkit = Literal["astra", "tomosipo", "leap", "diffct", "tigre"]
-TOOLKITS: tuple[Toolkit, ...] = ("astra", "tomosipo", "leap", "diffct", "tigre")
+Toolkit = Literal["astra", "tomosipo", "leap", "diffct", "tigre", "cil"]
+TOOLKITS: tuple[Toolkit, ...] = ("astra", "tomosipo", "leap", "diffct", "tigre", "cil")
 FIELD_OF_VIEW_POINTS = 5  # per axis: the points whose projections measure an export's approximation
 
 
@@ -56,25 +57,55 @@ def approximation_px(geometry: ViewGeometry, modelled: ViewGeometry) -> float:
     return float(np.nanmax(np.linalg.norm(geometry.project(points) - modelled.project(points), axis=-1)))
 
 
-def _leap(geometry: ViewGeometry) -> tuple[dict[str, Any], ViewGeometry]:
+def _orthogonal_panel(
+    geometry: ViewGeometry, toolkit: str
+) -> tuple[NDArray[np.float64], NDArray[np.float64], float, float, ViewGeometry]:
+    """Unit column and row directions (the row direction made orthogonal to the column direction), the pixel width
+    and height, and the geometry they describe: what a toolkit with orthogonal detector axes and one pixel size
+    holds of ``geometry``."""
     col = _unit(geometry.u)
-    v_across = geometry.v - np.sum(geometry.v * col, axis=1, keepdims=True) * col  # LEAP's axes are orthogonal
-    row = _unit(v_across)
+    row = _unit(geometry.v - np.sum(geometry.v * col, axis=1, keepdims=True) * col)
     width, height = np.linalg.norm(geometry.u, axis=1), np.linalg.norm(geometry.v, axis=1)
     if np.ptp(width) > 1e-9 * width.max() or np.ptp(height) > 1e-9 * height.max():
-        raise ReconError("LEAP takes one pixel size for every view; this geometry's pixel sizes change between views")
+        raise ReconError(
+            f"{toolkit} takes one pixel size for every view; this geometry's pixel sizes change between views"
+        )
     modelled = geometry.with_vectors(np.hstack([geometry.S, geometry.D, col * width[:, None], row * height[:, None]]))
+    return col, row, float(width[0]), float(height[0]), modelled
+
+
+def _leap(geometry: ViewGeometry) -> tuple[dict[str, Any], ViewGeometry]:
+    col, row, width, height, modelled = _orthogonal_panel(geometry, "LEAP")
     panel = geometry.panel
     arguments = {
         "numAngles": geometry.n_views,
         "numRows": panel.rows,
         "numCols": panel.cols,
-        "pixelHeight": float(height[0]),
-        "pixelWidth": float(width[0]),
+        "pixelHeight": height,
+        "pixelWidth": width,
         "sourcePositions": geometry.S,
         "moduleCenters": geometry.D,
         "rowVectors": row,
         "colVectors": col,
+    }
+    return arguments, modelled
+
+
+def _cil(geometry: ViewGeometry) -> tuple[dict[str, Any], ViewGeometry]:
+    """CIL's Cone3D_Flex with the panel's origin at its bottom left: pixel (0, 0) of a frame is where column and row
+    numbers start, the x direction along the columns, the y direction along the rows."""
+    col, row, width, height, modelled = _orthogonal_panel(geometry, "CIL")
+    panel = geometry.panel
+    arguments = {
+        "source_position_set": geometry.S,
+        "detector_position_set": geometry.D,
+        "detector_direction_x_set": col,
+        "detector_direction_y_set": row,
+        "volume_centre_position": [0.0, 0.0, 0.0],
+        "units": "mm",
+        "num_pixels": [panel.cols, panel.rows],
+        "pixel_size": [width, height],
+        "origin": "bottom-left",
     }
     return arguments, modelled
 
@@ -183,6 +214,18 @@ def toolkit_geometry(geometry: ViewGeometry, toolkit: Toolkit) -> dict[str, Any]
         volume = (
             "volume data (z, y, x) in the same frame: leapct.set_volume(numX, numY, numZ, voxelWidth, voxelHeight, "
             "offsetX, offsetY, offsetZ) with the offsets at the grid's centre in mm"
+        )
+    elif toolkit == "cil":
+        call = (
+            "AcquisitionGeometry.create_Cone3D_Flex(source_position_set, detector_position_set, "
+            "detector_direction_x_set, detector_direction_y_set, volume_centre_position, units)"
+            ".set_panel(num_pixels, pixel_size, origin)"
+        )
+        arguments, exact = _cil(g)
+        projections = "CIL's acquisition data are (projection, vertical, horizontal): orbitct's frames as they are"
+        volume = (
+            "an ImageGeometry (vertical, horizontal_y, horizontal_x) = (z, y, x) in the same frame, centred on "
+            "volume_centre_position (mm): set it to the grid's centre"
         )
     elif toolkit == "tigre":
         call = (

@@ -1,4 +1,4 @@
-"""``orbitct export astra | tomosipo | leap | diffct | tigre | rtk``: a scan's per-view geometry for another toolkit."""
+"""``orbitct export astra | tomosipo | leap | diffct | tigre | cil | rtk``: a scan's per-view geometry for another toolkit."""
 
 from __future__ import annotations
 
@@ -20,6 +20,7 @@ TOOLKIT_NAMES = {
     "leap": "LEAP",
     "diffct": "diffct",
     "tigre": "TIGRE",
+    "cil": "CIL",
     "rtk": "RTK",
 }
 

@@ -3,7 +3,8 @@
 it (within 0.05 px); what a toolkit cannot hold is measured and said; failed and incomplete geometries are refused.
 
 The toolkits are not installed for these tests (ASTRA's and tomosipo's cone-beam projectors, TIGRE, LEAP and diffct
-need a GPU or a source build): the formulas are their documented conventions (TIGRE's from its projector's source)."""
+need a GPU or a source build, CIL comes from conda): the formulas are their documented conventions (TIGRE's from its
+projector's source, CIL's from its conversion to ASTRA)."""
 
 from __future__ import annotations
 
@@ -146,7 +147,29 @@ def _tigre(a: dict[str, Any], x: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.array(out)
 
 
-FORMULAS = {"astra": _astra, "tomosipo": _tomosipo, "leap": _leap, "diffct": _diffct, "tigre": _tigre}
+def _cil(a: dict[str, Any], x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """CIL Cone3D_Flex through CIL's own conversion to ASTRA (convert_flex_geometry_to_astra_vec_3D): u = +/- the x
+    direction times pixel_size[0] (- when the origin is on the right), v = +/- the y direction times pixel_size[1] (-
+    when the origin is at the top), ASTRA's rows num_pixels[1] and columns num_pixels[0]."""
+    sign_h = -1.0 if "right" in a["origin"] else 1.0
+    sign_v = -1.0 if "top" in a["origin"] else 1.0
+    vectors = [
+        np.concatenate(
+            [s, d, sign_h * np.asarray(dx) * a["pixel_size"][0], sign_v * np.asarray(dy) * a["pixel_size"][1]]
+        )
+        for s, d, dx, dy in zip(
+            a["source_position_set"],
+            a["detector_position_set"],
+            a["detector_direction_x_set"],
+            a["detector_direction_y_set"],
+            strict=True,
+        )
+    ]
+    cols, rows = a["num_pixels"]
+    return _astra({"Vectors": vectors, "DetectorRowCount": rows, "DetectorColCount": cols}, x)
+
+
+FORMULAS = {"astra": _astra, "tomosipo": _tomosipo, "leap": _leap, "diffct": _diffct, "tigre": _tigre, "cil": _cil}
 
 
 @pytest.mark.parametrize("toolkit", FORMULAS)
@@ -162,8 +185,8 @@ def test_each_export_puts_the_bb_truth_where_orbitct_projects_it(
     assert np.abs(got - expected).max() < WITHIN_PX, np.abs(got - expected).max()
 
 
-def test_leap_and_tigre_say_how_far_a_skewed_detector_lands(tmp_path: Path) -> None:
-    """LEAP's and TIGRE's detector axes are orthogonal: a panel skewed by 10 mrad is exported with its error measured and said."""
+def test_leap_tigre_and_cil_say_how_far_a_skewed_detector_lands(tmp_path: Path) -> None:
+    """LEAP's, TIGRE's and CIL's detector axes are orthogonal: a panel skewed by 10 mrad is exported with its error measured and said."""
     truth = perturbed(sawtooth(12, 64), seed=1)
     vectors = truth.vectors.copy()
     vectors[:, 9:12] += 0.01 * vectors[:, 6:9]
@@ -174,9 +197,11 @@ def test_leap_and_tigre_say_how_far_a_skewed_detector_lands(tmp_path: Path) -> N
     off = np.abs(np.stack([_leap(document["arguments"], m) for m in markers], 1) - skewed.project(markers)).max()
     assert 0.05 < off <= document["approximation_px"] + 1e-9
     assert "warning: LEAP cannot hold this geometry exactly" in res.output
-    tigre, res = _export(scan, "tigre", tmp_path / "tigre.json", "--geometry", "truth")  # TIGRE's axes are orthogonal
-    off = np.abs(np.stack([_tigre(tigre["arguments"], m) for m in markers], 1) - skewed.project(markers)).max()
-    assert 0.05 < off <= tigre["approximation_px"] + 1e-9 and "warning: TIGRE cannot hold" in res.output
+    for toolkit, label in (("tigre", "TIGRE"), ("cil", "CIL")):  # their detector axes are orthogonal too
+        document, res = _export(scan, toolkit, tmp_path / f"{toolkit}.json", "--geometry", "truth")
+        landed = np.stack([FORMULAS[toolkit](document["arguments"], m) for m in markers], 1)
+        off = np.abs(landed - skewed.project(markers)).max()
+        assert 0.05 < off <= document["approximation_px"] + 1e-9 and f"warning: {label} cannot hold" in res.output
     diffct, res = _export(scan, "diffct", tmp_path / "diffct.json", "--geometry", "truth")  # diffct holds the skew
     assert diffct["approximation_px"] < 1e-6 and "warning" not in res.output
 
@@ -226,5 +251,5 @@ def test_rtk_and_an_existing_file(bench_scan: tuple[Path, ViewGeometry, NDArray[
 
 
 def test_an_unknown_toolkit_is_named() -> None:
-    with pytest.raises(ValueError, match="choose one of astra, tomosipo, leap, diffct, tigre"):
-        toolkit_geometry(sawtooth(3, 16), "cil")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="choose one of astra, tomosipo, leap, diffct, tigre, cil"):
+        toolkit_geometry(sawtooth(3, 16), "mystery")  # type: ignore[arg-type]
