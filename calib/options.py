@@ -1,65 +1,119 @@
-"""The options of a calibration: their defaults, limits and the check that names what is wrong."""
+"""The options of a calibration, in one place: names, units, limits and defaults.
+
+:class:`CalibrationOptions` is what :func:`calib.calibrate_scan` takes (as keyword options); ``orbitct calibrate``
+makes its options from it and the REST service's request body extends it, so the same request gets the same answer
+from the command line, the API and Python.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
-from typing import Any
+from typing import Annotated, Any, Literal
 
-import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from calib.errors import OptionError
-from calib.model import INTRINSICS
 
 METHODS = ("bundle", "paper")
 DEFAULT_JITTER_MM = 3.0
 RECOVERY_JITTER_MM = (8.0, 15.0, 25.0)  # tracking allowances tried in turn when the BBs are not followed
 
 
-@dataclass
-class CalibrationOptions:
-    """Tunable settings of :func:`calibrate_scan` (pass as keyword options)."""
+class CalibrationOptions(BaseModel):
+    """How to calibrate a scan: method, per-view parameters, quality check, detection, tracking and scale."""
 
-    iterations: int | None = None  # paper: alternations (default 3); bundle: max LM iterations (default 30)
-    intrinsics: str = "fixed"  # bundle only: "fixed", "sdd" or "sdd+pp"
-    loss_scale_px: float | None = None  # Huber threshold (px); default: 1.5 x the measured centroid noise
-    min_bbs_per_view: int = 3  # a view with fewer is never fitted on its own (the bundle needs 4 to call it its own)
-    bridge_max_views: int = 10  # bundle: widest run of views without 4 BBs that is bridged from its neighbours
-    max_predicted_px: float = 0.5  # quality check: largest predicted field-of-view error a view may have
-    min_observations: int | None = None  # frames a BB must be seen in (default max(8, 5% of projections))
-    diameter_mm: float | None = None  # BB diameter; default /markers@diameter_mm, else estimated
-    k_sigma: float = 6.0  # detection threshold in noise standard deviations
-    max_candidates: int = 128  # strongest peaks kept per frame, at least (see calib.detect.CANDIDATE_AREA_PX)
-    outlier_px: float = 1.0  # bundle: detections off by more than max(this, 6 robust sigma) become NaN
-    workers: int = 2  # detection threads
-    seeds_uv: Any = None  # optional (K, 2) BB positions (col, row) in the first projection
-    # frame-to-frame jitter of the orbit around the nominal (object scale) for tracking
-    jitter_mm: float = DEFAULT_JITTER_MM
-    recover: bool = True  # track again allowing larger jumps (RECOVERY_JITTER_MM) when the first result fails
-    scale_bar_mm: float | None = None  # known distance between two BBs (a scale bar): sets the metric scale
-    # which BBs span the scale bar (1-based, as the report numbers them); default: the one pair near its length
-    scale_bar_bbs: tuple[int, int] | None = None
-    # bundle: solve once more at the end, each detection weighted by how rough its background is
-    weigh_detections: bool = True
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    method: Literal["bundle", "paper"] = Field(
+        "bundle", description="bundle: joint robust least squares; paper: the published alternation (Ma et al. 2022)"
+    )
+    iterations: int | None = Field(
+        None, ge=1, le=200, description="paper: alternations (default 3); bundle: most LM iterations (default 30)"
+    )
+    intrinsics: Literal["fixed", "sdd", "sdd+pp"] = Field(
+        "fixed", description="bundle: also estimate per view the source-detector distance and the piercing point"
+    )
+    max_predicted_px: float = Field(
+        0.5, gt=0.0, le=100.0, description="quality check: the largest predicted field-of-view error a view may have"
+    )
+    bridge_max_views: int = Field(
+        10,
+        ge=0,
+        le=1000,
+        description="bundle: the widest run of views with fewer than 4 BBs bridged from its neighbours",
+    )
+    min_bbs_per_view: int = Field(
+        3,
+        ge=3,
+        le=100,
+        description="a view with fewer BBs is never fitted on its own (the bundle needs 4 to call it its own)",
+    )
+    diameter_mm: float | None = Field(
+        None, gt=0.1, le=50.0, description="BB diameter in mm (default: the scan file's, else estimated)"
+    )
+    scale_bar_mm: float | None = Field(
+        None,
+        gt=0.0,
+        le=5000.0,
+        description="known distance between two BBs (a scale bar measured on the bench): sets the metric scale",
+    )
+    scale_bar_bbs: list[Annotated[int, Field(ge=1)]] | None = Field(
+        None,
+        min_length=2,
+        max_length=2,
+        description="which two BBs span the scale bar (numbers as in the report); default: the one pair near its length",
+    )
+    loss_scale_px: float | None = Field(
+        None, gt=0.0, le=100.0, description="Huber threshold in px (default: 1.5 x the measured centroid noise)"
+    )
+    min_observations: int | None = Field(
+        None, ge=2, le=1_000_000, description="frames a BB must be seen in (default: max(8, 5 % of the projections))"
+    )
+    k_sigma: float = Field(6.0, gt=0.0, le=100.0, description="detection threshold in noise standard deviations")
+    max_candidates: int = Field(
+        128, ge=1, le=100_000, description="strongest peaks kept per frame, at least (more on a larger image)"
+    )
+    outlier_px: float = Field(
+        1.0, gt=0.0, le=100.0, description="bundle: detections off by more than max(this, 6 robust sigma) are dropped"
+    )
+    jitter_mm: float = Field(
+        DEFAULT_JITTER_MM,
+        gt=0.0,
+        le=100.0,
+        description="frame-to-frame jitter of the orbit around the nominal (object scale, mm) allowed in tracking",
+    )
+    recover: bool = Field(
+        True, description="track again allowing larger jumps (8, 15, 25 mm) when the first result fails its check"
+    )
+    weigh_detections: bool = Field(
+        True, description="bundle: solve once more, each detection weighted by how rough its background is"
+    )
+
+    @model_validator(mode="after")
+    def _consistent(self) -> CalibrationOptions:
+        if self.method == "paper" and self.intrinsics != "fixed":
+            raise ValueError("the paper method estimates rigid poses only; use intrinsics 'fixed'")
+        if self.scale_bar_bbs is not None and self.scale_bar_mm is None:
+            raise ValueError("scale_bar_bbs names the BBs of a scale bar: give its length too (scale_bar_mm)")
+        if self.scale_bar_bbs is not None and self.scale_bar_bbs[0] == self.scale_bar_bbs[1]:
+            raise ValueError("scale_bar_bbs: a scale bar spans two different BBs")
+        return self
 
 
 def checked_options(method: str, options: dict[str, Any]) -> CalibrationOptions:
-    if method not in METHODS:
-        raise OptionError(f"method must be one of {METHODS}, got {method!r}")
-    known = {f.name for f in fields(CalibrationOptions)}
-    unknown = set(options) - known
-    if unknown:
-        raise OptionError(f"unknown option(s) {sorted(unknown)}; allowed are {sorted(known)}")
-    opt = CalibrationOptions(**options)
-    if opt.intrinsics not in INTRINSICS:
-        raise OptionError(f"intrinsics must be one of {sorted(INTRINSICS)}, got {opt.intrinsics!r}")
-    if method == "paper" and opt.intrinsics != "fixed":
-        raise OptionError("the paper method estimates rigid poses only; use intrinsics='fixed'")
-    if opt.min_bbs_per_view < 3:
-        raise OptionError(f"min_bbs_per_view must be >= 3 (a rigid pose needs 3 BBs), got {opt.min_bbs_per_view}")
-    if opt.diameter_mm is not None and not opt.diameter_mm > 0:
-        raise OptionError(f"diameter_mm must be > 0, got {opt.diameter_mm}")
-    if opt.scale_bar_mm is not None and not (np.isfinite(opt.scale_bar_mm) and opt.scale_bar_mm > 0):
-        raise OptionError(f"scale_bar_mm must be a positive length in mm, got {opt.scale_bar_mm}")
-    if opt.scale_bar_bbs is not None and opt.scale_bar_mm is None:
-        raise OptionError("scale_bar_bbs names the BBs of a scale bar: give its length too (scale_bar_mm)")
-    return opt
+    """The options of a ``method`` calibration from keyword ``options``, or OptionError naming what is wrong."""
+    values = {**options, "method": method}
+    if isinstance(values.get("scale_bar_bbs"), tuple):
+        values["scale_bar_bbs"] = list(values["scale_bar_bbs"])
+    try:
+        return CalibrationOptions.model_validate(values)
+    except ValidationError as exc:
+        problems = []
+        for error in exc.errors():
+            where = ".".join(str(p) for p in error["loc"] if not isinstance(p, int))
+            text = error["msg"].removeprefix("Value error, ")
+            if error["type"] == "extra_forbidden":
+                text = f"unknown option; allowed are {', '.join(CalibrationOptions.model_fields)}"
+            elif error["type"] == "literal_error" and where == "method":
+                text = f"must be one of {', '.join(METHODS)}, got {error['input']!r}"
+            problems.append(f"{where}: {text}" if where else text)
+        raise OptionError("; ".join(dict.fromkeys(problems))) from None

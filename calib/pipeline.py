@@ -74,8 +74,11 @@ def _detect(
     nominal: ViewGeometry,
     opt: CalibrationOptions,
     progress: ProgressCallback | None,
+    seeds_uv: Any = None,
+    workers: int = 2,
 ) -> tuple[list[NDArray[np.float64]], float, float]:
-    """Candidates of every projection, streamed frame by frame; also BB diameter (mm and px)."""
+    """Candidates of every projection, streamed frame by frame (``workers`` threads; ``seeds_uv``: BB positions
+    known in the first projection); also BB diameter (mm and px)."""
     det = sf.panel
     mag = float(np.median(nominal.sdd / nominal.sod()))
     pitch = float(np.sqrt(det.pitch_col * det.pitch_row))
@@ -102,19 +105,19 @@ def _detect(
         cands[m] = c
 
     # the main thread reads frames (h5py holds the GIL); workers run the GIL-free kernels
-    with ThreadPoolExecutor(max_workers=max(1, opt.workers)) as pool:
+    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         pending: deque[tuple[int, Future[NDArray[Any]]]] = deque()
         for n, i in enumerate(proj):
             buf = np.empty(det.shape, dtype=ds.dtype)
             ds.read_direct(buf, np.s_[int(i)])
             if n == 0:
                 c = checked(buf)  # also fixes the noise level used for every frame
-                if opt.seeds_uv is not None and c.dtype != object:
-                    c = np.concatenate([_seed_records(buf, fd, np.asarray(opt.seeds_uv, float)), c])
+                if seeds_uv is not None and c.dtype != object:
+                    c = np.concatenate([_seed_records(buf, fd, np.asarray(seeds_uv, float)), c])
                 take(0, c)
                 continue
             pending.append((n, pool.submit(checked, buf)))
-            while len(pending) > 2 * max(1, opt.workers) or (pending and pending[0][1].done()):
+            while len(pending) > 2 * max(1, workers) or (pending and pending[0][1].done()):
                 m, fut = pending.popleft()
                 take(m, fut.result())
                 if m % step == 0:
@@ -196,12 +199,17 @@ def calibrate_scan(
     out: str | os.PathLike[str] | None = None,
     report_dir: str | os.PathLike[str] | None = None,
     progress: ProgressCallback | None = None,
+    seeds_uv: Any = None,
+    workers: int = 2,
     **options: Any,
 ) -> CalibrationResult:
-    """Calibrate a scan's geometry from the BBs in its projections and write the results."""
+    """Calibrate a scan's geometry from the BBs in its projections and write the results.
+
+    ``options``: the fields of :class:`~calib.options.CalibrationOptions` (as the CLI and the REST API take them);
+    ``seeds_uv``: (K, 2) BB positions (col, row) known in the first projection; ``workers``: detection threads."""
     # the linear algebra here is small; BLAS threads would only spin against the detection threads
     with threadpool_limits(limits=1, user_api="blas"), CompileClock() as clock:
-        return _calibrate_scan(path, method, out, report_dir, progress, options, clock)
+        return _calibrate_scan(path, method, out, report_dir, progress, options, clock, seeds_uv, workers)
 
 
 @dataclass(frozen=True)
@@ -287,6 +295,8 @@ def _calibrate_scan(
     progress: ProgressCallback | None,
     options: dict[str, Any],
     clock: CompileClock,
+    seeds_uv: Any = None,
+    workers: int = 2,
 ) -> CalibrationResult:
     opt = checked_options(method, options)
     src = Path(path)
@@ -300,7 +310,7 @@ def _calibrate_scan(
     t0 = time.perf_counter()  # the copy above is not part of the calibration time
     with ScanFile(target) as sf:
         inputs = _read_inputs(sf, target)
-        cands, diameter_mm, d_px = _detect(sf, inputs.proj, inputs.nominal, opt, progress)
+        cands, diameter_mm, d_px = _detect(sf, inputs.proj, inputs.nominal, opt, progress, seeds_uv, workers)
     t_detect = time.perf_counter() - t0 - clock.seconds  # kernels compiled on first use: not calibration time
     return _solve_and_write(inputs, cands, diameter_mm, d_px, method, opt, progress, clock, t0, t_detect, report_dir)
 

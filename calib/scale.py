@@ -9,6 +9,7 @@ removes that: the constellation and every view are rescaled so that the pair is 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import combinations
 
@@ -48,7 +49,7 @@ class ScaleBarError(OptionError):
 
 
 def find_scale_bar(
-    xyz: NDArray[np.float64], length_mm: float, bbs: tuple[int, int] | None = None, tolerance: float = DEFAULT_TOLERANCE
+    xyz: NDArray[np.float64], length_mm: float, bbs: Sequence[int] | None = None, tolerance: float = DEFAULT_TOLERANCE
 ) -> ScaleBar:
     """The pair of BBs that spans a ``length_mm`` bar: ``bbs`` (1-based, as the report numbers them) when given,
     else the one pair whose distance is within ``tolerance`` of the length (an error names the pairs otherwise)."""

@@ -59,7 +59,8 @@ def _parse_ints(ctx: click.Context, param: click.Parameter, value: str | None) -
     try:
         return [int(p) for p in value.replace("x", ",").split(",")]
     except ValueError:
-        raise click.BadParameter(f"expected integers separated by commas (e.g. 128,256,256), got {value!r}") from None
+        shown = param.metavar or "N,N,..."
+        raise click.BadParameter(f"expected {shown}: integers separated by commas, got {value!r}") from None
 
 
 def _option(name: str, info: FieldInfo, flag: str, metavar: str | None) -> Callable[[F], F]:
@@ -69,6 +70,8 @@ def _option(name: str, info: FieldInfo, flag: str, metavar: str | None) -> Calla
     default = info.default if info.default is not PydanticUndefined else None
     notes = [] if default is None or kind is bool else [f"default: {default}"]
     if kind is bool:
+        if default is True:  # on unless turned off: --name / --no-name
+            return click.option(f"{flag}/--no-{flag[2:]}", name, default=None, help=help_text + " [default: on]")
         return click.option(flag, name, is_flag=True, default=None, help=help_text)
     if typing.get_origin(kind) is typing.Literal:
         values = typing.get_args(kind)

@@ -9,10 +9,15 @@ from typing import Any
 
 import click
 import pytest
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
+from calib.errors import OptionError
+from calib.options import CalibrationOptions
+from calib.options import checked_options as checked_calibration_options
+from orbitct_app.cli.calibrate import calibrate
 from orbitct_app.cli.model_options import flag_of, model_from
 from orbitct_app.cli.reconstruct import FLAGS, reconstruct
+from orbitct_app.service.routers.calibrations import CalibrationRequest
 from orbitct_app.service.routers.reconstructions import ReconstructionRequest
 from recon import ReconError, ReconstructionOptions
 from recon.pipeline import checked_options
@@ -62,21 +67,22 @@ def python_accepts(values: dict[str, Any]) -> bool:
     return True
 
 
-def rest_accepts(values: dict[str, Any]) -> bool:
+def rest_accepts(values: dict[str, Any], request: type[BaseModel] = ReconstructionRequest) -> bool:
+    """Whether the REST body ``request`` for a scan takes ``values``."""
     try:
-        ReconstructionRequest.model_validate_json(json.dumps({"scan_id": SCAN_ID, **values}))
+        request.model_validate_json(json.dumps({"scan_id": SCAN_ID, **values}))
     except ValidationError:
         return False
     return True
 
 
-def cli_words(values: dict[str, Any]) -> list[str]:
-    """The options a person types for ``values``."""
+def cli_words(values: dict[str, Any], flags: dict[str, str] = FLAGS) -> list[str]:
+    """The options a person types for ``values`` (a flag for True, its ``--no-`` form for False)."""
     words = []
     for name, value in values.items():
-        flag = flag_of(name, FLAGS)
-        if value is True:
-            words.append(flag)
+        flag = flag_of(name, flags)
+        if isinstance(value, bool):
+            words.append(flag if value else "--no-" + flag[2:])
         elif isinstance(value, list):
             words += [flag, ",".join(map(str, value))]
         else:
@@ -123,6 +129,93 @@ def test_a_refusal_names_the_option_as_it_was_typed(tmp_path: Path) -> None:
     params = {k: v for k, v in ctx.params.items() if k in ReconstructionOptions.model_fields}
     with pytest.raises(click.UsageError, match=r"--voxel-mm: Input should be less than or equal to 20"):
         model_from(ReconstructionOptions, params, flags=FLAGS)
+
+
+# calibration: (options as Python takes them, with the method, whether they are acceptable)
+CALIBRATION_CASES: list[tuple[dict[str, Any], bool]] = [
+    ({}, True),
+    ({"method": "paper", "iterations": 3}, True),
+    ({"method": "magic"}, False),
+    ({"iterations": 0}, False),
+    ({"iterations": 200}, True),
+    ({"iterations": 201}, False),
+    ({"intrinsics": "sdd+pp"}, True),
+    ({"intrinsics": "all"}, False),
+    ({"method": "paper", "intrinsics": "sdd"}, False),
+    ({"max_predicted_px": 0.0}, False),
+    ({"max_predicted_px": 2.0}, True),
+    ({"bridge_max_views": -1}, False),
+    ({"min_bbs_per_view": 2}, False),
+    ({"min_bbs_per_view": 4}, True),
+    ({"diameter_mm": 0.1}, False),
+    ({"diameter_mm": 3.17}, True),
+    ({"diameter_mm": 51.0}, False),
+    ({"scale_bar_mm": 100.0, "scale_bar_bbs": [2, 7]}, True),
+    ({"scale_bar_bbs": [2, 7]}, False),  # which BBs, but no length
+    ({"scale_bar_mm": 100.0, "scale_bar_bbs": [2, 2]}, False),
+    ({"scale_bar_mm": 100.0, "scale_bar_bbs": [0, 7]}, False),
+    ({"scale_bar_mm": -5.0}, False),
+    ({"k_sigma": 4.5, "max_candidates": 64, "outlier_px": 2.0, "jitter_mm": 8.0}, True),
+    ({"k_sigma": 0.0}, False),
+    ({"recover": False, "weigh_detections": False}, True),
+    ({"loss_scale_px": 0.5, "min_observations": 12}, True),
+    ({"min_observations": 1}, False),
+]
+
+
+def calibration_python_accepts(values: dict[str, Any]) -> bool:
+    options = dict(values)
+    try:
+        checked_calibration_options(options.pop("method", "bundle"), options)
+    except OptionError:
+        return False
+    return True
+
+
+def calibration_cli_accepts(values: dict[str, Any], scan: Path) -> bool:
+    """Parse as ``orbitct calibrate SCAN ...`` does, then validate as the command does (nothing is run)."""
+    words = cli_words(values, {})
+    try:
+        ctx = calibrate.make_context("calibrate", [str(scan), *words])
+        params = {k: v for k, v in ctx.params.items() if k in CalibrationOptions.model_fields}
+        model_from(CalibrationOptions, params)
+    except click.UsageError:
+        return False
+    return True
+
+
+@pytest.mark.parametrize(("values", "acceptable"), CALIBRATION_CASES, ids=[json.dumps(v) for v, _ in CALIBRATION_CASES])
+def test_a_calibration_gets_the_same_answer_everywhere(
+    values: dict[str, Any], acceptable: bool, tmp_path: Path
+) -> None:
+    scan = tmp_path / "scan.h5"
+    scan.touch()
+    answers = {
+        "python": calibration_python_accepts(values),
+        "rest": rest_accepts(values, CalibrationRequest),
+        "cli": calibration_cli_accepts(values, scan),
+    }
+    assert answers == dict.fromkeys(answers, acceptable), answers
+
+
+def test_every_calibration_option_is_in_every_interface() -> None:
+    from orbitct_app.reference_pages import openapi_document
+
+    fields = set(CalibrationOptions.model_fields)
+    assert fields - {p.name for p in calibrate.params} == set()
+    body = openapi_document()["components"]["schemas"]["CalibrationRequest"]["properties"]
+    assert fields - set(body) == set() and set(body) - fields == {"scan_id"}
+    rest = CalibrationRequest.model_validate_json(json.dumps({"scan_id": SCAN_ID}))
+    assert rest.model_dump(exclude={"scan_id"}) == CalibrationOptions().model_dump()
+
+
+def test_a_calibration_refusal_names_the_option() -> None:
+    with pytest.raises(OptionError, match=r"^iterations: Input should be less than or equal to 200$"):
+        checked_calibration_options("bundle", {"iterations": 500})
+    with pytest.raises(OptionError, match=r"colour: unknown option; allowed are method, iterations"):
+        checked_calibration_options("bundle", {"colour": "red"})
+    with pytest.raises(OptionError, match=r"method: must be one of bundle, paper, got 'magic'"):
+        checked_calibration_options("magic", {})
 
 
 def test_the_defaults_are_one_set() -> None:

@@ -112,4 +112,8 @@ def test_cli_takes_the_bar_and_names_a_pair_it_cannot_find(far_scan: Path, tmp_p
     bad = runner.invoke(cli, ["calibrate", str(far_scan), "--out", str(tmp_path / "bad.h5"), "--scale-bar-mm", "72.6"])
     assert bad.exit_code == 1 and "pairs of BBs are within 3 %" in bad.output and "Traceback" not in bad.output
     usage = runner.invoke(cli, ["calibrate", str(far_scan), "--scale-bar-mm", "50", "--scale-bar-bbs", "1-8"])
-    assert usage.exit_code == 2 and "give two BB numbers as I,J" in usage.output
+    assert usage.exit_code == 2 and "--scale-bar-bbs': expected I,J: integers separated by commas" in usage.output
+    three = runner.invoke(cli, ["calibrate", str(far_scan), "--scale-bar-mm", "50", "--scale-bar-bbs", "1,2,3"])
+    assert three.exit_code == 2 and "--scale-bar-bbs: List should have at most 2 items" in three.output, three.output
+    alone = runner.invoke(cli, ["calibrate", str(far_scan), "--scale-bar-bbs", "1,2"])
+    assert alone.exit_code == 2 and "give its length too (scale_bar_mm)" in alone.output, alone.output

@@ -36,8 +36,6 @@ def run_calibration(
     import calib
 
     options = {k: v for k, v in params.items() if k != "method" and v is not None}
-    if "scale_bar_bbs" in options:
-        options["scale_bar_bbs"] = tuple(options["scale_bar_bbs"])
     res = calib.calibrate_scan(
         scan_path, method=params.get("method", "bundle"), out=None, report_dir=out_dir, progress=progress, **options
     )

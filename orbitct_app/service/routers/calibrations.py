@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Response
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, ConfigDict, Field
 
+from calib.options import CalibrationOptions
 from orbitct_app.service.core.errors import (
     DISK_FULL,
     ERROR_RESPONSES,
@@ -24,50 +25,16 @@ router = APIRouter(prefix="/calibrations", tags=["calibrations"], responses=ERRO
 ScanId = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")]
 
 
-class CalibrationRequest(BaseModel):
-    """Calibrate a complete scan from the BBs on the object."""
+class CalibrationRequest(CalibrationOptions):
+    """Calibrate a complete scan from the BBs on the object: the scan, and the options ``orbitct calibrate`` and
+    Python take."""
 
     model_config = ConfigDict(
-        extra="forbid",
         strict=True,
-        allow_inf_nan=False,
         json_schema_extra={"examples": [{"scan_id": "a1b2c3d4e5f60718", "method": "bundle"}]},
     )
 
     scan_id: ScanId
-    method: Literal["bundle", "paper"] = Field(
-        "bundle", description="joint bundle adjustment, or the paper's alternation"
-    )
-    iterations: int | None = Field(None, ge=1, le=100, description="estimation iterations (default: the method's)")
-    intrinsics: Literal["fixed", "sdd", "sdd+pp"] | None = Field(
-        None, description="per-view parameters besides the pose"
-    )
-    min_bbs_per_view: int | None = Field(None, ge=3, le=100, description="fewer BBs: a view is never fitted on its own")
-    max_predicted_px: float | None = Field(
-        None,
-        gt=0.0,
-        le=100.0,
-        description="quality check: the largest predicted field-of-view error a view may have (default 0.5 px)",
-    )
-    bridge_max_views: int | None = Field(
-        None,
-        ge=0,
-        le=1000,
-        description="bundle: the widest run of views with fewer than 4 BBs bridged from its neighbours (default 10)",
-    )
-    diameter_mm: float | None = Field(None, gt=0.1, le=50.0, description="BB diameter when the file does not say")
-    scale_bar_mm: float | None = Field(
-        None,
-        gt=0.0,
-        le=5000.0,
-        description="known distance between two BBs (a scale bar measured on the bench): sets the metric scale",
-    )
-    scale_bar_bbs: list[Annotated[int, Field(ge=1)]] | None = Field(
-        None,
-        min_length=2,
-        max_length=2,
-        description="which two BBs span the scale bar (numbers as in the report); default: the one pair near its length",
-    )
 
 
 def check_scan_ready(service: Any, scan_id: str) -> dict[str, Any]:
