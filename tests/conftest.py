@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import gc
 import os
 from collections.abc import Iterator
@@ -35,31 +34,21 @@ def _stop_sim_twins() -> Iterator[None]:
     gc.collect()
 
 
-#: the priority of the service's batch jobs (orbitct_app.service.jobs.manager.JOB_NICE), kept here so that collecting
-#: the tests does not import the service
+#: the service's batch jobs' priority (orbitct_app.service.jobs.manager.JOB_NICE, kept here so that collecting the
+#: tests does not import the service): a lab's jobs run at nice +5 beside a bench at -5
 BATCH_NICE = 5
-
-
-@pytest.fixture(scope="session", autouse=True)
-def _tests_run_as_batch_work() -> None:
-    """The suite's work runs at the priority of the service's batch jobs, as a reconstruction or a calibration beside
-    a bench does; tests marked ``realtime`` raise themselves to the bench's (below). A real-time test so meets the
-    other test process (two run at once) as an acquisition meets the lab's jobs, not as an equal."""
-    threads = [int(t) for t in os.listdir("/proc/self/task")] if os.path.isdir("/proc/self/task") else [0]
-    for tid in threads:
-        with contextlib.suppress(OSError):
-            if os.getpriority(os.PRIO_PROCESS, tid) < BATCH_NICE:
-                os.setpriority(os.PRIO_PROCESS, tid, BATCH_NICE)
 
 
 @pytest.fixture(autouse=True)
 def _bench_priority(request: pytest.FixtureRequest) -> Iterator[None]:
     """Tests marked ``realtime`` run at the bench's priority, as ``orbitct scan`` and the service's bench process
-    do: a continuous sweep does not wait for a process starved by other work on the machine."""
+    do: a continuous sweep does not wait for a process starved by other work on the machine. The other test process
+    runs at nice 0, not at the +5 of a lab's jobs, so a real-time test goes BATCH_NICE further (-10) to keep the
+    same gap of 10 (subprocesses the tests start keep the priorities a user's commands have)."""
     if request.node.get_closest_marker("realtime") is None:
         yield
         return
-    from acquire.priority import bench_priority
+    from acquire.priority import BENCH_NICE, bench_priority
 
-    with bench_priority():
+    with bench_priority(BENCH_NICE - BATCH_NICE):
         yield
