@@ -17,8 +17,10 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-#: nice value asked for the acquisition (the same as the service's bench process; batch jobs run at +5)
+#: nice value asked for the acquisition (the same as the service's bench process)
 BENCH_NICE = -5
+#: nice value of batch work beside a bench (the service's calibration, reconstruction and planning jobs)
+JOB_NICE = 5
 
 
 def _threads() -> list[int]:

@@ -37,7 +37,6 @@ class PwlsResult:
     volume: NDArray[np.float32]
     cost: list[float] = field(default_factory=list)
     final_cost: bool = False  # whether cost[-1] is the result's
-    curvature_reused: bool = False  # whether the data curvature was given (from a cache), not computed
     iterations: int = 0
     elapsed_s: float = 0.0
     beta_abs: float = 0.0
@@ -428,6 +427,4 @@ def pwls_solve(
         xp[1:-1, 1:-1, 1:-1] = x_prev  # the result is the iterate, not the extrapolated point
     del gp, denom, x_prev
     x = xp[1:-1, 1:-1, 1:-1] if in_place else np.ascontiguousarray(xp[1:-1, 1:-1, 1:-1])
-    return PwlsResult(
-        x, cost, final_cost, data_curvature is not None, iterations, time.perf_counter() - t0, beta_abs, restarts
-    )
+    return PwlsResult(x, cost, final_cost, iterations, time.perf_counter() - t0, beta_abs, restarts)

@@ -34,21 +34,16 @@ def _stop_sim_twins() -> Iterator[None]:
     gc.collect()
 
 
-#: the service's batch jobs' priority (orbitct_app.service.jobs.manager.JOB_NICE, kept here so that collecting the
-#: tests does not import the service): a lab's jobs run at nice +5 beside a bench at -5
-BATCH_NICE = 5
-
-
 @pytest.fixture(autouse=True)
 def _bench_priority(request: pytest.FixtureRequest) -> Iterator[None]:
     """Tests marked ``realtime`` run at the bench's priority, as ``orbitct scan`` and the service's bench process
     do: a continuous sweep does not wait for a process starved by other work on the machine. The other test process
-    runs at nice 0, not at the +5 of a lab's jobs, so a real-time test goes BATCH_NICE further (-10) to keep the
+    runs at nice 0, not at the +5 of a lab's jobs (JOB_NICE), so a real-time test goes that much further (-10) to keep the
     same gap of 10 (subprocesses the tests start keep the priorities a user's commands have)."""
     if request.node.get_closest_marker("realtime") is None:
         yield
         return
-    from acquire.priority import BENCH_NICE, bench_priority
+    from acquire.priority import BENCH_NICE, JOB_NICE, bench_priority
 
-    with bench_priority(BENCH_NICE - BATCH_NICE):
+    with bench_priority(BENCH_NICE - JOB_NICE):
         yield

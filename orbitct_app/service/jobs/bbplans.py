@@ -22,13 +22,13 @@ from collections import deque
 from pathlib import Path
 from typing import Any
 
+from acquire.priority import JOB_NICE
 from orbitct.progress import ProgressEvent
 from orbitct_app.bbplan import BBPlanError, BBPlanRequest, make_bb_plan, write_bb_plan
 from orbitct_app.service.core.children import die_with_parent
 from orbitct_app.service.core.db import utc_now
 from orbitct_app.service.core.failures import failure_sentence
 from orbitct_app.service.core.jsonfile import write_json_atomically
-from orbitct_app.service.jobs.manager import JOB_NICE
 
 log = logging.getLogger("orbitct.service.plans")
 

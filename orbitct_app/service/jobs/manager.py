@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from acquire.priority import JOB_NICE
 from orbitct.progress import ProgressEvent
 from orbitct_app.error_codes import code_for_exception
 from orbitct_app.service.core.db import Store, utc_now
@@ -32,7 +33,6 @@ JOB_TARGETS: dict[str, Callable[..., dict[str, Any]]] = {
     "calibration": run_calibration,
     "reconstruction": run_reconstruction,
 }
-JOB_NICE = 5
 TOPIC = "orbitct-jobs"  # the Dask event topic jobs report on
 CANCEL_CHECK_S = 0.2  # how often a job asks whether it was cancelled (at its progress events)
 WORKER_CHECK_S = 1.0  # how often the service looks whether the workers running jobs are still there
