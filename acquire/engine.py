@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 from acquire.config import MotionConfig
 from acquire.errors import AcquireError, RefusedError, ScanAborted, ScanStateError
 from acquire.plan import FramePlan, ScanPlan, sweep_end, sweep_run_up_deg, sweep_speed
+from acquire.priority import steady_collection
 from acquire.reasons import abort_reason, is_expected
 from acquire.records import FrameRecord, ScanEnd, ScanStart, Subscriber
 from devices.frame_protocol import Frame
@@ -269,10 +270,11 @@ class ScanEngine:
             self.state = "running"
             await self._subscribers_ready()
             t0 = time.monotonic()
-            if self.mode == "step":
-                await self._run_step(t0)
-            else:
-                await self._run_continuous(t0)
+            with steady_collection():  # no full collection pauses the frames
+                if self.mode == "step":
+                    await self._run_step(t0)
+                else:
+                    await self._run_continuous(t0)
         except RefusedError:
             status = "refused"
             raise
@@ -376,7 +378,11 @@ class ScanEngine:
         tv = frame.meta.get("truth_vectors") if self.rig.sim else None
         return None if tv is None else np.asarray(tv, dtype=float)
 
-    async def _shoot(
+    async def _shoot(self, f: FramePlan, t0: float, after_exposure: Callable[[], None] | None = None) -> None:
+        """Read back, expose, record one frame with the axes at rest."""
+        self._record(await self._expose(f, t0, after_exposure), t0)
+
+    async def _expose(
         self,
         f: FramePlan,
         t0: float,
@@ -384,10 +390,11 @@ class ScanEngine:
         *,
         sweeping: bool = False,
         next_exposure_s: float | None = None,
-    ) -> None:
-        """Read back, expose, record one frame. ``sweeping``: the axes move through the exposure, so they are read
-        back again once it is over and each read-back is interpolated to the exposure's middle (read before it
-        only, a sweep at 4 frames/s on the simulated bench recorded the stage 0.5 degrees short of where it was)."""
+    ) -> FrameRecord:
+        """Read back and expose one frame, not yet recorded. ``sweeping``: the axes move through the exposure, so
+        they are read back again once it is over and each read-back is interpolated to the exposure's middle (read
+        before it only, a sweep at 4 frames/s on the simulated bench recorded the stage 0.5 degrees short of where
+        it was)."""
         t_a = time.monotonic()
         encoders = await self.rig.read_positions()
         t_frame = time.monotonic() - t0
@@ -421,7 +428,9 @@ class ScanEngine:
                 with contextlib.suppress(BaseException):
                     await read_after
         truth = self._true_vector(frame) if f.image_key == ImageKey.PROJECTION else None
-        rec = FrameRecord(
+        self._acquire_s += t_c - t_b
+        self._readback_s += t_b - t_a
+        return FrameRecord(
             index=f.index,
             image_key=f.image_key,
             view=f.view,
@@ -432,12 +441,13 @@ class ScanEngine:
             nominal_vector=f.nominal_vector,
             true_vector=truth,
         )
+
+    def _record(self, rec: FrameRecord, t0: float) -> None:
+        """Hand an exposed frame to the subscribers and report progress (``t0``: when the frames began)."""
         t_r = time.monotonic()
         self._notify("on_frame", rec)
         self.n_done += 1
         t_d = time.monotonic()
-        self._acquire_s += t_c - t_b
-        self._readback_s += t_b - t_a
         self._record_s += t_d - t_r
         elapsed = t_d - t0
         self._run_s = elapsed
@@ -582,7 +592,14 @@ class ScanEngine:
                     await self._start_sweep_anew(rig, idx, past, step, late_at)
                     late_at = idx
                     break
-                await self._shoot(f, t0, sweeping=True, next_exposure_s=1.0 / self.frame_rate_hz if idx < end else None)
+                nxt_s = 1.0 / self.frame_rate_hz if idx < end else None
+                rec = await self._expose(f, t0, sweeping=True, next_exposure_s=nxt_s)
+                off = (rec.encoders[rig.sweep_axis] - float(sweep[idx])) * direction
+                if abs(off) > 0.5 * step:  # exposed too far from its angle after all: not recorded, taken again
+                    await self._start_sweep_anew(rig, idx, off, step, late_at, exposed=True)
+                    late_at = idx
+                    break
+                self._record(rec, t0)
                 idx += 1
                 if idx <= end:
                     nxt = plan.frame(idx).targets
@@ -595,11 +612,13 @@ class ScanEngine:
             await self._shoot(plan.frame(i), t0)
 
     async def _start_sweep_anew(
-        self, rig: SweepRig, idx: int, past_deg: float, step_deg: float, late_at: int | None
+        self, rig: SweepRig, idx: int, past_deg: float, step_deg: float, late_at: int | None, *, exposed: bool = False
     ) -> None:
-        """Frame ``idx`` is ready ``past_deg`` past its angle, more than half a step: stop the sweep so that it
-        starts again from this frame (a frame exposed there would be recorded at the wrong angle). Late again right
-        after the last such start (``late_at``): the exposures cannot keep up, and the scan ends."""
+        """Frame ``idx`` is ready ``past_deg`` past its angle, more than half a step (``exposed``: its exposure's
+        middle was that far from it, and the frame is dropped): stop the sweep so that it starts again from this
+        frame (a frame exposed there would be recorded at the wrong angle). Late again right after the last such
+        start (``late_at``): the exposures cannot keep up, and the scan ends."""
+        what = f"exposed {past_deg:.2f} deg from its angle" if exposed else f"ready {past_deg:.2f} deg past its angle"
         if late_at is not None and 0 <= idx - late_at <= 1:
             anew = (
                 "again, after its sweep was started anew from it"
@@ -607,14 +626,13 @@ class ScanEngine:
                 else f"right after its sweep was started anew at frame {late_at}, which had been late too"
             )
             raise AcquireError(
-                f"continuous mode: frame {idx} was ready {past_deg:.2f} deg past its angle (at most half a step, "
-                f"{0.5 * step_deg:.2f} deg, is allowed) {anew}; the exposures cannot keep up at "
-                f"{self.frame_rate_hz:g} frames/s: a lower frame rate, or step mode"
+                f"continuous mode: frame {idx} was {what} (at most half a step, {0.5 * step_deg:.2f} deg, is "
+                f"allowed) {anew}; the exposures cannot keep up at {self.frame_rate_hz:g} frames/s: a lower frame "
+                "rate, or step mode"
             )
         self._late_restarts += 1
-        log.warning(
-            "continuous mode: frame %d ready %.2f deg past its angle; its sweep starts again from it", idx, past_deg
-        )
+        dropped = " and was not recorded" if exposed else ""
+        log.warning("continuous mode: frame %d %s%s; its sweep starts again from it", idx, what, dropped)
         await rig.stop_all()
 
     async def _ready_at_angle(

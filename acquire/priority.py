@@ -4,11 +4,16 @@ A continuous scan exposes each frame at an angle of a sweep that does not wait: 
 (a reconstruction, a browser, another user's job) exposes late. The service's bench process asks for this priority
 itself; ``orbitct scan`` asks for it around the scan. Raising priority needs root or CAP_SYS_NICE; without them the
 scan runs at normal priority and says so in the log.
+
+A process can also pause itself: Python's full garbage collection walks every object the process holds, which in a
+long-lived process (the service, a test session) takes 50-100 ms or more, and comes at a moment nobody chooses.
+:func:`steady_collection` keeps the objects alive when a scan starts out of every collection until it ends.
 """
 
 from __future__ import annotations
 
 import contextlib
+import gc
 import logging
 import os
 import sys
@@ -58,3 +63,26 @@ def bench_priority(nice_value: int = BENCH_NICE) -> Iterator[bool]:
         if changed:
             for tid in _threads():
                 _set(tid, before.get(tid, own))
+
+
+_steady_depth = 0
+
+
+@contextlib.contextmanager
+def steady_collection() -> Iterator[None]:
+    """Run the block with the objects alive at its start frozen out of garbage collection (``gc.freeze``).
+
+    Collections inside the block then walk only what the block created, which stays small, instead of every
+    object of the process: on this project's 2-core machine a full collection paused a scan for up to 96 ms, five
+    degrees of a sweep at 8 frames/s. Afterwards the frozen objects are collected as before. Nested blocks freeze once.
+    """
+    global _steady_depth
+    if _steady_depth == 0:
+        gc.freeze()
+    _steady_depth += 1
+    try:
+        yield
+    finally:
+        _steady_depth -= 1
+        if _steady_depth == 0:
+            gc.unfreeze()

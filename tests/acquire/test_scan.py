@@ -97,9 +97,10 @@ def test_continuous_scan_triggers_at_angles(request_factory) -> None:
 @pytest.mark.realtime
 def test_continuous_read_backs_are_interpolated_to_the_middle_of_each_exposure(request_factory) -> None:
     """On a sweep every axis is read back before and after each exposure, and the recorded read-back is each axis's
-    value at the exposure's middle: here every axis reads the clock (ms, linear in time like an axis turning at a
-    constant speed), so each projection's read-back must be the middle of its exposure (read before it only, a
-    sweep at 4 frames/s on the simulated bench had recorded the stage 0.5 degrees short of where it was)."""
+    value at the exposure's middle: here every hexapod axis reads the clock (ms, linear in time like an axis
+    turning at a constant speed), so each projection's read-back must be the middle of its exposure (read before it
+    only, a sweep at 4 frames/s on the simulated bench had recorded the stage 0.5 degrees short of where it was).
+    The stage reads its angle: the engine checks each exposure against it."""
     req = request_factory(frames=16, mode="continuous", frame_rate_hz=4.0)
     middles_ms: list[float] = []
 
@@ -110,7 +111,8 @@ def test_continuous_read_backs_are_interpolated_to_the_middle_of_each_exposure(r
             async def clock() -> dict[str, float]:
                 t = time.monotonic()
                 axes = await read()
-                return dict.fromkeys(axes, 500.0 * (t + time.monotonic()))  # ms at the middle of the read
+                clock_ms = 500.0 * (t + time.monotonic())  # ms at the middle of the read
+                return {a: v if a == "rotation_stage.R" else clock_ms for a, v in axes.items()}
 
             async def acquire_noting(image_key: int, after_exposure: Any = None, **options: Any) -> Any:
                 frame = await acquire(image_key, after_exposure=after_exposure, **options)
@@ -124,7 +126,7 @@ def test_continuous_read_backs_are_interpolated_to_the_middle_of_each_exposure(r
 
     asyncio.run(main())
     with ScanFile(req.out) as sf:
-        recorded = sf.axes("encoders")["rotation_stage.R"][sf.projection_indices]
+        recorded = sf.axes("encoders")["hexapod.X"][sf.projection_indices]
         time_s = sf.time_s[sf.projection_indices]
     assert len(middles_ms) == recorded.size == 16
     np.testing.assert_allclose(np.diff(time_s), np.diff(middles_ms) / 1000.0, rtol=0, atol=1e-6)  # timed alike
@@ -160,6 +162,22 @@ def test_continuous_second_sweep_keeps_the_source_ready(request_factory) -> None
     below("stage_lag_deg", np.abs(stage).max(), 0.5 * 360 / 46)  # within half a step (46 frames a turn)
 
 
+def _turn_at_8_frames_s(request_factory: Callable[..., Any]) -> tuple[Any, Any]:
+    """A 48-frame circular turn at 8 frames/s on a 32-px panel, 7.5 degrees a step: configuration and request."""
+    cfg = small_config(size=32, time_scale=1.0, exposure={"exposure_ms": 2.0, "prep_ms": 20.0, "frame_rate_hz": 8.0})
+    req = request_factory(
+        frames=48,
+        mode="continuous",
+        frame_rate_hz=8.0,
+        config=cfg,
+        errors="none",
+        error_params={},
+        orbit="circular",
+        orbit_params={},
+    )
+    return cfg, req
+
+
 @pytest.mark.slow
 @pytest.mark.realtime
 def test_continuous_frame_late_starts_its_sweep_anew_and_a_rig_that_cannot_keep_up_ends_the_scan(
@@ -167,19 +185,9 @@ def test_continuous_frame_late_starts_its_sweep_anew_and_a_rig_that_cannot_keep_
 ) -> None:
     """A frame whose source is ready only when the sweep is more than half a step past its angle is not exposed
     there: the sweep starts again from it. Late again right after, the scan ends, naming why."""
-    cfg = small_config(size=32, time_scale=1.0, exposure={"exposure_ms": 2.0, "prep_ms": 20.0, "frame_rate_hz": 8.0})
 
     def run(slow: Callable[[int], bool]) -> tuple[Any, np.ndarray]:
-        req = request_factory(
-            frames=48,
-            mode="continuous",
-            frame_rate_hz=8.0,
-            config=cfg,
-            errors="none",
-            error_params={},
-            orbit="circular",
-            orbit_params={},
-        )
+        cfg, req = _turn_at_8_frames_s(request_factory)
         calls = itertools.count()
 
         async def main() -> Any:
@@ -207,6 +215,36 @@ def test_continuous_frame_late_starts_its_sweep_anew_and_a_rig_that_cannot_keep_
     res, off = run(lambda n: n >= 12)  # every preparation from there on slow: the rig cannot keep up
     assert res.status == "aborted" and "cannot keep up at 8 frames/s" in res.reason, res.reason
     assert np.abs(off).max() < 3.75  # nothing recorded at a wrong angle
+
+
+@pytest.mark.realtime
+def test_continuous_frame_exposed_late_is_not_recorded_and_its_sweep_starts_anew(request_factory, caplog) -> None:
+    """A frame ready at its angle whose exposure then comes late (the process paused between the two) is exposed
+    more than half a step from its angle: it is dropped, not recorded there, and its sweep starts again from it."""
+    cfg, req = _turn_at_8_frames_s(request_factory)
+    exposures = itertools.count()
+
+    async def main() -> Any:
+        async with open_bench(cfg, sim=True) as rig:
+            acquire = rig.acquire
+
+            async def paused_acquire(image_key: int, *args: Any, **kw: Any) -> Any:
+                if image_key == ImageKey.PROJECTION and next(exposures) == 20:  # well into the sweep
+                    await asyncio.sleep(0.15)  # after the read-back at the angle: 9 degrees at 60 deg/s
+                return await acquire(image_key, *args, **kw)
+
+            rig.acquire = paused_acquire  # type: ignore[method-assign]
+            return await ScanRunner(req, rig=rig).run()
+
+    with caplog.at_level("WARNING", logger="acquire.engine"):
+        res = asyncio.run(main())
+    assert res.status == "complete" and res.timing["late_restarts"] == 1, res
+    assert any("deg from its angle and was not recorded" in r.getMessage() for r in caplog.records), caplog.text
+    with ScanFile(req.out) as sf:
+        proj = sf.projection_indices
+        off = sf.axes("encoders")["rotation_stage.R"][proj] - sf.axes("commanded")["rotation_stage.R"][proj]
+    assert off.size == 48
+    below("stage_lag_deg", np.abs(off).max(), 3.75)
 
 
 @pytest.mark.slow
