@@ -14,8 +14,9 @@ from typing import Any
 import numpy as np
 
 from acquire.config import BenchConfig, CArmConfig, load_config
-from acquire.engine import MODES, Rig, ScanEngine
+from acquire.engine import Rig, ScanEngine
 from acquire.errors import AcquireError, ScanStateError
+from acquire.options import ScanOptions, checked_scan_options
 from acquire.plan import ScanPlan
 from acquire.recorder import ScanRecorder, SimulationTruth
 from acquire.records import Subscriber
@@ -53,6 +54,19 @@ class ScanRequest:
     frame_rate_hz: float | None = None
     overwrite: bool = False
 
+    def options(self) -> ScanOptions:
+        """The scan's options, checked (:class:`AcquireError` naming each one that is wrong)."""
+        return checked_scan_options(
+            orbit=self.orbit,
+            orbit_params=dict(self.orbit_params),
+            frames=self.frames,
+            errors=self.errors,
+            error_params=dict(self.error_params),
+            seed=self.seed,
+            mode=self.mode,
+            frame_rate_hz=self.frame_rate_hz,
+        )
+
     def resolved_config(self) -> BenchConfig | CArmConfig:
         """The configuration object (loaded and validated if a path was given)."""
         cfg = self.config if isinstance(self.config, (BenchConfig, CArmConfig)) else load_config(self.config)
@@ -87,6 +101,7 @@ def make_orbit_and_errors(req: ScanRequest) -> tuple[Orbit, np.ndarray, dict[str
 
 def build_plan(req: ScanRequest, cfg: BenchConfig | CArmConfig) -> ScanPlan:
     """The plan of a request on the rig ``cfg`` describes (a C-arm injects no errors: its own are what is measured)."""
+    req.options()
     kind = rig_kind(cfg)
     if req.mode not in kind.modes:
         modes = " or ".join(repr(m) for m in kind.modes)
@@ -124,8 +139,7 @@ class ScanRunner:
     ) -> None:
         """``subscribers`` receive the scan's events after the recorder (live analysis: it sees each frame once it
         is written, and the complete file once closed)."""
-        if request.mode not in MODES:
-            raise AcquireError(f"mode must be one of {MODES}, got {request.mode!r}")
+        request.options()  # refused before anything connects
         self.request = request
         self._user_progress = progress
         self._rig = rig

@@ -12,6 +12,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from calib.errors import OptionError
+from orbitct.options import option_problems
 
 METHODS = ("bundle", "paper")
 DEFAULT_JITTER_MM = 3.0
@@ -101,19 +102,12 @@ class CalibrationOptions(BaseModel):
 
 def checked_options(method: str, options: dict[str, Any]) -> CalibrationOptions:
     """The options of a ``method`` calibration from keyword ``options``, or OptionError naming what is wrong."""
+    if method not in METHODS:
+        raise OptionError(f"method: must be one of {', '.join(METHODS)}, got {method!r}")
     values = {**options, "method": method}
     if isinstance(values.get("scale_bar_bbs"), tuple):
         values["scale_bar_bbs"] = list(values["scale_bar_bbs"])
     try:
         return CalibrationOptions.model_validate(values)
     except ValidationError as exc:
-        problems = []
-        for error in exc.errors():
-            where = ".".join(str(p) for p in error["loc"] if not isinstance(p, int))
-            text = error["msg"].removeprefix("Value error, ")
-            if error["type"] == "extra_forbidden":
-                text = f"unknown option; allowed are {', '.join(CalibrationOptions.model_fields)}"
-            elif error["type"] == "literal_error" and where == "method":
-                text = f"must be one of {', '.join(METHODS)}, got {error['input']!r}"
-            problems.append(f"{where}: {text}" if where else text)
-        raise OptionError("; ".join(dict.fromkeys(problems))) from None
+        raise OptionError(option_problems(exc, CalibrationOptions)) from None

@@ -5,25 +5,33 @@ from __future__ import annotations
 import signal
 from collections import Counter
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 import yaml
 
+from acquire.options import ScanOptions
 from orbitct_app.cli.failure import fail
+from orbitct_app.cli.model_options import model_from, options_from
 from orbitct_app.cli.progress import ProgressBar
-from orbitct_app.cli.values import SEED, FiniteFloat
+from orbitct_app.live_options import ABORT_KINDS, LiveCalibrationOptions
 
-#: calib.live.ABORT_KINDS, spelled out so that the CLI starts without importing the calibration (half a second);
-#: tests/app/test_live_calibration.py holds the two the same
-ABORT_KINDS = ("bb_lost", "bb_left_fov", "few_bbs", "bb_distorted", "object_moved", "fell_behind")
+if TYPE_CHECKING:
+    from acquire.runner import ScanRequest
+    from orbitct_app.live_calibration import LiveCalibrationSubscriber
 
 
-def _parse_params(items: tuple[str, ...]) -> dict[str, object]:
+#: the options whose flag is not the field's name
+FLAGS = {"frame_rate_hz": "--frame-rate"}
+
+
+def _parse_params(items: tuple[str, ...], flag: str) -> dict[str, object]:
+    """``KEY=VALUE`` items (values read as YAML: numbers, lists) as a dict."""
     out: dict[str, object] = {}
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
-            fail(f"--param {item!r} is not KEY=VALUE", advice="write it as KEY=VALUE, e.g. amplitude_deg=8")
+            fail(f"{flag} {item!r} is not KEY=VALUE", advice="write it as KEY=VALUE, e.g. amplitude_deg=8")
         out[key.strip()] = yaml.safe_load(value)
     return out
 
@@ -36,8 +44,7 @@ def _parse_params(items: tuple[str, ...]) -> dict[str, object]:
     default=None,
     help="Bench or C-arm configuration (config/bench.yaml).",
 )
-@click.option("--orbit", default="sawtooth", show_default=True, help="Orbit name (sawtooth, dcarc, circular, ...).")
-@click.option("--frames", type=click.IntRange(1, 100000), default=None, help="Projections (default: the orbit's).")
+@options_from(ScanOptions, flags=FLAGS, exclude={"orbit_params", "error_params"})
 @click.option(
     "--param",
     "-p",
@@ -47,19 +54,12 @@ def _parse_params(items: tuple[str, ...]) -> dict[str, object]:
     help="Orbit parameter, repeatable (e.g. -p amplitude_deg=8 -p start_deg=-180); see orbitct orbit.",
 )
 @click.option(
-    "--errors",
-    default="none",
-    show_default=True,
-    help="Motion errors injected on top of the orbit: none, or bench (the paper's profile; for studies "
-    "on the twins, never on by default).",
-)
-@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the error profile's noise.")
-@click.option(
-    "--mode",
-    type=click.Choice(["step", "continuous"]),
-    default="step",
-    show_default=True,
-    help="step: move, settle, expose; continuous: constant rotation, exposures triggered at angles.",
+    "--error-param",
+    "error_params",
+    multiple=True,
+    metavar="KEY=VALUE",
+    help="Parameter of the custom error profile (--errors custom), repeatable (e.g. --error-param "
+    "angle_noise_deg=[0.1,0,0]).",
 )
 @click.option("--sim", is_flag=True, help="Start the device twins in-process (nothing else needs to run).")
 @click.option(
@@ -67,13 +67,6 @@ def _parse_params(items: tuple[str, ...]) -> dict[str, object]:
     type=click.IntRange(16, 4096),
     default=None,
     help="Square detector of this many pixels on the same panel (default: the config's).",
-)
-@click.option(
-    "--frame-rate",
-    "frame_rate_hz",
-    type=FiniteFloat(0.01, 1000),
-    default=None,
-    help="Frames per second in continuous mode (default: the config's).",
 )
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Scan file to write (.h5).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
@@ -84,21 +77,7 @@ def _parse_params(items: tuple[str, ...]) -> dict[str, object]:
     default=None,
     help="The service's data directory (or ORBITCT_DATA_DIR): refuse to scan while its emergency stop is latched.",
 )
-@click.option(
-    "--calibrate",
-    "calibrate_mode",
-    type=click.Choice(["none", "live"]),
-    default="none",
-    show_default=True,
-    help="live: detect and follow the BBs while the frames arrive, warn during the scan, and write the "
-    "calibrated geometry as soon as the last frame is in (as orbitct calibrate would).",
-)
-@click.option(
-    "--bb-diameter-mm",
-    type=FiniteFloat(0.1, 20),
-    default=None,
-    help="BB diameter for --calibrate live (default with --sim: the twins' BBs).",
-)
+@options_from(LiveCalibrationOptions, exclude={"abort_on"})
 @click.option(
     "--abort-on",
     "abort_on",
@@ -106,33 +85,27 @@ def _parse_params(items: tuple[str, ...]) -> dict[str, object]:
     type=click.Choice(ABORT_KINDS),
     help="Stop the scan safely on this live calibration warning (repeatable).",
 )
-@click.option(
-    "--lost-frames",
-    type=click.IntRange(1, 10000),
-    default=10,
-    show_default=True,
-    help="--calibrate live: warn when a followed BB is missing for more than this many frames.",
-)
 @click.pass_context
 def scan(
     ctx: click.Context,
     config_path: Path | None,
-    orbit: str,
+    orbit: str | None,
     frames: int | None,
     params: tuple[str, ...],
-    errors: str,
-    seed: int,
-    mode: str,
+    error_params: tuple[str, ...],
+    errors: str | None,
+    seed: int | None,
+    mode: str | None,
     sim: bool,
     detector_size: int | None,
     frame_rate_hz: float | None,
     out: Path | None,
     overwrite: bool,
     data_dir: Path | None,
-    calibrate_mode: str,
+    calibrate: str | None,
     bb_diameter_mm: float | None,
+    lost_frames: int | None,
     abort_on: tuple[str, ...],
-    lost_frames: int,
 ) -> None:
     """Acquire a scan: orbitct scan --config config/bench.yaml --orbit sawtooth --sim --out scan.h5"""
     if ctx.invoked_subcommand is not None:
@@ -150,27 +123,41 @@ def scan(
         if refused:
             fail(refused, "stop_latched")
 
+    given = {"orbit": orbit, "frames": frames, "errors": errors, "seed": seed, "mode": mode}
+    options = model_from(
+        ScanOptions,
+        {
+            **given,
+            "frame_rate_hz": frame_rate_hz,
+            "orbit_params": _parse_params(params, "--param"),
+            "error_params": _parse_params(error_params, "--error-param"),
+        },
+        flags=FLAGS,
+    )
     req = ScanRequest(
         config=config_path,
         out=out,
-        orbit=orbit,
-        frames=frames,
-        orbit_params=_parse_params(params),
-        errors=errors,
-        seed=seed,
-        mode=mode,
+        **options.model_dump(),
         sim=sim,
         detector_size=detector_size,
-        frame_rate_hz=frame_rate_hz,
         overwrite=overwrite,
     )
-    if abort_on and calibrate_mode != "live":
+    if abort_on and calibrate != "live":
         fail("--abort-on needs --calibrate live", advice="add --calibrate live, or leave out --abort-on")
+    live_options = model_from(
+        LiveCalibrationOptions,
+        {
+            "calibrate": calibrate,
+            "bb_diameter_mm": bb_diameter_mm,
+            "abort_on": list(abort_on),
+            "lost_frames": lost_frames,
+        },
+    )
     live = None
     try:
         with ProgressBar() as bar, bench_priority():
-            if calibrate_mode == "live":
-                live = _live_subscriber(req, out, bb_diameter_mm, abort_on, lost_frames, bar)
+            if live_options.calibrate == "live":
+                live = _live_subscriber(req, out, live_options, bar)
             res = run_scan(req, progress=bar, subscribers=[live] if live is not None else [])
     except DiskSpaceError as exc:  # refused before anything moved
         fail(str(exc), "insufficient_storage", "free some space or write the scan elsewhere", exit_status=2)
@@ -199,27 +186,30 @@ def scan(
 
 
 def _live_subscriber(
-    req: object, out: Path, bb_diameter_mm: float | None, abort_on: tuple[str, ...], lost_frames: int, bar: ProgressBar
-) -> object:
+    req: ScanRequest, out: Path, options: LiveCalibrationOptions, bar: ProgressBar
+) -> LiveCalibrationSubscriber:
     """The live calibration subscriber, with the BB size from the option or, on the twins, their BBs."""
     from calib.errors import CalibrationError
     from orbitct_app.live_calibration import LiveCalibrationSubscriber
 
-    if bb_diameter_mm is None:
+    diameter_mm = options.bb_diameter_mm
+    if diameter_mm is None:
         if not req.sim:
             fail(
                 "--calibrate live needs the size of the BBs on the object",
                 advice="add --bb-diameter-mm, e.g. --bb-diameter-mm 3.17",
             )
-        bb_diameter_mm = req.resolved_config().sim.bb_diameter_mm  # type: ignore[attr-defined]
+        diameter_mm = req.resolved_config().sim.bb_diameter_mm
 
     try:
-        return LiveCalibrationSubscriber(out, bb_diameter_mm, abort_on=abort_on, lost_frames=lost_frames, progress=bar)
+        return LiveCalibrationSubscriber(
+            out, diameter_mm, abort_on=options.abort_on, lost_frames=options.lost_frames, progress=bar
+        )
     except CalibrationError as exc:
         fail(str(exc))
 
 
-def _wait_for_live(live: object, out: Path) -> None:
+def _wait_for_live(live: LiveCalibrationSubscriber, out: Path) -> None:
     """Wait for the live calibration's final solve; a signal meanwhile ends the command at once (the scan is complete
     and recorded; its geometry can be made from the file)."""
 
@@ -241,17 +231,16 @@ def _wait_for_live(live: object, out: Path) -> None:
             signal.signal(sig, handler)
 
 
-def _report_live(live: object, out: Path) -> None:
+def _report_live(live: LiveCalibrationSubscriber, out: Path) -> None:
     """The live calibration's outcome after a complete scan; exit 1 without a geometry, 3 when its check failed."""
     _wait_for_live(live, out)
-    err, res = live.error, live.result
-    if err is not None or res is None:
+    err, res, lc = live.error, live.result, live.live
+    if err is not None or res is None or lc is None or res.quality is None:
         fail(
-            f"no live geometry ({err}); the scan is complete in {out}",
+            f"no live geometry ({err or 'it carries no quality check'}); the scan is complete in {out}",
             "action_failed",
             f"`orbitct calibrate {out}` makes its geometry",
         )
-    lc = live.live
     kinds = Counter(w.kind for w in lc.warnings)
     named = f" ({', '.join(f'{k} {n}' for k, n in sorted(kinds.items()))})" if kinds else ""
     click.echo(

@@ -223,3 +223,139 @@ def test_the_defaults_are_one_set() -> None:
     assert options.algorithm == "fdk" and options.iterations == 50 and options.beta == 0.01
     rest = ReconstructionRequest.model_validate_json(json.dumps({"scan_id": SCAN_ID}))
     assert rest.model_dump(exclude={"scan_id"}) == options.model_dump()
+
+
+# a scan: (options as Python takes them, whether they are acceptable); orbit parameters go as -p / "params"
+SCAN_CASES: list[tuple[dict[str, Any], bool]] = [
+    ({}, True),
+    ({"orbit": "dcarc", "frames": 300, "mode": "continuous", "frame_rate_hz": 10.0}, True),
+    ({"orbit": "spiral"}, False),
+    ({"frames": 1}, False),
+    ({"frames": 2}, True),
+    ({"frames": 100_000}, True),
+    ({"frames": 100_001}, False),
+    ({"errors": "bench", "seed": 7}, True),
+    ({"errors": "sometimes"}, False),
+    ({"seed": -1}, False),
+    ({"seed": 2**32 - 1}, True),
+    ({"seed": 2**32}, False),
+    ({"mode": "helical"}, False),
+    ({"frame_rate_hz": 0.0}, False),
+    ({"frame_rate_hz": 0.005}, True),
+    ({"frame_rate_hz": 1000.5}, False),
+    ({"orbit_params": {"amplitude_deg": 8}}, True),
+    ({"errors": "custom", "error_params": {"angle_noise_deg": [0.1, 0, 0]}}, True),
+    # calibrating while the scan runs
+    ({"calibrate": "live", "bb_diameter_mm": 3.17, "abort_on": ["bb_lost", "object_moved"]}, True),
+    ({"calibrate": "live", "bb_diameter_mm": 50.0, "lost_frames": 10_000}, True),
+    ({"calibrate": "live", "bb_diameter_mm": 0.1}, False),
+    ({"calibrate": "live", "bb_diameter_mm": 51.0}, False),
+    ({"calibrate": "live", "abort_on": ["bb_found"]}, False),  # the good news stops nothing
+    ({"abort_on": ["bb_lost"]}, False),  # without calibrate live
+    ({"calibrate": "sometimes"}, False),
+    ({"calibrate": "live", "lost_frames": 0}, False),
+]
+
+
+LIVE_FIELDS = ("calibrate", "bb_diameter_mm", "abort_on", "lost_frames")
+
+
+def scan_python_accepts(values: dict[str, Any]) -> bool:
+    """A scan request, and the live calibration's options as the subscriber is made from them."""
+    from acquire.errors import AcquireError
+    from acquire.runner import ScanRequest
+    from orbitct_app.live_options import LiveCalibrationOptions
+
+    scan = {k: v for k, v in values.items() if k not in LIVE_FIELDS}
+    live = {k: v for k, v in values.items() if k in LIVE_FIELDS}
+    try:
+        ScanRequest(config="config/bench.yaml", out="scan.h5", **scan).options()
+        LiveCalibrationOptions.model_validate(live)
+    except (AcquireError, ValidationError):
+        return False
+    return True
+
+
+def scan_rest_accepts(values: dict[str, Any]) -> bool:
+    from orbitct_app.service.routers.scans import ScanCreate
+
+    body = {("params" if k == "orbit_params" else k): v for k, v in values.items()}
+    try:
+        ScanCreate.model_validate_json(json.dumps(body))
+    except ValidationError:
+        return False
+    return True
+
+
+def scan_cli_accepts(values: dict[str, Any]) -> bool:
+    """Parse as ``orbitct scan ...`` does, then validate as the command does (nothing is run)."""
+    from acquire.options import ScanOptions
+    from orbitct_app.cli.scan import FLAGS as SCAN_FLAGS
+    from orbitct_app.cli.scan import scan
+    from orbitct_app.live_options import LiveCalibrationOptions
+
+    words = []
+    for name, value in values.items():
+        if name in ("orbit_params", "error_params"):
+            flag = "--param" if name == "orbit_params" else "--error-param"
+            words += [w for k, v in value.items() for w in (flag, f"{k}={json.dumps(v)}")]
+        elif name == "abort_on":
+            words += [w for kind in value for w in ("--abort-on", kind)]
+        else:
+            words += [flag_of(name, SCAN_FLAGS), str(value)]
+    try:
+        ctx = scan.make_context("scan", words)
+        params = {k: v for k, v in ctx.params.items() if k in ScanOptions.model_fields}
+        params["orbit_params"] = {k: v for item in ctx.params["params"] for k, v in [_key_value(item)]}
+        params["error_params"] = {k: v for item in ctx.params["error_params"] for k, v in [_key_value(item)]}
+        model_from(ScanOptions, params, flags=SCAN_FLAGS)
+        live = {k: v for k, v in ctx.params.items() if k in LIVE_FIELDS}
+        model_from(LiveCalibrationOptions, {**live, "abort_on": list(live["abort_on"])})
+    except click.UsageError:
+        return False
+    return True
+
+
+def _key_value(item: str) -> tuple[str, Any]:
+    key, _, value = item.partition("=")
+    return key, json.loads(value)
+
+
+@pytest.mark.parametrize(("values", "acceptable"), SCAN_CASES, ids=[json.dumps(v) for v, _ in SCAN_CASES])
+def test_a_scan_gets_the_same_answer_everywhere(values: dict[str, Any], acceptable: bool) -> None:
+    answers = {
+        "python": scan_python_accepts(values),
+        "rest": scan_rest_accepts(values),
+        "cli": scan_cli_accepts(values),
+    }
+    assert answers == dict.fromkeys(answers, acceptable), answers
+
+
+def test_every_scan_option_is_in_every_interface() -> None:
+    from acquire.options import ScanOptions
+    from orbitct_app.cli.scan import scan
+    from orbitct_app.live_options import LiveCalibrationOptions
+    from orbitct_app.reference_pages import openapi_document
+    from orbitct_app.service.routers.scans import ScanCreate
+
+    fields = set(ScanOptions.model_fields) | set(LiveCalibrationOptions.model_fields)
+    cli_names = {p.name for p in scan.params} | {"orbit_params"}  # -p KEY=VALUE
+    assert fields - cli_names == set()
+    body = set(openapi_document()["components"]["schemas"]["ScanCreate"]["properties"]) - {"params"}
+    assert fields - {"orbit_params"} - body == set()
+    assert body - fields == {"name"}  # the service's own label
+    rest = ScanCreate.model_validate_json("{}")
+    defaults = ScanOptions().model_dump() | LiveCalibrationOptions().model_dump()
+    assert rest.model_dump(include=fields) == defaults
+
+
+def test_a_scan_refusal_names_the_option() -> None:
+    from acquire.errors import AcquireError
+    from acquire.options import checked_scan_options
+
+    with pytest.raises(AcquireError, match=r"^frames: Input should be greater than or equal to 2$"):
+        checked_scan_options(frames=1)
+    with pytest.raises(AcquireError, match=r"^orbit: unknown orbit 'spiral'; choose one of circular, sawtooth"):
+        checked_scan_options(orbit="spiral")
+    with pytest.raises(AcquireError, match=r"^colour: unknown option; allowed are orbit, orbit_params"):
+        checked_scan_options(colour="red")

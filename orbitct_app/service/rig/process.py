@@ -327,6 +327,7 @@ class RigServer:
             orbit=spec["orbit"],
             orbit_params=spec["params"],
             errors=spec["errors"],
+            error_params=spec.get("error_params", {}),
             seed=spec["seed"],
             mode=spec["mode"],
             sim=self.sim,
@@ -384,6 +385,7 @@ class RigServer:
                 spec["out"],
                 float(diameter),
                 abort_on=spec.get("abort_on", ()),
+                lost_frames=int(spec.get("lost_frames", 10)),
                 on_warning=lambda w: self.send("scan_warning", scan_id, w.as_dict()),
                 progress=self._calibration_events(scan_id),
             )

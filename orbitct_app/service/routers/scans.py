@@ -9,10 +9,11 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Header, Query, Response
 from fastapi.responses import FileResponse
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from calib.live import WARNING_KINDS
+from acquire.options import ScanOptions
 from orbitct.orbits import ORBIT_KINDS
+from orbitct_app.live_options import LiveCalibrationOptions
 from orbitct_app.service.core.errors import (
     BENCH_UNAVAILABLE,
     DISK_FULL,
@@ -31,17 +32,18 @@ from orbitct_app.service.deps import Reader, ScanOperator, ServiceDep
 from orbitct_app.service.schemas import VerdictOut, scan_or_404
 
 router = APIRouter(prefix="/scans", tags=["scans"], responses=ERROR_RESPONSES)
-OrbitKind = Literal[tuple(ORBIT_KINDS)]  # type: ignore[valid-type]
 ScanState = Literal["queued", "running", "paused", "complete", "aborted", "failed", "interrupted"]
 
 
-class ScanCreate(BaseModel):
-    """A scan to run on the bench: orbit, its parameters, injected errors (simulation), mode."""
+class ScanCreate(ScanOptions, LiveCalibrationOptions):
+    """A scan to run on the bench (:class:`acquire.options.ScanOptions`, the orbit's parameters as ``params``),
+    with a label and live calibration."""
 
     model_config = ConfigDict(
         extra="forbid",
         strict=True,
         allow_inf_nan=False,
+        populate_by_name=False,
         json_schema_extra=schema_extra(
             [
                 {
@@ -59,41 +61,9 @@ class ScanCreate(BaseModel):
     )
 
     name: str = Field("", max_length=100, pattern=r"^[\w .,:()+-]*$", description="free label")
-    orbit: OrbitKind = Field(description="orbit kind; parameters in GET /orbits")
-    params: dict[str, Any] = Field(
-        default_factory=dict, description="orbit parameters (degrees), see GET /orbits/{kind}"
+    orbit_params: dict[str, Any] = Field(
+        default_factory=dict, alias="params", description="orbit parameters (degrees), see GET /orbits/{kind}"
     )
-    frames: int | None = Field(None, ge=2, le=100_000, description="projection frames (default: the orbit's n_frames)")
-    errors: Literal["bench", "none"] = Field("none", description="error profile injected into the commanded poses")
-    seed: int = Field(0, ge=0, le=2**31 - 1)
-    mode: Literal["step", "continuous"] = "step"
-    frame_rate_hz: float | None = Field(
-        None,
-        gt=0.0,
-        le=1000.0,
-        description="detector frame rate (default: the bench "
-        "configuration's exposure.frame_rate_hz); the pre-flight checks the motion keeps up",
-    )
-    calibrate: Literal["none", "live"] = Field(
-        "none",
-        description="live: detect and follow the BBs while the frames "
-        "arrive (warnings on the event stream, BBs on the latest frame) and write "
-        "the calibrated geometry right after the last frame",
-    )
-    bb_diameter_mm: float | None = Field(
-        None, gt=0.1, le=50.0, description="BB diameter for live calibration (default on the simulated bench: its BBs)"
-    )
-    abort_on: list[Literal[tuple(WARNING_KINDS)]] = Field(  # type: ignore[valid-type]
-        default_factory=list,
-        max_length=len(WARNING_KINDS),
-        description="live calibration warnings that stop the scan safely (axes halted, X-rays off, file aborted)",
-    )
-
-    @model_validator(mode="after")
-    def _live_only(self) -> ScanCreate:
-        if self.abort_on and self.calibrate != "live":
-            raise ValueError("abort_on needs calibrate: live")
-        return self
 
 
 class ScanCalibration(BaseModel):
@@ -207,7 +177,7 @@ def _out(service: Any, row: dict[str, Any], calibration_job: dict[str, Any] | No
 
 
 def _check_params(service: Any, body: ScanCreate) -> dict[str, Any]:
-    params = dict(body.params)
+    params = dict(body.orbit_params)
     if body.frames is not None:
         params["n_frames"] = body.frames
     if body.orbit == "waypoints" and params.get("path") is not None:
@@ -244,12 +214,14 @@ def _preflight(service: Any, body: ScanCreate, params: dict[str, Any], rel: str)
         "orbit": body.orbit,
         "params": params,
         "errors": body.errors,
+        "error_params": dict(body.error_params),
         "seed": body.seed,
         "mode": body.mode,
         "frame_rate_hz": body.frame_rate_hz,
         "calibrate": body.calibrate,
         "bb_diameter_mm": body.bb_diameter_mm,
         "abort_on": list(body.abort_on),
+        "lost_frames": body.lost_frames,
     }
     try:
         service.rig.preflight(spec)
@@ -318,7 +290,7 @@ def start_scan(body: ScanCreate, service: ServiceDep, who: ScanOperator, respons
         scan_id,
         name=body.name,
         orbit=body.orbit,
-        request=body.model_dump(mode="json") | {"params": params},
+        request=body.model_dump(mode="json", by_alias=True) | {"params": params},
         file=rel,
         owner=who.name,
         frames_total=int(params["n_frames"]),
@@ -329,7 +301,7 @@ def start_scan(body: ScanCreate, service: ServiceDep, who: ScanOperator, respons
         service.store.delete_scan(scan_id)
         raise
     response.headers["Location"] = f"/scans/{scan_id}"
-    return _out(service, service.store.get_scan(scan_id))
+    return _out(service, scan_or_404(service, scan_id))
 
 
 @router.get("", response_model=list[ScanOut], summary="List scans")
@@ -368,7 +340,7 @@ async def get_scan(scan_id: str, service: ServiceDep, _: Reader) -> ScanOut:
 )
 def scan_events(
     scan_id: str, service: ServiceDep, _: Reader, last_event_id: Annotated[str | None, Header(max_length=20)] = None
-):  # type: ignore[no-untyped-def]
+):
     """Events ``state``, ``progress`` (one per frame) and a final ``end``, in order; resumes after ``Last-Event-ID``."""
     scan_or_404(service, scan_id)
     return sse_response(service.bus, f"scan:{scan_id}", last_event_id)
@@ -438,7 +410,7 @@ def abort_scan(scan_id: str, service: ServiceDep, _: ScanOperator, body: ScanAct
     if service.rig.busy != scan_id:
         raise Conflict(f"scan {scan_id} is {row['state']}, not running", advice="there is nothing to abort")
     service.rig.abort(scan_id, (body or ScanAction()).reason)
-    return _out(service, service.store.get_scan(scan_id))
+    return _out(service, scan_or_404(service, scan_id))
 
 
 @router.post(
@@ -452,7 +424,7 @@ def pause_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
     """The current frame completes; X-rays stay off while paused."""
     scan_or_404(service, scan_id)
     service.rig.pause(scan_id)
-    return _out(service, service.store.get_scan(scan_id))
+    return _out(service, scan_or_404(service, scan_id))
 
 
 @router.post(
@@ -469,7 +441,7 @@ def resume_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
     if refused:
         raise StopLatched(refused)
     service.rig.resume(scan_id)
-    return _out(service, service.store.get_scan(scan_id))
+    return _out(service, scan_or_404(service, scan_id))
 
 
 @router.get(

@@ -79,7 +79,7 @@ def test_infeasible_orbit_is_refused_before_anything_moves(tmp_path: Path) -> No
     "args,message",
     [
         (["--orbit", "zigzag"], "unknown orbit"),
-        (["--errors", "gremlins"], "unknown error profile"),
+        (["--errors", "gremlins"], "'--errors': 'gremlins' is not one of 'none', 'bench', 'custom'"),
     ],
 )
 def test_bad_names_are_refused(tmp_path: Path, args: list[str], message: str) -> None:
