@@ -13,7 +13,7 @@ import contextlib
 import logging
 import time
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any, Protocol, runtime_checkable
 
@@ -41,8 +41,11 @@ class Rig(Protocol):
     ``axes`` maps every recorded axis (``device.axis``, as in ``/frames/commanded``) to its unit.
     """
 
-    axes: Mapping[str, str]
     sim: bool
+
+    @property
+    def axes(self) -> Mapping[str, str]:
+        """Every recorded axis and its unit."""
 
     async def preflight(self, plan: ScanPlan, mode: str, frame_rate_hz: float) -> None:
         """Check the whole plan against every limit before anything moves (raise :class:`RefusedError`)."""
@@ -112,7 +115,7 @@ class PreparingRig(Rig, Protocol):
 class _Preparation:
     """A preparation of the source scheduled during a move: its task, and whether it has begun talking to it."""
 
-    task: asyncio.Future[None] = field(default=None)  # type: ignore[assignment]
+    task: asyncio.Future[None]
     started: bool = False
 
 
@@ -532,15 +535,14 @@ class ScanEngine:
             return None
         rig: PreparingRig = self.rig
         delay = 0.0 if self._move_s is None else max(0.0, self._move_s - 1.2 * rig.prep_s)
-        prep = _Preparation()
 
-        async def _run() -> None:
+        async def _run() -> None:  # runs once scheduled: ``prep`` is bound by then
             if delay > 0:
                 await asyncio.sleep(delay)
             prep.started = True
             await rig.prepare_exposure()
 
-        prep.task = asyncio.ensure_future(_run())
+        prep = _Preparation(asyncio.ensure_future(_run()))
         return prep
 
     def _learn_move(self, seconds: float) -> None:

@@ -74,7 +74,6 @@ class ObjectBackground:
         geometry: ViewGeometry,
         surface: TapeSurface,
         diameter_mm: float,
-        **options: float,
     ) -> ObjectBackground:
         """The background of an object seen by ``geometry``, its reference and typical shift taken over BBs of
         ``diameter_mm`` spread over the tape ``surface`` (where BBs go), in about 60 of the views."""
@@ -83,7 +82,7 @@ class ObjectBackground:
         )
         keep = surface.covers(angle.ravel(), z.ravel())
         if not keep.any():  # a surface with holes at every sample: no typical BB to refer to
-            return cls(line_integral, 0.0, None, **options)
+            return cls(line_integral, 0.0, None)
         pts = surface.points(angle.ravel()[keep], z.ravel()[keep], diameter_mm)
         sub = geometry[:: max(1, geometry.n_views // 60)]
         direction = pts[None] - sub.S[:, None]
@@ -92,9 +91,9 @@ class ObjectBackground:
         values = line_integral(origin.reshape(-1, 3), direction.reshape(-1, 3))
         # the centroid noise a calibration reports is the RMS over its detections: the photon factor's mean there is 1
         reference = float(np.log(np.mean(np.exp(values - values.max())))) + float(values.max())
-        probe = cls(line_integral, reference, **options)
+        probe = cls(line_integral, reference)
         photons, shift = probe._computed(sub, pts, diameter_mm)
-        return cls(line_integral, reference, np.concatenate([photons[..., None], shift], -1).reshape(-1, 3), **options)
+        return cls(line_integral, reference, np.concatenate([photons[..., None], shift], -1).reshape(-1, 3))
 
     def random_noise_px(self, noise_px: float) -> float:
         """The centroid noise of the photons alone (at the reference) for a reported one: what makes residuals of

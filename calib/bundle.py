@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from calib.model import ViewModel, ViewState
+from calib.model import ViewModel, ViewState, all_finite
 
 
 @dataclass
@@ -82,7 +82,7 @@ def bundle_adjust(
     views hold poorly cannot run away (rough solves of tracks that may be wrong; without it, last-bit differences of
     the linear algebra sent such centres to 1e17 mm along different paths on different CPUs)."""
     n, k = uv.shape[:2]
-    seen = np.isfinite(uv).all(-1)
+    seen = all_finite(uv)
     spread = np.ones((n, k)) if spread is None else np.where(seen, np.asarray(spread, dtype=float), 1.0)
     obs = np.where(seen[..., None], uv, 0.0)
     state = model.identity() if state0 is None else state0.copy()

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from calib.model import ViewModel, ViewState
+from calib.model import ViewModel, ViewState, all_finite
 from calib.quality import fit_rigid_poses, pose_predicted_px, view_misfit_px
 from calib.rays import rpe_per_frame
 from orbitct.geometry import ViewGeometry
@@ -54,7 +54,7 @@ def fit_frame_pose(
 ) -> FramePose | None:
     """Pose of the single view ``view`` fitted to BBs ``xyz`` (K, 3) seen at ``uv`` (K, 2; NaN = not seen), from
     ``start`` (the previous frame's, or none); None with fewer than four BBs (no redundancy to judge by)."""
-    seen = np.isfinite(uv).all(-1) & np.isfinite(xyz).all(-1)
+    seen = all_finite(uv) & all_finite(xyz)
     if seen.sum() < 4:
         return None
     model = ViewModel(view)
@@ -101,7 +101,8 @@ def _curve(
     (1.4826 MAD, at least 1e-3)."""
     coef, *_ = np.linalg.lstsq(A, y, rcond=None)
     resid = y - A @ coef
-    return coef, resid, 1.4826 * np.median(np.abs(resid - np.median(resid, axis=0)), axis=0) + 1e-3
+    sigma = 1.4826 * np.median(np.abs(resid - np.median(resid, axis=0)), axis=0) + 1e-3
+    return coef.astype(np.float64), resid, sigma
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ from numpy.typing import NDArray
 
 from calib.bundle import bundle_adjust
 from calib.detect import N_FIELDS
-from calib.model import ViewModel, ViewState
+from calib.model import ViewModel, ViewState, all_finite
 from calib.quality import fit_rigid_poses
 from calib.rays import marker_rays, triangulate_least_squares
 from calib.track import TrackingSettings, assign_to_predictions, like_the_others, link_fragments
@@ -17,7 +17,7 @@ from orbitct.rotations import similarity_fit
 
 def usable_views(uv: NDArray[np.float64], min_bbs: int) -> NDArray[np.bool_]:
     """Views that see at least ``min_bbs`` markers."""
-    return np.isfinite(uv).all(-1).sum(1) >= min_bbs
+    return all_finite(uv).sum(1) >= min_bbs
 
 
 def fill_states(state: ViewState, solved: NDArray[np.bool_], n: int) -> ViewState:
@@ -83,7 +83,7 @@ def merge_fragments(
     least-squares ray intersection), with the ray distance converted to pixels at the mean magnification."""
     n, f = frags.shape[:2]
     origin, direction = marker_rays(geometry, frags)
-    seen = np.isfinite(direction).all(-1)
+    seen = all_finite(direction)
     d = np.where(seen[..., None], direction, 0.0)
     o = np.where(seen[..., None], origin, 0.0)
     cnt = seen.sum(0).astype(float)
@@ -141,7 +141,7 @@ def _join_across(frags: NDArray[np.float64], geometry: ViewGeometry, near_mm: fl
     if f < 2:
         return frags
     origin, direction = marker_rays(geometry, frags)
-    ok = np.isfinite(direction).all(-1) & np.isfinite(origin).all(-1)
+    ok = all_finite(direction) & all_finite(origin)
     d = np.where(ok[..., None], direction, 0.0)
     o = np.where(ok[..., None], origin, 0.0)
     cnt = ok.sum(0)
@@ -189,7 +189,7 @@ def _join_across(frags: NDArray[np.float64], geometry: ViewGeometry, near_mm: fl
 def _seen_apart(uv: NDArray[np.float64]) -> NDArray[np.bool_]:
     """``(K, K)``: whether two BBs of ``uv`` are (almost) never seen in the same frame — in fewer than 3 frames or
     a tenth of the frames of the one seen less: pieces of one BB's track, never two BBs."""
-    seen = np.isfinite(uv).all(-1)
+    seen = all_finite(uv)
     count = seen.sum(0)
     together = seen.T.astype(np.int32) @ seen.astype(np.int32)
     return together < np.maximum(3, 0.1 * np.minimum(count[:, None], count[None]))
@@ -204,7 +204,7 @@ def merge_duplicates(
     closer than ``near_diameters`` diameters while their tracks are (almost) never seen in the same frame
     (pieces of one BB's track that a rough geometry placed apart). Two real BBs that close are seen
     together: both are kept, and views where their projections overlap are left out later."""
-    count = np.isfinite(uv).all(-1).sum(0)
+    count = all_finite(uv).sum(0)
     apart = _seen_apart(uv)
     alive = np.ones(len(xyz), bool)
     dist = np.linalg.norm(xyz[:, None] - xyz[None], axis=-1)
@@ -233,7 +233,7 @@ def twin_constellation(
     within ``tol_mm`` — at least ``min_pairs`` of them, which distinct BBs taped at random never do. The points
     seen in more frames are the ``a``; empty when there is no such twin. Triples of pairs whose distances agree
     on one scale are tried (at most ``tries``), each fitted and counted."""
-    count = np.isfinite(uv).all(-1).sum(0)
+    count = all_finite(uv).sum(0)
     apart = _seen_apart(uv)
     a_idx, b_idx = np.nonzero(apart & (count[:, None] >= count[None]) & ~np.eye(len(xyz), dtype=bool))
     n = a_idx.size
@@ -393,7 +393,7 @@ def recover_missed(
             track = grown
         if point is None or records is None or any(np.linalg.norm(point[0] - q) < 2.0 * diameter_mm for q in kept):
             continue
-        found = int(np.isfinite(track).all(-1).sum())
+        found = int(all_finite(track).sum())
         expected = int(np.isfinite(geometry.project(point)).all(-1).sum())
         if like_the_others(records, known) and found >= max(min_observations, min_found_share * expected):
             out.append(point[0])
@@ -447,15 +447,15 @@ def identify(
         predicted = geo.project(ViewState(state.R, state.t, no_k), xyz)
         uv = assign_visible(cands, predicted, det, settings)
         # a real BB is found in a good share of the frames where it should be visible
-        found = np.isfinite(uv).all(-1).sum(0)
-        expected = np.isfinite(predicted).all(-1).sum(0)
+        found = all_finite(uv).sum(0)
+        expected = all_finite(predicted).sum(0)
         uv = uv[:, (found >= settings.min_fragment) & (found >= min_found_share * expected)]
         if uv.shape[1] == k_before:
             break
-    count = np.isfinite(uv).all(-1).sum(0)
+    count = all_finite(uv).sum(0)
     keep = count >= min_observations
     if (~keep).any():
         warnings.append(f"dropped {int((~keep).sum())} BB candidate(s) seen in fewer than {min_observations} frames")
     uv = uv[:, keep]
-    order = np.argsort(np.nanargmax(np.isfinite(uv).all(-1), axis=0) if uv.shape[1] else [])
+    order = np.argsort(np.nanargmax(all_finite(uv), axis=0) if uv.shape[1] else [])
     return uv[:, order], warnings

@@ -154,13 +154,13 @@ class _Watched:
         self.c += float(origin @ P @ origin)
 
     def point(self) -> NDArray[np.float64]:
-        return np.linalg.lstsq(self.A, self.b, rcond=None)[0]
+        return np.linalg.lstsq(self.A, self.b, rcond=None)[0].astype(np.float64)
 
     def scatter_mm(self) -> float:
         """RMS distance of its rays from its point (mm)."""
         x = self.point()
         n = min(self.count, POINT_RAYS)
-        return float(np.sqrt(max(self.c - 2.0 * x @ self.b + x @ self.A @ x, 0.0) / max(n, 1)))
+        return float(np.sqrt(max(float(self.c - 2.0 * x @ self.b + x @ self.A @ x), 0.0) / max(n, 1)))
 
 
 class _Follower:
@@ -329,7 +329,7 @@ class _Follower:
             self._through_pose(view, points, blobs, idx, c, np.array([w.look for w in watched]))
             hit = idx >= 0
             claimed[idx[hit]] = True
-            for k in np.flatnonzero(hit):
+            for k in np.flatnonzero(hit).tolist():
                 watched[k].track = int(tracks[idx[k]])
             aligned = pred + self._shift
             origin, direction = view_rays(view, blobs) if len(blobs) else (None, None)
@@ -361,7 +361,7 @@ class _Follower:
             reference = self._scatter_reference_mm() if any(w.count < POINT_RAYS for w in watched) else None
             scattered: list[int] = []
             for t, w, j, uv in zip(keys, watched, idx.tolist(), aligned):
-                if j >= 0:
+                if j >= 0 and origin is not None and direction is not None:  # j >= 0: there are blobs
                     w.add_ray(origin, direction[j])
                     if w.count <= POINT_RAYS and not self._one_point(w, reference):
                         scattered.append(t)  # its rays meet at no point: not one BB's
@@ -510,7 +510,9 @@ class _Follower:
                     o, d = view_rays(self.nominal[f : f + 1], uv[hit])
                     w.add_ray(o, d[0])
                     w.last_frame, w.last_uv = f, (float(uv[hit[0], 0]), float(uv[hit[0], 1]))
-                    records.append(_record_at(self.candidates[frame_p], uv[hit[0]]))
+                    cands = self.candidates[frame_p]
+                    if cands is not None:  # always: a frame's blobs are tracked only when it has candidates
+                        records.append(_record_at(cands, uv[hit[0]]))
             x = w.point()
             if known.size and np.linalg.norm(known - x, axis=1).min() < 2.0 * self.diameter_mm + 5.0:
                 continue  # a BB already watched, followed by another track

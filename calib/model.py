@@ -9,6 +9,7 @@ through it equals projecting ``R^T (X - t)`` through the intrinsics-changed nomi
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -127,3 +128,8 @@ class ViewModel:
             uv2 = self._project(self.base(k2).matrices, Y)[0]
             Jv[..., 6 + j] = (uv2 - uv) / _FD_STEP_MM
         return uv, Jv, Jp
+
+
+def all_finite(a: NDArray[Any]) -> NDArray[np.bool_]:
+    """Where every value along the last axis is finite: a BB seen (``uv``), a ray or point defined."""
+    return np.logical_and.reduce(np.isfinite(a), axis=-1)

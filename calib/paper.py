@@ -13,7 +13,7 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from calib.model import ViewModel, ViewState, skew
+from calib.model import ViewModel, ViewState, all_finite, skew
 from calib.rays import marker_rays, pairwise_midpoint_mean
 
 
@@ -34,7 +34,7 @@ def fit_views_to_points(
     eps_mm: float = 1e-6,
 ) -> ViewState:
     """Per view, the rigid correction minimising the mean BB-centre-to-ray distance (views independent)."""
-    seen = np.isfinite(uv).all(-1)
+    seen = all_finite(uv)
     origin, direction = _ray_frame(model, state, np.where(seen[..., None], uv, 0.0))
     proj = np.eye(3) - direction[..., :, None] * direction[..., None, :]  # (N,K,3,3)
     st = state.copy()

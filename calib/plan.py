@@ -99,7 +99,7 @@ def usable_bbs(
         origin = np.repeat(geometry.S, k, axis=0)
         direction = (xyz[None] - geometry.S[:, None]).reshape(-1, 3)
         direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-        chord = sum(np.asarray(m.chords(origin, direction)) for m in metal).reshape(ok.shape)
+        chord = np.add.reduce([np.asarray(m.chords(origin, direction)) for m in metal]).reshape(ok.shape)
         ok &= chord <= METAL_CHORD_MM
     return ok, uv
 
@@ -168,7 +168,7 @@ def predict_placement(
         in_view = np.isfinite(visible).all(-1)
         if background is not None:  # noise_px, as a calibration reports it, holds typical shifts: the rest is random
             random_px = background.random_noise_px(noise_px)
-            var = background.variance(geometry, xyz[placed], diameter_mm, random_px)[idx]
+            var: NDArray[np.float64] | None = background.variance(geometry, xyz[placed], diameter_mm, random_px)[idx]
             bias = background.bias(geometry, xyz[placed], diameter_mm)[idx]
             rms = background.background_rms(geometry, xyz[placed], diameter_mm, random_px)[idx]
             predicted[idx] = placement_predicted_px(

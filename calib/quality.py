@@ -18,7 +18,7 @@ from scipy.linalg import null_space
 
 from calib.bundle import gauge_matrix
 from calib.evaluate import fov_points
-from calib.model import ViewModel, ViewState
+from calib.model import ViewModel, ViewState, all_finite
 from orbitct.rotations import matrix_to_rotvec, rotvec_to_matrix
 from orbitct.verdict import Verdict
 
@@ -58,7 +58,7 @@ def centroid_noise_px(residual_xy: NDArray[np.float64], n_params: int = 0) -> fl
     """Standard deviation of one centroid coordinate from reprojection residuals ``(..., 2)`` of a fit with
     ``n_params`` unknowns: the RMS of the residuals within five robust sigmas (gross outliers left out, heavy
     tails kept), corrected for the degrees of freedom the fit used up."""
-    r = residual_xy[np.isfinite(residual_xy).all(-1)].ravel()
+    r = residual_xy[all_finite(residual_xy)].ravel()
     if r.size == 0:
         return float("nan")
     mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
@@ -72,7 +72,7 @@ def rigid_pose_normal(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Gauss-Newton normal matrix ``J^T J`` ``(N,6,6)`` and gradient ``J^T r`` ``(N,6)`` of the rigid pose."""
     pred, Jv, _ = model.project_jac(state, xyz)
-    seen = np.isfinite(uv).all(-1)
+    seen = all_finite(uv)
     r = np.where(seen[..., None], pred - np.nan_to_num(uv), 0.0)
     J = (Jv[..., :6] * seen[..., None, None]).reshape(len(pred), -1, 6)
     return np.swapaxes(J, 1, 2) @ J, (np.swapaxes(J, 1, 2) @ r.reshape(len(pred), -1, 1))[..., 0]
@@ -113,7 +113,7 @@ def _marginal_pose_covariance(
     ``(N,K,2)``: a known offset of each detection (in the units of the noise): the pose error it causes, solved
     through the same normal equations (BB centres free, gauge held), enters as its outer product."""
     _, Jv, Jp = model.project_jac(state, xyz)
-    seen = np.isfinite(uv).all(-1)
+    seen = all_finite(uv)
     n, k = seen.shape
     Jv = Jv[..., :6] * seen[..., None, None]
     Jp = Jp * seen[..., None, None]
@@ -275,7 +275,7 @@ def pose_predicted_px(
     BB centres ``xyz`` taken as known and centroid noise ``noise_px`` (while a scan runs: the centres come from many
     views, the pose from one)."""
     H, _ = rigid_pose_normal(model, state, xyz, uv)
-    cov = noise_px**2 * np.linalg.inv(H + 1e-9 * np.eye(6))
+    cov = noise_px**2 * np.linalg.inv(H + 1e-9 * np.eye(6)).astype(np.float64)
     return _predicted_px(model, state, cov)
 
 
@@ -286,7 +286,7 @@ def view_misfit_px(
     centroid noise when its detections fit its pose; large when one belongs to another BB or the object
     moved (NaN without redundancy)."""
     r = model.project(state, xyz) - uv
-    seen = np.isfinite(r).all(-1)
+    seen = all_finite(r)
     dof = 2 * seen.sum(1) - 6
     ss = np.where(seen[..., None], r, 0.0) ** 2
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -338,7 +338,7 @@ def assess_views(
     ``state`` holds the bundle's corrections for the own views (others are ignored); returns the states of
     all views (NaN for failed ones) and their quality."""
     n = model.nominal.n_views
-    n_bbs = np.isfinite(uv).all(-1).sum(1)
+    n_bbs = all_finite(uv).sum(1)
     own = n_bbs >= min_own_bbs
     misfit = np.full(n, np.nan)
     if own.any():

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from calib.model import all_finite
 from orbitct.geometry import ViewGeometry
 
 
@@ -34,7 +35,7 @@ def rpe_per_frame(geometry: ViewGeometry, uv: NDArray[np.float64], xyz: NDArray[
 
 def triangulate_least_squares(origin: NDArray[np.float64], direction: NDArray[np.float64]) -> NDArray[np.float64]:
     """Point(s) closest in the least-squares sense to rays ``(N, K, 3)`` per marker k -> ``(K, 3)`` (NaN if < 2 rays)."""
-    ok = np.isfinite(direction).all(-1) & np.isfinite(origin).all(-1)
+    ok = all_finite(direction) & all_finite(origin)
     d = np.where(ok[..., None], direction, 0.0)
     o = np.where(ok[..., None], origin, 0.0)
     # sums over views of (I - d d^T) and (I - d d^T) o, without the (N, K, 3, 3) stack
@@ -56,7 +57,7 @@ def pairwise_midpoint_mean(
     n, k = direction.shape[:2]
     out = np.full((k, 3), np.nan)
     for m in range(k):
-        ok = np.isfinite(direction[:, m]).all(-1)
+        ok = all_finite(direction[:, m])
         o, d = origin[ok, m], direction[ok, m]
         if len(o) < 2:
             continue

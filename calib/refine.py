@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from calib.bundle import bundle_adjust
 from calib.errors import NoMarkersError
 from calib.identify import assign_by_pose, fill_states, recover_missed, twin_constellation, usable_views
-from calib.model import ViewModel, ViewState
+from calib.model import ViewModel, ViewState, all_finite
 from calib.options import CalibrationOptions
 from calib.paper import paper_calibrate
 from calib.quality import (
@@ -151,7 +151,7 @@ def merge_twins(
         return outcome, verdict, 0
     merged = uv.copy()
     for a, b in pairs:
-        has_a, has_b = np.isfinite(merged[:, a]).all(-1), np.isfinite(merged[:, b]).all(-1)
+        has_a, has_b = all_finite(merged[:, a]), all_finite(merged[:, b])
         merged[~has_a & has_b, a] = merged[~has_a & has_b, b]
         merged[has_a & has_b, a] = np.nan
     merged = np.delete(merged, [b for _, b in pairs], axis=1)
@@ -162,7 +162,7 @@ def merge_twins(
             f"{len(pairs)} BBs were identified twice, in two parts of the orbit that nothing ties together "
             "(tracking broke for every BB at once): those parts' geometries can be far apart"
         )
-        return outcome, replace(verdict, passed=False, reasons=[*verdict.reasons, reason]), 0
+        return outcome, replace(verdict, reasons=(*verdict.reasons, reason)), 0
     return again, judge(again[7], proj, opt.max_predicted_px, opt.bridge_max_views, "bundle"), len(pairs)
 
 
@@ -187,7 +187,7 @@ def sparse_views_again(
     them (``tset``: the orbit's own jitter) and the geometry estimated again with the views that gain BBs; kept
     unless worse. Also how many views gained."""
     state, uv, quality = outcome[2], outcome[3], outcome[7]
-    count = np.isfinite(uv).all(-1).sum(1)
+    count = all_finite(uv).sum(1)
     if count.size < 3:
         return outcome, verdict, 0
     padded = np.pad(count.astype(float), _AROUND, constant_values=np.nan)
@@ -199,7 +199,7 @@ def sparse_views_again(
     solved = (quality.status == OWN) & ~sparse
     filled = fill_states(ViewState(np.nan_to_num(state.R), np.nan_to_num(state.t), state.k), solved, len(solved))
     again = assign_by_pose(cands, model, filled, outcome[1], tset)
-    gain = sparse & (np.isfinite(again).all(-1).sum(1) > count)
+    gain = sparse & (all_finite(again).sum(1) > count)
     if not gain.any():
         return outcome, verdict, 0
     new = uv.copy()
@@ -238,7 +238,7 @@ def split_merged(
         predicted = geometry_p.project(xyz)
     s = SplitSettings(diameter_px=d_px, max_shift_px=max(2.0, 0.5 * d_px))
     pairs = merged_pairs(predicted, uv, TrackingSettings(diameter_px=d_px).overlap_factor * d_px)
-    if len(pairs) < SPLIT_MIN_SHARE * np.isfinite(uv).all(-1).sum():
+    if len(pairs) < SPLIT_MIN_SHARE * all_finite(uv).sum():
         return outcome, verdict, 0
     report(progress, "split", 0, len(pairs), "blobs of two BBs")
     new = uv.copy()
@@ -270,7 +270,7 @@ def _leave_one_out_outliers(
     """Per view with 4 or more BBs, the detection whose residual, with the view's pose refitted without it,
     is largest and above ``tol_px``."""
     n, k = uv.shape[:2]
-    seen = np.isfinite(uv).all(-1)
+    seen = all_finite(uv)
     views = np.flatnonzero(seen.sum(1) >= 5)  # with 4, the pose refitted on 3 has no redundancy to judge by
     out = np.zeros((n, k), bool)
     if views.size == 0:
@@ -338,7 +338,7 @@ def _disagree_with_neighbour(
     :data:`MIN_OWN_BBS` (one pose to spare) are judged against how far detections in views seeing six or more
     BBs lie from their neighbour's: more than twice that distribution's 99th percentile."""
     n = uv.shape[0]
-    count = np.isfinite(uv).all(-1).sum(1)
+    count = all_finite(uv).sum(1)
     few = count <= max_bbs
     if n < 2 or not few.any():
         return np.zeros(uv.shape[:2], bool)
@@ -353,7 +353,7 @@ def _disagree_with_neighbour(
     if ref.size:  # the orbit's own frame-to-frame changes beyond a common shift (a wide panel sees rotations)
         tol[count == MIN_OWN_BBS] = max(tol_px, 2.0 * float(np.quantile(ref, 0.99)))
     with np.errstate(invalid="ignore"):
-        return (off > tol[:, None]) & few[:, None] & np.isfinite(uv).all(-1)
+        return (off > tol[:, None]) & few[:, None] & all_finite(uv)
 
 
 History = list[tuple[NDArray[np.float64], NDArray[np.float64]]]
@@ -422,7 +422,7 @@ def estimate(
     # a BB seen in fewer of the solved views than identification asks for is not placed: a few views far apart fit
     # any pairing of blobs, and views resting on such BBs calibrate as an island of their own, tens of px off
     min_obs = min_observations(opt, n)
-    placed = np.isfinite(uv[ok]).all(-1).sum(0) >= min_obs
+    placed = all_finite(uv[ok]).sum(0) >= min_obs
     if not placed.all():
         warnings.append(
             f"{int((~placed).sum())} BB(s) seen in fewer than {min_obs} of the views to solve were left out "

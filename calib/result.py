@@ -44,7 +44,7 @@ class CalibrationResult:
     detect_s: float
     estimate_s: float
     reproj_rms_px: float
-    corrections: dict[str, NDArray[np.float64]]
+    corrections: dict[str, NDArray[Any]]  # rotvec_rad, shift_mm (float) and frame (int) per view
     warnings: list[str] = field(default_factory=list)
     unsolved_views: list[int] = field(default_factory=list)
     true_corrections: dict[str, NDArray[np.float64]] | None = None  # simulated scans: the truth, same frame

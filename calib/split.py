@@ -150,7 +150,8 @@ def fit_pair(
         a, r, unit = design(p)
         q, _ = np.linalg.qr(a)
         coef = np.linalg.lstsq(a, li, rcond=None)[0]  # also when the centres meet (two equal columns)
-        return a @ coef - li, coef, q, np.interp(r, profile[0], slope, right=0.0)[..., None] * unit
+        jac = np.interp(r, profile[0], slope, right=0.0)[..., None] * unit
+        return a @ coef - li, coef.astype(np.float64), q.astype(np.float64), jac
 
     def residual(p: NDArray[np.float64]) -> NDArray[np.float64]:
         return solved(p)[0]

@@ -89,7 +89,7 @@ class Ellipsoid:
         p = np.stack([self.a_mm * shrink * np.cos(ang), self.b_mm * shrink * np.sin(ang), z], -1)
         normal = p / np.array([self.a_mm, self.b_mm, self.c_mm]) ** 2
         normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
-        return p + 0.5 * diameter_mm * normal  # type: ignore[no-any-return]
+        return p + 0.5 * diameter_mm * normal
 
     def covers(self, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64]) -> NDArray[np.bool_]:
         """Everywhere between the two heights."""
@@ -254,14 +254,14 @@ class Outline:
             hit[on] = mask[k, iy[on], ix[on]]
             last = np.where(hit.any(1), s.size - 1 - np.argmax(hit[:, ::-1], axis=1), -1)
             radius[n] = np.where(last >= 0, s[np.maximum(last, 0)] + 0.5 * min(vx, vy), np.nan)
-        return cls(z0 + rows * vz, _fill_angles(radius), source)
+        return cls((z0 + rows * vz).astype(np.float64), _fill_angles(radius), source)
 
 
 def polar_angle(surface: TapeSurface, angle_rad: NDArray[np.float64], z_mm: NDArray[np.float64]) -> NDArray[np.float64]:
     """The polar angle (rad, counterclockwise from +x, in [0, 2 pi)) of the surface at these addresses: where a person
     finds the place on the object."""
     p = surface.points(np.asarray(angle_rad, dtype=float), np.asarray(z_mm, dtype=float), 0.0)
-    return np.arctan2(p[..., 1], p[..., 0]) % (2 * np.pi)  # type: ignore[no-any-return]
+    return np.arctan2(p[..., 1], p[..., 0]) % (2 * np.pi)
 
 
 def address_angle(surface: TapeSurface, polar_rad: NDArray[np.float64], z_mm: float) -> NDArray[np.float64]:
@@ -271,12 +271,12 @@ def address_angle(surface: TapeSurface, polar_rad: NDArray[np.float64], z_mm: fl
     polar = polar_angle(surface, grid, np.full(grid.size, z_mm))
     ok = np.isfinite(polar)  # an outline may have no surface at some angles of this height
     if ok.sum() < 2:
-        return np.asarray(polar_rad, dtype=float) % (2 * np.pi)  # type: ignore[no-any-return]
+        return np.asarray(polar_rad, dtype=float) % (2 * np.pi)
     grid, polar = grid[ok], np.unwrap(polar[ok])
     polar -= 2 * np.pi * np.floor(polar[0] / (2 * np.pi))
     target = np.asarray(polar_rad, dtype=float) % (2 * np.pi)
     target = np.where(target < polar[0], target + 2 * np.pi, target)
-    return np.interp(target, polar, grid) % (2 * np.pi)  # type: ignore[no-any-return]
+    return np.interp(target, polar, grid) % (2 * np.pi)
 
 
 def _fill_angles(radius: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib.detect import CANDIDATE_FIELDS
+from calib.model import all_finite
 from orbitct.geometry import ViewGeometry
 
 COL, ROW, SCORE, AMP, RADIUS, ELONG, BG_RMS = (CANDIDATE_FIELDS.index(f) for f in CANDIDATE_FIELDS[:7])
@@ -191,10 +192,10 @@ def _near_and_shift(pred, vis, cand, search_px, reach_px, radius):  # type: igno
     for t in range(t_n):
         if not vis[t]:
             continue
-        for m in range(m_n):
-            d = np.sqrt((cand[m, 0] - pred[t, 0]) ** 2 + (cand[m, 1] - pred[t, 1]) ** 2)
-            if d < best[m]:
-                best[m] = d
+        for j in range(m_n):
+            d = np.sqrt((cand[j, 0] - pred[t, 0]) ** 2 + (cand[j, 1] - pred[t, 1]) ** 2)
+            if d < best[j]:
+                best[j] = d
     kept = np.flatnonzero(best < reach_px)
     shift = np.full(2, np.nan)
     best_n, best_ss = 0, np.inf
@@ -234,7 +235,7 @@ def _near_and_shift(pred, vis, cand, search_px, reach_px, radius):  # type: igno
         for q in kept:
             d2 = (cand[q, 0] - pred[u, 0] - shift[0]) ** 2 + (cand[q, 1] - pred[u, 1] - shift[1]) ** 2
             if d2 < dmin:
-                dmin, jmin = d2, q
+                dmin, jmin = d2, int(q)
         if jmin >= 0:
             sx[n_s] = cand[jmin, 0] - pred[u, 0]
             sy[n_s] = cand[jmin, 1] - pred[u, 1]
@@ -478,7 +479,7 @@ class FrameLinker:
             pred_a = _predict_from_rays(
                 store.ray_o, store.ray_d, store.count, active, view.matrices[0], store.last_uv, store.last_P[active]
             )
-            gates = s.gate_px * (1.0 + 0.5 * np.clip(p - store.last[active] - 1, 0, None))
+            gates = s.gate_px * (1.0 + 0.5 * np.clip(p - store.last[active] - 1, 0, None)).astype(np.float64)
             idx, aligned = match_frame(pred_a, uv_c, s.search_px, gates, s.residual_px)
             matched_t = idx >= 0
             crowded = _crowded(aligned, s.ambiguous_px)
@@ -524,7 +525,7 @@ def assign_to_predictions(
     """Per frame, candidates assigned globally to predicted BB positions ``(P, K, 2)``; NaN where none fits,
     where two BBs overlap, or where the blob is distorted or much fainter than the BB usually is."""
     n, k = predicted.shape[:2]
-    vis_all = np.isfinite(predicted).all(-1)
+    vis_all = all_finite(predicted)
     pred_all = np.where(vis_all[..., None], predicted, np.nan)
     records = np.full((n, k, len(CANDIDATE_FIELDS)), np.nan)
     gate = np.full(k, float(gate_px))

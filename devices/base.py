@@ -237,6 +237,9 @@ class XraySource(Triggerable, Protocol):
     async def configure(self, kv: float, ma: float, exposure_ms: float) -> None:
         """Set tube voltage, current and exposure time."""
 
+    def prepare(self) -> Status[None]:
+        """High voltage up, ready to expose at once (held for a while, then dropped again by the generator)."""
+
     def expose(self, *, release: bool = False) -> Status[int]:
         """One exposure; ends with the generator's frame counter (``release``: high voltage off right after it)."""
 

@@ -88,7 +88,8 @@ class CArmLimits:
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> CArmLimits:
         """Inverse of :meth:`to_json`."""
-        return cls(**{k: tuple(v) if isinstance(v, list) else float(v) for k, v in d.items()})
+        values: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else float(v) for k, v in d.items()}
+        return cls(**values)
 
 
 @dataclass(frozen=True)
@@ -119,7 +120,7 @@ class NavPoint:
         ]
 
     @classmethod
-    def from_fields(cls, fields: Sequence[str]) -> NavPoint:
+    def from_fields(cls, fields: Sequence[str | float]) -> NavPoint:
         """Parse :data:`CSV_FIELDS`-ordered text fields (ValueError on bad input)."""
         if len(fields) != len(CSV_FIELDS):
             raise ValueError(f"expected {len(CSV_FIELDS)} fields ({', '.join(CSV_FIELDS)}), got {len(fields)}")

@@ -50,8 +50,8 @@ class Hexapod(GcsMotionDevice):
 
     async def velocity(self) -> float:
         """System velocity (``VLS?``) in mm/s (deg/s for U, V, W)."""
-        self._velocity = await self.client.query("VLS?", lambda lines: _parse_float(lines, "VLS?"))  # type: ignore[assignment]
-        return float(self._velocity)  # type: ignore[arg-type]
+        self._velocity = await self.client.query("VLS?", lambda lines: _parse_float(lines, "VLS?"))
+        return float(self._velocity)
 
     async def set_velocity(self, mm_per_s: float) -> None:
         """Set the system velocity (``VLS``)."""
@@ -61,7 +61,7 @@ class Hexapod(GcsMotionDevice):
 
     async def pivot(self) -> dict[str, float]:
         """Pivot point R, S, T (``SPI?``) in mm."""
-        return await self.client.query("SPI? R S T", lambda lines: parse_axis_values(lines, "SPI?"))  # type: ignore[return-value]
+        return await self.client.query("SPI? R S T", lambda lines: parse_axis_values(lines, "SPI?"))
 
     async def set_pivot(self, r_mm: float, s_mm: float, t_mm: float) -> None:
         """Set the pivot point (``SPI``; allowed only while U, V and W are 0)."""

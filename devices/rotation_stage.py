@@ -27,7 +27,7 @@ class RotationStage(GcsMotionDevice):
     async def velocity(self) -> float:
         """Axis velocity (``VEL?``) in deg/s."""
         values = await self.client.query(f"VEL? {self.axis_map['R']}", lambda lines: parse_axis_values(lines, "VEL?"))
-        self._velocity = float(values[self.axis_map["R"]])  # type: ignore[index]
+        self._velocity = float(values[self.axis_map["R"]])
         return self._velocity
 
     async def set_velocity(self, deg_per_s: float) -> None:

@@ -57,7 +57,7 @@ class Verdict:
             "warnings": list(self.warnings),
         }
 
-    def attrs(self) -> dict[str, str]:
+    def attrs(self) -> dict[str, object]:
         """The attributes that store it in a scan file's result group."""
         return {
             "verdict": self.status,

@@ -6,6 +6,7 @@ picture."""
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -272,7 +273,7 @@ def load_surface(source: str, threshold_per_mm: float | None = None) -> Any:
         if name.endswith((".nii", ".nii.gz")):
             import nibabel as nib
 
-            img = nib.load(str(path))
+            img: Any = nib.load(str(path))  # a NIfTI image: affine and voxels
             affine = np.asarray(img.affine)
             if not np.allclose(affine[:3, :3], np.diag(np.diag(affine[:3, :3]))) or (np.diag(affine)[:3] <= 0).any():
                 raise BBPlanError(
@@ -280,7 +281,8 @@ def load_surface(source: str, threshold_per_mm: float | None = None) -> Any:
                     "positive affine, as orbitct writes it)"
                 )
             volume = np.transpose(np.asarray(img.dataobj, dtype=np.float32), (2, 1, 0))
-            voxel, origin = tuple(np.diag(affine)[:3]), tuple(affine[:3, 3])
+            voxel = (float(affine[0, 0]), float(affine[1, 1]), float(affine[2, 2]))
+            origin = (float(affine[0, 3]), float(affine[1, 3]), float(affine[2, 3]))
         elif name.endswith((".h5", ".hdf5")) and recon:
             from orbitct.scanfile import ScanFile, ScanFileError
 
@@ -306,8 +308,8 @@ def load_surface(source: str, threshold_per_mm: float | None = None) -> Any:
 
 def outline_from_volume(
     volume: np.ndarray,
-    voxel_mm: tuple[float, ...],
-    origin_mm: tuple[float, ...],
+    voxel_mm: Sequence[float],
+    origin_mm: Sequence[float],
     threshold_per_mm: float | None,
     source: str,
 ) -> Any:
@@ -318,7 +320,9 @@ def outline_from_volume(
     volume = np.nan_to_num(np.asarray(volume, dtype=np.float32))
     level = threshold_per_mm if threshold_per_mm is not None else _otsu(volume)
     try:
-        return Outline.from_mask(volume > level, tuple(voxel_mm), tuple(origin_mm), source=f"{source} > {level:.4g}/mm")
+        voxel = (float(voxel_mm[0]), float(voxel_mm[1]), float(voxel_mm[2]))
+        origin = (float(origin_mm[0]), float(origin_mm[1]), float(origin_mm[2]))
+        return Outline.from_mask(volume > level, voxel, origin, source=f"{source} > {level:.4g}/mm")
     except ValueError as exc:
         raise BBPlanError(f"surface {source!r}: {exc}") from None
 
@@ -439,6 +443,7 @@ def _picture(path: Path, plan: BBPlan) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
+    from matplotlib.ticker import MultipleLocator
 
     placed, own, surface = plan.placed, plan.own, plan.surface
     fig = plt.figure(figsize=(15, 4.6))
@@ -470,7 +475,7 @@ def _picture(path: Path, plan: BBPlan) -> None:
         ylabel="height (mm)",
         title="unrolled" + (" (grey: keep out)" if plan.body["keep_out"] else ""),
     )
-    ax0.xaxis.set_major_locator(plt.MultipleLocator(45))
+    ax0.xaxis.set_major_locator(MultipleLocator(45))
     ax0.grid(alpha=0.3)
     views = np.arange(placed.prediction.n_bbs.size)
     ax1.plot(views, placed.prediction.predicted_px, label="planned: predicted error (px)")

@@ -95,7 +95,7 @@ SERIES_KEYS = (
 def find_series(node: PacsNode, calling: str = CALLING_AET, **match: str) -> list[dict[str, str]]:
     """C-FIND at series level (study root); ``match`` narrows it (``PatientID=``, ``Modality=``, ...)."""
     from pydicom.dataset import Dataset
-    from pynetdicom.sop_class import StudyRootQueryRetrieveInformationModelFind
+    from pynetdicom.sop_class import StudyRootQueryRetrieveInformationModelFind  # type: ignore[attr-defined]  # made at import
 
     query = Dataset()
     query.QueryRetrieveLevel = "SERIES"
@@ -127,7 +127,7 @@ def get_series(
     """C-GET one series into ``out_dir`` (the node sends it back on the same association); the files written."""
     from pydicom.dataset import Dataset
     from pynetdicom import build_role, evt
-    from pynetdicom.sop_class import StudyRootQueryRetrieveInformationModelGet
+    from pynetdicom.sop_class import StudyRootQueryRetrieveInformationModelGet  # type: ignore[attr-defined]  # made at import
 
     classes = list(sop_classes) or list(RETRIEVED_CLASSES)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -352,7 +352,7 @@ def errors_page() -> str:
         "| device failure | what to do |",
         "| --- | --- |",
     ]
-    for kind, advice in ADVICE:
-        what = "Any other device failure." if kind is DeviceError else _first_line(kind.__doc__)
+    for failure, advice in ADVICE:
+        what = "Any other device failure." if failure is DeviceError else _first_line(failure.__doc__)
         lines.append(f"| {_cell(what)} | {_cell(advice)} |")
     return "\n".join([*lines, ""])

@@ -83,7 +83,8 @@ def _sum_on_workers(
     """The sum of the results of ``parts``, added pairwise on the workers as they finish; only the sum is fetched.
     ``done(future)`` is called as each part finishes. A part that fails, or a scheduler that goes away, raises
     :class:`ClusterError` naming ``what`` rather than waiting."""
-    pending, ready, sums = list(parts), [], 0
+    pending, sums = list(parts), 0
+    ready: list[Any] = []
     first = {f.key for f in parts}
     while pending or len(ready) > 1:
         finished = [f for f in pending if f.status != "pending"]
@@ -261,7 +262,8 @@ class ClusterData:
             raise ReconError(f"need subsets >= 1, got {subsets}")
         workers = _connected_workers(client, workers_timeout_s)
         self.client, self.subsets = client, subsets
-        self.padded_shape = tuple(n + 2 for n in grid.shape)
+        nz, ny, nx = grid.shape
+        self.padded_shape = (nz + 2, ny + 2, nx + 2)
         self.what = f"the PWLS of {os.fspath(path)}"
         self._key = f"orbitct-pwls-{uuid.uuid4().hex[:8]}"
         self._calls = 0

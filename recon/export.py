@@ -318,7 +318,7 @@ def read_rtk_geometry(path: Path, detector: Panel) -> ViewGeometry:
         "ProjectionOffsetX",
         "ProjectionOffsetY",
     )
-    glob = {k: float(root.findtext(k)) for k in keys if root.find(k) is not None}
+    glob = {k: float(root.findtext(k, "")) for k in keys if root.find(k) is not None}
     rows = []
     for proj in root.findall("Projection"):
         p = {
@@ -330,7 +330,7 @@ def read_rtk_geometry(path: Path, detector: Panel) -> ViewGeometry:
             "ProjectionOffsetY": 0.0,
             **glob,
         }
-        p.update({k: float(proj.findtext(k)) for k in keys if proj.find(k) is not None})
+        p.update({k: float(proj.findtext(k, "")) for k in keys if proj.find(k) is not None})
         R = _rtk_rotation(p["GantryAngle"], p["OutOfPlaneAngle"], p["InPlaneAngle"])
         s = np.array([p["SourceOffsetX"], p["SourceOffsetY"], p["SourceToIsocenterDistance"]])
         d = np.array(

@@ -21,9 +21,11 @@ WINDOWS = ("ram-lak", "shepp-logan", "cosine", "hann")
 class ProjectionStack(Protocol):
     """Anything sliceable along views that yields float32 ``(k, rows, cols)`` line integrals."""
 
-    shape: tuple[int, ...]
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """``(views, rows, cols)``."""
 
-    def __getitem__(self, index: slice) -> NDArray[np.float32]: ...
+    def __getitem__(self, index: slice | NDArray[np.intp]) -> NDArray[np.float32]: ...
 
 
 def ramp_filter(n_cols: int, window: str = "ram-lak") -> NDArray[np.float64]:

@@ -63,8 +63,9 @@ def object_grid(
     voxel = fov.voxel_mm[0]
     coarse_voxel = voxel * b
     ext = fov.extent_mm  # rows x, y, z: (low, high)
-    coarse_shape = tuple(max(1, int(np.ceil((ext[k, 1] - ext[k, 0]) / coarse_voxel))) for k in (2, 1, 0))
-    coarse = VolumeGrid.centered(coarse_shape, coarse_voxel, tuple(float(c) for c in ext.mean(axis=1)))
+    nz, ny, nx = (max(1, int(np.ceil((ext[k, 1] - ext[k, 0]) / coarse_voxel))) for k in (2, 1, 0))
+    cx, cy, cz = (float(c) for c in ext.mean(axis=1))
+    coarse = VolumeGrid.centered((nz, ny, nx), coarse_voxel, (cx, cy, cz))
     volume = fdk(binned, coarse, coarse_geometry, window="hann")
     z, y, x = coarse.coords_mm()
     radius, height, center = fov_radius_height(geometry)
@@ -88,10 +89,11 @@ def object_grid(
     lo = np.array([x[idx[0][0]], y[idx[1][0]], z[idx[2][0]]]) - pad
     hi = np.array([x[idx[0][-1]], y[idx[1][-1]], z[idx[2][-1]]]) + pad
     lo, hi = np.maximum(lo, ext[:, 0]), np.minimum(hi, ext[:, 1])
-    shape = tuple(
+    nz, ny, nx = (
         max(4, min(int(np.ceil((hi[k] - lo[k]) / voxel)), s)) for k, s in zip((2, 1, 0), fov.shape, strict=True)
     )
-    grid = VolumeGrid.centered(shape, voxel, tuple(float(c) for c in 0.5 * (lo + hi)))
+    cx, cy, cz = (float(c) for c in 0.5 * (lo + hi))
+    grid = VolumeGrid.centered((nz, ny, nx), voxel, (cx, cy, cz))
     share = 100.0 * np.prod(grid.shape) / np.prod(fov.shape)
     return grid, (
         f"fitted to the object: {_describe(grid)}, {share:.0f} % of the field of view's voxels (from a coarse "

@@ -53,7 +53,8 @@ def grid_for_geometry(
         shape = (max(nz, 1), max(nxy, 1), max(nxy, 1))
     if voxel_mm is None:
         voxel_mm = float(max(2 * radius / shape[2], 2 * radius / shape[1], height / shape[0]))
-    return VolumeGrid.centered(tuple(int(s) for s in shape), float(voxel_mm), center_mm)
+    nz, ny, nx = (int(s) for s in shape)
+    return VolumeGrid.centered((nz, ny, nx), float(voxel_mm), center_mm)
 
 
 def check_fov(grid: VolumeGrid, geometry: ViewGeometry, min_fraction: float = 0.05) -> float:

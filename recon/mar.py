@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
@@ -41,7 +43,7 @@ def traces_by_reprojection(A: Projector, metal: NDArray[np.bool_], min_length_mm
 
 
 @njit(parallel=True, cache=True)
-def _fill_rows(li, mask):
+def _fill_rows(li: NDArray[np.floating[Any]], mask: NDArray[np.bool_]) -> None:
     nv, rows, cols = li.shape
     for job in prange(nv * rows):
         n = job // rows

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numba
 import numpy as np
 from numpy.typing import NDArray
@@ -226,7 +228,7 @@ def _as_padded(a: NDArray[np.float32], shape: tuple[int, int, int]) -> NDArray[n
     return a
 
 
-def _as_f32(a: NDArray, shape: tuple[int, ...], what: str) -> NDArray[np.float32]:
+def _as_f32(a: NDArray[Any], shape: tuple[int, ...], what: str) -> NDArray[np.float32]:
     a = np.ascontiguousarray(a, dtype=np.float32)
     if a.shape != tuple(shape):
         raise ReconError(f"{what}: expected shape {tuple(shape)}, got {a.shape}")

@@ -289,7 +289,7 @@ def reconstruct_scan(
     formats = [export] if isinstance(export, str) else list(export or [])
     if any(f not in FORMATS for f in formats):
         raise ReconError(f"export formats must be among {FORMATS}, got {formats}")
-    shape = tuple(opts.shape) if opts.shape is not None else None
+    shape = (opts.shape[0], opts.shape[1], opts.shape[2]) if opts.shape is not None else None  # three: validated
     name = opts.recon_name
     with ScanFile(path, "r") as scan:  # read-only while computing: other readers may hold the file
         scan.refuse_if_acquiring()  # before any work: the result could not be stored

@@ -13,6 +13,7 @@ Flat indices are unsigned in the inner loops (signed ones cost a negative-index 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numba import njit, prange
@@ -22,7 +23,16 @@ _MARGIN = 1e-6  # planes whose a or b lies within this of the padding edge are s
 
 
 @njit(cache=True, inline="always")
-def _ray(rays, vox, n, r, c, nx, ny, nz):
+def _ray(
+    rays: NDArray[np.floating[Any]],
+    vox: NDArray[np.floating[Any]],
+    n: int,
+    r: float,
+    c: float,
+    nx: int,
+    ny: int,
+    nz: int,
+) -> tuple[float, float, float, float, int, int, float, int, int, int]:
     """Joseph set-up of one ray in the zero-padded volume ``(nz + 2, ny + 2, nx + 2)``.
 
     Returns the padded-index map plane ``k`` -> ``(a, b) = (a0 + k ra, b0 + k rb)`` (both in
@@ -80,7 +90,20 @@ def _ray(rays, vox, n, r, c, nx, ny, nz):
 
 
 @njit(cache=True, inline="always")
-def _taps(a0, ra, b0, rb, k_lo, n_planes, stm, sta, stb, idx, fa, fb):
+def _taps(
+    a0: float,
+    ra: float,
+    b0: float,
+    rb: float,
+    k_lo: int,
+    n_planes: int,
+    stm: int,
+    sta: int,
+    stb: int,
+    idx: NDArray[np.integer[Any]],
+    fa: NDArray[np.floating[Any]],
+    fb: NDArray[np.floating[Any]],
+) -> None:
     """Flat index of the first tap and the two interpolation fractions of each plane of one ray."""
     for j in range(n_planes):
         k = k_lo + j
@@ -99,7 +122,12 @@ _FORWARD_MATH = {"nnan", "ninf", "nsz", "arcp", "contract", "afn"}
 
 
 @njit(parallel=True, cache=True, fastmath=_FORWARD_MATH, nogil=True, boundscheck=False, error_model="numpy")
-def joseph_forward(vol_padded, rays, vox, out):
+def joseph_forward(
+    vol_padded: NDArray[np.floating[Any]],
+    rays: NDArray[np.floating[Any]],
+    vox: NDArray[np.floating[Any]],
+    out: NDArray[np.floating[Any]],
+) -> None:
     """Line integrals of the zero-padded volume ``(nz + 2, ny + 2, nx + 2)`` along every ray into ``out``.
 
     Per ray, the taps are computed first (a loop the compiler vectorises), then summed.
@@ -137,13 +165,13 @@ def joseph_forward(vol_padded, rays, vox, out):
 
 
 @njit(cache=True, inline="always")
-def _owner(b, z_main, k):
+def _owner(b: float, z_main: bool, k: int) -> int:
     """Slab coordinate of plane ``k``: its padded z index (z-main rays) or its lower z tap."""
     return k + 1 if z_main else int(np.floor(b))
 
 
 @njit(cache=True, inline="always")
-def _end_owners(b0, rb, k_lo, k_hi, z_main):
+def _end_owners(b0: float, rb: float, k_lo: int, k_hi: int, z_main: bool) -> tuple[int, int]:
     """Slab coordinates of the first and last plane of a ray, smallest first (empty rays: ``(1, 0)``)."""
     if k_hi < k_lo:
         return 1, 0
@@ -153,7 +181,9 @@ def _end_owners(b0, rb, k_lo, k_hi, z_main):
 
 
 @njit(cache=True, inline="always")
-def _window(a0, ra, b0, rb, k_lo, k_hi, z_main, z_lo, z_hi):
+def _window(
+    a0: float, ra: float, b0: float, rb: float, k_lo: int, k_hi: int, z_main: bool, z_lo: int, z_hi: int
+) -> tuple[int, int]:
     """Planes ``k_lo..k_hi`` of one ray that may own slab ``[z_lo, z_hi)``, widened by a margin."""
     if z_main:
         return max(k_lo, z_lo - 2), min(k_hi, z_hi - 1)
@@ -172,7 +202,17 @@ _ADJOINT_MATH = {"nnan", "ninf", "nsz", "arcp", "afn"}
 
 
 @njit(parallel=True, cache=True, fastmath=_ADJOINT_MATH, nogil=True, boundscheck=False, error_model="numpy")
-def ray_slab_range(rays, vox, nz, ny, nx, rows, cols, lo, hi):
+def ray_slab_range(
+    rays: NDArray[np.floating[Any]],
+    vox: NDArray[np.floating[Any]],
+    nz: int,
+    ny: int,
+    nx: int,
+    rows: int,
+    cols: int,
+    lo: NDArray[np.integer[Any]],
+    hi: NDArray[np.integer[Any]],
+) -> None:
     """Per (view, row) line: the smallest and largest slab coordinate of its rays into ``lo``/``hi``."""
     nv = rays.shape[0]
     sz = (nx + 2) * (ny + 2)
@@ -192,7 +232,15 @@ def ray_slab_range(rays, vox, nz, ny, nx, rows, cols, lo, hi):
 
 
 @njit(parallel=True, cache=True, fastmath=_ADJOINT_MATH, nogil=True, boundscheck=False, error_model="numpy")
-def joseph_adjoint(proj, rays, vox, acc, bounds, line_lo, line_hi):
+def joseph_adjoint(
+    proj: NDArray[np.floating[Any]],
+    rays: NDArray[np.floating[Any]],
+    vox: NDArray[np.floating[Any]],
+    acc: NDArray[np.floating[Any]],
+    bounds: NDArray[np.integer[Any]],
+    line_lo: NDArray[np.integer[Any]],
+    line_hi: NDArray[np.integer[Any]],
+) -> None:
     """Add the exact transpose of :func:`joseph_forward` of ``proj`` into the padded ``acc`` (nz + 2, ny + 2, nx + 2).
 
     ``bounds`` (slabs + 1) cuts the slab coordinate range ``[0, nz + 1)``; ``line_lo``/``line_hi``
@@ -265,7 +313,7 @@ def slab_bounds(nz: int, n_slabs: int) -> NDArray[np.int64]:
 
 
 @njit(cache=True, inline="always")
-def _half(a, b, lo, hi):
+def _half(a: float, b: float, lo: float, hi: float) -> tuple[float, float]:
     """Restrict the open interval ``(lo, hi)`` to where ``a x + b > 0``."""
     if a > 0.0:
         lo = max(lo, -b / a)
@@ -277,7 +325,12 @@ def _half(a, b, lo, hi):
 
 
 @njit(parallel=True, cache=True, fastmath=True, nogil=True, boundscheck=False, error_model="numpy")
-def voxel_backproject(proj_padded, mats, weights, vol):
+def voxel_backproject(
+    proj_padded: NDArray[np.floating[Any]],
+    mats: NDArray[np.floating[Any]],
+    weights: NDArray[np.floating[Any]],
+    vol: NDArray[np.floating[Any]],
+) -> None:
     """Add ``sum_n weights[n] / w^2 * proj_n(P_n x)`` (bilinear, zero outside) into ``vol``.
 
     ``proj_padded`` (views, rows + 2, cols + 2) carries a one-pixel zero border; ``mats``

@@ -15,7 +15,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from numba import njit, prange
@@ -55,7 +55,13 @@ def neighbour_offsets(order: int) -> tuple[NDArray[np.int64], NDArray[np.float64
 
 
 @njit(parallel=True, cache=True, fastmath=True, boundscheck=False)
-def penalty_add(xp, offs, omega, scale, gp):
+def penalty_add(
+    xp: NDArray[np.floating[Any]],
+    offs: NDArray[np.integer[Any]],
+    omega: NDArray[np.floating[Any]],
+    scale: float,
+    gp: NDArray[np.floating[Any]],
+) -> float:
     """Add ``scale`` times the roughness gradient into the padded ``gp``; returns the roughness of padded ``xp``.
 
     Both volumes carry a one-voxel border that is not part of the image: neighbours there are absent.
@@ -85,7 +91,9 @@ def penalty_add(xp, offs, omega, scale, gp):
 
 
 @njit(cache=True, inline="always")
-def _curvature(z, y, xx, nz, ny, nx, offs, omega):
+def _curvature(
+    z: int, y: int, xx: int, nz: int, ny: int, nx: int, offs: NDArray[np.integer[Any]], omega: NDArray[np.floating[Any]]
+) -> float:
     """Separable-surrogate curvature of the penalty: twice the in-volume neighbour weights."""
     c = 0.0
     for k in range(offs.shape[0]):
@@ -98,7 +106,9 @@ def _curvature(z, y, xx, nz, ny, nx, offs, omega):
 
 
 @njit(parallel=True, cache=True, fastmath=True, boundscheck=False)
-def _residual(ax, y, w, weighted):
+def _residual(
+    ax: NDArray[np.floating[Any]], y: NDArray[np.floating[Any]], w: NDArray[np.floating[Any]], weighted: bool
+) -> float:
     """``ax <- w * (ax - y)`` in place (``w`` = 1 unless ``weighted``); returns ``0.5 * sum w (ax - y)^2``."""
     n = ax.shape[0]
     part = np.zeros(n)
@@ -121,7 +131,9 @@ def _residual(ax, y, w, weighted):
 
 
 @njit(parallel=True, cache=True, fastmath=True, boundscheck=False)
-def _add_penalty_curvature(denom, beta, offs, omega):
+def _add_penalty_curvature(
+    denom: NDArray[np.floating[Any]], beta: float, offs: NDArray[np.integer[Any]], omega: NDArray[np.floating[Any]]
+) -> None:
     """``denom += beta * curvature`` of the penalty surrogate, voxel by voxel (once per run)."""
     nz, ny, nx = denom.shape
     for z in prange(nz):
@@ -131,7 +143,13 @@ def _add_penalty_curvature(denom, beta, offs, omega):
 
 
 @njit(parallel=True, cache=True, fastmath=True, boundscheck=False)
-def _sps_step(xp, gp, denom, scale, nonneg):
+def _sps_step(
+    xp: NDArray[np.floating[Any]],
+    gp: NDArray[np.floating[Any]],
+    denom: NDArray[np.floating[Any]],
+    scale: float,
+    nonneg: bool,
+) -> None:
     """``x <- [x - scale * grad / denom]_+`` on the interior of padded ``xp`` (``gp`` padded, ``denom`` not)."""
     nz, ny, nx = denom.shape
     for z in prange(nz):
@@ -147,7 +165,15 @@ def _sps_step(xp, gp, denom, scale, nonneg):
 
 
 @njit(parallel=True, cache=True, fastmath=True, boundscheck=False)
-def _momentum_step(zp, gp, denom, scale, nonneg, x_prev, gamma):
+def _momentum_step(
+    zp: NDArray[np.floating[Any]],
+    gp: NDArray[np.floating[Any]],
+    denom: NDArray[np.floating[Any]],
+    scale: float,
+    nonneg: bool,
+    x_prev: NDArray[np.floating[Any]],
+    gamma: float,
+) -> float:
     """One OS-momentum step on padded ``zp`` (the extrapolated point): ``x = [z - scale * grad / denom]_+``,
     then ``z <- x + gamma (x - x_prev)`` and ``x_prev <- x``. Returns ``sum grad * (x - x_prev_old)`` (the
     restart test: positive when the step's gradient opposes the move)."""
@@ -170,7 +196,7 @@ def _momentum_step(zp, gp, denom, scale, nonneg, x_prev, gamma):
     return part.sum()
 
 
-def statistical_weights(raw: NDArray, dark: NDArray, flat: NDArray) -> NDArray[np.float32]:
+def statistical_weights(raw: NDArray[Any], dark: NDArray[Any], flat: NDArray[Any]) -> NDArray[np.float32]:
     """PWLS weights ~ 1/variance of the line integrals: detected counts over mean open-beam counts."""
     open_beam = float(np.mean(np.asarray(flat, dtype=np.float64) - dark))
     if not open_beam > 0:
@@ -202,8 +228,11 @@ class _Pass:
 class DataTerm(Protocol):
     """The data term ``0.5 sum_i w_i ([Ax]_i - y_i)^2`` of views cut into ordered subsets, as the solver needs it."""
 
-    padded_shape: tuple[int, int, int]
     subsets: int
+
+    @property
+    def padded_shape(self) -> tuple[int, int, int]:
+        """The padded volume's shape ``(nz + 2, ny + 2, nx + 2)``."""
 
     def curvature(self, out: NDArray[np.float32]) -> None:
         """Add the surrogate's data curvature ``A^T (w * A 1)`` into the padded ``out``."""
@@ -260,11 +289,12 @@ class ViewsData:
         ps = self._passes[subset]
         weighted = self.weights is not None
         value = 0.0
+        if ps.op is None:  # an empty subset
+            return value
         for j0, j1 in ps.chunks:
             r = ps.op.forward_padded(xp, self._buf[: j1 - j0], j0)
-            value += _residual(
-                r, ps.read(self.y, j0, j1), ps.read(self.weights, j0, j1) if weighted else self._no_w, weighted
-            )
+            w = ps.read(self.weights, j0, j1) if self.weights is not None else self._no_w
+            value += _residual(r, ps.read(self.y, j0, j1), w, weighted)
             if out is not None:
                 ps.op.back_padded(r, out, j0)
         return value
@@ -346,8 +376,11 @@ def pwls_solve(
         raise ReconError(f"need iterations >= 0 and beta >= 0; got {iterations}, {beta}")
     padded = tuple(data.padded_shape)
     vol_shape = tuple(n - 2 for n in padded)
-    in_place = x0 is not None and np.shape(x0) == padded
-    if in_place and not (x0.dtype == np.float32 and x0.flags.c_contiguous and x0.flags.writeable):
+    given_padded = x0 if x0 is not None and np.shape(x0) == padded else None
+    in_place = given_padded is not None
+    if given_padded is not None and not (
+        given_padded.dtype == np.float32 and given_padded.flags.c_contiguous and given_padded.flags.writeable
+    ):
         raise ReconError("a padded x0 is updated in place: it must be a writeable C-contiguous float32 array")
     if x0 is not None and not in_place and np.shape(x0) != vol_shape:
         raise ReconError(f"x0: expected shape {vol_shape} (or padded {padded}), got {np.shape(x0)}")
@@ -371,8 +404,8 @@ def pwls_solve(
     del sample, pos
     _add_penalty_curvature(denom, beta_abs, offs, omega)
     gp = np.zeros(padded, np.float32)  # gradient accumulator (its border is scratch)
-    if in_place:
-        xp = x0  # the iterate, zero-bordered for the projector
+    if given_padded is not None:
+        xp = given_padded  # the iterate, zero-bordered for the projector
         _zero_border(xp)
     else:
         xp = np.zeros(padded, np.float32)

@@ -23,7 +23,9 @@ def reference_volume(phantom: Any, grid: VolumeGrid, supersample: int = 3) -> ND
     )
 
 
-def rmse(volume: NDArray, reference: NDArray, mask: NDArray[np.bool_] | None = None) -> float:
+def rmse(
+    volume: NDArray[np.floating[Any]], reference: NDArray[np.floating[Any]], mask: NDArray[np.bool_] | None = None
+) -> float:
     """Root-mean-square difference (1/mm), optionally inside ``mask``."""
     if volume.shape != reference.shape:
         raise ReconError(f"volume {volume.shape} and reference {reference.shape} differ in shape")
@@ -33,7 +35,9 @@ def rmse(volume: NDArray, reference: NDArray, mask: NDArray[np.bool_] | None = N
     return float(np.sqrt(np.mean(d**2)))
 
 
-def fov_mask(grid: VolumeGrid, radius_mm: float, half_height_mm: float, center_mm=(0.0, 0.0, 0.0)) -> NDArray[np.bool_]:
+def fov_mask(
+    grid: VolumeGrid, radius_mm: float, half_height_mm: float, center_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+) -> NDArray[np.bool_]:
     """Voxels inside a z-cylinder (where every view sees the object)."""
     z, y, x = grid.coords_mm()
     zz, yy, xx = np.meshgrid(z - center_mm[2], y - center_mm[1], x - center_mm[0], indexing="ij")
@@ -62,7 +66,7 @@ def _half_max_width(profile: NDArray[np.float64], step: float) -> float:
 
 
 def wire_fwhm(
-    volume: NDArray,
+    volume: NDArray[np.floating[Any]],
     grid: VolumeGrid,
     *,
     axis: str = "z",

@@ -36,8 +36,8 @@ def carm_limits(cfg: CArmConfig) -> CArmLimits:
     """The exporter's limits from a C-arm configuration."""
     lim = cfg.limits
     return CArmLimits(
-        primary_deg=tuple(lim.primary_deg),
-        secondary_deg=tuple(lim.secondary_deg),
+        primary_deg=(lim.primary_deg[0], lim.primary_deg[1]),
+        secondary_deg=(lim.secondary_deg[0], lim.secondary_deg[1]),
         max_step_deg=lim.max_step_deg,
         max_speed_deg_s=lim.speed_deg_s,
     )

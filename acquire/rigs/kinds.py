@@ -61,7 +61,7 @@ class BenchKind:
 
     name = "bench"
     injects_errors = True
-    modes = ("step", "continuous")
+    modes: tuple[str, ...] = ("step", "continuous")
 
     def plan(
         self, config: BenchConfig, orbit: Orbit, errors: NDArray[np.float64], profile: Mapping[str, Any]
@@ -96,7 +96,7 @@ class CArmKind:
 
     name = "C-arm"
     injects_errors = False
-    modes = ("step",)
+    modes: tuple[str, ...] = ("step",)
 
     def plan(
         self, config: CArmConfig, orbit: Orbit, errors: NDArray[np.float64], profile: Mapping[str, Any]

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Callable
-from typing import TypeVar
+from typing import TypeVar, overload
 
 from devices.errors import DeviceError, DeviceTimeoutError, NotConnectedError, ProtocolError
 from devices.gcs.errors import controller_error
@@ -81,6 +81,12 @@ class GcsClient:
             self._stale = True
             raise
 
+    @overload
+    async def query(self, command: str) -> list[str]: ...
+
+    @overload
+    async def query(self, command: str, parse: Callable[[list[str]], T]) -> T: ...
+
     async def query(self, command: str, parse: Callable[[list[str]], T] | None = None) -> T | list[str]:
         """Send a query and return its reply lines (or ``parse(lines)``); retried on transport faults."""
         attempts = 1 + max(0, self.query_retries)
@@ -133,7 +139,7 @@ class GcsClient:
         """The controller's error code (``ERR?``; reading clears it)."""
         lines = await self.query("ERR?")
         try:
-            return int(lines[0].strip())  # type: ignore[index]
+            return int(lines[0].strip())
         except (ValueError, IndexError):
             raise ProtocolError(f"{self.endpoint}: unreadable ERR? reply {lines!r}") from None
 
@@ -147,7 +153,7 @@ class GcsClient:
         if self._stale:
             await self._reconnect()
         try:
-            await self._transport.write(encode_command(command))  # type: ignore[union-attr]
+            await self._transport.write(encode_command(command))
         except NotConnectedError:
             await self._reconnect()
-            await self._transport.write(encode_command(command))  # type: ignore[union-attr]
+            await self._transport.write(encode_command(command))

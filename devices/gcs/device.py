@@ -13,7 +13,7 @@ import asyncio
 import math
 import time
 from collections.abc import Mapping
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Self
 
 from devices.base import AxisInfo, DeviceInfo, Driver, Status
 from devices.errors import (
@@ -94,8 +94,8 @@ class GcsMotionDevice(Driver):
         await client.connect()
         self._client = client
         try:
-            self._idn = (await client.query("*IDN?"))[0]  # type: ignore[index]
-            axes = [ln.strip() for ln in await client.query("SAI?")]  # type: ignore[union-attr]
+            self._idn = (await client.query("*IDN?"))[0]
+            axes = [ln.strip() for ln in await client.query("SAI?")]
             missing = [c for c in self.axis_map.values() if c not in axes]
             if missing:
                 raise DeviceError(f"{self.name}: controller {self._idn!r} has axes {axes}, lacks {missing}")
@@ -111,7 +111,7 @@ class GcsMotionDevice(Driver):
             await client.close()
         await self._release()
 
-    async def __aenter__(self) -> GcsMotionDevice:
+    async def __aenter__(self) -> Self:
         await self.connect()
         return self
 
@@ -128,7 +128,7 @@ class GcsMotionDevice(Driver):
                 raise ProtocolError(f"{self.name}: reply to {command!r} lacks axis {exc}") from None
 
         ctrl_axes = " ".join(self.axis_map.values())
-        return await self.client.query(f"{command} {ctrl_axes}", parse)  # type: ignore[return-value]
+        return await self.client.query(f"{command} {ctrl_axes}", parse)
 
     async def position(self) -> dict[str, float]:
         """Read-back positions (``POS?``) in mm / deg."""
@@ -169,7 +169,7 @@ class GcsMotionDevice(Driver):
                 return lines[0] == READY
             raise ProtocolError(f"{self.name}: unreadable #7 reply {lines!r}")
 
-        return await self.client.query("#7", parse)  # type: ignore[return-value]
+        return await self.client.query("#7", parse)
 
     async def limits(self, refresh: bool = False) -> dict[str, tuple[float, float]]:
         """Soft limits per axis (``TMN?``/``TMX?``) in mm / deg."""

@@ -133,13 +133,14 @@ class SerialTransport(_StreamReplies):
         import serial
 
         try:
-            self._serial = serial.Serial(self.path, baudrate=self.baud, timeout=0, write_timeout=2.0)
+            port = serial.Serial(self.path, baudrate=self.baud, timeout=0, write_timeout=2.0)
         except (serial.SerialException, OSError) as exc:
             raise NotConnectedError(f"{self.description}: cannot open ({exc})") from None
-        self._serial.reset_input_buffer()  # replies meant for an earlier, abandoned exchange
+        self._serial = port
+        port.reset_input_buffer()  # replies meant for an earlier, abandoned exchange
         loop = asyncio.get_running_loop()
         self.reader = asyncio.StreamReader()
-        fd = self._serial.fileno()
+        fd = port.fileno()
         loop.add_reader(fd, self._on_readable, fd)
 
     def _on_readable(self, fd: int) -> None:

@@ -181,7 +181,7 @@ class DetectorTwin(LineTwinServer):
         self.rendering -= 1
         if data is None:
             assert self.frames is not None
-            self.frames.put_nowait(failure)  # type: ignore[arg-type]
+            self.frames.put_nowait(failure)
             return
         self.push_frame(number, data, args[0], meta, taken)
 

@@ -44,7 +44,7 @@ def _bits_to_registers(bits: list[bool]) -> list[int]:
     return [sum(1 << i for i, b in enumerate(bits[k : k + 16]) if b) for k in range(0, len(bits), 16)]
 
 
-class _GeneratorServer(ModbusTcpServer):  # type: ignore[misc]
+class _GeneratorServer(ModbusTcpServer):
     """pymodbus's Modbus TCP server, answering each connection's requests one at a time in the order they came, each
     with its own transaction id, as the generator's controller does. pymodbus's own handler (3.16 at least)
     labels every reply with the newest request's id: a request that waits (the latency fault) while the client sends
@@ -442,7 +442,7 @@ class XrayTwin:
             return SimDevice(id=0, simdata=blocks, action=self._action)
         twin = self
 
-        class _Device(ModbusBaseDeviceContext):  # type: ignore[misc, valid-type]
+        class _Device(ModbusBaseDeviceContext):
             async def async_getValues(self, fc: int, address: int, count: int = 1) -> list[int] | list[bool]:
                 if fc in (1, 2, 3, 4) and await twin._request(fc, address, None):
                     raise DeviceFailure(f"injected device error on function {fc}")
@@ -474,7 +474,7 @@ class XrayTwin:
         if function_code in (1, 2, 5, 15):
             registers[:2] = _bits_to_registers(list(live)) + [0]  # type: ignore[arg-type]
         else:
-            registers[: len(live)] = live  # type: ignore[assignment]
+            registers[: len(live)] = live
         return None
 
 

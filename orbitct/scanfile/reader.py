@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -463,7 +463,7 @@ class ScanFile(ScanResults):
         for i in idx:
             yield int(i), self.line_integrals(int(i))
 
-    def frame_problems(self, indices: Sequence[int] | None = None) -> dict[int, str]:
+    def frame_problems(self, indices: Iterable[int] | None = None) -> dict[int, str]:
         """Frames that must not be used, with why (:func:`frame_problem`); reads each frame once."""
         idx = range(self.n_frames) if indices is None else [int(i) for i in indices]
         out: dict[int, str] = {}

@@ -186,11 +186,10 @@ def demo(
     except CalibrationError as exc:
         click.echo(f"   calibration failed: {exc}; reconstructing with the nominal geometry")
     if cal is not None:
-        last = cal.iterations[-1] if cal.iterations else None
         click.echo(f"   {cal.n_bbs} BBs in {cal.n_frames} frames, {cal.elapsed_s:.1f} s")
         if cal.iterations:
             click.echo(
-                f"   RPE: nominal {cal.iterations[0].rpe_mean_mm:.3f} mm -> calibrated {last.rpe_mean_mm:.3f} mm "
+                f"   RPE: nominal {cal.iterations[0].rpe_mean_mm:.3f} mm -> calibrated {cal.iterations[-1].rpe_mean_mm:.3f} mm "
                 f"(reprojection RMS {cal.reproj_rms_px:.3f} px)"
             )
         q = cal.quality

@@ -19,7 +19,8 @@ class Failure(click.ClickException):
         self.code = code
         self.advice = kind.advice if advice is None else advice
         super().__init__(sentence(message, self.advice))
-        self.exit_code = kind.exit_status if kind.exit_status is not None else 1
+        # the exit status follows the code, so it is the instance's (click reads it from the instance)
+        self.exit_code = kind.exit_status if kind.exit_status is not None else 1  # type: ignore[misc]
 
     def show(self, file: IO[Any] | None = None) -> None:
         """Print ``error [code]: message`` to stderr (after SIGHUP the terminal may be gone: the exit status stays)."""

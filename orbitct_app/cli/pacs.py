@@ -9,7 +9,7 @@ import click
 from orbitct_app.cli.failure import Failure
 
 
-def _node(uri: str):  # type: ignore[no-untyped-def]
+def _node(uri: str):
     from orbitct_app.pacs import PacsError, PacsNode
 
     try:

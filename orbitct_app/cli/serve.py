@@ -44,7 +44,7 @@ class SignalAwareServer(uvicorn.Server):
         super().handle_exit(sig, frame)
 
 
-def _settings(**kwargs: object):  # type: ignore[no-untyped-def]
+def _settings(**kwargs: object):
     from orbitct_app.service.core.settings import load_settings
 
     settings_file = kwargs.pop("settings_file", None)
@@ -186,7 +186,7 @@ def token() -> None:
     """Manage bearer tokens (only their SHA-256 hashes are stored)."""
 
 
-def _token_file_options(fn):  # type: ignore[no-untyped-def]
+def _token_file_options(fn):
     fn = click.option(
         "--tokens-file",
         type=click.Path(dir_okay=False, path_type=Path),

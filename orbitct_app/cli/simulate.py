@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from orbitct_app.cli.progress import ProgressBar
 from orbitct_app.cli.values import SEED, FiniteFloat
+
+if TYPE_CHECKING:
+    from orbitct.phantoms.phantom import Phantom
 
 
 @click.command()
@@ -86,7 +89,7 @@ def simulate(
         orbit = resolve_orbit(experiment, orbit_name, frames, **parse_params(params))
     except OrbitError as exc:
         raise click.UsageError(str(exc)) from None
-    phantom: object = experiment.upper()
+    phantom: str | Phantom = experiment.upper()
     if bbs_from is not None:
         phantom = _planned_phantom(experiment.upper(), seed, bbs_from)
     with ProgressBar() as bar:
@@ -110,7 +113,7 @@ def simulate(
     )
 
 
-def _planned_phantom(experiment: str, seed: int, plan: Path) -> object:
+def _planned_phantom(experiment: str, seed: int, plan: Path) -> Phantom:
     """The experiment's object with the BBs of a plan (JSON of ``orbitct plan bbs``)."""
     from orbitct.phantoms.experiments import experiment_phantom
     from orbitct_app.bbplan import BBPlanError, read_bb_plan

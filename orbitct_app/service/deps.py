@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Annotated
 
 from fastapi import Depends, HTTPException, Request
@@ -20,7 +20,7 @@ _bearer = HTTPBearer(auto_error=False, description="token from `orbitct token cr
 
 async def get_service(request: Request) -> Service:
     """The running service (settings, store, bench, jobs, events)."""
-    return request.app.state.service  # type: ignore[no-any-return]
+    return request.app.state.service
 
 
 ServiceDep = Annotated["Service", Depends(get_service)]
@@ -53,7 +53,7 @@ async def get_principal(
     return principal
 
 
-def require(permission: str) -> Callable[..., Principal]:
+def require(permission: str) -> Callable[..., Awaitable[Principal]]:
     """A dependency that lets through only roles granting ``permission`` (403 otherwise)."""
 
     async def _check(principal: Annotated[Principal, Depends(get_principal)]) -> Principal:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from devices.twins.gcs.controller import GcsController
@@ -11,7 +12,10 @@ from devices.twins.gcs.server import GcsTwin
 from devices.twins.runtime import TwinThread
 from devices.twins.world import get_world
 
-CONTROLLERS: dict[str, type[GcsController]] = {"hexapod": HexapodController, "rotation_stage": RotationStageController}
+CONTROLLERS: dict[str, Callable[..., GcsController]] = {
+    "hexapod": HexapodController,
+    "rotation_stage": RotationStageController,
+}
 
 
 def make_controller(kind: str, world: str | None = "bench", **options: Any) -> GcsController:
@@ -20,7 +24,7 @@ def make_controller(kind: str, world: str | None = "bench", **options: Any) -> G
         cls = CONTROLLERS[kind.replace("-", "_")]
     except KeyError:
         raise ValueError(f"GCS twin kind must be one of {sorted(CONTROLLERS)}, got {kind!r}") from None
-    return cls(get_world(world) if world else None, **options)  # type: ignore[call-arg]
+    return cls(get_world(world) if world else None, **options)
 
 
 def start_twin(

@@ -14,7 +14,7 @@ import time
 from collections.abc import Sequence
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 
 def profile_fraction(t: float, distance: float, v_max: float, accel: float) -> tuple[float, float]:
@@ -91,15 +91,15 @@ class LinearMotion:
         """Per axis: reached the target (within one nanometre or micro-degree)."""
         return np.abs(self.position(now) - self.target) < 1e-9
 
-    def start_move(self, target: Sequence[float], speed: Sequence[float], accel: Sequence[float]) -> float:
+    def start_move(self, target: ArrayLike, speed: ArrayLike, accel: ArrayLike) -> float:
         """Begin a synchronised move to ``target``; returns its duration (simulation seconds)."""
         now = self.now()
         start = self.position(now)
-        target = np.asarray(target, dtype=float)
-        step = target - start
+        goal = np.array(target, dtype=float)
+        step = goal - start
         moved = np.abs(step) > 1e-12
         self.last_direction = np.where(moved, np.sign(step), self.last_direction)
-        self._start, self.target = start, target.copy()
+        self._start, self.target = start, goal
         self._speed = np.maximum(np.asarray(speed, dtype=float), 1e-9)
         self._accel = np.maximum(np.asarray(accel, dtype=float), 1e-9)
         dist = float(np.max(np.abs(step) / self._speed))

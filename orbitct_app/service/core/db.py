@@ -80,7 +80,7 @@ class StoreUnavailable(StoreError):
         self.disk_full = disk_full
 
 
-def _unavailable(path: Path, exc: sqlite3.Error) -> StoreUnavailable:
+def _unavailable(path: Path, exc: sqlite3.Error | OSError) -> StoreUnavailable:
     """The sentence for a database write that failed for a cause outside the service."""
     text = str(exc).lower()
     if "disk is full" in text or getattr(exc, "sqlite_errorcode", None) == 13:
@@ -201,7 +201,7 @@ class Store:
                 return self._conn().execute(sql, args).rowcount
         except (sqlite3.Error, OSError) as exc:
             if _is_outside_cause(exc):
-                raise _unavailable(self.path, exc) from None  # type: ignore[arg-type]
+                raise _unavailable(self.path, exc) from None
             raise
 
     # ---------------------------------------------------------------- scans
@@ -424,7 +424,7 @@ class Store:
                 with self._kept_lock:
                     self.write_problem = (
                         str(exc) if isinstance(exc, StoreUnavailable) else str(_unavailable(self.path, exc))
-                    )  # type: ignore[arg-type]
+                    )
                 continue
             with self._kept_lock:
                 if self._kept or self._kept_log:

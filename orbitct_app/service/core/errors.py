@@ -8,6 +8,7 @@ import logging
 import re
 import sqlite3
 import uuid
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -143,7 +144,7 @@ def _field_name(loc: tuple[Any, ...] | list[Any]) -> str:
     return ".".join(parts) or "body"
 
 
-def _problem(e: dict[str, Any]) -> FieldProblem:
+def _problem(e: Mapping[str, Any]) -> FieldProblem:
     if e.get("type") == "json_invalid":  # the location is a character position, not a field
         loc = list(e.get("loc", ()))
         at = f" at character {loc[-1]}" if loc and isinstance(loc[-1], int) else ""
@@ -152,7 +153,7 @@ def _problem(e: dict[str, Any]) -> FieldProblem:
     return FieldProblem(field=_field_name(e.get("loc", ())), reason=str(e.get("msg", "invalid"))[:300])
 
 
-def validation_details(errors: list[dict[str, Any]]) -> list[FieldProblem]:
+def validation_details(errors: Sequence[Mapping[str, Any]]) -> list[FieldProblem]:
     """Field and reason for each pydantic error (no input echo beyond the message)."""
     return [_problem(e) for e in errors]
 

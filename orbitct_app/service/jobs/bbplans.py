@@ -130,7 +130,7 @@ class PlanQueue:
     def state(self, plan_id: str) -> dict[str, Any] | None:
         """A plan's state record while it waits or is made, or once it failed or was cancelled; None otherwise."""
         try:
-            return json.loads(self._state_path(plan_id).read_text())  # type: ignore[no-any-return]
+            return json.loads(self._state_path(plan_id).read_text())
         except (OSError, ValueError):
             return None
 

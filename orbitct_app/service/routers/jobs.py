@@ -86,7 +86,7 @@ def get_log(
 )
 def job_events(
     job_id: str, service: ServiceDep, _: Reader, last_event_id: Annotated[str | None, Header(max_length=20)] = None
-):  # type: ignore[no-untyped-def]
+):
     """Events ``state``, ``progress`` and a final ``end``, in order; resumes after ``Last-Event-ID``."""
     job_or_404(service, job_id)
     return sse_response(service.bus, f"job:{job_id}", last_event_id)

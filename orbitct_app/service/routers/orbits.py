@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import io
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from fastapi import APIRouter, Response
@@ -20,7 +20,10 @@ from orbitct_app.service.core.errors import (
 from orbitct_app.service.deps import Reader
 
 router = APIRouter(prefix="/orbits", tags=["orbits"], responses=ERROR_RESPONSES)
-OrbitKind = Literal[tuple(ORBIT_KINDS)]  # type: ignore[valid-type]
+if TYPE_CHECKING:
+    OrbitKind = str
+else:
+    OrbitKind = Literal[tuple(ORBIT_KINDS)]  # the registered kinds, checked by the request models
 PREVIEW_MAX_FRAMES = 20_000
 
 

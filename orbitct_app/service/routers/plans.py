@@ -267,16 +267,16 @@ def list_plans(service: ServiceDep, _: Reader) -> list[BBPlanSummary]:
     return [s for _, s in sorted(listed, key=lambda x: x[0], reverse=True)]
 
 
-def _plan_or_state(service: Any, plan_id: str) -> tuple[Path | None, dict[str, Any] | None]:
+def _plan_or_state(service: Any, plan_id: str) -> Path | dict[str, Any]:
     """The done plan's JSON file, or else its state record (waiting, being made, failed, cancelled); 404 when
     neither."""
     if _PLAN_ID.fullmatch(plan_id):
         path = plan_path(service.plans.folder, plan_id)
         if path.is_file():
-            return path, None
-        state = service.plans.state(plan_id)
+            return path
+        state: dict[str, Any] | None = service.plans.state(plan_id)
         if state is not None:
-            return None, state
+            return state
     raise NotFound(f"no BB plan {plan_id!r}")
 
 
@@ -284,8 +284,8 @@ def _plan_or_state(service: Any, plan_id: str) -> tuple[Path | None, dict[str, A
 def get_plan(plan_id: str, service: ServiceDep, _: Reader) -> dict[str, Any]:
     """The plan as it was made (``state`` done): BBs (object frame, and angle/height on the object), predictions
     per view; while it is made, or when it failed or was cancelled, its state record (``reason``)."""
-    path, state = _plan_or_state(service, plan_id)
-    return state if path is None else {"id": plan_id, "state": "done", **json.loads(path.read_text())}
+    found = _plan_or_state(service, plan_id)
+    return found if isinstance(found, dict) else {"id": plan_id, "state": "done", **json.loads(found.read_text())}
 
 
 @router.get(
@@ -297,14 +297,14 @@ def get_plan(plan_id: str, service: ServiceDep, _: Reader) -> dict[str, Any]:
 def get_picture(plan_id: str, service: ServiceDep, _: Reader) -> FileResponse:
     """The object with the numbered BBs, the BBs on the unrolled surface (keep-out zones grey), and BBs and
     predicted error per view along the orbit."""
-    path, state = _plan_or_state(service, plan_id)
-    if path is None:
-        reason = f": {state['reason']}" if state.get("reason") else ""  # type: ignore[union-attr]
+    found = _plan_or_state(service, plan_id)
+    if isinstance(found, dict):
+        reason = f": {found['reason']}" if found.get("reason") else ""
         raise Conflict(
-            f"plan {plan_id} is {state['state']}{reason}",  # type: ignore[index]
+            f"plan {plan_id} is {found['state']}{reason}",
             advice="its picture exists once it is done (GET /plans/bbs/{id})",
         )
-    return FileResponse(path.with_suffix(".png"), media_type="image/png")
+    return FileResponse(found.with_suffix(".png"), media_type="image/png")
 
 
 @router.post(
@@ -316,11 +316,13 @@ def get_picture(plan_id: str, service: ServiceDep, _: Reader) -> FileResponse:
 )
 def cancel_plan(plan_id: str, service: ServiceDep, who: Analyst) -> PlanStateOut:
     """Stop a plan waiting or being made; it ends ``cancelled``."""
-    path, _ = _plan_or_state(service, plan_id)
-    if path is not None:
+    if isinstance(_plan_or_state(service, plan_id), Path):
         raise Conflict(f"plan {plan_id} is already done", advice="there is nothing to cancel")
     try:
         service.plans.cancel(plan_id, who.name)
     except PlanEnded as exc:
         raise Conflict(str(exc), advice="there is nothing to cancel") from None
-    return PlanStateOut(**service.plans.state(plan_id))
+    state = service.plans.state(plan_id)
+    if state is None:  # done meanwhile
+        raise Conflict(f"plan {plan_id} is already done", advice="there is nothing to cancel")
+    return PlanStateOut(**state)

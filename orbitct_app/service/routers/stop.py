@@ -163,7 +163,7 @@ async def reset(service: ServiceDep, who: Resetter, body: ResetRequest | None = 
         }
     },
 )
-def stop_events(service: ServiceDep, _: Reader, last_event_id: Annotated[str | None, Header(max_length=20)] = None):  # type: ignore[no-untyped-def]
+def stop_events(service: ServiceDep, _: Reader, last_event_id: Annotated[str | None, Header(max_length=20)] = None):
     """First ``latch`` (the latch as ``GET /stop`` gives it, without an id), then the events ``stop`` (with what was
     verified) and ``reset`` (who, when), in order; resumes after ``Last-Event-ID``. The stream stays open."""
     return sse_response(service.bus, TOPIC, last_event_id, first=("latch", service.estop.state()))

@@ -245,7 +245,7 @@ class StopLatch:
             problem = self.record_problem
         latched = self.latched
         if latched and not data.get("latched"):  # latched by another process that could not write the file yet
-            note = getattr(self.flag, "read_note", dict)()
+            note: dict[str, Any] = getattr(self.flag, "read_note", dict)()
             data = {**data, **{k: v for k, v in note.items() if v}}
         data["latched"] = latched
         if problem is None and bool(on_disk.get("latched")) != latched:
