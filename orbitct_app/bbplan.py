@@ -5,6 +5,7 @@ picture."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -14,12 +15,10 @@ from typing import Any
 import numpy as np
 
 from orbitct.progress import ProgressCallback
+from orbitct_app.bbplan_options import MAX_BBS, MOTION_ERRORS, BBPlanOptions, checked_plan_options
 
-MAX_BBS = 40
 #: samples of the orbit's motion errors a BB must be usable in (besides the nominal views) to count in a view
 MOTION_SAMPLES = 3
-#: the error profiles a plan may expect of its orbit (``orbitct.errorprofiles``)
-MOTION_ERRORS = ("none", "bench")
 
 
 class BBPlanError(ValueError):
@@ -42,6 +41,46 @@ class BBPlanRequest:
     max_bbs: int = 20
     surface: Any = None  # calib.surfaces.TapeSurface (load_surface); None: the experiment's cylinder
     errors: str = "none"  # the orbit's expected motion errors: an error profile's name (bench, none)
+
+    @classmethod
+    def from_options(cls, options: BBPlanOptions, surface: Any = None) -> BBPlanRequest:
+        """The request of checked ``options`` on ``surface`` (None: the experiment's cylinder)."""
+        from calib.plan import KeepOut
+
+        return cls(
+            experiment=options.experiment,
+            orbit=options.orbit,
+            frames=options.frames,
+            n_bbs=options.bbs,
+            detector_px=options.detector_px,
+            noise_px=options.noise_px,
+            seed=options.seed,
+            keep_out=tuple(KeepOut(**zone.model_dump()) for zone in options.keep_out),
+            target_px=options.target_px,
+            max_bbs=options.max_bbs,
+            surface=surface,
+            errors=options.errors,
+        )
+
+    def options(self) -> BBPlanOptions:
+        """The plan's options, checked by :class:`~orbitct_app.bbplan_options.BBPlanOptions` (BBPlanError naming
+        each one that is wrong)."""
+        try:
+            return checked_plan_options(
+                experiment=self.experiment,
+                orbit=self.orbit,
+                frames=self.frames,
+                bbs=self.n_bbs,
+                target_px=self.target_px,
+                max_bbs=self.max_bbs,
+                keep_out=[dataclasses.asdict(zone) for zone in self.keep_out],
+                detector_px=self.detector_px,
+                errors=self.errors,
+                noise_px=self.noise_px,
+                seed=self.seed,
+            )
+        except ValueError as exc:
+            raise BBPlanError(str(exc)) from None
 
 
 @dataclass
@@ -81,6 +120,7 @@ def check_bb_plan_request(req: BBPlanRequest) -> dict[str, Any]:
     wrong."""
     from calib.plan import check_room
 
+    req.options()
     key, orbit, surface = _resolve(req)
     try:
         check_room(surface, req.keep_out)
@@ -107,6 +147,7 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
     from orbitct.phantoms.experiments import experiment_phantom
     from orbitct.simulator.bench import SimulatedBench
 
+    req.options()
     key, orbit, surface = _resolve(req)
     phantom = experiment_phantom(key)
     d = float(phantom.marker_diameter_mm or 3.0)

@@ -3,6 +3,7 @@ because all three are made from (or validated by) the same pydantic model."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -359,3 +360,111 @@ def test_a_scan_refusal_names_the_option() -> None:
         checked_scan_options(orbit="spiral")
     with pytest.raises(AcquireError, match=r"^colour: unknown option; allowed are orbit, orbit_params"):
         checked_scan_options(colour="red")
+
+
+# a BB plan: (options as Python takes them, whether they are acceptable); experiment A unless given
+PLAN_CASES: list[tuple[dict[str, Any], bool]] = [
+    ({}, True),
+    ({"experiment": "b", "orbit": "circular", "frames": 90}, True),
+    ({"experiment": "D"}, False),
+    ({"frames": 1}, False),
+    ({"frames": 5000}, True),
+    ({"frames": 5001}, False),
+    ({"bbs": 3}, False),
+    ({"bbs": 40}, True),
+    ({"bbs": 41}, False),
+    ({"target_px": 0.0}, False),
+    ({"target_px": 10.0, "max_bbs": 12}, True),
+    ({"target_px": 10.5}, False),
+    ({"max_bbs": 41}, False),
+    ({"detector_px": 7}, False),
+    ({"detector_px": 4096}, True),
+    ({"errors": "bench", "noise_px": 5.0, "seed": 2**32 - 1}, True),
+    ({"errors": "sometimes"}, False),
+    ({"noise_px": 0.0}, False),
+    ({"noise_px": 5.5}, False),
+    ({"seed": 2**32}, False),
+    ({"keep_out": [{"angle_from_deg": 300.0, "angle_to_deg": 60.0, "z_min_mm": -20.0, "z_max_mm": 10.0}]}, True),
+    ({"keep_out": [{"angle_from_deg": 10.0, "angle_to_deg": 20.0, "z_min_mm": 5.0, "z_max_mm": 5.0}]}, False),
+    ({"keep_out": [{"angle_from_deg": 10.0, "angle_to_deg": 20.0, "z_min_mm": 0.0, "z_max_mm": 1001.0}]}, False),
+    ({"surface_threshold_per_mm": 0.02}, True),
+    ({"surface_threshold_per_mm": 0.0}, False),
+]
+
+
+def plan_python_accepts(values: dict[str, Any]) -> bool:
+    from calib.plan import KeepOut
+    from orbitct_app.bbplan import BBPlanError, BBPlanRequest
+
+    options = {"experiment": "A", **values}
+    options.pop("surface_threshold_per_mm", None)  # Python gives the surface itself
+    threshold = values.get("surface_threshold_per_mm")
+    zones = tuple(KeepOut(**z) for z in options.pop("keep_out", []))
+    try:
+        if threshold is not None:
+            from orbitct_app.bbplan_options import checked_plan_options
+
+            checked_plan_options(experiment="A", surface_threshold_per_mm=threshold)
+        BBPlanRequest(**{("n_bbs" if k == "bbs" else k): v for k, v in options.items()}, keep_out=zones).options()
+    except (BBPlanError, ValueError):
+        return False
+    return True
+
+
+def plan_rest_accepts(values: dict[str, Any]) -> bool:
+    from orbitct_app.service.routers.plans import BBPlanIn
+
+    try:
+        BBPlanIn.model_validate_json(json.dumps({"experiment": "A", **values}))
+    except ValidationError:
+        return False
+    return True
+
+
+def plan_cli_accepts(values: dict[str, Any], tmp_path: Path) -> bool:
+    """Parse as ``orbitct plan bbs ...`` does, then validate as the command does (nothing is planned)."""
+    from orbitct_app.bbplan_options import BBPlanOptions
+    from orbitct_app.cli.plan import FLAGS as PLAN_FLAGS
+    from orbitct_app.cli.plan import bbs
+
+    words = ["--experiment", values.get("experiment", "A"), "--out", str(tmp_path / "plan.json")]
+    for name, value in values.items():
+        if name == "keep_out":
+            for z in value:
+                text = f"{z['angle_from_deg']}:{z['angle_to_deg']},{z['z_min_mm']}:{z['z_max_mm']}"
+                words += ["--keep-out", text]
+        elif name != "experiment":
+            words += [flag_of(name, PLAN_FLAGS), str(value)]
+    try:
+        ctx = bbs.make_context("bbs", words)
+        given = {k: v for k, v in ctx.params.items() if k in BBPlanOptions.model_fields}
+        zones = [dataclasses.asdict(z) for z in ctx.params["keep_out"]]
+        model_from(BBPlanOptions, {**given, "keep_out": zones}, flags=PLAN_FLAGS)
+    except click.UsageError:
+        return False
+    return True
+
+
+@pytest.mark.parametrize(("values", "acceptable"), PLAN_CASES, ids=[json.dumps(v) for v, _ in PLAN_CASES])
+def test_a_bb_plan_gets_the_same_answer_everywhere(values: dict[str, Any], acceptable: bool, tmp_path: Path) -> None:
+    answers = {
+        "python": plan_python_accepts(values),
+        "rest": plan_rest_accepts(values),
+        "cli": plan_cli_accepts(values, tmp_path),
+    }
+    assert answers == dict.fromkeys(answers, acceptable), answers
+
+
+def test_every_bb_plan_option_is_in_every_interface() -> None:
+    from orbitct_app.bbplan_options import BBPlanOptions
+    from orbitct_app.cli.plan import bbs
+    from orbitct_app.reference_pages import openapi_document
+    from orbitct_app.service.routers.plans import BBPlanIn
+
+    fields = set(BBPlanOptions.model_fields)
+    assert fields - {p.name for p in bbs.params} == set()
+    body = set(openapi_document()["components"]["schemas"]["BBPlanIn"]["properties"])
+    assert body - fields == {"surface_id", "surface_reconstruction_id", "surface_shape"}  # where the surface is
+    assert fields - body == set()
+    rest = BBPlanIn.model_validate_json('{"experiment": "A"}')
+    assert rest.model_dump(include=fields) == BBPlanOptions(experiment="A").model_dump()

@@ -13,13 +13,13 @@ from fastapi.responses import FileResponse
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from orbitct_app.bbplan import (
-    MAX_BBS,
     BBPlanError,
     BBPlanRequest,
     check_bb_plan_request,
     load_surface,
     outline_from_volume,
 )
+from orbitct_app.bbplan_options import BBPlanOptions
 from orbitct_app.service.core.errors import (
     ERROR_RESPONSES,
     Conflict,
@@ -38,35 +38,9 @@ _PLAN_ID = re.compile(r"[0-9a-f]{12}")
 router = APIRouter(prefix="/plans/bbs", tags=["plans"], responses=ERROR_RESPONSES)
 
 
-class KeepOutIn(BaseModel):
-    """A patch of the object's surface without BBs: polar angles (deg, counterclockwise from +x; through 0 when
-    ``angle_to_deg < angle_from_deg``; 0 to 360: the whole turn) between two heights (mm)."""
-
-    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
-    angle_from_deg: float = Field(ge=0.0, lt=360.0)
-    angle_to_deg: float = Field(
-        ge=0.0,
-        le=360.0,
-        description="not the same angle as angle_from_deg (only 0 to 360 "
-        "makes the whole turn); checked by the service, 422 otherwise",
-    )
-    z_min_mm: float = Field(ge=-1000.0, le=1000.0, description="below z_max_mm (checked by the service, 422 otherwise)")
-    z_max_mm: float = Field(ge=-1000.0, le=1000.0)
-
-    @model_validator(mode="after")
-    def _heights(self) -> KeepOutIn:
-        if not self.z_min_mm < self.z_max_mm:
-            raise ValueError(f"z_min_mm ({self.z_min_mm:g}) must be below z_max_mm ({self.z_max_mm:g})")
-        if self.angle_from_deg == self.angle_to_deg % 360.0 and self.angle_to_deg - self.angle_from_deg != 360.0:
-            raise ValueError(
-                f"angle_from_deg and angle_to_deg ({self.angle_from_deg:g}) make no patch; the whole turn is 0 to 360"
-            )
-        return self
-
-
-class BBPlanIn(BaseModel):
-    """What to plan: the object and default orbit of an experiment, the orbit, the panel, how many BBs (or the
-    accuracy to reach with as few as possible), where not to put them, and the detection's centroid noise."""
+class BBPlanIn(BBPlanOptions):
+    """A plan (:class:`orbitct_app.bbplan_options.BBPlanOptions`) on the experiment's surface, an uploaded mesh, a
+    reconstruction of the object or a shape."""
 
     model_config = ConfigDict(
         extra="forbid",
@@ -85,33 +59,12 @@ class BBPlanIn(BaseModel):
         ),
     )
 
-    experiment: Literal["A", "B", "C"]
-    orbit: str | None = Field(default=None, max_length=40, pattern=r"^[a-z_-]+$")
-    frames: int | None = Field(default=None, ge=2, le=5000)
-    bbs: int = Field(default=8, ge=4, le=MAX_BBS)
-    target_px: float | None = Field(
-        default=None, gt=0.0, le=10.0, description="plan the fewest BBs whose every view is predicted within this (px)"
-    )
-    max_bbs: int = Field(default=20, ge=4, le=MAX_BBS)
-    keep_out: list[KeepOutIn] = Field(default_factory=list, max_length=20)
-    detector_px: int = Field(default=768, ge=8, le=4096)
-    errors: Literal["none", "bench"] = Field(
-        default="none",
-        description="the orbit's expected motion errors (an "
-        "error profile): a BB counts in a view only where it stays usable in "
-        "three samples of it",
-    )
-    noise_px: float = Field(default=0.1, gt=0.0, le=5.0)
-    seed: int = Field(default=0, ge=0, le=2**31)
     surface_reconstruction_id: str | None = Field(
         default=None,
         min_length=1,
         max_length=64,
         pattern=r"^[A-Za-z0-9_-]+$",
         description="plan on the object's real outer surface: a succeeded reconstruction of it (a prior volume)",
-    )
-    surface_threshold_per_mm: float | None = Field(
-        default=None, gt=0.0, le=10.0, description="its object/air threshold (default: Otsu's)"
     )
     surface_id: str | None = Field(
         default=None, pattern=r"^[0-9a-f]{12}$", description="plan on an uploaded surface mesh (POST /surfaces)"
@@ -196,7 +149,6 @@ def create_plan(body: BBPlanIn, service: ServiceDep, response: Response, who: An
     the background (seconds; with ``target_px``, minutes). Poll ``GET /plans/bbs/{id}`` until its ``state`` is
     ``done`` (the plan, the experiment's own placement beside it, warnings for views left under-determined),
     ``failed`` (with the reason) or ``cancelled``."""
-    from calib.plan import KeepOut
 
     surface = None
     if body.surface_reconstruction_id is not None:
@@ -222,20 +174,7 @@ def create_plan(body: BBPlanIn, service: ServiceDep, response: Response, who: An
             surface = load_surface(body.surface_shape)
         except BBPlanError as exc:
             raise Invalid(str(exc)) from None
-    request = BBPlanRequest(
-        experiment=body.experiment,
-        orbit=body.orbit,
-        frames=body.frames,
-        n_bbs=body.bbs,
-        detector_px=body.detector_px,
-        noise_px=body.noise_px,
-        seed=body.seed,
-        keep_out=tuple(KeepOut(**z.model_dump()) for z in body.keep_out),
-        target_px=body.target_px,
-        max_bbs=body.max_bbs,
-        surface=surface,
-        errors=body.errors,
-    )
+    request = BBPlanRequest.from_options(body, surface)
     try:
         asked = check_bb_plan_request(request)
     except BBPlanError as exc:

@@ -22,7 +22,7 @@ PLAN = ["plan", "bbs", "-e", "A", "--frames", "10", "--detector-size", "32"]
         (SIM + ["--seed", "-1"], "'--seed': -1 is not in the range 0<=x<=4294967295"),
         (PLAN + ["--target-px", "nan"], "'--target-px': 'nan' is not a finite number"),
         (PLAN + ["--noise-px", "inf"], "'--noise-px': 'inf' is not a finite number"),
-        (PLAN + ["--seed", "-3"], "'--seed'"),
+        (PLAN + ["--seed", "-3"], "--seed: Input should be greater than or equal to 0"),
         (["calibrate", "x.h5", "--diameter-mm", "nan"], "'--diameter-mm': 'nan' is not a finite number"),
         (["demo", "--seed", "-1"], "'--seed'"),
         (["scan", "--frame-rate", "nan"], "'--frame-rate': 'nan' is not a finite number"),
@@ -56,4 +56,5 @@ def test_help_shows_no_range_for_an_unbounded_number() -> None:
     ):
         r = CliRunner().invoke(cli, command, terminal_width=200)
         assert r.exit_code == 0 and "None]" not in r.output, r.output
-    assert "[x>0.0]" in CliRunner().invoke(cli, ["plan", "bbs", "--help"], terminal_width=200).output  # bounded: shown
+    plan_help = CliRunner().invoke(cli, ["plan", "bbs", "--help"], terminal_width=200).output
+    assert "[default: 0.1; >0.0; <=5.0]" in plan_help  # --noise-px is bounded: its range is shown
