@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
 
 from orbitct import __version__
 from orbitct.dicom import ENTIRE_BODY, new_instance, sequence_item
@@ -23,6 +24,29 @@ from recon.errors import ReconError
 
 WATER_MU_PER_MM = 0.0206  # the simulator's water at its effective energy (orbitct.phantoms.materials)
 HU_RANGE = (-1024, 32767)
+
+
+class DicomSeriesOptions(BaseModel):
+    """How a reconstruction is written as DICOM: the Hounsfield scale, the patient and study fields, and one
+    Enhanced CT object or one CT image per slice. ``orbitct export dicom`` makes its options from it, and the REST
+    service's ``GET /reconstructions/{id}/dicom`` and ``POST /pacs/{node}/store`` take it."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    water_mu_per_mm: float | None = Field(
+        None,
+        gt=0.0,
+        le=10.0,
+        description=f"attenuation of water (1/mm) for Hounsfield units (default {WATER_MU_PER_MM}, the simulator's)",
+    )
+    patient_name: str = Field("", max_length=64, pattern=r"^[^\\\x00-\x1f]*$", description="DICOM Patient's Name")
+    patient_id: str = Field(
+        "", max_length=64, pattern=r"^[\w .-]*$", description="DICOM Patient ID (default: the scan's name)"
+    )
+    study_description: str = Field(
+        "", max_length=64, pattern=r"^[^\\\x00-\x1f]*$", description="DICOM Study Description"
+    )
+    enhanced: bool = Field(False, description="one multi-frame Enhanced CT object instead of one CT image per slice")
 
 
 @dataclass(frozen=True)
@@ -37,6 +61,20 @@ class SeriesInfo:
     series_number: int = 1
     water_mu_per_mm: float = WATER_MU_PER_MM
     comments: str = ""  # a caveat every image carries (ImageComments)
+
+    @classmethod
+    def from_options(
+        cls, options: DicomSeriesOptions, *, description: str, patient_id: str, comments: str = ""
+    ) -> SeriesInfo:
+        """The series of ``options`` (``patient_id``: the one to use when the options give none)."""
+        return cls(
+            description=description,
+            patient_name=options.patient_name,
+            patient_id=options.patient_id or patient_id[:64],
+            study_description=options.study_description,
+            water_mu_per_mm=options.water_mu_per_mm or WATER_MU_PER_MM,
+            comments=comments,
+        )
 
 
 def to_hounsfield(volume: NDArray[np.floating], water_mu_per_mm: float) -> NDArray[np.int16]:

@@ -5,12 +5,14 @@ geometry for other reconstruction toolkits."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import click
 
 from orbitct_app.cli.export_toolkit import TOOLKIT_COMMANDS
 from orbitct_app.cli.failure import Failure
-from orbitct_app.cli.values import FiniteFloat
+from orbitct_app.cli.model_options import model_from, options_from
+from recon.dicom import DicomSeriesOptions
 
 
 @click.group()
@@ -32,43 +34,17 @@ for _command in TOOLKIT_COMMANDS:
     type=click.Path(file_okay=False, path_type=Path),
     help="Folder for the series (one CT000001.dcm ... per axial slice); created if needed, must be empty.",
 )
-@click.option(
-    "--water-mu-per-mm",
-    type=FiniteFloat(min=1e-6, max=10.0),
-    default=None,
-    help="Attenuation of water at the scan's effective energy (HU = 1000 (mu - water) / water; default "
-    "0.0206 1/mm, the simulator's water).",
-)
-@click.option("--patient-name", default="", help="DICOM Patient's Name (default empty).")
-@click.option("--patient-id", default="", help="DICOM Patient ID (default: the scan file's name).")
-@click.option("--study-description", default="", help="DICOM Study Description.")
-@click.option(
-    "--enhanced",
-    is_flag=True,
-    help="One multi-frame Enhanced CT object (OUT/CT_ENHANCED.dcm) instead of one CT image per slice.",
-)
-def dicom(
-    scan: Path,
-    name: str,
-    out_dir: Path,
-    water_mu_per_mm: float | None,
-    patient_name: str,
-    patient_id: str,
-    study_description: str,
-    enhanced: bool,
-) -> None:
+@options_from(DicomSeriesOptions)
+def dicom(scan: Path, name: str, out_dir: Path, **given: Any) -> None:
     """Export reconstruction NAME of SCAN as a CT series (or one Enhanced CT object) in Hounsfield units (the object
     frame as patient frame)."""
     from orbitct.geometry import VolumeGrid
     from orbitct.scanfile import ScanFile, ScanFileError
     from orbitct.scanfile.xa import patient_sides_caveat
-    from recon.dicom import (
-        WATER_MU_PER_MM,
-        SeriesInfo,
-        export_dicom_ct,
-        export_enhanced_ct,
-    )
+    from recon.dicom import SeriesInfo, export_dicom_ct, export_enhanced_ct
     from recon.errors import ReconError
+
+    options = model_from(DicomSeriesOptions, given)
 
     if out_dir.exists() and any(out_dir.iterdir()):
         raise Failure(f"{out_dir} is not empty", "conflict", "give a new or empty folder for the series")
@@ -84,25 +60,20 @@ def dicom(
     provenance = f"{str(attrs.get('algorithm', '?')).upper()} {geometry} geometry"
     if geometry == "calibrated" and calibrated:
         provenance += " (BB calibration)"
-    info = SeriesInfo(
-        description=f"orbitct {name}: {provenance}",
-        patient_name=patient_name,
-        patient_id=patient_id or scan.stem[:64],
-        study_description=study_description,
-        water_mu_per_mm=water_mu_per_mm or WATER_MU_PER_MM,
-        comments=caveat,
+    info = SeriesInfo.from_options(
+        options, description=f"orbitct {name}: {provenance}", patient_id=scan.stem, comments=caveat
     )
     if caveat:
         click.echo(f"warning: {caveat} (in every image's ImageComments)", err=True)
     try:
-        if enhanced:
+        if options.enhanced:
             path = export_enhanced_ct(volume, grid, out_dir / "CT_ENHANCED.dcm", info)
         else:
             files = export_dicom_ct(volume, grid, out_dir, info)
     except ReconError as exc:
         raise click.ClickException(str(exc)) from None
     nz, ny, nx = volume.shape
-    if enhanced:
+    if options.enhanced:
         click.echo(f"wrote {path}: one Enhanced CT object of {nz} frames of {nx}x{ny} px: {info.description}")
         return
     click.echo(

@@ -6,10 +6,11 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import click
 import pytest
+from fastapi import FastAPI, Query
 from pydantic import BaseModel, ValidationError
 
 from calib.errors import OptionError
@@ -21,6 +22,7 @@ from orbitct_app.cli.reconstruct import FLAGS, reconstruct
 from orbitct_app.service.routers.calibrations import CalibrationRequest
 from orbitct_app.service.routers.reconstructions import ReconstructionRequest
 from recon import ReconError, ReconstructionOptions
+from recon.dicom import DicomSeriesOptions
 from recon.pipeline import checked_options
 
 SCAN_ID = "a1b2c3d4e5f60718"
@@ -468,3 +470,93 @@ def test_every_bb_plan_option_is_in_every_interface() -> None:
     assert fields - body == set()
     rest = BBPlanIn.model_validate_json('{"experiment": "A"}')
     assert rest.model_dump(include=fields) == BBPlanOptions(experiment="A").model_dump()
+
+
+# a DICOM export: (options as Python takes them, whether they are acceptable)
+DICOM_CASES: list[tuple[dict[str, Any], bool]] = [
+    ({}, True),
+    ({"water_mu_per_mm": 0.019, "patient_name": "Phantom^Leg", "patient_id": "leg 1", "enhanced": True}, True),
+    ({"water_mu_per_mm": 0.0}, False),
+    ({"water_mu_per_mm": 10.5}, False),
+    ({"patient_id": "leg/1"}, False),
+    ({"patient_id": "x" * 65}, False),
+    ({"patient_name": "Phantom\\Leg"}, False),  # a backslash separates DICOM values
+    ({"study_description": "knee, 500 views"}, True),
+    ({"study_description": "y" * 65}, False),
+]
+
+
+DOWNLOAD = FastAPI()
+
+
+@DOWNLOAD.get("/dicom")
+def _download(options: Annotated[DicomSeriesOptions, Query()]) -> dict[str, Any]:
+    """A route that reads its query as ``GET /reconstructions/{id}/dicom`` does."""
+    return options.model_dump()
+
+
+def dicom_cli_accepts(values: dict[str, Any], tmp_path: Path) -> bool:
+    """Parse as ``orbitct export dicom SCAN ...`` does, then validate as the command does (nothing is written)."""
+    from orbitct_app.cli.export import dicom
+    from recon.dicom import DicomSeriesOptions
+
+    scan = tmp_path / "scan.h5"
+    scan.touch()
+    words = [str(scan), "--recon", "fdk", "--out", str(tmp_path / "series")]
+    for name, value in values.items():
+        words += [flag_of(name, {})] if value is True else [flag_of(name, {}), str(value)]
+    try:
+        ctx = dicom.make_context("dicom", words)
+        model_from(DicomSeriesOptions, {k: v for k, v in ctx.params.items() if k in DicomSeriesOptions.model_fields})
+    except click.UsageError:
+        return False
+    return True
+
+
+@pytest.mark.parametrize(("values", "acceptable"), DICOM_CASES, ids=[json.dumps(v) for v, _ in DICOM_CASES])
+def test_a_dicom_export_gets_the_same_answer_everywhere(
+    values: dict[str, Any], acceptable: bool, tmp_path: Path
+) -> None:
+    from fastapi.testclient import TestClient
+
+    from orbitct_app.service.routers.pacs import SendRequest
+    from recon.dicom import DicomSeriesOptions
+
+    def python() -> bool:
+        try:
+            DicomSeriesOptions.model_validate(values)
+        except ValidationError:
+            return False
+        return True
+
+    def rest_store() -> bool:
+        try:
+            SendRequest.model_validate_json(json.dumps({"reconstruction_id": "r1", **values}))
+        except ValidationError:
+            return False
+        return True
+
+    def rest_download() -> bool:  # the query of GET /reconstructions/{id}/dicom, as FastAPI reads it
+        return TestClient(DOWNLOAD).get("/dicom", params=values).status_code == 200
+
+    answers = {
+        "python": python(),
+        "rest_store": rest_store(),
+        "rest_download": rest_download(),
+        "cli": dicom_cli_accepts(values, tmp_path),
+    }
+    assert answers == dict.fromkeys(answers, acceptable), answers
+
+
+def test_every_dicom_option_is_in_every_interface() -> None:
+    from orbitct_app.cli.export import dicom
+    from orbitct_app.reference_pages import openapi_document
+    from recon.dicom import DicomSeriesOptions
+
+    fields = set(DicomSeriesOptions.model_fields)
+    assert fields - {p.name for p in dicom.params} == set()
+    paths = openapi_document()["paths"]
+    query = {p["name"] for p in paths["/reconstructions/{job_id}/dicom"]["get"]["parameters"] if p["in"] == "query"}
+    assert query == fields
+    body = set(openapi_document()["components"]["schemas"]["SendRequest"]["properties"])
+    assert body - fields == {"reconstruction_id"} and fields - body == set()

@@ -24,6 +24,7 @@ from orbitct_app.service.core.errors import (
 from orbitct_app.service.core.files import summarize_scan
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
 from orbitct_app.service.routers.reconstructions import dicom_series
+from recon.dicom import DicomSeriesOptions
 
 router = APIRouter(
     prefix="/pacs",
@@ -78,14 +79,12 @@ class ImportOut(BaseModel):
     assumed: list[str]
 
 
-class SendRequest(BaseModel):
-    """Send a succeeded reconstruction to a node as a DICOM CT series (or one Enhanced CT object)."""
+class SendRequest(DicomSeriesOptions):
+    """Send a succeeded reconstruction to a node as a DICOM CT series (or one Enhanced CT object), written as
+    :class:`recon.dicom.DicomSeriesOptions` say."""
 
     model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
     reconstruction_id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")
-    water_mu_per_mm: float | None = Field(default=None, gt=0.0, le=10.0)
-    patient_id: str = Field(default="", max_length=64, pattern=r"^[\w .-]*$")
-    enhanced: bool = False
 
 
 class SendOut(BaseModel):
@@ -197,9 +196,8 @@ def store(node: str, body: SendRequest, service: ServiceDep, _: Analyst) -> Send
     stored on the node."""
     target = _node(service, node)
     with tempfile.TemporaryDirectory(dir=service.settings.data_dir) as tmp:
-        files = dicom_series(
-            service, body.reconstruction_id, Path(tmp) / "series", body.water_mu_per_mm, body.patient_id, body.enhanced
-        )
+        options = DicomSeriesOptions.model_validate(body.model_dump(exclude={"reconstruction_id"}))
+        files = dicom_series(service, body.reconstruction_id, Path(tmp) / "series", options)
         try:
             stored = send(files, target, service.settings.pacs_calling_aet)
         except PacsError as exc:

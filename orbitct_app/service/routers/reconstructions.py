@@ -23,6 +23,7 @@ from orbitct_app.service.core.files import confined
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
 from orbitct_app.service.routers.calibrations import ScanId, check_scan_ready, submit
 from orbitct_app.service.schemas import JobOut, job_or_404, job_out
+from recon.dicom import DicomSeriesOptions
 from recon.options import ReconstructionOptions
 
 router = APIRouter(prefix="/reconstructions", tags=["reconstructions"], responses=ERROR_RESPONSES)
@@ -220,35 +221,23 @@ def get_dicom(
     job_id: str,
     service: ServiceDep,
     _: Reader,
-    water_mu_per_mm: Annotated[
-        float | None,
-        Query(
-            gt=0.0,
-            le=10.0,
-            description="attenuation of water (1/mm) for Hounsfield units (default 0.0206, the simulator's)",
-        ),
-    ] = None,
-    patient_id: Annotated[str, Query(max_length=64, pattern=r"^[\w .-]*$")] = "",
-    enhanced: Annotated[bool, Query(description="one Enhanced CT object instead of one CT image per slice")] = False,
+    options: Annotated[DicomSeriesOptions, Query()],
 ) -> FileResponse:
     """One CT image per axial slice (or one multi-frame Enhanced CT object) in Hounsfield units, the object frame as
     the patient frame, fresh UIDs, the algorithm and geometry in the series description; zipped (written once per
     water value)."""
+    import hashlib
     import tempfile
     import zipfile
 
-    from recon.dicom import WATER_MU_PER_MM
-
     reconstruction_volume(service, job_id)  # 404 or 409 before anything is written
-    water = water_mu_per_mm or WATER_MU_PER_MM
     folder = service.jobs.job_dir(job_id)
-    name = (
-        f"dicom-{job_id}-{water:g}{'-' + patient_id if patient_id else ''}{'-enhanced' if enhanced else ''}.zip"
-    ).replace(" ", "_")
+    asked = hashlib.sha256(options.model_dump_json().encode()).hexdigest()[:16]
+    name = f"dicom-{job_id}-{asked}.zip"  # written once per set of options
     target = folder / name
     if not target.exists():
         with tempfile.TemporaryDirectory(dir=folder) as tmp:
-            files = dicom_series(service, job_id, Path(tmp) / "series", water, patient_id, enhanced)
+            files = dicom_series(service, job_id, Path(tmp) / "series", options)
             partial = Path(tmp) / "series.zip"
             with zipfile.ZipFile(partial, "w", zipfile.ZIP_DEFLATED) as zf:
                 for f in files:
@@ -260,39 +249,27 @@ def get_dicom(
 ENHANCED_CT_NAME = "CT_ENHANCED.dcm"
 
 
-def dicom_series(
-    service: Any,
-    job_id: str,
-    out_dir: Path,
-    water_mu_per_mm: float | None = None,
-    patient_id: str = "",
-    enhanced: bool = False,
-) -> list[Path]:
+def dicom_series(service: Any, job_id: str, out_dir: Path, options: DicomSeriesOptions) -> list[Path]:
     """Write a succeeded reconstruction as a DICOM CT series (or one Enhanced CT object) into ``out_dir``; the
     files."""
     from orbitct.geometry import VolumeGrid
     from orbitct.scanfile.xa import patient_sides_caveat
-    from recon.dicom import (
-        WATER_MU_PER_MM,
-        SeriesInfo,
-        export_dicom_ct,
-        export_enhanced_ct,
-    )
+    from recon.dicom import SeriesInfo, export_dicom_ct, export_enhanced_ct
 
     vol = reconstruction_volume(service, job_id)
     job = job_or_404(service, job_id, "reconstruction")
     result, params = job["result"], job["params"]
     grid = VolumeGrid(tuple(vol.shape), tuple(result["voxel_mm"]), tuple(result["origin_mm"]))
-    info = SeriesInfo(
+    info = SeriesInfo.from_options(
+        options,
         description=f"orbitct {result.get('name', job_id)}: {params.get('algorithm', '?').upper()} "
         f"{params.get('geometry', '?')} geometry",
-        patient_id=patient_id or job["scan_id"],
-        water_mu_per_mm=water_mu_per_mm or WATER_MU_PER_MM,
+        patient_id=job["scan_id"],
         comments=patient_sides_caveat(
             ((service.store.get_scan(job["scan_id"]) or {}).get("summary") or {}).get("import_assumptions", [])
         ),
     )
-    if enhanced:
+    if options.enhanced:
         return [export_enhanced_ct(np.asarray(vol, dtype=np.float32), grid, out_dir / ENHANCED_CT_NAME, info)]
     return export_dicom_ct(np.asarray(vol, dtype=np.float32), grid, out_dir, info)
 
