@@ -467,6 +467,8 @@ def _solve_and_write(
     predicted_all = np.full(n_all, np.nan)
     predicted_all[proj] = quality.predicted_px
     elapsed = time.perf_counter() - t0 - clock.seconds
+    t_check = elapsed - t_detect - t_identify - t_est  # the rest: quality check and per-view figures
+    t_write = time.perf_counter()
     report(progress, "write", 0, 1, str(target))
     with ScanFile(target, "r+") as sf:
         sf.write_calibration(
@@ -505,6 +507,7 @@ def _solve_and_write(
             per_view={"view_status": status_all, "predicted_px": predicted_all},
         )
     report(progress, "write", 1, 1, str(target))
+    t_write = time.perf_counter() - t_write
     corr_R = np.full((n_all, 3), np.nan)
     corr_t = np.full((n_all, 3), np.nan)
     corr_R[proj] = np.where(solved[:, None], state.rotvec, np.nan)
@@ -524,6 +527,9 @@ def _solve_and_write(
         detect_s=t_detect,
         estimate_s=t_est,
         compile_s=clock.seconds,
+        identify_s=t_identify,
+        check_s=t_check,
+        write_s=t_write,
         reproj_rms_px=reproj_rms,
         corrections={"rotvec_rad": corr_R, "shift_mm": corr_t, "frame": np.arange(n_all)},
         warnings=warnings,

@@ -50,6 +50,9 @@ class CalibrationResult:
     true_corrections: dict[str, NDArray[np.float64]] | None = None  # simulated scans: the truth, same frame
     quality: CalibrationVerdict | None = None
     compile_s: float = 0.0  # numba compiling its kernels on first use (after installation); not in elapsed_s
+    identify_s: float = 0.0  # telling the BBs apart across the orbit (part of elapsed_s)
+    check_s: float = 0.0  # the quality check and the per-view figures (part of elapsed_s)
+    write_s: float = 0.0  # writing the geometry into the file (after elapsed_s, which the file records)
     view_status: NDArray[np.int8] | None = None  # per frame: STATUS_CODES, -1 for non-projections
     predicted_px: NDArray[np.float64] | None = None  # per frame: predicted field-of-view error (px)
     scale_bar: ScaleBar | None = None  # the pair of BBs that set the metric scale, when a scale bar was given
@@ -69,7 +72,10 @@ class CalibrationResult:
             "n_bbs": self.n_bbs,
             "elapsed_s": self.elapsed_s,
             "detect_s": self.detect_s,
+            "identify_s": self.identify_s,
             "estimate_s": self.estimate_s,
+            "check_s": self.check_s,
+            "write_s": self.write_s,
             "compile_s": self.compile_s,
             "rpe_mean_mm": last.rpe_mean_mm,
             "rpe_median_mm": last.rpe_median_mm,
@@ -81,6 +87,15 @@ class CalibrationResult:
             "quality": self.quality.summary() if self.quality is not None else None,
             "scale": self.scale_line(),
         }
+
+    def timing_line(self) -> str:
+        """Where the time went: the phases, summing to ``elapsed_s``, and writing the file apart (compiling the
+        kernels on first use is apart too: ``compile_s``)."""
+        return (
+            f"detection {self.detect_s:.2f} s + identification {self.identify_s:.2f} s + estimation "
+            f"{self.estimate_s:.2f} s + checks {self.check_s:.2f} s = {self.elapsed_s:.2f} s; writing "
+            f"{self.write_s:.2f} s"
+        )
 
     def scale_line(self) -> str:
         """Where the metric scale comes from, in words."""

@@ -54,9 +54,9 @@ def calibrate(scan: Path, out: Path | None, report_dir: Path | None, accept_poor
     last = res.iterations[-1]
     click.echo(
         f"{res.path}: {method}, {res.n_bbs} BBs in {res.n_frames} projections, {res.elapsed_s:.2f} s "
-        f"({1000 * res.elapsed_s / max(res.n_frames, 1):.2f} ms/frame; detection {res.detect_s:.2f} s, "
-        f"estimation {res.estimate_s:.2f} s)"
+        f"({1000 * res.elapsed_s / max(res.n_frames, 1):.2f} ms/frame)"
     )
+    click.echo(f"time: {res.timing_line()}")
     if res.compile_s > 0.5:
         click.echo(
             f"first use after installation: {res.compile_s:.1f} s compiling numerical kernels (cached for the "
