@@ -14,12 +14,13 @@ from typing import Any
 import numpy as np
 
 from acquire.config import BenchConfig, CArmConfig, load_config
-from acquire.engine import Rig, ScanEngine
+from acquire.engine import ScanEngine
 from acquire.errors import AcquireError, ScanStateError
 from acquire.options import ScanOptions, checked_scan_options
 from acquire.plan import ScanPlan
 from acquire.recorder import ScanRecorder, SimulationTruth
 from acquire.records import Subscriber
+from acquire.rig import Rig
 from acquire.rigs import open_rig
 from acquire.rigs.kinds import rig_kind
 from acquire.storage import check_room

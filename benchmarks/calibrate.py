@@ -112,7 +112,8 @@ def _run(scan: str, method: str, work: str, queue: Any, trace: bool) -> None:
             "elapsed_s": res.elapsed_s,
             "detect_s": res.detect_s,
             "estimate_s": res.estimate_s,
-            "identify_s": res.elapsed_s - res.detect_s - res.estimate_s,
+            "identify_s": res.identify_s,
+            "check_s": res.check_s,
             "ms_per_frame": 1000 * res.elapsed_s / res.n_frames,
             "cpu_ms_per_frame": 1000 * cpu_s / res.n_frames,
             "load": load,
@@ -196,7 +197,7 @@ def main() -> None:
     print()
     print(f"# Calibration benchmark ({args.size} x {args.size} px; frames = {args.frames_scale:g} x the paper's)\n")
     head = (
-        "| exp | method | frames | BBs | total s | ms/frame | ms/frame/BB | detect s | identify s | estimate s | "
+        "| exp | method | frames | BBs | total s | ms/frame | ms/frame/BB | detect s | identify s | estimate s | check s | "
         "RPE mean / median / std (mm) | initial RPE | reproj px | geom err px | ref err px | ratio | noise px | "
         "seen | peak traced MB | peak RSS MB | CPU ms/frame | load |"
     )
@@ -207,6 +208,7 @@ def main() -> None:
         print(
             f"| {exp} | {r['method']} | {r['frames']} | {r['bbs']} | {r['elapsed_s']:.2f} | {r['ms_per_frame']:.2f} | "
             f"{r['ms_per_frame'] / max(r['bbs'], 1):.3f} | {r['detect_s']:.2f} | {r['identify_s']:.2f} | {r['estimate_s']:.2f} | "
+            f"{r['check_s']:.2f} | "
             f"{r['rpe_mean_mm']:.4f} / {r['rpe_median_mm']:.4f} / {r['rpe_std_mm']:.4f} | {r['rpe_initial_mm']:.3f} | "
             f"{r['reproj_rms_px']:.3f} | {r['geom_err_px']:.3f} | {r['ref_err_px']:.3f} | {ratio:.2f} | {r['noise_px']:.3f} | "
             f"{r['seen_share']:.2f} | {r['peak_traced_mb']:.0f} | {r['peak_rss_mb']:.0f} | {r['cpu_ms_per_frame']:.2f} | {r['load']:.1f} |"

@@ -1,4 +1,4 @@
-"""The machines a scan runs on, behind one :class:`~acquire.engine.Rig` interface: the bench and the C-arm."""
+"""The machines a scan runs on, behind one :class:`~acquire.rig.Rig` interface: the bench and the C-arm."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from acquire.config import BenchConfig, CArmConfig
-from acquire.engine import Rig
+from acquire.rig import Rig
 from acquire.rigs.bench import BenchRig, open_bench
 from acquire.rigs.carm import CArmRig, open_carm
 from acquire.rigs.kinds import RigKind, rig_kind

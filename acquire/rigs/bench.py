@@ -2,7 +2,7 @@
 
 ``open_bench(config, sim=True)`` starts the twins in-process (``sim://bench``) so that nothing else
 needs to run; otherwise it connects the configured URIs. The engine talks to the devices only
-through :class:`BenchRig` (a :class:`~acquire.engine.SweepRig`).
+through :class:`BenchRig` (a :class:`~acquire.rig.SweepRig`).
 """
 
 from __future__ import annotations

@@ -15,8 +15,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from acquire.config import BenchConfig, CArmConfig
-from acquire.engine import Rig
 from acquire.plan import ScanPlan, plan_bench_scan, plan_carm_scan
+from acquire.rig import Rig
 from acquire.rigs.bench import bench_links, open_bench
 from acquire.rigs.carm import carm_links, export_orbit, open_carm
 from acquire.rigs.links import DeviceLink

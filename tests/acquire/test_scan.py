@@ -220,7 +220,9 @@ def test_continuous_frame_late_starts_its_sweep_anew_and_a_rig_that_cannot_keep_
 @pytest.mark.realtime
 def test_continuous_frame_exposed_late_is_not_recorded_and_its_sweep_starts_anew(request_factory, caplog) -> None:
     """A frame ready at its angle whose exposure then comes late (the process paused between the two) is exposed
-    more than half a step from its angle: it is dropped, not recorded there, and its sweep starts again from it."""
+    more than half a step from its angle: it is dropped, not recorded there, and its sweep starts again from it.
+    On a loaded machine another frame may come late as well and be taken again the same way (seen once in a full
+    local run: a frame 3.75 deg off): the paused one must be the first dropped, and every recorded one on its angle."""
     cfg, req = _turn_at_8_frames_s(request_factory)
     exposures = itertools.count()
 
@@ -238,11 +240,12 @@ def test_continuous_frame_exposed_late_is_not_recorded_and_its_sweep_starts_anew
 
     with caplog.at_level("WARNING", logger="acquire.engine"):
         res = asyncio.run(main())
-    assert res.status == "complete" and res.timing["late_restarts"] == 1, res
-    assert any("deg from its angle and was not recorded" in r.getMessage() for r in caplog.records), caplog.text
+    assert res.status == "complete" and res.timing["late_restarts"] >= 1, res
     with ScanFile(req.out) as sf:
         proj = sf.projection_indices
         off = sf.axes("encoders")["rotation_stage.R"][proj] - sf.axes("commanded")["rotation_stage.R"][proj]
+    dropped = [r.getMessage() for r in caplog.records if "was not recorded" in r.getMessage()]
+    assert dropped and dropped[0].startswith(f"continuous mode: frame {proj[0] + 20} exposed "), caplog.text
     assert off.size == 48
     below("stage_lag_deg", np.abs(off).max(), 3.75)
 
