@@ -23,7 +23,8 @@ MAX_FRAMES = 100_000
 class ScanOptions(BaseModel):
     """What to scan and how: orbit and its parameters, frames, injected motion errors, mode, frame rate."""
 
-    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
+    # not strict: Python's numbers (numpy's too) are taken as they are; the REST request (JSON) is strict
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     orbit: str = Field("sawtooth", description="orbit kind: " + ", ".join(ORBIT_KINDS) + " (parameters: orbitct orbit)")
     orbit_params: dict[str, Any] = Field(

@@ -17,6 +17,7 @@ import gc
 import logging
 import os
 import sys
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -66,6 +67,7 @@ def bench_priority(nice_value: int = BENCH_NICE) -> Iterator[bool]:
 
 
 _steady_depth = 0
+_steady_lock = threading.Lock()
 
 
 @contextlib.contextmanager
@@ -77,12 +79,14 @@ def steady_collection() -> Iterator[None]:
     degrees of a sweep at 8 frames/s. Afterwards the frozen objects are collected as before. Nested blocks freeze once.
     """
     global _steady_depth
-    if _steady_depth == 0:
-        gc.freeze()
-    _steady_depth += 1
+    with _steady_lock:  # scans in several threads of one process: frozen from the first start to the last end
+        if _steady_depth == 0:
+            gc.freeze()
+        _steady_depth += 1
     try:
         yield
     finally:
-        _steady_depth -= 1
-        if _steady_depth == 0:
-            gc.unfreeze()
+        with _steady_lock:
+            _steady_depth -= 1
+            if _steady_depth == 0:
+                gc.unfreeze()

@@ -24,7 +24,7 @@ class KeepOutZone(BaseModel):
     """A patch of the object's surface without BBs: polar angles (deg, counterclockwise from +x; through 0 when
     ``angle_to_deg < angle_from_deg``; 0 to 360: the whole turn) between two heights (mm)."""
 
-    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)  # floats (numpy's are floats too)
     angle_from_deg: float = Field(ge=0.0, lt=360.0)
     angle_to_deg: float = Field(
         ge=0.0, le=360.0, description="not the same angle as angle_from_deg (only 0 to 360 makes the whole turn)"
@@ -47,7 +47,8 @@ class BBPlanOptions(BaseModel):
     """What to plan: the object and default orbit of an experiment, the orbit, the panel, how many BBs (or the
     accuracy to reach with as few as possible), where not to put them, and the detection's centroid noise."""
 
-    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
+    # not strict: Python's numbers (numpy's too) are taken as they are; the REST request (JSON) is strict
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     experiment: Literal["A", "B", "C"] = Field(description="the object (its surface, metal, BB size) and its orbit")
     orbit: str | None = Field(

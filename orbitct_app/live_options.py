@@ -20,7 +20,8 @@ ABORT_KINDS: tuple[str, ...] = get_args(AbortKind)
 class LiveCalibrationOptions(BaseModel):
     """Whether to follow the BBs while the frames arrive, their size, and the warnings that stop the scan."""
 
-    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
+    # not strict: Python's numbers (numpy's too) are taken as they are; the REST request (JSON) is strict
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     calibrate: Literal["none", "live"] = Field(
         "none",

@@ -560,3 +560,19 @@ def test_every_dicom_option_is_in_every_interface() -> None:
     assert query == fields
     body = set(openapi_document()["components"]["schemas"]["SendRequest"]["properties"])
     assert body - fields == {"reconstruction_id"} and fields - body == set()
+
+
+def test_python_takes_numpy_numbers_as_the_api_takes_json_ones() -> None:
+    """Scripts pass numbers numpy made (a seed drawn from a generator, a count from an array): the Python API takes
+    them as Python's own; only the REST requests, which are JSON, are strict about types."""
+    import numpy as np
+
+    from acquire.runner import ScanRequest
+    from orbitct_app.bbplan import BBPlanRequest
+    from orbitct_app.live_options import LiveCalibrationOptions
+
+    scan = ScanRequest(config="config/bench.yaml", out="s.h5", frames=np.int64(40), seed=np.int64(7)).options()
+    assert scan.frames == 40 and scan.seed == 7
+    plan = BBPlanRequest(experiment="A", n_bbs=np.int64(9), noise_px=np.float32(0.2)).options()
+    assert plan.bbs == 9 and abs(plan.noise_px - 0.2) < 1e-6
+    assert LiveCalibrationOptions(lost_frames=np.int64(5)).lost_frames == 5
