@@ -1,0 +1,149 @@
+"""Write orbitct's scan file from a bluesky run's document stream (start, descriptors, events, stop).
+
+A run recorded this way is calibrated and reconstructed by ``orbitct calibrate`` and ``orbitct reconstruct``
+unchanged. What the run must carry:
+
+- the start document, under ``orbitct`` (:func:`orbitct_metadata` makes it): the panel (rows, cols, pitches in
+  mm), the orbit's name and parameters, and every recorded axis (``device.axis`` as orbitct names it) with its
+  unit and the data keys of its read-back and of its commanded position (event-model forbids dots in keys);
+- events of one stream (``primary`` unless told) with the frame (``image``, filled: a 2-D array, not a reference
+  to an external resource), its ``image_key`` (0 projection, 1 flat, 2 dark), for projections its nominal view
+  (``nominal_vector``, 12 numbers: source, detector centre, u and v pixel vectors in mm, as in the scan file), and
+  the axes' keys named in the start document;
+- the stop document: ``exit_status`` ``success`` ends the file ``complete``; anything else ends it ``aborted``
+  with the stop's reason, keeping every frame written so far.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, cast
+
+import numpy as np
+
+from orbitct.geometry import Panel
+from orbitct.scanfile import ImageKey, ScanWriter
+
+KEY = "orbitct"
+FORMAT = "orbitct-bluesky/1"
+
+
+def orbitct_metadata(
+    panel: Panel,
+    axes: Mapping[str, tuple[str, str, str]],
+    *,
+    orbit_name: str = "",
+    orbit_params: Mapping[str, Any] | None = None,
+    marker_diameter_mm: float | None = None,
+) -> dict[str, Any]:
+    """The start document's ``orbitct`` entry: ``axes`` maps each axis (``device.axis``) to its unit and the data
+    keys of its read-back and commanded position, e.g. ``{"rotation_stage.R": ("deg", "stage_R", "stage_R_set")}``."""
+    return {
+        "format": FORMAT,
+        "panel": {
+            "rows": panel.rows,
+            "cols": panel.cols,
+            "pitch_col_mm": panel.pitch_col,
+            "pitch_row_mm": panel.pitch_row,
+        },
+        "orbit": {"name": orbit_name, "params": dict(orbit_params or {})},
+        # a list, not a mapping: event-model forbids dots in a document's keys, and axes are named device.axis
+        "axes": [{"name": name, "unit": u, "readback": rb, "commanded": cmd} for name, (u, rb, cmd) in axes.items()],
+        "marker_diameter_mm": marker_diameter_mm,
+    }
+
+
+class ScanFileCallback:
+    """A bluesky callback (``callback(name, doc)``) writing each run it sees to ``path`` as an orbitct scan file.
+
+    ``stream``: the event stream holding the frames. A run without the ``orbitct`` start entry is refused with a
+    ValueError naming what is missing, before anything is written.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, stream: str = "primary", overwrite: bool = False) -> None:
+        self.path = Path(path)
+        self.stream = stream
+        self.overwrite = overwrite
+        self.writer: ScanWriter | None = None
+        self._axes: dict[str, dict[str, str]] = {}
+        self._t0 = 0.0
+        self._descriptors: set[str] = set()
+
+    def __call__(self, name: str, doc: Mapping[str, Any]) -> None:
+        handler = getattr(self, f"_on_{name}", None)
+        if handler is not None:
+            handler(doc)
+
+    def _on_start(self, doc: Mapping[str, Any]) -> None:
+        md = doc.get(KEY)
+        if not isinstance(md, Mapping) or md.get("format") != FORMAT:
+            raise ValueError(
+                f"the run's start document has no {KEY!r} entry of format {FORMAT!r}: make it with "
+                "orbitct_bluesky.orbitct_metadata(panel, axes, ...) and pass it as the run's metadata"
+            )
+        p = md["panel"]
+        panel = Panel(int(p["rows"]), int(p["cols"]), float(p["pitch_col_mm"]), float(p["pitch_row_mm"]))
+        self._axes = {str(a["name"]): dict(a) for a in md["axes"]}
+        self._t0 = float(doc["time"])
+        self.writer = ScanWriter(
+            self.path,
+            panel,
+            axes={name: spec["unit"] for name, spec in self._axes.items()},
+            orbit_name=str(md["orbit"]["name"]),
+            orbit_params=dict(md["orbit"]["params"]),
+            config={"recorded_by": "bluesky", "run_uid": str(doc["uid"])},
+            marker_diameter_mm=md.get("marker_diameter_mm"),
+            overwrite=self.overwrite,
+        )
+        started = datetime.fromtimestamp(self._t0, UTC).isoformat(timespec="seconds")
+        planned = doc.get("num_points")
+        self.writer.set_attrs(
+            "acquisition",
+            recorded_by="bluesky",
+            run_uid=str(doc["uid"]),
+            plan_name=str(doc.get("plan_name", "")),
+            started_utc=started,
+            **({"planned_frames": int(planned)} if isinstance(planned, int) else {}),
+        )
+
+    def _on_descriptor(self, doc: Mapping[str, Any]) -> None:
+        if doc.get("name") != self.stream:
+            return
+        keys = set(doc["data_keys"])
+        needed = {"image", "image_key"} | {s[k] for s in self._axes.values() for k in ("readback", "commanded")}
+        missing = sorted(needed - keys)
+        if missing:
+            raise ValueError(f"stream {self.stream!r} lacks the data keys {missing} that the run's orbitct entry names")
+        self._descriptors.add(str(doc["uid"]))
+
+    def _on_event(self, doc: Mapping[str, Any]) -> None:
+        if doc.get("descriptor") not in self._descriptors or self.writer is None:
+            return
+        data = doc["data"]
+        key = ImageKey(int(data["image_key"]))
+        vector = data.get("nominal_vector") if key == ImageKey.PROJECTION else None
+        self.writer.append(
+            np.asarray(data["image"]),
+            key,
+            float(doc["time"]) - self._t0,
+            nominal_vector=None if vector is None else np.asarray(vector, dtype=float),
+            encoders={name: float(data[s["readback"]]) for name, s in self._axes.items()},
+            commanded={name: float(data[s["commanded"]]) for name, s in self._axes.items()},
+        )
+
+    def _on_event_page(self, doc: Mapping[str, Any]) -> None:
+        import event_model
+
+        for event in event_model.unpack_event_page(cast("event_model.EventPage", doc)):
+            self._on_event(event)
+
+    def _on_stop(self, doc: Mapping[str, Any]) -> None:
+        if self.writer is None:
+            return
+        ok = doc.get("exit_status") == "success"
+        reason = "" if ok else str(doc.get("reason") or f"the run ended with exit status {doc.get('exit_status')}")
+        self.writer.finish("complete" if ok else "aborted", reason)
+        self.writer = None
