@@ -15,38 +15,13 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
 
 from orbitct import __version__
-from orbitct.dicom import ENTIRE_BODY, new_instance, sequence_item
+from orbitct.dicom import ENTIRE_BODY, WATER_MU_PER_MM, DicomSeriesOptions, new_instance, sequence_item
 from orbitct.geometry import VolumeGrid
 from recon.errors import ReconError
 
-WATER_MU_PER_MM = 0.0206  # the simulator's water at its effective energy (orbitct.phantoms.materials)
 HU_RANGE = (-1024, 32767)
-
-
-class DicomSeriesOptions(BaseModel):
-    """How a reconstruction is written as DICOM: the Hounsfield scale, the patient and study fields, and one
-    Enhanced CT object or one CT image per slice. ``orbitct export dicom`` makes its options from it, and the REST
-    service's ``GET /reconstructions/{id}/dicom`` and ``POST /pacs/{node}/store`` take it."""
-
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-
-    water_mu_per_mm: float | None = Field(
-        None,
-        gt=0.0,
-        le=10.0,
-        description=f"attenuation of water (1/mm) for Hounsfield units (default {WATER_MU_PER_MM}, the simulator's)",
-    )
-    patient_name: str = Field("", max_length=64, pattern=r"^[^\\\x00-\x1f]*$", description="DICOM Patient's Name")
-    patient_id: str = Field(
-        "", max_length=64, pattern=r"^[\w .-]*$", description="DICOM Patient ID (default: the scan's name)"
-    )
-    study_description: str = Field(
-        "", max_length=64, pattern=r"^[^\\\x00-\x1f]*$", description="DICOM Study Description"
-    )
-    enhanced: bool = Field(False, description="one multi-frame Enhanced CT object instead of one CT image per slice")
 
 
 @dataclass(frozen=True)

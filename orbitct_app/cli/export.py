@@ -9,10 +9,10 @@ from typing import Any
 
 import click
 
+from orbitct.dicom import DicomSeriesOptions
 from orbitct_app.cli.export_toolkit import TOOLKIT_COMMANDS
 from orbitct_app.cli.failure import Failure
 from orbitct_app.cli.model_options import model_from, options_from
-from recon.dicom import DicomSeriesOptions
 
 
 @click.group()

@@ -16,13 +16,13 @@ from pydantic import BaseModel, ValidationError
 from calib.errors import OptionError
 from calib.options import CalibrationOptions
 from calib.options import checked_options as checked_calibration_options
+from orbitct.dicom import DicomSeriesOptions
 from orbitct_app.cli.calibrate import calibrate
 from orbitct_app.cli.model_options import flag_of, model_from
 from orbitct_app.cli.reconstruct import FLAGS, reconstruct
 from orbitct_app.service.routers.calibrations import CalibrationRequest
 from orbitct_app.service.routers.reconstructions import ReconstructionRequest
 from recon import ReconError, ReconstructionOptions
-from recon.dicom import DicomSeriesOptions
 from recon.pipeline import checked_options
 
 SCAN_ID = "a1b2c3d4e5f60718"
@@ -497,8 +497,8 @@ def _download(options: Annotated[DicomSeriesOptions, Query()]) -> dict[str, Any]
 
 def dicom_cli_accepts(values: dict[str, Any], tmp_path: Path) -> bool:
     """Parse as ``orbitct export dicom SCAN ...`` does, then validate as the command does (nothing is written)."""
+    from orbitct.dicom import DicomSeriesOptions
     from orbitct_app.cli.export import dicom
-    from recon.dicom import DicomSeriesOptions
 
     scan = tmp_path / "scan.h5"
     scan.touch()
@@ -519,8 +519,8 @@ def test_a_dicom_export_gets_the_same_answer_everywhere(
 ) -> None:
     from fastapi.testclient import TestClient
 
+    from orbitct.dicom import DicomSeriesOptions
     from orbitct_app.service.routers.pacs import SendRequest
-    from recon.dicom import DicomSeriesOptions
 
     def python() -> bool:
         try:
@@ -549,9 +549,9 @@ def test_a_dicom_export_gets_the_same_answer_everywhere(
 
 
 def test_every_dicom_option_is_in_every_interface() -> None:
+    from orbitct.dicom import DicomSeriesOptions
     from orbitct_app.cli.export import dicom
     from orbitct_app.reference_pages import openapi_document
-    from recon.dicom import DicomSeriesOptions
 
     fields = set(DicomSeriesOptions.model_fields)
     assert fields - {p.name for p in dicom.params} == set()

@@ -11,6 +11,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Query, Response
 from pydantic import BaseModel, ConfigDict, Field
 
+from orbitct.dicom import DicomSeriesOptions
 from orbitct.scanfile.xa import AngleIncrements
 from orbitct_app.pacs import PacsError, PacsNode, find_series, get_series, send
 from orbitct_app.service.core.errors import (
@@ -24,7 +25,6 @@ from orbitct_app.service.core.errors import (
 from orbitct_app.service.core.files import summarize_scan
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
 from orbitct_app.service.routers.reconstructions import dicom_series
-from recon.dicom import DicomSeriesOptions
 
 router = APIRouter(
     prefix="/pacs",
@@ -81,7 +81,7 @@ class ImportOut(BaseModel):
 
 class SendRequest(DicomSeriesOptions):
     """Send a succeeded reconstruction to a node as a DICOM CT series (or one Enhanced CT object), written as
-    :class:`recon.dicom.DicomSeriesOptions` say."""
+    :class:`orbitct.dicom.DicomSeriesOptions` say."""
 
     model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
     reconstruction_id: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")

@@ -10,6 +10,7 @@ from fastapi import APIRouter, Query, Response
 from fastapi.responses import FileResponse
 from pydantic import ConfigDict
 
+from orbitct.dicom import DicomSeriesOptions
 from orbitct_app.service.core.errors import (
     DISK_FULL,
     ERROR_RESPONSES,
@@ -23,7 +24,6 @@ from orbitct_app.service.core.files import confined
 from orbitct_app.service.deps import Analyst, Reader, ServiceDep
 from orbitct_app.service.routers.calibrations import ScanId, check_scan_ready, submit
 from orbitct_app.service.schemas import JobOut, job_or_404, job_out
-from recon.dicom import DicomSeriesOptions
 from recon.options import ReconstructionOptions
 
 router = APIRouter(prefix="/reconstructions", tags=["reconstructions"], responses=ERROR_RESPONSES)
