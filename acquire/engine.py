@@ -565,46 +565,66 @@ class ScanEngine:
         self, rig: SweepRig, target: float, direction: float, velocity: float, timeout_s: float
     ) -> float:
         """Wait until the sweep reaches ``target`` with the X-ray source ready: a :class:`PreparingRig`'s
-        preparation starts its preparation time (and a fifth more) before the angle and is renewed half a
-        preparation before it, so the exposure is not late by a preparation while the stage turns on (a DCArc at
-        4 frames/s on the simulated bench had 2 of 3 projections exposed about 5 degrees past their angle, the
-        read-backs taken at the angle). Returns how far past ``target`` the sweep was once ready (deg)."""
+        preparation starts its preparation time (and a fifth more) before the angle, so the exposure is not late
+        by a preparation while the stage turns on (a DCArc at 4 frames/s on the simulated bench had 2 of 3
+        projections exposed about 5 degrees past their angle, the read-backs taken at the angle). Once ready, the
+        source is asked again every quarter preparation until the angle: the generator holds it only its hold
+        time (about a preparation) from each request, and the sweep may take longer to get there than its speed
+        says (the first angle of a sweep, still accelerating, was reached 160 ms after a 200 ms hold began, and a
+        process held up 40 ms more exposed it a whole preparation late). Returns how far past ``target`` the sweep
+        was once ready (deg)."""
         prep_s = rig.prep_s if isinstance(rig, PreparingRig) else 0.0
         if prep_s <= 0:
             return await self._wait_for_angle(rig, target, direction, velocity, timeout_s)
         lead = direction * velocity * prep_s
         await self._wait_for_angle(rig, target - 1.2 * lead, direction, velocity, timeout_s)
-        prep = asyncio.ensure_future(rig.prepare_exposure())  # type: ignore[attr-defined]
-        try:
-            await self._wait_for_angle(rig, target - 0.5 * lead, direction, velocity, timeout_s)
+        t_p = time.monotonic()
+        await rig.prepare_exposure()  # type: ignore[attr-defined]
+        self._prepare_s += time.monotonic() - t_p
+        started = time.monotonic()
+        while True:
+            until = time.monotonic() + 0.25 * prep_s
+            past = await self._angle_passed(rig, target, direction, velocity, timeout_s, started, until)
+            if past is not None:
+                return past
             t_p = time.monotonic()
-            await prep
-            # once more half a preparation before the angle: a source that was still ready at the lead (held from
-            # the last exposure) is held only its hold time (about a preparation) from there, which could end just
-            # before the angle; ready, this is one short exchange that holds it over the angle
-            await rig.prepare_exposure()  # type: ignore[attr-defined]
+            await rig.prepare_exposure()  # type: ignore[attr-defined]  # ready: one short exchange renews the hold
             self._prepare_s += time.monotonic() - t_p
-            return await self._wait_for_angle(rig, target, direction, velocity, timeout_s)
-        finally:  # failed or aborted: no preparation outlives the wait (cancelled: X-rays off)
-            if not prep.done():
-                prep.cancel()
-                with contextlib.suppress(BaseException):
-                    await prep
 
     async def _wait_for_angle(
         self, rig: SweepRig, target: float, direction: float, velocity: float, timeout_s: float
     ) -> float:
         """Wait until the sweep passes ``target``; how far past it (deg) it was when seen there."""
-        deadline = time.monotonic() + timeout_s
+        started = time.monotonic()
+        while True:
+            past = await self._angle_passed(rig, target, direction, velocity, timeout_s, started, started + timeout_s)
+            if past is not None:
+                return past
+
+    async def _angle_passed(
+        self,
+        rig: SweepRig,
+        target: float,
+        direction: float,
+        velocity: float,
+        timeout_s: float,
+        started: float,
+        until: float,
+    ) -> float | None:
+        """How far past ``target`` (deg) the sweep was when seen there, or None if it is not there by ``until``
+        (``time.monotonic()``); an error once ``timeout_s`` from ``started`` has gone by."""
         while True:
             self._check_abort()
             pos = await rig.sweep_position()
             remaining = (target - pos) * direction
             if remaining <= 0:
                 return -remaining
-            if time.monotonic() > deadline:
+            now = time.monotonic()
+            if now > started + timeout_s:
                 raise AcquireError(
                     f"continuous mode: {rig.sweep_axis} did not reach the trigger angle {target:.3f} deg "
                     f"within {timeout_s:g} s (at {pos:.3f} deg)"
                 )
-            await asyncio.sleep(min(max(remaining / velocity * 0.8, 0.0002), 0.05))
+            if now >= until:
+                return None
+            await asyncio.sleep(min(max(remaining / velocity * 0.8, 0.0002), 0.05, until - now))
