@@ -10,6 +10,10 @@ unchanged. What the run must carry:
   to an external resource), its ``image_key`` (0 projection, 1 flat, 2 dark), for projections its nominal view
   (``nominal_vector``, 12 numbers: source, detector centre, u and v pixel vectors in mm, as in the scan file), and
   the axes' keys named in the start document;
+- on orbitct's twins, the view each projection was imaged at (``true_vector``, simulation truth; the start
+  entry names its key, or None where there is none);
+- the data keys of frame, image key and views may be renamed (``keys`` of :func:`orbitct_metadata`: an ophyd-async
+  panel named ``panel`` reads ``panel-image``);
 - the stop document: ``exit_status`` ``success`` ends the file ``complete``; anything else ends it ``aborted``
   with the stop's reason, keeping every frame written so far.
 """
@@ -29,6 +33,13 @@ from orbitct.scanfile import ImageKey, ScanWriter
 
 KEY = "orbitct"
 FORMAT = "orbitct-bluesky/1"
+#: the data keys a run's events carry, unless its ``orbitct`` entry renames them
+DEFAULT_KEYS: dict[str, str | None] = {
+    "image": "image",
+    "image_key": "image_key",
+    "nominal_vector": "nominal_vector",
+    "true_vector": None,
+}
 
 
 def orbitct_metadata(
@@ -38,9 +49,15 @@ def orbitct_metadata(
     orbit_name: str = "",
     orbit_params: Mapping[str, Any] | None = None,
     marker_diameter_mm: float | None = None,
+    keys: Mapping[str, str | None] | None = None,
 ) -> dict[str, Any]:
     """The start document's ``orbitct`` entry: ``axes`` maps each axis (``device.axis``) to its unit and the data
-    keys of its read-back and commanded position, e.g. ``{"rotation_stage.R": ("deg", "stage_R", "stage_R_set")}``."""
+    keys of its read-back and commanded position, e.g. ``{"rotation_stage.R": ("deg", "stage_R", "stage_R_set")}``;
+    ``keys`` renames the data keys of ``image``, ``image_key``, ``nominal_vector`` and ``true_vector`` (None:
+    the run has none)."""
+    unknown = sorted(set(keys or {}) - set(DEFAULT_KEYS))
+    if unknown:
+        raise ValueError(f"orbitct_metadata: no data key {', '.join(unknown)}; keys are {', '.join(DEFAULT_KEYS)}")
     return {
         "format": FORMAT,
         "panel": {
@@ -53,6 +70,7 @@ def orbitct_metadata(
         # a list, not a mapping: event-model forbids dots in a document's keys, and axes are named device.axis
         "axes": [{"name": name, "unit": u, "readback": rb, "commanded": cmd} for name, (u, rb, cmd) in axes.items()],
         "marker_diameter_mm": marker_diameter_mm,
+        "keys": {**DEFAULT_KEYS, **dict(keys or {})},
     }
 
 
@@ -71,6 +89,7 @@ class ScanFileCallback:
         self._axes: dict[str, dict[str, str]] = {}
         self._t0 = 0.0
         self._descriptors: set[str] = set()
+        self._keys: dict[str, str | None] = dict(DEFAULT_KEYS)
 
     def __call__(self, name: str, doc: Mapping[str, Any]) -> None:
         handler = getattr(self, f"_on_{name}", None)
@@ -87,6 +106,7 @@ class ScanFileCallback:
         p = md["panel"]
         panel = Panel(int(p["rows"]), int(p["cols"]), float(p["pitch_col_mm"]), float(p["pitch_row_mm"]))
         self._axes = {str(a["name"]): dict(a) for a in md["axes"]}
+        self._keys = {**DEFAULT_KEYS, **dict(md.get("keys") or {})}  # entries written before keys were named
         self._t0 = float(doc["time"])
         self.writer = ScanWriter(
             self.path,
@@ -96,6 +116,7 @@ class ScanFileCallback:
             orbit_params=dict(md["orbit"]["params"]),
             config={"recorded_by": "bluesky", "run_uid": str(doc["uid"])},
             marker_diameter_mm=md.get("marker_diameter_mm"),
+            true_geometry=self._keys["true_vector"] is not None,
             overwrite=self.overwrite,
         )
         started = datetime.fromtimestamp(self._t0, UTC).isoformat(timespec="seconds")
@@ -113,7 +134,8 @@ class ScanFileCallback:
         if doc.get("name") != self.stream:
             return
         keys = set(doc["data_keys"])
-        needed = {"image", "image_key"} | {s[k] for s in self._axes.values() for k in ("readback", "commanded")}
+        needed = {str(self._keys["image"]), str(self._keys["image_key"])}
+        needed |= {s[k] for s in self._axes.values() for k in ("readback", "commanded")}
         missing = sorted(needed - keys)
         if missing:
             raise ValueError(f"stream {self.stream!r} lacks the data keys {missing} that the run's orbitct entry names")
@@ -123,13 +145,17 @@ class ScanFileCallback:
         if doc.get("descriptor") not in self._descriptors or self.writer is None:
             return
         data = doc["data"]
-        key = ImageKey(int(data["image_key"]))
-        vector = data.get("nominal_vector") if key == ImageKey.PROJECTION else None
+        keys = self._keys
+        key = ImageKey(int(data[str(keys["image_key"])]))
+        projection = key == ImageKey.PROJECTION
+        vector = data.get(str(keys["nominal_vector"])) if projection else None
+        truth = data.get(str(keys["true_vector"])) if projection and keys["true_vector"] is not None else None
         self.writer.append(
-            np.asarray(data["image"]),
+            np.asarray(data[str(keys["image"])]),
             key,
             float(doc["time"]) - self._t0,
             nominal_vector=None if vector is None else np.asarray(vector, dtype=float),
+            true_vector=None if truth is None else np.asarray(truth, dtype=float),
             encoders={name: float(data[s["readback"]]) for name, s in self._axes.items()},
             commanded={name: float(data[s["commanded"]]) for name, s in self._axes.items()},
         )
