@@ -164,7 +164,7 @@ def test_continuous_mode_counts_no_speed_for_the_rewind_between_two_turns() -> N
 
 
 def test_sweeps_split_where_the_stage_stops_or_reverses() -> None:
-    from acquire.engine import sweep_end
+    from acquire.plan import sweep_end
 
     stage = np.array([0.0, -1, -2, -3, -3, -3, -2, -1, 0])
     assert sweep_end(stage, 0, 8) == 3  # turns one way until frame 3
