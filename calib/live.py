@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import multiprocessing as mp
 import os
 import queue
@@ -28,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calib.detect import N_FIELDS
+from calib.errors import CalibrationError
 from calib.follow import (
     ABORT_KINDS,
     WARNING_KINDS,
@@ -44,6 +46,7 @@ from orbitct.geometry import ViewGeometry
 from orbitct.progress import ProgressCallback, report
 from orbitct.scanfile import ImageKey, ScanFile
 
+log = logging.getLogger(__name__)
 WATCH_S = 0.5  # how often a wait on the worker looks whether its process is still there
 FEED_STALL_S = 2.0  # a dark or flat the worker has not taken in this long: it is hung or far behind, and given up
 SILENT_S = 30.0  # after the scan, a worker that has said nothing for this long is given up
@@ -327,10 +330,79 @@ class LiveCalibration:
         return result
 
 
+class FinalSolve:
+    """The final solve of a complete scan's live calibration (:meth:`LiveCalibration.finish`) in a thread of its
+    own, so that the acquisition's loop and the signals it handles stay free. Its outcome is said in the file
+    (``/geometry/calibrated`` there, or why it is missing); a failure is kept (:attr:`error`) and logged, never
+    raised: the scan is complete whatever the solve does."""
+
+    def __init__(self, live: LiveCalibration) -> None:
+        self.live = live
+        self._result: CalibrationResult | None = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="orbitct-live-final-solve", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            self._result = self.live.finish()
+        except CalibrationError as exc:
+            self._error = exc
+            log.error("live calibration of %s failed: %s", self.live.path, exc)
+        except Exception as exc:
+            self._error = exc
+            log.exception("live calibration of %s failed", self.live.path)
+        outcome = "done" if self._result is not None else f"missing: {self._error}"
+        try:
+            with ScanFile(self.live.path, "r+") as sf:
+                sf.set_live_calibration(outcome)
+        except Exception as exc:  # noqa: BLE001 - the scan's own record stands; the command says it too
+            log.error("could not record the live calibration's outcome in %s: %s", self.live.path, exc)
+
+    def wait(self, timeout_s: float | None = None) -> bool:
+        """Whether the solve has ended (waiting up to ``timeout_s``)."""
+        self._thread.join(timeout_s)
+        return not self._thread.is_alive()
+
+    @property
+    def result(self) -> CalibrationResult | None:
+        """The calibration (waits for the solve); None when it failed."""
+        self.wait()
+        return self._result
+
+    @property
+    def error(self) -> BaseException | None:
+        """Why there is no calibration (waits for the solve); None when there is one."""
+        self.wait()
+        return self._error
+
+
+class FinalSolveOutcome:
+    """The outcome of a final solve, for the classes that start one (into ``_final``; None: none started)."""
+
+    _final: FinalSolve | None = None
+
+    def wait(self, timeout_s: float | None = None) -> bool:
+        """Whether the final solve has ended (waiting up to ``timeout_s``; at once when none was started)."""
+        return True if self._final is None else self._final.wait(timeout_s)
+
+    @property
+    def result(self) -> CalibrationResult | None:
+        """The calibration of a complete scan (waits for its final solve); None when there is none."""
+        return None if self._final is None else self._final.result
+
+    @property
+    def error(self) -> BaseException | None:
+        """Why a complete scan has no live geometry (waits for its final solve); None when it has one."""
+        return None if self._final is None else self._final.error
+
+
 __all__ = [
     "ABORT_KINDS",
     "WARNING_KINDS",
     "WARNING_MEANINGS",
+    "FinalSolve",
+    "FinalSolveOutcome",
     "LiveCalibration",
     "LiveCalibrationError",
     "LiveSettings",

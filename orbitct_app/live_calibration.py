@@ -20,10 +20,8 @@ from typing import Any
 from acquire.errors import AcquireError
 from acquire.records import FrameRecord, ScanEnd, ScanStart
 from calib.errors import CalibrationError
-from calib.live import WARNING_KINDS, LiveCalibration, LiveSettings, LiveWarning
-from calib.result import CalibrationResult
+from calib.live import WARNING_KINDS, FinalSolve, FinalSolveOutcome, LiveCalibration, LiveSettings, LiveWarning
 from orbitct.progress import ProgressCallback
-from orbitct.scanfile import ScanFile
 
 log = logging.getLogger(__name__)
 
@@ -32,7 +30,7 @@ class LiveWarningAbort(AcquireError):
     """The scan stopped on a live calibration warning the operator chose to stop on."""
 
 
-class LiveCalibrationSubscriber:
+class LiveCalibrationSubscriber(FinalSolveOutcome):
     """Calibrates the scan being recorded to ``path`` while it runs (see the module's description)."""
 
     def __init__(
@@ -59,11 +57,9 @@ class LiveCalibrationSubscriber:
         self.on_warning = on_warning
         self.options = options
         self.live: LiveCalibration | None = None
-        self._result: CalibrationResult | None = None
-        self._error: BaseException | None = None
         self._stop_reason: str | None = None
         self._lock = threading.Lock()
-        self._finishing: threading.Thread | None = None
+        self._final: FinalSolve | None = None
 
     def _warned(self, w: LiveWarning) -> None:  # in the calibration's thread
         if self.on_warning is not None:
@@ -116,47 +112,7 @@ class LiveCalibrationSubscriber:
         if end.status != "complete":
             self.live.close()
             return
-        self._finishing = threading.Thread(target=self._finish, name="orbitct-live-final-solve", daemon=True)
-        self._finishing.start()
-
-    def _finish(self) -> None:
-        try:
-            self._result = self.live.finish() if self.live is not None else None
-        except CalibrationError as exc:
-            self._error = exc
-            log.error("live calibration of %s failed: %s", self.path, exc)
-        except Exception as exc:  # the scan is complete whatever the solve does; said, not raised
-            self._error = exc
-            log.exception("live calibration of %s failed", self.path)
-        self._record_outcome()
-
-    @property
-    def result(self) -> CalibrationResult | None:
-        """The calibration of a complete scan (waits for its final solve); None when there is none."""
-        self.wait()
-        return self._result
-
-    @property
-    def error(self) -> BaseException | None:
-        """Why a complete scan has no live geometry (waits for its final solve); None when it has one."""
-        self.wait()
-        return self._error
-
-    def wait(self, timeout_s: float | None = None) -> bool:
-        """Whether the final solve has ended (waiting up to ``timeout_s``; at once when none was started)."""
-        if self._finishing is None:
-            return True
-        self._finishing.join(timeout_s)
-        return not self._finishing.is_alive()
-
-    def _record_outcome(self) -> None:
-        """Say in the file whether the live geometry is there (never fails the scan: the file is complete)."""
-        outcome = "done" if self._result is not None else f"missing: {self._error}"
-        try:
-            with ScanFile(self.path, "r+") as sf:
-                sf.set_live_calibration(outcome)
-        except Exception as exc:  # noqa: BLE001 - the scan's own record stands; the command says it too
-            log.error("could not record the live calibration's outcome in %s: %s", self.path, exc)
+        self._final = FinalSolve(self.live)
 
     @property
     def warnings(self) -> list[LiveWarning]:

@@ -1,5 +1,5 @@
-"""orbitct in a bluesky stack: ophyd-async devices over orbitct's drivers, a plan for an orbit, and a callback
-that writes orbitct's scan file from a run's documents.
+"""orbitct in a bluesky stack: ophyd-async devices over orbitct's drivers, a plan for an orbit, a callback
+that writes orbitct's scan file from a run's documents, and one that calibrates it live.
 
 An adapter the rest of orbitct never imports; install it with ``pip install 'orbitct[bluesky]'`` (bluesky,
 ophyd-async and event-model). The documents a run must carry are described in
@@ -9,6 +9,7 @@ ophyd-async and event-model). The documents a run must carry are described in
 from __future__ import annotations
 
 from orbitct_bluesky.devices import FlatPanel, Hexapod, RotationStage, XrayGenerator
+from orbitct_bluesky.live_callback import LiveCalibrationCallback
 from orbitct_bluesky.plan import Bench, orbit_plan
 from orbitct_bluesky.scanfile_callback import ScanFileCallback, orbitct_metadata
 
@@ -16,6 +17,7 @@ __all__ = [
     "Bench",
     "FlatPanel",
     "Hexapod",
+    "LiveCalibrationCallback",
     "RotationStage",
     "ScanFileCallback",
     "XrayGenerator",

@@ -125,6 +125,7 @@ def orbit_plan(
             "nominal_vector": "nominal_vector",
             "true_vector": f"{bench.panel.name}-true_vector" if bench.simulated else None,
         },
+        frames=(frames.image_key.tolist(), frames.nominal.vectors.tolist()),
     )
     start = {
         "plan_name": "orbit_plan",

@@ -21,11 +21,12 @@ unchanged. What the run must carry:
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
+import event_model
 import numpy as np
 
 from orbitct.geometry import Panel
@@ -50,11 +51,13 @@ def orbitct_metadata(
     orbit_params: Mapping[str, Any] | None = None,
     marker_diameter_mm: float | None = None,
     keys: Mapping[str, str | None] | None = None,
+    frames: tuple[Sequence[int], Sequence[Sequence[float]]] | None = None,
 ) -> dict[str, Any]:
     """The start document's ``orbitct`` entry: ``axes`` maps each axis (``device.axis``) to its unit and the data
     keys of its read-back and commanded position, e.g. ``{"rotation_stage.R": ("deg", "stage_R", "stage_R_set")}``;
     ``keys`` renames the data keys of ``image``, ``image_key``, ``nominal_vector`` and ``true_vector`` (None:
-    the run has none)."""
+    the run has none); ``frames``: every planned frame's image key and nominal view (NaN for darks and flats),
+    which live calibration needs before the first frame."""
     unknown = sorted(set(keys or {}) - set(DEFAULT_KEYS))
     if unknown:
         raise ValueError(f"orbitct_metadata: no data key {', '.join(unknown)}; keys are {', '.join(DEFAULT_KEYS)}")
@@ -71,10 +74,23 @@ def orbitct_metadata(
         "axes": [{"name": name, "unit": u, "readback": rb, "commanded": cmd} for name, (u, rb, cmd) in axes.items()],
         "marker_diameter_mm": marker_diameter_mm,
         "keys": {**DEFAULT_KEYS, **dict(keys or {})},
+        **({} if frames is None else {"frames": _frames_entry(*frames)}),
     }
 
 
-class ScanFileCallback:
+def _frames_entry(image_key: Sequence[int], nominal_vectors: Sequence[Sequence[float]]) -> dict[str, Any]:
+    """The planned frames as a start document holds them (JSON: NaN as None)."""
+    vectors = np.asarray(nominal_vectors, dtype=float).reshape(-1, 12)
+    keys = [int(k) for k in image_key]
+    if len(keys) != len(vectors):
+        raise ValueError(f"orbitct_metadata: {len(keys)} image keys but {len(vectors)} nominal views")
+    return {
+        "image_key": keys,
+        "nominal_vectors": [[None if np.isnan(x) else float(x) for x in row] for row in vectors],
+    }
+
+
+class ScanFileCallback(event_model.DocumentRouter):
     """A bluesky callback (``callback(name, doc)``) writing each run it sees to ``path`` as an orbitct scan file.
 
     ``stream``: the event stream holding the frames. A run without the ``orbitct`` start entry is refused with a
@@ -82,6 +98,7 @@ class ScanFileCallback:
     """
 
     def __init__(self, path: str | os.PathLike[str], *, stream: str = "primary", overwrite: bool = False) -> None:
+        super().__init__()
         self.path = Path(path)
         self.stream = stream
         self.overwrite = overwrite
@@ -91,12 +108,7 @@ class ScanFileCallback:
         self._descriptors: set[str] = set()
         self._keys: dict[str, str | None] = dict(DEFAULT_KEYS)
 
-    def __call__(self, name: str, doc: Mapping[str, Any]) -> None:
-        handler = getattr(self, f"_on_{name}", None)
-        if handler is not None:
-            handler(doc)
-
-    def _on_start(self, doc: Mapping[str, Any]) -> None:
+    def start(self, doc: Mapping[str, Any]) -> None:
         md = doc.get(KEY)
         if not isinstance(md, Mapping) or md.get("format") != FORMAT:
             raise ValueError(
@@ -130,7 +142,7 @@ class ScanFileCallback:
             **({"planned_frames": int(planned)} if isinstance(planned, int) else {}),
         )
 
-    def _on_descriptor(self, doc: Mapping[str, Any]) -> None:
+    def descriptor(self, doc: Mapping[str, Any]) -> None:
         if doc.get("name") != self.stream:
             return
         keys = set(doc["data_keys"])
@@ -141,7 +153,7 @@ class ScanFileCallback:
             raise ValueError(f"stream {self.stream!r} lacks the data keys {missing} that the run's orbitct entry names")
         self._descriptors.add(str(doc["uid"]))
 
-    def _on_event(self, doc: Mapping[str, Any]) -> None:
+    def event(self, doc: Mapping[str, Any]) -> None:  # type: ignore[override]
         if doc.get("descriptor") not in self._descriptors or self.writer is None:
             return
         data = doc["data"]
@@ -160,13 +172,7 @@ class ScanFileCallback:
             commanded={name: float(data[s["commanded"]]) for name, s in self._axes.items()},
         )
 
-    def _on_event_page(self, doc: Mapping[str, Any]) -> None:
-        import event_model
-
-        for event in event_model.unpack_event_page(cast("event_model.EventPage", doc)):
-            self._on_event(event)
-
-    def _on_stop(self, doc: Mapping[str, Any]) -> None:
+    def stop(self, doc: Mapping[str, Any]) -> None:
         if self.writer is None:
             return
         ok = doc.get("exit_status") == "success"

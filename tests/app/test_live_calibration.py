@@ -20,13 +20,13 @@ from click.testing import CliRunner
 import calib
 from acquire.rigs.bench import open_bench
 from acquire.runner import ScanRunner
-from calib.evaluate import similarity_aligned_error_px
 from devices.sim import twin_of
 from orbitct.phantoms.experiments import experiment_phantom
 from orbitct.scanfile import ScanFile
 from orbitct_app.cli.main import cli
 from orbitct_app.live_calibration import LiveCalibrationSubscriber
 from tests.helpers.bench import small_config, small_request
+from tests.helpers.calib_scans import assert_live_geometry_is_offline
 
 pytestmark = [pytest.mark.system, pytest.mark.slow, pytest.mark.timeout(300)]
 ROOT = Path(__file__).resolve().parents[2]
@@ -43,14 +43,7 @@ def test_a_scan_calibrated_live_has_the_offline_geometry_when_it_ends(tmp_path: 
     res = asyncio.run(ScanRunner(small_request(out, frames=60, config=cfg), subscribers=[sub]).run())
     assert res.status == "complete" and sub.error is None and sub.result is not None
     assert sub.live is not None and sub.live.last_frame_to_geometry_s is not None
-    with ScanFile(out) as sf:
-        assert sf.status == "complete" and sf.h5["geometry/calibrated"].attrs["live"]
-        proj = sf.projection_indices
-        live_geometry, truth = sf.geometry("calibrated")[proj], sf.geometry("truth")[proj]
-    offline = calib.calibrate_scan(out, out=tmp_path / "offline.h5")
-    np.testing.assert_array_equal(offline.geometry.vectors[proj], live_geometry.vectors)
-    err, _ = similarity_aligned_error_px(live_geometry, truth)
-    assert err < 1.0
+    assert_live_geometry_is_offline(out, tmp_path)
 
 
 def test_stop_on_a_warning_halts_the_axes_switches_x_rays_off_and_says_why(tmp_path: Path) -> None:

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -39,38 +39,6 @@ SAWTOOTH = ScanOptions(
     error_params=SMALL_ERRORS,
     seed=1,
 )
-
-
-@pytest.fixture
-def RE() -> RunEngine:
-    """A RunEngine (its event loop, where the devices connect, runs from here on)."""
-    return RunEngine({})
-
-
-@pytest.fixture
-def open_bench(RE: RunEngine) -> Iterator[Callable[[BenchConfig], Bench]]:
-    """Connect a bench's ophyd-async devices to its twins (``sim://``); disconnected (twins stopped) afterwards."""
-    opened: list[Bench] = []
-
-    def make(config: BenchConfig) -> Bench:
-        bench = Bench.from_config(config, sim=True)
-        opened.append(bench)
-
-        async def connect() -> None:
-            for device in bench.devices:
-                await device.connect(timeout=30.0)
-
-        call_in_bluesky_event_loop(connect())
-        return bench
-
-    yield make
-
-    async def close(bench: Bench) -> None:
-        for device in bench.devices:
-            await device.disconnect()
-
-    for bench in opened:
-        call_in_bluesky_event_loop(close(bench))
 
 
 def validated(documents: list[tuple[str, dict[str, Any]]]) -> Callable[[str, dict[str, Any]], None]:

@@ -99,3 +99,20 @@ def write_scan(
             w.append(frame, "projection", float(n), nominal_vector=nominal.vectors[n])
         w.write_truth(np.concatenate([np.full((2, 12), np.nan), truth.vectors]), markers)
     return path
+
+
+def assert_live_geometry_is_offline(out: Path, tmp_path: Path) -> None:
+    """The geometry a live calibration wrote into the complete scan ``out`` is the one ``orbitct calibrate``
+    computes from the same file, and within 1 px of the simulation truth."""
+    import calib
+    from calib.evaluate import similarity_aligned_error_px
+    from orbitct.scanfile import ScanFile
+
+    with ScanFile(out) as sf:
+        assert sf.status == "complete" and sf.h5["geometry/calibrated"].attrs["live"]
+        proj = sf.projection_indices
+        live_geometry, truth = sf.geometry("calibrated")[proj], sf.geometry("truth")[proj]
+    offline = calib.calibrate_scan(out, out=tmp_path / "offline.h5")
+    np.testing.assert_array_equal(offline.geometry.vectors[proj], live_geometry.vectors)
+    err, _ = similarity_aligned_error_px(live_geometry, truth)
+    assert err < 1.0
