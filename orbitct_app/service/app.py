@@ -14,6 +14,7 @@ from orbitct_app.service.core.settings import ServiceSettings
 from orbitct_app.service.routers import (
     calibrations,
     devices,
+    geometry,
     health,
     jobs,
     orbits,
@@ -35,6 +36,7 @@ TAGS = [
     {"name": "scans", "description": "Acquisitions on the bench, one at a time (operator starts and aborts)."},
     {"name": "calibrations", "description": "Geometric calibration from BBs (analyst)."},
     {"name": "reconstructions", "description": "FDK and PWLS reconstruction (analyst)."},
+    {"name": "geometry", "description": "A scan's per-view geometry for other reconstruction toolkits."},
     {"name": "jobs", "description": "State, progress, log and cancellation of calibration and reconstruction jobs."},
     {
         "name": "pacs",
@@ -96,6 +98,7 @@ def create_app(settings: ServiceSettings, *, service: Service | None = None) -> 
         scans,
         calibrations,
         reconstructions,
+        geometry,
         jobs,
         pacs,
         plans,

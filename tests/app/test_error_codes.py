@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
 import signal
 import subprocess
 import sys
@@ -15,21 +14,17 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import h5py
-import numpy as np
 import pytest
 import yaml
 from click.testing import CliRunner
 from fastapi.testclient import TestClient
 
-from orbitct.geometry import ViewGeometry
 from orbitct_app.cli.main import cli
 from orbitct_app.error_codes import CATALOGUE
 from orbitct_app.service.safety.latch import StopLatch
 from tests.app.service.conftest import Api, _close_all, _open
 from tests.helpers.bench import small_config
-from tests.helpers.recon import bench_detector, write_sphere_scan
-from tests.helpers.service import SMALL_SAWTOOTH, free_port
+from tests.helpers.service import SMALL_SAWTOOTH, failed_scan_file, free_port, register_scan
 from tests.helpers.smallfs import fill, small_filesystem
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(300)]
@@ -80,32 +75,6 @@ def services(tmp_path: Path) -> Iterator[Any]:
     _close_all(opened)
 
 
-def _failed_scan_file(path: Path) -> Path:
-    """A small scan whose calibrated geometry failed its quality check (as a failed calibration leaves it)."""
-    g = ViewGeometry.from_carm(np.linspace(0, 2 * np.pi, 40, endpoint=False), 0.0, 785.0, 1200.0, bench_detector(48))
-    write_sphere_scan(path, g)
-    with h5py.File(path, "r+") as f:
-        f.copy("geometry/nominal", "geometry/calibrated")
-        f["geometry/calibrated"].attrs.update(
-            {"quality": "failed", "quality_reasons_json": '["5 of 40 view(s) failed"]', "verdict": "failed"}
-        )
-    return path
-
-
-def _register(api: Api, scan_file: Path) -> str:
-    from orbitct_app.service.core.files import summarize_scan
-
-    scan_id = "f" * 16
-    (api.data_dir / "scans").mkdir(exist_ok=True)
-    shutil.copy(scan_file, api.data_dir / "scans" / f"{scan_id}.h5")
-    api.service.store.add_scan(
-        scan_id, name="failed", orbit="imported", request={}, file=f"scans/{scan_id}.h5", owner="test", frames_total=40
-    )
-    path = api.data_dir / "scans" / f"{scan_id}.h5"
-    api.service.store.update_scan(scan_id, state="complete", frames_done=40, summary=summarize_scan(path))
-    return scan_id
-
-
 def test_every_error_of_the_api_reads_as_a_sentence_with_its_code(services: Any, tmp_path: Path) -> None:
     api: Api = services("main", pacs_nodes={"down": f"dicom://NOBODY@127.0.0.1:{free_port()}"})
     said: dict[str, str] = {}
@@ -125,7 +94,7 @@ def test_every_error_of_the_api_reads_as_a_sentence_with_its_code(services: Any,
         api.post("/scans", content=b" " * (api.service.settings.max_body_bytes + 1)), "request_too_large"
     )
     said["bad_gateway"] = _api_says(api.get("/pacs/down/series"), "bad_gateway")
-    scan_id = _register(api, _failed_scan_file(tmp_path / "failed.h5"))
+    scan_id = register_scan(api, failed_scan_file(tmp_path / "failed.h5"))
     body = {"scan_id": scan_id, "algorithm": "fdk", "geometry": "calibrated", "shape": [8, 16, 16]}
     said["failed_quality_check"] = _api_says(
         api.post("/reconstructions", role="analyst", json=body), "failed_quality_check"
@@ -183,7 +152,7 @@ def test_every_error_of_the_cli_reads_as_a_sentence_with_its_code(
     r = _cli("import", "dicom", str(empty), "--out", str(tmp_path / "x.h5"))
     said["not_found"] = _cli_says(r.output, r.exit_code, "not_found")
 
-    failed = _failed_scan_file(tmp_path / "failed.h5")
+    failed = failed_scan_file(tmp_path / "failed.h5")
     r = _cli("reconstruct", str(failed), "--shape", "8,16,16", "--voxel-mm", "4")
     said["failed_quality_check"] = _cli_says(r.output, r.exit_code, "failed_quality_check")
     assert "--accept-failed-geometry" in said["failed_quality_check"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -12,12 +13,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import h5py
 import httpx
 import numpy as np
 import yaml
 
 from orbitct.geometry import Panel, ViewGeometry
 from orbitct.scanfile import ScanWriter
+from tests.helpers.recon import bench_detector, write_sphere_scan
 
 ROOT = Path(__file__).resolve().parents[2]
 DETECTOR_PX = 192  # the twins keep the detector size of their first start in a process
@@ -152,3 +155,30 @@ def serve_subprocess(
             proc.kill()
             raise AssertionError("service did not start: " + log_path.read_text(errors="replace")[-2000:])
         time.sleep(0.2)
+
+
+def failed_scan_file(path: Path) -> Path:
+    """A small scan whose calibrated geometry failed its quality check (as a failed calibration leaves it)."""
+    g = ViewGeometry.from_carm(np.linspace(0, 2 * np.pi, 40, endpoint=False), 0.0, 785.0, 1200.0, bench_detector(48))
+    write_sphere_scan(path, g)
+    with h5py.File(path, "r+") as f:
+        f.copy("geometry/nominal", "geometry/calibrated")
+        f["geometry/calibrated"].attrs.update(
+            {"quality": "failed", "quality_reasons_json": '["5 of 40 view(s) failed"]', "verdict": "failed"}
+        )
+    return path
+
+
+def register_scan(api: Any, scan_file: Path) -> str:
+    """Put ``scan_file`` into the service of ``api`` as a complete scan; its id."""
+    from orbitct_app.service.core.files import summarize_scan
+
+    scan_id = "f" * 16
+    (api.data_dir / "scans").mkdir(exist_ok=True)
+    shutil.copy(scan_file, api.data_dir / "scans" / f"{scan_id}.h5")
+    api.service.store.add_scan(
+        scan_id, name="failed", orbit="imported", request={}, file=f"scans/{scan_id}.h5", owner="test", frames_total=40
+    )
+    path = api.data_dir / "scans" / f"{scan_id}.h5"
+    api.service.store.update_scan(scan_id, state="complete", frames_done=40, summary=summarize_scan(path))
+    return scan_id
