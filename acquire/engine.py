@@ -429,6 +429,10 @@ class ScanEngine(ContinuousMode):
                             prep.task.cancel()
                             with contextlib.suppress(BaseException):
                                 await prep.task
+                        elif prep is not None and not prep.task.cancelled():
+                            # failed while the move failed or was cancelled (Ctrl-C: the stop drops the source):
+                            # the scan's reason is said once; no "Task exception was never retrieved" trace
+                            prep.task.exception()
                     last = cmd
                 nxt = frames[k + 1] if k + 1 < len(frames) else None
                 start_next: Callable[[], None] | None = None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import gc
 import time
 from typing import Any
 
@@ -10,6 +11,7 @@ import pytest
 
 from acquire.rigs.bench import BenchRig, open_bench
 from acquire.runner import ScanRequest, ScanRunner
+from devices.errors import DeviceError
 from devices.sim import twin_of
 from orbitct.progress import ProgressEvent
 from orbitct.scanfile import ScanFile
@@ -193,6 +195,40 @@ def test_the_source_prepares_during_the_move_not_after_it(request_factory) -> No
     status, after = acquire_s_per_projection(False)
     assert status == "complete"
     assert after - ahead > 0.6 * prep_s, (ahead, after)  # without: each exposure prepares first
+
+
+def test_a_preparation_failing_while_the_move_fails_is_said_once_without_a_trace(request_factory) -> None:
+    """Ctrl-C during a move: the stop drops the source, so the preparation running during the move fails too.
+    The scan's reason is said; the preparation's failure is not left for asyncio to print as "Task exception was
+    never retrieved" with a traceback (seen in the CLI's output after a Ctrl-C)."""
+    unretrieved: list[str] = []
+
+    async def main() -> str:
+        asyncio.get_running_loop().set_exception_handler(lambda loop, ctx: unretrieved.append(ctx["message"]))
+        async with open_bench(small_config(), sim=True) as bench:
+            asked: list[bool] = []
+
+            async def prepare_fails() -> None:
+                asked.append(True)
+                raise DeviceError("xray: generator returned to IDLE during prepare")
+
+            move_to = bench.move_to
+
+            async def move_fails_after_the_preparation(targets: Any, timeout_s: float) -> None:
+                await asyncio.sleep(0.05)  # a preparation started with this move has failed by then
+                if asked:
+                    raise DeviceError("stage: halted by the stop")
+                await move_to(targets, timeout_s)
+
+            bench.prepare_exposure = prepare_fails  # type: ignore[method-assign]
+            bench.move_to = move_fails_after_the_preparation  # type: ignore[method-assign]
+            res = await ScanRunner(request_factory(frames=8), rig=bench).run()
+            return res.reason
+
+    reason = asyncio.run(main())
+    gc.collect()  # an unretrieved task exception is reported when the task is collected
+    assert "halted by the stop" in reason
+    assert not [m for m in unretrieved if "never retrieved" in m], unretrieved
 
 
 class _SlowToStart:
