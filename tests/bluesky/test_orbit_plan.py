@@ -5,6 +5,7 @@ axes and switches X-rays off."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -105,16 +106,16 @@ def _hold_between_exposures(size: int = 32) -> BenchConfig:
     return small_config(size=size, exposure={"exposure_ms": 2.0, "frame_rate_hz": 8.0, "prep_ms": 25000.0})
 
 
-def _pause_at(RE: RunEngine, n_events: int) -> Callable[[str, dict[str, Any]], None]:
-    """A callback that asks ``RE`` to pause once ``n_events`` frames are recorded (from another thread, as a
-    user's Ctrl-C or a suspender would)."""
+def _interrupt_at(interrupt: Callable[[], Any], n_events: int) -> Callable[[str, dict[str, Any]], None]:
+    """A callback that calls ``interrupt`` (the RunEngine's ``request_pause``, ``halt``, ...) once ``n_events``
+    frames are recorded, from another thread, as a user's Ctrl-C or a suspender would."""
     seen = {"events": 0}
 
     def on_document(name: str, doc: dict[str, Any]) -> None:
         if name == "event":
             seen["events"] += 1
             if seen["events"] == n_events:
-                threading.Thread(target=RE.request_pause).start()
+                threading.Thread(target=interrupt).start()
 
     return on_document
 
@@ -136,7 +137,7 @@ def _paused_midway(RE: RunEngine, bench: Bench, recorded: Path, options: ScanOpt
     generator holding high voltage between exposures); then the axes are at rest and X-rays off."""
     bench.xray.release = False
     RE.subscribe(ScanFileCallback(recorded))
-    RE.subscribe(_pause_at(RE, n_events))
+    RE.subscribe(_interrupt_at(RE.request_pause, n_events))
     with pytest.raises(RunEngineInterrupted):
         RE(orbit_plan(bench, options))
     assert RE.state == "paused"
@@ -171,6 +172,26 @@ def test_an_aborted_run_halts_switches_x_rays_off_and_keeps_its_frames(
         assert sf.status == "aborted" and "exit status abort" in sf.status_reason
         assert 10 <= sf.n_frames < plan_frames(bench, options).n_frames
         assert np.asarray(sf.frames[sf.n_frames - 1]).shape == sf.panel.shape
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("how", ["halt", "stop"])
+def test_a_run_halted_or_stopped_mid_orbit_leaves_the_axes_at_rest_and_x_rays_off(
+    RE: RunEngine, open_bench: Callable[[BenchConfig], Bench], tmp_path: Path, how: str
+) -> None:
+    """``RE.halt()`` (no cleanup by the plan) and ``RE.stop()`` while the run is going on, with high voltage held
+    between exposures: the RunEngine stops what the run set, the axes and the generator."""
+    bench, options = open_bench(_hold_between_exposures()), ScanOptions(orbit="sawtooth", frames=24)
+    bench.xray.release = False
+    RE.subscribe(ScanFileCallback(tmp_path / f"{how}.h5"))
+    RE.subscribe(_interrupt_at(getattr(RE, how), 10))
+    with contextlib.suppress(RunEngineInterrupted):
+        RE(orbit_plan(bench, options))
+    assert RE.state == "idle"
+    at_rest, dark, generator = _at_rest_and_dark(bench)
+    assert at_rest and dark, generator
+    with ScanFile(tmp_path / f"{how}.h5") as sf:
+        assert 10 <= sf.n_frames < plan_frames(bench, options).n_frames
 
 
 def test_an_infeasible_orbit_is_refused_before_anything_moves(

@@ -1,0 +1,86 @@
+"""Estimates against actual times: what orbitct says a job will take before it starts, and what it took.
+
+Usage: .venv/bin/python benchmarks/estimates.py [--frames N] [--size PX] [--out FILE]
+Simulates one scan of experiment A on this machine, then reconstructs it with FDK and PWLS at two grid sizes each,
+and prints per job the estimate made before any large work (``recon.estimate``: rates measured on this machine
+when the process first needs them), the actual wall time and their ratio (actual / estimate; the target is within
+1.5 either way). Jobs that make no estimate before they start are listed as such, with what they show instead.
+Writes the rows as JSON (``benchmarks/results/estimates.json`` by default).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
+
+from machine_info import describe_machine
+
+TARGET = 1.5  # an estimate within this factor of the actual time, either way
+NO_ESTIMATE = {  # jobs without an up-front estimate: what they show instead
+    "scan": "no estimate before it starts; progress shows frames/s and time left from the rate so far",
+    "calibration": "no estimate before it starts; progress per phase (detection, identification, estimation)",
+    "BB planning": "no estimate before it starts; a progress bar over the candidate placements",
+}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=120, help="projections of the simulated scan")
+    ap.add_argument("--size", type=int, default=192, help="panel pixels per side")
+    ap.add_argument("--out", type=Path, default=_HERE / "results" / "estimates.json")
+    args = ap.parse_args()
+    from orbitct.simulator.scan import simulate_scan
+    from recon import reconstruct_scan
+
+    print(f"machine: {describe_machine()}")
+    rows: list[dict[str, object]] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        scan = Path(tmp) / "a.h5"
+        simulate_scan("A", out=scan, n_frames=args.frames, detector_px=args.size)
+        cases = [
+            ("FDK", {"algorithm": "fdk", "shape": [64, 96, 96], "voxel_mm": 1.0}),
+            ("FDK", {"algorithm": "fdk", "shape": [128, 192, 192], "voxel_mm": 0.5}),
+            ("PWLS", {"algorithm": "pwls", "shape": [32, 48, 48], "voxel_mm": 2.0, "iterations": 10}),
+            ("PWLS", {"algorithm": "pwls", "shape": [64, 96, 96], "voxel_mm": 1.0, "iterations": 10}),
+        ]
+        for i, (job, options) in enumerate(cases):
+            t = time.perf_counter()
+            res = reconstruct_scan(scan, geometry="truth", name=f"r{i}", overwrite=True, fit="fov", **options)
+            actual = time.perf_counter() - t
+            estimated = float(res.params["estimated_s"])
+            shape = "x".join(str(n) for n in options["shape"])  # type: ignore[attr-defined]
+            what = f"{shape} voxels" + (f", {options['iterations']} iterations" if job == "PWLS" else "")
+            rows.append(
+                {
+                    "job": job,
+                    "case": f"{what}, {args.frames} views of {args.size}^2",
+                    "estimated_s": estimated,
+                    "actual_s": actual,
+                    "ratio": actual / estimated if estimated > 0 else float("nan"),
+                }
+            )
+    print(f"\n| job | case | estimated s | actual s | actual / estimate | within {TARGET}x |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    for r in rows:
+        ratio = float(r["ratio"])  # type: ignore[arg-type]
+        ok = 1 / TARGET <= ratio <= TARGET
+        print(
+            f"| {r['job']} | {r['case']} | {r['estimated_s']:.2f} | {r['actual_s']:.2f} | {ratio:.2f} | "
+            f"{'yes' if ok else 'NO'} |"
+        )
+    for job, instead in NO_ESTIMATE.items():
+        print(f"| {job} | - | none | - | - | {instead} |")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"machine": describe_machine(), "rows": rows, "no_estimate": NO_ESTIMATE}, indent=1))
+    print(f"\nwrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
