@@ -37,6 +37,7 @@ QUICK = (
     "calibration_robustness",
     "pwls_acceleration",
     "recon",
+    "estimates",
     "bb_planning",
     "service",
     "console",

@@ -1,14 +1,19 @@
 """How long a reconstruction will take, estimated before anything large is allocated.
 
-The projectors' cost grows with the number of ray steps (views x pixels x planes crossed) and FDK's with views x
-voxels. The rates are measured once per process on a small problem on this machine, so the estimate follows the
-machine and its load; it is an estimate (rays that miss the volume cost less, caches behave differently at size).
+The projectors' cost grows with the number of ray steps (per view, the pixels whose rays meet the volume times the
+planes they cross), FDK's with views x voxels, and reading the projections (each frame checked, its line integrals
+formed) with views x pixels. The rates are measured once per process on small problems on this machine (the
+reading on a small scan file written for it), so the estimate follows the machine and its load; it is an estimate
+(caches behave differently at size).
 """
 
 from __future__ import annotations
 
 import functools
+import itertools
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -16,6 +21,8 @@ from orbitct.geometry import ViewGeometry, VolumeGrid
 
 _PROBE = 64  # voxels per side and pixels per side of the measuring problem
 _PROBE_VIEWS = 8
+_FDK_PROBE_VIEWS = 32
+_READ_PROBE = 256  # pixels per side of the frames the reading rate is measured on
 
 
 @functools.cache
@@ -33,7 +40,13 @@ def rates() -> tuple[float, float, float]:
     A = projector(grid, geometry)
     x = np.ones(grid.shape, np.float32)
     y = A(x)
-    A.T(y), fdk(y, grid, geometry)  # compiled before timing
+    # FDK over more views: over 8 its fixed cost per call (filter set-up, allocation) weighed in, and the rate
+    # overestimated a 128 x 192 x 192 reconstruction by half
+    fdk_views = ViewGeometry.from_carm(
+        np.linspace(0.0, 2 * np.pi, _FDK_PROBE_VIEWS, endpoint=False), 0.0, SAD_MM, SDD_MM, panel
+    )
+    y_fdk = np.ones((_FDK_PROBE_VIEWS, *y.shape[1:]), np.float32)
+    A.T(y), fdk(y_fdk, grid, fdk_views)  # compiled before timing
 
     def best(call: object) -> float:
         times = []
@@ -47,8 +60,54 @@ def rates() -> tuple[float, float, float]:
     return (
         best(lambda: A(x)) / steps,
         best(lambda: A.T(y)) / steps,
-        best(lambda: fdk(y, grid, geometry)) / (_PROBE_VIEWS * _PROBE**3),
+        best(lambda: fdk(y_fdk, grid, fdk_views)) / (_FDK_PROBE_VIEWS * _PROBE**3),
     )
+
+
+@functools.cache
+def reading_rate() -> float:
+    """Seconds per projection pixel to read a scan's projections: each frame checked, then its line integrals
+    formed (measured on a small scan file written to a temporary folder)."""
+    from orbitct.reference_bench import SAD_MM, SDD_MM, reference_panel
+    from orbitct.scanfile import ScanFile, ScanWriter
+
+    rng = np.random.default_rng(0)
+    panel = reference_panel(_READ_PROBE)
+    views = ViewGeometry.from_carm(np.linspace(0.0, np.pi, _PROBE_VIEWS), 0.0, SAD_MM, SDD_MM, panel).vectors
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "probe.h5"
+        with ScanWriter(path, panel, orbit_name="probe") as w:
+            w.append(rng.poisson(100.0, panel.shape), "dark", 0.0)
+            w.append(rng.poisson(2e4, panel.shape), "flat", 0.0)
+            for vector in views:
+                w.append(rng.poisson(5e3, panel.shape), "projection", 0.0, nominal_vector=vector)
+        times = []
+        for _ in range(3):
+            with ScanFile(path) as sf:
+                t = time.perf_counter()
+                sf.frame_problems()
+                for i in sf.projection_indices:
+                    sf.line_integrals(int(i))
+                times.append(time.perf_counter() - t)
+    return min(times) / (_PROBE_VIEWS * _READ_PROBE**2)
+
+
+def ray_steps(grid: VolumeGrid, geometry: ViewGeometry) -> float:
+    """Ray steps of one projection of ``grid`` over ``geometry``'s views: per view, the pixels within the rectangle
+    the volume's corners project into (the rays that meet it) times the planes along the main axis of the ray
+    through its centre."""
+    extent = grid.extent_mm
+    corners = np.array(list(itertools.product(*extent)))  # (8, 3): x, y, z
+    uv = geometry.project(corners)
+    panel = geometry.panel
+    with np.errstate(invalid="ignore"):
+        u = np.clip(np.stack([np.nanmin(uv[..., 0], axis=1), np.nanmax(uv[..., 0], axis=1)]), -0.5, panel.cols - 0.5)
+        v = np.clip(np.stack([np.nanmin(uv[..., 1], axis=1), np.nanmax(uv[..., 1], axis=1)]), -0.5, panel.rows - 0.5)
+    hit = np.maximum(u[1] - u[0], 0.0) * np.maximum(v[1] - v[0], 0.0)
+    towards = extent.mean(axis=1) - geometry.vectors[:, :3]
+    nz, ny, nx = grid.shape
+    planes = np.asarray((nx, ny, nz), dtype=float)[np.argmax(np.abs(towards), axis=1)]
+    return float(np.nansum(hit * planes))
 
 
 def reconstruction_seconds(
@@ -59,16 +118,22 @@ def reconstruction_seconds(
     cols: int,
     iterations: int = 0,
     final_cost: bool = False,
+    *,
+    geometry: ViewGeometry | None = None,
 ) -> float:
     """Estimated wall time of FDK, or of PWLS (its FDK start, the surrogate's set-up, ``iterations`` passes and, when
-    asked for, the final cost) on this machine now."""
+    asked for, the final cost) on this machine now, reading the projections included. With the projections'
+    ``geometry`` the projectors count only the rays that meet the volume; without, every ray crosses half its
+    planes along x and y."""
     forward, back, per_voxel_view = rates()
     nz, ny, nx = grid.shape
+    read_s = reading_rate() * n_views * rows * cols
     fdk_s = per_voxel_view * n_views * nz * ny * nx
     if algorithm == "fdk":
-        return fdk_s
-    steps = n_views * rows * cols * 0.5 * (nx + ny)  # a ray steps along its main axis, mostly x or y on C-arm orbits
-    return fdk_s + steps * ((forward + back) * (iterations + 1) + (forward if final_cost else 0.0))
+        return read_s + fdk_s
+    # a ray steps along its main axis, mostly x or y on C-arm orbits
+    steps = ray_steps(grid, geometry) if geometry is not None else n_views * rows * cols * 0.5 * (nx + ny)
+    return 2 * read_s + fdk_s + steps * ((forward + back) * (iterations + 1) + (forward if final_cost else 0.0))
 
 
 def describe_seconds(seconds: float) -> str:
@@ -80,4 +145,4 @@ def describe_seconds(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h"
 
 
-__all__ = ["describe_seconds", "rates", "reconstruction_seconds"]
+__all__ = ["describe_seconds", "rates", "ray_steps", "reading_rate", "reconstruction_seconds"]

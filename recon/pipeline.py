@@ -330,6 +330,7 @@ def reconstruct_scan(
             det.cols,
             iterations if algorithm == "pwls" else 0,
             opts.final_cost,
+            geometry=geom,
         )
         max_seconds = opts.max_seconds
         if max_seconds is not None and estimated_s > max_seconds:
