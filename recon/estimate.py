@@ -1,7 +1,7 @@
 """How long a reconstruction will take, estimated before anything large is allocated.
 
-The projectors' cost grows with the number of ray steps (per view, the pixels whose rays meet the volume times the
-planes they cross), FDK's with views x voxels, and reading the projections (each frame checked, its line integrals
+The projectors' cost grows with the number of rays (each set up, whether it meets the volume or not) and of ray
+steps (per view, the pixels whose rays meet the volume times the planes they cross), FDK's with views x voxels, and reading the projections (each frame checked, its line integrals
 formed) with views x pixels. The rates are measured once per process on small problems on this machine (the
 reading on a small scan file written for it), so the estimate follows the machine and its load; it is an estimate
 (caches behave differently at size).
@@ -13,6 +13,7 @@ import functools
 import itertools
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -25,43 +26,63 @@ _FDK_PROBE_VIEWS = 32
 _READ_PROBE = 256  # pixels per side of the frames the reading rate is measured on
 
 
+def _best(call: Callable[[], object]) -> float:
+    times = []
+    for _ in range(3):
+        t = time.perf_counter()
+        call()
+        times.append(time.perf_counter() - t)
+    return min(times)
+
+
 @functools.cache
-def rates() -> tuple[float, float, float]:
-    """Seconds per ray step of the forward and of the matched back projector, and per voxel and view of FDK."""
+def projector_rates() -> tuple[float, float, float, float]:
+    """Seconds per ray and per ray step of the forward, then of the matched back projector: measured on a volume
+    filling the field of view (every ray steps through it) and on a few voxels at its centre (nearly every ray
+    misses them and costs only its set-up), the two costs solved from the two times."""
     from orbitct.reference_bench import PANEL_MM, SAD_MM, SDD_MM, reference_panel
-    from recon.fdk import fdk
     from recon.operator import projector
 
     panel = reference_panel(_PROBE, PANEL_MM / _PROBE)
     geometry = ViewGeometry.from_carm(
         np.linspace(0.0, 2 * np.pi, _PROBE_VIEWS, endpoint=False), 0.0, SAD_MM, SDD_MM, panel
     )
+    voxel = panel.pitch_col * SAD_MM / SDD_MM
+    rays = float(geometry.n_views * panel.rows * panel.cols)
+    times, counts = [], []
+    for grid in (VolumeGrid.centered((_PROBE,) * 3, voxel), VolumeGrid.centered((4, 4, 4), voxel)):
+        A = projector(grid, geometry)
+        x = np.ones(grid.shape, np.float32)
+        y = A(x)
+        A.T(y)  # compiled before timing
+        times.append((_best(functools.partial(A, x)), _best(functools.partial(A.T, y))))
+        counts.append((rays, ray_steps(grid, geometry)))
+    m = np.asarray(counts)
+    out: list[float] = []
+    for k in (0, 1):  # forward, back: per ray and per step from the two problems
+        per_ray, per_step = np.linalg.solve(m, np.asarray([t[k] for t in times]))
+        per_step = max(float(per_step), 0.0) or times[0][k] / m[0, 1]
+        out += [max(float(per_ray), 0.0), per_step]
+    return out[0], out[1], out[2], out[3]
+
+
+@functools.cache
+def rates() -> tuple[float, float, float]:
+    """Seconds per ray step of the forward and of the matched back projector, and per voxel and view of FDK."""
+    from orbitct.reference_bench import PANEL_MM, SAD_MM, SDD_MM, reference_panel
+    from recon.fdk import fdk
+
+    _, forward, _, back = projector_rates()
+    panel = reference_panel(_PROBE, PANEL_MM / _PROBE)
     grid = VolumeGrid.centered((_PROBE,) * 3, panel.pitch_col * SAD_MM / SDD_MM)
-    A = projector(grid, geometry)
-    x = np.ones(grid.shape, np.float32)
-    y = A(x)
-    # FDK over more views: over 8 its fixed cost per call (filter set-up, allocation) weighed in, and the rate
+    # FDK over 32 views: over 8 its fixed cost per call (filter set-up, allocation) weighed in, and the rate
     # overestimated a 128 x 192 x 192 reconstruction by half
-    fdk_views = ViewGeometry.from_carm(
+    views = ViewGeometry.from_carm(
         np.linspace(0.0, 2 * np.pi, _FDK_PROBE_VIEWS, endpoint=False), 0.0, SAD_MM, SDD_MM, panel
     )
-    y_fdk = np.ones((_FDK_PROBE_VIEWS, *y.shape[1:]), np.float32)
-    A.T(y), fdk(y_fdk, grid, fdk_views)  # compiled before timing
-
-    def best(call: object) -> float:
-        times = []
-        for _ in range(3):
-            t = time.perf_counter()
-            call()  # type: ignore[operator]
-            times.append(time.perf_counter() - t)
-        return min(times)
-
-    steps = _PROBE_VIEWS * _PROBE * _PROBE * _PROBE
-    return (
-        best(lambda: A(x)) / steps,
-        best(lambda: A.T(y)) / steps,
-        best(lambda: fdk(y_fdk, grid, fdk_views)) / (_FDK_PROBE_VIEWS * _PROBE**3),
-    )
+    y = np.ones((_FDK_PROBE_VIEWS, panel.rows, panel.cols), np.float32)
+    fdk(y, grid, views)  # compiled before timing
+    return forward, back, _best(lambda: fdk(y, grid, views)) / (_FDK_PROBE_VIEWS * _PROBE**3)
 
 
 @functools.cache
@@ -126,6 +147,7 @@ def reconstruction_seconds(
     ``geometry`` the projectors count only the rays that meet the volume; without, every ray crosses half its
     planes along x and y."""
     forward, back, per_voxel_view = rates()
+    forward_ray, _, back_ray, _ = projector_rates()
     nz, ny, nx = grid.shape
     read_s = reading_rate() * n_views * rows * cols
     fdk_s = per_voxel_view * n_views * nz * ny * nx
@@ -133,7 +155,10 @@ def reconstruction_seconds(
         return read_s + fdk_s
     # a ray steps along its main axis, mostly x or y on C-arm orbits
     steps = ray_steps(grid, geometry) if geometry is not None else n_views * rows * cols * 0.5 * (nx + ny)
-    return 2 * read_s + fdk_s + steps * ((forward + back) * (iterations + 1) + (forward if final_cost else 0.0))
+    rays = n_views * rows * cols  # each ray is set up whether it meets the volume or not
+    passes = (iterations + 1, iterations + 1 + (1 if final_cost else 0))  # back, forward projections
+    projecting_s = passes[1] * (rays * forward_ray + steps * forward) + passes[0] * (rays * back_ray + steps * back)
+    return 2 * read_s + fdk_s + projecting_s
 
 
 def describe_seconds(seconds: float) -> str:
@@ -145,4 +170,11 @@ def describe_seconds(seconds: float) -> str:
     return f"{seconds / 3600:.1f} h"
 
 
-__all__ = ["describe_seconds", "rates", "ray_steps", "reading_rate", "reconstruction_seconds"]
+__all__ = [
+    "describe_seconds",
+    "projector_rates",
+    "rates",
+    "ray_steps",
+    "reading_rate",
+    "reconstruction_seconds",
+]
