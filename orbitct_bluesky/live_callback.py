@@ -21,8 +21,8 @@ import numpy as np
 
 from calib.follow import LiveWarning
 from calib.live import FinalSolve, FinalSolveOutcome, LiveCalibration
-from orbitct.geometry import Panel, ViewGeometry
-from orbitct_bluesky.scanfile_callback import DEFAULT_KEYS, KEY
+from orbitct.geometry import ViewGeometry
+from orbitct_bluesky.scanfile_callback import DEFAULT_KEYS, KEY, entry_keys, entry_panel
 
 log = logging.getLogger(__name__)
 
@@ -62,11 +62,10 @@ class LiveCalibrationCallback(FinalSolveOutcome, event_model.DocumentRouter):
                 f"live calibration needs the run's frames in its start document's {KEY!r} entry (image keys and "
                 "nominal views: orbitct_metadata(..., frames=...), which orbit_plan fills)"
             )
-        p = md["panel"]
-        panel = Panel(int(p["rows"]), int(p["cols"]), float(p["pitch_col_mm"]), float(p["pitch_row_mm"]))
+        panel = entry_panel(md)
         image_key = np.asarray(frames["image_key"], dtype=np.int8)
         nominal = ViewGeometry(np.asarray(frames["nominal_vectors"], dtype=float).reshape(-1, 12), panel)
-        self._keys = {**DEFAULT_KEYS, **dict(md.get("keys") or {})}
+        self._keys = entry_keys(md)
         self._descriptors, self._n_frames = set(), 0
         self._final = None
         self.live = LiveCalibration(

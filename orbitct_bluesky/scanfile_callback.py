@@ -90,6 +90,18 @@ def _frames_entry(image_key: Sequence[int], nominal_vectors: Sequence[Sequence[f
     }
 
 
+def entry_panel(entry: Mapping[str, Any]) -> Panel:
+    """The panel an ``orbitct`` start entry describes."""
+    p = entry["panel"]
+    return Panel(int(p["rows"]), int(p["cols"]), float(p["pitch_col_mm"]), float(p["pitch_row_mm"]))
+
+
+def entry_keys(entry: Mapping[str, Any]) -> dict[str, str | None]:
+    """The data keys of frame, image key and views an ``orbitct`` start entry names (the defaults where it names
+    none, as entries written before keys were named)."""
+    return {**DEFAULT_KEYS, **dict(entry.get("keys") or {})}
+
+
 class ScanFileCallback(event_model.DocumentRouter):
     """A bluesky callback (``callback(name, doc)``) writing each run it sees to ``path`` as an orbitct scan file.
 
@@ -115,10 +127,9 @@ class ScanFileCallback(event_model.DocumentRouter):
                 f"the run's start document has no {KEY!r} entry of format {FORMAT!r}: make it with "
                 "orbitct_bluesky.orbitct_metadata(panel, axes, ...) and pass it as the run's metadata"
             )
-        p = md["panel"]
-        panel = Panel(int(p["rows"]), int(p["cols"]), float(p["pitch_col_mm"]), float(p["pitch_row_mm"]))
+        panel = entry_panel(md)
         self._axes = {str(a["name"]): dict(a) for a in md["axes"]}
-        self._keys = {**DEFAULT_KEYS, **dict(md.get("keys") or {})}  # entries written before keys were named
+        self._keys = entry_keys(md)
         self._t0 = float(doc["time"])
         self.writer = ScanWriter(
             self.path,

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
-from orbitct_app.service.core.errors import NotFound
+from orbitct_app.service.core.errors import Conflict, NotFound
+from orbitct_app.service.core.files import confined
 
 
 class Progress(BaseModel):
@@ -114,3 +116,15 @@ def scan_or_404(service: Any, scan_id: str) -> dict[str, Any]:
     if scan is None:
         raise NotFound(f"no scan with id {scan_id[:64]!r}")
     return scan
+
+
+def ended_scan_file(service: Any, scan_id: str, then: str) -> Path:
+    """The file of a scan that has ended and that no job writes to; 404 if unknown, 409 (advice: ``then`` "when it
+    has ended") otherwise."""
+    row = scan_or_404(service, scan_id)
+    if row["state"] in ("queued", "running", "paused") or service.rig.busy == scan_id:
+        raise Conflict(f"scan {scan_id} is still {row['state']}", advice=f"{then} when it has ended")
+    if scan_id in service.jobs.busy_scans():
+        raise Conflict(f"a job is writing to scan {scan_id}", advice=f"{then} when the job has ended")
+    folder, name = row["file"].split("/")
+    return confined(service.settings.data_dir / folder, name)

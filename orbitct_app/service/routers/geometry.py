@@ -8,9 +8,8 @@ from fastapi import APIRouter, Query, Response
 
 from orbitct.toolkits import GeometryExportOptions
 from orbitct_app.service.core.errors import ERROR_RESPONSES, Conflict, ErrorBody, FailedCheck, NotFound
-from orbitct_app.service.core.files import confined
 from orbitct_app.service.deps import Reader, ServiceDep
-from orbitct_app.service.schemas import scan_or_404
+from orbitct_app.service.schemas import ended_scan_file
 
 router = APIRouter(prefix="/scans", tags=["geometry"], responses=ERROR_RESPONSES)
 
@@ -21,7 +20,10 @@ router = APIRouter(prefix="/scans", tags=["geometry"], responses=ERROR_RESPONSES
     responses={
         200: {"content": {"application/json": {}, "application/xml": {}}},
         404: {"model": ErrorBody, "description": "no such scan, or it has not the geometry asked for"},
-        409: {"model": ErrorBody, "description": "still acquiring, a failed calibrated geometry, or views without one"},
+        409: {
+            "model": ErrorBody,
+            "description": "still acquiring or written by a job, a failed calibrated geometry, or views without one",
+        },
     },
 )
 def export_geometry(
@@ -34,11 +36,7 @@ def export_geometry(
     from recon.errors import FailedGeometryError, ReconError
     from recon.geometry_export import export_scan_geometry
 
-    row = scan_or_404(service, scan_id)
-    if row["state"] in ("queued", "running", "paused") or service.rig.busy == scan_id:
-        raise Conflict(f"scan {scan_id} is still {row['state']}", advice="export its geometry when it has ended")
-    folder, name = row["file"].split("/")
-    path = confined(service.settings.data_dir / folder, name)
+    path = ended_scan_file(service, scan_id, "export its geometry")
     try:
         export = export_scan_geometry(path, options, name=f"scan {scan_id}")
     except FailedGeometryError as exc:

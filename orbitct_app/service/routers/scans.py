@@ -26,10 +26,9 @@ from orbitct_app.service.core.errors import (
     validation_details,
 )
 from orbitct_app.service.core.events import sse_response
-from orbitct_app.service.core.files import confined
 from orbitct_app.service.core.schema_rules import only_with, schema_extra
 from orbitct_app.service.deps import Reader, ScanOperator, ServiceDep
-from orbitct_app.service.schemas import VerdictOut, scan_or_404
+from orbitct_app.service.schemas import VerdictOut, ended_scan_file, scan_or_404
 
 router = APIRouter(prefix="/scans", tags=["scans"], responses=ERROR_RESPONSES)
 ScanState = Literal["queued", "running", "paused", "complete", "aborted", "failed", "interrupted"]
@@ -455,11 +454,5 @@ def resume_scan(scan_id: str, service: ServiceDep, _: ScanOperator) -> ScanOut:
 )
 def download_scan(scan_id: str, service: ServiceDep, _: Reader) -> FileResponse:
     """The scan file (``scan-file.md``), once the scan has ended and no job writes to it."""
-    row = scan_or_404(service, scan_id)
-    if row["state"] in ("queued", "running", "paused") or service.rig.busy == scan_id:
-        raise Conflict(f"scan {scan_id} is still {row['state']}", advice="download it when it has ended")
-    if scan_id in service.jobs.busy_scans():
-        raise Conflict(f"a job is writing to scan {scan_id}", advice="download it when the job has ended")
-    folder, name = row["file"].split("/")
-    path = confined(service.settings.data_dir / folder, name)
+    path = ended_scan_file(service, scan_id, "download it")
     return FileResponse(path, media_type="application/x-hdf5", filename=f"{scan_id}.h5")
