@@ -35,21 +35,8 @@ from calib.track import (
 )
 from calib.window import SlidingBundle
 from orbitct.geometry import ViewGeometry
+from orbitct.livewarnings import WarningKind
 from orbitct.scanfile import ImageKey
-
-#: what a live warning can be about, and in a few words what it says (the console's choices)
-WARNING_MEANINGS = {
-    "bb_lost": "a BB is lost",
-    "bb_found": "a lost BB is found again",
-    "bb_left_fov": "a BB leaves the panel",
-    "few_bbs": "a view shows too few BBs",
-    "bb_distorted": "a BB looks distorted (over metal or bone, or merged)",
-    "object_moved": "the object moved on the table",
-    "fell_behind": "calibration falls behind",
-}
-WARNING_KINDS = tuple(WARNING_MEANINGS)
-#: the warnings a scan may be stopped on: all but the good news
-ABORT_KINDS = tuple(k for k in WARNING_KINDS if k != "bb_found")
 
 
 class LiveCalibrationError(CalibrationError):
@@ -58,10 +45,10 @@ class LiveCalibrationError(CalibrationError):
 
 @dataclass(frozen=True)
 class LiveWarning:
-    """Something the operator should know while the scan runs: ``kind`` (see :data:`WARNING_KINDS`), the scan
+    """Something the operator should know while the scan runs: ``kind`` (see :data:`orbitct.livewarnings.WARNING_KINDS`), the scan
     frame it was raised at, the first frame it concerns, and a sentence naming frames and positions."""
 
-    kind: str
+    kind: WarningKind
     frame: int
     since_frame: int
     message: str
@@ -546,5 +533,7 @@ class Follower:
                 uv=(float(uv[0]), float(uv[1])),
             )
 
-    def _warn(self, kind: str, frame: int, since: int, message: str, uv: tuple[float, float] | None = None) -> None:
+    def _warn(
+        self, kind: WarningKind, frame: int, since: int, message: str, uv: tuple[float, float] | None = None
+    ) -> None:
         self.emit("warning", LiveWarning(kind, int(frame), int(since), message, uv))

@@ -31,9 +31,6 @@ from numpy.typing import NDArray
 from calib.detect import N_FIELDS
 from calib.errors import CalibrationError
 from calib.follow import (
-    ABORT_KINDS,
-    WARNING_KINDS,
-    WARNING_MEANINGS,
     Follower,
     LiveCalibrationError,
     LiveSettings,
@@ -398,9 +395,6 @@ class FinalSolveOutcome:
 
 
 __all__ = [
-    "ABORT_KINDS",
-    "WARNING_KINDS",
-    "WARNING_MEANINGS",
     "FinalSolve",
     "FinalSolveOutcome",
     "LiveCalibration",

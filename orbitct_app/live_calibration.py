@@ -20,7 +20,8 @@ from typing import Any
 from acquire.errors import AcquireError
 from acquire.records import FrameRecord, ScanEnd, ScanStart
 from calib.errors import CalibrationError
-from calib.live import WARNING_KINDS, FinalSolve, FinalSolveOutcome, LiveCalibration, LiveSettings, LiveWarning
+from calib.live import FinalSolve, FinalSolveOutcome, LiveCalibration, LiveSettings, LiveWarning
+from orbitct.livewarnings import WARNING_KINDS
 from orbitct.progress import ProgressCallback
 
 log = logging.getLogger(__name__)

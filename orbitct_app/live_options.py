@@ -7,14 +7,11 @@ made from it. This module stays light (no calibration imported) so that ``orbitc
 
 from __future__ import annotations
 
-from typing import Literal, get_args
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-#: the live warnings a scan may be stopped on: every kind but the good news ("bb_found"); the same as
-#: ``calib.live.ABORT_KINDS`` (tests hold the two the same)
-AbortKind = Literal["bb_lost", "bb_left_fov", "few_bbs", "bb_distorted", "object_moved", "fell_behind"]
-ABORT_KINDS: tuple[str, ...] = get_args(AbortKind)
+from orbitct.livewarnings import ABORT_KINDS, AbortKind
 
 
 class LiveCalibrationOptions(BaseModel):

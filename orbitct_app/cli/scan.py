@@ -11,10 +11,11 @@ import click
 import yaml
 
 from acquire.options import ScanOptions
+from orbitct.livewarnings import ABORT_KINDS
 from orbitct_app.cli.failure import fail
 from orbitct_app.cli.model_options import model_from, options_from
 from orbitct_app.cli.progress import ProgressBar
-from orbitct_app.live_options import ABORT_KINDS, LiveCalibrationOptions
+from orbitct_app.live_options import LiveCalibrationOptions
 
 if TYPE_CHECKING:
     from acquire.runner import ScanRequest

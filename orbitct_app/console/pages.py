@@ -19,8 +19,8 @@ from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
 from fastapi.templating import Jinja2Templates
 
-from calib.live import ABORT_KINDS, WARNING_MEANINGS
 from orbitct import __version__
+from orbitct.livewarnings import ABORT_KINDS, WARNING_MEANINGS
 from orbitct_app.service.core.auth import PERMISSIONS, ROLE_WORDS
 from orbitct_app.service.core.sessions import COOKIE
 

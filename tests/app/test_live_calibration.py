@@ -110,7 +110,7 @@ def test_cli_scan_calibrate_live_reports_the_geometry_and_refuses_without_a_bb_s
 
 
 def test_the_cli_offers_to_stop_on_every_warning_but_the_good_news() -> None:
-    from calib.live import ABORT_KINDS
+    from orbitct.livewarnings import ABORT_KINDS
     from orbitct_app.cli import scan
 
     assert scan.ABORT_KINDS == ABORT_KINDS and "object_moved" in ABORT_KINDS and "bb_found" not in ABORT_KINDS

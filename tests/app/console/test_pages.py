@@ -87,7 +87,7 @@ def test_pages_render_only_the_controls_of_the_role(shared_api) -> None:  # type
 
 
 def test_a_new_scan_may_stop_on_every_live_warning_but_the_good_news(shared_api) -> None:  # type: ignore[no-untyped-def]
-    from calib.live import ABORT_KINDS
+    from orbitct.livewarnings import ABORT_KINDS
 
     api = shared_api
     _sign_in(api, "operator")
