@@ -5,7 +5,6 @@ picture."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -15,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from orbitct.progress import ProgressCallback
-from orbitct_app.bbplan_options import MAX_BBS, MOTION_ERRORS, BBPlanOptions, checked_plan_options
+from orbitct_app.bbplan_options import MAX_BBS, BBPlanOptions, checked_plan_options
 
 #: samples of the orbit's motion errors a BB must be usable in (besides the nominal views) to count in a view
 MOTION_SAMPLES = 3
@@ -27,60 +26,34 @@ class BBPlanError(ValueError):
 
 @dataclass(frozen=True)
 class BBPlanRequest:
-    """What to plan for: the experiment's object, the orbit, the panel, the BBs and the search."""
+    """What to plan for: checked :class:`~orbitct_app.bbplan_options.BBPlanOptions` and the surface to tape the
+    BBs on (``calib.surfaces.TapeSurface``, see :func:`load_surface`; None: the experiment's cylinder)."""
 
-    experiment: str
-    orbit: str | None = None
-    frames: int | None = None
-    n_bbs: int = 8
-    detector_px: int = 768
-    noise_px: float = 0.1
-    seed: int = 0
-    keep_out: tuple[Any, ...] = ()  # calib.plan.KeepOut
-    target_px: float | None = None  # suggest the fewest BBs whose worst view reaches this (then n_bbs is that count)
-    max_bbs: int = 20
-    surface: Any = None  # calib.surfaces.TapeSurface (load_surface); None: the experiment's cylinder
-    errors: str = "none"  # the orbit's expected motion errors: an error profile's name (bench, none)
+    options: BBPlanOptions
+    surface: Any = None
+
+    @classmethod
+    def checked(cls, surface: Any = None, **options: Any) -> BBPlanRequest:
+        """The request of keyword ``options`` (named as in :class:`~orbitct_app.bbplan_options.BBPlanOptions`) on
+        ``surface``; BBPlanError naming each option that is wrong."""
+        try:
+            return cls(checked_plan_options(**options), surface)
+        except ValueError as exc:
+            raise BBPlanError(str(exc)) from None
 
     @classmethod
     def from_options(cls, options: BBPlanOptions, surface: Any = None) -> BBPlanRequest:
-        """The request of checked ``options`` on ``surface`` (None: the experiment's cylinder)."""
+        """The request of ``options`` (a model that extends them, such as the REST request, is cut down to
+        them) on ``surface``."""
+        own = {name: getattr(options, name) for name in BBPlanOptions.model_fields}
+        return cls(BBPlanOptions.model_validate(own), surface)
+
+    @property
+    def keep_out(self) -> tuple[Any, ...]:
+        """The patches without BBs as ``calib.plan.KeepOut``."""
         from calib.plan import KeepOut
 
-        return cls(
-            experiment=options.experiment,
-            orbit=options.orbit,
-            frames=options.frames,
-            n_bbs=options.bbs,
-            detector_px=options.detector_px,
-            noise_px=options.noise_px,
-            seed=options.seed,
-            keep_out=tuple(KeepOut(**zone.model_dump()) for zone in options.keep_out),
-            target_px=options.target_px,
-            max_bbs=options.max_bbs,
-            surface=surface,
-            errors=options.errors,
-        )
-
-    def options(self) -> BBPlanOptions:
-        """The plan's options, checked by :class:`~orbitct_app.bbplan_options.BBPlanOptions` (BBPlanError naming
-        each one that is wrong)."""
-        try:
-            return checked_plan_options(
-                experiment=self.experiment,
-                orbit=self.orbit,
-                frames=self.frames,
-                bbs=self.n_bbs,
-                target_px=self.target_px,
-                max_bbs=self.max_bbs,
-                keep_out=[dataclasses.asdict(zone) for zone in self.keep_out],
-                detector_px=self.detector_px,
-                errors=self.errors,
-                noise_px=self.noise_px,
-                seed=self.seed,
-            )
-        except ValueError as exc:
-            raise BBPlanError(str(exc)) from None
+        return tuple(KeepOut(**zone.model_dump()) for zone in self.options.keep_out)
 
 
 @dataclass
@@ -102,13 +75,9 @@ def _resolve(req: BBPlanRequest) -> tuple[str, Any, Any]:
     from orbitct.phantoms.experiments import BB_SURFACES
     from orbitct.simulator import resolve_orbit
 
-    key = req.experiment.upper()
-    if key not in BB_SURFACES:
-        raise BBPlanError(f"experiment {req.experiment!r}: allowed are {', '.join(sorted(BB_SURFACES))}")
-    if req.errors not in MOTION_ERRORS:
-        raise BBPlanError(f"motion errors {req.errors!r}: allowed are {', '.join(MOTION_ERRORS)}")
+    key = req.options.experiment  # checked by the options: one of BB_SURFACES
     try:
-        orbit = resolve_orbit(key, req.orbit, req.frames)
+        orbit = resolve_orbit(key, req.options.orbit, req.options.frames)
     except OrbitError as exc:
         raise BBPlanError(str(exc)) from None
     return key, orbit, req.surface if req.surface is not None else EllipticCylinder(*BB_SURFACES[key])
@@ -120,7 +89,6 @@ def check_bb_plan_request(req: BBPlanRequest) -> dict[str, Any]:
     wrong."""
     from calib.plan import check_room
 
-    req.options()
     key, orbit, surface = _resolve(req)
     try:
         check_room(surface, req.keep_out)
@@ -147,36 +115,36 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
     from orbitct.phantoms.experiments import experiment_phantom
     from orbitct.simulator.bench import SimulatedBench
 
-    req.options()
+    o = req.options
     key, orbit, surface = _resolve(req)
     phantom = experiment_phantom(key)
     d = float(phantom.marker_diameter_mm or 3.0)
-    geometry = SimulatedBench.with_panel(req.detector_px).nominal_geometry(orbit)
+    geometry = SimulatedBench.with_panel(o.detector_px).nominal_geometry(orbit)
     metal = metal_of(phantom)
     background = phantom_background(phantom, geometry, surface)  # what lies behind each BB: photons, bone edges
     moved = (
-        [make_profile(req.errors, seed).sample(orbit).apply_to_geometry(geometry) for seed in range(MOTION_SAMPLES)]
-        if req.errors != "none"
+        [make_profile(o.errors, seed).sample(orbit).apply_to_geometry(geometry) for seed in range(MOTION_SAMPLES)]
+        if o.errors != "none"
         else []
     )
     options: dict[str, Any] = {
-        "noise_px": req.noise_px,
+        "noise_px": o.noise_px,
         "metal": metal,
         "keep_out": req.keep_out,
-        "seed": req.seed,
+        "seed": o.seed,
         "background": background,
         "moved": moved,
         "progress": progress,
     }
     warnings: list[str] = []
-    n_bbs, suggestion = req.n_bbs, None
+    n_bbs, suggestion = o.bbs, None
     try:
-        if req.target_px is not None:
-            suggestion = suggest_bb_count(geometry, surface, d, req.target_px, n_max=req.max_bbs, **options)
+        if o.target_px is not None:
+            suggestion = suggest_bb_count(geometry, surface, d, o.target_px, n_max=o.max_bbs, **options)
             if suggestion.n_bbs is None:
-                n_bbs = max(suggestion.tried, default=req.n_bbs)
+                n_bbs = max(suggestion.tried, default=o.bbs)
                 warnings.append(
-                    f"no placement of up to {req.max_bbs} BBs reaches {req.target_px:g} px in every view; "
+                    f"no placement of up to {o.max_bbs} BBs reaches {o.target_px:g} px in every view; "
                     f"planned {n_bbs} BBs, the most that fit"
                 )
             else:
@@ -188,7 +156,7 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
         geometry,
         phantom.markers_xyz,
         d,
-        noise_px=req.noise_px,
+        noise_px=o.noise_px,
         metal=metal,
         surface=surface,
         background=background,
@@ -197,9 +165,9 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
     try:
         spiral: Any = predict_placement(
             geometry,
-            hand_spiral(surface, n_bbs, d, seed=req.seed, keep_out=req.keep_out),
+            hand_spiral(surface, n_bbs, d, seed=o.seed, keep_out=req.keep_out),
             d,
-            noise_px=req.noise_px,
+            noise_px=o.noise_px,
             metal=metal,
             surface=surface,
             background=background,
@@ -218,16 +186,16 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
         "experiment": key,
         "orbit": orbit.name,
         "views": int(geometry.n_views),
-        "detector_px": req.detector_px,
+        "detector_px": o.detector_px,
         "bb_diameter_mm": d,
-        "noise_px": req.noise_px,
-        "motion_errors": {"profile": req.errors, "samples": len(moved)},
+        "noise_px": o.noise_px,
+        "motion_errors": {"profile": o.errors, "samples": len(moved)},
         "noise_model": {
             "background": f"experiment {key}'s phantom",
             "photon_floor": PHOTON_FLOOR,
             "shift_factor": SHIFT_FACTOR,
             "shift_scatter": SHIFT_SCATTER,
-            "huber_threshold_px": huber_threshold_px(req.noise_px),
+            "huber_threshold_px": huber_threshold_px(o.noise_px),
         },
         "surface": surface.describe(),
         "keep_out": [vars(z) for z in req.keep_out],

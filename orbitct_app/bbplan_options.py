@@ -1,7 +1,7 @@
 """The options of a BB placement plan, in one place: names, units, limits and defaults.
 
 ``orbitct plan bbs`` makes its options from :class:`BBPlanOptions`, the REST service's plan request (``POST
-/plans/bbs``) extends it, and :class:`orbitct_app.bbplan.BBPlanRequest` is checked by it, so the same plan gets
+/plans/bbs``) extends it, and :class:`orbitct_app.bbplan.BBPlanRequest` (the planner's input) holds it, so the same plan gets
 the same answer everywhere. Where the object's surface comes from (a file here, an upload or a reconstruction
 there) is each interface's own. This module stays light, so that the command starts quickly.
 """

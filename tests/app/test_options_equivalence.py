@@ -395,20 +395,11 @@ PLAN_CASES: list[tuple[dict[str, Any], bool]] = [
 
 
 def plan_python_accepts(values: dict[str, Any]) -> bool:
-    from calib.plan import KeepOut
     from orbitct_app.bbplan import BBPlanError, BBPlanRequest
 
-    options = {"experiment": "A", **values}
-    options.pop("surface_threshold_per_mm", None)  # Python gives the surface itself
-    threshold = values.get("surface_threshold_per_mm")
-    zones = tuple(KeepOut(**z) for z in options.pop("keep_out", []))
     try:
-        if threshold is not None:
-            from orbitct_app.bbplan_options import checked_plan_options
-
-            checked_plan_options(experiment="A", surface_threshold_per_mm=threshold)
-        BBPlanRequest(**{("n_bbs" if k == "bbs" else k): v for k, v in options.items()}, keep_out=zones).options()
-    except (BBPlanError, ValueError):
+        BBPlanRequest.checked(**{"experiment": "A", **values})
+    except BBPlanError:
         return False
     return True
 
@@ -573,6 +564,6 @@ def test_python_takes_numpy_numbers_as_the_api_takes_json_ones() -> None:
 
     scan = ScanRequest(config="config/bench.yaml", out="s.h5", frames=np.int64(40), seed=np.int64(7)).options()
     assert scan.frames == 40 and scan.seed == 7
-    plan = BBPlanRequest(experiment="A", n_bbs=np.int64(9), noise_px=np.float32(0.2)).options()
+    plan = BBPlanRequest.checked(experiment="A", bbs=np.int64(9), noise_px=np.float32(0.2)).options
     assert plan.bbs == 9 and abs(plan.noise_px - 0.2) < 1e-6
     assert LiveCalibrationOptions(lost_frames=np.int64(5)).lost_frames == 5
