@@ -751,17 +751,23 @@ async function pageViewer() {
 
   const NV = window.niivue.Niivue;
   const make = async (canvas) => {
-    const nv = new NV({ isRuler: true, isColorbar: true, backColor: [0, 0, 0, 1], show3Dcrosshair: true, crosshairWidth: 1.5, crosshairWidthUnit: 'mm',
+    // the slice views carry our own labelled scale bar (niivue's ruler is an unlabelled 10 cm, cut by small fields)
+    const nv = new NV({ isRuler: false, isColorbar: true, backColor: [0, 0, 0, 1], show3Dcrosshair: true, crosshairWidth: 1.5, crosshairWidthUnit: 'mm',
+      fontMinPx: 16, fontSizeScaling: 0.5, fontColor: [0.9, 0.9, 0.9, 1],
       crosshairColor: [1, 0.8, 0, 0.6], rulerColor: [1, 1, 1, 0.9], loadingText: 'loading the volume...' });
     await nv.attachToCanvas(canvas);
     return nv;
   };
   const a = await make($('#gl-a'));
   let b = null;
-  const load = async (nv, j) => {
-    await nv.loadVolumes([{ url: `/reconstructions/${j.id}/volume?format=nifti`, name: `${j.id}.nii.gz`, colormap: 'gray' }]);
+  // a compared volume is resampled by the server onto this one's grid: the same voxels, side by side
+  const load = async (nv, j, pane, onto) => {
+    const grid = onto ? `&grid_of=${onto.id}` : '';
+    await nv.loadVolumes([{ url: `/reconstructions/${j.id}/volume?format=nifti${grid}`, name: `${j.id}.nii.gz`, colormap: 'gray' }]);
+    const h = nv.volumes[0].hdr;
+    pane.dataset.grid = `${h.dims.slice(1, 4).join(' x ')} voxels of ${h.pixDims.slice(1, 4).map((v) => +v.toPrecision(4)).join(' x ')} mm`;
   };
-  await load(a, job);
+  await load(a, job, $('#gl-a').closest('figure'));
   const vol = a.volumes[0];
   $('#wmin').value = vol.cal_min.toPrecision(4);
   $('#wmax').value = vol.cal_max.toPrecision(4);
@@ -781,9 +787,10 @@ async function pageViewer() {
     $('#pane-b').hidden = !other;
     if (!other) { b = null; a.broadcastTo([]); return; }
     if (!b) b = await make($('#gl-b'));
-    $('#caption-b').textContent = caption(other);
+    const same = fmt(other.result.voxel_mm) === fmt(job.result.voxel_mm) && fmt(other.result.shape) === fmt(job.result.shape);
+    $('#caption-b').textContent = caption(other) + (same ? '' : `, resampled onto the first volume's grid (${fmt(job.result.shape)} voxels of ${fmt(job.result.voxel_mm)} mm)`);
     verdictNote(other, $('#verdict-b'));
-    await load(b, other);
+    await load(b, other, $('#pane-b'), same ? null : job);
     a.broadcastTo(b, { '2d': true, '3d': true });
     b.broadcastTo(a, { '2d': true, '3d': true });
     window_(); view();
@@ -799,7 +806,24 @@ async function pageViewer() {
   });
   view();
   await pair();
+  const bars = () => { scaleBar(a, $('#scale-a')); if (b) scaleBar(b, $('#scale-b')); };
+  bars();
+  setInterval(bars, 500);  // follows zoom, resizing and the view
   document.body.dataset.viewerReady = 'yes';
+}
+
+function scaleBar(nv, node) {
+  // a round length (1, 2 or 5 x 10^k mm) about a fifth of the slice's width, drawn to scale and labelled in mm
+  const tile = (nv.screenSlices || []).find((s) => s.axCorSag !== 4 && s.fovMM && s.fovMM.length > 1);
+  if (!tile || !(tile.fovMM[0] > 0)) { node.hidden = true; return; }
+  const cssPerMm = tile.leftTopWidthHeight[2] / tile.fovMM[0] * (nv.canvas.clientWidth / nv.canvas.width);
+  const want = tile.fovMM[0] / 5;
+  const base = 10 ** Math.floor(Math.log10(want));
+  const mm = [5, 2, 1].map((m) => m * base).find((v) => v <= want);
+  node.hidden = false;
+  $('.bar', node).style.width = `${(mm * cssPerMm).toFixed(1)}px`;
+  $('.label', node).textContent = `${+mm.toPrecision(3)} mm`;
+  node.dataset.mm = String(mm);
 }
 
 function verdictNote(j, node) {

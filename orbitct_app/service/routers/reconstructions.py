@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import uuid
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -174,7 +175,6 @@ def get_slice(
 ) -> Response:
     """Axial (z), coronal (y) or sagittal (x) slice with axes in millimetres and a scale bar; grey levels from
     the volume's 1st to 99.5th percentile, of the voxels below 0.1/mm when metal is present (the title says so)."""
-    from orbitct.geometry import VolumeGrid
     from recon.export import slice_png
 
     vol = reconstruction_volume(service, job_id)
@@ -184,9 +184,8 @@ def get_slice(
     i = n // 2 if index is None else index
     if i >= n:
         raise NotFound(f"no {axis} slice {i} in this volume", advice=f"ask for one of its {axis} slices 0..{n - 1}")
-    result = job["result"]
-    grid = VolumeGrid(tuple(vol.shape), tuple(result["voxel_mm"]), tuple(result["origin_mm"]))
-    png = slice_png(np.asarray(vol, dtype=np.float32), grid, axis, i, title=f"{result.get('name', job_id)}: ")
+    grid = _grid_of(job, vol.shape)
+    png = slice_png(np.asarray(vol, dtype=np.float32), grid, axis, i, title=f"{job['result'].get('name', job_id)}: ")
     return Response(png, media_type="image/png")
 
 
@@ -199,16 +198,62 @@ def get_slice(
         409: {"model": ErrorBody, "description": "the job has not succeeded, or has no export in that format"},
     },
 )
-def get_volume(job_id: str, service: ServiceDep, _: Reader, format: Literal["nifti", "npy"] = "nifti") -> FileResponse:
-    """The volume as NIfTI (``.nii.gz``, millimetres) or a NumPy float32 array (z, y, x)."""
+def get_volume(
+    job_id: str,
+    service: ServiceDep,
+    _: Reader,
+    format: Literal["nifti", "npy"] = "nifti",
+    grid_of: Annotated[
+        str | None,
+        Query(
+            max_length=64,
+            description="another succeeded reconstruction's id: this volume resampled onto that one's grid "
+            "(trilinear, 0 outside), so that the two compare voxel for voxel",
+        ),
+    ] = None,
+) -> FileResponse:
+    """The volume as NIfTI (``.nii.gz``, millimetres) or a NumPy float32 array (z, y, x), on its own grid or on
+    another reconstruction's (``grid_of``)."""
     reconstruction_volume(service, job_id)
     folder = service.jobs.job_dir(job_id)
+    if grid_of is not None and grid_of != job_id:
+        return _on_grid_of(service, job_id, grid_of, format)
     if format == "npy":
         return FileResponse(confined(folder, "volume.npy"), filename=f"{job_id}.npy")
     names = [p.name for p in folder.iterdir() if p.name.endswith((".nii", ".nii.gz"))]
     if not names:
         raise Conflict("this reconstruction has no NIfTI export", advice="download it as NumPy instead (?format=npy)")
     return FileResponse(confined(folder, sorted(names)[0]), filename=sorted(names)[0])
+
+
+def _grid_of(job: dict[str, Any], shape: tuple[int, ...]) -> Any:
+    """The grid of a succeeded reconstruction ``job`` whose volume has ``shape``."""
+    from orbitct.geometry import VolumeGrid
+
+    nz, ny, nx = shape
+    return VolumeGrid((nz, ny, nx), tuple(job["result"]["voxel_mm"]), tuple(job["result"]["origin_mm"]))
+
+
+def _on_grid_of(service: Any, job_id: str, other_id: str, format: str) -> FileResponse:
+    """``job_id``'s volume resampled onto ``other_id``'s grid, made once and kept in the job's folder."""
+    from recon.export import export_nifti
+    from recon.resample import resample_volume
+
+    other = reconstruction_volume(service, other_id)  # a known job's id: a plain name
+    name = f"on-grid-of-{other_id}." + ("npy" if format == "npy" else "nii.gz")
+    path = service.jobs.job_dir(job_id) / "compare" / name  # apart from the exported files
+    if not path.is_file():
+        path.parent.mkdir(exist_ok=True)
+        vol = reconstruction_volume(service, job_id)
+        job, onto = job_or_404(service, job_id), _grid_of(job_or_404(service, other_id), other.shape)
+        resampled = resample_volume(vol, _grid_of(job, vol.shape), onto)
+        part = path.with_name(f"part-{uuid.uuid4().hex[:8]}-{name}")  # nibabel compresses by the name's end
+        if format == "npy":
+            np.save(part, resampled)
+        else:
+            export_nifti(resampled, onto, part)
+        part.replace(path)  # complete or absent: a second request never reads half a file
+    return FileResponse(path, filename=f"{job_id}-{name}")
 
 
 @router.get(

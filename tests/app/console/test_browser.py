@@ -141,6 +141,7 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
     page.click("#reconstruct")
     expect(rows).to_have_count(2)
     page.select_option("#rec-geometry", "nominal")
+    page.fill("#rec-shape", "32")  # coarser voxels: the viewer compares the two on one grid
     page.click("#reconstruct")
     expect(rows).to_have_count(3)
     for i in range(3):
@@ -164,6 +165,16 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
     page.wait_for_selector("body[data-viewer-ready]", timeout=60_000)
     assert page.get_attribute("body", "data-viewer-ready") == "yes", "WebGL2 (SwiftShader) runs the 3-D viewer"
     assert page.is_visible("#pane-b") and "nominal geometry" in page.inner_text("#caption-b")
+    # volumes of different voxel sizes side by side: the nominal one resampled onto the calibrated one's grid
+    assert "resampled onto the first volume's grid" in page.inner_text("#caption-b")
+    own_grid = page.get_attribute("#gl-a >> xpath=ancestor::figure", "data-grid")
+    assert own_grid and own_grid.startswith("48 x 48 x 48 voxels")
+    assert page.get_attribute("#pane-b", "data-grid") == own_grid
+    for bar in ("#scale-a", "#scale-b"):  # a labelled scale bar in mm on each
+        expect(page.locator(f"{bar} .label")).to_have_text(re.compile(r"^\d+(\.\d+)? mm$"))
+        width = page.locator(f"{bar} .bar").bounding_box()
+        assert width is not None and width["width"] > 20, width
+    assert page.inner_text("#scale-a .label") == page.inner_text("#scale-b .label")  # the same scale on both
     nifti = page.get_attribute("#download-nifti", "href")
     assert (
         httpx.get(console.base + nifti, headers={"Authorization": f"Bearer {console.tokens['viewer']}"}).content[:2]

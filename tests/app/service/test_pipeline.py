@@ -7,6 +7,7 @@ import threading
 import zipfile
 from pathlib import Path
 
+import nibabel as nib
 import numpy as np
 import pydicom
 import pytest
@@ -114,3 +115,17 @@ def test_scan_calibrate_reconstruct(api, tmp_path: Path) -> None:  # type: ignor
     r = api.post("/reconstructions", role="analyst", json={**again, "overwrite": True})
     assert r.status_code == 202, r.text
     assert wait_for(api, f"/jobs/{r.json()['id']}", ended, 300)["state"] == "succeeded"
+
+    # compared voxel for voxel: the 8-voxel volume resampled onto the 24 x 32 x 32 one's grid
+    small = r.json()["id"]
+    files_before = api.get(f"/reconstructions/{small}/files").json()
+    r = api.get(f"/reconstructions/{small}/volume", params={"format": "npy", "grid_of": rec_id})
+    assert r.status_code == 200 and np.load(io.BytesIO(r.content)).shape == (24, 32, 32)
+    r = api.get(f"/reconstructions/{small}/volume", params={"grid_of": rec_id})
+    (tmp_path / "on.nii.gz").write_bytes(r.content)
+    (tmp_path / "own.nii.gz").write_bytes(api.get(f"/reconstructions/{rec_id}/volume").content)
+    on, own = nib.load(tmp_path / "on.nii.gz"), nib.load(tmp_path / "own.nii.gz")
+    assert on.shape == own.shape == (32, 32, 24) and np.allclose(on.affine, own.affine)
+    assert api.get(f"/reconstructions/{small}/files").json() == files_before  # kept apart from the exports
+    r = api.get(f"/reconstructions/{small}/volume", params={"grid_of": "0" * 16})
+    assert r.status_code == 404 and "no reconstruction" in r.json()["message"]
