@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import shutil
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -55,7 +54,7 @@ from calib.track import TrackingSettings, link_fragments
 from orbitct.compiletime import CompileClock
 from orbitct.geometry import ViewGeometry
 from orbitct.progress import ProgressCallback, report
-from orbitct.scanfile import ImageKey, ScanFile, describe_frame_problems, frame_problem
+from orbitct.scanfile import ImageKey, ScanFile, describe_frame_problems, frame_problem, write_linked_scan
 from orbitct.scanfile.reader import FRAME_COPIES
 
 
@@ -304,10 +303,9 @@ def _calibrate_scan(
     if out is not None:
         target = Path(out)
         if target.resolve() != src.resolve():
-            ScanFile(src).close()  # validate before copying
-            target.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(src, target)
-    t0 = time.perf_counter()  # the copy above is not part of the calibration time
+            ScanFile(src).close()  # validate before writing anything
+            write_linked_scan(src, target)  # reads the scan's frames from it: nothing copied, the scan unchanged
+    t0 = time.perf_counter()
     with ScanFile(target) as sf:
         inputs = _read_inputs(sf, target)
         cands, diameter_mm, d_px = _detect(sf, inputs.proj, inputs.nominal, opt, progress, seeds_uv, workers)

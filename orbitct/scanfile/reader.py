@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from orbitct.geometry import GeometryError, Panel, ViewGeometry
 from orbitct.scanfile.errors import ScanFileError
 from orbitct.scanfile.keys import ImageKey
+from orbitct.scanfile.linked import frames_source, linked_frames_problem
 from orbitct.scanfile.results import ScanResults
 from orbitct.scanfile.writer import FORMAT, STATUSES, VERSION
 
@@ -137,6 +138,8 @@ class ScanFile(ScanResults):
         self.path = Path(path)
         self.allow_external = allow_external
         self.warnings: list[str] = []  # what was ignored in this file, and why
+        self.frames_file = self.path  # where the frames' pixels are (another scan file: see orbitct.scanfile.linked)
+        self._frames_h5: h5py.File | None = None
         if mode not in ("r", "r+"):
             raise ScanFileError(f"{self.path}: mode must be 'r' or 'r+', got {mode!r}")
         if not self.path.is_file():
@@ -218,6 +221,10 @@ class ScanFile(ScanResults):
             self.panel = Panel(rows, cols, float(pitch[0]), float(pitch[1]))
         except GeometryError as exc:
             raise self._fail(f"/detector attributes: {exc}") from None
+        linked = linked_frames_problem(self.path, f)
+        if linked is not None:
+            raise self._fail(linked)
+        self.frames_file = frames_source(self.path, f)
         for ds in ("frames/data", "frames/image_key"):
             self._dataset(ds)
         data, key = f["frames/data"], f["frames/image_key"]
@@ -283,7 +290,8 @@ class ScanFile(ScanResults):
         ds = self._f[path]
         if not isinstance(ds, h5py.Dataset):
             raise self._fail(f"/{path} must be a dataset, found a {type(ds).__name__.lower()}")
-        if not self.allow_external and (ds.external or ds.is_virtual):
+        checked_link = path == "frames/data" and self.frames_file != self.path  # the scan it names: checked
+        if not self.allow_external and (ds.external or (ds.is_virtual and not checked_link)):
             where = "raw external files" if ds.external else "other files (a virtual dataset)"
             raise self._fail(
                 f"/{path} is stored in {where}; a scan file must hold its own data "
@@ -331,8 +339,13 @@ class ScanFile(ScanResults):
 
     @property
     def frames(self) -> h5py.Dataset:
-        """The raw ``(N, rows, cols)`` frame dataset (read lazily)."""
-        return self._f["frames/data"]
+        """The raw ``(N, rows, cols)`` frame dataset (read lazily); a linked file's from the scan it names, opened
+        read-only whatever this file's mode (HDF5 would open it as this file is)."""
+        if self.frames_file == self.path:
+            return self._f["frames/data"]
+        if self._frames_h5 is None:
+            self._frames_h5 = h5py.File(self.frames_file, "r")
+        return self._frames_h5["frames/data"]
 
     @property
     def projection_indices(self) -> NDArray[np.intp]:
@@ -538,7 +551,9 @@ class ScanFile(ScanResults):
         return self._f
 
     def close(self) -> None:
-        """Close the file."""
+        """Close the file (and the scan a linked file reads its frames from)."""
+        if self._frames_h5 is not None:
+            self._frames_h5.close()
         self._f.close()
 
     def __enter__(self) -> ScanFile:

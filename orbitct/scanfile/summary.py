@@ -131,5 +131,7 @@ def _summary(f: ScanFile, damage: list[str]) -> dict[str, Any]:
             [],
         ),
         "file_bytes": f.path.stat().st_size,
+        # a linked file (orbitct calibrate --out) reads its frames from this scan file; None: it holds its own
+        "frames_file": None if f.frames_file == f.path else str(f.frames_file),
         "ignored": list(f.warnings),
     }

@@ -19,7 +19,7 @@ from orbitct_app.cli.progress import ProgressBar
     "--out",
     type=click.Path(dir_okay=False, path_type=Path),
     default=None,
-    help="Write the results into a copy of SCAN at this path instead of into SCAN.",
+    help="Write the results into a new scan file at this path that reads its frames from SCAN (nothing copied; keep the two files together), leaving SCAN unchanged.",
 )
 @click.option(
     "--report",

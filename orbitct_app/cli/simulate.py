@@ -180,6 +180,8 @@ def _print_summary(scan: Path, summary: dict[str, Any]) -> None:
     click.echo(
         f"  status      {summary['status']}" + (f" ({summary['status_reason']})" if summary["status_reason"] else "")
     )
+    if summary.get("frames_file"):
+        click.echo(f"  pixels      read from {summary['frames_file']} (keep the two files together)")
     d = summary["detector"]
     click.echo(f"  detector    {d['rows']} x {d['cols']} px @ {d['pitch_mm'][0]:.4g} x {d['pitch_mm'][1]:.4g} mm")
     click.echo(

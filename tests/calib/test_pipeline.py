@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+import os
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -85,12 +87,16 @@ def test_paper_method_converges_in_two_iterations(simulated_scan: Callable[..., 
 
 def test_results_written_as_scan_file_says(simulated_scan: Callable[..., Path], tmp_path: Path) -> None:
     src = simulated_scan("A")
-    before = src.stat().st_mtime_ns
+    before, digest = src.stat().st_mtime_ns, hashlib.sha256(src.read_bytes()).hexdigest()
     out = tmp_path / "copy.h5"
     res = calib.calibrate_scan(src, out=out, report_dir=tmp_path / "rep")
-    assert src.stat().st_mtime_ns == before
+    assert src.stat().st_mtime_ns == before and hashlib.sha256(src.read_bytes()).hexdigest() == digest
     with h5py.File(src) as f:
         assert "geometry/calibrated" not in f
+    # the results file reads the frames from the scan: none copied
+    assert out.stat().st_size < src.stat().st_size / 4, (out.stat().st_size, src.stat().st_size)
+    with h5py.File(out) as f:
+        assert f["frames/data"].is_virtual and f.attrs["frames_file"] == str(Path(os.path.relpath(src, tmp_path)))
     with ScanFile(out) as sf:
         n = sf.n_frames
         g = sf.geometry("calibrated")
