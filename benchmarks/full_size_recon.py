@@ -175,8 +175,8 @@ def main() -> None:
     import tempfile
 
     import recon
+    from orbitct.progress import describe_seconds
     from orbitct.scanfile import ScanFile
-    from recon.estimate import describe_seconds
     from recon.quality import reference_volume
     from recon.stack import FileLineIntegrals, FileWeights
 

@@ -10,6 +10,7 @@ with fewer than four usable BBs cannot be calibrated from its own (NaN).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -37,6 +38,8 @@ METAL_CHORD_MM = 0.5
 EDGE_NOISE_FACTOR = 2.0
 #: the planner's best random placements (ranked by geometry alone) ranked again with the object's background
 _RERANKED = 10
+#: the lighter search each count gets when the fewest BBs for a target error are looked for
+_COUNT_SEARCH = {"trials": 80, "rounds": 2}
 #: the search's moves near a BB's place: normal steps of (degrees of angle, mm of height), shrinking each round
 _LOCAL_STEP = (20.0, 15.0)
 _LOCAL_SHRINK = 0.6
@@ -446,6 +449,71 @@ class CountSuggestion:
     tried: dict[int, dict[str, Any]]  # count -> the planned placement's prediction summary
 
 
+def plan_seconds(
+    geometry: ViewGeometry,
+    surface: TapeSurface,
+    n_bbs: int,
+    diameter_mm: float,
+    *,
+    noise_px: float = 0.1,
+    metal: list[Any] | None = None,
+    trials: int = 200,
+    rounds: int = 5,
+    moves: int = 12,
+    background: ObjectBackground | None = None,
+    moved: Sequence[ViewGeometry] = (),
+    **_: Any,
+) -> float:
+    """Seconds :func:`plan_placement` with the same arguments takes on this machine now, every round of moves run
+    (a round that gains little ends the search sooner): one placement scored as the search scores them, without and
+    with the object's ``background`` (twice: its BBs' share of the background is computed once), timed, times how
+    many the search scores. Takes about a second; best run once the kernels are loaded (after a first prediction)."""
+    every = max(1, geometry.n_views // 125)
+    coarse, coarse_moved = geometry[::every], [views[::every] for views in moved]
+    rng = np.random.default_rng(0)
+    ang, z = rng.uniform(0, 2 * np.pi, 64 * n_bbs), rng.uniform(surface.z_min_mm, surface.z_max_mm, 64 * n_bbs)
+    on = np.flatnonzero(surface.covers(ang, z))[:n_bbs]
+    xyz = surface.points(ang[on], z[on], diameter_mm)
+
+    def timed(object_background: ObjectBackground | None) -> float:
+        t = time.perf_counter()
+        predict_placement(
+            coarse,
+            xyz,
+            diameter_mm,
+            noise_px=noise_px,
+            metal=metal,
+            surface=surface,
+            background=object_background,
+            moved=coarse_moved,
+        )
+        return time.perf_counter() - t
+
+    plain = timed(None)
+    if background is None:
+        return (trials + rounds * n_bbs * moves) * plain * n_bbs / max(len(on), 1)
+    # the object's background is cached per BB: a placement of new BBs pays for each, a move for the one moved
+    first, again = timed(background), timed(background)
+    per_bb = max(first - again, 0.0) / max(len(on), 1)
+    return trials * plain + _RERANKED * (again + n_bbs * per_bb) + rounds * n_bbs * moves * (again + per_bb)
+
+
+def count_seconds(
+    geometry: ViewGeometry,
+    surface: TapeSurface,
+    diameter_mm: float,
+    *,
+    n_min: int = MIN_OWN_BBS,
+    n_max: int = 20,
+    **plan_options: Any,
+) -> float:
+    """Seconds :func:`suggest_bb_count` takes at most (every count up to ``n_max`` tried), as :func:`plan_seconds`
+    measures them (the cost of a placement grows with its BBs: timed once, at ``n_max``)."""
+    options = {**_COUNT_SEARCH, **plan_options}
+    per_bb = plan_seconds(geometry, surface, n_max, diameter_mm, **options) / n_max
+    return per_bb * sum(range(n_min, n_max + 1))
+
+
 def suggest_bb_count(
     geometry: ViewGeometry,
     surface: TapeSurface,
@@ -460,7 +528,7 @@ def suggest_bb_count(
     predicts every view's error at or below ``target_px``; each count is planned with ``plan_options`` (a lighter
     search than a final plan's is enough to rank counts). ``progress`` hears stage ``count`` (counts tried) besides
     each count's ``plan``."""
-    options = {"trials": 80, "rounds": 2, **plan_options}
+    options = {**_COUNT_SEARCH, **plan_options}
     progress = options.get("progress")
     tried: dict[int, dict[str, Any]] = {}
     for n in range(n_min, n_max + 1):
@@ -493,11 +561,13 @@ __all__ = [
     "Placement",
     "PlanPrediction",
     "check_room",
+    "count_seconds",
     "edge_noise",
     "hand_spiral",
     "metal_of",
     "placement_score",
     "plan_placement",
+    "plan_seconds",
     "predict_placement",
     "suggest_bb_count",
     "usable_bbs",

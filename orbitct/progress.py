@@ -26,3 +26,12 @@ def report(
     """Send one event to ``callback`` if there is one."""
     if callback is not None:
         callback(ProgressEvent(stage, done, total, message, metrics))
+
+
+def describe_seconds(seconds: float) -> str:
+    """A duration as a person reads it: '40 s', '12 min', '3.5 h'."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"

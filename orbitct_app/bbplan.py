@@ -6,6 +6,7 @@ picture."""
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -13,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from orbitct.progress import ProgressCallback
+from orbitct.progress import ProgressCallback, describe_seconds, report
 from orbitct_app.bbplan_options import MAX_BBS, BBPlanOptions, checked_plan_options
 
 #: samples of the orbit's motion errors a BB must be usable in (besides the nominal views) to count in a view
@@ -115,6 +116,7 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
     from orbitct.phantoms.experiments import experiment_phantom
     from orbitct.simulator.bench import SimulatedBench
 
+    started = time.perf_counter()
     o = req.options
     key, orbit, surface = _resolve(req)
     phantom = experiment_phantom(key)
@@ -136,6 +138,19 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
         "moved": moved,
         "progress": progress,
     }
+    t_own = time.perf_counter()
+    own = predict_placement(  # first: it also loads the kernels the time estimate measures
+        geometry,
+        phantom.markers_xyz,
+        d,
+        noise_px=o.noise_px,
+        metal=metal,
+        surface=surface,
+        background=background,
+        moved=moved,
+    )
+    t_own = time.perf_counter() - t_own
+    expected_s = _expected_seconds(req, geometry, surface, d, options, started, t_own)
     warnings: list[str] = []
     n_bbs, suggestion = o.bbs, None
     try:
@@ -152,16 +167,6 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
         placed = plan_placement(geometry, surface, n_bbs, d, **options)
     except ValueError as exc:
         raise BBPlanError(str(exc)) from None
-    own = predict_placement(
-        geometry,
-        phantom.markers_xyz,
-        d,
-        noise_px=o.noise_px,
-        metal=metal,
-        surface=surface,
-        background=background,
-        moved=moved,
-    )
     try:
         spiral: Any = predict_placement(
             geometry,
@@ -223,6 +228,7 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
             "predicted_px": [None if not np.isfinite(v) else round(float(v), 4) for v in pred.predicted_px],
         },
         "warnings": warnings,
+        "time": {"expected_s": round(expected_s, 2), "elapsed_s": round(time.perf_counter() - started, 2)},
     }
     if suggestion is not None:
         body["count_suggestion"] = {
@@ -231,6 +237,41 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
             "tried": {str(n): s for n, s in suggestion.tried.items()},
         }
     return BBPlan(_json_ready(body), placed, own, surface, warnings, spiral)
+
+
+def _expected_seconds(
+    req: BBPlanRequest,
+    geometry: Any,
+    surface: Any,
+    diameter_mm: float,
+    options: dict[str, Any],
+    started: float,
+    full_prediction_s: float,
+) -> float:
+    """The whole plan's expected seconds from ``started``: what it took so far, the search as measured on this
+    machine now (:func:`calib.plan.plan_seconds`), and two more predictions on every view (the plan's and the
+    spiral's, each as long as ``full_prediction_s``); said to ``options["progress"]`` as stage ``duration``."""
+    from calib.plan import count_seconds, plan_seconds
+
+    o = req.options
+    search = {k: v for k, v in options.items() if k != "progress"}
+    if o.target_px is None:
+        search_s = plan_seconds(geometry, surface, o.bbs, diameter_mm, **search)
+        bound = ""
+    else:  # every count tried, then the one found planned in full: at most
+        search_s = count_seconds(geometry, surface, diameter_mm, n_max=o.max_bbs, **search)
+        search_s += plan_seconds(geometry, surface, o.max_bbs, diameter_mm, **search)
+        bound = "at most "
+    expected = time.perf_counter() - started + search_s + 2 * full_prediction_s
+    report(
+        options.get("progress"),
+        "duration",
+        1,
+        1,
+        f"planning takes {bound}about {describe_seconds(expected)} on this machine now",
+        expected_s=expected,
+    )
+    return expected
 
 
 def _json_ready(value: Any) -> Any:
@@ -441,6 +482,8 @@ def plan_lines(plan: BBPlan) -> list[str]:
             f"{s['predicted_px_max']:.3f} px; usable BBs per view at least {s['bbs_min']}, median "
             f"{s['bbs_median']:g}; {s['under_determined']} view(s) under-determined"
         )
+    if "time" in b:  # plans written before it have none
+        lines.append(f"  time: {b['time']['elapsed_s']:.1f} s (expected {b['time']['expected_s']:.1f} s)")
     return lines
 
 

@@ -161,17 +161,7 @@ def reconstruction_seconds(
     return 2 * read_s + fdk_s + projecting_s
 
 
-def describe_seconds(seconds: float) -> str:
-    """'40 s', '12 min', '3.5 h'."""
-    if seconds < 90:
-        return f"{seconds:.0f} s"
-    if seconds < 5400:
-        return f"{seconds / 60:.0f} min"
-    return f"{seconds / 3600:.1f} h"
-
-
 __all__ = [
-    "describe_seconds",
     "projector_rates",
     "rates",
     "ray_steps",

@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 from pydantic import ValidationError
 
 from orbitct.geometry import ViewGeometry, VolumeGrid
-from orbitct.progress import ProgressCallback, report
+from orbitct.progress import ProgressCallback, describe_seconds, report
 from orbitct.scanfile import ImageKey, ScanFile
 from orbitct.verdict import Verdict
 from recon.curvature import curvature_key
@@ -31,7 +31,7 @@ from recon.errors import (
     ReconExistsError,
     TooLongError,
 )
-from recon.estimate import describe_seconds, reconstruction_seconds
+from recon.estimate import reconstruction_seconds
 from recon.export import FORMATS, export_volume
 from recon.fdk import fdk
 from recon.fitgrid import object_grid

@@ -21,6 +21,9 @@ class ProgressBar:
         if event.stage.endswith("-warning"):  # warnings are lines, shown on any stderr
             self.note(f"warning: {event.message}")
             return
+        if event.stage == "duration":  # how long the work is expected to take: a line, before it starts
+            self.note(event.message)
+            return
         if not self.enabled:
             return
         try:

@@ -93,8 +93,11 @@ def test_the_cli_plans_on_a_mesh(tmp_path: Path) -> None:
         ],
     )
     assert r.exit_code == 0, r.output
+    # how long it will take is said before the search, and how long it took after
+    assert r.output.index("planning takes about") < r.output.index("wrote ") and "  time: " in r.output
     body = json.loads(out.read_text())
     assert body["surface"]["kind"] == "outline" and body["surface"]["source"] == "leg.stl"
+    assert body["time"]["expected_s"] > 0 and body["time"]["elapsed_s"] > 0
     radii = [np.hypot(*b["xyz_mm"][:2]) for b in body["bbs"]]
     assert np.allclose(radii, 70.0 + body["bb_diameter_mm"] / 2, atol=1.0), radii
     bad = CliRunner().invoke(cli, ["plan", "bbs", "-e", "A", "--surface", str(tmp_path / "x.xyz"), "--out", str(out)])
@@ -192,3 +195,22 @@ def test_simulate_refuses_a_plan_file_that_is_not_one_in_one_line(tmp_path: Path
     )
     assert r.exit_code == 2 and needle in r.output and "Traceback" not in r.output, r.output
     assert not out.exists()
+
+
+def test_the_plans_expected_time_is_said_before_the_search_starts() -> None:
+    from orbitct.progress import ProgressEvent
+    from orbitct_app.bbplan import BBPlanRequest, make_bb_plan
+
+    events: list[ProgressEvent] = []
+    plan = make_bb_plan(BBPlanRequest.checked(experiment="B", frames=40, detector_px=128, bbs=5), events.append)
+    stages = [e.stage for e in events]
+    assert stages.count("duration") == 1 and stages.index("duration") < stages.index("plan")
+    said = events[stages.index("duration")]
+    assert said.metrics["expected_s"] == pytest.approx(plan.body["time"]["expected_s"], abs=0.01)
+    assert said.message.startswith("planning takes about ") and said.message.endswith(" on this machine now")
+    # looking for the fewest BBs: the bound is said as one
+    events.clear()
+    make_bb_plan(
+        BBPlanRequest.checked(experiment="B", frames=40, detector_px=128, target_px=5.0, max_bbs=5), events.append
+    )
+    assert next(e.message for e in events if e.stage == "duration").startswith("planning takes at most about ")

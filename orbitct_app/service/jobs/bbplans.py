@@ -64,7 +64,9 @@ def _make_plan(request: BBPlanRequest, folder: str, plan_id: str, parent_pid: in
     sent = [0.0]
 
     def progress(event: ProgressEvent) -> None:
-        if time.monotonic() - sent[0] >= PROGRESS_EVERY_S:
+        if event.stage == "duration":  # sent at once: the plan's record keeps it
+            conn.send(("progress", {"stage": "duration", "expected_s": float(event.metrics["expected_s"])}))
+        elif time.monotonic() - sent[0] >= PROGRESS_EVERY_S:
             sent[0] = time.monotonic()
             conn.send(
                 ("progress", {"stage": event.stage, "done": event.done, "total": event.total, "message": event.message})
@@ -124,8 +126,11 @@ class PlanQueue:
     def _progress(self, plan_id: str, progress: dict[str, Any]) -> None:
         current = self.state(plan_id)
         if current is not None and current.get("state") == PLANNING:
+            change = (
+                {"expected_s": progress["expected_s"]} if progress["stage"] == "duration" else {"progress": progress}
+            )
             with contextlib.suppress(OSError):  # a full disk: the plan goes on, its record shows older progress
-                self._write_state(plan_id, {**current, "progress": progress})
+                self._write_state(plan_id, {**current, **change})
 
     def state(self, plan_id: str) -> dict[str, Any] | None:
         """A plan's state record while it waits or is made, or once it failed or was cancelled; None otherwise."""

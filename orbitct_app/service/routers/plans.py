@@ -122,6 +122,9 @@ class PlanStateOut(BaseModel):
     progress: dict[str, Any] | None = Field(
         None, description="how far the search got: stage (count, plan), done, total, message"
     )
+    expected_s: float | None = Field(
+        None, description="how long the plan is expected to take in all, measured on this machine once it started"
+    )
 
 
 def _summary(plan_id: str, body: dict[str, Any]) -> BBPlanSummary:

@@ -53,6 +53,7 @@ def test_a_plan_is_made_kept_and_read_back(shared_api: Any) -> None:
     assert all(60.0 < b["angle_deg"] < 300.0 for b in plan["bbs"])  # outside the keep-out zone
     assert plan["experiment_placement"]["bbs"] == 8 and len(plan["per_view"]["predicted_px"]) == 60
     assert plan["hand_spiral"] is None  # a spiral round the object would enter the keep-out zone: nothing to compare
+    assert plan["time"]["expected_s"] > 0 and plan["time"]["elapsed_s"] > 0
     assert api.get(f"/plans/bbs/{plan['id']}").json() == plan
     picture = api.get(f"/plans/bbs/{plan['id']}/picture")
     assert picture.status_code == 200 and picture.content[:4] == b"\x89PNG"
@@ -127,6 +128,7 @@ def test_a_plan_being_made_is_listed_and_can_be_cancelled(shared_api: Any) -> No
         assert time.monotonic() < deadline, record
         time.sleep(0.2)
     assert record["progress"]["stage"] in ("count", "plan") and record["progress"]["total"] > 0, record
+    assert record["expected_s"] > 0, record  # said before the search started
     r = api.post(f"/plans/bbs/{plan_id}/cancel", role="analyst")
     assert r.status_code == 202 and r.json()["state"] == "cancelled", r.text
     assert r.json()["reason"] == "cancelled by test-analyst"
