@@ -255,8 +255,23 @@ class SimConfig(_Model):
 
     phantom: str = Field("A", description="orbitct.phantoms experiment: A, B or C")
     bb_diameter_mm: float = Field(BB_DIAMETER_MM, gt=0, le=20)
+    bbs_mm: list[tuple[float, float, float]] | None = Field(
+        None,
+        min_length=1,
+        max_length=40,
+        description="BB centres (object frame, mm) taped instead of the experiment's own, e.g. a plan's "
+        "(orbitct scan --bbs-from PLAN); of bb_diameter_mm",
+    )
     seed: int = 0
     time_scale: float = Field(1.0, ge=0.1, le=1000, description="twin motion and exposure run this many times faster")
+
+    def imaged(self) -> Any:
+        """What the twins image: the experiment's name, or (with ``bbs_mm``) its object with those BBs."""
+        if self.bbs_mm is None:
+            return self.phantom
+        from orbitct.phantoms.experiments import experiment_phantom
+
+        return experiment_phantom(self.phantom, seed=self.seed).with_markers(self.bbs_mm, self.bb_diameter_mm)
 
 
 class _RigConfig(_Model):

@@ -117,7 +117,8 @@ def simulation_truth(cfg: BenchConfig | CArmConfig) -> SimulationTruth:
     """Marker centres and phantom that the twins of ``cfg`` image."""
     from orbitct.phantoms.experiments import experiment_phantom
 
-    phantom = experiment_phantom(cfg.sim.phantom, seed=cfg.sim.seed)
+    imaged = cfg.sim.imaged()
+    phantom = experiment_phantom(imaged, seed=cfg.sim.seed) if isinstance(imaged, str) else imaged
     return SimulationTruth(np.asarray(phantom.markers_xyz, dtype=float), phantom.to_json())
 
 

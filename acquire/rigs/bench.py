@@ -376,7 +376,7 @@ def sim_options(config: BenchConfig) -> dict[str, dict[str, Any]]:
             "cols": det.cols,
             "sad_mm": config.geometry.sad_mm,
             "sdd_mm": config.geometry.sdd_mm,
-            "phantom": config.sim.phantom,
+            "phantom": config.sim.imaged(),
             "seed": config.sim.seed,
             "timeout_s": SIM_FRAME_TIMEOUT_S,
         },

@@ -189,7 +189,7 @@ def carm_links(cfg: CArmConfig, *, sim: bool) -> dict[str, DeviceLink]:
         "sad_mm": cfg.geometry.sad_mm,
         "sdd_mm": cfg.geometry.sdd_mm,
         "seed": cfg.sim.seed,
-        "phantom": cfg.sim.phantom,
+        "phantom": cfg.sim.imaged(),
     }
     if not sim:  # a sim:// twin configured here runs at real speed
         return {"carm": configured_link(cfg.devices.carm, {}, twin)}

@@ -5,7 +5,7 @@ from __future__ import annotations
 import signal
 from collections import Counter
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import click
 import yaml
@@ -64,6 +64,13 @@ def _parse_params(items: tuple[str, ...], flag: str) -> dict[str, object]:
 )
 @click.option("--sim", is_flag=True, help="Start the device twins in-process (nothing else needs to run).")
 @click.option(
+    "--bbs-from",
+    "bbs_from",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="With --sim: the twins' object carries the BBs of this plan (orbitct plan bbs) instead of its own.",
+)
+@click.option(
     "--detector-size",
     type=click.IntRange(16, 4096),
     default=None,
@@ -98,6 +105,7 @@ def scan(
     seed: int | None,
     mode: str | None,
     sim: bool,
+    bbs_from: Path | None,
     detector_size: int | None,
     frame_rate_hz: float | None,
     out: Path | None,
@@ -136,7 +144,7 @@ def scan(
         flags=FLAGS,
     )
     req = ScanRequest(
-        config=config_path,
+        config=config_path if bbs_from is None else _planned_config(config_path, bbs_from, sim),
         out=out,
         **options.model_dump(),
         sim=sim,
@@ -184,6 +192,28 @@ def scan(
         fail(f"scan {res.status}: {res.reason}", "action_failed", "fix what the reason names and scan again")
     if live is not None:
         _report_live(live, out)
+
+
+def _planned_config(config_path: Path, plan: Path, sim: bool) -> Any:
+    """The configuration at ``config_path`` whose twins image the BBs of ``plan`` (``--bbs-from``)."""
+    from acquire.config import load_config
+    from acquire.errors import ConfigError
+    from orbitct_app.bbplan import BBPlanError, read_bb_plan
+
+    if not sim:
+        fail("--bbs-from needs --sim: real BBs are where they are taped", advice="add --sim, or leave out --bbs-from")
+    try:
+        cfg = load_config(config_path)
+        planned_for, xyz, diameter = read_bb_plan(plan)
+    except (ConfigError, BBPlanError) as exc:
+        fail(str(exc))
+    if planned_for not in (None, cfg.sim.phantom):
+        fail(
+            f"{plan} was planned for experiment {planned_for}, and {config_path} images experiment {cfg.sim.phantom}",
+            advice=f"plan for experiment {cfg.sim.phantom} (orbitct plan bbs -e {cfg.sim.phantom})",
+        )
+    sim_cfg = cfg.sim.model_copy(update={"bbs_mm": [tuple(map(float, c)) for c in xyz], "bb_diameter_mm": diameter})
+    return cfg.model_copy(update={"sim": sim_cfg})
 
 
 def _live_subscriber(

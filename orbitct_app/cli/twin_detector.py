@@ -72,7 +72,7 @@ def detector(host: str, port: int, config_path: Path | None, console: bool | Non
             pitch_mm=(panel.pitch_col, panel.pitch_row),
             sad_mm=cfg.geometry.sad_mm,
             sdd_mm=cfg.geometry.sdd_mm,
-            phantom=cfg.sim.phantom,
+            phantom=cfg.sim.imaged(),
             seed=cfg.sim.seed,
             follow={k: uris[k] for k in _FOLLOWED},
         )

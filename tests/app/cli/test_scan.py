@@ -136,3 +136,27 @@ def test_orbit_parameters_from_the_command_line(tmp_path: Path) -> None:
         ],
     )
     assert bad.exit_code == 2 and "is not KEY=VALUE; write it as KEY=VALUE" in bad.output
+
+
+def test_the_twins_image_the_bbs_of_a_plan(tmp_path: Path) -> None:
+    """``--bbs-from``: the twins' object carries a plan's BBs (as ``simulate --bbs-from``); the file's truth says so."""
+    import json
+
+    import numpy as np
+
+    plan = tmp_path / "plan.json"
+    xyz = [[40.0, 0.0, -20.0], [0.0, 40.0, 0.0], [-40.0, 0.0, 20.0], [0.0, -40.0, 10.0], [28.0, 28.0, -10.0]]
+    plan.write_text(json.dumps({"experiment": "A", "bb_diameter_mm": 2.5, "bbs": [{"xyz_mm": c} for c in xyz]}))
+    config, out = _config_file(tmp_path), tmp_path / "planned.h5"
+    args = ["scan", "--config", str(config), "--orbit", "circular", "--frames", "8", "--out", str(out)]
+    result = CliRunner().invoke(cli, [*args, "--sim", "--bbs-from", str(plan)])
+    assert result.exit_code == 0, result.output
+    with ScanFile(out) as sf:
+        np.testing.assert_allclose(sf.truth_markers_xyz(), xyz)
+        assert sf.marker_diameter_mm == 2.5 and len(sf.phantom["primitives"]) > len(xyz)
+    refused = CliRunner().invoke(cli, [*args, "--overwrite", "--bbs-from", str(plan)])
+    assert refused.exit_code == 2 and "--bbs-from needs --sim" in refused.output
+    plan.write_text(json.dumps({"experiment": "C", "bb_diameter_mm": 2.0, "bbs": [{"xyz_mm": c} for c in xyz]}))
+    refused = CliRunner().invoke(cli, [*args, "--overwrite", "--sim", "--bbs-from", str(plan)])
+    assert refused.exit_code == 2 and "was planned for experiment C" in refused.output
+    assert "plan for experiment A (orbitct plan bbs -e A)" in refused.output
