@@ -120,6 +120,11 @@ def reconstruct(
         f"{res.voxel_mm[0]:g} mm, {res.elapsed_s:.1f} s (estimated {res.params['estimated_s']:.1f} s)"
     )
     click.echo(f"  grid: {res.params['grid_choice']}")
+    if res.compile_s > 0.5:
+        click.echo(
+            f"  first use after installation: {res.compile_s:.1f} s compiling numerical kernels (cached for the next "
+            "run; not counted above)"
+        )
     if cluster is not None:
         click.echo(f"  views split across {res.params['cluster_workers']} Dask workers at {scheduler}")
     if res.cost:
