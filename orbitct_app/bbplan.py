@@ -99,8 +99,8 @@ def check_bb_plan_request(req: BBPlanRequest) -> dict[str, Any]:
 
 
 def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -> BBPlan:
-    """Plan the BBs for ``req`` (``progress`` hears the search's stages ``count`` and ``plan``); BBPlanError with a
-    one-line reason when it cannot."""
+    """Plan the BBs for ``req`` (``progress`` hears ``prepare``, then ``duration`` with the expected time, then the
+    search's stages ``count`` and ``plan``); BBPlanError with a one-line reason when it cannot."""
     from calib.background import PHOTON_FLOOR, SHIFT_FACTOR, SHIFT_SCATTER, phantom_background
     from calib.plan import (
         hand_spiral,
@@ -123,6 +123,7 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
     d = float(phantom.marker_diameter_mm or 3.0)
     geometry = SimulatedBench.with_panel(o.detector_px).nominal_geometry(orbit)
     metal = metal_of(phantom)
+    report(progress, "prepare", 0, 2, f"what lies behind a BB on each of {geometry.n_views} views")
     background = phantom_background(phantom, geometry, surface)  # what lies behind each BB: photons, bone edges
     moved = (
         [make_profile(o.errors, seed).sample(orbit).apply_to_geometry(geometry) for seed in range(MOTION_SAMPLES)]
@@ -138,6 +139,7 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
         "moved": moved,
         "progress": progress,
     }
+    report(progress, "prepare", 1, 2, "the experiment's own BBs predicted on every view")
     t_own = time.perf_counter()
     own = predict_placement(  # first: it also loads the kernels the time estimate measures
         geometry,
@@ -150,6 +152,7 @@ def make_bb_plan(req: BBPlanRequest, progress: ProgressCallback | None = None) -
         moved=moved,
     )
     t_own = time.perf_counter() - t_own
+    report(progress, "prepare", 2, 2, "ready to search")
     expected_s = _expected_seconds(req, geometry, surface, d, options, started, t_own)
     warnings: list[str] = []
     n_bbs, suggestion = o.bbs, None

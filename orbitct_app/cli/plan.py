@@ -80,6 +80,7 @@ def bbs(experiment: str, keep_out: tuple[KeepOut, ...], surface_source: str | No
 
     zones = [dataclasses.asdict(zone) for zone in keep_out]
     options = model_from(BBPlanOptions, {**given, "experiment": experiment, "keep_out": zones}, flags=FLAGS)
+    out.parent.mkdir(parents=True, exist_ok=True)  # a folder that cannot be made is said before the search
     try:
         surface = load_surface(surface_source, options.surface_threshold_per_mm) if surface_source else None
         request = BBPlanRequest.from_options(options, surface)

@@ -204,7 +204,8 @@ def test_the_plans_expected_time_is_said_before_the_search_starts() -> None:
     events: list[ProgressEvent] = []
     plan = make_bb_plan(BBPlanRequest.checked(experiment="B", frames=40, detector_px=128, bbs=5), events.append)
     stages = [e.stage for e in events]
-    assert stages.count("duration") == 1 and stages.index("duration") < stages.index("plan")
+    assert stages[0] == "prepare" and stages.count("duration") == 1  # said before the search, after preparing
+    assert stages.index("prepare") < stages.index("duration") < stages.index("plan")
     said = events[stages.index("duration")]
     assert said.metrics["expected_s"] == pytest.approx(plan.body["time"]["expected_s"], abs=0.01)
     assert said.message.startswith("planning takes about ") and said.message.endswith(" on this machine now")

@@ -621,7 +621,7 @@ function pagePlans() {
       $('.id', progress).textContent = id;
       $('#plan-since').textContent = new Date(plan.created).toLocaleTimeString();
       const step = plan.progress;
-      $('#plan-step').textContent = (step ? `${step.stage === 'count' ? 'BB counts' : 'search'}: ${step.done} of ${step.total} (${step.message})`
+      $('#plan-step').textContent = (step ? `${{ count: 'BB counts', prepare: 'preparing' }[step.stage] || 'search'}: ${step.done} of ${step.total} (${step.message})`
         : 'waiting for its turn') + (plan.expected_s ? `; expected to take about ${Math.round(plan.expected_s)} s in all` : '');
       await sleep(1000);
     }

@@ -120,7 +120,7 @@ class PlanStateOut(BaseModel):
     ended: str | None = None
     reason: str | None = None
     progress: dict[str, Any] | None = Field(
-        None, description="how far the search got: stage (count, plan), done, total, message"
+        None, description="how far the plan got: stage (prepare, count, plan), done, total, message"
     )
     expected_s: float | None = Field(
         None, description="how long the plan is expected to take in all, measured on this machine once it started"

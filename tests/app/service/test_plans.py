@@ -124,11 +124,11 @@ def test_a_plan_being_made_is_listed_and_can_be_cancelled(shared_api: Any) -> No
     assert r.status_code == 409 and "is planning" in r.json()["message"]
     assert api.post(f"/plans/bbs/{plan_id}/cancel", role="viewer").status_code == 403
     deadline = time.monotonic() + 60.0  # let it start: the process is killed, not just taken off the queue
-    while "progress" not in (record := api.get(f"/plans/bbs/{plan_id}").json()):
+    while "expected_s" not in (record := api.get(f"/plans/bbs/{plan_id}").json()):  # said once prepared
         assert time.monotonic() < deadline, record
         time.sleep(0.2)
-    assert record["progress"]["stage"] in ("count", "plan") and record["progress"]["total"] > 0, record
-    assert record["expected_s"] > 0, record  # said before the search started
+    assert record["progress"]["stage"] in ("prepare", "count", "plan") and record["progress"]["total"] > 0, record
+    assert record["expected_s"] > 0, record
     r = api.post(f"/plans/bbs/{plan_id}/cancel", role="analyst")
     assert r.status_code == 202 and r.json()["state"] == "cancelled", r.text
     assert r.json()["reason"] == "cancelled by test-analyst"
