@@ -376,7 +376,7 @@ function pageScans() {
       $('#scan-table tbody').replaceChildren(...rows.filter((s) => !text || (s.name + ' ' + s.id).toLowerCase().includes(text)).map((s) => el('tr', {},
         el('td', {}, el('a', { href: `/console/scans/${s.id}`, text: s.name || '(no name)' })), el('td', {}, el('code', { text: s.id })),
         el('td', { text: s.orbit }), el('td', {}, el('span', { class: 'badge ' + s.state, text: s.state })),
-        el('td', { text: `${s.frames_done} / ${s.frames_total}` }), calibrationCell(s.calibration),
+        el('td', { text: frameCount(s, ' / ') }), calibrationCell(s.calibration),
         el('td', { text: s.owner }), el('td', { text: s.created_utc.slice(0, 19).replace('T', ' ') }))));
       if (!$('#scan-table tbody').children.length) $('#scan-table tbody').append(el('tr', {}, el('td', { colspan: 8, class: 'muted', text: 'No scans match.' })));
       $('main > .error').textContent = '';
@@ -385,6 +385,14 @@ function pageScans() {
   $('#state').addEventListener('change', load);
   $('#text').addEventListener('input', load);
   every(3000, load);
+}
+
+function frameCount(s, of) {
+  // every frame (projections, darks and flats, as the scan counts them) and, once the file says, its projections:
+  // the views a calibration and a reconstruction count
+  const kinds = (s.summary || {}).frames_by_kind;
+  const views = kinds && kinds.projection !== undefined ? ` (${kinds.projection} projections, ${(kinds.dark || 0) + (kinds.flat || 0)} darks and flats)` : '';
+  return `${s.frames_done}${of}${s.frames_total}${views}`;
 }
 
 // ---------------------------------------------------------------- one scan: live, summary, jobs
@@ -408,7 +416,7 @@ async function pageScan() {
   };
   const scanFacts = (s) => {
     facts($('#scan-facts'), [['id', s.id], ['orbit', s.orbit], ['owner', s.owner], ['created_utc', s.created_utc],
-      ['started_utc', s.started_utc], ['finished_utc', s.finished_utc], ['frames', `${s.frames_done} of ${s.frames_total}`]]);
+      ['started_utc', s.started_utc], ['finished_utc', s.finished_utc], ['frames', frameCount(s, ' of ')]]);
     if (s.calibration) $('#scan-facts').append(el('dt', { text: 'calibration' }), el('dd', { id: 'scan-calibration' }, ...calibrationCell(s.calibration).childNodes));
     calibrationNotice(s.calibration);
   };

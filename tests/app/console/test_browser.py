@@ -113,12 +113,16 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
     # operator: a short scan, watched to the end
     page = console.sign_in("operator")
     shot(page, "bench")
-    scan_id = _scan(page, console, 40)
+    scan_id = first_scan = _scan(page, console, 40)
     expect(page.locator("#scan-progress-text")).to_contain_text("frame", timeout=TIMEOUT_MS)
     expect(page.locator("#scan-state")).to_have_text("complete", timeout=TIMEOUT_MS)
     expect(page.locator("#scan-progress-text")).to_contain_text(
         "of 46"
     )  # 40 projections, 4 darks and flats before, 2 after
+    # the same counts, named, on the scan page and in the scan list (the views a calibration counts: 40)
+    expect(page.locator("#scan-facts dt:has-text('frames') + dd")).to_have_text(
+        "46 of 46 (40 projections, 6 darks and flats)", timeout=TIMEOUT_MS
+    )
     assert console.api("GET", f"/scans/{scan_id}").json().get("state") == "complete", console.api(
         "GET", f"/scans/{scan_id}"
     ).text
@@ -230,6 +234,13 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
     page.click("#reset-stop")
     expect(page.locator("#latch")).to_be_hidden()
     assert console.api("GET", "/stop").json()["latched"] is False
+    listed = page.locator("#scan-table tbody tr", has_text=first_scan)
+    expect(listed).to_contain_text("46 / 46 (40 projections, 6 darks and flats)")  # as on the scan page
+    stopped = page.locator("#scan-table tbody tr", has_text=scan_id).inner_text()  # the frames it kept, named
+    done, _, views, dark_flat = (
+        int(n) for n in re.findall(r"(\d+) / (\d+) \((\d+) projections, (\d+) darks", stopped)[0]
+    )
+    assert done == views + dark_flat, stopped
     shot(page, "scans")
     page.context.close()
     assert not console.outside, f"pages fetched from outside orbitct: {console.outside}"
