@@ -51,7 +51,7 @@ def _scan(out: Path, size: int, frames: int, live: bool) -> dict[str, Any]:
     ] + (["--calibrate", "live"] if live else [])
     run = subprocess.run(cmd, capture_output=True, text=True, cwd=_HERE.parent)
     text = run.stdout
-    done = re.search(r"complete: (\d+)/\d+ frames in ([\d.]+) s", text)
+    done = re.search(r"complete: (\d+)/\d+ frames(?: \([^)]*\))? in ([\d.]+) s", text)
     if done is None:
         raise SystemExit(f"scan failed (exit {run.returncode}):\n{text}\n{run.stderr[-2000:]}")
     out_: dict[str, Any] = {"frames": float(done.group(1)), "elapsed_s": float(done.group(2))}

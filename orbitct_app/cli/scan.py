@@ -182,7 +182,8 @@ def scan(
     signals = {reason: 128 + int(sig) for sig, reason in SIGNAL_REASONS.items()}
     try:  # after SIGHUP the terminal may be gone: the file already says how the scan ended
         click.echo(
-            f"{res.status}: {res.n_frames}/{res.n_planned} frames in {res.elapsed_s:.1f} s ({rate:.1f} frames/s) -> {res.path}"
+            f"{res.status}: {res.n_frames}/{res.n_planned} frames{_kinds(res.path)} in {res.elapsed_s:.1f} s "
+            f"({rate:.1f} frames/s) -> {res.path}"
         )
     except OSError:
         pass
@@ -192,6 +193,19 @@ def scan(
         fail(f"scan {res.status}: {res.reason}", "action_failed", "fix what the reason names and scan again")
     if live is not None:
         _report_live(live, out)
+
+
+def _kinds(path: Path) -> str:
+    """`` (N projections, M darks and flats)`` as the scan file counts them (the views a calibration counts); empty
+    when the file cannot say."""
+    from orbitct.scanfile import ScanFile, ScanFileError
+
+    try:
+        with ScanFile(path) as sf:
+            kinds = sf.count_by_kind()
+    except ScanFileError:
+        return ""
+    return f" ({kinds['projection']} projections, {kinds['dark'] + kinds['flat']} darks and flats)"
 
 
 def _planned_config(config_path: Path, plan: Path, sim: bool) -> Any:

@@ -42,7 +42,7 @@ def test_scan_command_writes_a_file(tmp_path: Path) -> None:
     ]
     result = CliRunner().invoke(cli, args)
     assert result.exit_code == 0, result.output
-    assert "complete: 18/18 frames" in result.output
+    assert "complete: 18/18 frames (12 projections, 6 darks and flats) in " in result.output
     with ScanFile(out) as sf:
         assert sf.status == "complete" and sf.orbit[0] == "circular"
     again = CliRunner().invoke(cli, args)  # refuses to overwrite
