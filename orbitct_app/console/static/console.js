@@ -795,7 +795,7 @@ async function pageViewer() {
     $('#pane-b').hidden = !other;
     if (!other) { b = null; a.broadcastTo([]); return; }
     if (!b) b = await make($('#gl-b'));
-    const same = fmt(other.result.voxel_mm) === fmt(job.result.voxel_mm) && fmt(other.result.shape) === fmt(job.result.shape);
+    const same = ['voxel_mm', 'shape', 'origin_mm'].every((k) => fmt(other.result[k]) === fmt(job.result[k]));
     $('#caption-b').textContent = caption(other) + (same ? '' : `, resampled onto the first volume's grid (${fmt(job.result.shape)} voxels of ${fmt(job.result.voxel_mm)} mm)`);
     verdictNote(other, $('#verdict-b'));
     await load(b, other, $('#pane-b'), same ? null : job);
