@@ -449,7 +449,30 @@ class CountSuggestion:
     tried: dict[int, dict[str, Any]]  # count -> the planned placement's prediction summary
 
 
-def plan_seconds(
+@dataclass(frozen=True)
+class PlacementCost:
+    """Seconds this machine takes to score a placement as :func:`plan_placement` does, per BB: without the object's
+    background, with each BB's share of it already cached, and for that share (paid once per new BB position)."""
+
+    plain_s: float
+    cached_s: float
+    new_bb_s: float
+    reranked: int  # the best trials scored again with the background (none without one)
+
+    def search_s(self, n_bbs: int, *, trials: int = 200, rounds: int = 5, moves: int = 12, **_: Any) -> float:
+        """Seconds :func:`plan_placement` of ``n_bbs`` BBs takes with these search settings, every round of moves
+        run (a round that gains little ends the search sooner): random trials scored without the background, the
+        best few scored with it (all their BBs new), then each move (one BB new)."""
+        again = self.reranked * n_bbs * (self.cached_s + self.new_bb_s)
+        moving = rounds * n_bbs * moves * (n_bbs * self.cached_s + self.new_bb_s)
+        return trials * n_bbs * self.plain_s + again + moving
+
+    def count_s(self, n_min: int, n_max: int, **search: Any) -> float:
+        """Seconds :func:`suggest_bb_count` takes at most (every count from ``n_min`` to ``n_max`` planned)."""
+        return sum(self.search_s(n, **{**_COUNT_SEARCH, **search}) for n in range(n_min, n_max + 1))
+
+
+def placement_cost(
     geometry: ViewGeometry,
     surface: TapeSurface,
     n_bbs: int,
@@ -457,23 +480,20 @@ def plan_seconds(
     *,
     noise_px: float = 0.1,
     metal: list[Any] | None = None,
-    trials: int = 200,
-    rounds: int = 5,
-    moves: int = 12,
     background: ObjectBackground | None = None,
     moved: Sequence[ViewGeometry] = (),
     **_: Any,
-) -> float:
-    """Seconds :func:`plan_placement` with the same arguments takes on this machine now, every round of moves run
-    (a round that gains little ends the search sooner): one placement scored as the search scores them, without and
-    with the object's ``background`` (twice: its BBs' share of the background is computed once), timed, times how
-    many the search scores. Takes about a second; best run once the kernels are loaded (after a first prediction)."""
+) -> PlacementCost:
+    """:class:`PlacementCost` measured now: ``n_bbs`` BBs placed on ``surface`` scored on the views the search
+    scores, without the ``background`` and twice with it (its BBs' share is computed once). About a second; best
+    measured once the kernels are loaded (after a first prediction)."""
     every = max(1, geometry.n_views // 125)
     coarse, coarse_moved = geometry[::every], [views[::every] for views in moved]
     rng = np.random.default_rng(0)
     ang, z = rng.uniform(0, 2 * np.pi, 64 * n_bbs), rng.uniform(surface.z_min_mm, surface.z_max_mm, 64 * n_bbs)
     on = np.flatnonzero(surface.covers(ang, z))[:n_bbs]
     xyz = surface.points(ang[on], z[on], diameter_mm)
+    placed = max(len(on), 1)
 
     def timed(object_background: ObjectBackground | None) -> float:
         t = time.perf_counter()
@@ -487,31 +507,13 @@ def plan_seconds(
             background=object_background,
             moved=coarse_moved,
         )
-        return time.perf_counter() - t
+        return (time.perf_counter() - t) / placed
 
     plain = timed(None)
     if background is None:
-        return (trials + rounds * n_bbs * moves) * plain * n_bbs / max(len(on), 1)
-    # the object's background is cached per BB: a placement of new BBs pays for each, a move for the one moved
+        return PlacementCost(plain, plain, 0.0, 0)
     first, again = timed(background), timed(background)
-    per_bb = max(first - again, 0.0) / max(len(on), 1)
-    return trials * plain + _RERANKED * (again + n_bbs * per_bb) + rounds * n_bbs * moves * (again + per_bb)
-
-
-def count_seconds(
-    geometry: ViewGeometry,
-    surface: TapeSurface,
-    diameter_mm: float,
-    *,
-    n_min: int = MIN_OWN_BBS,
-    n_max: int = 20,
-    **plan_options: Any,
-) -> float:
-    """Seconds :func:`suggest_bb_count` takes at most (every count up to ``n_max`` tried), as :func:`plan_seconds`
-    measures them (the cost of a placement grows with its BBs: timed once, at ``n_max``)."""
-    options = {**_COUNT_SEARCH, **plan_options}
-    per_bb = plan_seconds(geometry, surface, n_max, diameter_mm, **options) / n_max
-    return per_bb * sum(range(n_min, n_max + 1))
+    return PlacementCost(plain, again, max(first - again, 0.0), _RERANKED)
 
 
 def suggest_bb_count(
@@ -559,15 +561,15 @@ __all__ = [
     "CountSuggestion",
     "KeepOut",
     "Placement",
+    "PlacementCost",
     "PlanPrediction",
     "check_room",
-    "count_seconds",
     "edge_noise",
     "hand_spiral",
     "metal_of",
+    "placement_cost",
     "placement_score",
     "plan_placement",
-    "plan_seconds",
     "predict_placement",
     "suggest_bb_count",
     "usable_bbs",

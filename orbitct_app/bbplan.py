@@ -252,19 +252,18 @@ def _expected_seconds(
     full_prediction_s: float,
 ) -> float:
     """The whole plan's expected seconds from ``started``: what it took so far, the search as measured on this
-    machine now (:func:`calib.plan.plan_seconds`), and two more predictions on every view (the plan's and the
+    machine now (:func:`calib.plan.placement_cost`), and two more predictions on every view (the plan's and the
     spiral's, each as long as ``full_prediction_s``); said to ``options["progress"]`` as stage ``duration``."""
-    from calib.plan import count_seconds, plan_seconds
+    from calib.plan import placement_cost
+    from calib.quality import MIN_OWN_BBS
 
     o = req.options
-    search = {k: v for k, v in options.items() if k != "progress"}
+    n_probe = o.bbs if o.target_px is None else o.max_bbs
+    cost = placement_cost(geometry, surface, n_probe, diameter_mm, **options)
     if o.target_px is None:
-        search_s = plan_seconds(geometry, surface, o.bbs, diameter_mm, **search)
-        bound = ""
+        search_s, bound = cost.search_s(o.bbs), ""
     else:  # every count tried, then the one found planned in full: at most
-        search_s = count_seconds(geometry, surface, diameter_mm, n_max=o.max_bbs, **search)
-        search_s += plan_seconds(geometry, surface, o.max_bbs, diameter_mm, **search)
-        bound = "at most "
+        search_s, bound = cost.count_s(MIN_OWN_BBS, o.max_bbs) + cost.search_s(o.max_bbs), "at most "
     expected = time.perf_counter() - started + search_s + 2 * full_prediction_s
     report(
         options.get("progress"),
