@@ -467,18 +467,10 @@ def test_timings_leave_compiling_out_once_and_are_never_negative(
 ) -> None:
     """Kernels compiled during identification (the first calibration after installation) were taken off the
     estimation time twice, which then read negative."""
-    import numba
-
     import calib.pipeline
+    from tests.helpers.compiling import compiling_first
 
-    real = calib.pipeline.identify
-
-    def compiling_identify(*args: object, **kwargs: object) -> object:
-        for k in range(6):  # new functions: numba compiles each, as on first use after installation
-            numba.njit(lambda x, k=k: x * 2.0 + k)(1.0)
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(calib.pipeline, "identify", compiling_identify)
+    monkeypatch.setattr(calib.pipeline, "identify", compiling_first(calib.pipeline.identify))
     res = calib.calibrate_scan(simulated_scan("A"), out=tmp_path / "t.h5")
     assert res.compile_s > 0.0, "the test compiled nothing"
     phases = (res.detect_s, res.identify_s, res.estimate_s, res.check_s)

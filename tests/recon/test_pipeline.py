@@ -255,18 +255,10 @@ def test_kernels_compiled_on_first_use_are_timed_apart(
     scan_a: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The first reconstruction after installation compiles kernels: said apart, not counted in its time."""
-    import numba
-
     import recon.pipeline
+    from tests.helpers.compiling import compiling_first
 
-    real = recon.pipeline.fdk
-
-    def compiling_fdk(*args: object, **kwargs: object) -> object:
-        for k in range(6):  # new functions: numba compiles each, as on first use after installation
-            numba.njit(lambda x, k=k: x * 3.0 + k)(1.0)
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(recon.pipeline, "fdk", compiling_fdk)
+    monkeypatch.setattr(recon.pipeline, "fdk", compiling_first(recon.pipeline.fdk))
     scan = tmp_path / "a.h5"
     shutil.copyfile(scan_a, scan)
     t = time.perf_counter()
