@@ -24,17 +24,19 @@ from numpy.typing import NDArray
 from acquire.config import MotionConfig
 from acquire.continuous import ContinuousMode
 from acquire.errors import AcquireError, RefusedError, ScanAborted, ScanStateError
+from acquire.pace import ScanPace
 from acquire.plan import FramePlan, ScanPlan
 from acquire.priority import steady_collection
 from acquire.reasons import abort_reason, is_expected
 from acquire.records import FrameRecord, ScanEnd, ScanStart, Subscriber
 from acquire.rig import PreparingRig, Rig, SweepRig
 from devices.frame_protocol import Frame
-from orbitct.progress import ProgressCallback, report
+from orbitct.progress import ProgressCallback, report, report_expected
 from orbitct.scanfile.keys import ImageKey
 
 log = logging.getLogger(__name__)
 MODES = ("step", "continuous")
+PROJECTIONS_TIMED = 3  # projections measured before a step-mode scan says how long its frames take
 
 
 @dataclass
@@ -108,6 +110,7 @@ class ScanEngine(ContinuousMode):
         self._late_restarts = 0
         self._run_s = 0.0
         self._move_s: float | None = None  # estimated move + settle to the next projection
+        self._pace: ScanPace | None = None  # step mode: what the rest of the frames take, learned as they run
 
     # ------------------------------------------------------------- control
     def pause(self) -> None:
@@ -381,7 +384,10 @@ class ScanEngine(ContinuousMode):
         elapsed = t_d - t0
         self._run_s = elapsed
         rate = self.n_done / elapsed if elapsed > 0 else 0.0
-        left = (self.plan.n_frames - self.n_done) / rate if rate > 0 else float("nan")
+        learned = self._pace.seconds_left(self.n_done) if self._pace is not None else None
+        left = (
+            learned if learned is not None else (self.plan.n_frames - self.n_done) / rate if rate > 0 else float("nan")
+        )
         report(self.progress, "scan", self.n_done, self.plan.n_frames, "", rate_fps=rate, time_left_s=left)
 
     async def _timed_read(self) -> tuple[float, dict[str, float]]:
@@ -399,12 +405,13 @@ class ScanEngine(ContinuousMode):
         timeout = self.motion.move_timeout_s
         last: dict[str, float] | None = None
         ahead: tuple[dict[str, float], asyncio.Future[None]] | None = None  # move started during readout
+        self._pace = pace = ScanPace(frames, self.rig.travel_s, settle_s)
         try:
             for k, f in enumerate(frames):
                 await self._boundary()
                 cmd = f.targets
+                t_m = time.monotonic()
                 if cmd != last:
-                    t_m = time.monotonic()
                     prep = self._prepare_during_move() if f.image_key == ImageKey.PROJECTION else None
                     try:
                         arrived = False
@@ -447,7 +454,14 @@ class ScanEngine(ContinuousMode):
                         nonlocal ahead
                         ahead = (nxt_cmd, asyncio.ensure_future(self.rig.move_to(nxt_cmd, timeout)))
 
+                t_s = time.monotonic()
                 await self._shoot(f, t0, after_exposure=start_next)
+                pace.moved(k, t_s - t_m)
+                pace.took(k, time.monotonic() - t_s)
+                if pace.projections_seen == PROJECTIONS_TIMED and f.image_key == ImageKey.PROJECTION:
+                    left = pace.seconds_left(k + 1) or 0.0
+                    what = f"acquiring {len(frames)} frames"
+                    report_expected(self.progress, what, time.monotonic() - t0 + left, where="rig")
         finally:
             if ahead is not None:  # scan ending early: let the started move end (cleanup halts it anyway)
                 done, _ = await asyncio.wait({ahead[1]}, timeout=timeout)

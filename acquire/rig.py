@@ -32,6 +32,10 @@ class Rig(Protocol):
     async def move_to(self, targets: Mapping[str, float], timeout_s: float) -> None:
         """Move every axis to a frame's targets and wait until all are there."""
 
+    def travel_s(self, start: Mapping[str, float], end: Mapping[str, float]) -> float:
+        """Wall-clock seconds a move from ``start`` to ``end`` (a frame's targets) takes at the configured speeds,
+        acceleration and settling left out (the scan's pace learns them)."""
+
     async def acquire(
         self, image_key: int, after_exposure: Callable[[], None] | None = None, *, next_exposure_s: float | None = None
     ) -> Frame:

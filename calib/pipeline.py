@@ -53,7 +53,7 @@ from calib.scale import find_scale_bar, rescaled_views
 from calib.track import TrackingSettings, link_fragments
 from orbitct.compiletime import CompileClock
 from orbitct.geometry import ViewGeometry
-from orbitct.progress import ProgressCallback, report
+from orbitct.progress import ProgressCallback, report, report_expected
 from orbitct.scanfile import ImageKey, ScanFile, describe_frame_problems, frame_problem, write_linked_scan
 from orbitct.scanfile.reader import FRAME_COPIES
 
@@ -73,6 +73,7 @@ def _detect(
     nominal: ViewGeometry,
     opt: CalibrationOptions,
     progress: ProgressCallback | None,
+    clock: CompileClock,
     seeds_uv: Any = None,
     workers: int = 2,
 ) -> tuple[list[NDArray[np.float64]], float, float]:
@@ -104,9 +105,17 @@ def _detect(
         cands[m] = c
 
     # the main thread reads frames (h5py holds the GIL); workers run the GIL-free kernels
+    begun = started = time.perf_counter()
+    compiled_before = compiled = clock.seconds
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         pending: deque[tuple[int, Future[NDArray[Any]]]] = deque()
         for n, i in enumerate(proj):
+            if n == 4:  # timed from here: the first frames set things up (noise level, kernels loaded)
+                started, compiled = time.perf_counter(), clock.seconds
+            elif n == 4 + FRAMES_TIMED and total >= 2 * n:  # these frames show this machine's (and disk's) pace
+                per_frame = (time.perf_counter() - started - (clock.seconds - compiled)) / FRAMES_TIMED
+                so_far = time.perf_counter() - begun - (clock.seconds - compiled_before)
+                report_expected(progress, "calibration", so_far + calibration_seconds(total - n, per_frame))
             buf = np.empty(det.shape, dtype=ds.dtype)
             ds.read_direct(buf, np.s_[int(i)])
             if n == 0:
@@ -131,6 +140,17 @@ def _detect(
         )
     report(progress, "detect", total, total, "")
     return cands, float(diameter_mm), d_px
+
+
+FRAMES_TIMED = 16  # frames read and searched before a calibration says how long it takes
+SOLVE_S = 0.6  # identification, estimation and checks: 0.2-1.4 s on the 2-core reference, whatever the view count
+
+
+def calibration_seconds(n_projections: int, per_frame_s: float) -> float:
+    """Expected seconds of a calibration's rest: ``n_projections`` read and searched at the pace measured on its
+    first frames (this machine, its disk, now), then the solve. The solve's share is a typical figure, not a
+    measurement: it depends on how hard the BBs are to follow (metal, clutter, large motion between views)."""
+    return n_projections * per_frame_s + SOLVE_S
 
 
 def frame_detector(
@@ -308,7 +328,7 @@ def _calibrate_scan(
     t0 = time.perf_counter()
     with ScanFile(target) as sf:
         inputs = _read_inputs(sf, target)
-        cands, diameter_mm, d_px = _detect(sf, inputs.proj, inputs.nominal, opt, progress, seeds_uv, workers)
+        cands, diameter_mm, d_px = _detect(sf, inputs.proj, inputs.nominal, opt, progress, clock, seeds_uv, workers)
     t_detect = time.perf_counter() - t0 - clock.seconds  # kernels compiled on first use: not calibration time
     return _solve_and_write(inputs, cands, diameter_mm, d_px, method, opt, progress, clock, t0, t_detect, report_dir)
 

@@ -28,6 +28,22 @@ def report(
         callback(ProgressEvent(stage, done, total, message, metrics))
 
 
+def report_expected(
+    callback: ProgressCallback | None, what: str, seconds: float, *, at_most: bool = False, where: str = "machine"
+) -> None:
+    """Say how long ``what`` is expected to take in all (stage ``duration``, metric ``expected_s``): a line in a
+    terminal, the ``expected_s`` of a job's record in the service."""
+    bound = "at most " if at_most else ""
+    report(
+        callback,
+        "duration",
+        1,
+        1,
+        f"{what} takes {bound}about {describe_seconds(seconds)} on this {where} now",
+        expected_s=float(seconds),
+    )
+
+
 def describe_seconds(seconds: float) -> str:
     """A duration as a person reads it: '40 s', '12 min', '3.5 h'."""
     if seconds < 90:

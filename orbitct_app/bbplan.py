@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from orbitct.progress import ProgressCallback, describe_seconds, report
+from orbitct.progress import ProgressCallback, report, report_expected
 from orbitct_app.bbplan_options import MAX_BBS, BBPlanOptions, checked_plan_options
 
 #: samples of the orbit's motion errors a BB must be usable in (besides the nominal views) to count in a view
@@ -261,18 +261,11 @@ def _expected_seconds(
     n_probe = o.bbs if o.target_px is None else o.max_bbs
     cost = placement_cost(geometry, surface, n_probe, diameter_mm, **options)
     if o.target_px is None:
-        search_s, bound = cost.search_s(o.bbs), ""
+        search_s, at_most = cost.search_s(o.bbs), False
     else:  # every count tried, then the one found planned in full: at most
-        search_s, bound = cost.count_s(MIN_OWN_BBS, o.max_bbs) + cost.search_s(o.max_bbs), "at most "
+        search_s, at_most = cost.count_s(MIN_OWN_BBS, o.max_bbs) + cost.search_s(o.max_bbs), True
     expected = time.perf_counter() - started + search_s + 2 * full_prediction_s
-    report(
-        options.get("progress"),
-        "duration",
-        1,
-        1,
-        f"planning takes {bound}about {describe_seconds(expected)} on this machine now",
-        expected_s=expected,
-    )
+    report_expected(options.get("progress"), "planning", expected, at_most=at_most)
     return expected
 
 

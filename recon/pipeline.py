@@ -17,7 +17,7 @@ from pydantic import ValidationError
 
 from orbitct.compiletime import CompileClock
 from orbitct.geometry import ViewGeometry, VolumeGrid
-from orbitct.progress import ProgressCallback, describe_seconds, report
+from orbitct.progress import ProgressCallback, describe_seconds, report, report_expected
 from orbitct.scanfile import ImageKey, ScanFile
 from orbitct.verdict import Verdict
 from recon.curvature import curvature_key
@@ -370,6 +370,7 @@ def _reconstruct(
                 "shape or (PWLS) ordered subsets with momentum and fewer iterations are faster",
                 estimated_s,
             )
+        report_expected(progress, "reconstruction", estimated_s)
         cost: list[float] = []
         extra: dict[str, Any] = {}
         if not mar_method and cluster is not None:

@@ -210,6 +210,16 @@ class BenchRig:
             if exc is not None:
                 raise exc
 
+    def travel_s(self, start: Mapping[str, float], end: Mapping[str, float]) -> float:
+        """Stage and hexapod move at once, the hexapod's axes along a straight line (all arrive together)."""
+        limits = self.config.limits
+        stage = abs(end[STAGE_AXIS] - start[STAGE_AXIS]) / limits.stage_velocity_deg_s
+        hexapod = max(
+            (abs(end[k] - start[k]) for k in end if k.startswith("hexapod.")),
+            default=0.0,
+        )
+        return max(stage, hexapod / limits.hexapod_velocity_mm_s) / self.motion_time_scale
+
     @property
     def motion_time_scale(self) -> float:
         """How many times faster than real the stage twin moves (1 for real hardware)."""

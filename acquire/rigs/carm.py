@@ -92,6 +92,12 @@ class CArmRig:
         await self.carm.load(self.program)
         self._point = -1
 
+    def travel_s(self, start: Mapping[str, float], end: Mapping[str, float]) -> float:
+        """Both angles turn at once at the configured speed (bridge points on the way not counted)."""
+        turn = max(abs(end[k] - start[k]) for k in ("carm.primary", "carm.secondary"))
+        scale = self.config.sim.time_scale if self.sim else 1.0
+        return turn / self.config.limits.speed_deg_s / scale
+
     async def move_to(self, targets: Mapping[str, float], timeout_s: float) -> None:
         """Play the program on to the next point that takes a frame at ``targets`` (bridge points on the way)."""
         if self.program is None:

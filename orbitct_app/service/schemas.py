@@ -19,6 +19,9 @@ class Progress(BaseModel):
     total: int = 0
     message: str = ""
     metrics: dict[str, float | None] = Field(default_factory=dict)
+    expected_s: float | None = Field(
+        None, description="how long the whole scan or job takes, measured on this machine, once it has said so"
+    )
 
 
 class VerdictOut(BaseModel):

@@ -16,6 +16,7 @@ from acquire.rigs.bench import open_bench
 from acquire.runner import ScanRunner, run_scan
 from orbitct.errorprofiles import make_profile
 from orbitct.orbits import make_orbit
+from orbitct.progress import ProgressEvent
 from orbitct.scanfile import ScanFile
 from orbitct.scanfile.keys import ImageKey
 from tests.helpers.bench import SMALL_ERRORS, small_config
@@ -274,3 +275,22 @@ def test_continuous_scan_of_an_orbit_of_several_sweeps(request_factory, orbit: s
         enc, cmd = sf.axes("encoders"), sf.axes("commanded")
         lag = np.abs(enc["rotation_stage.R"][proj] - cmd["rotation_stage.R"][proj])
         below("stage_lag_deg", np.nanmax(lag), 360 / 12)  # read back at each trigger, within a step of its angle
+
+
+def test_step_scan_says_how_long_its_frames_take_once_it_has_timed_a_few_projections(request_factory) -> None:
+    events: list[ProgressEvent] = []
+    t = time.monotonic()
+    req = request_factory(frames=16)
+    res = run_scan(req, progress=events.append)
+    took = time.monotonic() - t
+    assert res.status == "complete", res.reason
+    said = [e for e in events if e.stage == "duration"]
+    assert len(said) == 1 and said[0].message.startswith(f"acquiring {res.n_frames} frames takes about")
+    before = [e for e in events[: events.index(said[0])] if e.stage == "scan"]
+    with ScanFile(req.out) as sf:
+        third_projection = int(sf.projection_indices[2])
+    assert before[-1].done == third_projection + 1  # said once three projections were timed
+    expected = said[0].metrics["expected_s"]
+    assert 0 < expected < 3 * took  # how close lies in benchmarks/estimates.py, not in a test under load
+    left = [e.metrics["time_left_s"] for e in events if e.stage == "scan" and "time_left_s" in e.metrics]
+    assert left[-1] == 0.0

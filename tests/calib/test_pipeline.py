@@ -15,6 +15,7 @@ from click.testing import CliRunner
 
 import calib
 from calib.evaluate import similarity_aligned_error_px
+from orbitct.progress import ProgressEvent
 from orbitct.scanfile import ScanFile
 from tests.helpers.measured import below
 
@@ -135,6 +136,7 @@ def test_cli_calibrates_in_place_and_reports(simulated_scan: Callable[..., Path]
     assert r.exit_code == 0, r.output
     assert "8 BBs" in r.output and "RPE mean" in r.output
     assert "time: detection " in r.output and " + identification " in r.output and "; writing " in r.output
+    assert r.output.index("calibration takes about ") < r.output.index("RPE mean")  # said before it ends
     with ScanFile(scan) as sf:
         assert sf.h5["geometry/calibrated"].attrs["method"] == "paper"
     r = CliRunner().invoke(cli, ["calibrate", str(scan), "--method", "magic"])
@@ -471,7 +473,12 @@ def test_timings_leave_compiling_out_once_and_are_never_negative(
     from tests.helpers.compiling import compiling_first
 
     monkeypatch.setattr(calib.pipeline, "identify", compiling_first(calib.pipeline.identify))
-    res = calib.calibrate_scan(simulated_scan("A"), out=tmp_path / "t.h5")
+    events: list[ProgressEvent] = []
+    res = calib.calibrate_scan(simulated_scan("A"), out=tmp_path / "t.h5", progress=events.append)
+    said = [e for e in events if e.stage == "duration"]
+    assert len(said) == 1 and said[0].message.endswith(" on this machine now")
+    assert said[0].metrics["expected_s"] > 0.0  # said once the first frames were searched: before the solve
+    assert events.index(said[0]) < next(i for i, e in enumerate(events) if e.stage == "track")
     assert res.compile_s > 0.0, "the test compiled nothing"
     phases = (res.detect_s, res.identify_s, res.estimate_s, res.check_s)
     assert min(phases) >= 0.0 and res.write_s >= 0.0, (phases, res.write_s, res.compile_s)

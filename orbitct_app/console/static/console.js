@@ -50,6 +50,13 @@ function el(tag, attrs = {}, ...children) {
   return node;
 }
 
+// a duration as a person reads it (as the CLI says it): '40 s', '12 min', '3.5 h'
+function duration(seconds) {
+  if (seconds < 90) return `${Math.round(seconds)} s`;
+  if (seconds < 5400) return `${Math.round(seconds / 60)} min`;
+  return `${(seconds / 3600).toFixed(1)} h`;
+}
+
 function fmt(v, digits = 3) {
   if (v === null || v === undefined) return '—';
   if (typeof v === 'boolean') return v ? 'yes' : 'no';
@@ -429,7 +436,10 @@ async function pageScan() {
     if (failed) $('#rec-failed-reasons').textContent = (c.verdict.reasons || []).join('; ');
     if (!failed) $('#rec-accept-failed').checked = false;
   };
+  let expected = null;  // how long the scan's frames take in all, once the scan has said so
   const progress = (p) => {
+    if (p.stage === 'duration') { expected = p.metrics.expected_s; return; }
+    if (p.expected_s) expected = p.expected_s;
     if (scan && p.total) { scan.frames_done = p.done; scan.frames_total = p.total; scanFacts(scan); }
     const bar = $('#scan-progress');
     bar.max = Math.max(p.total || 1, 1);
@@ -438,6 +448,7 @@ async function pageScan() {
     const parts = [`${p.stage || 'scan'}: frame ${p.done} of ${p.total}`];
     if (m.rate_fps) parts.push(`${m.rate_fps.toFixed(1)} frames/s`);
     if (m.time_left_s !== undefined && m.time_left_s !== null) parts.push(`${Math.round(m.time_left_s)} s left`);
+    if (expected) parts.push(`about ${duration(expected)} in all`);
     if (p.message) parts.push(p.message);
     $('#scan-progress-text').textContent = parts.join(' · ');
   };
@@ -552,8 +563,14 @@ async function pageCalibration() {
     if (!FINAL.includes(job.state)) {
       const bar = $('#job-progress');
       bar.hidden = false;
+      let expected = null;  // how long the job takes in all, once it has said so
       const source = listen(`/jobs/${id}/events`, {
-        progress: (p) => { bar.max = Math.max(p.total || 1, 1); bar.value = p.done || 0; $('#job-progress-text').textContent = `${p.stage} ${p.done} of ${p.total} ${p.message || ''}`; },
+        progress: (p) => {
+          if (p.stage === 'duration') { expected = p.metrics.expected_s; return; }
+          bar.max = Math.max(p.total || 1, 1); bar.value = p.done || 0;
+          const about = expected || p.expected_s;
+          $('#job-progress-text').textContent = `${p.stage} ${p.done} of ${p.total} ${p.message || ''}` + (about ? ` · about ${duration(about)} in all` : '');
+        },
         end: () => { source.close(); bar.hidden = true; show(); },
       });
       return;
@@ -630,7 +647,7 @@ function pagePlans() {
       $('#plan-since').textContent = new Date(plan.created).toLocaleTimeString();
       const step = plan.progress;
       $('#plan-step').textContent = (step ? `${{ count: 'BB counts', prepare: 'preparing' }[step.stage] || 'search'}: ${step.done} of ${step.total} (${step.message})`
-        : 'waiting for its turn') + (plan.expected_s ? `; expected to take about ${Math.round(plan.expected_s)} s in all` : '');
+        : 'waiting for its turn') + (plan.expected_s ? `; expected to take about ${duration(plan.expected_s)} in all` : '');
       await sleep(1000);
     }
   };

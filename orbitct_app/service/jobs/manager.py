@@ -180,6 +180,7 @@ class _Running:
     events_seen: int = 0
     done_at: float | None = None
     progress: dict[str, Any] | None = None
+    expected_s: float | None = None  # how long the job takes in all, once it has said so
     lines: list[str] = field(default_factory=list)
     worker: str | None = None  # the Dask worker running it now (from its own word)
     attempts: int = 0  # how often a worker started it
@@ -424,7 +425,12 @@ class JobManager:
             if msg["kind"] == "progress":
                 payload = dict(msg["payload"])
                 payload["message"] = self._scrub(str(payload.get("message", "")))[:500]
-                r.progress = payload
+                if payload["stage"] == "duration":  # said once: kept with every later progress of the job
+                    r.expected_s = float(payload["metrics"]["expected_s"])
+                else:
+                    if r.expected_s is not None:
+                        payload["expected_s"] = r.expected_s
+                    r.progress = payload
                 self._bus.publish(f"job:{r.job_id}", "progress", payload)
             elif msg["kind"] == "log":
                 r.lines.append(self._scrub(str(msg["payload"])))

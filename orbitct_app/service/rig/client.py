@@ -57,6 +57,7 @@ class ActiveScan:
     path: Path
     progress: dict[str, Any] = field(default_factory=dict)
     state: str = "running"
+    expected_s: float | None = None  # how long its frames take in all, once the scan has said so
     last_db: float = 0.0
     done: threading.Event = field(default_factory=threading.Event)
 
@@ -326,6 +327,13 @@ class RigClient:
         active = self.current
         if active is None or active.scan_id != scan_id:
             return
+        if data["stage"] == "duration":  # said once: kept with every later progress of the scan
+            active.expected_s = float(data["metrics"]["expected_s"])
+            active.progress = {**active.progress, "expected_s": active.expected_s}
+            self._bus.publish(f"scan:{scan_id}", "progress", data)
+            return
+        if active.expected_s is not None:
+            data = {**data, "expected_s": active.expected_s}
         active.progress = data
         if data["message"] == "paused" and active.state != "paused":
             self._set_state(active, "paused", "")

@@ -119,6 +119,7 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
     expect(page.locator("#scan-progress-text")).to_contain_text(
         "of 46"
     )  # 40 projections, 4 darks and flats before, 2 after
+    expect(page.locator("#scan-progress-text")).to_contain_text(" in all")  # how long it said its frames take
     # the same counts, named, on the scan page and in the scan list (the views a calibration counts: 40)
     expect(page.locator("#scan-facts dt:has-text('frames') + dd")).to_have_text(
         "46 of 46 (40 projections, 6 darks and flats)", timeout=TIMEOUT_MS

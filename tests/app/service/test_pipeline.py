@@ -35,9 +35,17 @@ def test_scan_calibrate_reconstruct(api, tmp_path: Path) -> None:  # type: ignor
 
     events = parse_sse(live["text"])
     assert [e["id"] for e in events] == list(range(1, len(events) + 1))
-    done = [e["data"]["done"] for e in events if e["event"] == "progress" and e["data"]["message"] != "complete"]
+    done = [
+        e["data"]["done"]
+        for e in events
+        if e["event"] == "progress" and e["data"]["stage"] == "scan" and e["data"]["message"] != "complete"
+    ]
     assert done == sorted(done) and done[-1] == scan["frames_total"]
     assert any("rate_fps" in e["data"]["metrics"] for e in events if e["event"] == "progress")
+    said = [e["data"] for e in events if e["event"] == "progress" and e["data"]["stage"] == "duration"]
+    assert len(said) == 1 and said[0]["metrics"]["expected_s"] > 0  # how long the frames take, said once
+    scan = api.get(f"/scans/{scan_id}").json()
+    assert scan["progress"]["expected_s"] == said[0]["metrics"]["expected_s"]
     assert events[-1]["event"] == "end" and events[-1]["data"]["state"] == "complete"
 
     r = api.get(f"/scans/{scan_id}/file")
@@ -81,10 +89,14 @@ def test_scan_calibrate_reconstruct(api, tmp_path: Path) -> None:  # type: ignor
     cal_events = parse_sse(api.get(f"/jobs/{cal_id}/events").text)
     stages = [e["data"]["stage"] for e in cal_events if e["event"] == "progress"]
     assert stages and stages[-1] == "write"
+    said = [e["data"] for e in cal_events if e["event"] == "progress" and e["data"]["stage"] == "duration"]
+    assert len(said) == 1 and said[0]["message"].startswith("calibration takes about ")
+    assert cal["progress"]["stage"] == "write" and cal["progress"]["expected_s"] == said[0]["metrics"]["expected_s"]
 
     rec = wait_for(api, f"/jobs/{rec_id}", ended, 300)
     assert rec["state"] == "succeeded", rec
     assert rec["result"]["shape"] == [24, 32, 32]
+    assert rec["progress"]["expected_s"] > 0  # said before it started, kept on the job's record
     r = api.get(f"/reconstructions/{rec_id}/slices/axial")
     assert r.status_code == 200 and r.content[:4] == b"\x89PNG"
     assert api.get(f"/reconstructions/{rec_id}/slices/axial", params={"index": 99}).status_code == 404  # no such slice
