@@ -146,10 +146,18 @@ def export_png(
     return out
 
 
-def slice_png(volume: NDArray[np.float32], grid: VolumeGrid, axis: str, index: int, title: str = "") -> bytes:
-    """One slice as PNG bytes: axes in mm, a scale bar, the volume's display window (metal excluded) in the title."""
+def slice_png(
+    volume: NDArray[np.float32],
+    grid: VolumeGrid,
+    axis: str,
+    index: int,
+    title: str = "",
+    window: tuple[float, float, str] | None = None,
+) -> bytes:
+    """One slice as PNG bytes: axes in mm, a scale bar, the display window in the title (the volume's own, metal
+    excluded, unless ``window`` gives another's, as :func:`display_window` makes it)."""
     plt = _pyplot()
-    lo, hi, note = display_window(volume)
+    lo, hi, note = display_window(volume) if window is None else window
     img, extent, xl, yl = slice_views(volume, grid, {axis: index})[axis]
     fig, ax = plt.subplots(figsize=(5, 5 * (extent[3] - extent[2]) / max(extent[1] - extent[0], 1e-9) + 0.5))
     _draw_slice(

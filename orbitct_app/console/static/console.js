@@ -866,15 +866,18 @@ function fallback(job, other) {
   note.hidden = false;
   note.textContent = (window.niivue ? 'This browser has no WebGL2, so the 3-D viewer cannot run'
     : 'The 3-D viewer\'s library is not installed on this server (python -m orbitct_app.console.assets)')
-    + '; the middle slices are shown as pictures (window: 1st to 99.5th percentile of each volume).';
-  const pictures = (j, fig) => {
+    + '; the middle slices are shown as pictures (window: 1st to 99.5th percentile of the first volume'
+    + (other ? ', the second volume resampled onto its grid' : '') + ').';
+  const pictures = (j, fig, onto) => {
     const verdict = $('p[role=status]', fig);  // the volume's verdict stays with its pictures
-    fig.replaceChildren(el('figcaption', { text: j.result.name || j.id }), verdict,
-      ...['axial', 'coronal', 'sagittal'].map((axis) => el('img', { src: `/reconstructions/${j.id}/slices/${axis}`, alt: `${axis} slice of ${j.id}` })));
+    const query = onto ? `?grid_of=${encodeURIComponent(onto.id)}` : '';
+    const caption = (j.result.name || j.id) + (onto ? `, resampled onto ${onto.result.name || onto.id}'s grid` : '');
+    fig.replaceChildren(el('figcaption', { text: caption }), verdict,
+      ...['axial', 'coronal', 'sagittal'].map((axis) => el('img', { src: `/reconstructions/${j.id}/slices/${axis}${query}`, alt: `${axis} slice of ${j.id}` })));
     verdictNote(j, verdict);
   };
   pictures(job, $('#gl-a').closest('figure'));
-  if (other) { $('#pane-b').hidden = false; pictures(other, $('#pane-b')); }
+  if (other) { $('#pane-b').hidden = false; pictures(other, $('#pane-b'), job); }
   document.body.dataset.viewerReady = 'fallback';
 }
 

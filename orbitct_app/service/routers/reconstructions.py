@@ -172,20 +172,37 @@ def get_slice(
     service: ServiceDep,
     _: Reader,
     index: Annotated[int | None, Query(ge=0, le=4096, description="slice index (default: the middle)")] = None,
+    grid_of: Annotated[
+        str | None,
+        Query(
+            max_length=64,
+            description="another succeeded reconstruction's id: this volume resampled onto that one's grid and "
+            "shown in that one's grey window, so that the two slices compare side by side",
+        ),
+    ] = None,
 ) -> Response:
     """Axial (z), coronal (y) or sagittal (x) slice with axes in millimetres and a scale bar; grey levels from
     the volume's 1st to 99.5th percentile, of the voxels below 0.1/mm when metal is present (the title says so)."""
-    from recon.export import slice_png
+    from recon.export import display_window, slice_png
 
     vol = reconstruction_volume(service, job_id)
     job = job_or_404(service, job_id, "reconstruction")
+    title = f"{job['result'].get('name', job_id)}: "
+    if grid_of is not None and grid_of != job_id:
+        other = reconstruction_volume(service, grid_of)
+        other_job = job_or_404(service, grid_of, "reconstruction")
+        window = display_window(np.asarray(other, dtype=np.float32))
+        vol = np.load(_compare_file(service, job_id, grid_of, "npy"), mmap_mode="r")
+        grid = _grid_of(other_job, other.shape)
+        title = f"{job['result'].get('name', job_id)} on {other_job['result'].get('name', grid_of)}'s grid: "
+    else:
+        window, grid = None, _grid_of(job, vol.shape)
     dim = {"axial": 0, "coronal": 1, "sagittal": 2}[axis]
     n = vol.shape[dim]
     i = n // 2 if index is None else index
     if i >= n:
         raise NotFound(f"no {axis} slice {i} in this volume", advice=f"ask for one of its {axis} slices 0..{n - 1}")
-    grid = _grid_of(job, vol.shape)
-    png = slice_png(np.asarray(vol, dtype=np.float32), grid, axis, i, title=f"{job['result'].get('name', job_id)}: ")
+    png = slice_png(np.asarray(vol, dtype=np.float32), grid, axis, i, title=title, window=window)
     return Response(png, media_type="image/png")
 
 
@@ -235,13 +252,19 @@ def _grid_of(job: dict[str, Any], shape: tuple[int, ...]) -> Any:
 
 
 def _on_grid_of(service: Any, job_id: str, other_id: str, format: str) -> FileResponse:
-    """``job_id``'s volume resampled onto ``other_id``'s grid, made once and kept in the job's folder."""
+    """``job_id``'s volume resampled onto ``other_id``'s grid, as a download."""
+    path = _compare_file(service, job_id, other_id, format)
+    return FileResponse(path, filename=f"{job_id}-{path.name}")
+
+
+def _compare_file(service: Any, job_id: str, other_id: str, format: str) -> Path:
+    """The file of ``job_id``'s volume resampled onto ``other_id``'s grid, made once and kept in the job's folder."""
     from recon.export import export_nifti
     from recon.resample import resample_volume
 
     other = reconstruction_volume(service, other_id)  # a known job's id: a plain name
     name = f"on-grid-of-{other_id}." + ("npy" if format == "npy" else "nii.gz")
-    path = service.jobs.job_dir(job_id) / "compare" / name  # apart from the exported files
+    path: Path = service.jobs.job_dir(job_id) / "compare" / name  # apart from the exported files
     if not path.is_file():
         path.parent.mkdir(exist_ok=True)
         vol = reconstruction_volume(service, job_id)
@@ -253,7 +276,7 @@ def _on_grid_of(service: Any, job_id: str, other_id: str, format: str) -> FileRe
         else:
             export_nifti(resampled, onto, part)
         part.replace(path)  # complete or absent: a second request never reads half a file
-    return FileResponse(path, filename=f"{job_id}-{name}")
+    return path
 
 
 @router.get(

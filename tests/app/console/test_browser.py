@@ -200,6 +200,17 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
     page.locator("#job-table button", has_text="Log").first.click()
     expect(page.locator("#job-log pre")).not_to_be_empty()
     shot(page, "jobs")
+    # a browser without WebGL2: the middle slices as pictures, the second volume's on the first one's grid
+    page.add_init_script("HTMLCanvasElement.prototype.getContext = function () { return null; };")
+    page.goto(f"{console.base}/console/reconstructions/{calibrated['id']}")
+    page.wait_for_selector("body[data-viewer-ready]", timeout=60_000)
+    assert page.get_attribute("body", "data-viewer-ready") == "fallback"
+    expect(page.locator("#pane-b figcaption")).to_contain_text("resampled onto")
+    pictures = page.locator("#pane-b img")
+    expect(pictures).to_have_count(3)
+    assert all("grid_of=" in (pictures.nth(i).get_attribute("src") or "") for i in range(3))
+    until(page, "() => Array.from(document.images).every((i) => i.complete && i.naturalWidth > 0)")
+    shot(page, "viewer-fallback")
     page.context.close()
 
     # operator again: a long scan, stopped with the emergency stop (the key Esc) while it runs

@@ -141,3 +141,10 @@ def test_scan_calibrate_reconstruct(api, tmp_path: Path) -> None:  # type: ignor
     assert api.get(f"/reconstructions/{small}/files").json() == files_before  # kept apart from the exports
     r = api.get(f"/reconstructions/{small}/volume", params={"grid_of": "0" * 16})
     assert r.status_code == 404 and "no reconstruction" in r.json()["message"]
+    # and its slices (the viewer without WebGL): on the other's grid, in the other's grey window
+    own_slice = api.get(f"/reconstructions/{small}/slices/axial")
+    r = api.get(f"/reconstructions/{small}/slices/axial", params={"grid_of": rec_id, "index": 23})
+    assert r.status_code == 200 and r.content[:4] == b"\x89PNG" and r.content != own_slice.content
+    r = api.get(f"/reconstructions/{small}/slices/axial", params={"grid_of": rec_id, "index": 24})
+    assert r.status_code == 404 and "0..23" in r.json()["message"]  # the other's 24 slices, not its own 8
+    assert api.get(f"/reconstructions/{small}/slices/axial", params={"grid_of": "0" * 16}).status_code == 404
