@@ -264,6 +264,17 @@ class SimConfig(_Model):
     )
     seed: int = 0
     time_scale: float = Field(1.0, ge=0.1, le=1000, description="twin motion and exposure run this many times faster")
+    detector: Literal["clean", "realistic"] = Field(
+        "clean",
+        description="the simulated panel's images: clean, or realistic (wider blur, scatter, lag, dead pixels and "
+        "columns; orbitct.simulator.DetectorModel.preset)",
+    )
+
+    def detector_model(self) -> Any:
+        """The simulated panel's detector model (:meth:`orbitct.simulator.DetectorModel.preset`)."""
+        from orbitct.simulator import DetectorModel
+
+        return DetectorModel.preset(self.detector)
 
     def imaged(self) -> Any:
         """What the twins image: the experiment's name, or (with ``bbs_mm``) its object with those BBs."""

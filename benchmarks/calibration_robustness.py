@@ -66,6 +66,7 @@ def _scan(cache: Path, case: dict[str, Any], size: int, frames: int) -> Path:
         + (f"_pair{case['pair_mm']:g}" if "pair_mm" in case else "")
         + (f"_dose{dose:g}" if dose != 1.0 else "")
         + (f"_placed{case['placement']}" if "placement" in case else "")
+        + (f"_{case['detector']}" if "detector" in case else "")
     )
     path = cache / f"{key}.h5"
     if not path.exists():
@@ -74,7 +75,8 @@ def _scan(cache: Path, case: dict[str, Any], size: int, frames: int) -> Path:
         )
         pitch = 427.0 / 768 * case.get("pitch_scale", 768 / size)
         panel = reference_panel(size, pitch)
-        bench = SimulatedBench(panel=panel, model=DetectorModel(flat_counts=DetectorModel().flat_counts * dose))
+        model = DetectorModel.preset(case.get("detector", "clean"))
+        bench = SimulatedBench(panel=panel, model=model.model_copy(update={"flat_counts": model.flat_counts * dose}))
         phantom = _phantom(case["exp"], case["seed"], case.get("bbs"), case.get("pair_mm"))
         if "xyz" in case:
             phantom = phantom.with_markers(np.asarray(case["xyz"]))
@@ -253,6 +255,13 @@ CASES: list[dict[str, Any]] = (
         {"name": "A two BBs 2.5 mm apart (surfaces)", "exp": "A", "seed": 0, "pair_mm": 2.5},
         {"name": "A low dose (1/8)", "exp": "A", "seed": 0, "dose": 0.125},
         {"name": "C metal, 2 mm BBs", "exp": "C", "seed": 0},
+    ]
+    + [
+        {"name": f"{e} realistic panel seed {s}", "exp": e, "seed": s, "detector": "realistic"}
+        for e in ("A", "B", "C")
+        for s in (0, 1, 2)
+    ]
+    + [
         {"name": "A 50 views", "exp": "A", "seed": 0, "frames": 50},
         {"name": "A 800 views", "exp": "A", "seed": 0, "frames": 800},
     ]

@@ -388,6 +388,7 @@ def sim_options(config: BenchConfig) -> dict[str, dict[str, Any]]:
             "sdd_mm": config.geometry.sdd_mm,
             "phantom": config.sim.imaged(),
             "seed": config.sim.seed,
+            "detector_model": config.sim.detector_model(),
             "timeout_s": SIM_FRAME_TIMEOUT_S,
         },
     }

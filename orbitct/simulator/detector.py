@@ -1,4 +1,5 @@
-"""Flat-panel detector model: gain pattern, blur, quantum (Poisson) noise, dark offset, read noise, saturation."""
+"""Flat-panel detector model: gain pattern, blur, quantum (Poisson) noise, dark offset, read noise, saturation; and,
+each off unless asked for, what makes a real panel's images less clean: scatter, lag and dead pixels."""
 
 from __future__ import annotations
 
@@ -107,8 +108,35 @@ class DetectorModel(BaseModel):
     falloff: float = Field(0.10, ge=0, le=0.9, description="flat-field drop from centre to corner (heel/distance)")
     pattern_seed: int = Field(7, description="seed of the fixed gain and dark patterns")
     saturation_adu: float = Field(65535.0, gt=0, le=65535, description="largest raw value (uint16)")
+    scatter_fraction: float = Field(
+        0.0,
+        ge=0,
+        le=2,
+        description="scattered radiation: the scatter-to-primary ratio behind one attenuation length of the object "
+        "(scatter grows with the object's line integral l as l * exp(-l) and spreads widely over the panel)",
+    )
+    scatter_width: float = Field(
+        0.08, gt=0, le=1, description="how widely scatter spreads: its Gaussian std as a fraction of the panel width"
+    )
+    lag_fraction: float = Field(
+        0.0, ge=0, le=0.3, description="image lag: the share of each frame's signal read out with the next frame"
+    )
+    dead_pixel_fraction: float = Field(
+        0.0, ge=0, le=0.05, description="pixels that read their dark offset whatever the exposure (fixed, seeded)"
+    )
+    dead_columns: int = Field(0, ge=0, le=64, description="whole columns that read their dark offset (fixed, seeded)")
 
     _maps: dict[tuple[int, int], tuple[NDArray[np.float32], NDArray[np.float32]]] = PrivateAttr(default_factory=dict)
+    _dead: dict[tuple[int, int], NDArray[np.bool_]] = PrivateAttr(default_factory=dict)
+    _last_signal: dict[tuple[int, int], NDArray[np.float32]] = PrivateAttr(default_factory=dict)
+
+    @classmethod
+    def preset(cls, name: str) -> DetectorModel:
+        """A named model: ``clean`` (the defaults) or ``realistic`` (a C-arm's flat panel as labs meet it: wider
+        blur from scintillator and focal spot, scatter, lag, dead pixels and two dead columns)."""
+        if name not in PRESETS:
+            raise ValueError(f"unknown detector preset {name!r}; choose from {sorted(PRESETS)}")
+        return cls(**PRESETS[name])
 
     def maps(self, shape: tuple[int, int]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
         """Fixed mean open-field signal (ADU above dark) and dark maps for a frame shape."""
@@ -123,38 +151,96 @@ class DetectorModel(BaseModel):
             self._maps[shape] = (flat, dark)
         return self._maps[shape]
 
+    def dead(self, shape: tuple[int, int]) -> NDArray[np.bool_]:
+        """The fixed map of dead pixels (and dead columns) for a frame shape."""
+        if shape not in self._dead:
+            rng = np.random.default_rng([self.pattern_seed, shape[0], shape[1], 1])
+            dead = rng.random(shape) < self.dead_pixel_fraction
+            dead[:, rng.choice(shape[1], size=min(self.dead_columns, shape[1]), replace=False)] = True
+            self._dead[shape] = dead
+        return self._dead[shape]
+
+    def scatter(self, li: NDArray[np.float32]) -> NDArray[np.float32]:
+        """Mean scattered signal (ADU) for line integrals ``li``: ``scatter_fraction * l * exp(-l)`` of the open
+        field, spread by a wide Gaussian (computed on a coarse grid: scatter is smooth)."""
+        flat, _ = self.maps(li.shape)
+        if self.scatter_fraction <= 0:
+            return np.zeros(li.shape, np.float32)
+        li64 = np.maximum(np.asarray(li, dtype=np.float64), 0.0)
+        source = self.scatter_fraction * flat * li64 * np.exp(-li64)
+        step = max(1, li.shape[1] // 64)
+        rows, cols = li.shape
+        coarse = source[: rows - rows % step, : cols - cols % step]
+        coarse = coarse.reshape(rows // step, step, cols // step, step).mean((1, 3)).astype(np.float32)
+        spread = gaussian_blur(coarse, self.scatter_width * cols / step)
+        r = np.minimum((np.arange(rows) + 0.5) / step - 0.5, spread.shape[0] - 1).clip(0)
+        c = np.minimum((np.arange(cols) + 0.5) / step - 0.5, spread.shape[1] - 1).clip(0)
+        r0, c0 = r.astype(int), c.astype(int)
+        r1, c1 = np.minimum(r0 + 1, spread.shape[0] - 1), np.minimum(c0 + 1, spread.shape[1] - 1)
+        wr, wc = (r - r0)[:, None], (c - c0)[None, :]
+        top = spread[r0][:, c0] * (1 - wc) + spread[r0][:, c1] * wc
+        bottom = spread[r1][:, c0] * (1 - wc) + spread[r1][:, c1] * wc
+        return (top * (1 - wr) + bottom * wr).astype(np.float32)
+
     def mean_signal(self, li: NDArray[np.float32]) -> NDArray[np.float32]:
-        """Noise-free mean signal above dark (ADU) for line integrals ``li``, blurred."""
+        """Noise-free mean signal above dark (ADU) for line integrals ``li``, blurred, scatter included (lag,
+        which depends on the frame before, is not)."""
         flat, _ = self.maps(li.shape)
         k = blur_kernel(self.blur_sigma_px)
-        return _blur_cols(_signal_rows(np.ascontiguousarray(li, dtype=np.float32), flat, k), k)
+        rows = _signal_rows(np.ascontiguousarray(li, dtype=np.float32), flat, k)
+        return _blur_cols(rows + self.scatter(li), k)
 
     def expected(self, li: NDArray[np.float32]) -> NDArray[np.float32]:
         """Noise-free mean raw value for line integrals ``li`` (before saturation)."""
         return self.mean_signal(li) + self.maps(li.shape)[1]
 
     def expose(self, li: NDArray[np.float32], rng: np.random.Generator) -> NDArray[np.uint16]:
-        """One raw frame (uint16) for line integrals ``li`` (rows, cols): blur, quantum noise, dark, read noise."""
+        """One raw frame (uint16) for line integrals ``li`` (rows, cols): blur, scatter, lag of the frame before,
+        quantum noise, dark, read noise, dead pixels."""
         flat, dark = self.maps(li.shape)
         k = blur_kernel(self.blur_sigma_px)
         rows = _signal_rows(np.ascontiguousarray(li, dtype=np.float32), flat, k)
-        return _readout(
+        if self.scatter_fraction > 0:
+            rows += self.scatter(li)
+        return self._read(rows, k, dark, rng)
+
+    def _read(
+        self, rows: NDArray[np.float32], k: NDArray[np.float32], dark: NDArray[np.float32], rng: np.random.Generator
+    ) -> NDArray[np.uint16]:
+        """Lag, read-out with noise, dead pixels: the steps every frame goes through."""
+        shape = (int(rows.shape[0]), int(rows.shape[1]))
+        if self.lag_fraction > 0:  # this frame keeps back a share of its signal; the one before gives its share
+            before = self._last_signal.get(shape)
+            self._last_signal[shape] = rows.copy()
+            rows = (1.0 - self.lag_fraction) * rows + (self.lag_fraction * before if before is not None else 0.0)
+            rows = np.ascontiguousarray(rows, dtype=np.float32)
+        out = _readout(
             rows, k, float(self.gain_adu), dark, float(self.read_noise_adu), float(self.saturation_adu), seed_from(rng)
         )
+        if self.dead_pixel_fraction > 0 or self.dead_columns > 0:
+            dead = self.dead(shape)
+            out[dead] = np.clip(np.rint(dark[dead]), 0, self.saturation_adu).astype(np.uint16)
+        return out
 
     def flat(self, rng: np.random.Generator, shape: tuple[int, int]) -> NDArray[np.uint16]:
         """One open-field (flat) frame."""
         return self.expose(np.zeros(shape, dtype=np.float32), rng)
 
     def dark(self, rng: np.random.Generator, shape: tuple[int, int]) -> NDArray[np.uint16]:
-        """One dark frame (X-rays off)."""
+        """One dark frame (X-rays off; with lag, the frame before still shows faintly)."""
         _, dark = self.maps(tuple(shape))  # type: ignore[arg-type]
-        return _readout(
-            np.zeros(shape, np.float32),
-            np.ones(1, np.float32),
-            float(self.gain_adu),
-            dark,
-            float(self.read_noise_adu),
-            float(self.saturation_adu),
-            seed_from(rng),
-        )
+        return self._read(np.zeros(shape, np.float32), np.ones(1, np.float32), dark, rng)
+
+
+#: named detector models (:meth:`DetectorModel.preset`)
+PRESETS: dict[str, dict[str, float]] = {
+    "clean": {},
+    "realistic": {
+        "blur_sigma_px": 1.0,  # scintillator plus a 0.6 mm focal spot seen at the isocentre's magnification
+        "scatter_fraction": 0.3,  # no anti-scatter grid behind a torso's worth of tissue
+        "lag_fraction": 0.03,  # first-frame lag of an a-Si panel
+        "dead_pixel_fraction": 0.001,
+        "dead_columns": 2,
+        "gain_variation": 0.03,
+    },
+}

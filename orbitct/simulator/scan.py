@@ -21,6 +21,7 @@ from orbitct.progress import ProgressCallback, report
 from orbitct.reference_bench import reference_panel
 from orbitct.scanfile import ScanWriter
 from orbitct.simulator.bench import SimulatedBench
+from orbitct.simulator.detector import DetectorModel
 from orbitct.simulator.projector import line_integrals
 
 # Orbit each experiment was acquired with in the paper.
@@ -142,6 +143,7 @@ def simulate_scan(
     n_flat: int = 10,
     frame_interval_s: float = 1.0 / 15.0,
     bench: SimulatedBench | None = None,
+    detector: str | DetectorModel = "clean",
     overwrite: bool = False,
     progress: ProgressCallback | None = None,
 ) -> SimulationResult:
@@ -150,7 +152,8 @@ def simulate_scan(
     Frames: ``n_dark`` darks, ``n_flat`` flats, then one projection per orbit frame rendered at
     the *true* pose (nominal pose with the profile's errors, ``orbitct.errorprofiles``). The file
     holds the nominal geometry, the true geometry, true marker centres and the phantom under
-    ``/truth``. ``seed`` sets the phantom's random layout, the errors and the noise.
+    ``/truth``. ``seed`` sets the phantom's random layout, the errors and the noise. ``detector``: the panel's
+    model or a preset's name (:meth:`DetectorModel.preset`: ``clean``, ``realistic``), unless ``bench`` gives one.
     """
     t0 = time.perf_counter()
     if n_dark < 0 or n_flat < 0:
@@ -159,7 +162,8 @@ def simulate_scan(
     exp_name = phantom.name if isinstance(experiment, Phantom) else str(experiment).upper()
     orb = resolve_orbit(exp_name, orbit, n_frames)
     profile = resolve_errors(errors, seed)
-    bench = bench or SimulatedBench(panel=reference_panel(detector_px, pitch_mm))
+    model = DetectorModel.preset(detector) if isinstance(detector, str) else detector
+    bench = bench or SimulatedBench(panel=reference_panel(detector_px, pitch_mm), model=model)
     det = bench.panel
     rigid = profile.sample(orb)
     R_true, t_true = rigid.true_poses(*orb.poses())

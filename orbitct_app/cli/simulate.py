@@ -52,6 +52,13 @@ if TYPE_CHECKING:
     show_default=True,
     help="motion errors added to the orbit",
 )
+@click.option(
+    "--detector",
+    type=click.Choice(["clean", "realistic"]),
+    default="clean",
+    show_default=True,
+    help="the panel's images: clean, or realistic (wider blur, scatter, lag, dead pixels and columns)",
+)
 @click.option("--seed", type=SEED, default=0, show_default=True, help="phantom layout, errors and noise")
 @click.option("--darks", type=click.IntRange(min=0), default=10, show_default=True, help="dark frames")
 @click.option("--flats", type=click.IntRange(min=0), default=10, show_default=True, help="flat frames")
@@ -72,6 +79,7 @@ def simulate(
     detector_size: int,
     pitch_mm: float | None,
     errors: str,
+    detector: str,
     seed: int,
     darks: int,
     flats: int,
@@ -100,6 +108,7 @@ def simulate(
             detector_px=detector_size,
             pitch_mm=pitch_mm,
             errors=errors,
+            detector=detector,
             seed=seed,
             n_dark=darks,
             n_flat=flats,

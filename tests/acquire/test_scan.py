@@ -294,3 +294,13 @@ def test_step_scan_says_how_long_its_frames_take_once_it_has_timed_a_few_project
     assert 0 < expected < 3 * took  # how close lies in benchmarks/estimates.py, not in a test under load
     left = [e.metrics["time_left_s"] for e in events if e.stage == "scan" and "time_left_s" in e.metrics]
     assert left[-1] == 0.0
+
+
+def test_the_twins_image_with_the_realistic_panel_when_the_configuration_asks(request_factory) -> None:
+    cfg = small_config()
+    cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"detector": "realistic"})})
+    req = request_factory(frames=4, config=cfg)
+    assert run_scan(req).status == "complete"
+    with ScanFile(req.out) as sf:
+        flat = sf.frames[int(np.flatnonzero(sf.image_key == ImageKey.FLAT)[0])].astype(float)
+    assert (flat.mean(axis=0) < 1000).sum() == 2  # the preset's two dead columns read their dark offset

@@ -110,6 +110,54 @@ def test_detector_model_statistics() -> None:
     assert np.array_equal(a, model.expose(li, np.random.default_rng(5)))
 
 
+def test_scatter_adds_a_smooth_signal_that_peaks_behind_one_attenuation_length() -> None:
+    plain = DetectorModel(blur_sigma_px=0.0, gain_variation=0.0, falloff=0.0)
+    scattering = plain.model_copy(update={"scatter_fraction": 0.5})
+    li = np.zeros((128, 128), np.float32)
+    li[32:96, 32:96] = 1.0  # one attenuation length in the middle, open field around it
+    added = scattering.mean_signal(li) - plain.mean_signal(li)
+    assert added.min() >= 0.0 and plain.scatter(li).max() == 0.0
+    # wide (its std 8 % of the panel, 10 px): 12 px outside the object there is still scatter; it varies slowly
+    edge_step = np.abs(np.diff(plain.mean_signal(li), axis=1)).max()
+    assert added[64, 20] > 0.05 * added[64, 64] and np.abs(np.diff(added, axis=1)).max() < 0.05 * edge_step
+    # l * exp(-l) at l = 1: behind the middle of an object much wider than the spread, the fraction of the field
+    assert 0.5 * 16000 * np.exp(-1.0) * 0.9 < added[64, 64] < 0.5 * 16000 * np.exp(-1.0) * 1.01
+
+
+def test_lag_carries_a_share_of_each_frame_into_the_next_and_shows_in_a_dark_after_it() -> None:
+    model = DetectorModel(blur_sigma_px=0.0, gain_variation=0.0, falloff=0.0, lag_fraction=0.05, read_noise_adu=0.0)
+    rng = np.random.default_rng(0)
+    shape = (64, 64)
+    first = model.flat(rng, shape).astype(float)  # nothing before it: a share held back
+    assert first.mean() == pytest.approx(300 + 0.95 * 16000, rel=0.003)
+    second = model.flat(rng, shape).astype(float)  # gets the share of the first back
+    assert second.mean() == pytest.approx(300 + 16000, rel=0.003)
+    ghost = model.dark(rng, shape).astype(float)
+    assert ghost.mean() == pytest.approx(300 + 0.05 * 16000, rel=0.02)
+    assert model.dark(rng, shape).astype(float).mean() == pytest.approx(300, abs=1.0)  # gone after one frame
+
+
+def test_dead_pixels_and_columns_read_their_dark_offset_at_the_same_place_in_every_frame() -> None:
+    model = DetectorModel(dead_pixel_fraction=0.01, dead_columns=2)
+    shape = (100, 120)
+    dead = model.dead(shape)
+    assert dead.all(axis=0).sum() == 2 and 0.005 < dead[:, ~dead.all(axis=0)].mean() < 0.02
+    _, dark = model.maps(shape)
+    for seed in (1, 2):
+        flat = model.flat(np.random.default_rng(seed), shape)
+        assert np.array_equal(flat[dead], np.rint(dark[dead]).astype(np.uint16))
+        assert flat[~dead].min() > 5000
+    assert np.array_equal(DetectorModel(dead_pixel_fraction=0.01, dead_columns=2).dead(shape), dead)
+
+
+def test_presets_name_the_clean_and_the_realistic_panel_and_refuse_others() -> None:
+    assert DetectorModel.preset("clean") == DetectorModel()
+    real = DetectorModel.preset("realistic")
+    assert real.scatter_fraction > 0 and real.lag_fraction > 0 and real.dead_columns > 0
+    with pytest.raises(ValueError, match="unknown detector preset 'grainy'"):
+        DetectorModel.preset("grainy")
+
+
 def test_blur_keeps_mean_and_smooths() -> None:
     sharp = DetectorModel(blur_sigma_px=0.0)
     soft = DetectorModel(blur_sigma_px=1.5)

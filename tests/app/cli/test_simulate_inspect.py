@@ -103,6 +103,19 @@ def test_simulate_orbit_params_and_no_errors(tmp_path: Path) -> None:
         assert np.allclose(f.axes("commanded")["orbit.tilt"][1:], 10.0)
 
 
+def test_simulate_a_realistic_panel_records_its_model_and_shows_its_dead_columns(tmp_path: Path) -> None:
+    args = ["simulate", "-e", "A", "--frames", "4", "--detector-size", "64", "--darks", "1", "--flats", "1"]
+    r = CliRunner().invoke(cli, [*args, "--detector", "realistic", "--out", str(tmp_path / "real.h5")])
+    assert r.exit_code == 0, r.output
+    with ScanFile(tmp_path / "real.h5") as f:
+        model = json.loads(f.h5["provenance"].attrs["config_json"])["detector_model"]
+        flat = f.frames[1].astype(float)
+    assert model["scatter_fraction"] > 0 and model["lag_fraction"] > 0 and model["dead_columns"] == 2
+    assert (flat.mean(axis=0) < 1000).sum() == 2  # two columns read only their dark offset
+    r = CliRunner().invoke(cli, [*args, "--detector", "grainy", "--out", str(tmp_path / "x.h5")])
+    assert r.exit_code == 2 and "'grainy' is not one of 'clean', 'realistic'" in r.output
+
+
 def test_simulate_bad_input(tmp_path: Path) -> None:
     run = CliRunner().invoke
     out = tmp_path / "x.h5"
