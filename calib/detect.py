@@ -15,6 +15,8 @@ import numpy as np
 import scipy.fft
 from numpy.typing import NDArray
 
+from orbitct.defects import DefectMap
+
 #: columns of a candidate record
 CANDIDATE_FIELDS = (
     "col",
@@ -385,6 +387,10 @@ class FrameDetector:
         b = settings.binning
         rows, cols = dark.shape
         self.shape = (rows, cols)
+        # pixels that do not respond (dead pixels and columns) are filled from their row neighbours, in the dark and
+        # flat here and in every frame searched: normalised, they would read as infinite line integrals
+        self.defects = DefectMap.from_dark_flat(dark, flat)
+        dark, flat = self.defects.filled(dark), self.defects.filled(flat)
         self.dark = np.ascontiguousarray(dark, dtype=np.float32)
         self.den = np.maximum(flat - dark, 1.0).astype(np.float32)
         rb, cb = rows // b, cols // b
@@ -417,7 +423,7 @@ class FrameDetector:
         """Standard deviation of the response due to pixel noise: the binned line integrals' noise (robust, from
         differences of neighbouring pixels, so edges of the object do not count) through the kernel. Structure in
         the image is not noise: a frame filled by the object would otherwise raise the threshold above faint BBs."""
-        li = _binned_line_integrals(raw, self.dark_b, self.den_b, self.settings.binning)
+        li = _binned_line_integrals(self.defects.filled(raw), self.dark_b, self.den_b, self.settings.binning)
         e = self.noise_border
         dif = np.diff(li[e:-e, e:-e], axis=1).ravel()
         pixel = 1.4826 * float(np.median(np.abs(dif - np.median(dif)))) / np.sqrt(2.0)
@@ -427,6 +433,7 @@ class FrameDetector:
     def candidates(self, raw: NDArray[np.generic]) -> NDArray[np.float64]:
         """Candidate records ``(M, N_FIELDS)`` (see ``CANDIDATE_FIELDS``), strongest first."""
         s = self.settings
+        raw = self.defects.filled(raw)
         resp = self.response(raw)
         if self.noise is None:
             self.noise = self.estimate_noise(raw)

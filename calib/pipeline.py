@@ -167,6 +167,7 @@ def _seed_records(raw: NDArray[Any], fd: FrameDetector, seeds: NDArray[np.float6
         raise OptionError(f"seeds_uv must have shape (K, 2) as (col, row), got {seeds.shape}")
     out = []
     r = 0.5 * fd.settings.diameter_px
+    raw = fd.defects.filled(raw)
     for col, row in seeds:
         rec = _refine(raw, fd.dark, fd.den, float(col), float(row), r, fd.half, fd.settings.refine_passes)
         if np.isfinite(rec[0]):

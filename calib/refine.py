@@ -244,10 +244,11 @@ def split_merged(
     new = uv.copy()
     n_split = 0
     with ScanFile(target) as sf:
-        dark, flat = sf.dark_flat()
+        defects = sf.defects()  # dead pixels and columns filled from their row neighbours, as detection does
+        dark, flat = (defects.filled(a) for a in sf.dark_flat())
         den = np.maximum(flat - dark, 1.0).astype(np.float32)
         for p in sorted({v for v, _, _ in pairs}):
-            frame = FrameWindows(np.asarray(sf.frames[int(proj[p])]), dark, den)
+            frame = FrameWindows(defects.filled(np.asarray(sf.frames[int(proj[p])])), dark, den)
             profile = radial_profile(frame, uv[p, isolated(predicted[p], uv[p], 2.0 * d_px + 4.0)], s.radius_px)
             if profile is None:
                 continue

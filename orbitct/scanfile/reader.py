@@ -13,6 +13,7 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
+from orbitct.defects import DefectMap
 from orbitct.geometry import GeometryError, Panel, ViewGeometry
 from orbitct.scanfile.errors import ScanFileError
 from orbitct.scanfile.keys import ImageKey
@@ -462,13 +463,20 @@ class ScanFile(ScanResults):
             self._dark_flat = (dark, flat)
         return self._dark_flat
 
+    def defects(self) -> DefectMap:
+        """The panel's pixels that do not respond to X-rays in this scan's darks and flats (:mod:`orbitct.defects`)."""
+        if not hasattr(self, "_defects"):
+            self._defects = DefectMap.from_dark_flat(*self.dark_flat())
+        return self._defects
+
     def line_integrals(self, index: int) -> NDArray[np.float32]:
-        """``-log((data - dark) / (flat - dark))`` of one frame, float32."""
+        """``-log((data - dark) / (flat - dark))`` of one frame, float32; defective pixels filled from their row
+        neighbours (:meth:`defects`)."""
         dark, flat = self.dark_flat()
         raw = np.asarray(self.frames[int(index)], dtype=np.float32)
         num = np.maximum(raw - dark, 0.5)
         den = np.maximum(flat - dark, 1.0)
-        return (-np.log(num / den)).astype(np.float32)
+        return self.defects().filled((-np.log(num / den)).astype(np.float32))
 
     def iter_line_integrals(self, indices: Sequence[int] | None = None) -> Iterator[tuple[int, NDArray[np.float32]]]:
         """Stream ``(frame index, line-integral image)`` over projections (or the given frames)."""

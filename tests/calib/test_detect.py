@@ -92,6 +92,31 @@ def test_a_frame_full_of_stronger_structure_keeps_its_bbs_among_the_candidates()
     assert (found < 1.0).all(), found
 
 
+def test_dead_columns_are_filled_so_they_neither_hide_bbs_nor_pass_for_them() -> None:
+    """A column that reads its dark offset normalises to noise where the object's line integral should be: a BB it
+    crosses is measured off its centre (0.14 px here) unless the column is filled from its neighbours."""
+    rng = np.random.default_rng(5)
+    size, d_px = 256, 6.0
+    centres = np.array([[60.0, 80.0], [128.0, 130.4], [190.0, 40.0], [200.0, 210.0]])  # (row, col)
+    rows, cols = np.mgrid[0:size, 0:size].astype(float)
+    li = np.full((size, size), 2.0)  # behind the object
+    for r, c in centres:
+        rho2 = np.clip((d_px / 2) ** 2 - (rows - r) ** 2 - (cols - c) ** 2, 0.0, None)
+        li += 0.8 * np.sqrt(rho2) / (d_px / 2)
+    dark = np.full((size, size), 100.0)
+    flat = np.full((size, size), 20000.0)
+    dead = [130, 20]  # one through the second BB, one in the open
+    flat[:, dead] = dark[:, dead]
+    raw = (rng.poisson((flat - dark) * np.exp(-li)) + dark).astype(np.uint16)
+    raw[:, dead] = np.rint(100 + 3.0 * rng.standard_normal((size, 2)))  # the dark offset and its read noise
+    det = FrameDetector(dark.astype(np.float32), flat.astype(np.float32), settings_for(d_px, (size, size)))
+    assert det.defects.count == 2 * size
+    c = det.candidates(raw)
+    off = np.linalg.norm(c[:, None, :2] - centres[None, :, ::-1], axis=-1)
+    assert (off.min(0) < 0.08).all(), off.min(0)  # every BB, the one on the dead column too
+    assert (off.min(1) < 2.0).sum() == 4 and len(c[c[:, 2] > 50]) == 4  # and nothing strong along the columns
+
+
 def test_detection_spread_is_each_detections_background_rms_over_the_typical_one() -> None:
     from calib.detect import CANDIDATE_FIELDS, SPREAD_RANGE, detection_spread
 
