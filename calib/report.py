@@ -1,4 +1,5 @@
-"""Calibration report: the paper's Table 1 (markdown and CSV), RPE violin plots, per-view corrections."""
+"""Calibration report: the paper's Table 1 (markdown and CSV), RPE violin plots, per-view corrections, the view
+predicted worst with its BBs."""
 
 from __future__ import annotations
 
@@ -203,6 +204,52 @@ def corrections_plot(
     plt.close(fig)
 
 
+def worst_view_plot(path: Path, result: CalibrationResult) -> None:
+    """The view predicted worst (or the middle projection): its line integrals with each BB found there (circle,
+    numbered as in the BB table) and where the calibrated geometry puts every BB (cross) (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from orbitct.scanfile import ScanFile
+
+    q = result.quality
+    views = np.flatnonzero(np.isfinite(result.geometry.vectors[:, 0]))
+    if q is not None and q.worst_frame is not None:
+        frame, why = int(q.worst_frame), "the view predicted worst"
+    elif views.size:
+        frame, why = int(views[views.size // 2]), "the middle view"
+    else:
+        return
+    with ScanFile(result.path) as sf:
+        image = sf.line_integrals(frame)
+    found = result.uv[frame]
+    placed = result.geometry[[frame]].project(result.xyz)[0] if np.isfinite(result.geometry.vectors[frame, 0]) else None
+    fig, ax = plt.subplots(figsize=(7, 7 * image.shape[0] / image.shape[1] + 0.4))
+    lo, hi = np.percentile(image, [1, 99.5])
+    ax.imshow(image, cmap="gray", vmin=lo, vmax=hi, origin="upper")
+    ok = np.isfinite(found[:, 0])
+    ax.scatter(found[ok, 0], found[ok, 1], s=90, facecolors="none", edgecolors="tab:orange", label="BB found")
+    for k in np.flatnonzero(ok):
+        ax.annotate(str(k + 1), found[k], xytext=(6, 6), textcoords="offset points", color="tab:orange", fontsize=8)
+    if placed is not None:
+        ax.scatter(placed[:, 0], placed[:, 1], marker="+", s=60, color="tab:cyan", label="calibrated geometry")
+    predicted = float(result.predicted_px[frame]) if result.predicted_px is not None else float("nan")
+    code = int(result.view_status[frame]) if result.view_status is not None else -1
+    status = {0: "solved from its own BBs", 1: "bridged from its neighbours", 2: "failed"}.get(code, "")
+    ax.set_title(
+        f"frame {frame}, {why}\n{int(ok.sum())} of {len(found)} BBs found, {status}"
+        + (f", predicted error {predicted:.2f} px" if np.isfinite(predicted) else ""),
+        fontsize=10,
+    )
+    ax.set_xlabel("column (px)")
+    ax.set_ylabel("row (px)")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, borderaxespad=0.0)
+    fig.savefig(path, dpi=100, bbox_inches="tight")
+    plt.close(fig)
+
+
 def _bb_table(result: CalibrationResult) -> str:
     """The BBs by number (as ``--scale-bar-bbs`` names them), with their positions and how often each was seen."""
     seen = np.isfinite(result.uv[..., 0]).sum(0)
@@ -218,7 +265,7 @@ def _bb_table(result: CalibrationResult) -> str:
 def write_report(
     result: CalibrationResult, out_dir: Path, extra_columns: dict[str, dict[str, Any]] | None = None
 ) -> list[Path]:
-    """Write table1.md, table1.csv, rpe_violin.png and corrections.png into ``out_dir``."""
+    """Write table1.md, table1.csv, rpe_violin.png, corrections.png and worst_view.png into ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
     n_last = len(result.iterations) - 1
     if result.method == "paper" and n_last > PAPER_ITERATION:  # the published table's iteration, later ones beside it
@@ -260,4 +307,6 @@ def write_report(
     corrections_plot(
         corr, result.corrections, f"{result.method}: estimated correction per view", truth=result.true_corrections
     )
-    return [md, csv_path, violin, corr]
+    worst = out_dir / "worst_view.png"
+    worst_view_plot(worst, result)
+    return [md, csv_path, violin, corr] + ([worst] if worst.exists() else [])

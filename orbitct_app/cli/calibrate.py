@@ -26,7 +26,7 @@ from orbitct_app.cli.progress import ProgressBar
     "report_dir",
     type=click.Path(file_okay=False, path_type=Path),
     default=None,
-    help="Directory for table1.md/.csv, rpe_violin.png and corrections.png.",
+    help="Directory for table1.md/.csv, rpe_violin.png, corrections.png and worst_view.png.",
 )
 @options_from(CalibrationOptions, metavars={"scale_bar_bbs": "I,J"})
 @click.option(

@@ -111,7 +111,7 @@ def test_results_written_as_scan_file_says(simulated_scan: Callable[..., Path], 
         assert attrs["rpe_mean_mm"] == pytest.approx(np.nanmean(m["rpe_mm"]))
         mats = np.asarray(sf.h5["geometry/calibrated/matrices"])
         assert np.allclose(mats[sf.projection_indices], g.matrices[sf.projection_indices])
-    for name in ("table1.md", "table1.csv", "rpe_violin.png", "corrections.png"):
+    for name in ("table1.md", "table1.csv", "rpe_violin.png", "corrections.png", "worst_view.png"):
         assert (tmp_path / "rep" / name).stat().st_size > 0
     # a simulated scan: the corrections plot overlays the truth, in the calibrated frame; across each
     # view's beam they agree (along it a shift only changes magnification and the BBs barely see it)

@@ -156,7 +156,7 @@ def test_a_whole_session_scan_calibrate_reconstruct_view_and_stop(console: Conso
     page.click("#scan-jobs >> text=report")
     expect(page.locator("#table1")).to_be_visible()
     expect(page.locator("#verdict-text")).not_to_be_empty()
-    expect(page.locator("#figures img")).to_have_count(2)  # the RPE violins and the per-view corrections
+    expect(page.locator("#figures img")).to_have_count(3)  # the RPE violins, the corrections, the worst view
     assert page.locator("#iterations tbody tr").count() >= 2
     until(page, "() => Array.from(document.images).every((i) => i.complete && i.naturalWidth > 0)")
     shot(page, "calibration-report")
