@@ -128,9 +128,11 @@ class CArmTwin(DetectorTwin):
         return json.dumps(self.limits.to_json())
 
     def cmd_prog(self, args: list[str]) -> str:
-        """``PROG CLEAR`` or ``PROG ADD <csv fields>`` (checked against the limits)."""
+        """``PROG CLEAR`` or ``PROG ADD <csv fields>`` (checked against the limits); a new program starts the frames'
+        noise afresh (:meth:`restart_noise`)."""
         if args[:1] == ["CLEAR"]:
             self.program = []
+            self.restart_noise()
             return ""
         if args[:1] == ["ADD"]:
             try:

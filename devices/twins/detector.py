@@ -253,8 +253,14 @@ class DetectorTwin(LineTwinServer):
         """``TRIGMODE?``."""
         return self.mode
 
+    def restart_noise(self) -> None:
+        """Draw the frames' noise afresh from the twin's seed: a scan on the twins is the same whatever ran before it
+        in the process (the panel's lag, like a real panel's, still carries the last frame over)."""
+        self.rng = np.random.default_rng(self.seed)
+
     def cmd_arm(self, args: list[str]) -> str:
-        """``ARM``: discard queued frames, accept triggers."""
+        """``ARM``: discard queued frames, accept triggers; the noise starts afresh (:meth:`restart_noise`)."""
+        self.restart_noise()
         self.clear_frames()
         with self.world.lock:
             self._seen_exposures = self.world.xray_frame_counter

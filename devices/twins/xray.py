@@ -377,6 +377,10 @@ class XrayTwin:
         if settings_changed and self.state == GeneratorState.EXPOSING:
             return ExcCodes.DEVICE_BUSY
         self.kv_set, self.ma_set, self.exposure_ms = kv, ma, new[reg.EXPOSURE_MS]
+        if settings_changed:  # the technique the panel's open-beam (flat) frames see from now on, as a real source's
+            with self.world.lock:
+                self.world.xray_kv, self.world.xray_ma = self.kv_set, self.ma_set
+                self.world.exposure_ms = float(self.exposure_ms)
         self.watchdog_ms = new[reg.WATCHDOG_MS]
         if new[reg.HEARTBEAT_IN] != self.heartbeat_in or reg.HEARTBEAT_IN in range(address, address + len(values)):
             self._last_hb = time.monotonic()

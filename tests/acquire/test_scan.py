@@ -304,3 +304,29 @@ def test_the_twins_image_with_the_realistic_panel_when_the_configuration_asks(re
     with ScanFile(req.out) as sf:
         flat = sf.frames[int(np.flatnonzero(sf.image_key == ImageKey.FLAT)[0])].astype(float)
     assert (flat.mean(axis=0) < 1000).sum() == 2  # the preset's two dead columns read their dark offset
+
+
+def test_the_twins_noise_starts_afresh_with_each_scan(request_factory) -> None:
+    """The same scan twice in one process (as in the service) gives the same darks and flats: the panel twin's
+    noise restarts from its seed when the scan arms it, whatever the scans before it drew."""
+    frames = []
+    for name in ("first.h5", "second.h5"):
+        req = request_factory(name, frames=4)
+        assert run_scan(req).status == "complete"
+        with ScanFile(req.out) as sf:
+            before = np.flatnonzero(sf.image_key != ImageKey.PROJECTION)
+            before = before[before < sf.projection_indices[0]]  # the darks and flats taken before any projection
+            frames.append(np.asarray(sf.frames[before[0] : before[-1] + 1]))
+    assert np.array_equal(frames[0], frames[1])
+
+
+def test_flats_before_any_exposure_see_the_configured_technique(request_factory) -> None:
+    """The twins' open-beam frames took the source's technique of its last exposure: before the first one of a
+    process, the generator's defaults (here 5 times the configured dose), so flats before and after disagreed."""
+    req = request_factory(frames=4)
+    assert run_scan(req).status == "complete"
+    with ScanFile(req.out) as sf:
+        flats = np.flatnonzero(sf.image_key == ImageKey.FLAT)
+        means = [float(np.asarray(sf.frames[int(i)]).mean()) for i in flats]
+        assert flats[0] < sf.projection_indices[0] < flats[-1]  # some before, some after
+    assert max(means) < 1.01 * min(means), means
