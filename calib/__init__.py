@@ -1,5 +1,7 @@
 """Geometric calibration of arbitrary cone-beam orbits from BBs on the object (Ma et al., SPIE 2022, and beyond)."""
 
+from typing import TYPE_CHECKING
+
 from calib.errors import (
     BadFramesError,
     CalibrationError,
@@ -10,8 +12,17 @@ from calib.errors import (
     OptionError,
 )
 from calib.options import METHODS, CalibrationOptions
-from calib.pipeline import calibrate_scan
-from calib.result import CalibrationResult, IterationStats
+from orbitct.lazy import lazy_attributes
+
+if TYPE_CHECKING:
+    from calib.pipeline import calibrate_scan
+    from calib.result import CalibrationResult, IterationStats
+
+# imported on first use: `import calib.options` (the CLI's and the service's options) loads no numerical kernels
+__getattr__ = lazy_attributes(
+    __name__,
+    {"calibrate_scan": "calib.pipeline", "CalibrationResult": "calib.result", "IterationStats": "calib.result"},
+)
 
 __all__ = [
     "METHODS",

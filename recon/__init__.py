@@ -1,6 +1,9 @@
 """Reconstruction for arbitrary cone-beam orbits: projectors, FDK, PWLS/SPS, MAR, exports."""
 
+from typing import TYPE_CHECKING
+
 from orbitct.geometry import VolumeGrid
+from orbitct.lazy import lazy_attributes
 from recon.errors import (
     BadFramesError,
     FailedGeometryError,
@@ -11,14 +14,38 @@ from recon.errors import (
     ReconExistsError,
     TooLongError,
 )
-from recon.estimate import reconstruction_seconds
-from recon.fdk import fdk
-from recon.grid import check_fov, grid_for_geometry
-from recon.operator import Projector, backproject_voxels, projector
-from recon.options import ReconstructionOptions
-from recon.pipeline import ReconResult, compare_reconstructions, reconstruct_scan
-from recon.pwls import DEFAULT_BETA, PwlsResult, pwls_sps
-from recon.quality import reference_volume, rmse, wire_fwhm
+from recon.options import DEFAULT_BETA, ReconstructionOptions
+
+if TYPE_CHECKING:
+    from recon.estimate import reconstruction_seconds
+    from recon.fdk import fdk
+    from recon.grid import check_fov, grid_for_geometry
+    from recon.operator import Projector, backproject_voxels, projector
+    from recon.pipeline import ReconResult, compare_reconstructions, reconstruct_scan
+    from recon.pwls import PwlsResult, pwls_sps
+    from recon.quality import reference_volume, rmse, wire_fwhm
+
+# imported on first use: `import recon.options` (the CLI's and the service's options) loads no numerical kernels
+__getattr__ = lazy_attributes(
+    __name__,
+    {
+        "reconstruction_seconds": "recon.estimate",
+        "fdk": "recon.fdk",
+        "check_fov": "recon.grid",
+        "grid_for_geometry": "recon.grid",
+        "Projector": "recon.operator",
+        "backproject_voxels": "recon.operator",
+        "projector": "recon.operator",
+        "ReconResult": "recon.pipeline",
+        "compare_reconstructions": "recon.pipeline",
+        "reconstruct_scan": "recon.pipeline",
+        "PwlsResult": "recon.pwls",
+        "pwls_sps": "recon.pwls",
+        "reference_volume": "recon.quality",
+        "rmse": "recon.quality",
+        "wire_fwhm": "recon.quality",
+    },
+)
 
 __all__ = [
     "DEFAULT_BETA",

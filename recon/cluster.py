@@ -31,7 +31,8 @@ from orbitct.scanfile import ScanFile
 from recon.errors import ReconError
 from recon.fdk import FdkWeights, fdk_views
 from recon.operator import projector
-from recon.pwls import DEFAULT_BETA, PwlsResult, ViewsData, pwls_solve
+from recon.options import DEFAULT_BETA
+from recon.pwls import PwlsResult, ViewsData, pwls_solve
 from recon.stack import FileLineIntegrals, FileWeights
 
 log = logging.getLogger(__name__)

@@ -12,13 +12,12 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from recon.pwls import DEFAULT_BETA
-
 #: the largest volume a request may ask for (4 GiB of float32 voxels); memory is checked again before any work
 MAX_VOXELS = 1024**3
 Algorithm = Literal["fdk", "pwls"]
 GeometryName = Literal["calibrated", "nominal", "truth"]
 StreamMode = Literal["auto", "memory", "file"]
+DEFAULT_BETA = 0.01  # PWLS relative penalty strength: times the median data curvature (recon.pwls)
 
 
 class ReconstructionOptions(BaseModel):

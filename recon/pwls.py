@@ -25,8 +25,7 @@ from orbitct.progress import ProgressCallback, report
 from recon.errors import ReconError
 from recon.fdk import ProjectionStack
 from recon.operator import Projector
-
-DEFAULT_BETA = 0.01
+from recon.options import DEFAULT_BETA
 
 
 @dataclass
