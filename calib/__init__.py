@@ -12,14 +12,14 @@ from calib.errors import (
     OptionError,
 )
 from calib.options import METHODS, CalibrationOptions
-from orbitct.lazy import lazy_attributes
+from orbitct.lazy import make_lazy
 
 if TYPE_CHECKING:
     from calib.pipeline import calibrate_scan
     from calib.result import CalibrationResult, IterationStats
 
 # imported on first use: `import calib.options` (the CLI's and the service's options) loads no numerical kernels
-__getattr__ = lazy_attributes(
+make_lazy(
     __name__,
     {"calibrate_scan": "calib.pipeline", "CalibrationResult": "calib.result", "IterationStats": "calib.result"},
 )

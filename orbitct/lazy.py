@@ -1,25 +1,46 @@
 """Package attributes imported when first used, so that importing a package's light parts (its options, its
-errors) does not load its numerical kernels (numba, SciPy): ``orbitct --help`` and the options models stay quick."""
+errors) does not load its numerical kernels (numba, SciPy): ``orbitct --help`` and the options models stay quick.
+
+A name may be the same as a submodule's (``recon.fdk`` the function, in ``recon/fdk.py``). Importing a submodule
+binds its name on the package, so such a binding is declined: the package's name stays what the package exports,
+as it was when the package imported everything at once.
+"""
 
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable, Mapping
-from typing import Any
+import sys
+import types
+from collections.abc import Mapping
+from typing import Any, ClassVar
 
 
-def lazy_attributes(package: str, homes: Mapping[str, str]) -> Callable[[str], Any]:
-    """A module ``__getattr__`` for ``package`` that imports each name in ``homes`` from its module on first use."""
+class _LazyPackage(types.ModuleType):
+    """A package whose names in ``homes`` are imported from their modules on first use."""
 
-    def __getattr__(name: str) -> Any:
-        home = homes.get(name)
+    homes: ClassVar[Mapping[str, str]] = {}
+
+    def __getattr__(self, name: str) -> Any:
+        home = type(self).homes.get(name)
         if home is None:
-            raise AttributeError(f"module {package!r} has no attribute {name!r}")
+            raise AttributeError(f"module {self.__name__!r} has no attribute {name!r}")
         value = getattr(importlib.import_module(home), name)
-        setattr(importlib.import_module(package), name, value)  # found directly from now on
+        types.ModuleType.__setattr__(self, name, value)  # found directly from now on
         return value
 
-    return __getattr__
+    def __setattr__(self, name: str, value: Any) -> None:
+        if isinstance(value, types.ModuleType) and name in type(self).homes:
+            return  # a submodule of the same name as an exported function: the function keeps the name
+        super().__setattr__(name, value)
 
 
-__all__ = ["lazy_attributes"]
+def make_lazy(package: str, homes: Mapping[str, str]) -> None:
+    """Make ``package`` (being imported) import each name in ``homes`` from its module on first use."""
+    module = sys.modules[package]
+    module.__class__ = type("LazyPackage", (_LazyPackage,), {"homes": dict(homes)})
+    for name in homes:  # a same-named submodule imported before this call
+        if isinstance(module.__dict__.get(name), types.ModuleType):
+            del module.__dict__[name]
+
+
+__all__ = ["make_lazy"]

@@ -3,7 +3,7 @@
 from typing import TYPE_CHECKING
 
 from orbitct.geometry import VolumeGrid
-from orbitct.lazy import lazy_attributes
+from orbitct.lazy import make_lazy
 from recon.errors import (
     BadFramesError,
     FailedGeometryError,
@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from recon.quality import reference_volume, rmse, wire_fwhm
 
 # imported on first use: `import recon.options` (the CLI's and the service's options) loads no numerical kernels
-__getattr__ = lazy_attributes(
+make_lazy(
     __name__,
     {
         "reconstruction_seconds": "recon.estimate",
