@@ -5,7 +5,7 @@ the flats too. Normalised, such a pixel reads as if nothing got through, an infi
 takes for a BB's edge and reconstruction smears into a streak. A pixel whose open-field response (flat minus dark)
 is below :data:`DEAD_RESPONSE` of the panel's median response is taken as defective; its value in each frame is
 interpolated from the nearest good pixels left and right of it in its row (a dead column is filled from the columns
-beside it; at the panel's edge the nearest good pixel is copied).
+beside it; at the panel's edge the nearest good pixel is copied; a whole dead row from the rows above and below).
 """
 
 from __future__ import annotations
@@ -34,27 +34,24 @@ class DefectMap:
 
     @classmethod
     def from_dark_flat(cls, dark: NDArray[np.floating], flat: NDArray[np.floating]) -> DefectMap:
-        """The pixels that barely respond to X-rays (flat minus dark), and their fill from row neighbours."""
+        """The pixels that barely respond to X-rays (flat minus dark), and their fill from row neighbours (a whole
+        dead row from the rows above and below it)."""
         response = np.asarray(flat, dtype=np.float64) - np.asarray(dark, dtype=np.float64)
         typical = float(np.median(response))
-        bad = response < DEAD_RESPONSE * typical if typical > 0 else np.zeros(response.shape, dtype=bool)
+        bad: NDArray[np.bool_] = (
+            response < DEAD_RESPONSE * typical if typical > 0 else np.zeros(response.shape, dtype=bool)
+        )
         rows, cols = bad.shape
-        bad_rows, bad_cols = np.nonzero(bad)
-        if bad_rows.size == 0 or bad.all(axis=1).any():  # nothing to fill, or a row with nothing to fill from
-            empty = np.zeros(0, dtype=np.intp)
-            return cls((rows, cols), empty, empty, empty, np.zeros(0))
-        col = np.arange(cols)
-        good_left = np.where(~bad, col[None, :], -1)
-        np.maximum.accumulate(good_left, axis=1, out=good_left)
-        good_right = np.where(~bad, col[None, :], cols)
-        good_right = np.minimum.accumulate(good_right[:, ::-1], axis=1)[:, ::-1]
-        lo, hi = good_left[bad_rows, bad_cols], good_right[bad_rows, bad_cols]
-        lo = np.where(lo < 0, hi, lo)  # at an edge: the one neighbour there is
-        hi = np.where(hi >= cols, lo, hi)
-        span = np.maximum(hi - lo, 1)
-        weight = np.where(hi == lo, 0.0, (bad_cols - lo) / span)
-        base = bad_rows * cols
-        return cls((rows, cols), base + bad_cols, base + lo, base + hi, weight)
+        dead_row: NDArray[np.bool_] = np.asarray(bad.all(axis=1))
+        r, c, lo, hi, weight = _fill_along_rows(bad, bad & ~dead_row[:, None])
+        rv, cv, lov, hiv, weightv = _fill_along_rows(bad.T, (bad & dead_row[:, None]).T)  # rows of bad.T: columns
+        return cls(
+            (rows, cols),
+            np.concatenate([r * cols + c, cv * cols + rv]),
+            np.concatenate([r * cols + lo, lov * cols + rv]),
+            np.concatenate([r * cols + hi, hiv * cols + rv]),
+            np.concatenate([weight, weightv]),
+        )
 
     @property
     def count(self) -> int:
@@ -74,6 +71,25 @@ class DefectMap:
             values = np.clip(np.rint(values), info.min, info.max)
         flat[self.pixels] = values
         return out
+
+
+def _fill_along_rows(
+    bad: NDArray[np.bool_], fill: NDArray[np.bool_]
+) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp], NDArray[np.intp], NDArray[np.float64]]:
+    """For each pixel of ``fill`` (row, col): the columns of the nearest good pixels left and right of it in its row
+    (the one there is at an edge) and the right one's weight; pixels with no good pixel in their row are left out."""
+    cols = bad.shape[1]
+    r, c = np.nonzero(fill)
+    col = np.arange(cols)
+    good_left = np.maximum.accumulate(np.where(~bad, col[None, :], -1), axis=1)
+    good_right = np.minimum.accumulate(np.where(~bad, col[None, :], cols)[:, ::-1], axis=1)[:, ::-1]
+    lo, hi = good_left[r, c], good_right[r, c]
+    keep = (lo >= 0) | (hi < cols)
+    r, c, lo, hi = r[keep], c[keep], lo[keep], hi[keep]
+    lo = np.where(lo < 0, hi, lo)  # at an edge: the one neighbour there is
+    hi = np.where(hi >= cols, lo, hi)
+    weight = np.where(hi == lo, 0.0, (c - lo) / np.maximum(hi - lo, 1))
+    return r, c, lo, hi, weight
 
 
 __all__ = ["DEAD_RESPONSE", "DefectMap"]

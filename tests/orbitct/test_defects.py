@@ -59,3 +59,17 @@ def test_a_scan_with_dead_columns_has_no_infinite_line_integrals(tmp_path: Path)
     for c in dead:  # filled between its neighbours
         lo, hi = np.minimum(li[:, c - 1], li[:, c + 1]), np.maximum(li[:, c - 1], li[:, c + 1])
         assert np.all((li[:, c] >= lo - 1e-5) & (li[:, c] <= hi + 1e-5))
+
+
+def test_a_dead_row_is_filled_from_the_rows_above_and_below_and_the_rest_as_before() -> None:
+    dark = np.zeros((6, 5))
+    flat = np.full((6, 5), 1000.0)
+    flat[2, :] = 0.0  # a whole dead row
+    flat[4, 1] = 0.0  # and a dead pixel elsewhere
+    defects = DefectMap.from_dark_flat(dark, flat)
+    assert defects.count == 5 + 1
+    ramp = np.add.outer(np.arange(6.0) * 10.0, np.arange(5.0))  # linear down the columns and along the rows
+    broken = ramp.copy()
+    broken[2, :] = 1e6
+    broken[4, 1] = 1e6
+    assert np.allclose(defects.filled(broken), ramp)
