@@ -93,8 +93,16 @@ def simulate(
 
     if out.exists() and not overwrite:
         raise click.BadParameter(f"{out} already exists (add --overwrite to replace it)", param_hint="--out")
+    orbit_params = parse_params(params)
+    if "n_frames" in orbit_params:  # -p n_frames=N is --frames N
+        said = orbit_params.pop("n_frames")
+        if frames is not None and said != frames:
+            raise click.UsageError(f"--frames {frames} and -p n_frames={said} disagree; give the number of frames once")
+        if not isinstance(said, int) or isinstance(said, bool):
+            raise click.UsageError(f"-p n_frames={said!r} is not a whole number of frames")
+        frames = said
     try:
-        orbit = resolve_orbit(experiment, orbit_name, frames, **parse_params(params))
+        orbit = resolve_orbit(experiment, orbit_name, frames, **orbit_params)
     except OrbitError as exc:
         raise click.UsageError(str(exc)) from None
     phantom: str | Phantom = experiment.upper()

@@ -116,6 +116,18 @@ def test_simulate_a_realistic_panel_records_its_model_and_shows_its_dead_columns
     assert r.exit_code == 2 and "'grainy' is not one of 'clean', 'realistic'" in r.output
 
 
+def test_simulate_takes_the_number_of_frames_as_an_orbit_parameter_too(tmp_path: Path) -> None:
+    args = ["simulate", "-e", "A", "--orbit", "circular", "--detector-size", "32", "--darks", "0", "--flats", "1"]
+    r = CliRunner().invoke(cli, [*args, "-p", "n_frames=3", "--out", str(tmp_path / "a.h5")])
+    assert r.exit_code == 0, r.output
+    with ScanFile(tmp_path / "a.h5") as f:
+        assert f.orbit[1]["n_frames"] == 3
+    r = CliRunner().invoke(cli, [*args, "-p", "n_frames=3", "--frames", "4", "--out", str(tmp_path / "b.h5")])
+    assert r.exit_code == 2 and "--frames 4 and -p n_frames=3 disagree" in r.output
+    r = CliRunner().invoke(cli, [*args, "-p", "n_frames=3.5", "--out", str(tmp_path / "b.h5")])
+    assert r.exit_code == 2 and "is not a whole number of frames" in r.output
+
+
 def test_simulate_bad_input(tmp_path: Path) -> None:
     run = CliRunner().invoke
     out = tmp_path / "x.h5"
