@@ -269,12 +269,24 @@ class SimConfig(_Model):
         description="the simulated panel's images: clean, or realistic (wider blur, scatter, lag, dead pixels and "
         "columns; orbitct.simulator.DetectorModel.preset)",
     )
+    beam: Literal["mono", "polychromatic"] = Field(
+        "mono",
+        description="the simulated tube's beam: mono (one energy), or polychromatic (a tungsten spectrum at the "
+        "generator's kV through 3 mm Al and 0.1 mm Cu: beam hardening, and kV changes contrast; "
+        "orbitct.simulator.Beam.preset)",
+    )
 
     def detector_model(self) -> Any:
         """The simulated panel's detector model (:meth:`orbitct.simulator.DetectorModel.preset`)."""
         from orbitct.simulator import DetectorModel
 
         return DetectorModel.preset(self.detector)
+
+    def beam_model(self) -> Any:
+        """The simulated tube's beam (:meth:`orbitct.simulator.Beam.preset`; None: one energy)."""
+        from orbitct.simulator import Beam
+
+        return Beam.preset(self.beam)
 
     def imaged(self) -> Any:
         """What the twins image: the experiment's name, or (with ``bbs_mm``) its object with those BBs."""

@@ -24,7 +24,7 @@ from devices.twins.runtime import TwinThread
 from devices.twins.world import get_world
 from devices.uri import option_value, parse_uri
 
-_PANEL = {"rows", "cols", "pitch_mm", "sad_mm", "sdd_mm", "phantom", "seed", "detector_model", "readout_s"}
+_PANEL = {"rows", "cols", "pitch_mm", "sad_mm", "sdd_mm", "phantom", "seed", "detector_model", "beam", "readout_s"}
 _MOTION = {"time_scale", "imperfect", "seed", "velocity", "stack_order"}
 TWIN_OPTIONS: dict[str, set[str]] = {  # every twin also takes ``port`` (where it listens; 0 = a free port)
     "hexapod": _MOTION | {"port"},

@@ -389,6 +389,7 @@ def sim_options(config: BenchConfig) -> dict[str, dict[str, Any]]:
             "phantom": config.sim.imaged(),
             "seed": config.sim.seed,
             "detector_model": config.sim.detector_model(),
+            "beam": config.sim.beam_model(),
             "timeout_s": SIM_FRAME_TIMEOUT_S,
         },
     }

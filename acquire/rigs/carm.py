@@ -197,6 +197,7 @@ def carm_links(cfg: CArmConfig, *, sim: bool) -> dict[str, DeviceLink]:
         "seed": cfg.sim.seed,
         "phantom": cfg.sim.imaged(),
         "detector_model": cfg.sim.detector_model(),
+        "beam": cfg.sim.beam_model(),
     }
     if not sim:  # a sim:// twin configured here runs at real speed
         return {"carm": configured_link(cfg.devices.carm, {}, twin)}

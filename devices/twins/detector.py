@@ -33,11 +33,12 @@ Renderer = Callable[[str, ViewGeometry, float, float, float, np.random.Generator
 REFERENCE_KV, REFERENCE_MAS = 90.0, 0.01  # settings at which the panel's open field reads DetectorModel.flat_counts
 
 
-def simulator_renderer(phantom: Any, model: Any = None) -> Renderer:
+def simulator_renderer(phantom: Any, model: Any = None, beam: Any = None) -> Renderer:
     """Counts from :mod:`orbitct.simulator`: exact line integrals of ``phantom`` and its detector model.
 
-    The open-field signal scales with ``(kV / 90)^2 * mA * s / 0.01 mAs`` (capped below saturation);
-    attenuation is monochromatic (the phantom's mu), so kV changes brightness, not contrast.
+    The open-field signal scales with ``(kV / 90)^2 * mA * s / 0.01 mAs`` (capped below saturation). With no
+    ``beam`` the attenuation is monochromatic (the phantom's mu), so kV changes brightness, not contrast; with a
+    polychromatic :class:`~orbitct.simulator.Beam` the spectrum follows the generator's kV, so it changes both.
     """
     from orbitct.simulator import DetectorModel, line_integrals
 
@@ -61,7 +62,8 @@ def simulator_renderer(phantom: Any, model: Any = None) -> Renderer:
         m = scaled(kv, ma, exposure_ms)
         if kind == "flat":
             return m.flat(rng, shape)
-        return m.expose(line_integrals(phantom, view, 0), rng)
+        spectrum = None if beam is None else beam.at_kv(kv)
+        return m.expose(line_integrals(phantom, view, 0, beam=spectrum), rng)
 
     return render
 
@@ -85,6 +87,7 @@ class DetectorTwin(LineTwinServer):
         phantom: Any = "A",
         seed: int = 0,
         detector_model: Any = None,
+        beam: Any = None,
         readout_s: float = 0.0,
         follow: dict[str, str] | None = None,
     ) -> None:
@@ -108,6 +111,7 @@ class DetectorTwin(LineTwinServer):
         self.seed = int(seed)  # frame noise and, for a phantom given by name, its random layout
         self.rng = np.random.default_rng(self.seed)
         self.detector_model = detector_model
+        self.beam = beam  # an orbitct.simulator.Beam: polychromatic images (None: one energy)
         self._renderer: Renderer | None = None
         self._renderer_lock = threading.Lock()
         self._phantom_spec = phantom
@@ -136,7 +140,7 @@ class DetectorTwin(LineTwinServer):
                 from orbitct.phantoms import experiment_phantom
 
                 phantom = experiment_phantom(phantom, seed=self.seed)
-            self._renderer = simulator_renderer(phantom, self.detector_model)
+            self._renderer = simulator_renderer(phantom, self.detector_model, self.beam)
         return self._renderer
 
     @property

@@ -24,8 +24,11 @@ BB_SURFACES = {"A": (75.0, 75.0, -80.0, 80.0), "B": (60.0, 60.0, -55.0, 55.0), "
 Z = np.array([0.0, 0.0, 1.0])
 
 
-def _bbs(centers: np.ndarray, diameter_mm: float, mu: float | None = None) -> list[Primitive]:
-    return [sphere(c, diameter_mm / 2, material="steel", mu=mu, label=f"bb{k}") for k, c in enumerate(centers)]
+def _bbs(centers: np.ndarray, diameter_mm: float, mu: float | None = None, displaces: str = "") -> list[Primitive]:
+    return [
+        sphere(c, diameter_mm / 2, material="steel", mu=mu, label=f"bb{k}", displaces=displaces)
+        for k, c in enumerate(centers)
+    ]
 
 
 def _pack_spheres(
@@ -76,7 +79,7 @@ def phantom_a(seed: int = 0) -> Phantom:
     acr = mu_of("acrylic")
     prims = [
         cylinder((0, 0, 0), Z, 75.0, 180.0, material="acrylic", label="container wall"),
-        cylinder((0, 0, 2.0), Z, 72.0, 176.0, material="air", mu=-acr, label="container cavity"),
+        cylinder((0, 0, 2.0), Z, 72.0, 176.0, material="air", mu=-acr, label="container cavity", displaces="acrylic"),
     ]
     spine = _cervical_spine()
     prims += spine
@@ -105,7 +108,7 @@ def phantom_b(seed: int = 0) -> Phantom:
     acr = mu_of("acrylic")
     prims = [
         cylinder((0, 0, 0), Z, 60.0, 130.0, material="acrylic", label="body"),
-        cylinder((0, 0, 0), Z, 45.0, 130.0 + 1e-3, material="air", mu=-acr, label="bore"),
+        cylinder((0, 0, 0), Z, 45.0, 130.0 + 1e-3, material="air", mu=-acr, label="bore", displaces="acrylic"),
     ]
     d = BB_DIAMETER_MM
     centers = []
@@ -114,7 +117,7 @@ def phantom_b(seed: int = 0) -> Phantom:
         c = np.stack([52.5 * np.cos(az), 52.5 * np.sin(az), np.full(8, z)], axis=1)
         centers.append(c + rng.uniform(-0.2, 0.2, c.shape))  # manufacturing tolerance
     bbs = np.concatenate(centers)
-    prims += _bbs(bbs, d, mu=mu_of("steel") - acr)
+    prims += _bbs(bbs, d, mu=mu_of("steel") - acr, displaces="acrylic")
     prims.append(cylinder((0, 0, 0), Z, 0.065, 130.0, material="tungsten", label="wire"))
     return Phantom(
         "B",
@@ -132,7 +135,17 @@ def _lumbar_spine(tissue: float) -> list[Primitive]:
     for k, z in enumerate((76.0, 38.0, 0.0, -38.0, -76.0)):
         n = f"L{k + 1}"
         out.append(
-            cylinder((0, 10, z), Z, 24.0, 26.0, radius_b_mm=17.0, material="cortical", mu=cort, label=f"{n} body")
+            cylinder(
+                (0, 10, z),
+                Z,
+                24.0,
+                26.0,
+                radius_b_mm=17.0,
+                material="cortical",
+                mu=cort,
+                label=f"{n} body",
+                displaces="tissue",
+            )
         )
         out.append(
             cylinder(
@@ -144,6 +157,7 @@ def _lumbar_spine(tissue: float) -> list[Primitive]:
                 material="trabecular",
                 mu=trab - cort,
                 label=f"{n} body core",
+                displaces="cortical",
             )
         )
         for s in (-1, 1):
@@ -158,13 +172,29 @@ def _lumbar_spine(tissue: float) -> list[Primitive]:
                     material="cortical",
                     mu=cort,
                     label=f"{n} pedicle",
+                    displaces="tissue",
                 )
             )
             out.append(
-                ellipsoid((s * 27.0, 40, z), (12.0, 4.0, 5.0), material="cortical", mu=cort, label=f"{n} transverse")
+                ellipsoid(
+                    (s * 27.0, 40, z),
+                    (12.0, 4.0, 5.0),
+                    material="cortical",
+                    mu=cort,
+                    label=f"{n} transverse",
+                    displaces="tissue",
+                )
             )
-        out.append(ellipsoid((0, 50, z), (17.0, 5.0, 9.0), material="cortical", mu=cort, label=f"{n} lamina"))
-        out.append(ellipsoid((0, 63, z - 4), (4.0, 11.0, 8.0), material="cortical", mu=cort, label=f"{n} spinous"))
+        out.append(
+            ellipsoid(
+                (0, 50, z), (17.0, 5.0, 9.0), material="cortical", mu=cort, label=f"{n} lamina", displaces="tissue"
+            )
+        )
+        out.append(
+            ellipsoid(
+                (0, 63, z - 4), (4.0, 11.0, 8.0), material="cortical", mu=cort, label=f"{n} spinous", displaces="tissue"
+            )
+        )
     return out
 
 
@@ -185,6 +215,7 @@ def _screws(tissue: float) -> list[Primitive]:
                 material="titanium",
                 mu=ti - mu_of("trabecular"),
                 label=f"{vert} screw",
+                displaces="trabecular",
             )
         )
         out.append(
@@ -196,6 +227,7 @@ def _screws(tissue: float) -> list[Primitive]:
                 material="titanium",
                 mu=ti - tissue,
                 label=f"{vert} screw head",
+                displaces="tissue",
             )
         )
     return out
@@ -210,7 +242,12 @@ def phantom_c(seed: int = 0) -> Phantom:
     for s in (-1, 1):
         prims.append(
             ellipsoid(
-                (s * 55.0, -5.0, 75.0), (38.0, 45.0, 30.0), material="lung", mu=mu_of("lung") - tissue, label="lung"
+                (s * 55.0, -5.0, 75.0),
+                (38.0, 45.0, 30.0),
+                material="lung",
+                mu=mu_of("lung") - tissue,
+                label="lung",
+                displaces="tissue",
             )
         )
         prims.append(

@@ -65,6 +65,12 @@ class Phantom:
             corners=np.array([p.corners() for p in P]),
         )
 
+    @cached_property
+    def by_material(self) -> dict[tuple[str, str], Phantom]:
+        """The primitives grouped by ``(material, displaces)``, each group as a phantom of its own."""
+        keys = [(p.material, p.displaces) for p in self.primitives]
+        return {k: self.subset([key == k for key in keys]) for k in dict.fromkeys(keys)}
+
     @property
     def metal_indices(self) -> NDArray[np.intp]:
         """Indices of metal primitives (BBs, screws, wires)."""

@@ -50,7 +50,9 @@ class Primitive:
     """Ellipsoid or finite elliptic cylinder; ``mu`` (1/mm) adds to whatever else is there.
 
     ``semi_axes`` are the ellipsoid semi-axes, or for a cylinder ``(radius_a, radius_b,
-    half_length)``; ``rotation`` columns are those local axes in the object frame (mm).
+    half_length)``; ``rotation`` columns are those local axes in the object frame (mm). A primitive
+    inside another names the material it takes the place of in ``displaces`` (its ``mu`` is then the
+    difference), so a polychromatic beam scales both with energy.
     """
 
     kind: str
@@ -60,6 +62,7 @@ class Primitive:
     mu: float
     material: str = ""
     label: str = ""
+    displaces: str = ""
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -115,6 +118,7 @@ class Primitive:
             "mu_per_mm": self.mu,
             "material": self.material,
             "label": self.label,
+            **({"displaces": self.displaces} if self.displaces else {}),
         }
 
     @classmethod
@@ -129,6 +133,7 @@ class Primitive:
                 d["mu_per_mm"],
                 d.get("material", ""),
                 d.get("label", ""),
+                d.get("displaces", ""),
             )
         except KeyError as exc:
             raise PhantomError(f"primitive description lacks {exc.args[0]!r}: {d}") from None
@@ -138,17 +143,24 @@ def _vec(values: ArrayLike) -> NDArray[np.float64]:
     return np.asarray(values, dtype=np.float64)
 
 
-def _mu(mu: float | None, material: str) -> float:
-    return mu_of(material) if mu is None else float(mu)
+def _mu(mu: float | None, material: str, displaces: str) -> float:
+    if mu is not None:
+        return float(mu)
+    return mu_of(material) - (mu_of(displaces) if displaces else 0.0)
 
 
 def sphere(
-    center: ArrayLike, radius_mm: float, *, material: str = "water", mu: float | None = None, label: str = ""
+    center: ArrayLike,
+    radius_mm: float,
+    *,
+    material: str = "water",
+    mu: float | None = None,
+    label: str = "",
+    displaces: str = "",
 ) -> Primitive:
-    """A sphere; ``mu`` defaults to the material's attenuation."""
-    return Primitive(
-        "ellipsoid", _vec(center), np.full(3, float(radius_mm)), np.eye(3), _mu(mu, material), material, label
-    )
+    """A sphere; ``mu`` defaults to the material's attenuation (less that of ``displaces``)."""
+    r = np.full(3, float(radius_mm))
+    return Primitive("ellipsoid", _vec(center), r, np.eye(3), _mu(mu, material, displaces), material, label, displaces)
 
 
 def ellipsoid(
@@ -159,12 +171,12 @@ def ellipsoid(
     material: str = "water",
     mu: float | None = None,
     label: str = "",
+    displaces: str = "",
 ) -> Primitive:
     """An ellipsoid with semi-axes along the columns of ``rotation`` (identity: x, y, z)."""
-    R = np.eye(3) if rotation is None else rotation
-    return Primitive(
-        "ellipsoid", _vec(center), _vec(semi_axes_mm), np.asarray(R, dtype=float), _mu(mu, material), material, label
-    )
+    R = np.asarray(np.eye(3) if rotation is None else rotation, dtype=float)
+    mu_mm = _mu(mu, material, displaces)
+    return Primitive("ellipsoid", _vec(center), _vec(semi_axes_mm), R, mu_mm, material, label, displaces)
 
 
 def cylinder(
@@ -178,6 +190,7 @@ def cylinder(
     material: str = "water",
     mu: float | None = None,
     label: str = "",
+    displaces: str = "",
 ) -> Primitive:
     """A finite cylinder along ``axis``; elliptic when ``radius_b_mm`` is given (``radius_mm`` towards ``ref``)."""
     rb = radius_mm if radius_b_mm is None else radius_b_mm
@@ -187,7 +200,8 @@ def cylinder(
         _vec(center),
         np.array([radius_mm, rb, length_mm / 2.0], dtype=float),
         R,
-        _mu(mu, material),
+        _mu(mu, material, displaces),
         material,
         label,
+        displaces,
     )

@@ -1,5 +1,6 @@
 """Projection simulator: exact line integrals, detector noise model, simulated bench, whole scan files."""
 
+from orbitct.simulator.beam import Beam
 from orbitct.simulator.bench import (
     SimulatedBench,
 )
@@ -9,6 +10,7 @@ from orbitct.simulator.scan import DEFAULT_ORBITS, SimulationResult, resolve_orb
 
 __all__ = [
     "DEFAULT_ORBITS",
+    "Beam",
     "DetectorModel",
     "SimulatedBench",
     "SimulationResult",

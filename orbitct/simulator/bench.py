@@ -12,18 +12,21 @@ from orbitct.geometry import Panel, ViewGeometry
 from orbitct.orbits import Orbit
 from orbitct.phantoms.phantom import Phantom
 from orbitct.reference_bench import PANEL_PX, SAD_MM, SDD_MM, reference_panel
+from orbitct.simulator.beam import Beam
 from orbitct.simulator.detector import DetectorModel
 from orbitct.simulator.projector import line_integrals
 
 
 @dataclass(frozen=True)
 class SimulatedBench:
-    """Fixed source and flat panel (lab reference view ``theta = phi = 0``) plus the detector's noise model."""
+    """Fixed source and flat panel (lab reference view ``theta = phi = 0``), the detector's noise model and the
+    beam (None: one energy)."""
 
     sad_mm: float = SAD_MM
     sdd_mm: float = SDD_MM
     panel: Panel = field(default_factory=reference_panel)
     model: DetectorModel = field(default_factory=DetectorModel)
+    beam: Beam | None = None
 
     @classmethod
     def with_panel(cls, size_px: int = PANEL_PX, pitch_mm: float | None = None, **kw: Any) -> SimulatedBench:
@@ -56,8 +59,8 @@ class SimulatedBench:
     def line_integrals(
         self, phantom: Phantom, R: ArrayLike, t: ArrayLike = (0.0, 0.0, 0.0), *, supersample: bool | int = True
     ) -> NDArray[np.float32]:
-        """Noise-free line integrals of ``phantom`` at object pose ``(R, t)``."""
-        return line_integrals(phantom, self.view(R, t), 0, supersample=supersample)
+        """Noise-free line integrals of ``phantom`` at object pose ``(R, t)`` (as the panel reads them)."""
+        return line_integrals(phantom, self.view(R, t), 0, supersample=supersample, beam=self.beam)
 
     def render(
         self,
@@ -86,4 +89,5 @@ class SimulatedBench:
             "sdd_mm": self.sdd_mm,
             "detector": {"rows": d.rows, "cols": d.cols, "pitch_mm": list(d.pitch_mm)},
             "detector_model": self.model.model_dump(mode="json"),
+            "beam": "mono" if self.beam is None else self.beam.model_dump(mode="json"),
         }

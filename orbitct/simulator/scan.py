@@ -20,6 +20,7 @@ from orbitct.phantoms.phantom import Phantom
 from orbitct.progress import ProgressCallback, report
 from orbitct.reference_bench import reference_panel
 from orbitct.scanfile import ScanWriter
+from orbitct.simulator.beam import Beam
 from orbitct.simulator.bench import SimulatedBench
 from orbitct.simulator.detector import DetectorModel
 from orbitct.simulator.projector import line_integrals
@@ -144,6 +145,7 @@ def simulate_scan(
     frame_interval_s: float = 1.0 / 15.0,
     bench: SimulatedBench | None = None,
     detector: str | DetectorModel = "clean",
+    beam: str | Beam | None = "mono",
     overwrite: bool = False,
     progress: ProgressCallback | None = None,
 ) -> SimulationResult:
@@ -153,7 +155,8 @@ def simulate_scan(
     the *true* pose (nominal pose with the profile's errors, ``orbitct.errorprofiles``). The file
     holds the nominal geometry, the true geometry, true marker centres and the phantom under
     ``/truth``. ``seed`` sets the phantom's random layout, the errors and the noise. ``detector``: the panel's
-    model or a preset's name (:meth:`DetectorModel.preset`: ``clean``, ``realistic``), unless ``bench`` gives one.
+    model or a preset's name (:meth:`DetectorModel.preset`: ``clean``, ``realistic``), unless ``bench`` gives one;
+    ``beam``: one energy (``mono``) or a spectrum (``polychromatic`` or a :class:`Beam`), unless ``bench`` gives one.
     """
     t0 = time.perf_counter()
     if n_dark < 0 or n_flat < 0:
@@ -163,7 +166,8 @@ def simulate_scan(
     orb = resolve_orbit(exp_name, orbit, n_frames)
     profile = resolve_errors(errors, seed)
     model = DetectorModel.preset(detector) if isinstance(detector, str) else detector
-    bench = bench or SimulatedBench(panel=reference_panel(detector_px, pitch_mm), model=model)
+    spectrum = Beam.preset(beam) if isinstance(beam, str) else beam
+    bench = bench or SimulatedBench(panel=reference_panel(detector_px, pitch_mm), model=model, beam=spectrum)
     det = bench.panel
     rigid = profile.sample(orb)
     R_true, t_true = rigid.true_poses(*orb.poses())
@@ -206,7 +210,7 @@ def simulate_scan(
             report(progress, "simulate", done, total, "dark and flat frames")
             th, ph = orb.theta_deg, orb.phi_deg
             for i in range(orb.n_frames):
-                li = line_integrals(phantom, true_geom, i)
+                li = line_integrals(phantom, true_geom, i, beam=bench.beam)
                 cmd = {"orbit.rotation": float(th[i]), "orbit.tilt": float(ph[i])}
                 last = i == orb.n_frames - 1
                 bg.append(

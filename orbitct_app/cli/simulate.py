@@ -59,6 +59,13 @@ if TYPE_CHECKING:
     show_default=True,
     help="the panel's images: clean, or realistic (wider blur, scatter, lag, dead pixels and columns)",
 )
+@click.option(
+    "--beam",
+    type=click.Choice(["mono", "polychromatic"]),
+    default="mono",
+    show_default=True,
+    help="the tube's beam: one energy, or a 90 kV spectrum through 3 mm Al + 0.1 mm Cu (beam hardening)",
+)
 @click.option("--seed", type=SEED, default=0, show_default=True, help="phantom layout, errors and noise")
 @click.option("--darks", type=click.IntRange(min=0), default=10, show_default=True, help="dark frames")
 @click.option("--flats", type=click.IntRange(min=0), default=10, show_default=True, help="flat frames")
@@ -80,6 +87,7 @@ def simulate(
     pitch_mm: float | None,
     errors: str,
     detector: str,
+    beam: str,
     seed: int,
     darks: int,
     flats: int,
@@ -117,6 +125,7 @@ def simulate(
             pitch_mm=pitch_mm,
             errors=errors,
             detector=detector,
+            beam=beam,
             seed=seed,
             n_dark=darks,
             n_flat=flats,

@@ -306,6 +306,18 @@ def test_the_twins_image_with_the_realistic_panel_when_the_configuration_asks(re
     assert (flat.mean(axis=0) < 1000).sum() == 2  # the preset's two dead columns read their dark offset
 
 
+def test_the_twins_image_with_a_polychromatic_beam_when_the_configuration_asks(request_factory) -> None:
+    projections = {}
+    for beam in ("mono", "polychromatic"):
+        cfg = small_config()
+        cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"beam": beam})})
+        req = request_factory(f"{beam}.h5", frames=4, config=cfg)
+        assert run_scan(req).status == "complete"
+        with ScanFile(req.out) as sf:
+            projections[beam] = sf.line_integrals(int(sf.projection_indices[0]))
+    assert np.abs(projections["polychromatic"] - projections["mono"]).max() > 0.05  # the spectrum changed them
+
+
 def test_the_twins_noise_starts_afresh_with_each_scan(request_factory) -> None:
     """The same scan twice in one process (as in the service) gives the same darks and flats: the panel twin's
     noise restarts from its seed when the scan arms it, whatever the scans before it drew."""

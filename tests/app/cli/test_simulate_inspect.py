@@ -116,6 +116,23 @@ def test_simulate_a_realistic_panel_records_its_model_and_shows_its_dead_columns
     assert r.exit_code == 2 and "'grainy' is not one of 'clean', 'realistic'" in r.output
 
 
+def test_simulate_a_polychromatic_beam_records_it_and_hardens_the_projections(tmp_path: Path) -> None:
+    args = ["simulate", "-e", "C", "--frames", "8", "--detector-size", "48", "--darks", "1", "--flats", "1"]
+    for beam in ("mono", "polychromatic"):
+        r = CliRunner().invoke(cli, [*args, "--beam", beam, "--out", str(tmp_path / f"{beam}.h5")])
+        assert r.exit_code == 0, r.output
+    with ScanFile(tmp_path / "polychromatic.h5") as f:
+        beam = json.loads(f.h5["provenance"].attrs["config_json"])["beam"]
+        poly = f.line_integrals(int(f.projection_indices[0]))
+    with ScanFile(tmp_path / "mono.h5") as f:
+        assert json.loads(f.h5["provenance"].attrs["config_json"])["beam"] == "mono"
+        mono = f.line_integrals(int(f.projection_indices[0]))
+    assert beam["kv"] == 90.0 and beam["filter_cu_mm"] == 0.1
+    assert not np.allclose(poly, mono, atol=0.05)
+    r = CliRunner().invoke(cli, [*args, "--beam", "white", "--out", str(tmp_path / "x.h5")])
+    assert r.exit_code == 2 and "'white' is not one of 'mono', 'polychromatic'" in r.output
+
+
 def test_simulate_takes_the_number_of_frames_as_an_orbit_parameter_too(tmp_path: Path) -> None:
     args = ["simulate", "-e", "A", "--orbit", "circular", "--detector-size", "32", "--darks", "0", "--flats", "1"]
     r = CliRunner().invoke(cli, [*args, "-p", "n_frames=3", "--out", str(tmp_path / "a.h5")])
