@@ -269,12 +269,23 @@ class SimConfig(_Model):
         description="the simulated panel's images: clean, or realistic (wider blur, scatter, lag, dead pixels and "
         "columns; orbitct.simulator.DetectorModel.preset)",
     )
+    clutter: Literal["none", "anatomy"] = Field(
+        "none",
+        description="anatomy: experiment C's torso with a patient's fat, vessels, ribs, a guide wire and ECG leads "
+        "(orbitct.phantoms.anatomy; only for phantom C)",
+    )
     beam: Literal["mono", "polychromatic"] = Field(
         "mono",
         description="the simulated tube's beam: mono (one energy), or polychromatic (a tungsten spectrum at the "
         "generator's kV through 3 mm Al and 0.1 mm Cu: beam hardening, and kV changes contrast; "
         "orbitct.simulator.Beam.preset)",
     )
+
+    @model_validator(mode="after")
+    def _clutter_on_c(self) -> Self:
+        if self.clutter != "none" and self.phantom.upper() != "C":
+            raise ValueError(f"clutter {self.clutter!r} is made for phantom C's torso, not phantom {self.phantom!r}")
+        return self
 
     def detector_model(self) -> Any:
         """The simulated panel's detector model (:meth:`orbitct.simulator.DetectorModel.preset`)."""
@@ -289,12 +300,14 @@ class SimConfig(_Model):
         return Beam.preset(self.beam)
 
     def imaged(self) -> Any:
-        """What the twins image: the experiment's name, or (with ``bbs_mm``) its object with those BBs."""
-        if self.bbs_mm is None:
+        """What the twins image: the experiment's name, or its object (with ``clutter``, or with ``bbs_mm``'s
+        BBs)."""
+        if self.bbs_mm is None and self.clutter == "none":
             return self.phantom
         from orbitct.phantoms.experiments import experiment_phantom
 
-        return experiment_phantom(self.phantom, seed=self.seed).with_markers(self.bbs_mm, self.bb_diameter_mm)
+        phantom = experiment_phantom(self.phantom, seed=self.seed, clutter=self.clutter)
+        return phantom if self.bbs_mm is None else phantom.with_markers(self.bbs_mm, self.bb_diameter_mm)
 
 
 class _RigConfig(_Model):

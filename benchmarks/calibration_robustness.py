@@ -1,7 +1,8 @@
 """Benchmark: does calibration stay accurate, and honest, where robotic C-arms live?
 
 A matrix of simulated scans (issue "Calibration that never lies"): initial errors 1-8 times the published bench
-profile over several seeds, 4 to 16 BBs, a truncating panel, metal (experiment C), 50 and 800 views. For each:
+profile over several seeds, 4 to 16 BBs, a truncating panel, metal (experiment C), the realistic panel, the realistic C-arm (that panel, a
+polychromatic beam and, on C, anatomy-like clutter), 50 and 800 views. For each:
 accuracy against the truth (RMS px over field-of-view points after the best similarity alignment), the oracle
 floor (the same solver fed every BB wherever it falls on the panel, with real centroid errors: the
 calibration's own detections, and errors drawn from them where it found none), views own / bridged / failed, the verdict, the largest predicted error, time. Two columns
@@ -31,12 +32,12 @@ import numpy as np
 from machine_info import describe_machine
 
 
-def _phantom(experiment: str, seed: int, n_bbs: int | None, pair_mm: float | None = None) -> Any:
+def _phantom(experiment: str, seed: int, n_bbs: int | None, pair_mm: float | None = None, clutter: str = "none") -> Any:
     """The experiment's phantom; with ``n_bbs`` only its first BBs; with ``pair_mm`` BB 1 moved beside BB 0,
     their surfaces that far apart around the cylinder (views along that tangent see one blob of two)."""
     from orbitct.phantoms.experiments import experiment_phantom
 
-    ph = experiment_phantom(experiment, seed)
+    ph = experiment_phantom(experiment, seed, clutter=clutter)
     if pair_mm is not None:
         xyz = ph.markers_xyz.copy()
         tangent = np.array([-xyz[0, 1], xyz[0, 0], 0.0]) / np.hypot(xyz[0, 0], xyz[0, 1])
@@ -53,6 +54,7 @@ def _phantom(experiment: str, seed: int, n_bbs: int | None, pair_mm: float | Non
 def _scan(cache: Path, case: dict[str, Any], size: int, frames: int) -> Path:
     from orbitct.errorprofiles import make_profile
     from orbitct.reference_bench import reference_panel
+    from orbitct.simulator.beam import Beam
     from orbitct.simulator.bench import SimulatedBench
     from orbitct.simulator.detector import DetectorModel
     from orbitct.simulator.scan import simulate_scan
@@ -67,6 +69,8 @@ def _scan(cache: Path, case: dict[str, Any], size: int, frames: int) -> Path:
         + (f"_dose{dose:g}" if dose != 1.0 else "")
         + (f"_placed{case['placement']}" if "placement" in case else "")
         + (f"_{case['detector']}" if "detector" in case else "")
+        + (f"_{case['beam']}" if "beam" in case else "")
+        + (f"_{case['clutter']}" if "clutter" in case else "")
     )
     path = cache / f"{key}.h5"
     if not path.exists():
@@ -76,8 +80,9 @@ def _scan(cache: Path, case: dict[str, Any], size: int, frames: int) -> Path:
         pitch = 427.0 / 768 * case.get("pitch_scale", 768 / size)
         panel = reference_panel(size, pitch)
         model = DetectorModel.preset(case.get("detector", "clean"))
-        bench = SimulatedBench(panel=panel, model=model.model_copy(update={"flat_counts": model.flat_counts * dose}))
-        phantom = _phantom(case["exp"], case["seed"], case.get("bbs"), case.get("pair_mm"))
+        model = model.model_copy(update={"flat_counts": model.flat_counts * dose})
+        bench = SimulatedBench(panel=panel, model=model, beam=Beam.preset(case.get("beam", "mono")))
+        phantom = _phantom(case["exp"], case["seed"], case.get("bbs"), case.get("pair_mm"), case.get("clutter", "none"))
         if "xyz" in case:
             phantom = phantom.with_markers(np.asarray(case["xyz"]))
         simulate_scan(
@@ -258,6 +263,18 @@ CASES: list[dict[str, Any]] = (
     ]
     + [
         {"name": f"{e} realistic panel seed {s}", "exp": e, "seed": s, "detector": "realistic"}
+        for e in ("A", "B", "C")
+        for s in (0, 1, 2)
+    ]
+    + [
+        {
+            "name": f"{e} realistic C-arm seed {s}",
+            "exp": e,
+            "seed": s,
+            "detector": "realistic",
+            "beam": "polychromatic",
+            **({"clutter": "anatomy"} if e == "C" else {}),
+        }
         for e in ("A", "B", "C")
         for s in (0, 1, 2)
     ]

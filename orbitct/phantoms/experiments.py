@@ -11,6 +11,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from orbitct.phantoms.anatomy import CLUTTER, with_anatomy
 from orbitct.phantoms.materials import mu_of
 from orbitct.phantoms.phantom import Phantom
 from orbitct.phantoms.primitives import PhantomError, Primitive, cylinder, ellipsoid, sphere
@@ -279,14 +280,18 @@ def phantom_c(seed: int = 0) -> Phantom:
     )
 
 
-def experiment_phantom(name: str, seed: int = 0) -> Phantom:
-    """Phantom of experiment ``'A'``, ``'B'`` or ``'C'``; marker positions and clutter vary with ``seed``."""
+def experiment_phantom(name: str, seed: int = 0, *, clutter: str = "none") -> Phantom:
+    """Phantom of experiment ``'A'``, ``'B'`` or ``'C'``; marker positions and clutter vary with ``seed``.
+    ``clutter='anatomy'`` adds a patient's anatomy to C's torso (:mod:`orbitct.phantoms.anatomy`)."""
     key = str(name).upper()
     if key not in EXPERIMENTS:
         raise PhantomError(f"unknown experiment {name!r}; known experiments are {list(EXPERIMENTS)}")
-    return _cached(key, int(seed))
+    if clutter not in CLUTTER:
+        raise PhantomError(f"unknown clutter {clutter!r}; choose from {list(CLUTTER)}")
+    return _cached(key, int(seed), clutter)
 
 
 @lru_cache(maxsize=16)
-def _cached(key: str, seed: int) -> Phantom:
-    return {"A": phantom_a, "B": phantom_b, "C": phantom_c}[key](seed)
+def _cached(key: str, seed: int, clutter: str) -> Phantom:
+    phantom = {"A": phantom_a, "B": phantom_b, "C": phantom_c}[key](seed)
+    return with_anatomy(phantom, seed) if clutter == "anatomy" else phantom

@@ -66,6 +66,13 @@ if TYPE_CHECKING:
     show_default=True,
     help="the tube's beam: one energy, or a 90 kV spectrum through 3 mm Al + 0.1 mm Cu (beam hardening)",
 )
+@click.option(
+    "--clutter",
+    type=click.Choice(["none", "anatomy"]),
+    default="none",
+    show_default=True,
+    help="anatomy: add a patient's fat, vessels, ribs, a guide wire and ECG leads to experiment C's torso",
+)
 @click.option("--seed", type=SEED, default=0, show_default=True, help="phantom layout, errors and noise")
 @click.option("--darks", type=click.IntRange(min=0), default=10, show_default=True, help="dark frames")
 @click.option("--flats", type=click.IntRange(min=0), default=10, show_default=True, help="flat frames")
@@ -88,6 +95,7 @@ def simulate(
     errors: str,
     detector: str,
     beam: str,
+    clutter: str,
     seed: int,
     darks: int,
     flats: int,
@@ -113,9 +121,15 @@ def simulate(
         orbit = resolve_orbit(experiment, orbit_name, frames, **orbit_params)
     except OrbitError as exc:
         raise click.UsageError(str(exc)) from None
+    if clutter != "none" and experiment.upper() != "C":
+        raise click.BadParameter(f"{clutter} clutter is made for experiment C's torso", param_hint="--clutter")
     phantom: str | Phantom = experiment.upper()
     if bbs_from is not None:
-        phantom = _planned_phantom(experiment.upper(), seed, bbs_from)
+        phantom = _planned_phantom(experiment.upper(), seed, bbs_from, clutter)
+    elif clutter != "none":
+        from orbitct.phantoms.experiments import experiment_phantom
+
+        phantom = experiment_phantom(experiment, seed, clutter=clutter)
     with ProgressBar() as bar:
         res = simulate_scan(
             phantom,
@@ -139,7 +153,7 @@ def simulate(
     )
 
 
-def _planned_phantom(experiment: str, seed: int, plan: Path) -> Phantom:
+def _planned_phantom(experiment: str, seed: int, plan: Path, clutter: str = "none") -> Phantom:
     """The experiment's object with the BBs of a plan (JSON of ``orbitct plan bbs``)."""
     from orbitct.phantoms.experiments import experiment_phantom
     from orbitct_app.bbplan import BBPlanError, read_bb_plan
@@ -152,7 +166,7 @@ def _planned_phantom(experiment: str, seed: int, plan: Path) -> Phantom:
         raise click.BadParameter(
             f"{plan} was planned for experiment {planned_for}, not {experiment}", param_hint="--bbs-from"
         )
-    return experiment_phantom(experiment, seed).with_markers(xyz, diameter)
+    return experiment_phantom(experiment, seed, clutter=clutter).with_markers(xyz, diameter)
 
 
 def _value(text: str) -> object:

@@ -45,6 +45,8 @@ def test_default_bench_numbers() -> None:
         # a twin panel never sees a real generator's exposures (it had stalled at the first frame)
         ({"devices": {"xray": "modbus://10.0.0.5:502"}}, "devices", "make both sim:// or neither"),
         ({"devices": {"xray": "sim://other"}}, "devices", "X-ray twin of its world (xray: sim://bench)"),
+        ({"sim": {"clutter": "anatomy"}}, "sim", "clutter 'anatomy' is made for phantom C's torso, not phantom 'A'"),
+        ({"sim": {"beam": "white"}}, "sim.beam", "'mono' or 'polychromatic'"),
     ],
 )
 def test_invalid_config_names_field_and_reason(data: dict, field: str, reason: str) -> None:
@@ -90,3 +92,14 @@ def test_a_twin_in_a_real_bench_takes_the_configuration() -> None:
     assert det["sad_mm"] == cfg.geometry.sad_mm and det["phantom"] == "B" and "time_scale" not in det
     assert links["xray"].options["prep_s"] == cfg.exposure.prep_ms / 1000.0
     assert links["hexapod"].options == {} and links["hexapod"].uri == "tcp://10.0.0.7:50000"
+
+
+def test_the_twins_image_the_configured_clutter() -> None:
+    from orbitct.phantoms import Phantom
+
+    cfg = parse_config({"sim": {"phantom": "C", "clutter": "anatomy", "seed": 2}}, "test.yaml")
+    imaged = cfg.sim.imaged()
+    assert isinstance(imaged, Phantom) and any(p.label == "guide wire" for p in imaged.primitives)
+    planned = cfg.sim.model_copy(update={"bbs_mm": [(120.0, 0.0, 0.0)]}).imaged()
+    assert planned.n_markers == 1 and any(p.label == "guide wire" for p in planned.primitives)
+    assert parse_config({}, "test.yaml").sim.imaged() == "A"

@@ -133,6 +133,16 @@ def test_simulate_a_polychromatic_beam_records_it_and_hardens_the_projections(tm
     assert r.exit_code == 2 and "'white' is not one of 'mono', 'polychromatic'" in r.output
 
 
+def test_simulate_anatomy_clutter_on_the_torso(tmp_path: Path) -> None:
+    args = ["simulate", "--frames", "8", "--detector-size", "32", "--darks", "0", "--flats", "1"]
+    r = CliRunner().invoke(cli, [*args, "-e", "C", "--clutter", "anatomy", "--out", str(tmp_path / "c.h5")])
+    assert r.exit_code == 0, r.output
+    with ScanFile(tmp_path / "c.h5") as f:
+        assert any(p["label"] == "rib 11 left 0" for p in f.phantom["primitives"])
+    r = CliRunner().invoke(cli, [*args, "-e", "A", "--clutter", "anatomy", "--out", str(tmp_path / "a.h5")])
+    assert r.exit_code == 2 and "anatomy clutter is made for experiment C's torso" in r.output
+
+
 def test_simulate_takes_the_number_of_frames_as_an_orbit_parameter_too(tmp_path: Path) -> None:
     args = ["simulate", "-e", "A", "--orbit", "circular", "--detector-size", "32", "--darks", "0", "--flats", "1"]
     r = CliRunner().invoke(cli, [*args, "-p", "n_frames=3", "--out", str(tmp_path / "a.h5")])
