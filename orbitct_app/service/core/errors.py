@@ -103,6 +103,12 @@ class Upstream(ApiError):
     status, code = 502, "bad_gateway"
 
 
+class Internal(ApiError):
+    """Something orbitct did not expect went wrong (the log has the details under the incident number)."""
+
+    status, code = 500, "internal_error"
+
+
 class Unavailable(ApiError):
     """A part of the service that is not ready (devices not connected)."""
 

@@ -27,6 +27,7 @@ from orbitct_app.service.core.errors import (
     ApiError,
     Conflict,
     InsufficientStorage,
+    Internal,
     Invalid,
     NotFound,
     StopLatched,
@@ -44,7 +45,7 @@ ERROR_KINDS: dict[str, type[ApiError]] = {
     "stop_latched": StopLatched,
     "not_found": NotFound,
     "unavailable": Unavailable,
-    "error": Unavailable,
+    "error": Internal,
     "insufficient_storage": InsufficientStorage,
 }
 

@@ -18,6 +18,7 @@ import queue
 import signal
 import threading
 import time
+import uuid
 from collections.abc import Callable, Coroutine
 from dataclasses import asdict
 from multiprocessing.connection import Connection
@@ -230,8 +231,13 @@ class RigServer:
                 raise CommandError("invalid", f"unknown bench command {name!r}")
             result = await handler(**args)
             self.send("reply", req_id, True, result)
-        except Exception as exc:  # noqa: BLE001 - every failure goes back as (kind, message)
-            self.send("reply", req_id, False, classify(exc))
+        except Exception as exc:  # every failure goes back as (kind, message)
+            kind, text = classify(exc)
+            if kind == "error":  # nothing we expected: the details to this process's log, an incident to the caller
+                incident = uuid.uuid4().hex[:12]
+                log.error("internal error %s in bench command %r", incident, name, exc_info=exc)
+                text = f"an internal error in the bench process stopped the command (incident {incident}): {text}"
+            self.send("reply", req_id, False, (kind, text))
 
     def _device(self, name: str) -> Any:
         if self.rig is None:

@@ -97,3 +97,34 @@ def test_the_openapi_document_is_valid_openapi_3_1(shared_api) -> None:  # type:
     assert {"202", "401", "403", "409", "422", "507"} <= set(start)  # every status the route answers with
     recon = spec["paths"]["/reconstructions"]["post"]["responses"]
     assert {"202", "409", "422"} <= set(recon)
+
+
+def test_an_unexpected_failure_in_the_bench_process_is_an_internal_error_with_an_incident(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A bench command that fails in a way nobody expected answers 500 internal_error (it was 503 unavailable, as
+    if the devices were not connected), with an incident number whose traceback is in the bench process's log."""
+    import asyncio
+    import multiprocessing as mp
+    from pathlib import Path
+
+    from orbitct_app.service.rig.client import ERROR_KINDS
+    from orbitct_app.service.rig.process import RigServer
+
+    ours, theirs = mp.Pipe()
+    server = RigServer(Path("bench.yaml"), True, theirs)
+
+    async def cmd_boom() -> None:
+        raise RuntimeError("a bug")
+
+    server.cmd_boom = cmd_boom  # type: ignore[attr-defined]
+    with caplog.at_level("ERROR", logger="orbitct.service.rig.process"):
+        asyncio.run(server._run_command(7, "boom", {}))
+    assert ours.poll(5)
+    kind, req_id, ok, (err_kind, text) = ours.recv()
+    assert (kind, req_id, ok, err_kind) == ("reply", 7, False, "error")
+    incident = text.split("(incident ")[1].split(")")[0]
+    assert text.startswith("an internal error in the bench process stopped the command (incident ")
+    assert "RuntimeError" not in text and incident in caplog.text and "a bug" in caplog.text
+    error = ERROR_KINDS[err_kind](text)
+    assert (error.status, error.code) == (500, "internal_error")
