@@ -173,6 +173,7 @@ class Follower:
         self._flat_sum: NDArray[np.float64] | None = None
         self._n_dark = 0
         self._n_flat = 0
+        self._single_flats: list[NDArray[Any]] = []
         self._detector: FrameDetector | None = None
         self._deferred: list[int] = []  # projection numbers detected from the file after the scan
         self._watched: dict[int, _Watched] = {}  # by the track that found it
@@ -215,6 +216,8 @@ class Follower:
             else:
                 self._flat_sum = f if self._flat_sum is None else self._flat_sum + f
                 self._n_flat += 1
+                if len(self._single_flats) < 2:  # two kept as they are: the panel's noise correlation
+                    self._single_flats.append(np.array(frame))
             return
         if key != ImageKey.PROJECTION:
             return
@@ -241,7 +244,8 @@ class Follower:
         if self._detector is None:
             dark = (self._dark_sum / self._n_dark).astype(np.float32)
             flat = (self._flat_sum / self._n_flat).astype(np.float32)
-            self._detector = frame_detector(dark, flat, self.d_px, self.opt)
+            pair = (self._single_flats[0], self._single_flats[1]) if len(self._single_flats) == 2 else None
+            self._detector = frame_detector(dark, flat, self.d_px, self.opt, pair)
         t = time.perf_counter()
         c = self._detector.candidates(frame)
         self.detect_s += time.perf_counter() - t

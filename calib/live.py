@@ -37,7 +37,7 @@ from calib.follow import (
     LiveWarning,
 )
 from calib.options import checked_options
-from calib.pipeline import calibrate_candidates, frame_detector
+from calib.pipeline import calibrate_candidates, frame_detector, two_flats
 from calib.result import CalibrationResult
 from orbitct.geometry import ViewGeometry
 from orbitct.progress import ProgressCallback, report
@@ -298,7 +298,7 @@ class LiveCalibration:
             if deferred:
                 t = time.perf_counter()
                 dark, flat = sf.dark_flat()
-                fd = frame_detector(dark, flat, d_px, opt)
+                fd = frame_detector(dark, flat, d_px, opt, two_flats(sf))
                 fd.noise = fd.estimate_noise(np.asarray(sf.frames[int(proj[0])]))  # as offline: the first projection
                 for p in deferred:
                     candidates[p] = fd.candidates(np.asarray(sf.frames[int(proj[p])]))

@@ -88,7 +88,7 @@ def _detect(
     if diameter_mm is None:
         diameter_mm = _estimate_diameter_mm(sf, proj, dark, flat, mag, pitch, opt)
     d_px = projected_diameter_px(nominal, diameter_mm)
-    fd = frame_detector(dark, flat, d_px, opt)
+    fd = frame_detector(dark, flat, d_px, opt, two_flats(sf))
     total = len(proj)
     step = max(1, total // 100)
     cands: list[NDArray[np.float64]] = [np.zeros((0, N_FIELDS))] * total
@@ -154,12 +154,28 @@ def calibration_seconds(n_projections: int, per_frame_s: float) -> float:
 
 
 def frame_detector(
-    dark: NDArray[np.float32], flat: NDArray[np.float32], d_px: float, opt: CalibrationOptions
+    dark: NDArray[np.float32],
+    flat: NDArray[np.float32],
+    d_px: float,
+    opt: CalibrationOptions,
+    flats: tuple[NDArray[Any], NDArray[Any]] | None = None,
 ) -> FrameDetector:
-    """The detector every projection of a scan goes through (BB size in pixels, the options' threshold)."""
+    """The detector every projection of a scan goes through (BB size in pixels, the options' threshold; with two
+    single ``flats``, the panel's noise correlation measured)."""
     settings = settings_for(d_px, dark.shape)
     settings.k_sigma, settings.max_candidates = opt.k_sigma, opt.max_candidates
-    return FrameDetector(dark, flat, settings)
+    fd = FrameDetector(dark, flat, settings)
+    if flats is not None:
+        fd.measure_noise_correlation(*flats)
+    return fd
+
+
+def two_flats(sf: ScanFile) -> tuple[NDArray[Any], NDArray[Any]] | None:
+    """The scan's first two flat frames (None when it has fewer)."""
+    flats = np.flatnonzero(sf.image_key == ImageKey.FLAT)
+    if flats.size < 2:
+        return None
+    return np.asarray(sf.frames[int(flats[0])]), np.asarray(sf.frames[int(flats[1])])
 
 
 def _seed_records(raw: NDArray[Any], fd: FrameDetector, seeds: NDArray[np.float64]) -> NDArray[np.float64]:

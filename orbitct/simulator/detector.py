@@ -8,7 +8,7 @@ import math
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, PrivateAttr
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, model_validator
 
 from orbitct.simulator.noise import normal_fast, poisson, seed_from, stream
 
@@ -77,6 +77,39 @@ def _readout(
     return out
 
 
+@nb.njit(parallel=True, cache=True, nogil=True)
+def _quanta(
+    rows_blurred: NDArray[np.float32], k: NDArray[np.float32], gain: float, seed: np.uint64
+) -> NDArray[np.float32]:
+    """Column blur, then the detected quanta (Poisson, mean signal / gain) times gain: ADU above dark, no read-out."""
+    rows, cols = rows_blurred.shape
+    r = (k.shape[0] - 1) // 2
+    out = np.empty((rows, cols), dtype=np.float32)
+    for i in nb.prange(rows):
+        for j in range(cols):
+            mean = 0.0
+            for q in range(-r, r + 1):
+                mean += k[q + r] * rows_blurred[min(max(i + q, 0), rows - 1), j]
+            _, n = poisson(stream(seed, i * cols + j), mean / gain)
+            out[i, j] = n * gain
+    return out
+
+
+@nb.njit(parallel=True, cache=True, nogil=True)
+def _read_out(
+    signal: NDArray[np.float32], dark: NDArray[np.float32], read_noise: float, sat: float, seed: np.uint64
+) -> NDArray[np.uint16]:
+    """Signal (ADU above dark) plus dark and read noise, clipped and rounded to the panel's integers."""
+    rows, cols = signal.shape
+    out = np.empty((rows, cols), dtype=np.uint16)
+    for i in nb.prange(rows):
+        for j in range(cols):
+            _, z = normal_fast(stream(seed, i * cols + j))
+            x = min(max(signal[i, j] + dark[i, j] + read_noise * z, 0.0), sat)
+            out[i, j] = np.uint16(math.floor(x + 0.5))
+    return out
+
+
 def blur_kernel(sigma_px: float) -> NDArray[np.float32]:
     """Normalised 1-D Gaussian taps (radius 3 sigma); ``[1]`` for no blur."""
     if sigma_px <= 0:
@@ -125,6 +158,23 @@ class DetectorModel(BaseModel):
         0.0, ge=0, le=0.05, description="pixels that read their dark offset whatever the exposure (fixed, seeded)"
     )
     dead_columns: int = Field(0, ge=0, le=64, description="whole columns that read their dark offset (fixed, seeded)")
+    noise_blur_px: float = Field(
+        0.0,
+        ge=0,
+        le=10,
+        description="the share of blur_sigma_px that spreads each detected quantum's light in the scintillator "
+        "(Gaussian std, pixels): it blurs the noise too, so neighbouring pixels' noise is correlated as on every "
+        "indirect panel; the rest of the blur (focal spot) acts on the image before the quanta are counted",
+    )
+
+    @model_validator(mode="after")
+    def _noise_blur_within_blur(self) -> DetectorModel:
+        if self.noise_blur_px > self.blur_sigma_px:
+            raise ValueError(
+                f"noise_blur_px ({self.noise_blur_px:g}) is part of blur_sigma_px ({self.blur_sigma_px:g}) "
+                "and cannot exceed it"
+            )
+        return self
 
     _maps: dict[tuple[int, int], tuple[NDArray[np.float32], NDArray[np.float32]]] = PrivateAttr(default_factory=dict)
     _dead: dict[tuple[int, int], NDArray[np.bool_]] = PrivateAttr(default_factory=dict)
@@ -198,7 +248,10 @@ class DetectorModel(BaseModel):
         """One raw frame (uint16) for line integrals ``li`` (rows, cols): blur, scatter, lag of the frame before,
         quantum noise, dark, read noise, dead pixels."""
         flat, dark = self.maps(li.shape)
-        k = blur_kernel(self.blur_sigma_px)
+        mean_blur = (
+            self.blur_sigma_px if self.noise_blur_px == 0 else math.sqrt(self.blur_sigma_px**2 - self.noise_blur_px**2)
+        )
+        k = blur_kernel(mean_blur)  # the blur before the quanta are counted (the rest spreads them)
         rows = _signal_rows(np.ascontiguousarray(li, dtype=np.float32), flat, k)
         if self.scatter_fraction > 0:
             rows += self.scatter(li)
@@ -214,9 +267,19 @@ class DetectorModel(BaseModel):
             self._last_signal[shape] = rows.copy()
             rows = (1.0 - self.lag_fraction) * rows + (self.lag_fraction * before if before is not None else 0.0)
             rows = np.ascontiguousarray(rows, dtype=np.float32)
-        out = _readout(
-            rows, k, float(self.gain_adu), dark, float(self.read_noise_adu), float(self.saturation_adu), seed_from(rng)
-        )
+        if self.noise_blur_px > 0:  # quanta counted, then each spread by the scintillator, then read out
+            quanta = gaussian_blur(_quanta(rows, k, float(self.gain_adu), seed_from(rng)), self.noise_blur_px)
+            out = _read_out(quanta, dark, float(self.read_noise_adu), float(self.saturation_adu), seed_from(rng))
+        else:
+            out = _readout(
+                rows,
+                k,
+                float(self.gain_adu),
+                dark,
+                float(self.read_noise_adu),
+                float(self.saturation_adu),
+                seed_from(rng),
+            )
         if self.dead_pixel_fraction > 0 or self.dead_columns > 0:
             dead = self.dead(shape)
             out[dead] = np.clip(np.rint(dark[dead]), 0, self.saturation_adu).astype(np.uint16)

@@ -144,3 +144,31 @@ def test_detection_spread_is_each_detections_background_rms_over_the_typical_one
     assert spread[0, 2] == SPREAD_RANGE[1] and spread[1, 1] == SPREAD_RANGE[0]  # bounded both ways
     # a position no candidate has (a blob split in two) and frames without candidates count as typical
     assert spread[2, 0] == 1.0 and spread[2, 2] == 1.0
+
+
+def test_the_threshold_follows_the_panels_noise_correlation() -> None:
+    """On an indirect panel each quantum's light spreads over its neighbours, so their noise is correlated: the
+    neighbour differences the threshold is estimated from understate it, and a bare object let about fifty noise
+    peaks pass. Two single flats measure the correlation; with it, noise alone passes nothing."""
+    from orbitct.simulator import DetectorModel
+
+    shape, d_px = (192, 192), 4.0
+    li = np.full(shape, 1.5, np.float32)  # behind the object, nothing in it
+    for noise_blur, correlated in ((0.0, False), (0.6, True)):
+        model = DetectorModel(blur_sigma_px=1.0, noise_blur_px=noise_blur)
+        rng = np.random.default_rng(1)
+        darks = [model.dark(rng, shape).astype(np.float32) for _ in range(4)]
+        flats = [model.flat(rng, shape) for _ in range(4)]
+        dark = np.mean(darks, axis=0)
+        flat = np.mean([f.astype(np.float32) for f in flats], axis=0)
+        frame = model.expose(li, rng)
+        det = FrameDetector(dark, flat, settings_for(d_px, shape))
+        before = len(det.candidates(frame))
+        det = FrameDetector(dark, flat, settings_for(d_px, shape))
+        factor = det.measure_noise_correlation(flats[0], flats[1])
+        after = len(det.candidates(frame))
+        if correlated:
+            assert factor > 1.5 and det.noise_factor == factor
+            assert before > 30 and after == 0, (before, after)
+        else:
+            assert abs(factor - 1.0) < 0.05 and det.noise_factor == 1.0 and after == before

@@ -215,3 +215,18 @@ def test_thin_wire_projects_its_mass(axis: tuple, x0: float) -> None:
     # every pixel along the wire sees it: no gaps between the rows it crosses
     hit = img > 0.02
     assert hit.any(axis=1).sum() > 0.9 * np.ptp(np.flatnonzero(hit.any(axis=1)))
+
+
+def test_the_scintillators_share_of_the_blur_correlates_the_noise_and_keeps_the_image() -> None:
+    li = np.full((96, 96), 1.0, np.float32)
+    seen = {}
+    for noise_blur in (0.0, 0.8):
+        model = DetectorModel(blur_sigma_px=1.0, noise_blur_px=noise_blur)
+        rng = np.random.default_rng(2)
+        a, b = (model.expose(li, rng).astype(float) for _ in range(2))
+        d = (a - b) / np.sqrt(2.0)
+        seen[noise_blur] = (a.mean(), np.corrcoef(d[:, :-1].ravel(), d[:, 1:].ravel())[0, 1])
+    assert abs(seen[0.8][0] / seen[0.0][0] - 1) < 1e-3  # the same image on average
+    assert abs(seen[0.0][1]) < 0.05 and seen[0.8][1] > 0.4  # independent pixels; correlated neighbours
+    with pytest.raises(ValueError, match="noise_blur_px .* is part of blur_sigma_px"):
+        DetectorModel(blur_sigma_px=0.6, noise_blur_px=1.0)
