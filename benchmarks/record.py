@@ -41,6 +41,7 @@ QUICK = (
     "bb_planning",
     "service",
     "console",
+    "cold_start",
 )
 #: scripts in benchmarks/ that are not benchmarks of orbitct itself
 NOT_BENCHMARKS = {"record", "machine_info", "suite_stability"}
