@@ -442,7 +442,7 @@ class FrameDetector:
         """Set :attr:`noise_factor` from two single flats: the response's true noise over what independent pixel
         noise would give. A scintillator spreads each quantum's light over its neighbours, so their noise is
         correlated: neighbouring differences then understate it and the kernel passes more of it (a threshold of
-        independent noise would let noise peaks in by the hundred). Within 5 % of independent noise (what that
+        independent noise lets noise peaks in by the dozen). Within 5 % of independent noise (what that
         measurement can tell apart) the factor stays 1."""
         b = self.settings.binning
         rb, cb = self.dark_b.shape
