@@ -8,7 +8,7 @@ itself reports, and cold over warm (target of issue 48: within 2x).
     python benchmarks/cold_start.py           # this environment with an empty kernel cache (NUMBA_CACHE_DIR)
     python benchmarks/cold_start.py --pip     # a fresh virtual environment: the wheel of this checkout, pip install
 
-With ``--pip`` the wheel is built from this checkout, installed with its dependencies from the package index into a
+With ``--pip`` the wheel is built from a copy of this checkout's last commit, installed with its dependencies from the package index into a
 new virtual environment in a temporary folder, and that environment's ``orbitct`` runs the commands (its kernels
 never compiled before). Without it, only the kernel cache is fresh: the same compile work, without the install.
 """
@@ -52,10 +52,14 @@ def _run(orbitct: list[str], args: list[str], env: dict[str, str]) -> tuple[floa
 
 
 def _fresh_environment(work: Path) -> list[str]:
-    """A new virtual environment holding the wheel of this checkout; its ``orbitct`` command."""
-    root = _HERE.parent
+    """A new virtual environment holding the wheel of this checkout's last commit (built from a copy of it, so
+    the checkout gains no build folder); its ``orbitct`` command."""
+    source = work / "source"
+    source.mkdir()
+    archive = subprocess.run(["git", "-C", str(_HERE.parent), "archive", "HEAD"], check=True, capture_output=True)
+    subprocess.run(["tar", "-x", "-C", str(source)], input=archive.stdout, check=True)
     subprocess.run(
-        [sys.executable, "-m", "build", "--wheel", "--outdir", str(work / "dist"), str(root)],
+        [sys.executable, "-m", "build", "--wheel", "--outdir", str(work / "dist"), str(source)],
         check=True,
         capture_output=True,
     )
