@@ -16,6 +16,7 @@ from devices.errors import (
     OutOfLimitsError,
     ProtocolError,
 )
+from orbitct.scanfile import DiskFullError
 
 #: what an operator does next, per kind of device failure (the first that matches applies)
 ADVICE: tuple[tuple[type[DeviceError], str], ...] = (
@@ -43,6 +44,8 @@ def abort_reason(exc: BaseException) -> str:
     if isinstance(exc, DeviceError):
         advice = next(a for kind, a in ADVICE if isinstance(exc, kind))
         return f"{text or 'a device failed'}; {advice}"
+    if isinstance(exc, DiskFullError):  # the scan file's own guard, when the disk filled between two checks
+        return f"the data disk is full ({text or 'no room for the next frame'}); free space on it, then scan again"
     return (
         f"orbitct failed unexpectedly ({text or 'no message'}); the scan was stopped; "
         "the log has the details: please report it"
@@ -51,4 +54,4 @@ def abort_reason(exc: BaseException) -> str:
 
 def is_expected(exc: BaseException) -> bool:
     """Whether ``exc`` is a failure the bench can have (a device's, a refusal), not a fault of orbitct's own."""
-    return isinstance(exc, (AcquireError, DeviceError, KeyboardInterrupt, asyncio.CancelledError))
+    return isinstance(exc, (AcquireError, DeviceError, DiskFullError, KeyboardInterrupt, asyncio.CancelledError))

@@ -48,3 +48,14 @@ def test_interruptions_and_refusals_keep_their_own_words() -> None:
     assert abort_reason(AcquireError("stall: detector delivered no frame in 5 s")) == (
         "stall: detector delivered no frame in 5 s"
     )
+
+
+def test_a_disk_that_fills_under_the_scan_file_reads_as_a_full_disk_not_a_bug() -> None:
+    """The scan file refuses a frame it cannot write and still close cleanly; when the disk fills between the
+    recorder's checks that refusal ends the scan, and it said "orbitct failed unexpectedly ... please report it"."""
+    from orbitct.scanfile import DiskFullError
+
+    exc = DiskFullError("scans/a.h5: frame 5 not written: 916 kB free, 1.1 MB needed to write it and close the file")
+    said = abort_reason(exc)
+    assert said.startswith("the data disk is full (scans/a.h5: frame 5 not written: 916 kB free")
+    assert said.endswith("free space on it, then scan again") and "unexpectedly" not in said and is_expected(exc)
