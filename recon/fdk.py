@@ -171,11 +171,13 @@ def fdk(
     chunk: int = 8,
     out: NDArray[np.float32] | None = None,
     progress: ProgressCallback | None = None,
+    device: str = "cpu",
 ) -> NDArray[np.float32]:
     """FDK volume (1/mm) from line integrals ``(views, rows, cols)`` of ``geometry`` (exact for circles).
 
     ``out`` (float32, the grid's shape, may be a view such as a padded volume's interior)
-    receives the volume instead of a new array.
+    receives the volume instead of a new array. ``device``: where the back-projection runs, ``cpu`` or ``cuda``
+    (:mod:`recon.device`); the filtering runs on the CPU.
     """
     det = geometry.panel
     n = geometry.n_views
@@ -189,6 +191,7 @@ def fdk(
         chunk=chunk,
         out=out,
         progress=progress,
+        device=device,
     )
 
 
@@ -201,6 +204,7 @@ def fdk_views(
     chunk: int = 8,
     out: NDArray[np.float32] | None = None,
     progress: ProgressCallback | None = None,
+    device: str = "cpu",
 ) -> NDArray[np.float32]:
     """The back-projection of some views (their ``geometry``, ``weights`` and line integrals); FDK is its sum
     over all views."""
@@ -213,12 +217,20 @@ def fdk_views(
     else:
         vol = out
         vol[...] = 0.0
+    on_gpu = None
+    if device == "cuda":
+        from recon.cuda import CudaBackprojector
+
+        on_gpu = CudaBackprojector(grid)
     buf = np.zeros((min(chunk, n), det.rows + 2, det.cols + 2), dtype=np.float32)
     for i0 in range(0, n, chunk):
         i1 = min(n, i0 + chunk)
         g = geometry[i0:i1]
         part = buf[: i1 - i0]
         filter_views(projections[i0:i1], g, weights.H, None if weights.parker is None else weights.parker[i0:i1], part)
-        backproject_padded(part, grid, g, weights.weights[i0:i1], vol)
+        if on_gpu is not None:
+            on_gpu.add(part, g, weights.weights[i0:i1])
+        else:
+            backproject_padded(part, grid, g, weights.weights[i0:i1], vol)
         report(progress, "fdk", i1, n, "views")
-    return vol
+    return vol if on_gpu is None else on_gpu.read(vol)

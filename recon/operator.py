@@ -60,6 +60,8 @@ class Projector:
     views, for callers that stream projections in chunks and keep their own padded buffers.
     """
 
+    device = "cpu"  # where its kernels run (recon.cuda.CudaProjector: "cuda")
+
     def __init__(self, grid: VolumeGrid, geometry: ViewGeometry) -> None:
         if geometry.n_views == 0:
             raise ReconError("the geometry has no views to project onto")
@@ -130,6 +132,12 @@ class Projector:
         joseph_adjoint(y, rays, self._vox, acc, slab_bounds(nz, 2 * numba.get_num_threads()), lo, hi)
         return acc
 
+    def check_stacks(self, **stacks: Any) -> None:
+        """Refuse, naming it, a stack (projections, weights; None: absent) not of this operator's projection shape."""
+        for what, stack in stacks.items():
+            if stack is not None and tuple(stack.shape) != self.proj_shape:
+                raise ReconError(f"{what}: expected shape {self.proj_shape}, got {tuple(stack.shape)}")
+
     def _slab_table(self, start: int, stop: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         """z extent (slab coordinates) of every (view, row) line of views ``start..stop``, kept per chunk."""
         key = (start, stop)
@@ -184,6 +192,11 @@ class _Adjoint:
     @property
     def T(self) -> Projector:
         return self._a
+
+
+def interleaved_subsets(n_views: int, subsets: int) -> list[NDArray[np.intp]]:
+    """Ordered subsets of views: every ``subsets``-th view, starting at each offset."""
+    return [np.arange(m, n_views, subsets) for m in range(subsets)]
 
 
 def projector(grid: VolumeGrid, geometry: ViewGeometry) -> Projector:

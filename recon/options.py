@@ -17,6 +17,7 @@ MAX_VOXELS = 1024**3
 Algorithm = Literal["fdk", "pwls"]
 GeometryName = Literal["calibrated", "nominal", "truth"]
 StreamMode = Literal["auto", "memory", "file"]
+Device = Literal["auto", "cpu", "cuda"]
 DEFAULT_BETA = 0.01  # PWLS relative penalty strength: times the median data curvature (recon.pwls)
 
 
@@ -69,6 +70,11 @@ class ReconstructionOptions(BaseModel):
         "auto",
         description="PWLS data: held in memory, or re-read from the scan file each iteration (three volumes of "
         "memory, slower); auto: memory while it fits",
+    )
+    device: Device = Field(
+        "auto",
+        description="where the projectors and back-projection run: cpu, cuda (one GPU; the gpu extra) or auto (the "
+        "GPU when one is usable, else the CPU)",
     )
     name: str | None = Field(
         None,

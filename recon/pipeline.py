@@ -23,6 +23,7 @@ from orbitct.verdict import Verdict
 from recon.curvature import curvature_key
 from recon.curvature import load as load_curvature
 from recon.curvature import save as save_curvature
+from recon.device import describe_device, make_projector, resolve_device
 from recon.errors import (
     BadFramesError,
     FailedGeometryError,
@@ -45,7 +46,7 @@ from recon.mar import (
     traces_by_reprojection,
     traces_by_threshold,
 )
-from recon.operator import pad_volume, projector
+from recon.operator import pad_volume
 from recon.options import GeometryName, ReconstructionOptions, StreamMode
 from recon.pwls import pwls_sps, statistical_weights
 from recon.stack import FileLineIntegrals, FileWeights
@@ -222,12 +223,13 @@ def _pwls(
     opts: ReconstructionOptions,
     progress: ProgressCallback | None,
     curvature: dict[str, Any] | None,
+    device: str,
 ) -> tuple[NDArray[np.float32], list[float], float]:
     """FDK into the interior of a padded volume, then PWLS as ``opts`` say updating that volume in place
-    (``curvature``: the data curvature's arguments, from :func:`_curvature`)."""
-    A = projector(grid, geom)
+    (``curvature``: the data curvature's arguments, from :func:`_curvature`; ``device``: cpu or cuda)."""
+    A = make_projector(grid, geom, device)
     xp = np.zeros(A.padded_shape, np.float32)
-    fdk(li, grid, geom, window=opts.window, out=xp[1:-1, 1:-1, 1:-1], progress=progress)
+    fdk(li, grid, geom, window=opts.window, out=xp[1:-1, 1:-1, 1:-1], progress=progress, device=device)
     res = pwls_sps(
         A,
         li,
@@ -243,6 +245,15 @@ def _pwls(
         **(curvature or {}),
     )
     return res.volume, res.cost, res.beta_abs
+
+
+def _device_memory(device: str) -> dict[str, int]:
+    """The peak GPU memory of a reconstruction that ran on one (nothing for the CPU)."""
+    if device != "cuda":
+        return {}
+    from recon.cuda import peak_bytes
+
+    return {"device_peak_bytes": peak_bytes()}
 
 
 def checked_options(options: ReconstructionOptions | None, values: dict[str, Any]) -> ReconstructionOptions:
@@ -319,6 +330,17 @@ def _reconstruct(
     if any(f not in FORMATS for f in formats):
         raise ReconError(f"export formats must be among {FORMATS}, got {formats}")
     shape = (opts.shape[0], opts.shape[1], opts.shape[2]) if opts.shape is not None else None  # three: validated
+    on_cluster = cluster is not None and not mar_method
+    if on_cluster and opts.device == "cuda":
+        raise ReconError(
+            "with a Dask scheduler the workers reconstruct on their CPUs; --device cuda runs on this machine's GPU "
+            "without --scheduler"
+        )
+    device = "cpu" if on_cluster else resolve_device(opts.device)  # before any work: a missing GPU is said first
+    if device == "cuda":
+        from recon.cuda import reset_peak
+
+        reset_peak()
     name = opts.recon_name
     with ScanFile(path, "r") as scan:  # read-only while computing: other readers may hold the file
         scan.refuse_if_acquiring()  # before any work: the result could not be stored
@@ -373,7 +395,7 @@ def _reconstruct(
         report_expected(progress, "reconstruction", estimated_s)
         cost: list[float] = []
         extra: dict[str, Any] = {}
-        if not mar_method and cluster is not None:
+        if on_cluster and cluster is not None:
             from recon.cluster import check_pwls_memory, fdk_on_cluster, pwls_on_cluster
 
             if algorithm == "pwls":
@@ -400,7 +422,7 @@ def _reconstruct(
                 vol, cost = res.volume, res.cost
                 extra.update(beta_abs=res.beta_abs, stream="cluster")
         elif algorithm == "fdk" and not mar_method:
-            vol = fdk(FileLineIntegrals(scan, frames), grid, geom, window=window, progress=progress)
+            vol = fdk(FileLineIntegrals(scan, frames), grid, geom, window=window, progress=progress, device=device)
         elif mode == "file":
             vol, cost, beta_abs = _pwls(
                 FileLineIntegrals(scan, frames),
@@ -410,15 +432,16 @@ def _reconstruct(
                 opts,
                 progress,
                 _curvature(scan, frames, geom, grid, extra),
+                device,
             )
             extra.update(beta_abs=beta_abs, stream="file")
         else:
             li, w = _load(scan, frames, algorithm == "pwls", progress)
             metal = None
             if mar_method:
-                first = fdk(li, grid, geom, window=window)
+                first = fdk(li, grid, geom, window=window, device=device)
                 metal = metal_in_volume(first, metal_mu)
-                A = projector(grid, geom)
+                A = make_projector(grid, geom, device)
                 traces = (
                     traces_by_threshold(li, mar_threshold)
                     if mar_method == "threshold"
@@ -431,10 +454,10 @@ def _reconstruct(
                 report(progress, "mar", 1, 1, f"{int(metal.sum())} metal voxels")
             if algorithm == "pwls":
                 curvature = None if metal is not None else _curvature(scan, frames, geom, grid, extra)
-                vol, cost, beta_abs = _pwls(li, w, grid, geom, opts, progress, curvature)
+                vol, cost, beta_abs = _pwls(li, w, grid, geom, opts, progress, curvature, device)
                 extra.update(beta_abs=beta_abs, stream="memory")
             else:
-                vol = fdk(li, grid, geom, window=window, progress=progress)
+                vol = fdk(li, grid, geom, window=window, progress=progress, device=device)
             if metal is not None:
                 vol = add_metal_back(vol, first, metal)
         elapsed = time.perf_counter() - t0 - clock.seconds  # compiling kernels on first use: apart
@@ -448,7 +471,9 @@ def _reconstruct(
             "estimated_s": estimated_s,
             "compile_s": clock.seconds,
             "geometry_override": bool(failed_geometry_reasons(scan, geometry) is not None),
+            "device": describe_device(device),
             **extra,
+            **_device_memory(device),
         }
         if algorithm == "pwls":
             params.update(

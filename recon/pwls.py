@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from orbitct.progress import ProgressCallback, report
 from recon.errors import ReconError
 from recon.fdk import ProjectionStack
-from recon.operator import Projector
+from recon.operator import Projector, interleaved_subsets
 from recon.options import DEFAULT_BETA
 
 
@@ -258,13 +258,10 @@ class ViewsData:
         chunk_views: int = 8,
         subset_views: list[NDArray[np.intp]] | None = None,
     ) -> None:
-        if tuple(y.shape) != A.proj_shape:
-            raise ReconError(f"projections: expected shape {A.proj_shape}, got {tuple(y.shape)}")
-        if weights is not None and tuple(weights.shape) != A.proj_shape:
-            raise ReconError(f"weights: expected shape {A.proj_shape}, got {tuple(weights.shape)}")
+        A.check_stacks(projections=y, weights=weights)
         n_views = A.proj_shape[0]
         if subset_views is None:
-            subset_views = [np.arange(m, n_views, subsets) for m in range(subsets)]
+            subset_views = interleaved_subsets(n_views, subsets)
         self.A, self.y, self.weights = A, y, weights
         self.padded_shape = A.padded_shape
         self.subsets = len(subset_views)
@@ -333,7 +330,14 @@ def pwls_sps(
     """
     if subsets < 1 or chunk_views < 1:
         raise ReconError(f"need subsets >= 1 and chunk_views >= 1; got {subsets}, {chunk_views}")
-    data = ViewsData(A, y, weights, subsets=subsets, chunk_views=chunk_views)
+    data: DataTerm
+    if A.device == "cuda":
+        from recon.cuda import CudaProjector, CudaViewsData
+
+        assert isinstance(A, CudaProjector)
+        data = CudaViewsData(A, y, weights, subsets=subsets)
+    else:
+        data = ViewsData(A, y, weights, subsets=subsets, chunk_views=chunk_views)
     return pwls_solve(
         data,
         beta=beta,

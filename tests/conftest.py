@@ -4,9 +4,36 @@ from __future__ import annotations
 
 import gc
 import os
+import sys
 from collections.abc import Iterator
 
 import pytest
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--gpu", action="store_true", help="run the tests marked gpu on this machine's GPU (make test-gpu), only them"
+    )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Without ``--gpu`` numba's CUDA simulator stands in for a GPU (before anything imports numba.cuda): the CUDA
+    kernels' tests run on the CPU, and ``device=auto`` still picks the CPU (recon.device)."""
+    if not config.getoption("--gpu"):
+        os.environ["NUMBA_ENABLE_CUDASIM"] = "1"
+        if "numba" in sys.modules:  # a plugin imported it already: read the environment again
+            from numba.core import config as numba_config
+
+            numba_config.reload_config()
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """``--gpu`` runs the tests marked gpu and only them; without it they are left out."""
+    on_gpu = bool(config.getoption("--gpu"))
+    keep = [item for item in items if (item.get_closest_marker("gpu") is not None) == on_gpu]
+    if len(keep) != len(items):
+        config.hook.pytest_deselected(items=[item for item in items if item not in keep])
+        items[:] = keep
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -120,6 +120,8 @@ def reconstruct(
         f"{res.voxel_mm[0]:g} mm, {res.elapsed_s:.1f} s (estimated {res.params['estimated_s']:.1f} s)"
     )
     click.echo(f"  grid: {res.params['grid_choice']}")
+    peak = res.params.get("device_peak_bytes")
+    click.echo(f"  device: {res.params['device']}" + (f", {peak / 2**20:,.0f} MiB peak GPU memory" if peak else ""))
     if res.compile_s > 0.5:
         click.echo(
             f"  first use after installation: {res.compile_s:.1f} s compiling numerical kernels (cached for the next "

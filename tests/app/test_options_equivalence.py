@@ -59,6 +59,9 @@ CASES: list[tuple[dict[str, Any], bool]] = [
     ({"max_minutes": 0.5}, True),
     ({"max_minutes": 0.0}, False),
     ({"max_minutes": 10081.0}, False),
+    ({"device": "cuda"}, True),  # valid everywhere; whether a GPU is usable is found when it runs
+    ({"device": "cpu", "algorithm": "pwls", "iterations": 3}, True),
+    ({"device": "gpu"}, False),
 ]
 
 

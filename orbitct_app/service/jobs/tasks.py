@@ -90,9 +90,11 @@ def run_reconstruction(
 ) -> dict[str, Any]:
     """Reconstruct the scan into ``/recon/<name>``; slices, NIfTI and a raw copy of the volume go to ``out_dir``."""
     import recon
+    from recon.device import resolve_device
 
     options = recon.ReconstructionOptions.model_validate(params)  # the request's options, as it was accepted
-    split = not options.mar  # the views of FDK and PWLS across the workers; MAR runs on the job's worker
+    # the views of FDK and PWLS across the workers, unless this worker has a usable GPU (or MAR, which runs here)
+    split = not options.mar and resolve_device(options.device) == "cpu"
     with _cluster_client() if split else contextlib.nullcontext() as cluster:
         res = recon.reconstruct_scan(
             scan_path, options, export=["nifti", "png"], out_dir=out_dir, progress=progress, cluster=cluster
@@ -114,6 +116,8 @@ def run_reconstruction(
         "verdict": res.verdict.summary(),
         "geometry_override": bool(res.params.get("geometry_override", False)),
         "workers": int(res.params.get("cluster_workers", 1)),
+        "device": str(res.params["device"]),
+        "device_peak_bytes": int(res.params.get("device_peak_bytes", 0)),
         "files": sorted(p.name for p in out_dir.iterdir() if p.is_file()),
     }
 
