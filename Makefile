@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench venv clean
+.PHONY: demo test test-gpu bench venv clean
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 11), "orbitct needs Python 3.11 or newer, found " + sys.version.split()[0]'
@@ -28,6 +28,11 @@ PYTEST_ARGS ?=
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
+
+# The GPU suite (tests marked gpu, left out of `make test`) on this machine's GPU, with the gpu extra.
+test-gpu: $(STAMP)
+	$(BIN)/python -m pip install --quiet -e '.[test,gpu]'
+	NUMBA_ENABLE_CUDASIM=0 $(BIN)/python -m pytest -q --gpu $(PYTEST_ARGS)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/record.py --quick
