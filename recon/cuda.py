@@ -23,6 +23,7 @@ from recon.cuda_kernels import (
     backproject_kernel,
     blocks,
     fill_kernel,
+    filter_kernel,
     forward_kernel,
     residual_kernel,
     scale_kernel,
@@ -163,12 +164,46 @@ class CudaBackprojector:
         d = geometry.panel
         if padded.shape != (geometry.n_views, d.rows + 2, d.cols + 2):
             raise ReconError(f"padded views: expected {(geometry.n_views, d.rows + 2, d.cols + 2)}, got {padded.shape}")
-        img = cuda.to_device(np.ascontiguousarray(padded, dtype=np.float32).reshape(-1))
+        self._add(cuda.to_device(np.ascontiguousarray(padded, dtype=np.float32).reshape(-1)), geometry, weights)
+
+    def _add(self, img: Any, geometry: ViewGeometry, weights: NDArray[np.float64]) -> None:
+        """Back-project the padded views ``img`` (flat, on the device)."""
+        d = geometry.panel
         mats = cuda.to_device(index_matrices(self.grid, geometry))
         w = cuda.to_device(np.ascontiguousarray(weights, dtype=np.float64))
         _record(self._vol.size * 4 + img.size * 4 + mats.size * 8 + w.size * 8)
         nz, ny, nx = self.grid.shape
         backproject_kernel[blocks(self._vol.size), THREADS](img, d.rows, d.cols, mats, w, self._vol, nx, ny, nz)
+
+    def add_projections(
+        self,
+        proj: NDArray[np.float32],
+        geometry: ViewGeometry,
+        coefficients: NDArray[np.float64],
+        taps: NDArray[np.float32],
+        parker: NDArray[np.float64] | None,
+        weights: NDArray[np.float64],
+    ) -> None:
+        """Filter line integrals ``(k, rows, cols)`` of ``geometry`` on the device (``recon.fdk.filter_coefficients``,
+        the ramp filter's impulse response ``taps``, Parker's weights or None) and back-project them."""
+        d = geometry.panel
+        k = geometry.n_views
+        if proj.shape != (k, d.rows, d.cols):
+            raise ReconError(f"projections: expected {(k, d.rows, d.cols)}, got {proj.shape}")
+        raw = cuda.to_device(np.ascontiguousarray(proj, dtype=np.float32).reshape(-1))
+        padded = _zeros(k * (d.rows + 2) * (d.cols + 2))
+        use_parker = parker is not None
+        p = cuda.to_device(
+            np.ascontiguousarray(parker if use_parker else np.ones((1, 1)), dtype=np.float32).reshape(-1)
+        )
+        d_taps = cuda.to_device(np.ascontiguousarray(taps, dtype=np.float32))
+        shared = 4 * (d.cols + taps.size)
+        threads = min(THREADS, d.cols)
+        filter_kernel[k * d.rows, threads, 0, shared](
+            raw, d.rows, d.cols, cuda.to_device(coefficients), p, use_parker, d_taps, padded
+        )
+        _record(self._vol.size * 4 + raw.size * 4 + padded.size * 4)
+        self._add(padded, geometry, weights)
 
     def read(self, out: NDArray[np.float32]) -> NDArray[np.float32]:
         """Copy the volume into ``out`` (the grid's shape; may be a view such as a padded volume's interior)."""

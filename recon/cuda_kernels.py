@@ -148,6 +148,50 @@ def backproject_kernel(img, rows, cols, mats, weights, vol, nx, ny, nz):  # type
 
 
 @cuda.jit
+def filter_kernel(proj, rows, cols, coef, parker, use_parker, taps, out):  # type: ignore[no-untyped-def]
+    """FDK's filtering, one block per (view, row): the cosine weight (and Parker's), then the ramp filter as a direct
+    convolution with its impulse response ``taps`` (circular, of the padded FFT length), into the interior of the
+    padded ``out`` ``(views, rows + 2, cols + 2)``. ``coef``: ``recon.fdk.filter_coefficients``. Dynamic shared
+    memory holds the row and the taps: ``4 * (cols + len(taps))`` bytes."""
+    shared = cuda.shared.array(0, dtype=float32)
+    npad = taps.shape[0]
+    line = shared[:cols]
+    kernel = shared[cols : cols + npad]
+    b = cuda.blockIdx.x
+    n = b // rows
+    r = b - n * rows
+    tid = cuda.threadIdx.x
+    nt = cuda.blockDim.x
+    rr = r - coef[n, 7]
+    for c in range(tid, cols, nt):
+        cc = c - coef[n, 6]
+        dist2 = (
+            coef[n, 0]
+            + 2.0 * coef[n, 1] * cc
+            + 2.0 * coef[n, 2] * rr
+            + coef[n, 3] * cc * cc
+            + coef[n, 4] * rr * rr
+            + 2.0 * coef[n, 5] * cc * rr
+        )
+        g = proj[b * cols + c] * float32(coef[n, 8] / math.sqrt(dist2))
+        if use_parker:
+            g *= parker[n * cols + c]
+        line[c] = g
+    for k in range(tid, npad, nt):
+        kernel[k] = taps[k]
+    cuda.syncthreads()
+    scale = float32(coef[n, 9])
+    base = (n * (rows + 2) + r + 1) * (cols + 2) + 1
+    for c in range(tid, cols, nt):
+        acc = float32(0.0)
+        for j in range(c + 1):  # taps 0..c
+            acc += line[j] * kernel[c - j]
+        for j in range(c + 1, cols):  # negative lags wrap around
+            acc += line[j] * kernel[npad + c - j]
+        out[base + c] = acc * scale
+
+
+@cuda.jit
 def residual_kernel(ax, y, w, weighted, value):  # type: ignore[no-untyped-def]
     """``ax <- w (ax - y)`` (``w`` = 1 unless ``weighted``), adding ``0.5 sum w (ax - y)^2`` into ``value[0]``."""
     start = cuda.grid(1)

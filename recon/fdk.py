@@ -104,6 +104,27 @@ def redundancy_weights(
     return dbeta, w, "parker"
 
 
+def filter_coefficients(geometry: ViewGeometry) -> NDArray[np.float64]:
+    """Per view ``(N, 10)``: what the cosine weight and the filter's scale need, ``|pixel - source|^2`` as a quadratic
+    form in (col - c0, row - r0) (``d.d, d.u, d.v, u.u, v.v, u.v`` with ``d`` = panel centre - source), then ``c0``,
+    ``r0``, the source-detector distance and one over the column spacing on the isocenter plane."""
+    det = geometry.panel
+    c0, r0 = det.center
+    d = geometry.D - geometry.S
+    u, v = geometry.u, geometry.v
+    tau = det.pitch_col * geometry.sod() / geometry.sdd
+
+    def dot(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.einsum("ij,ij->i", a, b)
+
+    n = geometry.n_views
+    return np.stack(
+        [dot(d, d), dot(d, u), dot(d, v), dot(u, u), dot(v, v), dot(u, v), np.full(n, c0), np.full(n, r0)]
+        + [geometry.sdd, 1.0 / tau],
+        axis=1,
+    )
+
+
 def filter_views(
     proj: NDArray[np.float32],
     geometry: ViewGeometry,
@@ -113,29 +134,26 @@ def filter_views(
 ) -> None:
     """Cosine-weight and ramp-filter ``proj`` row by row into the interior of the padded ``out``."""
     det = geometry.panel
-    c0, r0 = det.center
-    cc = np.arange(det.cols) - c0
-    rr = np.arange(det.rows) - r0
     npad = 2 * (H.size - 1)
     Hf = H.astype(np.float32)
-    tau = det.pitch_col * geometry.sod() / geometry.sdd  # column spacing on the isocenter plane
-    for n in range(geometry.n_views):
+    for n, (dd, du, dv, uu, vv, uv, c0, r0, sdd, inv_tau) in enumerate(filter_coefficients(geometry)):
+        cc = np.arange(det.cols) - c0
+        rr = np.arange(det.rows) - r0
         # |pixel - source|^2 is a quadratic form in (col, row): no (rows, cols, 3) temporaries
-        d, u, v = geometry.D[n] - geometry.S[n], geometry.u[n], geometry.v[n]
         dist2 = (
-            d @ d
-            + 2 * (d @ u) * cc[None, :]
-            + 2 * (d @ v) * rr[:, None]
-            + (u @ u) * cc[None, :] ** 2
-            + (v @ v) * rr[:, None] ** 2
-            + 2 * (u @ v) * cc[None, :] * rr[:, None]
+            dd
+            + 2 * du * cc[None, :]
+            + 2 * dv * rr[:, None]
+            + uu * cc[None, :] ** 2
+            + vv * rr[:, None] ** 2
+            + 2 * uv * cc[None, :] * rr[:, None]
         )
-        g = np.asarray(proj[n], dtype=np.float32) * (geometry.sdd[n] / np.sqrt(dist2)).astype(np.float32)
+        g = np.asarray(proj[n], dtype=np.float32) * (sdd / np.sqrt(dist2)).astype(np.float32)
         if parker is not None:
             g *= parker[n][None, :].astype(np.float32)
         spec = scipy.fft.rfft(g, n=npad, axis=-1)
         spec *= Hf
-        out[n, 1:-1, 1:-1] = scipy.fft.irfft(spec, n=npad, axis=-1)[:, : det.cols] * np.float32(1.0 / tau[n])
+        out[n, 1:-1, 1:-1] = scipy.fft.irfft(spec, n=npad, axis=-1)[:, : det.cols] * np.float32(inv_tau)
 
 
 @dataclass(frozen=True)
@@ -155,6 +173,12 @@ class FdkWeights:
             raise ReconError("FDK needs finite geometry for every view it is given")
         wv, parker, _ = redundancy_weights(geometry, short_scan)
         return cls(ramp_filter(geometry.panel.cols, window), wv * geometry.sod() ** 2, parker)
+
+    @property
+    def taps(self) -> NDArray[np.float32]:
+        """The ramp filter's impulse response, circular over the padded FFT length (a direct convolution with it,
+        as the GPU filters, equals the FFT filtering of :func:`filter_views`)."""
+        return scipy.fft.irfft(self.H, n=2 * (self.H.size - 1)).astype(np.float32)
 
     def part(self, views: slice | NDArray[np.intp]) -> FdkWeights:
         """The weights of some of the views."""
@@ -176,8 +200,8 @@ def fdk(
     """FDK volume (1/mm) from line integrals ``(views, rows, cols)`` of ``geometry`` (exact for circles).
 
     ``out`` (float32, the grid's shape, may be a view such as a padded volume's interior)
-    receives the volume instead of a new array. ``device``: where the back-projection runs, ``cpu`` or ``cuda``
-    (:mod:`recon.device`); the filtering runs on the CPU.
+    receives the volume instead of a new array. ``device``: where filtering and back-projection run, ``cpu`` or
+    ``cuda`` (:mod:`recon.device`).
     """
     det = geometry.panel
     n = geometry.n_views
@@ -217,20 +241,39 @@ def fdk_views(
     else:
         vol = out
         vol[...] = 0.0
-    on_gpu = None
     if device == "cuda":
-        from recon.cuda import CudaBackprojector
-
-        on_gpu = CudaBackprojector(grid)
+        return _fdk_views_on_gpu(projections, grid, geometry, weights, max(chunk, 32), vol, progress)
     buf = np.zeros((min(chunk, n), det.rows + 2, det.cols + 2), dtype=np.float32)
     for i0 in range(0, n, chunk):
         i1 = min(n, i0 + chunk)
         g = geometry[i0:i1]
         part = buf[: i1 - i0]
         filter_views(projections[i0:i1], g, weights.H, None if weights.parker is None else weights.parker[i0:i1], part)
-        if on_gpu is not None:
-            on_gpu.add(part, g, weights.weights[i0:i1])
-        else:
-            backproject_padded(part, grid, g, weights.weights[i0:i1], vol)
+        backproject_padded(part, grid, g, weights.weights[i0:i1], vol)
         report(progress, "fdk", i1, n, "views")
-    return vol if on_gpu is None else on_gpu.read(vol)
+    return vol
+
+
+def _fdk_views_on_gpu(
+    projections: NDArray[np.float32] | ProjectionStack,
+    grid: VolumeGrid,
+    geometry: ViewGeometry,
+    weights: FdkWeights,
+    chunk: int,
+    vol: NDArray[np.float32],
+    progress: ProgressCallback | None,
+) -> NDArray[np.float32]:
+    """:func:`fdk_views` with filtering and back-projection on the GPU, ``chunk`` views at a time, into ``vol``."""
+    from recon.cuda import CudaBackprojector
+
+    on_gpu = CudaBackprojector(grid)
+    coefficients = filter_coefficients(geometry)
+    taps = weights.taps
+    n = geometry.n_views
+    for i0 in range(0, n, chunk):
+        i1 = min(n, i0 + chunk)
+        parker = None if weights.parker is None else weights.parker[i0:i1]
+        proj = np.ascontiguousarray(projections[i0:i1], dtype=np.float32)
+        on_gpu.add_projections(proj, geometry[i0:i1], coefficients[i0:i1], taps, parker, weights.weights[i0:i1])
+        report(progress, "fdk", i1, n, "views")
+    return on_gpu.read(vol)

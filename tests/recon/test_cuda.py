@@ -15,7 +15,7 @@ from orbitct.geometry import Panel, ViewGeometry
 from recon import ReconError, VolumeGrid, reconstruct_scan
 from recon.cuda import CudaBackprojector, CudaProjector, CudaViewsData, peak_bytes, reset_peak
 from recon.device import gpu_problem, make_projector, resolve_device, simulated
-from recon.fdk import fdk
+from recon.fdk import FdkWeights, fdk, ramp_filter
 from recon.operator import Projector, backproject_voxels
 from recon.pwls import ViewsData, pwls_sps
 from tests.helpers.recon import bench_detector, write_sphere_scan
@@ -135,6 +135,29 @@ def test_fdk_on_the_device_equals_fdk_on_the_cpu() -> None:
     cpu = fdk(y, grid, g, chunk=3)
     gpu = fdk(y, grid, g, chunk=3, device="cuda")
     np.testing.assert_allclose(gpu, cpu, rtol=1e-4, atol=1e-5 * float(np.abs(cpu).max()))
+
+
+def test_a_short_scan_is_filtered_with_parker_weights_on_the_device() -> None:
+    t = np.linspace(0, np.pi + 0.9, 9)
+    g = ViewGeometry.from_carm(t, np.zeros(9), 785.0, 1200.0, Panel(9, 11, 30.0, 30.0))
+    grid = VolumeGrid.centered((5, 8, 8), 20.0)
+    weights = FdkWeights.of(g, "hann")
+    assert weights.parker is not None
+    y = Projector(grid, g)(np.random.default_rng(9).random(grid.shape).astype(np.float32))
+    cpu = fdk(y, grid, g, window="hann")
+    gpu = fdk(y, grid, g, window="hann", device="cuda")
+    np.testing.assert_allclose(gpu, cpu, rtol=1e-4, atol=1e-5 * float(np.abs(cpu).max()))
+
+
+def test_the_ramp_taps_convolve_as_the_fft_filters() -> None:
+    """The GPU's direct convolution with the circular impulse response equals the zero-padded FFT filtering."""
+    H = ramp_filter(13, "shepp-logan")
+    taps = FdkWeights(H, np.ones(1), None).taps
+    row = np.random.default_rng(10).random(13)
+    npad = taps.size
+    direct = [sum(row[j] * taps[(c - j) % npad] for j in range(13)) for c in range(13)]
+    fft = np.fft.irfft(np.fft.rfft(row, npad) * H, npad)[:13]
+    np.testing.assert_allclose(direct, fft, rtol=1e-5, atol=1e-7)
 
 
 @pytest.mark.parametrize(("subsets", "momentum", "weighted"), [(1, False, True), (2, True, True), (3, False, False)])
