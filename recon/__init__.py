@@ -22,7 +22,8 @@ if TYPE_CHECKING:
     from recon.grid import check_fov, grid_for_geometry
     from recon.operator import Projector, backproject_voxels, projector
     from recon.pipeline import ReconResult, compare_reconstructions, reconstruct_scan
-    from recon.pwls import PwlsResult, pwls_sps
+    from recon.pwls import pwls_sps
+    from recon.pwls_setup import PwlsResult
     from recon.quality import reference_volume, rmse, wire_fwhm
 
 # imported on first use: `import recon.options` (the CLI's and the service's options) loads no numerical kernels
@@ -39,7 +40,7 @@ make_lazy(
         "ReconResult": "recon.pipeline",
         "compare_reconstructions": "recon.pipeline",
         "reconstruct_scan": "recon.pipeline",
-        "PwlsResult": "recon.pwls",
+        "PwlsResult": "recon.pwls_setup",
         "pwls_sps": "recon.pwls",
         "reference_volume": "recon.quality",
         "rmse": "recon.quality",

@@ -32,7 +32,8 @@ from recon.errors import ReconError
 from recon.fdk import FdkWeights, fdk_views
 from recon.operator import projector
 from recon.options import DEFAULT_BETA
-from recon.pwls import PwlsResult, ViewsData, pwls_solve
+from recon.pwls import ViewsData, pwls_solve
+from recon.pwls_setup import PwlsResult
 from recon.stack import FileLineIntegrals, FileWeights
 
 log = logging.getLogger(__name__)

@@ -62,10 +62,14 @@ def _check_fits(needed: int, what: str) -> None:
         )
 
 
-def _zeros(n: int) -> Any:
+def zeros(n: int) -> Any:
     """A float32 device array of ``n`` zeros."""
-    a = cuda.device_array(n, np.float32)
-    fill_kernel[strided_blocks(n), THREADS](a, np.float32(0.0))
+    return clear(cuda.device_array(n, np.float32))
+
+
+def clear(a: Any) -> Any:
+    """Set the flat float32 device array ``a`` to zero; returns it."""
+    fill_kernel[strided_blocks(a.size), THREADS](a, np.float32(0.0))
     return a
 
 
@@ -138,7 +142,7 @@ class CudaProjector(Projector):
         y = np.ascontiguousarray(y, dtype=np.float32)
         self._view_rays(start, y, "projections")
         acc = _as_padded(acc_padded, self.padded_shape)
-        d_acc = _zeros(acc.size)
+        d_acc = zeros(acc.size)
         self._held(1, 1)
         for j0, j1 in self.chunks(start, start + y.shape[0]):
             self.back_on_device(cuda.to_device(y[j0 - start : j1 - start].reshape(-1)), d_acc, j0, j1)
@@ -157,7 +161,7 @@ class CudaBackprojector:
         self.grid = grid
         nz, ny, nx = grid.shape
         _check_fits(4 * nz * ny * nx, f"a {nz} x {ny} x {nx} volume")
-        self._vol = _zeros(nz * ny * nx)
+        self._vol = zeros(nz * ny * nx)
 
     def add(self, padded: NDArray[np.float32], geometry: ViewGeometry, weights: NDArray[np.float64]) -> None:
         """Back-project views with a one-pixel zero border ``(k, rows + 2, cols + 2)`` of ``geometry``."""
@@ -191,7 +195,7 @@ class CudaBackprojector:
         if proj.shape != (k, d.rows, d.cols):
             raise ReconError(f"projections: expected {(k, d.rows, d.cols)}, got {proj.shape}")
         raw = cuda.to_device(np.ascontiguousarray(proj, dtype=np.float32).reshape(-1))
-        padded = _zeros(k * (d.rows + 2) * (d.cols + 2))
+        padded = zeros(k * (d.rows + 2) * (d.cols + 2))
         use_parker = parker is not None
         p = cuda.to_device(
             np.ascontiguousarray(parker if use_parker else np.ones((1, 1)), dtype=np.float32).reshape(-1)
@@ -266,10 +270,15 @@ class CudaViewsData:
 
     def curvature(self, out: NDArray[np.float32]) -> None:
         """Add ``A^T (w * A 1)`` into the padded ``out``."""
+        d_acc = zeros(out.size)
+        self.curvature_on_device(d_acc)
+        out += d_acc.copy_to_host().reshape(out.shape)
+
+    def curvature_on_device(self, d_acc: Any) -> None:
+        """Add ``A^T (w * A 1)`` into the padded flat device array ``d_acc``."""
         ones = np.zeros(self.padded_shape, np.float32)
         ones[1:-1, 1:-1, 1:-1] = 1.0
         d_ones = cuda.to_device(ones.reshape(-1))
-        d_acc = _zeros(ones.size)
         d_r = cuda.device_array(self.A.chunk_views * math.prod(self.A.proj_shape[1:]), np.float32)
         whole = np.arange(self.A.proj_shape[0])
         for j0, j1 in self.A.chunks(0, whole.size):
@@ -281,15 +290,20 @@ class CudaViewsData:
                 )
             self.A.back_on_device(r, d_acc, j0, j1)
         self._held(2)
-        out += d_acc.copy_to_host().reshape(out.shape)
 
     def gradient(self, xp: NDArray[np.float32], subset: int, out: NDArray[np.float32] | None) -> float:
         """Subset ``subset``'s data term at ``xp``; its gradient added into ``out`` unless None."""
+        d_acc = zeros(xp.size) if out is not None else None
+        value = self.gradient_on_device(cuda.to_device(np.ascontiguousarray(xp).reshape(-1)), subset, d_acc)
+        if out is not None and d_acc is not None:
+            out += d_acc.copy_to_host().reshape(out.shape)
+        return value
+
+    def gradient_on_device(self, d_xp: Any, subset: int, d_acc: Any | None) -> float:
+        """:meth:`gradient` with the padded volumes flat on the device (``d_acc`` None: the value only)."""
         op = self._ops[subset]
         if op is None:  # an empty subset
             return 0.0
-        d_xp = cuda.to_device(np.ascontiguousarray(xp).reshape(-1))
-        d_acc = _zeros(xp.size) if out is not None else None
         per_view = math.prod(op.proj_shape[1:])
         d_r = cuda.device_array(op.chunk_views * per_view, np.float32)
         self._value.copy_to_device(np.zeros(1))
@@ -304,6 +318,4 @@ class CudaViewsData:
             if d_acc is not None:
                 op.back_on_device(r, d_acc, j0, j1)
         self._held(2 if d_acc is not None else 1)
-        if out is not None and d_acc is not None:
-            out += d_acc.copy_to_host().reshape(out.shape)
         return float(self._value.copy_to_host()[0])

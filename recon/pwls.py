@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
@@ -26,31 +25,7 @@ from recon.errors import ReconError
 from recon.fdk import ProjectionStack
 from recon.operator import Projector, interleaved_subsets
 from recon.options import DEFAULT_BETA
-
-
-@dataclass
-class PwlsResult:
-    """Volume, cost per iteration and timing of a PWLS run: ``cost[k]`` is the cost at iterate ``k`` (0 = the start),
-    up to the result's when ``final_cost`` was asked for, else up to the last iterate before it."""
-
-    volume: NDArray[np.float32]
-    cost: list[float] = field(default_factory=list)
-    final_cost: bool = False  # whether cost[-1] is the result's
-    iterations: int = 0
-    elapsed_s: float = 0.0
-    beta_abs: float = 0.0
-    restarts: int = 0  # momentum restarts (the safeguard acting)
-
-
-def neighbour_offsets(order: int) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-    """Offsets ``(K, 3)`` (dz, dy, dx) of all neighbours and their weights 1/distance."""
-    if order not in (1, 2):
-        raise ReconError(f"penalty neighbourhood must be 1 (6 neighbours) or 2 (26 neighbours), got {order}")
-    offs = [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1) if (a, b, c) != (0, 0, 0)]
-    if order == 1:
-        offs = [o for o in offs if sum(map(abs, o)) == 1]
-    arr = np.array(offs, dtype=np.int64)
-    return arr, 1.0 / np.sqrt((arr**2).sum(1))
+from recon.pwls_setup import PwlsResult, absolute_beta, checked_start, neighbour_offsets
 
 
 @njit(parallel=True, cache=True, fastmath=True, boundscheck=False)
@@ -317,7 +292,9 @@ def pwls_sps(
 ) -> PwlsResult:
     """Minimise the PWLS cost by (ordered-subset) SPS; the cost is monotone without subsets and momentum.
 
-    ``momentum`` adds Nesterov's momentum to the subset steps (one more volume in memory; see the module).
+    With a GPU operator (:class:`recon.cuda.CudaProjector`) the data term and every volume stay on the GPU
+    (:mod:`recon.cuda_pwls`). ``momentum`` adds Nesterov's momentum to the subset steps (one more volume in memory;
+    see the module).
     ``final_cost`` also computes the cost at the result: one more forward projection of every view, made only when
     asked for (the costs of the earlier iterates come with their gradients). ``data_curvature`` and
     ``keep_data_curvature``: as in :func:`pwls_solve`.
@@ -330,28 +307,26 @@ def pwls_sps(
     """
     if subsets < 1 or chunk_views < 1:
         raise ReconError(f"need subsets >= 1 and chunk_views >= 1; got {subsets}, {chunk_views}")
-    data: DataTerm
-    if A.device == "cuda":
+    solve: dict[str, Any] = {
+        "beta": beta,
+        "iterations": iterations,
+        "x0": x0,
+        "neighbourhood": neighbourhood,
+        "nonneg": nonneg,
+        "momentum": momentum,
+        "final_cost": final_cost,
+        "data_curvature": data_curvature,
+        "keep_data_curvature": keep_data_curvature,
+        "progress": progress,
+        "callback": callback,
+    }
+    if A.device == "cuda":  # the data term and every volume on the GPU
         from recon.cuda import CudaProjector, CudaViewsData
+        from recon.cuda_pwls import pwls_solve_on_gpu
 
         assert isinstance(A, CudaProjector)
-        data = CudaViewsData(A, y, weights, subsets=subsets)
-    else:
-        data = ViewsData(A, y, weights, subsets=subsets, chunk_views=chunk_views)
-    return pwls_solve(
-        data,
-        beta=beta,
-        iterations=iterations,
-        x0=x0,
-        neighbourhood=neighbourhood,
-        nonneg=nonneg,
-        momentum=momentum,
-        final_cost=final_cost,
-        data_curvature=data_curvature,
-        keep_data_curvature=keep_data_curvature,
-        progress=progress,
-        callback=callback,
-    )
+        return pwls_solve_on_gpu(CudaViewsData(A, y, weights, subsets=subsets), **solve)
+    return pwls_solve(ViewsData(A, y, weights, subsets=subsets, chunk_views=chunk_views), **solve)
 
 
 def pwls_solve(
@@ -375,24 +350,13 @@ def pwls_solve(
     becomes the surrogate's denominator array (updated in place) and saves a forward and a back projection of every
     view. ``keep_data_curvature`` is called with it once computed, before the penalty's share is added."""
     t0 = time.perf_counter()
-    if iterations < 0 or beta < 0:
-        raise ReconError(f"need iterations >= 0 and beta >= 0; got {iterations}, {beta}")
     padded = tuple(data.padded_shape)
-    vol_shape = tuple(n - 2 for n in padded)
-    given_padded = x0 if x0 is not None and np.shape(x0) == padded else None
+    given_padded = checked_start(padded, x0, iterations, beta, data_curvature)
     in_place = given_padded is not None
-    if given_padded is not None and not (
-        given_padded.dtype == np.float32 and given_padded.flags.c_contiguous and given_padded.flags.writeable
-    ):
-        raise ReconError("a padded x0 is updated in place: it must be a writeable C-contiguous float32 array")
-    if x0 is not None and not in_place and np.shape(x0) != vol_shape:
-        raise ReconError(f"x0: expected shape {vol_shape} (or padded {padded}), got {np.shape(x0)}")
     offs, omega = neighbour_offsets(neighbourhood)
     subsets = data.subsets
     # data curvature d = A^T (w * A 1), computed once into a volume of its own (or given)
     if data_curvature is not None:
-        if data_curvature.shape != vol_shape or data_curvature.dtype != np.float32:
-            raise ReconError(f"data_curvature: expected float32 of shape {vol_shape}, got {data_curvature.shape}")
         denom = data_curvature
     else:
         denom_p = np.zeros(padded, np.float32)
@@ -401,10 +365,7 @@ def pwls_solve(
         del denom_p
         if keep_data_curvature is not None:
             keep_data_curvature(denom)
-    sample = denom[::2, ::2, ::2]  # the median of a sub-lattice sets the scale; no volume-sized copy
-    pos = sample[sample > 0]
-    beta_abs = float(beta * (np.median(pos) if pos.size else 0.0) / (2 * omega.sum()))
-    del sample, pos
+    beta_abs = absolute_beta(denom, beta, omega)
     _add_penalty_curvature(denom, beta_abs, offs, omega)
     gp = np.zeros(padded, np.float32)  # gradient accumulator (its border is scratch)
     if given_padded is not None:

@@ -18,6 +18,7 @@ from recon.device import gpu_problem, make_projector, resolve_device, simulated
 from recon.fdk import FdkWeights, fdk, ramp_filter
 from recon.operator import Projector, backproject_voxels
 from recon.pwls import ViewsData, pwls_sps
+from recon.pwls_setup import PwlsResult
 from tests.helpers.recon import bench_detector, write_sphere_scan
 
 
@@ -168,10 +169,27 @@ def test_pwls_on_the_device_follows_the_cpu_iterates(subsets: int, momentum: boo
     y = Projector(grid, g)(truth) + rng.normal(0, 0.01, (8, 10, 10)).astype(np.float32)
     w = rng.uniform(0.5, 1.0, y.shape).astype(np.float32) if weighted else None
     kw = {"iterations": 3, "subsets": subsets, "momentum": momentum, "beta": 0.05, "final_cost": True}
-    cpu = pwls_sps(Projector(grid, g), y, w, **kw)
-    gpu = pwls_sps(CudaProjector(grid, g, chunk_bytes=3 * 400), y, w, **kw)
+    kept: dict[str, np.ndarray] = {}
+    seen: dict[str, list[np.ndarray]] = {"cpu": [], "cuda": []}
+
+    def run(A: Projector) -> PwlsResult:
+        return pwls_sps(
+            A,
+            y,
+            w,
+            keep_data_curvature=lambda c: kept.__setitem__(A.device, c.copy()),
+            callback=lambda _, image: seen[A.device].append(image.copy()),
+            **kw,
+        )
+
+    cpu = run(Projector(grid, g))
+    gpu = run(CudaProjector(grid, g, chunk_bytes=3 * 400))
     np.testing.assert_allclose(gpu.cost, cpu.cost, rtol=1e-5)
     np.testing.assert_allclose(gpu.volume, cpu.volume, rtol=1e-4, atol=1e-5 * float(cpu.volume.max()))
+    assert gpu.beta_abs == pytest.approx(cpu.beta_abs, rel=1e-6) and gpu.restarts == cpu.restarts
+    np.testing.assert_allclose(kept["cuda"], kept["cpu"], rtol=1e-5, atol=1e-7)
+    assert len(seen["cuda"]) == len(seen["cpu"]) == 3
+    np.testing.assert_allclose(seen["cuda"][0], seen["cpu"][0], rtol=1e-4, atol=1e-5 * float(cpu.volume.max()))
 
 
 def test_the_data_term_keeps_its_data_on_the_device_or_streams_it() -> None:
