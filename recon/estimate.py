@@ -4,7 +4,8 @@ The projectors' cost grows with the number of rays (each set up, whether it meet
 steps (per view, the pixels whose rays meet the volume times the planes they cross), FDK's with views x voxels, and reading the projections (each frame checked, its line integrals
 formed) with views x pixels. The rates are measured once per process on small problems on this machine (the
 reading on a small scan file written for it), so the estimate follows the machine and its load; it is an estimate
-(caches behave differently at size).
+(caches behave differently at size). On a GPU (``device='cuda'``) the projectors' and FDK's rates are the GPU's,
+measured the same way; small problems leave most of a GPU idle, so there the estimate errs long.
 """
 
 from __future__ import annotations
@@ -36,12 +37,12 @@ def _best(call: Callable[[], object]) -> float:
 
 
 @functools.cache
-def projector_rates() -> tuple[float, float, float, float]:
+def projector_rates(device: str = "cpu") -> tuple[float, float, float, float]:
     """Seconds per ray and per ray step of the forward, then of the matched back projector: measured on a volume
     filling the field of view (every ray steps through it) and on a few voxels at its centre (nearly every ray
     misses them and costs only its set-up), the two costs solved from the two times."""
     from orbitct.reference_bench import PANEL_MM, SAD_MM, SDD_MM, reference_panel
-    from recon.operator import projector
+    from recon.device import make_projector
 
     panel = reference_panel(_PROBE, PANEL_MM / _PROBE)
     geometry = ViewGeometry.from_carm(
@@ -51,7 +52,7 @@ def projector_rates() -> tuple[float, float, float, float]:
     rays = float(geometry.n_views * panel.rows * panel.cols)
     times, counts = [], []
     for grid in (VolumeGrid.centered((_PROBE,) * 3, voxel), VolumeGrid.centered((4, 4, 4), voxel)):
-        A = projector(grid, geometry)
+        A = make_projector(grid, geometry, device)
         x = np.ones(grid.shape, np.float32)
         y = A(x)
         A.T(y)  # compiled before timing
@@ -67,12 +68,12 @@ def projector_rates() -> tuple[float, float, float, float]:
 
 
 @functools.cache
-def rates() -> tuple[float, float, float]:
+def rates(device: str = "cpu") -> tuple[float, float, float]:
     """Seconds per ray step of the forward and of the matched back projector, and per voxel and view of FDK."""
     from orbitct.reference_bench import PANEL_MM, SAD_MM, SDD_MM, reference_panel
     from recon.fdk import fdk
 
-    _, forward, _, back = projector_rates()
+    _, forward, _, back = projector_rates(device)
     panel = reference_panel(_PROBE, PANEL_MM / _PROBE)
     grid = VolumeGrid.centered((_PROBE,) * 3, panel.pitch_col * SAD_MM / SDD_MM)
     # FDK over 32 views: over 8 its fixed cost per call (filter set-up, allocation) weighed in, and the rate
@@ -81,8 +82,8 @@ def rates() -> tuple[float, float, float]:
         np.linspace(0.0, 2 * np.pi, _FDK_PROBE_VIEWS, endpoint=False), 0.0, SAD_MM, SDD_MM, panel
     )
     y = np.ones((_FDK_PROBE_VIEWS, panel.rows, panel.cols), np.float32)
-    fdk(y, grid, views)  # compiled before timing
-    return forward, back, _best(lambda: fdk(y, grid, views)) / (_FDK_PROBE_VIEWS * _PROBE**3)
+    fdk(y, grid, views, device=device)  # compiled before timing
+    return forward, back, _best(lambda: fdk(y, grid, views, device=device)) / (_FDK_PROBE_VIEWS * _PROBE**3)
 
 
 @functools.cache
@@ -141,13 +142,14 @@ def reconstruction_seconds(
     final_cost: bool = False,
     *,
     geometry: ViewGeometry | None = None,
+    device: str = "cpu",
 ) -> float:
     """Estimated wall time of FDK, or of PWLS (its FDK start, the surrogate's set-up, ``iterations`` passes and, when
     asked for, the final cost) on this machine now, reading the projections included. With the projections'
     ``geometry`` the projectors count only the rays that meet the volume; without, every ray crosses half its
-    planes along x and y."""
-    forward, back, per_voxel_view = rates()
-    forward_ray, _, back_ray, _ = projector_rates()
+    planes along x and y. ``device``: where the projectors and FDK run (``cpu`` or ``cuda``)."""
+    forward, back, per_voxel_view = rates(device)
+    forward_ray, _, back_ray, _ = projector_rates(device)
     nz, ny, nx = grid.shape
     read_s = reading_rate() * n_views * rows * cols
     fdk_s = per_voxel_view * n_views * nz * ny * nx

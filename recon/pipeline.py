@@ -23,7 +23,7 @@ from orbitct.verdict import Verdict
 from recon.curvature import curvature_key
 from recon.curvature import load as load_curvature
 from recon.curvature import save as save_curvature
-from recon.device import describe_device, make_projector, resolve_device
+from recon.device import describe_device, make_projector, resolve_device, simulated
 from recon.errors import (
     BadFramesError,
     FailedGeometryError,
@@ -382,6 +382,7 @@ def _reconstruct(
             iterations if algorithm == "pwls" else 0,
             opts.final_cost,
             geometry=geom,
+            device="cpu" if simulated() else device,  # the CUDA simulator's speed says nothing of a GPU's
         )
         max_seconds = opts.max_seconds
         if max_seconds is not None and estimated_s > max_seconds:

@@ -277,3 +277,22 @@ def test_asking_for_the_gpu_where_there_is_none_says_so_in_one_line(tiny_scan: P
     assert "device: CPU (" in ok.stdout
     wrong = subprocess.run([*cli, "--device", "gpu"], capture_output=True, text=True, env=_without_simulator())
     assert wrong.returncode == 2 and "gpu" in wrong.stderr and "Traceback" not in wrong.stderr
+
+
+def test_the_estimate_measures_the_gpu_when_it_reconstructs_there(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``device='cuda'`` estimates from the GPU kernels' own rates (measured here on a probe small enough for the
+    simulator; the pipeline estimates from the CPU's under the simulator, whose speed says nothing of a GPU's)."""
+    from recon import estimate
+
+    for name, value in (("_PROBE", 8), ("_PROBE_VIEWS", 2), ("_FDK_PROBE_VIEWS", 2)):
+        monkeypatch.setattr(estimate, name, value)
+    estimate.projector_rates.cache_clear()
+    estimate.rates.cache_clear()
+    try:
+        forward, back, per_voxel_view = estimate.rates("cuda")
+        assert forward > 0 and back > 0 and per_voxel_view > 0
+        grid = VolumeGrid.centered((8, 8, 8), 20.0)
+        assert estimate.reconstruction_seconds("pwls", grid, 4, 8, 8, 2, device="cuda") > 0
+    finally:
+        estimate.projector_rates.cache_clear()
+        estimate.rates.cache_clear()
