@@ -57,9 +57,13 @@ def _check_fits(needed: int, what: str) -> None:
     free, total = cuda.current_context().get_memory_info()
     if math.isfinite(free) and needed > 0.9 * free:
         raise ReconError(
-            f"{what} needs {needed / 2**30:.1f} GiB of GPU memory and {free / 2**30:.1f} GiB of "
-            f"{total / 2**30:.1f} GiB is free; use a larger voxel size or a smaller shape, or --device cpu"
+            f"{what} needs {_size(needed)} of GPU memory and {_size(free)} of {_size(total)} is free; use a larger "
+            "voxel size or a smaller shape, or --device cpu"
         )
+
+
+def _size(n: float) -> str:
+    return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.0f} MiB"
 
 
 def zeros(n: int) -> Any:
@@ -92,9 +96,10 @@ class CudaProjector(Projector):
         """Record that ``volumes`` padded volumes and ``chunks`` projection chunks are on the device now."""
         _record(self.rays_bytes + volumes * self.volume_bytes + chunks * self.chunk_bytes)
 
-    def check_fits(self, volumes: int) -> None:
-        """Refuse work that needs ``volumes`` padded volumes and two chunks when the device has no room for them."""
-        needed = self.rays_bytes + volumes * self.volume_bytes + 2 * self.chunk_bytes
+    def check_fits(self, volumes: int, more_bytes: int = 0) -> None:
+        """Refuse work that needs ``volumes`` padded volumes, two chunks and ``more_bytes`` when the device has no room
+        for them."""
+        needed = self.rays_bytes + volumes * self.volume_bytes + 2 * self.chunk_bytes + more_bytes
         nz, ny, nx = self.vol_shape
         _check_fits(needed, f"a {nz} x {ny} x {nx} volume")
 
@@ -249,8 +254,9 @@ class CudaViewsData:
         self._views = [np.asarray(v, np.intp) for v in subset_views]
         self._ops = [A if v.size == n_views else A.subset(v) if v.size else None for v in self._views]
         data_bytes = (2 if weights is not None else 1) * 4 * math.prod(A.proj_shape)
-        A.check_fits(2 + (data_bytes // max(1, A.volume_bytes) + 1 if data_bytes <= resident_bytes else 0))
         self._resident = data_bytes <= resident_bytes
+        self.resident_bytes = data_bytes if self._resident else 0
+        self.check_fits(2)
         self._cache: dict[tuple[int, int, bool], Any] = {}
         self._value = cuda.device_array(1, np.float64)
 
@@ -264,7 +270,13 @@ class CudaViewsData:
             self._cache[key] = d
         return d
 
-    def _held(self, volumes: int) -> None:
+    def check_fits(self, volumes: int) -> None:
+        """Refuse, before any work, ``volumes`` padded volumes beside the data held on the device when they do not
+        fit."""
+        self.A.check_fits(volumes, self.resident_bytes + self.A.chunk_bytes)
+
+    def hold(self, volumes: int) -> None:
+        """Record that ``volumes`` padded volumes are on the device beside this data term's arrays."""
         held = volumes * self.A.volume_bytes + 3 * self.A.chunk_bytes + self.A.rays_bytes
         _record(held + sum(a.size * 4 for a in self._cache.values()))
 
@@ -289,7 +301,7 @@ class CudaViewsData:
                     r, cuda.to_device(_rows(self.weights, whole[j0:j1]).reshape(-1))
                 )
             self.A.back_on_device(r, d_acc, j0, j1)
-        self._held(2)
+        self.hold(2)
 
     def gradient(self, xp: NDArray[np.float32], subset: int, out: NDArray[np.float32] | None) -> float:
         """Subset ``subset``'s data term at ``xp``; its gradient added into ``out`` unless None."""
@@ -317,5 +329,5 @@ class CudaViewsData:
             )
             if d_acc is not None:
                 op.back_on_device(r, d_acc, j0, j1)
-        self._held(2 if d_acc is not None else 1)
+        self.hold(2 if d_acc is not None else 1)
         return float(self._value.copy_to_host()[0])

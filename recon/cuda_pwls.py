@@ -164,7 +164,8 @@ def pwls_solve_on_gpu(
     nz, ny, nx = (n - 2 for n in padded)
     n_vox = nx * ny * nz
     size = math.prod(padded)
-    data.A.check_fits(4 if momentum else 3)
+    volumes = 4 if momentum else 3  # iterate, gradient, denominator (and the last iterate)
+    data.check_fits(volumes)
     offs, omega = neighbour_offsets(neighbourhood)
     d_offs, d_omega = cuda.to_device(offs), cuda.to_device(omega)
     if data_curvature is not None:
@@ -196,6 +197,7 @@ def pwls_solve_on_gpu(
         d_prev.copy_to_device(d_xp)
     d_gp = zeros(size)
     total = cuda.device_array(1, np.float64)
+    data.hold(volumes)
 
     def summed(kernel: Any, *args: Any) -> float:
         total.copy_to_device(np.zeros(1))

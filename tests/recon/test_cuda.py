@@ -296,3 +296,19 @@ def test_the_estimate_measures_the_gpu_when_it_reconstructs_there(monkeypatch: p
     finally:
         estimate.projector_rates.cache_clear()
         estimate.rates.cache_clear()
+
+
+def test_work_that_does_not_fit_on_the_gpu_is_refused_before_it_starts(
+    monkeypatch: pytest.MonkeyPatch, tiny_scan: Path
+) -> None:
+    import recon.cuda
+
+    class SmallGpu:
+        def get_memory_info(self) -> tuple[int, int]:
+            return 2**20, 2**30  # 1 MiB free of 1 GiB
+
+    monkeypatch.setattr(recon.cuda.cuda, "current_context", SmallGpu)
+    with pytest.raises(ReconError, match=r"a 128 x 128 x 128 volume needs 8 MiB of GPU memory and 1 MiB of 1.0 GiB"):
+        CudaBackprojector(VolumeGrid.centered((128, 128, 128), 1.0))
+    with pytest.raises(ReconError, match="use a larger voxel size or a smaller shape, or --device cpu"):
+        reconstruct_scan(tiny_scan, device="cuda", geometry="nominal", shape=[64, 64, 64], voxel_mm=3.0)
