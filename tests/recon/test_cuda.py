@@ -312,3 +312,16 @@ def test_work_that_does_not_fit_on_the_gpu_is_refused_before_it_starts(
         CudaBackprojector(VolumeGrid.centered((128, 128, 128), 1.0))
     with pytest.raises(ReconError, match="use a larger voxel size or a smaller shape, or --device cpu"):
         reconstruct_scan(tiny_scan, device="cuda", geometry="nominal", shape=[64, 64, 64], voxel_mm=3.0)
+
+
+def test_without_the_gpu_extra_nothing_imports_cuda(tiny_scan: Path) -> None:
+    """``auto`` on a machine without the extra picks the CPU without importing numba.cuda at all."""
+    code = (
+        "import sys, recon\n"
+        f"r = recon.reconstruct_scan({str(tiny_scan)!r}, geometry='nominal', shape=[6, 8, 8], voxel_mm=20.0, "
+        "name='lazy', overwrite=True)\n"
+        "print(r.params['device'].split(' ')[0], 'numba.cuda' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_without_simulator())
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["CPU", "False"]
