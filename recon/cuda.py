@@ -2,8 +2,9 @@
 
 Host arrays in and out, as on the CPU: :class:`CudaProjector` is a :class:`recon.operator.Projector` whose kernels
 run on the device (:mod:`recon.cuda_kernels`). The device keeps the rays, matrices and one volume; projections pass
-through it a chunk of views at a time (:data:`CHUNK_BYTES`), so the device memory a reconstruction needs is about one
-padded volume (two for PWLS) plus two chunks, whatever the number of views. :func:`peak_bytes` is the most device
+through it a chunk of views at a time (:data:`CHUNK_BYTES`), so the device memory a reconstruction needs is one
+padded volume (three or four for PWLS, :mod:`recon.cuda_pwls`) plus two chunks, whatever the number of views; work
+that would not fit is refused before it starts. :func:`peak_bytes` is the most device
 memory these arrays held at once since :func:`reset_peak` (one reconstruction at a time per process).
 """
 
@@ -91,6 +92,7 @@ class CudaProjector(Projector):
         self._d_vox = cuda.to_device(self._vox)
         self.volume_bytes = 4 * math.prod(self.padded_shape)
         self.chunk_bytes = 4 * self.chunk_views * rows * cols
+        self.check_fits(1)
 
     def _held(self, volumes: int, chunks: int) -> None:
         """Record that ``volumes`` padded volumes and ``chunks`` projection chunks are on the device now."""

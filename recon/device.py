@@ -72,6 +72,11 @@ def describe_device(device: str) -> str:
     return f"GPU {name.decode() if isinstance(name, bytes) else name}"
 
 
+def from_the_gpu(exc: BaseException) -> bool:
+    """Whether ``exc`` came from the CUDA driver or compiler (numba-cuda, cuda-python), not from orbitct."""
+    return type(exc).__module__.startswith(("numba.cuda", "numba_cuda", "cuda."))
+
+
 def make_projector(grid: VolumeGrid, geometry: ViewGeometry, device: str = "cpu") -> Projector:
     """The projection operator of ``grid`` seen by ``geometry`` on ``device`` (``cpu`` or ``cuda``)."""
     if device == "cuda":

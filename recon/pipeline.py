@@ -23,7 +23,7 @@ from orbitct.verdict import Verdict
 from recon.curvature import curvature_key
 from recon.curvature import load as load_curvature
 from recon.curvature import save as save_curvature
-from recon.device import describe_device, make_projector, resolve_device, simulated
+from recon.device import describe_device, from_the_gpu, make_projector, resolve_device, simulated
 from recon.errors import (
     BadFramesError,
     FailedGeometryError,
@@ -295,17 +295,23 @@ def reconstruct_scan(
     first use after installation are timed apart (``compile_s``), not in ``elapsed_s``.
     """
     with CompileClock() as clock:
-        return _reconstruct(
-            path,
-            options,
-            export=export,
-            out_dir=out_dir,
-            progress=progress,
-            grid=grid,
-            cluster=cluster,
-            clock=clock,
-            **values,
-        )
+        try:
+            return _reconstruct(
+                path,
+                options,
+                export=export,
+                out_dir=out_dir,
+                progress=progress,
+                grid=grid,
+                cluster=cluster,
+                clock=clock,
+                **values,
+            )
+        except Exception as exc:
+            if not from_the_gpu(exc):
+                raise
+            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            raise ReconError(f"the GPU failed ({first}); --device cpu reconstructs on the CPU") from exc
 
 
 def _reconstruct(

@@ -325,3 +325,23 @@ def test_without_the_gpu_extra_nothing_imports_cuda(tiny_scan: Path) -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_without_simulator())
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["CPU", "False"]
+
+
+def test_a_failing_gpu_is_said_in_one_sentence(monkeypatch: pytest.MonkeyPatch, tiny_scan: Path) -> None:
+    import recon.cuda
+
+    class CudaAPIError(Exception):
+        pass
+
+    CudaAPIError.__module__ = "numba.cuda.cudadrv.driver"  # what the driver raises, e.g. when memory runs out
+
+    def fail(*args: object, **kwargs: object) -> None:
+        raise CudaAPIError("[2] Call to cuMemAlloc results in CUDA_ERROR_OUT_OF_MEMORY\nmore")
+
+    monkeypatch.setattr(recon.cuda.CudaBackprojector, "add_projections", fail)
+    with pytest.raises(ReconError) as caught:
+        reconstruct_scan(tiny_scan, device="cuda", geometry="nominal", shape=[6, 8, 8], voxel_mm=20.0, name="oom")
+    assert str(caught.value) == (
+        "the GPU failed ([2] Call to cuMemAlloc results in CUDA_ERROR_OUT_OF_MEMORY); --device cpu reconstructs on "
+        "the CPU"
+    )
