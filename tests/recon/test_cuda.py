@@ -311,7 +311,7 @@ def test_work_that_does_not_fit_on_the_gpu_is_refused_before_it_starts(
     with pytest.raises(ReconError, match=r"a 128 x 128 x 128 volume needs 8 MiB of GPU memory and 1 MiB of 1.0 GiB"):
         CudaBackprojector(VolumeGrid.centered((128, 128, 128), 1.0))
     with pytest.raises(ReconError, match="use a larger voxel size or a smaller shape, or --device cpu"):
-        reconstruct_scan(tiny_scan, device="cuda", geometry="nominal", shape=[64, 64, 64], voxel_mm=3.0)
+        reconstruct_scan(tiny_scan, device="cuda", geometry="nominal", shape=[64, 64, 64], voxel_mm=3.0, name="big")
 
 
 def test_without_the_gpu_extra_nothing_imports_cuda(tiny_scan: Path) -> None:
