@@ -20,7 +20,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 from orbitct.geometry import ViewGeometry, VolumeGrid
 from orbitct.progress import ProgressCallback, report
 from orbitct.scanfile import ScanFile
+from recon.device import resolve_device
 from recon.errors import ReconError
 from recon.fdk import FdkWeights, fdk_views
 from recon.operator import projector
@@ -35,6 +36,9 @@ from recon.options import DEFAULT_BETA
 from recon.pwls import ViewsData, pwls_solve
 from recon.pwls_setup import PwlsResult
 from recon.stack import FileLineIntegrals, FileWeights
+
+if TYPE_CHECKING:
+    from recon.cuda import CudaViewsData
 
 log = logging.getLogger(__name__)
 LOSS_CHECK_S = 1.0  # how often a PWLS on a cluster looks whether the workers holding its views are still there
@@ -52,11 +56,12 @@ class WorkLostError(ClusterError):
 
 
 def _fdk_part(
-    path: str, frames: NDArray[np.intp], grid: VolumeGrid, geometry: ViewGeometry, weights: FdkWeights
+    path: str, frames: NDArray[np.intp], grid: VolumeGrid, geometry: ViewGeometry, weights: FdkWeights, device: str
 ) -> NDArray[np.float32]:
-    """On a worker: the back-projection of some views, read from the scan file."""
+    """On a worker: the back-projection of some views, read from the scan file, on ``device`` as that worker
+    resolves it (``auto``: its GPU when it has a usable one)."""
     with ScanFile(path) as scan:
-        return fdk_views(FileLineIntegrals(scan, frames), grid, geometry, weights)
+        return fdk_views(FileLineIntegrals(scan, frames), grid, geometry, weights, device=resolve_device(device))
 
 
 def _sum(a: Any, b: Any) -> Any:
@@ -131,8 +136,10 @@ def fdk_on_cluster(
     window: str = "ram-lak",
     progress: ProgressCallback | None = None,
     workers_timeout_s: float = 30.0,
+    device: str = "auto",
 ) -> NDArray[np.float32]:
-    """FDK of the projections ``frames`` of the scan at ``path`` (their ``geometry``) on the workers of ``client``."""
+    """FDK of the projections ``frames`` of the scan at ``path`` (their ``geometry``) on the workers of ``client``
+    (each on ``device`` as it resolves it: ``auto`` takes its GPU when it has a usable one)."""
     n_workers = len(_connected_workers(client, workers_timeout_s))
     weights = FdkWeights.of(geometry, window)
     n_parts = int(min(frames.size, PARTS_PER_WORKER * n_workers))
@@ -146,6 +153,7 @@ def fdk_on_cluster(
             grid,
             geometry[a:b],
             weights.part(slice(a, b)),
+            device,
             key=f"{key}-{i}",
             pure=False,
         )
@@ -178,19 +186,21 @@ class ViewPart:
         geometry: ViewGeometry,
         subsets: int,
         chunk_views: int = 8,
+        device: str = "auto",
     ) -> None:
-        self._recipe = (path, frames, offset, grid, geometry, subsets, chunk_views)
+        self._recipe = (path, frames, offset, grid, geometry, subsets, chunk_views, device)
         with ScanFile(path) as scan:
             every = np.arange(frames.size)
             y, w = FileLineIntegrals(scan, frames)[every], FileWeights(scan, frames)[every]
         index = offset + np.arange(frames.size)
-        self.data = ViewsData(
-            projector(grid, geometry),
-            y,
-            w,
-            chunk_views=chunk_views,
-            subset_views=[np.flatnonzero(index % subsets == m) for m in range(subsets)],
-        )
+        subset_views = [np.flatnonzero(index % subsets == m) for m in range(subsets)]
+        self.data: ViewsData | CudaViewsData
+        if resolve_device(device) == "cuda":  # this worker's GPU
+            from recon.cuda import CudaProjector, CudaViewsData
+
+            self.data = CudaViewsData(CudaProjector(grid, geometry), y, w, subset_views=subset_views)
+        else:
+            self.data = ViewsData(projector(grid, geometry), y, w, chunk_views=chunk_views, subset_views=subset_views)
         self._lock = threading.Lock()  # one projector: one task at a time on it
         self._nbytes = y.nbytes + w.nbytes
 
@@ -259,6 +269,7 @@ class ClusterData:
         subsets: int = 1,
         chunk_views: int = 8,
         workers_timeout_s: float = 30.0,
+        device: str = "auto",
     ) -> None:
         if subsets < 1:
             raise ReconError(f"need subsets >= 1, got {subsets}")
@@ -281,6 +292,7 @@ class ClusterData:
                 geometry[a:b],
                 subsets,
                 chunk_views,
+                device,
                 key=f"{self._key}-part{i}",
                 pure=False,
                 workers=[workers[i]],
@@ -423,12 +435,14 @@ def pwls_on_cluster(
     curvature: dict[str, Any] | None = None,
     progress: ProgressCallback | None = None,
     workers_timeout_s: float = 30.0,
+    device: str = "auto",
 ) -> PwlsResult:
     """PWLS (:func:`recon.pwls.pwls_sps`) of the projections ``frames`` of the scan at ``path`` with the views
     spread over the workers of ``client``; ``x0`` as there (padded: updated in place); ``curvature``: the
-    ``data_curvature`` / ``keep_data_curvature`` arguments of :func:`recon.pwls.pwls_solve`."""
+    ``data_curvature`` / ``keep_data_curvature`` arguments of :func:`recon.pwls.pwls_solve`. Each worker projects
+    its views on ``device`` as it resolves it (``auto``: its GPU when it has a usable one); the steps are taken here."""
     with ClusterData(
-        client, path, frames, grid, geometry, subsets=subsets, workers_timeout_s=workers_timeout_s
+        client, path, frames, grid, geometry, subsets=subsets, workers_timeout_s=workers_timeout_s, device=device
     ) as data:
         return pwls_solve(
             data,

@@ -52,6 +52,12 @@ from recon.pwls import pwls_sps, statistical_weights
 from recon.stack import FileLineIntegrals, FileWeights
 
 GEOMETRIES: tuple[str, ...] = get_args(GeometryName)
+#: where a reconstruction split across Dask workers ran, by the device asked for
+CLUSTER_DEVICES = {
+    "auto": "Dask workers (each on its GPU when it has a usable one, else on its CPU)",
+    "cpu": "Dask workers (their CPUs)",
+    "cuda": "Dask workers (their GPUs)",
+}
 STREAM_MODES: tuple[str, ...] = get_args(StreamMode)
 
 
@@ -337,12 +343,8 @@ def _reconstruct(
         raise ReconError(f"export formats must be among {FORMATS}, got {formats}")
     shape = (opts.shape[0], opts.shape[1], opts.shape[2]) if opts.shape is not None else None  # three: validated
     on_cluster = cluster is not None and not mar_method
-    if on_cluster and opts.device == "cuda":
-        raise ReconError(
-            "with a Dask scheduler the workers reconstruct on their CPUs; --device cuda runs on this machine's GPU "
-            "without --scheduler"
-        )
-    device = "cpu" if on_cluster else resolve_device(opts.device)  # before any work: a missing GPU is said first
+    # before any work: a missing GPU is said first (on a cluster each worker resolves the device for itself)
+    device = "cpu" if on_cluster else resolve_device(opts.device)
     if device == "cuda":
         from recon.cuda import reset_peak
 
@@ -407,7 +409,9 @@ def _reconstruct(
 
             if algorithm == "pwls":
                 check_pwls_memory(cluster, int(frames.size), geom, grid)  # before the FDK start image runs there
-            vol = fdk_on_cluster(cluster, scan.path, frames, grid, geom, window=window, progress=progress)
+            vol = fdk_on_cluster(
+                cluster, scan.path, frames, grid, geom, window=window, progress=progress, device=opts.device
+            )
             extra.update(cluster_workers=len(cluster.scheduler_info()["workers"]))
             if algorithm == "pwls":
                 res = pwls_on_cluster(
@@ -425,6 +429,7 @@ def _reconstruct(
                     final_cost=opts.final_cost,
                     curvature=_curvature(scan, frames, geom, grid, extra),
                     progress=progress,
+                    device=opts.device,
                 )
                 vol, cost = res.volume, res.cost
                 extra.update(beta_abs=res.beta_abs, stream="cluster")
@@ -478,7 +483,7 @@ def _reconstruct(
             "estimated_s": estimated_s,
             "compile_s": clock.seconds,
             "geometry_override": bool(failed_geometry_reasons(scan, geometry) is not None),
-            "device": describe_device(device),
+            "device": CLUSTER_DEVICES[opts.device] if on_cluster else describe_device(device),
             **extra,
             **_device_memory(device),
         }

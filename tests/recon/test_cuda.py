@@ -251,11 +251,6 @@ def test_reconstruct_scan_on_the_device_equals_the_cpu(tiny_scan: Path, options:
     assert auto.params["device"].startswith("CPU (")
 
 
-def test_cuda_with_a_dask_scheduler_is_refused_in_one_sentence(tiny_scan: Path) -> None:
-    with pytest.raises(ReconError, match="workers reconstruct on their CPUs"):
-        reconstruct_scan(tiny_scan, device="cuda", cluster=object(), geometry="nominal")
-
-
 def _without_simulator() -> dict[str, str]:
     env = dict(os.environ)
     env.pop("NUMBA_ENABLE_CUDASIM", None)

@@ -94,6 +94,34 @@ def test_pwls_split_across_two_workers_equals_one_process(
     np.testing.assert_allclose(split.cost, single.cost, rtol=1e-5)
 
 
+def test_workers_reconstruct_their_views_on_their_gpus(cluster: DaskCluster, tmp_path: Path) -> None:
+    """``device='cuda'`` on a cluster: each worker projects its views on its GPU (here numba's CUDA simulator, which
+    the workers inherit from the test process), and the volume equals one process's on the CPU."""
+    import sys
+
+    import recon
+
+    t = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    geometry = ViewGeometry.from_carm(t, np.radians(15) * np.sin(2 * t), 785.0, 1200.0, bench_detector(12))
+    scan = tmp_path / "tiny.h5"
+    write_sphere_scan(scan, geometry)
+    other = tmp_path / "single.h5"
+    shutil.copyfile(scan, other)
+    common = {"geometry": "nominal", "shape": [6, 8, 8], "voxel_mm": 20.0}
+    client = cluster.client()
+    try:
+        for options in ({"algorithm": "fdk"}, {"algorithm": "pwls", "iterations": 2, "subsets": 2}):
+            split = recon.reconstruct_scan(scan, cluster=client, device="cuda", overwrite=True, **common, **options)
+            single = recon.reconstruct_scan(other, device="cpu", overwrite=True, **common, **options)
+            assert split.params["device"] == "Dask workers (their GPUs)"
+            scale = float(np.abs(single.volume).max())
+            np.testing.assert_allclose(split.volume, single.volume, rtol=0, atol=1e-4 * scale)
+        on_gpu = client.run(lambda: "recon.cuda" in sys.modules)
+    finally:
+        client.close()
+    assert len(on_gpu) == 2 and all(on_gpu.values())
+
+
 def test_pwls_that_would_not_fit_a_workers_memory_limit_is_refused_before_loading(sphere_scan: Path) -> None:
     import dask
     from distributed import Client, LocalCluster
