@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import math
+import socket
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -93,9 +94,13 @@ def run_reconstruction(
     from recon.device import resolve_device
 
     options = recon.ReconstructionOptions.model_validate(params)  # the request's options, as it was accepted
+    device = resolve_device(options.device)
     # the views of FDK and PWLS across the workers, unless this worker has a usable GPU (or MAR, which runs here)
-    split = not options.mar and resolve_device(options.device) == "cpu"
-    with _cluster_client() if split else contextlib.nullcontext() as cluster:
+    split = not options.mar and device == "cpu"
+    with (
+        one_job_per_gpu(progress) if device == "cuda" else contextlib.nullcontext(),
+        _cluster_client() if split else contextlib.nullcontext() as cluster,
+    ):
         res = recon.reconstruct_scan(
             scan_path, options, export=["nifti", "png"], out_dir=out_dir, progress=progress, cluster=cluster
         )
@@ -120,6 +125,28 @@ def run_reconstruction(
         "device_peak_bytes": int(res.params.get("device_peak_bytes", 0)),
         "files": sorted(p.name for p in out_dir.iterdir() if p.is_file()),
     }
+
+
+@contextlib.contextmanager
+def one_job_per_gpu(progress: Callable[[ProgressEvent], None] | None = None) -> Iterator[None]:
+    """On a Dask worker: hold this machine's GPU for the block (a cluster-wide lock named after the host), so two
+    reconstruction jobs never share one GPU; a job that has to wait says so. Elsewhere: nothing to hold."""
+    try:
+        from distributed import Lock, get_worker
+
+        get_worker()
+    except (ImportError, ValueError):
+        yield
+        return
+    lock = Lock(f"orbitct-gpu-{socket.gethostname()}")
+    if not lock.acquire(timeout=0):
+        if progress is not None:
+            progress(ProgressEvent("gpu", 0, 1, "waiting for the GPU: another reconstruction is using it"))
+        lock.acquire()
+    try:
+        yield
+    finally:
+        lock.release()
 
 
 @contextlib.contextmanager

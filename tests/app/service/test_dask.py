@@ -122,6 +122,32 @@ def test_workers_reconstruct_their_views_on_their_gpus(cluster: DaskCluster, tmp
     assert len(on_gpu) == 2 and all(on_gpu.values())
 
 
+def _hold_the_gpu(seconds: float) -> tuple[float, float, list[str]]:
+    """On a worker: hold this machine's GPU as a reconstruction job does; when it was held, and what was said."""
+    from orbitct_app.service.jobs.tasks import one_job_per_gpu
+
+    said: list[str] = []
+    with one_job_per_gpu(lambda event: said.append(event.message)):
+        start = time.time()
+        time.sleep(seconds)
+        return start, time.time(), said
+
+
+def test_two_reconstruction_jobs_never_share_one_gpu(cluster: DaskCluster) -> None:
+    """Two GPU jobs on two workers of one machine take its GPU in turn; the one that waits says so."""
+    client = cluster.client()
+    try:
+        workers = sorted(client.scheduler_info()["workers"])
+        assert len(workers) == 2
+        futures = [client.submit(_hold_the_gpu, 1.0, pure=False, workers=[w]) for w in workers]
+        first, second = client.gather(futures)
+    finally:
+        client.close()
+    (a0, a1, said_a), (b0, b1, said_b) = sorted([first, second])
+    assert b0 >= a1 - 0.05  # one after the other
+    assert said_b == ["waiting for the GPU: another reconstruction is using it"] and said_a == []
+
+
 def test_pwls_that_would_not_fit_a_workers_memory_limit_is_refused_before_loading(sphere_scan: Path) -> None:
     import dask
     from distributed import Client, LocalCluster
