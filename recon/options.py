@@ -73,8 +73,8 @@ class ReconstructionOptions(BaseModel):
     )
     device: Device = Field(
         "auto",
-        description="where the projectors and back-projection run: cpu, cuda (one GPU; the gpu extra) or auto (the "
-        "GPU when one is usable, else the CPU)",
+        description="where the projectors, FDK's filtering and back-projection and the PWLS steps run: cpu, cuda "
+        "(one NVIDIA GPU; the gpu extra) or auto (the GPU when one is usable, else the CPU)",
     )
     name: str | None = Field(
         None,
