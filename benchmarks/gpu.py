@@ -171,7 +171,7 @@ def main() -> None:
     reset_peak()
     rows.append(
         (
-            "FDK (hann; filtered on the CPU)",
+            "FDK (hann)",
             _best(lambda: recon.fdk(y, grid, geometry, device="cuda")),
             peak_bytes(),
             "",
