@@ -122,7 +122,12 @@ def reconstruct(
     click.echo(f"  grid: {res.params['grid_choice']}")
     peak = res.params.get("device_peak_bytes")
     click.echo(f"  device: {res.params['device']}" + (f", {peak / 2**20:,.0f} MiB peak GPU memory" if peak else ""))
-    if res.compile_s > 0.5:
+    if res.compile_s > 0.5 and peak:  # on a GPU
+        click.echo(
+            f"  {res.compile_s:.1f} s compiling numerical kernels (the GPU's are compiled in every run, the CPU's once "
+            "after installation; not counted above)"
+        )
+    elif res.compile_s > 0.5:
         click.echo(
             f"  first use after installation: {res.compile_s:.1f} s compiling numerical kernels (cached for the next "
             "run; not counted above)"

@@ -152,3 +152,25 @@ def test_a_failed_calibrated_geometry_is_refused_until_accepted_and_the_volume_s
     assert "verdict: passed with warnings" in accepted.output and "by explicit override" in accepted.output
     nominal = CliRunner().invoke(cli, [*args, "--geometry", "nominal"])
     assert nominal.exit_code == 0 and "verdict: passed" in nominal.output, nominal.output
+
+
+def test_the_gpu_says_its_kernels_compile_in_every_run(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """On a GPU (here numba's CUDA simulator) the compile line does not promise a cache the GPU's kernels lack."""
+    import recon.pipeline
+    from tests.helpers.compiling import compiling_first
+
+    t = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    scan = tmp_path / "tiny.h5"
+    write_sphere_scan(scan, ViewGeometry.from_carm(t, 0.0, 785.0, 1200.0, bench_detector(12)))
+    slow = recon.pipeline.fdk
+    for _ in range(4):  # enough new functions to pass the half second the command mentions
+        slow = compiling_first(slow)
+    monkeypatch.setattr(recon.pipeline, "fdk", slow)
+    words = [str(scan), "--geometry", "nominal", "--shape", "6,8,8", "--voxel-mm", "20", "--device", "cuda"]
+    r = CliRunner().invoke(cli, ["reconstruct", *words])
+    assert r.exit_code == 0, r.output
+    assert "device: CUDA simulator (numba, on the CPU), " in r.output and "MiB peak GPU memory" in r.output
+    assert "compiling numerical kernels (the GPU's are compiled in every run, the CPU's once after installation" in (
+        r.output
+    )
+    assert "cached for the next run" not in r.output
