@@ -1,4 +1,5 @@
-"""CUDA kernels (numba-cuda): the Joseph forward projector, its exact adjoint and the voxel-driven FDK back-projector.
+"""CUDA kernels (numba-cuda): the Joseph forward projector and its exact adjoint, FDK's filter and voxel-driven
+back-projector, and PWLS's residual (the solver's own kernels are in :mod:`recon.cuda_pwls`).
 
 The GPU twins of :mod:`recon.projector`'s CPU kernels, with the same input: per-view rays in voxel-index units
 (``recon.operator.index_rays``), a zero-bordered volume, projections ``(views, rows, cols)``, projection matrices on
@@ -6,7 +7,8 @@ voxel indices. Every array is passed flat (C order) with its sizes. A ray's set-
 (``recon.projector._ray``), compiled for the device, so both walk the same planes with the same float64 positions;
 the interpolation and the sums run in float32 as there. The forward projector and the back-projector of FDK give
 one thread a ray or a voxel; the adjoint gives one thread a ray and adds its four taps per plane atomically, so it is
-the transpose of the forward projector up to the order of float32 additions.
+the transpose of the forward projector up to the order of float32 additions. FDK's filter gives one block a
+detector row.
 
 Imported only when a reconstruction runs on a GPU (:mod:`recon.device`); with ``NUMBA_ENABLE_CUDASIM=1`` numba's
 CUDA simulator runs them on the CPU (the tests do, on tiny problems).

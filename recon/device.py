@@ -3,7 +3,7 @@
 ``auto`` takes the GPU when one is usable and the CPU otherwise. A GPU is usable when the ``gpu`` extra is installed
 (``pip install 'orbitct[gpu]'``: numba-cuda and the CUDA runtime's wheels) and the driver finds a device. Without the
 extra nothing here imports CUDA. numba's CUDA simulator (``NUMBA_ENABLE_CUDASIM=1``, what the tests use) runs the
-GPU kernels on the CPU, a thousand times slower: only an explicit ``cuda`` takes it, never ``auto``.
+GPU kernels on the CPU, far slower than the CPU kernels: only an explicit ``cuda`` takes it, never ``auto``.
 """
 
 from __future__ import annotations
