@@ -31,7 +31,8 @@ from recon.cuda_kernels import (
     strided_blocks,
 )
 from recon.errors import ReconError
-from recon.operator import Projector, _as_padded, index_matrices, interleaved_subsets
+from recon.operator import Projector, _as_padded, index_matrices
+from recon.pwls_setup import ordered_subsets, subset_operator, view_rows
 
 CHUNK_BYTES = 256 * 2**20  # projections moved to the device at a time
 
@@ -222,12 +223,6 @@ class CudaBackprojector:
         return out
 
 
-def _rows(stack: Any, views: NDArray[np.intp]) -> NDArray[np.float32]:
-    """The rows of ``stack`` for ``views``, as one contiguous float32 array (a slice when the views are in a row)."""
-    index = slice(int(views[0]), int(views[-1]) + 1) if views[-1] - views[0] == views.size - 1 else views
-    return np.ascontiguousarray(stack[index], dtype=np.float32)
-
-
 class CudaViewsData:
     """PWLS's data term (:class:`recon.pwls.DataTerm`) on the GPU: per subset, the iterate goes to the device once,
     every chunk of views is projected, compared with its data and back-projected there, and the gradient comes back.
@@ -246,15 +241,11 @@ class CudaViewsData:
         subset_views: list[NDArray[np.intp]] | None = None,
         resident_bytes: int = 8 * 2**30,
     ) -> None:
-        A.check_stacks(projections=y, weights=weights)
-        n_views = A.proj_shape[0]
-        if subset_views is None:
-            subset_views = interleaved_subsets(n_views, subsets)
+        self._views = ordered_subsets(A, y, weights, subsets, subset_views)
         self.A, self.y, self.weights = A, y, weights
         self.padded_shape = A.padded_shape
-        self.subsets = len(subset_views)
-        self._views = [np.asarray(v, np.intp) for v in subset_views]
-        self._ops = [A if v.size == n_views else A.subset(v) if v.size else None for v in self._views]
+        self.subsets = len(self._views)
+        self._ops = [subset_operator(A, v) for v in self._views]
         data_bytes = (2 if weights is not None else 1) * 4 * math.prod(A.proj_shape)
         self._resident = data_bytes <= resident_bytes
         self.resident_bytes = data_bytes if self._resident else 0
@@ -267,7 +258,7 @@ class CudaViewsData:
         key = (m, j0, weights)
         if key in self._cache:
             return self._cache[key]
-        d = cuda.to_device(_rows(self.weights if weights else self.y, self._views[m][j0:j1]).reshape(-1))
+        d = cuda.to_device(view_rows(self.weights if weights else self.y, self._views[m][j0:j1]).reshape(-1))
         if self._resident:
             self._cache[key] = d
         return d
@@ -300,7 +291,7 @@ class CudaViewsData:
             self.A.forward_on_device(d_ones, r, j0, j1)
             if self.weights is not None:
                 scale_kernel[strided_blocks(r.size), THREADS](
-                    r, cuda.to_device(_rows(self.weights, whole[j0:j1]).reshape(-1))
+                    r, cuda.to_device(view_rows(self.weights, whole[j0:j1]).reshape(-1))
                 )
             self.A.back_on_device(r, d_acc, j0, j1)
         self.hold(2)

@@ -194,11 +194,6 @@ class _Adjoint:
         return self._a
 
 
-def interleaved_subsets(n_views: int, subsets: int) -> list[NDArray[np.intp]]:
-    """Ordered subsets of views: every ``subsets``-th view, starting at each offset."""
-    return [np.arange(m, n_views, subsets) for m in range(subsets)]
-
-
 def projector(grid: VolumeGrid, geometry: ViewGeometry) -> Projector:
     """The projection operator of ``grid`` seen by ``geometry``."""
     return Projector(grid, geometry)

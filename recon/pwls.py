@@ -23,9 +23,17 @@ from numpy.typing import NDArray
 from orbitct.progress import ProgressCallback, report
 from recon.errors import ReconError
 from recon.fdk import ProjectionStack
-from recon.operator import Projector, interleaved_subsets
+from recon.operator import Projector
 from recon.options import DEFAULT_BETA
-from recon.pwls_setup import PwlsResult, absolute_beta, checked_start, neighbour_offsets
+from recon.pwls_setup import (
+    PwlsResult,
+    absolute_beta,
+    checked_start,
+    neighbour_offsets,
+    ordered_subsets,
+    subset_operator,
+    view_rows,
+)
 
 
 @njit(parallel=True, cache=True, fastmath=True, boundscheck=False)
@@ -188,15 +196,13 @@ class _Pass:
     """One subset's views, walked in chunks: operator, view numbers, and chunk bounds in the operator."""
 
     def __init__(self, A: Projector, views: NDArray[np.intp], chunk: int) -> None:
-        self.op = A if views.size == A.proj_shape[0] else A.subset(views) if views.size else None
+        self.op = subset_operator(A, views)
         self.views = views
         self.chunks = [(j, min(j + chunk, views.size)) for j in range(0, views.size, chunk)]
 
     def read(self, stack: NDArray[np.float32] | ProjectionStack, j0: int, j1: int) -> NDArray[np.float32]:
         """Rows of ``stack`` for chunk ``j0..j1`` as float32 (a view when ``stack`` is an array and views are contiguous)."""
-        v = self.views[j0:j1]
-        index = slice(int(v[0]), int(v[-1]) + 1) if v[-1] - v[0] == v.size - 1 else v
-        return np.ascontiguousarray(stack[index], dtype=np.float32)
+        return view_rows(stack, self.views[j0:j1])
 
 
 class DataTerm(Protocol):
@@ -233,14 +239,12 @@ class ViewsData:
         chunk_views: int = 8,
         subset_views: list[NDArray[np.intp]] | None = None,
     ) -> None:
-        A.check_stacks(projections=y, weights=weights)
+        subset_views = ordered_subsets(A, y, weights, subsets, subset_views)
         n_views = A.proj_shape[0]
-        if subset_views is None:
-            subset_views = interleaved_subsets(n_views, subsets)
         self.A, self.y, self.weights = A, y, weights
         self.padded_shape = A.padded_shape
         self.subsets = len(subset_views)
-        self._passes = [_Pass(A, np.asarray(v, np.intp), chunk_views) for v in subset_views]
+        self._passes = [_Pass(A, v, chunk_views) for v in subset_views]
         self._whole = _Pass(A, np.arange(n_views), chunk_views)
         self._buf = np.empty((min(chunk_views, n_views),) + A.proj_shape[1:], np.float32)
         self._no_w = np.ones((1, 1, 1), np.float32)

@@ -1,14 +1,19 @@
 """What the PWLS solvers on the CPU (:mod:`recon.pwls`) and on the GPU (:mod:`recon.cuda_pwls`) share: the result,
-the penalty's neighbourhood, the checks of a start and the penalty's absolute strength."""
+the penalty's neighbourhood, the checks of a start, the penalty's absolute strength, and how a data term cuts its
+views into ordered subsets and reads them."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any, TypeVar, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
 from recon.errors import ReconError
+from recon.operator import Projector
+
+P = TypeVar("P", bound=Projector)
 
 
 @dataclass
@@ -65,3 +70,29 @@ def absolute_beta(data_curvature: NDArray[np.float32], beta: float, omega: NDArr
     sample = data_curvature[::2, ::2, ::2]
     pos = sample[sample > 0]
     return float(beta * (np.median(pos) if pos.size else 0.0) / (2 * omega.sum()))
+
+
+def ordered_subsets(
+    A: Projector, y: Any, weights: Any | None, subsets: int, subset_views: list[NDArray[np.intp]] | None
+) -> list[NDArray[np.intp]]:
+    """The views of each ordered subset of a data term of ``A`` (given, or every ``subsets``-th view starting at each
+    offset), after refusing projections or weights not of ``A``'s projection shape."""
+    A.check_stacks(projections=y, weights=weights)
+    if subset_views is None:
+        n_views = A.proj_shape[0]
+        subset_views = [np.arange(m, n_views, subsets) for m in range(subsets)]
+    return [np.asarray(v, np.intp) for v in subset_views]
+
+
+def subset_operator(A: P, views: NDArray[np.intp]) -> P | None:
+    """``A`` restricted to ``views`` (``A`` itself for all of them, None for none), of ``A``'s kind."""
+    if views.size == A.proj_shape[0]:
+        return A
+    return cast(P, A.subset(views)) if views.size else None
+
+
+def view_rows(stack: Any, views: NDArray[np.intp]) -> NDArray[np.float32]:
+    """The rows of ``stack`` (an array or anything sliceable along views) for ``views`` as contiguous float32 (a view
+    of an array when the views are in a row)."""
+    index = slice(int(views[0]), int(views[-1]) + 1) if views[-1] - views[0] == views.size - 1 else views
+    return np.ascontiguousarray(stack[index], dtype=np.float32)
