@@ -35,6 +35,17 @@ def _voxel(t, nx, ny):  # type: ignore[no-untyped-def]
 
 
 @cuda.jit(device=True)
+def _neighbour(z, y, x, k, offs, nx, ny, nz):  # type: ignore[no-untyped-def]
+    """Padded flat index of neighbour ``k`` of the padded voxel (z, y, x); -1 when it lies outside the image."""
+    zz = z + offs[k, 0]
+    yy = y + offs[k, 1]
+    x2 = x + offs[k, 2]
+    if zz < 1 or zz > nz or yy < 1 or yy > ny or x2 < 1 or x2 > nx:
+        return -1
+    return (zz * (ny + 2) + yy) * (nx + 2) + x2
+
+
+@cuda.jit(device=True)
 def _block_sum(shared, v, total):  # type: ignore[no-untyped-def]
     """Add ``v`` of every thread of the block into ``total[0]`` (one atomic add per block). Every thread calls it."""
     tid = cuda.threadIdx.x
@@ -61,12 +72,10 @@ def penalty_kernel(xp, nx, ny, nz, offs, omega, scale, gp, with_gradient, total)
         xj = xp[p]
         g = 0.0
         for k in range(offs.shape[0]):
-            zz = z + offs[k, 0]
-            yy = y + offs[k, 1]
-            x2 = x + offs[k, 2]
-            if zz < 1 or zz > nz or yy < 1 or yy > ny or x2 < 1 or x2 > nx:
+            q = _neighbour(z, y, x, k, offs, nx, ny, nz)
+            if q < 0:
                 continue
-            d = xj - xp[(zz * (ny + 2) + yy) * (nx + 2) + x2]
+            d = xj - xp[q]
             g += omega[k] * d
             acc += omega[k] * d * d
         if with_gradient:
@@ -83,10 +92,7 @@ def penalty_curvature_kernel(denom, nx, ny, nz, offs, omega, beta):  # type: ign
     p, z, y, x = _voxel(t, nx, ny)
     c = 0.0
     for k in range(offs.shape[0]):
-        zz = z + offs[k, 0]
-        yy = y + offs[k, 1]
-        x2 = x + offs[k, 2]
-        if 1 <= zz <= nz and 1 <= yy <= ny and 1 <= x2 <= nx:
+        if _neighbour(z, y, x, k, offs, nx, ny, nz) >= 0:
             c += omega[k]
     denom[p] += beta * 2.0 * c
 
