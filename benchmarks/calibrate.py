@@ -87,8 +87,10 @@ def _run(scan: str, method: str, work: str, queue: Any, trace: bool) -> None:
     if trace:  # tracemalloc slows every allocation: only on request, and then timings are not comparable
         tracemalloc.start()
     # bundle-equal: the bundle with every detection weighted alike (before detections were weighted by background)
-    options = {"weigh_detections": False} if method == "bundle-equal" else {}
-    res = calib.calibrate_scan(out, method=method.removesuffix("-equal"), **options)
+    options: dict[str, Any] = {"weigh_detections": False} if method == "bundle-equal" else {}
+    if method.endswith("-predicted"):
+        options["bb_search"] = "predicted"
+    res = calib.calibrate_scan(out, method=method.removesuffix("-equal").removesuffix("-predicted"), **options)
     cpu1 = proc.cpu_times()
     cpu_s = (cpu1.user - cpu0.user) + (cpu1.system - cpu0.system)
     peak_traced = tracemalloc.get_traced_memory()[1] if trace else float("nan")
@@ -170,7 +172,8 @@ def main() -> None:
     ap.add_argument(
         "--methods",
         default="bundle,paper",
-        help="bundle, paper, bundle-equal (the bundle weighting every detection alike)",
+        help="bundle, paper, bundle-equal (the bundle weighting every detection alike), bundle-predicted (BBs "
+        "searched round those found before: bb_search predicted)",
     )
     ap.add_argument("--size", type=int, default=768, help="detector size (px)")
     ap.add_argument("--frames-scale", type=float, default=1.0, help="fraction of the paper's frame counts")

@@ -55,37 +55,43 @@ def _binned_line_integrals(raw, dark_b, den_b, b):  # type: ignore[no-untyped-de
 
 
 @numba.njit(cache=True, nogil=True)
-def _local_maxima(resp, threshold, border, max_count):  # type: ignore[no-untyped-def]
-    """The ``max_count`` strongest 3x3 local maxima above ``threshold``: rows ``(col, row, value)``."""
+def _local_maxima(resp, threshold, max_count, boxes):  # type: ignore[no-untyped-def]
+    """The ``max_count`` strongest 3x3 local maxima above ``threshold`` inside ``boxes`` (rows ``(row0, row1, col0,
+    col1)``, half-open, at least one pixel inside the image's edge; they may overlap): rows ``(col, row, value)``."""
     rows, cols = resp.shape
+    seen = np.zeros((rows, cols), np.bool_)
     found = np.empty((max_count, 3), np.float64)
     n = 0
     weakest = 0
-    for i in range(border, rows - border):
-        for j in range(border, cols - border):
-            v = resp[i, j]
-            if v < threshold:
-                continue
-            if n == max_count and v <= found[weakest, 2]:
-                continue
-            is_max = True
-            for di in range(-1, 2):
-                for dj in range(-1, 2):
-                    if (di != 0 or dj != 0) and resp[i + di, j + dj] > v:
-                        is_max = False
-            if not is_max:
-                continue
-            slot = n if n < max_count else weakest
-            found[slot, 0] = j
-            found[slot, 1] = i
-            found[slot, 2] = v
-            if n < max_count:
-                n += 1
-            if n == max_count:
-                weakest = 0
-                for q in range(1, n):
-                    if found[q, 2] < found[weakest, 2]:
-                        weakest = q
+    for k in range(boxes.shape[0]):
+        for i in range(boxes[k, 0], boxes[k, 1]):
+            for j in range(boxes[k, 2], boxes[k, 3]):
+                if seen[i, j]:
+                    continue
+                seen[i, j] = True
+                v = resp[i, j]
+                if v < threshold:
+                    continue
+                if n == max_count and v <= found[weakest, 2]:
+                    continue
+                is_max = True
+                for di in range(-1, 2):
+                    for dj in range(-1, 2):
+                        if (di != 0 or dj != 0) and resp[i + di, j + dj] > v:
+                            is_max = False
+                if not is_max:
+                    continue
+                slot = n if n < max_count else weakest
+                found[slot, 0] = j
+                found[slot, 1] = i
+                found[slot, 2] = v
+                if n < max_count:
+                    n += 1
+                if n == max_count:
+                    weakest = 0
+                    for q in range(1, n):
+                        if found[q, 2] < found[weakest, 2]:
+                            weakest = q
     return found[:n]
 
 
@@ -308,19 +314,97 @@ def _refine_all(raw, dark, den, peaks, b, radius, half, passes, noise):  # type:
     return out
 
 
-def _disc_kernel_spectrum(shape: tuple[int, int], radius: float) -> NDArray[np.complex64]:
-    """Spectrum of a zero-mean kernel: disc of ``radius`` minus the surrounding ring (binned pixels)."""
+def _disc_kernel(radius: float) -> NDArray[np.float64]:
+    """A zero-mean kernel ``(2h + 1, 2h + 1)``: disc of ``radius`` minus the surrounding ring (binned pixels)."""
     r_out = 2.0 * radius + 1.5
     h = int(np.ceil(r_out))
     y, x = np.mgrid[-h : h + 1, -h : h + 1]
     rr = np.hypot(x, y)
     disc = (rr <= radius + 0.5).astype(np.float64)
     ring = ((rr > radius + 1.0) & (rr <= r_out)).astype(np.float64)
-    k = disc / disc.sum() - ring / max(ring.sum(), 1.0)
+    return np.asarray(disc / disc.sum() - ring / max(ring.sum(), 1.0))
+
+
+def _disc_kernel_spectrum(shape: tuple[int, int], radius: float) -> NDArray[np.complex64]:
+    """Spectrum of :func:`_disc_kernel` on an image of ``shape`` (correlation by multiplication)."""
+    k = _disc_kernel(radius)
+    h = k.shape[0] // 2
     full = np.zeros(shape)
     full[: k.shape[0], : k.shape[1]] = k[::-1, ::-1]
     full = np.roll(full, (-h, -h), axis=(0, 1))
     return scipy.fft.rfft2(full).astype(np.complex64)
+
+
+def _disc_kernel_rows(radius: float) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], float, float]:
+    """:func:`_disc_kernel` as runs along its rows: per row, the half-widths of the disc, of the ring's outer
+    and of its inner edge (-1: none), and the weights of the disc and the ring."""
+    k = _disc_kernel(radius)
+    h = k.shape[0] // 2
+    y, x = np.mgrid[-h : h + 1, -h : h + 1]
+    rr = np.hypot(x, y)
+    disc, outer, inner = rr <= radius + 0.5, rr <= 2.0 * radius + 1.5, rr <= radius + 1.0
+    ring = outer & ~inner
+    widths = [(m.sum(axis=1) - 1) // 2 for m in (disc, outer, inner)]
+    return widths[0], widths[1], widths[2], 1.0 / disc.sum(), 1.0 / max(ring.sum(), 1)
+
+
+@numba.njit(cache=True, nogil=True)
+def _window_response(raw, dark_b, den_b, b, rows_d, rows_o, rows_i, w_disc, w_ring, boxes):  # type: ignore[no-untyped-def]
+    """The disc-kernel correlation of the binned line integrals in ``boxes`` (rows ``(row0, row1, col0, col1)``,
+    binned) and one pixel round each, the image extended by its edge values as :meth:`FrameDetector.response`
+    does; zero elsewhere. The kernel comes as runs along its rows (:func:`_disc_kernel_rows`), summed from
+    running sums of the line integrals."""
+    rows, cols = dark_b.shape
+    h = rows_d.shape[0] // 2
+    resp = np.zeros((rows, cols), np.float32)
+    li = np.empty((rows, cols), np.float32)
+    done = np.zeros((rows, cols), np.bool_)
+    acc = np.empty(cols * b, np.float32)
+    inv = np.float32(1.0 / (b * b))
+    for k in range(boxes.shape[0]):
+        r0, r1 = max(boxes[k, 0] - 1, 0), min(boxes[k, 1] + 1, rows)
+        c0, c1 = max(boxes[k, 2] - 1, 0), min(boxes[k, 3] + 1, cols)
+        if r1 <= r0 or c1 <= c0:
+            continue
+        ca, cb = max(c0 - h, 0), min(c1 + h, cols)
+        for i in range(max(r0 - h, 0), min(r1 + h, rows)):  # the binned line integrals the window needs
+            acc[ca * b : cb * b] = 0.0
+            for di in range(b):
+                line = raw[i * b + di]
+                for x in range(ca * b, cb * b):
+                    acc[x] += np.float32(line[x])
+            for j in range(ca, cb):
+                if not done[i, j]:
+                    s = np.float32(0.0)
+                    for dj in range(b):
+                        s += acc[j * b + dj]
+                    num = max(s * inv - dark_b[i, j], np.float32(0.5))
+                    li[i, j] = -np.log(num / den_b[i, j])
+                    done[i, j] = True
+        pc = c1 - c0 + 2 * h
+        run = np.empty(pc + 1, np.float64)  # run[j]: the sum of the patch row's first j line integrals
+        out = np.empty(c1 - c0, np.float64)
+        for i in range(r0, r1):
+            out[:] = 0.0
+            for dy in range(-h, h + 1):
+                row = min(max(i + dy, 0), rows - 1)
+                run[0] = 0.0
+                for pj in range(pc):
+                    run[pj + 1] = run[pj] + li[row, min(max(c0 - h + pj, 0), cols - 1)]
+                wd, wo, wi = rows_d[dy + h], rows_o[dy + h], rows_i[dy + h]
+                for j in range(c1 - c0):
+                    x = j + h  # the pixel's column in the patch
+                    v = 0.0
+                    if wd >= 0:
+                        v += w_disc * (run[x + wd + 1] - run[x - wd])
+                    if wo >= 0:
+                        v -= w_ring * (run[x + wo + 1] - run[x - wo])
+                    if wi >= 0:
+                        v += w_ring * (run[x + wi + 1] - run[x - wi])
+                    out[j] += v
+            for j in range(c1 - c0):  # boxes may overlap: written, not added
+                resp[i, c0 + j] = out[j]
+    return resp
 
 
 #: bounds of a detection's spread relative to the scan's typical one (:func:`detection_spread`)
@@ -380,6 +464,15 @@ def settings_for(diameter_px: float, shape: tuple[int, int]) -> DetectorSettings
     return DetectorSettings(diameter_px=float(diameter_px), binning=b)
 
 
+@dataclass(frozen=True)
+class FrameSearch:
+    """What one search of a frame found: candidate records, and the weakest score kept when it kept the most
+    peaks it may (else 0): a search of windows only ignores weaker peaks, as the whole frame's search would."""
+
+    records: NDArray[np.float64]
+    floor: float
+
+
 class FrameDetector:
     """Finds BB candidates in raw frames of one scan (fixed dark, flat and BB size)."""
 
@@ -406,6 +499,7 @@ class FrameDetector:
             scipy.fft.next_fast_len(cb + 2 * self.pad, real=True),
         )
         self._kernel = _disc_kernel_spectrum(self.padded, self.radius_b)
+        self._kernel_rows = _disc_kernel_rows(self.radius_b)
         self.border = int(np.ceil(self.radius_b))  # peaks searched wherever a whole BB fits on the panel
         self.noise_border = int(np.ceil(2 * self.radius_b + 2))
         self.half = int(np.ceil(settings.diameter_px)) + 2
@@ -460,18 +554,65 @@ class FrameDetector:
         self.noise_factor = factor if factor > 1.05 else 1.0
         return factor
 
-    def candidates(self, raw: NDArray[np.generic]) -> NDArray[np.float64]:
-        """Candidate records ``(M, N_FIELDS)`` (see ``CANDIDATE_FIELDS``), strongest first."""
+    def candidates(
+        self,
+        raw: NDArray[np.generic],
+        near: NDArray[np.float64] | None = None,
+        reach_px: float | NDArray[np.float64] = 0.0,
+    ) -> NDArray[np.float64]:
+        """Candidate records ``(M, N_FIELDS)`` (see ``CANDIDATE_FIELDS``), strongest first: in the whole frame, or
+        with ``near`` (K, 2) positions (col, row) only within ``reach_px`` (one, or one each) of them in each
+        direction."""
+        return self.search(raw, near, reach_px).records
+
+    def search(
+        self,
+        raw: NDArray[np.generic],
+        near: NDArray[np.float64] | None = None,
+        reach_px: float | NDArray[np.float64] = 0.0,
+        floor: float = 0.0,
+    ) -> FrameSearch:
+        """:meth:`candidates`, keeping only peaks of at least ``floor`` (a score: response over noise), and the
+        floor this search set: the weakest peak kept when more were found than are kept (else 0)."""
         s = self.settings
         raw = self.defects.filled(raw)
-        resp = self.response(raw)
         if self.noise is None:
             self.noise = self.estimate_noise(raw)
+        boxes = self._boxes(self.dark_b.shape, near, reach_px)
+        if near is None:
+            resp = self.response(raw)
+        else:  # the windows only, directly (a few hundred binned pixels each)
+            resp = _window_response(raw, self.dark_b, self.den_b, s.binning, *self._kernel_rows, boxes)
         cap = max(s.max_candidates, resp.size // CANDIDATE_AREA_PX)
-        peaks = _local_maxima(resp, s.k_sigma * self.noise, self.border, cap)
+        peaks = _local_maxima(resp, max(s.k_sigma, floor) * self.noise, cap, boxes)
         peaks = peaks[np.argsort(-peaks[:, 2])]
         out = _refine_all(
             raw, self.dark, self.den, peaks, s.binning, 0.5 * s.diameter_px, self.half, s.refine_passes, self.noise
         )
         keep = np.isfinite(out[:, 0])
-        return out[keep]
+        return FrameSearch(out[keep], float(peaks[-1, 2] / self.noise) if len(peaks) == cap else 0.0)
+
+    def _boxes(
+        self, shape: tuple[int, int], near: NDArray[np.float64] | None, reach_px: float | NDArray[np.float64]
+    ) -> NDArray[np.int64]:
+        """Where peaks are searched in the binned response: the whole image less its border, or the squares of
+        half-side ``reach_px`` (one, or one each) round the positions ``near`` (col, row at full resolution)."""
+        rows, cols = shape
+        e = max(self.border, 1)
+        if near is None:
+            return np.array([[e, rows - e, e, cols - e]], np.int64)
+        b = self.settings.binning
+        centre = (np.asarray(near, np.float64).reshape(-1, 2) - 0.5 * (b - 1)) / b
+        half = np.reshape(np.asarray(reach_px, np.float64), (-1, 1)) / b
+        lo = np.floor(centre - half).astype(np.int64)
+        hi = np.ceil(centre + half).astype(np.int64) + 1
+        boxes = np.stack(
+            [
+                np.clip(lo[:, 1], e, rows - e),
+                np.clip(hi[:, 1], e, rows - e),
+                np.clip(lo[:, 0], e, cols - e),
+                np.clip(hi[:, 0], e, cols - e),
+            ],
+            axis=1,
+        )
+        return np.ascontiguousarray(boxes, np.int64)

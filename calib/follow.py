@@ -13,7 +13,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,6 +24,7 @@ from calib.framepose import FramePose, StepWatch, fit_frame_pose
 from calib.model import ViewModel, ViewState
 from calib.options import checked_options
 from calib.pipeline import frame_detector, motion_px, projected_diameter_px
+from calib.search import SearchPlan
 from calib.track import (
     FrameLinker,
     FrameLinks,
@@ -166,7 +167,10 @@ class Follower:
             jitter_px=self.opt.jitter_mm * self.d_px / self.diameter_mm,
         )
         self.linker = FrameLinker(self.tracking)
+        # the candidates as an offline calibration finds them: the same search, frame by frame
+        self.plan = SearchPlan.for_scan(self.d_px, self.tracking.motion_px, self.tracking.jitter_px, self.opt.bb_search)
         self.candidates: list[NDArray[np.float64] | None] = []
+        self.floors: list[float] = []  # per projection, :attr:`calib.detect.FrameSearch.floor` (NaN: after the scan)
         self.bbs_per_frame: list[int] = []
         self.detect_s = 0.0
         self._dark_sum: NDArray[np.float64] | None = None
@@ -222,8 +226,16 @@ class Follower:
         if key != ImageKey.PROJECTION:
             return
         p = len(self.candidates)
-        if frame is None or self._dark_sum is None or self._flat_sum is None:
+        if (
+            frame is None
+            or self._dark_sum is None
+            or self._flat_sum is None
+            or (self._deferred and self.plan.predicted)
+        ):
+            # a predicted search of a frame depends on the frames before it: after one is missing, the rest are
+            # searched after the scan too
             self.candidates.append(None)
+            self.floors.append(np.nan)
             self._deferred.append(p)
             self.bbs_per_frame.append(-1)
             if not self._behind_warned:
@@ -247,9 +259,12 @@ class Follower:
             pair = (self._single_flats[0], self._single_flats[1]) if len(self._single_flats) == 2 else None
             self._detector = frame_detector(dark, flat, self.d_px, self.opt, pair)
         t = time.perf_counter()
-        c = self._detector.candidates(frame)
+        searched = cast(list[NDArray[np.float64]], self.candidates)  # none deferred yet: every one searched
+        found = self.plan.search(self._detector, frame, self.plan.windows(p, searched, np.array(self.floors)))
         self.detect_s += time.perf_counter() - t
+        c = found.records
         self.candidates.append(c)
+        self.floors.append(found.floor)
         if self._deferred:  # frames are missing before this one: follow no more, warn no more
             self.bbs_per_frame.append(-1)
             return

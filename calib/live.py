@@ -84,6 +84,8 @@ def _worker(
                         "done",
                         (
                             follower.candidates,
+                            follower.floors,
+                            follower.plan,
                             follower._deferred,
                             follower.detect_s,
                             follower.bbs_per_frame,
@@ -285,7 +287,7 @@ class LiveCalibration:
         self.timing["catch_up_s"] = time.perf_counter() - t_end  # the worker's backlog when the scan ended
         if self._failure is not None or self._outcome is None:
             raise LiveCalibrationError(f"the live calibration stopped: {self._failure}")
-        candidates, deferred, self.detect_s, self.bbs_per_frame, d_px, linked, windows = self._outcome
+        candidates, floors, plan, deferred, self.detect_s, self.bbs_per_frame, d_px, linked, windows = self._outcome
         self.timing["windows"], self.timing["window_s"], self.timing["posed"] = (float(w) for w in windows)
         self.frames_detected_after_scan = len(deferred)
         opt = checked_options("bundle", {**self.options, "diameter_mm": self.diameter_mm})
@@ -300,8 +302,11 @@ class LiveCalibration:
                 dark, flat = sf.dark_flat()
                 fd = frame_detector(dark, flat, d_px, opt, two_flats(sf))
                 fd.noise = fd.estimate_noise(np.asarray(sf.frames[int(proj[0])]))  # as offline: the first projection
-                for p in deferred:
-                    candidates[p] = fd.candidates(np.asarray(sf.frames[int(proj[p])]))
+                floors_so_far = np.array(floors)
+                for p in deferred:  # in order, searched as offline: each frame's windows come from those before
+                    windows = plan.windows(p, candidates, floors_so_far)
+                    found = plan.search(fd, np.asarray(sf.frames[int(proj[p])]), windows)
+                    candidates[p], floors_so_far[p] = found.records, found.floor
                 self.detect_s += time.perf_counter() - t
         cands = [np.zeros((0, N_FIELDS)) if c is None else c for c in candidates]
         t_solve = time.perf_counter()

@@ -50,6 +50,7 @@ from calib.refine import (
 )
 from calib.result import CalibrationResult, IterationStats, iteration_stats
 from calib.scale import find_scale_bar, rescaled_views
+from calib.search import LAG, SearchPlan, Windows
 from calib.track import TrackingSettings, link_fragments
 from orbitct.compiletime import CompileClock
 from orbitct.geometry import ViewGeometry
@@ -94,21 +95,32 @@ def _detect(
     cands: list[NDArray[np.float64]] = [np.zeros((0, N_FIELDS))] * total
     problems: dict[int, str] = {}
 
-    def checked(buf: NDArray[Any]) -> NDArray[np.float64]:  # a frame that cannot be used yields no candidates
-        why = frame_problem(buf, projection=True)
-        return fd.candidates(buf) if why is None else np.array([why], dtype=object)
+    plan = SearchPlan.for_scan(d_px, motion_px(nominal), opt.jitter_mm * d_px / diameter_mm, opt.bb_search)
+    floors = np.full(total, np.nan)  # per frame searched whole, the weakest score it kept (NaN: searched round)
 
-    def take(m: int, c: NDArray[Any]) -> None:
+    def checked(buf: NDArray[Any], windows: Windows | None = None) -> tuple[NDArray[Any], float]:
+        """The frame's candidates and floor (:meth:`SearchPlan.search`); a frame that cannot be used yields the
+        reason instead."""
+        why = frame_problem(buf, projection=True)
+        if why is not None:
+            return np.array([why], dtype=object), 0.0
+        found = plan.search(fd, buf, windows)
+        return found.records, found.floor
+
+    def take(m: int, found: tuple[NDArray[Any], float]) -> None:
+        c, floors[m] = found
         if c.dtype == object:
             problems[int(proj[m])] = str(c[0])
             c = np.zeros((0, N_FIELDS))
         cands[m] = c
 
-    # the main thread reads frames (h5py holds the GIL); workers run the GIL-free kernels
+    # the main thread reads frames (h5py holds the GIL); workers run the GIL-free kernels. A predicted search
+    # takes frame n - LAG's candidates before frame n is sent
+    ahead = LAG - 1 if plan.predicted else 2 * max(1, workers)
     begun = started = time.perf_counter()
     compiled_before = compiled = clock.seconds
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        pending: deque[tuple[int, Future[NDArray[Any]]]] = deque()
+        pending: deque[tuple[int, Future[tuple[NDArray[Any], float]]]] = deque()
         for n, i in enumerate(proj):
             if n == 4:  # timed from here: the first frames set things up (noise level, kernels loaded)
                 started, compiled = time.perf_counter(), clock.seconds
@@ -119,13 +131,13 @@ def _detect(
             buf = np.empty(det.shape, dtype=ds.dtype)
             ds.read_direct(buf, np.s_[int(i)])
             if n == 0:
-                c = checked(buf)  # also fixes the noise level used for every frame
+                c, floor = checked(buf)  # also fixes the noise level used for every frame
                 if seeds_uv is not None and c.dtype != object:
                     c = np.concatenate([_seed_records(buf, fd, np.asarray(seeds_uv, float)), c])
-                take(0, c)
+                take(0, (c, floor))
                 continue
-            pending.append((n, pool.submit(checked, buf)))
-            while len(pending) > 2 * max(1, workers) or (pending and pending[0][1].done()):
+            pending.append((n, pool.submit(checked, buf, plan.windows(n, cands, floors))))
+            while len(pending) > ahead or (pending and pending[0][1].done()):
                 m, fut = pending.popleft()
                 take(m, fut.result())
                 if m % step == 0:
@@ -138,7 +150,7 @@ def _detect(
             f"{describe_frame_problems(problems)}; a geometry fitted to them would be wrong, so none "
             "is stored"
         )
-    report(progress, "detect", total, total, "")
+    report(progress, "detect", total, total, f"{int(np.isnan(floors).sum())} of {total} searched round the BBs found")
     return cands, float(diameter_mm), d_px
 
 

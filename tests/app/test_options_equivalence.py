@@ -166,6 +166,8 @@ CALIBRATION_CASES: list[tuple[dict[str, Any], bool]] = [
     ({"recover": False, "weigh_detections": False}, True),
     ({"loss_scale_px": 0.5, "min_observations": 12}, True),
     ({"min_observations": 1}, False),
+    ({"bb_search": "predicted"}, True),
+    ({"bb_search": "windows"}, False),
 ]
 
 
