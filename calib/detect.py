@@ -96,8 +96,10 @@ def _local_maxima(resp, threshold, max_count, boxes):  # type: ignore[no-untyped
 
 
 @numba.njit(cache=True, nogil=True)
-def _solve3(a, y):  # type: ignore[no-untyped-def]
-    """Solution of the symmetric 3x3 system ``a x = y`` (Cramer's rule; no LAPACK call per window)."""
+def solve3(a, y):  # type: ignore[no-untyped-def]
+    """Solution of the symmetric 3x3 system ``a x = y`` (Cramer's rule: no LAPACK call per window, and far less
+    to compile than ``np.linalg.solve``; a singular system gives inf or NaN). Also called by the kernels of
+    :mod:`calib.track`, whose cached machine code numba does not renew when this changes: change both files."""
     c00 = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]
     c01 = a[1, 2] * a[2, 0] - a[1, 0] * a[2, 2]
     c02 = a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]
@@ -228,7 +230,7 @@ def _refine_in(raw, dark, den, col0, row0, radius, half, passes, li):  # type: i
         atb[0] = s_z - i_z
         atb[1] = s_xz - i_xz
         atb[2] = s_yz - i_yz
-        coef = _solve3(ata, atb)
+        coef = solve3(ata, atb)
         w_sum = 0.0
         mx = 0.0
         my = 0.0

@@ -17,7 +17,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from calib.detect import CANDIDATE_FIELDS
+from calib.detect import CANDIDATE_FIELDS, solve3
 from calib.model import all_finite
 from orbitct.geometry import ViewGeometry
 
@@ -253,25 +253,40 @@ def _realign(pred, vis, cand, idx):  # type: ignore[no-untyped-def]
     n_m = rows.size
     out = pred.copy()
     if n_m >= 6:
-        A = np.ones((n_m, 3))
-        B = np.empty((n_m, 2))
+        # least squares by the normal equations, about the matches' mean (well conditioned: 3 unknowns)
+        mx = 0.0
+        my = 0.0
         for q in range(n_m):
-            A[q, 0] = pred[rows[q], 0]
-            A[q, 1] = pred[rows[q], 1]
-            B[q, 0] = cand[idx[rows[q]], 0]
-            B[q, 1] = cand[idx[rows[q]], 1]
-        coef = np.linalg.lstsq(A, B)[0]
-        fit = A @ coef
+            mx += pred[rows[q], 0] / n_m
+            my += pred[rows[q], 1] / n_m
+        ata = np.zeros((3, 3))
+        atx = np.zeros(3)
+        aty = np.zeros(3)
+        a = np.empty(3)
+        for q in range(n_m):
+            a[0], a[1], a[2] = pred[rows[q], 0] - mx, pred[rows[q], 1] - my, 1.0
+            for i in range(3):
+                for j in range(3):
+                    ata[i, j] += a[i] * a[j]
+                atx[i] += a[i] * cand[idx[rows[q]], 0]
+                aty[i] += a[i] * cand[idx[rows[q]], 1]
+        cx = solve3(ata, atx)
+        cy = solve3(ata, aty)
         before = np.empty(n_m)
         after = np.empty(n_m)
         for q in range(n_m):
-            before[q] = np.sqrt((A[q, 0] - B[q, 0]) ** 2 + (A[q, 1] - B[q, 1]) ** 2)
-            after[q] = np.sqrt((fit[q, 0] - B[q, 0]) ** 2 + (fit[q, 1] - B[q, 1]) ** 2)
+            px, py = pred[rows[q], 0], pred[rows[q], 1]
+            bx, by = cand[idx[rows[q]], 0], cand[idx[rows[q]], 1]
+            fx = cx[0] * (px - mx) + cx[1] * (py - my) + cx[2]
+            fy = cy[0] * (px - mx) + cy[1] * (py - my) + cy[2]
+            before[q] = np.sqrt((px - bx) ** 2 + (py - by) ** 2)
+            after[q] = np.sqrt((fx - bx) ** 2 + (fy - by) ** 2)
         if np.median(after) < np.median(before):
             for t in range(pred.shape[0]):
                 if vis[t]:
-                    out[t, 0] = pred[t, 0] * coef[0, 0] + pred[t, 1] * coef[1, 0] + coef[2, 0]
-                    out[t, 1] = pred[t, 0] * coef[0, 1] + pred[t, 1] * coef[1, 1] + coef[2, 1]
+                    dx, dy = pred[t, 0] - mx, pred[t, 1] - my
+                    out[t, 0] = cx[0] * dx + cx[1] * dy + cx[2]
+                    out[t, 1] = cy[0] * dx + cy[1] * dy + cy[2]
     elif n_m > 0:
         dx = np.empty(n_m)
         dy = np.empty(n_m)
@@ -328,7 +343,8 @@ def match_frame(
     with 6 or more matches, an affine distortion. Returns the assignment (-1 = none) and the aligned
     predictions."""
     pred = np.ascontiguousarray(pred, dtype=np.float64)
-    gate = np.ascontiguousarray(np.broadcast_to(np.asarray(gate_px, dtype=np.float64), (len(pred),)))
+    # a writable copy: a read-only array is another type to numba, compiled again (1.2 s on first use)
+    gate = np.array(np.broadcast_to(np.asarray(gate_px, dtype=np.float64), (len(pred),)))
     radius = 1.5 * float(gate.max(initial=0.0)) if residual_px is None else float(residual_px)
     return _match(pred, np.ascontiguousarray(cand, dtype=np.float64), float(search_px), gate, radius)
 
@@ -364,7 +380,7 @@ def _predict_from_rays(ray_o, ray_d, count, active, P, last_uv, P_last):  # type
                         p = (1.0 if i == j else 0.0) - ray_d[t, w, i] * ray_d[t, w, j]
                         A[i, j] += p
                         b[i] += p * ray_o[t, w, j]
-            x[:] = np.linalg.solve(A, b)
+            x[:] = solve3(A, b)
         h0 = P[0, 0] * x[0] + P[0, 1] * x[1] + P[0, 2] * x[2] + P[0, 3]
         h1 = P[1, 0] * x[0] + P[1, 1] * x[1] + P[1, 2] * x[2] + P[1, 3]
         h2 = P[2, 0] * x[0] + P[2, 1] * x[1] + P[2, 2] * x[2] + P[2, 3]
