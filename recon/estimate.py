@@ -70,10 +70,16 @@ def projector_rates(device: str = "cpu") -> tuple[float, float, float, float]:
 @functools.cache
 def rates(device: str = "cpu") -> tuple[float, float, float]:
     """Seconds per ray step of the forward and of the matched back projector, and per voxel and view of FDK."""
+    _, forward, _, back = projector_rates(device)
+    return forward, back, fdk_rate(device)
+
+
+@functools.cache
+def fdk_rate(device: str = "cpu") -> float:
+    """Seconds per voxel and view of FDK (measured alone: an FDK's estimate compiles no projector on first use)."""
     from orbitct.reference_bench import PANEL_MM, SAD_MM, SDD_MM, reference_panel
     from recon.fdk import fdk
 
-    _, forward, _, back = projector_rates(device)
     panel = reference_panel(_PROBE, PANEL_MM / _PROBE)
     grid = VolumeGrid.centered((_PROBE,) * 3, panel.pitch_col * SAD_MM / SDD_MM)
     # FDK over 32 views: over 8 its fixed cost per call (filter set-up, allocation) weighed in, and the rate
@@ -83,7 +89,7 @@ def rates(device: str = "cpu") -> tuple[float, float, float]:
     )
     y = np.ones((_FDK_PROBE_VIEWS, panel.rows, panel.cols), np.float32)
     fdk(y, grid, views, device=device)  # compiled before timing
-    return forward, back, _best(lambda: fdk(y, grid, views, device=device)) / (_FDK_PROBE_VIEWS * _PROBE**3)
+    return _best(lambda: fdk(y, grid, views, device=device)) / (_FDK_PROBE_VIEWS * _PROBE**3)
 
 
 @functools.cache
@@ -148,13 +154,13 @@ def reconstruction_seconds(
     asked for, the final cost) on this machine now, reading the projections included. With the projections'
     ``geometry`` the projectors count only the rays that meet the volume; without, every ray crosses half its
     planes along x and y. ``device``: where the projectors and FDK run (``cpu`` or ``cuda``)."""
-    forward, back, per_voxel_view = rates(device)
-    forward_ray, _, back_ray, _ = projector_rates(device)
     nz, ny, nx = grid.shape
     read_s = reading_rate() * n_views * rows * cols
-    fdk_s = per_voxel_view * n_views * nz * ny * nx
+    fdk_s = fdk_rate(device) * n_views * nz * ny * nx
     if algorithm == "fdk":
         return read_s + fdk_s
+    forward, back, _ = rates(device)
+    forward_ray, _, back_ray, _ = projector_rates(device)
     # a ray steps along its main axis, mostly x or y on C-arm orbits
     steps = ray_steps(grid, geometry) if geometry is not None else n_views * rows * cols * 0.5 * (nx + ny)
     rays = n_views * rows * cols  # each ray is set up whether it meets the volume or not
@@ -164,6 +170,7 @@ def reconstruction_seconds(
 
 
 __all__ = [
+    "fdk_rate",
     "projector_rates",
     "rates",
     "ray_steps",

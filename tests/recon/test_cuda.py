@@ -283,6 +283,7 @@ def test_the_estimate_measures_the_gpu_when_it_reconstructs_there(monkeypatch: p
         monkeypatch.setattr(estimate, name, value)
     estimate.projector_rates.cache_clear()
     estimate.rates.cache_clear()
+    estimate.fdk_rate.cache_clear()
     try:
         forward, back, per_voxel_view = estimate.rates("cuda")
         assert forward > 0 and back > 0 and per_voxel_view > 0
@@ -291,6 +292,7 @@ def test_the_estimate_measures_the_gpu_when_it_reconstructs_there(monkeypatch: p
     finally:
         estimate.projector_rates.cache_clear()
         estimate.rates.cache_clear()
+        estimate.fdk_rate.cache_clear()
 
 
 def test_work_that_does_not_fit_on_the_gpu_is_refused_before_it_starts(
