@@ -162,10 +162,8 @@ def test_the_gpu_says_its_kernels_compile_in_every_run(tmp_path: Path, monkeypat
     t = np.linspace(0, 2 * np.pi, 8, endpoint=False)
     scan = tmp_path / "tiny.h5"
     write_sphere_scan(scan, ViewGeometry.from_carm(t, 0.0, 785.0, 1200.0, bench_detector(12)))
-    slow = recon.pipeline.fdk
-    for _ in range(4):  # enough new functions to pass the half second the command mentions
-        slow = compiling_first(slow)
-    monkeypatch.setattr(recon.pipeline, "fdk", slow)
+    # compiling for longer than the half second the command mentions (24 small functions took 0.48 s warm)
+    monkeypatch.setattr(recon.pipeline, "fdk", compiling_first(recon.pipeline.fdk, seconds=1.0))
     words = [str(scan), "--geometry", "nominal", "--shape", "6,8,8", "--voxel-mm", "20", "--device", "cuda"]
     r = CliRunner().invoke(cli, ["reconstruct", *words])
     assert r.exit_code == 0, r.output
