@@ -150,7 +150,8 @@ def _detect(
             f"{describe_frame_problems(problems)}; a geometry fitted to them would be wrong, so none "
             "is stored"
         )
-    report(progress, "detect", total, total, f"{int(np.isnan(floors).sum())} of {total} searched round the BBs found")
+    windowed = f"{int(np.isnan(floors).sum())} of {total} searched round the BBs found" if plan.predicted else ""
+    report(progress, "detect", total, total, windowed)
     return cands, float(diameter_mm), d_px
 
 

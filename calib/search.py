@@ -3,9 +3,10 @@ before it found (the predicted search), and the whole frame when one of them is 
 
 The peaks of a frame are refined at full resolution one by one, which is most of a frame's detection time; an
 object full of structure offers hundreds of peaks, of which a few are BBs. Searching round the BBs already found
-skips the rest and, inside its windows, keeps BBs that structure elsewhere would push below the number of peaks
-kept. Frames are searched on worker threads ahead of the one whose results are taken, so frame ``n``'s windows
-come from frame ``n - LAG``: a fixed lag keeps the candidates independent of the threads' timing.
+skips the rest (peaks weaker than the last whole search kept are left out, as it would have left them). Frames
+are searched on worker threads ahead of the one whose results are taken, so frame ``n``'s windows come from frame
+``n - LAG``: a fixed lag keeps the candidates independent of the threads' timing. ``bb_search="full"`` (the
+default) searches every frame whole.
 """
 
 from __future__ import annotations
