@@ -21,6 +21,7 @@ import argparse
 import multiprocessing as mp
 import os
 import platform
+import queue
 import shutil
 import sys
 import tempfile
@@ -72,12 +73,14 @@ def _run(scan: str, method: str, work: str, queue: Any, trace: bool) -> None:
         np.zeros((64, 64), np.float32), np.full((64, 64), 1e4, np.float32), settings_for(6.0, (64, 64))
     ).candidates(np.full((64, 64), 5000, np.uint16))
     match_frame(np.arange(16.0).reshape(8, 2), np.arange(16.0).reshape(8, 2) + 0.1, 5.0, np.full(8, 2.0))
+    view_matrix = np.ones((3, 4))
+    view_matrix.flags.writeable = False  # as a geometry's matrices are: the signature the calibration uses
     _predict_from_rays(
         np.ones((1, 8, 3)),
         np.ones((1, 8, 3)),
         np.ones(1, np.int64),
         np.zeros(1, np.int64),
-        np.ones((3, 4)),
+        view_matrix,
         np.zeros((1, 2)),
         np.ones((1, 3, 4)),
     )
@@ -161,7 +164,15 @@ def run_one(scan: Path, method: str, trace: bool = False) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as work:
         p = ctx.Process(target=_run, args=(str(scan), method, work, q, trace))
         p.start()
-        out = q.get()
+        while True:  # a child that fails ends without an answer: say so instead of waiting for ever
+            try:
+                out = q.get(timeout=1.0)
+                break
+            except queue.Empty:
+                if not p.is_alive():
+                    raise SystemExit(
+                        f"the {method} calibration of {scan.name} ended without a result (exit status {p.exitcode})"
+                    ) from None
         p.join()
     return out
 
