@@ -98,13 +98,16 @@ def _local_maxima(resp, threshold, max_count, boxes):  # type: ignore[no-untyped
 @numba.njit(cache=True, nogil=True)
 def solve3(a, y):  # type: ignore[no-untyped-def]
     """Solution of the symmetric 3x3 system ``a x = y`` (Cramer's rule: no LAPACK call per window, and far less
-    to compile than ``np.linalg.solve``; a singular system gives inf or NaN). Also called by the kernels of
+    to compile than ``np.linalg.solve``; NaN for a singular system). Also called by the kernels of
     :mod:`calib.track`, whose cached machine code numba does not renew when this changes: change both files."""
     c00 = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]
     c01 = a[1, 2] * a[2, 0] - a[1, 0] * a[2, 2]
     c02 = a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]
     det = a[0, 0] * c00 + a[0, 1] * c01 + a[0, 2] * c02
     x = np.empty(3)
+    if det == 0.0:  # (a division by zero raises in a kernel)
+        x[:] = np.nan
+        return x
     x[0] = (
         y[0] * c00 + a[0, 1] * (a[1, 2] * y[2] - y[1] * a[2, 2]) + a[0, 2] * (y[1] * a[2, 1] - a[1, 1] * y[2])
     ) / det

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize import linear_sum_assignment
 
-from calib.detect import _binned_line_integrals, _refine
+from calib.detect import _binned_line_integrals, _refine, solve3
 from calib.track import _min_cost_assignment, match_frame
 
 
@@ -70,6 +70,17 @@ def test_binned_line_integrals_equal_log_of_binned_counts() -> None:
     den_b = np.maximum(flat - dark, 1.0).reshape(32, b, 32, b).mean((1, 3)).astype(np.float32)
     ref = -np.log(np.maximum(raw.astype(np.float64).reshape(32, b, 32, b).mean((1, 3)) - dark_b, 0.5) / den_b)
     np.testing.assert_allclose(_binned_line_integrals(raw, dark_b, den_b, b), ref, rtol=1e-5, atol=1e-6)
+
+
+def test_solve3_equals_lapack_and_gives_nan_for_a_singular_system() -> None:
+    """The 3x3 solver the centroid refinement and the tracker use (in place of ``np.linalg``, whose bindings take
+    seconds to compile): a symmetric system as LAPACK solves it; a singular one gives NaN, not an exception."""
+    rng = np.random.default_rng(2)
+    m = rng.normal(size=(5, 3))
+    a, y = m.T @ m, rng.normal(size=3)
+    np.testing.assert_allclose(solve3(a, y), np.linalg.solve(a, y), rtol=1e-10)
+    rays = np.ones((3, 3))  # rank one: the rays of one direction meet nowhere in particular
+    assert np.isnan(solve3(rays, y)).all() and np.isnan(solve3(np.zeros((3, 3)), y)).all()
 
 
 @pytest.mark.parametrize("shape", [(1, 1), (5, 5), (4, 9), (9, 4), (12, 30)])
