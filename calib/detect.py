@@ -386,26 +386,28 @@ def _window_response(raw, dark_b, den_b, b, rows_d, rows_o, rows_i, w_disc, w_ri
                     num = max(s * inv - dark_b[i, j], np.float32(0.5))
                     li[i, j] = -np.log(num / den_b[i, j])
                     done[i, j] = True
-        pc = c1 - c0 + 2 * h
-        run = np.empty(pc + 1, np.float64)  # run[j]: the sum of the patch row's first j line integrals
+        pr, pc = r1 - r0 + 2 * h, c1 - c0 + 2 * h
+        run = np.empty((pr, pc + 1), np.float64)  # run[r, j]: the sum of patch row r's first j line integrals
+        for pi in range(pr):
+            row = min(max(r0 - h + pi, 0), rows - 1)
+            run[pi, 0] = 0.0
+            for pj in range(pc):
+                run[pi, pj + 1] = run[pi, pj] + li[row, min(max(c0 - h + pj, 0), cols - 1)]
         out = np.empty(c1 - c0, np.float64)
         for i in range(r0, r1):
             out[:] = 0.0
             for dy in range(-h, h + 1):
-                row = min(max(i + dy, 0), rows - 1)
-                run[0] = 0.0
-                for pj in range(pc):
-                    run[pj + 1] = run[pj] + li[row, min(max(c0 - h + pj, 0), cols - 1)]
+                line = run[i - r0 + h + dy]
                 wd, wo, wi = rows_d[dy + h], rows_o[dy + h], rows_i[dy + h]
                 for j in range(c1 - c0):
                     x = j + h  # the pixel's column in the patch
                     v = 0.0
                     if wd >= 0:
-                        v += w_disc * (run[x + wd + 1] - run[x - wd])
+                        v += w_disc * (line[x + wd + 1] - line[x - wd])
                     if wo >= 0:
-                        v -= w_ring * (run[x + wo + 1] - run[x - wo])
+                        v -= w_ring * (line[x + wo + 1] - line[x - wo])
                     if wi >= 0:
-                        v += w_ring * (run[x + wi + 1] - run[x - wi])
+                        v += w_ring * (line[x + wi + 1] - line[x - wi])
                     out[j] += v
             for j in range(c1 - c0):  # boxes may overlap: written, not added
                 resp[i, c0 + j] = out[j]

@@ -82,15 +82,15 @@ class SearchPlan:
         whole = np.flatnonzero(np.isfinite(floors[: n - LAG + 1]))
         floor = float(floors[whole[-1]]) if len(whole) else 0.0
         centres = self._ball_like(cands[n - LAG])
+        earlier = [self._ball_like(cands[n - LAG - j]) for j in range(1, min(FULL_EVERY, n - LAG + 1))]
         reach = np.full(len(centres), self.reach_px(LAG))
         followed = np.ones(len(centres), bool)
-        for j in range(1, min(FOLLOWED_FRAMES, n - LAG + 1)):
-            followed &= _within(centres, self._ball_like(cands[n - LAG - j]), self.reach_px(j))
+        for j, before in enumerate(earlier[: FOLLOWED_FRAMES - 1], start=1):
+            followed &= _within(centres, before, self.reach_px(j))
         if followed.sum() < 0.75 * len(centres):  # the blobs jump between frames: the orbit jitters, search whole
             return None
         # BBs that a frame before saw (one of them was searched whole) and frame n - LAG did not
-        for j in range(1, min(FULL_EVERY, n - LAG + 1)):
-            before = self._ball_like(cands[n - LAG - j])
+        for j, before in enumerate(earlier, start=1):
             new = before[~_within(before, centres, self.reach_px(j))]
             centres = np.concatenate([centres, new])
             reach = np.concatenate([reach, np.full(len(new), self.reach_px(LAG + j))])
@@ -106,7 +106,7 @@ class SearchPlan:
             return True
         if len(bbs) < len(centres):
             return False
-        far = np.abs(centres[:, None, :] - bbs[None, :, :]).max(axis=-1)
+        far = _apart(centres, bbs)
         inside = far <= windows.reach_px[f][:, None]
         rows, cols = linear_sum_assignment(np.where(inside, far, 1e9))
         return bool(inside[rows, cols].all())
@@ -124,5 +124,10 @@ def _within(
     direction."""
     if not len(others):
         return np.zeros(len(points), bool)
-    far = np.abs(points[:, None, :] - others[None, :, :]).max(axis=-1)
-    return np.asarray((far <= np.reshape(reach_px, (-1, 1))).any(axis=1))
+    return np.asarray((_apart(points, others) <= np.reshape(reach_px, (-1, 1))).any(axis=1))
+
+
+def _apart(points: NDArray[np.float64], others: NDArray[np.float64]) -> NDArray[np.float64]:
+    """How far each of ``points`` lies from each of ``others`` ``(K, M)``: the larger of the column and row
+    distances (the windows are squares)."""
+    return np.asarray(np.abs(points[:, None, :] - others[None, :, :]).max(axis=-1))
