@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 from orbitct.geometry import ViewGeometry, VolumeGrid
 from recon.errors import ReconError
 from recon.projector import (
+    MAX_PADDED_VOXELS,
     joseph_adjoint,
     joseph_forward,
     ray_slab_range,
@@ -68,6 +69,12 @@ class Projector:
         if not geometry.valid.all():
             bad = np.flatnonzero(~geometry.valid)[:5].tolist()
             raise ReconError(f"the geometry has non-finite views {bad}; pass only projection views")
+        nz, ny, nx = grid.shape
+        if self.device == "cpu" and (nz + 2) * (ny + 2) * (nx + 2) > MAX_PADDED_VOXELS:
+            raise ReconError(
+                f"the {nx} x {ny} x {nz} volume is too large for the CPU projector (at most {MAX_PADDED_VOXELS:.3g} "
+                "voxels with a one-voxel border); use larger voxels or a smaller grid"
+            )
         self.grid = grid
         self.geometry = geometry
         self._rays = index_rays(grid, geometry)

@@ -20,6 +20,10 @@ from numba import njit, prange
 from numpy.typing import NDArray
 
 _MARGIN = 1e-6  # planes whose a or b lies within this of the padding edge are skipped (weight <= 1e-6)
+# Tap offsets are stored as int32 less this (float64 -> int32 conversion vectorises, -> int64 does not), so the padded
+# volume may hold up to 2**32 voxels (operator.Projector refuses larger ones).
+_OFFSET_SHIFT = 2**31
+MAX_PADDED_VOXELS = 2**32
 
 
 @njit(cache=True, inline="always")
@@ -104,7 +108,8 @@ def _taps(
     fa: NDArray[np.floating[Any]],
     fb: NDArray[np.floating[Any]],
 ) -> None:
-    """Flat index of the first tap and the two interpolation fractions of each plane of one ray."""
+    """Flat index of the first tap (less ``_OFFSET_SHIFT``, see :func:`_tap`) and the two interpolation fractions of
+    each plane of one ray."""
     for j in range(n_planes):
         k = k_lo + j
         a = a0 + k * ra
@@ -114,7 +119,27 @@ def _taps(
         fa[j] = np.float32(a - ia)
         fb[j] = np.float32(b - ib)
         # integer-valued float64 arithmetic is exact here and vectorises better than int64 products
-        idx[j] = int((k + 1.0) * stm + ia * sta + ib * stb)
+        idx[j] = np.int32((k + 1.0) * stm + ia * sta + ib * stb - _OFFSET_SHIFT)
+
+
+@njit(cache=True, inline="always")
+def _tap(idx: NDArray[np.integer[Any]], j: int) -> np.uint64:
+    """Flat index of plane ``j``'s first tap, from what :func:`_taps` stored."""
+    return np.uint64(np.int64(idx[j]) + _OFFSET_SHIFT)
+
+
+@njit(cache=True, inline="always")
+def _sample(
+    flat: NDArray[np.floating[Any]], p: np.uint64, ua: np.uint64, ub: np.uint64, uab: np.uint64, fa: float, fb: float
+) -> float:
+    """Bilinear value of one plane from its four taps at ``p``, ``p + ua``, ``p + ub``, ``p + uab``."""
+    v00 = flat[p]
+    v01 = flat[p + ua]
+    v10 = flat[p + ub]
+    v11 = flat[p + uab]
+    top = v00 + fa * (v01 - v00)
+    bot = v10 + fa * (v11 - v10)
+    return top + fb * (bot - top)
 
 
 # no 'reassoc': the sum along a ray stays a scalar loop (scalar loads beat vector gathers here)
@@ -130,7 +155,7 @@ def joseph_forward(
 ) -> None:
     """Line integrals of the zero-padded volume ``(nz + 2, ny + 2, nx + 2)`` along every ray into ``out``.
 
-    Per ray, the taps are computed first (a loop the compiler vectorises), then summed.
+    Per ray, the taps are computed first (a loop the compiler vectorises), then summed (even and odd planes apart).
     """
     nz = vol_padded.shape[0] - 2
     ny = vol_padded.shape[1] - 2
@@ -139,29 +164,28 @@ def joseph_forward(
     flat = vol_padded.ravel()
     k_max = max(nx, ny, nz)
     for job in prange(nv * rows):
-        idx = np.empty(k_max, np.int64)
+        idx = np.empty(k_max, np.int32)
         fa = np.empty(k_max, np.float32)
         fb = np.empty(k_max, np.float32)
         n = job // rows
         r = job - n * rows
         for c in range(cols):
             a0, ra, b0, rb, k_lo, k_hi, step, stm, sta, stb = _ray(rays, vox, n, r, c, nx, ny, nz)
-            n_planes = k_hi - k_lo + 1
+            n_planes = max(k_hi - k_lo + 1, 0)  # rays that miss the volume have k_hi < k_lo
             _taps(a0, ra, b0, rb, k_lo, n_planes, stm, sta, stb, idx, fa, fb)
             ua = np.uint64(sta)
             ub = np.uint64(stb)
             uab = np.uint64(sta + stb)
-            acc = np.float32(0.0)
-            for j in range(n_planes):
-                p = np.uint64(idx[j])
-                v00 = flat[p]
-                v01 = flat[p + ua]
-                v10 = flat[p + ub]
-                v11 = flat[p + uab]
-                top = v00 + fa[j] * (v01 - v00)
-                bot = v10 + fa[j] * (v11 - v10)
-                acc += top + fb[j] * (bot - top)
-            out[n, r, c] = acc * np.float32(step)
+            # even and odd planes in two sums: each add waits for the one before, so one sum would wait twice as often
+            even = np.float32(0.0)
+            odd = np.float32(0.0)
+            for h in range(n_planes >> 1):
+                j = 2 * h
+                even += _sample(flat, _tap(idx, j), ua, ub, uab, fa[j], fb[j])
+                odd += _sample(flat, _tap(idx, j + 1), ua, ub, uab, fa[j + 1], fb[j + 1])
+            if n_planes & 1:
+                even += _sample(flat, _tap(idx, n_planes - 1), ua, ub, uab, fa[n_planes - 1], fb[n_planes - 1])
+            out[n, r, c] = (even + odd) * np.float32(step)
 
 
 @njit(cache=True, inline="always")
@@ -260,7 +284,7 @@ def joseph_adjoint(
             s = 2 * si + parity
             z_lo = bounds[s]
             z_hi = bounds[s + 1]
-            idx = np.empty(k_max, np.int64)
+            idx = np.empty(k_max, np.int32)
             fa = np.empty(k_max, np.float32)
             fb = np.empty(k_max, np.float32)
             for job in range(nv * rows):
@@ -295,7 +319,7 @@ def joseph_adjoint(
                     uab = np.uint64(sta + stb)
                     wv = np.float32(val * step)
                     for j in range(n_planes):
-                        p = np.uint64(idx[j])
+                        p = _tap(idx, j)
                         w1 = fb[j] * wv
                         w0 = wv - w1
                         w01 = fa[j] * w0

@@ -56,6 +56,29 @@ def test_operator_checks_shapes_and_geometry(random_geometry: ViewGeometry) -> N
         projector(grid, random_geometry.concatenate(nan_views))
 
 
+def test_tap_offsets_are_exact_up_to_the_largest_volume_and_larger_ones_are_refused(
+    random_geometry: ViewGeometry,
+) -> None:
+    from recon.projector import MAX_PADDED_VOXELS, _tap, _taps
+
+    # a ray down the last rows of a padded 1625^3 volume: flat offsets from below 2^31 to just below 2^32
+    side = 1625
+    assert side**3 < MAX_PADDED_VOXELS
+    n = 4
+    idx = np.empty(n, np.int32)
+    fa = np.empty(n, np.float32)
+    fb = np.empty(n, np.float32)
+    for b0 in (100.25, 800.25, side - 2.75):
+        _taps(3.5, 0.25, b0, 0.0, side - 2 - n, n, 1, side, side * side, idx, fa, fb)
+        want = [
+            (side - 2 - n + j + 1) + int(3.5 + (side - 2 - n + j) * 0.25) * side + int(b0) * side**2 for j in range(n)
+        ]
+        assert [int(_tap(idx, j)) for j in range(n)] == want
+    assert want[-1] > 2**31
+    with pytest.raises(ReconError, match="too large for the CPU projector"):
+        projector(VolumeGrid.centered((1700, 1700, 1700), 1.0), random_geometry)
+
+
 def test_grid_far_from_views_is_rejected(random_geometry: ViewGeometry) -> None:
     check_fov(VolumeGrid.centered((10, 10, 10), 1.0), random_geometry)
     with pytest.raises(FieldOfViewError, match="misses the field of view"):
