@@ -1,10 +1,12 @@
 """Reconstruction benchmark: Joseph forward/back projection, FDK and PWLS against RTK's CPU filters.
 
-Usage: .venv/bin/python benchmarks/recon.py [--large] [--pwls-iterations N] [--threads N]
+Usage: .venv/bin/python benchmarks/recon.py [--large] [--pwls-iterations N] [--threads N] [--max-load L]
 Prints the machine, a table of wall and CPU times, throughput ratios against RTK (measured in
 the same run when itk-rtk is installed, otherwise the reference numbers from issue 6) and the
 peak memory of each step (its input plus everything it allocates) relative to one float32
-volume plus the float32 projections.
+volume plus the float32 projections; then each kernel's share of the machine's arithmetic peak
+and copy bandwidth, both measured in the same run. Ratios are not reported when the load average
+at the start is above --max-load (other work on the cores makes them meaningless).
 """
 
 from __future__ import annotations
@@ -25,9 +27,38 @@ _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE] + [str(_HERE.parent), str(_HERE)]
 
 from machine_info import cpu_model as cpu_name
+from machine_info import machine_peaks
 
 # Reference: RTK CPU filters on 2 cores, 128^3 voxels, 180 views of 128^2 (issue 6).
 RTK_REFERENCE_S = {"forward": 0.8, "back": 2.1, "fdk": 1.7}
+# What the share of the machine counts per unit of work: the interpolation's arithmetic and the taps it reads (the
+# adjoint reads and writes its taps); ray set-up, index arithmetic and scratch are not counted, so the shares are
+# lower bounds of what the kernels do. Units: forward/back per ray step, FDK per voxel and view.
+FLOPS_PER_UNIT = {"forward": 10, "back": 10, "fdk": 11}
+BYTES_PER_UNIT = {"forward": 16, "back": 32, "fdk": 16}
+
+
+def ray_steps_exact(grid, g) -> int:
+    """Planes every ray of ``g`` steps through in ``grid`` (what the Joseph kernels loop over)."""
+    import numba
+
+    from recon.projector import _ray
+
+    @numba.njit(parallel=True, cache=False)
+    def count(rays, vox, nv, rows, cols, nx, ny, nz):  # type: ignore[no-untyped-def]
+        total = np.zeros(nv, np.int64)
+        for n in numba.prange(nv):
+            for r in range(rows):
+                for c in range(cols):
+                    k_lo, k_hi = _ray(rays, vox, n, r, c, nx, ny, nz)[4:6]
+                    total[n] += max(k_hi - k_lo + 1, 0)
+        return total.sum()
+
+    from recon.operator import index_rays
+
+    nz, ny, nx = grid.shape
+    vox = np.asarray(grid.voxel_mm, dtype=np.float64)
+    return int(count(index_rays(grid, g), vox, g.n_views, g.panel.rows, g.panel.cols, nx, ny, nz))
 
 
 def measure(fn: Callable[[], object], repeat: int, warm_up: bool = True) -> tuple[float, float, int]:
@@ -114,7 +145,9 @@ def rtk_times(n: int, size: int, views: int, g, repeat: int) -> dict[str, float]
     return out
 
 
-def run_case(n: int, size: int, views: int, repeat: int, pwls_iterations: int) -> None:
+def run_case(
+    n: int, size: int, views: int, repeat: int, pwls_iterations: int, peaks: tuple[float, float], ratios: bool
+) -> None:
     from orbitct.geometry import ViewGeometry
     from orbitct.reference_bench import PANEL_MM, SAD_MM, SDD_MM, reference_panel
     from recon import VolumeGrid, fdk, projector
@@ -137,7 +170,7 @@ def run_case(n: int, size: int, views: int, repeat: int, pwls_iterations: int) -
     rows.append(("back (matched Joseph)", t, c, y.nbytes + m, "back"))
     t, c, m = measure(lambda: fdk(y, grid, g, window="hann"), repeat, warm)
     rows.append(("FDK (filter + voxel BP)", t, c, y.nbytes + m, "fdk"))
-    rtk = rtk_times(n, size, views, g, repeat) if n == 128 else None
+    rtk = rtk_times(n, size, views, g, repeat)
     print(
         f"\ncase: {n}^3 voxels ({grid.nbytes / 2**20:.0f} MiB), {views} views of {size}^2 "
         f"({y.nbytes / 2**20:.0f} MiB); memory budget 1.5 x {base / 2**20:.0f} MiB"
@@ -150,17 +183,32 @@ def run_case(n: int, size: int, views: int, repeat: int, pwls_iterations: int) -
     )
     for label, t, c, m, key in rows:
         ref = (rtk or {}).get(key, RTK_REFERENCE_S.get(key) if n == 128 else None)
-        ratio = f"{ref / t:9.2f}" if ref else f"{'-':>9s}"
-        ideal = f"{ref / (c / threads):10.2f}" if ref else f"{'-':>10s}"
+        ratio = f"{ref / t:9.2f}" if ref and ratios else f"{'-':>9s}"
+        ideal = f"{ref / (c / threads):10.2f}" if ref and ratios else f"{'-':>10s}"
         reft = f"{ref:8.2f}" if ref else f"{'-':>8s}"
         print(f"{label:26s} {t:8.3f} {c:8.3f} {reft} {ratio} {ideal} {m / 2**20:9.1f} {m / base:12.2f}x")
     print("speed-up = RTK s / wall s; cpu-based = RTK s / (cpu s / threads), the wall time on idle cores")
-    if n == 128:
+    print(
+        "RTK column:",
+        "measured in this run (itk-rtk)"
+        if rtk
+        else "itk-rtk not installed; reference numbers from issue 6 (2 cores, 128^3 only)",
+    )
+    steps = ray_steps_exact(grid, g)
+    units = {"forward": steps, "back": steps, "fdk": n**3 * views}
+    flops, copy = peaks
+    print(
+        f"share of the machine (measured in this run: {flops:.0f} GFLOP/s float32 matrix product, {copy:.1f} GB/s "
+        "copy); counted per ray step (forward, back) or voxel and view (FDK): the interpolation's flops and the "
+        "bytes of its taps, so the shares are lower bounds"
+    )
+    print(f"{'step':26s} {'units':>9s} {'GFLOP/s':>8s} {'% peak':>7s} {'tap GB/s':>9s} {'% copy':>7s}")
+    for label, t, _, _, key in rows:
+        gflops = units[key] * FLOPS_PER_UNIT[key] / t / 1e9
+        gbs = units[key] * BYTES_PER_UNIT[key] / t / 1e9
         print(
-            "RTK column:",
-            "measured in this run (itk-rtk)"
-            if rtk
-            else "itk-rtk not installed; reference numbers from issue 6 (2 cores)",
+            f"{label:26s} {units[key]:9.2e} {gflops:8.2f} {100 * gflops / flops:7.1f} {gbs:9.2f} "
+            f"{100 * gbs / copy:7.1f}"
         )
     if pwls_iterations:
         run_pwls(grid, g, y, pwls_iterations, base)
@@ -203,7 +251,11 @@ def main() -> None:
     ap.add_argument("--pwls-iterations", type=int, default=50, help="PWLS iterations on the 128^3 case (0 skips)")
     ap.add_argument("--repeat", type=int, default=5, help="timed runs per step; the best is reported")
     ap.add_argument("--threads", type=int, default=None, help="numba threads (default: all cores)")
+    ap.add_argument(
+        "--max-load", type=float, default=1.5, help="no RTK ratio is reported above this load average at the start"
+    )
     args = ap.parse_args()
+    load = os.getloadavg()[0]  # before this run's own work raises it
     import numba
 
     if args.threads:
@@ -211,11 +263,18 @@ def main() -> None:
     print(
         f"machine: {cpu_name()}, {psutil.cpu_count(logical=False)} cores / {os.cpu_count()} threads, "
         f"{psutil.virtual_memory().total / 2**30:.0f} GiB; numba threads {numba.get_num_threads()}; "
-        f"load average {os.getloadavg()[0]:.1f} at start (shared machines inflate wall times)"
+        f"load average {load:.2f} at start (shared machines inflate wall times)"
     )
-    run_case(128, 128, 180, args.repeat, args.pwls_iterations)
+    ratios = load <= args.max_load
+    if not ratios:
+        print(
+            f"the load average at the start ({load:.2f}) is above {args.max_load}: other work shares the cores, so "
+            "the times are printed but no ratio to RTK is reported"
+        )
+    peaks = machine_peaks()
+    run_case(128, 128, 180, args.repeat, args.pwls_iterations, peaks, ratios)
     if args.large:
-        run_case(256, 384, 500, 1, 0)
+        run_case(256, 384, 500, 1, 0, peaks, ratios)
 
 
 if __name__ == "__main__":
