@@ -88,6 +88,26 @@ def like_the_others(records: NDArray[np.float64], others: NDArray[np.float64]) -
 
 
 @numba.njit(cache=True)
+def _median(values):  # type: ignore[no-untyped-def]
+    """Median of a short 1-D array (NaN if it is empty or holds a NaN), by insertion sort: the same value as
+    ``np.median``, which takes seconds to compile on a first run after installing where this takes a fraction."""
+    n = values.size
+    if n == 0:
+        return np.nan
+    s = values.copy()
+    for i in range(n):
+        v = s[i]
+        if np.isnan(v):
+            return np.nan
+        j = i - 1
+        while j >= 0 and s[j] > v:
+            s[j + 1] = s[j]
+            j -= 1
+        s[j + 1] = v
+    return (s[(n - 1) // 2] + s[n // 2]) / 2 if n % 2 == 0 else s[n // 2]
+
+
+@numba.njit(cache=True)
 def _gated_cost(pred, cand, gate):  # type: ignore[no-untyped-def]
     """Distances ``(T, M)`` with 1e6 where a pair is farther than the row's gate (or not finite), and that mask."""
     t_n, m_n = pred.shape[0], cand.shape[0]
@@ -240,8 +260,8 @@ def _near_and_shift(pred, vis, cand, search_px, reach_px, radius):  # type: igno
             sx[n_s] = cand[jmin, 0] - pred[u, 0]
             sy[n_s] = cand[jmin, 1] - pred[u, 1]
             n_s += 1
-    shift[0] = np.median(sx[:n_s])
-    shift[1] = np.median(sy[:n_s])
+    shift[0] = _median(sx[:n_s])
+    shift[1] = _median(sy[:n_s])
     return kept, shift
 
 
@@ -281,7 +301,7 @@ def _realign(pred, vis, cand, idx):  # type: ignore[no-untyped-def]
             fy = cy[0] * (px - mx) + cy[1] * (py - my) + cy[2]
             before[q] = np.sqrt((px - bx) ** 2 + (py - by) ** 2)
             after[q] = np.sqrt((fx - bx) ** 2 + (fy - by) ** 2)
-        if np.median(after) < np.median(before):
+        if _median(after) < _median(before):
             for t in range(pred.shape[0]):
                 if vis[t]:
                     dx, dy = pred[t, 0] - mx, pred[t, 1] - my
@@ -293,7 +313,7 @@ def _realign(pred, vis, cand, idx):  # type: ignore[no-untyped-def]
         for q in range(n_m):
             dx[q] = cand[idx[rows[q]], 0] - pred[rows[q], 0]
             dy[q] = cand[idx[rows[q]], 1] - pred[rows[q], 1]
-        mx, my = np.median(dx), np.median(dy)
+        mx, my = _median(dx), _median(dy)
         for t in range(pred.shape[0]):
             if vis[t]:
                 out[t, 0] += mx
@@ -315,16 +335,25 @@ def _match(pred, cand, search_px, gate, radius):  # type: ignore[no-untyped-def]
     kept, shift = _near_and_shift(pred, vis, cand, search_px, search_px + 2.0 * gate.max(), radius)
     if kept.size == 0:
         return none, pred
-    near = cand[kept]
+    # loops, not fancy indexing and array expressions: those take seconds to compile on a first run
+    near = np.empty((kept.size, 2))
+    for q in range(kept.size):
+        near[q, 0] = cand[kept[q], 0]
+        near[q, 1] = cand[kept[q], 1]
     if np.isfinite(shift[0]):
         for t in range(t_n):
             if vis[t]:
                 pred[t, 0] += shift[0]
                 pred[t, 1] += shift[1]
-    idx = _hungarian(pred, near, np.maximum(gate * 1.5, radius))
+    wide = np.empty(t_n)
+    narrow = np.empty(t_n)
+    for t in range(t_n):
+        wide[t] = max(gate[t] * 1.5, radius)
+        narrow[t] = max(gate[t], 0.5 * radius)
+    idx = _hungarian(pred, near, wide)
     pred = _realign(pred, vis, near, idx)
     # parallax of BBs at different depths under a rotation is not affine; it grows with the allowed jump
-    idx = _hungarian(pred, near, np.maximum(gate, 0.5 * radius))
+    idx = _hungarian(pred, near, narrow)
     for t in range(t_n):
         if idx[t] >= 0:
             idx[t] = kept[idx[t]]

@@ -7,7 +7,7 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 
 from calib.detect import _binned_line_integrals, _refine, solve3
-from calib.track import _min_cost_assignment, match_frame
+from calib.track import _median, _min_cost_assignment, match_frame
 
 
 def _blob_frame(rng: np.random.Generator, centres: np.ndarray, radius: float, shape: tuple[int, int] = (96, 96)):
@@ -81,6 +81,18 @@ def test_solve3_equals_lapack_and_gives_nan_for_a_singular_system() -> None:
     np.testing.assert_allclose(solve3(a, y), np.linalg.solve(a, y), rtol=1e-10)
     rays = np.ones((3, 3))  # rank one: the rays of one direction meet nowhere in particular
     assert np.isnan(solve3(rays, y)).all() and np.isnan(solve3(np.zeros((3, 3)), y)).all()
+
+
+def test_median_equals_numpy_and_gives_nan_for_nan_or_nothing() -> None:
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 3, 4, 7, 8, 31, 64):
+        values = rng.normal(size=n)
+        values[: n // 3] = values[-1]  # ties
+        before = values.copy()
+        assert _median(values) == np.median(values)
+        np.testing.assert_array_equal(values, before)
+    assert np.isnan(_median(np.array([1.0, np.nan, 2.0])))
+    assert np.isnan(_median(np.empty(0)))
 
 
 @pytest.mark.parametrize("shape", [(1, 1), (5, 5), (4, 9), (9, 4), (12, 30)])
