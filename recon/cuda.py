@@ -31,7 +31,7 @@ from recon.cuda_kernels import (
     strided_blocks,
 )
 from recon.errors import ReconError
-from recon.operator import Projector, _as_padded, index_matrices
+from recon.operator import Projector, index_matrices
 from recon.pwls_setup import ordered_subsets, subset_operator, view_rows
 
 CHUNK_BYTES = 256 * 2**20  # projections moved to the device at a time
@@ -134,7 +134,7 @@ class CudaProjector(Projector):
     ) -> NDArray[np.float32]:
         """Views ``start .. start + len(out)`` of the forward projection of a zero-bordered volume, into ``out``."""
         self._view_rays(start, out, "out")
-        d_xp = cuda.to_device(_as_padded(x_padded, self.padded_shape).reshape(-1))
+        d_xp = cuda.to_device(self._checked_padded(x_padded).reshape(-1))
         self._held(1, 1)
         d_out = cuda.device_array(self.chunk_views * math.prod(self.proj_shape[1:]), np.float32)
         for j0, j1 in self.chunks(start, start + out.shape[0]):
@@ -149,7 +149,7 @@ class CudaProjector(Projector):
         """Add the adjoint of views ``start .. start + len(y)`` into a padded accumulator (its border is scratch)."""
         y = np.ascontiguousarray(y, dtype=np.float32)
         self._view_rays(start, y, "projections")
-        acc = _as_padded(acc_padded, self.padded_shape)
+        acc = self._checked_padded(acc_padded)
         d_acc = zeros(acc.size)
         self._held(1, 1)
         for j0, j1 in self.chunks(start, start + y.shape[0]):

@@ -122,7 +122,7 @@ class Projector:
     ) -> NDArray[np.float32]:
         """Views ``start .. start + len(out)`` of the forward projection of a zero-bordered volume, into ``out``."""
         rays = self._view_rays(start, out, "out")
-        joseph_forward(_as_padded(x_padded, self.padded_shape), rays, self._vox, out)
+        joseph_forward(self._checked_padded(x_padded), rays, self._vox, out)
         return out
 
     def back_padded(
@@ -131,7 +131,7 @@ class Projector:
         """Add the adjoint of views ``start .. start + len(y)`` into a padded accumulator (its border is scratch)."""
         y = np.ascontiguousarray(y, dtype=np.float32)
         rays = self._view_rays(start, y, "projections")
-        acc = _as_padded(acc_padded, self.padded_shape)
+        acc = self._checked_padded(acc_padded)
         nz = self.vol_shape[0]
         lo, hi = self._slab_table(start, start + y.shape[0])
         # one slab per thread and parity: every extra slab repeats the set-up of the rays that cross it
@@ -156,6 +156,13 @@ class Projector:
             ray_slab_range(self._rays[start:stop], self._vox, nz, ny, nx, rows, cols, lo, hi)
             self._slab_tables[key] = (lo, hi)
         return self._slab_tables[key]
+
+    def _checked_padded(self, a: NDArray[np.float32]) -> NDArray[np.float32]:
+        """``a`` if it is a C-contiguous float32 padded volume of this grid, else a ReconError."""
+        shape = self.padded_shape
+        if a.shape != shape or a.dtype != np.float32 or not a.flags.c_contiguous:
+            raise ReconError(f"padded volume: expected C-contiguous float32 {shape}, got {a.dtype} {a.shape}")
+        return a
 
     def _view_rays(self, start: int, arr: NDArray[np.float32], what: str) -> NDArray[np.float64]:
         _, rows, cols = self.proj_shape
@@ -235,12 +242,6 @@ def backproject_padded(
         out = np.zeros(grid.shape, dtype=np.float32)
     voxel_backproject(padded, index_matrices(grid, geometry), np.ascontiguousarray(weights, dtype=np.float64), out)
     return out
-
-
-def _as_padded(a: NDArray[np.float32], shape: tuple[int, int, int]) -> NDArray[np.float32]:
-    if a.shape != shape or a.dtype != np.float32 or not a.flags.c_contiguous:
-        raise ReconError(f"padded volume: expected C-contiguous float32 {shape}, got {a.dtype} {a.shape}")
-    return a
 
 
 def _as_f32(a: NDArray[Any], shape: tuple[int, ...], what: str) -> NDArray[np.float32]:
