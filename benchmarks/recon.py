@@ -33,7 +33,7 @@ from machine_info import machine_peaks
 RTK_REFERENCE_S = {"forward": 0.8, "back": 2.1, "fdk": 1.7}
 # What the share of the machine counts per unit of work: the interpolation's arithmetic and the taps it reads (the
 # adjoint reads and writes its taps); ray set-up, index arithmetic and scratch are not counted, so the shares are
-# lower bounds of what the kernels do. Units: forward/back per ray step, FDK per voxel and view.
+# lower bounds of what the kernels do. Units: forward/back per ray step, FDK per voxel and view it interpolates.
 FLOPS_PER_UNIT = {"forward": 10, "back": 10, "fdk": 11}
 BYTES_PER_UNIT = {"forward": 16, "back": 32, "fdk": 16}
 
@@ -59,6 +59,27 @@ def ray_steps_exact(grid, g) -> int:
     nz, ny, nx = grid.shape
     vox = np.asarray(grid.voxel_mm, dtype=np.float64)
     return int(count(index_rays(grid, g), vox, g.n_views, g.panel.rows, g.panel.cols, nx, ny, nz))
+
+
+def voxel_views_exact(grid, g) -> int:
+    """Voxel-view pairs FDK's back-projector interpolates: per view, the voxels that land on the panel."""
+    import numba
+
+    from recon.operator import index_matrices
+    from recon.projector import voxel_row_range
+
+    @numba.njit(parallel=True, cache=False)
+    def count(mats, nz, ny, nx, rows, cols):  # type: ignore[no-untyped-def]
+        total = np.zeros(mats.shape[0], np.int64)
+        for n in numba.prange(mats.shape[0]):
+            for z in range(nz):
+                for y in range(ny):
+                    x0, x1 = voxel_row_range(mats[n], y, z, nx, rows, cols)
+                    total[n] += max(x1 - x0 + 1, 0)
+        return total.sum()
+
+    nz, ny, nx = grid.shape
+    return int(count(index_matrices(grid, g), nz, ny, nx, g.panel.rows, g.panel.cols))
 
 
 def measure(fn: Callable[[], object], repeat: int, warm_up: bool = True) -> tuple[float, float, int]:
@@ -195,7 +216,7 @@ def run_case(
         else "itk-rtk not installed; reference numbers from issue 6 (2 cores, 128^3 only)",
     )
     steps = ray_steps_exact(grid, g)
-    units = {"forward": steps, "back": steps, "fdk": n**3 * views}
+    units = {"forward": steps, "back": steps, "fdk": voxel_views_exact(grid, g)}
     flops, copy = peaks
     print(
         f"share of the machine (measured in this run: {flops:.0f} GFLOP/s float32 matrix product, {copy:.1f} GB/s "

@@ -348,6 +348,37 @@ def _half(a: float, b: float, lo: float, hi: float) -> tuple[float, float]:
     return lo, hi
 
 
+@njit(cache=True, inline="always")
+def _row_line(p: NDArray[np.floating[Any]], y: int, z: int) -> tuple[float, float, float, float, float, float]:
+    """Homogeneous pixel ``(cu + pu x, cv + pv x, cw + pw x)`` of voxel x of row ``(y, z)`` under matrix ``p``."""
+    cu = p[0, 1] * y + p[0, 2] * z + p[0, 3]
+    cv = p[1, 1] * y + p[1, 2] * z + p[1, 3]
+    cw = p[2, 1] * y + p[2, 2] * z + p[2, 3]
+    return cu, cv, cw, p[0, 0], p[1, 0], p[2, 0]
+
+
+@njit(cache=True, inline="always")
+def _on_panel(
+    cu: float, cv: float, cw: float, pu: float, pv: float, pw: float, nx: int, rows: int, cols: int
+) -> tuple[int, int]:
+    """First and last x whose pixel lies on the panel: five linear conditions on x (``x1 < x0``: none)."""
+    lo, hi = -1.0, nx * 1.0
+    lo, hi = _half(pw, cw, lo, hi)
+    lo, hi = _half(pu + pw, cu + cw, lo, hi)
+    lo, hi = _half(cols * pw - pu, cols * cw - cu, lo, hi)
+    lo, hi = _half(pv + pw, cv + cw, lo, hi)
+    lo, hi = _half(rows * pw - pv, rows * cw - cv, lo, hi)
+    return max(int(math.floor(lo)) + 1, 0), min(int(math.ceil(hi)) - 1, nx - 1)
+
+
+@njit(cache=True)
+def voxel_row_range(p: NDArray[np.floating[Any]], y: int, z: int, nx: int, rows: int, cols: int) -> tuple[int, int]:
+    """First and last x of the voxel row ``(y, z)`` that projection matrix ``p`` (3, 4) puts on the panel, as
+    :func:`voxel_backproject` interpolates them (``x1 < x0`` when none)."""
+    cu, cv, cw, pu, pv, pw = _row_line(p, y, z)
+    return _on_panel(cu, cv, cw, pu, pv, pw, nx, rows, cols)
+
+
 @njit(parallel=True, cache=True, fastmath=True, nogil=True, boundscheck=False, error_model="numpy")
 def voxel_backproject(
     proj_padded: NDArray[np.floating[Any]],
@@ -387,21 +418,8 @@ def voxel_backproject(
                 continue
             p = mats[n]
             img = proj_padded[n].ravel()
-            cu = p[0, 1] * y + p[0, 2] * z + p[0, 3]
-            cv = p[1, 1] * y + p[1, 2] * z + p[1, 3]
-            cw = p[2, 1] * y + p[2, 2] * z + p[2, 3]
-            pu = p[0, 0]
-            pv = p[1, 0]
-            pw = p[2, 0]
-            # voxels of this row that land on the detector: five linear conditions on x
-            lo, hi = -1.0, nx * 1.0
-            lo, hi = _half(pw, cw, lo, hi)
-            lo, hi = _half(pu + pw, cu + cw, lo, hi)
-            lo, hi = _half(cols * pw - pu, cols * cw - cu, lo, hi)
-            lo, hi = _half(pv + pw, cv + cw, lo, hi)
-            lo, hi = _half(rows * pw - pv, rows * cw - cv, lo, hi)
-            x0 = max(int(math.floor(lo)) + 1, 0)
-            x1 = min(int(math.ceil(hi)) - 1, nx - 1)
+            cu, cv, cw, pu, pv, pw = _row_line(p, y, z)
+            x0, x1 = _on_panel(cu, cv, cw, pu, pv, pw, nx, rows, cols)
             if x1 < x0:
                 continue
             s = 1.0 / max(abs(cw + pw * x0), abs(cw + pw * x1), 1e-30)
