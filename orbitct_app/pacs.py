@@ -57,7 +57,8 @@ def _associate(node: PacsNode, contexts: Sequence[Any], calling: str, **kwargs: 
 
 
 def send(files: Sequence[Path], node: PacsNode, calling: str = CALLING_AET) -> int:
-    """C-STORE every file to ``node``; the number stored (PacsError on the first failure)."""
+    """C-STORE every file to ``node``; the number stored (PacsError on the first failure; a store that gets no
+    answer is tried once more on a new association)."""
     import pydicom
 
     datasets = [pydicom.dcmread(f) for f in files]
@@ -66,6 +67,13 @@ def send(files: Sequence[Path], node: PacsNode, calling: str = CALLING_AET) -> i
     try:
         for f, ds in zip(files, datasets):
             status = assoc.send_c_store(ds)
+            if not status and not assoc.is_established:
+                # no answer within the DIMSE timeout, and pynetdicom aborted the association. Under load its
+                # reactor thread can take a response meant for the request just sent ("Received unexpected
+                # C-STORE service message"): store the object once more on a new association (storing an
+                # instance again is harmless); a node that is down or stays silent fails below
+                assoc = _associate(node, classes, calling)
+                status = assoc.send_c_store(ds)
             if not status or int(status.Status) not in (0x0000, 0xB000, 0xB007, 0xB006):
                 code = f"0x{int(status.Status):04X}" if status else "no answer"
                 raise PacsError(f"{node}: storing {Path(f).name} failed ({code})")

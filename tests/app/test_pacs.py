@@ -39,6 +39,42 @@ def test_a_ct_series_goes_to_orthanc_and_comes_back_the_same(tmp_path: Path) -> 
         assert list(ds.ImagePositionPatient) == list(mine.ImagePositionPatient)
 
 
+def test_a_store_whose_answer_is_lost_is_sent_again(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """pynetdicom's reactor thread can take a C-STORE response under load; the request then times out and the
+    association is aborted (seen in CI). The object is stored again on a new association and the series arrives
+    whole; a node that stays silent still fails."""
+    from pydicom.dataset import Dataset
+    from pynetdicom.association import Association
+
+    grid = VolumeGrid((5, 4, 4), 1.0, (0.0, 0.0, 0.0))
+    files = export_dicom_ct(np.zeros(grid.shape, np.float32), grid, tmp_path / "ct", SeriesInfo(patient_id="PACS-3"))
+    real = Association.send_c_store
+    calls = []
+
+    def answer_lost(self: Association, dataset: Dataset, *args: object, **kwargs: object) -> Dataset:
+        calls.append(dataset.SOPInstanceUID)
+        status = real(self, dataset, *args, **kwargs)
+        if len(calls) == 3:  # the node stored it, but its answer went to the reactor: pynetdicom aborts
+            self.abort()
+            return Dataset()
+        return status
+
+    monkeypatch.setattr(Association, "send_c_store", answer_lost)
+    with orthanc(tmp_path / "orthanc") as node:
+        assert send(files, node) == 5
+        assert len(calls) == 6 and calls[2] == calls[3]
+        found = find_series(node, PatientID="PACS-3")
+        assert [s["NumberOfSeriesRelatedInstances"] for s in found] == ["5"]
+
+        def silent(self: Association, dataset: Dataset, *args: object, **kwargs: object) -> Dataset:
+            self.abort()
+            return Dataset()
+
+        monkeypatch.setattr(Association, "send_c_store", silent)
+        with pytest.raises(PacsError, match=r"storing CT000001\.dcm failed \(no answer\)"):
+            send(files, node)
+
+
 def test_the_pacs_commands_push_find_and_pull(tmp_path: Path) -> None:
     grid = VolumeGrid((3, 4, 5), 1.0, (0.0, 0.0, 0.0))
     export_dicom_ct(np.full(grid.shape, 0.0206, np.float32), grid, tmp_path / "ct", SeriesInfo(patient_id="PACS-2"))
