@@ -170,13 +170,13 @@ def _scale_errors_pct(uv: Any, true_uv: Any, xyz: Any, true_xyz: Any) -> tuple[f
     return 100.0 * (plain - 1.0), 100.0 * (plain * bar.factor - 1.0)
 
 
-def run_case(cache: Path, case: dict[str, Any], size: int, frames: int) -> dict[str, Any]:
-    """Simulate (cached), calibrate, and judge one case."""
+def run_case(cache: Path, case: dict[str, Any], size: int, frames: int, bb_search: str = "full") -> dict[str, Any]:
+    """Simulate (cached), calibrate (``bb_search`` as the calibration option), and judge one case."""
     with tempfile.TemporaryDirectory(dir=cache) as work:
-        return _run_case(cache, case, size, frames, Path(work) / "c.h5")
+        return _run_case(cache, case, size, frames, Path(work) / "c.h5", bb_search)
 
 
-def _run_case(cache: Path, case: dict[str, Any], size: int, frames: int, work: Path) -> dict[str, Any]:
+def _run_case(cache: Path, case: dict[str, Any], size: int, frames: int, work: Path, bb_search: str) -> dict[str, Any]:
     import calib
     from calib.evaluate import similarity_aligned_error_px
     from orbitct.scanfile import ScanFile
@@ -188,7 +188,7 @@ def _run_case(cache: Path, case: dict[str, Any], size: int, frames: int, work: P
         row["frames"] = int(sf.projection_indices.size)
     t = time.perf_counter()
     try:
-        res = calib.calibrate_scan(scan, out=work)
+        res = calib.calibrate_scan(scan, out=work, bb_search=bb_search)
     except calib.CalibrationError as exc:
         row.update(
             time_s=time.perf_counter() - t, outcome="refused", message=str(exc).split(": ", 1)[-1].split(". ")[0][:70]
@@ -326,10 +326,15 @@ def main() -> None:
         default=0,
         help="also this many random placements of 5-12 BBs on experiment C's torso at 512 px, 206 frames",
     )
+    ap.add_argument(
+        "--bb-search", choices=("full", "predicted"), default="full", help="the calibration's BB search (option)"
+    )
     args = ap.parse_args()
     args.cache.mkdir(parents=True, exist_ok=True)
     print(describe_machine())
-    print(f"{args.size} px, {args.frames} frames; 1-min load at start {os.getloadavg()[0]:.2f}\n")
+    print(
+        f"{args.size} px, {args.frames} frames, BB search {args.bb_search}; 1-min load at start {os.getloadavg()[0]:.2f}\n"
+    )
     head = (
         "case",
         "frames",
@@ -353,7 +358,7 @@ def main() -> None:
     for case in CASES + placement_cases(args.placements):
         if args.only not in case["name"]:
             continue
-        r = run_case(args.cache, case, args.size, args.frames)
+        r = run_case(args.cache, case, args.size, args.frames, args.bb_search)
         if r["outcome"] == "refused":
             print(
                 f"| {r['case']} | {r['frames']} | -/{r['true_bbs']} | - | - | - | - | 0 | - | - | - | "

@@ -184,8 +184,9 @@ def sparse_views_again(
     least two more: frames that jumped, where tracking kept few blobs, perhaps wrong ones that a pose with two
     measurements to spare absorbs (experiment C at 512 px: two of four blobs wrong, views 5.8 and 7 px off and
     passing, a bridged neighbour with them). Their BBs are assigned again through the poses of the views around
-    them (``tset``: the orbit's own jitter) and the geometry estimated again with the views that gain BBs; kept
-    unless worse. Also how many views gained."""
+    them (``tset``: the orbit's own jitter), or through the view's pose fitted to its own BBs where that finds
+    more (frames that jump farther than the BBs lie apart), and the geometry estimated again with the views that
+    gain BBs; kept unless worse. Also how many views gained."""
     state, uv, quality = outcome[2], outcome[3], outcome[7]
     count = all_finite(uv).sum(1)
     if count.size < 3:
@@ -199,6 +200,19 @@ def sparse_views_again(
     solved = (quality.status == OWN) & ~sparse
     filled = fill_states(ViewState(np.nan_to_num(state.R), np.nan_to_num(state.t), state.k), solved, len(solved))
     again = assign_by_pose(cands, model, filled, outcome[1], tset)
+    # where frames jump farther than the BBs lie apart, a neighbour's pose misplaces them all; the view's own
+    # three or four BBs, its pose fitted to them from the neighbour's, place the ones it lost. Per view, the
+    # prediction that finds more BBs
+    idx = np.flatnonzero(sparse & (count >= 3))
+    if idx.size:
+        sub = ViewModel(model.nominal[idx], model.intrinsics)
+        fitted = fit_rigid_poses(sub, ViewState(filled.R[idx], filled.t[idx], filled.k[idx]), outcome[1], uv[idx])
+        own = ViewState(filled.R.copy(), filled.t.copy(), filled.k.copy())
+        own.R[idx], own.t[idx] = fitted.R, fitted.t
+        by_own = assign_by_pose(cands, model, own, outcome[1], tset)
+        better = np.zeros(len(count), bool)
+        better[idx] = all_finite(by_own[idx]).sum(1) > all_finite(again[idx]).sum(1)
+        again = np.where(better[:, None, None], by_own, again)
     gain = sparse & (all_finite(again).sum(1) > count)
     if not gain.any():
         return outcome, verdict, 0
