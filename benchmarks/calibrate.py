@@ -91,9 +91,9 @@ def _run(scan: str, method: str, work: str, queue: Any, trace: bool) -> None:
         tracemalloc.start()
     # bundle-equal: the bundle with every detection weighted alike (before detections were weighted by background)
     options: dict[str, Any] = {"weigh_detections": False} if method == "bundle-equal" else {}
-    if method.endswith("-predicted"):
-        options["bb_search"] = "predicted"
-    res = calib.calibrate_scan(out, method=method.removesuffix("-equal").removesuffix("-predicted"), **options)
+    if method.endswith("-full"):
+        options["bb_search"] = "full"
+    res = calib.calibrate_scan(out, method=method.removesuffix("-equal").removesuffix("-full"), **options)
     cpu1 = proc.cpu_times()
     cpu_s = (cpu1.user - cpu0.user) + (cpu1.system - cpu0.system)
     peak_traced = tracemalloc.get_traced_memory()[1] if trace else float("nan")
@@ -183,8 +183,8 @@ def main() -> None:
     ap.add_argument(
         "--methods",
         default="bundle,paper",
-        help="bundle, paper, bundle-equal (the bundle weighting every detection alike), bundle-predicted (BBs "
-        "searched round those found before: bb_search predicted)",
+        help="bundle, paper, bundle-equal (the bundle weighting every detection alike), bundle-full (every frame "
+        "searched whole for BBs: bb_search full, not round those found before)",
     )
     ap.add_argument("--size", type=int, default=768, help="detector size (px)")
     ap.add_argument("--frames-scale", type=float, default=1.0, help="fraction of the paper's frame counts")

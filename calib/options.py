@@ -74,9 +74,9 @@ class CalibrationOptions(BaseModel):
         128, ge=1, le=100_000, description="strongest peaks kept per frame, at least (more on a larger image)"
     )
     bb_search: Literal["full", "predicted"] = Field(
-        "full",
-        description="full: search every frame whole for BBs; predicted: round the BBs found 3 frames before "
-        "(the whole frame every 4th frame, where one is missing, and when the blobs jump)",
+        "predicted",
+        description="predicted: search each frame round the BBs found 3 frames before (the whole frame every 4th "
+        "frame, where one is missing, and when the blobs jump); full: search every frame whole",
     )
     outlier_px: float = Field(
         1.0, gt=0.0, le=100.0, description="bundle: detections off by more than max(this, 6 robust sigma) are dropped"

@@ -5,8 +5,8 @@ The peaks of a frame are refined at full resolution one by one, which is most of
 object full of structure offers hundreds of peaks, of which a few are BBs. Searching round the BBs already found
 skips the rest (peaks weaker than the last whole search kept are left out, as it would have left them). Frames
 are searched on worker threads ahead of the one whose results are taken, so frame ``n``'s windows come from frame
-``n - LAG``: a fixed lag keeps the candidates independent of the threads' timing. ``bb_search="full"`` (the
-default) searches every frame whole.
+``n - LAG``: a fixed lag keeps the candidates independent of the threads' timing. This is the default;
+``bb_search="full"`` searches every frame whole.
 """
 
 from __future__ import annotations
