@@ -18,6 +18,7 @@ from typing import Any
 import bluesky.plan_stubs as bps
 import bluesky.preprocessors as bpp
 import numpy as np
+from bluesky.protocols import Readable
 from bluesky.utils import Msg
 
 from acquire.config import BenchConfig
@@ -136,7 +137,7 @@ def orbit_plan(
         **dict(md or {}),
     }
     nominal = _NominalView()
-    readers = [bench.panel, bench.stage, bench.hexapod, bench.xray, nominal]
+    readers: list[Readable[Any]] = [bench.panel, bench.stage, bench.hexapod, bench.xray, nominal]
 
     ex = config.exposure
     technique = {"kv": ex.kv, "ma": ex.ma, "exposure_ms": ex.exposure_ms}
