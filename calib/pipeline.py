@@ -50,7 +50,7 @@ from calib.refine import (
 )
 from calib.result import CalibrationResult, IterationStats, iteration_stats
 from calib.scale import find_scale_bar, rescaled_views
-from calib.search import LAG, SearchPlan, Windows
+from calib.search import FULL_EVERY, LAG, SearchPlan, Windows
 from calib.track import TrackingSettings, link_fragments
 from orbitct.compiletime import CompileClock
 from orbitct.geometry import ViewGeometry
@@ -114,29 +114,38 @@ def _detect(
             c = np.zeros((0, N_FIELDS))
         cands[m] = c
 
+    def read(m: int) -> NDArray[Any]:
+        buf = np.empty(det.shape, dtype=ds.dtype)
+        ds.read_direct(buf, np.s_[int(proj[m])])
+        return buf
+
     # the main thread reads frames (h5py holds the GIL); workers run the GIL-free kernels. A predicted search
-    # takes frame n - LAG's candidates before frame n is sent
+    # takes frame n - LAG's candidates before frame n is sent; the frames it searches whole in any case are sent
+    # EARLY frames before their turn, so that the frames whose windows come from them do not wait behind them
     ahead = LAG - 1 if plan.predicted else 2 * max(1, workers)
     begun = started = time.perf_counter()
     compiled_before = compiled = clock.seconds
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         pending: deque[tuple[int, Future[tuple[NDArray[Any], float]]]] = deque()
-        for n, i in enumerate(proj):
+        early: dict[int, Future[tuple[NDArray[Any], float]]] = {}
+        for n in range(total):
             if n == 4:  # timed from here: the first frames set things up (noise level, kernels loaded)
                 started, compiled = time.perf_counter(), clock.seconds
             elif n == 4 + FRAMES_TIMED and total >= 2 * n:  # these frames show this machine's (and disk's) pace
                 per_frame = (time.perf_counter() - started - (clock.seconds - compiled)) / FRAMES_TIMED
                 so_far = time.perf_counter() - begun - (clock.seconds - compiled_before)
                 report_expected(progress, "calibration", so_far + calibration_seconds(total - n, per_frame))
-            buf = np.empty(det.shape, dtype=ds.dtype)
-            ds.read_direct(buf, np.s_[int(i)])
             if n == 0:
+                buf = read(0)
                 c, floor = checked(buf)  # also fixes the noise level used for every frame
                 if seeds_uv is not None and c.dtype != object:
                     c = np.concatenate([_seed_records(buf, fd, np.asarray(seeds_uv, float)), c])
                 take(0, (c, floor))
                 continue
-            pending.append((n, pool.submit(checked, buf, plan.windows(n, cands, floors))))
+            if plan.predicted and n + EARLY < total and plan.whole(n + EARLY):
+                early[n + EARLY] = pool.submit(checked, read(n + EARLY))
+            fut = early.pop(n, None)
+            pending.append((n, fut or pool.submit(checked, read(n), plan.windows(n, cands, floors))))
             while len(pending) > ahead or (pending and pending[0][1].done()):
                 m, fut = pending.popleft()
                 take(m, fut.result())
@@ -156,6 +165,7 @@ def _detect(
 
 
 FRAMES_TIMED = 16  # frames read and searched before a calibration says how long it takes
+EARLY = 2 * FULL_EVERY  # how many frames before its turn a frame searched whole in any case is sent
 SOLVE_S = 0.6  # identification, estimation and checks: 0.2-1.4 s on the 2-core reference, whatever the view count
 
 

@@ -74,10 +74,15 @@ class SearchPlan:
         s = self.tracking
         return frames * s.motion_px + s.jitter_px + s.diameter_px
 
+    def whole(self, n: int) -> bool:
+        """Whether frame ``n`` is searched whole whatever the frames before it hold (the first frames, every
+        FULL_EVERY-th, all of them with ``bb_search="full"``): it may be searched before them."""
+        return not self.predicted or n < LAG or n % FULL_EVERY == 0
+
     def windows(self, n: int, cands: list[NDArray[np.float64]], floors: NDArray[np.float64]) -> Windows | None:
         """Where frame ``n`` is searched, from the candidates found so far and the floors of the frames searched
         whole (NaN for the others; both final up to ``n - LAG``); None: search it whole."""
-        if not self.predicted or n < LAG or n % FULL_EVERY == 0:
+        if self.whole(n):
             return None
         whole = np.flatnonzero(np.isfinite(floors[: n - LAG + 1]))
         floor = float(floors[whole[-1]]) if len(whole) else 0.0
