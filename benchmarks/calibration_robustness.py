@@ -170,13 +170,16 @@ def _scale_errors_pct(uv: Any, true_uv: Any, xyz: Any, true_xyz: Any) -> tuple[f
     return 100.0 * (plain - 1.0), 100.0 * (plain * bar.factor - 1.0)
 
 
-def run_case(cache: Path, case: dict[str, Any], size: int, frames: int, bb_search: str = "full") -> dict[str, Any]:
-    """Simulate (cached), calibrate (``bb_search`` as the calibration option), and judge one case."""
+def run_case(cache: Path, case: dict[str, Any], size: int, frames: int, bb_search: str | None = None) -> dict[str, Any]:
+    """Simulate (cached), calibrate (``bb_search`` as the calibration option; None: its default), and judge one
+    case."""
     with tempfile.TemporaryDirectory(dir=cache) as work:
         return _run_case(cache, case, size, frames, Path(work) / "c.h5", bb_search)
 
 
-def _run_case(cache: Path, case: dict[str, Any], size: int, frames: int, work: Path, bb_search: str) -> dict[str, Any]:
+def _run_case(
+    cache: Path, case: dict[str, Any], size: int, frames: int, work: Path, bb_search: str | None
+) -> dict[str, Any]:
     import calib
     from calib.evaluate import similarity_aligned_error_px
     from orbitct.scanfile import ScanFile
@@ -188,7 +191,7 @@ def _run_case(cache: Path, case: dict[str, Any], size: int, frames: int, work: P
         row["frames"] = int(sf.projection_indices.size)
     t = time.perf_counter()
     try:
-        res = calib.calibrate_scan(scan, out=work, bb_search=bb_search)
+        res = calib.calibrate_scan(scan, out=work, **({} if bb_search is None else {"bb_search": bb_search}))
     except calib.CalibrationError as exc:
         row.update(
             time_s=time.perf_counter() - t, outcome="refused", message=str(exc).split(": ", 1)[-1].split(". ")[0][:70]
@@ -327,13 +330,13 @@ def main() -> None:
         help="also this many random placements of 5-12 BBs on experiment C's torso at 512 px, 206 frames",
     )
     ap.add_argument(
-        "--bb-search", choices=("full", "predicted"), default="full", help="the calibration's BB search (option)"
+        "--bb-search", choices=("full", "predicted"), help="the calibration's BB search (default: its default)"
     )
     args = ap.parse_args()
     args.cache.mkdir(parents=True, exist_ok=True)
     print(describe_machine())
     print(
-        f"{args.size} px, {args.frames} frames, BB search {args.bb_search}; 1-min load at start {os.getloadavg()[0]:.2f}\n"
+        f"{args.size} px, {args.frames} frames, BB search {args.bb_search or 'default'}; 1-min load at start {os.getloadavg()[0]:.2f}\n"
     )
     head = (
         "case",
