@@ -55,7 +55,14 @@ from calib.track import TrackingSettings, link_fragments
 from orbitct.compiletime import CompileClock
 from orbitct.geometry import ViewGeometry
 from orbitct.progress import ProgressCallback, report, report_expected
-from orbitct.scanfile import ImageKey, ScanFile, describe_frame_problems, frame_problem, write_linked_scan
+from orbitct.scanfile import (
+    FrameReader,
+    ImageKey,
+    ScanFile,
+    describe_frame_problems,
+    frame_problem,
+    write_linked_scan,
+)
 from orbitct.scanfile.reader import FRAME_COPIES
 
 
@@ -84,7 +91,6 @@ def _detect(
     mag = float(np.median(nominal.sdd / nominal.sod()))
     pitch = float(np.sqrt(det.pitch_col * det.pitch_row))
     dark, flat = sf.dark_flat()
-    ds = sf.frames
     diameter_mm = opt.diameter_mm if opt.diameter_mm is not None else sf.marker_diameter_mm
     if diameter_mm is None:
         diameter_mm = _estimate_diameter_mm(sf, proj, dark, flat, mag, pitch, opt)
@@ -114,18 +120,17 @@ def _detect(
             c = np.zeros((0, N_FIELDS))
         cands[m] = c
 
-    def read(m: int) -> NDArray[Any]:
-        buf = np.empty(det.shape, dtype=ds.dtype)
-        ds.read_direct(buf, np.s_[int(proj[m])])
-        return buf
+    def read_and_check(m: int, windows: Windows | None = None) -> tuple[NDArray[Any], float]:
+        return checked(frames.read(int(proj[m])), windows)
 
-    # the main thread reads frames (h5py holds the GIL); workers run the GIL-free kernels. A predicted search
-    # takes frame n - LAG's candidates before frame n is sent; the frames it searches whole in any case are sent
-    # EARLY frames before their turn, so that the frames whose windows come from them do not wait behind them
+    # the workers read their frames (straight from the file: the GIL is free while they do) and run the GIL-free
+    # kernels. A predicted search takes frame n - LAG's candidates before frame n is sent; the frames it searches
+    # whole in any case are sent EARLY frames before their turn, so that the frames whose windows come from them
+    # do not wait behind them
     ahead = LAG - 1 if plan.predicted else 2 * max(1, workers)
     begun = started = time.perf_counter()
     compiled_before = compiled = clock.seconds
-    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+    with FrameReader(sf.frames) as frames, ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         pending: deque[tuple[int, Future[tuple[NDArray[Any], float]]]] = deque()
         early: dict[int, Future[tuple[NDArray[Any], float]]] = {}
         for n in range(total):
@@ -136,16 +141,16 @@ def _detect(
                 so_far = time.perf_counter() - begun - (clock.seconds - compiled_before)
                 report_expected(progress, "calibration", so_far + calibration_seconds(total - n, per_frame))
             if n == 0:
-                buf = read(0)
+                buf = frames.read(int(proj[0]))
                 c, floor = checked(buf)  # also fixes the noise level used for every frame
                 if seeds_uv is not None and c.dtype != object:
                     c = np.concatenate([_seed_records(buf, fd, np.asarray(seeds_uv, float)), c])
                 take(0, (c, floor))
                 continue
             if plan.predicted and n + EARLY < total and plan.whole(n + EARLY):
-                early[n + EARLY] = pool.submit(checked, read(n + EARLY))
+                early[n + EARLY] = pool.submit(read_and_check, n + EARLY)
             fut = early.pop(n, None)
-            pending.append((n, fut or pool.submit(checked, read(n), plan.windows(n, cands, floors))))
+            pending.append((n, fut or pool.submit(read_and_check, n, plan.windows(n, cands, floors))))
             while len(pending) > ahead or (pending and pending[0][1].done()):
                 m, fut = pending.popleft()
                 take(m, fut.result())
