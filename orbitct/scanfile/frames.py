@@ -14,9 +14,10 @@ from numpy.typing import NDArray
 
 class FrameReader:
     """Reads frame ``i`` of an ``(N, rows, cols)`` dataset into a new array, from any thread. Frames stored one per
-    chunk, unfiltered, in native byte order, in a file on disk opened read-only, are read with ``os.preadv`` at
-    their chunk's offset (the GIL is released while the kernel copies them); any other frame (compressed, not yet
-    written, a driver without a file) through h5py, giving what h5py gives."""
+    chunk, unfiltered, in native byte order, in a file on disk opened read-only (the one HDF5 has open, not another
+    put in its place since), are read with ``os.preadv`` at their chunk's offset (the GIL is released while the
+    kernel copies them); any other frame (compressed, not yet written, a driver without a file) through h5py,
+    giving what h5py gives."""
 
     def __init__(self, data: h5py.Dataset) -> None:
         self.data = data
@@ -24,6 +25,7 @@ class FrameReader:
         self.dtype = data.dtype
         self._lock = threading.Lock()  # h5py calls, one at a time
         self._fd: int | None = None
+        self._size = 0
         nbytes = int(np.prod(self.shape)) * self.dtype.itemsize
         if (
             data.ndim == 3
@@ -33,8 +35,12 @@ class FrameReader:
             and self.dtype.isnative
             and data.id.get_create_plist().get_nfilters() == 0
         ):
-            self._fd = os.open(data.file.filename, os.O_RDONLY)
-            self._size = os.fstat(self._fd).st_size
+            fd = os.open(data.file.filename, os.O_RDONLY)
+            mine, hdf5s = os.fstat(fd), os.fstat(data.file.id.get_vfd_handle())
+            if (mine.st_dev, mine.st_ino) == (hdf5s.st_dev, hdf5s.st_ino):  # not a file put in its place since
+                self._fd, self._size = fd, mine.st_size
+            else:
+                os.close(fd)
         self._nbytes = nbytes
 
     @property

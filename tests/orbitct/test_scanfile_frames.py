@@ -59,3 +59,18 @@ def test_frames_stored_otherwise_come_through_h5py(tmp_path: Path) -> None:
     with h5py.File(path, "r+") as f, FrameReader(f["plain"]) as frames:
         assert not frames.direct
         np.testing.assert_array_equal(frames.read(0), data[0])
+
+
+def test_a_file_put_in_the_scans_place_is_not_read(tmp_path: Path) -> None:
+    """The frames come from the file h5py opened, even when another file has taken its name since."""
+    scan, other = tmp_path / "scan.h5", tmp_path / "other.h5"
+    _write(scan)
+    _write(other)
+    with h5py.File(other, "r+") as f:
+        f["frames/data"][...] = 1
+    with ScanFile(scan) as sf:
+        want = sf.frames[...]
+        other.replace(scan)
+        with FrameReader(sf.frames) as frames:
+            assert not frames.direct
+            np.testing.assert_array_equal(np.stack([frames.read(i) for i in range(len(want))]), want)
