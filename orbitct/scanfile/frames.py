@@ -28,7 +28,8 @@ class FrameReader:
         self._size = 0
         nbytes = int(np.prod(self.shape)) * self.dtype.itemsize
         if (
-            data.ndim == 3
+            hasattr(os, "preadv")  # not on Windows
+            and data.ndim == 3
             and data.chunks == (1, *self.shape)
             and data.file.mode == "r"
             and data.file.driver == "sec2"
