@@ -61,9 +61,10 @@ def frame_problem(frame: NDArray[Any], projection: bool) -> str | None:
             return f"{bad} pixels NaN or infinite"
     if not projection:
         return None
-    if not (frame > 0).any():
+    top = frame.max() if frame.size else 0  # one pass, no temporary: most frames need no other
+    if not top > 0:
         return "all zero (no signal)" if not frame.any() else "no pixel above zero (no signal)"
-    if frame.dtype == np.uint16:
+    if frame.dtype == np.uint16 and top == 65535:
         frac = np.count_nonzero(frame == 65535) / frame.size
         if frac > 0.5:
             return f"saturated ({frac:.0%} of pixels at 65535)"

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from orbitct.geometry import Panel, ViewGeometry
-from orbitct.scanfile import ScanFile, ScanFileError, ScanWriter
+from orbitct.scanfile import ScanFile, ScanFileError, ScanWriter, frame_problem
 
 DET = Panel(8, 10, 1.5, 1.25)
 
@@ -227,3 +227,20 @@ def test_summary_names_projections_taken_away_from_their_command(tmp_path: Path)
     with ScanFile(tmp_path / "ahead.h5") as f:
         off = scan_summary(f)["taken_off_command"]
     assert off == {"stage.angle": {"frames": 2, "max": 9.5, "step": 2.0, "unit": "deg"}}  # a step is 2 deg
+
+
+@pytest.mark.parametrize(
+    ("frame", "problem"),
+    [
+        (np.zeros((4, 4), np.uint16), "all zero (no signal)"),
+        (np.array([[-1.0, 0.0]]), "no pixel above zero (no signal)"),
+        (np.array([[np.nan, 1.0]]), "1 pixels NaN or infinite"),
+        (np.array([[0, 65535], [65535, 65535]], np.uint16), "saturated (75% of pixels at 65535)"),
+        (np.array([[0, 65535]], np.uint16), None),  # half saturated: still usable
+        (np.array([[1, 65534]], np.uint16), None),
+        (np.array([[-1.0, 2.0]]), None),
+    ],
+)
+def test_a_projection_that_cannot_be_used_says_why(frame: np.ndarray, problem: str | None) -> None:
+    assert frame_problem(frame, projection=True) == problem
+    assert frame_problem(np.zeros((2, 2), np.uint16), projection=False) is None  # a dark frame may be all zero
