@@ -9,6 +9,7 @@ volume geometry with the projection geometry).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, cast
 
@@ -54,6 +55,11 @@ class Panel:
     def pitch_mm(self) -> tuple[float, float]:
         """``(column pitch, row pitch)`` as stored in scan files."""
         return (self.pitch_col, self.pitch_row)
+
+    @property
+    def mean_pitch_mm(self) -> float:
+        """The geometric mean of the two pitches: one pixel's size for isotropic things (blur, a BB's diameter)."""
+        return math.sqrt(self.pitch_col * self.pitch_row)
 
     @property
     def center(self) -> tuple[float, float]:

@@ -61,9 +61,9 @@ def simulator_renderer(phantom: Any, model: Any = None, beam: Any = None) -> Ren
             return base.dark(rng, shape)
         m = scaled(kv, ma, exposure_ms)
         if kind == "flat":
-            return m.flat(rng, shape)
+            return m.flat(rng, shape, view.panel.mean_pitch_mm)
         spectrum = None if beam is None else beam.at_kv(kv)
-        return m.expose(line_integrals(phantom, view, 0, beam=spectrum), rng)
+        return m.expose(line_integrals(phantom, view, 0, beam=spectrum), rng, view.panel.mean_pitch_mm)
 
     return render
 

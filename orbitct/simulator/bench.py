@@ -70,7 +70,9 @@ class SimulatedBench:
         rng: np.random.Generator | int | None = None,
     ) -> NDArray[np.uint16]:
         """A raw uint16 projection frame of ``phantom`` at object pose ``(R, t)`` (what the panel reads out)."""
-        return self.model.expose(self.line_integrals(phantom, R, t), np.random.default_rng(rng))
+        return self.model.expose(
+            self.line_integrals(phantom, R, t), np.random.default_rng(rng), self.panel.mean_pitch_mm
+        )
 
     def dark(self, rng: np.random.Generator | int | None = None) -> NDArray[np.uint16]:
         """A raw dark frame."""
@@ -78,7 +80,7 @@ class SimulatedBench:
 
     def flat(self, rng: np.random.Generator | int | None = None) -> NDArray[np.uint16]:
         """A raw flat (open-field) frame."""
-        return self.model.flat(np.random.default_rng(rng), self.panel.shape)
+        return self.model.flat(np.random.default_rng(rng), self.panel.shape, self.panel.mean_pitch_mm)
 
     def config(self) -> dict[str, Any]:
         """JSON-able description (stored as provenance)."""

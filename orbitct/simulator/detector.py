@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, model_validator
 
+from orbitct.reference_bench import PITCH_MM
 from orbitct.simulator.noise import normal_fast, poisson, seed_from, stream
 
 
@@ -136,7 +137,16 @@ class DetectorModel(BaseModel):
     dark_offset_adu: float = Field(300.0, ge=0, description="mean dark offset, ADU")
     dark_pattern_adu: float = Field(4.0, ge=0, description="fixed-pattern spread of the dark offset, ADU")
     read_noise_adu: float = Field(3.0, ge=0, description="electronic read noise (std), ADU")
-    blur_sigma_px: float = Field(0.6, ge=0, le=10, description="scintillator blur (Gaussian std), pixels")
+    blur_sigma_px: float = Field(
+        0.6, ge=0, le=10, description="the panel's own blur: scintillator and pixel (Gaussian std), pixels"
+    )
+    focal_blur_mm: float = Field(
+        0.0,
+        ge=0,
+        le=5,
+        description="the focal spot's blur at the detector (Gaussian std, mm): geometric, so the same in millimetres "
+        "whatever the pixel pitch; it adds to blur_sigma_px in quadrature and acts before the quanta are counted",
+    )
     gain_variation: float = Field(0.02, ge=0, le=0.5, description="pixel-to-pixel gain spread (fraction)")
     falloff: float = Field(0.10, ge=0, le=0.9, description="flat-field drop from centre to corner (heel/distance)")
     pattern_seed: int = Field(7, description="seed of the fixed gain and dark patterns")
@@ -232,25 +242,31 @@ class DetectorModel(BaseModel):
         bottom = spread[r1][:, c0] * (1 - wc) + spread[r1][:, c1] * wc
         return (top * (1 - wr) + bottom * wr).astype(np.float32)
 
-    def mean_signal(self, li: NDArray[np.float32]) -> NDArray[np.float32]:
-        """Noise-free mean signal above dark (ADU) for line integrals ``li``, blurred, scatter included (lag,
-        which depends on the frame before, is not)."""
+    def blur_px(self, pitch_mm: float = PITCH_MM) -> float:
+        """The whole blur (Gaussian std, pixels) on a panel of ``pitch_mm`` pixels: the panel's own and the focal
+        spot's."""
+        return math.hypot(self.blur_sigma_px, self.focal_blur_mm / pitch_mm)
+
+    def mean_signal(self, li: NDArray[np.float32], pitch_mm: float = PITCH_MM) -> NDArray[np.float32]:
+        """Noise-free mean signal above dark (ADU) for line integrals ``li`` on pixels of ``pitch_mm``, blurred,
+        scatter included (lag, which depends on the frame before, is not)."""
         flat, _ = self.maps(li.shape)
-        k = blur_kernel(self.blur_sigma_px)
+        k = blur_kernel(self.blur_px(pitch_mm))
         rows = _signal_rows(np.ascontiguousarray(li, dtype=np.float32), flat, k)
         return _blur_cols(rows + self.scatter(li), k)
 
-    def expected(self, li: NDArray[np.float32]) -> NDArray[np.float32]:
-        """Noise-free mean raw value for line integrals ``li`` (before saturation)."""
-        return self.mean_signal(li) + self.maps(li.shape)[1]
+    def expected(self, li: NDArray[np.float32], pitch_mm: float = PITCH_MM) -> NDArray[np.float32]:
+        """Noise-free mean raw value for line integrals ``li`` on pixels of ``pitch_mm`` (before saturation)."""
+        return self.mean_signal(li, pitch_mm) + self.maps(li.shape)[1]
 
-    def expose(self, li: NDArray[np.float32], rng: np.random.Generator) -> NDArray[np.uint16]:
-        """One raw frame (uint16) for line integrals ``li`` (rows, cols): blur, scatter, lag of the frame before,
-        quantum noise, dark, read noise, dead pixels."""
+    def expose(
+        self, li: NDArray[np.float32], rng: np.random.Generator, pitch_mm: float = PITCH_MM
+    ) -> NDArray[np.uint16]:
+        """One raw frame (uint16) for line integrals ``li`` (rows, cols) on pixels of ``pitch_mm``: blur, scatter,
+        lag of the frame before, quantum noise, dark, read noise, dead pixels."""
         flat, dark = self.maps(li.shape)
-        mean_blur = (
-            self.blur_sigma_px if self.noise_blur_px == 0 else math.sqrt(self.blur_sigma_px**2 - self.noise_blur_px**2)
-        )
+        blur = self.blur_px(pitch_mm)
+        mean_blur = blur if self.noise_blur_px == 0 else math.sqrt(blur**2 - self.noise_blur_px**2)
         k = blur_kernel(mean_blur)  # the blur before the quanta are counted (the rest spreads them)
         rows = _signal_rows(np.ascontiguousarray(li, dtype=np.float32), flat, k)
         if self.scatter_fraction > 0:
@@ -285,9 +301,9 @@ class DetectorModel(BaseModel):
             out[dead] = np.clip(np.rint(dark[dead]), 0, self.saturation_adu).astype(np.uint16)
         return out
 
-    def flat(self, rng: np.random.Generator, shape: tuple[int, int]) -> NDArray[np.uint16]:
-        """One open-field (flat) frame."""
-        return self.expose(np.zeros(shape, dtype=np.float32), rng)
+    def flat(self, rng: np.random.Generator, shape: tuple[int, int], pitch_mm: float = PITCH_MM) -> NDArray[np.uint16]:
+        """One open-field (flat) frame on pixels of ``pitch_mm`` (blurred as a projection is)."""
+        return self.expose(np.zeros(shape, dtype=np.float32), rng, pitch_mm)
 
     def dark(self, rng: np.random.Generator, shape: tuple[int, int]) -> NDArray[np.uint16]:
         """One dark frame (X-rays off; with lag, the frame before still shows faintly)."""
@@ -299,7 +315,9 @@ class DetectorModel(BaseModel):
 PRESETS: dict[str, dict[str, float]] = {
     "clean": {},
     "realistic": {
-        "blur_sigma_px": 1.0,  # scintillator plus a 0.6 mm focal spot seen at the isocentre's magnification
+        # a 0.6 mm focal spot seen at the isocentre's magnification, on top of the panel's own 0.6 px: 1.0 px in
+        # all on the reference panel's 0.556 mm pixels, 0.72 px on 1.11 mm pixels (384 px)
+        "focal_blur_mm": 0.8 * PITCH_MM,
         "scatter_fraction": 0.3,  # no anti-scatter grid behind a torso's worth of tissue
         "lag_fraction": 0.03,  # first-frame lag of an a-Si panel
         "dead_pixel_fraction": 0.001,

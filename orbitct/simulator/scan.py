@@ -205,7 +205,7 @@ def simulate_scan(
                 bg.append(bench.model.dark(rng, det.shape), "dark", done * frame_interval_s)
                 done += 1
             for _ in range(n_flat):
-                bg.append(bench.model.flat(rng, det.shape), "flat", done * frame_interval_s)
+                bg.append(bench.model.flat(rng, det.shape, det.mean_pitch_mm), "flat", done * frame_interval_s)
                 done += 1
             report(progress, "simulate", done, total, "dark and flat frames")
             th, ph = orb.theta_deg, orb.phi_deg
@@ -214,7 +214,7 @@ def simulate_scan(
                 cmd = {"orbit.rotation": float(th[i]), "orbit.tilt": float(ph[i])}
                 last = i == orb.n_frames - 1
                 bg.append(
-                    bench.model.expose(li, rng),
+                    bench.model.expose(li, rng, det.mean_pitch_mm),
                     "projection",
                     done * frame_interval_s,
                     nominal_vector=nominal.vectors[i],

@@ -158,6 +158,25 @@ def test_presets_name_the_clean_and_the_realistic_panel_and_refuse_others() -> N
         DetectorModel.preset("grainy")
 
 
+def test_the_focal_spot_blurs_the_same_millimetres_on_any_pixel_pitch() -> None:
+    spot = DetectorModel(blur_sigma_px=0.0, gain_variation=0.0, falloff=0.0, focal_blur_mm=0.5)
+
+    def edge_width_mm(pitch_mm: float, n: int) -> float:
+        li = np.zeros((8, n), np.float32)
+        li[:, n // 2 :] = 1.0
+        row = spot.mean_signal(li, pitch_mm)[4].astype(float)
+        t = (row[0] - row) / (row[0] - row[-1])  # 0 to 1 across the edge
+        return float(np.interp(0.9, t, np.arange(n)) - np.interp(0.1, t, np.arange(n))) * pitch_mm
+
+    fine, coarse = edge_width_mm(0.25, 128), edge_width_mm(0.5, 64)
+    assert fine == pytest.approx(2.563 * 0.5, rel=0.05)  # 10-90 % of a Gaussian edge: 2.563 sigma
+    assert coarse == pytest.approx(fine, rel=0.1)
+    # the realistic panel: 1.0 px in all on the reference panel, less in pixels on larger ones
+    real = DetectorModel.preset("realistic")
+    assert real.blur_px() == pytest.approx(1.0)
+    assert 0.6 < real.blur_px(2 * 0.556) < 0.8
+
+
 def test_blur_keeps_mean_and_smooths() -> None:
     sharp = DetectorModel(blur_sigma_px=0.0)
     soft = DetectorModel(blur_sigma_px=1.5)
