@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
 
 from calib.bundle import bundle_adjust
 from calib.detect import N_FIELDS
 from calib.model import ViewModel, ViewState, all_finite
 from calib.quality import fit_rigid_poses
 from calib.rays import marker_rays, triangulate_least_squares
-from calib.track import TrackingSettings, assign_to_predictions, like_the_others, link_fragments
+from calib.track import TrackingSettings, assign_to_predictions, ball_like, like_the_others, link_fragments
 from orbitct.geometry import Panel, ViewGeometry
 from orbitct.rotations import similarity_fit
 
@@ -27,6 +28,19 @@ def fill_states(state: ViewState, solved: NDArray[np.bool_], n: int) -> ViewStat
     left = idx[np.clip(np.searchsorted(idx, np.arange(n)) - 1, 0, len(idx) - 1)]
     nearest = np.where(np.abs(left - np.arange(n)) < np.abs(nearest - np.arange(n)), left, nearest)
     return ViewState(state.R[nearest], state.t[nearest], state.k[nearest])
+
+
+def neighbour_states(state: ViewState, solved: NDArray[np.bool_]) -> tuple[ViewState, ViewState]:
+    """States for all views copied from the nearest solved view before each, and after each (the first or last
+    solved one where there is none on that side)."""
+    idx = np.flatnonzero(solved)
+    at = np.searchsorted(idx, np.arange(len(solved)))
+    before = idx[np.clip(at - 1, 0, len(idx) - 1)]
+    after = idx[np.clip(np.searchsorted(idx, np.arange(len(solved)), side="right"), 0, len(idx) - 1)]
+    return (
+        ViewState(state.R[before], state.t[before], state.k[before]),
+        ViewState(state.R[after], state.t[after], state.k[after]),
+    )
 
 
 #: a rough solve's pull of each BB centre towards its first triangulation (standard deviation): weak enough to leave
@@ -316,6 +330,133 @@ def assign_by_pose(
             break
         uv = again
     return uv
+
+
+#: a view placed by a 2-D similarity (:func:`placed_by_similarity`) needs this many BBs to agree on it
+MIN_PLACING_VOTES = 4
+#: how far the 2-D similarity that places a jumped view may turn (rad) and scale the view's guess
+PLACING_TURN_RAD = np.radians(20.0)
+PLACING_SCALE = (0.8, 1.25)
+#: a placed view's BBs fit its pose this well (px), else its worst pair is dropped
+PLACING_FIT_PX = 1.0
+
+
+def placed_by_similarity(
+    cands: list[NDArray[np.float64]],
+    model: ViewModel,
+    guesses: list[ViewState],
+    xyz: NDArray[np.float64],
+    settings: TrackingSettings,
+    views: NDArray[np.intp],
+) -> ViewState:
+    """Poses for ``views`` whose frame jumped farther from its guesses (states for every view, tried in turn, such
+    as its calibrated neighbours on either side) than its BBs lie apart, so that no BB lands on its own blob. Every
+    2-D shift, then every 2-D similarity (turning at most :data:`PLACING_TURN_RAD`, scaling within
+    :data:`PLACING_SCALE`), that carries two predicted BBs onto two ball-like candidates is tried; the one that
+    carries the most BBs (at least :data:`MIN_PLACING_VOTES`, each onto a blob of its own) within a third of their
+    median spacing is taken, and the view's rigid pose fitted to those pairs from that guess. Views where none
+    gathers enough keep the first guess."""
+    first = guesses[0]
+    out = ViewState(first.R.copy(), first.t.copy(), first.k.copy())
+    if not len(views):
+        return out
+    uv = np.full((len(views), xyz.shape[0], 2), np.nan)
+    start = ViewState(first.R[views].copy(), first.t[views].copy(), first.k[views].copy())
+    todo = np.ones(len(views), bool)
+    for guess in guesses:
+        predicted = model.project(guess, xyz)[views]  # (V, K, 2)
+        for i in np.flatnonzero(todo):
+            c = cands[views[i]]
+            c = c[ball_like(c, settings), :2] if len(c) else np.zeros((0, 2))
+            found = _similarity_pairs(predicted[i], c)
+            if found is not None:
+                uv[i, found[0]] = c[found[1]]
+                start.R[i], start.t[i], start.k[i] = guess.R[views[i]], guess.t[views[i]], guess.k[views[i]]
+                todo[i] = False
+    placed = usable_views(uv, MIN_PLACING_VOTES)
+    if not placed.any():
+        return out
+    idx = views[placed]
+    sub = ViewModel(model.nominal[idx], model.intrinsics)
+    pairs, guess = uv[placed], ViewState(start.R[placed], start.t[placed], start.k[placed])
+    fitted = fit_rigid_poses(sub, guess, xyz, pairs)
+    for _ in range(xyz.shape[0]):  # a blob near a BB may have been paired with it: leave out the pair whose
+        # absence fits the others best, while the view's pairs fit worse than PLACING_FIT_PX
+        worst = _worst_fit_px(sub, fitted, xyz, pairs)
+        bad = np.flatnonzero((worst > PLACING_FIT_PX) & (all_finite(pairs).sum(1) > MIN_PLACING_VOTES))
+        if not len(bad):
+            break
+        b_sub = ViewModel(sub.nominal[bad], model.intrinsics)
+        b_guess = ViewState(guess.R[bad], guess.t[bad], guess.k[bad])
+        without = np.full((len(bad), xyz.shape[0]), np.inf)
+        for j in range(xyz.shape[0]):
+            trial = pairs[bad].copy()
+            trial[:, j] = np.nan
+            has = all_finite(pairs[bad, j])
+            if has.any():
+                st = fit_rigid_poses(b_sub, b_guess, xyz, trial)
+                without[has, j] = _worst_fit_px(b_sub, st, xyz, trial)[has]
+        pairs[bad, np.argmin(without, axis=1)] = np.nan
+        refit = fit_rigid_poses(b_sub, b_guess, xyz, pairs[bad])
+        fitted.R[bad], fitted.t[bad] = refit.R, refit.t
+    out.R[idx], out.t[idx] = fitted.R, fitted.t
+    return out
+
+
+def _worst_fit_px(
+    model: ViewModel, state: ViewState, xyz: NDArray[np.float64], pairs: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Per view, the largest distance (px) between a paired blob and its BB's projection through ``state``."""
+    off = np.linalg.norm(model.project(state, xyz) - pairs, axis=-1)
+    return np.asarray(np.where(np.isfinite(off), off, 0.0).max(axis=1))
+
+
+def _similarity_pairs(
+    p: NDArray[np.float64], c: NDArray[np.float64]
+) -> tuple[NDArray[np.intp], NDArray[np.intp]] | None:
+    """The BBs ``p`` (K, 2; NaN: not predicted) and candidates ``c`` (M, 2) that the best 2-D placing pairs
+    (:func:`placed_by_similarity`): a shift where one gathers enough, else a similarity; as index arrays, None
+    when none pairs enough."""
+    keep = np.flatnonzero(all_finite(p))
+    if len(keep) < MIN_PLACING_VOTES or len(c) < MIN_PLACING_VOTES:
+        return None
+    P = p[keep, 0] + 1j * p[keep, 1]
+    C = c[:, 0] + 1j * c[:, 1]
+    apart = np.abs(P[:, None] - P[None])
+    np.fill_diagonal(apart, np.inf)
+    gate = max(2.0, float(np.median(apart.min(1))) / 3.0)
+    shifted = P[None] + (C[None, :] - P[:, None]).reshape(-1, 1)  # every shift of a BB onto a candidate (H, K)
+    found = _best_placing(shifted, C, gate)
+    if found is None:
+        k1, k2 = np.triu_indices(len(P), 1)
+        m1, m2 = np.nonzero(~np.eye(len(C), dtype=bool))
+        ratio = (C[m2][None] - C[m1][None]) / (P[k2] - P[k1])[:, None]  # (pairs of BBs, pairs of candidates)
+        ok = (np.abs(np.angle(ratio)) <= PLACING_TURN_RAD) & (np.abs(ratio) >= PLACING_SCALE[0])
+        a, b = np.nonzero(ok & (np.abs(ratio) <= PLACING_SCALE[1]))
+        if not len(a):
+            return None
+        found = _best_placing(C[m1[b]][:, None] + ratio[a, b][:, None] * (P[None] - P[k1[a]][:, None]), C, gate)
+    if found is None:
+        return None
+    return keep[found[0]], found[1]
+
+
+def _best_placing(
+    moved: NDArray[np.complex128], C: NDArray[np.complex128], gate: float
+) -> tuple[NDArray[np.intp], NDArray[np.intp]] | None:
+    """Of the placings ``moved`` (H, K) of the BBs, the one that puts the most within ``gate`` of the candidates
+    ``C``, each BB on a candidate of its own (at least :data:`MIN_PLACING_VOTES`): BB and candidate indices."""
+    close = np.abs(moved[:, :, None] - C[None, None]) <= gate  # (H, K, M)
+    votes = np.minimum(close.any(2).sum(1), close.any(1).sum(1))  # BBs that can each have a candidate of their own
+    best = int(np.argmax(votes))
+    if votes[best] < MIN_PLACING_VOTES:
+        return None
+    d = np.abs(moved[best][:, None] - C[None])
+    rows, cols = linear_sum_assignment(np.where(d <= gate, d, 1e9))
+    hit = d[rows, cols] <= gate
+    if hit.sum() < MIN_PLACING_VOTES:
+        return None
+    return rows[hit], cols[hit]
 
 
 def _stacked(cands: list[NDArray[np.float64]]) -> NDArray[np.float64]:

@@ -16,7 +16,13 @@ from orbitct.options import option_problems
 
 METHODS = ("bundle", "paper")
 DEFAULT_JITTER_MM = 3.0
-RECOVERY_JITTER_MM = (8.0, 15.0, 25.0)  # tracking allowances tried in turn when the BBs are not followed
+RECOVERY_JITTER_MM = (8.0, 15.0, 25.0, 40.0, 60.0)  # tracking allowances tried in turn when the BBs are not followed
+#: the allowances tried only while no smaller one has found BBs to calibrate with (frames that jump farther than
+#: the BBs lie apart): where a smaller one calibrated, these could replace it with one that passes by a wrong blob
+LAST_RESORT_JITTER_MM = (40.0, 60.0)
+#: how far a frame may have jumped when BBs are assigned again through the calibrated views (at least; more when
+#: the BBs were followed only with a larger allowance)
+REASSIGN_JITTER_MM = 25.0
 
 
 class CalibrationOptions(BaseModel):
@@ -88,7 +94,8 @@ class CalibrationOptions(BaseModel):
         description="frame-to-frame jitter of the orbit around the nominal (object scale, mm) allowed in tracking",
     )
     recover: bool = Field(
-        True, description="track again allowing larger jumps (8, 15, 25 mm) when the first result fails its check"
+        True,
+        description="track again allowing larger jumps (8, 15, 25 mm; 40 and 60 mm where those find no BBs) when the first result fails its check",
     )
     weigh_detections: bool = Field(
         True, description="bundle: solve once more, each detection weighted by how rough its background is"

@@ -27,7 +27,15 @@ from calib.errors import (
 from calib.evaluate import fov_points, true_corrections
 from calib.identify import identify
 from calib.model import ViewModel, ViewState
-from calib.options import DEFAULT_JITTER_MM, METHODS, RECOVERY_JITTER_MM, CalibrationOptions, checked_options
+from calib.options import (
+    DEFAULT_JITTER_MM,
+    LAST_RESORT_JITTER_MM,
+    METHODS,
+    REASSIGN_JITTER_MM,
+    RECOVERY_JITTER_MM,
+    CalibrationOptions,
+    checked_options,
+)
 from calib.quality import (
     MIN_OWN_BBS,
     OWN,
@@ -39,6 +47,7 @@ from calib.refine import (
     Polish,
     estimate,
     estimate_again,
+    jumped_views_again,
     merge_twins,
     mild_misfits_only,
     min_observations,
@@ -64,6 +73,9 @@ from orbitct.scanfile import (
     write_linked_scan,
 )
 from orbitct.scanfile.reader import FRAME_COPIES
+
+#: rounds of placing views whose frame jumped (:func:`calib.refine.jumped_views_again`)
+JUMPED_ROUNDS = 3
 
 
 def motion_px(nominal: ViewGeometry) -> float:
@@ -408,6 +420,8 @@ def _solve_and_write(
     levels = [opt.jitter_mm] + ([j for j in RECOVERY_JITTER_MM if j > opt.jitter_mm] if opt.recover else [])
     tracks: dict[float, tuple[TrackingSettings, NDArray[np.float64]]] = {}  # per allowance: settings, 2-D tracks
     for jitter_mm in levels:
+        if jitter_mm in LAST_RESORT_JITTER_MM and best is not None:  # only where smaller ones found no BBs
+            break
         report(progress, "track", 0, 1, f"identifying BBs (jitter {jitter_mm:g} mm)")
         tset = TrackingSettings(
             diameter_px=d_px, motion_px=motion_px(nominal), jitter_px=jitter_mm * d_px / diameter_mm
@@ -442,8 +456,8 @@ def _solve_and_write(
             continue
         verdict = judge(outcome[7], proj, opt.max_predicted_px, opt.bridge_max_views, method)
         if method == "bundle" and (not verdict.passed or verdict.counts[OWN] < proj.size):
-            # views between calibrated ones may have jumped far: search as widely as the widest allowance
-            wide = replace(tset, jitter_px=max(levels) * d_px / diameter_mm)
+            # views between calibrated ones may have jumped far: search as widely as REASSIGN_JITTER_MM at least
+            wide = replace(tset, jitter_px=max(REASSIGN_JITTER_MM, jitter_mm) * d_px / diameter_mm)
             outcome, verdict = reassign(cands, model, wide, outcome, verdict, proj, opt, progress)
         if best is None or verdict.passed:  # a larger allowance replaces the first result only when it passes
             best = (jitter_mm, found_warnings, outcome, verdict)
@@ -479,6 +493,22 @@ def _solve_and_write(
             warnings = list(warnings) + [
                 f"{n_sparse} view(s) that kept {MIN_OWN_BBS} BBs or fewer where the views around "
                 "them see more were assigned again through those views and calibrated with more BBs"
+            ]
+        n_jumped = 0
+        # only where the BBs were followed only with jumps larger than reassignment searches: elsewhere a view
+        # without its own BBs lacks them for other reasons, and a placing by 2-D similarity can pick a wrong blob
+        # (four times the bench profile: one detection in 2000)
+        for _ in range(JUMPED_ROUNDS if jitter_used > REASSIGN_JITTER_MM else 0):  # each round places the next's
+            outcome, verdict, gained = jumped_views_again(
+                cands, model, tracks[jitter_used][0], outcome, verdict, proj, opt, progress
+            )
+            n_jumped += gained
+            if not gained:
+                break
+        if n_jumped:
+            warnings = list(warnings) + [
+                f"{n_jumped} view(s) whose frame jumped farther than the BBs lie apart were placed by the 2-D "
+                "similarity that carries the most BBs onto blobs and calibrated from their own BBs"
             ]
         outcome, verdict, n_split = split_merged(target, proj, model, outcome, verdict, d_px, opt, progress)
         if opt.weigh_detections:

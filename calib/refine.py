@@ -14,7 +14,15 @@ from numpy.typing import NDArray
 
 from calib.bundle import bundle_adjust
 from calib.errors import NoMarkersError
-from calib.identify import assign_by_pose, fill_states, recover_missed, twin_constellation, usable_views
+from calib.identify import (
+    assign_by_pose,
+    fill_states,
+    neighbour_states,
+    placed_by_similarity,
+    recover_missed,
+    twin_constellation,
+    usable_views,
+)
 from calib.model import ViewModel, ViewState, all_finite
 from calib.options import CalibrationOptions
 from calib.paper import paper_calibrate
@@ -214,6 +222,42 @@ def sparse_views_again(
         better[idx] = all_finite(by_own[idx]).sum(1) > all_finite(again[idx]).sum(1)
         again = np.where(better[:, None, None], by_own, again)
     gain = sparse & (all_finite(again).sum(1) > count)
+    if not gain.any():
+        return outcome, verdict, 0
+    new = uv.copy()
+    new[gain] = again[gain]
+    outcome, verdict, kept = estimate_again(model, new, proj, opt, progress, outcome, verdict)
+    return outcome, verdict, int(gain.sum()) if kept else 0
+
+
+def jumped_views_again(
+    cands: list[NDArray[np.float64]],
+    model: ViewModel,
+    tset: TrackingSettings,
+    outcome: tuple[Any, ...],
+    verdict: CalibrationVerdict,
+    proj: NDArray[np.intp],
+    opt: CalibrationOptions,
+    progress: ProgressCallback | None,
+) -> tuple[tuple[Any, ...], CalibrationVerdict, int]:
+    """Views not calibrated from their own BBs whose frame jumped farther than the BBs lie apart (an orbit many
+    times the bench profile's errors: a neighbour's pose puts no BB on its own blob): each is placed by the 2-D
+    similarity that carries the most BBs onto blobs (:func:`calib.identify.placed_by_similarity`), its BBs assigned
+    through the pose fitted to them, and the geometry estimated again with the views that gain BBs; kept unless
+    worse. Also how many views gained."""
+    state, xyz, uv, quality = outcome[2], outcome[1], outcome[3], outcome[7]
+    solved = quality.status == OWN
+    views = np.flatnonzero(~solved)
+    if not solved.any() or not len(views):
+        return outcome, verdict, 0
+    known = ViewState(np.nan_to_num(state.R), np.nan_to_num(state.t), state.k)
+    guesses = [fill_states(known, solved, len(solved)), *neighbour_states(known, solved), model.identity()]
+    placed = placed_by_similarity(cands, model, guesses, xyz, tset, views)
+    # the placed poses are fitted to the BBs: no frame shift left to search for
+    again = assign_by_pose(cands, model, placed, xyz, replace(tset, jitter_px=0.0))
+    count = all_finite(uv).sum(1)
+    gain = np.zeros(len(count), bool)
+    gain[views] = (all_finite(again[views]).sum(1) >= MIN_OWN_BBS) & (all_finite(again[views]).sum(1) > count[views])
     if not gain.any():
         return outcome, verdict, 0
     new = uv.copy()

@@ -113,3 +113,35 @@ def test_a_blob_is_like_the_bbs_when_its_size_and_background_are() -> None:
     assert like_the_others(blobs(1.95, 0.15), bbs)
     assert not like_the_others(blobs(2.31, 0.18), bbs)  # the structure
     assert not like_the_others(blobs(1.9, 0.40), bbs)  # a BB-sized blob on a bone edge
+
+
+def test_a_view_that_jumped_farther_than_its_bbs_lie_apart_is_placed_on_its_own_blobs() -> None:
+    """Eight BBs; every view's true pose is its guess moved 30-40 mm and turned 6 degrees (frames of an orbit eight
+    times the bench profile's errors jump so), so the guess puts no BB on its own blob. Placed by the 2-D
+    similarity that carries the most BBs onto blobs and a pose fitted to them, every BB lands within 0.1 px of its
+    blob; among clutter too. A view with three blobs keeps its guess."""
+    from calib.identify import placed_by_similarity
+    from calib.model import ViewModel, ViewState
+    from calib.track import TrackingSettings
+    from orbitct.rotations import rotvec_to_matrix
+    from tests.helpers.calib_scans import sawtooth, spiral_markers
+
+    g = sawtooth(12, 256)
+    xyz = spiral_markers(8)
+    model = ViewModel(g)
+    rng = np.random.default_rng(3)
+    axes = rng.normal(size=(g.n_views, 3))
+    rot = rotvec_to_matrix(np.radians(6.0) * axes / np.linalg.norm(axes, axis=1, keepdims=True))
+    shift = rng.uniform(30.0, 40.0, (g.n_views, 1)) * rng.choice([-1.0, 1.0], (g.n_views, 3)) / np.sqrt(3)
+    true = ViewState(rot, shift, np.zeros((g.n_views, 0)))
+    uv = model.project(true, xyz)
+    guess = model.identity()
+    assert np.linalg.norm(model.project(guess, xyz) - uv, axis=-1).min() > 8.0  # no BB near its own blob
+    clutter = rng.uniform(20.0, 236.0, (g.n_views, 6, 2))
+    cands = [_records(np.concatenate([uv[p], clutter[p]]), 2.0, 0.05) for p in range(g.n_views)]
+    cands[5] = _records(uv[5, :3], 2.0, 0.05)  # three blobs: too few to place the view
+    placed = placed_by_similarity(cands, model, [guess], xyz, TrackingSettings(diameter_px=4.0), np.arange(12))
+    err = np.linalg.norm(model.project(placed, xyz) - uv, axis=-1)
+    others = np.arange(12) != 5
+    assert err[others].max() < 0.1
+    np.testing.assert_array_equal(placed.R[5], guess.R[5])

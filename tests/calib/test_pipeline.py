@@ -205,6 +205,38 @@ def test_three_times_the_bench_errors_are_recovered_by_tracking_with_larger_jump
     assert any("allowing" in w and "mm jumps" in w for w in res.warnings)
 
 
+def test_eight_times_the_bench_errors_calibrate_where_the_jumped_views_are_placed(tmp_path: Path) -> None:
+    """Errors eight times the bench profile (about 8 deg and 80 mm: frames jump up to 45 px, farther than the BBs
+    lie apart; the robustness sweep's seed 2): the BBs are followed only with 40 or 60 mm jumps allowed, and the views a
+    neighbour's pose puts no BB on are placed by a 2-D shift or similarity. Every view is calibrated from its own
+    BBs, at the floor, each BB keeping its identity, and the warnings say so."""
+    from orbitct.errorprofiles import make_profile
+    from orbitct.phantoms.experiments import experiment_phantom
+    from orbitct.reference_bench import reference_panel
+    from orbitct.simulator.scan import simulate_scan
+
+    scan = tmp_path / "x8.h5"
+    simulate_scan(
+        experiment_phantom("A", 2),
+        out=scan,
+        n_frames=250,
+        detector_px=384,
+        pitch_mm=reference_panel(384).pitch_col,
+        seed=2,
+        overwrite=True,
+        errors=make_profile("bench", 2, angle_scale=8 * 250 / 500, shift_amplitude_mm=64.0, shift_noise_mm=16.0),
+    )
+    res = calib.calibrate_scan(scan, out=tmp_path / "o.h5")
+    proj, truth_uv, truth = _truth(scan)
+    owner, purity, _ = _identity(res.uv[proj], truth_uv[proj])
+    assert res.n_bbs >= 7 and len(set(owner.tolist())) == res.n_bbs and purity == 1.0
+    assert res.quality is not None and res.quality.passed and res.quality.counts["own"] == proj.size
+    err, _ = similarity_aligned_error_px(res.geometry[proj], truth[proj], max_views=proj.size)
+    below("aligned_error_px", err, 0.25)
+    assert any("allowing 40 mm jumps" in w or "allowing 60 mm jumps" in w for w in res.warnings)
+    assert any("were placed by the 2-D" in w for w in res.warnings)
+
+
 @pytest.mark.parametrize("bb_search", ["full", "predicted"])
 def test_four_times_the_bench_errors_calibrate_to_the_floor(tmp_path: Path, bb_search: str) -> None:
     """Errors four times the bench profile (about 4 deg and 40 mm; frames jump farther than the BBs lie apart):
