@@ -337,7 +337,7 @@ MIN_PLACING_VOTES = 4
 #: how far the 2-D similarity that places a jumped view may turn (rad) and scale the view's guess
 PLACING_TURN_RAD = np.radians(20.0)
 PLACING_SCALE = (0.8, 1.25)
-#: a placed view's BBs fit its pose this well (px), else its worst pair is dropped
+#: a placed view's pairs fit its pose this well (px), else the pair whose absence fits the others best is left out
 PLACING_FIT_PX = 1.0
 
 
@@ -351,11 +351,12 @@ def placed_by_similarity(
 ) -> ViewState:
     """Poses for ``views`` whose frame jumped farther from its guesses (states for every view, tried in turn, such
     as its calibrated neighbours on either side) than its BBs lie apart, so that no BB lands on its own blob. Every
-    2-D shift, then every 2-D similarity (turning at most :data:`PLACING_TURN_RAD`, scaling within
-    :data:`PLACING_SCALE`), that carries two predicted BBs onto two ball-like candidates is tried; the one that
-    carries the most BBs (at least :data:`MIN_PLACING_VOTES`, each onto a blob of its own) within a third of their
-    median spacing is taken, and the view's rigid pose fitted to those pairs from that guess. Views where none
-    gathers enough keep the first guess."""
+    2-D shift that carries a predicted BB onto a ball-like candidate is tried, then, where none gathers enough,
+    every 2-D similarity that carries two onto two (turning at most :data:`PLACING_TURN_RAD`, scaling within
+    :data:`PLACING_SCALE`); the one that carries the most BBs (at least :data:`MIN_PLACING_VOTES`, each onto a blob
+    of its own) within a third of their median spacing is taken, and the view's rigid pose fitted to those pairs
+    from that guess, leaving out one pair at a time while they fit worse than :data:`PLACING_FIT_PX`. Views where
+    none gathers enough keep the first guess."""
     first = guesses[0]
     out = ViewState(first.R.copy(), first.t.copy(), first.k.copy())
     if not len(views):

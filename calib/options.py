@@ -95,7 +95,8 @@ class CalibrationOptions(BaseModel):
     )
     recover: bool = Field(
         True,
-        description="track again allowing larger jumps (8, 15, 25 mm; 40 and 60 mm where those find no BBs) when the first result fails its check",
+        description="track again allowing larger jumps (8, 15, 25 mm; 40 and 60 mm where those find no BBs) when "
+        "the first result fails its check",
     )
     weigh_detections: bool = Field(
         True, description="bundle: solve once more, each detection weighted by how rough its background is"

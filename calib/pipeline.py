@@ -496,9 +496,9 @@ def _solve_and_write(
             ]
         n_jumped = 0
         # only where the BBs were followed only with jumps larger than reassignment searches: elsewhere a view
-        # without its own BBs lacks them for other reasons, and a placing by 2-D similarity can pick a wrong blob
-        # (four times the bench profile: one detection in 2000)
-        for _ in range(JUMPED_ROUNDS if jitter_used > REASSIGN_JITTER_MM else 0):  # each round places the next's
+        # without its own BBs lacks them for other reasons, and a 2-D placing can pick a wrong blob. Each round's
+        # views are the next round's neighbours
+        for _ in range(JUMPED_ROUNDS if jitter_used > REASSIGN_JITTER_MM else 0):
             outcome, verdict, gained = jumped_views_again(
                 cands, model, tracks[jitter_used][0], outcome, verdict, proj, opt, progress
             )
