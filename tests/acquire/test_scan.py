@@ -155,8 +155,11 @@ def test_continuous_second_sweep_keeps_the_source_ready(request_factory) -> None
         error_params={},
     )
     res = run_scan(req)
+    # with the bug every exposure of the second turn comes a preparation late: the first late frame starts its
+    # sweep anew, the next one ends the scan. A frame late by chance on a loaded machine (CI: frame 16 once, 4.40
+    # deg off, in the first turn) starts one sweep anew and the scan completes
     assert res.status == "complete", res.reason
-    assert res.timing["late_restarts"] == 0
+    assert res.timing["late_restarts"] <= 2
     with ScanFile(req.out) as sf:
         proj = sf.projection_indices
         stage = sf.axes("encoders")["rotation_stage.R"][proj] - sf.axes("commanded")["rotation_stage.R"][proj]
